@@ -1,0 +1,201 @@
+"""Speed against error: run predictors over rgbd-seq sequences and score every predicted frame.
+
+Protocol (thesis Sec. 6.4, DeCOMPnet's evaluation): with upsampling factor k, frames 0, k, 2k, ... are
+"rendered"; for every rendered frame n that has a rendered predecessor n-k, each method predicts the
+frames n+1 .. n+k-1 from frames n-k and n (history) and the target cameras, and each prediction is
+scored against the true frame (``engine.metrics.score_frame``). Time per predicted frame is the render
+time plus the once-per-rendered-frame preparation divided by the k-1 frames it serves (amortised).
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+import numpy as np
+
+from engine.errors import InputError
+from engine.metrics import score_frame
+from engine.predictors import Target, make_predictor
+
+
+@dataclass
+class MethodResult:
+    """Scores of one method on one sequence for one k (means over predicted frames; medians for time)."""
+
+    sequence: str
+    method: str
+    k: int
+    frames: int
+    psnr: float
+    ssim: float
+    flip: float
+    psnr_moving: float
+    ssim_moving: float
+    ms_per_frame: float
+    stages_ms: dict[str, float] = field(default_factory=dict)
+    per_step: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def _mean(values: Iterable[float]) -> float:
+    vals = [v for v in values if not math.isnan(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def evaluation_pairs(num_frames: int, k: int) -> list[tuple[int, int, list[int]]]:
+    """(n-k, n, [n+1 .. n+k-1]) for every rendered frame n with history and all its targets in range."""
+    if k < 2:
+        raise InputError(f"k must be >= 2 (k = 1 predicts nothing), got {k}", field="k")
+    return [(n - k, n, list(range(n + 1, n + k))) for n in range(k, num_frames - k + 1, k)]
+
+
+def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
+                      max_groups: Optional[int] = None, progress: bool = False) -> list[MethodResult]:
+    """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
+
+    ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence).
+    """
+    from tqdm import tqdm
+
+    groups = evaluation_pairs(len(sequence), k)
+    if not groups:
+        raise InputError(f"sequence has {len(sequence)} frames: too few for k = {k} (needs at least {2 * k})",
+                         file=sequence.path)
+    if max_groups is not None and len(groups) > max_groups:
+        pick = np.linspace(0, len(groups) - 1, max_groups).round().astype(int)
+        groups = [groups[i] for i in sorted(set(pick.tolist()))]
+    predictors = {name: make_predictor(name, sequence.objects) for name in methods}
+    if "oracle" in predictors and not sequence.objects:
+        raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
+    scores: dict[str, list] = {m: [] for m in methods}
+    times: dict[str, list[float]] = {m: [] for m in methods}
+    stages: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    bar = tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
+               disable=not progress, unit="frame")
+    for older_i, newest_i, target_is in groups:
+        history = [sequence[older_i], sequence[newest_i]]
+        truths = [sequence[i] for i in target_is]
+        for name, predictor in predictors.items():
+            start = time.perf_counter()
+            state = predictor.prepare(history)
+            prep_ms = 1e3 * (time.perf_counter() - start)
+            for step, truth in enumerate(truths, start=1):
+                target = Target(truth.camera, truth.time, truth.index)
+                start = time.perf_counter()
+                pred = predictor.render(state, target)
+                render_ms = 1e3 * (time.perf_counter() - start)
+                per_frame = {s: v for s, v in pred.stages_ms.items()}
+                for s, v in state.stages_ms.items():
+                    per_frame[f"prepare:{s}"] = v / (k - 1)
+                times[name].append(render_ms + prep_ms / (k - 1))
+                stages[name].append(per_frame)
+                scores[name].append((step, score_frame(truth.color, pred.color, truth.moving, with_flip=with_flip)))
+                bar.update(1)
+    bar.close()
+    results = []
+    for name in methods:
+        frame_scores = [s for _, s in scores[name]]
+        stage_names = sorted({s for d in stages[name] for s in d})
+        per_step = {}
+        for step in range(1, k):
+            at = [s for st, s in scores[name] if st == step]
+            per_step[str(step)] = {"psnr": _mean(s.psnr for s in at), "ssim": _mean(s.ssim for s in at),
+                                   "flip": _mean(s.flip for s in at), "psnr_moving": _mean(s.psnr_moving for s in at)}
+        results.append(MethodResult(
+            sequence=Path(str(sequence.path)).name, method=name, k=k, frames=len(frame_scores),
+            psnr=_mean(s.psnr for s in frame_scores), ssim=_mean(s.ssim for s in frame_scores),
+            flip=_mean(s.flip for s in frame_scores), psnr_moving=_mean(s.psnr_moving for s in frame_scores),
+            ssim_moving=_mean(s.ssim_moving for s in frame_scores),
+            ms_per_frame=float(statistics.median(times[name])),
+            stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[name])) for s in stage_names},
+            per_step=per_step))
+    return results
+
+
+def summarize(results: Sequence[MethodResult]) -> dict:
+    """Per (method, k): means over sequences, and each method's time relative to `reproject` in the same run."""
+    out: dict = {}
+    for method in dict.fromkeys(r.method for r in results):
+        for k in sorted({r.k for r in results}):
+            rows = [r for r in results if r.method == method and r.k == k]
+            if not rows:
+                continue
+            out[f"{method}/k={k}"] = {
+                "method": method, "k": k, "sequences": len(rows), "frames": sum(r.frames for r in rows),
+                "psnr": _mean(r.psnr for r in rows), "ssim": _mean(r.ssim for r in rows),
+                "flip": _mean(r.flip for r in rows), "psnr_moving": _mean(r.psnr_moving for r in rows),
+                "ms_per_frame": float(statistics.median(r.ms_per_frame for r in rows)),
+            }
+    for key, row in out.items():
+        base = out.get(f"reproject/k={row['k']}")
+        row["time_vs_reproject"] = row["ms_per_frame"] / base["ms_per_frame"] if base else float("nan")
+    return out
+
+
+def markdown_table(results: Sequence[MethodResult]) -> str:
+    """One row per (sequence, method, k), then the per-method means."""
+    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | ms/frame |\n"
+            "|---|---|---|---|---|---|---|---|---|")
+    lines = [head]
+    for r in results:
+        lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {r.psnr:.2f} | {r.ssim:.4f} | "
+                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.ms_per_frame:.1f} |")
+    for row in summarize(results).values():
+        lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {row['psnr']:.2f} | "
+                     f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | "
+                     f"{row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
+    return "\n".join(lines)
+
+
+def write_json(results: Sequence[MethodResult], path: Path, extra: Optional[dict] = None) -> None:
+    """Records (one per sequence, method, k) plus the summary; NaN and inf written as null."""
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [clean(v) for v in x]
+        return x
+
+    doc = {"records": [asdict(r) for r in results], "summary": summarize(results), **(extra or {})}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(clean(doc), indent=2))
+
+
+def plot(results: Sequence[MethodResult], path: Path) -> None:
+    """Time per predicted frame against PSNR and FLIP, one colour per method, one marker per k."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    methods = list(dict.fromkeys(r.method for r in results))
+    markers = {k: m for k, m in zip(sorted({r.k for r in results}), "os^Dv")}
+    colors = plt.get_cmap("tab10")
+    for ax, metric, label in ((axes[0], "psnr", "PSNR (dB, higher is better)"),
+                              (axes[1], "flip", "FLIP (lower is better)")):
+        for mi, method in enumerate(methods):
+            for k, marker in markers.items():
+                rows = [r for r in results if r.method == method and r.k == k]
+                xs = [max(r.ms_per_frame, 1e-2) for r in rows]
+                ys = [getattr(r, metric) for r in rows]
+                ax.scatter(xs, ys, color=colors(mi), marker=marker, alpha=0.45, s=22)
+                if rows:
+                    ax.scatter([statistics.median(xs)], [_mean(ys)], color=colors(mi), marker=marker, s=90,
+                               edgecolor="black", label=f"{method} k={k}")
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per predicted frame (median, log scale)")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.suptitle("Speed against error (small: one sequence; large: mean over sequences)")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

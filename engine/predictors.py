@@ -1,0 +1,240 @@
+"""Frame predictors: given past rendered frames and a target camera, predict the frame seen from it.
+
+Every method sits behind one interface so the evaluation, the demo and (later) the game-engine API call
+them alike:
+
+- ``prepare(history)`` does the work that depends only on the rendered frames (e.g. estimating motion
+  between frame n-k and frame n) once per rendered frame;
+- ``render(state, target)`` predicts one in-between frame from that state;
+- ``predict(history, target)`` is both in one call.
+
+``history`` lists rendered frames oldest first and ends with frame n (the newest); methods that need
+motion use ``history[-2]`` as frame n-k. Timings of each stage are returned in milliseconds.
+Conventions are those of ``engine/frames.py`` (OpenCV cameras, planar depth, linear RGB).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from engine import geometry
+from engine.errors import InputError
+from engine.frames import Camera, Frame, SceneObject, rigid_inverse
+from engine.holefill import fill_holes
+from engine.metrics import srgb_encode
+
+
+@dataclass(frozen=True)
+class Target:
+    """The frame to predict: its camera, its time in seconds, and its index in the stream."""
+
+    camera: Camera
+    time: float
+    index: int = -1
+
+
+@dataclass
+class Prediction:
+    """A predicted frame: colour (H, W, 3) linear RGB, the holes the method had to fill, stage timings."""
+
+    color: np.ndarray
+    holes: np.ndarray
+    stages_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PreparedState:
+    """What ``prepare`` computed from the rendered frames, reused for every predicted frame until the next."""
+
+    history: Sequence[Frame]
+    data: dict[str, Any] = field(default_factory=dict)
+    stages_ms: dict[str, float] = field(default_factory=dict)
+
+
+class _Timer:
+    """Collects wall-clock milliseconds of named stages."""
+
+    def __init__(self, into: dict[str, float]) -> None:
+        self.into = into
+
+    def __call__(self, name: str, fn: Callable, *args, **kwargs):
+        start = time.perf_counter()
+        out = fn(*args, **kwargs)
+        self.into[name] = self.into.get(name, 0.0) + 1e3 * (time.perf_counter() - start)
+        return out
+
+
+class Predictor:
+    """Base class: subclasses set ``name``, ``history_needed`` and implement ``_prepare``/``_render``."""
+
+    name = "base"
+    #: number of rendered frames the method needs (1: frame n only, 2: frames n-k and n)
+    history_needed = 1
+
+    def prepare(self, history: Sequence[Frame]) -> PreparedState:
+        if len(history) < self.history_needed:
+            raise InputError(f"method '{self.name}' needs {self.history_needed} rendered frames, got {len(history)}",
+                             field="history")
+        newest = history[-1]
+        for f in history[-self.history_needed:]:
+            if f.depth.shape != newest.depth.shape:
+                raise InputError(f"frame size {f.depth.shape} differs from the newest frame's {newest.depth.shape}",
+                                 frame=f.index, field="history")
+        if self.history_needed > 1 and not history[-2].time < newest.time:
+            raise InputError(f"frames must be in time order: frame {history[-2].index} at t={history[-2].time} "
+                             f"is not before frame {newest.index} at t={newest.time}", field="history")
+        state = PreparedState(history=history)
+        self._prepare(state, _Timer(state.stages_ms))
+        return state
+
+    def render(self, state: PreparedState, target: Target) -> Prediction:
+        stages: dict[str, float] = {}
+        color, holes = self._render(state, target, _Timer(stages))
+        return Prediction(color=color, holes=holes, stages_ms=stages)
+
+    def predict(self, history: Sequence[Frame], target: Target) -> Prediction:
+        """Prepare and render in one call (stage timings include the preparation)."""
+        state = self.prepare(history)
+        out = self.render(state, target)
+        out.stages_ms = {**state.stages_ms, **out.stages_ms}
+        return out
+
+    def _prepare(self, state: PreparedState, timer: _Timer) -> None:
+        pass
+
+    def _render(self, state: PreparedState, target: Target, timer: _Timer) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+def _warp_and_fill(frame: Frame, target: Target, timer: _Timer, flow: Optional[np.ndarray] = None):
+    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow``) and fill holes."""
+    src, dst = frame.camera, target.camera
+    color, depth, holes = timer("warp", geometry.forward_warp_frame, frame.color, frame.depth,
+                                src.intrinsics, src.world_to_camera, dst.intrinsics, dst.world_to_camera, flow)
+    color, _ = timer("fill", fill_holes, color, depth, holes, frame.color)
+    return color, holes
+
+
+class Repeat(Predictor):
+    """The last rendered frame, unchanged (what a game shows without frame generation)."""
+
+    name = "repeat"
+
+    def _render(self, state, target, timer):
+        frame = state.history[-1]
+        return frame.color.copy(), np.zeros(frame.depth.shape, dtype=bool)
+
+
+class Reproject(Predictor):
+    """Camera-only depth reprojection of the last frame (timewarp), with the background-biased hole fill."""
+
+    name = "reproject"
+
+    def _render(self, state, target, timer):
+        return _warp_and_fill(state.history[-1], target, timer)
+
+
+def _extrapolation_factor(state: PreparedState, target: Target) -> float:
+    """k'/k of thesis Eq. 6.13 from the frame times: how far past frame n the target lies, per step n-k -> n."""
+    older, newest = state.history[-2], state.history[-1]
+    return (target.time - newest.time) / (newest.time - older.time)
+
+
+class Flow2D(Predictor):
+    """2D optical-flow extrapolation in the spirit of spacewarp.
+
+    Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); OpenCV's DIS optical
+    flow estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma; the
+    flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
+    forward-warped by that 2D flow plus the target camera's motion.
+    """
+
+    name = "flow2d"
+    history_needed = 2
+
+    def __init__(self, preset: str = "medium") -> None:
+        import cv2
+
+        presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                   "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+        if preset not in presets:
+            raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
+        self._dis = cv2.DISOpticalFlow_create(presets[preset])
+
+    def _prepare(self, state, timer):
+        import cv2
+
+        older, newest = state.history[-2], state.history[-1]
+        warped, _ = _warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
+
+        def luma8(color: np.ndarray) -> np.ndarray:
+            return cv2.cvtColor((srgb_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+        state.data["flow_back"] = timer("flow", self._dis.calc, luma8(newest.color), luma8(warped), None)
+
+    def _render(self, state, target, timer):
+        flow = -_extrapolation_factor(state, target) * state.data["flow_back"]
+        return _warp_and_fill(state.history[-1], target, timer, flow)
+
+
+class Oracle(Predictor):
+    """Upper bound: moves every pixel of frame n by its object's TRUE rigid motion, then by the camera's.
+
+    Uses the ``object_id`` channel and the sequence's per-frame object transforms; times between frames
+    are not interpolated, so the target must be a frame of the sequence (``target.index``).
+    """
+
+    name = "oracle"
+
+    def __init__(self, objects: Sequence[SceneObject]) -> None:
+        self.objects = {o.id: o for o in objects}
+
+    def _render(self, state, target, timer):
+        frame = state.history[-1]
+        if frame.object_id is None or not self.objects:
+            raise InputError("the oracle needs the object_id channel and the sequence's objects", frame=frame.index,
+                             field="object_id")
+        flow = timer("motion", self._object_flow, frame, target.index)
+        return _warp_and_fill(frame, target, timer, flow)
+
+    def _object_flow(self, frame: Frame, target_index: int) -> np.ndarray:
+        """(H, W, 3) flow in frame n's view: pixel displacement and depth change from true object motion."""
+        k, t = frame.camera.intrinsics, frame.camera.world_to_camera
+        flow = np.zeros(frame.depth.shape + (3,), dtype=np.float32)
+        ids = frame.object_id
+        for oid in np.unique(ids):
+            obj = self.objects.get(int(oid))
+            if obj is None or not obj.moving:
+                continue
+            if not 0 <= target_index < len(obj.world_from_object):
+                raise InputError(f"no transform of object {oid} for frame {target_index}", frame=frame.index,
+                                 field="objects")
+            motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
+            camera_motion = t @ motion @ rigid_inverse(t)  # object motion expressed in frame n's camera
+            mask = (ids == oid) & np.isfinite(frame.depth)
+            points = geometry.unproject(frame.depth, k)[mask]  # (N, 4) homogeneous, w = 1
+            moved = points @ camera_motion.T
+            uv, z, valid = geometry.project(moved, k)
+            pix = geometry.pixel_centers(*frame.depth.shape)[mask]
+            d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
+            flow[mask] = d
+        return flow
+
+
+#: Registry of method names -> factory(objects) for the CLI and the evaluation.
+METHODS: dict[str, Callable[[Sequence[SceneObject]], Predictor]] = {
+    "repeat": lambda objects: Repeat(),
+    "reproject": lambda objects: Reproject(),
+    "flow2d": lambda objects: Flow2D(),
+    "oracle": lambda objects: Oracle(objects),
+}
+
+
+def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
+    """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones."""
+    if name not in METHODS:
+        raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}", field="methods")
+    return METHODS[name](objects)

@@ -1,0 +1,369 @@
+"""The moderngl renderer of a ``Scene``: colour plus exact ground truth, headless (EGL, llvmpipe works).
+
+Per frame, with one GL context reused across frames:
+
+1. sun shadow map (orthographic depth-only pass), if ``config.shadows``;
+2. colour at ``supersample`` x the resolution (geometry, then the sky behind it), box-downsampled on the
+   GPU to one colour per pixel;
+3. ground truth at the native resolution, never supersampled, so every value belongs to the surface
+   seen through the pixel centre: planar depth (camera-space z written by the shader in float32), object
+   id, moving mask, flow and object_flow. Every vertex is transformed three ways - camera(t) from
+   object(t), camera(t+1) from object(t+1), camera(t) from object(t+1) - and the fragment shader projects
+   the three interpolated camera-space points, so flow = project(t+1 view) - project(t view) is exact for
+   rigid motion (camera-space points are affine on a triangle; perspective-correct interpolation keeps
+   them exact). The sky gets the flow of a point at infinity: only the camera rotation moves it.
+
+All render targets are float32. Camera space is OpenCV's; ``clip_from_camera`` maps it to GL clip space
+and rows are flipped on readback (GL images are bottom-up).
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterator
+
+import numpy as np
+
+from engine.errors import InputError
+from engine.frames import Camera, Frame
+from engine.scenegen import glsl
+from engine.scenegen.meshes import merge_parts
+from engine.scenegen.scene import PATTERNS, Scene
+
+#: Near and far clip distances in metres (planar depth is exact in between; the scene stays inside).
+NEAR, FAR = 0.05, 2000.0
+
+
+def clip_from_camera(intrinsics: np.ndarray, width: int, height: int, near: float = NEAR,
+                     far: float = FAR) -> np.ndarray:
+    """GL clip-space matrix (4, 4) for OpenCV camera points and pinhole ``intrinsics``.
+
+    NDC x = 2 u / width - 1 and NDC y = 1 - 2 v / height with (u, v) = K (x/z, y/z) in pixels (pixel
+    centres at +0.5), so GL's bottom-up window row j is image row height - 1 - j. Depth maps z in
+    [near, far] to NDC [-1, 1]. The mapping flips only y, so counter-clockwise front faces stay
+    counter-clockwise.
+    """
+    from engine.conventions import projection_from_intrinsics
+
+    opengl_from_opencv = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y and z flip
+    return projection_from_intrinsics(intrinsics, width, height, near, far) @ opengl_from_opencv
+
+
+def _scaled(intrinsics: np.ndarray, factor: float) -> np.ndarray:
+    k = intrinsics.copy()
+    k[:2] *= factor  # pixel (u + 0.5) / factor: sub-pixel sample centres of the supersampled grid
+    return k
+
+
+def _sun_matrix(direction: np.ndarray, half_extent: float, depth: float = 400.0) -> np.ndarray:
+    """Orthographic GL clip-from-world matrix looking down the sun direction at the origin."""
+    s = direction / np.linalg.norm(direction)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(s[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    r = np.cross(helper, s)
+    r /= np.linalg.norm(r)
+    u = np.cross(s, r)
+    m = np.eye(4)
+    m[0, :3] = r / half_extent
+    m[1, :3] = u / half_extent
+    m[2, :3] = -s / depth  # closer to the sun: smaller depth
+    return m
+
+
+class _Batch:
+    """Geometry drawn with one material and one transform: vertex buffer and one VAO per program."""
+
+    def __init__(self, ctx, programs: dict, vertices: np.ndarray, material: int, obj: int, shadow: bool) -> None:
+        self.material, self.obj, self.shadow = material, obj, shadow
+        self.vbo = ctx.buffer(vertices.tobytes())
+        self.color = ctx.vertex_array(programs["color"], [(self.vbo, "3f 3f", "in_pos", "in_nrm")])
+        self.truth = ctx.vertex_array(programs["truth"], [(self.vbo, "3f 12x", "in_pos")])
+        self.depth = ctx.vertex_array(programs["shadow"], [(self.vbo, "3f 12x", "in_pos")])
+
+    def release(self) -> None:
+        for item in (self.color, self.truth, self.depth, self.vbo):
+            item.release()
+
+
+def _mat(m: np.ndarray) -> bytes:
+    """Column-major float32 bytes of a row-major matrix, as GL wants them."""
+    return np.ascontiguousarray(np.asarray(m, np.float64).T, dtype=np.float32).tobytes()
+
+
+class SceneRenderer:
+    """Renders frames of one scene with one GL context; release it (or use ``with``) when done.
+
+    >>> with SceneRenderer(make_scene(SceneConfig(width=64, height=48, num_frames=2))) as r:  # doctest: +SKIP
+    ...     frame = r.render_frame(0)
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        import moderngl
+
+        self.scene = scene
+        cfg = scene.config
+        self._moderngl = moderngl
+        self.ctx = ctx = moderngl.create_standalone_context(backend="egl")
+        self._owned: list = []
+        try:
+            self._build(ctx, cfg)
+        except Exception:
+            self.release()
+            raise
+
+    # -------------------------------------------------------------------------------------- set-up
+    def _program(self, vs: str, fs: str):
+        prog = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
+        self._owned.append(prog)
+        return prog
+
+    def _build(self, ctx, cfg) -> None:
+        scene = self.scene
+        w, h, s = cfg.width, cfg.height, cfg.supersample
+        self.programs = {
+            "color": self._program(glsl.GEOMETRY_VS, glsl.GEOMETRY_FS),
+            "truth": self._program(glsl.TRUTH_VS, glsl.TRUTH_FS),
+            "shadow": self._program(glsl.SHADOW_VS, glsl.SHADOW_FS),
+            "sky_color": self._program(glsl.FULLSCREEN_VS, glsl.SKY_COLOR_FS),
+            "sky_truth": self._program(glsl.FULLSCREEN_VS, glsl.SKY_TRUTH_FS),
+            "downsample": self._program(glsl.FULLSCREEN_VS, glsl.DOWNSAMPLE_FS),
+        }
+        self._names = {k: set(p) for k, p in self.programs.items()}
+
+        # batches: static parts grouped by (material, casts shadow); object parts by (object, material)
+        self.batches: list[_Batch] = []
+        groups: dict[tuple[int, int, bool], list] = {}
+        for part in scene.static_parts:
+            groups.setdefault((0, part.material, part.casts_shadow), []).append(part)
+        for obj in scene.objects:
+            for part in obj.parts:
+                groups.setdefault((obj.id, part.material, True), []).append(part)
+        # roughly front to back, so that early depth tests skip hidden fragments: objects, props, then
+        # the ground and the room (the parts that cast no shadow) that fill the rest of the image
+        order = sorted(groups, key=lambda key: (key[0] == 0, not key[2]))
+        for oid, mat, shadow in order:
+            self.batches.append(_Batch(ctx, self.programs, merge_parts(groups[oid, mat, shadow]), mat, oid, shadow))
+
+        tri = np.array([[-1.0, -1.0], [3.0, -1.0], [-1.0, 3.0]], np.float32)
+        self._fs_vbo = ctx.buffer(tri.tobytes())
+        self._owned.append(self._fs_vbo)
+        self.fullscreen = {k: ctx.vertex_array(self.programs[k], [(self._fs_vbo, "2f", "in_xy")])
+                           for k in ("sky_color", "sky_truth", "downsample")}
+        self._owned += list(self.fullscreen.values())
+
+        def texture(size, depth=False):
+            tex = ctx.depth_texture(size) if depth else ctx.texture(size, 4, dtype="f4")
+            self._owned.append(tex)
+            return tex
+
+        def framebuffer(colors, depth):
+            fbo = ctx.framebuffer(color_attachments=colors, depth_attachment=depth)
+            self._owned.append(fbo)
+            return fbo
+
+        self.color_ss = texture((w * s, h * s))
+        self.fbo_ss = framebuffer([self.color_ss], texture((w * s, h * s), depth=True))
+        self.color = texture((w, h))
+        self.fbo_color = framebuffer([self.color], None)
+        self.geometry, self.flow = texture((w, h)), texture((w, h))
+        self.fbo_truth = framebuffer([self.geometry, self.flow], texture((w, h), depth=True))
+        self.shadow_map = None
+        if cfg.shadows:
+            size = cfg.shadow_map_size
+            self.shadow_map = texture((size, size), depth=True)
+            self.shadow_map.compare_func = "<="
+            self.shadow_map.filter = (self._moderngl.LINEAR, self._moderngl.LINEAR)
+            self.fbo_shadow = framebuffer([], self.shadow_map)
+            eyes = scene.camera.eye(np.arange(cfg.num_frames + 1) / cfg.fps)
+            self._shadow_extent = float(np.clip(np.linalg.norm(eyes[:, :2], axis=1).max() + 10.0, 20.0, 60.0))
+            self.sun_matrix = _sun_matrix(scene.lighting.sun_direction, self._shadow_extent)
+        self._set_constants()
+
+    def _set(self, program: str, name: str, value) -> None:
+        """Set a uniform if the compiled program kept it (unused uniforms are optimised away)."""
+        if name not in self._names[program]:
+            return
+        u = self.programs[program][name]
+        if isinstance(value, np.ndarray):
+            if value.ndim == 2:
+                u.write(_mat(value))
+            else:
+                u.write(np.ascontiguousarray(value, np.float32).tobytes())
+        else:
+            u.value = value
+
+    def _set_constants(self) -> None:
+        scene, light, sky = self.scene, self.scene.lighting, self.scene.sky
+        for prog in ("color", "sky_color"):
+            self._set(prog, "u_sun_dir", light.sun_direction)
+            self._set(prog, "u_sun_col", light.sun_color)
+        self._set("color", "u_amb_sky", light.ambient_sky)
+        self._set("color", "u_amb_ground", light.ambient_ground)
+        lights = light.point_lights[:4]
+        self._set("color", "u_num_lights", len(lights))
+        pos, col = np.zeros((4, 3)), np.zeros((4, 3))
+        for i, pl in enumerate(lights):
+            pos[i], col[i] = pl.position, pl.color
+        self._set("color", "u_light_pos", pos.reshape(-1))
+        self._set("color", "u_light_col", col.reshape(-1))
+        self._set("color", "u_fog", float(light.fog_density))
+        self._set("color", "u_fog_col", light.fog_color)
+        self._set("color", "u_shadows", int(self.shadow_map is not None))
+        if self.shadow_map is not None:
+            bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
+            self._set("color", "u_shadow_mat", bias @ self.sun_matrix)
+            self._set("color", "u_shadow_texel", 2.0 * self._shadow_extent / self.scene.config.shadow_map_size)
+            self._set("color", "u_shadow_map", 0)
+        for name, value in (("u_zenith", sky.zenith), ("u_horizon", sky.horizon), ("u_below", sky.below),
+                            ("u_cloud_col", sky.cloud_color)):
+            self._set("sky_color", name, np.asarray(value, np.float64))
+        self._set("sky_color", "u_coverage", float(sky.cloud_coverage))
+        self._set("sky_color", "u_cloud_scale", float(sky.cloud_scale))
+        self._set("sky_color", "u_sun_disk", float(sky.sun_disk))
+        self._set("sky_color", "u_sun_cos", float(math.cos(sky.sun_size)))
+        self._set("sky_color", "u_seed", int(sky.seed) & 0xFFFFFFFF)
+        self._set("downsample", "u_factor", int(scene.config.supersample))
+        self._set("downsample", "u_image", 0)
+
+    def _set_material(self, index: int) -> None:
+        m = self.scene.materials[index]
+        self._set("color", "u_pattern", PATTERNS.index(m.pattern))
+        for i in range(3):
+            self._set("color", f"u_col{i}", m.colors[i])
+        self._set("color", "u_scale", float(m.scale))
+        self._set("color", "u_detail", float(m.detail))
+        self._set("color", "u_macro", float(m.macro))
+        self._set("color", "u_specular", float(m.specular))
+        self._set("color", "u_shininess", float(m.shininess))
+        self._set("color", "u_tex_rot", m.rotation)
+        c, s = math.cos(m.angle), math.sin(m.angle)
+        self._set("color", "u_tex_rot2", np.array([[c, -s], [s, c]]))
+        self._set("color", "u_tex_offset", m.offset)
+        self._set("color", "u_seed", int(m.seed) & 0xFFFFFFFF)
+
+    # -------------------------------------------------------------------------------------- frames
+    def render_frame(self, index: int) -> Frame:
+        """Render frame ``index`` (0 <= index < num_frames) with colour and every ground-truth channel."""
+        mgl, ctx, scene, cfg = self._moderngl, self.ctx, self.scene, self.scene.config
+        if not 0 <= index < cfg.num_frames:
+            raise InputError(f"must be in [0, {cfg.num_frames}), got {index}", field="index")
+        w, h, s = cfg.width, cfg.height, cfg.supersample
+        cam0, cam1 = scene.camera_at(index), scene.camera_at(index + 1)
+        v0, v1 = cam0.world_to_camera, cam1.world_to_camera
+        m0, m1 = np.eye(4)[None].repeat(len(scene.objects) + 1, 0), np.eye(4)[None].repeat(len(scene.objects) + 1, 0)
+        if scene.objects:
+            m0[1:], m1[1:] = scene.object_transforms(index), scene.object_transforms(index + 1)
+        moves = np.concatenate([[False], scene.object_moves(index)]) if scene.objects else np.array([False])
+        slot = {0: 0, **{o.id: i + 1 for i, o in enumerate(scene.objects)}}
+
+        # 1. sun shadow map
+        if self.shadow_map is not None:
+            self.fbo_shadow.use()
+            self.fbo_shadow.clear(depth=1.0)
+            ctx.enable(mgl.DEPTH_TEST)
+            ctx.disable(mgl.CULL_FACE)
+            ctx.depth_func = "<"
+            ctx.polygon_offset = (2.0, 4.0)
+            for b in self.batches:
+                if b.shadow:
+                    self._set("shadow", "u_light_from_obj", self.sun_matrix @ m0[slot[b.obj]])
+                    b.depth.render(mgl.TRIANGLES)
+            ctx.polygon_offset = (0.0, 0.0)
+
+        # 2. colour, supersampled
+        ctx.enable(mgl.DEPTH_TEST | mgl.CULL_FACE)
+        self.fbo_ss.use()
+        self.fbo_ss.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        ctx.depth_func = "<"
+        self._set("color", "u_proj", clip_from_camera(_scaled(cam0.intrinsics, s), w * s, h * s))
+        self._set("color", "u_eye", cam0.position)
+        if self.shadow_map is not None:
+            self.shadow_map.use(location=0)
+        for b in self.batches:
+            self._set_material(b.material)
+            self._set("color", "u_model", m0[slot[b.obj]])
+            self._set("color", "u_cam_from_obj", v0 @ m0[slot[b.obj]])
+            b.color.render(mgl.TRIANGLES)
+        ctx.depth_func = "<="
+        if self.scene.sky.visible:
+            k_inv = np.linalg.inv(_scaled(cam0.intrinsics, s))
+            self._set("sky_color", "u_world_from_pixel", v0[:3, :3].T @ k_inv)
+            self._set("sky_color", "u_height", float(h * s))
+            self.fullscreen["sky_color"].render(mgl.TRIANGLES)
+        ctx.disable(mgl.DEPTH_TEST)
+        self.fbo_color.use()
+        self.color_ss.use(location=0)
+        self.fullscreen["downsample"].render(mgl.TRIANGLES)
+
+        # 3. ground truth at native resolution
+        ctx.enable(mgl.DEPTH_TEST | mgl.CULL_FACE)
+        ctx.depth_func = "<"
+        self.fbo_truth.use()
+        self.fbo_truth.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        k0, k1 = cam0.intrinsics, cam1.intrinsics
+        kvec = lambda k: (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))  # noqa: E731
+        for prog in ("truth", "sky_truth"):
+            self._set(prog, "u_k", kvec(k0))
+            self._set(prog, "u_k1", kvec(k1))
+        self._set("truth", "u_proj", clip_from_camera(k0, w, h))
+        for b in self.batches:
+            i = slot[b.obj]
+            self._set("truth", "u_cam_from_obj", v0 @ m0[i])
+            self._set("truth", "u_cam1_from_obj1", v1 @ m1[i])
+            self._set("truth", "u_cam_from_obj1", v0 @ m1[i])
+            self._set("truth", "u_id", float(b.obj))
+            self._set("truth", "u_moving", float(moves[i]))
+            b.truth.render(mgl.TRIANGLES)
+        ctx.depth_func = "<="
+        self._set("sky_truth", "u_k_inv", np.linalg.inv(k0))
+        self._set("sky_truth", "u_rot", v1[:3, :3] @ v0[:3, :3].T)
+        self._set("sky_truth", "u_height", float(h))
+        self.fullscreen["sky_truth"].render(mgl.TRIANGLES)
+        ctx.depth_func = "<"
+
+        def read(fbo, attachment):
+            data = np.frombuffer(fbo.read(attachment=attachment, components=4, dtype="f4"), np.float32)
+            return data.reshape(h, w, 4)[::-1]
+
+        color = np.ascontiguousarray(read(self.fbo_color, 0)[..., :3])
+        geo = read(self.fbo_truth, 0)
+        flow = read(self.fbo_truth, 1)
+        depth = np.where(geo[..., 3] > 0.5, geo[..., 0], np.inf).astype(np.float32)
+        return Frame(index=index, time=scene.time(index), color=color, depth=depth,
+                     camera=Camera(cam0.intrinsics, cam0.world_to_camera),
+                     object_id=np.rint(geo[..., 1]).astype(np.int32), moving=geo[..., 2] > 0.5,
+                     flow=np.ascontiguousarray(flow[..., :2]), object_flow=np.ascontiguousarray(flow[..., 2:]))
+
+    # -------------------------------------------------------------------------------------- clean-up
+    def release(self) -> None:
+        """Free every GL object and the context (safe to call twice)."""
+        for b in getattr(self, "batches", []):
+            b.release()
+        self.batches = []
+        for item in reversed(self._owned):
+            item.release()
+        self._owned = []
+        if self.ctx is not None:
+            self.ctx.release()
+            self.ctx = None
+
+    def __enter__(self) -> "SceneRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def render_scene(scene: Scene, *, progress: bool = False) -> Iterator[Frame]:
+    """Yield every frame of ``scene`` in order (one GL context, released when the iterator ends or closes).
+
+    Frames follow ``engine/frames.py``: linear RGB colour, planar depth with +inf sky, OpenCV cameras,
+    object_id (0 = background), moving, flow and object_flow in pixels to the next frame. The last
+    frame's flow uses the paths one step further (they are defined for all times).
+    """
+    from tqdm import tqdm
+
+    renderer = SceneRenderer(scene)
+    try:
+        for index in tqdm(range(scene.num_frames), desc="render", unit="frame", disable=not progress):
+            yield renderer.render_frame(index)
+    finally:
+        renderer.release()

@@ -1,0 +1,32 @@
+# Sourced by scripts/demo.sh and scripts/test.sh: makes .venv with what the given extra needs.
+# Usage: . scripts/_env.sh [EXTRA]   (EXTRA: empty for the engine alone, "test" for tests + torch)
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+extra="${1:-}"
+py="${PYTHON:-python3}"
+if [ ! -x .venv/bin/python ]; then
+    "$py" -m venv .venv
+fi
+# torch is pinned to the CPU build (2.13.0): an unpinned torch pulls gigabytes of CUDA packages.
+stamp=".venv/.installed-${extra:-engine}"
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    .venv/bin/python -m pip install -q --upgrade pip
+    if [ -n "$extra" ]; then
+        .venv/bin/python -m pip install -q -e ".[$extra]"
+    else
+        .venv/bin/python -m pip install -q -e .
+    fi
+    touch "$stamp"
+fi
+# Headless OpenGL: EGL with Mesa's llvmpipe when there is no GPU (Debian: libegl1 libgl1 + Mesa drivers).
+if ! .venv/bin/python -c "import moderngl; moderngl.create_standalone_context(backend='egl').release()" 2>/dev/null; then
+    if command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+        echo "installing Debian packages for headless OpenGL (libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)" >&2
+        apt-get update -qq && apt-get install -y -qq libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri >/dev/null
+    else
+        echo "headless OpenGL (EGL) is missing: install Debian's libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri" >&2
+        exit 1
+    fi
+fi
+export PATH="$root/.venv/bin:$PATH"

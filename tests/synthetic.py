@@ -1,0 +1,60 @@
+"""An analytic two-layer scene for tests: exact frames with no renderer involved.
+
+A textured background plane at z = 6 (world) and a textured square at z = 3 that moves right by
+``object_speed`` world units per frame; the camera translates along x by ``camera_speed`` per frame
+(OpenCV axes, looking down +z). Every channel (colour, planar depth, object id, moving, flow,
+object_flow) is computed in closed form, so predictors and the evaluation can be checked exactly.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.frames import Camera, Frame, SceneObject
+
+BACKGROUND_Z = 6.0
+SQUARE_Z = 3.0
+SQUARE_HALF = 0.5
+
+
+def _texture(x: np.ndarray, y: np.ndarray, phase: float) -> np.ndarray:
+    r = 0.5 + 0.4 * np.sin(3.1 * x + phase) * np.cos(2.3 * y)
+    g = 0.5 + 0.4 * np.sin(1.7 * x - 2.9 * y + phase)
+    b = 0.5 + 0.4 * np.cos(4.3 * y + 0.5 * x)
+    return np.stack([r, g, b], axis=-1).astype(np.float32)
+
+
+def two_layer_sequence(num_frames: int = 8, width: int = 64, height: int = 48, camera_speed: float = 0.05,
+                       object_speed: float = 0.08, fps: float = 30.0) -> tuple[list[Frame], list[SceneObject]]:
+    fx = fy = 0.9 * width
+    k = np.array([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=np.float64)
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rx, ry = (u - k[0, 2]) / fx, (v - k[1, 2]) / fy
+    frames, transforms = [], []
+    for i in range(num_frames + 1):
+        cam_x, obj_x = camera_speed * i, object_speed * i
+        w2c = np.eye(4)
+        w2c[0, 3] = -cam_x
+        world_from_object = np.eye(4)
+        world_from_object[0, 3] = obj_x
+        world_from_object[2, 3] = SQUARE_Z
+        transforms.append(world_from_object)
+        if i == num_frames:
+            break
+        # square: world x in [obj_x - h, obj_x + h], y in [-h, h] at z = 3
+        sx, sy = cam_x + rx * SQUARE_Z, ry * SQUARE_Z
+        on_square = (np.abs(sx - obj_x) <= SQUARE_HALF) & (np.abs(sy) <= SQUARE_HALF)
+        bx, by = cam_x + rx * BACKGROUND_Z, ry * BACKGROUND_Z
+        color = np.where(on_square[..., None], _texture(sx - obj_x, sy, 1.0), _texture(bx, by, 0.0))
+        depth = np.where(on_square, SQUARE_Z, BACKGROUND_Z).astype(np.float32)
+        # flow to the next frame: camera moves +camera_speed, the square +object_speed
+        bg_flow = -camera_speed * fx / BACKGROUND_Z
+        sq_flow = (object_speed - camera_speed) * fx / SQUARE_Z
+        flow = np.zeros((height, width, 2), np.float32)
+        flow[..., 0] = np.where(on_square, sq_flow, bg_flow)
+        object_flow = np.zeros((height, width, 2), np.float32)
+        object_flow[..., 0] = np.where(on_square, object_speed * fx / SQUARE_Z, 0.0)
+        frames.append(Frame(index=i, time=i / fps, color=color, depth=depth, camera=Camera(k, w2c),
+                            object_id=on_square.astype(np.int32), moving=on_square.copy(), flow=flow,
+                            object_flow=object_flow))
+    objects = [SceneObject(id=1, name="square", moving=True, world_from_object=np.stack(transforms[:num_frames]))]
+    return frames, objects

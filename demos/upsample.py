@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from engine.frames import Frame
-from engine.metrics import flip_map, srgb_encode
+from engine.colorspace import display_encode
+from engine.metrics import flip_map
 from engine.predictors import Predictor, Reproject, Target
 
 
@@ -58,7 +59,7 @@ def side_by_side(truth: np.ndarray, shown: np.ndarray, predicted: bool, index: i
     """truth | shown frame | FLIP error (magma), as one 8-bit BGR image with labels."""
     import matplotlib
 
-    a, b = srgb_encode(truth), srgb_encode(shown)
+    a, b = display_encode(truth), display_encode(shown)
     err = flip_map(a, b) if predicted else np.zeros(a.shape[:2], np.float32)
     err_rgb = matplotlib.colormaps["magma"](err)[..., :3]
     tiles = [(a, f"truth {index}"), (b, f"{method} (predicted)" if predicted else "rendered"),

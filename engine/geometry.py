@@ -22,8 +22,8 @@ Conventions (those of ``engine/frames.py``; every function below depends on them
   the farther plane); sky pixels go to the farthest plane and keep depth +inf. The MPI depth channel holds
   the true depth where alpha = 1 and 0 elsewhere.
 
-Values are float32; 4x4 compositions are made in float64 and splat sums accumulate in float64
-(``np.bincount``).
+Values are float32; 4x4 compositions are made in float64 and splat sums accumulate in float64 (with
+``np.add.at`` into per-thread work buffers that are reused across calls, see ``_Scratch``).
 """
 from __future__ import annotations
 

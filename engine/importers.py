@@ -32,7 +32,8 @@ from engine.errors import InputError
 from engine.exr import read_exr
 from engine.frames import (Camera, Frame, rigid_inverse, validate_depth, validate_frame, validate_intrinsics,
                            validate_pose)
-from engine.io import _finite, _get, _int, _load_json, srgb_to_linear, write_sequence
+from engine.colorspace import srgb_to_linear
+from engine.io import _finite, _get, _int, _load_json, write_sequence
 
 #: Depth at or beyond which a pixel is "no surface" (+inf). Blender (Cycles) writes 1e10 for background.
 BACKGROUND_DEPTH = 1e9

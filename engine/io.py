@@ -31,6 +31,7 @@ from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
+from engine.colorspace import linear_to_srgb, srgb_to_linear
 from engine.errors import InputError
 from engine.exr import read_exr, read_exr_info, write_exr
 from engine.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
@@ -56,23 +57,6 @@ RIG_TIME_TOLERANCE = 1e-6
 # --------------------------------------------------------------------------------------------------
 # sRGB transfer function (IEC 61966-2-1)
 # --------------------------------------------------------------------------------------------------
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """Exact sRGB EOTF: ``c / 12.92`` for ``c <= 0.04045``, else ``((c + 0.055) / 1.055) ** 2.4``.
-
-    Computed in float64, returned as float32. NaN stays NaN (validation reports it).
-    """
-    c = np.asarray(encoded, dtype=np.float64)
-    curve = ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4
-    return np.where(c <= 0.04045, c / 12.92, curve).astype(np.float32)
-
-
-def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`srgb_to_linear`: ``12.92 c`` for ``c <= 0.0031308``, else ``1.055 c^(1/2.4) - 0.055``."""
-    c = np.asarray(linear, dtype=np.float64)
-    curve = 1.055 * np.maximum(c, 0.0031308) ** (1.0 / 2.4) - 0.055
-    return np.where(c <= 0.0031308, c * 12.92, curve).astype(np.float32)
-
 
 # --------------------------------------------------------------------------------------------------
 # JSON field checks (each raises InputError naming file, frame and field)

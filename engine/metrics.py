@@ -13,23 +13,12 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from engine.colorspace import display_encode
 from engine.errors import InputError
 
 #: DeCOMPnet's crop at 1920x1080, as fractions of the frame size.
 CROP_TOP_BOTTOM = 40.0 / 1080.0
 CROP_LEFT_RIGHT = 60.0 / 1920.0
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear light -> sRGB display values in [0, 1] (IEC 61966-2-1 transfer function, clipped)."""
-    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
-
-
-def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """sRGB display values in [0, 1] -> linear light (the exact sRGB EOTF)."""
-    x = np.asarray(encoded, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
 def crop_slices(height: int, width: int) -> tuple[slice, slice]:
@@ -112,8 +101,8 @@ def score_frame(truth: np.ndarray, prediction: np.ndarray, moving: Optional[np.n
     if not np.all(np.isfinite(prediction)):
         raise InputError("prediction has non-finite values", field="prediction")
     rows, cols = crop_slices(*truth.shape[:2])
-    ref = srgb_encode(truth)[rows, cols]
-    out = srgb_encode(prediction)[rows, cols]
+    ref = display_encode(truth)[rows, cols]
+    out = display_encode(prediction)[rows, cols]
     ssim_px = ssim_map(ref, out)
     mask = None if moving is None else np.asarray(moving, dtype=bool)[rows, cols]
     has_moving = mask is not None and bool(np.any(mask))

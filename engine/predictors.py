@@ -24,7 +24,7 @@ from engine import geometry
 from engine.errors import InputError
 from engine.frames import Camera, Frame, SceneObject, rigid_inverse
 from engine.holefill import fill_holes
-from engine.metrics import srgb_encode
+from engine.colorspace import display_encode
 
 
 @dataclass(frozen=True)
@@ -171,7 +171,7 @@ class Flow2D(Predictor):
         warped, _ = _warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
 
         def luma8(color: np.ndarray) -> np.ndarray:
-            return cv2.cvtColor((srgb_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+            return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
         state.data["flow_back"] = timer("flow", self._dis.calc, luma8(newest.color), luma8(warped), None)
 

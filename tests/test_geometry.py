@@ -425,6 +425,17 @@ def test_sky_alone_keeps_infinite_depth_after_warp():
     assert torch.all(torch.isinf(t_out[1]))
 
 
+def test_warping_an_empty_mpi_gives_only_holes():
+    mpi = ng.build_mpi(np.ones((4, 5, 3), np.float32), np.full((4, 5), 2.0, np.float32), 3)
+    mpi = ng.Mpi(mpi.color * 0, mpi.depth * 0, mpi.alpha * 0, mpi.plane_depths)
+    k = intrinsics(4, 5)
+    warped, coverage = ng.forward_warp_mpi(mpi, k, np.eye(4), k, pose(translation=(0.1, 0, 0)))
+    assert not warped.alpha.any() and not coverage.any() and ng.disocclusion_mask(warped).all()
+    t_warped, t_coverage = tg.forward_warp_mpi(mpi_to_torch(mpi), tb(k), tb(np.eye(4)), tb(k),
+                                               tb(pose(translation=(0.1, 0, 0))))
+    assert not t_warped.alpha.any() and not t_coverage.any()
+
+
 def test_torch_batch_matches_items():
     rng = np.random.default_rng(23)
     scenes = [random_scene(rng, 12, 16) for _ in range(2)]

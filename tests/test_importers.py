@@ -14,7 +14,8 @@ from engine.errors import InputError
 from engine.frames import rigid_inverse
 from engine.importers import (SINTEL_TAG, frames_from_blender, frames_from_sintel, frames_from_veed, import_any,
                               read_cam, read_dpt, read_transformation_csv)
-from engine.io import read_sequence, srgb_to_linear
+from engine.colorspace import srgb_to_linear
+from engine.io import read_sequence
 
 H, W = 16, 24
 

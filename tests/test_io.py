@@ -11,8 +11,8 @@ import pytest
 from engine.errors import InputError
 from engine.exr import read_exr, read_exr_info, write_exr
 from engine.frames import Camera, Frame, SceneObject
-from engine.io import (linear_to_srgb, read_rig, read_sequence, srgb_to_linear, write_rig,
-                       write_sequence)
+from engine.colorspace import linear_to_srgb, srgb_to_linear
+from engine.io import read_rig, read_sequence, write_rig, write_sequence
 
 H, W, N = 16, 24, 4
 BAD_POSITION, BAD_INDEX = 1, 2  # the frame the bad-input tests break: position 1 has index 2

@@ -3,15 +3,16 @@ import numpy as np
 import pytest
 
 from engine.errors import InputError
-from engine.metrics import crop_slices, psnr, score_frame, srgb_decode, srgb_encode, ssim_map
+from engine.colorspace import display_encode, srgb_to_linear
+from engine.metrics import crop_slices, psnr, score_frame, ssim_map
 
 
 def test_srgb_round_trip_and_known_points():
     x = np.linspace(0, 1, 1001, dtype=np.float32)
-    np.testing.assert_allclose(srgb_decode(srgb_encode(x)), x, atol=2e-6)
-    assert srgb_encode(np.float32(0.0031308)) == pytest.approx(0.04045, abs=1e-5)
-    assert srgb_encode(np.float32(0.5)) == pytest.approx(0.7353569, abs=1e-5)
-    assert srgb_encode(np.float32(4.0)) == 1.0  # clipped for display, never > 1
+    np.testing.assert_allclose(srgb_to_linear(display_encode(x)), x, atol=2e-6)
+    assert display_encode(np.float32(0.0031308)) == pytest.approx(0.04045, abs=1e-5)
+    assert display_encode(np.float32(0.5)) == pytest.approx(0.7353569, abs=1e-5)
+    assert display_encode(np.float32(4.0)) == 1.0  # clipped for display, never > 1
 
 
 def test_crop_matches_decompnet_at_1080p_and_scales():

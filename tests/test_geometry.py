@@ -425,6 +425,20 @@ def test_sky_alone_keeps_infinite_depth_after_warp():
     assert torch.all(torch.isinf(t_out[1]))
 
 
+@pytest.mark.parametrize("num_planes", [1, 3])
+def test_numpy_warp_chunking_does_not_change_results(monkeypatch, num_planes):
+    rng = np.random.default_rng(27)
+    color, depth = random_scene(rng, 16, 20, sky=0.3)
+    k, t_src, t_dst = moving_cameras(rng, 16, 20)
+    mpi = ng.build_mpi(color, depth, num_planes)
+    flow = rng.normal(0, 1, (3, num_planes, 16, 20)).astype(np.float32)
+    whole = ng.forward_warp_mpi(mpi, k, t_src, k, t_dst, flow)
+    monkeypatch.setattr(ng, "_CHUNK", 37)
+    chunked = ng.forward_warp_mpi(mpi, k, t_src, k, t_dst, flow)
+    for a, b in zip(whole[0] + (whole[1],), chunked[0] + (chunked[1],)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
 def test_warping_an_empty_mpi_gives_only_holes():
     mpi = ng.build_mpi(np.ones((4, 5, 3), np.float32), np.full((4, 5), 2.0, np.float32), 3)
     mpi = ng.Mpi(mpi.color * 0, mpi.depth * 0, mpi.alpha * 0, mpi.plane_depths)

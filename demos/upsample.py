@@ -77,7 +77,7 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
     """
     from tqdm import tqdm
 
-    from engine.evaluate import evaluate_sequence, markdown_table, plot, summarize, write_json
+    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
     from engine.io import read_sequence
     from engine.predictors import make_predictor
     from engine.scenegen import SceneConfig, generate_sequence
@@ -88,7 +88,7 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
                                   out_dir / "scene", progress=progress)
     sequence = read_sequence(scene_dir)
     results = evaluate_sequence(sequence, list(methods), k, progress=progress)
-    table = markdown_table(results)
+    table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
     (out_dir / "table.md").write_text(table + "\n")
     write_json(results, out_dir / "results.json", {"command": f"interleave demo --k {k} --seed {seed}"})
     plot(results, out_dir / "speed_vs_error.png")

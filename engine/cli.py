@@ -145,7 +145,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from engine.evaluate import evaluate_sequence, markdown_table, plot, summarize, write_json
+    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
     from engine.io import read_sequence
     from engine.predictors import METHODS
 
@@ -160,6 +160,8 @@ def _run_eval(args: argparse.Namespace) -> int:
             results.extend(evaluate_sequence(sequence, methods, k, with_flip=not args.no_flip,
                                              max_groups=args.max_groups, progress=True))
     print(markdown_table(results))
+    print("\nStage breakdown, median ms per predicted frame:\n")
+    print(stage_table(results))
     if args.json:
         write_json(results, args.json, {"command": " ".join(sys.argv)})
         print(f"wrote {args.json}")

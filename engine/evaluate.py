@@ -36,6 +36,7 @@ class MethodResult:
     flip: float
     psnr_moving: float
     ssim_moving: float
+    flip_moving: float
     ms_per_frame: float
     stages_ms: dict[str, float] = field(default_factory=dict)
     per_step: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -110,6 +111,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             psnr=_mean(s.psnr for s in frame_scores), ssim=_mean(s.ssim for s in frame_scores),
             flip=_mean(s.flip for s in frame_scores), psnr_moving=_mean(s.psnr_moving for s in frame_scores),
             ssim_moving=_mean(s.ssim_moving for s in frame_scores),
+            flip_moving=_mean(s.flip_moving for s in frame_scores),
             ms_per_frame=float(statistics.median(times[name])),
             stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[name])) for s in stage_names},
             per_step=per_step))
@@ -128,6 +130,7 @@ def summarize(results: Sequence[MethodResult]) -> dict:
                 "method": method, "k": k, "sequences": len(rows), "frames": sum(r.frames for r in rows),
                 "psnr": _mean(r.psnr for r in rows), "ssim": _mean(r.ssim for r in rows),
                 "flip": _mean(r.flip for r in rows), "psnr_moving": _mean(r.psnr_moving for r in rows),
+                "ssim_moving": _mean(r.ssim_moving for r in rows), "flip_moving": _mean(r.flip_moving for r in rows),
                 "ms_per_frame": float(statistics.median(r.ms_per_frame for r in rows)),
             }
     for key, row in out.items():
@@ -138,16 +141,32 @@ def summarize(results: Sequence[MethodResult]) -> dict:
 
 def markdown_table(results: Sequence[MethodResult]) -> str:
     """One row per (sequence, method, k), then the per-method means."""
-    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | ms/frame |\n"
-            "|---|---|---|---|---|---|---|---|---|")
+    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | FLIP moving | ms/frame |\n"
+            "|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for r in results:
         lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {r.psnr:.2f} | {r.ssim:.4f} | "
-                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.ms_per_frame:.1f} |")
+                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.flip_moving:.4f} | {r.ms_per_frame:.1f} |")
     for row in summarize(results).values():
         lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {row['psnr']:.2f} | "
-                     f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | "
+                     f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | {row['flip_moving']:.4f} | "
                      f"{row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
+    return "\n".join(lines)
+
+
+def stage_table(results: Sequence[MethodResult]) -> str:
+    """Median milliseconds per predicted frame of each stage, per (method, k), medians over sequences.
+
+    ``prepare:`` stages run once per rendered frame and are shown divided by the k-1 frames they serve.
+    """
+    keys = list(dict.fromkeys((r.method, r.k) for r in results))
+    stages = sorted({s for r in results for s in r.stages_ms})
+    lines = ["| method | k | " + " | ".join(stages) + " | total |", "|---|---|" + "---|" * (len(stages) + 1)]
+    for method, k in keys:
+        rows = [r for r in results if r.method == method and r.k == k]
+        cells = [f"{statistics.median(r.stages_ms.get(s, 0.0) for r in rows):.1f}" for s in stages]
+        total = statistics.median(r.ms_per_frame for r in rows)
+        lines.append(f"| {method} | {k} | " + " | ".join(cells) + f" | {total:.1f} |")
     return "\n".join(lines)
 
 

@@ -62,6 +62,18 @@ RIG_TIME_TOLERANCE = 1e-6
 # JSON field checks (each raises InputError naming file, frame and field)
 # --------------------------------------------------------------------------------------------------
 
+def _load_header(path: Path, expected_format: str) -> dict[str, Any]:
+    """Load a metadata JSON and check its ``format`` and ``version`` fields."""
+    meta = _load_json(path)
+    if meta.get("format") != expected_format:
+        raise InputError(f"must be '{expected_format}', got {meta.get('format')!r}", file=path, field="format")
+    version = meta.get("version")
+    if isinstance(version, bool) or version != VERSION:
+        raise InputError(f"unsupported version {version!r} (this reader knows version {VERSION})",
+                         file=path, field="version")
+    return meta
+
+
 def _load_json(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise InputError("file does not exist", file=path)
@@ -248,13 +260,7 @@ def read_sequence(path: str | Path) -> RgbdSequence:
     if root.name == "sequence.json":
         root = root.parent
     meta_file = root / "sequence.json"
-    meta = _load_json(meta_file)
-    if meta.get("format") != FORMAT:
-        raise InputError(f"must be '{FORMAT}', got {meta.get('format')!r}", file=meta_file, field="format")
-    version = meta.get("version")
-    if isinstance(version, bool) or version != VERSION:
-        raise InputError(f"unsupported version {version!r} (this reader knows version {VERSION})",
-                         file=meta_file, field="version")
+    meta = _load_header(meta_file, FORMAT)
     width = _int(_get(meta, "width", meta_file), meta_file, "width", minimum=1)
     height = _int(_get(meta, "height", meta_file), meta_file, "height", minimum=1)
     fps = _finite(_get(meta, "fps", meta_file), meta_file, "fps", positive=True)
@@ -481,13 +487,7 @@ def read_rig(path: str | Path) -> RgbdRig:
     if root.name == "rig.json":
         root = root.parent
     rig_file = root / "rig.json"
-    meta = _load_json(rig_file)
-    if meta.get("format") != RIG_FORMAT:
-        raise InputError(f"must be '{RIG_FORMAT}', got {meta.get('format')!r}", file=rig_file, field="format")
-    version = meta.get("version")
-    if isinstance(version, bool) or version != VERSION:
-        raise InputError(f"unsupported version {version!r} (this reader knows version {VERSION})",
-                         file=rig_file, field="version")
+    meta = _load_header(rig_file, RIG_FORMAT)
     cameras, train, test = _check_rig_names(_get(meta, "cameras", rig_file), meta.get("train_cameras", []),
                                             meta.get("test_cameras", []), rig_file)
     sequences = {name: read_sequence(root / name) for name in cameras}

@@ -58,3 +58,17 @@ def two_layer_sequence(num_frames: int = 8, width: int = 64, height: int = 48, c
                             object_flow=object_flow))
     objects = [SceneObject(id=1, name="square", moving=True, world_from_object=np.stack(transforms[:num_frames]))]
     return frames, objects
+
+
+def rotation(axis, angle: float) -> np.ndarray:
+    """Rodrigues rotation matrix about ``axis`` by ``angle`` radians."""
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def rigid(axis, angle: float, t) -> np.ndarray:
+    """A rigid 4x4 transform: rotation about ``axis`` by ``angle``, then translation ``t``."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rotation(axis, angle), t
+    return m

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from engine.errors import InputError
-from engine.evaluate import evaluate_sequence, evaluation_pairs, markdown_table, plot, write_json
+from engine.evaluate import evaluate_sequence, evaluation_pairs, markdown_table, plot, stage_table, write_json
 from engine.io import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
@@ -31,7 +31,7 @@ def test_evaluate_writes_records_with_required_keys(sequence, tmp_path):
     assert by["reproject"].psnr > by["repeat"].psnr
     assert by["oracle"].psnr_moving > by["reproject"].psnr_moving
     assert all(r.frames == 3 and r.ms_per_frame > 0 for r in results)
-    assert all(np.isfinite([r.psnr, r.ssim, r.flip, r.psnr_moving]).all() for r in results)
+    assert all(np.isfinite([r.psnr, r.ssim, r.flip, r.psnr_moving, r.flip_moving]).all() for r in results)
     write_json(results, tmp_path / "out.json")
     doc = json.loads((tmp_path / "out.json").read_text())
     for rec in doc["records"]:
@@ -39,6 +39,8 @@ def test_evaluate_writes_records_with_required_keys(sequence, tmp_path):
     assert doc["summary"]["reproject/k=2"]["time_vs_reproject"] == pytest.approx(1.0)
     table = markdown_table(results)
     assert table.count("\n") == 1 + len(results) + len(doc["summary"])
+    stages = stage_table(results)
+    assert "prepare:flow" in stages and "warp" in stages and stages.count("\n") == 1 + len(results)
     plot(results, tmp_path / "plot.png")
     assert (tmp_path / "plot.png").stat().st_size > 10_000
 

@@ -15,21 +15,11 @@ from engine.frames import rigid_inverse
 from engine.importers import (SINTEL_TAG, frames_from_blender, frames_from_sintel, frames_from_veed, import_any,
                               read_cam, read_dpt, read_transformation_csv)
 from engine.colorspace import srgb_to_linear
+from tests.synthetic import rigid, rotation
 from engine.io import read_sequence
 
 H, W = 16, 24
 
-
-def rotation(axis: list[float], angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def rigid(axis: list[float], angle: float, t: list[float]) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rotation(axis, angle), t
-    return m
 
 
 def project(k: np.ndarray, world_to_camera: np.ndarray, point: np.ndarray) -> np.ndarray:

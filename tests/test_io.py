@@ -12,23 +12,12 @@ from engine.errors import InputError
 from engine.exr import read_exr, read_exr_info, write_exr
 from engine.frames import Camera, Frame, SceneObject
 from engine.colorspace import linear_to_srgb, srgb_to_linear
+from tests.synthetic import rigid, rotation
 from engine.io import read_rig, read_sequence, write_rig, write_sequence
 
 H, W, N = 16, 24, 4
 BAD_POSITION, BAD_INDEX = 1, 2  # the frame the bad-input tests break: position 1 has index 2
 
-
-def rotation(axis: list[float], angle: float) -> np.ndarray:
-    """Rodrigues rotation matrix about ``axis`` by ``angle`` radians."""
-    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
-def rigid(axis: list[float], angle: float, t: list[float]) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rotation(axis, angle), t
-    return m
 
 
 def make_frames(n: int = N, seed: int = 0, times: np.ndarray | None = None) -> list[Frame]:

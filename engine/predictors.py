@@ -205,6 +205,8 @@ class Oracle(Predictor):
         k, t = frame.camera.intrinsics, frame.camera.world_to_camera
         flow = np.zeros(frame.depth.shape + (3,), dtype=np.float32)
         ids = frame.object_id
+        points_all = geometry.unproject(frame.depth, k)  # (H, W, 4) homogeneous
+        pixels_all = geometry.pixel_centers(*frame.depth.shape)
         for oid in np.unique(ids):
             obj = self.objects.get(int(oid))
             if obj is None or not obj.moving:
@@ -215,10 +217,9 @@ class Oracle(Predictor):
             motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
             camera_motion = t @ motion @ rigid_inverse(t)  # object motion expressed in frame n's camera
             mask = (ids == oid) & np.isfinite(frame.depth)
-            points = geometry.unproject(frame.depth, k)[mask]  # (N, 4) homogeneous, w = 1
-            moved = points @ camera_motion.T
+            moved = points_all[mask] @ camera_motion.T  # (N, 4), w = 1 (finite depth only)
             uv, z, valid = geometry.project(moved, k)
-            pix = geometry.pixel_centers(*frame.depth.shape)[mask]
+            pix = pixels_all[mask]
             d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
             flow[mask] = d
         return flow

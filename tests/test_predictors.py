@@ -78,3 +78,26 @@ def test_bad_history_is_rejected():
     no_ids.object_id = None
     with pytest.raises(InputError, match="object_id"):
         Oracle(objects).predict([no_ids], _target(frames[2]))
+
+
+@pytest.mark.parametrize("name", ["reproject", "flow2d", "oracle"])
+def test_hard_targets_give_finite_frames(name):
+    """A 170-degree turn (nothing lands in view), an all-sky history, and a 1:1e5 depth range."""
+    from tests.synthetic import rigid
+
+    frames, objects = two_layer_sequence(5, width=48, height=32)
+    predictor = make_predictor(name, objects)
+    history = [frames[0], frames[2]] if predictor.history_needed == 2 else [frames[2]]
+    turned = Target(type(frames[3].camera)(frames[3].camera.intrinsics,
+                                           rigid([0, 1, 0], np.deg2rad(170), [0, 0, 0]) @ frames[3].camera.world_to_camera),
+                    frames[3].time, 3)
+    out = predictor.predict(history, turned)
+    assert np.all(np.isfinite(out.color)) and out.holes.mean() > 0.9
+    for f in history:  # all sky, then extreme depth range
+        f.depth = np.full_like(f.depth, np.inf)
+    out = predictor.predict(history, _target(frames[3]))
+    assert np.all(np.isfinite(out.color))
+    for f in history:
+        f.depth = np.where(f.object_id > 0, 1e-3, 1e5).astype(np.float32)
+    out = predictor.predict(history, _target(frames[3]))
+    assert np.all(np.isfinite(out.color))

@@ -1,0 +1,117 @@
+"""ONNX export of the 3D flow network (``models.flow3d.Flow3D``) and an onnxruntime parity check.
+
+The exported graph takes the two MPIs as flat tensors and returns the 3D flow ``u(n -> n-k)``:
+
+| input | shape | meaning |
+| --- | --- | --- |
+| ``color_n``, ``color_prev`` | (B, 3, Z, H, W) float32 | linear RGB, 0 where alpha = 0 |
+| ``depth_n``, ``depth_prev`` | (B, 1, Z, H, W) float32 | planar depth where alpha = 1 (+inf sky), 0 elsewhere |
+| ``alpha_n``, ``alpha_prev`` | (B, 1, Z, H, W) float32 | occupancy |
+| ``plane_depths`` | (B, Z) float32 | frame n's plane depths (shared by both MPIs, ``mpi_pair``) |
+| output ``flow`` | (B, 3, Z, H, W) float32 | (du, dv) pixels, dz scene units; 0 where alpha_n = 0 |
+
+B, H and W are dynamic; Z is fixed by the network (``Flow3DConfig.num_planes``). Any H, W >= 1 run:
+the graph pads both with alpha = 0 to multiples of the pyramid stride (16 for 4 levels,
+``models.flow3d.pyramid_stride``) and crops the flow back; sizes that are already multiples skip that
+work and are the recommended ones. Exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``.
+
+>>> path = export_flow("runs/flow3d/checkpoint.pt", "flow3d.onnx")          # doctest: +SKIP
+>>> err = check_parity(path, load_model("runs/flow3d/checkpoint.pt"), inputs)  # doctest: +SKIP
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from engine.errors import InputError
+from models.flow3d import Flow3D
+from models.geometry import Mpi, build_mpi
+
+__all__ = ["FlowGraph", "INPUT_NAMES", "export_flow", "check_parity", "example_inputs"]
+
+INPUT_NAMES = ("color_n", "depth_n", "alpha_n", "color_prev", "depth_prev", "alpha_prev", "plane_depths")
+OPSET = 20
+
+
+class FlowGraph(nn.Module):
+    """``Flow3D`` with flat tensor inputs (the ONNX signature above); runs ``Flow3D.flow_unchecked``."""
+
+    def __init__(self, model: Flow3D) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, color_n: Tensor, depth_n: Tensor, alpha_n: Tensor, color_prev: Tensor, depth_prev: Tensor,
+                alpha_prev: Tensor, plane_depths: Tensor) -> Tensor:
+        return self.model.flow_unchecked(Mpi(color_n, depth_n, alpha_n, plane_depths),
+                                         Mpi(color_prev, depth_prev, alpha_prev, plane_depths))
+
+
+def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
+    if isinstance(checkpoint_or_module, FlowGraph):
+        return checkpoint_or_module.model
+    if isinstance(checkpoint_or_module, Flow3D):
+        return checkpoint_or_module
+    if isinstance(checkpoint_or_module, (str, Path)):
+        from models.train_flow import load_model
+        return load_model(checkpoint_or_module)
+    raise InputError(f"must be a Flow3D, a FlowGraph or a checkpoint path, got {type(checkpoint_or_module).__name__}",
+                     field="checkpoint_or_module")
+
+
+def example_inputs(model: Flow3D, height: int = 64, width: int = 96, batch: int = 1,
+                   seed: int = 0) -> tuple[Tensor, ...]:
+    """Flat inputs of ``FlowGraph`` for a random two-layer-ish scene (sky included), ``INPUT_NAMES`` order."""
+    g = torch.Generator().manual_seed(seed)
+    z = model.config.num_planes
+    depth = 2.0 + 8.0 * torch.rand(batch, height, width, generator=g)
+    depth[:, : max(1, height // 8)] = float("inf")
+    color = torch.rand(batch, height, width, 3, generator=g)
+    first = build_mpi(color, depth, z)
+    shift = torch.roll(torch.arange(width), 2)
+    second = build_mpi(color[:, :, shift], depth[:, :, shift], z)._replace(plane_depths=first.plane_depths)
+    return (first.color, first.depth, first.alpha, second.color, second.depth, second.alpha, first.plane_depths)
+
+
+def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[str, Path], *,
+                example_size: tuple[int, int] = (64, 96)) -> Path:
+    """Export the network to ONNX (opset 20, dynamo exporter) with dynamic B, H, W; returns ``path``.
+
+    Args:
+        checkpoint_or_module: a ``Flow3D``, a ``FlowGraph`` or a ``checkpoint.pt`` from ``train_flow``.
+        path: the .onnx file to write.
+        example_size: (H, W) of the tracing example (any size; shapes stay symbolic).
+    """
+    model = _as_model(checkpoint_or_module).eval()
+    graph = FlowGraph(model).eval()
+    inputs = example_inputs(model, *example_size)
+    batch = torch.export.Dim("batch", min=1, max=64)
+    height = torch.export.Dim("height", min=1, max=8192)
+    width = torch.export.Dim("width", min=1, max=8192)
+    image = {0: batch, 3: height, 4: width}
+    dynamic = {name: image for name in INPUT_NAMES[:-1]}
+    dynamic["plane_depths"] = {0: batch}
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        program = torch.onnx.export(graph, inputs, dynamo=True, opset_version=OPSET, input_names=list(INPUT_NAMES),
+                                    output_names=["flow"], dynamic_shapes=dynamic, verbose=False)
+    program.save(str(out))
+    return out
+
+
+def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[Tensor, ...]) -> float:
+    """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order)."""
+    import onnxruntime as ort
+
+    model = _as_model(module).eval()
+    with torch.no_grad():
+        expected = FlowGraph(model)(*inputs).numpy()
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {name: t.numpy() for name, t in zip(INPUT_NAMES, inputs)})[0]
+    if got.shape != expected.shape:
+        raise InputError(f"onnxruntime returned shape {got.shape}, torch {expected.shape}", field="onnx_path")
+    return float(np.max(np.abs(got - expected))) if expected.size else 0.0

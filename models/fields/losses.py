@@ -1,0 +1,177 @@
+"""Loss assembly: a list of named, weighted, switchable terms.
+
+A run's loss is ``sum(term.weight * LOSS_TERMS[term.name](inputs))`` over the enabled terms of its config
+whose ``start_step`` has been reached. Each term is a pure function of :class:`LossInputs` (the model, the
+ray batch, the rendered outputs, the step, the term's own config and an ``extras`` dict for outputs of
+other models), registered by name with :func:`register_loss_term`. The priors of the thesis slot in as
+further terms without touching the training loop:
+
+- ``sparse_depth`` (DS-NeRF, thesis Eq. 3.13) is here already: ``(sum_i w_i t_i - z)^2`` on rays whose
+  batch carries a finite depth ``z``;
+- Simple-RF's augmented-model depth loss (Eq. 4.9) would read the augmented model's outputs from
+  ``extras["augmented"]`` and the reliability masks;
+- ViP-NeRF's visibility prior (Eq. 3.8, 3.12) would read the secondary-view visibilities from ``extras``.
+
+Plane regularisers name the plane group they act on (``term.planes``, e.g. ``"spatial"``), resolved with
+the field's ``plane_groups()``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+import torch
+from torch import Tensor
+
+from engine.errors import InputError
+from models.fields.encodings import plane_l1, plane_tv
+from models.fields.render import RayOutputs
+
+__all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
+           "default_loss_terms", "srgb_encode"]
+
+
+@dataclass
+class LossTerm:
+    """One weighted loss term of a run."""
+
+    name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
+                                        "sparse_depth"})
+    weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
+    enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
+    planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
+    start_step: int = field(default=0, metadata={"help": "first training step at which the term is applied"})
+
+
+def default_loss_terms() -> tuple[LossTerm, ...]:
+    """Photometric loss plus a light TV on the spatial planes; L1 and sparse depth present but off."""
+    return (LossTerm("photometric", 1.0), LossTerm("plane_tv", 1e-3, planes="spatial"),
+            LossTerm("plane_l1", 1e-4, enabled=False, planes="spatial"),
+            LossTerm("sparse_depth", 0.1, enabled=False))
+
+
+@dataclass
+class RayBatch:
+    """Training rays and what is known about them.
+
+    Attributes:
+        origins, directions: (R, 3) world (directions with camera z = 1).
+        near, far: (R,) planar-depth bounds.
+        color: (R, 3) true linear RGB.
+        depth: (R,) true planar depth (NaN or inf where unknown), or None.
+        view: (R,) long, index of the training view of each ray.
+    """
+
+    origins: Tensor
+    directions: Tensor
+    near: Tensor
+    far: Tensor
+    color: Tensor
+    depth: Optional[Tensor] = None
+    view: Optional[Tensor] = None
+
+
+@dataclass
+class LossInputs:
+    """Everything a loss term may read."""
+
+    model: Any
+    batch: RayBatch
+    outputs: RayOutputs
+    step: int
+    term: LossTerm
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+LossFn = Callable[[LossInputs], Tensor]
+#: name -> term function; add to it with :func:`register_loss_term`.
+LOSS_TERMS: dict[str, LossFn] = {}
+#: names of terms that need true depth in the batch.
+NEEDS_DEPTH: set[str] = set()
+
+
+def register_loss_term(name: str, *, needs_depth: bool = False) -> Callable[[LossFn], LossFn]:
+    """Decorator registering a loss term under ``name`` (a config's ``LossTerm.name``)."""
+    def wrap(fn: LossFn) -> LossFn:
+        LOSS_TERMS[name] = fn
+        if needs_depth:
+            NEEDS_DEPTH.add(name)
+        return fn
+    return wrap
+
+
+def srgb_encode(linear: Tensor) -> Tensor:
+    """Differentiable sRGB transfer function of linear values clipped to [0, 1] (``display_encode`` in torch)."""
+    c = linear.clamp(0.0, 1.0)
+    curve = 1.055 * c.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055
+    return torch.where(c <= 0.0031308, 12.92 * c, curve)
+
+
+@register_loss_term("photometric")
+def photometric(inputs: LossInputs) -> Tensor:
+    """MSE of display-encoded (sRGB) colours: what PSNR measures and what NeRF trains on (Eq. 3.6)."""
+    return (srgb_encode(inputs.outputs.color) - srgb_encode(inputs.batch.color)).square().mean()
+
+
+@register_loss_term("photometric_linear")
+def photometric_linear(inputs: LossInputs) -> Tensor:
+    """MSE of linear colours."""
+    return (inputs.outputs.color - inputs.batch.color).square().mean()
+
+
+def _group(inputs: LossInputs) -> list[Tensor]:
+    groups = inputs.model.field.plane_groups()
+    if inputs.term.planes not in groups:
+        raise InputError(f"unknown plane group {inputs.term.planes!r}; the field has {sorted(groups)}",
+                         field=f"losses[{inputs.term.name}].planes")
+    return groups[inputs.term.planes]
+
+
+@register_loss_term("plane_tv")
+def plane_tv_term(inputs: LossInputs) -> Tensor:
+    """Total variation of the named plane group (K-Planes' plane TV)."""
+    return plane_tv(_group(inputs))
+
+
+@register_loss_term("plane_l1")
+def plane_l1_term(inputs: LossInputs) -> Tensor:
+    """Mean |feature| of the named plane group (sparsity: empty space)."""
+    return plane_l1(_group(inputs))
+
+
+@register_loss_term("sparse_depth", needs_depth=True)
+def sparse_depth(inputs: LossInputs) -> Tensor:
+    """DS-NeRF depth supervision (Eq. 3.13): mean of (sum w t - z)^2 over rays with a finite true depth z."""
+    z = inputs.batch.depth
+    if z is None:
+        return inputs.outputs.expected_depth.new_zeros(())
+    known = torch.isfinite(z)
+    if not bool(known.any()):
+        return inputs.outputs.expected_depth.new_zeros(())
+    return (inputs.outputs.expected_depth[known] - z[known]).square().mean()
+
+
+def check_loss_terms(terms, has_depth: bool) -> None:
+    """Raise InputError for unknown names, negative weights, or depth terms without depth."""
+    for term in terms:
+        if term.name not in LOSS_TERMS:
+            raise InputError(f"unknown loss term {term.name!r}; registered: {sorted(LOSS_TERMS)}", field="losses")
+        if not term.weight >= 0:
+            raise InputError(f"weight must be >= 0, got {term.weight}", field=f"losses[{term.name}].weight")
+        if term.enabled and term.name in NEEDS_DEPTH and not has_depth:
+            raise InputError(f"term {term.name!r} needs true depth, and these views have none",
+                             field=f"losses[{term.name}]")
+
+
+def assemble_loss(terms, model, batch: RayBatch, outputs: RayOutputs, step: int,
+                  extras: Optional[dict[str, Any]] = None) -> tuple[Tensor, dict[str, float]]:
+    """Weighted sum of the active terms, and each active term's unweighted value (for logs)."""
+    total = outputs.color.new_zeros(())
+    values: dict[str, float] = {}
+    for term in terms:
+        if not term.enabled or step < term.start_step or term.weight == 0:
+            continue
+        value = LOSS_TERMS[term.name](LossInputs(model, batch, outputs, step, term, extras or {}))
+        total = total + term.weight * value
+        values[term.name] = float(value.detach())
+    return total, values

@@ -1,9 +1,9 @@
-# Sourced by scripts/demo.sh and scripts/test.sh: makes .venv with what the given extra needs.
-# Usage: . scripts/_env.sh [EXTRA]   (EXTRA: empty for the engine alone, "test" for tests + torch)
+# Sourced by scripts/demo.sh and scripts/test.sh: makes .venv with what they need.
+# Set INTERLEAVE_EXTRA before sourcing: empty for the engine alone (no torch), "test" for tests + torch.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
-extra="${1:-}"
+extra="${INTERLEAVE_EXTRA:-}"
 py="${PYTHON:-python3}"
 if [ ! -x .venv/bin/python ]; then
     "$py" -m venv .venv

@@ -259,6 +259,23 @@ def test_sh_encoding_band_zero_and_one():
     assert torch.allclose(sh_encoding(-d, 4)[:, 4:9], e[:, 4:9], atol=1e-6)
 
 
+@pytest.mark.filterwarnings("ignore::FutureWarning")  # torch.export internals
+def test_field_exports_to_onnx_and_matches(tmp_path):
+    pytest.importorskip("onnxscript")
+    ort = pytest.importorskip("onnxruntime")
+    torch.manual_seed(0)
+    field = TriPlaneField(TINY_FIELD).eval()
+    coords = torch.rand(64, 3) * 2 - 1
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    torch.onnx.export(field, (coords, dirs), str(tmp_path / "field.onnx"), dynamo=True, opset_version=20,
+                      input_names=["coords", "directions"], output_names=["sigma", "rgb"])
+    session = ort.InferenceSession(str(tmp_path / "field.onnx"))
+    sigma, rgb = session.run(None, {"coords": coords.numpy(), "directions": dirs.numpy()})
+    want_sigma, want_rgb = field(coords, dirs)
+    np.testing.assert_allclose(sigma, want_sigma.detach().numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(rgb, want_rgb.detach().numpy(), rtol=1e-5, atol=1e-6)
+
+
 def test_field_outputs_are_finite_and_bounded():
     field = TriPlaneField(TINY_FIELD)
     coords = torch.rand(100, 3) * 2 - 1

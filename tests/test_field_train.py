@@ -144,7 +144,7 @@ def test_interrupted_run_resumes_exactly(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         train_field(views, config, tmp_path / "resumed", progress=False, extras_fn=crash)
-    assert torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=False)["step"] == 5
+    assert torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=True)["step"] == 5
     resumed = train_field(views, config, tmp_path / "resumed", progress=False)
     a, b = load_model(straight).state_dict(), load_model(resumed).state_dict()
     for name in a:
@@ -153,9 +153,9 @@ def test_interrupted_run_resumes_exactly(tmp_path):
     assert log == list(range(1, 13))  # lines past the checkpoint were dropped on resume
     # finished: calling again trains nothing; a larger `steps` extends the run
     train_field(views, config, resumed, progress=False)
-    assert torch.load(resumed / "checkpoint.pt", weights_only=False)["step"] == 12
+    assert torch.load(resumed / "checkpoint.pt", weights_only=True)["step"] == 12
     train_field(views, dataclasses.replace(config, steps=14), resumed, progress=False)
-    assert torch.load(resumed / "checkpoint.pt", weights_only=False)["step"] == 14
+    assert torch.load(resumed / "checkpoint.pt", weights_only=True)["step"] == 14
 
 
 def test_run_directory_refuses_a_different_config(tmp_path):

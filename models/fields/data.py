@@ -57,7 +57,7 @@ NERF_SYNTHETIC_NEAR_FAR = (2.0, 6.0)
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
-@dataclass
+@dataclass(eq=False)
 class Views:
     """Posed images of one static scene.
 
@@ -307,7 +307,8 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
         angle = float(meta["camera_angle_x"])
         entries = list(meta["frames"])
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"is not a NeRF-synthetic transforms file ({type(exc).__name__}: {exc})", file=meta_file) from None
+        raise InputError(f"is not a NeRF-synthetic transforms file ({type(exc).__name__}: {exc})",
+                         file=meta_file) from None
     if not 0 < angle < np.pi:
         raise InputError(f"must be in (0, pi) radians, got {angle}", file=meta_file, field="camera_angle_x")
     background = np.ones(3) if white_background else np.zeros(3)

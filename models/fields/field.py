@@ -52,7 +52,8 @@ class FieldConfig:
     def validate(self) -> "FieldConfig":
         """Raise InputError naming the first bad option; returns self."""
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
-            raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}", field="field.resolutions")
+            raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
+                             field="field.resolutions")
         for name in ("feature_dim", "density_hidden", "geo_feature_dim", "color_hidden"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.{name}")

@@ -41,7 +41,8 @@ class RenderConfig:
     occupancy_resolution: int = field(default=64, metadata={"help": "occupancy grid cells per axis"})
     occupancy_alpha: float = field(default=0.01, metadata={
         "help": "a cell is occupied when one typical sample step through it has alpha above this"})
-    occupancy_decay: float = field(default=0.95, metadata={"help": "decay of the grid's running max density per update"})
+    occupancy_decay: float = field(default=0.95, metadata={
+        "help": "decay of the grid's running max density per update"})
     ndc_margin: float = field(default=0.25, metadata={
         "help": "forward-facing: widen the reference frustum by this fraction so side views fit"})
 

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from engine.errors import InputError
 from engine.geometry import check_shape
+from models.fields.sampling import camera_rays
 
 __all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "render_image", "stack_outputs"]
 
@@ -142,8 +143,6 @@ def render_image(model, intrinsics, world_to_camera, height: int, width: int, ne
         ``color`` (H, W, 3) float32 linear RGB, ``depth`` (H, W) float32 planar (+inf: no surface),
         ``opacity`` (H, W) float32, ``seconds`` (wall time of the rendering, excluding ray generation).
     """
-    from models.fields.sampling import camera_rays
-
     origins, directions = camera_rays(intrinsics, world_to_camera, height, width)
     n = origins.shape[0]
     near_t = torch.full((n,), float(near))

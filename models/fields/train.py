@@ -15,7 +15,7 @@ stretched to the new length from the current step on (so not identical to a run 
 Command line (the measurement in ``docs/fields.md``)::
 
     python -m models.fields.train --dataset nerf-synthetic --data /work/shared/data/nerf_synthetic_lego \\
-        --views 8 --downscale 8 --steps 1500 --out runs/lego8
+        --views 8 --downscale 8 --steps 4000 --threads 1 --out runs/lego8
 """
 from __future__ import annotations
 
@@ -56,7 +56,8 @@ class FieldTrainConfig:
     steps: int = field(default=2000, metadata={"help": "optimisation steps"})
     rays_per_batch: int = field(default=1024, metadata={"help": "rays per step, drawn uniformly from all train pixels"})
     lr: float = field(default=0.02, metadata={"help": "peak Adam learning rate (planes and MLPs)"})
-    lr_schedule: str = field(default="cosine", metadata={"help": "decay after warm-up: cosine, exponential or constant"})
+    lr_schedule: str = field(default="cosine", metadata={
+        "help": "decay after warm-up: cosine, exponential or constant"})
     lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
     warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
     downscale: int = field(default=1, metadata={
@@ -215,7 +216,11 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
                              "directory", file=config_file)
     config_file.write_text(json.dumps(wanted, indent=2) + "\n")
 
-    model = build_model(views, config)
+    state = torch.load(ckpt_file, map_location="cpu", weights_only=True) if ckpt_file.is_file() else None
+    if state is None:
+        model = build_model(views, config)
+    else:  # the scene the run started with, whatever these views would give
+        model = StaticFieldModel(SceneBox.from_dict(state["scene"]), state["background"], config.field, config.render)
     rays = _all_rays(views, model.scene)
     params = [{"params": list(model.field.encoding.parameters()), "name": "planes"},
               {"params": [p for n, p in model.field.named_parameters() if not n.startswith("encoding.")],
@@ -224,8 +229,7 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _lr_factor(config))
     generator = torch.Generator().manual_seed(config.seed)
     step = 0
-    if ckpt_file.is_file():
-        state = torch.load(ckpt_file, map_location="cpu", weights_only=False)
+    if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
@@ -295,7 +299,7 @@ def load_model(run_dir: str | Path) -> StaticFieldModel:
         if not (run / name).is_file():
             raise InputError("file does not exist (not a run directory?)", file=run / name)
     config = FieldTrainConfig.from_dict(json.loads((run / "config.json").read_text()))
-    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
     model = StaticFieldModel(SceneBox.from_dict(state["scene"]), state["background"], config.field, config.render)
     model.load_state_dict(state["model"])
     return model.eval()
@@ -445,10 +449,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    scores = {"train_views": len(train), "image_size": [train.height, train.width],
-              "train_seconds": round(train_seconds, 1), **scores}
-    (Path(args.out) / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")
-    print(json.dumps(scores, indent=2))
+    scores = {"train_views": len(train), "test_views": len(test), "image_size": [train.height, train.width],
+              "steps": config.steps, "train_seconds": round(train_seconds, 1), **scores}
+    scores = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in scores.items()}  # strict JSON
+    text = json.dumps(scores, indent=2)
+    (Path(args.out) / "scores.json").write_text(text + "\n")
+    print(text)
     return 0
 
 

@@ -106,7 +106,11 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("src", type=Path, help="source folder (for sintel: the dataset root, with --scene)")
     imp.add_argument("dst", type=Path, help="rgbd-seq folder to write")
     imp.add_argument("--scene", default=None, help="MPI-Sintel scene name, e.g. alley_1")
-    imp.add_argument("--fps", type=float, default=None, help="frame rate to record (default: the layout's own)")
+    imp.add_argument("--fps", type=float, default=None,
+                     help="frame rate to record, sintel and veed (default: 24 for sintel, 30 for veed; blender "
+                          "reads it from cameras.json)")
+    imp.add_argument("--depth-channel", default=None,
+                     help="veed: the EXR channel holding planar depth (default: B, as in the authors' data)")
     imp.add_argument("--skip-missing", action="store_true", help="skip frames with missing files (warn) "
                                                                  "instead of stopping with an error")
     return parser
@@ -135,8 +139,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "import":
             from engine.importers import import_any
 
-            kwargs = {k: v for k, v in (("scene", args.scene), ("fps", args.fps)) if v is not None}
-            path = import_any(args.src, args.dst, args.layout, skip_missing=args.skip_missing, **kwargs)
+            kwargs = {k: v for k, v in (("scene", args.scene), ("fps", args.fps),
+                                        ("depth_channel", args.depth_channel)) if v is not None}
+            allowed = {"blender": set(), "sintel": {"scene", "fps"}, "veed": {"fps", "depth_channel"}}[args.layout]
+            if set(kwargs) - allowed:
+                raise InterleaveError(f"layout {args.layout} does not take "
+                                      f"{', '.join('--' + k.replace('_', '-') for k in sorted(set(kwargs) - allowed))}")
+            path = import_any(args.src, args.dst, args.layout, skip_missing=args.skip_missing, progress=True, **kwargs)
             print(f"wrote {path}")
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)

@@ -55,3 +55,17 @@ def test_render_scene_and_demo_end_to_end(tmp_path):
     assert main(["demo", "--out", str(tmp_path / "demo"), "--frames", "8", "--width", "96", "--height", "64"]) == 0
     for name in ("side_by_side.mp4", "table.md", "results.json", "speed_vs_error.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 0
+
+
+def test_import_through_the_command_line(tmp_path, capsys):
+    from tests.test_importers import write_veed
+
+    src = write_veed(tmp_path / "veed", channel="Y")
+    assert main(["import", "veed", str(src), str(tmp_path / "out"), "--depth-channel", "Y", "--fps", "60"]) == 0
+    seq = read_sequence(tmp_path / "out")
+    assert len(seq) == 3 and seq.fps == 60.0
+    assert main(["import", "blender", str(src), str(tmp_path / "out2"), "--fps", "60"]) == 2
+    assert "does not take --fps" in capsys.readouterr().err
+    assert main(["import", "veed", str(src), str(tmp_path / "out3")]) == 2  # depth is in Y, not B
+    err = capsys.readouterr().err
+    assert "interleave import: error:" in err and "B" in err and "Traceback" not in err

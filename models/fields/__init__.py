@@ -2,8 +2,9 @@
 
 Layers, as in nerfstudio: components (``encodings``: tri-planes, direction encodings, MLPs) -> field
 (``field``: :class:`TriPlaneField`) -> model (``model``: scene contraction + sampling + rendering) ->
-training (``losses``, ``train``). Data loaders and the train/test split are in ``data``. The design note is
-``docs/fields.md``.
+training (``losses``, ``train``). The sparse-input priors of thesis Ch. 3-4 are ``priors`` (config and
+wiring), ``priors_depth``, ``priors_simple``, ``priors_vip``; ``ablation`` compares them. Data loaders and
+the train/test split are in ``data``. The design note is ``docs/fields.md``.
 
 >>> from models.fields import load_nerf_synthetic, FieldTrainConfig, train_field, evaluate_field  # doctest: +SKIP
 >>> views = load_nerf_synthetic("lego", "train", downscale=8)                                   # doctest: +SKIP
@@ -16,6 +17,7 @@ from models.fields.encodings import TriPlaneEncoding, plane_l1, plane_tv, sample
 from models.fields.field import FieldConfig, TriPlaneField
 from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch, register_loss_term
 from models.fields.model import RenderConfig, SceneBox, StaticFieldModel
+from models.fields.priors import PRIOR_NAMES, PriorsConfig, with_priors
 from models.fields.render import RayOutputs, composite, render_image, volume_weights
 from models.fields.sampling import OccupancyGrid, camera_rays, ray_box_intersection, sample_intervals
 from models.fields.train import FieldTrainConfig, evaluate_field, load_model, train_field
@@ -25,4 +27,5 @@ __all__ = ["Views", "box_from_cameras", "check_views", "load_llff", "load_nerf_s
            "FieldConfig", "TriPlaneField", "LOSS_TERMS", "LossInputs", "LossTerm", "RayBatch",
            "register_loss_term", "RenderConfig", "SceneBox", "StaticFieldModel", "RayOutputs", "composite",
            "render_image", "volume_weights", "OccupancyGrid", "camera_rays", "ray_box_intersection",
-           "sample_intervals", "FieldTrainConfig", "evaluate_field", "load_model", "train_field"]
+           "sample_intervals", "FieldTrainConfig", "evaluate_field", "load_model", "train_field", "PRIOR_NAMES",
+           "PriorsConfig", "with_priors"]

@@ -36,7 +36,7 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "sparse_depth"})
+                                        "sparse_depth (the priors add theirs, models/fields/priors.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
@@ -60,6 +60,7 @@ class RayBatch:
         color: (R, 3) true linear RGB.
         depth: (R,) true planar depth (NaN or inf where unknown), or None.
         view: (R,) long, index of the training view of each ray.
+        pixel: (R,) long, row-major pixel index ``v * W + u`` of each ray in its view, or None.
     """
 
     origins: Tensor
@@ -69,6 +70,7 @@ class RayBatch:
     color: Tensor
     depth: Optional[Tensor] = None
     view: Optional[Tensor] = None
+    pixel: Optional[Tensor] = None
 
 
 @dataclass

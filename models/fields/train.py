@@ -40,6 +40,7 @@ from models.fields.data import Views, check_views, load_llff, load_nerf_syntheti
 from models.fields.field import FieldConfig
 from models.fields.losses import LossTerm, RayBatch, assemble_loss, check_loss_terms, default_loss_terms
 from models.fields.model import RenderConfig, SceneBox, StaticFieldModel
+from models.fields.priors import PRIOR_NAMES, PriorsConfig, build_priors, prior_loss_terms, with_priors
 from models.fields.render import render_image
 from models.fields.sampling import camera_rays
 
@@ -68,6 +69,8 @@ class FieldTrainConfig:
     occupancy_every: int = field(default=16, metadata={"help": "steps between occupancy-grid updates"})
     checkpoint_every: int = field(default=500, metadata={"help": "steps between checkpoints (and at the end)"})
     log_every: int = field(default=50, metadata={"help": "steps between log.jsonl lines"})
+    priors: PriorsConfig = field(default_factory=PriorsConfig, metadata={
+        "help": "sparse-input priors (sparse depth, Simple-RF, ViP); see models/fields/priors.py"})
     render: RenderConfig = field(default_factory=RenderConfig, metadata={"help": "sampling and rendering"})
     # keep last: from here on the class body's name `field` is this attribute, not dataclasses.field
     field: FieldConfig = field(default_factory=FieldConfig, metadata={"help": "tri-plane field size"})
@@ -87,7 +90,12 @@ class FieldTrainConfig:
         if self.render.num_samples < 1:
             raise InputError(f"must be >= 1, got {self.render.num_samples}", field="render.num_samples")
         self.field.validate()
+        self.priors.validate()
         return self
+
+    def loss_terms(self) -> tuple[LossTerm, ...]:
+        """``losses`` plus the terms of the enabled priors."""
+        return tuple(self.losses) + prior_loss_terms(self.priors, self.steps)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON data (tuples become lists), as written to ``config.json``."""
@@ -147,9 +155,11 @@ def _all_rays(views: Views, scene: SceneBox) -> RayBatch:
     n = len(views) * views.height * views.width
     depth = None if views.depth is None else torch.from_numpy(views.depth.reshape(-1).astype(np.float32))
     view = torch.arange(len(views)).repeat_interleave(views.height * views.width)
+    pixel = torch.arange(views.height * views.width).repeat(len(views))
     return RayBatch(origins=torch.cat(origins), directions=torch.cat(directions),
                     near=torch.full((n,), float(scene.near)), far=torch.full((n,), float(scene.far)),
-                    color=torch.from_numpy(views.images.reshape(-1, 3).astype(np.float32)), depth=depth, view=view)
+                    color=torch.from_numpy(views.images.reshape(-1, 3).astype(np.float32)), depth=depth, view=view,
+                    pixel=pixel)
 
 
 def _take(rays: RayBatch, idx: torch.Tensor) -> RayBatch:
@@ -194,22 +204,24 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
         config: the run's settings.
         out_dir: the run directory (created; an existing run there with the same config is resumed).
         progress: show a tqdm bar.
-        extras_fn: optional ``(model, batch, outputs, step) -> dict`` feeding ``LossInputs.extras`` (hook
-            for priors that need other models, e.g. Simple-RF's augmented model).
+        extras_fn: optional ``(model, batch, outputs, step) -> dict`` feeding ``LossInputs.extras`` beside
+            what the enabled priors of ``config.priors`` put there (``models/fields/priors.py``).
 
     Raises:
         InputError: bad views or config, or ``out_dir`` holding a run with a different config.
     """
     check_views(views)
     config.validate()
-    check_loss_terms(config.losses, views.depth is not None)
+    terms = config.loss_terms()
+    check_loss_terms(terms, views.depth is not None)
     views = _matching_views(views, config)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     config_file, ckpt_file = out / "config.json", out / "checkpoint.pt"
     wanted = config.to_dict()
     if config_file.is_file() and ckpt_file.is_file():
-        saved = json.loads(config_file.read_text())
+        # options added since the run was made count as their defaults
+        saved = FieldTrainConfig.from_dict(json.loads(config_file.read_text())).to_dict()
         differ = sorted(k for k in set(saved) | set(wanted) if k != "steps" and saved.get(k) != wanted.get(k))
         if differ:
             raise InputError(f"holds a run with a different config ({', '.join(differ)} differ); use a new "
@@ -222,15 +234,20 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     else:  # the scene the run started with, whatever these views would give
         model = StaticFieldModel(SceneBox.from_dict(state["scene"]), state["background"], config.field, config.render)
     rays = _all_rays(views, model.scene)
+    priors = build_priors(views, config, model, out / "priors")
     params = [{"params": list(model.field.encoding.parameters()), "name": "planes"},
               {"params": [p for n, p in model.field.named_parameters() if not n.startswith("encoding.")],
                "name": "mlps"}]
+    if priors is not None and any(True for _ in priors.parameters()):
+        params.append({"params": list(priors.parameters()), "name": "priors"})
     optimizer = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.99), eps=1e-15)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _lr_factor(config))
     generator = torch.Generator().manual_seed(config.seed)
     step = 0
     if state is not None:
         model.load_state_dict(state["model"])
+        if priors is not None:
+            priors.load_state_dict(state["priors"])
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         scheduler.lr_lambdas = [_lr_factor(config)] * len(optimizer.param_groups)
@@ -241,7 +258,8 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
         tmp = ckpt_file.with_suffix(".pt.tmp")
         torch.save({"step": at, "model": model.state_dict(), "scene": model.scene.to_dict(),
                     "background": model.background.tolist(), "optimizer": optimizer.state_dict(),
-                    "scheduler": scheduler.state_dict(), "generator": generator.get_state()}, tmp)
+                    "scheduler": scheduler.state_dict(), "generator": generator.get_state(),
+                    **({"priors": priors.state_dict()} if priors is not None else {})}, tmp)
         tmp.replace(ckpt_file)
 
     bar = None
@@ -257,17 +275,23 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     occupied = 1.0
     start = time.perf_counter()
     model.train()
+    if priors is not None:
+        priors.train()
     try:
         while step < config.steps:
             # callbacks (schedules live here, not in forward)
             if step >= config.occupancy_warmup and (step - config.occupancy_warmup) % config.occupancy_every == 0:
                 occupied = model.update_occupancy(generator)
+                if priors is not None:
+                    priors.update_occupancy(generator)
             idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator)
             batch = _take(rays, idx)
             outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, jitter=True,
                                         generator=generator)
-            extras = extras_fn(model, batch, outputs, step) if extras_fn is not None else None
-            loss, values = assemble_loss(config.losses, model, batch, outputs, step, extras)
+            extras = priors.extras(model, batch, outputs, step, generator) if priors is not None else {}
+            if extras_fn is not None:
+                extras.update(extras_fn(model, batch, outputs, step) or {})
+            loss, values = assemble_loss(terms, model, batch, outputs, step, extras)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -433,12 +457,17 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
+                        help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none)")
     _add_config_args(parser, FieldTrainConfig)
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
         config = _apply_losses(_apply_args(FieldTrainConfig(), args), args.loss)
+        if args.prior_names is not None:
+            names = [n.strip() for n in args.prior_names.split(",") if n.strip()]
+            config = dataclasses.replace(config, priors=with_priors(config.priors, names))
         if args.downscale is None:
             args.downscale = config.downscale
         train, test = _load_views(args)

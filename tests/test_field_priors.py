@@ -24,12 +24,7 @@ from models.fields.train import FieldTrainConfig, build_model, load_model, main,
 from tests.test_field_train import _write_blender, sphere_views, tiny_config
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _camera(position, look_at=(0.0, 0.0, 0.0), focal=80.0, size=64) -> Camera:

@@ -18,12 +18,7 @@ from models.fields.sampling import (OccupancyGrid, camera_rays, contract_ndc, ra
 TINY_FIELD = FieldConfig(resolutions=(4, 8), feature_dim=4, density_hidden=8, geo_feature_dim=3, color_hidden=8)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _reference_weights(sigma: np.ndarray, deltas: np.ndarray) -> np.ndarray:

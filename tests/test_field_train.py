@@ -20,13 +20,7 @@ from models.fields.model import RenderConfig
 from models.fields.train import FieldTrainConfig, build_model, evaluate_field, load_model, main, train_field
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # one thread: the machines these run on are shared, and two threads contending cost far more than one
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ----------------------------------------------------------------------------------------------------

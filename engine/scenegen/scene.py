@@ -21,6 +21,8 @@ from typing import Optional
 
 import numpy as np
 
+from engine.config import option
+
 from engine.errors import InputError
 from engine.frames import Camera, SceneObject
 
@@ -51,39 +53,34 @@ CAMERA_CLEARANCE = 0.6
 GROUND_HALF_SIZE = 200.0
 
 
-def _knob(default, help_text: str):
-    """A config field whose ``metadata['help']`` is its one-line documentation (and command-line help)."""
-    return field(default=default, metadata={"help": help_text})
-
-
 @dataclass(frozen=True)
 class SceneConfig:
     """What to generate. Ranges are inclusive ``(low, high)`` pairs sampled per seed."""
 
-    width: int = _knob(640, "frame width in pixels")
-    height: int = _knob(360, "frame height in pixels")
-    num_frames: int = _knob(60, "number of frames to render")
-    fps: float = _knob(30.0, "frames per second (frame i is at time i / fps)")
-    seed: int = _knob(0, "random seed: the same seed gives the same scene and the same pixels")
-    num_objects: tuple[int, int] = _knob((1, 6), "range of the number of moving objects")
-    object_speed: float = _knob(1.0, "scale of object speeds (linear and angular)")
-    pause_probability: float = _knob(0.2, "probability that an object stops for a while mid-sequence")
-    camera_path: str = _knob("random", "camera path: random, " + ", ".join(CAMERA_PATHS))
-    camera_speed: float = _knob(1.0, "scale of camera speeds")
-    shake_probability: float = _knob(0.3, "probability of handheld shake on top of a non-handheld path")
-    fov_range: tuple[float, float] = _knob((45.0, 75.0), "range of the vertical field of view, degrees")
-    zoom_probability: float = _knob(0.0, "probability of a slow zoom (intrinsics that change per frame)")
-    lighting: str = _knob("random", "lighting style: random, " + ", ".join(LIGHTING_STYLES))
-    num_point_lights: tuple[int, int] = _knob((0, 3), "range of the number of point lights (night: at least 2)")
-    shadows: bool = _knob(True, "sun shadows (shadow map)")
-    fog_probability: float = _knob(0.3, "probability of distance fog")
-    sky_probability: float = _knob(0.75, "probability of an open sky at infinite depth (else an enclosing room)")
-    thin_structures: str = _knob("random", "thin structures (poles, wires, fences, grilles): random, on, off")
-    thin_probability: float = _knob(0.7, "probability of thin structures when thin_structures is random")
-    num_props: tuple[int, int] = _knob((3, 10), "range of the number of static boxes and pillars")
-    back_wall_probability: float = _knob(0.6, "probability of large walls behind the stage")
-    supersample: int = _knob(2, "colour supersampling factor per axis (ground truth is never supersampled)")
-    shadow_map_size: int = _knob(2048, "sun shadow map resolution in texels per side")
+    width: int = option(640, "frame width in pixels")
+    height: int = option(360, "frame height in pixels")
+    num_frames: int = option(60, "number of frames to render")
+    fps: float = option(30.0, "frames per second (frame i is at time i / fps)")
+    seed: int = option(0, "random seed: the same seed gives the same scene and the same pixels")
+    num_objects: tuple[int, int] = option((1, 6), "range of the number of moving objects")
+    object_speed: float = option(1.0, "scale of object speeds (linear and angular)")
+    pause_probability: float = option(0.2, "probability that an object stops for a while mid-sequence")
+    camera_path: str = option("random", "camera path: random, " + ", ".join(CAMERA_PATHS))
+    camera_speed: float = option(1.0, "scale of camera speeds")
+    shake_probability: float = option(0.3, "probability of handheld shake on top of a non-handheld path")
+    fov_range: tuple[float, float] = option((45.0, 75.0), "range of the vertical field of view, degrees")
+    zoom_probability: float = option(0.0, "probability of a slow zoom (intrinsics that change per frame)")
+    lighting: str = option("random", "lighting style: random, " + ", ".join(LIGHTING_STYLES))
+    num_point_lights: tuple[int, int] = option((0, 3), "range of the number of point lights (night: at least 2)")
+    shadows: bool = option(True, "sun shadows (shadow map)")
+    fog_probability: float = option(0.3, "probability of distance fog")
+    sky_probability: float = option(0.75, "probability of an open sky at infinite depth (else an enclosing room)")
+    thin_structures: str = option("random", "thin structures (poles, wires, fences, grilles): random, on, off")
+    thin_probability: float = option(0.7, "probability of thin structures when thin_structures is random")
+    num_props: tuple[int, int] = option((3, 10), "range of the number of static boxes and pillars")
+    back_wall_probability: float = option(0.6, "probability of large walls behind the stage")
+    supersample: int = option(2, "colour supersampling factor per axis (ground truth is never supersampled)")
+    shadow_map_size: int = option(2048, "sun shadow map resolution in texels per side")
 
     def __post_init__(self) -> None:
         checks = [

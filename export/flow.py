@@ -28,7 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from engine.errors import InputError
-from models.flow3d import Flow3D
+from models.flow3d import Flow3D, pyramid_stride
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "export_flow", "check_parity", "example_inputs"]
@@ -87,11 +87,16 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
     """
     model = _as_model(checkpoint_or_module).eval()
     graph = FlowGraph(model).eval()
-    inputs = example_inputs(model, *example_size)
+    stride = pyramid_stride(model.config)
+    height, width = example_size
+    if height % stride or width % stride or height < 2 * stride or width < 2 * stride:
+        raise InputError(f"must be multiples of {stride}, at least {2 * stride}, got {example_size}",
+                         field="example_size")
+    inputs = example_inputs(model, height, width, batch=2)  # batch 2: a size-1 example would be specialised
     batch = torch.export.Dim("batch", min=1, max=64)
-    height = torch.export.Dim("height", min=1, max=8192)
-    width = torch.export.Dim("width", min=1, max=8192)
-    image = {0: batch, 3: height, 4: width}
+    rows = torch.export.Dim("rows", min=2, max=8192 // stride)
+    cols = torch.export.Dim("cols", min=2, max=8192 // stride)
+    image = {0: batch, 3: stride * rows, 4: stride * cols}
     dynamic = {name: image for name in INPUT_NAMES[:-1]}
     dynamic["plane_depths"] = {0: batch}
     out = Path(path)

@@ -113,10 +113,10 @@ def _fold(x: Tensor) -> Tensor:
     return x.permute(0, 2, 1, 3, 4).reshape(b * z, c, h, w)
 
 
-def _unfold(x: Tensor, batch: int) -> Tensor:
+def _unfold(x: Tensor, batch: int, planes: int) -> Tensor:
     """(B * Z, C, H, W) -> (B, C, Z, H, W)."""
-    bz, c, h, w = x.shape
-    return x.reshape(batch, bz // batch, c, h, w).permute(0, 2, 1, 3, 4)
+    _, c, h, w = x.shape
+    return x.reshape(batch, planes, c, h, w).permute(0, 2, 1, 3, 4)
 
 
 def _safe_divide(num: Tensor, den: Tensor, ok: Tensor) -> Tensor:
@@ -131,10 +131,10 @@ def _masked_upsample(x: Tensor, mask: Tensor, factor: int, fine_mask: Tensor) ->
     Every valid fine point has its valid parent among its bilinear taps (masks are max-pooled), so the
     normalised value is always defined there.
     """
-    b = x.shape[0]
+    b, _, z = x.shape[:3]
     num = F.interpolate(_fold(x * mask), scale_factor=factor, mode="bilinear", align_corners=False)
     den = F.interpolate(_fold(mask), scale_factor=factor, mode="bilinear", align_corners=False)
-    out = _unfold(_safe_divide(num, den, den > _MIN_MASK_SUM), b)
+    out = _unfold(_safe_divide(num, den, den > _MIN_MASK_SUM), b, z)
     return out * (fine_mask > 0).to(x.dtype)
 
 
@@ -164,33 +164,17 @@ def _stack_planes(x: Tensor, kz: int) -> Tensor:
     return planes.reshape(b * z, kz * c, h, w)
 
 
-def _conv_planes(x: Tensor, weight: Tensor, bias: Optional[Tensor], stride: tuple[int, int]) -> Tensor:
-    """A (kz, ky, kx) Conv3d with stride (1, sy, sx) and 'same' padding, run as one Conv2d over the planes.
+def _plane_weight(weight: Tensor) -> Tensor:
+    """Conv2d weight of the plane-stacked partial conv, with one extra input and output channel for the mask.
 
-    The same linear map as ``F.conv3d(x, weight, bias, (1, sy, sx), (kz // 2, ky // 2, kx // 2))``; the
-    CPU build of torch runs Conv3d through its slow im2col path but Conv2d through oneDNN (about 3x faster
-    here), and Conv2d exports to every ONNX runtime.
+    (C_out, C_in, kz, ky, kx) -> (C_out + 1, kz (C_in + 1), ky, kx). Input channel ``i (C_in + 1) + c`` is
+    channel c of plane ``z + i - kz // 2`` (c = C_in: the mask count); outputs 0..C_out-1 apply ``weight``
+    to the data channels, output C_out sums the mask count over the window (weights 1).
     """
-    b, _, z = x.shape[:3]
     c_out, c_in, kz, ky, kx = weight.shape
-    w2 = weight.transpose(1, 2).reshape(c_out, kz * c_in, ky, kx)
-    y = F.conv2d(_stack_planes(x, kz), w2, bias, stride, (ky // 2, kx // 2))
-    return y.reshape(b, z, c_out, y.shape[-2], y.shape[-1]).transpose(1, 2)
-
-
-def _window_sum(counts: Tensor, kernel: tuple[int, int, int], stride: tuple[int, int]) -> Tensor:
-    """Sum of a (B, 1, Z, H, W) map over each (kz, ky, kx) convolution window (zero padded), strided in x/y."""
-    kz, ky, kx = kernel
-    b, _, z, h, w = counts.shape
-    planes = counts.reshape(b, z, h, w)
-    if kz > 1:
-        p = kz // 2
-        padded = F.pad(planes, (0, 0, 0, 0, p, p))
-        planes = sum(padded[:, i:i + z] for i in range(kz))
-    if (ky, kx) != (1, 1) or stride != (1, 1):
-        planes = F.avg_pool2d(planes.reshape(b * z, 1, h, w), (ky, kx), stride, (ky // 2, kx // 2),
-                              count_include_pad=True) * float(ky * kx)
-    return planes.reshape(b, 1, z, planes.shape[-2], planes.shape[-1])
+    data = F.pad(weight.transpose(1, 2), (0, 0, 0, 0, 0, 1))  # (C_out, kz, C_in + 1, ky, kx)
+    count = F.pad(torch.ones((1, kz, 1, ky, kx), dtype=weight.dtype, device=weight.device), (0, 0, 0, 0, c_in, 0))
+    return torch.cat([data, count], dim=0).reshape(c_out + 1, kz * (c_in + 1), ky, kx)
 
 
 def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
@@ -207,6 +191,12 @@ def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tenso
     kernel. Mask values are kept (warped alphas may be fractional); output values are zeroed where it is 0.
     The plane axis is never strided (``stride[0] == 1``).
 
+    Runs as one Conv2d over the planes, each stacked with its kz - 1 neighbours as extra channels, with the
+    mask count as one more input/output channel (``_plane_weight``): the same linear map as
+    ``F.conv3d(x * mask, weight, None, stride, kernel // 2)`` plus the window count, but the CPU build of
+    torch runs Conv3d through its slow im2col path and Conv2d through oneDNN (about 3x faster here), and it
+    keeps the exported graph small.
+
     Args:
         x: (B, C_in, Z, H, W); mask: (B, 1 or C_in, Z, H, W) in [0, 1].
         weight: (C_out, C_in, kz, ky, kx), odd kernel sizes; bias: (C_out,) or None.
@@ -217,17 +207,22 @@ def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tenso
     """
     c_in = x.shape[1]
     c_out, _, kz, ky, kx = weight.shape
+    b, _, z = x.shape[:3]
     hw_stride = (int(stride[1]), int(stride[2]))
-    raw = _conv_planes(x * mask, weight, None, hw_stride)
-    counts = mask.sum(dim=1, keepdim=True) * (c_in / mask.shape[1])
-    window = _window_sum(counts, (kz, ky, kx), hw_stride)
-    out_mask = _downsample_mask(mask.amax(dim=1, keepdim=True), (1, *hw_stride))
-    valid = (out_mask > 0) & (window > _MIN_MASK_SUM)
-    ratio = _safe_divide(torch.full_like(window, float(c_in * kz * ky * kx)), window, valid)
-    out = raw * ratio
+    if mask.shape[1] == 1:
+        location, counts = mask, mask * float(c_in)
+    else:
+        location, counts = mask.amax(dim=1, keepdim=True), mask.sum(dim=1, keepdim=True)
+    y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
+                 hw_stride, (ky // 2, kx // 2))
+    y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
+    raw, window = y[:, :c_out], y[:, c_out:]
+    out_mask = _downsample_mask(location, (1, *hw_stride))
+    # out_mask > 0 implies a positive window count (the pooled block lies inside the kernel window)
+    out = raw * (float(c_in * kz * ky * kx) / window.clamp(min=_MIN_MASK_SUM))
     if bias is not None:
         out = out + bias.reshape(1, -1, 1, 1, 1)
-    return out * valid.to(x.dtype), out_mask
+    return out * (out_mask > 0).to(x.dtype), out_mask
 
 
 class PartialConv3d(nn.Module):
@@ -269,19 +264,25 @@ def masked_correlation(h1: Tensor, alpha1: Tensor, h2: Tensor, alpha2: Tensor, s
         cv (B, D, Z, H, W), cv_mask (B, D, Z, H, W), D = (2 s_z + 1)(2 r + 1)^2 (243 for r = 4, s_z = 1).
     """
     r, s = search_range, plane_search_range
-    _, c, z, h, w = h1.shape
-    # plane-major (B, Z, C, H, W) memory: how the partial convolutions leave their outputs
-    f1 = (h1 * alpha1).transpose(1, 2).contiguous()
+    b, c, z, h, w = h1.shape
+    n = 2 * r + 1
+    # plane-major (B, Z, C, H, W) memory, as the partial convolutions leave their outputs; the n x-shifts
+    # of the padded h2 are stacked once (B, Z + 2s, C, n, H + 2r, W), then each (dz, dy) is one slice
+    f1 = (h1 * alpha1).transpose(1, 2).contiguous()[:, :, :, None]
     f2 = F.pad((h2 * alpha2).transpose(1, 2), (r, r, r, r, 0, 0, s, s))
+    f2 = torch.stack([f2[..., dx:dx + w] for dx in range(n)], dim=3)
     a2 = F.pad(alpha2[:, 0], (r, r, r, r, s, s))
+    a2 = torch.stack([a2[..., dx:dx + w] for dx in range(n)], dim=2)  # (B, Z + 2s, n, H + 2r, W)
     costs, masks = [], []
     for dz in range(2 * s + 1):
-        for dy in range(2 * r + 1):
-            for dx in range(2 * r + 1):
-                costs.append((f1 * f2[:, dz:dz + z, :, dy:dy + h, dx:dx + w]).sum(dim=2))
-                masks.append(a2[:, dz:dz + z, dy:dy + h, dx:dx + w])
-    cv = torch.stack(costs, dim=1) * (1.0 / c)
-    return cv, torch.stack(masks, dim=1) * alpha1
+        for dy in range(n):
+            costs.append((f1 * f2[:, dz:dz + z, :, :, dy:dy + h]).sum(dim=2))  # (B, Z, n, H, W)
+            masks.append(a2[:, dz:dz + z, :, dy:dy + h])
+    # (B, (2s+1) n, Z, n_dx, H, W) -> (B, D, Z, H, W), D ordered (dz, dy, dx)
+    d = (2 * s + 1) * n * n
+    cv = torch.stack(costs, dim=1).transpose(2, 3).reshape(b, d, z, h, w) * (1.0 / c)
+    cv_mask = torch.stack(masks, dim=1).transpose(2, 3).reshape(b, d, z, h, w)
+    return cv, cv_mask * alpha1
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -348,7 +349,7 @@ def backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
     else:
         shifted = values
     sampled = _unfold(F.grid_sample(_fold(shifted), grid, mode="bilinear", padding_mode="zeros",
-                                    align_corners=False), b)
+                                    align_corners=False), b, z)
     if len(offsets) == 1:
         return sampled
     e = plane_offset(flow[:, 2:3], plane_depths)

@@ -22,7 +22,6 @@ from typing import Optional
 import numpy as np
 
 from engine.config import option
-
 from engine.errors import InputError
 from engine.frames import Camera, SceneObject
 

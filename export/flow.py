@@ -103,7 +103,8 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
     out.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad():
         program = torch.onnx.export(graph, inputs, dynamo=True, opset_version=OPSET, input_names=list(INPUT_NAMES),
-                                    output_names=["flow"], dynamic_shapes=dynamic, verbose=False)
+                                    output_names=["flow"], dynamic_shapes=dynamic, verbose=False,
+                                    optimize=False)
     program.save(str(out))
     return out
 

@@ -27,13 +27,14 @@ Pieces (pure functions; the modules only hold weights and hyper-parameters):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from engine.config import option
 from engine.errors import InputError
 from engine.geometry import check_shape
 from models.geometry import Mpi, _check_mpi, build_mpi, forward_warp_mpi, visibility
@@ -48,24 +49,21 @@ _OUTSIDE_LOGIT = -1.0e4
 _MIN_MASK_SUM = 1.0e-6
 
 
-def _option(default, help_text: str, **kwargs):
-    return field(default=default, metadata={"help": help_text}, **kwargs)
-
 
 @dataclass(frozen=True)
 class Flow3DConfig:
     """Hyper-parameters of the 3D flow network. The defaults are the thesis' (Z = 4, s_z = 1, range 4)."""
 
-    mode: str = _option("3d", "'3d': DeCOMPnet on MPIs; '2d': the ablation on frames (needs num_planes = 1)")
-    num_planes: int = _option(4, "MPI planes Z the network is built for (1 in 2d mode)")
-    encoder_channels: tuple[int, ...] = _option(
+    mode: str = option("3d", "'3d': DeCOMPnet on MPIs; '2d': the ablation on frames (needs num_planes = 1)")
+    num_planes: int = option(4, "MPI planes Z the network is built for (1 in 2d mode)")
+    encoder_channels: tuple[int, ...] = option(
         (8, 16, 24, 32), "feature channels of pyramid level 1..L (level l is at 1/2^l of the input size)")
-    reduce_channels: int = _option(32, "channels the frame-n features are reduced to (1x1x1) before the decoder")
-    decoder_channels: tuple[int, ...] = _option(
+    reduce_channels: int = option(32, "channels the frame-n features are reduced to (1x1x1) before the decoder")
+    decoder_channels: tuple[int, ...] = option(
         (32, 24, 16), "hidden channels of the flow decoder (shared by all levels, as in ARFlow)")
-    search_range: int = _option(4, "correlation search radius in x and y, pixels of each level (9 x 9)")
-    plane_search_range: int = _option(1, "correlation and flow radius s_z along the planes (3d mode; 2d: 0)")
-    negative_slope: float = _option(0.1, "LeakyReLU slope")
+    search_range: int = option(4, "correlation search radius in x and y, pixels of each level (9 x 9)")
+    plane_search_range: int = option(1, "correlation and flow radius s_z along the planes (3d mode; 2d: 0)")
+    negative_slope: float = option(0.1, "LeakyReLU slope")
 
     def __post_init__(self) -> None:
         checks = [
@@ -177,6 +175,29 @@ def _plane_weight(weight: Tensor) -> Tensor:
     return torch.cat([data, count], dim=0).reshape(c_out + 1, kz * (c_in + 1), ky, kx)
 
 
+def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
+                    stride: tuple[int, int, int] = (1, 1, 1)) -> tuple[Tensor, Tensor]:
+    """Unvalidated body of ``partial_conv3d``."""
+    c_in = x.shape[1]
+    c_out, _, kz, ky, kx = weight.shape
+    b, _, z = x.shape[:3]
+    hw_stride = (int(stride[1]), int(stride[2]))
+    if mask.shape[1] == 1:
+        location, counts = mask, mask * float(c_in)
+    else:
+        location, counts = mask.amax(dim=1, keepdim=True), mask.sum(dim=1, keepdim=True)
+    y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
+                 hw_stride, (ky // 2, kx // 2))
+    y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
+    raw, window = y[:, :c_out], y[:, c_out:]
+    out_mask = _downsample_mask(location, (1, *hw_stride))
+    # out_mask > 0 implies a positive window count (the pooled block lies inside the kernel window)
+    out = raw * (float(c_in * kz * ky * kx) / window.clamp(min=_MIN_MASK_SUM))
+    if bias is not None:
+        out = out + bias.reshape(1, -1, 1, 1, 1)
+    return out * (out_mask > 0).to(x.dtype), out_mask
+
+
 def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
                    stride: tuple[int, int, int] = (1, 1, 1)) -> tuple[Tensor, Tensor]:
     """3D partial convolution (Liu et al. 2018) that does not dilate the mask (thesis Sec. 6.3.3).
@@ -205,24 +226,14 @@ def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tenso
     Returns:
         out (B, C_out, Z, H', W'), out_mask (B, 1, Z, H', W'), with H' = ceil(H / sy), W' = ceil(W / sx).
     """
-    c_in = x.shape[1]
-    c_out, _, kz, ky, kx = weight.shape
-    b, _, z = x.shape[:3]
-    hw_stride = (int(stride[1]), int(stride[2]))
-    if mask.shape[1] == 1:
-        location, counts = mask, mask * float(c_in)
-    else:
-        location, counts = mask.amax(dim=1, keepdim=True), mask.sum(dim=1, keepdim=True)
-    y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
-                 hw_stride, (ky // 2, kx // 2))
-    y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
-    raw, window = y[:, :c_out], y[:, c_out:]
-    out_mask = _downsample_mask(location, (1, *hw_stride))
-    # out_mask > 0 implies a positive window count (the pooled block lies inside the kernel window)
-    out = raw * (float(c_in * kz * ky * kx) / window.clamp(min=_MIN_MASK_SUM))
-    if bias is not None:
-        out = out + bias.reshape(1, -1, 1, 1, 1)
-    return out * (out_mask > 0).to(x.dtype), out_mask
+    sizes: dict = {}
+    check_shape(x, "x", ("B", "C", "Z", "H", "W"), sizes)
+    check_shape(mask, "mask", ("B", "M", "Z", "H", "W"), sizes)
+    check_shape(weight, "weight", ("O", "C", "kz", "ky", "kx"), sizes)
+    if sizes["M"] not in (1, sizes["C"]) or any(k % 2 == 0 for k in weight.shape[2:]) or int(stride[0]) != 1:
+        raise InputError(f"needs a mask with 1 or C_in channels, odd kernels and stride[0] = 1, got mask "
+                         f"{tuple(mask.shape)}, weight {tuple(weight.shape)}, stride {stride}", field="partial_conv3d")
+    return _partial_conv3d(x, mask, weight, bias, stride)
 
 
 class PartialConv3d(nn.Module):
@@ -240,29 +251,16 @@ class PartialConv3d(nn.Module):
         self.stride = tuple(stride)
 
     def forward(self, x: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
-        return partial_conv3d(x, mask, self.weight, self.bias, self.stride)
+        return _partial_conv3d(x, mask, self.weight, self.bias, self.stride)
 
 
 # ----------------------------------------------------------------------------------------------------
 # Masked correlation (Eq. 6.3-6.4)
 
 
-def masked_correlation(h1: Tensor, alpha1: Tensor, h2: Tensor, alpha2: Tensor, search_range: int,
+def _masked_correlation(h1: Tensor, alpha1: Tensor, h2: Tensor, alpha2: Tensor, search_range: int,
                        plane_search_range: int) -> tuple[Tensor, Tensor]:
-    """Masked cost volume (thesis Eq. 6.3-6.4) by zero padding + shifted slices (no custom op, exportable).
-
-    ``cv[d](x, z) = <h1(x, z) alpha1(x, z), h2(x + (dx, dy), z + dz) alpha2(x + (dx, dy), z + dz)> / C`` and
-    ``cv_mask[d](x, z) = alpha1(x, z) alpha2(x + (dx, dy), z + dz)``, for every displacement
-    ``d = (dz, dy, dx)`` in ``[-s_z, s_z] x [-r, r] x [-r, r]``, ordered dz (outermost), dy, dx. Outside the
-    volume h2 and alpha2 are 0. The division by C (PWC-Net's normalisation) only scales Eq. 6.3.
-
-    Args:
-        h1, h2: (B, C, Z, H, W) features; alpha1, alpha2: (B, 1, Z, H, W) masks in [0, 1].
-        search_range: r (pixels); plane_search_range: s_z (planes).
-
-    Returns:
-        cv (B, D, Z, H, W), cv_mask (B, D, Z, H, W), D = (2 s_z + 1)(2 r + 1)^2 (243 for r = 4, s_z = 1).
-    """
+    """Unvalidated body of ``masked_correlation``."""
     r, s = search_range, plane_search_range
     b, c, z, h, w = h1.shape
     n = 2 * r + 1
@@ -285,6 +283,32 @@ def masked_correlation(h1: Tensor, alpha1: Tensor, h2: Tensor, alpha2: Tensor, s
     return cv, cv_mask * alpha1
 
 
+def masked_correlation(h1: Tensor, alpha1: Tensor, h2: Tensor, alpha2: Tensor, search_range: int,
+                       plane_search_range: int) -> tuple[Tensor, Tensor]:
+    """Masked cost volume (thesis Eq. 6.3-6.4) by zero padding + shifted slices (no custom op, exportable).
+
+    ``cv[d](x, z) = <h1(x, z) alpha1(x, z), h2(x + (dx, dy), z + dz) alpha2(x + (dx, dy), z + dz)> / C`` and
+    ``cv_mask[d](x, z) = alpha1(x, z) alpha2(x + (dx, dy), z + dz)``, for every displacement
+    ``d = (dz, dy, dx)`` in ``[-s_z, s_z] x [-r, r] x [-r, r]``, ordered dz (outermost), dy, dx. Outside the
+    volume h2 and alpha2 are 0. The division by C (PWC-Net's normalisation) only scales Eq. 6.3.
+
+    Args:
+        h1, h2: (B, C, Z, H, W) features; alpha1, alpha2: (B, 1, Z, H, W) masks in [0, 1].
+        search_range: r (pixels); plane_search_range: s_z (planes).
+
+    Returns:
+        cv (B, D, Z, H, W), cv_mask (B, D, Z, H, W), D = (2 s_z + 1)(2 r + 1)^2 (243 for r = 4, s_z = 1).
+    """
+    sizes: dict = {}
+    check_shape(h1, "h1", ("B", "C", "Z", "H", "W"), sizes)
+    check_shape(h2, "h2", ("B", "C", "Z", "H", "W"), sizes)
+    check_shape(alpha1, "alpha1", ("B", 1, "Z", "H", "W"), sizes)
+    check_shape(alpha2, "alpha2", ("B", 1, "Z", "H", "W"), sizes)
+    if search_range < 0 or plane_search_range < 0:
+        raise InputError("search ranges must be >= 0", field="search_range")
+    return _masked_correlation(h1, alpha1, h2, alpha2, int(search_range), int(plane_search_range))
+
+
 # ----------------------------------------------------------------------------------------------------
 # 3D flow: plane offsets, backward warping, network output -> flow (Eq. 6.5-6.6), extrapolation (Eq. 6.13)
 
@@ -297,6 +321,15 @@ def _plane_gaps(plane_depths: Tensor) -> tuple[Tensor, Tensor]:
     gap = torch.where(finite, gap, torch.zeros_like(gap))
     zero = torch.zeros_like(d[:, :1])
     return torch.cat([gap, zero], dim=1), torch.cat([zero, gap], dim=1)
+
+
+def _plane_offset(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
+    """Unvalidated body of ``plane_offset``."""
+    far, near = _plane_gaps(plane_depths)
+    far = far[:, None, :, None, None]
+    near = near[:, None, :, None, None]
+    gap = torch.where(flow_z >= 0, far, near)
+    return _safe_divide(flow_z, gap, gap > 0).clamp(-1.0, 1.0)
 
 
 def plane_offset(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
@@ -312,11 +345,34 @@ def plane_offset(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
     Returns:
         (B, 1, Z, H, W) offset in planes.
     """
-    far, near = _plane_gaps(plane_depths)
-    far = far[:, None, :, None, None]
-    near = near[:, None, :, None, None]
-    gap = torch.where(flow_z >= 0, far, near)
-    return _safe_divide(flow_z, gap, gap > 0).clamp(-1.0, 1.0)
+    sizes: dict = {}
+    check_shape(flow_z, "flow_z", ("B", 1, "Z", "H", "W"), sizes)
+    check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
+    return _plane_offset(flow_z, plane_depths)
+
+
+def _backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
+    """Unvalidated body of ``backward_warp``."""
+    b, c, z, h, w = values.shape
+    offsets = (-1, 0, 1) if z > 1 else (0,)
+    grid_x = (torch.arange(w, dtype=flow.dtype, device=flow.device) * 2.0 + 1.0).reshape(1, 1, 1, w)
+    grid_y = (torch.arange(h, dtype=flow.dtype, device=flow.device) * 2.0 + 1.0).reshape(1, 1, h, 1)
+    gx = (grid_x + 2.0 * flow[:, 0]) / w - 1.0  # (B, Z, H, W)
+    gy = (grid_y + 2.0 * flow[:, 1]) / h - 1.0
+    grid = torch.stack([gx, gy], dim=-1).reshape(b * z, h, w, 2)
+    if len(offsets) > 1:
+        padded = F.pad(values, (0, 0, 0, 0, 1, 1))
+        shifted = torch.cat([padded[:, :, 1 + o:1 + o + z] for o in offsets], dim=1)  # (B, 3C, Z, H, W)
+    else:
+        shifted = values
+    sampled = _unfold(F.grid_sample(_fold(shifted), grid, mode="bilinear", padding_mode="zeros",
+                                    align_corners=False), b, z)
+    if len(offsets) == 1:
+        return sampled
+    e = _plane_offset(flow[:, 2:3], plane_depths)
+    out = sampled[:, :c] * torch.relu(-e)  # tent weights max(0, 1 - |e - o|) for o = -1, 0, 1
+    out = out + sampled[:, c:2 * c] * (1.0 - e.abs())
+    return out + sampled[:, 2 * c:] * torch.relu(e)
 
 
 def backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
@@ -336,26 +392,11 @@ def backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
     Returns:
         (B, C, Z, H, W).
     """
-    b, c, z, h, w = values.shape
-    offsets = (-1, 0, 1) if z > 1 else (0,)
-    grid_x = (torch.arange(w, dtype=flow.dtype, device=flow.device) * 2.0 + 1.0).reshape(1, 1, 1, w)
-    grid_y = (torch.arange(h, dtype=flow.dtype, device=flow.device) * 2.0 + 1.0).reshape(1, 1, h, 1)
-    gx = (grid_x + 2.0 * flow[:, 0]) / w - 1.0  # (B, Z, H, W)
-    gy = (grid_y + 2.0 * flow[:, 1]) / h - 1.0
-    grid = torch.stack([gx, gy], dim=-1).reshape(b * z, h, w, 2)
-    if len(offsets) > 1:
-        padded = F.pad(values, (0, 0, 0, 0, 1, 1))
-        shifted = torch.cat([padded[:, :, 1 + o:1 + o + z] for o in offsets], dim=1)  # (B, 3C, Z, H, W)
-    else:
-        shifted = values
-    sampled = _unfold(F.grid_sample(_fold(shifted), grid, mode="bilinear", padding_mode="zeros",
-                                    align_corners=False), b, z)
-    if len(offsets) == 1:
-        return sampled
-    e = plane_offset(flow[:, 2:3], plane_depths)
-    out = sampled[:, :c] * torch.relu(-e)  # tent weights max(0, 1 - |e - o|) for o = -1, 0, 1
-    out = out + sampled[:, c:2 * c] * (1.0 - e.abs())
-    return out + sampled[:, 2 * c:] * torch.relu(e)
+    sizes: dict = {}
+    check_shape(values, "values", ("B", "C", "Z", "H", "W"), sizes)
+    check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
+    check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
+    return _backward_warp(values, flow, plane_depths)
 
 
 def _check_planes(plane_depths: Tensor, sizes: dict) -> None:
@@ -612,9 +653,10 @@ class Flow3D(nn.Module):
             else:
                 disp = _masked_upsample(disp, prev_mask, 2, m1) * 2.0
                 logits = _masked_upsample(logits, prev_mask, 2, m1)
-                warped = backward_warp(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes), planes)
+                warped = _backward_warp(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes),
+                                        planes)
                 f2w, m2w = warped[:, :-1], warped[:, -1:]
-            cv, cv_mask = masked_correlation(f1, m1, f2w, m2w, cfg.search_range, cfg.plane_range)
+            cv, cv_mask = _masked_correlation(f1, m1, f2w, m2w, cfg.search_range, cfg.plane_range)
             reduced, _ = self.reduce[level - 1](f1, m1)
             x = torch.cat([F.leaky_relu(cv, cfg.negative_slope), F.leaky_relu(reduced, cfg.negative_slope),
                            disp, logits], dim=1)

@@ -16,16 +16,17 @@ as one process, and is finite (0) for empty planes and all-empty MPIs.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from engine.config import option
 from engine.errors import InputError
 from engine.geometry import DEFAULT_SHARPNESS, check_shape
-from models.flow3d import backward_warp, encode_color, plane_offset
-from models.geometry import Mpi, _check_mpi, forward_warp_mpi, visibility
+from models.flow3d import _backward_warp, _plane_offset, encode_color
+from models.geometry import Mpi, _check_mpi, _visibility, forward_warp_mpi
 
 __all__ = ["FlowLossConfig", "masked_mean", "ssim", "photometric_loss", "occlusion_mask", "smoothness_loss",
            "photometric_channels", "reconstruct", "flow_loss"]
@@ -35,19 +36,16 @@ _SSIM_C1 = 0.01 ** 2
 _SSIM_C2 = 0.03 ** 2
 
 
-def _option(default, help_text: str):
-    return field(default=default, metadata={"help": help_text})
-
 
 @dataclass(frozen=True)
 class FlowLossConfig:
     """Weights of Eq. 6.8-6.12 (thesis values: beta 0.15, a 10, lambda 10)."""
 
-    beta: float = _option(0.15, "weight of the MAE term in Eq. 6.8 (the SSIM term gets 1 - beta)")
-    smoothness_weight: float = _option(10.0, "lambda of Eq. 6.12")
-    edge_weight: float = _option(10.0, "a of Eq. 6.11: how fast colour edges switch smoothness off")
-    occlusion_threshold: float = _option(0.5, "Eq. 6.10: a point is visible in frame n-k where v_hat_n > this")
-    sharpness: float = _option(DEFAULT_SHARPNESS, "soft z-buffer sharpness of the occlusion forward warp")
+    beta: float = option(0.15, "weight of the MAE term in Eq. 6.8 (the SSIM term gets 1 - beta)")
+    smoothness_weight: float = option(10.0, "lambda of Eq. 6.12")
+    edge_weight: float = option(10.0, "a of Eq. 6.11: how fast colour edges switch smoothness off")
+    occlusion_threshold: float = option(0.5, "Eq. 6.10: a point is visible in frame n-k where v_hat_n > this")
+    sharpness: float = option(DEFAULT_SHARPNESS, "soft z-buffer sharpness of the occlusion forward warp")
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.beta <= 1.0 and self.smoothness_weight >= 0 and self.edge_weight >= 0
@@ -142,7 +140,7 @@ def _occlusion_mask(mpi_n: Mpi, flow: Tensor, threshold: float, sharpness: float
     eye_k = torch.eye(3, dtype=flow.dtype, device=flow.device).expand(b, 3, 3)
     eye_t = torch.eye(4, dtype=flow.dtype, device=flow.device).expand(b, 4, 4)
     moved, _ = forward_warp_mpi(mpi_n, eye_k, eye_t, eye_k, eye_t, flow, sharpness=sharpness)
-    seen = backward_warp(visibility(moved), flow, mpi_n.plane_depths)
+    seen = _backward_warp(_visibility(moved.alpha), flow, mpi_n.plane_depths)
     return (seen > threshold).to(flow.dtype)
 
 
@@ -198,7 +196,11 @@ def reconstruct(mpi_prev_warped: Mpi, flow: Tensor, plane_depths: Tensor) -> Ten
 
     Differentiable w.r.t. the flow (bilinear in x/y, linear along the planes; see ``backward_warp``).
     """
-    return backward_warp(photometric_channels(mpi_prev_warped), flow, plane_depths)
+    sizes: dict = {}
+    mpi_prev_warped = _check_mpi(mpi_prev_warped, sizes)
+    check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
+    check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
+    return _backward_warp(photometric_channels(mpi_prev_warped), flow, plane_depths)
 
 
 def flow_loss(mpi_n: Mpi, mpi_prev_warped: Mpi, flow: Tensor,
@@ -221,9 +223,9 @@ def flow_loss(mpi_n: Mpi, mpi_prev_warped: Mpi, flow: Tensor,
     planes = mpi_n.plane_depths
     valid = _occlusion_mask(mpi_n, flow.detach(), config.occlusion_threshold, config.sharpness)
     valid = valid * (mpi_n.alpha > 0).to(flow.dtype)
-    photometric = _photometric_loss(photometric_channels(mpi_n), reconstruct(mpi_prev_warped, flow, planes),
-                                    valid, config.beta)
-    field_ = torch.cat([flow[:, :2], plane_offset(flow[:, 2:3], planes)], dim=1)
+    reconstruction = _backward_warp(photometric_channels(mpi_prev_warped), flow, planes)
+    photometric = _photometric_loss(photometric_channels(mpi_n), reconstruction, valid, config.beta)
+    field_ = torch.cat([flow[:, :2], _plane_offset(flow[:, 2:3], planes)], dim=1)
     smooth = _smoothness_loss(field_, encode_color(mpi_n.color) * mpi_n.alpha, mpi_n.alpha, config.edge_weight)
     points = (mpi_n.alpha > 0).to(flow.dtype).sum(dim=(1, 2, 3, 4))
     visible = valid.sum(dim=(1, 2, 3, 4)) / points.clamp(min=1.0)

@@ -19,7 +19,7 @@ takes every ``world_size``-th item of the step's batch, and DistributedDataParal
 so the update equals the single-process one. Only rank 0 writes files.
 
 >>> train(TrainFlowConfig(out_dir="runs/flow3d", steps=10000))      # doctest: +SKIP
->>> # torchrun --standalone --nproc_per_node 2 -m models.train_flow --out-dir runs/flow3d   (same thing)
+>>> # torchrun --standalone --nproc_per_node 2 -m models.train_flow --out-dir runs/flow3d --steps 10000
 """
 from __future__ import annotations
 
@@ -38,6 +38,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from engine.config import option
 from engine.errors import InputError
 from engine.geometry import check_shape
 from models.flow3d import Flow3D, Flow3DConfig, mpi_pair
@@ -52,29 +53,26 @@ CONFIG = "config.json"
 METRICS = "metrics.jsonl"
 
 
-def _option(default, help_text: str, **kwargs):
-    return field(default=default, metadata={"help": help_text}, **kwargs)
-
 
 @dataclass(frozen=True)
 class TrainFlowConfig:
     """What and how to train. Defaults follow the thesis (256x256 crops, batch 4, Adam 1e-4 (0.9, 0.999))."""
 
-    out_dir: str = _option("runs/flow3d", "folder for config.json, checkpoint.pt, metrics.jsonl and data/")
-    seed: int = _option(0, "seed of the weights and of the data drawn at every step")
-    steps: int = _option(10000, "optimiser steps")
-    batch_size: int = _option(4, "pairs per step, over all processes (divisible by the number of processes)")
-    crop: int = _option(256, "square crop size in pixels (a multiple of 16 avoids internal padding)")
-    lr: float = _option(1e-4, "Adam learning rate")
-    betas: tuple[float, float] = _option((0.9, 0.999), "Adam betas")
-    k_values: tuple[int, ...] = _option((1, 2, 4), "frame gaps k of the pairs (m_n, m_{n-k}), drawn uniformly")
-    scene_seeds: tuple[int, ...] = _option(tuple(range(1000, 1032)), "engine.scenegen seeds of the training scenes")
-    scene_width: int = _option(640, "rendered scene width")
-    scene_height: int = _option(360, "rendered scene height")
-    scene_frames: int = _option(12, "frames rendered per scene (the thesis' sequences have 12)")
-    threads: int = _option(2, "torch intra-op threads per process")
-    checkpoint_every: int = _option(500, "save checkpoint.pt every this many steps (and at the end)")
-    log_every: int = _option(10, "append to metrics.jsonl every this many steps")
+    out_dir: str = option("runs/flow3d", "folder for config.json, checkpoint.pt, metrics.jsonl and data/")
+    seed: int = option(0, "seed of the weights and of the data drawn at every step")
+    steps: int = option(10000, "optimiser steps")
+    batch_size: int = option(4, "pairs per step, over all processes (divisible by the number of processes)")
+    crop: int = option(256, "square crop size in pixels (a multiple of 16 avoids internal padding)")
+    lr: float = option(1e-4, "Adam learning rate")
+    betas: tuple[float, float] = option((0.9, 0.999), "Adam betas")
+    k_values: tuple[int, ...] = option((1, 2, 4), "frame gaps k of the pairs (m_n, m_{n-k}), drawn uniformly")
+    scene_seeds: tuple[int, ...] = option(tuple(range(1000, 1032)), "engine.scenegen seeds of the training scenes")
+    scene_width: int = option(640, "rendered scene width")
+    scene_height: int = option(360, "rendered scene height")
+    scene_frames: int = option(12, "frames rendered per scene (the thesis' sequences have 12)")
+    threads: int = option(2, "torch intra-op threads per process")
+    checkpoint_every: int = option(500, "save checkpoint.pt every this many steps (and at the end)")
+    log_every: int = option(10, "append to metrics.jsonl every this many steps")
     model: Flow3DConfig = field(default_factory=Flow3DConfig,
                                 metadata={"help": "network hyper-parameters (num_planes, mode, channels, ranges)"})
     loss: FlowLossConfig = field(default_factory=FlowLossConfig, metadata={"help": "loss weights (Eq. 6.8-6.12)"})
@@ -223,13 +221,16 @@ def endpoint_error(pred_flow: Tensor, gt_object_flow: Tensor, mask: Optional[Ten
 # Training
 
 
-def _distributed() -> tuple[int, int]:
+def _distributed() -> tuple[int, int, bool]:
+    """(rank, world size, whether this call created the process group)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
+    created = False
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("gloo")
+        created = True
     if dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
+        return dist.get_rank(), dist.get_world_size(), created
+    return 0, 1, False
 
 
 def load_model(path: str | Path) -> Flow3D:
@@ -258,7 +259,15 @@ def train(config: TrainFlowConfig, progress: bool = True, resume: bool = False) 
     """
     if not isinstance(config, TrainFlowConfig):
         raise InputError(f"must be a TrainFlowConfig, got {type(config).__name__}", field="config")
-    rank, world = _distributed()
+    rank, world, created = _distributed()
+    try:
+        return _train(config, progress, resume, rank, world)
+    finally:
+        if created:
+            dist.destroy_process_group()
+
+
+def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, world: int) -> Path:
     if config.batch_size % world:
         raise InputError(f"batch_size {config.batch_size} is not divisible by {world} processes", field="batch_size")
     torch.set_num_threads(config.threads)
@@ -334,35 +343,27 @@ def train(config: TrainFlowConfig, progress: bool = True, resume: bool = False) 
     return ckpt_path
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description="Train the DeCOMPnet 3D flow network (unsupervised).")
-    for f in dataclasses.fields(TrainFlowConfig):
-        if dataclasses.is_dataclass(f.type) or f.name in ("model", "loss"):
-            continue
-        default = f.default
-        flag = "--" + f.name.replace("_", "-")
-        if isinstance(default, tuple):
-            parser.add_argument(flag, type=type(default[0]), nargs="+", default=None, help=f.metadata["help"])
-        else:
-            parser.add_argument(flag, type=type(default), default=None, help=f.metadata["help"])
-    parser.add_argument("--num-planes", type=int, default=None, help="MPI planes Z (model.num_planes)")
-    parser.add_argument("--mode", choices=("3d", "2d"), default=None, help="model.mode")
+def main(argv: Optional[list[str]] = None) -> None:
+    """``python -m models.train_flow`` (or under ``torchrun``): one ``--option`` per field of
+    ``TrainFlowConfig``, ``Flow3DConfig`` and ``FlowLossConfig`` (``engine.cli.add_dataclass_options``;
+    tuples comma-separated, e.g. ``--scene-seeds 1,2,3 --num-planes 4 --beta 0.15``)."""
+    from engine.cli import add_dataclass_options
+
+    parser = argparse.ArgumentParser(prog="python -m models.train_flow",
+                                     description="Train the DeCOMPnet 3D flow network (unsupervised).")
+    add_dataclass_options(parser, TrainFlowConfig, skip=("model", "loss"))
+    add_dataclass_options(parser, Flow3DConfig)
+    add_dataclass_options(parser, FlowLossConfig)
     parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser
+    args = vars(parser.parse_args(argv))
 
+    def pick(cls) -> dict:
+        return {f.name: args[f.name] for f in dataclasses.fields(cls) if f.name in args}
 
-def main(argv: Optional[list[str]] = None) -> None:
-    """``python -m models.train_flow`` (or under ``torchrun``): one flag per ``TrainFlowConfig`` field."""
-    args = vars(_parser().parse_args(argv))
-    resume, quiet = args.pop("resume"), args.pop("no_progress")
-    model_args = {k: args.pop(k) for k in ("num_planes", "mode") if args.get(k) is not None}
-    args.pop("num_planes", None)
-    args.pop("mode", None)
-    kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in args.items() if v is not None}
-    if model_args:
-        kwargs["model"] = Flow3DConfig(**model_args)
-    train(TrainFlowConfig(**kwargs), progress=not quiet, resume=resume)
+    config = TrainFlowConfig(**{k: v for k, v in pick(TrainFlowConfig).items() if k not in ("model", "loss")},
+                             model=Flow3DConfig(**pick(Flow3DConfig)), loss=FlowLossConfig(**pick(FlowLossConfig)))
+    train(config, progress=not args["no_progress"], resume=args["resume"])
 
 
 if __name__ == "__main__":

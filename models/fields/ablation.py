@@ -23,7 +23,7 @@ import torch
 from engine.errors import InputError
 from models.fields.priors import PRIOR_NAMES, with_priors
 from models.fields.train import (FieldTrainConfig, _add_config_args, _apply_args, _apply_losses, _load_views,
-                                 evaluate_field, train_field)
+                                 add_run_arguments, evaluate_field, train_field)
 
 __all__ = ["VARIANTS", "run_ablation", "markdown_table", "main"]
 
@@ -64,15 +64,8 @@ def markdown_table(rows: list[dict]) -> str:
 def main(argv: Optional[list[str]] = None) -> int:
     """``python -m models.fields.ablation``: train every variant, print the table, write ``ablation.json``."""
     parser = argparse.ArgumentParser(prog="python -m models.fields.ablation", description=__doc__.split("\n")[0])
-    parser.add_argument("--dataset", choices=["nerf-synthetic", "llff", "rig"], required=True)
-    parser.add_argument("--data", required=True, help="dataset folder (scene)")
-    parser.add_argument("--out", required=True, help="folder of the variants' run directories")
-    parser.add_argument("--views", type=int, default=None, help="number of train views (spread uniformly)")
-    parser.add_argument("--max-test-views", type=int, default=0, help="evaluate at most this many test views")
+    add_run_arguments(parser, "folder of the variants' run directories")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, from {','.join(VARIANTS)}")
-    parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
-                        help="set a loss term's weight (0 switches it off); repeatable")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     _add_config_args(parser, FieldTrainConfig)
     args = parser.parse_args(argv)
     if args.threads:

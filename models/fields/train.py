@@ -446,17 +446,22 @@ def _load_views(args) -> tuple[Views, Views]:
     return pool.subset(train_idx), pool.subset(test_idx)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
-    """``python -m models.fields.train``: train on a dataset, evaluate held-out views, print the scores."""
-    parser = argparse.ArgumentParser(prog="python -m models.fields.train", description=__doc__.split("\n")[0])
+def add_run_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
+    """The dataset, split, loss-weight and thread options shared by the training and ablation commands."""
     parser.add_argument("--dataset", choices=["nerf-synthetic", "llff", "rig"], required=True)
     parser.add_argument("--data", required=True, help="dataset folder (scene)")
-    parser.add_argument("--out", required=True, help="run directory")
+    parser.add_argument("--out", required=True, help=out_help)
     parser.add_argument("--views", type=int, default=None, help="number of train views (spread uniformly)")
     parser.add_argument("--max-test-views", type=int, default=0, help="evaluate at most this many test views")
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """``python -m models.fields.train``: train on a dataset, evaluate held-out views, print the scores."""
+    parser = argparse.ArgumentParser(prog="python -m models.fields.train", description=__doc__.split("\n")[0])
+    add_run_arguments(parser, "run directory")
     parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
                         help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none)")
     _add_config_args(parser, FieldTrainConfig)

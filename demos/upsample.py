@@ -22,11 +22,12 @@ from engine.predictors import Predictor, Reproject, Target
 
 @dataclass
 class OutputFrame:
-    """One displayed tick: its index, linear colour, and whether it was predicted."""
+    """One displayed tick: its index, linear colour, whether it was predicted, and the true frame of the tick."""
 
     index: int
     color: np.ndarray
     predicted: bool
+    truth: Frame
 
 
 def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> Iterator[OutputFrame]:
@@ -43,10 +44,10 @@ def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> It
             rendered = (rendered + [frame])[-2:]
             method = predictor if len(rendered) >= predictor.history_needed else fallback
             state = method.prepare(rendered)
-            yield OutputFrame(frame.index, frame.color, False)
+            yield OutputFrame(frame.index, frame.color, False, frame)
         elif state is not None:
             pred = method.render(state, Target(frame.camera, frame.time, frame.index))
-            yield OutputFrame(frame.index, pred.color, True)
+            yield OutputFrame(frame.index, pred.color, True, frame)
 
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:
@@ -102,7 +103,7 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
     stills = 0
     for shown in tqdm(upsample_stream(sequence, k, predictor), total=len(sequence), desc="video",
                       disable=not progress, unit="frame"):
-        image = side_by_side(sequence[shown.index].color, shown.color, shown.predicted, shown.index, best)
+        image = side_by_side(shown.truth.color, shown.color, shown.predicted, shown.index, best)
         writer.write(image)
         if shown.predicted and stills < 3 and shown.index >= len(sequence) // 2:
             cv2.imwrite(str(out_dir / f"still_{shown.index:04d}.png"), image)

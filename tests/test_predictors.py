@@ -101,3 +101,17 @@ def test_hard_targets_give_finite_frames(name):
         f.depth = np.where(f.object_id > 0, 1e-3, 1e5).astype(np.float32)
     out = predictor.predict(history, _target(frames[3]))
     assert np.all(np.isfinite(out.color))
+
+
+def test_upsample_stream_shows_rendered_ticks_and_predicts_the_rest():
+    from demos.upsample import upsample_stream
+
+    frames, _ = two_layer_sequence(7)
+    shown = list(upsample_stream(frames, 3, Flow2D()))
+    assert [s.index for s in shown] == list(range(7))
+    assert [s.predicted for s in shown] == [i % 3 != 0 for i in range(7)]
+    for s in shown:
+        assert s.truth is frames[s.index]
+        if not s.predicted:
+            np.testing.assert_array_equal(s.color, frames[s.index].color)
+        assert np.all(np.isfinite(s.color))

@@ -70,7 +70,7 @@ def side_by_side(truth: np.ndarray, shown: np.ndarray, predicted: bool, index: i
 
 
 def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, width: int = 640,
-             height: int = 360, methods: Sequence[str] = ("repeat", "reproject", "flow2d", "oracle"),
+             height: int = 360, methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp", "oracle"),
              progress: bool = True) -> dict:
     """Render the built-in scene into ``out_dir/scene``, evaluate ``methods``, write video and reports.
 

@@ -18,7 +18,9 @@ from engine.errors import InterleaveError
 
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
-               "extrapolation), oracle (true object motion; needs object_id and objects)")
+               "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
+               "ablation network), oracle (true object motion; needs object_id and objects). decomp and "
+               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/decomp.py)")
 
 
 def _int_list(text: str) -> list[int]:
@@ -77,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--frames", type=int, default=48, help="frames to render (default: 48)")
     demo.add_argument("--width", type=int, default=640, help="frame width in pixels (default: 640)")
     demo.add_argument("--height", type=int, default=360, help="frame height in pixels (default: 360)")
-    demo.add_argument("--methods", default="repeat,reproject,flow2d,oracle", help=METHOD_HELP)
+    demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
 
     ev = sub.add_parser("eval", help="score predictors on rgbd-seq sequences: PSNR, SSIM, FLIP, time per frame",
                         description="For every rendered frame n (every k-th) with history, each method predicts "
@@ -86,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "moving pixels. Time per predicted frame is the median, preparation amortised.")
     ev.add_argument("sequences", nargs="+", type=Path, metavar="SEQ_DIR", help="rgbd-seq folders")
     ev.add_argument("--k", type=_int_list, default=[2], help="upsampling factor(s), comma-separated (default: 2)")
-    ev.add_argument("--methods", default="repeat,reproject,flow2d,oracle", help=METHOD_HELP)
+    ev.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
     ev.add_argument("--json", type=Path, default=None, help="write records and summary to this JSON file")
     ev.add_argument("--plot", type=Path, default=None, help="write the time-against-error plot to this PNG")
     ev.add_argument("--no-flip", action="store_true", help="skip FLIP (about 0.4 s per 960x540 frame)")
@@ -113,11 +115,30 @@ def build_parser() -> argparse.ArgumentParser:
                      help="veed: the EXR channel holding planar depth (default: B, as in the authors' data)")
     imp.add_argument("--skip-missing", action="store_true", help="skip frames with missing files (warn) "
                                                                  "instead of stopping with an error")
+    tr = sub.add_parser("train", help="train a network (needs the 'train' extra: torch)",
+                        description="'interleave train flow --config configs/flow3d.json' trains the 3D flow "
+                                    "network; 'interleave train flow --help' lists every option.")
+    tr.add_argument("what", choices=["flow"], help="what to train")
+    tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
+    ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
+                        description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
+                                    "graph and checks it against torch; 'interleave export flow --help'.")
+    ex.add_argument("what", choices=["flow"], help="what to export")
+    ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
     return parser
 
 
+def _needs_torch(command: str):
+    try:
+        import torch  # noqa: F401
+    except ImportError as exc:
+        raise InterleaveError(f"'interleave {command}' needs torch: pip install -e '.[train]'") from exc
+
+
 def _methods(text: str) -> list[str]:
-    return [m.strip() for m in text.split(",") if m.strip()]
+    from engine.predictors import split_methods
+
+    return split_methods(text)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -147,6 +168,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                       f"{', '.join('--' + k.replace('_', '-') for k in sorted(set(kwargs) - allowed))}")
             path = import_any(args.src, args.dst, args.layout, skip_missing=args.skip_missing, progress=True, **kwargs)
             print(f"wrote {path}")
+        elif args.command == "train":
+            _needs_torch("train")
+            from models.train_flow import main as train_flow
+
+            train_flow(args.options, prog="interleave train flow")
+        elif args.command == "export":
+            _needs_torch("export")
+            from export.flow import main as export_flow
+
+            export_flow(args.options, prog="interleave export flow")
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -159,7 +190,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     from engine.predictors import METHODS
 
     methods = _methods(args.methods)
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m.partition("[")[0] not in METHODS]
     if unknown:  # fail before any work
         raise InterleaveError(f"unknown method(s) {', '.join(unknown)}; expected some of {', '.join(METHODS)}")
     results = []

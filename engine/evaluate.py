@@ -40,6 +40,9 @@ class MethodResult:
     ms_per_frame: float
     stages_ms: dict[str, float] = field(default_factory=dict)
     per_step: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: mean x-y endpoint error (pixels) of the method's object flow u(n -> n+1) on frame n's moving pixels,
+    #: against the true ``object_flow`` (thesis Tab. 6.2); NaN for methods that estimate no flow
+    epe_moving: float = float("nan")
 
 
 def _mean(values: Iterable[float]) -> float:
@@ -75,6 +78,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     scores: dict[str, list] = {m: [] for m in methods}
     times: dict[str, list[float]] = {m: [] for m in methods}
     stages: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    epes: dict[str, list[float]] = {m: [] for m in methods}
     bar = tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
                disable=not progress, unit="frame")
     for older_i, newest_i, target_is in groups:
@@ -84,6 +88,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             start = time.perf_counter()
             state = predictor.prepare(history)
             prep_ms = 1e3 * (time.perf_counter() - start)
+            if hasattr(predictor, "object_flow"):
+                epes[name].append(flow_epe(predictor.object_flow(state), history[0], history[1], truths[0]))
             for step, truth in enumerate(truths, start=1):
                 target = Target(truth.camera, truth.time, truth.index)
                 start = time.perf_counter()
@@ -114,8 +120,18 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             flip_moving=_mean(s.flip_moving for s in frame_scores),
             ms_per_frame=float(statistics.median(times[name])),
             stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[name])) for s in stage_names},
-            per_step=per_step))
+            per_step=per_step, epe_moving=_mean(epes[name])))
     return results
+
+
+def flow_epe(flow_back: np.ndarray, older, newest, following) -> float:
+    """EPE of an estimated u(n -> n-k) (H, W, 2), extrapolated to u(n -> n+1) (Eq. 6.13 with the frame
+    times), against frame n's true object flow (n -> n+1) on its moving pixels; NaN if it has neither."""
+    if newest.object_flow is None or newest.moving is None or not newest.moving.any():
+        return float("nan")
+    step = (following.time - newest.time) / (newest.time - older.time)
+    error = np.linalg.norm(-step * flow_back[..., :2] - newest.object_flow, axis=-1)
+    return float(error[newest.moving].mean())
 
 
 def summarize(results: Sequence[MethodResult]) -> dict:
@@ -132,6 +148,7 @@ def summarize(results: Sequence[MethodResult]) -> dict:
                 "flip": _mean(r.flip for r in rows), "psnr_moving": _mean(r.psnr_moving for r in rows),
                 "ssim_moving": _mean(r.ssim_moving for r in rows), "flip_moving": _mean(r.flip_moving for r in rows),
                 "ms_per_frame": float(statistics.median(r.ms_per_frame for r in rows)),
+                "epe_moving": _mean(r.epe_moving for r in rows),
             }
     for key, row in out.items():
         base = out.get(f"reproject/k={row['k']}")
@@ -141,16 +158,21 @@ def summarize(results: Sequence[MethodResult]) -> dict:
 
 def markdown_table(results: Sequence[MethodResult]) -> str:
     """One row per (sequence, method, k), then the per-method means."""
-    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | FLIP moving | ms/frame |\n"
-            "|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | FLIP moving | EPE moving (px) "
+            "| ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
+
+    def epe(value: float) -> str:
+        return "-" if math.isnan(value) else f"{value:.2f}"
+
     for r in results:
         lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {r.psnr:.2f} | {r.ssim:.4f} | "
-                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.flip_moving:.4f} | {r.ms_per_frame:.1f} |")
+                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.flip_moving:.4f} | {epe(r.epe_moving)} | "
+                     f"{r.ms_per_frame:.1f} |")
     for row in summarize(results).values():
         lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {row['psnr']:.2f} | "
                      f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | {row['flip_moving']:.4f} | "
-                     f"{row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
+                     f"{epe(row['epe_moving'])} | {row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
     return "\n".join(lines)
 
 

@@ -384,9 +384,9 @@ def _nearest_plane(inv_depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
     return index
 
 
-def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int) -> Mpi:
+def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, planes: Optional[np.ndarray] = None) -> Mpi:
     h, w = depth.shape
-    planes = _plane_depths(depth, num_planes)
+    planes = _plane_depths(depth, num_planes) if planes is None else planes
     index = _nearest_plane(np.float32(1.0) / depth, planes)
     alpha = np.zeros((num_planes, h, w), dtype=np.float32)
     np.put_along_axis(alpha, index[None], np.float32(1.0), axis=0)
@@ -396,13 +396,15 @@ def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int) -> Mpi:
     return Mpi(mpi_color, mpi_depth, alpha, planes)
 
 
-def build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int) -> Mpi:
+def build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, plane_depths: Optional[np.ndarray] = None) -> Mpi:
     """One-hot MPI of an RGB-D frame: each pixel goes to the plane nearest in inverse depth.
 
     Args:
         color: (H, W, 3) linear RGB.
         depth: (H, W) planar depth, +inf for sky (sky goes to the farthest plane with depth +inf).
-        num_planes: Z >= 1; planes from ``plane_depths``.
+        num_planes: Z >= 1; planes from ``plane_depths(depth, Z)`` unless given.
+        plane_depths: optional (Z,) planes to use instead (e.g. those of the same frame at another
+            resolution): positive, non-decreasing, +inf only at the far end (all +inf for an all-sky frame).
 
     Returns:
         ``Mpi(color (3, Z, H, W), depth (Z, H, W), alpha (Z, H, W) in {0, 1}, plane_depths (Z,))``; colour
@@ -411,7 +413,64 @@ def build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int) -> Mpi:
     sizes: dict = {}
     depth = _array(depth, "depth", ("H", "W"), sizes)
     color = _array(color, "color", ("H", "W", 3), sizes)
-    return _build_mpi(color, depth, _num_planes(num_planes))
+    z = _num_planes(num_planes)
+    if plane_depths is not None:
+        planes = np.asarray(plane_depths, dtype=np.float32)
+        finite = np.isfinite(planes)
+        if (planes.shape != (z,) or np.isnan(planes).any() or (planes <= 0).any()
+                or (finite[1:] & ~finite[:-1]).any() or (np.diff(planes[finite]) < 0).any()):
+            raise InputError(f"must be {z} non-decreasing positive depths (+inf only at the far end), got "
+                             f"{planes.tolist()}", field="plane_depths")
+        return _build_mpi(color, depth, z, planes)
+    return _build_mpi(color, depth, z)
+
+
+def downsample_factor(width: int, working_width: int) -> int:
+    """Integer block size that brings a frame ``width`` pixels wide nearest to ``working_width`` (>= 1).
+
+    >>> downsample_factor(1920, 480), downsample_factor(960, 480), downsample_factor(640, 480)
+    (4, 2, 1)
+    """
+    if int(working_width) < 1:
+        raise InputError(f"must be >= 1, got {working_width}", field="working_width")
+    return max(1, int(round(int(width) / int(working_width))))
+
+
+def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
+                     factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block-downsample an RGB-D frame by an integer ``factor`` (the flow network's working resolution).
+
+    Colour is the block mean, depth the block minimum (the nearest surface; +inf only where the whole block
+    is sky), so every low-resolution pixel keeps a depth that exists in the frame. Rows and columns past the
+    last whole block are dropped. Pixel ``i`` of the result spans source pixels ``[f i, f (i + 1))``, so with
+    pixel centres at +0.5 the intrinsics scale as ``K' = diag(1/f, 1/f, 1) K`` (x-rows of K divided by f).
+    Training (``models.train_flow``) and the engine's ``decomp`` predictor both call this function.
+
+    Args:
+        color: (H, W, 3) linear RGB; depth: (H, W) planar, +inf sky; intrinsics: (3, 3).
+        factor: block size f >= 1 with f <= H and f <= W.
+
+    Returns:
+        color (H // f, W // f, 3) and depth (H // f, W // f) float32, intrinsics (3, 3) float64 (f = 1: copies).
+    """
+    sizes: dict = {}
+    depth = _array(depth, "depth", ("H", "W"), sizes)
+    color = _array(color, "color", ("H", "W", 3), sizes)
+    k = _matrix(intrinsics, "intrinsics", 3)
+    f = int(factor)
+    if f < 1 or f > min(sizes["H"], sizes["W"]):
+        raise InputError(f"must be between 1 and the frame's smaller side {min(sizes['H'], sizes['W'])}, got "
+                         f"{factor}", field="factor")
+    h, w = sizes["H"] // f, sizes["W"] // f
+    if f == 1:
+        return color.copy(), depth.copy(), np.array(k, dtype=np.float64)
+    import cv2  # INTER_AREA with an integer factor is the exact block mean, several times faster than numpy's
+
+    out_color = cv2.resize(np.ascontiguousarray(color[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
+    out_depth = depth[:h * f, :w * f].reshape(h, f, w * f).min(axis=1).reshape(h, w, f).min(axis=2)
+    out_k = np.array(k, dtype=np.float64)
+    out_k[:2] /= f
+    return out_color.astype(np.float32), np.ascontiguousarray(out_depth, dtype=np.float32), out_k
 
 
 def visibility(mpi: Mpi) -> np.ndarray:

@@ -175,6 +175,10 @@ class Flow2D(Predictor):
 
         state.data["flow_back"] = timer("flow", self._dis.calc, luma8(newest.color), luma8(warped), None)
 
+    def object_flow(self, state: PreparedState) -> np.ndarray:
+        """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""
+        return state.data["flow_back"]
+
     def _render(self, state, target, timer):
         flow = -_extrapolation_factor(state, target) * state.data["flow_back"]
         return _warp_and_fill(state.history[-1], target, timer, flow)
@@ -231,11 +235,45 @@ METHODS: dict[str, Callable[[Sequence[SceneObject]], Predictor]] = {
     "reproject": lambda objects: Reproject(),
     "flow2d": lambda objects: Flow2D(),
     "oracle": lambda objects: Oracle(objects),
+    "decomp": lambda objects: _decomp(),
+    "decomp2d": lambda objects: _decomp("flow2d.onnx"),
 }
 
 
+def _decomp(weights: str = "flow3d.onnx", options: str = "") -> Predictor:
+    """The DeCOMPnet predictor (``engine.decomp``) with committed weights from ``engine/weights``."""
+    from engine.decomp import DEFAULT_MODEL, DecompPredictor, config_from_options
+
+    return DecompPredictor(config_from_options(options, model=str(DEFAULT_MODEL.with_name(weights))))
+
+
+def split_methods(text: str) -> list[str]:
+    """Comma-separated method names, where a name may carry options in brackets with commas inside:
+    ``"reproject,decomp[gate=0,flow_width=240]"`` -> ``["reproject", "decomp[gate=0,flow_width=240]"]``."""
+    out, depth, current = [], 0, ""
+    for ch in text:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            out.append(current.strip())
+            current = ""
+        else:
+            current += ch
+    out.append(current.strip())
+    return [m for m in out if m]
+
+
 def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
-    """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones."""
-    if name not in METHODS:
+    """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones.
+
+    ``decomp`` and ``decomp2d`` take options of ``engine.decomp.DecompConfig`` in brackets, e.g.
+    ``decomp[gate=0,flow_width=240]``.
+    """
+    base, _, rest = name.partition("[")
+    if base not in METHODS:
         raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}", field="methods")
-    return METHODS[name](objects)
+    if not rest:
+        return METHODS[base](objects)
+    if base not in ("decomp", "decomp2d") or not rest.endswith("]"):
+        raise InputError(f"method '{name}': only decomp and decomp2d take options, as decomp[key=value,...]",
+                         field="methods")
+    return _decomp("flow3d.onnx" if base == "decomp" else "flow2d.onnx", rest[:-1])

@@ -21,7 +21,7 @@ work and are the recommended ones. Exported with ``torch.onnx.export(..., dynamo
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -31,9 +31,17 @@ from engine.errors import InputError
 from models.flow3d import Flow3D, pyramid_stride
 from models.geometry import Mpi, build_mpi
 
-__all__ = ["FlowGraph", "INPUT_NAMES", "export_flow", "check_parity", "example_inputs"]
+__all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
+           "example_inputs"]
 
 INPUT_NAMES = ("color_n", "depth_n", "alpha_n", "color_prev", "depth_prev", "alpha_prev", "plane_depths")
+#: the extra input of networks built with ``Flow3DConfig.initial_flow``: (B, 2, H, W) pixels, u(n -> n-k)
+INITIAL_FLOW = "initial_flow"
+
+
+def input_names(model: Flow3D) -> tuple[str, ...]:
+    """The graph's inputs in order: ``INPUT_NAMES`` (+ ``initial_flow`` when the network refines one)."""
+    return INPUT_NAMES + ((INITIAL_FLOW,) if model.config.initial_flow else ())
 OPSET = 20
 
 
@@ -45,9 +53,9 @@ class FlowGraph(nn.Module):
         self.model = model
 
     def forward(self, color_n: Tensor, depth_n: Tensor, alpha_n: Tensor, color_prev: Tensor, depth_prev: Tensor,
-                alpha_prev: Tensor, plane_depths: Tensor) -> Tensor:
+                alpha_prev: Tensor, plane_depths: Tensor, initial_flow: Optional[Tensor] = None) -> Tensor:
         return self.model.flow_unchecked(Mpi(color_n, depth_n, alpha_n, plane_depths),
-                                         Mpi(color_prev, depth_prev, alpha_prev, plane_depths))
+                                         Mpi(color_prev, depth_prev, alpha_prev, plane_depths), initial_flow)
 
 
 def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
@@ -62,6 +70,15 @@ def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
                      field="checkpoint_or_module")
 
 
+def _working_width(checkpoint_or_module) -> int:
+    if isinstance(checkpoint_or_module, (str, Path)):
+        state = torch.load(Path(checkpoint_or_module), map_location="cpu", weights_only=False)
+        config = state.get("config", {})
+        if "scene_width" in config:
+            return int(config["scene_width"]) // int(config.get("downsample", 1))
+    return 480
+
+
 def example_inputs(model: Flow3D, height: int = 64, width: int = 96, batch: int = 1,
                    seed: int = 0) -> tuple[Tensor, ...]:
     """Flat inputs of ``FlowGraph`` for a random two-layer-ish scene (sky included), ``INPUT_NAMES`` order."""
@@ -73,18 +90,27 @@ def example_inputs(model: Flow3D, height: int = 64, width: int = 96, batch: int 
     first = build_mpi(color, depth, z)
     shift = torch.roll(torch.arange(width), 2)
     second = build_mpi(color[:, :, shift], depth[:, :, shift], z)._replace(plane_depths=first.plane_depths)
-    return (first.color, first.depth, first.alpha, second.color, second.depth, second.alpha, first.plane_depths)
+    out = (first.color, first.depth, first.alpha, second.color, second.depth, second.alpha, first.plane_depths)
+    if model.config.initial_flow:  # about the true shift (2 px to the left), with noise
+        init = torch.zeros(batch, 2, height, width)
+        init[:, 0] = -2.0
+        out = out + (init + 0.3 * torch.randn(batch, 2, height, width, generator=g),)
+    return out
 
 
 def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[str, Path], *,
-                example_size: tuple[int, int] = (64, 96)) -> Path:
+                example_size: tuple[int, int] = (64, 96), working_width: Optional[int] = None) -> Path:
     """Export the network to ONNX (opset 20, dynamo exporter) with dynamic B, H, W; returns ``path``.
 
     Args:
         checkpoint_or_module: a ``Flow3D``, a ``FlowGraph`` or a ``checkpoint.pt`` from ``train_flow``.
         path: the .onnx file to write.
         example_size: (H, W) of the tracing example (any size; shapes stay symbolic).
+        working_width: width of the frames the network was trained on (recorded in the ONNX metadata for
+            the engine); default: from the checkpoint's training config, else 480.
     """
+    if working_width is None:
+        working_width = _working_width(checkpoint_or_module)
     model = _as_model(checkpoint_or_module).eval()
     graph = FlowGraph(model).eval()
     stride = pyramid_stride(model.config)
@@ -97,16 +123,41 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
     rows = torch.export.Dim("rows", min=2, max=8192 // stride)
     cols = torch.export.Dim("cols", min=2, max=8192 // stride)
     image = {0: batch, 3: stride * rows, 4: stride * cols}
+    names = input_names(model)
     dynamic = {name: image for name in INPUT_NAMES[:-1]}
     dynamic["plane_depths"] = {0: batch}
+    if model.config.initial_flow:
+        dynamic[INITIAL_FLOW] = {0: batch, 2: stride * rows, 3: stride * cols}
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad():
-        program = torch.onnx.export(graph, inputs, dynamo=True, opset_version=OPSET, input_names=list(INPUT_NAMES),
+        program = torch.onnx.export(graph, inputs, dynamo=True, opset_version=OPSET, input_names=list(names),
                                     output_names=["flow"], dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
+    _write_metadata(out, model, working_width)
     return out
+
+
+def _write_metadata(path: Path, model: Flow3D, working_width: int) -> None:
+    """Store the network config and its working width in the ONNX metadata (``engine.decomp.METADATA_KEY``);
+    drop the per-node debug records (source stack traces) the exporter writes."""
+    import dataclasses
+    import json
+
+    import onnx
+
+    from engine.decomp import METADATA_KEY
+
+    proto = onnx.load(str(path))
+    for node in proto.graph.node:  # the exporter's per-node stack traces: 6.5 MB of the 7.4 MB file
+        node.doc_string = ""
+        del node.metadata_props[:]
+    del proto.metadata_props[:]
+    entry = proto.metadata_props.add()
+    entry.key = METADATA_KEY
+    entry.value = json.dumps({"model": dataclasses.asdict(model.config), "working_width": int(working_width)})
+    onnx.save(proto, str(path))
 
 
 def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[Tensor, ...]) -> float:
@@ -117,7 +168,34 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
     with torch.no_grad():
         expected = FlowGraph(model)(*inputs).numpy()
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    got = session.run(None, {name: t.numpy() for name, t in zip(INPUT_NAMES, inputs)})[0]
+    got = session.run(None, {name: t.numpy() for name, t in zip(input_names(model), inputs)})[0]
     if got.shape != expected.shape:
         raise InputError(f"onnxruntime returned shape {got.shape}, torch {expected.shape}", field="onnx_path")
     return float(np.max(np.abs(got - expected))) if expected.size else 0.0
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") -> None:
+    """``interleave export flow CHECKPOINT OUT.onnx``: export, then check onnxruntime against torch on a
+    random two-layer input and print the largest difference (fails above ``--tolerance``)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=prog, description="Export the flow network to ONNX and check parity.")
+    parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by 'interleave train flow'")
+    parser.add_argument("out", type=Path, help="the .onnx file to write")
+    parser.add_argument("--tolerance", type=float, default=1e-3,
+                        help="largest |onnxruntime - torch| flow difference accepted, pixels (default 1e-3)")
+    args = parser.parse_args(argv)
+    if not args.checkpoint.is_file():
+        raise InputError("checkpoint not found", file=args.checkpoint)
+    from models.train_flow import load_model
+
+    model = load_model(args.checkpoint)
+    path = export_flow(args.checkpoint, args.out)
+    err = check_parity(path, model, example_inputs(model, 96, 160, seed=1))
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); max |onnxruntime - torch| = {err:.2e}")
+    if err > args.tolerance:
+        raise InputError(f"onnxruntime differs from torch by {err:.2e} > {args.tolerance:.0e}", file=path)
+
+
+if __name__ == "__main__":
+    main()

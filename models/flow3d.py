@@ -64,6 +64,10 @@ class Flow3DConfig:
     search_range: int = option(4, "correlation search radius in x and y, pixels of each level (9 x 9)")
     plane_search_range: int = option(1, "correlation and flow radius s_z along the planes (3d mode; 2d: 0)")
     negative_slope: float = option(0.1, "LeakyReLU slope")
+    initial_flow: bool = option(False, "refine a given 2D flow u(n -> n-k) (pixels, per pixel of the input; e.g. "
+                                       "OpenCV DIS between frame n and the camera-compensated frame n-k, "
+                                       "engine.decomp.initial_flow) lifted onto every plane, instead of "
+                                       "starting the coarsest level from zero")
 
     def __post_init__(self) -> None:
         checks = [
@@ -613,17 +617,27 @@ class Flow3D(nn.Module):
         self.decoder = FlowDecoder(corr + config.reduce_channels + 2 + self.num_offsets, config.decoder_channels,
                                    2 + self.num_offsets, kz, slope)
 
-    def forward(self, mpi_n: Mpi, mpi_prev_warped: Mpi) -> Tensor:
-        """(Mpi (B, ..., Z, H, W), Mpi) -> flow (B, 3, Z, H, W); Z must equal ``config.num_planes``."""
+    def forward(self, mpi_n: Mpi, mpi_prev_warped: Mpi, initial_flow: Optional[Tensor] = None) -> Tensor:
+        """(Mpi (B, ..., Z, H, W), Mpi[, initial flow (B, 2, H, W)]) -> flow (B, 3, Z, H, W).
+
+        Z must equal ``config.num_planes``; ``initial_flow`` is required exactly when ``config.initial_flow``.
+        """
         sizes: dict = {}
         mpi_n = _check_mpi(mpi_n, sizes)
         mpi_prev_warped = _check_mpi(mpi_prev_warped, sizes)
         if sizes["Z"] != self.config.num_planes:
             raise InputError(f"has Z = {sizes['Z']} planes, the network is built for {self.config.num_planes}",
                              field="mpi_n")
-        return self.flow_unchecked(mpi_n, mpi_prev_warped)
+        if self.config.initial_flow != (initial_flow is not None):
+            raise InputError(f"the network {'needs' if self.config.initial_flow else 'takes no'} initial flow",
+                             field="initial_flow")
+        if initial_flow is not None:
+            check_shape(initial_flow, "initial_flow", ("B", 2, "H", "W"), sizes)
+            if not bool(torch.isfinite(initial_flow).all()):
+                raise InputError("has NaN or inf values", field="initial_flow")
+        return self.flow_unchecked(mpi_n, mpi_prev_warped, initial_flow)
 
-    def flow_unchecked(self, mpi_n: Mpi, mpi_prev_warped: Mpi) -> Tensor:
+    def flow_unchecked(self, mpi_n: Mpi, mpi_prev_warped: Mpi, initial_flow: Optional[Tensor] = None) -> Tensor:
         """``forward`` without validation (for ``torch.export``: no shape is read as a Python int)."""
         planes = mpi_n.plane_depths
         h, w = mpi_n.alpha.shape[-2:]
@@ -631,30 +645,45 @@ class Flow3D(nn.Module):
         pad = (0, (stride - w % stride) % stride, 0, (stride - h % stride) % stride)
         x1, a1 = F.pad(mpi_features(mpi_n, planes), pad), F.pad(mpi_n.alpha, pad)
         x2, a2 = F.pad(mpi_features(mpi_prev_warped, planes), pad), F.pad(mpi_prev_warped.alpha, pad)
-        disp, logits, coarse_mask = self._coarse_to_fine(self.pyramid(x1, a1), self.pyramid(x2, a2), planes)
+        init = None if initial_flow is None else F.pad(initial_flow, pad)
+        disp, logits, coarse_mask = self._coarse_to_fine(self.pyramid(x1, a1), self.pyramid(x2, a2), planes, init)
         disp = _masked_upsample(disp, coarse_mask, 4, a1) * 4.0
+        if init is not None:  # the given flow at full detail on every plane, plus the network's residual
+            disp = disp + init[:, :, None] * (a1 > 0).to(disp.dtype)
         logits = _masked_upsample(logits, coarse_mask, 4, a1)
         flow = _flow_from_output(disp, logits, planes) * a1
         return flow[..., :h, :w]
 
-    def _coarse_to_fine(self, pyr1, pyr2, planes: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Levels L .. 2 -> (displacement (B, 2, ...), plane logits (B, P, ...), mask (B, 1, ...)) at 1/4."""
+    def _coarse_to_fine(self, pyr1, pyr2, planes: Tensor,
+                        initial_flow: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Levels L .. 2 -> (displacement (B, 2, ...), plane logits (B, P, ...), mask (B, 1, ...)) at 1/4.
+
+        With an initial flow, the displacement each level warps and decodes with is that flow block-averaged
+        to the level (in its pixels, on every plane) plus the network's residual; only the residual is
+        upsampled from level to level and returned (``flow_unchecked`` adds the flow back at full resolution).
+        """
         cfg = self.config
-        disp = logits = None
+        resid = logits = None
         prev_mask = None
         for level in range(cfg.levels - 1, 0, -1):  # index 0 is level 1 (1/2): not estimated
             f1, m1 = pyr1[level]
             f2, m2 = pyr2[level]
-            if disp is None:
+            if resid is None:
                 b, _, z, h, w = f1.shape
-                disp = torch.zeros((b, 2, z, h, w), dtype=f1.dtype, device=f1.device)
+                resid = torch.zeros((b, 2, z, h, w), dtype=f1.dtype, device=f1.device)
                 logits = torch.zeros((b, self.num_offsets, z, h, w), dtype=f1.dtype, device=f1.device)
-                f2w, m2w = f2, m2
             else:
-                disp = _masked_upsample(disp, prev_mask, 2, m1) * 2.0
+                resid = _masked_upsample(resid, prev_mask, 2, m1) * 2.0
                 logits = _masked_upsample(logits, prev_mask, 2, m1)
-                warped = _backward_warp(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes),
-                                        planes)
+            disp = resid
+            if initial_flow is not None:
+                scale = 2 ** (level + 1)
+                base = F.avg_pool2d(initial_flow, scale, scale) * (1.0 / scale)
+                disp = resid + base[:, :, None] * (m1 > 0).to(f1.dtype)
+            if initial_flow is None and level == cfg.levels - 1:
+                f2w, m2w = f2, m2  # zero flow: nothing to warp
+            else:
+                warped = _backward_warp(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes), planes)
                 f2w, m2w = warped[:, :-1], warped[:, -1:]
             cv, cv_mask = _masked_correlation(f1, m1, f2w, m2w, cfg.search_range, cfg.plane_range)
             reduced, _ = self.reduce[level - 1](f1, m1)
@@ -662,7 +691,7 @@ class Flow3D(nn.Module):
                            disp, logits], dim=1)
             mask = torch.cat([cv_mask, m1.expand(-1, x.shape[1] - cv.shape[1], -1, -1, -1)], dim=1)
             delta = self.decoder(x, mask)
-            disp = disp + delta[:, :2]
+            resid = resid + delta[:, :2]
             logits = logits + delta[:, 2:]
             prev_mask = m1
-        return disp, logits, prev_mask
+        return resid, logits, prev_mask

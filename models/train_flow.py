@@ -1,7 +1,7 @@
 """Unsupervised training of the 3D flow network on procedural scenes (thesis Sec. 6.3.3, 6.4).
 
 Training pairs come from ``engine.scenegen``: each scene seed is rendered once into an rgbd-seq under
-``<out_dir>/data/scene_<seed>`` (its ``scenegen_config.json`` records how). A step draws, from a random
+``<data_dir>/scene_<seed>`` (its ``scenegen_config.json`` records how). A step draws, from a random
 stream seeded by ``(seed, step)``, ``batch_size`` items ``(scene, k, n, crop)``: frames n and n-k are
 turned into ``m_n`` and ``m^w_{n-k}`` at full size (``models.flow3d.mpi_pair``: MPIs with
 ``models.geometry``, camera motion cancelled by ``forward_warp_mpi``), then cropped. The loss is
@@ -40,9 +40,9 @@ from torch import Tensor
 
 from engine.config import option
 from engine.errors import InputError
-from engine.geometry import check_shape
-from models.flow3d import Flow3D, Flow3DConfig, mpi_pair
-from models.geometry import Mpi
+from engine.geometry import check_shape, downsample_frame
+from models.flow3d import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
+from models.geometry import Mpi, composite
 from models.losses import FlowLossConfig, flow_loss
 
 __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
@@ -58,18 +58,28 @@ METRICS = "metrics.jsonl"
 class TrainFlowConfig:
     """What and how to train. Defaults follow the thesis (256x256 crops, batch 4, Adam 1e-4 (0.9, 0.999))."""
 
-    out_dir: str = option("runs/flow3d", "folder for config.json, checkpoint.pt, metrics.jsonl and data/")
+    out_dir: str = option("runs/flow3d", "folder for config.json, checkpoint.pt and metrics.jsonl")
+    data_dir: str = option("runs/flow_data", "folder the training scenes are rendered to (shared between runs)")
     seed: int = option(0, "seed of the weights and of the data drawn at every step")
     steps: int = option(10000, "optimiser steps")
     batch_size: int = option(4, "pairs per step, over all processes (divisible by the number of processes)")
-    crop: int = option(256, "square crop size in pixels (a multiple of 16 avoids internal padding)")
+    crop: int = option(128, "square crop size in pixels of the downsampled frames (a multiple of 16 avoids "
+                            "internal padding)")
+    downsample: int = option(2, "block size the frames are downsampled by before the MPIs are built "
+                                "(engine.geometry.downsample_frame; the engine's decomp predictor runs the "
+                                "network at the same working width, 480 px)")
     lr: float = option(1e-4, "Adam learning rate")
     betas: tuple[float, float] = option((0.9, 0.999), "Adam betas")
     k_values: tuple[int, ...] = option((1, 2, 4), "frame gaps k of the pairs (m_n, m_{n-k}), drawn uniformly")
-    scene_seeds: tuple[int, ...] = option(tuple(range(1000, 1032)), "engine.scenegen seeds of the training scenes")
-    scene_width: int = option(640, "rendered scene width")
-    scene_height: int = option(360, "rendered scene height")
+    scene_seeds: tuple[int, ...] = option(tuple(range(5000, 5032)),
+                                          "engine.scenegen seeds of the training scenes (held-out: 1001-1003)")
+    scene_width: int = option(960, "rendered scene width")
+    scene_height: int = option(540, "rendered scene height")
     scene_frames: int = option(12, "frames rendered per scene (the thesis' sequences have 12)")
+    crop_candidates: int = option(4, "random crop positions drawn per frame pair; the crops_per_pair with the "
+                                     "largest camera-compensated colour residual (m_n vs m^w_{n-k}) are trained on")
+    crops_per_pair: int = option(2, "crops taken from each frame pair (building a pair costs more than a "
+                                    "network step on a crop); batch_size / crops_per_pair pairs per step")
     threads: int = option(2, "torch intra-op threads per process")
     checkpoint_every: int = option(500, "save checkpoint.pt every this many steps (and at the end)")
     log_every: int = option(10, "append to metrics.jsonl every this many steps")
@@ -81,7 +91,11 @@ class TrainFlowConfig:
         checks = [
             (self.steps >= 0 and self.batch_size >= 1, "steps must be >= 0 and batch_size >= 1"),
             (self.crop >= 1, "crop must be >= 1"),
-            (self.crop <= min(self.scene_width, self.scene_height), "crop must fit in the scene size"),
+            (self.downsample >= 1 and 1 <= self.crops_per_pair <= self.crop_candidates,
+             "downsample must be >= 1 and 1 <= crops_per_pair <= crop_candidates"),
+            (self.batch_size % self.crops_per_pair == 0, "batch_size must be a multiple of crops_per_pair"),
+            (self.crop <= min(self.scene_width, self.scene_height) // self.downsample,
+             "crop must fit in the downsampled scene size"),
             (self.lr > 0 and all(0.0 <= b < 1.0 for b in self.betas), "lr must be > 0, betas in [0, 1)"),
             (len(self.k_values) >= 1 and all(k >= 1 for k in self.k_values), "k_values must be >= 1"),
             (max(self.k_values) < self.scene_frames, "scene_frames must exceed the largest k"),
@@ -122,7 +136,7 @@ def prepare_data(config: TrainFlowConfig, *, progress: bool = False) -> list[Pat
     """Render every scene seed that is not cached yet; returns the rgbd-seq folders, one per seed."""
     from engine.scenegen import SceneConfig, generate_sequence
 
-    root = Path(config.out_dir) / "data"
+    root = Path(config.data_dir)
     paths = []
     for seed in config.scene_seeds:
         path = root / f"scene_{seed:06d}"
@@ -136,24 +150,49 @@ def prepare_data(config: TrainFlowConfig, *, progress: bool = False) -> list[Pat
 
 
 def sample_items(config: TrainFlowConfig, step: int) -> list[dict]:
-    """The ``batch_size`` items of a step: ``{"scene", "k", "n", "y", "x"}``, a function of (seed, step) only."""
+    """The frame pairs of a step, a function of (seed, step) only: ``batch_size / crops_per_pair`` items
+    ``{"scene", "k", "n", "crops"}`` with ``crops`` the ``crop_candidates`` (y, x) corners ``make_batch``
+    chooses ``crops_per_pair`` from."""
     rng = np.random.default_rng([config.seed, step])
     items = []
-    for _ in range(config.batch_size):
+    for _ in range(config.batch_size // config.crops_per_pair):
         k = int(rng.choice(config.k_values))
         items.append({"scene": int(rng.choice(config.scene_seeds)), "k": k,
                       "n": int(rng.integers(k, config.scene_frames)),
-                      "y": int(rng.integers(0, config.scene_height - config.crop + 1)),
-                      "x": int(rng.integers(0, config.scene_width - config.crop + 1))})
+                      "crops": [[int(rng.integers(0, config.scene_height // config.downsample - config.crop + 1)),
+                                 int(rng.integers(0, config.scene_width // config.downsample - config.crop + 1))]
+                                for _ in range(config.crop_candidates)]})
     return items
 
 
-def _frame_tensors(frame) -> tuple[Tensor, ...]:
-    color = torch.from_numpy(np.ascontiguousarray(frame.color))[None]
-    depth = torch.from_numpy(np.ascontiguousarray(frame.depth))[None]
-    k = torch.from_numpy(frame.camera.intrinsics)[None].float()
+def _residual(m_n: Mpi, m_p: Mpi) -> Tensor:
+    """(H, W) camera-compensated colour residual: |encoded colour difference| where both MPIs hold a point."""
+    both = m_n.alpha * m_p.alpha
+    diff = (encode_color(m_n.color) - encode_color(m_p.color)).abs().sum(dim=1, keepdim=True)
+    return (diff * both).sum(dim=(1, 2))[0]
+
+
+def choose_crops(residual: Tensor, crops: list, size: int, count: int) -> list[list[int]]:
+    """The ``count`` candidate [y, x] corners whose ``size`` crops hold the largest residual sums (stable order)."""
+    sums = np.array([float(residual[y:y + size, x:x + size].sum()) for y, x in crops])
+    order = np.argsort(-sums, kind="stable")[:count]
+    return [list(crops[i]) for i in sorted(order.tolist())]
+
+
+def _frame_tensors(frame, factor: int) -> tuple[Tensor, ...]:
+    """(color, depth, K, T) batched tensors of a frame block-downsampled by ``factor`` (as the engine does)."""
+    color, depth, k = downsample_frame(frame.color, frame.depth, frame.camera.intrinsics, factor)
     t = torch.from_numpy(frame.camera.world_to_camera)[None].float()
-    return color, depth, k, t
+    return torch.from_numpy(color)[None], torch.from_numpy(depth)[None], torch.from_numpy(k)[None].float(), t
+
+
+def _object_flow(frame, factor: int) -> np.ndarray:
+    """Frame n's ground-truth object flow (n -> n+1) at the downsampled size, in downsampled pixels."""
+    h, w = frame.depth.shape[0] // factor, frame.depth.shape[1] // factor
+    if frame.object_flow is None:
+        return np.zeros((h, w, 2), dtype=np.float32)
+    blocks = frame.object_flow[:h * factor, :w * factor].reshape(h, factor, w, factor, 2)
+    return (blocks.mean(axis=(1, 3)) / factor).astype(np.float32)
 
 
 def _crop_mpi(mpi: Mpi, y: int, x: int, size: int) -> Mpi:
@@ -162,28 +201,62 @@ def _crop_mpi(mpi: Mpi, y: int, x: int, size: int) -> Mpi:
     return Mpi(crop(mpi.color), crop(mpi.depth), crop(mpi.alpha), mpi.plane_depths)
 
 
-def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict) -> tuple[Mpi, Mpi, Tensor]:
-    """Crops of ``(m_n, m^w_{n-k})`` for ``items`` and the ground-truth object flow of frame n, (B, c, c, 2).
+def _low_res_frame(config: TrainFlowConfig, sequences: dict, scene: int, n: int, cache: Optional[dict]):
+    """(color, depth, K, T tensors, object flow array) of frame n of a scene at the downsampled size."""
+    key = (scene, n)
+    if cache is not None and key in cache:
+        return cache[key]
+    frame = sequences[scene][n]
+    value = (_frame_tensors(frame, config.downsample), _object_flow(frame, config.downsample))
+    if cache is not None:
+        cache[key] = value
+    return value
 
-    ``sequences`` maps scene seed -> ``engine.io.RgbdSequence``. The object flow (frame n -> n+1, pixels)
-    is only for evaluation (zeros when the sequence has none).
+
+def _initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
+    """``engine.decomp.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
+    from engine.decomp import initial_flow
+
+    warped_color, _, acc = composite(m_p)
+    flow = initial_flow(color_n[0].numpy(), warped_color[0].numpy(), acc[0].numpy() > 0)
+    return torch.from_numpy(flow).permute(2, 0, 1)[None]
+
+
+def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
+               cache: Optional[dict] = None) -> tuple[Mpi, Mpi, Tensor, Optional[Tensor]]:
+    """Crops of ``(m_n, m^w_{n-k})`` for ``items``, the ground-truth object flow of frame n (B, c, c, 2) and,
+    for networks that refine one (``Flow3DConfig.initial_flow``), the initial flow (B, 2, c, c), else None.
+
+    An item with ``crops`` candidates yields ``crops_per_pair`` crops (``choose_crops``, recorded in the
+    item as ``picked``); an item with ``y``, ``x`` yields that one crop.
+
+    Frames are block-downsampled by ``config.downsample`` first (``engine.geometry.downsample_frame``).
+    ``sequences`` maps scene seed -> ``engine.io.RgbdSequence`` (or anything indexable the same way);
+    ``cache`` (a dict, optional) keeps the downsampled frames between calls (training passes one). The
+    object flow (frame n -> n+1, block mean, in downsampled pixels) is only for evaluation (zeros when the
+    sequence has none).
     """
-    firsts, seconds, flows = [], [], []
+    firsts, seconds, flows, inits = [], [], [], []
     for item in items:
-        seq = sequences[item["scene"]]
-        frame_n, frame_p = seq[item["n"]], seq[item["n"] - item["k"]]
+        tensors_n, flow_n = _low_res_frame(config, sequences, item["scene"], item["n"], cache)
+        tensors_p, _ = _low_res_frame(config, sequences, item["scene"], item["n"] - item["k"], cache)
         with torch.no_grad():
-            m_n, m_p = mpi_pair(*_frame_tensors(frame_n), *_frame_tensors(frame_p), config.model.num_planes)
-        y, x, c = item["y"], item["x"], config.crop
-        firsts.append(_crop_mpi(m_n, y, x, c))
-        seconds.append(_crop_mpi(m_p, y, x, c))
-        gt = frame_n.object_flow if frame_n.object_flow is not None else np.zeros(frame_n.depth.shape + (2,))
-        flows.append(torch.from_numpy(np.ascontiguousarray(gt[y:y + c, x:x + c], dtype=np.float32)))
+            m_n, m_p = mpi_pair(*tensors_n, *tensors_p, config.model.num_planes)
+        init = _initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
+        c = config.crop
+        if "crops" in item:
+            item["picked"] = choose_crops(_residual(m_n, m_p), item["crops"], c, config.crops_per_pair)
+        for y, x in item.get("picked", [[item.get("y", 0), item.get("x", 0)]]):
+            firsts.append(_crop_mpi(m_n, y, x, c))
+            seconds.append(_crop_mpi(m_p, y, x, c))
+            flows.append(torch.from_numpy(np.ascontiguousarray(flow_n[y:y + c, x:x + c])))
+            if init is not None:
+                inits.append(init[..., y:y + c, x:x + c])
 
     def stack(mpis: list[Mpi]) -> Mpi:
         return Mpi(*(torch.cat(parts, dim=0) for parts in zip(*mpis)))
 
-    return stack(firsts), stack(seconds), torch.stack(flows)
+    return stack(firsts), stack(seconds), torch.stack(flows), (torch.cat(inits) if inits else None)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -215,6 +288,16 @@ def endpoint_error(pred_flow: Tensor, gt_object_flow: Tensor, mask: Optional[Ten
     check_shape(mask, "mask", ("B", "H", "W"), sizes, floating=False)
     mask = mask.to(torch.bool)
     return epe[mask].mean() if bool(mask.any()) else torch.tensor(float("nan"), dtype=epe.dtype)
+
+
+def _moving_epe(flow: Tensor, mpi_n: Mpi, gt_flow: Tensor, ks: list[int]) -> tuple[float, float]:
+    """Monitoring only: EPE of the predicted u(n -> n+1) = -u(n -> n-k) / k on pixels whose true object
+    flow exceeds 0.1 px, and the EPE of zero flow on the same pixels (NaN when none moves)."""
+    steps = torch.tensor([1.0 / k for k in ks], dtype=flow.dtype).reshape(-1, 1, 1, 1, 1)
+    pred = surface_flow(extrapolate(flow, 1.0) * steps, mpi_n)
+    moving = torch.linalg.vector_norm(gt_flow, dim=-1) > 0.1
+    return (float(endpoint_error(pred, gt_flow, moving)),
+            float(endpoint_error(torch.zeros_like(gt_flow), gt_flow, moving)))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -268,8 +351,9 @@ def train(config: TrainFlowConfig, progress: bool = True, resume: bool = False) 
 
 
 def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, world: int) -> Path:
-    if config.batch_size % world:
-        raise InputError(f"batch_size {config.batch_size} is not divisible by {world} processes", field="batch_size")
+    if (config.batch_size // config.crops_per_pair) % world:
+        raise InputError(f"the {config.batch_size // config.crops_per_pair} frame pairs per step (batch_size / "
+                         f"crops_per_pair) do not divide among {world} processes", field="batch_size")
     torch.set_num_threads(config.threads)
     out = Path(config.out_dir)
     ckpt_path = out / CHECKPOINT
@@ -281,7 +365,8 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
         dist.barrier()
 
     from engine.io import read_sequence
-    sequences = {seed: read_sequence(out / "data" / f"scene_{seed:06d}") for seed in config.scene_seeds}
+    sequences = {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
+    frame_cache: dict = {}  # downsampled frames: about 3 MB each at the default 480 x 270
 
     torch.manual_seed(config.seed)
     model = Flow3D(config.model)
@@ -310,9 +395,9 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
             t0 = time.perf_counter()
             items = sample_items(config, step)
             mine = items[rank::world]
-            mpi_n, mpi_p, _ = make_batch(config, mine, sequences)
+            mpi_n, mpi_p, gt_flow, init = make_batch(config, mine, sequences, frame_cache)
             t1 = time.perf_counter()
-            flow = net(mpi_n, mpi_p)
+            flow = net(mpi_n, mpi_p, init)
             loss, terms = flow_loss(mpi_n, mpi_p, flow, config.loss)
             optimizer.zero_grad(set_to_none=True)
             loss.mean().backward()
@@ -320,7 +405,10 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
             done = step + 1
             if rank == 0:
                 if done % config.log_every == 0 or done == config.steps:
-                    record = {"step": done, "loss": float(loss.detach().mean()),
+                    ks = [item["k"] for item in mine for _ in item.get("picked", [None])]
+                    epe, epe_zero = _moving_epe(flow.detach(), mpi_n, gt_flow, ks)
+                    record = {"step": done, "loss": float(loss.detach().mean()), "epe_moving": epe,
+                              "epe_moving_zero_flow": epe_zero,
                               **{name: float(value.detach().mean()) for name, value in terms.items()},
                               "data_s": round(t1 - t0, 4), "step_s": round(time.perf_counter() - t0, 4),
                               "items": items}
@@ -343,27 +431,66 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     return ckpt_path
 
 
-def main(argv: Optional[list[str]] = None) -> None:
-    """``python -m models.train_flow`` (or under ``torchrun``): one ``--option`` per field of
-    ``TrainFlowConfig``, ``Flow3DConfig`` and ``FlowLossConfig`` (``engine.cli.add_dataclass_options``;
-    tuples comma-separated, e.g. ``--scene-seeds 1,2,3 --num-planes 4 --beta 0.15``)."""
+def build_parser(prog: str = "python -m models.train_flow") -> argparse.ArgumentParser:
+    """One ``--option`` per field of ``TrainFlowConfig``, ``Flow3DConfig`` and ``FlowLossConfig``
+    (``engine.cli.add_dataclass_options``; tuples comma-separated, e.g. ``--scene-seeds 1,2,3``), plus
+    ``--config FILE`` (a ``config.json`` as ``train`` writes it; options given on the command line override
+    it), ``--resume`` and ``--no-progress``."""
     from engine.cli import add_dataclass_options
 
-    parser = argparse.ArgumentParser(prog="python -m models.train_flow",
-                                     description="Train the DeCOMPnet 3D flow network (unsupervised).")
+    parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet 3D flow network (unsupervised, "
+                                                            "thesis Eq. 6.8-6.12) on procedural scenes.")
+    parser.add_argument("--config", metavar="FILE", help="JSON TrainFlowConfig (nested 'model' and 'loss'); "
+                                                         "command-line options override its values")
     add_dataclass_options(parser, TrainFlowConfig, skip=("model", "loss"))
     add_dataclass_options(parser, Flow3DConfig)
     add_dataclass_options(parser, FlowLossConfig)
     parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = vars(parser.parse_args(argv))
+    return parser
 
-    def pick(cls) -> dict:
-        return {f.name: args[f.name] for f in dataclasses.fields(cls) if f.name in args}
 
-    config = TrainFlowConfig(**{k: v for k, v in pick(TrainFlowConfig).items() if k not in ("model", "loss")},
-                             model=Flow3DConfig(**pick(Flow3DConfig)), loss=FlowLossConfig(**pick(FlowLossConfig)))
-    train(config, progress=not args["no_progress"], resume=args["resume"])
+def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainFlowConfig:
+    """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
+    base = TrainFlowConfig()
+    if args.config:
+        path = Path(args.config)
+        if not path.is_file():
+            raise InputError("config file not found", file=path, field="--config")
+        try:
+            base = config_from_dict(json.loads(path.read_text()))
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise InputError(f"is not a TrainFlowConfig JSON: {exc}", file=path, field="--config") from exc
+    values = vars(args)
+
+    def merged(cls, current) -> dict:
+        out = dataclasses.asdict(current) if current is not None else {}
+        for f in dataclasses.fields(cls):
+            if f.name in given and f.name not in ("model", "loss"):
+                out[f.name] = values[f.name]
+        return out
+
+    top = merged(TrainFlowConfig, base)
+    top["model"] = merged(Flow3DConfig, base.model)
+    top["loss"] = merged(FlowLossConfig, base.loss)
+    return config_from_dict(top)
+
+
+def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """Destinations of the options that appear in ``argv`` (``--name`` or ``--name=value``)."""
+    flags = {flag: action.dest for action in parser._actions for flag in action.option_strings}
+    return {flags[a.split("=", 1)[0]] for a in argv if a.split("=", 1)[0] in flags}
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m models.train_flow") -> None:
+    """Command line of ``train`` (``interleave train flow`` calls this); see ``build_parser``."""
+    import sys
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(prog)
+    args = parser.parse_args(argv)
+    config = config_from_args(args, _given_options(parser, argv))
+    train(config, progress=not args.no_progress, resume=args.resume)
 
 
 if __name__ == "__main__":

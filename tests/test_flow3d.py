@@ -343,3 +343,29 @@ def test_config_and_input_errors(net):
     a, b = random_mpi(), random_mpi(height=16)
     with pytest.raises(InputError):
         net(a, b)
+
+
+def test_initial_flow_is_lifted_onto_every_plane_and_refined_from():
+    torch.manual_seed(0)
+    config = Flow3DConfig(encoder_channels=(4, 4, 4), reduce_channels=4, decoder_channels=(4,), search_range=1,
+                          initial_flow=True)
+    net = Flow3D(config).eval()
+    with torch.no_grad():  # a decoder that adds nothing: the output is the given flow itself
+        net.decoder.head.weight.zero_()
+        net.decoder.head.bias.zero_()
+    depth = torch.full((1, 32, 48), 4.0)
+    depth[:, 8:20, 10:30] = 2.0
+    mpi = build_mpi(torch.rand(1, 32, 48, 3), depth, 4)
+    init = torch.zeros(1, 2, 32, 48)
+    init[:, 0], init[:, 1] = -3.0, 1.5
+    flow = net(mpi, mpi, init)
+    on = mpi.alpha[:, 0] > 0
+    torch.testing.assert_close(flow[:, 0][on], torch.full_like(flow[:, 0][on], -3.0))
+    torch.testing.assert_close(flow[:, 1][on], torch.full_like(flow[:, 1][on], 1.5))
+    assert (flow[:, :2][(mpi.alpha == 0).expand(-1, 2, -1, -1, -1)] == 0).all()
+    with pytest.raises(InputError, match="initial flow"):
+        net(mpi, mpi)
+    with pytest.raises(InputError, match="initial_flow"):
+        net(mpi, mpi, torch.full((1, 2, 32, 48), float("nan")))
+    with pytest.raises(InputError, match="initial flow"):
+        Flow3D(Flow3DConfig(encoder_channels=(4, 4, 4), reduce_channels=4, decoder_channels=(4,)))(mpi, mpi, init)

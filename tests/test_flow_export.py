@@ -8,6 +8,7 @@ same dynamic shapes. Training tests use a tiny rendered data set shared by the m
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -104,14 +105,14 @@ def test_export_rejects_sizes_off_the_stride(tmp_path):
 def data_dir(tmp_path_factory) -> Path:
     """The tiny data set (2 scenes, 64 x 48, 5 frames), rendered once for the module."""
     out = tmp_path_factory.mktemp("flowdata")
-    prepare_data(tiny_config(out))
+    prepare_data(tiny_config(out, data_dir=str(out / "data")))
     return out / "data"
 
 
 def tiny_config(out: Path, **kwargs) -> TrainFlowConfig:
-    base = dict(out_dir=str(out), steps=2, batch_size=2, crop=32, scene_width=64, scene_height=48,
-                scene_frames=5, scene_seeds=(1, 2), k_values=(1, 2), checkpoint_every=2, log_every=1,
-                threads=1, model=TINY_NET)
+    base = dict(out_dir=str(out), data_dir=str(out / "data"), steps=2, batch_size=2, crop=32, downsample=1,
+                crop_candidates=2, crops_per_pair=1, scene_width=64, scene_height=48, scene_frames=5,
+                scene_seeds=(1, 2), k_values=(1, 2), checkpoint_every=2, log_every=1, threads=1, model=TINY_NET)
     base.update(kwargs)
     return TrainFlowConfig(**base)
 
@@ -119,7 +120,7 @@ def tiny_config(out: Path, **kwargs) -> TrainFlowConfig:
 def run_dir(tmp_path: Path, data_dir: Path, name: str) -> Path:
     out = tmp_path / name
     out.mkdir()
-    (out / "data").symlink_to(data_dir, target_is_directory=True)
+    (out / "data").symlink_to(data_dir, target_is_directory=True)  # tiny_config's data_dir = out/data
     return out
 
 
@@ -132,7 +133,10 @@ def test_train_writes_config_checkpoint_metrics(tmp_path, data_dir):
     assert config_from_dict(saved) == config
     lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in lines] == [1, 2]
-    assert all(np.isfinite(r["loss"]) for r in lines) and lines[0]["items"] == sample_items(config, 0)
+    assert all(np.isfinite(r["loss"]) for r in lines)
+    logged = lines[0]["items"]
+    assert [{k: v for k, v in item.items() if k != "picked"} for item in logged] == sample_items(config, 0)
+    assert all(len(item["picked"]) == config.crops_per_pair and item["picked"][0] in item["crops"] for item in logged)
     model = load_model(ckpt)
     assert isinstance(model, Flow3D) and model.config == TINY_NET
 
@@ -163,7 +167,8 @@ def test_two_process_gloo_matches_one_process(tmp_path, data_dir):
     out = run_dir(tmp_path, data_dir, "ddp")
     net = TINY_NET
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "models.train_flow", "--out-dir", str(out), "--steps", "2", "--batch-size", "2", "--crop", "32",
+           "-m", "models.train_flow", "--out-dir", str(out), "--data-dir", str(data_dir), "--steps", "2",
+           "--batch-size", "2", "--crop", "32", "--downsample", "1", "--crop-candidates", "2", "--crops-per-pair", "1",
            "--scene-width", "64", "--scene-height", "48", "--scene-frames", "5", "--scene-seeds", "1,2",
            "--k-values", "1,2", "--checkpoint-every", "2", "--log-every", "1", "--threads", "1",
            "--encoder-channels", ",".join(map(str, net.encoder_channels)), "--reduce-channels",
@@ -177,3 +182,21 @@ def test_two_process_gloo_matches_one_process(tmp_path, data_dir):
     assert b["step"] == 2
     for name, value in a["model"].items():  # DDP averages the same per-item losses as one process
         torch.testing.assert_close(b["model"][name], value, atol=1e-5, rtol=1e-4)
+
+
+def test_config_file_with_command_line_overrides(tmp_path):
+    from models.train_flow import _given_options, build_parser, config_from_args
+
+    base = tiny_config(tmp_path, steps=5, lr=3e-4)
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(dataclasses.asdict(base)))
+    parser = build_parser()
+    argv = ["--config", str(path), "--steps", "7", "--search-range", "2"]
+    config = config_from_args(parser.parse_args(argv), _given_options(parser, argv))
+    assert config.steps == 7 and config.model.search_range == 2  # given on the command line
+    assert config.lr == 3e-4 and config.crop == base.crop and config.model.encoder_channels == TINY_NET.encoder_channels
+    with pytest.raises(InputError, match="config file not found"):
+        config_from_args(parser.parse_args(["--config", str(tmp_path / "nope.json")]), set())
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(InputError, match="TrainFlowConfig JSON"):
+        config_from_args(parser.parse_args(["--config", str(tmp_path / "bad.json")]), set())

@@ -217,3 +217,26 @@ def test_tiny_overfit_on_a_known_shift():
     # measured (1 or 2 threads): photometric 0.245 -> ~0.003, EPE 2.2 px -> 0.05-0.09 px
     assert ph1 < 0.25 * ph0, (ph0, ph1)
     assert epe1 < 0.25 * epe0, (epe0, epe1)
+
+
+def test_true_flow_scores_better_than_zero_flow_with_the_default_weights():
+    """The true object motion must cost clearly less than 'nothing moves', else training learns zero flow."""
+    import numpy as np
+
+    from models.flow3d import mpi_pair
+    from tests.synthetic import two_layer_sequence
+
+    frames, _ = two_layer_sequence(4, width=128, height=96, camera_speed=0.02, object_speed=0.1)
+    older, newest = frames[1], frames[3]
+
+    def tensors(f):
+        return (torch.from_numpy(f.color)[None], torch.from_numpy(f.depth)[None],
+                torch.from_numpy(f.camera.intrinsics)[None].float(), torch.from_numpy(f.camera.world_to_camera)[None].float())
+
+    m_n, m_w = mpi_pair(*tensors(newest), *tensors(older), 4)
+    true = torch.zeros((1, 3) + m_n.alpha.shape[2:])
+    true[:, 0] = -2.0 * torch.from_numpy(newest.object_flow[..., 0])[None, None]  # u(n -> n-2), pixels
+    true = true * m_n.alpha
+    zero_loss, _ = flow_loss(m_n, m_w, torch.zeros_like(true))
+    true_loss, _ = flow_loss(m_n, m_w, true)
+    assert np.isfinite(float(true_loss)) and float(true_loss) < 0.5 * float(zero_loss)

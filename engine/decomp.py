@@ -1,0 +1,500 @@
+"""DeCOMPnet in the engine (thesis Ch. 6): MPI -> camera-motion cancel -> 3D flow (ONNX) -> forward splat.
+
+Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
+
+1. both frames are block-downsampled to the network's working width (``geometry.downsample_frame``, the
+   function the training data went through) and turned into one-hot MPIs on frame n's planes;
+2. the MPI of n-k is forward-warped into frame n's view (``geometry.forward_warp_mpi``): camera motion
+   cancelled, what differs now is object motion (and disocclusions);
+3. the *motion gate* looks at that camera-compensated residual: tiles where colour or depth changed mark
+   object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when no
+   tile moved (a static scene then costs about what ``reproject`` costs);
+4. the ONNX flow network (``FlowNetwork``, exported by ``export.flow`` from ``models.flow3d.Flow3D``)
+   estimates the 3D flow u(n -> n-k) per MPI point, which is upsampled to full resolution per plane
+   (``upsample_flow``).
+
+Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
+the frame times); the full-resolution MPI of frame n moves by it and by the camera (forward bilinear
+splat, ``geometry.forward_warp_mpi``), is composited, and disocclusions are filled the way ``reproject``
+fills them (``engine.holefill``) until the infilling network lands.
+
+Conventions are ``engine/geometry.py``'s: OpenCV cameras, pixel centres at +0.5, planar depth (+inf sky),
+MPI arrays (C, Z, H, W) with planes near (0) to far (Z - 1). No torch: the network runs in onnxruntime.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from engine import geometry
+from engine.config import option
+from engine.errors import InputError, InterleaveError
+from engine.frames import Frame
+from engine.geometry import Mpi
+from engine.holefill import fill_holes
+from engine.predictors import PreparedState, Predictor, Target
+
+__all__ = ["DecompConfig", "FlowNetwork", "DecompPredictor", "DEFAULT_MODEL", "motion_residual", "motion_boxes",
+           "upsample_flow", "merge_planes", "encode_color", "config_from_options", "initial_flow"]
+
+#: The committed 3D flow network (``configs/flow3d.json``; see ``engine/weights/README.md``).
+DEFAULT_MODEL = Path(__file__).resolve().parent / "weights" / "flow3d.onnx"
+#: ONNX metadata key holding the network's ``Flow3DConfig`` and training facts (JSON), set by ``export.flow``.
+METADATA_KEY = "interleave.flow3d"
+
+
+@dataclass(frozen=True)
+class DecompConfig:
+    """Options of the ``decomp`` predictor; every ``skip`` can be switched off to measure what it saves."""
+
+    model: str = option("", "ONNX flow network (default: the committed engine/weights/flow3d.onnx)")
+    flow_width: int = option(0, "width in pixels the network runs at (0: the width it was trained at, from "
+                                "the ONNX metadata); frames are block-downsampled by round(W / flow_width)")
+    gate: bool = option(True, "run the network only on boxes around tiles whose camera-compensated residual "
+                              "shows object motion, and not at all when none does")
+    color_threshold: float = option(0.05, "residual of the encoded colour (0..1, max over RGB) that marks a "
+                                         "pixel as changed")
+    depth_threshold: float = option(0.02, "relative inverse-depth change that marks a pixel as changed")
+    erode: bool = option(True, "erode the changed-pixel mask by 3 x 3 before counting tiles (removes the "
+                               "one-pixel seams that resampling leaves along depth edges of a static scene)")
+    tile: int = option(8, "tile size of the motion gate, in network pixels")
+    min_tiles: int = option(1, "smallest group of connected moving tiles that counts as motion")
+    tile_fraction: float = option(0.05, "fraction of a tile's pixels that must change for it to count as moving")
+    margin: int = option(24, "network pixels of context kept around moving tiles (covers the search range)")
+    full_frame_fraction: float = option(0.5, "run on the whole frame when the boxes cover more than this "
+                                             "fraction of it")
+    min_plane_fraction: float = option(0.0, "before splatting, merge MPI planes holding less than this fraction "
+                                            "of the pixels into the nearest kept plane (0: drop only empty "
+                                            "planes; -1: keep every plane)")
+    depth_flow: bool = option(False, "use the network's depth component dz (Eq. 6.6); off (default): each plane "
+                                     "moves by its (du, dv) only (the committed network's plane offsets cost "
+                                     "1.3 dB of whole-frame PSNR on held-out scenes, docs/flow3d.md)")
+    render_planes: int = option(1, "planes of the MPI that is splatted: 0 = the network's (the thesis); 1 = one "
+                                   "plane whose pixels carry their own plane's 3D flow (no cracks where a surface "
+                                   "crosses from one plane to the next, half the splat cost)")
+    splat: str = option("numpy", "forward splat of the predicted frame: 'numpy' (engine.geometry) or 'gl' (the "
+                                 "moderngl compute-shader version, engine.glsplat; same results, faster only "
+                                 "with a GPU driver: on llvmpipe with 2 cores it is about 2x slower)")
+    threads: int = option(2, "onnxruntime intra-op threads")
+    dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
+    full_resolution_init: bool = option(True, "compute the initial flow at full resolution (a full-size camera "
+                                               "warp of frame n-k and DIS on it, as flow2d does) and add the "
+                                               "network's upsampled residual to it; off: at the working width")
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.flow_width >= 0, "flow_width must be >= 0"),
+            (self.color_threshold > 0 and self.depth_threshold > 0, "thresholds must be > 0"),
+            (self.tile >= 1 and self.margin >= 0 and self.threads >= 1 and self.min_tiles >= 1,
+             "tile, min_tiles, threads >= 1, margin >= 0"),
+            (0 < self.tile_fraction <= 1 and 0 < self.full_frame_fraction <= 1, "fractions must be in (0, 1]"),
+            (self.splat in ("numpy", "gl"), f"splat must be 'numpy' or 'gl', got {self.splat!r}"),
+            (self.render_planes in (0, 1), "render_planes must be 0 (the network's planes) or 1"),
+            (self.min_plane_fraction == -1 or 0 <= self.min_plane_fraction < 1,
+             "min_plane_fraction must be -1 or in [0, 1)"),
+        ]
+        for ok, problem in checks:
+            if not ok:
+                raise InputError(problem, field="DecompConfig")
+
+
+def encode_color(color: np.ndarray) -> np.ndarray:
+    """numpy mirror of ``models.flow3d.encode_color``: ``sqrt(c / (1 + c) + 1e-4) - 0.01``, c clipped at 0."""
+    c = np.maximum(color, np.float32(0.0))
+    return np.sqrt(c / (np.float32(1.0) + c) + np.float32(1.0e-4)) - np.float32(0.01)
+
+
+def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray,
+                 preset: str = "medium") -> np.ndarray:
+    """2D flow u(n -> n-k) the network refines: OpenCV DIS from frame n to the camera-compensated frame n-k.
+
+    Both images are display-encoded 8-bit luma; pixels the warp left uncovered (disocclusions) take frame
+    n's own colour, so they read as "no motion" instead of as edges. Training (``models.train_flow``) and
+    the engine call this same function.
+
+    Args:
+        color_n: (H, W, 3) linear RGB of frame n; warped_color: (H, W, 3) composite of m^w_{n-k};
+        covered: (H, W) bool, where the warp landed; preset: DIS preset 'ultrafast', 'fast' or 'medium'.
+
+    Returns:
+        (H, W, 2) float32 pixels.
+    """
+    import cv2
+
+    from engine.colorspace import display_encode
+
+    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+    if preset not in presets:
+        raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
+
+    def luma8(color: np.ndarray) -> np.ndarray:
+        return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+    target = np.where(covered[..., None], warped_color, color_n)
+    flow = cv2.DISOpticalFlow_create(presets[preset]).calc(luma8(color_n), luma8(target), None)
+    return np.ascontiguousarray(flow, dtype=np.float32)
+
+
+class FlowNetwork:
+    """The exported flow network in onnxruntime: ``(m_n, m^w_{n-k}) -> u(n -> n-k)`` (3, Z, H, W).
+
+    Reads the network's config from the ONNX metadata (``METADATA_KEY``): number of planes, pyramid stride,
+    mode ('3d' or the '2d' ablation) and the working width the training frames had.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 2) -> None:
+        import onnxruntime as ort
+
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("flow network not found (train and export one: interleave train flow / "
+                             "interleave export flow)", file=path, field="model")
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = int(threads)
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3  # errors only (the exported graph triggers harmless folding warnings)
+        self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if METADATA_KEY not in meta:
+            raise InputError(f"has no '{METADATA_KEY}' metadata: export it with export.flow.export_flow",
+                             file=path, field="model")
+        info = json.loads(meta[METADATA_KEY])
+        self.path = path
+        self.config: dict = info["model"]
+        self.num_planes = int(self.config["num_planes"])
+        self.stride = 2 ** len(self.config["encoder_channels"])
+        self.working_width = int(info.get("working_width", 480))
+        self.mode = str(self.config["mode"])
+        self.needs_initial_flow = bool(self.config.get("initial_flow", False))
+
+    def __call__(self, mpi_n: Mpi, mpi_prev_warped: Mpi, init: Optional[np.ndarray] = None) -> np.ndarray:
+        """Flow (3, Z, H, W) float32 = (du, dv) pixels, dz scene units; 0 where ``mpi_n.alpha`` is 0.
+
+        ``init`` (H, W, 2): the 2D flow to refine (``initial_flow``), required by networks trained with one.
+        """
+        z = mpi_n.alpha.shape[0]
+        if z != self.num_planes or mpi_prev_warped.alpha.shape != mpi_n.alpha.shape:
+            raise InputError(f"MPIs of shape {mpi_n.alpha.shape} / {mpi_prev_warped.alpha.shape}: the network "
+                             f"takes two MPIs of {self.num_planes} planes", field="mpi")
+        feeds = {
+            "color_n": mpi_n.color[None], "depth_n": mpi_n.depth[None, None], "alpha_n": mpi_n.alpha[None, None],
+            "color_prev": mpi_prev_warped.color[None], "depth_prev": mpi_prev_warped.depth[None, None],
+            "alpha_prev": mpi_prev_warped.alpha[None, None],
+            "plane_depths": np.asarray(mpi_n.plane_depths, dtype=np.float32)[None],
+        }
+        if self.needs_initial_flow:
+            if init is None or init.shape != mpi_n.alpha.shape[1:] + (2,):
+                raise InputError(f"this network refines an initial flow of shape {mpi_n.alpha.shape[1:] + (2,)}",
+                                 field="init")
+            feeds["initial_flow"] = np.moveaxis(init, -1, 0)[None]
+        # the exported graph takes sizes that are multiples of the pyramid stride: pad with alpha = 0 (ignored
+        # by the partial convolutions, as Flow3D pads internally) and crop the flow back
+        h, w = mpi_n.alpha.shape[1:]
+        ph, pw = -h % self.stride, -w % self.stride
+        if ph or pw:
+            feeds = {k: v if k == "plane_depths" else np.pad(v, [(0, 0)] * (v.ndim - 2) + [(0, ph), (0, pw)])
+                     for k, v in feeds.items()}
+        feeds = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()}
+        return self.session.run(None, feeds)[0][0][..., :h, :w]
+
+
+def _crop(mpi: Mpi, box: tuple[int, int, int, int]) -> Mpi:
+    y0, y1, x0, x1 = box
+    return Mpi(mpi.color[..., y0:y1, x0:x1], mpi.depth[..., y0:y1, x0:x1], mpi.alpha[..., y0:y1, x0:x1],
+               mpi.plane_depths)
+
+
+def motion_residual(mpi_n: Mpi, mpi_prev_warped: Mpi, color_threshold: float, depth_threshold: float,
+                    erode: bool = True) -> np.ndarray:
+    """(H, W) bool: pixels where the camera-compensated frame n-k differs from frame n (object motion).
+
+    Compares the composites of both MPIs where the warped n-k covers the pixel (disocclusions are not
+    evidence of motion): encoded colour (max over RGB) above ``color_threshold`` or inverse depth changed by
+    more than ``depth_threshold`` relative to the MPI's middle depth. With ``erode`` a 3 x 3 erosion then
+    removes the one-pixel seams that resampling leaves along depth edges of a static scene.
+    """
+    import cv2
+
+    color_n, depth_n, _ = geometry.composite(mpi_n)
+    color_w, depth_w, acc_w = geometry.composite(mpi_prev_warped)
+    planes = np.asarray(mpi_n.plane_depths, dtype=np.float64)
+    finite = planes[np.isfinite(planes)]
+    ref = 2.0 / (1.0 / finite[0] + 1.0 / finite[-1]) if finite.size else 1.0
+    inv_n = np.where(np.isfinite(depth_n), 1.0 / np.maximum(depth_n, 1e-30), 0.0)
+    inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
+    d_color = np.abs(encode_color(color_n) - encode_color(color_w)).max(axis=-1)
+    d_depth = np.abs(inv_n - inv_w) * ref
+    changed = (acc_w > 0.5) & ((d_color > color_threshold) | (d_depth > depth_threshold))
+    if not erode:
+        return changed
+    return cv2.erode(changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
+
+def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: int, stride: int,
+                 full_frame_fraction: float, min_tiles: int = 1) -> list[tuple[int, int, int, int]]:
+    """Boxes (y0, y1, x0, x1) the network must see: moving tiles, grown by ``margin``, snapped to ``stride``.
+
+    A tile moves when more than ``tile_fraction`` of its pixels changed; groups of fewer than ``min_tiles``
+    connected moving tiles are dropped. Connected groups of moving tiles
+    (after growing by the margin) give one box each; when the boxes cover more than ``full_frame_fraction``
+    of the frame the whole frame is returned instead (one network call is then cheaper than many).
+    Returns [] when nothing moved.
+    """
+    import cv2
+
+    h, w = changed.shape
+    th, tw = math.ceil(h / tile), math.ceil(w / tile)
+    padded = np.zeros((th * tile, tw * tile), dtype=np.float32)
+    padded[:h, :w] = changed
+    moving = padded.reshape(th, tile, tw, tile).mean(axis=(1, 3)) > tile_fraction
+    if min_tiles > 1 and moving.any():  # drop isolated groups of moving tiles (resampling noise, not objects)
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(moving.astype(np.uint8), connectivity=8)
+        moving = (stats[:, cv2.CC_STAT_AREA] >= min_tiles)[labels] & moving
+    if not moving.any():
+        return []
+    grow = math.ceil(margin / tile)
+    grown = cv2.dilate(moving.astype(np.uint8), np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+    count, _, stats, _ = cv2.connectedComponentsWithStats(grown, connectivity=8)
+    boxes = []
+    for label in range(1, count):
+        x, y, bw, bh = (int(v) for v in stats[label, :4])
+        y0, x0 = (y * tile) // stride * stride, (x * tile) // stride * stride
+        y1 = min(h, -(-((y + bh) * tile) // stride) * stride)
+        x1 = min(w, -(-((x + bw) * tile) // stride) * stride)
+        boxes.append((y0, y1, x0, x1))
+    if sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) > full_frame_fraction * h * w:
+        return [(0, h, 0, w)]
+    return boxes
+
+
+def upsample_flow(flow: np.ndarray, alpha: np.ndarray, factor: int, full_alpha: np.ndarray) -> np.ndarray:
+    """Per-plane, alpha-normalised bilinear upsampling of a network-resolution flow to the full MPI.
+
+    ``flow`` (3, Z, h, w) on the network grid (pixel ``i`` covers full pixels ``[f i, f (i + 1))``), alpha
+    (Z, h, w); ``full_alpha`` (Z, H, W) is the full-resolution MPI on the same planes. (du, dv) are scaled by
+    ``factor``, dz is kept. Each plane's flow is first spread two pixels into its empty neighbours
+    (normalised 3 x 3 means), so full-resolution points whose block went to another plane still find a
+    value; points with no value within reach get 0. Returns (3, Z, H, W), 0 where ``full_alpha`` is 0.
+    """
+    import cv2
+
+    _, num_z, h, w = flow.shape
+    big_h, big_w = full_alpha.shape[1:]
+    out = np.zeros((3, num_z) + full_alpha.shape[1:], dtype=np.float32)
+    scale = np.array([factor, factor, 1.0], np.float32)
+    for z in range(num_z):
+        if not full_alpha[z].any():
+            continue
+        a = alpha[z].astype(np.float32)
+        # (h, w, 4): alpha-weighted (du, dv, dz) and alpha, so every filter runs once on all four channels
+        packed = np.ascontiguousarray(np.concatenate([np.moveaxis(flow[:, z] * a, 0, -1), a[..., None]], axis=-1))
+        for _ in range(2):  # spread into empty neighbours: normalised 3 x 3 sums
+            sums = cv2.boxFilter(packed, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+            grow = (packed[..., 3] <= 0) & (sums[..., 3] > 0)
+            packed[grow, :3] = sums[grow, :3] / sums[grow, 3:]
+            packed[grow, 3] = 1.0
+        up = cv2.resize(packed, (w * factor, h * factor), interpolation=cv2.INTER_LINEAR)
+        if big_h > h * factor or big_w > w * factor:  # rows / columns past the last whole block: repeat the edge
+            up = np.pad(up, ((0, big_h - h * factor), (0, big_w - w * factor), (0, 0)), mode="edge")
+        where = np.flatnonzero(full_alpha[z])  # only this plane's points (a one-hot MPI: each pixel once)
+        picked = up.reshape(-1, 4)[where]
+        ok = picked[:, 3] > 1e-6
+        values = np.where(ok[:, None], picked[:, :3] / np.where(ok, picked[:, 3], 1.0)[:, None], 0.0) * scale
+        out.reshape(3, num_z, -1)[:, z, where] = values.T
+    return out
+
+
+def merge_planes(mpi: Mpi, flow: Optional[np.ndarray], min_fraction: float) -> tuple[Mpi, Optional[np.ndarray]]:
+    """Fewer planes where the depth histogram is simple: planes of a one-hot MPI holding at most
+    ``min_fraction`` of the pixels (0: empty planes) go into the nearest kept plane (in plane index).
+
+    One-hot planes hold disjoint pixels, so merging adds them (colour, depth, alpha and the per-point flow
+    travel along); the kept planes keep their depths. At least one plane is kept. The warp then re-bins
+    points among fewer planes, so points of merged planes are ordered by the soft z-buffer instead of by plane.
+    """
+    num_z = mpi.alpha.shape[0]
+    share = mpi.alpha.reshape(num_z, -1).mean(axis=1)
+    keep = share > min_fraction
+    if keep.all() or not keep.any():
+        return mpi, flow
+    kept = np.flatnonzero(keep)
+    target = kept[np.abs(np.arange(num_z)[:, None] - kept[None, :]).argmin(axis=1)]  # nearest kept plane
+
+    def merge(values: np.ndarray, axis: int) -> np.ndarray:
+        out = np.take(values, kept, axis=axis).copy()
+        for z in np.flatnonzero(~keep):
+            if share[z] > 0:
+                index = [slice(None)] * values.ndim
+                index[axis] = int(np.searchsorted(kept, target[z]))
+                out[tuple(index)] += np.take(values, z, axis=axis)
+        return out
+
+    merged = Mpi(merge(mpi.color, 1), merge(mpi.depth, 0), merge(mpi.alpha, 0), mpi.plane_depths[kept])
+    return merged, None if flow is None else merge(flow, 1)
+
+
+def config_from_options(text: str, **fixed) -> DecompConfig:
+    """A ``DecompConfig`` from ``"key=value,key=value"`` (the bracket options of ``decomp[...]``), typed by
+    the fields; ``fixed`` are set first and may be overridden. Unknown keys and bad values raise InputError."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(DecompConfig)
+    values = dict(fixed)
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, sep, raw = part.partition("=")
+        key = key.strip()
+        if not sep or key not in hints:
+            raise InputError(f"option '{part}': expected key=value with key one of "
+                             f"{', '.join(f.name for f in dataclasses.fields(DecompConfig))}", field="decomp")
+        kind = hints[key]
+        try:
+            if kind is bool:
+                if raw.strip().lower() not in ("0", "1", "true", "false"):
+                    raise ValueError(raw)
+                values[key] = raw.strip().lower() in ("1", "true")
+            else:
+                values[key] = kind(raw.strip())
+        except ValueError as exc:
+            raise InputError(f"option '{part}': not a valid {kind.__name__}", field="decomp") from exc
+    return DecompConfig(**values)
+
+
+def _time_factor(older: Frame, newest: Frame, time: float) -> float:
+    """k'/k of Eq. 6.13 from frame times: how far past frame n the target lies, per step n-k -> n."""
+    return (time - newest.time) / (newest.time - older.time)
+
+
+def _downsampled(frame: Frame, factor: int):
+    return geometry.downsample_frame(frame.color, frame.depth, frame.camera.intrinsics, factor)
+
+
+class DecompPredictor(Predictor):
+    """The ``decomp`` method: DeCOMPnet's 3D object motion on MPIs, extrapolated and splatted (see module doc).
+
+    ``state.data`` after ``prepare``: ``boxes`` (network-resolution boxes the network ran on), ``factor``
+    (downsampling), ``network_fraction`` (share of the frame the network saw), ``mpi`` (full-resolution MPI
+    of frame n) and ``flow`` (its u(n -> n-k), (3, Z, H, W), or None when the gate found no motion).
+    """
+
+    name = "decomp"
+    history_needed = 2
+
+    def __init__(self, config: DecompConfig = DecompConfig(), network: Optional[FlowNetwork] = None) -> None:
+        if not isinstance(config, DecompConfig):
+            raise InputError(f"must be a DecompConfig, got {type(config).__name__}", field="config")
+        self.config = config
+        self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
+
+    def _prepare(self, state: PreparedState, timer) -> None:
+        cfg, net = self.config, self.network
+        older, newest = state.history[-2], state.history[-1]
+        num_z = net.num_planes
+        factor = geometry.downsample_factor(newest.depth.shape[1], cfg.flow_width or net.working_width)
+        factor = min(factor, *newest.depth.shape)
+        low_n = timer("downsample", _downsampled, newest, factor)
+        low_p = timer("downsample", _downsampled, older, factor)
+        m_n = timer("mpi", geometry.build_mpi, low_n[0], low_n[1], num_z)
+        m_p = timer("mpi", geometry.build_mpi, low_p[0], low_p[1], num_z)
+        warped, _ = timer("camera_warp", geometry.forward_warp_mpi, m_p._replace(plane_depths=m_n.plane_depths),
+                          low_p[2], older.camera.world_to_camera, low_n[2], newest.camera.world_to_camera)
+        h, w = m_n.alpha.shape[1:]
+        if cfg.gate:
+            changed = timer("gate", motion_residual, m_n, warped, cfg.color_threshold, cfg.depth_threshold,
+                            cfg.erode)
+            boxes = motion_boxes(changed, cfg.tile, cfg.tile_fraction, cfg.margin, net.stride,
+                                 cfg.full_frame_fraction, cfg.min_tiles)
+        else:
+            boxes = [(0, h, 0, w)]
+        flow = full = None
+        if boxes or cfg.render_planes == 0:
+            full = timer("mpi", geometry.build_mpi, newest.color, newest.depth, num_z, m_n.plane_depths)
+        if boxes:
+            flow = np.zeros((3,) + full.alpha.shape, dtype=np.float32)
+            full_mpi1 = None
+            if net.needs_initial_flow and cfg.full_resolution_init:
+                full_mpi1 = timer("initial_flow", geometry.build_mpi, older.color, older.depth, 1)
+            for box in boxes:  # everything below costs in proportion to the boxes' area
+                self._box_flow(box, factor, m_n, warped, low_n[0], full, full_mpi1, older, newest, flow, timer)
+            if not np.isfinite(flow).all():
+                raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
+        if cfg.render_planes == 1:  # one-hot: summing over planes gives each pixel its own plane's flow
+            full = timer("mpi", geometry.build_mpi, newest.color, newest.depth, 1)
+            flow = None if flow is None else flow.sum(axis=1, keepdims=True)
+        elif cfg.min_plane_fraction >= 0:
+            full, flow = timer("mpi", merge_planes, full, flow, cfg.min_plane_fraction)
+        state.data.update(boxes=boxes, factor=factor, mpi=full, flow=flow,
+                          network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
+
+    def _box_flow(self, box, factor: int, m_n: Mpi, warped: Mpi, low_color_n: np.ndarray, full: Mpi,
+                  full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray, timer) -> None:
+        """Flow of one gate box, written into ``flow`` (3, Z, H, W) at full resolution."""
+        cfg, net = self.config, self.network
+        y0, y1, x0, x1 = box
+        h, w = m_n.alpha.shape[1:]
+        big_h, big_w = full.alpha.shape[1:]
+        # full-resolution rows / columns of the box (the last box also takes the rows past the last block)
+        fy0, fx0 = y0 * factor, x0 * factor
+        fy1 = big_h if y1 == h else y1 * factor
+        fx1 = big_w if x1 == w else x1 * factor
+        init = full_init = None
+        if net.needs_initial_flow and cfg.full_resolution_init:
+            # frame n-k warped into frame n's view, only this box (intrinsics shifted to its corner), then DIS
+            src, dst = older.camera, newest.camera
+            k_box = np.array(dst.intrinsics, dtype=np.float64)
+            k_box[0, 2] -= fx0
+            k_box[1, 2] -= fy0
+            moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics,
+                             src.world_to_camera, k_box, dst.world_to_camera, out_size=(fy1 - fy0, fx1 - fx0))
+            color_w, _, acc = geometry.composite(moved)
+            full_init = timer("initial_flow", initial_flow, newest.color[fy0:fy1, fx0:fx1], color_w, acc > 0,
+                              cfg.dis_preset)
+            bh, bw = y1 - y0, x1 - x0
+            init = full_init[:bh * factor, :bw * factor].reshape(bh, factor, bw, factor, 2).mean(axis=(1, 3)) / factor
+        elif net.needs_initial_flow:
+            warped_color, _, acc = geometry.composite(_crop(warped, box))
+            init = timer("initial_flow", initial_flow, low_color_n[y0:y1, x0:x1], warped_color, acc > 0,
+                         cfg.dis_preset)
+        m_box = _crop(m_n, box)
+        low_flow = timer("flow", net, m_box, _crop(warped, box), init)
+        if not cfg.depth_flow:
+            low_flow[2] = 0.0
+        if full_init is not None:  # keep the network's residual only, the initial flow at full detail
+            low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
+        full_alpha = full.alpha[:, fy0:fy1, fx0:fx1]
+        part = timer("upsample", upsample_flow, low_flow, m_box.alpha, factor, full_alpha)
+        if full_init is not None:
+            part[:2] += np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
+        flow[:, :, fy0:fy1, fx0:fx1] = part
+
+    def _render(self, state: PreparedState, target: Target, timer) -> tuple[np.ndarray, np.ndarray]:
+        older, newest = state.history[-2], state.history[-1]
+        flow = state.data["flow"]
+        motion = None if flow is None else flow * np.float32(-_time_factor(older, newest, target.time))
+        src, dst = newest.camera, target.camera
+        if self.config.splat == "gl":
+            from engine.glsplat import shared_splatter
+
+            warp = shared_splatter().forward_warp_mpi
+        else:
+            warp = geometry.forward_warp_mpi
+        warped, _ = timer("splat", warp, state.data["mpi"], src.intrinsics, src.world_to_camera,
+                          dst.intrinsics, dst.world_to_camera, motion)
+        color, depth, acc = timer("composite", geometry.composite, warped)
+        holes = acc <= 0
+        color, _ = timer("fill", fill_holes, color, depth, holes, newest.color)
+        return color, holes
+
+    def object_flow(self, state: PreparedState) -> np.ndarray:
+        """Per-pixel u(n -> n-k) of frame n's visible surface, (H, W, 2) pixels (0 where no motion was found)."""
+        mpi, flow = state.data["mpi"], state.data["flow"]
+        if flow is None:
+            return np.zeros(mpi.alpha.shape[1:] + (2,), dtype=np.float32)
+        weight = mpi.alpha * geometry.visibility(mpi)
+        return np.moveaxis((flow[:2] * weight[None]).sum(axis=1), 0, -1)

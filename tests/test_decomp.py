@@ -1,0 +1,265 @@
+"""The engine's decomp predictor (no torch): downsampling, motion gate, flow upsampling, hard inputs."""
+import numpy as np
+import pytest
+
+from engine import geometry
+from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
+                           merge_planes, motion_boxes, upsample_flow)
+from engine.errors import InputError
+from engine.frames import Camera, Frame
+from engine.metrics import score_frame
+from engine.predictors import Reproject, Target, make_predictor, split_methods
+from tests.synthetic import rigid, two_layer_sequence
+
+
+@pytest.fixture(scope="module")
+def network():
+    return FlowNetwork(DEFAULT_MODEL, threads=1)
+
+
+def _target(frame):
+    return Target(frame.camera, frame.time, frame.index)
+
+
+# --------------------------------------------------------------------------------------------------
+# downsampling shared by training and the engine
+
+
+def test_downsample_keeps_projection_consistent():
+    rng = np.random.default_rng(0)
+    color = rng.random((12, 18, 3), dtype=np.float32)
+    depth = (1.0 + rng.random((12, 18))).astype(np.float32)
+    depth[0, :4] = np.inf
+    k = np.array([[20.0, 0.0, 9.0], [0.0, 22.0, 6.0], [0.0, 0.0, 1.0]])
+    c2, d2, k2 = geometry.downsample_frame(color, depth, k, 3)
+    assert c2.shape == (4, 6, 3) and d2.shape == (4, 6)
+    np.testing.assert_allclose(c2[1, 2], color[3:6, 6:9].mean(axis=(0, 1)), rtol=1e-6)
+    assert d2[1, 2] == depth[3:6, 6:9].min()
+    assert np.isinf(d2[0, 0]) == np.isinf(depth[:3, :3]).all()
+    point = np.array([0.3, -0.2, 2.0])  # a camera-space point lands at pixel / 3 in the low-resolution frame
+    full = (k @ point)[:2] / point[2]
+    low = (k2 @ point)[:2] / point[2]
+    np.testing.assert_allclose(low, full / 3.0)
+
+
+@pytest.mark.parametrize("factor", [0, 13, -1])
+def test_downsample_rejects_bad_factor(factor):
+    with pytest.raises(InputError, match="factor"):
+        geometry.downsample_frame(np.zeros((12, 18, 3)), np.ones((12, 18)), np.eye(3), factor)
+
+
+def test_downsample_factor_rounds_to_working_width():
+    assert geometry.downsample_factor(1920, 480) == 4
+    assert geometry.downsample_factor(100, 480) == 1
+    with pytest.raises(InputError):
+        geometry.downsample_factor(960, 0)
+
+
+def test_build_mpi_with_given_planes_matches_own_planes_and_validates():
+    rng = np.random.default_rng(1)
+    depth = (1.0 + 9.0 * rng.random((8, 10))).astype(np.float32)
+    color = rng.random((8, 10, 3), dtype=np.float32)
+    own = geometry.build_mpi(color, depth, 4)
+    given = geometry.build_mpi(color, depth, 4, own.plane_depths)
+    for a, b in zip(own, given):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(InputError, match="plane_depths"):
+        geometry.build_mpi(color, depth, 4, own.plane_depths[::-1])
+    with pytest.raises(InputError, match="plane_depths"):
+        geometry.build_mpi(color, depth, 4, own.plane_depths[:3])
+
+
+# --------------------------------------------------------------------------------------------------
+# motion gate and flow upsampling
+
+
+def test_motion_boxes_empty_single_and_full_frame():
+    changed = np.zeros((64, 96), dtype=bool)
+    assert motion_boxes(changed, 8, 0.15, 8, 16, 0.5) == []
+    changed[20:30, 40:50] = True
+    boxes = motion_boxes(changed, 8, 0.15, 8, 16, 0.5)
+    assert len(boxes) == 1
+    y0, y1, x0, x1 = boxes[0]
+    assert y0 <= 20 and y1 >= 30 and x0 <= 40 and x1 >= 50
+    assert y0 % 16 == 0 and x0 % 16 == 0 and (y1 % 16 == 0 or y1 == 64) and (x1 % 16 == 0 or x1 == 96)
+    changed[:] = True
+    assert motion_boxes(changed, 8, 0.15, 8, 16, 0.5) == [(0, 64, 0, 96)]
+
+
+def test_motion_boxes_min_tiles_drops_isolated_tiles():
+    changed = np.zeros((64, 96), dtype=bool)
+    changed[2:6, 2:6] = True  # one tile
+    changed[30:50, 40:70] = True  # a 3 x 4 group of tiles
+    boxes = motion_boxes(changed, 8, 0.15, 0, 16, 0.9, min_tiles=3)
+    assert len(boxes) == 1 and boxes[0][0] <= 30 and boxes[0][3] >= 70
+    assert len(motion_boxes(changed, 8, 0.15, 0, 16, 0.9, min_tiles=1)) == 2
+
+
+def test_motion_boxes_ignore_sparse_noise():
+    changed = np.zeros((64, 96), dtype=bool)
+    changed[::9, ::9] = True  # isolated pixels: < 15 % of any tile
+    assert motion_boxes(changed, 8, 0.15, 8, 16, 0.5) == []
+
+
+def test_upsample_flow_scales_and_reaches_pixels_of_other_blocks():
+    z, h, w, f = 2, 4, 6, 2
+    alpha = np.zeros((z, h, w), np.float32)
+    alpha[0, :, :3] = 1.0
+    alpha[1, :, 3:] = 1.0
+    flow = np.zeros((3, z, h, w), np.float32)
+    flow[:, 0] = np.array([1.0, -2.0, 0.5])[:, None, None]
+    flow[:, 1] = np.array([3.0, 0.0, -1.0])[:, None, None]
+    full = np.zeros((z, h * f + 1, w * f + 1), np.float32)  # one extra row/column past the last block
+    full[0, :, :7] = 1.0  # column 6 is in plane 0 at full res, its low-res block went to plane 1
+    full[1, :, 7:] = 1.0
+    out = upsample_flow(flow * alpha[None], alpha, f, full)
+    np.testing.assert_allclose(out[:, 0, :, :7], np.broadcast_to(np.array([2.0, -4.0, 0.5])[:, None, None], (3, 9, 7)),
+                               atol=1e-6)
+    np.testing.assert_allclose(out[:, 1, :, 7:], np.broadcast_to(np.array([6.0, 0.0, -1.0])[:, None, None], (3, 9, 6)),
+                               atol=1e-6)
+    assert (out[:, 0, :, 7:] == 0).all() and (out[:, 1, :, :7] == 0).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# the predictor
+
+
+def test_static_scene_skips_the_network_and_matches_reproject(network):
+    frames, _ = two_layer_sequence(5, width=128, height=96, camera_speed=0.06, object_speed=0.0)
+    pred = DecompPredictor(DecompConfig(), network)
+    state = pred.prepare(frames[1:3])
+    assert state.data["boxes"] == [] and state.data["flow"] is None and "flow" not in state.stages_ms
+    out = pred.render(state, _target(frames[3]))
+    ref = Reproject().predict(frames[1:3], _target(frames[3]))
+    truth = frames[3].color
+    assert score_frame(truth, out.color).psnr > score_frame(truth, ref.color).psnr - 0.5
+
+
+def test_identical_frames_give_zero_flow(network):
+    frames, _ = two_layer_sequence(2, width=128, height=96)
+    still = Frame(index=1, time=frames[0].time + 1 / 30, color=frames[0].color, depth=frames[0].depth,
+                  camera=frames[0].camera)
+    gated = DecompPredictor(DecompConfig(), network).prepare([frames[0], still])
+    assert gated.data["flow"] is None  # exactly zero: the gate sees no motion
+    # without the gate the committed network's residual is not exactly zero on identical frames (measured:
+    # under 1 px everywhere); the gate is what guarantees zero, so it is on by default
+    ungated = DecompPredictor(DecompConfig(gate=False), network).prepare([frames[0], still])
+    flow = ungated.data["flow"]
+    assert np.isfinite(flow).all() and np.abs(flow[:2]).max() < 1.5
+
+
+def test_moving_object_beats_reproject_on_moving_pixels(network):
+    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12)
+    pred = DecompPredictor(DecompConfig(), network)
+    state = pred.prepare([frames[2], frames[4]])
+    assert state.data["boxes"] and state.data["flow"] is not None
+    truth = frames[5]
+    out = pred.render(state, _target(truth))
+    ref = Reproject().predict([frames[2], frames[4]], _target(truth))
+    ours = score_frame(truth.color, out.color, truth.moving).psnr_moving
+    base = score_frame(truth.color, ref.color, truth.moving).psnr_moving
+    assert ours > base + 1.0, (ours, base)
+    # the estimated flow points the right way: u(n -> n-k) of the square is about -2 frames of motion
+    flow_x = pred.object_flow(state)[..., 0][frames[4].moving]
+    expected = -2.0 * frames[4].object_flow[..., 0][frames[4].moving]
+    assert np.median(np.abs(flow_x - expected)) < 0.35 * np.abs(expected).mean()
+
+
+def _sky_frame(index, camera, width=96, height=64):
+    color = np.full((height, width, 3), 0.4, np.float32)
+    color[..., 2] += np.linspace(0, 0.5, width, dtype=np.float32)[None]
+    return Frame(index=index, time=index / 30, color=color, depth=np.full((height, width), np.inf, np.float32),
+                 camera=camera)
+
+
+def test_all_sky_and_one_to_thousand_depth_stay_finite(network):
+    k = np.array([[80.0, 0, 48], [0, 80.0, 32], [0, 0, 1]])
+    cams = [Camera(k, rigid([0, 1, 0], 0.02 * i, [0.05 * i, 0, 0])) for i in range(3)]
+    sky = [_sky_frame(i, cams[i]) for i in range(3)]
+    for gate in (True, False):
+        out = DecompPredictor(DecompConfig(gate=gate), network).predict(sky[:2], _target(sky[2]))
+        assert np.isfinite(out.color).all()
+    frames = []
+    for i in range(3):  # a near square at depth 0.01 in front of a wall at 10 (1:1000), moving
+        f = sky[i]
+        depth = np.full(f.depth.shape, 10.0, np.float32)
+        depth[20:40, 30 + 4 * i:50 + 4 * i] = 0.01
+        color = f.color.copy()
+        color[20:40, 30 + 4 * i:50 + 4 * i] = [0.9, 0.1, 0.1]
+        frames.append(Frame(index=i, time=f.time, color=color, depth=depth, camera=cams[i]))
+    for gate in (True, False):
+        out = DecompPredictor(DecompConfig(gate=gate), network).predict(frames[:2], _target(frames[2]))
+        assert np.isfinite(out.color).all() and out.color.shape == frames[2].color.shape
+
+
+def test_network_on_empty_mpis_and_odd_sizes_returns_finite_zeros(network):
+    z = network.num_planes
+    for h, w in ((16, 16), (23, 37)):  # 23 x 37 is padded to the pyramid stride inside FlowNetwork
+        empty = geometry.Mpi(np.zeros((3, z, h, w), np.float32), np.zeros((z, h, w), np.float32),
+                             np.zeros((z, h, w), np.float32), np.array([1.0, 2.0, 4.0, np.inf][-z:], np.float32))
+        flow = network(empty, empty, np.zeros((h, w, 2), np.float32))
+        assert flow.shape == (3, z, h, w) and (flow == 0).all()
+
+
+def test_object_leaving_the_frame_and_motion_beyond_search_range(network):
+    # the square moves 40 px per frame (search range of the coarsest level is far smaller) and leaves
+    frames, _ = two_layer_sequence(6, width=96, height=64, camera_speed=0.0, object_speed=0.9)
+    pred = DecompPredictor(DecompConfig(), network)
+    for n in (1, 3, 5):
+        out = pred.predict([frames[n - 1], frames[n]], _target(frames[min(n + 1, 5)]))
+        assert np.isfinite(out.color).all()
+
+
+def test_single_plane_network_and_tiny_frames():
+    """The 2D ablation network (one plane) runs through the same predictor; frames smaller than a block."""
+    pred = make_predictor("decomp2d")
+    assert pred.network.num_planes == 1
+    frames, _ = two_layer_sequence(3, width=40, height=24, object_speed=0.1)
+    out = pred.predict(frames[:2], _target(frames[2]))
+    assert np.isfinite(out.color).all() and out.color.shape == (24, 40, 3)
+
+
+def test_bad_inputs_name_the_problem(network, tmp_path):
+    with pytest.raises(InputError, match="flow network not found"):
+        FlowNetwork(tmp_path / "missing.onnx")
+    with pytest.raises(InputError, match="DecompConfig"):
+        DecompConfig(tile=0)
+    frames, _ = two_layer_sequence(3)
+    pred = DecompPredictor(DecompConfig(), network)
+    with pytest.raises(InputError, match="needs 2 rendered frames"):
+        pred.prepare(frames[:1])
+    with pytest.raises(InputError, match="time order"):
+        pred.prepare([frames[1], frames[0]])
+
+
+def test_merge_planes_adds_disjoint_planes_and_keeps_their_flow():
+    rng = np.random.default_rng(3)
+    depth = np.full((10, 12), 8.0, np.float32)
+    depth[:, :6] = 1.0
+    depth[0, 0] = 2.0  # plane holding 1 of 120 pixels
+    mpi = geometry.build_mpi(rng.random((10, 12, 3), dtype=np.float32), depth, 4)
+    share = mpi.alpha.reshape(4, -1).mean(axis=1)
+    assert (share == 0).any() and ((share > 0) & (share < 0.02)).any()
+    flow = rng.random((3,) + mpi.alpha.shape).astype(np.float32) * mpi.alpha[None]
+    dropped, dropped_flow = merge_planes(mpi, flow, 0.0)  # empty planes only
+    assert dropped.alpha.shape[0] == int((share > 0).sum())
+    merged, merged_flow = merge_planes(mpi, flow, 0.02)
+    assert merged.alpha.shape[0] == 2
+    for full, fewer in ((mpi.alpha, merged.alpha), (mpi.depth, merged.depth)):
+        np.testing.assert_array_equal(full.sum(axis=0), fewer.sum(axis=0))  # every pixel kept once
+    np.testing.assert_array_equal(flow.sum(axis=1), merged_flow.sum(axis=1))
+    np.testing.assert_array_equal(mpi.color.sum(axis=1), merged.color.sum(axis=1))
+    a, b, _ = geometry.composite(mpi), geometry.composite(merged), None
+    np.testing.assert_allclose(a[0], b[0])
+
+
+def test_method_options_parse_and_reject_bad_ones():
+    assert split_methods("reproject, decomp[gate=0,flow_width=240],flow2d") == [
+        "reproject", "decomp[gate=0,flow_width=240]", "flow2d"]
+    config = config_from_options("gate=0,flow_width=240,min_plane_fraction=0.01", model="x.onnx")
+    assert (config.gate, config.flow_width, config.min_plane_fraction, config.model) == (False, 240, 0.01, "x.onnx")
+    for bad in ("gate=maybe", "flow_width=wide", "nonsense=1", "gate"):
+        with pytest.raises(InputError, match="option"):
+            config_from_options(bad)
+    with pytest.raises(InputError, match="only decomp"):
+        make_predictor("reproject[gate=0]")

@@ -53,8 +53,8 @@ class DecompConfig:
     """Options of the ``decomp`` predictor; every ``skip`` can be switched off to measure what it saves."""
 
     model: str = option("", "ONNX flow network (default: the committed engine/weights/flow3d.onnx)")
-    flow_width: int = option(0, "width in pixels the network runs at (0: the width it was trained at, from "
-                                "the ONNX metadata); frames are block-downsampled by round(W / flow_width)")
+    flow_width: int = option(0, "widest input in pixels the network runs at (0: the width it was trained at, "
+                                "from the ONNX metadata); frames are block-downsampled by ceil(W / flow_width)")
     gate: bool = option(True, "run the network only on boxes around tiles whose camera-compensated residual "
                               "shows object motion, and not at all when none does")
     color_threshold: float = option(0.05, "residual of the encoded colour (0..1, max over RGB) that marks a "

@@ -426,14 +426,14 @@ def build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, plane_depth
 
 
 def downsample_factor(width: int, working_width: int) -> int:
-    """Integer block size that brings a frame ``width`` pixels wide nearest to ``working_width`` (>= 1).
+    """Smallest integer block size that brings a frame ``width`` pixels wide to at most ``working_width``.
 
-    >>> downsample_factor(1920, 480), downsample_factor(960, 480), downsample_factor(640, 480)
-    (4, 2, 1)
+    >>> downsample_factor(1920, 480), downsample_factor(960, 480), downsample_factor(640, 480), downsample_factor(400, 480)
+    (4, 2, 2, 1)
     """
     if int(working_width) < 1:
         raise InputError(f"must be >= 1, got {working_width}", field="working_width")
-    return max(1, int(round(int(width) / int(working_width))))
+    return max(1, -(-int(width) // int(working_width)))
 
 
 def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,

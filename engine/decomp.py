@@ -8,15 +8,17 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
    cancelled, what differs now is object motion (and disocclusions);
 3. the *motion gate* looks at that camera-compensated residual: tiles where colour or depth changed mark
    object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when no
-   tile moved (a static scene then costs about what ``reproject`` costs);
-4. the ONNX flow network (``FlowNetwork``, exported by ``export.flow`` from ``models.flow3d.Flow3D``)
-   estimates the 3D flow u(n -> n-k) per MPI point, which is upsampled to full resolution per plane
-   (``upsample_flow``).
+   tile moved (measured costs, static scene included: ``docs/flow3d.md``);
+4. per box, OpenCV DIS gives the 2D flow the network refines (``initial_flow``; by default at full
+   resolution), and the ONNX flow network (``FlowNetwork``, exported by ``export.flow`` from
+   ``models.flow3d.Flow3D``) estimates the flow u(n -> n-k) per MPI point, upsampled to full resolution
+   per plane (``upsample_flow``).
 
 Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
-the frame times); the full-resolution MPI of frame n moves by it and by the camera (forward bilinear
-splat, ``geometry.forward_warp_mpi``), is composited, and disocclusions are filled the way ``reproject``
-fills them (``engine.holefill``) until the infilling network lands.
+the frame times); frame n at full resolution (by default one plane whose pixels carry their own plane's
+flow, ``render_planes``) moves by it and by the camera (forward bilinear splat,
+``geometry.forward_warp_mpi``), is composited, and disocclusions are filled the way ``reproject`` fills
+them (``engine.holefill``) until the infilling network lands.
 
 Conventions are ``engine/geometry.py``'s: OpenCV cameras, pixel centres at +0.5, planar depth (+inf sky),
 MPI arrays (C, Z, H, W) with planes near (0) to far (Z - 1). No torch: the network runs in onnxruntime.
@@ -37,7 +39,7 @@ from engine.errors import InputError, InterleaveError
 from engine.frames import Frame
 from engine.geometry import Mpi
 from engine.holefill import fill_holes
-from engine.predictors import PreparedState, Predictor, Target
+from engine.predictors import PreparedState, Predictor, Target, dis_estimator, extrapolation_factor, luma8
 
 __all__ = ["DecompConfig", "FlowNetwork", "DecompPredictor", "DEFAULT_MODEL", "motion_residual", "motion_boxes",
            "upsample_flow", "merge_planes", "encode_color", "config_from_options", "initial_flow"]
@@ -73,7 +75,7 @@ class DecompConfig:
                                             "planes; -1: keep every plane)")
     depth_flow: bool = option(False, "use the network's depth component dz (Eq. 6.6); off (default): each plane "
                                      "moves by its (du, dv) only (the committed network's plane offsets cost "
-                                     "1.3 dB of whole-frame PSNR on held-out scenes, docs/flow3d.md)")
+                                     "0.9 dB of whole-frame PSNR on held-out scenes, docs/flow3d.md)")
     render_planes: int = option(1, "planes of the MPI that is splatted: 0 = the network's (the thesis); 1 = one "
                                    "plane whose pixels carry their own plane's 3D flow (no cracks where a surface "
                                    "crosses from one plane to the next, half the splat cost)")
@@ -124,20 +126,8 @@ def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndar
     Returns:
         (H, W, 2) float32 pixels.
     """
-    import cv2
-
-    from engine.colorspace import display_encode
-
-    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-    if preset not in presets:
-        raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
-
-    def luma8(color: np.ndarray) -> np.ndarray:
-        return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-
     target = np.where(covered[..., None], warped_color, color_n)
-    flow = cv2.DISOpticalFlow_create(presets[preset]).calc(luma8(color_n), luma8(target), None)
+    flow = dis_estimator(preset).calc(luma8(color_n), luma8(target), None)
     return np.ascontiguousarray(flow, dtype=np.float32)
 
 
@@ -324,15 +314,14 @@ def merge_planes(mpi: Mpi, flow: Optional[np.ndarray], min_fraction: float) -> t
     if keep.all() or not keep.any():
         return mpi, flow
     kept = np.flatnonzero(keep)
-    target = kept[np.abs(np.arange(num_z)[:, None] - kept[None, :]).argmin(axis=1)]  # nearest kept plane
+    nearest = np.abs(np.arange(num_z)[:, None] - kept[None, :]).argmin(axis=1)  # position in ``kept``
 
     def merge(values: np.ndarray, axis: int) -> np.ndarray:
         out = np.take(values, kept, axis=axis).copy()
-        for z in np.flatnonzero(~keep):
-            if share[z] > 0:
-                index = [slice(None)] * values.ndim
-                index[axis] = int(np.searchsorted(kept, target[z]))
-                out[tuple(index)] += np.take(values, z, axis=axis)
+        for z in np.flatnonzero(~keep & (share > 0)):
+            index = [slice(None)] * values.ndim
+            index[axis] = int(nearest[z])
+            out[tuple(index)] += np.take(values, z, axis=axis)
         return out
 
     merged = Mpi(merge(mpi.color, 1), merge(mpi.depth, 0), merge(mpi.alpha, 0), mpi.plane_depths[kept])
@@ -364,11 +353,6 @@ def config_from_options(text: str, **fixed) -> DecompConfig:
         except ValueError as exc:
             raise InputError(f"option '{part}': not a valid {kind.__name__}", field="decomp") from exc
     return DecompConfig(**values)
-
-
-def _time_factor(older: Frame, newest: Frame, time: float) -> float:
-    """k'/k of Eq. 6.13 from frame times: how far past frame n the target lies, per step n-k -> n."""
-    return (time - newest.time) / (newest.time - older.time)
 
 
 def _downsampled(frame: Frame, factor: int):
@@ -455,8 +439,7 @@ class DecompPredictor(Predictor):
             color_w, _, acc = geometry.composite(moved)
             full_init = timer("initial_flow", initial_flow, newest.color[fy0:fy1, fx0:fx1], color_w, acc > 0,
                               cfg.dis_preset)
-            bh, bw = y1 - y0, x1 - x0
-            init = full_init[:bh * factor, :bw * factor].reshape(bh, factor, bw, factor, 2).mean(axis=(1, 3)) / factor
+            init = geometry.downsample_flow(full_init, factor)  # the box's rows past the last block drop out
         elif net.needs_initial_flow:
             warped_color, _, acc = geometry.composite(_crop(warped, box))
             init = timer("initial_flow", initial_flow, low_color_n[y0:y1, x0:x1], warped_color, acc > 0,
@@ -474,9 +457,9 @@ class DecompPredictor(Predictor):
         flow[:, :, fy0:fy1, fx0:fx1] = part
 
     def _render(self, state: PreparedState, target: Target, timer) -> tuple[np.ndarray, np.ndarray]:
-        older, newest = state.history[-2], state.history[-1]
+        newest = state.history[-1]
         flow = state.data["flow"]
-        motion = None if flow is None else flow * np.float32(-_time_factor(older, newest, target.time))
+        motion = None if flow is None else flow * np.float32(-extrapolation_factor(state, target))
         src, dst = newest.camera, target.camera
         if self.config.splat == "gl":
             from engine.glsplat import shared_splatter

@@ -473,6 +473,20 @@ def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarra
     return out_color.astype(np.float32), np.ascontiguousarray(out_depth, dtype=np.float32), out_k
 
 
+def downsample_flow(flow: np.ndarray, factor: int) -> np.ndarray:
+    """Block-mean a (H, W, 2) pixel flow by ``factor`` into the grid of ``downsample_frame`` (its pixels).
+
+    Rows and columns past the last whole block are dropped; the result is in downsampled pixels (divided
+    by ``factor``), float32 (H // f, W // f, 2).
+    """
+    flow = _array(flow, "flow", ("H", "W", 2), {})
+    f = int(factor)
+    if f < 1:
+        raise InputError(f"must be >= 1, got {factor}", field="factor")
+    h, w = flow.shape[0] // f, flow.shape[1] // f
+    return (flow[:h * f, :w * f].reshape(h, f, w, f, 2).mean(axis=(1, 3)) / f).astype(np.float32)
+
+
 def visibility(mpi: Mpi) -> np.ndarray:
     """Transmittance in front of each plane (thesis Eq. 6.9), (Z, H, W): ``prod_{j < z} (1 - alpha_j)``."""
     return _visibility(_check_mpi(mpi, {}).alpha)

@@ -137,10 +137,28 @@ class Reproject(Predictor):
         return _warp_and_fill(state.history[-1], target, timer)
 
 
-def _extrapolation_factor(state: PreparedState, target: Target) -> float:
+def extrapolation_factor(state: PreparedState, target: Target) -> float:
     """k'/k of thesis Eq. 6.13 from the frame times: how far past frame n the target lies, per step n-k -> n."""
     older, newest = state.history[-2], state.history[-1]
     return (target.time - newest.time) / (newest.time - older.time)
+
+
+def dis_estimator(preset: str = "medium"):
+    """An OpenCV DIS optical-flow object for a preset name ('ultrafast', 'fast', 'medium'); others raise."""
+    import cv2
+
+    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+    if preset not in presets:
+        raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
+    return cv2.DISOpticalFlow_create(presets[preset])
+
+
+def luma8(color: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 luma of display-encoded linear RGB (H, W, 3): what DIS optical flow reads."""
+    import cv2
+
+    return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
 
 class Flow2D(Predictor):
@@ -156,23 +174,11 @@ class Flow2D(Predictor):
     history_needed = 2
 
     def __init__(self, preset: str = "medium") -> None:
-        import cv2
-
-        presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-                   "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-        if preset not in presets:
-            raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
-        self._dis = cv2.DISOpticalFlow_create(presets[preset])
+        self._dis = dis_estimator(preset)
 
     def _prepare(self, state, timer):
-        import cv2
-
         older, newest = state.history[-2], state.history[-1]
         warped, _ = _warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
-
-        def luma8(color: np.ndarray) -> np.ndarray:
-            return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-
         state.data["flow_back"] = timer("flow", self._dis.calc, luma8(newest.color), luma8(warped), None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
@@ -180,7 +186,7 @@ class Flow2D(Predictor):
         return state.data["flow_back"]
 
     def _render(self, state, target, timer):
-        flow = -_extrapolation_factor(state, target) * state.data["flow_back"]
+        flow = -extrapolation_factor(state, target) * state.data["flow_back"]
         return _warp_and_fill(state.history[-1], target, timer, flow)
 
 

@@ -190,7 +190,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     from models.train_flow import load_model
 
     model = load_model(args.checkpoint)
-    path = export_flow(args.checkpoint, args.out)
+    path = export_flow(model, args.out, working_width=_working_width(args.checkpoint))
     err = check_parity(path, model, example_inputs(model, 96, 160, seed=1))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); max |onnxruntime - torch| = {err:.2e}")
     if err > args.tolerance:

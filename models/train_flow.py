@@ -40,7 +40,7 @@ from torch import Tensor
 
 from engine.config import option
 from engine.errors import InputError
-from engine.geometry import check_shape, downsample_frame
+from engine.geometry import check_shape, downsample_flow, downsample_frame
 from models.flow3d import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
 from models.geometry import Mpi, composite
 from models.losses import FlowLossConfig, flow_loss
@@ -188,11 +188,9 @@ def _frame_tensors(frame, factor: int) -> tuple[Tensor, ...]:
 
 def _object_flow(frame, factor: int) -> np.ndarray:
     """Frame n's ground-truth object flow (n -> n+1) at the downsampled size, in downsampled pixels."""
-    h, w = frame.depth.shape[0] // factor, frame.depth.shape[1] // factor
     if frame.object_flow is None:
-        return np.zeros((h, w, 2), dtype=np.float32)
-    blocks = frame.object_flow[:h * factor, :w * factor].reshape(h, factor, w, factor, 2)
-    return (blocks.mean(axis=(1, 3)) / factor).astype(np.float32)
+        return np.zeros((frame.depth.shape[0] // factor, frame.depth.shape[1] // factor, 2), dtype=np.float32)
+    return downsample_flow(frame.object_flow, factor)
 
 
 def _crop_mpi(mpi: Mpi, y: int, x: int, size: int) -> Mpi:

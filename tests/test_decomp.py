@@ -42,6 +42,17 @@ def test_downsample_keeps_projection_consistent():
     np.testing.assert_allclose(low, full / 3.0)
 
 
+def test_downsample_flow_is_the_block_mean_in_low_resolution_pixels():
+    flow = np.zeros((7, 9, 2), np.float32)
+    flow[:3, :3, 0] = 6.0  # one 3 x 3 block moving 6 px right; row 6 and columns 6-8 lie past the last block
+    low = geometry.downsample_flow(flow, 3)
+    assert low.shape == (2, 3, 2)
+    np.testing.assert_allclose(low[0, 0], [2.0, 0.0])
+    assert (low[1:] == 0).all() and (low[:, 1:] == 0).all()
+    with pytest.raises(InputError, match="flow"):
+        geometry.downsample_flow(np.zeros((4, 4, 3)), 2)
+
+
 @pytest.mark.parametrize("factor", [0, 13, -1])
 def test_downsample_rejects_bad_factor(factor):
     with pytest.raises(InputError, match="factor"):

@@ -2,7 +2,9 @@
 
 - ``SceneConfig`` / ``make_scene``: the random scene description (pure numpy, deterministic by seed);
 - ``render_scene`` / ``SceneRenderer``: the moderngl renderer (headless EGL), yielding ``engine.frames.Frame``;
-- ``generate_sequence``: both, written as an rgbd-seq folder by ``engine.io.write_sequence``.
+- ``generate_sequence``: both, written as an rgbd-seq folder by ``engine.io.write_sequence``;
+- ``RigConfig`` / ``make_rig`` / ``render_rig`` / ``generate_rig``: fixed multi-camera rigs on a scene, written as
+  an rgbd-rig capture by ``engine.io.write_rig`` (training data for the radiance fields).
 
 See ``docs/scenegen.md`` for what is randomised and how the ground truth is computed.
 
@@ -15,11 +17,13 @@ import json
 from pathlib import Path
 
 from engine.scenegen.render import SceneRenderer, render_scene
+from engine.scenegen.rig import ARRANGEMENTS, Rig, RigConfig, generate_rig, make_rig, render_rig
 from engine.scenegen.scene import (CAMERA_PATHS, LIGHTING_STYLES, MOTIONS, OBJECT_SHAPES, PATTERNS, Scene,
                                    SceneConfig, make_scene)
 
-__all__ = ["CAMERA_PATHS", "LIGHTING_STYLES", "MOTIONS", "OBJECT_SHAPES", "PATTERNS", "Scene", "SceneConfig",
-           "SceneRenderer", "generate_sequence", "make_scene", "render_scene"]
+__all__ = ["ARRANGEMENTS", "CAMERA_PATHS", "LIGHTING_STYLES", "MOTIONS", "OBJECT_SHAPES", "PATTERNS", "Rig",
+           "RigConfig", "Scene", "SceneConfig", "SceneRenderer", "generate_rig", "generate_sequence", "make_rig",
+           "make_scene", "render_rig", "render_scene"]
 
 
 def generate_sequence(config: SceneConfig, out_dir: str | Path, *, progress: bool = True) -> Path:

@@ -1,9 +1,12 @@
 """`interleave`: the command-line entry point.
 
 Subcommands: ``demo`` (the frame-upsampling demo on the built-in scene), ``eval`` (speed against error
-on rgbd-seq sequences), ``render-scene`` (write a procedural dynamic scene as rgbd-seq) and ``import``
-(convert Blender, MPI-Sintel or DeCOMPnet/VEED layouts to rgbd-seq). Bad input ends with one line
-naming the problem and exit status 2, never a traceback.
+on rgbd-seq sequences; ``eval field RUN_DIR`` scores a trained radiance field), ``render-scene`` (write a
+procedural dynamic scene as rgbd-seq), ``render-rig`` (the same scene seen by a rig of fixed cameras, as
+rgbd-rig), ``import`` (convert Blender, MPI-Sintel or DeCOMPnet/VEED layouts to rgbd-seq), ``train`` /
+``export`` (``flow`` network, static ``field``; need torch) and ``serve`` (prediction sessions for game
+engines over a local socket). Bad input ends with one line naming the problem and exit status 2, never a
+traceback.
 """
 from __future__ import annotations
 
@@ -81,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--height", type=int, default=360, help="frame height in pixels (default: 360)")
     demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
 
-    ev = sub.add_parser("eval", help="score predictors on rgbd-seq sequences: PSNR, SSIM, FLIP, time per frame",
+    ev = sub.add_parser("eval", help="score predictors on rgbd-seq sequences: PSNR, SSIM, FLIP, time per frame "
+                                     "('interleave eval field RUN_DIR' scores a trained radiance field)",
                         description="For every rendered frame n (every k-th) with history, each method predicts "
                                     "n+1..n+k-1 from frames n-k and n; predictions are scored on sRGB-encoded "
                                     "frames with DeCOMPnet's proportional border crop, over the whole crop and over "
@@ -102,6 +106,19 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("out", type=Path, metavar="OUT_DIR", help="folder to write (sequence.json + frames/)")
     add_dataclass_options(rs, SceneConfig)
 
+    from engine.scenegen import RigConfig
+
+    rr = sub.add_parser("render-rig", help="render a procedural scene from a rig of fixed cameras to an rgbd-rig "
+                                           "capture (radiance-field training data with true depth)",
+                        description="Samples the scene of --seed like render-scene, places --num-cameras fixed, "
+                                    "synchronized cameras around its camera path's mid-sequence eye, all looking at "
+                                    "its target (docs/scenegen.md, Rigs), and writes cam0..camN-1 as rgbd-seq with "
+                                    "every ground-truth channel plus rig.json with the train/test split. "
+                                    "--static: no moving objects, one frame. Headless (EGL).")
+    rr.add_argument("out", type=Path, metavar="OUT_DIR", help="folder to write (rig.json + cam0/ ...)")
+    add_dataclass_options(rr, SceneConfig)
+    add_dataclass_options(rr, RigConfig, skip=("scene",))
+
     imp = sub.add_parser("import", help="convert Blender multilayer EXR, MPI-Sintel or DeCOMPnet/VEED data to rgbd-seq",
                          description="See engine/importers.py for each layout's expected files.")
     imp.add_argument("layout", choices=["blender", "sintel", "veed"], help="the source layout")
@@ -117,14 +134,23 @@ def build_parser() -> argparse.ArgumentParser:
                                                                  "instead of stopping with an error")
     tr = sub.add_parser("train", help="train a network (needs the 'train' extra: torch)",
                         description="'interleave train flow --config configs/flow3d.json' trains the 3D flow "
-                                    "network; 'interleave train flow --help' lists every option.")
-    tr.add_argument("what", choices=["flow"], help="what to train")
+                                    "network; 'interleave train field --scene DIR --views 3' a static radiance "
+                                    "field; 'interleave train flow|field --help' lists every option.")
+    tr.add_argument("what", choices=["flow", "field"], help="what to train")
     tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
     ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
                         description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
-                                    "graph and checks it against torch; 'interleave export flow --help'.")
-    ex.add_argument("what", choices=["flow"], help="what to export")
+                                    "graph and checks it against torch; 'interleave export field RUN_DIR' a "
+                                    "trained field's ONNX query and renderer assets; '... --help' for options.")
+    ex.add_argument("what", choices=["flow", "field"], help="what to export")
     ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
+    sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
+                        description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
+                                    "(docs/server.md, engine/include/interleave_protocol.h). Runs until SIGINT or "
+                                    "SIGTERM, then unlinks every shared-memory segment and the socket file.")
+    sv.add_argument("--listen", default="unix:/tmp/interleave.sock",
+                    help="unix:/path/to.sock or tcp:PORT (127.0.0.1 only; tcp:0 picks a free port) "
+                         "(default: unix:/tmp/interleave.sock)")
     return parser
 
 
@@ -142,6 +168,16 @@ def _methods(text: str) -> list[str]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["eval", "field"]:  # 'interleave eval field RUN_DIR': fields, not rgbd-seq sequences
+        try:
+            _needs_torch("eval field")
+        except InterleaveError as exc:
+            print(f"interleave eval field: error: {exc}", file=sys.stderr)
+            return 2
+        from models.fields.train import eval_main
+
+        return eval_main(argv[2:], prog="interleave eval field")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -157,6 +193,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
             path = generate_sequence(_config_from_args(SceneConfig, args), args.out, progress=True)
             print(f"wrote {path}")
+        elif args.command == "render-rig":
+            from engine.scenegen import RigConfig, SceneConfig, generate_rig
+
+            config = _config_from_args(RigConfig, args, scene=_config_from_args(SceneConfig, args))
+            path = generate_rig(config, args.out, progress=True)
+            print(f"wrote {path}")
         elif args.command == "import":
             from engine.importers import import_any
 
@@ -170,14 +212,27 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(f"wrote {path}")
         elif args.command == "train":
             _needs_torch("train")
+            if args.what == "field":
+                from models.fields.train import main as train_field
+
+                return train_field(args.options, prog="interleave train field")
             from models.train_flow import main as train_flow
 
             train_flow(args.options, prog="interleave train flow")
         elif args.command == "export":
             _needs_torch("export")
-            from export.flow import main as export_flow
+            if args.what == "field":
+                from export.field import main as export_field
 
-            export_flow(args.options, prog="interleave export flow")
+                export_field(args.options, prog="interleave export field")
+            else:
+                from export.flow import main as export_flow
+
+                export_flow(args.options, prog="interleave export flow")
+        elif args.command == "serve":
+            from engine.server import parse_address, serve
+
+            serve(parse_address(args.listen))
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -235,7 +235,7 @@ def test_command_line_trains_and_scores(tmp_path, capsys):
                  "--render.occupancy", "false"])
     assert code == 0
     scores = json.loads((tmp_path / "run" / "scores.json").read_text())
-    assert scores["train_views"] == 3 and scores["image_size"] == [16, 16] and np.isfinite(scores["psnr"])
+    assert len(scores["train_views"]) == 3 and scores["image_size"] == [16, 16] and np.isfinite(scores["psnr"])
     saved = FieldTrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text()))
     assert saved.field.resolutions == (8, 16) and saved.render.occupancy is False and saved.downscale == 2
     assert not [t for t in saved.losses if t.name == "plane_tv" and t.enabled]

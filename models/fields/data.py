@@ -336,8 +336,9 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
         poses.append(w2c)
         names.append(rel)
     if missing:
-        warnings.warn(f"{meta_file}: skipping {len(missing)} listed frame(s) whose image is missing: "
-                      f"{', '.join(missing)}", stacklevel=2)
+        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+        warnings.warn(f"{meta_file}: skipping {len(missing)} listed frame(s) whose image is missing: {shown}",
+                      stacklevel=2)
     if not images:
         raise InputError("no listed frame has an image file", file=meta_file, field="frames")
     sizes = {im.shape for im in images}

@@ -119,12 +119,9 @@ class TriPlaneEncoding(nn.Module):
 # ----------------------------------------------------------------------------------------------------
 # Directions
 
-# Real spherical-harmonic constants (the usual graphics basis, Sloan's "Stupid SH tricks" ordering).
-_C0 = 0.28209479177387814
-_C1 = 0.4886025119029199
-_C2 = (1.0925484305920792, 1.0925484305920792, 0.31539156525252005, 1.0925484305920792, 0.5462742152960396)
-_C3 = (0.5900435899266435, 2.890611442640554, 0.4570457994644658, 0.3731763325901154, 0.4570457994644658,
-       1.445305721320277, 0.5900435899266435)
+# Real spherical-harmonic constants (the usual graphics basis, Sloan's "Stupid SH tricks" ordering), shared
+# with the engine's torch-free renderer.
+from engine.fieldrender import SH_C0 as _C0, SH_C1 as _C1, SH_C2 as _C2, SH_C3 as _C3  # noqa: E402
 
 
 def sh_encoding(directions: Tensor, bands: int) -> Tensor:

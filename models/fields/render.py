@@ -39,7 +39,7 @@ from models.fields.sampling import camera_rays
 __all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "render_image", "stack_outputs"]
 
 #: Opacity below which a ray has "no surface": its normalised depth is +inf.
-OPACITY_EPS = 1e-3
+from engine.fieldrender import OPACITY_EPS  # noqa: E402  (shared with the engine)
 
 
 class RayOutputs(NamedTuple):

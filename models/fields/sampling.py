@@ -33,9 +33,9 @@ __all__ = ["FAR_AT_INFINITY", "camera_rays", "ray_box_intersection", "sample_int
            "contract_ndc", "OccupancyGrid"]
 
 #: Stand-in for an infinite far bound in disparity sampling (scene units along camera z).
-FAR_AT_INFINITY = 1e10
+from engine.fieldrender import FAR_AT_INFINITY  # noqa: E402  (shared with the engine)
 #: Smallest near bound used when sampling in disparity (keeps 1 / near finite).
-MIN_NEAR = 1e-6
+from engine.fieldrender import MIN_NEAR  # noqa: E402
 #: "Unbounded" ray parameter of a slab a ray runs parallel to (finite, so no inf - inf).
 _NO_LIMIT = 1e30
 
@@ -57,16 +57,12 @@ def camera_rays(intrinsics, world_to_camera, height: int, width: int, *,
         >>> d[1].tolist()  # pixel (u=1, v=0): centre (1.5, 0.5)
         [-0.25, -0.25, 1.0]
     """
+    from engine.fieldrender import camera_rays_np  # one implementation, shared with the engine
+
     k = np.asarray(intrinsics.detach().cpu() if isinstance(intrinsics, Tensor) else intrinsics, dtype=np.float64)
     t = np.asarray(world_to_camera.detach().cpu() if isinstance(world_to_camera, Tensor) else world_to_camera,
                    dtype=np.float64)
-    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    x = (u - k[0, 2] - k[0, 1] * (v - k[1, 2]) / k[1, 1]) / k[0, 0]
-    y = (v - k[1, 2]) / k[1, 1]
-    cam = np.stack([x, y, np.ones_like(x)], axis=-1).reshape(-1, 3)
-    rot = t[:3, :3]
-    dirs = cam @ rot  # R^T d for row vectors
-    origin = -rot.T @ t[:3, 3]
+    origin, dirs = camera_rays_np(k, t, height, width)
     origins = np.broadcast_to(origin, dirs.shape)
     return torch.as_tensor(np.ascontiguousarray(origins), dtype=dtype), torch.as_tensor(dirs, dtype=dtype)
 

@@ -44,7 +44,9 @@ from models.fields.priors import PRIOR_NAMES, PriorsConfig, build_priors, prior_
 from models.fields.render import render_image
 from models.fields.sampling import camera_rays
 
-__all__ = ["FieldTrainConfig", "train_field", "evaluate_field", "load_model", "build_model", "main"]
+__all__ = ["FieldTrainConfig", "train_field", "evaluate_field", "load_model", "build_model", "rank_correlation",
+           "run_train_seconds", "load_run_views", "select_views", "detect_dataset", "config_from_file", "main",
+           "eval_main"]
 
 LR_SCHEDULES = ("cosine", "exponential", "constant")
 
@@ -244,7 +246,9 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _lr_factor(config))
     generator = torch.Generator().manual_seed(config.seed)
     step = 0
+    elapsed_before = 0.0  # training wall time of earlier sessions of this run (resumed runs)
     if state is not None:
+        elapsed_before = float(state.get("train_seconds", 0.0))
         model.load_state_dict(state["model"])
         if priors is not None:
             priors.load_state_dict(state["priors"])
@@ -256,7 +260,8 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
 
     def save(at: int) -> None:
         tmp = ckpt_file.with_suffix(".pt.tmp")
-        torch.save({"step": at, "model": model.state_dict(), "scene": model.scene.to_dict(),
+        torch.save({"step": at, "train_seconds": elapsed_before + time.perf_counter() - start,
+                    "model": model.state_dict(), "scene": model.scene.to_dict(),
                     "background": model.background.tolist(), "optimizer": optimizer.state_dict(),
                     "scheduler": scheduler.state_dict(), "generator": generator.get_state(),
                     **({"priors": priors.state_dict()} if priors is not None else {})}, tmp)
@@ -300,7 +305,7 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
             if step % config.log_every == 0 or step == config.steps:
                 log.write(json.dumps({"step": step, "loss": float(loss.detach()), **values,
                                       "lr": optimizer.param_groups[0]["lr"], "occupied": occupied,
-                                      "seconds": round(time.perf_counter() - start, 2)}) + "\n")
+                                      "seconds": round(elapsed_before + time.perf_counter() - start, 2)}) + "\n")
                 log.flush()
             if bar is not None:
                 bar.update(1)
@@ -329,22 +334,51 @@ def load_model(run_dir: str | Path) -> StaticFieldModel:
     return model.eval()
 
 
-def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *, chunk: int = 8192
-                   ) -> dict[str, float]:
+def rank_correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman rank correlation of two equally long 1D arrays (ties share their mean rank); NaN below 2
+    values or when either array is constant."""
+    if a.size < 2:
+        return float("nan")
+
+    def ranks(x: np.ndarray) -> np.ndarray:
+        _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+        ends = np.cumsum(counts)
+        return ((ends - (counts - 1) / 2.0) - 1.0)[inverse]
+
+    ra, rb = ranks(a), ranks(b)
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    denom = math.sqrt(float((ra * ra).sum()) * float((rb * rb).sum()))
+    return float((ra * rb).sum() / denom) if denom > 0 else float("nan")
+
+
+def run_train_seconds(run_dir: str | Path) -> float:
+    """Training wall time of a run (all sessions of a resumed run), from its last ``log.jsonl`` line."""
+    log = Path(run_dir) / "log.jsonl"
+    lines = log.read_text().splitlines() if log.is_file() else []
+    return float(json.loads(lines[-1]).get("seconds", float("nan"))) if lines else float("nan")
+
+
+def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *, chunk: int = 8192,
+                   with_flip: bool = True, return_images: bool = False) -> dict[str, Any]:
     """Render every view and score it against the truth.
 
-    PSNR and SSIM (``engine.metrics.psnr`` / ``ssim_map``, Gaussian window) are computed on display-encoded
-    images (``engine.colorspace.display_encode``) over the whole frame (the NeRF protocol: no border crop)
-    and averaged over views. ``depth_mae`` is the mean |rendered - true| planar depth over pixels where both
-    are finite (NaN when the views carry no depth); ``depth_valid_fraction`` is the share of pixels with a
-    finite true depth where the field also rendered a surface. ``render_ms_per_frame`` is the mean wall time
-    of rendering one view (rays, sampling, field, compositing; the first view includes warm-up).
+    PSNR, SSIM (``engine.metrics.psnr`` / ``ssim_map``, Gaussian window) and FLIP (``flip_map``, LDR, 67
+    pixels per degree) are computed on display-encoded images (``engine.colorspace.display_encode``) over
+    the whole frame (the NeRF protocol: no border crop) and averaged over views. ``depth_mae`` is the mean
+    |rendered - true| planar depth over pixels where both are finite and ``depth_spearman`` the rank
+    correlation of the two over those pixels, all views pooled (NaN when the views carry no depth);
+    ``depth_valid_fraction`` is the share of pixels with a finite true depth where the field also rendered
+    a surface. ``render_ms_per_frame`` is the median wall time of rendering one view (rays, sampling,
+    field, compositing). ``train_seconds`` is the run's training wall time (NaN for a bare model).
+    ``return_images`` adds ``images``: the rendered colour and depth per view.
     """
+    from engine.metrics import flip_map
+
     check_views(views)
     model = run_or_model if isinstance(run_or_model, StaticFieldModel) else load_model(run_or_model)
     was_training = model.training
     model.eval()
-    psnrs, ssims, times, abs_errors, valid, known = [], [], [], [], 0, 0
+    psnrs, ssims, flips, times, abs_errors, pairs, valid, known, images = [], [], [], [], [], [], 0, 0, []
     try:
         for i, cam in enumerate(views.cameras):
             out = render_image(model, cam.intrinsics, cam.world_to_camera, views.height, views.width,
@@ -353,7 +387,11 @@ def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *,
             pred = display_encode(out["color"])
             psnrs.append(psnr(truth, pred))
             ssims.append(float(np.mean(ssim_map(truth, pred))))
+            if with_flip:
+                flips.append(float(np.mean(flip_map(truth, pred))))
             times.append(float(out["seconds"]) * 1000.0)
+            if return_images:
+                images.append({"color": out["color"], "depth": out["depth"]})
             if views.depth is not None:
                 true_depth = views.depth[i]
                 mask = np.isfinite(true_depth)
@@ -361,13 +399,25 @@ def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *,
                 known += int(mask.sum())
                 valid += int(both.sum())
                 abs_errors.append(np.abs(out["depth"][both] - true_depth[both]))
+                pairs.append((out["depth"][both], true_depth[both]))
     finally:
         model.train(was_training)
     errors = np.concatenate(abs_errors) if abs_errors else np.zeros(0)
-    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
-            "depth_mae": float(errors.mean()) if errors.size else float("nan"),
-            "depth_valid_fraction": valid / known if known else float("nan"),
-            "render_ms_per_frame": float(np.mean(times)), "num_views": len(views)}
+    spearman = (rank_correlation(np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs]))
+                if pairs else float("nan"))
+    scores: dict[str, Any] = {
+        "psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
+        "flip": float(np.mean(flips)) if flips else float("nan"),
+        "depth_mae": float(errors.mean()) if errors.size else float("nan"),
+        "depth_spearman": spearman,
+        "depth_valid_fraction": valid / known if known else float("nan"),
+        "render_ms_per_frame": float(np.median(times)), "num_views": len(views),
+        "train_seconds": (run_train_seconds(run_or_model) if not isinstance(run_or_model, StaticFieldModel)
+                          else float("nan")),
+    }
+    if return_images:
+        scores["images"] = images
+    return scores
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -426,70 +476,239 @@ def _apply_losses(config: FieldTrainConfig, specs: list[str]) -> FieldTrainConfi
     return dataclasses.replace(config, losses=tuple(terms.values()))
 
 
-def _load_views(args) -> tuple[Views, Views]:
-    """(train views, test views) for the command line."""
-    if args.dataset == "nerf-synthetic":
-        pool = load_nerf_synthetic(args.data, "train", downscale=args.downscale)
-        train_idx, _ = split_indices(len(pool), views=args.views, test_every=0)
-        test = load_nerf_synthetic(args.data, "test", downscale=args.downscale)
-        if args.max_test_views:
-            test = test.subset(range(min(args.max_test_views, len(test))))
-        return pool.subset(train_idx), test
-    if args.dataset == "llff":
-        pool = load_llff(args.data, factor=args.downscale)
-    else:
-        pool = load_rig(args.data).downscaled(args.downscale)
-    if args.dataset == "rig" and pool.default_split is not None and args.views is None:
-        train_idx, test_idx = pool.default_split
-    else:
-        train_idx, test_idx = split_indices(len(pool), views=args.views)
-    return pool.subset(train_idx), pool.subset(test_idx)
+DATASETS = ("nerf-synthetic", "llff", "rig")
 
 
-def add_run_arguments(parser: argparse.ArgumentParser, out_help: str) -> None:
+def detect_dataset(path: str | Path) -> str:
+    """The layout of a scene folder: ``nerf-synthetic`` (transforms_train.json), ``llff``
+    (poses_bounds.npy) or ``rig`` (rig.json)."""
+    root = Path(path)
+    for marker, kind in (("transforms_train.json", "nerf-synthetic"), ("poses_bounds.npy", "llff"),
+                         ("rig.json", "rig")):
+        if (root / marker).is_file():
+            return kind
+    if not root.exists():
+        raise InputError("folder does not exist", file=root)
+    raise InputError("is not a scene folder: expected transforms_train.json (NeRF-synthetic), poses_bounds.npy "
+                     "(LLFF) or rig.json (rgbd-rig)", file=root)
+
+
+def _view_list(text: Optional[str], name: str) -> Optional[list]:
+    """'5,10,14' or 'r_20,r_40' -> a list of positions (int) or view names (str); None stays None."""
+    if text is None:
+        return None
+    items = [t.strip() for t in str(text).split(",") if t.strip()]
+    if not items:
+        raise InputError("is empty", field=name)
+    return [int(t) if t.lstrip("-").isdigit() else t for t in items]
+
+
+def _positions(pool: Views, spec: list, name: str) -> list[int]:
+    """View positions in ``pool`` for a list of positions and/or names (a name matches a view's name or
+    its file stem)."""
+    stems = [Path(n).stem if n else "" for n in pool.names]
+    out = []
+    for item in spec:
+        if isinstance(item, int):
+            if not 0 <= item < len(pool):
+                raise InputError(f"position {item} out of range: {len(pool)} views were loaded", field=name)
+            out.append(item)
+        elif item in pool.names or item in stems:
+            out.append(pool.names.index(item) if item in pool.names else stems.index(item))
+        else:
+            raise InputError(f"no view named {item!r} (views: {', '.join(stems[:8])}{'...' if len(stems) > 8 else ''})",
+                             field=name)
+    if len(set(out)) != len(out):
+        raise InputError(f"names a view twice: {spec}", field=name)
+    return out
+
+
+def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Optional[int] = None,
+                 train_views: Optional[list] = None, test_views: Optional[list] = None,
+                 max_test_views: int = 0) -> tuple[Views, Views, dict[str, Any]]:
+    """Load a scene and split it into (train, test) views; the third item records the choice (``data.json``).
+
+    NeRF-synthetic: train views come from the train split, test views from the test split (all present
+    frames unless ``test_views``). LLFF and rigs: one pool; the default split is ``split_indices`` (every
+    8th frame held out, train views spread over the rest), or the rig's own train/test cameras when
+    ``views`` is not given. ``train_views`` / ``test_views`` are positions among the *loaded* frames
+    (listed frames whose files are missing are skipped) or view names (``r_20``, ``cam3``).
+    """
+    if dataset not in DATASETS:
+        raise InputError(f"must be one of {DATASETS}, got {dataset!r}", field="dataset")
+    if dataset == "nerf-synthetic":
+        pool = load_nerf_synthetic(scene, "train", downscale=downscale)
+        test_pool = load_nerf_synthetic(scene, "test", downscale=downscale)
+        train_idx = (_positions(pool, train_views, "train_views") if train_views is not None
+                     else split_indices(len(pool), views=views, test_every=0)[0])
+        test_idx = (_positions(test_pool, test_views, "test_views") if test_views is not None
+                    else list(range(len(test_pool))))
+    else:
+        pool = load_llff(scene, factor=downscale) if dataset == "llff" else load_rig(scene).downscaled(downscale)
+        test_pool = pool
+        tr = _positions(pool, train_views, "train_views") if train_views is not None else None
+        te = _positions(pool, test_views, "test_views") if test_views is not None else None
+        if dataset == "rig" and pool.default_split is not None and views is None and tr is None and te is None:
+            train_idx, test_idx = (list(x) for x in pool.default_split)
+        else:
+            if tr is not None and te is None:
+                te = split_indices(len(pool))[1]
+                te = [i for i in te if i not in tr]
+            train_idx, test_idx = split_indices(len(pool), views=None if tr is not None else views,
+                                                train_views=tr, test_views=te)
+    if max_test_views:
+        test_idx = test_idx[:max_test_views]
+    if not train_idx:
+        raise InputError("no train views selected", field="train_views")
+    if not test_idx:
+        raise InputError("no test views selected", field="test_views")
+    train, test = pool.subset(train_idx), test_pool.subset(test_idx)
+    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale),
+              "train_views": [int(i) for i in train_idx], "test_views": [int(i) for i in test_idx],
+              "train_names": list(train.names), "test_names": list(test.names)}
+    return train, test, record
+
+
+def load_run_views(run_dir: str | Path) -> tuple[Views, Views]:
+    """The (train, test) views a run was trained and is evaluated on, from its ``data.json``."""
+    file = Path(run_dir) / "data.json"
+    if not file.is_file():
+        raise InputError("file does not exist: the run was not made by 'interleave train field' (or the "
+                         "folder is not a run directory)", file=file)
+    rec = json.loads(file.read_text())
+    train, test, _ = select_views(rec["dataset"], rec["scene"], rec["downscale"], train_views=rec["train_views"],
+                                  test_views=rec["test_views"])
+    return train, test
+
+
+def _load_views(args) -> tuple[Views, Views, dict[str, Any]]:
+    """(train views, test views, data record) for the command line."""
+    dataset = args.dataset or detect_dataset(args.data)
+    return select_views(dataset, args.data, args.downscale, views=args.views,
+                        train_views=_view_list(getattr(args, "train_views", None), "train_views"),
+                        test_views=_view_list(getattr(args, "test_views", None), "test_views"),
+                        max_test_views=args.max_test_views)
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, out_help: str, *, out_required: bool = True) -> None:
     """The dataset, split, loss-weight and thread options shared by the training and ablation commands."""
-    parser.add_argument("--dataset", choices=["nerf-synthetic", "llff", "rig"], required=True)
-    parser.add_argument("--data", required=True, help="dataset folder (scene)")
-    parser.add_argument("--out", required=True, help=out_help)
+    parser.add_argument("--scene", "--data", dest="data", required=True,
+                        help="scene folder: NeRF-synthetic, LLFF or rgbd-rig (its layout is detected)")
+    parser.add_argument("--dataset", choices=list(DATASETS), default=None,
+                        help="the scene folder's layout (default: detected from its files)")
+    parser.add_argument("--out", required=out_required, default=None, help=out_help)
     parser.add_argument("--views", type=int, default=None, help="number of train views (spread uniformly)")
+    parser.add_argument("--train-views", default=None, metavar="LIST",
+                        help="explicit train views: comma-separated positions among the loaded frames or names "
+                             "(e.g. 5,10,14 or r_20,r_40)")
+    parser.add_argument("--test-views", default=None, metavar="LIST", help="explicit test views, as --train-views")
     parser.add_argument("--max-test-views", type=int, default=0, help="evaluate at most this many test views")
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="JSON with any FieldTrainConfig fields (nested dicts for render/field/priors); "
+                             "command-line options override it")
 
 
-def main(argv: Optional[list[str]] = None) -> int:
-    """``python -m models.fields.train``: train on a dataset, evaluate held-out views, print the scores."""
-    parser = argparse.ArgumentParser(prog="python -m models.fields.train", description=__doc__.split("\n")[0])
-    add_run_arguments(parser, "run directory")
+def config_from_file(path: Optional[Path]) -> FieldTrainConfig:
+    """Defaults updated by a (partial) JSON config file; nested sections merge field by field."""
+    if path is None:
+        return FieldTrainConfig()
+    if not Path(path).is_file():
+        raise InputError("config file does not exist", file=path)
+    try:
+        data = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"is not valid JSON: {exc}", file=path) from None
+
+    def merge(base: dict, over: dict) -> dict:
+        out = dict(base)
+        for k, v in over.items():
+            out[k] = merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+        return out
+
+    return FieldTrainConfig.from_dict(merge(FieldTrainConfig().to_dict(), data))
+
+
+def _json_ready(scores: dict) -> dict:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in scores.items()}
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.train") -> int:
+    """``interleave train field``: train on a scene, evaluate the held-out views, print the scores."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    add_run_arguments(parser, "run directory (default: runs/field/<scene>-<N>v)", out_required=False)
     parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
                         help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none)")
+    parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
     _add_config_args(parser, FieldTrainConfig)
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        config = _apply_losses(_apply_args(FieldTrainConfig(), args), args.loss)
+        config = _apply_losses(_apply_args(config_from_file(args.config), args), args.loss)
         if args.prior_names is not None:
             names = [n.strip() for n in args.prior_names.split(",") if n.strip()]
             config = dataclasses.replace(config, priors=with_priors(config.priors, names))
         if args.downscale is None:
             args.downscale = config.downscale
-        train, test = _load_views(args)
-        start = time.perf_counter()
-        run = train_field(train, config, args.out)
-        train_seconds = time.perf_counter() - start
-        scores = evaluate_field(run, test)
+        train, test, record = _load_views(args)
+        out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
+        run = train_field(train, config, out)
+        (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")
+        scores = evaluate_field(run, test, with_flip=not args.no_flip)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    scores = {"train_views": len(train), "test_views": len(test), "image_size": [train.height, train.width],
-              "steps": config.steps, "train_seconds": round(train_seconds, 1), **scores}
-    scores = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in scores.items()}  # strict JSON
+    scores = _json_ready({"run": str(out), "train_views": record["train_names"], "test_views": record["test_names"],
+                          "image_size": [train.height, train.width], "steps": config.steps, **scores})
     text = json.dumps(scores, indent=2)
-    (Path(args.out) / "scores.json").write_text(text + "\n")
+    (out / "scores.json").write_text(text + "\n")
     print(text)
     return 0
+
+
+def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval field") -> int:
+    """``interleave eval field RUN_DIR [--json OUT.json]``: render the run's held-out views and score them."""
+    parser = argparse.ArgumentParser(prog=prog, description="Render a trained field's held-out views and print "
+                                                            "PSNR, SSIM, FLIP, depth MAE, train and render time.")
+    parser.add_argument("run", type=Path, help="run directory written by 'interleave train field'")
+    parser.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
+    parser.add_argument("--no-flip", action="store_true", help="skip FLIP")
+    parser.add_argument("--images", type=Path, default=None,
+                        help="write each held-out render (PNG, display-encoded) and its truth into this folder")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        train, test = load_run_views(args.run)
+        scores = evaluate_field(args.run, test, with_flip=not args.no_flip, return_images=args.images is not None)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    images = scores.pop("images", None)
+    if images is not None:
+        _write_renders(args.images, test, images)
+    scores = _json_ready({"run": str(args.run), "train_views": list(train.names), "test_views": list(test.names),
+                          "image_size": [test.height, test.width], **scores})
+    text = json.dumps(scores, indent=2)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+    print(text)
+    return 0
+
+
+def _write_renders(folder: Path, views: Views, images: list[dict]) -> None:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, img in enumerate(images):
+        pair = np.concatenate([display_encode(img["color"]), display_encode(views.images[i])], axis=1)
+        stem = Path(views.names[i]).stem if views.names else f"view{i}"
+        cv2.imwrite(str(folder / f"{stem}.png"), (np.clip(pair, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,302 @@
+"""Export a trained static field: an ONNX query network and the assets a real-time renderer needs.
+
+``export_field(RUN_DIR, OUT_DIR)`` writes (format documented in ``docs/field-assets.md``):
+
+- ``field.onnx``: the density / colour query, ``points (N, 3), directions (N, 3) -> density (N,),
+  color (N, 3)``: world points and world view directions (any length; normalised inside), density per
+  scene unit (0 outside the field's cube), linear RGB in [0, 1]. The same torch code the renderer trains
+  (``StaticFieldModel.contract`` then ``TriPlaneField``), exported with ``torch.onnx.export(...,
+  dynamo=True, opset_version=20)``; N is dynamic.
+- ``field.npz`` + ``field.json``: the tri-plane textures (float32, and uint8 with a per-plane, per-channel
+  [min, max] range), the MLP weights, the occupancy grid, the scene contraction, the background and the
+  sampling settings, so a shader (or :mod:`engine.fieldrender`, its numpy reference) can render the field
+  without torch or onnxruntime.
+
+Parity: :func:`check_parity` holds onnxruntime against torch on random points in and around the cube and
+on points along the rays of a real view; the command fails above ``--tolerance``. The quantized planes are
+scored by rendering a view with float and with uint8 planes (PSNR between the two, in ``field.json``).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from engine.errors import InputError
+
+__all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "main",
+           "ASSET_FORMAT", "ASSET_VERSION", "OPSET"]
+
+ASSET_FORMAT = "interleave-field"
+ASSET_VERSION = 1
+OPSET = 20
+
+
+class FieldQueryGraph(nn.Module):
+    """world points (N, 3), view directions (N, 3) -> density (N,) per scene unit, linear RGB (N, 3).
+
+    Density is 0 where the contracted point leaves [-1, 1]^3 (the renderer never queries there). The
+    occupancy grid is not applied: it is an acceleration structure, exported beside the graph.
+    """
+
+    def __init__(self, model) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        coords = self.model.contract(points)
+        inside = (coords.abs() <= 1.0).all(dim=-1)
+        unit = torch.nn.functional.normalize(directions, dim=-1)
+        sigma, rgb = self.model.field(coords.clamp(-1.0, 1.0), unit)
+        return torch.where(inside, sigma, torch.zeros_like(sigma)), rgb
+
+
+def _model(run_or_model):
+    from models.fields.model import StaticFieldModel
+    from models.fields.train import load_model
+
+    if isinstance(run_or_model, StaticFieldModel):
+        return run_or_model.eval()
+    return load_model(run_or_model)
+
+
+def example_points(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Tensor]:
+    """Random world points over the field's cube and 10% beyond it, and random unit directions."""
+    g = torch.Generator().manual_seed(seed)
+    cube = torch.rand(count, 3, generator=g) * 2.2 - 1.1
+    if model.bounded:
+        points = model.center + cube * model.half_size
+    else:  # invert the NDC of the reference camera: z_ndc = 1 - 2 near / Z
+        s = model.scene
+        k = torch.tensor(s.ndc_intrinsics, dtype=torch.float32)
+        w2c = torch.tensor(s.ndc_world_to_camera, dtype=torch.float32)
+        w, h = s.ndc_size
+        m = 1.0 + model.render_config.ndc_margin
+        z = 2.0 * s.near / (1.0 - cube[:, 2].clamp(-0.999, 0.999))
+        u = (cube[:, 0] * m + 1.0) * w / 2.0
+        v = (cube[:, 1] * m + 1.0) * h / 2.0
+        y = (v - k[1, 2]) / k[1, 1] * z
+        x = (u - k[0, 2] - k[0, 1] * y / z) / k[0, 0] * z
+        cam = torch.stack([x, y, z], dim=-1)
+        points = (cam - w2c[:3, 3]) @ w2c[:3, :3]
+    directions = torch.nn.functional.normalize(torch.randn(count, 3, generator=g), dim=-1)
+    return points.float(), directions.float()
+
+
+def ray_points(model, intrinsics, world_to_camera, height: int, width: int, count: int = 4096,
+               seed: int = 0) -> tuple[Tensor, Tensor]:
+    """Points where the renderer samples along ``count`` random rays of a view (bin centres)."""
+    from models.fields.sampling import camera_rays, sample_intervals
+
+    origins, dirs = camera_rays(intrinsics, world_to_camera, height, width)
+    g = torch.Generator().manual_seed(seed)
+    pick = torch.randint(origins.shape[0], (max(1, count // model.render_config.num_samples),), generator=g)
+    o, d = origins[pick], dirs[pick]
+    near = torch.full((o.shape[0],), float(model.scene.near))
+    far = torch.full((o.shape[0],), float(model.scene.far))
+    t0, t1 = model.ray_bounds(o, d, near, far)
+    t, _ = sample_intervals(t0, t1, model.render_config.num_samples,
+                            spacing="linear" if model.bounded else "disparity")
+    points = o[:, None] + t[..., None] * d[:, None]
+    return points.reshape(-1, 3), d[:, None].expand_as(points).reshape(-1, 3)
+
+
+def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, directions: Tensor
+                 ) -> dict[str, float]:
+    """Largest |onnxruntime - torch| of density (relative to max(1, |density|)) and of colour."""
+    import onnxruntime as ort
+
+    model = _model(run_or_model)
+    with torch.no_grad():
+        sigma, rgb = FieldQueryGraph(model)(points, directions)
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    got_sigma, got_rgb = session.run(None, {"points": points.numpy(), "directions": directions.numpy()})
+    s = sigma.numpy()
+    return {"density": float(np.max(np.abs(got_sigma - s) / np.maximum(1.0, np.abs(s)))) if s.size else 0.0,
+            "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
+
+
+def quantize_planes(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3, C, R, R) float -> uint8 codes (3, C, R, R) and ranges (3, C, 2) [min, max] per plane and channel.
+
+    Decoding is ``min + code / 255 * (max - min)``; a constant channel has max == min and decodes exactly.
+    """
+    lo = plane.min(axis=(2, 3))
+    hi = plane.max(axis=(2, 3))
+    span = np.where(hi > lo, hi - lo, 1.0)
+    codes = np.rint((plane - lo[..., None, None]) / span[..., None, None] * 255.0).clip(0, 255).astype(np.uint8)
+    return codes, np.stack([lo, hi], axis=-1).astype(np.float32)
+
+
+def _mlp_layers(mlp: nn.Module) -> list[nn.Linear]:
+    return [m for m in mlp.net if isinstance(m, nn.Linear)]
+
+
+def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=None,
+                 quantize_check: bool = True) -> dict:
+    """Write ``field.onnx``, ``field.npz`` and ``field.json`` for the run into ``out_dir``; returns the manifest.
+
+    Args:
+        run_dir: a run directory from ``interleave train field``.
+        out_dir: where to write (created).
+        views: optional :class:`~models.fields.data.Views` whose first camera is used for the ray-point
+            parity check and the quantization check (default: the run's first test view if the run
+            records its data, else only random points are checked).
+    """
+    from models.fields.field import MAX_LOG_DENSITY
+    from models.fields.render import render_image
+
+    model = _model(run_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    graph = FieldQueryGraph(model).eval()
+    points, dirs = example_points(model, 64)
+    n = torch.export.Dim("n", min=1, max=1 << 24)
+    onnx_path = out / "field.onnx"
+    with torch.no_grad():
+        program = torch.onnx.export(graph, (points, dirs), dynamo=True, opset_version=OPSET,
+                                    input_names=["points", "directions"], output_names=["density", "color"],
+                                    dynamic_shapes={"points": {0: n}, "directions": {0: n}}, verbose=False,
+                                    optimize=False)
+    program.save(str(onnx_path))
+    _strip_debug(onnx_path)
+
+    cfg = model.field.config
+    arrays: dict[str, np.ndarray] = {}
+    planes_meta = []
+    for i, plane in enumerate(model.field.encoding.planes):
+        p = plane.detach().float().numpy()
+        codes, ranges = quantize_planes(p)
+        arrays[f"planes_{i}"] = p
+        arrays[f"planes_{i}_u8"] = codes
+        arrays[f"planes_{i}_range"] = ranges
+        planes_meta.append({"scale": i, "resolution": int(p.shape[-1]), "channels": int(p.shape[1]),
+                            "float": f"planes_{i}", "uint8": f"planes_{i}_u8", "range": f"planes_{i}_range"})
+    mlps = {}
+    for name, mlp in (("density", model.field.density_mlp), ("color", model.field.color_mlp)):
+        layers = []
+        for j, lin in enumerate(_mlp_layers(mlp)):
+            arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()  # (out, in): y = W x + b
+            arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
+            layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}",
+                           "in": int(lin.in_features), "out": int(lin.out_features)})
+        mlps[name] = layers
+    occupancy = None
+    if model.occupancy is not None and int(model.occupancy.updates) > 0:
+        arrays["occupancy"] = model.occupancy.occupied.numpy().astype(np.uint8)
+        occupancy = {"array": "occupancy", "resolution": int(model.occupancy.resolution),
+                     "occupied_fraction": float(model.occupancy.occupied.float().mean())}
+    np.savez_compressed(out / "field.npz", **arrays)
+
+    rc = model.render_config
+    manifest = {
+        "format": ASSET_FORMAT, "version": ASSET_VERSION,
+        "scene": model.scene.to_dict(),
+        "background": [float(x) for x in model.background],
+        "render": {"num_samples": int(rc.num_samples), "spacing": "linear" if model.bounded else "disparity",
+                   "ndc_margin": float(rc.ndc_margin)},
+        "field": {"plane_axes": [[0, 1], [0, 2], [1, 2]], "planes": planes_meta,
+                  "feature_combine": "product over planes, concatenated over scales",
+                  "density_bias": float(cfg.density_bias), "max_log_density": MAX_LOG_DENSITY,
+                  "geo_feature_dim": int(cfg.geo_feature_dim),
+                  "direction_encoding": cfg.direction_encoding, "direction_degree": int(cfg.direction_degree),
+                  "mlps": mlps},
+        "occupancy": occupancy,
+        "onnx": {"file": "field.onnx", "inputs": ["points", "directions"], "outputs": ["density", "color"],
+                 "opset": OPSET},
+        "field_config": dataclasses.asdict(cfg),
+    }
+    rand_pts, rand_dirs = example_points(model, 8192, seed=1)
+    parity = {"random_points": check_parity(onnx_path, model, rand_pts, rand_dirs)}
+    camera = _first_test_camera(run_dir, views)
+    if camera is not None:
+        k, w2c, h, w = camera
+        ray_pts, ray_dirs = ray_points(model, k, w2c, h, w, 8192, seed=2)
+        parity["ray_points"] = check_parity(onnx_path, model, ray_pts, ray_dirs)
+        if quantize_check:
+            manifest["quantization"] = _quantization_check(model, arrays, camera, render_image)
+    manifest["parity"] = parity
+    (out / "field.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def _first_test_camera(run_dir, views):
+    if views is not None:
+        cam = views.cameras[0]
+        return cam.intrinsics, cam.world_to_camera, views.height, views.width
+    if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "data.json").is_file():
+        from models.fields.train import load_run_views
+
+        _, test = load_run_views(run_dir)
+        cam = test.cameras[0]
+        return cam.intrinsics, cam.world_to_camera, test.height, test.width
+    return None
+
+
+def _quantization_check(model, arrays: dict, camera, render_image) -> dict:
+    """PSNR between renders with float planes and with uint8 planes (display-encoded), one view."""
+    from engine.colorspace import display_encode
+    from engine.metrics import psnr
+
+    k, w2c, h, w = camera
+    ref = render_image(model, k, w2c, h, w, model.scene.near, model.scene.far)
+    saved = [p.detach().clone() for p in model.field.encoding.planes]
+    try:
+        with torch.no_grad():
+            for i, p in enumerate(model.field.encoding.planes):
+                r = arrays[f"planes_{i}_range"]
+                codes = arrays[f"planes_{i}_u8"].astype(np.float32)
+                p.copy_(torch.from_numpy(r[..., 0, None, None] + codes / 255.0 * (r[..., 1] - r[..., 0])[..., None, None]))
+        quant = render_image(model, k, w2c, h, w, model.scene.near, model.scene.far)
+    finally:
+        with torch.no_grad():
+            for p, s in zip(model.field.encoding.planes, saved):
+                p.copy_(s)
+    value = psnr(display_encode(ref["color"]), display_encode(quant["color"]))
+    return {"psnr_uint8_vs_float": float(value) if np.isfinite(value) else None, "view_size": [int(h), int(w)]}
+
+
+def _strip_debug(path: Path) -> None:
+    import onnx
+
+    proto = onnx.load(str(path))
+    for node in proto.graph.node:
+        node.doc_string = ""
+        del node.metadata_props[:]
+    onnx.save(proto, str(path))
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field") -> None:
+    """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
+    parser = argparse.ArgumentParser(prog=prog, description="Export a trained static field (ONNX query + "
+                                                            "renderer assets) and check onnxruntime against torch.")
+    parser.add_argument("run", type=Path, help="run directory written by 'interleave train field'")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
+    parser.add_argument("--tolerance", type=float, default=1e-4,
+                        help="largest accepted |onnxruntime - torch| colour difference and relative density "
+                             "difference (default 1e-4)")
+    args = parser.parse_args(argv)
+    out = args.out or args.run / "export"
+    manifest = export_field(args.run, out)
+    worst = max(max(v.values()) for v in manifest["parity"].values())
+    sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
+    print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"],
+                      "quantization": manifest.get("quantization")}, indent=2))
+    if worst > args.tolerance:
+        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {args.tolerance:.0e}", file=out / "field.onnx")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    try:
+        main()
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

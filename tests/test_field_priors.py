@@ -314,3 +314,43 @@ def test_ablation_command_prints_a_table_and_writes_json(tmp_path, capsys):
     assert "| variant | PSNR (dB) |" in out and "| +simple |" in out
     assert ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",
                           str(tmp_path / "abl2"), "--variants", "+nothing"]) == 2
+
+
+def test_triangulation_angle_drops_points_whose_depth_the_baseline_cannot_fix():
+    from models.fields.priors_depth import triangulate_checked, triangulation_angles
+
+    k = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cams = []
+    for x in (0.0, 0.1):  # two cameras 0.1 apart looking down +z
+        w2c = np.eye(4)
+        w2c[0, 3] = -x
+        cams.append(Camera(k, w2c))
+    world = np.array([[0.05, 0.0, 1.0], [0.05, 0.0, 1000.0]])
+    angles = triangulation_angles(world, cams)
+    np.testing.assert_allclose(angles, np.degrees(2 * np.arctan(0.05 / np.array([1.0, 1000.0]))), rtol=1e-6)
+    obs = np.stack([np.stack([k[0, 0] * (p[0] - c.world_to_camera[0, 3] * -1) / p[2] + k[0, 2] for c in cams])
+                    for p in world])
+    pix = np.stack([obs, np.full_like(obs, 50.0)], axis=-1)  # (M, V, 2)
+    keep, depths, _ = triangulate_checked(cams, pix, max_error=2.0, min_angle=1.0)
+    assert keep.tolist() == [True, False]  # the far point reprojects perfectly but its depth is unknown
+    np.testing.assert_allclose(depths[0], [1.0, 1.0], rtol=1e-6)
+
+
+def test_forward_facing_sparse_depth_compares_disparities():
+    from models.fields.render import RayOutputs
+
+    near = 2.0
+    t = torch.tensor([[2.0, 4.0, 8.0, 1e10]])
+    weights = torch.tensor([[0.0, 1.0, 0.0, 0.0]], requires_grad=True)
+    out = RayOutputs(torch.zeros(1, 3), torch.tensor([4.0]), (weights * t).sum(-1), weights.sum(-1), weights,
+                     torch.ones(1, 4), t)
+    extras = {"sift_depth": {"outputs": out, "depth": torch.tensor([4.0]), "scale": near, "disparity": True}}
+    term = LOSS_TERMS["sift_depth"]
+    zero = term(LossInputs(None, None, out, 0, LossTerm("sift_depth"), extras))
+    assert float(zero) == 0.0
+    extras["sift_depth"]["depth"] = torch.tensor([8.0])  # truth farther: |2/4 - 2/8| = 0.25
+    loss = term(LossInputs(None, None, out, 0, LossTerm("sift_depth"), extras))
+    assert float(loss) == pytest.approx(0.25)
+    loss.backward()
+    g = weights.grad[0]  # descent moves mass from the sample at 4 towards the farther ones
+    assert torch.isfinite(g).all() and g[3] < g[2] < g[1]

@@ -15,8 +15,10 @@ Pipeline (once per run, cached in the run directory):
 
 The loss term ``sift_depth`` renders an extra batch of ``rays`` rays through randomly drawn keypoints (their
 exact sub-pixel positions) and takes ``mean |sum_i w_i t_i - z| / scale``: the expected planar depth
-against the triangulated one, normalised by the scene's depth scale (:func:`scene_depth_scale`). An L1
-rather than Eq. 3.13's square, so a few wrong matches cannot dominate. Views without a match contribute no
+against the triangulated one, normalised by the scene's depth scale (:func:`scene_depth_scale`); for
+forward-facing scenes the same in disparity, ``mean |sum_i w_i near / t_i - near / z|``. An L1
+rather than Eq. 3.13's square, so a few wrong matches cannot dominate. Matches seen under less than
+``min_triangulation_angle`` degrees are dropped (their depth is unknown, e.g. the sky). Views without a match contribute no
 points; with no points at all the prior warns once and adds a zero loss.
 """
 from __future__ import annotations
@@ -38,7 +40,7 @@ from models.fields.losses import LossInputs, register_loss_term
 
 __all__ = ["SparseDepthPrior", "SparseDepthPoints", "projection_matrix", "triangulate_dlt", "reprojection_errors",
            "triangulate_checked", "sift_features", "match_views", "sparse_depth_points", "load_or_compute_sparse_depth",
-           "keypoint_rays", "scene_depth_scale", "SparseDepthState"]
+           "keypoint_rays", "scene_depth_scale", "SparseDepthState", "triangulation_angles"]
 
 
 @dataclass
@@ -50,6 +52,9 @@ class SparseDepthPrior:
     rays: int = field(default=256, metadata={"help": "keypoint rays rendered per step for the depth loss"})
     max_reprojection_error: float = field(default=2.0, metadata={
         "help": "keep a triangulated match only if it reprojects within this many pixels in both views"})
+    min_triangulation_angle: float = field(default=1.0, metadata={
+        "help": "keep a match only if the two viewing rays meet at this angle (degrees) or more: below it the "
+                "depth is poorly constrained (COLMAP's default is 1.5)"})
     ratio: float = field(default=0.8, metadata={"help": "Lowe ratio test of the SIFT matcher"})
     max_features: int = field(default=8192, metadata={"help": "SIFT features per view at most"})
     start_step: int = field(default=0, metadata={"help": "first step at which the depth loss is applied"})
@@ -149,23 +154,44 @@ def reprojection_errors(world: np.ndarray, cameras: Sequence, points: np.ndarray
     return errors, depths
 
 
-def triangulate_checked(cameras: Sequence, points: np.ndarray, max_error: float = 2.0
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def triangulation_angles(world: np.ndarray, cameras: Sequence) -> np.ndarray:
+    """(M,) largest angle (degrees) between the viewing rays of any two of ``cameras`` at each world point
+    (M, 3); 0 for a point at a camera centre."""
+    rays = []
+    for c in cameras:
+        centre = -np.asarray(c.world_to_camera, np.float64)[:3, :3].T @ np.asarray(c.world_to_camera)[:3, 3]
+        d = world - centre
+        rays.append(d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-300))
+    best = np.zeros(world.shape[0])
+    for i in range(len(rays)):
+        for j in range(i + 1, len(rays)):
+            cos = np.clip((rays[i] * rays[j]).sum(-1), -1.0, 1.0)
+            best = np.maximum(best, np.degrees(np.arccos(cos)))
+    return best
+
+
+def triangulate_checked(cameras: Sequence, points: np.ndarray, max_error: float = 2.0,
+                        min_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangulate correspondences seen in every one of ``cameras`` and reject the bad ones.
 
     Args:
         cameras: V known cameras.
         points: (M, V, 2) pixel coordinates (pixel centres at +0.5).
         max_error: largest reprojection error (pixels) allowed in every view.
+        min_angle: smallest triangulation angle (degrees, :func:`triangulation_angles`): with narrow
+            baselines a point far away reprojects well at almost any depth, so the angle, not the
+            reprojection error, says whether its depth is known.
 
     Returns:
-        keep (M,) bool (in front of every camera and within ``max_error`` everywhere), planar depth (M, V)
-        and reprojection error (M, V) of each point in each view.
+        keep (M,) bool (in front of every camera, within ``max_error`` everywhere and seen at ``min_angle``
+        or more), planar depth (M, V) and reprojection error (M, V) of each point in each view.
     """
     proj = np.stack([projection_matrix(c.intrinsics, c.world_to_camera) for c in cameras])
     world = triangulate_dlt(proj, points)
     errors, depths = reprojection_errors(world, cameras, points)
     keep = (errors < max_error).all(axis=1) & (depths > 0).all(axis=1)
+    if min_angle > 0:
+        keep &= triangulation_angles(world, cameras) >= min_angle
     return keep, depths, errors
 
 
@@ -226,7 +252,7 @@ def sparse_depth_points(views, prior: SparseDepthPrior) -> SparseDepthPoints:
             continue
         obs = np.stack([features[a][0][idx[:, 0]], features[b][0][idx[:, 1]]], axis=1)  # (K, 2, 2)
         keep, depths, errors = triangulate_checked([views.cameras[a], views.cameras[b]], obs,
-                                                   prior.max_reprojection_error)
+                                                   prior.max_reprojection_error, prior.min_triangulation_angle)
         for slot, v in enumerate((a, b)):
             view_l.append(np.full(int(keep.sum()), v, np.int64))
             xy_l.append(obs[keep, slot])
@@ -244,7 +270,8 @@ def _fingerprint(views, prior: SparseDepthPrior) -> dict[str, Any]:
         digest.update(np.asarray(cam.world_to_camera, np.float64).tobytes())
     import pycolmap
 
-    params = {k: v for k, v in asdict(prior).items() if k in ("max_reprojection_error", "ratio", "max_features")}
+    params = {k: v for k, v in asdict(prior).items() if k in ("max_reprojection_error", "ratio", "max_features",
+                                                                 "min_triangulation_angle")}
     return {"views": list(views.names), "size": [views.height, views.width], "sha1": digest.hexdigest(),
             "pycolmap": pycolmap.__version__, **params}
 
@@ -320,15 +347,25 @@ class SparseDepthState:
         far = torch.full((len(idx),), float(model.scene.far))
         outputs = model.render_rays(self.origins[idx], self.directions[idx], near, far, jitter=True,
                                     generator=generator)
-        return {"sift_depth": {"outputs": outputs, "depth": self.depth[idx], "scale": scene_depth_scale(model)}}
+        return {"sift_depth": {"outputs": outputs, "depth": self.depth[idx], "scale": scene_depth_scale(model),
+                               "disparity": not model.bounded}}
 
 
 @register_loss_term("sift_depth")
 def sift_depth(inputs: LossInputs) -> Tensor:
-    """DS-NeRF sparse depth (Eq. 3.13, as an L1): mean |sum w t - z| / scale over the keypoint rays in
-    ``extras["sift_depth"]``; 0 when there are none."""
+    """DS-NeRF sparse depth (Eq. 3.13, as an L1) over the keypoint rays in ``extras["sift_depth"]``; 0 when
+    there are none.
+
+    Bounded scenes: ``mean |sum w t - z| / scale``. Forward-facing scenes compare disparities, as DS-NeRF
+    does in NDC: ``mean |sum w near / t - near / z|`` (half the NDC depth difference; the unhit remainder
+    of a ray counts as infinitely far, disparity 0), so points far away, whose depth the narrow baseline
+    barely fixes, weigh little and a ray into the sky (t up to 1e10) cannot dominate."""
     entry = inputs.extras.get("sift_depth")
     if not entry:
         return inputs.outputs.color.new_zeros(())
-    diff = entry["outputs"].expected_depth - entry["depth"]
-    return diff.abs().mean() / entry["scale"]
+    out = entry["outputs"]
+    if entry.get("disparity"):
+        near = entry["scale"]
+        expected = (out.weights * (near / out.t.clamp_min(1e-6))).sum(dim=-1)
+        return (expected - near / entry["depth"]).abs().mean()
+    return (out.expected_depth - entry["depth"]).abs().mean() / entry["scale"]

@@ -1,0 +1,235 @@
+"""Export a trained dynamic field: an ONNX (points, times, directions) query and the renderer's assets.
+
+``export_dynamic(RUN_DIR, OUT_DIR)`` writes:
+
+- ``dynamic.onnx``: ``points (N, 3), times (N,), directions (N, 3) -> density (N,), color (N, 3)``: world
+  points, times in the data's units, world view directions (any length; normalised inside); density per
+  scene unit (0 outside the scene cube; a canonical point outside the canonical cube reads its border), linear RGB
+  in [0, 1]. The same torch code the renderer trains (``DynamicFieldModel.contract``, the motion field, the
+  canonical field), exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; N is dynamic.
+  Times are normalised inside the graph and **clamped** to the trained range (a graph cannot raise): callers
+  check the range (``time_range`` in the manifest), as ``DynamicFieldModel.query`` does.
+- ``dynamic.npz`` + ``dynamic.json``: every plane (float32, and uint8 with a per-plane, per-channel
+  [min, max] range, decoded as in ``export/field.py``), the MLP weights (``y = W x + b``, ReLU between
+  layers), the occupancy grid, the scene contraction, the trained time range and its normalisation, the
+  time and direction encodings, the flow bound, the sampling settings, and the run's canonical-volume check
+  (``canonical_limit`` from ``RUN_DIR/scores.json`` when the run was evaluated) so a renderer can warn at the
+  flagged times instead of showing garbage.
+
+Parity: :func:`check_parity` holds onnxruntime against torch on random points, times and directions in and
+around the cube; the command fails above ``--tolerance``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from engine.errors import InputError
+from export.field import OPSET, _mlp_layers, _strip_debug, quantize_planes
+
+__all__ = ["DynamicQueryGraph", "export_dynamic", "check_parity", "example_queries", "main", "ASSET_FORMAT",
+           "ASSET_VERSION"]
+
+ASSET_FORMAT = "interleave-dynamic-field"
+ASSET_VERSION = 1
+
+
+class DynamicQueryGraph(nn.Module):
+    """world points (N, 3), times (N,), view directions (N, 3) -> density (N,), linear RGB (N, 3).
+
+    Times are normalised to [-1, 1] over the trained range and clamped there (see the module doc).
+    """
+
+    def __init__(self, model) -> None:
+        super().__init__()
+        self.model = model
+        self.t_min, self.t_max = (float(x) for x in model.time_range)
+
+    def forward(self, points: Tensor, times: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        span = self.t_max - self.t_min
+        if span > 0:
+            taus = ((times - self.t_min) * (2.0 / span) - 1.0).clamp(-1.0, 1.0)
+        else:
+            taus = times * 0.0
+        return self.model._query(points, taus, directions)
+
+
+def _model(run_or_model):
+    from models.fields.dynamic import DynamicFieldModel
+    from models.fields.dynamic_train import load_dynamic_model
+
+    if isinstance(run_or_model, DynamicFieldModel):
+        return run_or_model.eval()
+    return load_dynamic_model(run_or_model)
+
+
+def example_queries(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+    """Random world points over the field's cube and 10% beyond it, random trained times, unit directions."""
+    from export.field import example_points
+
+    points, directions = example_points(model, count, seed)
+    g = torch.Generator().manual_seed(seed + 7)
+    t0, t1 = model.time_range
+    times = t0 + (t1 - t0) * torch.rand(count, generator=g)
+    return points, times.float(), directions
+
+
+def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, times: Tensor, directions: Tensor
+                 ) -> dict[str, float]:
+    """Largest |onnxruntime - torch| of density (relative to max(1, |density|)) and of colour."""
+    import onnxruntime as ort
+
+    model = _model(run_or_model)
+    with torch.no_grad():
+        sigma, rgb = DynamicQueryGraph(model)(points, times, directions)
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    got_sigma, got_rgb = session.run(None, {"points": points.numpy(), "times": times.numpy(),
+                                            "directions": directions.numpy()})
+    s = sigma.numpy()
+    return {"density": float(np.max(np.abs(got_sigma - s) / np.maximum(1.0, np.abs(s)))) if s.size else 0.0,
+            "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
+
+
+def _planes(model) -> dict[str, list[Tensor]]:
+    """Every plane group by name (what the manifest lists)."""
+    field = model.field
+    if model.has_motion:
+        return {"canonical_spatial": field.canonical_field.spatial_planes(),
+                "motion_spatial": field.motion_field.spatial_planes(),
+                "motion_temporal": field.motion_field.temporal_planes()}
+    return {"spatial": field.encoding.spatial_planes(), "temporal": field.encoding.temporal_planes()}
+
+
+def _mlps(model) -> dict[str, nn.Module]:
+    field = model.field
+    if model.has_motion:
+        return {"density": field.canonical_field.density_mlp, "color": field.canonical_field.color_mlp,
+                "flow": field.motion_field.flow_mlp}
+    return {"density": field.density_mlp, "color": field.color_mlp}
+
+
+def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict:
+    """Write ``dynamic.onnx``, ``dynamic.npz`` and ``dynamic.json`` for the run into ``out_dir``; returns the
+    manifest (with the parity of onnxruntime against torch under ``parity``)."""
+    from models.fields.field import MAX_LOG_DENSITY
+
+    model = _model(run_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    graph = DynamicQueryGraph(model).eval()
+    points, times, dirs = example_queries(model, 64)
+    n = torch.export.Dim("n", min=1, max=1 << 24)
+    onnx_path = out / "dynamic.onnx"
+    with torch.no_grad():
+        program = torch.onnx.export(graph, (points, times, dirs), dynamo=True, opset_version=OPSET,
+                                    input_names=["points", "times", "directions"], output_names=["density", "color"],
+                                    dynamic_shapes={"points": {0: n}, "times": {0: n}, "directions": {0: n}},
+                                    verbose=False, optimize=False)
+    program.save(str(onnx_path))
+    _strip_debug(onnx_path)
+
+    arrays: dict[str, np.ndarray] = {}
+    planes_meta: dict[str, list] = {}
+    for group, tensors in _planes(model).items():
+        planes_meta[group] = []
+        for i, plane in enumerate(tensors):
+            p = plane.detach().float().numpy()
+            codes, ranges = quantize_planes(p)
+            key = f"{group}_{i}"
+            arrays[key], arrays[f"{key}_u8"], arrays[f"{key}_range"] = p, codes, ranges
+            planes_meta[group].append({"scale": i, "shape": list(p.shape), "float": key, "uint8": f"{key}_u8",
+                                       "range": f"{key}_range"})
+    mlps = {}
+    for name, mlp in _mlps(model).items():
+        layers = []
+        for j, lin in enumerate(_mlp_layers(mlp)):
+            arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()
+            arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
+            layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}", "in": int(lin.in_features),
+                           "out": int(lin.out_features)})
+        mlps[name] = layers
+    occupancy = None
+    if model.occupancy is not None and int(model.occupancy.updates) > 0:
+        arrays["occupancy"] = model.occupancy.occupied.numpy().astype(np.uint8)
+        occupancy = {"array": "occupancy", "resolution": int(model.occupancy.resolution),
+                     "occupied_fraction": float(model.occupancy.occupied.float().mean()),
+                     "time_agnostic": "max over trained times"}
+    np.savez_compressed(out / "dynamic.npz", **arrays)
+
+    cfg = model.config
+    rc = model.render_config
+    canonical_cfg = cfg.canonical
+    limit = None
+    if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "scores.json").is_file():
+        limit = json.loads((Path(run_dir) / "scores.json").read_text()).get("canonical_limit")
+    t0, t1 = model.time_range
+    manifest = {
+        "format": ASSET_FORMAT, "version": ASSET_VERSION, "kind": cfg.kind,
+        "scene": model.scene.to_dict(), "background": [float(x) for x in model.background],
+        "render": {"num_samples": int(rc.num_samples), "spacing": "linear" if model.bounded else "disparity",
+                   "ndc_margin": float(rc.ndc_margin)},
+        "time": {"range": [t0, t1], "normalised": "tau = clamp(2 (t - t_min) / (t_max - t_min) - 1, -1, 1); 0 when "
+                                                  "t_max = t_min", "time_resolution": int(model.time_resolution)},
+        "field": {
+            "spatial_plane_axes": [[0, 1], [0, 2], [1, 2]],
+            "temporal_plane_axes": "xt, yt, zt: spatial coordinate along the width, tau along the height",
+            "feature_combine": "per scale, product over the group's planes (hex-planes: all six); scales "
+                               "concatenated",
+            "planes": planes_meta, "mlps": mlps, "density_bias": float(canonical_cfg.density_bias),
+            "max_log_density": MAX_LOG_DENSITY, "geo_feature_dim": int(canonical_cfg.geo_feature_dim),
+            "direction_encoding": canonical_cfg.direction_encoding,
+            "direction_degree": int(canonical_cfg.direction_degree),
+            **({"time_frequencies": int(cfg.time_frequencies),
+                "color_input": "[h, direction encoding, fourier(tau): tau, sin(2^k tau), cos(2^k tau)]",
+                "flow": f"{float(cfg.motion.max_flow)} * tanh(flow MLP(motion features)) in contracted units; "
+                        "canonical = contracted point + flow, clamped to [-1, 1] for the canonical lookup"}
+               if model.has_motion else {"color_input": "[h, direction encoding]"}),
+        },
+        "occupancy": occupancy,
+        "onnx": {"file": "dynamic.onnx", "inputs": ["points", "times", "directions"],
+                 "outputs": ["density", "color"], "opset": OPSET},
+        "canonical_limit": limit,
+        "field_config": dataclasses.asdict(cfg),
+    }
+    rp, rt, rd = example_queries(model, 8192, seed=1)
+    manifest["parity"] = {"random_points": check_parity(onnx_path, model, rp, rt, rd)}
+    (out / "dynamic.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic") -> None:
+    """``interleave export dynamic RUN_DIR [--out DIR]``: export, check parity, print a summary."""
+    parser = argparse.ArgumentParser(prog=prog, description="Export a trained dynamic field (ONNX (p, t, d) query + "
+                                                            "renderer assets) and check onnxruntime against torch.")
+    parser.add_argument("run", type=Path, help="run directory written by 'interleave train dynamic'")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
+    parser.add_argument("--tolerance", type=float, default=1e-4,
+                        help="largest accepted |onnxruntime - torch| colour difference and relative density "
+                             "difference (default 1e-4)")
+    args = parser.parse_args(argv)
+    out = args.out or args.run / "export"
+    manifest = export_dynamic(args.run, out)
+    worst = max(max(v.values()) for v in manifest["parity"].values())
+    sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
+    print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"],
+                      "time_range": manifest["time"]["range"]}, indent=2))
+    if worst > args.tolerance:
+        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {args.tolerance:.0e}",
+                         file=out / "dynamic.onnx")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    import sys
+
+    try:
+        main()
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -4,12 +4,14 @@
 comes out, either the rendered one or one predicted from the last two rendered frames and the camera of
 that tick. ``run_demo`` renders the built-in procedural scene, evaluates every method on it, and writes a
 side-by-side video (truth | prediction | error) of the best method, the table, the JSON and the plot.
+``run_field_demo`` does the same with a trained radiance field (``interleave export field``) rendered by
+``engine.glfield`` along a camera path through its scene.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -76,26 +78,37 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
 
     Returns the evaluation summary; prints the table.
     """
-    from tqdm import tqdm
-
-    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
     from engine.io import read_sequence
-    from engine.predictors import make_predictor
     from engine.scenegen import SceneConfig, generate_sequence
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scene_dir = generate_sequence(SceneConfig(width=width, height=height, num_frames=frames, seed=seed),
                                   out_dir / "scene", progress=progress)
-    sequence = read_sequence(scene_dir)
+    return report_sequence(read_sequence(scene_dir), out_dir, k=k, methods=methods, progress=progress,
+                           command=f"interleave demo --k {k} --seed {seed}")
+
+
+def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], progress: bool = True,
+                    command: str = "interleave demo", extra: Optional[dict] = None, note: str = "") -> dict:
+    """Evaluate ``methods`` on a loaded sequence and write the demo's outputs into ``out_dir``: ``table.md``
+    (with ``note`` under it), ``results.json`` (with ``extra``), ``speed_vs_error.png``, ``side_by_side.mp4``
+    (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table."""
+    from tqdm import tqdm
+
+    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
+    from engine.predictors import make_predictor
+
     results = evaluate_sequence(sequence, list(methods), k, progress=progress)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
+    if note:
+        table += "\n\n" + note
     (out_dir / "table.md").write_text(table + "\n")
-    write_json(results, out_dir / "results.json", {"command": f"interleave demo --k {k} --seed {seed}"})
+    write_json(results, out_dir / "results.json", {"command": command, **(extra or {})})
     plot(results, out_dir / "speed_vs_error.png")
     print(table)
 
-    candidates = [r for r in results if r.method != "oracle"]
+    candidates = [r for r in results if r.method != "oracle"] or list(results)
     best = max(candidates, key=lambda r: r.psnr).method
     predictor = make_predictor(best, sequence.objects)
     writer = cv2.VideoWriter(str(out_dir / "side_by_side.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
@@ -112,3 +125,183 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
     print(f"best non-oracle method: {best}; wrote {out_dir / 'side_by_side.mp4'}, {out_dir / 'table.md'}, "
           f"{out_dir / 'results.json'}, {out_dir / 'speed_vs_error.png'}")
     return summarize(results)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The same demo on a trained radiance field: `interleave demo --field RUN_OR_EXPORT_DIR`
+
+
+def resolve_field_dir(path: Path) -> tuple[Path, Optional[Path]]:
+    """(export folder with ``field.json``, run folder or None) for an export folder or a run folder holding
+    ``export/``; the run folder is the export's parent when that holds ``data.json`` (the run's cameras)."""
+    from engine.errors import InputError
+
+    path = Path(path)
+    if (path / "field.json").is_file():
+        export = path
+    elif (path / "export" / "field.json").is_file():
+        export = path / "export"
+    else:
+        raise InputError("holds no field.json (nor export/field.json): export the trained field first with "
+                         f"'interleave export field {path}'", file=path)
+    run = export.parent if (export.parent / "data.json").is_file() else None
+    return export, run
+
+
+def _train_cameras(run: Optional[Path]):
+    """The run's training cameras and image size (needs torch and the run's scene folder), else None."""
+    if run is None:
+        return None
+    try:
+        from models.fields.train import load_run_views
+    except ImportError:  # no torch: the path is derived from the manifest alone
+        return None
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        train, _ = load_run_views(run)
+    return list(train.cameras), train.width, train.height
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Rigid world-to-camera (OpenCV axes: x right, y down, z forward) of a camera at ``eye`` facing ``target``."""
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    rot = np.stack([right, np.cross(forward, right), forward])
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rot, -rot @ eye
+    return out
+
+
+def _world_up(cameras) -> np.ndarray:
+    """The world's up direction seen by cameras without roll: the direction orthogonal to every camera's x
+    axis (smallest eigenvector of sum x x^T), signed like their mean up (-y) axis; that mean if ambiguous."""
+    rights = np.stack([c.world_to_camera[0, :3] for c in cameras])
+    ups = np.stack([-c.world_to_camera[1, :3] for c in cameras])
+    mean_up = ups.sum(axis=0) / np.linalg.norm(ups.sum(axis=0))
+    values, vectors = np.linalg.eigh(rights.T @ rights)
+    if len(cameras) < 2 or values[1] < 1e-3 * max(values[2], 1e-12):
+        return mean_up
+    up = vectors[:, 0]
+    return up if up @ mean_up >= 0 else -up
+
+
+def field_camera_path(assets, train=None, count: int = 48, width: Optional[int] = None,
+                      height: Optional[int] = None, *, orbit_degrees: float = 90.0):
+    """A smooth camera path through a field's scene: ``(cameras, width, height)``.
+
+    ``train`` is ``(cameras, width, height)`` of the training views or None. Bounded-360 scenes: an arc of
+    ``orbit_degrees`` around the box centre at the training cameras' median radius and elevation, starting
+    at the first training camera, looking at the centre, about the up direction of the training cameras
+    (:func:`_world_up`; without training cameras: radius (near + far) / 2,
+    30 degrees above the xy plane, z up). Forward-facing scenes: the NDC reference orientation, the camera
+    centre swaying on a figure eight within the spread of the training cameras (without them: 5% of near).
+    Intrinsics: the first training camera's (else the NDC camera's, else a 40-degree horizontal field of
+    view) scaled so that its whole view fits ``width`` x ``height`` (default: the training size, else
+    640 x 360).
+    """
+    from engine.frames import Camera
+    from engine.glfield import scale_intrinsics
+
+    scene = assets.scene
+    cams = list(train[0]) if train else []
+    if train:
+        k0, w0, h0 = cams[0].intrinsics, train[1], train[2]
+    elif not assets.bounded:
+        k0, (w0, h0) = np.asarray(scene["ndc_intrinsics"], np.float64), scene["ndc_size"]
+    else:
+        w0, h0 = 640, 360
+        f = w0 / (2 * np.tan(np.radians(20.0)))
+        k0 = np.array([[f, 0, w0 / 2], [0, f, h0 / 2], [0, 0, 1.0]])
+    width, height = int(width or w0), int(height or h0)
+    k = scale_intrinsics(k0, w0, h0, width, height, fit="contain")
+    s = np.arange(count) / max(count, 1)
+    poses = []
+    if assets.bounded:
+        center = (np.asarray(scene["box_min"]) + np.asarray(scene["box_max"])) / 2
+        if cams:
+            up = _world_up(cams)
+            offsets = np.stack([c.position - center for c in cams])
+            radius = float(np.median(np.linalg.norm(offsets, axis=1)))
+            elevation = float(np.median(np.arcsin(np.clip(offsets @ up / np.linalg.norm(offsets, axis=1), -1, 1))))
+            first = offsets[0] - (offsets[0] @ up) * up
+        else:
+            up, radius, elevation = np.array([0.0, 0.0, 1.0]), (scene["near"] + scene["far"]) / 2, np.radians(30.0)
+            first = np.array([1.0, 0.0, 0.0])
+        e1 = first / np.linalg.norm(first)
+        e2 = np.cross(up, e1)
+        for a in s * np.radians(orbit_degrees):
+            eye = center + radius * (np.cos(elevation) * (np.cos(a) * e1 + np.sin(a) * e2) + np.sin(elevation) * up)
+            poses.append(_look_at(eye, center, up))
+    else:
+        ref = np.asarray(scene["ndc_world_to_camera"], np.float64)
+        rot = ref[:3, :3]
+        if cams:
+            centers = np.stack([c.position for c in cams])
+            mean = centers.mean(axis=0)
+            local = (centers - mean) @ rot.T  # in the reference camera's axes
+            amp = np.maximum((local.max(axis=0) - local.min(axis=0)) / 2, 1e-3 * scene["near"])
+        else:
+            mean = -rot.T @ ref[:3, 3]
+            amp = np.full(3, 0.05 * scene["near"])
+        for phase in 2 * np.pi * s:
+            eye = mean + rot.T @ np.array([amp[0] * np.sin(phase), 0.5 * amp[1] * np.sin(2 * phase), 0.0])
+            pose = np.eye(4)
+            pose[:3, :3], pose[:3, 3] = rot, -rot @ eye
+            poses.append(pose)
+    return [Camera(k.copy(), p) for p in poses], width, height
+
+
+def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] = None) -> Iterator[Frame]:
+    """Frames (colour, planar depth, camera) of a field rendered along ``cameras``, one at a time; each
+    render's seconds are appended to ``timings``."""
+    for i, cam in enumerate(cameras):
+        out = renderer.render(cam.intrinsics, cam.world_to_camera)
+        if timings is not None:
+            timings.append(out["seconds"])
+        yield Frame(index=i, time=i / fps, color=out["color"], depth=out["depth"], camera=cam)
+
+
+def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 48, width: Optional[int] = 640,
+                   height: Optional[int] = 360, fps: float = 30.0,
+                   methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp"), quantized: bool = False,
+                   orbit_degrees: float = 90.0, progress: bool = True) -> dict:
+    """The frame-upsampling demo with a trained field as the renderer.
+
+    The field (``engine.glfield.GlFieldRenderer``) renders colour and planar depth along
+    :func:`field_camera_path` into ``out_dir/field`` (an rgbd-seq); every k-th frame is "rendered", the
+    predictors predict the others, and each prediction is scored against the field's own render at that
+    pose. Writes what :func:`run_demo` writes; the field's render time is in ``table.md`` and
+    ``results.json``. ``oracle`` is dropped from ``methods`` (a static field has no object motion).
+    """
+    from engine.glfield import GlFieldRenderer
+    from engine.fieldrender import load_field
+    from engine.io import read_sequence, write_sequence
+
+    export, run = resolve_field_dir(field_dir)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    methods = [m for m in methods if m != "oracle"]
+    if not methods:
+        from engine.errors import InputError
+
+        raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
+    assets = load_field(export)
+    cameras, width, height = field_camera_path(assets, _train_cameras(run), frames, width, height,
+                                               orbit_degrees=orbit_degrees)
+    timings: list[float] = []
+    with GlFieldRenderer(assets, width, height, quantized=quantized) as renderer:
+        seq_dir = write_sequence(out_dir / "field", render_field_frames(renderer, cameras, fps, timings), fps=fps,
+                                 progress=progress)
+        compile_s = renderer.compile_seconds
+    render_ms = 1e3 * float(np.median(timings))
+    note = (f"Field renderer (engine.glfield, {'uint8' if quantized else 'float'} planes, {width}x{height}): "
+            f"{render_ms:.1f} ms per rendered frame (median of {len(timings)}; shader compiled in {compile_s:.2f} s). "
+            f"Truth for the predicted frames is the field's own render at their pose.")
+    extra = {"field": {"export": str(export), "run": None if run is None else str(run),
+                       "kind": assets.scene["kind"], "render_ms_per_frame": render_ms, "width": width,
+                       "height": height, "quantized": quantized}}
+    return report_sequence(read_sequence(seq_dir), out_dir, k=k, methods=methods, progress=progress,
+                           command=f"interleave demo --field {field_dir} --k {k}", extra=extra, note=note)

@@ -83,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--width", type=int, default=640, help="frame width in pixels (default: 640)")
     demo.add_argument("--height", type=int, default=360, help="frame height in pixels (default: 360)")
     demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
+    demo.add_argument("--field", type=Path, default=None, metavar="RUN_OR_EXPORT_DIR",
+                      help="render a trained radiance field (the folder 'interleave export field' wrote, or its run "
+                           "folder) with the GL field renderer along a camera path through its scene instead of the "
+                           "built-in scene; the truth of a predicted frame is the field's render at its pose "
+                           "(oracle is skipped)")
 
     ev = sub.add_parser("eval", help="score predictors on rgbd-seq sequences: PSNR, SSIM, FLIP, time per frame "
                                      "('interleave eval field RUN_DIR' scores a trained radiance field)",
@@ -135,14 +140,16 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train a network (needs the 'train' extra: torch)",
                         description="'interleave train flow --config configs/flow3d.json' trains the 3D flow "
                                     "network; 'interleave train field --scene DIR --views 3' a static radiance "
-                                    "field; 'interleave train flow|field --help' lists every option.")
-    tr.add_argument("what", choices=["flow", "field"], help="what to train")
+                                    "field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
+                                    "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option.")
+    tr.add_argument("what", choices=["flow", "field", "dynamic"], help="what to train")
     tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
     ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
                         description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
                                     "graph and checks it against torch; 'interleave export field RUN_DIR' a "
-                                    "trained field's ONNX query and renderer assets; '... --help' for options.")
-    ex.add_argument("what", choices=["flow", "field"], help="what to export")
+                                    "trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
+                                    "dynamic field's (p, t, d) query); '... --help' for options.")
+    ex.add_argument("what", choices=["flow", "field", "dynamic"], help="what to export")
     ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
@@ -178,10 +185,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from models.fields.train import eval_main
 
         return eval_main(argv[2:], prog="interleave eval field")
+    if argv[:2] == ["eval", "dynamic"]:  # 'interleave eval dynamic RUN_DIR': a dynamic radiance field
+        try:
+            _needs_torch("eval dynamic")
+        except InterleaveError as exc:
+            print(f"interleave eval dynamic: error: {exc}", file=sys.stderr)
+            return 2
+        from models.fields.dynamic_train import eval_main as eval_dynamic
+
+        return eval_dynamic(argv[2:], prog="interleave eval dynamic")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if args.command == "demo":
+        if args.command == "demo" and args.field is not None:
+            from demos.upsample import run_field_demo
+
+            run_field_demo(args.field, args.out, k=args.k, frames=args.frames, width=args.width, height=args.height,
+                           methods=_methods(args.methods))
+        elif args.command == "demo":
             from demos.upsample import run_demo
 
             run_demo(args.out, k=args.k, seed=args.seed, frames=args.frames, width=args.width, height=args.height,
@@ -212,6 +233,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             print(f"wrote {path}")
         elif args.command == "train":
             _needs_torch("train")
+            if args.what == "dynamic":
+                from models.fields.dynamic_train import main as train_dynamic
+
+                return train_dynamic(args.options, prog="interleave train dynamic")
             if args.what == "field":
                 from models.fields.train import main as train_field
 
@@ -221,7 +246,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             train_flow(args.options, prog="interleave train flow")
         elif args.command == "export":
             _needs_torch("export")
-            if args.what == "field":
+            if args.what == "dynamic":
+                from export.dynamic import main as export_dynamic
+
+                export_dynamic(args.options, prog="interleave export dynamic")
+            elif args.what == "field":
                 from export.field import main as export_field
 
                 export_field(args.options, prog="interleave export field")

@@ -354,3 +354,25 @@ def test_forward_facing_sparse_depth_compares_disparities():
     loss.backward()
     g = weights.grad[0]  # descent moves mass from the sample at 4 towards the farther ones
     assert torch.isfinite(g).all() and g[3] < g[2] < g[1]
+
+
+def test_forward_facing_augmented_depth_compares_disparities_and_stays_bounded():
+    from models.fields.render import RayOutputs
+
+    def outputs(depth):
+        d = torch.tensor(depth, requires_grad=True)
+        return d, RayOutputs(torch.zeros(len(depth), 3), d, d, torch.ones(len(depth)), torch.ones(len(depth), 1),
+                             torch.ones(len(depth), 1), torch.ones(len(depth), 1))
+
+    z_main, main = outputs([2.0, 1e10])
+    _, aug = outputs([4.0, 4.0])
+    mask = torch.tensor([True, True])
+    extras = {"augmented": {"outputs": aug, "mask_main": ~mask, "mask_aug": mask, "scale": 2.0, "disparity": True}}
+    loss = LOSS_TERMS["augmented_depth"](LossInputs(None, None, main, 0, LossTerm("augmented_depth"), extras))
+    # disparities near / z: main (1, 2e-10) against the augmented model's (0.5, 0.5)
+    assert float(loss) == pytest.approx((0.5 ** 2 + 0.5 ** 2) / 2, rel=1e-6)
+    loss.backward()
+    assert torch.isfinite(z_main.grad).all()
+    extras["augmented"]["disparity"] = False  # bounded scenes: depth / scale, which a far depth blows up
+    assert float(LOSS_TERMS["augmented_depth"](LossInputs(None, None, main, 0, LossTerm("augmented_depth"),
+                                                           extras))) > 1e18

@@ -194,7 +194,8 @@ class AugmentedState(nn.Module):
                 mask_aug, mask_main = reliable_depth_masks(torch.from_numpy(e_m), torch.from_numpy(e_a),
                                                            self.prior.error_threshold)
         return {"augmented": {"outputs": aug, "mask_main": mask_main, "mask_aug": mask_aug,
-                              "scale": scene_depth_scale(main), "intervals": self.prior.mass_intervals}}
+                              "scale": scene_depth_scale(main), "intervals": self.prior.mass_intervals,
+                              "disparity": not main.bounded}}
 
 
 @register_loss_term("augmented_photometric")
@@ -217,7 +218,11 @@ def mass_concentration_term(inputs: LossInputs) -> Tensor:
 
 @register_loss_term("augmented_depth")
 def augmented_depth(inputs: LossInputs) -> Tensor:
-    """Eq. 4.9: ``m_a (z_m - SG(z_a))^2 + m_m (SG(z_m) - z_a)^2`` / scale^2, mean over the batch."""
+    """Eq. 4.9: ``m_a (z_m - SG(z_a))^2 + m_m (SG(z_m) - z_a)^2`` / scale^2, mean over the batch.
+
+    Forward-facing scenes compare disparities ``near / z`` instead (Simple-NeRF works in NDC, whose depth
+    is affine in disparity): a depth near infinity (the last sample's interval reaches 1e10) would
+    otherwise give squared errors of ~1e20 and blow the run up."""
     entry = inputs.extras.get("augmented")
     if not entry:
         return inputs.outputs.color.new_zeros(())
@@ -225,7 +230,10 @@ def augmented_depth(inputs: LossInputs) -> Tensor:
     if not bool((m_a | m_m).any()):
         return inputs.outputs.color.new_zeros(())
     z_m, z_a = inputs.outputs.depth, entry["outputs"].depth
+    scale = entry["scale"]
+    if entry.get("disparity"):  # near / z, in [0, 1] beyond the near plane; +inf depth -> 0
+        z_m, z_a, scale = scale / z_m.clamp_min(1e-6), scale / z_a.clamp_min(1e-6), 1.0
     zeros = torch.zeros_like(z_m)
     main_term = torch.where(m_a, z_m - torch.where(m_a, z_a, zeros).detach(), zeros).square()
     aug_term = torch.where(m_m, torch.where(m_m, z_m, zeros).detach() - z_a, zeros).square()
-    return (main_term + aug_term).sum() / (z_m.shape[0] * entry["scale"] ** 2)
+    return (main_term + aug_term).sum() / (z_m.shape[0] * scale ** 2)

@@ -30,8 +30,8 @@ from engine.errors import InputError
 from engine.frames import validate_intrinsics, validate_pose
 
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
-           "SH_C2", "SH_C3", "FieldAssets", "load_field", "camera_rays_np", "sh_encoding_np",
-           "direction_encoding_np", "contract_np", "query_field", "render_field"]
+           "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "camera_rays_np", "sh_encoding_np",
+           "direction_encoding_np", "contract_np", "query_field", "composite_np", "render_field"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -52,8 +52,35 @@ SH_C3 = (0.5900435899266435, 2.890611442640554, 0.4570457994644658, 0.3731763325
 _PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 
 
+class ExportedAssets:
+    """What static and dynamic exported assets share (subclasses hold ``manifest``, ``onnx_path`` and a
+    ``_session`` slot): the scene, the background, and the onnxruntime session of the query graph."""
+
+    manifest: dict
+    onnx_path: Path
+    _session: object
+
+    @property
+    def scene(self) -> dict:
+        return self.manifest["scene"]
+
+    @property
+    def background(self) -> np.ndarray:
+        return np.asarray(self.manifest["background"], np.float32)
+
+    @property
+    def bounded(self) -> bool:
+        return self.scene["kind"] == "bounded-360"
+
+    def onnx_session(self, threads: int = 0):
+        """The onnxruntime session of the exported query graph (created once)."""
+        if self._session is None:
+            self._session = open_onnx(self.onnx_path, threads)
+        return self._session
+
+
 @dataclass(eq=False)
-class FieldAssets:
+class FieldAssets(ExportedAssets):
     """An exported field in memory (see ``docs/field-assets.md``).
 
     Attributes:
@@ -72,28 +99,36 @@ class FieldAssets:
     onnx_path: Path
     _session: object = field(default=None, repr=False)
 
-    @property
-    def scene(self) -> dict:
-        return self.manifest["scene"]
 
-    @property
-    def background(self) -> np.ndarray:
-        return np.asarray(self.manifest["background"], np.float32)
 
-    @property
-    def bounded(self) -> bool:
-        return self.scene["kind"] == "bounded-360"
+def open_onnx(path: Path, threads: int = 0):
+    """A CPU onnxruntime session of an exported query graph (``threads`` 0: onnxruntime's default)."""
+    import onnxruntime as ort
 
-    def onnx_session(self, threads: int = 0):
-        """The onnxruntime session of ``field.onnx`` (created once)."""
-        if self._session is None:
-            import onnxruntime as ort
+    options = ort.SessionOptions()
+    if threads:
+        options.intra_op_num_threads = threads
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
-            options = ort.SessionOptions()
-            if threads:
-                options.intra_op_num_threads = threads
-            self._session = ort.InferenceSession(str(self.onnx_path), options, providers=["CPUExecutionProvider"])
-        return self._session
+
+def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, command: str
+                     ) -> tuple[Path, dict, dict[str, np.ndarray]]:
+    """(folder, manifest, arrays) of exported assets ``<stem>.json`` + ``<stem>.npz`` in ``path`` (the folder or
+    its json); InputError for missing files or another format / version."""
+    root = Path(path)
+    if root.name == f"{stem}.json":
+        root = root.parent
+    meta_file, npz_file = root / f"{stem}.json", root / f"{stem}.npz"
+    for f in (meta_file, npz_file):
+        if not f.is_file():
+            raise InputError(f"file does not exist (write it with '{command}')", file=f)
+    manifest = json.loads(meta_file.read_text())
+    if manifest.get("format") != fmt or manifest.get("version") != version:
+        raise InputError(f"is not {fmt} version {version} (format {manifest.get('format')!r}, "
+                         f"version {manifest.get('version')!r})", file=meta_file)
+    with np.load(npz_file) as data:
+        arrays = {k: data[k] for k in data.files}
+    return root, manifest, arrays
 
 
 def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
@@ -102,19 +137,9 @@ def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
     Raises:
         InputError: missing files, another format or version, arrays whose shapes disagree with the manifest.
     """
-    root = Path(path)
-    if root.name == "field.json":
-        root = root.parent
-    meta_file, npz_file = root / "field.json", root / "field.npz"
-    for f in (meta_file, npz_file):
-        if not f.is_file():
-            raise InputError("file does not exist (write it with 'interleave export field RUN_DIR')", file=f)
-    manifest = json.loads(meta_file.read_text())
-    if manifest.get("format") != ASSET_FORMAT or manifest.get("version") != ASSET_VERSION:
-        raise InputError(f"is not {ASSET_FORMAT} version {ASSET_VERSION} (format {manifest.get('format')!r}, "
-                         f"version {manifest.get('version')!r})", file=meta_file)
-    with np.load(npz_file) as data:
-        arrays = {k: data[k] for k in data.files}
+    root, manifest, arrays = read_asset_files(path, "field", ASSET_FORMAT, ASSET_VERSION,
+                                              "interleave export field RUN_DIR")
+    npz_file = root / "field.npz"
 
     def get(name: str, where: str) -> np.ndarray:
         if name not in arrays:
@@ -214,12 +239,13 @@ def contract_np(scene: dict, points: np.ndarray, ndc_margin: float) -> np.ndarra
 
 
 def _bilinear(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(C, R, R) plane at coordinates a (along width), b (along height) in [-1, 1] -> (C, N);
-    ``grid_sample(align_corners=True, padding_mode='border')``."""
-    r = plane.shape[-1]
-    x = np.clip((a + 1.0) * 0.5 * (r - 1), 0.0, r - 1)
-    y = np.clip((b + 1.0) * 0.5 * (r - 1), 0.0, r - 1)
-    x0, y0 = np.minimum(np.floor(x).astype(np.int64), r - 2), np.minimum(np.floor(y).astype(np.int64), r - 2)
+    """(C, H, W) plane at coordinates a (along the width), b (along the height) in [-1, 1] -> (C, N);
+    ``grid_sample(align_corners=True, padding_mode='border')``. H, W >= 2 (tri-planes are square; the time
+    planes of dynamic fields are (C, Rt, R))."""
+    h, w = plane.shape[-2:]
+    x = np.clip((a + 1.0) * 0.5 * (w - 1), 0.0, w - 1)
+    y = np.clip((b + 1.0) * 0.5 * (h - 1), 0.0, h - 1)
+    x0, y0 = np.minimum(np.floor(x).astype(np.int64), w - 2), np.minimum(np.floor(y).astype(np.int64), h - 2)
     fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
     p00, p01 = plane[:, y0, x0], plane[:, y0, x0 + 1]
     p10, p11 = plane[:, y0 + 1, x0], plane[:, y0 + 1, x0 + 1]
@@ -288,6 +314,30 @@ def _samples(t_near: np.ndarray, t_far: np.ndarray, n: int, spacing: str) -> tup
     return t.astype(np.float32), np.maximum(edges[:, 1:] - edges[:, :-1], 0.0).astype(np.float32)
 
 
+def composite_np(sigma: np.ndarray, rgb: np.ndarray, t: np.ndarray, lengths: np.ndarray, background: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Composite R rays of N samples front to back (``models.fields.render``'s weights and compositing).
+
+    Args:
+        sigma: (R, N) density per scene unit; rgb: (R, N, 3) linear RGB; t: (R, N) planar depths;
+        lengths: (R, N) interval lengths in scene units (``0 * inf`` counts as an empty interval);
+        background: (3,) linear RGB.
+
+    Returns:
+        colour (R, 3), planar depth (R,) (``sum w t / sum w``; +inf where the opacity is below
+        :data:`OPACITY_EPS`), opacity (R,).
+    """
+    tau = np.where((sigma == 0) | (lengths == 0), np.float32(0.0), sigma * lengths)  # 0 * inf counts as 0
+    excl = np.concatenate([np.zeros_like(tau[:, :1]), np.cumsum(tau, axis=-1)[:, :-1]], axis=-1)
+    trans = np.exp(-excl)
+    weights = trans * -np.expm1(-tau)
+    acc = weights.sum(-1)
+    expected = (weights * t).sum(-1)
+    color = (weights[..., None] * rgb).sum(1) + (1.0 - acc)[:, None] * background
+    depth = np.where(acc >= OPACITY_EPS, expected / np.maximum(acc, OPACITY_EPS), np.inf)
+    return color, depth, acc
+
+
 def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, width: int, *,
                  query: str = "numpy", chunk: int = 16384, near: Optional[float] = None,
                  far: Optional[float] = None) -> dict[str, np.ndarray]:
@@ -304,6 +354,28 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
     """
     if query not in ("numpy", "onnx"):
         raise InputError(f"must be numpy or onnx, got {query!r}", field="query")
+
+    def evaluate(points: np.ndarray, coords: np.ndarray, directions: np.ndarray):
+        if query == "numpy":
+            return query_field(assets, coords, directions)
+        return assets.onnx_session().run(None, {"points": points, "directions": directions})
+
+    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)
+
+
+def march_field(assets, intrinsics, world_to_camera, height: int, width: int, evaluate, *, chunk: int = 16384,
+                near: Optional[float] = None, far: Optional[float] = None) -> dict[str, np.ndarray]:
+    """The ray marcher shared by the static and dynamic renderers.
+
+    Args:
+        assets: anything with ``scene``, ``manifest["render"]``, ``bounded``, ``occupancy`` and ``background``
+            (:class:`FieldAssets`, ``engine.dynrender.DynamicAssets``).
+        evaluate: ``(points (M, 3) world, coords (M, 3) contracted, directions (M, 3) unit) -> (density (M,),
+            colour (M, 3))`` at the kept samples (inside the cube, in occupied cells).
+
+    Returns:
+        ``color``, ``depth``, ``opacity``, ``seconds``, as :func:`render_field`.
+    """
     if int(height) < 1 or int(width) < 1:
         raise InputError(f"must be >= 1, got {height}x{width}", field="size")
     k = validate_intrinsics(intrinsics)
@@ -320,7 +392,6 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
     color = np.empty((count, 3), np.float32)
     depth = np.empty(count, np.float32)
     opacity = np.empty(count, np.float32)
-    bg = assets.background
     for s in range(0, count, chunk):
         d = dirs[s:s + chunk]
         r = d.shape[0]
@@ -341,22 +412,9 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
         rgb = np.zeros((r, n, 3), np.float32)
         rows, cols = np.nonzero(keep)
         if rows.size:
-            if query == "numpy":
-                s_k, c_k = query_field(assets, coords[rows, cols], unit[s + rows])
-            else:
-                s_k, c_k = assets.onnx_session().run(None, {"points": points[rows, cols],
-                                                            "directions": unit[s + rows]})
-            sigma[rows, cols], rgb[rows, cols] = s_k, c_k
+            sigma[rows, cols], rgb[rows, cols] = evaluate(points[rows, cols], coords[rows, cols], unit[s + rows])
         lengths = deltas * np.linalg.norm(d, axis=-1, keepdims=True)  # t is camera z; density is per unit length
-        tau = np.where((sigma == 0) | (lengths == 0), np.float32(0.0), sigma * lengths)  # 0 * inf counts as 0
-        excl = np.concatenate([np.zeros((r, 1), np.float32), np.cumsum(tau, axis=-1)[:, :-1]], axis=-1)
-        trans = np.exp(-excl)
-        weights = trans * -np.expm1(-tau)
-        acc = weights.sum(-1)
-        expected = (weights * t).sum(-1)
-        color[s:s + r] = (weights[..., None] * rgb).sum(1) + (1.0 - acc)[:, None] * bg
-        opacity[s:s + r] = acc
-        depth[s:s + r] = np.where(acc >= OPACITY_EPS, expected / np.maximum(acc, OPACITY_EPS), np.inf)
+        color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)
     seconds = time.perf_counter() - start
     return {"color": color.reshape(height, width, 3), "depth": depth.reshape(height, width),
             "opacity": opacity.reshape(height, width), "seconds": seconds}

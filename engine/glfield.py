@@ -70,7 +70,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Optional, Union
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
@@ -328,9 +328,19 @@ void main() {
 
 
 def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
-              filtering: str, color_mode: str, params_kind: str) -> tuple[str, np.ndarray, list[dict], str]:
+              filtering: str, color_mode: str, params_kind: str, extra_encoding: Sequence[str] = (),
+              sample_code: Optional[Callable[["_Params"], tuple[list[str], list[str], list[str]]]] = None
+              ) -> tuple[str, np.ndarray, list[dict], str]:
     """GLSL source, the packed parameter array, the plane-texture specs and where the weights live
-    (``const``: literals in the source, ``ubo`` or ``ssbo``) of one field."""
+    (``const``: literals in the source, ``ubo`` or ``ssbo``) of one field.
+
+    Two hooks let ``engine/gldynamic.py`` render a dynamic field with this shader: ``extra_encoding`` are
+    scalar GLSL expressions appended to the view-direction encoding (further per-pixel inputs of the colour
+    MLP's first layer: the encoded time); ``sample_code(params)`` returns GLSL declarations (samplers,
+    uniforms), code run per evaluated sample before the plane lookup, which may move the contracted point
+    ``c`` (a motion field: ``c = clamp(c + flow, -1, 1)``), and code run after it, which may change the
+    features ``f<scale>_<group>`` (vec4s of channels 4 group .. 4 group + 3; K-Planes' time planes), its
+    weights added to ``params``."""
     spec = assets.manifest["field"]
     render = assets.manifest["render"]
     params = _Params()
@@ -388,6 +398,11 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
         feat_vecs += [f"f{s}_{gi}" for gi in range(g)]
     feat_decl = "        vec4 " + ", ".join(feat_vecs) + ";"
     features = feat_decl + "\n" + "\n".join(feat_lines)
+    if sample_code is not None:  # a dynamic field's motion field or time planes
+        declarations, before, after = sample_code(params)
+        samplers += declarations
+        indent = "        "
+        features = "\n".join([indent + line for line in before] + [features] + [indent + line for line in after])
 
     # density MLP: hidden layers, then the raw density row; the latent rows only where needed
     dens = assets.density_layers
@@ -408,7 +423,7 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
                                  False)
 
     # colour MLP: the direction columns of its first layer once per pixel, the rest per sample
-    enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"]))
+    enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"])) + list(extra_encoding)
     enc_rows = _pad_to(len(enc))
     enc_vecs = [f"e{q}" for q in range(enc_rows // 4)]
     per_pixel = []
@@ -562,11 +577,28 @@ def _uint8_planes(assets: FieldAssets) -> tuple[list[np.ndarray], list[np.ndarra
 
 
 def _texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
-    """(3, C, R, R) -> (3 * G, R, R, 4): layer k * G + g holds channels 4g .. 4g + 3 of plane k (zero padded)."""
-    three, c, r, _ = plane.shape
-    padded = np.zeros((three, 4 * groups, r, r), plane.dtype)
+    """(3, C, H, W) -> (3 * G, H, W, 4): layer k * G + g holds channels 4g .. 4g + 3 of plane k (zero padded)."""
+    three, c, h, w = plane.shape
+    padded = np.zeros((three, 4 * groups, h, w), plane.dtype)
     padded[:, :c] = plane
-    return np.ascontiguousarray(padded.reshape(three, groups, 4, r, r).transpose(0, 1, 3, 4, 2).reshape(-1, r, r, 4))
+    return np.ascontiguousarray(padded.reshape(three, groups, 4, h, w).transpose(0, 1, 3, 4, 2).reshape(-1, h, w, 4))
+
+
+def _check_options(width, height, *, filtering: str, color_mode: str, weights: str, transmittance_eps: float,
+                   color_eps: float) -> None:
+    """InputError naming the first bad renderer option."""
+    if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 16384
+               for v in (width, height)):
+        raise InputError(f"must be integers in [1, 16384], got {width!r} x {height!r}", field="size")
+    if filtering not in ("exact", "hardware"):
+        raise InputError(f"must be exact or hardware, got {filtering!r}", field="filtering")
+    if color_mode not in ("per-sample", "latent"):
+        raise InputError(f"must be per-sample or latent, got {color_mode!r}", field="color_mode")
+    if weights not in ("inline", "buffer"):
+        raise InputError(f"must be inline or buffer, got {weights!r}", field="weights")
+    for name, value in (("transmittance_eps", transmittance_eps), ("color_eps", color_eps)):
+        if not (math.isfinite(value) and 0.0 <= value < 1.0):
+            raise InputError(f"must be in [0, 1), got {value}", field=name)
 
 
 class GlFieldRenderer:
@@ -591,22 +623,10 @@ class GlFieldRenderer:
     def __init__(self, assets: Union[FieldAssets, str, Path], width: int, height: int, *, quantized: bool = False,
                  filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
                  color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline") -> None:
-        import moderngl
-
         if not isinstance(assets, FieldAssets):
             assets = load_field(assets)
-        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 16384
-                   for v in (width, height)):
-            raise InputError(f"must be integers in [1, 16384], got {width!r} x {height!r}", field="size")
-        if filtering not in ("exact", "hardware"):
-            raise InputError(f"must be exact or hardware, got {filtering!r}", field="filtering")
-        if color_mode not in ("per-sample", "latent"):
-            raise InputError(f"must be per-sample or latent, got {color_mode!r}", field="color_mode")
-        if weights not in ("inline", "buffer"):
-            raise InputError(f"must be inline or buffer, got {weights!r}", field="weights")
-        for name, value in (("transmittance_eps", transmittance_eps), ("color_eps", color_eps)):
-            if not (math.isfinite(value) and 0.0 <= value < 1.0):
-                raise InputError(f"must be in [0, 1), got {value}", field=name)
+        _check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
+                       transmittance_eps=transmittance_eps, color_eps=color_eps)
         for p in assets.planes:
             if p.shape[-1] < 2:
                 raise InputError(f"plane resolution {p.shape[-1]} < 2 cannot be interpolated", field="planes")
@@ -624,6 +644,15 @@ class GlFieldRenderer:
         self.source, packed, tex_specs, self.params_kind = _generate(
             assets, planes, ranges, filtering=filtering, color_mode=color_mode,
             params_kind="const" if weights == "inline" else "ubo")
+        self._setup(packed, [(f"planes{spec['scale']}", _texture_layers(plane, spec["groups"]))
+                             for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4")
+
+    def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str) -> None:
+        """Create the context, compile ``self.source`` and upload the parameters, the occupancy grid and the
+        plane textures: ``(sampler name, (layers, H, W, 4) array)``, bound to units 0, 1, ... in that order
+        (``dtype`` ``f4``: RGBA32F; ``f1``: normalised RGBA8)."""
+        import moderngl
+
         self._lock = threading.Lock()
         self.ctx = moderngl.create_standalone_context(backend="egl")
         self._textures, self._buffers = [], []
@@ -631,20 +660,17 @@ class GlFieldRenderer:
             start = time.perf_counter()
             self.program = self.ctx.compute_shader(self.source)
             self.compile_seconds = time.perf_counter() - start
-            for spec, plane in zip(tex_specs, planes):
-                layers = _texture_layers(plane, spec["groups"])
-                r = spec["resolution"]
-                tex = self.ctx.texture_array((r, r, layers.shape[0]), 4, layers.tobytes(),
-                                             dtype="f1" if quantized else "f4")  # f1: normalised RGBA8
-                linear = moderngl.LINEAR if filtering == "hardware" else moderngl.NEAREST
+            for unit, (name, layers) in enumerate(textures):
+                tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
+                                             dtype=dtype)
+                linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
                 tex.filter = (linear, linear)
                 tex.repeat_x = tex.repeat_y = False
-                unit = spec["scale"]
                 tex.use(location=unit)
-                self.program[f"planes{spec['scale']}"].value = unit
+                self._set(name, unit)
                 self._textures.append(tex)
             self._params = self.ctx.buffer(packed.tobytes())
-            occ = assets.occupancy
+            occ = self.assets.occupancy
             bits = np.zeros(1, np.uint32)
             if occ is not None:
                 flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
@@ -791,6 +817,36 @@ def _psnr(reference: dict, test: dict) -> float:
     return psnr(display_encode(reference["color"]), display_encode(test["color"]))
 
 
+def report_bench(records: list[dict], json_path: Optional[Path] = None) -> None:
+    """Print the benchmark table; write the records as strict JSON (non-finite numbers as null) if asked."""
+    print(bench_table(records))
+    if json_path:
+        json_path.write_text(json.dumps([{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                                          for k, v in r.items()} for r in records], indent=2) + "\n")
+
+
+def bench_records(outs: dict, width: int, height: int) -> list[dict]:
+    """One benchmark record per renderer: ``outs`` maps a renderer name to (render, wall seconds, CPU
+    seconds, compile seconds); scores are against the torch render (else numpy's, else the first)."""
+    ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
+    ref = outs[ref_name][0]
+    records = []
+    for name, (out, walls, cpus, compile_s) in outs.items():
+        ms = 1e3 * float(np.median(walls))
+        finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
+        records.append({
+            "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
+            "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
+            "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
+            "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
+            "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
+            if finite.any() else float("nan"),
+            "depth_finite_agree": float(np.mean(np.isfinite(ref["depth"]) == np.isfinite(out["depth"]))),
+        })
+        print(f"{width}x{height} {name}: {ms:.1f} ms", file=sys.stderr, flush=True)
+    return records
+
+
 def run_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
               skip: tuple[str, ...] = (), threads: int = 0) -> list[dict]:
     """Time every renderer of the field at every size on one camera; PSNR of each against the torch render
@@ -847,21 +903,7 @@ def run_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path]
                 continue
             out, wall, cpu = timed(lambda: render_field(assets, k, w2c, height, width, query=query))
             outs[query] = (out, [wall], [cpu], 0.0)
-        ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
-        ref = outs[ref_name][0]
-        for name, (out, walls, cpus, compile_s) in outs.items():
-            ms = 1e3 * float(np.median(walls))
-            finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
-            records.append({
-                "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
-                "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
-                "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
-                "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
-                "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
-                if finite.any() else float("nan"),
-                "depth_finite_agree": float(np.mean(np.isfinite(ref["depth"]) == np.isfinite(out["depth"]))),
-            })
-            print(f"{width}x{height} {name}: {ms:.1f} ms", file=sys.stderr, flush=True)
+        records.extend(bench_records(outs, width, height))
     for r in records:
         r["camera"] = where
     return records
@@ -890,6 +932,14 @@ def _sizes(text: str) -> list[tuple[int, int]]:
     return out
 
 
+def add_bench_options(parser: argparse.ArgumentParser) -> None:
+    """--repeat, --skip, --threads and --json, shared by the static and dynamic benchmarks."""
+    parser.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
+    parser.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     """``python -m engine.glfield --bench EXPORT_DIR``: the speed / parity table of the field renderers."""
     parser = argparse.ArgumentParser(prog="python -m engine.glfield", description=(
@@ -901,10 +951,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                         help="the run directory (torch renderer and held-out camera; default: EXPORT_DIR/..)")
     parser.add_argument("--sizes", type=_sizes, default=[(512, 512), (960, 540)],
                         help="WxH,... (default 512x512,960x540)")
-    parser.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
-    parser.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
+    add_bench_options(parser)
     args = parser.parse_args(argv)
     try:
         records = run_bench(args.bench, args.sizes, run=args.run, repeat=max(1, args.repeat),
@@ -912,10 +959,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(bench_table(records))
-    if args.json:
-        args.json.write_text(json.dumps([{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                                          for k, v in r.items()} for r in records], indent=2) + "\n")
+    report_bench(records, args.json)
     return 0
 
 

@@ -188,6 +188,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
             "direction_degree": int(canonical_cfg.direction_degree),
             **({"time_frequencies": int(cfg.time_frequencies),
                 "color_input": "[h, direction encoding, fourier(tau): tau, sin(2^k tau), cos(2^k tau)]",
+                "max_flow": float(cfg.motion.max_flow),  # the flow bound as a number (renderers read it)
                 "flow": f"{float(cfg.motion.max_flow)} * tanh(flow MLP(motion features)) in contracted units; "
                         "canonical = contracted point + flow, clamped to [-1, 1] for the canonical lookup"}
                if model.has_motion else {"color_input": "[h, direction encoding]"}),

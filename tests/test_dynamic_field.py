@@ -544,3 +544,20 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     assert main(["eval", "dynamic", str(tmp_path / "missing")]) == 2
     assert main(["train", "dynamic", "--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_dense_dis_matches_recover_a_known_shift_and_reject_occlusions():
+    """The dense-prior comparison's matches: DIS flow on a grid, forward-backward checked."""
+    from models.fields.dynamic_priors import SparseFlowPrior, dense_flow_matches
+
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.uniform(0, 1, (64, 96)).astype(np.float32), (0, 0), 1.5)
+    image_a = np.repeat(base[..., None], 3, -1)
+    image_b = np.roll(image_a, 3, axis=1)  # everything moves 3 px to the right
+    xy_a, xy_b = dense_flow_matches(image_a, image_b, stride=4)
+    assert len(xy_a) > 100
+    interior = (xy_a[:, 0] > 8) & (xy_a[:, 0] < 80)
+    np.testing.assert_allclose(np.median((xy_b - xy_a)[interior], axis=0), [3.0, 0.0], atol=0.1)
+    assert (xy_b[:, 0] <= 96).all() and (xy_b[:, 0] >= 0).all()  # matches stay inside image b
+    with pytest.raises(InputError, match="sift or dis"):
+        SparseFlowPrior(source="raft").validate()

@@ -76,8 +76,18 @@ class SparseFlowPrior:
     coherence_px: float = field(default=2.0, metadata={
         "help": "largest displacement difference (px) of a coherent neighbour"})
     start_step: int = field(default=0, metadata={"help": "first step at which the flow loss is applied"})
+    source: str = field(default="sift", metadata={
+        "help": "where matches come from: sift (sparse, the thesis's prior) or dis (dense OpenCV DIS optical flow "
+                "on a grid, forward-backward checked: the dense-prior comparison)"})
+    dense_stride: int = field(default=4, metadata={"help": "dis: one match per this many pixels along x and y"})
+    dense_consistency: float = field(default=1.0, metadata={
+        "help": "dis: largest forward-backward flow disagreement (px) of a kept match"})
 
     def validate(self) -> "SparseFlowPrior":
+        if self.source not in ("sift", "dis"):
+            raise InputError(f"must be sift or dis, got {self.source!r}", field="priors.flow.source")
+        if int(self.dense_stride) < 1 or not self.dense_consistency > 0:
+            raise InputError("dense_stride must be >= 1 and dense_consistency > 0", field="priors.flow.dense_stride")
         for name in ("rays", "time_offset", "max_features", "neighbours", "min_coherent"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"priors.flow.{name}")
@@ -214,19 +224,50 @@ def _matcher(ratio: float):
     return pycolmap.FeatureMatcher.create(options, pycolmap.Device.cpu)
 
 
+def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4, consistency: float = 1.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Dense matches from OpenCV DIS optical flow (no downloaded weights): pixel centres of image a on a grid
+    of ``stride`` px and where the flow a -> b takes them, kept where the flow b -> a brings them back within
+    ``consistency`` px and they land inside image b. Returns (xy_a (M, 2), xy_b (M, 2)), centres at +0.5."""
+    import cv2
+
+    from engine.predictors import dis_estimator, luma8
+
+    ga, gb = luma8(image_a), luma8(image_b)
+    dis = dis_estimator("medium")
+    fwd = dis.calc(ga, gb, None)
+    bwd = dis.calc(gb, ga, None)
+    h, w = ga.shape
+    v, u = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
+    f = fwd[v, u]
+    xb, yb = u + f[..., 0], v + f[..., 1]
+    inside = (xb >= 0) & (xb <= w - 1) & (yb >= 0) & (yb <= h - 1)
+    back = cv2.remap(bwd, xb.astype(np.float32), yb.astype(np.float32), cv2.INTER_LINEAR)
+    keep = inside & (np.linalg.norm(f + back, axis=-1) <= consistency)
+    xy_a = np.stack([u[keep], v[keep]], -1).astype(np.float64) + 0.5
+    xy_b = np.stack([xb[keep], yb[keep]], -1).astype(np.float64) + 0.5
+    return xy_a, xy_b
+
+
 def sparse_flow_matches(views, prior: SparseFlowPrior) -> FlowMatches:
-    """Verified SIFT matches of the training views (:class:`~models.fields.dynamic_data.TimedViews`)."""
-    features = sift_features(views.images, prior.max_features)
+    """Verified matches of the training views (:class:`~models.fields.dynamic_data.TimedViews`): SIFT
+    (``source="sift"``) or dense DIS optical flow (``source="dis"``), then the same verification."""
+    features = sift_features(views.images, prior.max_features) if prior.source == "sift" else None
     matcher = None
     parts: dict[str, list] = {"va": [], "xa": [], "vb": [], "xb": [], "across": []}
     counts: dict[str, dict[str, Any]] = {}
     for a, b in flow_pairs(views.times, prior):
-        (xa, ka, da), (xb, kb, db) = features[a], features[b]
-        idx = np.zeros((0, 2), np.int64)
-        if len(xa) and len(xb):
-            matcher = matcher or _matcher(prior.ratio)
-            idx = np.asarray(matcher.match(ka, da, kb, db), np.int64).reshape(-1, 2)
-        pa, pb = xa[idx[:, 0]].reshape(-1, 2), xb[idx[:, 1]].reshape(-1, 2)
+        if features is None:
+            pa, pb = dense_flow_matches(views.images[a], views.images[b], prior.dense_stride,
+                                        prior.dense_consistency)
+            idx = pa
+        else:
+            (xa, ka, da), (xb, kb, db) = features[a], features[b]
+            idx = np.zeros((0, 2), np.int64)
+            if len(xa) and len(xb):
+                matcher = matcher or _matcher(prior.ratio)
+                idx = np.asarray(matcher.match(ka, da, kb, db), np.int64).reshape(-1, 2)
+            pa, pb = xa[idx[:, 0]].reshape(-1, 2), xb[idx[:, 1]].reshape(-1, 2)
         keep = verify_matches(views, a, b, pa, pb, prior)
         across = bool(views.times[a] != views.times[b])
         counts[f"{a}-{b}"] = {"raw": int(len(idx)), "kept": int(keep.sum()), "across_time": across}

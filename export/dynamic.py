@@ -32,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from engine.errors import InputError
-from export.field import OPSET, _mlp_layers, _strip_debug, quantize_planes
+from export.field import OPSET, _mlp_layers, _strip_debug, quantize_planes, report_export
 
 __all__ = ["DynamicQueryGraph", "export_dynamic", "check_parity", "example_queries", "main", "ASSET_FORMAT",
            "ASSET_VERSION"]
@@ -217,13 +217,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
     manifest = export_dynamic(args.run, out)
-    worst = max(max(v.values()) for v in manifest["parity"].values())
-    sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
-    print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"],
-                      "time_range": manifest["time"]["range"]}, indent=2))
-    if worst > args.tolerance:
-        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {args.tolerance:.0e}",
-                         file=out / "dynamic.onnx")
+    report_export(out, manifest, "dynamic.onnx", args.tolerance, time_range=manifest["time"]["range"])
 
 
 if __name__ == "__main__":  # pragma: no cover

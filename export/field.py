@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from engine.errors import InputError
 
-__all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "main",
+__all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET"]
 
 ASSET_FORMAT = "interleave-field"
@@ -284,12 +284,17 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
     manifest = export_field(args.run, out)
+    report_export(out, manifest, "field.onnx", args.tolerance, quantization=manifest.get("quantization"))
+
+
+def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, **extra) -> None:
+    """Print the written files' sizes and the parity scores (and ``extra``); InputError when the worst parity
+    difference exceeds ``tolerance``. Shared by ``export field`` and ``export dynamic``."""
     worst = max(max(v.values()) for v in manifest["parity"].values())
     sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
-    print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"],
-                      "quantization": manifest.get("quantization")}, indent=2))
-    if worst > args.tolerance:
-        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {args.tolerance:.0e}", file=out / "field.onnx")
+    print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"], **extra}, indent=2))
+    if worst > tolerance:
+        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {tolerance:.0e}", file=out / onnx_name)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -43,7 +43,8 @@ from engine.frames import Camera, validate_intrinsics, validate_pose
 from engine.importers import opengl_to_opencv_world_to_camera
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
-           "load_llff", "load_rig", "LLFF_TO_OPENCV", "llff_to_world_to_camera"]
+           "load_llff", "load_rig", "LLFF_TO_OPENCV", "llff_to_world_to_camera",
+           "read_transforms", "check_listed_frames"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
 
@@ -281,6 +282,32 @@ def _read_png(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
 # NeRF-synthetic
 
 
+def read_transforms(meta_file: Path, what: str) -> tuple[float, list]:
+    """``camera_angle_x`` (radians, checked in (0, pi)) and the frame entries of a Blender-style
+    ``transforms_<split>.json`` (NeRF-synthetic, D-NeRF); InputError naming the file otherwise."""
+    if not meta_file.is_file():
+        raise InputError("file does not exist", file=meta_file)
+    try:
+        meta = json.loads(meta_file.read_text())
+        angle = float(meta["camera_angle_x"])
+        entries = list(meta["frames"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"is not a {what} transforms file ({type(exc).__name__}: {exc})", file=meta_file) from None
+    if not 0 < angle < np.pi:
+        raise InputError(f"must be in (0, pi) radians, got {angle}", file=meta_file, field="camera_angle_x")
+    return angle, entries
+
+
+def check_listed_frames(meta_file: Path, missing: list[str], loaded: int) -> None:
+    """Warn once, naming them, about listed frames whose image is missing; InputError when none loaded."""
+    if missing:
+        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+        warnings.warn(f"{meta_file}: skipping {len(missing)} listed frame(s) whose image is missing: {shown}",
+                      stacklevel=3)
+    if not loaded:
+        raise InputError("no listed frame has an image file", file=meta_file, field="frames")
+
+
 def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: int = 1, white_background: bool = True,
                         bounds: Optional[np.ndarray] = None) -> Views:
     """Load one split of a NeRF-synthetic (Blender) scene.
@@ -300,17 +327,7 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
     """
     root = Path(root)
     meta_file = root / f"transforms_{split}.json"
-    if not meta_file.is_file():
-        raise InputError("file does not exist", file=meta_file)
-    try:
-        meta = json.loads(meta_file.read_text())
-        angle = float(meta["camera_angle_x"])
-        entries = list(meta["frames"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"is not a NeRF-synthetic transforms file ({type(exc).__name__}: {exc})",
-                         file=meta_file) from None
-    if not 0 < angle < np.pi:
-        raise InputError(f"must be in (0, pi) radians, got {angle}", file=meta_file, field="camera_angle_x")
+    angle, entries = read_transforms(meta_file, "NeRF-synthetic")
     background = np.ones(3) if white_background else np.zeros(3)
     images, poses, names, missing = [], [], [], []
     for i, entry in enumerate(entries):
@@ -335,12 +352,7 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
         images.append(srgb_to_linear(rgb))
         poses.append(w2c)
         names.append(rel)
-    if missing:
-        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
-        warnings.warn(f"{meta_file}: skipping {len(missing)} listed frame(s) whose image is missing: {shown}",
-                      stacklevel=2)
-    if not images:
-        raise InputError("no listed frame has an image file", file=meta_file, field="frames")
+    check_listed_frames(meta_file, missing, len(images))
     sizes = {im.shape for im in images}
     if len(sizes) != 1:
         raise InputError(f"images have different sizes {sorted(sizes)}", file=meta_file)

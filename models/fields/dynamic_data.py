@@ -19,8 +19,6 @@ centre sample), exactly as ``Views.downscaled``.
 """
 from __future__ import annotations
 
-import json
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence
@@ -32,7 +30,7 @@ from engine.errors import InputError
 from engine.frames import Camera, validate_pose
 from engine.importers import opengl_to_opencv_world_to_camera
 from models.fields.data import (NERF_SYNTHETIC_NEAR_FAR, Views, _IMAGE_SUFFIXES, _read_png, _resize, _scale_k,
-                                box_from_cameras, check_views)
+                                box_from_cameras, check_listed_frames, check_views, read_transforms)
 
 __all__ = ["TimedViews", "check_timed_views", "load_dnerf", "load_rig_video", "split_by_camera", "frame_step",
            "border_crossings"]
@@ -142,16 +140,7 @@ def load_dnerf(root: str | Path, split: str = "train", *, downscale: int = 1, wh
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise InputError(f"must be a positive integer, got {downscale!r}", field="downscale")
     meta_file = root / f"transforms_{split}.json"
-    if not meta_file.is_file():
-        raise InputError("file does not exist", file=meta_file)
-    try:
-        meta = json.loads(meta_file.read_text())
-        angle = float(meta["camera_angle_x"])
-        entries = list(meta["frames"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"is not a D-NeRF transforms file ({type(exc).__name__}: {exc})", file=meta_file) from None
-    if not 0 < angle < np.pi:
-        raise InputError(f"must be in (0, pi) radians, got {angle}", file=meta_file, field="camera_angle_x")
+    angle, entries = read_transforms(meta_file, "D-NeRF")
     background = np.ones(3) if white_background else np.zeros(3)
     images, poses, names, times, missing = [], [], [], [], []
     size = None
@@ -186,12 +175,7 @@ def load_dnerf(root: str | Path, split: str = "train", *, downscale: int = 1, wh
         poses.append(w2c)
         names.append(Path(rel).name)
         times.append(time)
-    if missing:
-        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
-        warnings.warn(f"{meta_file}: skipping {len(missing)} listed frame(s) whose image is missing: {shown}",
-                      stacklevel=2)
-    if not images:
-        raise InputError("no listed frame has an image file", file=meta_file, field="frames")
+    check_listed_frames(meta_file, missing, len(images))
     h, w = size
     focal = 0.5 * w / np.tan(0.5 * angle)
     k = _scale_k(np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]]),

@@ -38,12 +38,13 @@ from models.fields.dynamic_data import (TimedViews, border_crossings, check_time
                                         split_by_camera)
 from models.fields.dynamic_priors import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.encodings import plane_l1, plane_tv
-from models.fields.losses import (LossInputs, LossTerm, RayBatch, _group, assemble_loss, check_loss_terms,
+from models.fields.losses import (LossInputs, LossTerm, _group, assemble_loss, check_loss_terms,
                                   register_loss_term)
 from models.fields.model import RenderConfig, SceneBox
 from models.fields.render import render_image
 from models.fields.train import (LR_SCHEDULES, _add_config_args, _all_rays, _apply_args, _apply_losses,
-                                 _from_dict, _lr_factor, _matching_views, _view_list, rank_correlation,
+                                 _from_dict, _lr_factor, _matching_views, _take, open_log, open_run_dir,
+                                 restore_training_state, _view_list, rank_correlation,
                                  run_train_seconds)
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "train_dynamic",
@@ -248,16 +249,7 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
     views = _matching_views(views, config)
     config = _resolved(config, views)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    config_file, ckpt_file = out / "config.json", out / "checkpoint.pt"
-    wanted = config.to_dict()
-    if config_file.is_file() and ckpt_file.is_file():
-        saved = DynamicTrainConfig.from_dict(json.loads(config_file.read_text())).to_dict()
-        differ = sorted(k for k in set(saved) | set(wanted) if k != "steps" and saved.get(k) != wanted.get(k))
-        if differ:
-            raise InputError(f"holds a run with a different config ({', '.join(differ)} differ); use a new "
-                             "directory", file=config_file)
-    config_file.write_text(json.dumps(wanted, indent=2) + "\n")
+    ckpt_file = open_run_dir(out, config)
 
     state = torch.load(ckpt_file, map_location="cpu", weights_only=True) if ckpt_file.is_file() else None
     model = build_dynamic_model(views, config) if state is None else _model_from_state(state, config)
@@ -274,11 +266,7 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
     if state is not None:
         elapsed_before = float(state.get("train_seconds", 0.0))
         model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        scheduler.lr_lambdas = [_lr_factor(config)] * len(optimizer.param_groups)
-        generator.set_state(state["generator"])
-        step = int(state["step"])
+        step = restore_training_state(state, optimizer, scheduler, generator, config)
 
     def save(at: int) -> None:
         tmp = ckpt_file.with_suffix(".pt.tmp")
@@ -293,11 +281,7 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
     if progress and step < config.steps:
         from tqdm import tqdm
         bar = tqdm(total=config.steps, initial=step, desc=f"training {out.name}", unit="step")
-    log_file = out / "log.jsonl"
-    if log_file.is_file():  # drop lines written after the checkpoint we resume from
-        kept = [line for line in log_file.read_text().splitlines() if json.loads(line)["step"] <= step]
-        log_file.write_text("".join(line + "\n" for line in kept))
-    log = log_file.open("a")
+    log = open_log(out, step)
     n_rays = rays.color.shape[0]
     occupied = 1.0
     start = time.perf_counter()
@@ -307,8 +291,7 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
             if step >= config.occupancy_warmup and (step - config.occupancy_warmup) % config.occupancy_every == 0:
                 occupied = model.update_occupancy(generator)
             idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator)
-            batch = RayBatch(**{f.name: (None if getattr(rays, f.name) is None else getattr(rays, f.name)[idx])
-                                for f in dataclasses.fields(RayBatch)})
+            batch = _take(rays, idx)
             outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, ray_times[idx],
                                         jitter=True, generator=generator)
             extras = priors.extras(model, generator) if priors is not None else {}

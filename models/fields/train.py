@@ -197,6 +197,43 @@ def _matching_views(views: Views, config: FieldTrainConfig) -> Views:
 # Training
 
 
+def open_run_dir(out: Path, config) -> Path:
+    """Create the run directory, refuse one holding a run with another config (``steps`` may differ: a
+    larger one extends the run), write ``config.json``; returns the checkpoint path (which may not exist).
+    Options added since a run was made count as their defaults. ``config`` is any run config with
+    ``to_dict`` / ``from_dict`` (static or dynamic)."""
+    out.mkdir(parents=True, exist_ok=True)
+    config_file, ckpt_file = out / "config.json", out / "checkpoint.pt"
+    wanted = config.to_dict()
+    if config_file.is_file() and ckpt_file.is_file():
+        saved = type(config).from_dict(json.loads(config_file.read_text())).to_dict()
+        differ = sorted(k for k in set(saved) | set(wanted) if k != "steps" and saved.get(k) != wanted.get(k))
+        if differ:
+            raise InputError(f"holds a run with a different config ({', '.join(differ)} differ); use a new "
+                             "directory", file=config_file)
+    config_file.write_text(json.dumps(wanted, indent=2) + "\n")
+    return ckpt_file
+
+
+def restore_training_state(state: dict, optimizer, scheduler, generator: torch.Generator, config) -> int:
+    """Load the optimiser, schedule (stretched to ``config.steps``) and sampling generator of a checkpoint;
+    returns its step."""
+    optimizer.load_state_dict(state["optimizer"])
+    scheduler.load_state_dict(state["scheduler"])
+    scheduler.lr_lambdas = [_lr_factor(config)] * len(optimizer.param_groups)
+    generator.set_state(state["generator"])
+    return int(state["step"])
+
+
+def open_log(out: Path, step: int):
+    """``log.jsonl`` opened for appending, without the lines written after the checkpoint at ``step``."""
+    log_file = out / "log.jsonl"
+    if log_file.is_file():
+        kept = [line for line in log_file.read_text().splitlines() if json.loads(line)["step"] <= step]
+        log_file.write_text("".join(line + "\n" for line in kept))
+    return log_file.open("a")
+
+
 def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, progress: bool = True, *,
                 extras_fn=None) -> Path:
     """Train a static field on ``views`` and write the run into ``out_dir``; returns ``out_dir``.
@@ -218,18 +255,7 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     check_loss_terms(terms, views.depth is not None)
     views = _matching_views(views, config)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    config_file, ckpt_file = out / "config.json", out / "checkpoint.pt"
-    wanted = config.to_dict()
-    if config_file.is_file() and ckpt_file.is_file():
-        # options added since the run was made count as their defaults
-        saved = FieldTrainConfig.from_dict(json.loads(config_file.read_text())).to_dict()
-        differ = sorted(k for k in set(saved) | set(wanted) if k != "steps" and saved.get(k) != wanted.get(k))
-        if differ:
-            raise InputError(f"holds a run with a different config ({', '.join(differ)} differ); use a new "
-                             "directory", file=config_file)
-    config_file.write_text(json.dumps(wanted, indent=2) + "\n")
-
+    ckpt_file = open_run_dir(out, config)
     state = torch.load(ckpt_file, map_location="cpu", weights_only=True) if ckpt_file.is_file() else None
     if state is None:
         model = build_model(views, config)
@@ -252,11 +278,7 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
         model.load_state_dict(state["model"])
         if priors is not None:
             priors.load_state_dict(state["priors"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        scheduler.lr_lambdas = [_lr_factor(config)] * len(optimizer.param_groups)
-        generator.set_state(state["generator"])
-        step = int(state["step"])
+        step = restore_training_state(state, optimizer, scheduler, generator, config)
 
     def save(at: int) -> None:
         tmp = ckpt_file.with_suffix(".pt.tmp")
@@ -271,11 +293,7 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
     if progress and step < config.steps:
         from tqdm import tqdm
         bar = tqdm(total=config.steps, initial=step, desc=f"training {out.name}", unit="step")
-    log_file = out / "log.jsonl"
-    if log_file.is_file():  # drop lines written after the checkpoint we resume from
-        kept = [line for line in log_file.read_text().splitlines() if json.loads(line)["step"] <= step]
-        log_file.write_text("".join(line + "\n" for line in kept))
-    log = log_file.open("a")
+    log = open_log(out, step)
     n_rays = rays.color.shape[0]
     occupied = 1.0
     start = time.perf_counter()

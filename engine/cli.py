@@ -1,7 +1,8 @@
 """`interleave`: the command-line entry point.
 
 Subcommands: ``demo`` (the frame-upsampling demo on the built-in scene), ``eval`` (speed against error
-on rgbd-seq sequences; ``eval field RUN_DIR`` scores a trained radiance field), ``render-scene`` (write a
+on rgbd-seq sequences; ``eval --bounds`` the performance bounds of thesis Table 6.3; ``eval field RUN_DIR``
+scores a trained radiance field), ``sweep`` (speed against error of decomp's knobs), ``render-scene`` (write a
 procedural dynamic scene as rgbd-seq), ``render-rig`` (the same scene seen by a rig of fixed cameras, as
 rgbd-rig), ``import`` (convert Blender, MPI-Sintel or DeCOMPnet/VEED layouts to rgbd-seq), ``train`` /
 ``export`` (``flow`` network, static ``field``; need torch) and ``serve`` (prediction sessions for game
@@ -23,7 +24,8 @@ METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproj
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
                "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
                "ablation network), oracle (true object motion; needs object_id and objects). decomp and "
-               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/decomp.py)")
+               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/decomp.py); a name "
+               "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
 
 
 def _int_list(text: str) -> list[int]:
@@ -103,6 +105,23 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-flip", action="store_true", help="skip FLIP (about 0.4 s per 960x540 frame)")
     ev.add_argument("--max-groups", type=int, default=None,
                     help="use at most this many rendered frames n per sequence, spread evenly (default: all)")
+    ev.add_argument("--bounds", nargs="?", const="decomp", default=None, metavar="DECOMP_VARIANT",
+                    help="instead of --methods, the performance bounds of thesis Table 6.3 for this decomp variant "
+                         "(default: decomp; e.g. 'decomp[fill=simple]'): local motion prediction and disocclusion "
+                         "infilling each predicted or true (motion=truth; true pixels in the holes); needs the "
+                         "sequences' objects")
+
+    from engine.sweep import add_arguments as add_sweep_arguments
+
+    sw = sub.add_parser("sweep", help="speed against error of decomp's knobs (network width, fill, infill "
+                                      "passes, MPI planes) with reproject and flow2d, Pareto front marked",
+                        description="Evaluates every combination of the knobs as decomp[...] variants together with "
+                                    "the baselines on the given sequences (their frame size is the resolution), "
+                                    "prints median ms per predicted frame against PSNR and FLIP per frame size with "
+                                    "the Pareto front (fastest for its error) and the stage breakdown, and writes "
+                                    "sweep.json, sweep.md and sweep.png (matplotlib) to --out. Same as "
+                                    "'python -m engine.sweep'.")
+    add_sweep_arguments(sw)
 
     rs = sub.add_parser("render-scene", help="render a procedural dynamic scene to an rgbd-seq folder",
                         description="Deterministic by --seed: camera path, moving rigid objects, textures, thin "
@@ -139,17 +158,19 @@ def build_parser() -> argparse.ArgumentParser:
                                                                  "instead of stopping with an error")
     tr = sub.add_parser("train", help="train a network (needs the 'train' extra: torch)",
                         description="'interleave train flow --config configs/flow3d.json' trains the 3D flow "
-                                    "network; 'interleave train field --scene DIR --views 3' a static radiance "
+                                    "network; 'interleave train infill' the disocclusion infilling network; "
+                                    "'interleave train field --scene DIR --views 3' a static radiance "
                                     "field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
                                     "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option.")
-    tr.add_argument("what", choices=["flow", "field", "dynamic"], help="what to train")
+    tr.add_argument("what", choices=["flow", "infill", "field", "dynamic"], help="what to train")
     tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
     ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
                         description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
-                                    "graph and checks it against torch; 'interleave export field RUN_DIR' a "
+                                    "graph and checks it against torch ('export infill CHECKPOINT OUT.onnx': the "
+                                    "infilling network's); 'interleave export field RUN_DIR' a "
                                     "trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
                                     "dynamic field's (p, t, d) query); '... --help' for options.")
-    ex.add_argument("what", choices=["flow", "field", "dynamic"], help="what to export")
+    ex.add_argument("what", choices=["flow", "infill", "field", "dynamic"], help="what to export")
     ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
@@ -209,6 +230,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                      methods=_methods(args.methods))
         elif args.command == "eval":
             return _run_eval(args)
+        elif args.command == "sweep":
+            from engine.sweep import run_sweep_command
+
+            return run_sweep_command(args)
         elif args.command == "render-scene":
             from engine.scenegen import SceneConfig, generate_sequence
 
@@ -241,6 +266,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 from models.fields.train import main as train_field
 
                 return train_field(args.options, prog="interleave train field")
+            if args.what == "infill":
+                from models.train_infill import main as train_infill
+
+                return train_infill(args.options, prog="interleave train infill")
             from models.train_flow import main as train_flow
 
             train_flow(args.options, prog="interleave train flow")
@@ -254,6 +283,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 from export.field import main as export_field
 
                 export_field(args.options, prog="interleave export field")
+            elif args.what == "infill":
+                from export.infill import main as export_infill
+
+                export_infill(args.options, prog="interleave export infill")
             else:
                 from export.flow import main as export_flow
 
@@ -269,12 +302,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
+    from engine.evaluate import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
+                                 per_step_table, plot, split_scoring, stage_table, summarize, write_json)
     from engine.io import read_sequence
     from engine.predictors import METHODS
 
-    methods = _methods(args.methods)
-    unknown = [m for m in methods if m.partition("[")[0] not in METHODS]
+    bounds = None if args.bounds is None else bound_methods(args.bounds)
+    methods = _methods(args.methods) if bounds is None else [row.method for row in bounds]
+    unknown = [m for m in methods if split_scoring(m)[0].partition("[")[0] not in METHODS]
     if unknown:  # fail before any work
         raise InterleaveError(f"unknown method(s) {', '.join(unknown)}; expected some of {', '.join(METHODS)}")
     results = []
@@ -283,11 +318,22 @@ def _run_eval(args: argparse.Namespace) -> int:
         for k in args.k:
             results.extend(evaluate_sequence(sequence, methods, k, with_flip=not args.no_flip,
                                              max_groups=args.max_groups, progress=True))
-    print(markdown_table(results))
+    if bounds is None:
+        print(markdown_table(results))
+    else:
+        print(f"Performance bounds of {args.bounds} (thesis Table 6.3; LMP: local motion prediction, DI: "
+              "disocclusion infilling; pred: the method's own, GT: true motion / true pixels in the holes):\n")
+        print(bounds_table(results, bounds))
+    if any(k > 2 for k in args.k):
+        print("\nPer future step k' (frame n + k' from frames n-k and n), means over sequences:\n")
+        print(per_step_table(results))
     print("\nStage breakdown, median ms per predicted frame:\n")
-    print(stage_table(results))
+    print(stage_table([r for r in results if not split_scoring(r.method)[1]]))  # +true_holes: same times
     if args.json:
-        write_json(results, args.json, {"command": " ".join(sys.argv)})
+        extra = {"command": " ".join(sys.argv)}
+        if bounds is not None:
+            extra.update(bounds_variant=args.bounds, bounds=bounds_summary(results, bounds))
+        write_json(results, args.json, extra)
         print(f"wrote {args.json}")
     if args.plot:
         plot(results, args.plot)

@@ -23,18 +23,43 @@ def _nearest_known(known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return left, np.where(right == w, -1, right)
 
 
-def _fill_rows(color: np.ndarray, depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
-    """Fill hole pixels from the farther of the nearest known left/right pixels; returns filled mask."""
+def _row_sources(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """Per pixel, the column of the farther of its nearest known left / right pixels on the same row
+    (-1: the row has no known pixel, or the pixel is known)."""
     left, right = _nearest_known(~holes)
     rows = np.broadcast_to(np.arange(holes.shape[0])[:, None], holes.shape)
     depth_left = np.where(left >= 0, depth[rows, np.maximum(left, 0)], -np.inf)
     depth_right = np.where(right >= 0, depth[rows, np.maximum(right, 0)], -np.inf)
     source = np.where(depth_right > depth_left, right, left)
-    fill = holes & (source >= 0)
-    r, c = np.nonzero(fill)
-    color[r, c] = color[r, source[r, c]]
-    depth[r, c] = depth[r, source[r, c]]
-    return fill
+    return np.where(holes, source, -1)
+
+
+def fill_sources(depth: np.ndarray, holes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each hole pixel copies from (see the module docstring): (row, column) index arrays (H, W),
+    the pixel itself where it is known, -1 where neither its row nor its column holds a known pixel.
+
+    Rows first (farther of the nearest known left / right pixels), then, for rows with no known pixel, the
+    same along columns over the row-filled image; a column source that was itself row-filled resolves to
+    its own source, so every source is a known pixel of the input.
+    """
+    h, w = holes.shape
+    src_r = np.broadcast_to(np.arange(h)[:, None], (h, w)).copy()
+    src_c = np.broadcast_to(np.arange(w)[None, :], (h, w)).copy()
+    src_r[holes], src_c[holes] = -1, -1
+    if not holes.any():
+        return src_r, src_c
+    cols = _row_sources(depth, holes)
+    filled = cols >= 0
+    src_c[filled] = cols[filled]
+    src_r[filled] = np.nonzero(filled)[0]
+    remaining = holes & ~filled
+    if remaining.any():
+        row_depth = np.where(filled, depth[np.maximum(src_r, 0), np.maximum(src_c, 0)], depth)
+        rows_t = _row_sources(row_depth.T, remaining.T).T  # per pixel, the row of its column source
+        fill = rows_t >= 0
+        r, c = np.nonzero(fill)
+        src_r[r, c], src_c[r, c] = src_r[rows_t[r, c], c], src_c[rows_t[r, c], c]
+    return src_r, src_c
 
 
 def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
@@ -51,13 +76,14 @@ def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
     """
     color = color.copy()
     depth = depth.copy()
-    remaining = holes.copy()
-    if not remaining.any():
+    if not holes.any():
         return color, depth
-    remaining &= ~_fill_rows(color, depth, remaining)
-    if remaining.any():
-        filled_t = _fill_rows(color.transpose(1, 0, 2), depth.T, remaining.T)
-        remaining &= ~filled_t.T
+    src_r, src_c = fill_sources(depth, holes)
+    fill = holes & (src_r >= 0)
+    r, c = np.nonzero(fill)
+    color[r, c] = color[src_r[r, c], src_c[r, c]]
+    depth[r, c] = depth[src_r[r, c], src_c[r, c]]
+    remaining = holes & ~fill
     if remaining.any():
         color[remaining] = 0.0 if fallback is None else fallback[remaining]
         depth[remaining] = np.inf

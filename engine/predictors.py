@@ -204,35 +204,41 @@ class Oracle(Predictor):
 
     def _render(self, state, target, timer):
         frame = state.history[-1]
-        if frame.object_id is None or not self.objects:
-            raise InputError("the oracle needs the object_id channel and the sequence's objects", frame=frame.index,
-                             field="object_id")
-        flow = timer("motion", self._object_flow, frame, target.index)
+        flow = timer("motion", true_object_flow, frame, self.objects, target.index)
         return _warp_and_fill(frame, target, timer, flow)
 
-    def _object_flow(self, frame: Frame, target_index: int) -> np.ndarray:
-        """(H, W, 3) flow in frame n's view: pixel displacement and depth change from true object motion."""
-        k, t = frame.camera.intrinsics, frame.camera.world_to_camera
-        flow = np.zeros(frame.depth.shape + (3,), dtype=np.float32)
-        ids = frame.object_id
-        points_all = geometry.unproject(frame.depth, k)  # (H, W, 4) homogeneous
-        pixels_all = geometry.pixel_centers(*frame.depth.shape)
-        for oid in np.unique(ids):
-            obj = self.objects.get(int(oid))
-            if obj is None or not obj.moving:
-                continue
-            if not 0 <= target_index < len(obj.world_from_object):
-                raise InputError(f"no transform of object {oid} for frame {target_index}", frame=frame.index,
-                                 field="objects")
-            motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
-            camera_motion = t @ motion @ rigid_inverse(t)  # object motion expressed in frame n's camera
-            mask = (ids == oid) & np.isfinite(frame.depth)
-            moved = points_all[mask] @ camera_motion.T  # (N, 4), w = 1 (finite depth only)
-            uv, z, valid = geometry.project(moved, k)
-            pix = pixels_all[mask]
-            d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
-            flow[mask] = d
-        return flow
+
+def true_object_flow(frame: Frame, objects: dict, target_index: int) -> np.ndarray:
+    """(H, W, 3) flow in frame n's view from TRUE object motion to frame ``target_index``: pixel displacement
+    (du, dv) and planar depth change dz of every pixel whose object moves (0 elsewhere and for sky).
+
+    ``objects`` maps object id -> ``SceneObject`` (per-frame world-from-object transforms); the frame must
+    carry its ``object_id`` channel.
+    """
+    if frame.object_id is None or not objects:
+        raise InputError("true object motion needs the object_id channel and the sequence's objects",
+                         frame=frame.index, field="object_id")
+    k, t = frame.camera.intrinsics, frame.camera.world_to_camera
+    flow = np.zeros(frame.depth.shape + (3,), dtype=np.float32)
+    ids = frame.object_id
+    points_all = geometry.unproject(frame.depth, k)  # (H, W, 4) homogeneous
+    pixels_all = geometry.pixel_centers(*frame.depth.shape)
+    for oid in np.unique(ids):
+        obj = objects.get(int(oid))
+        if obj is None or not obj.moving:
+            continue
+        if not 0 <= target_index < len(obj.world_from_object):
+            raise InputError(f"no transform of object {oid} for frame {target_index}", frame=frame.index,
+                             field="objects")
+        motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
+        camera_motion = t @ motion @ rigid_inverse(t)  # object motion expressed in frame n's camera
+        mask = (ids == oid) & np.isfinite(frame.depth)
+        moved = points_all[mask] @ camera_motion.T  # (N, 4), w = 1 (finite depth only)
+        uv, z, valid = geometry.project(moved, k)
+        pix = pixels_all[mask]
+        d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
+        flow[mask] = d
+    return flow
 
 
 #: Registry of method names -> factory(objects) for the CLI and the evaluation.
@@ -241,16 +247,17 @@ METHODS: dict[str, Callable[[Sequence[SceneObject]], Predictor]] = {
     "reproject": lambda objects: Reproject(),
     "flow2d": lambda objects: Flow2D(),
     "oracle": lambda objects: Oracle(objects),
-    "decomp": lambda objects: _decomp(),
-    "decomp2d": lambda objects: _decomp("flow2d.onnx"),
+    "decomp": lambda objects: _decomp(objects=objects),
+    "decomp2d": lambda objects: _decomp("flow2d.onnx", objects=objects),
 }
 
 
-def _decomp(weights: str = "flow3d.onnx", options: str = "") -> Predictor:
+def _decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequence[SceneObject] = ()) -> Predictor:
     """The DeCOMPnet predictor (``engine.decomp``) with committed weights from ``engine/weights``."""
     from engine.decomp import DEFAULT_MODEL, DecompPredictor, config_from_options
 
-    return DecompPredictor(config_from_options(options, model=str(DEFAULT_MODEL.with_name(weights))))
+    return DecompPredictor(config_from_options(options, model=str(DEFAULT_MODEL.with_name(weights))),
+                           objects=objects)
 
 
 def split_methods(text: str) -> list[str]:
@@ -282,4 +289,4 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
     if base not in ("decomp", "decomp2d") or not rest.endswith("]"):
         raise InputError(f"method '{name}': only decomp and decomp2d take options, as decomp[key=value,...]",
                          field="methods")
-    return _decomp("flow3d.onnx" if base == "decomp" else "flow2d.onnx", rest[:-1])
+    return _decomp("flow3d.onnx" if base == "decomp" else "flow2d.onnx", rest[:-1], objects)

@@ -10,13 +10,15 @@ The exported graph takes the two MPIs as flat tensors and returns the 3D flow ``
 | ``plane_depths`` | (B, Z) float32 | frame n's plane depths (shared by both MPIs, ``mpi_pair``) |
 | output ``flow`` | (B, 3, Z, H, W) float32 | (du, dv) pixels, dz scene units; 0 where alpha_n = 0 |
 
-B, H and W are dynamic; Z is fixed by the network (``Flow3DConfig.num_planes``). Any H, W >= 1 run:
+B, H and W are dynamic; Z is fixed by the network (``Flow3DConfig.num_planes``; ``with_planes`` rebuilds
+the same weights for another Z before export). Any H, W >= 1 run:
 the graph pads both with alpha = 0 to multiples of the pyramid stride (16 for 4 levels,
 ``models.flow3d.pyramid_stride``) and crops the flow back; sizes that are already multiples skip that
 work and are the recommended ones. Exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``.
 
 >>> path = export_flow("runs/flow3d/checkpoint.pt", "flow3d.onnx")          # doctest: +SKIP
 >>> err = check_parity(path, load_model("runs/flow3d/checkpoint.pt"), inputs)  # doctest: +SKIP
+>>> export_flow(with_planes(load_model("models/weights/flow3d.pt"), 8), "flow3d_z8.onnx")  # doctest: +SKIP
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ from models.flow3d import Flow3D, pyramid_stride
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
-           "example_inputs"]
+           "example_inputs", "with_planes"]
 
 INPUT_NAMES = ("color_n", "depth_n", "alpha_n", "color_prev", "depth_prev", "alpha_prev", "plane_depths")
 #: the extra input of networks built with ``Flow3DConfig.initial_flow``: (B, 2, H, W) pixels, u(n -> n-k)
@@ -68,6 +70,26 @@ def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
         return load_model(checkpoint_or_module)
     raise InputError(f"must be a Flow3D, a FlowGraph or a checkpoint path, got {type(checkpoint_or_module).__name__}",
                      field="checkpoint_or_module")
+
+
+def with_planes(model: Flow3D, num_planes: int) -> Flow3D:
+    """The same trained weights, built for ``num_planes`` MPI planes (eval mode; ``model`` is not changed).
+
+    No weight depends on Z: every layer slides a (3, 3, 3) or 1x1x1 kernel along the planes and the plane
+    softmax covers the offsets z' in [-s_z, s_z]; so the graph can be exported for any Z. The network was
+    trained at its own Z: other values are an extrapolation whose quality is measured, not assumed
+    (``interleave sweep --planes``).
+    """
+    import dataclasses
+
+    if model.config.mode != "3d":
+        raise InputError(f"only '3d' networks have MPI planes to change (this one is '{model.config.mode}')",
+                         field="num_planes")
+    if num_planes < 1:
+        raise InputError(f"must be >= 1, got {num_planes}", field="num_planes")
+    out = Flow3D(dataclasses.replace(model.config, num_planes=int(num_planes)))
+    out.load_state_dict(model.state_dict(), strict=True)
+    return out.eval()
 
 
 def _working_width(checkpoint_or_module) -> int:
@@ -184,12 +206,17 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     parser.add_argument("out", type=Path, help="the .onnx file to write")
     parser.add_argument("--tolerance", type=float, default=1e-3,
                         help="largest |onnxruntime - torch| flow difference accepted, pixels (default 1e-3)")
+    parser.add_argument("--num-planes", type=int, default=None,
+                        help="export the same weights for this many MPI planes Z (3d networks only; default: the "
+                             "Z it was trained with); 'interleave sweep --planes' uses such exports")
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
     from models.train_flow import load_model
 
     model = load_model(args.checkpoint)
+    if args.num_planes is not None:
+        model = with_planes(model, args.num_planes)
     path = export_flow(model, args.out, working_width=_working_width(args.checkpoint))
     err = check_parity(path, model, example_inputs(model, 96, 160, seed=1))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); max |onnxruntime - torch| = {err:.2e}")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import os
 import time
@@ -134,15 +135,22 @@ def _from_dict(cls, data: dict):
 
 def prepare_data(config: TrainFlowConfig, *, progress: bool = False) -> list[Path]:
     """Render every scene seed that is not cached yet; returns the rgbd-seq folders, one per seed."""
+    return render_scenes(config.data_dir, config.scene_seeds, config.scene_width, config.scene_height,
+                         config.scene_frames, progress=progress)
+
+
+def render_scenes(data_dir: str | Path, seeds, width: int, height: int, frames: int, *,
+                  progress: bool = False) -> list[Path]:
+    """``<data_dir>/scene_<seed>`` rgbd-seq folders from ``engine.scenegen``, rendering those not cached yet
+    (written to a ``.tmp`` folder, then renamed: an interrupted render is never taken for a finished one)."""
     from engine.scenegen import SceneConfig, generate_sequence
 
-    root = Path(config.data_dir)
+    root = Path(data_dir)
     paths = []
-    for seed in config.scene_seeds:
+    for seed in seeds:
         path = root / f"scene_{seed:06d}"
         if not (path / "sequence.json").exists():
-            scene = SceneConfig(seed=seed, width=config.scene_width, height=config.scene_height,
-                                num_frames=config.scene_frames)
+            scene = SceneConfig(seed=seed, width=width, height=height, num_frames=frames)
             generate_sequence(scene, path.with_name(path.name + ".tmp"), progress=progress)
             path.with_name(path.name + ".tmp").rename(path)
         paths.append(path)
@@ -426,6 +434,13 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
             metrics.close()
     if rank == 0 and start >= config.steps and not ckpt_path.exists():
         _save_checkpoint(ckpt_path, model, optimizer, start, config)
+    if world > 1:
+        # Drop the DDP reducer (it holds the process group and gloo work objects) before the group is
+        # destroyed, and let every rank get here first: a rank whose peer has already hung up while gloo
+        # still owns pending work aborts with "terminate called without an active exception".
+        del net
+        gc.collect()
+        dist.barrier()
     return ckpt_path
 
 

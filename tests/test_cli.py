@@ -1,5 +1,6 @@
 """The `interleave` command line: help for every option, clear errors with exit status 2, end to end runs."""
 import json
+from pathlib import Path
 
 import pytest
 
@@ -8,7 +9,7 @@ from engine.io import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
 
-@pytest.mark.parametrize("command", ["demo", "eval", "render-scene", "import"])
+@pytest.mark.parametrize("command", ["demo", "eval", "sweep", "render-scene", "import"])
 def test_every_option_has_help(command, capsys):
     with pytest.raises(SystemExit) as exc:
         main([command, "--help"])
@@ -57,6 +58,68 @@ def test_render_scene_and_demo_end_to_end(tmp_path):
     assert main(["demo", "--out", str(tmp_path / "demo"), "--frames", "8", "--width", "96", "--height", "64"]) == 0
     for name in ("side_by_side.mp4", "table.md", "results.json", "speed_vs_error.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 0
+
+
+def test_eval_bounds_prints_the_four_rows_and_writes_json(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.1, object_speed=0.08)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json = tmp_path / "bounds.json"
+    assert main(["eval", str(path), "--bounds", "decomp[fill=simple]", "--k", "4", "--no-flip",
+                 "--json", str(out_json)]) == 0
+    printed = capsys.readouterr().out
+    for motion, infill in (("pred", "pred"), ("GT", "pred"), ("pred", "GT"), ("GT", "GT")):
+        assert f"| 4 | {motion} | {infill} | decomp[fill=simple" in printed
+    assert "Per future step k'" in printed  # k > 2
+    doc = json.loads(out_json.read_text())
+    assert doc["bounds_variant"] == "decomp[fill=simple]" and len(doc["bounds"]) == 4
+    assert {"motion", "infill", "psnr", "ssim", "flip", "psnr_moving", "hole_fraction"} <= set(doc["bounds"][0])
+
+
+def test_eval_bounds_errors(tmp_path, capsys):
+    frames, _ = two_layer_sequence(5)
+    path = write_sequence(tmp_path / "no_objects", frames, fps=30.0)
+    assert main(["eval", str(path), "--bounds", "decomp[fill=simple]", "--no-flip"]) == 2
+    err = capsys.readouterr().err
+    assert "motion=truth needs the sequence's moving objects" in err and "no_objects" in err
+    assert "Traceback" not in err
+    assert main(["eval", str(path), "--bounds", "flow2d"]) == 2
+    assert "decomp variant" in capsys.readouterr().err
+
+
+def test_eval_k5_prints_a_per_step_table(tmp_path, capsys):
+    frames, objects = two_layer_sequence(11, width=80, height=60, camera_speed=0.05, object_speed=0.03)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json = tmp_path / "k5.json"
+    methods = ("reproject", "flow2d", "decomp[fill=simple]")
+    assert main(["eval", str(path), "--k", "5", "--methods", ",".join(methods), "--json", str(out_json)]) == 0
+    printed = capsys.readouterr().out
+    for method in methods:
+        for step in (1, 2, 3, 4):
+            assert f"| {method} | 5 | {step} | 1 |" in printed
+    doc = json.loads(out_json.read_text())
+    assert all(set(r["per_step"]) == {"1", "2", "3", "4"} for r in doc["records"])
+    assert all(r["per_step"]["4"]["flip"] > 0 for r in doc["records"])
+
+
+def test_sweep_runs_on_a_tiny_sequence(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.05, object_speed=0.08)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out = tmp_path / "sweep"
+    assert main(["sweep", str(path), "--fill", "simple", "--flow-width", "80,40", "--max-groups", "2",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| 80x60 | reproject |" in printed and "Stage breakdown at 80x60" in printed
+    doc = json.loads((out / "sweep.json").read_text())
+    assert [p["label"] for p in doc["points"]] == ["reproject", "flow2d", "decomp w80 Z4 simple",
+                                                   "decomp w40 Z4 simple"]
+    assert any(p["pareto_psnr"] for p in doc["points"]) and any(p["pareto_flip"] for p in doc["points"])
+    fastest = min(doc["points"], key=lambda p: p["ms_per_frame"])
+    assert fastest["pareto_psnr"] and fastest["pareto_flip"]  # nothing is faster than the fastest
+    assert len(doc["records"]) == len(doc["resolutions"]) == 4
+    assert (out / "sweep.md").stat().st_size > 0 and (out / "sweep.png").stat().st_size > 10_000
+    assert main(["sweep", str(path), "--fill", "simple", "--decomp-options", "flow_width=10",
+                 "--out", str(out)]) == 2
+    assert "swept by the sweep itself" in capsys.readouterr().err
 
 
 def test_import_through_the_command_line(tmp_path, capsys):

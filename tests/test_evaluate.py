@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from engine.errors import InputError
-from engine.evaluate import evaluate_sequence, evaluation_pairs, markdown_table, plot, stage_table, write_json
+from engine.evaluate import (TRUE_HOLES, bound_methods, bounds_summary, bounds_table, evaluate_sequence,
+                             evaluation_pairs, markdown_table, per_step_table, plot, split_scoring, stage_table,
+                             with_true_holes, write_json)
 from engine.io import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
@@ -54,3 +56,77 @@ def test_k4_reports_per_step_scores(sequence):
 def test_too_short_sequence_is_an_error(sequence):
     with pytest.raises(InputError, match="too few"):
         evaluate_sequence(sequence, ["repeat"], 8)
+
+
+@pytest.fixture(scope="module")
+def moving_sequence(tmp_path_factory):
+    """Camera and object both move enough that k = 4 leaves disocclusions to fill."""
+    frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.1, object_speed=0.08)
+    path = write_sequence(tmp_path_factory.mktemp("seq") / "moving", frames, fps=30.0, objects=objects)
+    return read_sequence(path)
+
+
+def test_true_holes_copy_the_truth_into_the_holes_only():
+    color = np.zeros((4, 5, 3), np.float32)
+    truth = np.ones((4, 5, 3), np.float32)
+    holes = np.zeros((4, 5), bool)
+    holes[1, 2] = True
+    out = with_true_holes(color, holes, truth)
+    assert out[1, 2].tolist() == [1, 1, 1] and out.sum() == 3 and color.sum() == 0  # the input is not changed
+    assert split_scoring("decomp[fill=simple]" + TRUE_HOLES) == ("decomp[fill=simple]", True)
+    assert split_scoring("reproject") == ("reproject", False)
+    with pytest.raises(InputError, match="holes"):
+        with_true_holes(color, holes[:, :4], truth)
+
+
+def test_truth_in_holes_is_never_worse_on_the_hole_pixels(moving_sequence):
+    methods = ["reproject", "reproject" + TRUE_HOLES, "decomp[fill=simple]", "decomp[fill=simple]" + TRUE_HOLES]
+    by = {r.method: r for r in evaluate_sequence(moving_sequence, methods, 4, with_flip=False)}
+    for method in ("reproject", "decomp[fill=simple]"):
+        pred, exact = by[method], by[method + TRUE_HOLES]
+        assert pred.hole_fraction > 0 and exact.hole_fraction == pred.hole_fraction  # the same predictions
+        assert np.isfinite(pred.psnr_holes) and exact.psnr_holes == float("inf")  # hole pixels now exact
+        assert exact.psnr >= pred.psnr and exact.ssim >= pred.ssim - 1e-6
+        assert exact.ms_per_frame == pred.ms_per_frame  # shared predictor, shared times
+        for step in ("1", "2", "3"):
+            assert exact.per_step[step]["psnr"] >= pred.per_step[step]["psnr"]
+
+
+def test_bound_rows_name_the_four_cases():
+    rows = bound_methods("decomp[fill=simple]")
+    assert [(r.motion, r.infill) for r in rows] == [("pred", "pred"), ("GT", "pred"), ("pred", "GT"), ("GT", "GT")]
+    assert [r.method for r in rows] == ["decomp[fill=simple]", "decomp[fill=simple,motion=truth]",
+                                        "decomp[fill=simple]+true_holes", "decomp[fill=simple,motion=truth]+true_holes"]
+    assert bound_methods()[1].method == "decomp[motion=truth]"
+    for bad in ("reproject", "decomp[motion=truth]", "decomp[fill=simple", "decomp+true_holes"):
+        with pytest.raises(InputError):
+            bound_methods(bad)
+
+
+def test_bounds_true_motion_and_pixels_beat_the_prediction(moving_sequence):
+    rows = bound_methods("decomp[fill=simple]")
+    results = evaluate_sequence(moving_sequence, [r.method for r in rows], 4, with_flip=False)
+    by = {(row.motion, row.infill): next(r for r in results if r.method == row.method) for row in rows}
+    assert by["GT", "GT"].psnr >= by["pred", "pred"].psnr
+    assert by["GT", "GT"].psnr_moving >= by["pred", "pred"].psnr_moving
+    for motion in ("pred", "GT"):  # exact hole pixels never lower the PSNR of the same predictions
+        assert by[motion, "GT"].psnr >= by[motion, "pred"].psnr
+    summary = bounds_summary(results, rows)
+    assert [(e["motion"], e["infill"]) for e in summary] == [(r.motion, r.infill) for r in rows]
+    table = bounds_table(results, rows)
+    assert "| 4 | GT | GT | decomp[fill=simple,motion=truth]+true_holes |" in table and "exact" in table
+
+
+def test_true_motion_without_objects_is_a_clear_error(tmp_path):
+    frames, _ = two_layer_sequence(9, width=48, height=32)
+    sequence = read_sequence(write_sequence(tmp_path / "no_objects", frames, fps=30.0))
+    with pytest.raises(InputError, match="motion=truth needs the sequence's moving objects") as exc:
+        evaluate_sequence(sequence, [bound_methods("decomp[fill=simple]")[1].method], 2)
+    assert "no_objects" in str(exc.value)
+
+
+def test_per_step_table_lists_every_future_step(sequence):
+    results = evaluate_sequence(sequence, ["reproject"], 4, with_flip=False)
+    table = per_step_table(results)
+    assert [line.split("|")[3].strip() for line in table.splitlines()[2:]] == ["1", "2", "3"]
+    assert results[0].per_step["2"]["frames"] == 1

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from engine.errors import InputError
-from export.flow import INPUT_NAMES, check_parity, example_inputs, export_flow
+from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
 from models.flow3d import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
                            masked_correlation)
 from models.train_flow import (TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items,
@@ -200,3 +200,19 @@ def test_config_file_with_command_line_overrides(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(InputError, match="TrainFlowConfig JSON"):
         config_from_args(parser.parse_args(["--config", str(tmp_path / "bad.json")]), set())
+
+
+def test_with_planes_rebuilds_the_same_weights_for_another_plane_count():
+    torch.manual_seed(0)
+    model = Flow3D(TINY_NET).eval()
+    for z in (2, 8):
+        other = with_planes(model, z)
+        assert other.config.num_planes == z and model.config.num_planes == TINY_NET.num_planes
+        assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), other.state_dict().values()))
+        with torch.no_grad():
+            flow = FlowGraph(other)(*example_inputs(other, 32, 48))
+        assert flow.shape == (1, 3, z, 32, 48) and torch.isfinite(flow).all()
+    with pytest.raises(InputError, match="only '3d' networks"):
+        with_planes(Flow3D(Flow3DConfig(mode="2d", num_planes=1)), 4)
+    with pytest.raises(InputError, match=">= 1"):
+        with_planes(model, 0)

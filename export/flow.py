@@ -161,9 +161,10 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
     return out
 
 
-def _write_metadata(path: Path, model: Flow3D, working_width: int) -> None:
-    """Store the network config and its working width in the ONNX metadata (``engine.decomp.METADATA_KEY``);
-    drop the per-node debug records (source stack traces) the exporter writes."""
+def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None) -> None:
+    """Store the network config (``model.config``) and its working width in the ONNX metadata under ``key``
+    (default ``engine.decomp.METADATA_KEY``; ``export.infill`` passes its own); drop the per-node debug
+    records (source stack traces) the exporter writes."""
     import dataclasses
     import json
 
@@ -177,7 +178,7 @@ def _write_metadata(path: Path, model: Flow3D, working_width: int) -> None:
         del node.metadata_props[:]
     del proto.metadata_props[:]
     entry = proto.metadata_props.add()
-    entry.key = METADATA_KEY
+    entry.key = key or METADATA_KEY
     entry.value = json.dumps({"model": dataclasses.asdict(model.config), "working_width": int(working_width)})
     onnx.save(proto, str(path))
 

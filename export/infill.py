@@ -16,8 +16,6 @@ with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; the ONNX metadat
 """
 from __future__ import annotations
 
-import dataclasses
-import json
 from pathlib import Path
 from typing import Optional, Union
 
@@ -108,19 +106,10 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
                                     output_names=["residual"], dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
-    import onnx
-
     from engine.infill import METADATA_KEY
+    from export.flow import _write_metadata
 
-    proto = onnx.load(str(out))
-    for node in proto.graph.node:  # drop the exporter's per-node stack traces
-        node.doc_string = ""
-        del node.metadata_props[:]
-    del proto.metadata_props[:]
-    entry = proto.metadata_props.add()
-    entry.key = METADATA_KEY
-    entry.value = json.dumps({"model": dataclasses.asdict(net.config), "working_width": int(working_width)})
-    onnx.save(proto, str(out))
+    _write_metadata(out, net, working_width, METADATA_KEY)
     return out
 
 

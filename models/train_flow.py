@@ -331,7 +331,9 @@ def load_model(path: str | Path) -> Flow3D:
     return model.eval()
 
 
-def _save_checkpoint(path: Path, model: Flow3D, optimizer, step: int, config: TrainFlowConfig) -> None:
+def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, config) -> None:
+    """Atomic ``checkpoint.pt``: model and optimiser state, step, ``config.model`` and ``config`` as dicts
+    (any training config with a nested ``model`` dataclass; the infilling trainer uses it too)."""
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "model_config": dataclasses.asdict(config.model), "config": dataclasses.asdict(config)}, tmp)

@@ -196,15 +196,10 @@ def load_model(path: str | Path) -> InfillNet:
     return net.eval()
 
 
-def _save(path: Path, net: InfillNet, optimizer, step: int, config: TrainInfillConfig) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"step": step, "model": net.state_dict(), "optimizer": optimizer.state_dict(),
-                "model_config": dataclasses.asdict(config.model), "config": dataclasses.asdict(config)}, tmp)
-    tmp.replace(path)
-
-
 def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False) -> Path:
     """Train ``InfillNet`` and return the path of ``checkpoint.pt`` (see the module docstring)."""
+    from models.train_flow import _save_checkpoint
+
     if not isinstance(config, TrainInfillConfig):
         raise InputError(f"must be a TrainInfillConfig, got {type(config).__name__}", field="config")
     torch.set_num_threads(config.threads)
@@ -237,7 +232,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     best_val = float("inf")
     if val_samples and not (out / BEST).exists():  # step 0 (the prior alone) is the first candidate
         best_val = val_prior
-        _save(out / BEST, net, optimizer, start, config)
+        _save_checkpoint(out / BEST, net, optimizer, start, config)
     elif (out / BEST).exists():
         best_val = min((json.loads(line).get("val_loss", float("inf"))
                         for line in (out / METRICS).read_text().splitlines() if line.strip()), default=float("inf"))
@@ -266,11 +261,11 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
                     record.update(val_loss=evaluate_samples(net, val_samples), val_loss_prior_only=val_prior)
                     if record["val_loss"] < best_val:  # the export takes best.pt: the lowest held-out loss
                         best_val = record["val_loss"]
-                        _save(out / BEST, net, optimizer, done, config)
+                        _save_checkpoint(out / BEST, net, optimizer, done, config)
                 metrics.write(json.dumps(record) + "\n")
                 metrics.flush()
             if done % config.checkpoint_every == 0 or done == config.steps:
-                _save(ckpt, net, optimizer, done, config)
+                _save_checkpoint(ckpt, net, optimizer, done, config)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float(loss.detach()):.5f}")
@@ -279,7 +274,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
         if bar is not None:
             bar.close()
     if start >= config.steps and not ckpt.exists():
-        _save(ckpt, net, optimizer, start, config)
+        _save_checkpoint(ckpt, net, optimizer, start, config)
     return ckpt
 
 

@@ -97,6 +97,9 @@ class DecompConfig:
                                  "hence not the default)")
     infill_iterations: int = option(3, "passes g of the infilling network (each fills what the last left open)")
     infill_model: str = option("", "ONNX infilling network (default: the committed engine/weights/infill.onnx)")
+    infill_margin: int = option(48, "hole gate of the infilling network: it runs on boxes around the holes with "
+                                    "this many of its pixels as context (48 = its receptive radius: the same "
+                                    "vectors as the whole frame); -1 = on the whole frame")
     motion: str = option("predicted", "object motion of the predicted frame: 'predicted' (the flow network, "
                                       "extrapolated) or 'truth' (the sequence's true object motion, as the "
                                       "oracle: the bound of thesis Table 6.3; needs object ids and transforms)")
@@ -114,6 +117,7 @@ class DecompConfig:
              "min_plane_fraction must be -1 or in [0, 1)"),
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
+            (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
             (self.motion in ("predicted", "truth"), f"motion must be 'predicted' or 'truth', got {self.motion!r}"),
         ]
         for ok, problem in checks:
@@ -513,8 +517,14 @@ class DecompPredictor(Predictor):
         color, depth, acc = timer("composite", geometry.composite, warped)
         holes = acc <= 0
         if self.infill is not None and holes.any():
-            color, depth = self.infill.fill(color, depth, holes, state.data["plane_depths"], newest.color,
-                                            self.config.infill_iterations, timer)
+            margin = None if self.config.infill_margin < 0 else self.config.infill_margin
+            planes = state.data["plane_depths"]
+            if len(planes) != self.infill.num_planes:  # a flow network on other planes: frame n's, at the infill's Z
+                if "infill_planes" not in state.data:
+                    state.data["infill_planes"] = geometry.plane_depths(newest.depth, self.infill.num_planes)
+                planes = state.data["infill_planes"]
+            color, depth = self.infill.fill(color, depth, holes, planes, newest.color,
+                                            self.config.infill_iterations, timer, margin)
         else:
             color, _ = timer("fill", fill_holes, color, depth, holes, newest.color)
         return color, holes

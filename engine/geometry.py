@@ -384,10 +384,16 @@ def _nearest_plane(inv_depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
     return index
 
 
+def plane_index(depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(H, W) index of the plane each pixel of a planar ``depth`` map goes to in ``build_mpi`` (the plane
+    nearest in inverse depth; sky (+inf) -> the farthest plane). ``planes`` (Z,) as ``build_mpi`` takes them."""
+    return _nearest_plane(np.float32(1.0) / depth, planes)
+
+
 def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, planes: Optional[np.ndarray] = None) -> Mpi:
     h, w = depth.shape
     planes = _plane_depths(depth, num_planes) if planes is None else planes
-    index = _nearest_plane(np.float32(1.0) / depth, planes)
+    index = plane_index(depth, planes)
     alpha = np.zeros((num_planes, h, w), dtype=np.float32)
     np.put_along_axis(alpha, index[None], np.float32(1.0), axis=0)
     on = alpha > 0

@@ -25,12 +25,17 @@ from engine.geometry import Mpi
 from engine.holefill import fill_holes, fill_sources
 
 __all__ = ["InfillNetwork", "DEFAULT_INFILL_MODEL", "METADATA_KEY", "downsample_holes", "hole_mpi",
-           "prior_vectors", "apply_vectors", "composite_holes"]
+           "prior_vectors", "candidate_vectors", "apply_vectors", "composite_holes", "copy_along_vectors", "hole_boxes",
+           "RECEPTIVE_MARGIN"]
 
 #: The committed infilling network (see ``engine/weights/README.md``).
 DEFAULT_INFILL_MODEL = Path(__file__).resolve().parent / "weights" / "infill.onnx"
 #: ONNX metadata key holding the network's ``InfillConfig`` and working width (JSON), set by ``export.infill``.
 METADATA_KEY = "interleave.infill"
+#: Pixels of the network grid around a hole that reach its vectors: the committed U-Net's receptive radius
+#: (3 levels of two 3 x 3 convolutions, the first of each strided, and their mirror). The hole gate keeps
+#: this much context by default, so gating changes no vector (tested).
+RECEPTIVE_MARGIN = 48
 
 
 def downsample_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
@@ -70,6 +75,34 @@ def prior_vectors(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
     return np.stack([np.where(ok, src_c - cols, 0), np.where(ok, src_r - rows, 0)]).astype(np.float32)
 
 
+def _nearest_known(known: np.ndarray, reverse: bool) -> np.ndarray:
+    """(H, W) column of the nearest known pixel to the left (or right with ``reverse``) in each row, -1: none."""
+    w = known.shape[1]
+    if not reverse:
+        return np.maximum.accumulate(np.where(known, np.arange(w), -1), axis=1)
+    idx = np.minimum.accumulate(np.where(known, np.arange(w), w)[:, ::-1], axis=1)[:, ::-1]
+    return np.where(idx == w, -1, idx)
+
+
+def candidate_vectors(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """(2 K, H, W) float32 candidate source vectors of the choice head (``models.infill.NUM_CANDIDATES`` = 5,
+    (dx, dy) pairs in this order): the prior (``prior_vectors``), then the nearest known pixel to the left,
+    right, above and below. A direction with no known pixel repeats the prior; 0 at known pixels."""
+    prior = prior_vectors(depth, holes)
+    known = ~holes
+    rows, cols = np.indices(holes.shape)
+    left, right = _nearest_known(known, False), _nearest_known(known, True)
+    up, down = _nearest_known(known.T, False).T, _nearest_known(known.T, True).T
+    out = [prior]
+    for src, horizontal in ((left, True), (right, True), (up, False), (down, False)):
+        ok = holes & (src >= 0)
+        dx = np.where(ok, src - cols, prior[0]) if horizontal else np.where(ok, 0, prior[0])
+        dy = np.where(ok, 0, prior[1]) if horizontal else np.where(ok, src - rows, prior[1])
+        out += [dx, dy]
+    vec = np.concatenate([out[0]] + [np.stack(out[i:i + 2]) for i in range(1, len(out), 2)]).astype(np.float32)
+    return np.where(holes[None], vec, np.float32(0.0))
+
+
 def apply_vectors(mpi: Mpi, holes: np.ndarray, vectors: np.ndarray) -> tuple[Mpi, np.ndarray]:
     """Copy, per plane, the nearest point at p + v into every hole pixel p (numpy mirror of
     ``models.infill.apply_vectors(mode='nearest')``: index = round-half-even(p + v), outside = empty).
@@ -102,6 +135,53 @@ def composite_holes(mpi: Mpi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return color, depth, acc <= 0
 
 
+def copy_along_vectors(color: np.ndarray, depth: np.ndarray, holes: np.ndarray, plane_depths: np.ndarray,
+                       rows: np.ndarray, cols: np.ndarray,
+                       vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The engine's copy step on the listed hole pixels only: the same result as ``hole_mpi`` ->
+    ``apply_vectors`` -> ``composite_holes`` (the reference, tested equal), without building the MPI.
+
+    A hole pixel p takes, over the planes front to back, the first known pixel at round-half-even(p + v_z)
+    that lies on plane z (the nearest plane that received a copy in the reference's composite).
+
+    Args:
+        color: (H, W, 3); depth: (H, W) planar (+inf sky); holes: (H, W) bool; plane_depths: (Z,);
+        rows, cols: (N,) the hole pixels to fill; vectors: (2, Z, N) (dx, dy) pixels per plane.
+    Returns:
+        (colour, depth, holes left): copies written into new arrays; unlisted holes stay holes.
+    """
+    h, w = holes.shape
+    index = np.where(holes, -1, geometry.plane_index(np.where(holes, np.float32(np.inf), depth),
+                                                     np.asarray(plane_depths, np.float32)))
+    done = np.zeros(rows.shape, dtype=bool)
+    src_r, src_c = np.zeros(rows.shape, np.int64), np.zeros(rows.shape, np.int64)
+    for z in range(vectors.shape[1]):
+        sx = np.rint(cols + vectors[0, z]).astype(np.int64)
+        sy = np.rint(rows + vectors[1, z]).astype(np.int64)
+        inside = (sx >= 0) & (sx < w) & (sy >= 0) & (sy < h)
+        ok = inside & ~done
+        ok[ok] = index[sy[ok], sx[ok]] == z
+        src_r[ok], src_c[ok] = sy[ok], sx[ok]
+        done |= ok
+    color, depth, holes = color.copy(), depth.copy(), holes.copy()
+    r, c = rows[done], cols[done]
+    color[r, c] = color[src_r[done], src_c[done]]
+    depth[r, c] = depth[src_r[done], src_c[done]]
+    holes[r, c] = False
+    return color, depth, holes
+
+
+def hole_boxes(holes: np.ndarray, margin: int, stride: int,
+               full_frame_fraction: float = 0.5) -> list[tuple[int, int, int, int]]:
+    """Boxes (y0, y1, x0, x1) of the network grid the infilling network must see: tiles of ``stride``
+    pixels holding a hole, grown by ``margin`` pixels of context, snapped to ``stride`` (so a box sees the
+    same U-Net grid as the whole frame); the whole frame when the boxes cover more than
+    ``full_frame_fraction`` of it (the motion gate's ``engine.decomp.motion_boxes``)."""
+    from engine.decomp import motion_boxes
+
+    return motion_boxes(holes, stride, 0.0, margin, stride, full_frame_fraction)
+
+
 class InfillNetwork:
     """The exported infilling network in onnxruntime, and the engine's infilling loop (``fill``)."""
 
@@ -115,15 +195,35 @@ class InfillNetwork:
         self.path = path
         self.config: dict = info["model"]
         self.num_planes = int(self.config["num_planes"])
-        self.stride = 2 ** (len(self.config["channels"]) - 1)
+        self.head = str(self.config.get("head", "residual"))
+        self.stride = 2 ** len(self.config["channels"])  # models.infill.InfillConfig.stride
         self.working_width = int(info["working_width"])
 
     def vectors(self, mpi: Mpi, holes: np.ndarray, prior: np.ndarray) -> np.ndarray:
-        """Infilling vectors (2, Z, H, W) = prior + the network's correction, pixels of the MPI's grid."""
+        """Infilling vectors (2, Z, H, W), pixels of the MPI's grid: prior + the network's correction
+        (residual head; ``prior`` (2, H, W)), or the candidate the network scores highest, the same on every
+        plane (choice head; ``prior`` = ``candidate_vectors`` (2 K, H, W), ties to the first: the prior)."""
+        out = self._run(mpi, holes, prior)
+        if self.head == "residual":
+            return prior[:, None] + out
         h, w = holes.shape
-        if mpi.alpha.shape != (self.num_planes, h, w) or prior.shape != (2, h, w):
+        chosen = np.take_along_axis(prior.reshape(-1, 2, h, w), np.argmax(out, axis=0)[None, None], axis=0)[0]
+        return np.broadcast_to(chosen[:, None], (2, self.num_planes, h, w))
+
+    def choices(self, mpi: Mpi, holes: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """(H, W) index of the candidate the choice head scores highest (ties to 0, the prior)."""
+        if self.head != "choice":
+            raise InputError("only a choice-head network chooses among candidates", field="infill_model")
+        return np.argmax(self._run(mpi, holes, candidates), axis=0)
+
+    def _run(self, mpi: Mpi, holes: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """The network's raw output on one frame: residual (2, Z, H, W) or logits (K, H, W)."""
+        h, w = holes.shape
+        channels = 2 if self.head == "residual" else prior.shape[0]
+        if mpi.alpha.shape != (self.num_planes, h, w) or prior.shape != (channels, h, w) or channels % 2:
             raise InputError(f"MPI {mpi.alpha.shape} / prior {prior.shape}: the network takes {self.num_planes} "
-                             f"planes and a (2, H, W) prior on the same grid", field="mpi")
+                             f"planes and (2, H, W) prior or (2 K, H, W) candidate vectors on the same grid",
+                             field="mpi")
         feeds = {"color": mpi.color[None], "depth": mpi.depth[None, None], "alpha": mpi.alpha[None, None],
                  "plane_depths": np.asarray(mpi.plane_depths, np.float32)[None],
                  "holes": holes[None].astype(np.float32), "prior": prior[None]}
@@ -132,20 +232,24 @@ class InfillNetwork:
             feeds = {k: v if k == "plane_depths" else np.pad(v, [(0, 0)] * (v.ndim - 2) + [(0, ph), (0, pw)])
                      for k, v in feeds.items()}
         feeds = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in feeds.items()}
-        residual = self.session.run(None, feeds)[0][0][..., :h, :w]
-        if not np.isfinite(residual).all():
-            raise InterleaveError("the infilling network returned non-finite vectors")
-        return prior[:, None] + residual
+        out = self.session.run(None, feeds)[0][0][..., :h, :w]
+        if not np.isfinite(out).all():
+            raise InterleaveError("the infilling network returned non-finite outputs")
+        return out
 
     def fill(self, color: np.ndarray, depth: np.ndarray, holes: np.ndarray, plane_depths: np.ndarray,
              fallback: Optional[np.ndarray] = None, iterations: int = 3,
-             timer: Optional[Callable] = None) -> tuple[np.ndarray, np.ndarray]:
+             timer: Optional[Callable] = None, margin: Optional[int] = RECEPTIVE_MARGIN) -> tuple[np.ndarray, np.ndarray]:
         """Infill the holes of a predicted frame in ``iterations`` passes, then the simple fill for the rest.
 
         Args:
             color: (H, W, 3) linear RGB; depth: (H, W) planar (+inf sky or hole); holes: (H, W) bool.
             plane_depths: (Z,) planes of frame n (the network's Z); fallback: colour for pixels nothing
                 can reach (``engine.holefill``); timer: optional ``timer(stage, fn, *args)`` (stage times).
+            margin: the hole gate: the network runs on boxes around the holes with this many pixels of its
+                grid as context (``hole_boxes``; the frame is downsampled and the prior vectors found within
+                each box; at ``RECEPTIVE_MARGIN`` or more the vectors equal the whole-frame run's, tested);
+                None: on the whole frame.
         Returns:
             (colour, depth) with every hole filled by a copy of a known pixel.
         """
@@ -153,25 +257,45 @@ class InfillNetwork:
         planes = np.asarray(plane_depths, np.float32)
         if planes.shape != (self.num_planes,):
             raise InputError(f"needs {self.num_planes} plane depths, got shape {planes.shape}", field="plane_depths")
+        if margin is not None and int(margin) < 0:
+            raise InputError(f"must be >= 0 or None, got {margin}", field="margin")
         color, depth, holes = color.astype(np.float32), depth.astype(np.float32), holes.astype(bool)
         big_h, big_w = holes.shape
         factor = min(geometry.downsample_factor(big_w, self.working_width), big_h, big_w)
         for _ in range(int(iterations)):
             if not holes.any():
                 break
-            low_c, low_d, low_h = run("infill_prepare", downsample_holes, color, depth, holes, factor)
+            h, w = big_h // factor, big_w // factor
+            low_h = holes[:h * factor, :w * factor].reshape(h, factor, w, factor).any(axis=(1, 3))
             if not low_h.any() or low_h.all():
                 break  # nothing at this scale to fill from (all hole) or the holes vanished in the blocks
-            low_mpi = run("infill_prepare", hole_mpi, low_c, low_d, low_h, planes)
-            prior = run("infill_prepare", prior_vectors, low_d, low_h)
-            vec = run("infill_network", self.vectors, low_mpi, low_h, prior)
-            # full resolution: each pixel takes its block's vector times the block size (edge blocks repeat)
-            rows = np.minimum(np.arange(big_h) // factor, low_h.shape[0] - 1)
-            cols = np.minimum(np.arange(big_w) // factor, low_h.shape[1] - 1)
-            full_vec = vec[:, :, rows][:, :, :, cols] * np.float32(factor)
-            mpi = run("infill_apply", hole_mpi, color, depth, holes, planes)
-            mpi, _ = run("infill_apply", apply_vectors, mpi, holes, full_vec)
-            color, depth, holes = run("infill_apply", composite_holes, mpi)
+            boxes = [(0, h, 0, w)] if margin is None else run("infill_prepare", hole_boxes, low_h, int(margin),
+                                                                self.stride)
+            choice = self.head == "choice"
+            vec = np.zeros((2, self.num_planes, h, w), dtype=np.float32)
+            pick = np.zeros((h, w), dtype=np.intp)
+            for y0, y1, x0, x1 in boxes:  # the frame is downsampled and the prior found inside each box only
+                full = (slice(y0 * factor, y1 * factor), slice(x0 * factor, x1 * factor))
+                low_c, low_d, box_h = run("infill_prepare", downsample_holes, color[full], depth[full], holes[full],
+                                          factor)
+                prior = run("infill_prepare", candidate_vectors if choice else prior_vectors, low_d, box_h)
+                low_mpi = run("infill_prepare", hole_mpi, low_c, low_d, box_h, planes)
+                if choice:
+                    pick[y0:y1, x0:x1] = run("infill_network", self.choices, low_mpi, box_h, prior)
+                else:
+                    vec[:, :, y0:y1, x0:x1] = run("infill_network", self.vectors, low_mpi, box_h, prior)
+            # full resolution: each hole pixel takes its block's vector times the block size (residual head),
+            # or its block's choice of candidate, found at full resolution (choice head); edge blocks repeat
+            rows, cols = np.nonzero(holes)
+            brow, bcol = np.minimum(rows // factor, h - 1), np.minimum(cols // factor, w - 1)
+            if choice:
+                cand = run("infill_apply", candidate_vectors, depth, holes).reshape(-1, 2, big_h, big_w)
+                full_vec = np.broadcast_to(cand[pick[brow, bcol], :, rows, cols].T[:, None],
+                                           (2, self.num_planes, rows.size))
+            else:
+                full_vec = vec[:, :, brow, bcol] * np.float32(factor)
+            color, depth, holes = run("infill_apply", copy_along_vectors, color, depth, holes, planes, rows, cols,
+                                      full_vec)
         if holes.any():
             color, depth = run("fill", fill_holes, color, depth, holes, fallback)
         return color, depth

@@ -279,14 +279,20 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
     """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones.
 
     ``decomp`` and ``decomp2d`` take options of ``engine.decomp.DecompConfig`` in brackets, e.g.
-    ``decomp[gate=0,flow_width=240]``.
+    ``decomp[gate=0,flow_width=240]``; ``flow2d`` its DIS preset, ``flow2d[preset=fast]``.
     """
     base, _, rest = name.partition("[")
     if base not in METHODS:
         raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}", field="methods")
     if not rest:
         return METHODS[base](objects)
+    if base == "flow2d" and rest.endswith("]"):
+        key, _, value = rest[:-1].partition("=")
+        if key.strip() != "preset":
+            raise InputError(f"method '{name}': flow2d takes one option, preset (ultrafast, fast, medium)",
+                             field="methods")
+        return Flow2D(value.strip())
     if base not in ("decomp", "decomp2d") or not rest.endswith("]"):
-        raise InputError(f"method '{name}': only decomp and decomp2d take options, as decomp[key=value,...]",
-                         field="methods")
+        raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.decomp.DecompConfig) and "
+                         f"flow2d (preset=...) take options, as decomp[key=value,...]", field="methods")
     return _decomp("flow3d.onnx" if base == "decomp" else "flow2d.onnx", rest[:-1], objects)

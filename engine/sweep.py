@@ -33,7 +33,7 @@ __all__ = ["Variant", "SweepPoint", "pareto_front", "decomp_variants", "plane_mo
            "sweep_table", "plot_sweep", "add_arguments", "run_sweep_command", "main"]
 
 #: the knobs a variant sets; ``--decomp-options`` may not set them too
-SWEPT_KEYS = ("flow_width", "fill", "infill_iterations", "model")
+SWEPT_KEYS = ("flow_width", "fill", "infill_iterations", "model", "dis_preset")
 #: where the plane-count variants of the committed flow network are exported (``flow3d_z{Z}.onnx``)
 DEFAULT_MODELS_DIR = Path("runs/flow3d_planes")
 #: the torch checkpoint the committed ``engine/weights/flow3d.onnx`` was exported from
@@ -50,6 +50,7 @@ class Variant:
     fill: Optional[str] = None
     infill_iterations: Optional[int] = None
     planes: Optional[int] = None
+    dis_preset: Optional[str] = None
 
     @property
     def label(self) -> str:
@@ -58,7 +59,8 @@ class Variant:
             return self.method
         width = "native" if self.flow_width == 0 else str(self.flow_width)
         g = f" g{self.infill_iterations}" if self.infill_iterations is not None else ""
-        return f"{self.method.partition('[')[0]} w{width} Z{self.planes} {self.fill}{g}"
+        dis = f" DIS-{self.dis_preset}" if self.dis_preset not in (None, "medium") else ""
+        return f"{self.method.partition('[')[0]} w{width} Z{self.planes} {self.fill}{g}{dis}"
 
 
 @dataclass
@@ -73,6 +75,7 @@ class SweepPoint:
     fill: Optional[str]
     infill_iterations: Optional[int]
     planes: Optional[int]
+    dis_preset: Optional[str]
     sequences: int
     frames: int
     ms_per_frame: float
@@ -107,8 +110,9 @@ def pareto_front(times: Sequence[float], errors: Sequence[float]) -> list[bool]:
 
 def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_iterations: Sequence[int],
                     planes: Sequence[int], models: dict[int, str], options: str = "",
-                    base: str = "decomp") -> list[Variant]:
-    """Every combination of the knobs as ``decomp[...]`` variants (``infill_iterations`` only with ``fill=infill``).
+                    base: str = "decomp", dis_presets: Sequence[str] = ("medium",)) -> list[Variant]:
+    """Every combination of the knobs as ``decomp[...]`` variants (``infill_iterations`` only with ``fill=infill``;
+    ``dis_presets``: OpenCV DIS presets of the initial flow, 'medium' being the default and left unwritten).
 
     ``models`` maps each Z in ``planes`` to its ONNX flow network ('' for the committed one, see
     ``plane_models``); ``options`` ("key=value,...") are added to every variant and may not set a swept knob.
@@ -117,7 +121,8 @@ def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_ite
     clash = [p for p in extra if p.partition("=")[0].strip() in SWEPT_KEYS]
     if clash:
         raise InputError(f"{', '.join(clash)}: swept by the sweep itself (use its own option)", field="decomp_options")
-    for name, values in (("flow_width", flow_widths), ("fill", fills), ("planes", planes)):
+    for name, values in (("flow_width", flow_widths), ("fill", fills), ("planes", planes),
+                         ("dis_preset", dis_presets)):
         if not values:
             raise InputError("needs at least one value", field=name)
     if any(w < 0 for w in flow_widths) or any(z < 1 for z in planes) or any(g < 1 for g in infill_iterations):
@@ -126,20 +131,26 @@ def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_ite
     unknown = sorted(set(fills) - {"simple", "infill"})
     if unknown:
         raise InputError(f"unknown fill {', '.join(unknown)}, expected simple or infill", field="fill")
+    bad = sorted(set(dis_presets) - {"ultrafast", "fast", "medium"})
+    if bad:
+        raise InputError(f"unknown DIS preset {', '.join(bad)}, expected ultrafast, fast or medium",
+                         field="dis_preset")
     if "infill" in fills and not infill_iterations:
         raise InputError("fill=infill needs at least one infill iteration count", field="infill_iterations")
     missing = [z for z in planes if z not in models]
     if missing:
         raise InputError(f"no flow network for Z = {missing}", field="planes")
     variants = []
-    for z in dict.fromkeys(planes):
-        for width in dict.fromkeys(flow_widths):
-            for fill in dict.fromkeys(fills):
-                for g in (dict.fromkeys(infill_iterations) if fill == "infill" else [None]):
-                    opts = extra + [f"flow_width={width}", f"fill={fill}"]
-                    opts += [f"infill_iterations={g}"] if g is not None else []
-                    opts += [f"model={models[z]}"] if models[z] else []
-                    variants.append(Variant(f"{base}[{','.join(opts)}]", width, fill, g, z))
+    for preset in dict.fromkeys(dis_presets):
+        for z in dict.fromkeys(planes):
+            for width in dict.fromkeys(flow_widths):
+                for fill in dict.fromkeys(fills):
+                    for g in (dict.fromkeys(infill_iterations) if fill == "infill" else [None]):
+                        opts = extra + [f"flow_width={width}", f"fill={fill}"]
+                        opts += [f"infill_iterations={g}"] if g is not None else []
+                        opts += [f"model={models[z]}"] if models[z] else []
+                        opts += [f"dis_preset={preset}"] if preset != "medium" else []
+                        variants.append(Variant(f"{base}[{','.join(opts)}]", width, fill, g, z, preset))
     return variants
 
 
@@ -192,6 +203,7 @@ def sweep_points(results: Sequence[tuple[str, MethodResult]], variants: Sequence
 
             group.append(SweepPoint(resolution=resolution, label=v.label, method=v.method, flow_width=v.flow_width,
                                     fill=v.fill, infill_iterations=v.infill_iterations, planes=v.planes,
+                                    dis_preset=v.dis_preset,
                                     sequences=len(rows), frames=sum(r.frames for r in rows),
                                     ms_per_frame=float(statistics.median(r.ms_per_frame for r in rows)),
                                     psnr=mean("psnr"), flip=mean("flip"), psnr_moving=mean("psnr_moving")))
@@ -210,13 +222,15 @@ def sweep_table(points: Sequence[SweepPoint]) -> str:
     def knob(value) -> str:
         return "-" if value is None else "native" if value == 0 else str(value)
 
-    lines = ["| size | method | flow_width | fill | g | Z | frames | ms/frame | PSNR | FLIP | PSNR moving | Pareto |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| size | method | flow_width | fill | g | Z | DIS | frames | ms/frame | PSNR | FLIP | PSNR moving | Pareto |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     order = {res: i for i, res in enumerate(dict.fromkeys(p.resolution for p in points))}
     for p in sorted(points, key=lambda p: (order[p.resolution], p.ms_per_frame)):
         front = ", ".join(name for name, on in (("PSNR", p.pareto_psnr), ("FLIP", p.pareto_flip)) if on) or ""
-        lines.append(f"| {p.resolution} | {p.method.partition('[')[0]} | {knob(p.flow_width)} | {knob(p.fill)} | "
-                     f"{knob(p.infill_iterations)} | {knob(p.planes)} | {p.frames} | {p.ms_per_frame:.1f} | "
+        method = p.label if p.fill is None else p.method.partition("[")[0]  # baselines keep their options
+        lines.append(f"| {p.resolution} | {method} | {knob(p.flow_width)} | {knob(p.fill)} | "
+                     f"{knob(p.infill_iterations)} | {knob(p.planes)} | {knob(p.dis_preset)} | {p.frames} | "
+                     f"{p.ms_per_frame:.1f} | "
                      f"{p.psnr:.2f} | {p.flip:.4f} | {p.psnr_moving:.2f} | {front} |")
     return "\n".join(lines)
 
@@ -296,6 +310,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--planes", type=_ints, default=[4], metavar="Z,...",
                         help="MPI planes of the flow network, e.g. 2,4,8; Z other than the committed network's (4) "
                              "is exported once into --models-dir from --checkpoint, needs torch (default: 4)")
+    parser.add_argument("--dis-presets", type=_words, default=["medium"], metavar="PRESET,...",
+                        help="OpenCV DIS presets of decomp's initial flow: ultrafast, fast, medium (default: medium)")
     parser.add_argument("--decomp-options", default="", metavar="KEY=VALUE,...",
                         help="DecompConfig options added to every variant, e.g. 'gate=0' (not the swept knobs)")
     parser.add_argument("--baselines", type=_words, default=["reproject", "flow2d"], metavar="METHOD,...",
@@ -327,12 +343,13 @@ def run_sweep_command(args: argparse.Namespace) -> int:
     sequences = [read_sequence(path) for path in args.sequences]  # fail on a bad folder before any export
     # the grid, its options and its networks (e.g. the infilling one) fail now too, not after an export
     trial = decomp_variants(args.flow_width, args.fill, args.infill_iterations, args.planes,
-                            dict.fromkeys(args.planes, ""), args.decomp_options)
+                            dict.fromkeys(args.planes, ""), args.decomp_options, dis_presets=args.dis_presets)
     for fill in dict.fromkeys(args.fill):
         make_predictor(next(v.method for v in trial if v.fill == fill))
     models = plane_models(args.planes, args.models_dir, args.checkpoint)
     variants = [Variant(m) for m in args.baselines] + decomp_variants(
-        args.flow_width, args.fill, args.infill_iterations, args.planes, models, args.decomp_options)
+        args.flow_width, args.fill, args.infill_iterations, args.planes, models, args.decomp_options,
+        dis_presets=args.dis_presets)
     methods = [v.method for v in variants]
     results: list[tuple[str, MethodResult]] = []
     for sequence in sequences:

@@ -7,8 +7,9 @@
 | ``alpha`` | (B, 1, Z, H, W) float32 | occupancy, 0 on every plane of a hole pixel |
 | ``plane_depths`` | (B, Z) float32 | frame n's plane depths |
 | ``holes`` | (B, H, W) float32 | 1 where the pixel is a disocclusion |
-| ``prior`` | (B, 2, H, W) float32 | prior vectors (``engine.infill.prior_vectors``), pixels |
-| output ``residual`` | (B, 2, Z, H, W) float32 | the network's correction; vectors = prior + residual |
+| ``prior`` | (B, 2, H, W) float32 | prior vectors (``engine.infill.prior_vectors``), pixels; choice head: (B, 2 K, H, W) candidate vectors (``engine.infill.candidate_vectors``) |
+| output ``residual`` | (B, 2, Z, H, W) float32 | residual head: the correction; vectors = prior + residual |
+| output ``logits`` | (B, K, H, W) float32 | choice head: candidate scores; the engine copies the highest |
 
 B, H and W are dynamic; H and W must be multiples of ``InfillConfig.stride`` (the engine pads). Exported
 with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; the ONNX metadata key
@@ -56,10 +57,11 @@ def example_inputs(net: InfillNet, height: int = 32, width: int = 48, batch: int
     holes = torch.zeros(batch, height, width)
     holes[:, height // 3: height // 2, width // 3: width // 2] = 1.0
     keep = (1.0 - holes)[:, None, None]
-    prior = torch.zeros(batch, 2, height, width)
-    prior[:, 0] = -(holes * 4.0)
+    channels = net.config.in_channels - 6  # 2 (the prior) or 2 K (the candidates)
+    prior = torch.zeros(batch, channels, height, width)
+    prior[:, 0::2] = -(holes[:, None] * 4.0)
     return (mpi.color * keep, mpi.depth * keep, mpi.alpha * keep, mpi.plane_depths, holes,
-            prior + holes[:, None] * torch.randn(batch, 2, height, width, generator=g))
+            prior + holes[:, None] * torch.randn(batch, channels, height, width, generator=g))
 
 
 def _as_net(checkpoint_or_module: Union[str, Path, nn.Module]) -> InfillNet:
@@ -103,7 +105,8 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
     out.parent.mkdir(parents=True, exist_ok=True)
     with torch.no_grad():
         program = torch.onnx.export(graph, inputs, dynamo=True, opset_version=OPSET, input_names=list(INPUT_NAMES),
-                                    output_names=["residual"], dynamic_shapes=dynamic, verbose=False,
+                                    output_names=["residual" if net.config.head == "residual" else "logits"],
+                                    dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
     from engine.infill import METADATA_KEY
@@ -114,7 +117,8 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
 
 
 def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[Tensor, ...]) -> float:
-    """Max |onnxruntime - torch| of the residual vectors (pixels) on ``inputs`` (``INPUT_NAMES`` order)."""
+    """Max |onnxruntime - torch| of the output (residual vectors, pixels, or choice logits) on ``inputs``
+    (``INPUT_NAMES`` order)."""
     import onnxruntime as ort
 
     net = _as_net(module).eval()

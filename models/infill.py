@@ -8,12 +8,17 @@ vector lands on an empty point of its plane, nothing is copied on that plane; th
 nearest plane that did receive a copy. Passes are repeated ``g`` times (each fills what the previous one
 left open, thesis: g = 3).
 
-The vectors are a learnt correction of a classical one: the background-biased row fill of
+The *residual* head (the thesis's free vectors) learns a correction of a classical vector: the background-biased row fill of
 ``engine.holefill`` gives every hole pixel a source (the farther of its nearest known left / right
 pixels; ``fill_sources``), the *prior* vector, fed to the network and added to its output (the last
 layer starts at zero, so the untrained network is exactly that fill). Every filled pixel is a copy of a
 known pixel: the engine samples the nearest point (``mode='nearest'``), training samples bilinearly so
 the vectors get gradients.
+
+The *choice* head (``InfillConfig.head='choice'``) scores K candidate sources per pixel instead (the prior,
+and the nearest known pixel left, right, above and below: ``engine.infill.candidate_vectors``) and the
+engine copies the best-scored one; it is trained on the expected error of its choice (``choice_loss``),
+which a network cannot lower by blending.
 
 Tensors follow ``models/geometry.py``: MPIs (B, C, Z, H, W), planes near (0) to far, pixel centres at
 +0.5, vectors (B, 2, Z, H, W) = (dx, dy) in pixels of the MPI's grid. The engine's numpy mirror is
@@ -32,13 +37,16 @@ from engine.errors import InputError
 from models.flow3d import _stack_planes, encode_color, mpi_features
 from models.geometry import Mpi, _composite
 
-__all__ = ["InfillConfig", "InfillNet", "infill_inputs", "apply_vectors", "infill", "infill_loss",
-           "PRIOR_SCALE", "RESIDUAL_SCALE"]
+__all__ = ["InfillConfig", "InfillNet", "infill_inputs", "apply_vectors", "infill", "infill_loss", "choice_loss",
+           "PRIOR_SCALE", "RESIDUAL_SCALE", "NUM_CANDIDATES"]
 
 #: The prior vectors enter the network divided by this (pixels -> about unit range).
 PRIOR_SCALE = 16.0
 #: The network's raw output is multiplied by this to give the residual vector in pixels.
 RESIDUAL_SCALE = 4.0
+#: Candidate source vectors of the choice head (``engine.infill.candidate_vectors``): the prior, then the
+#: nearest known pixel to the left, right, above and below.
+NUM_CANDIDATES = 5
 
 
 @dataclass(frozen=True)
@@ -50,10 +58,20 @@ class InfillConfig:
                                                      "level halves H and W, the first included: the vectors "
                                                      "are estimated per 2 x 2 block and repeated)")
     negative_slope: float = option(0.1, "LeakyReLU slope")
+    head: str = option("residual", "'residual': a correction (B, 2, Z, H, W) of the prior vectors, pixels (the "
+                                   "thesis's free vectors); 'choice': logits (B, K, H, W) over K candidate "
+                                   "source vectors (engine.infill.candidate_vectors), the highest is copied")
 
     def __post_init__(self) -> None:
         if self.num_planes < 1 or not self.channels or min(self.channels) < 1:
             raise InputError("num_planes >= 1 and channels must be positive", field="InfillConfig")
+        if self.head not in ("residual", "choice"):
+            raise InputError(f"head must be 'residual' or 'choice', got {self.head!r}", field="InfillConfig")
+
+    @property
+    def in_channels(self) -> int:
+        """Input channels per plane (``infill_inputs``): features 4, alpha, holes, then 2 per vector given."""
+        return 6 + 2 * (1 if self.head == "residual" else NUM_CANDIDATES)
 
     @property
     def stride(self) -> int:
@@ -82,9 +100,9 @@ def _conv(c_in: int, c_out: int, stride: int = 1) -> PlaneConv3d:
 
 
 class InfillNet(nn.Module):
-    """A 3D U-Net: (B, 8, Z, H, W) inputs (``infill_inputs``) -> (B, 2, Z, H, W) residual vectors, pixels."""
-
-    IN_CHANNELS = 8
+    """A 3D U-Net: (B, C, Z, H, W) inputs (``infill_inputs``) -> (B, 2, Z, H, W) residual vectors, pixels
+    (residual head), or (B, K, H, W) candidate logits, the per-plane scores averaged over the planes
+    (choice head)."""
 
     def __init__(self, config: InfillConfig = InfillConfig()) -> None:
         super().__init__()
@@ -93,14 +111,14 @@ class InfillNet(nn.Module):
         self.config = config
         ch = config.channels
         self.down = nn.ModuleList()
-        c_prev = self.IN_CHANNELS
+        c_prev = config.in_channels
         for i, c in enumerate(ch):
             self.down.append(nn.ModuleList([_conv(c_prev, c, 2), _conv(c, c)]))
             c_prev = c
         self.up = nn.ModuleList()
         for i in range(len(ch) - 1, 0, -1):
             self.up.append(nn.ModuleList([_conv(ch[i] + ch[i - 1], ch[i - 1]), _conv(ch[i - 1], ch[i - 1])]))
-        self.head = PlaneConv3d(ch[0], 2)
+        self.head = PlaneConv3d(ch[0], 2 if config.head == "residual" else NUM_CANDIDATES)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
@@ -114,20 +132,22 @@ class InfillNet(nn.Module):
         for (first, second), skip in zip(self.up, reversed(skips[:-1])):
             x = F.interpolate(x, size=skip.shape[2:], mode="nearest")
             x = act(second(act(first(torch.cat([x, skip], dim=1)))))
-        return F.interpolate(self.head(x), size=size, mode="nearest") * RESIDUAL_SCALE
+        out = F.interpolate(self.head(x), size=size, mode="nearest")
+        return out * RESIDUAL_SCALE if self.config.head == "residual" else out.mean(dim=2)
 
 
 def infill_inputs(mpi: Mpi, holes: Tensor, prior: Tensor) -> Tensor:
-    """Network input (B, 8, Z, H, W): encoded colour and depth code times alpha (``mpi_features``), alpha,
-    the hole mask and the prior vector / ``PRIOR_SCALE`` (both the same on every plane).
+    """Network input (B, ``InfillConfig.in_channels``, Z, H, W): encoded colour and depth code times alpha
+    (``mpi_features``), alpha, the hole mask and the vectors / ``PRIOR_SCALE`` (both the same on every plane).
 
     Args:
         mpi: the predicted frame's MPI (holes: alpha 0 on every plane); holes: (B, H, W) bool or {0, 1};
-        prior: (B, 2, H, W) pixels (0 outside holes and where the fill found no source).
+        prior: (B, 2, H, W) prior vectors (residual head) or (B, 2 K, H, W) candidate vectors (choice head),
+            pixels (0 outside holes and where the fill found no source).
     """
     z = mpi.alpha.shape[2]
     holes = holes.to(mpi.alpha.dtype)[:, None, None].expand(-1, 1, z, -1, -1)
-    prior = (prior / PRIOR_SCALE)[:, :, None].expand(-1, 2, z, -1, -1)
+    prior = (prior / PRIOR_SCALE)[:, :, None].expand(-1, -1, z, -1, -1)
     return torch.cat([mpi_features(mpi, mpi.plane_depths), mpi.alpha, holes, prior], dim=1)
 
 
@@ -186,6 +206,28 @@ def infill(net: InfillNet, mpi: Mpi, holes: Tensor, prior: Tensor,
     """One pass: vectors = prior + network residual (on every plane), applied with ``apply_vectors``."""
     vectors = prior[:, :, None] + net(infill_inputs(mpi, holes, prior))
     return apply_vectors(mpi, holes, vectors, mode)
+
+
+def choice_loss(logits: Tensor, errors: Tensor, holes: Tensor, kind: str = "expected") -> Tensor:
+    """Loss of the choice head per batch item (B,), averaged over the hole pixels. ``errors`` (B, K, H, W):
+    squared error (encoded colour, as ``infill_loss``) of copying candidate k's source into each pixel.
+
+    ``kind='expected'``: sum_k softmax(logits)_k * errors_k, the expected error of the choice: minimised by
+    all weight on the best candidate (no blending), but its gradient vanishes once the softmax saturates
+    (Adam drove it onto the prior, the best candidate on average, within 25 steps here).
+    ``kind='weighted_ce'``: cross-entropy towards each pixel's best candidate, weighted by how much the
+    choice matters there (max_k errors_k - min_k errors_k). (Weighting by the gain over the prior instead
+    gave pixels where the prior is best no weight, and the network left the prior far too often: held-out
+    error 2.5-3.5x the prior's after 100-200 steps.)"""
+    mask = holes.to(errors.dtype)
+    if kind == "expected":
+        err = (torch.softmax(logits, dim=1) * errors).sum(dim=1)
+    elif kind == "weighted_ce":
+        best_err, best = errors.min(dim=1)
+        err = F.cross_entropy(logits, best, reduction="none") * (errors.max(dim=1).values - best_err)
+    else:
+        raise InputError(f"kind must be 'expected' or 'weighted_ce', got {kind!r}", field="kind")
+    return (err * mask).sum(dim=(1, 2)) / mask.sum(dim=(1, 2)).clamp(min=1.0)
 
 
 def infill_loss(mpi: Mpi, holes: Tensor, truth: Tensor) -> Tensor:

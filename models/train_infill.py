@@ -30,11 +30,11 @@ import torch
 
 from engine.config import option
 from engine.errors import InputError
-from models.infill import InfillConfig, InfillNet, apply_vectors, infill, infill_loss
+from models.infill import InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs, infill_loss
 from models.geometry import Mpi
 
-__all__ = ["TrainInfillConfig", "make_samples", "batch_tensors", "train", "load_model", "evaluate_samples",
-           "main"]
+__all__ = ["TrainInfillConfig", "make_samples", "batch_tensors", "choice_tensors", "candidate_errors", "train",
+           "load_model", "evaluate_samples", "main"]
 
 CHECKPOINT, CONFIG, METRICS = "checkpoint.pt", "config.json", "metrics.jsonl"
 #: the checkpoint with the lowest held-out loss so far (step 0, the prior alone, included)
@@ -67,6 +67,8 @@ class TrainInfillConfig:
     sample_mode: str = option("bilinear", "how training copies along the vectors: 'bilinear' (blends four "
                                           "points) or 'straight_through' (the nearest point, as the engine, with "
                                           "bilinear gradients; diverged here: held-out loss 25-40x the prior's)")
+    choice_objective: str = option("weighted_ce", "loss of a choice head (models.infill.choice_loss): "
+                                                  "'weighted_ce' or 'expected' (collapsed onto the prior here)")
     threads: int = option(1, "torch threads (1: with 2, backward ran 20x slower here when another process "
                                 "shared the machine)")
     log_every: int = option(25, "steps between metrics.jsonl records")
@@ -85,6 +87,7 @@ class TrainInfillConfig:
             (self.crops_per_sample <= self.crop_candidates, "crops_per_sample must be <= crop_candidates"),
             (len(self.scene_seeds) >= 1, "needs at least one scene seed"),
             (self.sample_mode in ("bilinear", "straight_through"), "sample_mode: 'bilinear' or 'straight_through'"),
+            (self.choice_objective in ("weighted_ce", "expected"), "choice_objective: 'weighted_ce' or 'expected'"),
         ]
         for ok, problem in checks:
             if not ok:
@@ -108,7 +111,7 @@ def make_samples(config: TrainInfillConfig, seeds, *, progress: bool = False) ->
     from tqdm import tqdm
 
     from engine import geometry
-    from engine.infill import downsample_holes, prior_vectors
+    from engine.infill import candidate_vectors, downsample_holes, prior_vectors
     from engine.io import read_sequence
     from engine.predictors import true_object_flow
     from models.train_flow import render_scenes
@@ -144,10 +147,45 @@ def make_samples(config: TrainInfillConfig, seeds, *, progress: bool = False) ->
                     continue  # nothing to learn from: no hole, or nothing known to copy from
                 crop = (slice(y, y + size), slice(x, x + size))
                 hc, dc = low_h[crop], low_d[crop]
-                out.append({"color": low_c[crop], "depth": dc, "holes": hc, "prior": prior_vectors(dc, hc),
-                            "truth": truth[crop], "planes": planes, "scene": int(seed), "n": n, "step": step,
-                            "corner": (y, x)})
+                sample = {"color": low_c[crop], "depth": dc, "holes": hc, "prior": prior_vectors(dc, hc),
+                          "truth": truth[crop], "planes": planes, "scene": int(seed), "n": n, "step": step,
+                          "corner": (y, x)}
+                if config.model.head == "choice":
+                    sample["candidates"] = candidate_vectors(dc, hc)
+                    sample["errors"] = candidate_errors(low_c[crop], hc, sample["candidates"], truth[crop])
+                out.append(sample)
     return out
+
+
+def candidate_errors(color: np.ndarray, holes: np.ndarray, candidates: np.ndarray,
+                     truth: np.ndarray) -> np.ndarray:
+    """(K, h, w) float32 squared error (encoded colour, channel mean, as ``infill_loss``) of copying each
+    candidate's source pixel into each hole pixel; 0 at known pixels. ``candidates`` (2 K, h, w)."""
+    from engine.decomp import encode_color
+
+    rows, cols = np.indices(holes.shape)
+    enc, target = encode_color(color), encode_color(truth)
+    h, w = holes.shape
+    out = []
+    for dx, dy in candidates.reshape(-1, 2, h, w):
+        sy = np.clip(np.rint(rows + dy).astype(np.int64), 0, h - 1)
+        sx = np.clip(np.rint(cols + dx).astype(np.int64), 0, w - 1)
+        src = np.where(holes[sy, sx][..., None], np.float32(0.0), enc[sy, sx])  # a hole source copies nothing
+        out.append(np.where(holes, ((src - target) ** 2).mean(axis=-1), np.float32(0.0)))
+    return np.stack(out).astype(np.float32)
+
+
+def choice_tensors(samples: list[dict]) -> tuple[Mpi, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(MPI, holes, candidate vectors (B, 2 K, h, w), candidate errors (B, K, h, w)) for the choice head."""
+    mpi, holes, _, _ = batch_tensors(samples)
+    cand = torch.from_numpy(np.stack([s["candidates"] for s in samples]))
+    errors = torch.from_numpy(np.stack([s["errors"] for s in samples]))
+    return mpi, holes, cand, errors
+
+
+def _masked_mean(err: torch.Tensor, holes: torch.Tensor) -> torch.Tensor:
+    mask = holes.to(err.dtype)
+    return (err * mask).sum(dim=(1, 2)) / mask.sum(dim=(1, 2)).clamp(min=1.0)
 
 
 def batch_tensors(samples: list[dict]) -> tuple[Mpi, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -168,10 +206,17 @@ def batch_tensors(samples: list[dict]) -> tuple[Mpi, torch.Tensor, torch.Tensor,
 
 def evaluate_samples(net: Optional[InfillNet], samples: list[dict], mode: str = "nearest",
                      batch: int = 16) -> float:
-    """Mean ``infill_loss`` over ``samples`` after one pass (``net=None``: the prior vectors alone)."""
+    """Mean ``infill_loss`` over ``samples`` after one pass (``net=None``: the prior vectors alone); for a
+    choice head (samples with ``errors``): the mean error of the arg-max candidate, as the engine copies."""
     losses = []
     with torch.no_grad():
         for i in range(0, len(samples), batch):
+            if "errors" in samples[i] and (net is None or net.config.head == "choice"):
+                mpi, holes, cand, errors = choice_tensors(samples[i:i + batch])
+                pick = (torch.zeros_like(errors[:, :1], dtype=torch.long) if net is None else
+                        net(infill_inputs(mpi, holes, cand)).argmax(dim=1, keepdim=True))
+                losses.append(_masked_mean(errors.gather(1, pick)[:, 0], holes))
+                continue
             mpi, holes, prior, truth = batch_tensors(samples[i:i + batch])
             if net is None:
                 filled, _ = apply_vectors(mpi, holes, prior[:, :, None].expand(-1, -1, mpi.alpha.shape[2], -1, -1),
@@ -241,19 +286,27 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
             t0 = time.perf_counter()
             rng = np.random.default_rng([config.seed, 7, step])
             picked = rng.choice(len(train_samples), size=min(config.batch_size, len(train_samples)), replace=False)
-            mpi, holes, prior, truth = batch_tensors([train_samples[i] for i in picked])
+            chosen = [train_samples[i] for i in picked]
             net.train()
-            filled, _ = infill(net, mpi, holes, prior, config.sample_mode)
-            loss = infill_loss(filled, holes, truth).mean()
+            if config.model.head == "choice":
+                mpi, holes, cand, errors = choice_tensors(chosen)
+                loss = choice_loss(net(infill_inputs(mpi, holes, cand)), errors, holes, config.choice_objective).mean()
+            else:
+                mpi, holes, prior, truth = batch_tensors(chosen)
+                filled, _ = infill(net, mpi, holes, prior, config.sample_mode)
+                loss = infill_loss(filled, holes, truth).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             done = step + 1
             if done % config.log_every == 0 or done == config.steps:
                 with torch.no_grad():
-                    z = mpi.alpha.shape[2]
-                    base, _ = apply_vectors(mpi, holes, prior[:, :, None].expand(-1, -1, z, -1, -1), "nearest")
-                    base_loss = float(infill_loss(base, holes, truth).mean())
+                    if config.model.head == "choice":
+                        base_loss = float(_masked_mean(errors[:, 0], holes).mean())
+                    else:
+                        z = mpi.alpha.shape[2]
+                        base, _ = apply_vectors(mpi, holes, prior[:, :, None].expand(-1, -1, z, -1, -1), "nearest")
+                        base_loss = float(infill_loss(base, holes, truth).mean())
                 record = {"step": done, "loss": float(loss.detach()), "loss_prior_only": base_loss,
                           "step_s": round(time.perf_counter() - t0, 4), "samples": [int(i) for i in picked]}
                 if val_samples and (done % config.val_every == 0 or done == config.steps):

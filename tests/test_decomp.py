@@ -274,3 +274,7 @@ def test_method_options_parse_and_reject_bad_ones():
             config_from_options(bad)
     with pytest.raises(InputError, match="only decomp"):
         make_predictor("reproject[gate=0]")
+    assert make_predictor("flow2d[preset=fast]").name == "flow2d"
+    for bad in ("flow2d[gate=0]", "flow2d[preset=slow]"):
+        with pytest.raises(InputError, match="preset"):
+            make_predictor(bad)

@@ -2,6 +2,7 @@
 export parity and the decomp predictor with infilling."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -13,12 +14,13 @@ import torch.nn.functional as F
 from engine import geometry
 from engine.errors import InputError
 from engine.holefill import fill_holes
-from engine.infill import InfillNetwork, apply_vectors, downsample_holes, hole_mpi, prior_vectors
+from engine.infill import (DEFAULT_INFILL_MODEL, RECEPTIVE_MARGIN, InfillNetwork, apply_vectors, candidate_vectors,
+                           composite_holes, copy_along_vectors, downsample_holes, hole_boxes, hole_mpi, prior_vectors)
 from export.infill import check_parity, example_inputs, export_infill
 from models.geometry import Mpi as TorchMpi
-from models.infill import InfillConfig, InfillNet, PlaneConv3d
+from models.infill import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d, choice_loss
 from models.infill import apply_vectors as torch_apply_vectors
-from models.train_infill import TrainInfillConfig, evaluate_samples, make_samples, train
+from models.train_infill import TrainInfillConfig, candidate_errors, evaluate_samples, make_samples, train
 
 TINY = InfillConfig(num_planes=4, channels=(4, 8))
 
@@ -35,11 +37,11 @@ def frame_with_holes(h=40, w=56, seed=0):
     return color, np.where(holes, np.float32(np.inf), depth), holes
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    """A tiny network with a random (non-zero) last layer, exported to ONNX (working width 32)."""
+@pytest.fixture(scope="module", params=["residual", "choice"])
+def exported(tmp_path_factory, request):
+    """A tiny network of each head with a random (non-zero) last layer, exported to ONNX (working width 32)."""
     torch.manual_seed(0)
-    net = InfillNet(TINY).eval()
+    net = InfillNet(dataclasses.replace(TINY, head=request.param)).eval()
     torch.nn.init.normal_(net.head.weight, std=0.2)
     path = export_infill(net, tmp_path_factory.mktemp("infill") / "infill.onnx", working_width=32)
     return net, path
@@ -51,9 +53,11 @@ def test_plane_conv_is_conv3d():
     torch.testing.assert_close(conv(x), F.conv3d(x, conv.weight, conv.bias, (1, 2, 2), 1), atol=1e-5, rtol=1e-5)
 
 
-def test_untrained_network_is_the_simple_fill(tmp_path):
-    """The last layer starts at zero: vectors = prior, and the engine loop reproduces engine.holefill."""
-    net = InfillNet(TINY).eval()
+@pytest.mark.parametrize("head", ["residual", "choice"])
+def test_untrained_network_is_the_simple_fill(tmp_path, head):
+    """The last layer starts at zero: vectors = prior (residual 0; equal logits pick the first candidate, the
+    prior), and the engine loop reproduces engine.holefill."""
+    net = InfillNet(dataclasses.replace(TINY, head=head)).eval()
     path = export_infill(net, tmp_path / "zero.onnx", working_width=1000)  # factor 1 on these frames
     color, depth, holes = frame_with_holes()
     planes = geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4)
@@ -77,6 +81,62 @@ def test_numpy_copy_matches_torch_nearest():
     np.testing.assert_allclose(got.color, want.color[0].numpy(), atol=1e-6)
     np.testing.assert_allclose(got.depth, want.depth[0, 0].numpy(), rtol=1e-6)
     np.testing.assert_array_equal(left, want_left[0].numpy())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sparse_copy_matches_the_mpi_reference(seed):
+    """copy_along_vectors (the engine's fast path) = hole_mpi -> apply_vectors -> composite_holes, sky,
+    vectors leaving the frame and vectors landing on holes or other planes included."""
+    rng = np.random.default_rng(seed)
+    h, w = 30, 44
+    color, depth, holes = frame_with_holes(h, w, seed=seed)
+    holes |= rng.random((h, w)) < 0.1
+    depth = np.where(holes, np.float32(np.inf), depth)
+    planes = geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4)
+    vectors = (rng.integers(-20, 21, (2, 4, h, w)) + rng.uniform(-0.4, 0.4, (2, 4, h, w))).astype(np.float32)
+    mpi, _ = apply_vectors(hole_mpi(color, depth, holes, planes), holes, vectors)
+    want_color, want_depth, want_holes = composite_holes(mpi)
+    rows, cols = np.nonzero(holes)
+    got_color, got_depth, got_holes = copy_along_vectors(color, depth, holes, planes, rows, cols,
+                                                         vectors[:, :, rows, cols])
+    np.testing.assert_array_equal(got_holes, want_holes)
+    filled = ~got_holes
+    np.testing.assert_array_equal(got_color[filled], want_color[filled])
+    np.testing.assert_array_equal(got_depth[filled], want_depth[filled])
+    assert 0 < got_holes.sum() < holes.sum()  # the case exercises both outcomes
+
+
+def test_hole_gate_keeps_the_whole_frame_vectors():
+    """With the receptive margin as context the gated network gives the whole-frame result exactly; a
+    smaller margin still fills every hole with copies. The committed network, a 960 x 540 frame."""
+    rng = np.random.default_rng(7)
+    h, w = 540, 960
+    yy, xx = np.mgrid[:h, :w]
+    color = np.stack([np.sin(xx / 37.0), np.cos(yy / 23.0), (xx + yy) / (h + w)], -1).astype(np.float32) ** 2
+    depth = (5.0 + 20.0 * (xx / w)).astype(np.float32)
+    depth[200:330, 300:420] = 1.5  # a near box with disocclusions on two sides
+    holes = np.zeros((h, w), bool)
+    holes[210:320, 420:436] = True
+    holes[250:254, 436:500] = True
+    holes &= rng.random((h, w)) < 0.95
+    depth = np.where(holes, np.float32(np.inf), depth)
+    planes = geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4)
+    net = InfillNetwork(DEFAULT_INFILL_MODEL, threads=1)
+    boxes = hole_boxes(downsample_holes(color, depth, holes, 4)[2], RECEPTIVE_MARGIN, net.stride)
+    assert boxes and sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) < 0.5 * 135 * 240  # a real gate
+    whole = net.fill(color, depth, holes, planes, color, 3, margin=None)
+    gated = net.fill(color, depth, holes, planes, color, 3, margin=RECEPTIVE_MARGIN)
+    np.testing.assert_array_equal(gated[0], whole[0])
+    np.testing.assert_array_equal(gated[1], whole[1])
+    holes[:, :6] = True  # camera motion at the border: another box
+    depth = np.where(holes, np.float32(np.inf), depth)
+    small, _ = net.fill(color, depth, holes, planes, color, 3, margin=0)
+    assert np.isfinite(small).all()
+    np.testing.assert_array_equal(small[~holes], color[~holes])
+    known = {tuple(c) for c in color[~holes].round(6).tolist()}
+    assert all(tuple(c) in known for c in small[holes].round(6).tolist())
+    with pytest.raises(InputError, match="margin"):
+        net.fill(color, depth, holes, planes, color, 3, margin=-1)
 
 
 def test_bilinear_copy_has_vector_gradients_and_never_darkens():
@@ -199,6 +259,61 @@ def test_train_and_resume(tmp_path):
     assert np.isfinite(evaluate_samples(None, samples))
 
 
+def test_train_choice_head(tmp_path):
+    """The choice head trains on the expected error of its candidates; its held-out metric is the error of
+    the arg-max candidate, the prior's is candidate 0's."""
+    cfg = tiny_train_config(tmp_path / "run", model=dataclasses.replace(TINY, head="choice"), steps=6, val_every=6)
+    train(cfg, progress=False)
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["loss"]) and r["loss"] >= 0 for r in lines) and "val_loss" in lines[-1]
+    samples = make_samples(cfg, (2,))
+    assert all(s["candidates"].shape == (2 * NUM_CANDIDATES,) + s["holes"].shape for s in samples)
+    errors = np.stack([s["errors"] for s in samples])
+    holes = np.stack([s["holes"] for s in samples])
+    per_sample = [float(e[0][h].mean()) for e, h in zip(errors, holes)]
+    assert evaluate_samples(None, samples) == pytest.approx(float(np.mean(per_sample)), rel=1e-5)
+
+
+def test_candidates_point_at_the_nearest_known_pixels():
+    h = np.zeros((5, 6), bool)
+    h[1:3, 2:4] = True
+    h[4] = True  # a row with no known pixel: left / right fall back to the prior
+    depth = (np.arange(30, dtype=np.float32).reshape(5, 6) + 1.0)  # farther to the right and down
+    cand = candidate_vectors(depth, h).reshape(NUM_CANDIDATES, 2, 5, 6)
+    np.testing.assert_array_equal(cand[:, :, 1, 2], [[2, 0], [-1, 0], [2, 0], [0, -1], [0, 2]])
+    np.testing.assert_array_equal(cand[:, :, 4, 0], [[0, -1], [0, -1], [0, -1], [0, -1], [0, -1]])
+    np.testing.assert_array_equal(cand[0], prior_vectors(depth, h))
+    assert not cand[:, :, ~h].any()
+    rows, cols = np.nonzero(h)
+    for k in range(NUM_CANDIDATES):  # every candidate lands on a known pixel
+        assert not h[rows + cand[k, 1, rows, cols].astype(int), cols + cand[k, 0, rows, cols].astype(int)].any()
+
+
+def test_choice_loss_is_the_expected_error_of_the_choice():
+    errors = torch.tensor([[[[0.5]], [[0.1]], [[0.9]], [[0.3]], [[0.7]]]])  # (1, K, 1, 1)
+    holes = torch.ones(1, 1, 1)
+    sure = torch.full((1, NUM_CANDIDATES, 1, 1), -30.0)
+    sure[0, 1] = 30.0
+    assert float(choice_loss(sure, errors, holes)) == pytest.approx(0.1, abs=1e-6)
+    logits = torch.zeros(1, NUM_CANDIDATES, 1, 1, requires_grad=True)
+    assert float(choice_loss(logits, errors, holes).detach()) == pytest.approx(0.5, abs=1e-6)  # uniform: the mean
+    choice_loss(logits, errors, holes).sum().backward()
+    assert int(torch.argmin(logits.grad[0, :, 0, 0])) == 1  # descent raises the best candidate's score
+    assert float(choice_loss(logits, errors, torch.zeros(1, 1, 1)).detach()) == 0.0  # no hole: nothing to pay
+    ce = torch.zeros(1, NUM_CANDIDATES, 1, 1, requires_grad=True)
+    choice_loss(ce, errors, holes, "weighted_ce").sum().backward()
+    assert int(torch.argmin(ce.grad[0, :, 0, 0])) == 1  # cross-entropy towards the best candidate
+    same = torch.full_like(errors, 0.4)  # every candidate as good: the choice does not matter, no loss
+    assert float(choice_loss(ce, same, holes, "weighted_ce").detach()) == 0.0
+    with pytest.raises(InputError, match="kind"):
+        choice_loss(ce, errors, holes, "hinge")
+    color = np.array([[[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.2, 0.2, 0.2]]], np.float32)
+    hole = np.array([[False, True, False]])
+    cand = candidate_vectors(np.ones((1, 3), np.float32), hole)
+    err = candidate_errors(color, hole, cand, np.full((1, 3, 3), 0.2, np.float32))
+    assert err[2, 0, 1] == 0.0 and err[1, 0, 1] > 0.0 and not err[:, 0, [0, 2]].any()  # right copies the truth
+
+
 def test_train_config_errors(tmp_path):
     with pytest.raises(InputError):
         tiny_train_config(tmp_path, crop=10)  # not a multiple of the U-Net stride (4)
@@ -231,5 +346,11 @@ def test_decomp_with_infilling_and_true_motion(exported):
             assert "infill_network" in out.stages_ms
         scores[name] = score_frame(truth.color, out.color, truth.moving)
     assert scores["truth"].psnr_moving > scores["infill"].psnr_moving
+    # an infilling network on other planes than the flow network's (e.g. a Z = 2 flow variant of the sweep)
+    two = export_infill(InfillNet(InfillConfig(num_planes=2, channels=(4, 8))).eval(), path.with_name("z2.onnx"),
+                        working_width=32)
+    pred = DecompPredictor(DecompConfig(fill="infill"), flow_net, objects, infill=InfillNetwork(two, threads=1))
+    out = pred.predict([frames[2], frames[4]], target)
+    assert np.isfinite(out.color).all() and "infill_network" in out.stages_ms
     with pytest.raises(InputError, match="motion=truth"):
         DecompPredictor(DecompConfig(motion="truth"), flow_net, (), infill=infill_net)

@@ -26,7 +26,7 @@ def test_pareto_front_keeps_the_fastest_for_each_error():
 def test_variant_grid_sweeps_infill_passes_only_with_the_network():
     variants = decomp_variants([480, 240], ["simple", "infill"], [1, 2, 3], [4, 8], {4: "", 8: "z8.onnx"}, "gate=0")
     assert len(variants) == 2 * 2 * (1 + 3)
-    assert variants[0] == Variant("decomp[gate=0,flow_width=480,fill=simple]", 480, "simple", None, 4)
+    assert variants[0] == Variant("decomp[gate=0,flow_width=480,fill=simple]", 480, "simple", None, 4, "medium")
     assert variants[1].method == "decomp[gate=0,flow_width=480,fill=infill,infill_iterations=1]"
     assert variants[-1].method == "decomp[gate=0,flow_width=240,fill=infill,infill_iterations=3,model=z8.onnx]"
     assert variants[-1].label == "decomp w240 Z8 infill g3" and Variant("reproject").label == "reproject"
@@ -36,6 +36,12 @@ def test_variant_grid_sweeps_infill_passes_only_with_the_network():
         decomp_variants([480], ["magic"], [1], [4], {4: ""})
     with pytest.raises(InputError, match="no flow network for Z"):
         decomp_variants([480], ["simple"], [1], [2], {4: ""})
+    fast = decomp_variants([480], ["simple"], [1], [4], {4: ""}, dis_presets=["medium", "fast"])
+    assert [v.method for v in fast] == ["decomp[flow_width=480,fill=simple]",
+                                        "decomp[flow_width=480,fill=simple,dis_preset=fast]"]
+    assert fast[1].label == "decomp w480 Z4 simple DIS-fast" and fast[0].label == "decomp w480 Z4 simple"
+    with pytest.raises(InputError, match="unknown DIS preset"):
+        decomp_variants([480], ["simple"], [1], [4], {4: ""}, dis_presets=["slow"])
 
 
 def _result(method: str, ms: float, psnr: float, flip: float) -> MethodResult:
@@ -54,7 +60,9 @@ def test_points_are_grouped_by_frame_size_with_their_own_fronts():
     assert front == {("960x540", "reproject"): (True, True), ("960x540", "decomp w480 Z4 simple"): (True, False),
                      ("1920x1080", "reproject"): (False, False), ("1920x1080", "decomp w480 Z4 simple"): (True, True)}
     table = sweep_table(points)
-    assert "| 960x540 | decomp | 480 | simple | - | 4 | 3 | 500.0 | 31.00 | 0.0500 | 26.00 | PSNR |" in table
+    assert "| 960x540 | decomp | 480 | simple | - | 4 | - | 3 | 500.0 | 31.00 | 0.0500 | 26.00 | PSNR |" in table
+    fast = sweep_points([("960x540", _result("flow2d[preset=fast]", 90.0, 30.5, 0.04))], [Variant("flow2d[preset=fast]")])
+    assert "| 960x540 | flow2d[preset=fast] | - |" in sweep_table(fast)
 
 
 def test_plane_models_use_the_committed_network_for_its_own_planes(tmp_path):

@@ -197,24 +197,18 @@ def _methods(text: str) -> list[str]:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:2] == ["eval", "field"]:  # 'interleave eval field RUN_DIR': fields, not rgbd-seq sequences
+    # 'interleave eval field|dynamic RUN_DIR': radiance-field runs, not rgbd-seq sequences
+    field_evals = {"field": "models.fields.train", "dynamic": "models.fields.dynamic_train"}
+    if argv[:1] == ["eval"] and argv[1:2] and argv[1] in field_evals:
+        command = f"eval {argv[1]}"
         try:
-            _needs_torch("eval field")
+            _needs_torch(command)
         except InterleaveError as exc:
-            print(f"interleave eval field: error: {exc}", file=sys.stderr)
+            print(f"interleave {command}: error: {exc}", file=sys.stderr)
             return 2
-        from models.fields.train import eval_main
+        import importlib
 
-        return eval_main(argv[2:], prog="interleave eval field")
-    if argv[:2] == ["eval", "dynamic"]:  # 'interleave eval dynamic RUN_DIR': a dynamic radiance field
-        try:
-            _needs_torch("eval dynamic")
-        except InterleaveError as exc:
-            print(f"interleave eval dynamic: error: {exc}", file=sys.stderr)
-            return 2
-        from models.fields.dynamic_train import eval_main as eval_dynamic
-
-        return eval_dynamic(argv[2:], prog="interleave eval dynamic")
+        return importlib.import_module(field_evals[argv[1]]).eval_main(argv[2:], prog=f"interleave {command}")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -32,8 +32,8 @@ from typing import Optional
 import numpy as np
 
 from engine.errors import InputError
-from engine.fieldrender import (_PLANE_AXES, _bilinear, _mlp, direction_encoding_np, march_field,
-                                read_asset_files, ExportedAssets)
+from engine.fieldrender import (_PLANE_AXES, _bilinear, _mlp, array_getter, decode_plane, direction_encoding_np,
+                                load_mlp, march_field, read_asset_files, ExportedAssets)
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
@@ -131,24 +131,14 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
     t0, t1 = (float(x) for x in manifest["time"]["range"])
     if not (math.isfinite(t0) and math.isfinite(t1) and t1 >= t0):
         raise InputError(f"has time range {[t0, t1]}, expected finite t_min <= t_max", file=meta_file)
-
-    def get(name: str, where: str) -> np.ndarray:
-        if name not in arrays:
-            raise InputError(f"lacks array {name!r} named by dynamic.json ({where})", file=npz_file)
-        return arrays[name]
-
+    get = array_getter(arrays, npz_file, "dynamic.json")
     planes: dict[str, list[np.ndarray]] = {}
     for group in _GROUPS[kind]:
         if group not in manifest["field"]["planes"]:
             raise InputError(f"lists no plane group {group!r} (a {kind} export has {_GROUPS[kind]})", file=meta_file)
         planes[group] = []
         for p in manifest["field"]["planes"][group]:
-            if quantized:
-                codes, ranges = get(p["uint8"], group), get(p["range"], group).astype(np.float32)
-                plane = ranges[..., 0, None, None] + codes.astype(np.float32) / 255.0 * (
-                    ranges[..., 1] - ranges[..., 0])[..., None, None]
-            else:
-                plane = get(p["float"], group).astype(np.float32)
+            plane = decode_plane(p, get, group, quantized)
             if list(plane.shape) != list(p["shape"]) or plane.ndim != 4 or plane.shape[0] != 3 \
                     or min(plane.shape[2:]) < 2:
                 raise InputError(f"plane {p['float']} has shape {plane.shape}, dynamic.json says {p['shape']} "
@@ -165,13 +155,7 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
     for name in _MLPS[kind]:
         if name not in manifest["field"]["mlps"]:
             raise InputError(f"lists no MLP {name!r}", file=meta_file)
-        mlps[name] = []
-        for spec in manifest["field"]["mlps"][name]:
-            w, b = get(spec["weight"], name).astype(np.float32), get(spec["bias"], name).astype(np.float32)
-            if w.shape != (spec["out"], spec["in"]) or b.shape != (spec["out"],):
-                raise InputError(f"layer {spec['weight']} has shape {w.shape}, expected ({spec['out']}, {spec['in']})",
-                                 file=npz_file)
-            mlps[name].append((w, b))
+        mlps[name] = load_mlp(manifest["field"]["mlps"][name], get, name, npz_file)
     occ = manifest.get("occupancy")
     occupancy = get(occ["array"], "occupancy").astype(bool) if occ else None
     return DynamicAssets(manifest, planes, mlps, occupancy, root / manifest["onnx"]["file"])

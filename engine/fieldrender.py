@@ -22,7 +22,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -30,8 +30,9 @@ from engine.errors import InputError
 from engine.frames import validate_intrinsics, validate_pose
 
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
-           "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "camera_rays_np", "sh_encoding_np",
-           "direction_encoding_np", "contract_np", "query_field", "composite_np", "render_field"]
+           "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
+           "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field", "composite_np",
+           "render_field"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -131,6 +132,40 @@ def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, comman
     return root, manifest, arrays
 
 
+def array_getter(arrays: dict[str, np.ndarray], npz_file: Path, meta_name: str) -> Callable[[str, str], np.ndarray]:
+    """``get(name, where)``: the array ``name`` of an asset file, or InputError naming the file and where
+    ``meta_name`` (the manifest) refers to it."""
+    def get(name: str, where: str) -> np.ndarray:
+        if name not in arrays:
+            raise InputError(f"lacks array {name!r} named by {meta_name} ({where})", file=npz_file)
+        return arrays[name]
+
+    return get
+
+
+def decode_plane(p: dict, get: Callable[[str, str], np.ndarray], where: str, quantized: bool) -> np.ndarray:
+    """A manifest plane entry as float32: its ``float`` array, or (``quantized``) its ``uint8`` codes mapped
+    back through the per-plane, per-channel [min, max] of ``range`` (``export.field.quantize_planes``)."""
+    if not quantized:
+        return get(p["float"], where).astype(np.float32)
+    codes, ranges = get(p["uint8"], where), get(p["range"], where).astype(np.float32)
+    return ranges[..., 0, None, None] + codes.astype(np.float32) / 255.0 * (
+        ranges[..., 1] - ranges[..., 0])[..., None, None]
+
+
+def load_mlp(specs: list[dict], get: Callable[[str, str], np.ndarray], name: str,
+             npz_file: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (weight (out, in), bias (out,)) float32 layers of a manifest MLP; InputError on a shape mismatch."""
+    layers = []
+    for spec in specs:
+        w, b = get(spec["weight"], name).astype(np.float32), get(spec["bias"], name).astype(np.float32)
+        if w.shape != (spec["out"], spec["in"]) or b.shape != (spec["out"],):
+            raise InputError(f"layer {spec['weight']} has shape {w.shape}, expected ({spec['out']}, {spec['in']})",
+                             file=npz_file)
+        layers.append((w, b))
+    return layers
+
+
 def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
     """Load exported assets from a folder (or its ``field.json``); ``quantized`` uses the uint8 planes.
 
@@ -140,33 +175,15 @@ def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
     root, manifest, arrays = read_asset_files(path, "field", ASSET_FORMAT, ASSET_VERSION,
                                               "interleave export field RUN_DIR")
     npz_file = root / "field.npz"
-
-    def get(name: str, where: str) -> np.ndarray:
-        if name not in arrays:
-            raise InputError(f"lacks array {name!r} named by field.json ({where})", file=npz_file)
-        return arrays[name]
-
+    get = array_getter(arrays, npz_file, "field.json")
     planes = []
     for p in manifest["field"]["planes"]:
-        if quantized:
-            codes, ranges = get(p["uint8"], "planes"), get(p["range"], "planes").astype(np.float32)
-            plane = ranges[..., 0, None, None] + codes.astype(np.float32) / 255.0 * (
-                ranges[..., 1] - ranges[..., 0])[..., None, None]
-        else:
-            plane = get(p["float"], "planes").astype(np.float32)
+        plane = decode_plane(p, get, "planes", quantized)
         if plane.shape != (3, p["channels"], p["resolution"], p["resolution"]):
             raise InputError(f"plane {p['float']} has shape {plane.shape}, field.json says "
                              f"(3, {p['channels']}, {p['resolution']}, {p['resolution']})", file=npz_file)
         planes.append(plane)
-    layers = {}
-    for name, specs in manifest["field"]["mlps"].items():
-        layers[name] = []
-        for spec in specs:
-            w, b = get(spec["weight"], name).astype(np.float32), get(spec["bias"], name).astype(np.float32)
-            if w.shape != (spec["out"], spec["in"]) or b.shape != (spec["out"],):
-                raise InputError(f"layer {spec['weight']} has shape {w.shape}, expected ({spec['out']}, {spec['in']})",
-                                 file=npz_file)
-            layers[name].append((w, b))
+    layers = {name: load_mlp(specs, get, name, npz_file) for name, specs in manifest["field"]["mlps"].items()}
     occ = manifest.get("occupancy")
     occupancy = get(occ["array"], "occupancy").astype(bool) if occ else None
     return FieldAssets(manifest, planes, layers["density"], layers["color"], occupancy,

@@ -200,18 +200,16 @@ class InfillNetwork:
         self.working_width = int(info["working_width"])
 
     def vectors(self, mpi: Mpi, holes: np.ndarray, prior: np.ndarray) -> np.ndarray:
-        """Infilling vectors (2, Z, H, W), pixels of the MPI's grid: prior + the network's correction
-        (residual head; ``prior`` (2, H, W)), or the candidate the network scores highest, the same on every
-        plane (choice head; ``prior`` = ``candidate_vectors`` (2 K, H, W), ties to the first: the prior)."""
-        out = self._run(mpi, holes, prior)
-        if self.head == "residual":
-            return prior[:, None] + out
-        h, w = holes.shape
-        chosen = np.take_along_axis(prior.reshape(-1, 2, h, w), np.argmax(out, axis=0)[None, None], axis=0)[0]
-        return np.broadcast_to(chosen[:, None], (2, self.num_planes, h, w))
+        """Residual head: infilling vectors (2, Z, H, W) = ``prior`` (2, H, W) + the network's correction,
+        pixels of the MPI's grid."""
+        if self.head != "residual":
+            raise InputError("a choice-head network chooses among candidates (choices), it gives no vectors",
+                             field="infill_model")
+        return prior[:, None] + self._run(mpi, holes, prior)
 
     def choices(self, mpi: Mpi, holes: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-        """(H, W) index of the candidate the choice head scores highest (ties to 0, the prior)."""
+        """Choice head: (H, W) index of the candidate (``candidate_vectors`` (2 K, H, W)) the network scores
+        highest (ties to 0, the prior). ``fill`` finds the chosen candidate again at full resolution."""
         if self.head != "choice":
             raise InputError("only a choice-head network chooses among candidates", field="infill_model")
         return np.argmax(self._run(mpi, holes, candidates), axis=0)

@@ -203,7 +203,11 @@ def apply_vectors(mpi: Mpi, holes: Tensor, vectors: Tensor, mode: str = "bilinea
 
 def infill(net: InfillNet, mpi: Mpi, holes: Tensor, prior: Tensor,
            mode: str = "straight_through") -> tuple[Mpi, Tensor]:
-    """One pass: vectors = prior + network residual (on every plane), applied with ``apply_vectors``."""
+    """One pass of a residual-head network: vectors = prior + network residual (on every plane), applied
+    with ``apply_vectors`` (a choice head is trained on ``choice_loss`` instead)."""
+    if net.config.head != "residual":
+        raise InputError("infill applies a residual head's vectors; a choice head trains on choice_loss",
+                         field="net")
     vectors = prior[:, :, None] + net(infill_inputs(mpi, holes, prior))
     return apply_vectors(mpi, holes, vectors, mode)
 

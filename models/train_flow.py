@@ -467,28 +467,37 @@ def build_parser(prog: str = "python -m models.train_flow") -> argparse.Argument
 
 def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainFlowConfig:
     """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
-    base = TrainFlowConfig()
+    return merge_config_args(TrainFlowConfig, args, given, ("model", "loss"))
+
+
+def merge_config_args(cls, args: argparse.Namespace, given: set[str], nested: tuple[str, ...]):
+    """A training config of dataclass ``cls`` from the command line: ``args.config``'s JSON file (if any;
+    else the defaults), with every option named in ``given`` taken from ``args``. The fields of the nested
+    dataclass fields ``nested`` are flat options on the command line (``engine.cli.add_dataclass_options``).
+    Shared by the flow and infilling trainers."""
+    base = cls()
     if args.config:
         path = Path(args.config)
         if not path.is_file():
             raise InputError("config file not found", file=path, field="--config")
         try:
-            base = config_from_dict(json.loads(path.read_text()))
+            base = _from_dict(cls, json.loads(path.read_text()))
         except (json.JSONDecodeError, TypeError) as exc:
-            raise InputError(f"is not a TrainFlowConfig JSON: {exc}", file=path, field="--config") from exc
+            raise InputError(f"is not a {cls.__name__} JSON: {exc}", file=path, field="--config") from exc
     values = vars(args)
 
-    def merged(cls, current) -> dict:
-        out = dataclasses.asdict(current) if current is not None else {}
-        for f in dataclasses.fields(cls):
-            if f.name in given and f.name not in ("model", "loss"):
+    def merged(kind, current, skip=()) -> dict:
+        out = dataclasses.asdict(current)
+        for f in dataclasses.fields(kind):
+            if f.name in given and f.name not in skip:
                 out[f.name] = values[f.name]
         return out
 
-    top = merged(TrainFlowConfig, base)
-    top["model"] = merged(Flow3DConfig, base.model)
-    top["loss"] = merged(FlowLossConfig, base.loss)
-    return config_from_dict(top)
+    hints = typing.get_type_hints(cls)
+    top = merged(cls, base, nested)
+    for name in nested:
+        top[name] = merged(hints[name], getattr(base, name))
+    return _from_dict(cls, top)
 
 
 def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:

@@ -349,24 +349,9 @@ def build_parser(prog: str = "python -m models.train_infill") -> argparse.Argume
 
 def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainInfillConfig:
     """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
-    base = TrainInfillConfig()
-    if args.config:
-        path = Path(args.config)
-        if not path.is_file():
-            raise InputError("config file not found", file=path, field="--config")
-        try:
-            base = _from_dict(json.loads(path.read_text()))
-        except (json.JSONDecodeError, TypeError) as exc:
-            raise InputError(f"is not a TrainInfillConfig JSON: {exc}", file=path, field="--config") from exc
-    values = vars(args)
-    top = dataclasses.asdict(base)
-    for f in dataclasses.fields(TrainInfillConfig):
-        if f.name in given and f.name != "model":
-            top[f.name] = values[f.name]
-    for f in dataclasses.fields(InfillConfig):
-        if f.name in given:
-            top["model"][f.name] = values[f.name]
-    return _from_dict(top)
+    from models.train_flow import merge_config_args
+
+    return merge_config_args(TrainInfillConfig, args, given, ("model",))
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.train_infill") -> None:

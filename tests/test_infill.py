@@ -18,7 +18,7 @@ from engine.infill import (DEFAULT_INFILL_MODEL, RECEPTIVE_MARGIN, InfillNetwork
                            composite_holes, copy_along_vectors, downsample_holes, hole_boxes, hole_mpi, prior_vectors)
 from export.infill import check_parity, example_inputs, export_infill
 from models.geometry import Mpi as TorchMpi
-from models.infill import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d, choice_loss
+from models.infill import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d, choice_loss, infill
 from models.infill import apply_vectors as torch_apply_vectors
 from models.train_infill import TrainInfillConfig, candidate_errors, evaluate_samples, make_samples, train
 
@@ -207,6 +207,15 @@ def test_infill_network_input_errors(exported, tmp_path):
         InfillNetwork(path).fill(color, depth, holes, np.array([1.0, 2.0], np.float32))
     with pytest.raises(InputError, match="not found"):
         InfillNetwork(tmp_path / "missing.onnx")
+    other = "vectors" if net.config.head == "choice" else "choices"  # the call of the other head
+    mpi = hole_mpi(color, depth, holes, geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4))
+    with pytest.raises(InputError, match="choice"):
+        getattr(InfillNetwork(path), other)(mpi, holes, np.zeros((2, *holes.shape), np.float32))
+    if net.config.head == "choice":
+        with pytest.raises(InputError, match="residual"):
+            infill(net, TorchMpi(*(torch.from_numpy(np.asarray(a))[None] for a in
+                                   (mpi.color, mpi.depth[None], mpi.alpha[None], mpi.plane_depths))),
+                   torch.from_numpy(holes)[None], torch.zeros(1, 2, *holes.shape))
 
 
 def test_onnx_matches_torch(exported):

@@ -3,12 +3,13 @@
 Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
 
 1. both frames are block-downsampled to the network's working width (``geometry.downsample_frame``, the
-   function the training data went through) and turned into one-hot MPIs on frame n's planes;
-2. the MPI of n-k is forward-warped into frame n's view (``geometry.forward_warp_mpi``): camera motion
-   cancelled, what differs now is object motion (and disocclusions);
-3. the *motion gate* looks at that camera-compensated residual: tiles where colour or depth changed mark
-   object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when no
-   tile moved (measured costs, static scene included: ``docs/flow3d.md``);
+   function the training data went through);
+2. the *motion gate*: frame n-k (a one-plane MPI) is forward-warped into frame n's view
+   (``geometry.forward_warp_mpi``), cancelling camera motion; tiles where colour or depth still changed
+   mark object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when
+   no tile moved (measured costs, static scene included: ``docs/flow3d.md``);
+3. for the boxes, both frames become one-hot MPIs on frame n's planes and the MPI of n-k is warped into
+   frame n's view (into the boxes' bounding box only): the network's input;
 4. per box, OpenCV DIS gives the 2D flow the network refines (``initial_flow``; by default at full
    resolution), and the ONNX flow network (``FlowNetwork``, exported by ``export.flow`` from
    ``models.flow3d.Flow3D``) estimates the flow u(n -> n-k) per MPI point, upsampled to full resolution
@@ -87,9 +88,12 @@ class DecompConfig:
                                  "with a GPU driver: on llvmpipe with 2 cores it is about 2x slower)")
     threads: int = option(2, "onnxruntime intra-op threads")
     dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
-    full_resolution_init: bool = option(True, "compute the initial flow at full resolution (a full-size camera "
-                                               "warp of frame n-k and DIS on it, as flow2d does) and add the "
-                                               "network's upsampled residual to it; off: at the working width")
+    full_resolution_init: bool = option(True, "compute the initial flow at full resolution (frame n-k warped "
+                                               "into each box at full size and DIS on it, as flow2d does) and "
+                                               "add the network's upsampled residual to it; off: at the "
+                                               "working width")
+    refine: bool = option(True, "run the flow network on the initial flow; off: the initial flow (DIS) alone in "
+                                "the gate's boxes, without the network: what the network adds, and its cost")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
                                  "engine.holefill) or 'infill' (the infilling network, engine.infill: copies "
                                  "known pixels of the same MPI plane along predicted vectors; measured on "
@@ -244,7 +248,8 @@ def motion_residual(mpi_n: Mpi, mpi_prev_warped: Mpi, color_threshold: float, de
     ref = 2.0 / (1.0 / finite[0] + 1.0 / finite[-1]) if finite.size else 1.0
     inv_n = np.where(np.isfinite(depth_n), 1.0 / np.maximum(depth_n, 1e-30), 0.0)
     inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
-    d_color = np.abs(encode_color(color_n) - encode_color(color_w)).max(axis=-1)
+    diff = np.abs(encode_color(color_n) - encode_color(color_w))
+    d_color = np.maximum(np.maximum(diff[..., 0], diff[..., 1]), diff[..., 2])  # max over RGB (axis=-1 is slow)
     d_depth = np.abs(inv_n - inv_w) * ref
     changed = (acc_w > 0.5) & ((d_color > color_threshold) | (d_depth > depth_threshold))
     if not erode:
@@ -403,6 +408,9 @@ class DecompPredictor(Predictor):
         self.config = config
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
+        if not config.refine and not self.network.needs_initial_flow:
+            raise InputError("refine=0 keeps the initial flow alone, but this flow network takes none",
+                             field="refine")
         if config.motion == "truth" and not self.objects:
             raise InputError("motion=truth needs the sequence's moving objects (object ids and transforms)",
                              field="motion")
@@ -426,45 +434,74 @@ class DecompPredictor(Predictor):
         factor = min(factor, *newest.depth.shape)
         low_n = timer("downsample", _downsampled, newest, factor)
         low_p = timer("downsample", _downsampled, older, factor)
-        m_n = timer("mpi", geometry.build_mpi, low_n[0], low_n[1], num_z)
-        m_p = timer("mpi", geometry.build_mpi, low_p[0], low_p[1], num_z)
-        warped, _ = timer("camera_warp", geometry.forward_warp_mpi, m_p._replace(plane_depths=m_n.plane_depths),
-                          low_p[2], older.camera.world_to_camera, low_n[2], newest.camera.world_to_camera)
-        h, w = m_n.alpha.shape[1:]
-        if cfg.gate:
-            changed = timer("gate", motion_residual, m_n, warped, cfg.color_threshold, cfg.depth_threshold,
+        t_p, t_n = older.camera.world_to_camera, newest.camera.world_to_camera
+        h, w = low_n[1].shape
+        if cfg.gate:  # one-plane MPIs suffice to see the residual: the network's planes cost only where it runs
+            g_n = timer("gate", geometry.build_mpi, low_n[0], low_n[1], 1)
+            g_p = timer("gate", geometry.build_mpi, low_p[0], low_p[1], 1)
+            g_w, _ = timer("gate", geometry.forward_warp_mpi, g_p, low_p[2], t_p, low_n[2], t_n)
+            changed = timer("gate", motion_residual, g_n, g_w, cfg.color_threshold, cfg.depth_threshold,
                             cfg.erode)
             boxes = motion_boxes(changed, cfg.tile, cfg.tile_fraction, cfg.margin, net.stride,
                                  cfg.full_frame_fraction, cfg.min_tiles)
         else:
             boxes = [(0, h, 0, w)]
-        flow = full = None
-        if boxes or cfg.render_planes == 0:
-            full = timer("mpi", geometry.build_mpi, newest.color, newest.depth, num_z, m_n.plane_depths)
+        planes = geometry.plane_depths(low_n[1], num_z)  # the network's planes: frame n's, at low resolution
+        m_n = warped = None
         if boxes:
-            flow = np.zeros((3,) + full.alpha.shape, dtype=np.float32)
+            m_n = timer("mpi", geometry.build_mpi, low_n[0], low_n[1], num_z, planes)
+        if boxes and (cfg.refine or not cfg.full_resolution_init):  # the network's input, or the initial flow's
+            m_p = timer("mpi", geometry.build_mpi, low_p[0], low_p[1], num_z)
+            # m_{n-k} on frame n's planes, warped into the bounding box of the boxes only (its corner: origin)
+            by0, bx0 = min(b[0] for b in boxes), min(b[2] for b in boxes)
+            by1, bx1 = max(b[1] for b in boxes), max(b[3] for b in boxes)
+            k_box = np.array(low_n[2], dtype=np.float64)
+            k_box[0, 2] -= bx0
+            k_box[1, 2] -= by0
+            warped, _ = timer("camera_warp", geometry.forward_warp_mpi, m_p._replace(plane_depths=planes),
+                              low_p[2], t_p, k_box, t_n, out_size=(by1 - by0, bx1 - bx0))
+            warped = (warped, (by0, bx0))
+        flow = full = None
+        # frame n at full resolution on the network's planes: the whole MPI only to splat it (render_planes=0);
+        # else each box's one-hot alpha comes from the plane-index map and the flow is kept per pixel
+        planes_full = None
+        if cfg.render_planes == 0:
+            full = timer("mpi", geometry.build_mpi, newest.color, newest.depth, num_z, planes)
+            planes_full = full.alpha
+        elif boxes:
+            planes_full = timer("mpi", geometry.plane_index, newest.depth, planes)
+        if boxes:
+            flow = np.zeros((3, num_z if cfg.render_planes == 0 else 1) + newest.depth.shape, dtype=np.float32)
             full_mpi1 = None
             if net.needs_initial_flow and cfg.full_resolution_init:
                 full_mpi1 = timer("initial_flow", geometry.build_mpi, older.color, older.depth, 1)
             for box in boxes:  # everything below costs in proportion to the boxes' area
-                self._box_flow(box, factor, m_n, warped, low_n[0], full, full_mpi1, older, newest, flow, timer)
+                self._box_flow(box, factor, m_n, warped, low_n[0], planes_full, full_mpi1, older, newest, flow,
+                               timer)
             if not np.isfinite(flow).all():
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
-        if cfg.render_planes == 1:  # one-hot: summing over planes gives each pixel its own plane's flow
+        if cfg.render_planes == 1:
             full = timer("mpi", geometry.build_mpi, newest.color, newest.depth, 1)
-            flow = None if flow is None else flow.sum(axis=1, keepdims=True)
         elif cfg.min_plane_fraction >= 0:
             full, flow = timer("mpi", merge_planes, full, flow, cfg.min_plane_fraction)
-        state.data.update(boxes=boxes, factor=factor, mpi=full, flow=flow, plane_depths=m_n.plane_depths,
+        state.data.update(boxes=boxes, factor=factor, mpi=full, flow=flow, plane_depths=planes,
                           network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
 
-    def _box_flow(self, box, factor: int, m_n: Mpi, warped: Mpi, low_color_n: np.ndarray, full: Mpi,
-                  full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray, timer) -> None:
-        """Flow of one gate box, written into ``flow`` (3, Z, H, W) at full resolution."""
+    def _box_flow(self, box, factor: int, m_n: Mpi, warped: tuple[Mpi, tuple[int, int]], low_color_n: np.ndarray,
+                  planes_full: np.ndarray, full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray,
+                  timer) -> None:
+        """Flow of one gate box, written into ``flow`` at full resolution: (3, Z, H, W) per plane when
+        ``planes_full`` is the full-resolution alpha (Z, H, W); (3, 1, H, W), each pixel its own plane's flow
+        (the sum over a one-hot MPI's planes), when it is the plane-index map (H, W). ``warped``: the camera-
+        compensated m_{n-k} on a part of the low-resolution frame and that part's corner (y, x)."""
         cfg, net = self.config, self.network
         y0, y1, x0, x1 = box
+        warped_box = None
+        if warped is not None:
+            (oy, ox) = warped[1]
+            warped_box = _crop(warped[0], (y0 - oy, y1 - oy, x0 - ox, x1 - ox))
         h, w = m_n.alpha.shape[1:]
-        big_h, big_w = full.alpha.shape[1:]
+        big_h, big_w = planes_full.shape[-2:]
         # full-resolution rows / columns of the box (the last box also takes the rows past the last block)
         fy0, fx0 = y0 * factor, x0 * factor
         fy1 = big_h if y1 == h else y1 * factor
@@ -483,19 +520,32 @@ class DecompPredictor(Predictor):
                               cfg.dis_preset)
             init = geometry.downsample_flow(full_init, factor)  # the box's rows past the last block drop out
         elif net.needs_initial_flow:
-            warped_color, _, acc = geometry.composite(_crop(warped, box))
+            warped_color, _, acc = geometry.composite(warped_box)
             init = timer("initial_flow", initial_flow, low_color_n[y0:y1, x0:x1], warped_color, acc > 0,
                          cfg.dis_preset)
         m_box = _crop(m_n, box)
-        low_flow = timer("flow", net, m_box, _crop(warped, box), init)
-        if not cfg.depth_flow:
-            low_flow[2] = 0.0
+        if cfg.refine:
+            low_flow = timer("flow", net, m_box, warped_box, init)
+            if not cfg.depth_flow:
+                low_flow[2] = 0.0
+        else:  # the ablation: the initial flow alone (its residual below is then exactly 0)
+            low_flow = np.zeros((3,) + m_box.alpha.shape, dtype=np.float32)
+            low_flow[:2] = np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
         if full_init is not None:  # keep the network's residual only, the initial flow at full detail
             low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
-        full_alpha = full.alpha[:, fy0:fy1, fx0:fx1]
-        part = timer("upsample", upsample_flow, low_flow, m_box.alpha, factor, full_alpha)
+        if planes_full.ndim == 3:
+            full_alpha = planes_full[:, fy0:fy1, fx0:fx1]
+        else:
+            index = planes_full[fy0:fy1, fx0:fx1]
+            full_alpha = (index[None] == np.arange(m_n.alpha.shape[0])[:, None, None]).astype(np.float32)
+        if cfg.refine or full_init is None:
+            part = timer("upsample", upsample_flow, low_flow, m_box.alpha, factor, full_alpha)
+        else:  # no network and the initial flow at full resolution: no residual to upsample
+            part = np.zeros((3,) + full_alpha.shape, dtype=np.float32)
         if full_init is not None:
             part[:2] += np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
+        if planes_full.ndim == 2:  # one-hot: summing over planes gives each pixel its own plane's flow
+            part = part.sum(axis=1, keepdims=True)
         flow[:, :, fy0:fy1, fx0:fx1] = part
 
     def _render(self, state: PreparedState, target: Target, timer) -> tuple[np.ndarray, np.ndarray]:

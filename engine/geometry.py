@@ -598,6 +598,9 @@ class _Scratch(threading.local):
 _SCRATCH = _Scratch()
 #: Points per chunk of the numpy warp (work arrays of 32k values stay in the L2 cache).
 _CHUNK = 1 << 15
+#: The splat pass skips the points that do not land (alpha 0 or outside the output) when fewer than this
+#: fraction land: e.g. a box-sized output of a whole frame costs in proportion to the box, not the frame.
+_COMPACT_BELOW = 0.94
 
 
 def _splat(sums: np.ndarray, base, row, fx, fy, point_alpha, zbuf, values) -> None:
@@ -663,11 +666,15 @@ def _forward_warp_mpi(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_siz
         base[~keep] = 0
         point_z[part] = z
         log_range = _log_depth_range(z, (a > 0) & np.isfinite(z), log_range)
-    # pass 2: splat [coverage, weight, weight * (r, g, b, z)] with the soft z-buffer
+    # pass 2: splat [coverage, weight, weight * (r, g, b, z)] with the soft z-buffer, only the points that
+    # land (alpha > 0 inside the output): a box-sized output of a full frame splats the box's points only
+    kept = np.flatnonzero(point_alpha[:n])
+    compact = kept.size < _COMPACT_BELOW * n
+    m = kept.size if compact else n
     sums = _SCRATCH.get("sums", 6 * num_z * hp * wp).reshape(6, -1)
     sums.fill(0.0)
-    for start in range(0, n, _CHUNK):
-        part = slice(start, min(start + _CHUNK, n))
+    for start in range(0, m, _CHUNK):
+        part = kept[start:start + _CHUNK] if compact else slice(start, min(start + _CHUNK, n))
         src = part if index is None else index[part]
         z = point_z[part]
         sky = np.isinf(z)

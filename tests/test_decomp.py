@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from engine import geometry
-from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
+from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options, initial_flow,
                            merge_planes, motion_boxes, upsample_flow)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
@@ -139,7 +139,9 @@ def test_static_scene_skips_the_network_and_matches_reproject(network):
     frames, _ = two_layer_sequence(5, width=128, height=96, camera_speed=0.06, object_speed=0.0)
     pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare(frames[1:3])
-    assert state.data["boxes"] == [] and state.data["flow"] is None and "flow" not in state.stages_ms
+    assert state.data["boxes"] == [] and state.data["flow"] is None
+    # no box: the network's 4-plane MPIs, camera warp, initial flow and network never run
+    assert not {"flow", "camera_warp", "initial_flow", "upsample"} & set(state.stages_ms)
     out = pred.render(state, _target(frames[3]))
     ref = Reproject().predict(frames[1:3], _target(frames[3]))
     truth = frames[3].color
@@ -174,6 +176,36 @@ def test_moving_object_beats_reproject_on_moving_pixels(network):
     flow_x = pred.object_flow(state)[..., 0][frames[4].moving]
     expected = -2.0 * frames[4].object_flow[..., 0][frames[4].moving]
     assert np.median(np.abs(flow_x - expected)) < 0.35 * np.abs(expected).mean()
+
+
+def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
+    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12)
+    pred = DecompPredictor(DecompConfig(refine=False), network)
+    state = pred.prepare([frames[2], frames[4]])
+    assert state.data["boxes"] and "flow" not in state.stages_ms  # the network never ran
+    f = state.data["factor"]
+    y0, y1, x0, x1 = (v * f for v in state.data["boxes"][0])
+    older, newest = frames[2], frames[4]
+    k_box = np.array(newest.camera.intrinsics, np.float64)
+    k_box[0, 2] -= x0
+    k_box[1, 2] -= y0
+    moved, _ = geometry.forward_warp_mpi(geometry.build_mpi(older.color, older.depth, 1), older.camera.intrinsics,
+                                         older.camera.world_to_camera, k_box, newest.camera.world_to_camera,
+                                         out_size=(y1 - y0, x1 - x0))
+    color_w, _, acc = geometry.composite(moved)
+    dis = initial_flow(newest.color[y0:y1, x0:x1], color_w, acc > 0)
+    np.testing.assert_allclose(state.data["flow"][:2, 0, y0:y1, x0:x1], np.moveaxis(dis, -1, 0), atol=1e-5)
+    outside = np.ones(newest.depth.shape, bool)
+    for b in state.data["boxes"]:
+        outside[b[0] * f:b[1] * f, b[2] * f:b[3] * f] = False
+    assert not state.data["flow"][:, 0][:, outside].any()
+    # and the network changes that flow (what refine=1 adds is measured in docs/flow3d.md)
+    refined = DecompPredictor(DecompConfig(), network).prepare([frames[2], frames[4]]).data["flow"]
+    assert np.abs(refined - state.data["flow"]).max() > 0.01
+    plain = FlowNetwork(DEFAULT_MODEL)
+    plain.needs_initial_flow = False  # a network trained without an initial flow: nothing to keep
+    with pytest.raises(InputError, match="refine"):
+        DecompPredictor(DecompConfig(refine=False), plain)
 
 
 def _sky_frame(index, camera, width=96, height=64):

@@ -380,18 +380,44 @@ def test_sky_alone_keeps_infinite_depth_after_warp():
     assert torch.all(torch.isinf(t_out[1]))
 
 
+def _flow_warp_case(seed: int, h: int, w: int, num_planes: int, sky: float):
+    """(MPI, K, T_src, T_dst, object flow ~ N(0, 1) px) of a random scene seen by two moving cameras."""
+    rng = np.random.default_rng(seed)
+    color, depth = random_scene(rng, h, w, sky=sky)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    flow = rng.normal(0, 1, (3, num_planes, h, w)).astype(np.float32)
+    return ng.build_mpi(color, depth, num_planes), k, t_src, t_dst, flow
+
+
 @pytest.mark.parametrize("num_planes", [1, 3])
 def test_numpy_warp_chunking_does_not_change_results(monkeypatch, num_planes):
-    rng = np.random.default_rng(27)
-    color, depth = random_scene(rng, 16, 20, sky=0.3)
-    k, t_src, t_dst = moving_cameras(rng, 16, 20)
-    mpi = ng.build_mpi(color, depth, num_planes)
-    flow = rng.normal(0, 1, (3, num_planes, 16, 20)).astype(np.float32)
+    mpi, k, t_src, t_dst, flow = _flow_warp_case(27, 16, 20, num_planes, 0.3)
     whole = ng.forward_warp_mpi(mpi, k, t_src, k, t_dst, flow)
     monkeypatch.setattr(ng, "_CHUNK", 37)
     chunked = ng.forward_warp_mpi(mpi, k, t_src, k, t_dst, flow)
     for a, b in zip(whole[0] + (whole[1],), chunked[0] + (chunked[1],)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("num_planes", [1, 3])
+def test_box_output_splats_only_the_landing_points_and_matches_the_whole_warp(monkeypatch, num_planes):
+    mpi, k, t_src, t_dst, flow = _flow_warp_case(28, 40, 48, num_planes, 0.2)
+    y0, y1, x0, x1 = 10, 26, 14, 38
+    k_box = k.copy()
+    k_box[0, 2] -= x0
+    k_box[1, 2] -= y0
+    box = ng.forward_warp_mpi(mpi, k, t_src, k_box, t_dst, flow, out_size=(y1 - y0, x1 - x0))
+    monkeypatch.setattr(ng, "_COMPACT_BELOW", 0.0)  # the reference: every point goes through the splat pass
+    box_all_points = ng.forward_warp_mpi(mpi, k, t_src, k_box, t_dst, flow, out_size=(y1 - y0, x1 - x0))
+    for a, b in zip(box[0] + (box[1],), box_all_points[0] + (box_all_points[1],)):
+        np.testing.assert_array_equal(a, b)
+    whole = ng.forward_warp_mpi(mpi, k, t_src, k, t_dst, flow)
+    crop = (Ellipsis, slice(y0, y1), slice(x0, x1))
+    assert box[0].alpha.sum() > 0.5 * box[0].alpha[0].size
+    # coverage is the whole warp's (colours differ where points of several depths mix: the soft z-buffer's
+    # depth range spans only the points that land)
+    np.testing.assert_array_equal(box[0].alpha, whole[0].alpha[crop])
+    np.testing.assert_allclose(box[1], whole[1][crop], rtol=1e-5, atol=1e-5)  # float32 taps shifted by the box
 
 
 def test_warping_an_empty_mpi_gives_only_holes():

@@ -448,9 +448,8 @@ class DecompPredictor(Predictor):
             boxes = [(0, h, 0, w)]
         planes = geometry.plane_depths(low_n[1], num_z)  # the network's planes: frame n's, at low resolution
         m_n = warped = None
-        if boxes:
-            m_n = timer("mpi", geometry.build_mpi, low_n[0], low_n[1], num_z, planes)
         if boxes and (cfg.refine or not cfg.full_resolution_init):  # the network's input, or the initial flow's
+            m_n = timer("mpi", geometry.build_mpi, low_n[0], low_n[1], num_z, planes)
             m_p = timer("mpi", geometry.build_mpi, low_p[0], low_p[1], num_z)
             # m_{n-k} on frame n's planes, warped into the bounding box of the boxes only (its corner: origin)
             by0, bx0 = min(b[0] for b in boxes), min(b[2] for b in boxes)
@@ -476,8 +475,8 @@ class DecompPredictor(Predictor):
             if net.needs_initial_flow and cfg.full_resolution_init:
                 full_mpi1 = timer("initial_flow", geometry.build_mpi, older.color, older.depth, 1)
             for box in boxes:  # everything below costs in proportion to the boxes' area
-                self._box_flow(box, factor, m_n, warped, low_n[0], planes_full, full_mpi1, older, newest, flow,
-                               timer)
+                self._box_flow(box, factor, (h, w), m_n, warped, low_n[0], planes_full, full_mpi1, older, newest,
+                               flow, timer)
             if not np.isfinite(flow).all():
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
         if cfg.render_planes == 1:
@@ -487,20 +486,22 @@ class DecompPredictor(Predictor):
         state.data.update(boxes=boxes, factor=factor, mpi=full, flow=flow, plane_depths=planes,
                           network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
 
-    def _box_flow(self, box, factor: int, m_n: Mpi, warped: tuple[Mpi, tuple[int, int]], low_color_n: np.ndarray,
-                  planes_full: np.ndarray, full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray,
-                  timer) -> None:
+    def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],
+                  warped: Optional[tuple[Mpi, tuple[int, int]]], low_color_n: np.ndarray, planes_full: np.ndarray,
+                  full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray, timer) -> None:
         """Flow of one gate box, written into ``flow`` at full resolution: (3, Z, H, W) per plane when
         ``planes_full`` is the full-resolution alpha (Z, H, W); (3, 1, H, W), each pixel its own plane's flow
-        (the sum over a one-hot MPI's planes), when it is the plane-index map (H, W). ``warped``: the camera-
-        compensated m_{n-k} on a part of the low-resolution frame and that part's corner (y, x)."""
+        (the sum over a one-hot MPI's planes), when it is the plane-index map (H, W). ``low_size``: (h, w) of
+        the working resolution; ``m_n`` and ``warped`` (the camera-compensated m_{n-k} on a part of the
+        low-resolution frame and that part's corner (y, x)) are None when nothing runs at that resolution
+        (``refine=0`` with the full-resolution initial flow)."""
         cfg, net = self.config, self.network
         y0, y1, x0, x1 = box
         warped_box = None
         if warped is not None:
             (oy, ox) = warped[1]
             warped_box = _crop(warped[0], (y0 - oy, y1 - oy, x0 - ox, x1 - ox))
-        h, w = m_n.alpha.shape[1:]
+        h, w = low_size
         big_h, big_w = planes_full.shape[-2:]
         # full-resolution rows / columns of the box (the last box also takes the rows past the last block)
         fy0, fx0 = y0 * factor, x0 * factor
@@ -518,29 +519,35 @@ class DecompPredictor(Predictor):
             color_w, _, acc = geometry.composite(moved)
             full_init = timer("initial_flow", initial_flow, newest.color[fy0:fy1, fx0:fx1], color_w, acc > 0,
                               cfg.dis_preset)
-            init = geometry.downsample_flow(full_init, factor)  # the box's rows past the last block drop out
         elif net.needs_initial_flow:
             warped_color, _, acc = geometry.composite(warped_box)
             init = timer("initial_flow", initial_flow, low_color_n[y0:y1, x0:x1], warped_color, acc > 0,
                          cfg.dis_preset)
-        m_box = _crop(m_n, box)
-        if cfg.refine:
-            low_flow = timer("flow", net, m_box, warped_box, init)
-            if not cfg.depth_flow:
-                low_flow[2] = 0.0
-        else:  # the ablation: the initial flow alone (its residual below is then exactly 0)
-            low_flow = np.zeros((3,) + m_box.alpha.shape, dtype=np.float32)
-            low_flow[:2] = np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
-        if full_init is not None:  # keep the network's residual only, the initial flow at full detail
-            low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
         if planes_full.ndim == 3:
             full_alpha = planes_full[:, fy0:fy1, fx0:fx1]
         else:
             index = planes_full[fy0:fy1, fx0:fx1]
-            full_alpha = (index[None] == np.arange(m_n.alpha.shape[0])[:, None, None]).astype(np.float32)
-        if cfg.refine or full_init is None:
+            full_alpha = (index[None] == np.arange(net.num_planes)[:, None, None]).astype(np.float32)
+        # the working-resolution flow to upsample: the network's (its residual over a full-resolution initial
+        # flow) or, without the network at the working width, the initial flow itself; none without the
+        # network at full resolution (the ablation keeps the initial flow alone)
+        low_flow = None
+        if cfg.refine:
+            m_box = _crop(m_n, box)
+            if full_init is not None:
+                init = geometry.downsample_flow(full_init, factor)  # the box's rows past the last block drop out
+            low_flow = timer("flow", net, m_box, warped_box, init)
+            if not cfg.depth_flow:
+                low_flow[2] = 0.0
+            if full_init is not None:  # keep the network's residual only, the initial flow at full detail
+                low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
+        elif full_init is None:
+            m_box = _crop(m_n, box)
+            low_flow = np.zeros((3,) + m_box.alpha.shape, dtype=np.float32)
+            low_flow[:2] = np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
+        if low_flow is not None:
             part = timer("upsample", upsample_flow, low_flow, m_box.alpha, factor, full_alpha)
-        else:  # no network and the initial flow at full resolution: no residual to upsample
+        else:
             part = np.zeros((3,) + full_alpha.shape, dtype=np.float32)
         if full_init is not None:
             part[:2] += np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]

@@ -322,13 +322,18 @@ def _distributed() -> tuple[int, int, bool]:
     return 0, 1, False
 
 
-def load_model(path: str | Path) -> Flow3D:
-    """The ``Flow3D`` saved in a checkpoint (eval mode)."""
+def _load_network(path: str | Path, network_class, config_class):
+    """The network a checkpoint holds (``network_class(config_class(**model_config))``, eval mode); shared
+    with the infilling trainer."""
     state = torch.load(Path(path), map_location="cpu", weights_only=False)
-    config = _from_dict(Flow3DConfig, state["model_config"])
-    model = Flow3D(config)
+    model = network_class(_from_dict(config_class, state["model_config"]))
     model.load_state_dict(state["model"])
     return model.eval()
+
+
+def load_model(path: str | Path) -> Flow3D:
+    """The ``Flow3D`` saved in a checkpoint (eval mode)."""
+    return _load_network(path, Flow3D, Flow3DConfig)
 
 
 def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, config) -> None:
@@ -338,6 +343,18 @@ def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, c
     torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "model_config": dataclasses.asdict(config.model), "config": dataclasses.asdict(config)}, tmp)
     tmp.replace(path)
+
+
+def _restore_checkpoint(path: Path, model: torch.nn.Module, optimizer, model_config) -> int:
+    """Load a ``_save_checkpoint`` file into ``model`` and ``optimizer`` and return its step; InputError when
+    it was trained with another network config than ``model_config`` (a dataclass)."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state["model_config"] != dataclasses.asdict(model_config):
+        raise InputError("was trained with another network config; use a new out_dir", file=path,
+                         field="model_config")
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    return int(state["step"])
 
 
 def train(config: TrainFlowConfig, progress: bool = True, resume: bool = False) -> Path:
@@ -381,13 +398,7 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=tuple(config.betas))
     start = 0
     if resume and ckpt_path.exists():
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if state["model_config"] != dataclasses.asdict(config.model):
-            raise InputError("was trained with another network config; use a new out_dir", file=ckpt_path,
-                             field="model_config")
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start = int(state["step"])
+        start = _restore_checkpoint(ckpt_path, model, optimizer, config.model)
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model)

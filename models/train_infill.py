@@ -233,17 +233,14 @@ def evaluate_samples(net: Optional[InfillNet], samples: list[dict], mode: str = 
 
 def load_model(path: str | Path) -> InfillNet:
     """The ``InfillNet`` saved in a checkpoint (eval mode)."""
-    from models.train_flow import _from_dict as typed
+    from models.train_flow import _load_network
 
-    state = torch.load(Path(path), map_location="cpu", weights_only=False)
-    net = InfillNet(typed(InfillConfig, state["model_config"]))
-    net.load_state_dict(state["model"])
-    return net.eval()
+    return _load_network(path, InfillNet, InfillConfig)
 
 
 def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False) -> Path:
     """Train ``InfillNet`` and return the path of ``checkpoint.pt`` (see the module docstring)."""
-    from models.train_flow import _save_checkpoint
+    from models.train_flow import _restore_checkpoint, _save_checkpoint
 
     if not isinstance(config, TrainInfillConfig):
         raise InputError(f"must be a TrainInfillConfig, got {type(config).__name__}", field="config")
@@ -261,13 +258,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr)
     start = 0
     if resume and ckpt.exists():
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
-        if state["model_config"] != dataclasses.asdict(config.model):
-            raise InputError("was trained with another network config; use a new out_dir", file=ckpt,
-                             field="model_config")
-        net.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start = int(state["step"])
+        start = _restore_checkpoint(ckpt, net, optimizer, config.model)
     metrics = (out / METRICS).open("a")
     bar = None
     if progress:

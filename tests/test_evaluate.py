@@ -12,11 +12,16 @@ from engine.io import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
 
+def _written_sequence(tmp_path_factory, name: str, object_speed: float):
+    """A 9-frame two-layer sequence (96 x 64, camera speed 0.1) written to disk and read back."""
+    frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.1, object_speed=object_speed)
+    path = write_sequence(tmp_path_factory.mktemp("seq") / name, frames, fps=30.0, objects=objects)
+    return read_sequence(path)
+
+
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
-    frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.1, object_speed=0.03)
-    path = write_sequence(tmp_path_factory.mktemp("seq") / "two_layer", frames, fps=30.0, objects=objects)
-    return read_sequence(path)
+    return _written_sequence(tmp_path_factory, "two_layer", 0.03)
 
 
 def test_evaluation_pairs_follow_the_protocol():
@@ -61,9 +66,7 @@ def test_too_short_sequence_is_an_error(sequence):
 @pytest.fixture(scope="module")
 def moving_sequence(tmp_path_factory):
     """Camera and object both move enough that k = 4 leaves disocclusions to fill."""
-    frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.1, object_speed=0.08)
-    path = write_sequence(tmp_path_factory.mktemp("seq") / "moving", frames, fps=30.0, objects=objects)
-    return read_sequence(path)
+    return _written_sequence(tmp_path_factory, "moving", 0.08)
 
 
 def test_true_holes_copy_the_truth_into_the_holes_only():

@@ -17,10 +17,10 @@ from engine.holefill import fill_holes
 from engine.infill import (DEFAULT_INFILL_MODEL, RECEPTIVE_MARGIN, InfillNetwork, apply_vectors, candidate_vectors,
                            composite_holes, copy_along_vectors, downsample_holes, hole_boxes, hole_mpi, prior_vectors)
 from export.infill import check_parity, example_inputs, export_infill
-from models.geometry import Mpi as TorchMpi
 from models.infill import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d, choice_loss, infill
 from models.infill import apply_vectors as torch_apply_vectors
 from models.train_infill import TrainInfillConfig, candidate_errors, evaluate_samples, make_samples, train
+from tests.test_geometry import mpi_to_torch
 
 TINY = InfillConfig(num_planes=4, channels=(4, 8))
 
@@ -74,8 +74,7 @@ def test_numpy_copy_matches_torch_nearest():
     # vectors with fractional parts away from .5 (rounding ties are a convention, not a property)
     vectors = (rng.integers(-12, 13, (2, 4, 24, 30)) + rng.uniform(-0.4, 0.4, (2, 4, 24, 30))).astype(np.float32)
     got, left = apply_vectors(mpi, holes, vectors)
-    tm = TorchMpi(torch.from_numpy(mpi.color)[None], torch.from_numpy(mpi.depth)[None, None],
-                  torch.from_numpy(mpi.alpha)[None, None], torch.from_numpy(planes)[None])
+    tm = mpi_to_torch(mpi)
     want, want_left = torch_apply_vectors(tm, torch.from_numpy(holes)[None], torch.from_numpy(vectors)[None], "nearest")
     np.testing.assert_array_equal(got.alpha, want.alpha[0, 0].numpy())
     np.testing.assert_allclose(got.color, want.color[0].numpy(), atol=1e-6)
@@ -143,8 +142,7 @@ def test_bilinear_copy_has_vector_gradients_and_never_darkens():
     color, depth, holes = frame_with_holes(16, 20)
     planes = geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4)
     mpi = hole_mpi(color, depth, holes, planes)
-    tm = TorchMpi(torch.from_numpy(mpi.color)[None], torch.from_numpy(mpi.depth)[None, None],
-                  torch.from_numpy(mpi.alpha)[None, None], torch.from_numpy(planes)[None])
+    tm = mpi_to_torch(mpi)
     vectors = torch.full((1, 2, 4, 16, 20), 0.3, requires_grad=True)
     out, _ = torch_apply_vectors(tm, torch.from_numpy(holes)[None], vectors)
     out.alpha.sum().backward()
@@ -156,8 +154,7 @@ def test_straight_through_copies_the_nearest_point_with_bilinear_gradients():
     color, depth, holes = frame_with_holes(16, 20)
     planes = geometry.plane_depths(np.where(holes, 10.0, depth).astype(np.float32), 4)
     mpi = hole_mpi(color, depth, holes, planes)
-    tm = TorchMpi(torch.from_numpy(mpi.color)[None], torch.from_numpy(mpi.depth)[None, None],
-                  torch.from_numpy(mpi.alpha)[None, None], torch.from_numpy(planes)[None])
+    tm = mpi_to_torch(mpi)
     vectors = torch.full((1, 2, 4, 16, 20), -3.2, requires_grad=True)
     out, _ = torch_apply_vectors(tm, torch.from_numpy(holes)[None], vectors, "straight_through")
     near, _ = torch_apply_vectors(tm, torch.from_numpy(holes)[None], vectors.detach(), "nearest")
@@ -213,9 +210,7 @@ def test_infill_network_input_errors(exported, tmp_path):
         getattr(InfillNetwork(path), other)(mpi, holes, np.zeros((2, *holes.shape), np.float32))
     if net.config.head == "choice":
         with pytest.raises(InputError, match="residual"):
-            infill(net, TorchMpi(*(torch.from_numpy(np.asarray(a))[None] for a in
-                                   (mpi.color, mpi.depth[None], mpi.alpha[None], mpi.plane_depths))),
-                   torch.from_numpy(holes)[None], torch.zeros(1, 2, *holes.shape))
+            infill(net, mpi_to_torch(mpi), torch.from_numpy(holes)[None], torch.zeros(1, 2, *holes.shape))
 
 
 def test_onnx_matches_torch(exported):

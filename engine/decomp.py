@@ -10,10 +10,11 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
    no tile moved (measured costs, static scene included: ``docs/flow3d.md``);
 3. for the boxes, both frames become one-hot MPIs on frame n's planes and the MPI of n-k is warped into
    frame n's view (into the boxes' bounding box only): the network's input;
-4. per box, OpenCV DIS gives the 2D flow the network refines (``initial_flow``; by default at full
-   resolution), and the ONNX flow network (``FlowNetwork``, exported by ``export.flow`` from
-   ``models.flow3d.Flow3D``) estimates the flow u(n -> n-k) per MPI point, upsampled to full resolution
-   per plane (``upsample_flow``).
+4. OpenCV DIS gives the 2D flow the network refines (``initial_flow``; by default at full resolution on
+   the whole frame, ``dis_context``, and kept outside the boxes too, ``dis_outside``: DIS on a small box
+   has too few pyramid levels for fast motion), and per box the ONNX flow network (``FlowNetwork``,
+   exported by ``export.flow`` from ``models.flow3d.Flow3D``) estimates the flow u(n -> n-k) per MPI
+   point, upsampled to full resolution per plane (``upsample_flow``).
 
 Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
 the frame times); frame n at full resolution (by default one plane whose pixels carry their own plane's
@@ -69,7 +70,8 @@ class DecompConfig:
     erode: bool = option(True, "erode the changed-pixel mask by 3 x 3 before counting tiles (removes the "
                                "one-pixel seams that resampling leaves along depth edges of a static scene)")
     tile: int = option(8, "tile size of the motion gate, in network pixels")
-    min_tiles: int = option(1, "smallest group of connected moving tiles that counts as motion")
+    min_tiles: int = option(3, "smallest group of connected moving tiles that counts as motion (smaller groups: "
+                                "resampling noise along depth edges of a static view)")
     tile_fraction: float = option(0.05, "fraction of a tile's pixels that must change for it to count as moving")
     margin: int = option(24, "network pixels of context kept around moving tiles (covers the search range)")
     full_frame_fraction: float = option(0.5, "run on the whole frame when the boxes cover more than this "
@@ -92,6 +94,12 @@ class DecompConfig:
                                                "into each box at full size and DIS on it, as flow2d does) and "
                                                "add the network's upsampled residual to it; off: at the "
                                                "working width")
+    dis_context: int = option(-1, "the full-resolution DIS of a gate box runs on a region grown around the box "
+                                  "to at least this many pixels a side (clipped to the frame; overlapping "
+                                  "regions merged): DIS's pyramid, and so the largest motion it finds, grows "
+                                  "with the image it is given; 0: the box alone; -1: the whole frame")
+    dis_outside: bool = option(True, "keep the DIS flow of the regions outside the gate's boxes too (as "
+                                      "flow2d does) instead of zero flow there; the network refines the boxes")
     refine: bool = option(True, "run the flow network on the initial flow; off: the initial flow (DIS) alone in "
                                 "the gate's boxes, without the network: what the network adds, and its cost")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
@@ -121,6 +129,7 @@ class DecompConfig:
              "min_plane_fraction must be -1 or in [0, 1)"),
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
+            (self.dis_context >= -1, "dis_context must be >= 0, or -1 for the whole frame"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
             (self.motion in ("predicted", "truth"), f"motion must be 'predicted' or 'truth', got {self.motion!r}"),
         ]
@@ -153,6 +162,59 @@ def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndar
     target = np.where(covered[..., None], warped_color, color_n)
     flow = dis_estimator(preset).calc(luma8(color_n), luma8(target), None)
     return np.ascontiguousarray(flow, dtype=np.float32)
+
+
+def full_box(box: tuple[int, int, int, int], factor: int, low_size: tuple[int, int],
+             size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Full-resolution (y0, y1, x0, x1) of a working-resolution box; a box at the last block row or column
+    also takes the full-resolution rows or columns past the last whole block."""
+    y0, y1, x0, x1 = box
+    return (y0 * factor, size[0] if y1 == low_size[0] else y1 * factor,
+            x0 * factor, size[1] if x1 == low_size[1] else x1 * factor)
+
+
+def context_region(box: tuple[int, int, int, int], size: int, frame: tuple[int, int]) -> tuple[int, int, int, int]:
+    """A box (y0, y1, x0, x1) grown to at least ``size`` pixels a side within a frame (H, W) (``context_span``)."""
+    return context_span(box[0], box[1], size, frame[0]) + context_span(box[2], box[3], size, frame[1])
+
+
+def merge_regions(regions: list) -> list:
+    """Regions (y0, y1, x0, x1) with every overlapping pair replaced by its bounding box, until none overlap.
+
+    >>> merge_regions([(0, 10, 0, 10), (5, 20, 5, 20), (30, 40, 30, 40)])
+    [(0, 20, 0, 20), (30, 40, 30, 40)]
+    """
+    out = list(regions)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                a, b = out[i], out[j]
+                if a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]:
+                    out[i] = (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+                    del out[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return out
+
+
+def context_span(start: int, stop: int, size: int, limit: int) -> tuple[int, int]:
+    """[start, stop) grown on both sides to at least ``size`` (clipped to [0, limit), shifted inward at an edge;
+    ``size`` -1: the whole [0, limit)).
+
+    >>> context_span(200, 300, 300, 1000), context_span(0, 50, 300, 1000), context_span(900, 990, 300, 1000)
+    ((100, 400), (0, 300), (700, 1000))
+    """
+    if size < 0 or size > limit:
+        return 0, limit
+    if stop - start >= size:
+        return start, stop
+    grow = size - (stop - start)
+    start = max(0, min(start - grow // 2, limit - size))
+    return start, min(limit, start + size)
 
 
 def open_network(path: Path, threads: int, metadata_key: str, field: str, missing: str):
@@ -471,12 +533,21 @@ class DecompPredictor(Predictor):
             planes_full = timer("mpi", geometry.plane_index, newest.depth, planes)
         if boxes:
             flow = np.zeros((3, num_z if cfg.render_planes == 0 else 1) + newest.depth.shape, dtype=np.float32)
-            full_mpi1 = None
+            regions = []  # (full-resolution region, its DIS flow): each box's initial flow is cut from one
             if net.needs_initial_flow and cfg.full_resolution_init:
+                size = newest.depth.shape
+                spans = merge_regions([context_region(full_box(b, factor, (h, w), size), cfg.dis_context, size)
+                                       for b in boxes])
                 full_mpi1 = timer("initial_flow", geometry.build_mpi, older.color, older.depth, 1)
+                regions = [(r, self._region_flow(r, full_mpi1, older, newest, timer)) for r in spans]
+                if cfg.dis_outside:  # the boxes overwrite their part below
+                    for (ry0, ry1, rx0, rx1), region_flow in regions:
+                        part = np.moveaxis(region_flow, -1, 0)[:, None]
+                        if planes_full.ndim == 3:  # per plane: each pixel's flow on its own plane
+                            part = part * planes_full[None, :, ry0:ry1, rx0:rx1]
+                        flow[:2, :, ry0:ry1, rx0:rx1] = part
             for box in boxes:  # everything below costs in proportion to the boxes' area
-                self._box_flow(box, factor, (h, w), m_n, warped, low_n[0], planes_full, full_mpi1, older, newest,
-                               flow, timer)
+                self._box_flow(box, factor, (h, w), m_n, warped, low_n[0], planes_full, regions, flow, timer)
             if not np.isfinite(flow).all():
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
         if cfg.render_planes == 1:
@@ -486,9 +557,24 @@ class DecompPredictor(Predictor):
         state.data.update(boxes=boxes, factor=factor, mpi=full, flow=flow, plane_depths=planes,
                           network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
 
+    def _region_flow(self, region: tuple[int, int, int, int], full_mpi1: Mpi, older: Frame, newest: Frame,
+                     timer) -> np.ndarray:
+        """(h, w, 2) DIS flow u(n -> n-k) on a full-resolution region (y0, y1, x0, x1) of frame n: frame n-k's
+        one-plane MPI (``full_mpi1``) forward-warped into frame n's view of the region only (intrinsics shifted
+        to its corner), then ``initial_flow``."""
+        y0, y1, x0, x1 = region
+        src, dst = older.camera, newest.camera
+        k_region = np.array(dst.intrinsics, dtype=np.float64)
+        k_region[0, 2] -= x0
+        k_region[1, 2] -= y0
+        moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics, src.world_to_camera,
+                         k_region, dst.world_to_camera, out_size=(y1 - y0, x1 - x0))
+        color_w, _, acc = geometry.composite(moved)
+        return timer("initial_flow", initial_flow, newest.color[y0:y1, x0:x1], color_w, acc > 0, self.config.dis_preset)
+
     def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],
                   warped: Optional[tuple[Mpi, tuple[int, int]]], low_color_n: np.ndarray, planes_full: np.ndarray,
-                  full_mpi1: Optional[Mpi], older: Frame, newest: Frame, flow: np.ndarray, timer) -> None:
+                  regions: list, flow: np.ndarray, timer) -> None:
         """Flow of one gate box, written into ``flow`` at full resolution: (3, Z, H, W) per plane when
         ``planes_full`` is the full-resolution alpha (Z, H, W); (3, 1, H, W), each pixel its own plane's flow
         (the sum over a one-hot MPI's planes), when it is the plane-index map (H, W). ``low_size``: (h, w) of
@@ -501,24 +587,12 @@ class DecompPredictor(Predictor):
         if warped is not None:
             (oy, ox) = warped[1]
             warped_box = _crop(warped[0], (y0 - oy, y1 - oy, x0 - ox, x1 - ox))
-        h, w = low_size
-        big_h, big_w = planes_full.shape[-2:]
-        # full-resolution rows / columns of the box (the last box also takes the rows past the last block)
-        fy0, fx0 = y0 * factor, x0 * factor
-        fy1 = big_h if y1 == h else y1 * factor
-        fx1 = big_w if x1 == w else x1 * factor
+        fy0, fy1, fx0, fx1 = full_box(box, factor, low_size, planes_full.shape[-2:])
         init = full_init = None
-        if net.needs_initial_flow and cfg.full_resolution_init:
-            # frame n-k warped into frame n's view, only this box (intrinsics shifted to its corner), then DIS
-            src, dst = older.camera, newest.camera
-            k_box = np.array(dst.intrinsics, dtype=np.float64)
-            k_box[0, 2] -= fx0
-            k_box[1, 2] -= fy0
-            moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics,
-                             src.world_to_camera, k_box, dst.world_to_camera, out_size=(fy1 - fy0, fx1 - fx0))
-            color_w, _, acc = geometry.composite(moved)
-            full_init = timer("initial_flow", initial_flow, newest.color[fy0:fy1, fx0:fx1], color_w, acc > 0,
-                              cfg.dis_preset)
+        if regions:
+            (ry0, ry1, rx0, rx1), region_flow = next((r, f) for r, f in regions if r[0] <= fy0 and fy1 <= r[1]
+                                                      and r[2] <= fx0 and fx1 <= r[3])
+            full_init = region_flow[fy0 - ry0:fy1 - ry0, fx0 - rx0:fx1 - rx0]
         elif net.needs_initial_flow:
             warped_color, _, acc = geometry.composite(warped_box)
             init = timer("initial_flow", initial_flow, low_color_n[y0:y1, x0:x1], warped_color, acc > 0,

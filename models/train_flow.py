@@ -47,7 +47,7 @@ from models.geometry import Mpi, composite
 from models.losses import FlowLossConfig, flow_loss
 
 __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
-           "prepare_data", "config_from_dict"]
+           "prepare_data", "config_from_dict", "open_sequences", "StepBatches"]
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -82,6 +82,10 @@ class TrainFlowConfig:
     crops_per_pair: int = option(2, "crops taken from each frame pair (building a pair costs more than a "
                                     "network step on a crop); batch_size / crops_per_pair pairs per step")
     threads: int = option(2, "torch intra-op threads per process")
+    workers: int = option(0, "processes that build the batches of the coming steps while the network trains "
+                             "(torch DataLoader, each with its own frame cache); 0: built in the training "
+                             "process. The batches are the same either way")
+    device: str = option("cpu", "torch device the network trains on (e.g. cuda); batches are built on the CPU")
     checkpoint_every: int = option(500, "save checkpoint.pt every this many steps (and at the end)")
     log_every: int = option(10, "append to metrics.jsonl every this many steps")
     model: Flow3DConfig = field(default_factory=Flow3DConfig,
@@ -103,6 +107,7 @@ class TrainFlowConfig:
             (len(self.scene_seeds) >= 1, "scene_seeds must not be empty"),
             (self.threads >= 1 and self.checkpoint_every >= 1 and self.log_every >= 1,
              "threads, checkpoint_every and log_every must be >= 1"),
+            (self.workers >= 0, "workers must be >= 0"),
         ]
         for ok, problem in checks:
             if not ok:
@@ -310,6 +315,40 @@ def _moving_epe(flow: Tensor, mpi_n: Mpi, gt_flow: Tensor, ks: list[int]) -> tup
 # Training
 
 
+def open_sequences(config: TrainFlowConfig) -> dict:
+    """Scene seed -> ``engine.io.RgbdSequence`` of the rendered training scenes (``prepare_data``)."""
+    from engine.io import read_sequence
+
+    return {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
+
+
+class StepBatches(torch.utils.data.Dataset):
+    """Item i: ``(items, make_batch(...))`` of step ``start + i`` for process ``rank`` of ``world``, with
+    ``items`` = ``sample_items(config, step)`` (this rank's share marked with the crops it picked).
+
+    A function of (seed, step) only, so the batches are the same whether they are built in the training
+    process or in DataLoader workers (each keeps its own cache of downsampled frames, about 3 MB a frame).
+    """
+
+    def __init__(self, config: TrainFlowConfig, start: int, rank: int = 0, world: int = 1) -> None:
+        self.config, self.start, self.rank, self.world = config, start, rank, world
+        self.sequences: Optional[dict] = None
+        self.cache: dict = {}
+
+    def __len__(self) -> int:
+        return max(self.config.steps - self.start, 0)
+
+    def __getitem__(self, index: int):
+        if self.sequences is None:
+            self.sequences = open_sequences(self.config)
+        items = sample_items(self.config, self.start + index)
+        return items, make_batch(self.config, items[self.rank::self.world], self.sequences, self.cache)
+
+
+def _as_is(batch):
+    return batch
+
+
 def _distributed() -> tuple[int, int, bool]:
     """(rank, world size, whether this call created the process group)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -389,12 +428,9 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     if world > 1:
         dist.barrier()
 
-    from engine.io import read_sequence
-    sequences = {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
-    frame_cache: dict = {}  # downsampled frames: about 3 MB each at the default 480 x 270
-
     torch.manual_seed(config.seed)
-    model = Flow3D(config.model)
+    device = torch.device(config.device)
+    model = Flow3D(config.model).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=tuple(config.betas))
     start = 0
     if resume and ckpt_path.exists():
@@ -409,15 +445,21 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
         from tqdm import tqdm
         bar = tqdm(total=config.steps, initial=start, desc="flow3d", unit="step")
     metrics = (out / METRICS).open("a") if rank == 0 else None
+    batches = StepBatches(config, start, rank, world)
+    if config.workers:
+        loader = iter(torch.utils.data.DataLoader(batches, batch_size=None, shuffle=False,
+                                                  num_workers=config.workers, collate_fn=_as_is))
+    else:
+        loader = (batches[i] for i in range(len(batches)))
     try:
         for step in range(start, config.steps):
             t0 = time.perf_counter()
-            items = sample_items(config, step)
+            items, (mpi_n, mpi_p, gt_flow, init) = next(loader)
             mine = items[rank::world]
-            mpi_n, mpi_p, gt_flow, init = make_batch(config, mine, sequences, frame_cache)
             t1 = time.perf_counter()
-            flow = net(mpi_n, mpi_p, init)
-            loss, terms = flow_loss(mpi_n, mpi_p, flow, config.loss)
+            on_device = [Mpi(*(t.to(device) for t in mpi)) for mpi in (mpi_n, mpi_p)]
+            flow = net(*on_device, None if init is None else init.to(device))
+            loss, terms = flow_loss(*on_device, flow, config.loss)
             optimizer.zero_grad(set_to_none=True)
             loss.mean().backward()
             optimizer.step()
@@ -425,7 +467,7 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
             if rank == 0:
                 if done % config.log_every == 0 or done == config.steps:
                     ks = [item["k"] for item in mine for _ in item.get("picked", [None])]
-                    epe, epe_zero = _moving_epe(flow.detach(), mpi_n, gt_flow, ks)
+                    epe, epe_zero = _moving_epe(flow.detach().cpu(), mpi_n, gt_flow, ks)
                     record = {"step": done, "loss": float(loss.detach().mean()), "epe_moving": epe,
                               "epe_moving_zero_flow": epe_zero,
                               **{name: float(value.detach().mean()) for name, value in terms.items()},

@@ -24,7 +24,8 @@ def _texture(x: np.ndarray, y: np.ndarray, phase: float) -> np.ndarray:
 
 
 def two_layer_sequence(num_frames: int = 8, width: int = 64, height: int = 48, camera_speed: float = 0.05,
-                       object_speed: float = 0.08, fps: float = 30.0) -> tuple[list[Frame], list[SceneObject]]:
+                       object_speed: float = 0.08, fps: float = 30.0,
+                       square_half: float = SQUARE_HALF) -> tuple[list[Frame], list[SceneObject]]:
     fx = fy = 0.9 * width
     k = np.array([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=np.float64)
     u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
@@ -42,7 +43,7 @@ def two_layer_sequence(num_frames: int = 8, width: int = 64, height: int = 48, c
             break
         # square: world x in [obj_x - h, obj_x + h], y in [-h, h] at z = 3
         sx, sy = cam_x + rx * SQUARE_Z, ry * SQUARE_Z
-        on_square = (np.abs(sx - obj_x) <= SQUARE_HALF) & (np.abs(sy) <= SQUARE_HALF)
+        on_square = (np.abs(sx - obj_x) <= square_half) & (np.abs(sy) <= square_half)
         bx, by = cam_x + rx * BACKGROUND_Z, ry * BACKGROUND_Z
         color = np.where(on_square[..., None], _texture(sx - obj_x, sy, 1.0), _texture(bx, by, 0.0))
         depth = np.where(on_square, SQUARE_Z, BACKGROUND_Z).astype(np.float32)

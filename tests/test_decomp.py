@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 from engine import geometry
-from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options, initial_flow,
-                           merge_planes, motion_boxes, upsample_flow)
+from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options, context_region,
+                           context_span, full_box, initial_flow, merge_planes, merge_regions, motion_boxes,
+                           upsample_flow)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
 from engine.metrics import score_frame
@@ -179,26 +180,35 @@ def test_moving_object_beats_reproject_on_moving_pixels(network):
 
 
 def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
-    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12)
+    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12,
+                                   square_half=0.25)  # a box smaller than the frame
     pred = DecompPredictor(DecompConfig(refine=False), network)
     state = pred.prepare([frames[2], frames[4]])
     assert state.data["boxes"] and "flow" not in state.stages_ms  # the network never ran
     f = state.data["factor"]
     y0, y1, x0, x1 = (v * f for v in state.data["boxes"][0])
     older, newest = frames[2], frames[4]
+    # DIS runs on the whole frame (dis_context=-1), and its flow is kept outside the boxes too (dis_outside)
+    (ry0, ry1), (rx0, rx1) = (context_span(y0, y1, -1, 128), context_span(x0, x1, -1, 192))
+    assert (ry0, ry1, rx0, rx1) == (0, 128, 0, 192)
     k_box = np.array(newest.camera.intrinsics, np.float64)
-    k_box[0, 2] -= x0
-    k_box[1, 2] -= y0
+    k_box[0, 2] -= rx0
+    k_box[1, 2] -= ry0
     moved, _ = geometry.forward_warp_mpi(geometry.build_mpi(older.color, older.depth, 1), older.camera.intrinsics,
                                          older.camera.world_to_camera, k_box, newest.camera.world_to_camera,
-                                         out_size=(y1 - y0, x1 - x0))
+                                         out_size=(ry1 - ry0, rx1 - rx0))
     color_w, _, acc = geometry.composite(moved)
-    dis = initial_flow(newest.color[y0:y1, x0:x1], color_w, acc > 0)
-    np.testing.assert_allclose(state.data["flow"][:2, 0, y0:y1, x0:x1], np.moveaxis(dis, -1, 0), atol=1e-5)
+    dis = initial_flow(newest.color[ry0:ry1, rx0:rx1], color_w, acc > 0)
+    np.testing.assert_allclose(state.data["flow"][:2, 0], np.moveaxis(dis, -1, 0), atol=1e-5)
+    assert not state.data["flow"][2].any()
+    # without dis_outside the flow is zero outside the boxes, DIS (cut from the same whole-frame DIS) inside
+    inside_only = DecompPredictor(DecompConfig(refine=False, dis_outside=False), network).prepare(
+        [frames[2], frames[4]]).data["flow"]
     outside = np.ones(newest.depth.shape, bool)
     for b in state.data["boxes"]:
         outside[b[0] * f:b[1] * f, b[2] * f:b[3] * f] = False
-    assert not state.data["flow"][:, 0][:, outside].any()
+    assert not inside_only[:, 0][:, outside].any() and outside.any()
+    np.testing.assert_allclose(inside_only[:2, 0, y0:y1, x0:x1], np.moveaxis(dis, -1, 0)[:, y0:y1, x0:x1], atol=1e-5)
     # and the network changes that flow (what refine=1 adds is measured in docs/flow3d.md)
     refined = DecompPredictor(DecompConfig(), network).prepare([frames[2], frames[4]]).data["flow"]
     assert np.abs(refined - state.data["flow"]).max() > 0.01
@@ -206,6 +216,39 @@ def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
     plain.needs_initial_flow = False  # a network trained without an initial flow: nothing to keep
     with pytest.raises(InputError, match="refine"):
         DecompPredictor(DecompConfig(refine=False), plain)
+
+
+def test_dis_regions_grow_clip_and_merge():
+    assert context_span(200, 300, 300, 1000) == (100, 400)  # grown on both sides
+    assert context_span(0, 50, 300, 1000) == (0, 300) and context_span(900, 990, 300, 1000) == (700, 1000)
+    assert context_span(100, 700, 300, 1000) == (100, 700)  # already large enough
+    assert context_span(10, 20, 720, 256) == (0, 256)  # a context larger than the frame: the whole frame
+    assert context_region((10, 20, 400, 500), 100, (64, 1000)) == (0, 64, 400, 500)
+    assert full_box((0, 5, 2, 8), 4, (5, 8), (22, 35)) == (0, 22, 8, 35)  # last block row/column take the rest
+    assert merge_regions([(0, 10, 0, 10), (5, 20, 5, 20), (30, 40, 30, 40)]) == [(0, 20, 0, 20), (30, 40, 30, 40)]
+    # a merge that makes a region overlap a third one merges that one too
+    assert merge_regions([(0, 10, 0, 10), (0, 10, 20, 30), (0, 10, 8, 22)]) == [(0, 10, 0, 30)]
+    assert merge_regions([(0, 10, 0, 10), (10, 20, 0, 10)]) == [(0, 10, 0, 10), (10, 20, 0, 10)]  # touching only
+    assert merge_regions([]) == []
+
+
+def test_dis_context_finds_motion_larger_than_a_small_box_reaches(network):
+    """A small square moving 29 px a frame (58 px between the two frames): DIS on its gate box alone has too few
+    pyramid levels and stops short; on the box grown to ``dis_context`` pixels it finds the motion."""
+    frames, _ = two_layer_sequence(5, width=480, height=256, camera_speed=0.01, object_speed=0.2, square_half=0.2)
+    moving = frames[3].moving
+    expected = -2.0 * frames[3].object_flow[..., 0][moving]
+    assert np.abs(expected).min() > 55
+    errors = {}
+    for context in (0, 720):
+        pred = DecompPredictor(DecompConfig(refine=False, dis_context=context, dis_outside=False), network)
+        state = pred.prepare([frames[1], frames[3]])
+        (y0, y1, x0, x1), = state.data["boxes"]
+        assert (y1 - y0) * (x1 - x0) < 0.3 * 480 * 256  # one box, well inside the frame
+        errors[context] = float(np.median(np.abs(pred.object_flow(state)[..., 0][moving] - expected)))
+    assert errors[720] < 0.15 * np.abs(expected).mean() and errors[0] > 2.0 * errors[720], errors
+    with pytest.raises(InputError, match="dis_context"):
+        DecompConfig(dis_context=-2)
 
 
 def _sky_frame(index, camera, width=96, height=64):

@@ -100,6 +100,9 @@ class DecompConfig:
                                   "with the image it is given; 0: the box alone; -1: the whole frame")
     dis_outside: bool = option(True, "keep the DIS flow of the regions outside the gate's boxes too (as "
                                       "flow2d does) instead of zero flow there; the network refines the boxes")
+    refine_check: bool = option(True, "keep the network's refinement of the full-resolution initial flow only "
+                                       "at pixels where it explains frame n better than the initial flow alone "
+                                       "(photometric error of the camera-compensated frame n-k, 9 x 9 mean)")
     refine: bool = option(True, "run the flow network on the initial flow; off: the initial flow (DIS) alone in "
                                 "the gate's boxes, without the network: what the network adds, and its cost")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
@@ -159,9 +162,33 @@ def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndar
     Returns:
         (H, W, 2) float32 pixels.
     """
-    target = np.where(covered[..., None], warped_color, color_n)
-    flow = dis_estimator(preset).calc(luma8(color_n), luma8(target), None)
+    flow = dis_estimator(preset).calc(luma8(color_n), dis_target(color_n, warped_color, covered), None)
     return np.ascontiguousarray(flow, dtype=np.float32)
+
+
+def dis_target(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 luma of the camera-compensated frame n-k that ``initial_flow`` matches frame n against:
+    the warp's colour where it landed, frame n's own elsewhere."""
+    return luma8(np.where(covered[..., None], warped_color, color_n))
+
+
+def warp_error(luma_n: np.ndarray, target: np.ndarray, offset: tuple[int, int], flow: np.ndarray,
+               window: int = 9) -> np.ndarray:
+    """(h, w) photometric error of a flow u(n -> n-k): |luma of frame n - ``target`` sampled at x + u| (8-bit
+    levels, bilinear; a sample outside ``target`` costs 255), averaged over ``window`` x ``window`` pixels.
+
+    ``luma_n`` (h, w) is a part of frame n whose top-left pixel is pixel ``offset`` (y, x) of ``target``
+    (``dis_target`` of a larger region); ``flow`` (h, w, 2) pixels.
+    """
+    import cv2
+
+    h, w = luma_n.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32) + np.float32(offset[1]),
+                         np.arange(h, dtype=np.float32) + np.float32(offset[0]))
+    sampled = cv2.remap(target.astype(np.float32), gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
+    error = np.where(sampled < 0, np.float32(255.0), np.abs(luma_n.astype(np.float32) - sampled))
+    return cv2.blur(error, (window, window), borderType=cv2.BORDER_REFLECT)
 
 
 def full_box(box: tuple[int, int, int, int], factor: int, low_size: tuple[int, int],
@@ -541,7 +568,7 @@ class DecompPredictor(Predictor):
                 full_mpi1 = timer("initial_flow", geometry.build_mpi, older.color, older.depth, 1)
                 regions = [(r, self._region_flow(r, full_mpi1, older, newest, timer)) for r in spans]
                 if cfg.dis_outside:  # the boxes overwrite their part below
-                    for (ry0, ry1, rx0, rx1), region_flow in regions:
+                    for (ry0, ry1, rx0, rx1), (region_flow, _, _) in regions:
                         part = np.moveaxis(region_flow, -1, 0)[:, None]
                         if planes_full.ndim == 3:  # per plane: each pixel's flow on its own plane
                             part = part * planes_full[None, :, ry0:ry1, rx0:rx1]
@@ -558,10 +585,11 @@ class DecompPredictor(Predictor):
                           network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
 
     def _region_flow(self, region: tuple[int, int, int, int], full_mpi1: Mpi, older: Frame, newest: Frame,
-                     timer) -> np.ndarray:
+                     timer) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
         """(h, w, 2) DIS flow u(n -> n-k) on a full-resolution region (y0, y1, x0, x1) of frame n: frame n-k's
         one-plane MPI (``full_mpi1``) forward-warped into frame n's view of the region only (intrinsics shifted
-        to its corner), then ``initial_flow``."""
+        to its corner), then ``initial_flow``; with ``refine_check`` also the luma DIS matched against
+        (``dis_target``) and frame n's luma on the region (else None, None)."""
         y0, y1, x0, x1 = region
         src, dst = older.camera, newest.camera
         k_region = np.array(dst.intrinsics, dtype=np.float64)
@@ -570,7 +598,11 @@ class DecompPredictor(Predictor):
         moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics, src.world_to_camera,
                          k_region, dst.world_to_camera, out_size=(y1 - y0, x1 - x0))
         color_w, _, acc = geometry.composite(moved)
-        return timer("initial_flow", initial_flow, newest.color[y0:y1, x0:x1], color_w, acc > 0, self.config.dis_preset)
+        color_n = newest.color[y0:y1, x0:x1]
+        flow = timer("initial_flow", initial_flow, color_n, color_w, acc > 0, self.config.dis_preset)
+        if not self.config.refine_check:
+            return flow, None, None
+        return flow, dis_target(color_n, color_w, acc > 0), luma8(color_n)
 
     def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],
                   warped: Optional[tuple[Mpi, tuple[int, int]]], low_color_n: np.ndarray, planes_full: np.ndarray,
@@ -590,8 +622,8 @@ class DecompPredictor(Predictor):
         fy0, fy1, fx0, fx1 = full_box(box, factor, low_size, planes_full.shape[-2:])
         init = full_init = None
         if regions:
-            (ry0, ry1, rx0, rx1), region_flow = next((r, f) for r, f in regions if r[0] <= fy0 and fy1 <= r[1]
-                                                      and r[2] <= fx0 and fx1 <= r[3])
+            (ry0, ry1, rx0, rx1), (region_flow, target, luma_region) = next(
+                (r, f) for r, f in regions if r[0] <= fy0 and fy1 <= r[1] and r[2] <= fx0 and fx1 <= r[3])
             full_init = region_flow[fy0 - ry0:fy1 - ry0, fx0 - rx0:fx1 - rx0]
         elif net.needs_initial_flow:
             warped_color, _, acc = geometry.composite(warped_box)
@@ -627,6 +659,16 @@ class DecompPredictor(Predictor):
             part[:2] += np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
         if planes_full.ndim == 2:  # one-hot: summing over planes gives each pixel its own plane's flow
             part = part.sum(axis=1, keepdims=True)
+        if cfg.refine and full_init is not None and cfg.refine_check:
+            # each pixel keeps the refined flow only where it matches frame n-k better than the initial flow
+            dis_part = np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
+            if planes_full.ndim == 2:
+                dis_part = dis_part.sum(axis=1, keepdims=True)
+            luma_n, offset = luma_region[fy0 - ry0:fy1 - ry0, fx0 - rx0:fx1 - rx0], (fy0 - ry0, fx0 - rx0)
+            refined = np.moveaxis(part[:2].sum(axis=1), 0, -1)  # (h, w, 2): each pixel's own plane's flow
+            keep = (timer("refine_check", warp_error, luma_n, target, offset, refined)
+                    < timer("refine_check", warp_error, luma_n, target, offset, full_init))
+            part[:2] = np.where(keep, part[:2], dis_part)
         flow[:, :, fy0:fy1, fx0:fx1] = part
 
     def _render(self, state: PreparedState, target: Target, timer) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,7 @@ import pytest
 from engine import geometry
 from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options, context_region,
                            context_span, full_box, initial_flow, merge_planes, merge_regions, motion_boxes,
-                           upsample_flow)
+                           upsample_flow, warp_error)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
 from engine.metrics import score_frame
@@ -216,6 +216,34 @@ def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
     plain.needs_initial_flow = False  # a network trained without an initial flow: nothing to keep
     with pytest.raises(InputError, match="refine"):
         DecompPredictor(DecompConfig(refine=False), plain)
+
+
+def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
+    rng = np.random.default_rng(3)
+    import cv2
+    target = cv2.GaussianBlur(rng.random((40, 60)).astype(np.float32), (0, 0), 1.5) * 255.0
+    luma_n = target[5:25, 12:42] * 1.0  # frame n's part: the target shifted by (+3, +2) from its offset (2, 10)
+    flow = np.zeros((20, 30, 2), np.float32)
+    flow[..., 0], flow[..., 1] = 2.0, 3.0
+    exact = warp_error(luma_n, target, (2, 10), flow, window=3)
+    assert np.allclose(exact, 0.0, atol=1e-3)
+    assert warp_error(luma_n, target, (2, 10), np.zeros_like(flow), window=3).mean() > 5.0
+    far = flow.copy()
+    far[..., 0] = 100.0  # samples outside the target cost 255
+    assert np.allclose(warp_error(luma_n, target, (2, 10), far, window=1), 255.0)
+
+
+def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(network):
+    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12, square_half=0.25)
+    pair = [frames[2], frames[4]]
+    checked = DecompPredictor(DecompConfig(), network).prepare(pair).data["flow"]
+    refined = DecompPredictor(DecompConfig(refine_check=False), network).prepare(pair).data["flow"]
+    initial = DecompPredictor(DecompConfig(refine=False), network).prepare(pair).data["flow"]
+    is_refined = np.isclose(checked, refined, atol=1e-6).all(axis=0)
+    is_initial = np.isclose(checked, initial, atol=1e-6).all(axis=0)
+    assert (is_refined | is_initial).all()
+    differ = ~np.isclose(refined, initial, atol=1e-6).all(axis=0)
+    assert (differ & is_refined).any() and (differ & is_initial).any()  # both choices occur where they differ
 
 
 def test_dis_regions_grow_clip_and_merge():

@@ -91,9 +91,9 @@ class DecompConfig:
     threads: int = option(2, "onnxruntime intra-op threads")
     dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
     full_resolution_init: bool = option(True, "compute the initial flow at full resolution (frame n-k warped "
-                                               "into each box at full size and DIS on it, as flow2d does) and "
-                                               "add the network's upsampled residual to it; off: at the "
-                                               "working width")
+                                               "into frame n's view at full size over the dis_context region "
+                                               "and DIS on it, as flow2d does) and add the network's upsampled "
+                                               "residual to it; off: at the working width, per box")
     dis_context: int = option(-1, "the full-resolution DIS of a gate box runs on a region grown around the box "
                                   "to at least this many pixels a side (clipped to the frame; overlapping "
                                   "regions merged): DIS's pyramid, and so the largest motion it finds, grows "
@@ -162,8 +162,12 @@ def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndar
     Returns:
         (H, W, 2) float32 pixels.
     """
-    flow = dis_estimator(preset).calc(luma8(color_n), dis_target(color_n, warped_color, covered), None)
-    return np.ascontiguousarray(flow, dtype=np.float32)
+    return dis_flow(luma8(color_n), dis_target(color_n, warped_color, covered), preset)
+
+
+def dis_flow(luma_n: np.ndarray, target: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """``initial_flow`` on lumas already made: ``luma8`` of frame n and its ``dis_target``, (H, W, 2) float32."""
+    return np.ascontiguousarray(dis_estimator(preset).calc(luma_n, target, None), dtype=np.float32)
 
 
 def dis_target(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray) -> np.ndarray:
@@ -585,11 +589,11 @@ class DecompPredictor(Predictor):
                           network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) / float(h * w))
 
     def _region_flow(self, region: tuple[int, int, int, int], full_mpi1: Mpi, older: Frame, newest: Frame,
-                     timer) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+                     timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h, w, 2) DIS flow u(n -> n-k) on a full-resolution region (y0, y1, x0, x1) of frame n: frame n-k's
         one-plane MPI (``full_mpi1``) forward-warped into frame n's view of the region only (intrinsics shifted
-        to its corner), then ``initial_flow``; with ``refine_check`` also the luma DIS matched against
-        (``dis_target``) and frame n's luma on the region (else None, None)."""
+        to its corner), then ``initial_flow``; also the two lumas DIS matched (``dis_target`` and frame n's),
+        which ``refine_check`` scores flows with."""
         y0, y1, x0, x1 = region
         src, dst = older.camera, newest.camera
         k_region = np.array(dst.intrinsics, dtype=np.float64)
@@ -599,10 +603,8 @@ class DecompPredictor(Predictor):
                          k_region, dst.world_to_camera, out_size=(y1 - y0, x1 - x0))
         color_w, _, acc = geometry.composite(moved)
         color_n = newest.color[y0:y1, x0:x1]
-        flow = timer("initial_flow", initial_flow, color_n, color_w, acc > 0, self.config.dis_preset)
-        if not self.config.refine_check:
-            return flow, None, None
-        return flow, dis_target(color_n, color_w, acc > 0), luma8(color_n)
+        luma_n, target = luma8(color_n), dis_target(color_n, color_w, acc > 0)
+        return timer("initial_flow", dis_flow, luma_n, target, self.config.dis_preset), target, luma_n
 
     def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],
                   warped: Optional[tuple[Mpi, tuple[int, int]]], low_color_n: np.ndarray, planes_full: np.ndarray,
@@ -655,15 +657,15 @@ class DecompPredictor(Predictor):
             part = timer("upsample", upsample_flow, low_flow, m_box.alpha, factor, full_alpha)
         else:
             part = np.zeros((3,) + full_alpha.shape, dtype=np.float32)
+        dis_part = None
         if full_init is not None:
-            part[:2] += np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
+            dis_part = np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
+            part[:2] += dis_part
         if planes_full.ndim == 2:  # one-hot: summing over planes gives each pixel its own plane's flow
             part = part.sum(axis=1, keepdims=True)
-        if cfg.refine and full_init is not None and cfg.refine_check:
+            dis_part = None if dis_part is None else dis_part.sum(axis=1, keepdims=True)
+        if cfg.refine and dis_part is not None and cfg.refine_check:
             # each pixel keeps the refined flow only where it matches frame n-k better than the initial flow
-            dis_part = np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
-            if planes_full.ndim == 2:
-                dis_part = dis_part.sum(axis=1, keepdims=True)
             luma_n, offset = luma_region[fy0 - ry0:fy1 - ry0, fx0 - rx0:fx1 - rx0], (fy0 - ry0, fx0 - rx0)
             refined = np.moveaxis(part[:2].sum(axis=1), 0, -1)  # (h, w, 2): each pixel's own plane's flow
             keep = (timer("refine_check", warp_error, luma_n, target, offset, refined)

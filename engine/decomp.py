@@ -601,9 +601,10 @@ class DecompPredictor(Predictor):
         k_region[1, 2] -= y0
         moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics, src.world_to_camera,
                          k_region, dst.world_to_camera, out_size=(y1 - y0, x1 - x0))
-        color_w, _, acc = geometry.composite(moved)
+        color_w, _, acc = timer("initial_flow", geometry.composite, moved)
         color_n = newest.color[y0:y1, x0:x1]
-        luma_n, target = luma8(color_n), dis_target(color_n, color_w, acc > 0)
+        luma_n, target = timer("initial_flow", luma8, color_n), timer("initial_flow", dis_target, color_n, color_w,
+                                                                      acc > 0)
         return timer("initial_flow", dis_flow, luma_n, target, self.config.dis_preset), target, luma_n
 
     def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],

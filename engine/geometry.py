@@ -390,7 +390,27 @@ def plane_index(depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
     return _nearest_plane(np.float32(1.0) / depth, planes)
 
 
+def _half_inverse(planes: np.ndarray) -> np.ndarray:
+    """The Z - 1 mid-points between consecutive planes' inverse depths, float32 (``_nearest_plane``'s bounds)."""
+    inv_planes = np.float32(1.0) / planes
+    return ((inv_planes[:-1] + inv_planes[1:]) * np.float32(0.5)).astype(np.float32)
+
+
 def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, planes: Optional[np.ndarray] = None) -> Mpi:
+    """Unvalidated ``build_mpi``: ``engine.kernels.one_hot_mpi`` (its oracle: ``_build_mpi_reference``)."""
+    from engine import kernels
+
+    h, w = depth.shape
+    planes = _plane_depths(depth, num_planes) if planes is None else planes
+    mpi_color = np.empty((3, num_planes, h, w), dtype=np.float32)
+    mpi_depth, alpha = (np.empty((num_planes, h, w), dtype=np.float32) for _ in range(2))
+    kernels.one_hot_mpi(np.ascontiguousarray(color), np.ascontiguousarray(depth), _half_inverse(planes), mpi_color,
+                        mpi_depth, alpha)
+    return Mpi(mpi_color, mpi_depth, alpha, planes)
+
+
+def _build_mpi_reference(color: np.ndarray, depth: np.ndarray, num_planes: int,
+                         planes: Optional[np.ndarray] = None) -> Mpi:
     h, w = depth.shape
     planes = _plane_depths(depth, num_planes) if planes is None else planes
     index = plane_index(depth, planes)
@@ -473,7 +493,11 @@ def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarra
     import cv2  # INTER_AREA with an integer factor is the exact block mean, several times faster than numpy's
 
     out_color = cv2.resize(np.ascontiguousarray(color[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
-    out_depth = depth[:h * f, :w * f].reshape(h, f, w * f).min(axis=1).reshape(h, w, f).min(axis=2)
+    out_depth = depth[0:h * f:f, 0:w * f:f].copy()  # block minimum: f x f strided minima (no reductions)
+    for dy in range(f):
+        for dx in range(f):
+            if dy or dx:
+                np.minimum(out_depth, depth[dy:h * f:f, dx:w * f:f], out=out_depth)
     out_k = np.array(k, dtype=np.float64)
     out_k[:2] /= f
     return out_color.astype(np.float32), np.ascontiguousarray(out_depth, dtype=np.float32), out_k
@@ -507,6 +531,17 @@ def _visibility(alpha: np.ndarray) -> np.ndarray:
 
 
 def _composite(mpi: Mpi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unvalidated ``composite``: ``engine.kernels.composite`` (its oracle: ``_composite_reference``)."""
+    from engine import kernels
+
+    h, w = mpi.alpha.shape[1:]
+    color, depth, acc = np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+    kernels.composite(np.ascontiguousarray(mpi.color), np.ascontiguousarray(mpi.depth),
+                      np.ascontiguousarray(mpi.alpha), color, depth, acc)
+    return color, depth, acc
+
+
+def _composite_reference(mpi: Mpi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     weight = mpi.alpha * _visibility(mpi.alpha)
     color = np.einsum("czhw,zhw->hwc", mpi.color, weight, optimize=False)
     acc = weight.sum(axis=0)
@@ -624,7 +659,38 @@ def _splat(sums: np.ndarray, base, row, fx, fy, point_alpha, zbuf, values) -> No
 
 
 def _forward_warp_mpi(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
-    """Unvalidated body of ``forward_warp_mpi`` (inputs already float32 / float64 arrays).
+    """Unvalidated body of ``forward_warp_mpi`` (inputs already float32 / float64 arrays): the compiled
+    kernels of ``engine.kernels``, held to ``_forward_warp_mpi_reference`` by the tests."""
+    from engine import kernels
+
+    color, depth, alpha, planes = mpi
+    num_z, h, w = alpha.shape
+    ho, wo = out_size
+    n = num_z * h * w
+    half_inv = _half_inverse(planes)
+    flow = np.zeros((3, 1, 1, 1), np.float32) if object_flow is None else np.ascontiguousarray(object_flow)
+    matrix = np.ascontiguousarray(_reprojection_matrix(k_src, t_src, k_dst, t_dst).astype(np.float32))
+    base = _SCRATCH.get("base", n, np.intp)
+    fx, fy, z, a = (_SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
+    log_z = _SCRATCH.get("log_z", n)
+    lo, hi = kernels.project_points(
+        np.ascontiguousarray(depth), np.ascontiguousarray(alpha), flow, object_flow is not None, matrix, half_inv,
+        ho, wo, np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
+        np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH), base, fx, fy, z, a, log_z)
+    hp, wp = ho + 2, wo + 2
+    sums = _SCRATCH.get("sums", 6 * num_z * hp * wp).reshape(-1, 6)  # a pixel's six sums side by side
+    sums.fill(0.0)
+    kernels.splat_points(np.ascontiguousarray(color).reshape(3, -1), base, fx, fy, z, a, log_z, lo, hi,
+                              float(sharpness), wp, MIN_LOG_WEIGHT, _SKY_WEIGHT, sums)
+    out_color = np.empty((3, num_z, ho, wo), dtype=np.float32)
+    out_depth, out_alpha, cov = (np.empty((num_z, ho, wo), dtype=np.float32) for _ in range(3))
+    kernels.normalize(sums, num_z, ho, wo, COVERAGE_THRESHOLD, _SKY_ONLY_WEIGHT, out_color, out_depth,
+                           out_alpha, cov)
+    return Mpi(out_color, out_depth, out_alpha, planes), cov
+
+
+def _forward_warp_mpi_reference(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
+    """numpy body of ``forward_warp_mpi``: the oracle of the compiled ``_forward_warp_mpi`` (same arguments).
 
     Points are processed in chunks of _CHUNK so every temporary stays in cache and is recycled by the
     allocator (fresh multi-megabyte arrays cost a page fault per 4 KiB); two passes, because the soft

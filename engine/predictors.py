@@ -15,6 +15,7 @@ Conventions are those of ``engine/frames.py`` (OpenCV cameras, planar depth, lin
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Sequence
 
@@ -24,7 +25,7 @@ from engine import geometry
 from engine.errors import InputError
 from engine.frames import Camera, Frame, SceneObject, rigid_inverse
 from engine.holefill import fill_holes
-from engine.colorspace import display_encode
+from engine.colorspace import ENCODE8_BUCKETS, encode8_table
 
 
 @dataclass(frozen=True)
@@ -158,7 +159,23 @@ def luma8(color: np.ndarray) -> np.ndarray:
     """(H, W) uint8 luma of display-encoded linear RGB (H, W, 3): what DIS optical flow reads."""
     import cv2
 
-    return cv2.cvtColor((display_encode(color) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    return cv2.cvtColor(encode8(color), cv2.COLOR_RGB2GRAY)
+
+
+def encode8(color: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 display encoding of linear RGB (H, W, 3), equal to ``colorspace.encode8_reference``
+    (compiled: ``engine.kernels.encode8``)."""
+    from engine import kernels
+
+    level, step = _encode8_table()
+    out = np.empty(color.shape, dtype=np.uint8)
+    kernels.encode8(np.ascontiguousarray(color, dtype=np.float32), level, step, ENCODE8_BUCKETS, out)
+    return out
+
+
+@lru_cache(maxsize=1)
+def _encode8_table() -> tuple[np.ndarray, np.ndarray]:
+    return encode8_table()
 
 
 class Flow2D(Predictor):

@@ -1,0 +1,284 @@
+"""Compiled (numba) kernels of the engine's hot loops, each held to a numpy reference by the tests.
+
+- ``encode8``: 8-bit display encoding of linear RGB (``engine.colorspace.encode8_reference``), by the
+  exact per-bucket table of ``engine.colorspace.encode8_table``.
+- ``project_points``, ``splat_points``, ``normalize``: ``engine.geometry._forward_warp_mpi``, the forward
+  splat, in one pass per stage. The numpy body in ``engine/geometry.py`` (``_forward_warp_mpi_reference``) is the test oracle of this
+kernel and states the semantics: every point with alpha > 0 moves by its object flow, is reprojected with
+one 4x4 matrix on homogeneous pixel points (float32 arithmetic, float32 coefficients), lands on the
+destination plane nearest in inverse depth and is splatted into its 4 neighbouring pixels (a volume
+padded by one pixel, then cropped) with inverse bilinear weights times alpha times the soft z-buffer
+weight; sums accumulate in float64. The numpy version needs ~30 array passes and 24 ``np.add.at`` calls
+per chunk of points; here each point is read once per pass (``tests/test_geometry.py`` holds both to
+1e-5). Conventions are ``engine/geometry.py``'s (pixel centres at +0.5, planar depth, +inf sky).
+
+The kernels are compiled on first use (about 2 s, then cached on disk beside this file) and release the
+GIL, so threads of one process can warp in parallel.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_F32 = np.float32
+
+
+@njit(cache=True, nogil=True)
+def encode8(linear, level, step, buckets, out):
+    """``out`` (H, W, C) uint8 = the 8-bit display encoding of ``linear`` (H, W, C) float32: per value,
+    clipped to [0, 1], ``level[b] + (c >= step[b])`` in its bucket b = floor(c * buckets); NaN -> 0."""
+    h, w, channels = linear.shape
+    for y in range(h):
+        for x in range(w):
+            for ch in range(channels):
+                c = linear[y, x, ch]
+                if not c > 0.0:  # also NaN
+                    out[y, x, ch] = level[0]
+                    continue
+                if c > 1.0:
+                    c = _F32(1.0)
+                b = int(c * _F32(buckets))
+                out[y, x, ch] = level[b] + 1 if c >= step[b] else level[b]
+
+
+@njit(cache=True, nogil=True)
+def _plane_of(inv_depth, half_inv):
+    """Index of the plane nearest in inverse depth: the number of mid-points ``inv_depth`` is <= to."""
+    index = 0
+    for k in range(half_inv.shape[0]):
+        if inv_depth <= half_inv[k]:
+            index += 1
+    return index
+
+
+@njit(cache=True, nogil=True)
+def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
+                   tiny, base_out, fx_out, fy_out, z_out, a_out, log_out):
+    """Pass 1: per source point (Z * H * W, plane-major) its top-left tap ``base_out`` in the padded
+    (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and alpha (0 when dropped).
+
+    ``log_out`` gets log(1 + z) (float64) of the landing finite points. Returns (min, max) of it over them
+    ((inf, 0) when none lands).
+    """
+    num_z, h, w = alpha.shape
+    hp, wp = ho + 2, wo + 2
+    row_lo = np.full(num_z * h, np.inf)
+    row_hi = np.zeros(num_z * h)
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
+    for row in range(num_z * h):  # rows in parallel; the log-depth range reduced per row, then over rows
+        z_index, y = row // h, row % h
+        lo, hi = np.inf, 0.0
+        if True:
+            for x in range(w):
+                i = row * w + x
+                a = alpha[z_index, y, x]
+                base_out[i] = 0
+                a_out[i] = zero
+                fx_out[i] = zero
+                fy_out[i] = zero
+                z_out[i] = zero
+                if num_z > 1 and a == zero:  # empty MPI entries are never read again
+                    continue
+                u = _F32(x) + half
+                v = _F32(y) + half
+                d = depth[z_index, y, x]
+                if has_flow:
+                    u += flow[0, z_index, y, x]
+                    v += flow[1, z_index, y, x]
+                    d += flow[2, z_index, y, x]
+                # homogeneous pixel point (d u, d v, d, 1); sky (+inf) -> (u, v, 1, 0)
+                if math.isinf(d):
+                    px, py, pz, pw = u, v, one, zero
+                else:
+                    px, py, pz, pw = u * d, v * d, d, one
+                hu = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3] * pw
+                hv = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] * pw
+                hz = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] * pw
+                valid = hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny
+                if valid:
+                    uo = hu / hz
+                    vo = hv / hz
+                    zo = hz / pw if pw > zero else _F32(np.inf)
+                else:
+                    uo = zero
+                    vo = zero
+                    zo = zero
+                xc = min(max(uo - half, _F32(-2.0)), _F32(wo + 1))
+                yc = min(max(vo - half, _F32(-2.0)), _F32(ho + 1))
+                left = math.floor(xc)
+                top = math.floor(yc)
+                fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
+                fy = min(max((yc - _F32(top) - snap) * snap_scale, zero), one)
+                x0 = int(left) + 1
+                y0 = int(top) + 1
+                fx_out[i] = fx
+                fy_out[i] = fy
+                z_out[i] = zo
+                if not (valid and 0 <= x0 <= wo and 0 <= y0 <= ho):
+                    continue
+                a_out[i] = a
+                plane = _plane_of(one / (zo if valid else one), half_inv)
+                base_out[i] = (plane * hp + y0) * wp + x0
+                if a > zero and not math.isinf(zo):
+                    log_z = math.log1p(np.float64(zo))
+                    log_out[i] = log_z
+                    lo = min(lo, log_z)
+                    hi = max(hi, log_z)
+        row_lo[row] = lo
+        row_hi[row] = hi
+    return row_lo.min(), row_hi.max()
+
+
+@njit(cache=True, nogil=True)
+def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row, min_log_weight, sky_weight, sums):
+    """Pass 2: splat [coverage, weight, weight * (r, g, b, z)] of every landing point (``a`` > 0) into the
+    padded volume ``sums`` (N, 6) (``flat_color`` (3, points), the other per-point arrays from pass 1)."""
+    scale = -sharpness / max(hi, 1e-30)
+    for i in range(base.shape[0]):
+        ai = a[i]
+        if ai == 0.0:
+            continue
+        z = zs[i]
+        sky = math.isinf(z)
+        if sky:
+            zbuf = sky_weight
+            zval = 0.0
+        else:
+            log_z = log_z1[i]
+            if lo != np.inf:
+                log_z -= lo
+            zbuf = math.exp(min(max(log_z * scale, min_log_weight), 0.0))
+            zval = np.float64(z)
+        r = np.float64(flat_color[0, i])
+        g = np.float64(flat_color[1, i])
+        b = np.float64(flat_color[2, i])
+        gx = np.float32(1.0) - fx[i]
+        gy = np.float32(1.0) - fy[i]
+        b0 = base[i]
+        for tap in range(4):
+            if tap == 0:
+                t, wx, wy = b0, gx, gy
+            elif tap == 1:
+                t, wx, wy = b0 + 1, fx[i], gy
+            elif tap == 2:
+                t, wx, wy = b0 + row, gx, fy[i]
+            else:
+                t, wx, wy = b0 + row + 1, fx[i], fy[i]
+            cover = np.float64(wx) * np.float64(wy) * np.float64(ai)
+            weight = cover * zbuf
+            sums[t, 0] += cover
+            sums[t, 1] += weight
+            sums[t, 2] += weight * r
+            sums[t, 3] += weight * g
+            sums[t, 4] += weight * b
+            sums[t, 5] += weight * zval
+
+
+@njit(cache=True, nogil=True)
+def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, out_color, out_depth, out_alpha, out_cov):
+    """Crop the padded sums and divide by the weight: colour, depth (+inf where only sky landed), alpha
+    (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
+    hp, wp = ho + 2, wo + 2
+    for row in range(num_z * ho):
+        z, y = row // ho, row % ho
+        if True:
+            for x in range(wo):
+                t = (z * hp + y + 1) * wp + x + 1
+                cov = sums[t, 0]
+                wsum = sums[t, 1]
+                covered = cov > coverage_threshold
+                inv_w = 1.0 / wsum if covered and wsum > 0.0 else 0.0
+                out_color[0, z, y, x] = sums[t, 2] * inv_w
+                out_color[1, z, y, x] = sums[t, 3] * inv_w
+                out_color[2, z, y, x] = sums[t, 4] * inv_w
+                out_depth[z, y, x] = np.inf if covered and wsum < sky_only_weight else sums[t, 5] * inv_w
+                out_alpha[z, y, x] = 1.0 if covered else 0.0
+                out_cov[z, y, x] = cov
+
+
+@njit(cache=True, nogil=True)
+def row_sources(depth, holes, out):
+    """``engine.holefill._row_sources_reference`` compiled: ``out`` (H, W) int64 = per hole pixel the column
+    of the farther (larger ``depth``; ties: the left one) of its nearest known left / right pixels on its
+    row, -1 for known pixels and rows without a known pixel."""
+    h, w = holes.shape
+    for y in range(h):
+        last = -1
+        for x in range(w):  # left neighbours, kept in ``out`` until the right pass
+            if holes[y, x]:
+                out[y, x] = last
+            else:
+                last = x
+                out[y, x] = -1
+        after = -1
+        for x in range(w - 1, -1, -1):
+            if not holes[y, x]:
+                after = x
+                continue
+            left = out[y, x]
+            depth_left = depth[y, left] if left >= 0 else -np.inf
+            depth_right = depth[y, after] if after >= 0 else -np.inf
+            out[y, x] = after if depth_right > depth_left else left
+
+
+@njit(cache=True, nogil=True)
+def one_hot_mpi(color, depth, half_inv, out_color, out_depth, out_alpha):
+    """``engine.geometry._build_mpi_reference`` compiled: each pixel of ``color`` (H, W, 3) / ``depth`` (H, W)
+    goes to the plane nearest in inverse depth (``half_inv``: the Z - 1 mid-points between the planes'
+    inverse depths; sky -> the farthest plane); ``out_*`` (3, Z, H, W) / (Z, H, W) are written whole."""
+    num_z = out_alpha.shape[0]
+    h, w = depth.shape
+    one, zero = _F32(1.0), _F32(0.0)
+    for z in range(num_z):
+        for y in range(h):
+            for x in range(w):
+                out_alpha[z, y, x] = zero
+                out_depth[z, y, x] = zero
+                out_color[0, z, y, x] = zero
+                out_color[1, z, y, x] = zero
+                out_color[2, z, y, x] = zero
+    for y in range(h):
+        for x in range(w):
+            d = depth[y, x]
+            z = _plane_of(one / d, half_inv)
+            out_alpha[z, y, x] = one
+            out_depth[z, y, x] = d
+            out_color[0, z, y, x] = color[y, x, 0]
+            out_color[1, z, y, x] = color[y, x, 1]
+            out_color[2, z, y, x] = color[y, x, 2]
+
+
+@njit(cache=True, nogil=True)
+def composite(color, depth, alpha, out_color, out_depth, out_acc):
+    """``engine.geometry._composite_reference`` compiled: front-to-back "over" of an MPI (colour (3, Z, H, W),
+    depth and alpha (Z, H, W)) into colour (H, W, 3), depth (H, W) (weight-normalised over the finite
+    surfaces seen; +inf where sky is seen or nothing is covered) and accumulated alpha (H, W)."""
+    num_z, h, w = alpha.shape
+    for y in range(h):
+        for x in range(w):
+            vis = _F32(1.0)
+            r = g = b = acc = dsum = _F32(0.0)
+            sky = False
+            for z in range(num_z):
+                a = alpha[z, y, x]
+                weight = a * vis
+                if z + 1 < num_z:
+                    vis = vis * (_F32(1.0) - a)
+                if not weight > 0.0:
+                    continue
+                r += color[0, z, y, x] * weight
+                g += color[1, z, y, x] * weight
+                b += color[2, z, y, x] * weight
+                acc += weight
+                d = depth[z, y, x]
+                if math.isinf(d):
+                    sky = True
+                else:
+                    dsum += d * weight
+            out_color[y, x, 0] = r
+            out_color[y, x, 1] = g
+            out_color[y, x, 2] = b
+            out_acc[y, x] = acc
+            out_depth[y, x] = dsum / acc if acc > 0.0 and not sky else np.inf

@@ -1,0 +1,144 @@
+"""The compiled kernels (engine/kernels.py) against their numpy references, on ordinary and hard inputs.
+
+Tolerances: the warp, the one-hot MPI and the 8-bit encoding run the same float32 / float64 operations in
+the same order as their references and must agree exactly; compositing sums the planes sequentially in
+float32 where ``np.einsum`` may pair them, so colour and depth agree to 1e-6 relative; hole-fill sources
+are integers and agree exactly. No torch here: the engine's fast path is tested on a torch-free install.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine import geometry as ng
+from engine import holefill
+from engine.colorspace import encode8_reference, encode8_table
+from engine.predictors import encode8, luma8
+from tests.random_scenes import intrinsics, moving_cameras, pose, random_scene
+
+
+def _warp_both(mpi, k_src, t_src, k_dst, t_dst, flow=None, out_size=None, sharpness=ng.DEFAULT_SHARPNESS):
+    out = out_size or mpi.alpha.shape[1:]
+    args = (mpi, np.asarray(k_src, np.float64), np.asarray(t_src, np.float64), np.asarray(k_dst, np.float64),
+            np.asarray(t_dst, np.float64), flow, out, sharpness)
+    return ng._forward_warp_mpi(*args), ng._forward_warp_mpi_reference(*args)
+
+
+def _assert_same_warp(fast, reference):
+    (mpi_a, cov_a), (mpi_b, cov_b) = fast, reference
+    for a, b in zip(tuple(mpi_a[:3]) + (cov_a,), tuple(mpi_b[:3]) + (cov_b,)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(mpi_a.plane_depths, mpi_b.plane_depths)
+
+
+@pytest.mark.parametrize("num_planes", [1, 2, 4, 8])
+@pytest.mark.parametrize("with_flow", [False, True])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_warp_kernel_equals_numpy_reference_on_random_scenes(num_planes, with_flow, seed):
+    rng = np.random.default_rng(100 + seed)
+    h, w = 23, 31
+    color, depth = random_scene(rng, h, w, sky=0.2)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.2, shift=0.5)
+    mpi = ng.build_mpi(color, depth, num_planes)
+    flow = None
+    if with_flow:
+        flow = (rng.normal(0, 2, (3, num_planes, h, w)) * [[[[1]]], [[[1]]], [[[0.05]]]]).astype(np.float32)
+        flow *= mpi.alpha[None]
+    _assert_same_warp(*_warp_both(mpi, k, t_src, k, t_dst, flow))
+
+
+def test_warp_kernel_hard_cases_equal_the_reference():
+    """Points behind the camera, far off screen, huge and tiny depths, sky only, a box-sized output with
+    other intrinsics, sharpness 0 (plain average), empty planes and an all-empty MPI."""
+    rng = np.random.default_rng(7)
+    h, w = 16, 20
+    depth = np.exp(rng.uniform(np.log(1e-3), np.log(1e5), (h, w))).astype(np.float32)
+    depth[:3] = np.inf
+    color = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    k = intrinsics(h, w)
+    for t_dst in (pose((0, np.radians(170), 0), (0.5, 0, 0)), pose((np.radians(170), 0, 0)),
+                  pose(translation=(0, 0, 50.0)), pose(translation=(1e3, 0, 0)), np.eye(4)):
+        for num_planes in (1, 4):
+            mpi = ng.build_mpi(color, depth, num_planes)
+            for sharpness in (0.0, 50.0):
+                _assert_same_warp(*_warp_both(mpi, k, np.eye(4), k, t_dst, sharpness=sharpness))
+    sky = ng.build_mpi(color, np.full((h, w), np.inf, np.float32), 3)
+    fast, _ = _warp_both(sky, k, np.eye(4), k, pose((0.1, 0.05, 0)))
+    assert np.isinf(fast[0].depth[fast[0].alpha > 0]).all()
+    _assert_same_warp(fast, _warp_both(sky, k, np.eye(4), k, pose((0.1, 0.05, 0)))[1])
+    mpi = ng.build_mpi(color, np.where(depth > 10, np.float32(20.0), np.float32(1.0)), 5)  # 3 empty planes
+    assert (mpi.alpha.reshape(5, -1).sum(axis=1) == 0).sum() == 3
+    k_box = k.copy()
+    k_box[:2, 2] -= (4, 3)
+    _assert_same_warp(*_warp_both(mpi, k, np.eye(4), k_box * [[1.3], [1.3], [1]], pose((0, 0.02, 0), (0.1, 0, 0)),
+                                  out_size=(9, 11)))
+    empty = ng.Mpi(mpi.color * 0, mpi.depth * 0, mpi.alpha * 0, mpi.plane_depths)
+    fast, ref = _warp_both(empty, k, np.eye(4), k, pose(translation=(0.1, 0, 0)))
+    _assert_same_warp(fast, ref)
+    assert not fast[0].alpha.any()
+
+
+@pytest.mark.parametrize("num_planes", [1, 3, 6])
+def test_one_hot_mpi_kernel_equals_reference(num_planes):
+    rng = np.random.default_rng(3)
+    color, depth = random_scene(rng, 19, 27, sky=0.3)
+    for planes in (None, ng.plane_depths(depth[::2, ::2], num_planes)):
+        fast = ng.build_mpi(color, depth, num_planes, planes)
+        ref = ng._build_mpi_reference(color, depth, num_planes, fast.plane_depths)
+        for a, b in zip(fast, ref):
+            np.testing.assert_array_equal(a, b)
+    all_sky = np.full(depth.shape, np.inf, np.float32)
+    for a, b in zip(ng.build_mpi(color, all_sky, num_planes), ng._build_mpi_reference(color, all_sky, num_planes)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("num_planes", [1, 2, 5])
+def test_composite_kernel_equals_reference_with_soft_alpha_sky_and_holes(num_planes):
+    rng = np.random.default_rng(4)
+    color, depth = random_scene(rng, 17, 21, sky=0.3)
+    mpi = ng.build_mpi(color, depth, num_planes)
+    soft = rng.uniform(0, 1, mpi.alpha.shape).astype(np.float32) * (rng.uniform(size=mpi.alpha.shape) < 0.7)
+    soft_mpi = ng.Mpi(mpi.color * (soft > 0), np.where(soft > 0, np.where(mpi.depth > 0, mpi.depth, np.float32(3.0)),
+                                                         np.float32(0.0)), soft, mpi.plane_depths)
+    for m in (mpi, soft_mpi):
+        fast, ref = ng.composite(m), ng._composite_reference(m)
+        np.testing.assert_allclose(fast[0], ref[0], rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(fast[2], ref[2], rtol=1e-6, atol=1e-7)
+        assert (np.isinf(fast[1]) == np.isinf(ref[1])).all()
+        finite = np.isfinite(ref[1])
+        np.testing.assert_allclose(fast[1][finite], ref[1][finite], rtol=1e-6)
+
+
+def test_row_sources_kernel_equals_reference_on_random_holes():
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        depth = rng.uniform(1, 10, (h, w)).astype(np.float32)
+        depth[rng.uniform(size=(h, w)) < 0.1] = np.inf
+        if trial % 3 == 0:
+            depth = np.round(depth / 3).astype(np.float32)  # ties: the left side wins in both
+        holes = rng.uniform(size=(h, w)) < rng.uniform(0, 1)
+        if trial % 7 == 0:
+            holes[:] = True  # rows with no known pixel
+        np.testing.assert_array_equal(holefill._row_sources(depth, holes), holefill._row_sources_reference(depth, holes))
+
+
+def test_encode8_table_and_kernel_equal_the_reference_at_every_step():
+    level, step = encode8_table()
+    steps = step[np.isfinite(step)]
+    assert steps.size == 255  # one per 8-bit code above 0
+    rng = np.random.default_rng(6)
+    values = np.concatenate([steps, np.nextafter(steps, np.float32(0)), np.nextafter(steps, np.float32(2)),
+                             rng.uniform(-0.5, 1.5, 30000).astype(np.float32), rng.uniform(0, 1e-3, 3000),
+                             np.array([0.0, -0.0, 1.0, 1e-45, -np.inf, np.inf, 1e30, 0.0031308])]).astype(np.float32)
+    values = values[:values.size // 3 * 3].reshape(1, -1, 3)
+    np.testing.assert_array_equal(encode8(values), encode8_reference(values))
+    assert encode8(np.full((1, 1, 3), np.nan, np.float32)).tolist() == [[[0, 0, 0]]]
+
+
+def test_luma8_is_the_grey_of_the_encoded_frame():
+    import cv2
+
+    rng = np.random.default_rng(8)
+    color = rng.uniform(0, 2, (33, 47, 3)).astype(np.float32)
+    np.testing.assert_array_equal(luma8(color), cv2.cvtColor(encode8_reference(color), cv2.COLOR_RGB2GRAY))

@@ -59,20 +59,21 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
     """Pass 1: per source point (Z * H * W, plane-major) its top-left tap ``base_out`` in the padded
     (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and alpha (0 when dropped).
 
-    ``log_out`` gets log(1 + z) (float64) of the landing finite points. Returns (min, max) of it over them
-    ((inf, 0) when none lands).
+    ``log_out`` gets log(1 + z) (float64) of the landing finite points (the splat's soft z-buffer reads it).
+    Returns (min, max) of it over them ((inf, 0) when none lands).
     """
     num_z, h, w = alpha.shape
     hp, wp = ho + 2, wo + 2
-    row_lo = np.full(num_z * h, np.inf)
-    row_hi = np.zeros(num_z * h)
     one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
-    for row in range(num_z * h):  # rows in parallel; the log-depth range reduced per row, then over rows
-        z_index, y = row // h, row % h
-        lo, hi = np.inf, 0.0
-        if True:
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]  # in registers: the loop writes other arrays
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
+    x_max, y_max, x_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)
+    lo, hi = np.inf, 0.0
+    for z_index in range(num_z):
+        for y in range(h):
             for x in range(w):
-                i = row * w + x
+                i = (z_index * h + y) * w + x
                 a = alpha[z_index, y, x]
                 base_out[i] = 0
                 a_out[i] = zero
@@ -93,9 +94,9 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
                     px, py, pz, pw = u, v, one, zero
                 else:
                     px, py, pz, pw = u * d, v * d, d, one
-                hu = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3] * pw
-                hv = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] * pw
-                hz = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] * pw
+                hu = m00 * px + m01 * py + m02 * pz + m03 * pw
+                hv = m10 * px + m11 * py + m12 * pz + m13 * pw
+                hz = m20 * px + m21 * py + m22 * pz + m23 * pw
                 valid = hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny
                 if valid:
                     uo = hu / hz
@@ -105,8 +106,8 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
                     uo = zero
                     vo = zero
                     zo = zero
-                xc = min(max(uo - half, _F32(-2.0)), _F32(wo + 1))
-                yc = min(max(vo - half, _F32(-2.0)), _F32(ho + 1))
+                xc = min(max(uo - half, x_min), x_max)
+                yc = min(max(vo - half, x_min), y_max)
                 left = math.floor(xc)
                 top = math.floor(yc)
                 fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
@@ -126,9 +127,7 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
                     log_out[i] = log_z
                     lo = min(lo, log_z)
                     hi = max(hi, log_z)
-        row_lo[row] = lo
-        row_hi[row] = hi
-    return row_lo.min(), row_hi.max()
+    return lo, hi
 
 
 @njit(cache=True, nogil=True)

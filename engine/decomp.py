@@ -98,6 +98,11 @@ class DecompConfig:
                                   "to at least this many pixels a side (clipped to the frame; overlapping "
                                   "regions merged): DIS's pyramid, and so the largest motion it finds, grows "
                                   "with the image it is given; 0: the box alone; -1: the whole frame")
+    dis_holes: str = option("fill", "what the full-resolution initial flow's DIS sees where the camera-compensated "
+                                    "frame n-k left a hole: 'fill' (the background-biased row fill of reproject, "
+                                    "as flow2d; the DIS flow then equals flow2d's) or 'own' (frame n's own colour, "
+                                    "as in the network's training data; 0.4 dB worse over moving pixels at k = 4, "
+                                    "docs/flow3d.md)")
     dis_outside: bool = option(True, "keep the DIS flow of the regions outside the gate's boxes too (as "
                                       "flow2d does) instead of zero flow there; the network refines the boxes")
     refine_check: bool = option(True, "keep the network's refinement of the full-resolution initial flow only "
@@ -134,6 +139,7 @@ class DecompConfig:
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
             (self.dis_context >= -1, "dis_context must be >= 0, or -1 for the whole frame"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
+            (self.dis_holes in ("fill", "own"), f"dis_holes must be 'fill' or 'own', got {self.dis_holes!r}"),
             (self.motion in ("predicted", "truth"), f"motion must be 'predicted' or 'truth', got {self.motion!r}"),
         ]
         for ok, problem in checks:
@@ -170,10 +176,15 @@ def dis_flow(luma_n: np.ndarray, target: np.ndarray, preset: str = "medium") -> 
     return np.ascontiguousarray(dis_estimator(preset).calc(luma_n, target, None), dtype=np.float32)
 
 
-def dis_target(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray) -> np.ndarray:
+def dis_target(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray,
+               warped_depth: Optional[np.ndarray] = None) -> np.ndarray:
     """(H, W) uint8 luma of the camera-compensated frame n-k that ``initial_flow`` matches frame n against:
-    the warp's colour where it landed, frame n's own elsewhere."""
-    return luma8(np.where(covered[..., None], warped_color, color_n))
+    the warp's colour where it landed; elsewhere frame n's own colour, or, given the warp's depth (H, W),
+    the background-biased row fill of ``reproject`` (``engine.holefill``, frame n's colour where a hole's row
+    and column hold no known pixel), which is what ``flow2d`` matches against."""
+    if warped_depth is None:
+        return luma8(np.where(covered[..., None], warped_color, color_n))
+    return luma8(fill_holes(warped_color, warped_depth, ~covered, color_n)[0])
 
 
 def warp_error(luma_n: np.ndarray, target: np.ndarray, offset: tuple[int, int], flow: np.ndarray,
@@ -592,8 +603,8 @@ class DecompPredictor(Predictor):
                      timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(h, w, 2) DIS flow u(n -> n-k) on a full-resolution region (y0, y1, x0, x1) of frame n: frame n-k's
         one-plane MPI (``full_mpi1``) forward-warped into frame n's view of the region only (intrinsics shifted
-        to its corner), then ``initial_flow``; also the two lumas DIS matched (``dis_target`` and frame n's),
-        which ``refine_check`` scores flows with."""
+        to its corner), then DIS against its ``dis_target`` (holes per ``dis_holes``); also the two lumas DIS
+        matched (``dis_target`` and frame n's), which ``refine_check`` scores flows with."""
         y0, y1, x0, x1 = region
         src, dst = older.camera, newest.camera
         k_region = np.array(dst.intrinsics, dtype=np.float64)
@@ -601,10 +612,11 @@ class DecompPredictor(Predictor):
         k_region[1, 2] -= y0
         moved, _ = timer("initial_flow", geometry.forward_warp_mpi, full_mpi1, src.intrinsics, src.world_to_camera,
                          k_region, dst.world_to_camera, out_size=(y1 - y0, x1 - x0))
-        color_w, _, acc = timer("initial_flow", geometry.composite, moved)
+        color_w, depth_w, acc = timer("initial_flow", geometry.composite, moved)
         color_n = newest.color[y0:y1, x0:x1]
-        luma_n, target = timer("initial_flow", luma8, color_n), timer("initial_flow", dis_target, color_n, color_w,
-                                                                      acc > 0)
+        fill_depth = depth_w if self.config.dis_holes == "fill" else None
+        luma_n = timer("initial_flow", luma8, color_n)
+        target = timer("initial_flow", dis_target, color_n, color_w, acc > 0, fill_depth)
         return timer("initial_flow", dis_flow, luma_n, target, self.config.dis_preset), target, luma_n
 
     def _box_flow(self, box, factor: int, low_size: tuple[int, int], m_n: Optional[Mpi],

@@ -22,8 +22,10 @@ Conventions (those of ``engine/frames.py``; every function below depends on them
   the farther plane); sky pixels go to the farthest plane and keep depth +inf. The MPI depth channel holds
   the true depth where alpha = 1 and 0 elsewhere.
 
-Values are float32; 4x4 compositions are made in float64 and splat sums accumulate in float64 (with
-``np.add.at`` into per-thread work buffers that are reused across calls, see ``_Scratch``).
+Values are float32; 4x4 compositions are made in float64 and splat sums accumulate in float64 (in
+per-thread work buffers reused across calls, see ``_Scratch``). The forward warp, ``build_mpi`` and
+``composite`` run as compiled kernels (``engine/kernels.py``); their numpy bodies (``*_reference``) are the
+tests' oracle, and the kernels reproduce them bit for bit (compositing to 1e-6).
 """
 from __future__ import annotations
 

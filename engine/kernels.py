@@ -3,17 +3,21 @@
 - ``encode8``: 8-bit display encoding of linear RGB (``engine.colorspace.encode8_reference``), by the
   exact per-bucket table of ``engine.colorspace.encode8_table``.
 - ``project_points``, ``splat_points``, ``normalize``: ``engine.geometry._forward_warp_mpi``, the forward
-  splat, in one pass per stage. The numpy body in ``engine/geometry.py`` (``_forward_warp_mpi_reference``) is the test oracle of this
-kernel and states the semantics: every point with alpha > 0 moves by its object flow, is reprojected with
-one 4x4 matrix on homogeneous pixel points (float32 arithmetic, float32 coefficients), lands on the
-destination plane nearest in inverse depth and is splatted into its 4 neighbouring pixels (a volume
-padded by one pixel, then cropped) with inverse bilinear weights times alpha times the soft z-buffer
-weight; sums accumulate in float64. The numpy version needs ~30 array passes and 24 ``np.add.at`` calls
-per chunk of points; here each point is read once per pass (``tests/test_geometry.py`` holds both to
-1e-5). Conventions are ``engine/geometry.py``'s (pixel centres at +0.5, planar depth, +inf sky).
+  splat, in one pass per stage. The numpy body in ``engine/geometry.py`` (``_forward_warp_mpi_reference``)
+  is the test oracle of these kernels and states the semantics: every point with alpha > 0 moves by its
+  object flow, is reprojected with one 4x4 matrix on homogeneous pixel points (float32 arithmetic, float32
+  coefficients), lands on the destination plane nearest in inverse depth and is splatted into its 4
+  neighbouring pixels (a volume padded by one pixel, then cropped) with inverse bilinear weights times
+  alpha times the soft z-buffer weight; sums accumulate in float64. The numpy version needs ~30 array
+  passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
+- ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
+- ``row_sources``: the row scan of the simple hole fill (``engine.holefill``).
 
-The kernels are compiled on first use (about 2 s, then cached on disk beside this file) and release the
-GIL, so threads of one process can warp in parallel.
+``tests/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6).
+Conventions are ``engine/geometry.py``'s (pixel centres at +0.5, planar depth, +inf sky).
+
+The kernels are compiled on first use (about 3 s for all, then cached on disk beside this file) and
+release the GIL, so threads of one process can warp in parallel.
 """
 from __future__ import annotations
 

@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 
 from engine import geometry
-from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options, context_region,
-                           context_span, full_box, initial_flow, merge_planes, merge_regions, motion_boxes,
-                           upsample_flow, warp_error)
+from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
+                           context_region, context_span, dis_flow, dis_target, full_box, initial_flow, merge_planes,
+                           merge_regions, motion_boxes, upsample_flow, warp_error)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
 from engine.metrics import score_frame
-from engine.predictors import Reproject, Target, make_predictor, split_methods
+from engine.predictors import Reproject, Target, luma8, make_predictor, split_methods
 from tests.synthetic import rigid, two_layer_sequence
 
 
@@ -197,10 +197,20 @@ def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
     moved, _ = geometry.forward_warp_mpi(geometry.build_mpi(older.color, older.depth, 1), older.camera.intrinsics,
                                          older.camera.world_to_camera, k_box, newest.camera.world_to_camera,
                                          out_size=(ry1 - ry0, rx1 - rx0))
-    color_w, _, acc = geometry.composite(moved)
-    dis = initial_flow(newest.color[ry0:ry1, rx0:rx1], color_w, acc > 0)
+    color_w, depth_w, acc = geometry.composite(moved)
+    color_n = newest.color[ry0:ry1, rx0:rx1]
+    dis = dis_flow(luma8(color_n), dis_target(color_n, color_w, acc > 0, depth_w))  # dis_holes=fill
     np.testing.assert_allclose(state.data["flow"][:2, 0], np.moveaxis(dis, -1, 0), atol=1e-5)
     assert not state.data["flow"][2].any()
+    # ... which is flow2d's DIS flow (the same camera warp and hole fill; frames here leave no hole whose row
+    # and column are both empty, the one place the two fills' fallbacks differ)
+    flow2d = make_predictor("flow2d").prepare([older, newest]).data["flow_back"]
+    np.testing.assert_allclose(state.data["flow"][:2, 0], np.moveaxis(flow2d, -1, 0), atol=1e-5)
+    # dis_holes=own: frame n's own colour in the holes (the network's training data), initial_flow's target
+    own = DecompPredictor(DecompConfig(refine=False, dis_holes="own"), network).prepare([older, newest])
+    np.testing.assert_allclose(own.data["flow"][:2, 0],
+                               np.moveaxis(initial_flow(color_n, color_w, acc > 0), -1, 0), atol=1e-5)
+    assert (acc <= 0).any() and np.abs(own.data["flow"] - state.data["flow"]).max() > 0.01
     # without dis_outside the flow is zero outside the boxes, DIS (cut from the same whole-frame DIS) inside
     inside_only = DecompPredictor(DecompConfig(refine=False, dis_outside=False), network).prepare(
         [frames[2], frames[4]]).data["flow"]

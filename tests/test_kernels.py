@@ -120,7 +120,8 @@ def test_row_sources_kernel_equals_reference_on_random_holes():
         holes = rng.uniform(size=(h, w)) < rng.uniform(0, 1)
         if trial % 7 == 0:
             holes[:] = True  # rows with no known pixel
-        np.testing.assert_array_equal(holefill._row_sources(depth, holes), holefill._row_sources_reference(depth, holes))
+        np.testing.assert_array_equal(holefill._row_sources(depth, holes),
+                                      holefill._row_sources_reference(depth, holes))
 
 
 def test_encode8_table_and_kernel_equal_the_reference_at_every_step():

@@ -12,8 +12,11 @@
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
 - ``row_sources``: the row scan of the simple hole fill (``engine.holefill``).
+- ``upsample_planes``: the full-resolution sampling of ``engine.decomp.upsample_flow`` (to 1e-5: OpenCV's
+  resize, the reference, may round its bilinear sums differently).
 
-``tests/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6).
+``tests/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6, the
+flow upsampling to 1e-5).
 Conventions are ``engine/geometry.py``'s (pixel centres at +0.5, planar depth, +inf sky).
 
 The kernels are compiled on first use (about 3 s for all, then cached on disk beside this file) and
@@ -285,3 +288,53 @@ def composite(color, depth, alpha, out_color, out_depth, out_acc):
             out_color[y, x, 2] = b
             out_acc[y, x] = acc
             out_depth[y, x] = dsum / acc if acc > 0.0 and not sky else np.inf
+
+
+@njit(cache=True, nogil=True)
+def _linear_taps(size, small, factor):
+    """OpenCV INTER_LINEAR taps of an upscale by ``factor``: per output index (past ``small * factor``: the
+    last one's), the left source index, the right one (clamped) and the right weight (float32)."""
+    left = np.empty(size, np.int64)
+    right = np.empty(size, np.int64)
+    weight = np.empty(size, np.float32)
+    inv = 1.0 / factor
+    for i in range(size):
+        f = _F32((min(i, small * factor - 1) + 0.5) * inv - 0.5)
+        s = math.floor(f)
+        t = f - _F32(s)
+        if s < 0:
+            s, t = 0, _F32(0.0)
+        if s >= small - 1:
+            s, t = small - 1, _F32(0.0)
+        left[i], right[i], weight[i] = s, min(s + 1, small - 1), t
+    return left, right, weight
+
+
+@njit(cache=True, nogil=True)
+def upsample_planes(packed, factor, full_alpha, scale, out):
+    """The full-resolution half of ``engine.decomp.upsample_flow_reference``: per plane z, ``packed``
+    (Z, h, w, 4) (alpha-weighted (du, dv, dz) and alpha, already spread into empty neighbours) is sampled
+    bilinearly at each full-resolution pixel with ``full_alpha`` (Z, H, W) != 0, as OpenCV's INTER_LINEAR
+    resize by ``factor`` samples it (source x = (X + 0.5) / factor - 0.5, clamped at the borders; rows and
+    columns past the last whole block repeat the last one), then divided by the sampled alpha (0 where it
+    is <= 1e-6) and multiplied by ``scale`` (3,); ``out`` (3, Z, H, W) is written whole (0 where
+    ``full_alpha`` is 0)."""
+    num_z, h, w, _ = packed.shape
+    big_h, big_w = full_alpha.shape[1:]
+    top, bottom, v_weight = _linear_taps(big_h, h, factor)
+    left, right, u_weight = _linear_taps(big_w, w, factor)
+    one = _F32(1.0)
+    for z in range(num_z):
+        for y in range(big_h):
+            sy, sy1, v = top[y], bottom[y], v_weight[y]
+            for x in range(big_w):
+                if full_alpha[z, y, x] == 0.0:
+                    out[0, z, y, x] = out[1, z, y, x] = out[2, z, y, x] = 0.0
+                    continue
+                sx, sx1, u = left[x], right[x], u_weight[x]
+                a = (packed[z, sy, sx, 3] * (one - u) + packed[z, sy, sx1, 3] * u) * (one - v) \
+                    + (packed[z, sy1, sx, 3] * (one - u) + packed[z, sy1, sx1, 3] * u) * v
+                for c in range(3):
+                    value = (packed[z, sy, sx, c] * (one - u) + packed[z, sy, sx1, c] * u) * (one - v) \
+                        + (packed[z, sy1, sx, c] * (one - u) + packed[z, sy1, sx1, c] * u) * v
+                    out[c, z, y, x] = value / a * scale[c] if a > _F32(1e-6) else _F32(0.0)

@@ -143,3 +143,24 @@ def test_luma8_is_the_grey_of_the_encoded_frame():
     rng = np.random.default_rng(8)
     color = rng.uniform(0, 2, (33, 47, 3)).astype(np.float32)
     np.testing.assert_array_equal(luma8(color), cv2.cvtColor(encode8_reference(color), cv2.COLOR_RGB2GRAY))
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_flow_upsampling_kernel_matches_the_reference(factor):
+    from engine.decomp import upsample_flow, upsample_flow_reference
+
+    rng = np.random.default_rng(9)
+    num_z, h, w = 4, 13, 17
+    planes = rng.integers(0, num_z, (h, w))
+    alpha = (planes[None] == np.arange(num_z)[:, None, None]).astype(np.float32)
+    alpha[1] = 0.0  # an empty plane at the network's resolution
+    flow = (rng.normal(0, 5, (3, num_z, h, w)) * alpha[None]).astype(np.float32)
+    big_h, big_w = h * factor + factor - 1, w * factor + 1  # rows / columns past the last whole block
+    full_planes = rng.integers(0, num_z, (big_h, big_w))
+    full_alpha = (full_planes[None] == np.arange(num_z)[:, None, None]).astype(np.float32)
+    full_alpha[3] = 0.0  # a plane with no full-resolution point
+    fast = upsample_flow(flow, alpha, factor, full_alpha)
+    ref = upsample_flow_reference(flow, alpha, factor, full_alpha)
+    assert fast.shape == ref.shape == (3, num_z, big_h, big_w)
+    np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-4)
+    assert (fast[:, full_alpha == 0] == 0).all() and np.abs(fast).max() > 1.0

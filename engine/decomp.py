@@ -108,6 +108,9 @@ class DecompConfig:
     refine_check: bool = option(True, "keep the network's refinement of the full-resolution initial flow only "
                                        "at pixels where it explains frame n better than the initial flow alone "
                                        "(photometric error of the camera-compensated frame n-k, 9 x 9 mean)")
+    refine_margin: float = option(1.0, "the refinement check keeps the refined flow only where its photometric "
+                                       "error is lower than the initial flow's by more than this many 8-bit "
+                                       "levels (ties and near-ties keep DIS; chosen on training scenes)")
     refine: bool = option(True, "run the flow network on the initial flow; off: the initial flow (DIS) alone in "
                                 "the gate's boxes, without the network: what the network adds, and its cost")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
@@ -138,6 +141,7 @@ class DecompConfig:
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
             (self.dis_context >= -1, "dis_context must be >= 0, or -1 for the whole frame"),
+            (math.isfinite(self.refine_margin) and self.refine_margin >= 0, "refine_margin must be finite and >= 0"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
             (self.dis_holes in ("fill", "own"), f"dis_holes must be 'fill' or 'own', got {self.dis_holes!r}"),
             (self.motion in ("predicted", "truth"), f"motion must be 'predicted' or 'truth', got {self.motion!r}"),
@@ -707,10 +711,11 @@ class DecompPredictor(Predictor):
             part = part.sum(axis=1, keepdims=True)
             dis_part = None if dis_part is None else dis_part.sum(axis=1, keepdims=True)
         if cfg.refine and dis_part is not None and cfg.refine_check:
-            # each pixel keeps the refined flow only where it matches frame n-k better than the initial flow
+            # each pixel keeps the refined flow only where it matches frame n-k better than the initial flow (by
+            # more than refine_margin levels)
             luma_n, offset = luma_region[fy0 - ry0:fy1 - ry0, fx0 - rx0:fx1 - rx0], (fy0 - ry0, fx0 - rx0)
             refined = np.moveaxis(part[:2].sum(axis=1), 0, -1)  # (h, w, 2): each pixel's own plane's flow
-            keep = (timer("refine_check", warp_error, luma_n, target, offset, refined)
+            keep = (timer("refine_check", warp_error, luma_n, target, offset, refined) + np.float32(cfg.refine_margin)
                     < timer("refine_check", warp_error, luma_n, target, offset, full_init))
             part[:2] = np.where(keep, part[:2], dis_part)
         flow[:, :, fy0:fy1, fx0:fx1] = part

@@ -48,3 +48,16 @@ def moving_cameras(rng: np.random.Generator, height: int, width: int, angle: flo
     t_src = pose(rng.normal(0, 0.3, 3), rng.normal(0, 1, 3))
     t_dst = pose(rng.normal(0, angle, 3), rng.normal(0, shift, 3)) @ t_src
     return k, t_src, t_dst
+
+
+def extreme_scene(seed: int, height: int = 16, width: int = 20):
+    """Depths log-uniform in [1e-3, 1e5] with a sky band, random colours, and destination poses that put
+    points behind the camera (170 degree turns), far off screen (1e3 to the side) or far ahead (50 back):
+    (colour, depth, intrinsics, [world_to_camera, ...]); the source camera is the identity."""
+    rng = np.random.default_rng(seed)
+    depth = np.exp(rng.uniform(np.log(1e-3), np.log(1e5), (height, width))).astype(np.float32)
+    depth[:3] = np.inf
+    color = rng.uniform(0, 1, (height, width, 3)).astype(np.float32)
+    poses = [pose((0, np.radians(170), 0), (0.5, 0, 0)), pose((np.radians(170), 0, 0)),
+             pose(translation=(0, 0, 50.0)), pose(translation=(1e3, 0, 0))]
+    return color, depth, intrinsics(height, width), poses

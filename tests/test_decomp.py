@@ -254,6 +254,16 @@ def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(net
     assert (is_refined | is_initial).all()
     differ = ~np.isclose(refined, initial, atol=1e-6).all(axis=0)
     assert (differ & is_refined).any() and (differ & is_initial).any()  # both choices occur where they differ
+    # the margin only moves pixels from the refined to the initial flow; an unreachable margin keeps DIS alone
+    strict = DecompPredictor(DecompConfig(refine_margin=0.0), network).prepare(pair).data["flow"]
+    kept_strict = ~np.isclose(strict, initial, atol=1e-6).all(axis=0)
+    kept_margin = ~np.isclose(checked, initial, atol=1e-6).all(axis=0)
+    assert not (kept_margin & ~kept_strict).any() and kept_margin.sum() <= kept_strict.sum()
+    never = DecompPredictor(DecompConfig(refine_margin=256.0), network).prepare(pair).data["flow"]
+    np.testing.assert_allclose(never, initial, atol=1e-6)
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="refine_margin"):
+            DecompConfig(refine_margin=bad)
 
 
 def test_dis_regions_grow_clip_and_merge():

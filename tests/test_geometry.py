@@ -19,7 +19,7 @@ import torch
 from engine import geometry as ng
 from engine.errors import InputError
 from models import geometry as tg
-from tests.random_scenes import intrinsics, moving_cameras, pose, random_scene, rotation
+from tests.random_scenes import extreme_scene, intrinsics, moving_cameras, pose, random_scene, rotation
 
 # ----------------------------------------------------------------------------------------------------
 # Scenes
@@ -492,14 +492,8 @@ def test_inputs_are_not_modified():
 
 
 def test_extreme_but_legal_values_stay_finite():
-    rng = np.random.default_rng(26)
-    h, w = 16, 20
-    depth = np.exp(rng.uniform(np.log(1e-3), np.log(1e5), (h, w))).astype(np.float32)
-    depth[:3] = np.inf
-    color = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
-    k = intrinsics(h, w)
-    for t_dst in (pose((0, np.radians(170), 0), (0.5, 0, 0)), pose((np.radians(170), 0, 0)),
-                  pose(translation=(0, 0, 50.0)), pose(translation=(1e3, 0, 0))):
+    color, depth, k, poses = extreme_scene(26)
+    for t_dst in poses:
         for num_planes in (1, 4):
             mpi = ng.build_mpi(color, depth, num_planes)
             warped, coverage = ng.forward_warp_mpi(mpi, k, np.eye(4), k, t_dst)

@@ -14,7 +14,7 @@ from engine import geometry as ng
 from engine import holefill
 from engine.colorspace import encode8_reference, encode8_table
 from engine.predictors import encode8, luma8
-from tests.random_scenes import intrinsics, moving_cameras, pose, random_scene
+from tests.random_scenes import extreme_scene, moving_cameras, pose, random_scene
 
 
 def _warp_both(mpi, k_src, t_src, k_dst, t_dst, flow=None, out_size=None, sharpness=ng.DEFAULT_SHARPNESS):
@@ -50,14 +50,9 @@ def test_warp_kernel_equals_numpy_reference_on_random_scenes(num_planes, with_fl
 def test_warp_kernel_hard_cases_equal_the_reference():
     """Points behind the camera, far off screen, huge and tiny depths, sky only, a box-sized output with
     other intrinsics, sharpness 0 (plain average), empty planes and an all-empty MPI."""
-    rng = np.random.default_rng(7)
-    h, w = 16, 20
-    depth = np.exp(rng.uniform(np.log(1e-3), np.log(1e5), (h, w))).astype(np.float32)
-    depth[:3] = np.inf
-    color = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
-    k = intrinsics(h, w)
-    for t_dst in (pose((0, np.radians(170), 0), (0.5, 0, 0)), pose((np.radians(170), 0, 0)),
-                  pose(translation=(0, 0, 50.0)), pose(translation=(1e3, 0, 0)), np.eye(4)):
+    color, depth, k, poses = extreme_scene(7)
+    h, w = depth.shape
+    for t_dst in poses + [np.eye(4)]:
         for num_planes in (1, 4):
             mpi = ng.build_mpi(color, depth, num_planes)
             for sharpness in (0.0, 50.0):

@@ -19,6 +19,7 @@ import torch
 from engine import geometry
 from engine.decomp import DEFAULT_MODEL, METADATA_KEY, FlowNetwork, initial_flow
 from engine.geometry import Mpi as NpMpi
+from export.flow import with_planes
 from models.flow3d import mpi_pair
 from models.train_flow import _frame_tensors, _initial_flow, load_model
 from tests.synthetic import two_layer_sequence
@@ -35,8 +36,8 @@ def pair():
 
 
 def test_committed_network_matches_its_checkpoint(pair):
-    model = load_model(CHECKPOINT)
     net = FlowNetwork(DEFAULT_MODEL, threads=1)
+    model = with_planes(load_model(CHECKPOINT), net.num_planes)  # the export's plane count (2; trained at 4)
     assert net.config == json.loads(json.dumps(model.config.__dict__))
     older, newest = pair
     tensors_n = _frame_tensors(newest, 2)
@@ -72,4 +73,4 @@ def test_onnx_metadata_records_the_working_width():
 
     meta = {p.key: p.value for p in onnx.load(str(DEFAULT_MODEL), load_external_data=False).metadata_props}
     info = json.loads(meta[METADATA_KEY])
-    assert info["working_width"] == 480 and info["model"]["num_planes"] == 4
+    assert info["working_width"] == 480 and info["model"]["num_planes"] == 2  # exported with --num-planes 2

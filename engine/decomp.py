@@ -417,7 +417,8 @@ def upsample_flow(flow: np.ndarray, alpha: np.ndarray, factor: int, full_alpha: 
 
 def _spread_plane(flow: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """(h, w, 4) alpha-weighted (du, dv, dz) and alpha of one plane (``flow`` (3, h, w), ``alpha`` (h, w)),
-    spread two pixels into empty neighbours by normalised 3 x 3 sums (``upsample_flow_reference``)."""
+    spread two pixels into empty neighbours by normalised 3 x 3 sums; the four channels side by side, so
+    every filter runs once on all of them. Both ``upsample_flow`` and its reference start from this."""
     import cv2
 
     a = alpha.astype(np.float32)
@@ -449,14 +450,7 @@ def upsample_flow_reference(flow: np.ndarray, alpha: np.ndarray, factor: int, fu
     for z in range(num_z):
         if not full_alpha[z].any():
             continue
-        a = alpha[z].astype(np.float32)
-        # (h, w, 4): alpha-weighted (du, dv, dz) and alpha, so every filter runs once on all four channels
-        packed = np.ascontiguousarray(np.concatenate([np.moveaxis(flow[:, z] * a, 0, -1), a[..., None]], axis=-1))
-        for _ in range(2):  # spread into empty neighbours: normalised 3 x 3 sums
-            sums = cv2.boxFilter(packed, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-            grow = (packed[..., 3] <= 0) & (sums[..., 3] > 0)
-            packed[grow, :3] = sums[grow, :3] / sums[grow, 3:]
-            packed[grow, 3] = 1.0
+        packed = _spread_plane(flow[:, z], alpha[z])
         up = cv2.resize(packed, (w * factor, h * factor), interpolation=cv2.INTER_LINEAR)
         if big_h > h * factor or big_w > w * factor:  # rows / columns past the last whole block: repeat the edge
             up = np.pad(up, ((0, big_h - h * factor), (0, big_w - w * factor), (0, 0)), mode="edge")

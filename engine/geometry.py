@@ -377,12 +377,18 @@ def plane_depths(depth: np.ndarray, num_planes: int) -> np.ndarray:
     return _plane_depths(depth, _num_planes(num_planes))
 
 
+def _half_inverse(planes: np.ndarray) -> np.ndarray:
+    """The Z - 1 mid-points between consecutive planes' inverse depths, float32: a point's plane is the number
+    of them its inverse depth is <= to (``_nearest_plane``; the compiled kernels read the same bounds)."""
+    inv_planes = np.float32(1.0) / planes
+    return ((inv_planes[:-1] + inv_planes[1:]) * np.float32(0.5)).astype(np.float32)
+
+
 def _nearest_plane(inv_depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
     """Index of the plane nearest in inverse depth (ties to the farther plane); ``inv_depth`` = 1 / z."""
-    inv_planes = np.float32(1.0) / planes
     index = np.zeros(inv_depth.shape, dtype=np.intp)
-    for k in range(planes.shape[0] - 1):
-        index += inv_depth <= (inv_planes[k] + inv_planes[k + 1]) * np.float32(0.5)
+    for bound in _half_inverse(planes):
+        index += inv_depth <= bound
     return index
 
 
@@ -390,12 +396,6 @@ def plane_index(depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
     """(H, W) index of the plane each pixel of a planar ``depth`` map goes to in ``build_mpi`` (the plane
     nearest in inverse depth; sky (+inf) -> the farthest plane). ``planes`` (Z,) as ``build_mpi`` takes them."""
     return _nearest_plane(np.float32(1.0) / depth, planes)
-
-
-def _half_inverse(planes: np.ndarray) -> np.ndarray:
-    """The Z - 1 mid-points between consecutive planes' inverse depths, float32 (``_nearest_plane``'s bounds)."""
-    inv_planes = np.float32(1.0) / planes
-    return ((inv_planes[:-1] + inv_planes[1:]) * np.float32(0.5)).astype(np.float32)
 
 
 def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, planes: Optional[np.ndarray] = None) -> Mpi:
@@ -683,11 +683,11 @@ def _forward_warp_mpi(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_siz
     sums = _SCRATCH.get("sums", 6 * num_z * hp * wp).reshape(-1, 6)  # a pixel's six sums side by side
     sums.fill(0.0)
     kernels.splat_points(np.ascontiguousarray(color).reshape(3, -1), base, fx, fy, z, a, log_z, lo, hi,
-                              float(sharpness), wp, MIN_LOG_WEIGHT, _SKY_WEIGHT, sums)
+                         float(sharpness), wp, MIN_LOG_WEIGHT, _SKY_WEIGHT, sums)
     out_color = np.empty((3, num_z, ho, wo), dtype=np.float32)
     out_depth, out_alpha, cov = (np.empty((num_z, ho, wo), dtype=np.float32) for _ in range(3))
     kernels.normalize(sums, num_z, ho, wo, COVERAGE_THRESHOLD, _SKY_ONLY_WEIGHT, out_color, out_depth,
-                           out_alpha, cov)
+                      out_alpha, cov)
     return Mpi(out_color, out_depth, out_alpha, planes), cov
 
 

@@ -75,7 +75,7 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
     m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]  # in registers: the loop writes other arrays
     m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
     m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
-    x_max, y_max, x_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)
+    x_max, y_max, edge_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)  # the clip of _bilinear_fraction
     lo, hi = np.inf, 0.0
     for z_index in range(num_z):
         for y in range(h):
@@ -113,8 +113,8 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
                     uo = zero
                     vo = zero
                     zo = zero
-                xc = min(max(uo - half, x_min), x_max)
-                yc = min(max(vo - half, x_min), y_max)
+                xc = min(max(uo - half, edge_min), x_max)
+                yc = min(max(vo - half, edge_min), y_max)
                 left = math.floor(xc)
                 top = math.floor(yc)
                 fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
@@ -187,9 +187,8 @@ def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, out_colo
     """Crop the padded sums and divide by the weight: colour, depth (+inf where only sky landed), alpha
     (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
     hp, wp = ho + 2, wo + 2
-    for row in range(num_z * ho):
-        z, y = row // ho, row % ho
-        if True:
+    for z in range(num_z):
+        for y in range(ho):
             for x in range(wo):
                 t = (z * hp + y + 1) * wp + x + 1
                 cov = sums[t, 0]

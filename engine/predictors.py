@@ -15,8 +15,8 @@ Conventions are those of ``engine/frames.py`` (OpenCV cameras, planar depth, lin
 from __future__ import annotations
 
 import time
-from functools import lru_cache
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np

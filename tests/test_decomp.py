@@ -211,6 +211,8 @@ def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
     np.testing.assert_allclose(own.data["flow"][:2, 0],
                                np.moveaxis(initial_flow(color_n, color_w, acc > 0), -1, 0), atol=1e-5)
     assert (acc <= 0).any() and np.abs(own.data["flow"] - state.data["flow"]).max() > 0.01
+    with pytest.raises(InputError, match="dis_holes must be 'fill' or 'own'"):
+        DecompConfig(dis_holes="black")
     # without dis_outside the flow is zero outside the boxes, DIS (cut from the same whole-frame DIS) inside
     inside_only = DecompPredictor(DecompConfig(refine=False, dis_outside=False), network).prepare(
         [frames[2], frames[4]]).data["flow"]

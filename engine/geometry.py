@@ -633,6 +633,9 @@ class _Scratch(threading.local):
 
 
 _SCRATCH = _Scratch()
+#: Smallest share of a split warp pass per thread (smaller warps run on one thread: a hand-off costs ~0.1 ms).
+_MIN_POINTS_PER_THREAD = 1 << 16
+_MIN_ROWS_PER_THREAD = 8
 #: Points per chunk of the numpy warp (work arrays of 32k values stay in the L2 cache).
 _CHUNK = 1 << 15
 #: The splat pass skips the points that do not land (alpha 0 or outside the output) when fewer than this
@@ -675,19 +678,28 @@ def _forward_warp_mpi(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_siz
     base = _SCRATCH.get("base", n, np.intp)
     fx, fy, z, a = (_SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
     log_z = _SCRATCH.get("log_z", n)
-    lo, hi = kernels.project_points(
-        np.ascontiguousarray(depth), np.ascontiguousarray(alpha), flow, object_flow is not None, matrix, half_inv,
-        ho, wo, np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
-        np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH), base, fx, fy, z, a, log_z)
+    depth, alpha, color = (np.ascontiguousarray(v) for v in (depth, alpha, color))
+    constants = (np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
+                 np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH))
+    # each pass split over threads (engine.kernels.run_ranges): pass 1 by source rows, pass 2 by points into
+    # one padded sum volume per part, the normalisation by output rows (it adds the parts in order)
+    ranges = kernels.split_ranges(h, max(_MIN_ROWS_PER_THREAD, -(-_MIN_POINTS_PER_THREAD // max(1, num_z * w))))
+    extents = kernels.run_ranges(lambda r0, r1: kernels.project_points(
+        depth, alpha, flow, object_flow is not None, matrix, half_inv, ho, wo, *constants, r0, r1, base, fx, fy, z,
+        a, log_z), ranges)
+    lo, hi = min(e[0] for e in extents), max(e[1] for e in extents)
     hp, wp = ho + 2, wo + 2
-    sums = _SCRATCH.get("sums", 6 * num_z * hp * wp).reshape(-1, 6)  # a pixel's six sums side by side
-    sums.fill(0.0)
-    kernels.splat_points(np.ascontiguousarray(color).reshape(3, -1), base, fx, fy, z, a, log_z, lo, hi,
-                         float(sharpness), wp, MIN_LOG_WEIGHT, _SKY_WEIGHT, sums)
+    ranges = kernels.split_ranges(n, _MIN_POINTS_PER_THREAD)
+    sums = _SCRATCH.get("sums", len(ranges) * 6 * num_z * hp * wp).reshape(len(ranges), -1, 6)  # six sums a pixel
+    flat_color = color.reshape(3, -1)
+    kernels.run_ranges(lambda p0, p1: kernels.splat_points(
+        flat_color, base, fx, fy, z, a, log_z, lo, hi, float(sharpness), wp, MIN_LOG_WEIGHT, _SKY_WEIGHT, p0, p1,
+        sums[ranges.index((p0, p1))]), ranges)
     out_color = np.empty((3, num_z, ho, wo), dtype=np.float32)
     out_depth, out_alpha, cov = (np.empty((num_z, ho, wo), dtype=np.float32) for _ in range(3))
-    kernels.normalize(sums, num_z, ho, wo, COVERAGE_THRESHOLD, _SKY_ONLY_WEIGHT, out_color, out_depth,
-                      out_alpha, cov)
+    kernels.run_ranges(lambda r0, r1: kernels.normalize(
+        sums, num_z, ho, wo, COVERAGE_THRESHOLD, _SKY_ONLY_WEIGHT, r0, r1, out_color, out_depth, out_alpha, cov),
+        kernels.split_ranges(ho, _MIN_ROWS_PER_THREAD))
     return Mpi(out_color, out_depth, out_alpha, planes), cov
 
 

@@ -16,20 +16,86 @@
   resize, the reference, may round its bilinear sums differently).
 
 ``tests/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6, the
-flow upsampling to 1e-5).
+flow upsampling to 1e-5; a warp split over threads, ``split_ranges`` / ``run_ranges``, to 1e-6, because
+its per-thread partial sums are added in another order).
 Conventions are ``engine/geometry.py``'s (pixel centres at +0.5, planar depth, +inf sky).
 
 The kernels are compiled on first use (about 3 s for all, then cached on disk beside this file) and
-release the GIL, so threads of one process can warp in parallel.
+release the GIL: ``engine.geometry`` splits the warp's passes over a pool of plain threads
+(``thread_count``: the CPUs the process may use, at most 8, or ``$INTERLEAVE_KERNEL_THREADS``), which sleep
+when idle, unlike numba's OpenMP threads (tried and dropped: they spun and slowed onnxruntime and OpenCV).
 """
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
 
 import numpy as np
 from numba import njit
 
 _F32 = np.float32
+
+#: Environment variable that sets how many threads the split kernels use (default: the CPUs this process
+#: may run on, at most 8; 1: everything on the calling thread).
+THREADS_ENV = "INTERLEAVE_KERNEL_THREADS"
+_POOL: dict = {}
+_IN_WORKER = threading.local()
+
+
+def thread_count() -> int:
+    """Threads the split kernels use: ``$INTERLEAVE_KERNEL_THREADS`` if set (>= 1), else the CPUs this
+    process may run on (at most 8)."""
+    raw = os.environ.get(THREADS_ENV, "").strip()
+    if raw:
+        try:
+            value = int(raw)
+        except ValueError:
+            value = 0
+        if value < 1:
+            raise ValueError(f"{THREADS_ENV} must be an integer >= 1, got {raw!r}")
+        return value
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(8, cpus))
+
+
+def split_ranges(count: int, min_size: int, parts: int = 0) -> list[tuple[int, int]]:
+    """[0, count) cut into at most ``parts`` (default ``thread_count()``) contiguous ranges of >= ``min_size``
+    items each (one range when ``count`` < 2 ``min_size``, or from a worker thread of ``run_ranges``).
+
+    >>> split_ranges(10, 3, 2), split_ranges(10, 6, 2), split_ranges(0, 1, 2)
+    ([(0, 5), (5, 10)], [(0, 10)], [(0, 0)])
+    """
+    parts = parts or thread_count()
+    if getattr(_IN_WORKER, "active", False):
+        parts = 1
+    parts = max(1, min(parts, count // max(1, min_size)))
+    edges = [count * i // parts for i in range(parts + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) -> list:
+    """[fn(start, stop) for each range], the first on the calling thread and the others on a shared pool
+    (the kernels release the GIL, so they run in parallel); results in range order."""
+    if len(ranges) == 1:
+        return [fn(*ranges[0])]
+    workers = len(ranges) - 1
+    pool = _POOL.get(workers)
+    if pool is None:
+        pool = _POOL[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="interleave-kernel",
+                                                   initializer=_mark_worker)
+    futures = [pool.submit(fn, *r) for r in ranges[1:]]
+    first = fn(*ranges[0])
+    return [first] + [f.result() for f in futures]
+
+
+def _mark_worker() -> None:
+    _IN_WORKER.active = True
 
 
 @njit(cache=True, nogil=True)
@@ -62,9 +128,10 @@ def _plane_of(inv_depth, half_inv):
 
 @njit(cache=True, nogil=True)
 def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
-                   tiny, base_out, fx_out, fy_out, z_out, a_out, log_out):
-    """Pass 1: per source point (Z * H * W, plane-major) its top-left tap ``base_out`` in the padded
-    (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and alpha (0 when dropped).
+                   tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
+    """Pass 1: per source point (Z * H * W, plane-major) of rows [``row_start``, ``row_stop``) its top-left
+    tap ``base_out`` in the padded (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and
+    alpha (0 when dropped). Calls on disjoint row ranges write disjoint points (threads may share the arrays).
 
     ``log_out`` gets log(1 + z) (float64) of the landing finite points (the splat's soft z-buffer reads it).
     Returns (min, max) of it over them ((inf, 0) when none lands).
@@ -78,7 +145,7 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
     x_max, y_max, edge_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)  # the clip of _bilinear_fraction
     lo, hi = np.inf, 0.0
     for z_index in range(num_z):
-        for y in range(h):
+        for y in range(row_start, row_stop):
             for x in range(w):
                 i = (z_index * h + y) * w + x
                 a = alpha[z_index, y, x]
@@ -138,11 +205,14 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
 
 
 @njit(cache=True, nogil=True)
-def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row, min_log_weight, sky_weight, sums):
-    """Pass 2: splat [coverage, weight, weight * (r, g, b, z)] of every landing point (``a`` > 0) into the
-    padded volume ``sums`` (N, 6) (``flat_color`` (3, points), the other per-point arrays from pass 1)."""
+def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row, min_log_weight, sky_weight,
+                 start, stop, sums):
+    """Pass 2: splat [coverage, weight, weight * (r, g, b, z)] of the landing points (``a`` > 0) among points
+    [``start``, ``stop``) into the padded volume ``sums`` (N, 6), zeroed first (``flat_color`` (3, points),
+    the other per-point arrays from pass 1). Threads splat disjoint point ranges into their own ``sums``."""
+    sums[:] = 0.0
     scale = -sharpness / max(hi, 1e-30)
-    for i in range(base.shape[0]):
+    for i in range(start, stop):
         ai = a[i]
         if ai == 0.0:
             continue
@@ -183,22 +253,32 @@ def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row
 
 
 @njit(cache=True, nogil=True)
-def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, out_color, out_depth, out_alpha, out_cov):
-    """Crop the padded sums and divide by the weight: colour, depth (+inf where only sky landed), alpha
-    (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
+def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_start, row_stop, out_color, out_depth,
+              out_alpha, out_cov):
+    """Add up the splat's partial sums (P, N, 6) (one per thread, in order), crop the padding and divide by
+    the weight, for output rows [``row_start``, ``row_stop``): colour, depth (+inf where only sky landed),
+    alpha (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
     hp, wp = ho + 2, wo + 2
+    parts = sums.shape[0]
     for z in range(num_z):
-        for y in range(ho):
+        for y in range(row_start, row_stop):
             for x in range(wo):
                 t = (z * hp + y + 1) * wp + x + 1
-                cov = sums[t, 0]
-                wsum = sums[t, 1]
+                cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], \
+                    sums[0, t, 5]
+                for p in range(1, parts):
+                    cov += sums[p, t, 0]
+                    wsum += sums[p, t, 1]
+                    r += sums[p, t, 2]
+                    g += sums[p, t, 3]
+                    b += sums[p, t, 4]
+                    d += sums[p, t, 5]
                 covered = cov > coverage_threshold
                 inv_w = 1.0 / wsum if covered and wsum > 0.0 else 0.0
-                out_color[0, z, y, x] = sums[t, 2] * inv_w
-                out_color[1, z, y, x] = sums[t, 3] * inv_w
-                out_color[2, z, y, x] = sums[t, 4] * inv_w
-                out_depth[z, y, x] = np.inf if covered and wsum < sky_only_weight else sums[t, 5] * inv_w
+                out_color[0, z, y, x] = r * inv_w
+                out_color[1, z, y, x] = g * inv_w
+                out_color[2, z, y, x] = b * inv_w
+                out_depth[z, y, x] = np.inf if covered and wsum < sky_only_weight else d * inv_w
                 out_alpha[z, y, x] = 1.0 if covered else 0.0
                 out_cov[z, y, x] = cov
 

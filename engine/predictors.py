@@ -144,15 +144,26 @@ def extrapolation_factor(state: PreparedState, target: Target) -> float:
     return (target.time - newest.time) / (newest.time - older.time)
 
 
-def dis_estimator(preset: str = "medium"):
-    """An OpenCV DIS optical-flow object for a preset name ('ultrafast', 'fast', 'medium'); others raise."""
+def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
+    """An OpenCV DIS optical-flow object for a preset name ('ultrafast', 'fast', 'medium'; others raise),
+    with its finest pyramid scale replaced by ``finest_scale`` when given (0: the input's own resolution)."""
     import cv2
 
     presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
     if preset not in presets:
         raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
-    return cv2.DISOpticalFlow_create(presets[preset])
+    estimator = cv2.DISOpticalFlow_create(presets[preset])
+    if finest_scale is not None:
+        estimator.setFinestScale(int(finest_scale))
+    return estimator
+
+
+def dis_block(preset: str = "medium") -> int:
+    """Block size 2^s of a DIS preset's finest pyramid scale s (medium: 2, fast and ultrafast: 4). DIS
+    computes nothing finer: its flow on a full-size image is its flow on the image's ``cv2.INTER_AREA``
+    block means (finest scale 0), bilinearly upsampled and scaled by the block size."""
+    return 2 ** int(dis_estimator(preset).getFinestScale())
 
 
 def luma8(color: np.ndarray) -> np.ndarray:

@@ -5,11 +5,11 @@ import pytest
 from engine import geometry
 from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
                            context_region, context_span, dis_flow, dis_target, full_box, initial_flow, merge_planes,
-                           merge_regions, motion_boxes, upsample_flow, warp_error)
+                           merge_regions, motion_boxes, upsample_blocks, upsample_flow, warp_error)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
 from engine.metrics import score_frame
-from engine.predictors import Reproject, Target, luma8, make_predictor, split_methods
+from engine.predictors import Reproject, Target, dis_block, luma8, make_predictor, split_methods
 from tests.synthetic import rigid, two_layer_sequence
 
 
@@ -280,6 +280,52 @@ def test_dis_regions_grow_clip_and_merge():
     assert merge_regions([(0, 10, 0, 10), (0, 10, 20, 30), (0, 10, 8, 22)]) == [(0, 10, 0, 30)]
     assert merge_regions([(0, 10, 0, 10), (10, 20, 0, 10)]) == [(0, 10, 0, 10), (10, 20, 0, 10)]  # touching only
     assert merge_regions([]) == []
+
+
+def test_dis_at_its_finest_scale_equals_dis_on_the_full_image():
+    """The fact dis_resolution=finest rests on: DIS 'medium' (finest scale 1) on a full-size image is DIS with
+    finest scale 0 on the image's 2 x 2 block means, bilinearly upsampled (``upsample_blocks``) and doubled."""
+    import cv2
+
+    frames, _ = two_layer_sequence(5, width=192, height=128, camera_speed=0.02, object_speed=0.12)
+    a, b = luma8(frames[3].color), luma8(frames[1].color)
+    assert dis_block("medium") == 2 and dis_block("fast") == 4
+    full = dis_flow(a, b, "medium")
+    half = [cv2.resize(v, (96, 64), interpolation=cv2.INTER_AREA) for v in (a, b)]
+    small = dis_flow(*half, "medium", 0)
+    np.testing.assert_allclose(upsample_blocks(small, 2, (128, 192)) * 2, full, atol=1e-4)
+    assert np.abs(full).max() > 1.0
+
+
+def test_upsample_blocks_matches_the_block_grid_and_pads_the_remainder():
+    image = np.arange(12, dtype=np.float32).reshape(3, 4)
+    up = upsample_blocks(image, 2, (7, 9))
+    assert up.shape == (7, 9)
+    # pixel centres: full pixel X samples block (X + 0.5) / 2 - 0.5, so pixels 2i and 2i + 1 sit a quarter
+    # block before and after block i's centre
+    np.testing.assert_allclose(up[0, 2], 0.75 * image[0, 1] + 0.25 * image[0, 0])
+    np.testing.assert_allclose(up[0, 3], 0.75 * image[0, 1] + 0.25 * image[0, 2])
+    np.testing.assert_array_equal(up[6], up[5])  # the row past the last whole block repeats the edge
+    np.testing.assert_array_equal(up[:, 8], up[:, 7])
+    np.testing.assert_array_equal(upsample_blocks(image, 1, (3, 4)), image)
+
+
+def test_dis_resolution_finest_finds_the_motion_and_rejects_bad_values(network):
+    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12,
+                                   square_half=0.25)
+    moving = frames[4].moving
+    expected = -2.0 * frames[4].object_flow[..., 0][moving]
+    errors = {}
+    for resolution in ("full", "finest"):
+        pred = DecompPredictor(DecompConfig(dis_resolution=resolution), network)
+        state = pred.prepare([frames[2], frames[4]])
+        assert state.data["boxes"]
+        errors[resolution] = float(np.median(np.abs(pred.object_flow(state)[..., 0][moving] - expected)))
+        out = pred.render(state, _target(frames[5]))
+        assert np.isfinite(out.color).all()
+    assert errors["finest"] < 0.35 * np.abs(expected).mean(), errors
+    with pytest.raises(InputError, match="dis_resolution must be 'finest' or 'full'"):
+        DecompConfig(dis_resolution="half")
 
 
 def test_dis_context_finds_motion_larger_than_a_small_box_reaches(network):

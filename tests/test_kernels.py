@@ -47,6 +47,49 @@ def test_warp_kernel_equals_numpy_reference_on_random_scenes(num_planes, with_fl
     _assert_same_warp(*_warp_both(mpi, k, t_src, k, t_dst, flow))
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_warp_split_over_threads_matches_the_reference(monkeypatch, threads):
+    """The warp's passes split over threads (rows, points into one sum volume per part, added in order):
+    the partial sums are added in another order than the sequential one, so the float64 sums may differ in
+    their last bits; outputs agree to 1e-6 relative, alpha and the sky depth (+inf) exactly."""
+    from engine import kernels
+
+    monkeypatch.setenv(kernels.THREADS_ENV, str(threads))
+    monkeypatch.setattr(ng, "_MIN_POINTS_PER_THREAD", 64)
+    monkeypatch.setattr(ng, "_MIN_ROWS_PER_THREAD", 2)
+    assert len(kernels.split_ranges(23 * 31, 64)) == threads
+    rng = np.random.default_rng(7)
+    h, w = 23, 31
+    color, depth = random_scene(rng, h, w, sky=0.2)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.2, shift=0.5)
+    for num_planes in (1, 4):
+        mpi = ng.build_mpi(color, depth, num_planes)
+        flow = (rng.normal(0, 3, (3, num_planes, h, w)) * [[[[1]]], [[[1]]], [[[0.05]]]]).astype(np.float32)
+        for out_size in (None, (11, 17)):
+            (fast, cov_a), (ref, cov_b) = _warp_both(mpi, k, t_src, k, t_dst, flow * mpi.alpha[None], out_size)
+            np.testing.assert_array_equal(fast.alpha, ref.alpha)
+            np.testing.assert_array_equal(np.isinf(fast.depth), np.isinf(ref.depth))
+            finite = np.isfinite(ref.depth)
+            np.testing.assert_allclose(fast.depth[finite], ref.depth[finite], rtol=1e-6)
+            np.testing.assert_allclose(fast.color, ref.color, rtol=1e-6, atol=1e-7)
+            np.testing.assert_allclose(cov_a, cov_b, rtol=1e-6, atol=1e-7)
+
+
+def test_split_ranges_and_thread_setting(monkeypatch):
+    from engine import kernels
+
+    monkeypatch.setenv(kernels.THREADS_ENV, "4")
+    assert kernels.split_ranges(100, 10) == [(0, 25), (25, 50), (50, 75), (75, 100)]
+    assert kernels.split_ranges(100, 40) == [(0, 50), (50, 100)]
+    assert kernels.split_ranges(5, 10) == [(0, 5)]
+    assert kernels.run_ranges(lambda a, b: b - a, kernels.split_ranges(100, 10)) == [25, 25, 25, 25]
+    # a split kernel called from a worker thread runs whole there (no pool waits on itself)
+    assert kernels.run_ranges(lambda a, b: kernels.split_ranges(100, 10), [(0, 1), (1, 2)])[1] == [(0, 100)]
+    monkeypatch.setenv(kernels.THREADS_ENV, "0")
+    with pytest.raises(ValueError, match=kernels.THREADS_ENV):
+        kernels.thread_count()
+
+
 def test_warp_kernel_hard_cases_equal_the_reference():
     """Points behind the camera, far off screen, huge and tiny depths, sky only, a box-sized output with
     other intrinsics, sharpness 0 (plain average), empty planes and an all-empty MPI."""
@@ -159,3 +202,23 @@ def test_flow_upsampling_kernel_matches_the_reference(factor):
     assert fast.shape == ref.shape == (3, num_z, big_h, big_w)
     np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-4)
     assert (fast[:, full_alpha == 0] == 0).all() and np.abs(fast).max() > 1.0
+
+
+def test_thread_benchmark_runs_every_setting_and_restores_the_environment(tmp_path, monkeypatch, capsys):
+    import json
+    import os
+
+    from engine import bench_threads, kernels
+    from engine.io import write_sequence
+    from tests.synthetic import two_layer_sequence
+
+    monkeypatch.delenv(kernels.THREADS_ENV, raising=False)
+    monkeypatch.delenv("INTERLEAVE_ORT_SPIN", raising=False)
+    frames, objects = two_layer_sequence(11, width=96, height=64, camera_speed=0.05, object_speed=0.05)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    bench_threads.main([str(path), "--pairs", "2", "--repeats", "1", "--json", str(tmp_path / "b.json")])
+    result = json.loads((tmp_path / "b.json").read_text())
+    assert result["pairs"] == 2 and len(result["median_ms"]) == 5
+    assert all(ms > 0 for ms in result["median_ms"].values())
+    assert "decomp, onnxruntime spinning" in capsys.readouterr().out
+    assert kernels.THREADS_ENV not in os.environ and "INTERLEAVE_ORT_SPIN" not in os.environ

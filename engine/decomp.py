@@ -44,8 +44,8 @@ from engine.errors import InputError, InterleaveError
 from engine.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.holefill import fill_holes
-from engine.predictors import (PreparedState, Predictor, Target, dis_block, dis_estimator, extrapolation_factor,
-                               luma8, true_object_flow)
+from engine.predictors import (PreparedState, Predictor, Target, dis_block, dis_calc, dis_estimator,
+                               extrapolation_factor, luma8, true_object_flow)
 
 __all__ = ["DecompConfig", "FlowNetwork", "DecompPredictor", "DEFAULT_MODEL", "motion_residual", "motion_boxes",
            "upsample_flow", "merge_planes", "encode_color", "config_from_options", "initial_flow"]
@@ -190,7 +190,7 @@ def dis_flow(luma_n: np.ndarray, target: np.ndarray, preset: str = "medium",
              finest_scale: Optional[int] = None) -> np.ndarray:
     """``initial_flow`` on lumas already made: ``luma8`` of frame n and its ``dis_target``, (H, W, 2) float32
     (``finest_scale``: see ``dis_estimator``)."""
-    return np.ascontiguousarray(dis_estimator(preset, finest_scale).calc(luma_n, target, None), dtype=np.float32)
+    return np.ascontiguousarray(dis_calc(dis_estimator(preset, finest_scale), luma_n, target), dtype=np.float32)
 
 
 def upsample_blocks(image: np.ndarray, block: int, size: tuple[int, int]) -> np.ndarray:

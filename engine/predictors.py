@@ -159,6 +159,27 @@ def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
     return estimator
 
 
+#: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
+#: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
+DIS_MIN_SIDE = 32
+
+
+def dis_calc(estimator, luma_a: np.ndarray, luma_b: np.ndarray) -> np.ndarray:
+    """``estimator.calc(luma_a, luma_b)``, (H, W, 2) float32 flow from a to b, for any size: images with a
+    side under ``DIS_MIN_SIDE`` are padded by repeating their edge pixels (no motion there) and the flow is
+    cropped back. Same-size uint8 (H, W) images."""
+    import cv2
+
+    h, w = luma_a.shape
+    if luma_b.shape != (h, w):
+        raise InputError(f"DIS images of shapes {luma_a.shape} and {luma_b.shape}: expected the same", field="luma")
+    pad_h, pad_w = max(0, DIS_MIN_SIDE - h), max(0, DIS_MIN_SIDE - w)
+    if not (pad_h or pad_w):
+        return estimator.calc(luma_a, luma_b, None)
+    a, b = (cv2.copyMakeBorder(x, 0, pad_h, 0, pad_w, cv2.BORDER_REPLICATE) for x in (luma_a, luma_b))
+    return np.ascontiguousarray(estimator.calc(a, b, None)[:h, :w])
+
+
 def dis_block(preset: str = "medium") -> int:
     """Block size 2^s of a DIS preset's finest pyramid scale s (medium: 2, fast and ultrafast: 4). DIS
     computes nothing finer: its flow on a full-size image is its flow on the image's ``cv2.INTER_AREA``
@@ -207,7 +228,7 @@ class Flow2D(Predictor):
     def _prepare(self, state, timer):
         older, newest = state.history[-2], state.history[-1]
         warped, _ = _warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
-        state.data["flow_back"] = timer("flow", self._dis.calc, luma8(newest.color), luma8(warped), None)
+        state.data["flow_back"] = timer("flow", dis_calc, self._dis, luma8(newest.color), luma8(warped))
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""

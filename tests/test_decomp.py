@@ -328,6 +328,20 @@ def test_dis_resolution_finest_finds_the_motion_and_rejects_bad_values(network):
         DecompConfig(dis_resolution="half")
 
 
+@pytest.mark.parametrize("size", [(65, 97), (5, 7), (3, 200)])
+def test_dis_resolution_finest_on_odd_and_tiny_frames(network, size):
+    """Sizes that are no multiple of the DIS block (the last full-size rows / columns take the last block's
+    flow), frames of a few pixels and a frame 3 px high (smaller than the network's stride and DIS's block
+    on one side): finite output of the frame's size, the initial flow covering every pixel."""
+    h, w = size
+    frames, _ = two_layer_sequence(4, width=w, height=h, camera_speed=0.02, object_speed=0.15)
+    pred = DecompPredictor(DecompConfig(dis_resolution="finest", gate=False), network)
+    state = pred.prepare([frames[1], frames[3]])
+    assert state.data["flow"].shape[-2:] == (h, w) and np.isfinite(state.data["flow"]).all()
+    out = pred.render(state, _target(frames[3]))
+    assert out.color.shape == (h, w, 3) and np.isfinite(out.color).all()
+
+
 def test_dis_context_finds_motion_larger_than_a_small_box_reaches(network):
     """A small square moving 29 px a frame (58 px between the two frames): DIS on its gate box alone has too few
     pyramid levels and stops short; on the box grown to ``dis_context`` pixels it finds the motion."""

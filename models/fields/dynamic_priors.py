@@ -231,12 +231,12 @@ def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4
     ``consistency`` px and they land inside image b. Returns (xy_a (M, 2), xy_b (M, 2)), centres at +0.5."""
     import cv2
 
-    from engine.predictors import dis_estimator, luma8
+    from engine.predictors import dis_calc, dis_estimator, luma8
 
     ga, gb = luma8(image_a), luma8(image_b)
     dis = dis_estimator("medium")
-    fwd = dis.calc(ga, gb, None)
-    bwd = dis.calc(gb, ga, None)
+    fwd = dis_calc(dis, ga, gb)
+    bwd = dis_calc(dis, gb, ga)
     h, w = ga.shape
     v, u = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
     f = fwd[v, u]

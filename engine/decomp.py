@@ -468,9 +468,7 @@ def upsample_flow_reference(flow: np.ndarray, alpha: np.ndarray, factor: int, fu
     (normalised 3 x 3 means), so full-resolution points whose block went to another plane still find a
     value; points with no value within reach get 0. Returns (3, Z, H, W), 0 where ``full_alpha`` is 0.
     """
-    import cv2
-
-    _, num_z, h, w = flow.shape
+    num_z = flow.shape[1]
     big_h, big_w = full_alpha.shape[1:]
     out = np.zeros((3, num_z) + full_alpha.shape[1:], dtype=np.float32)
     scale = np.array([factor, factor, 1.0], np.float32)
@@ -478,9 +476,7 @@ def upsample_flow_reference(flow: np.ndarray, alpha: np.ndarray, factor: int, fu
         if not full_alpha[z].any():
             continue
         packed = _spread_plane(flow[:, z], alpha[z])
-        up = cv2.resize(packed, (w * factor, h * factor), interpolation=cv2.INTER_LINEAR)
-        if big_h > h * factor or big_w > w * factor:  # rows / columns past the last whole block: repeat the edge
-            up = np.pad(up, ((0, big_h - h * factor), (0, big_w - w * factor), (0, 0)), mode="edge")
+        up = upsample_blocks(packed, factor, (big_h, big_w))  # past the last whole block: the edge repeats
         where = np.flatnonzero(full_alpha[z])  # only this plane's points (a one-hot MPI: each pixel once)
         picked = up.reshape(-1, 4)[where]
         ok = picked[:, 3] > 1e-6
@@ -684,7 +680,8 @@ class DecompPredictor(Predictor):
         warp of the b-downsampled frame n-k into frame n's view (the gate's warp when ``factor`` = b), DIS with
         finest scale 0 on each region's blocks, its flow upsampled to full resolution (``upsample_blocks``,
         times b). Regions grow to whole blocks (the last block row / column takes the rows past it). The
-        photometric check reads frame n's full-resolution luma and the upsampled target.
+        photometric check compares frame n's block luma with the target, both upsampled the same way (the
+        blurred target against frame n's sharp luma cost 0.27 dB on training scenes).
         Returns [(region, (flow (h, w, 2), target (h, w) uint8, luma of frame n (h, w) uint8))]."""
         cfg = self.config
         size = newest.depth.shape
@@ -705,8 +702,7 @@ class DecompPredictor(Predictor):
         for y0, y1, x0, x1 in spans:
             sy0, sx0 = min(y0 // block, hs - 1), min(x0 // block, ws - 1)
             sy1, sx1 = max(sy0 + 1, min(hs, -(-y1 // block))), max(sx0 + 1, min(ws, -(-x1 // block)))
-            region = (sy0 * block, size[0] if sy1 == hs else sy1 * block,
-                      sx0 * block, size[1] if sx1 == ws else sx1 * block)
+            region = full_box((sy0, sy1, sx0, sx1), block, (hs, ws), size)
             part = (slice(sy0, sy1), slice(sx0, sx1))
             color_n = small_n[0][part]
             fill_depth = depth_w[part] if cfg.dis_holes == "fill" else None

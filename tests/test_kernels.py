@@ -47,6 +47,17 @@ def test_warp_kernel_equals_numpy_reference_on_random_scenes(num_planes, with_fl
     _assert_same_warp(*_warp_both(mpi, k, t_src, k, t_dst, flow))
 
 
+def _assert_close_warp(fast, reference):
+    """A split warp against the reference: alpha and where depth is +inf exactly, the rest to 1e-6."""
+    (mpi_a, cov_a), (mpi_b, cov_b) = fast, reference
+    np.testing.assert_array_equal(mpi_a.alpha, mpi_b.alpha)
+    np.testing.assert_array_equal(np.isinf(mpi_a.depth), np.isinf(mpi_b.depth))
+    finite = np.isfinite(mpi_b.depth)
+    np.testing.assert_allclose(mpi_a.depth[finite], mpi_b.depth[finite], rtol=1e-6)
+    np.testing.assert_allclose(mpi_a.color, mpi_b.color, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(cov_a, cov_b, rtol=1e-6, atol=1e-7)
+
+
 @pytest.mark.parametrize("threads", [2, 3])
 def test_warp_split_over_threads_matches_the_reference(monkeypatch, threads):
     """The warp's passes split over threads (rows, points into one sum volume per part, added in order):
@@ -66,13 +77,13 @@ def test_warp_split_over_threads_matches_the_reference(monkeypatch, threads):
         mpi = ng.build_mpi(color, depth, num_planes)
         flow = (rng.normal(0, 3, (3, num_planes, h, w)) * [[[[1]]], [[[1]]], [[[0.05]]]]).astype(np.float32)
         for out_size in (None, (11, 17)):
-            (fast, cov_a), (ref, cov_b) = _warp_both(mpi, k, t_src, k, t_dst, flow * mpi.alpha[None], out_size)
-            np.testing.assert_array_equal(fast.alpha, ref.alpha)
-            np.testing.assert_array_equal(np.isinf(fast.depth), np.isinf(ref.depth))
-            finite = np.isfinite(ref.depth)
-            np.testing.assert_allclose(fast.depth[finite], ref.depth[finite], rtol=1e-6)
-            np.testing.assert_allclose(fast.color, ref.color, rtol=1e-6, atol=1e-7)
-            np.testing.assert_allclose(cov_a, cov_b, rtol=1e-6, atol=1e-7)
+            _assert_close_warp(*_warp_both(mpi, k, t_src, k, t_dst, flow * mpi.alpha[None], out_size))
+    # the hard cases split too: points behind the camera, far off screen, depths from 1e-3 to 1e5, sky
+    color, depth, k, poses = extreme_scene(7)
+    for t_dst in poses:
+        (fast, cov), reference = _warp_both(ng.build_mpi(color, depth, 4), k, np.eye(4), k, t_dst)
+        _assert_close_warp((fast, cov), reference)
+        assert np.isfinite(fast.color).all() and np.isfinite(cov).all()
 
 
 def test_split_ranges_and_thread_setting(monkeypatch):

@@ -313,7 +313,8 @@ class FlowNetwork:
     """The exported flow network in onnxruntime: ``(m_n, m^w_{n-k}) -> u(n -> n-k)`` (3, Z, H, W).
 
     Reads the network's config from the ONNX metadata (``METADATA_KEY``): number of planes, pyramid stride,
-    mode ('3d' or the '2d' ablation) and the working width the training frames had.
+    mode ('3d' or the '2d' ablation), the working width the training frames had and whether the graph
+    computes dz (``depth_flow``; without it dz comes out 0).
     """
 
     def __init__(self, path: str | Path, threads: int = 2) -> None:
@@ -327,6 +328,8 @@ class FlowNetwork:
         self.working_width = int(info.get("working_width", 480))
         self.mode = str(self.config["mode"])
         self.needs_initial_flow = bool(self.config.get("initial_flow", False))
+        #: whether the graph computes dz (exports with ``--no-depth-flow`` return dz = 0 uncomputed)
+        self.depth_flow = bool(info.get("depth_flow", True))
 
     def __call__(self, mpi_n: Mpi, mpi_prev_warped: Mpi, init: Optional[np.ndarray] = None) -> np.ndarray:
         """Flow (3, Z, H, W) float32 = (du, dv) pixels, dz scene units; 0 where ``mpi_n.alpha`` is 0.
@@ -562,6 +565,10 @@ class DecompPredictor(Predictor):
         self.config = config
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
+        if config.depth_flow and not self.network.depth_flow:
+            raise InputError(f"depth_flow=1 needs the network's dz, but {self.network.path} was exported without it "
+                             "(--no-depth-flow): export one with dz (interleave export flow CHECKPOINT OUT.onnx) "
+                             "and pass model=OUT.onnx", field="depth_flow")
         if not config.refine and not self.network.needs_initial_flow:
             raise InputError("refine=0 keeps the initial flow alone, but this flow network takes none",
                              field="refine")

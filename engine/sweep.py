@@ -34,7 +34,7 @@ __all__ = ["Variant", "SweepPoint", "pareto_front", "decomp_variants", "plane_mo
 
 #: the knobs a variant sets; ``--decomp-options`` may not set them too
 SWEPT_KEYS = ("flow_width", "fill", "infill_iterations", "model", "dis_preset")
-#: where the plane-count variants of the committed flow network are exported (``flow3d_z{Z}.onnx``)
+#: where the plane-count variants of the committed flow network are exported (``flow3d_z{Z}_xy.onnx``)
 DEFAULT_MODELS_DIR = Path("runs/flow3d_planes")
 #: the torch checkpoint the committed ``engine/weights/flow3d.onnx`` was exported from
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent.parent / "models" / "weights" / "flow3d.pt"
@@ -155,10 +155,12 @@ def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_ite
 
 
 def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
-                 checkpoint: Path = DEFAULT_CHECKPOINT) -> dict[int, str]:
+                 checkpoint: Path = DEFAULT_CHECKPOINT, depth_flow: bool = False) -> dict[int, str]:
     """Z -> ONNX flow network for each plane count: '' (the committed ``engine/weights/flow3d.onnx``) for its
     own Z, else ``models_dir/flow3d_z{Z}.onnx``, exported from ``checkpoint`` with ``export.flow --num-planes``
-    when missing (needs torch; about 2 minutes per Z on 2 CPU cores)."""
+    when missing (needs torch; about 2 minutes per Z on 2 CPU cores). Without ``depth_flow`` (the engine's
+    default ``decomp[depth_flow=0]``) they are exported like the committed one, with ``--no-depth-flow``
+    (``flow3d_z{Z}_xy.onnx``), so every Z is timed with the same graph."""
     from engine.decomp import DEFAULT_MODEL, FlowNetwork
 
     own = FlowNetwork(DEFAULT_MODEL, threads=1).num_planes
@@ -167,9 +169,10 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
         if z == own:
             out[z] = ""
             continue
-        path = Path(models_dir) / f"flow3d_z{z}.onnx"
+        path = Path(models_dir) / f"flow3d_z{z}{'' if depth_flow else '_xy'}.onnx"
+        extra = [] if depth_flow else ["--no-depth-flow"]
         if not path.is_file():
-            command = f"interleave export flow {checkpoint} {path} --num-planes {z}"
+            command = " ".join([f"interleave export flow {checkpoint} {path} --num-planes {z}", *extra])
             try:
                 from export.flow import main as export_flow_main
             except ImportError as exc:
@@ -178,7 +181,8 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
             if not Path(checkpoint).is_file():
                 raise InputError("checkpoint to export the plane variants from not found", file=checkpoint)
             print(f"exporting the flow network for Z = {z} planes: {command}", flush=True)
-            export_flow_main([str(checkpoint), str(path), "--num-planes", str(z)], prog="interleave export flow")
+            export_flow_main([str(checkpoint), str(path), "--num-planes", str(z), *extra],
+                             prog="interleave export flow")
         got = FlowNetwork(path, threads=1).num_planes
         if got != z:
             raise InputError(f"holds a network for {got} planes, expected {z}", file=path, field="planes")

@@ -10,6 +10,12 @@ The exported graph takes the two MPIs as flat tensors and returns the 3D flow ``
 | ``plane_depths`` | (B, Z) float32 | frame n's plane depths (shared by both MPIs, ``mpi_pair``) |
 | output ``flow`` | (B, 3, Z, H, W) float32 | (du, dv) pixels, dz scene units; 0 where alpha_n = 0 |
 
+``export_flow(..., depth_flow=False)`` (``--no-depth-flow``; the engine's committed graph) leaves dz out:
+the output keeps its shape with dz = 0 and the same (du, dv), without the plane softmax and the logits'
+upsampling at full size. The metadata records which (``depth_flow``), and the engine refuses
+``decomp[depth_flow=1]`` with a graph that has no dz. Every partial convolution is exported as one Conv3d
+(``models.flow3d.set_direct_conv3d``): the same map as torch's plane-stacked Conv2d, faster in onnxruntime.
+
 B, H and W are dynamic; Z is fixed by the network (``Flow3DConfig.num_planes``; ``with_planes`` rebuilds
 the same weights for another Z before export). Any H, W >= 1 run:
 the graph pads both with alpha = 0 to multiples of the pyramid stride (16 for 4 levels,
@@ -30,11 +36,11 @@ import torch
 from torch import Tensor, nn
 
 from engine.errors import InputError
-from models.flow3d import Flow3D, pyramid_stride
+from models.flow3d import Flow3D, pyramid_stride, set_direct_conv3d
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
-           "example_inputs", "with_planes"]
+           "example_inputs", "with_planes", "graph_depth_flow"]
 
 INPUT_NAMES = ("color_n", "depth_n", "alpha_n", "color_prev", "depth_prev", "alpha_prev", "plane_depths")
 #: the extra input of networks built with ``Flow3DConfig.initial_flow``: (B, 2, H, W) pixels, u(n -> n-k)
@@ -48,16 +54,19 @@ OPSET = 20
 
 
 class FlowGraph(nn.Module):
-    """``Flow3D`` with flat tensor inputs (the ONNX signature above); runs ``Flow3D.flow_unchecked``."""
+    """``Flow3D`` with flat tensor inputs (the ONNX signature above); runs ``Flow3D.flow_unchecked``
+    (``depth_flow=False``: dz = 0, not computed)."""
 
-    def __init__(self, model: Flow3D) -> None:
+    def __init__(self, model: Flow3D, depth_flow: bool = True) -> None:
         super().__init__()
         self.model = model
+        self.depth_flow = bool(depth_flow)
 
     def forward(self, color_n: Tensor, depth_n: Tensor, alpha_n: Tensor, color_prev: Tensor, depth_prev: Tensor,
                 alpha_prev: Tensor, plane_depths: Tensor, initial_flow: Optional[Tensor] = None) -> Tensor:
         return self.model.flow_unchecked(Mpi(color_n, depth_n, alpha_n, plane_depths),
-                                         Mpi(color_prev, depth_prev, alpha_prev, plane_depths), initial_flow)
+                                         Mpi(color_prev, depth_prev, alpha_prev, plane_depths), initial_flow,
+                                         self.depth_flow)
 
 
 def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
@@ -121,7 +130,8 @@ def example_inputs(model: Flow3D, height: int = 64, width: int = 96, batch: int 
 
 
 def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[str, Path], *,
-                example_size: tuple[int, int] = (64, 96), working_width: Optional[int] = None) -> Path:
+                example_size: tuple[int, int] = (64, 96), working_width: Optional[int] = None,
+                depth_flow: bool = True) -> Path:
     """Export the network to ONNX (opset 20, dynamo exporter) with dynamic B, H, W; returns ``path``.
 
     Args:
@@ -130,11 +140,14 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
         example_size: (H, W) of the tracing example (any size; shapes stay symbolic).
         working_width: width of the frames the network was trained on (recorded in the ONNX metadata for
             the engine); default: from the checkpoint's training config, else 480.
+        depth_flow: False: the graph returns dz = 0 without computing it (recorded in the metadata).
     """
+    import copy
+
     if working_width is None:
         working_width = _working_width(checkpoint_or_module)
-    model = _as_model(checkpoint_or_module).eval()
-    graph = FlowGraph(model).eval()
+    model = set_direct_conv3d(copy.deepcopy(_as_model(checkpoint_or_module)).eval())
+    graph = FlowGraph(model, depth_flow).eval()
     stride = pyramid_stride(model.config)
     height, width = example_size
     if height % stride or width % stride or height < 2 * stride or width < 2 * stride:
@@ -157,14 +170,15 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
                                     output_names=["flow"], dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
-    _write_metadata(out, model, working_width)
+    _write_metadata(out, model, working_width, extra={"depth_flow": bool(depth_flow)})
     return out
 
 
-def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None) -> None:
-    """Store the network config (``model.config``) and its working width in the ONNX metadata under ``key``
-    (default ``engine.decomp.METADATA_KEY``; ``export.infill`` passes its own); drop the per-node debug
-    records (source stack traces) the exporter writes."""
+def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None,
+                    extra: Optional[dict] = None) -> None:
+    """Store the network config (``model.config``), its working width and ``extra`` entries in the ONNX
+    metadata under ``key`` (default ``engine.decomp.METADATA_KEY``; ``export.infill`` passes its own); drop
+    the per-node debug records (source stack traces) the exporter writes."""
     import dataclasses
     import json
 
@@ -179,17 +193,31 @@ def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optio
     del proto.metadata_props[:]
     entry = proto.metadata_props.add()
     entry.key = key or METADATA_KEY
-    entry.value = json.dumps({"model": dataclasses.asdict(model.config), "working_width": int(working_width)})
+    entry.value = json.dumps({"model": dataclasses.asdict(model.config), "working_width": int(working_width),
+                              **(extra or {})})
     onnx.save(proto, str(path))
 
 
+def graph_depth_flow(onnx_path: Union[str, Path]) -> bool:
+    """Whether an exported flow graph computes dz (its ``depth_flow`` metadata; graphs without the entry do)."""
+    import json
+
+    import onnx
+
+    from engine.decomp import METADATA_KEY
+
+    meta = {p.key: p.value for p in onnx.load(str(onnx_path), load_external_data=False).metadata_props}
+    return bool(json.loads(meta.get(METADATA_KEY, "{}")).get("depth_flow", True))
+
+
 def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[Tensor, ...]) -> float:
-    """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order)."""
+    """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order); torch
+    runs with the graph's own ``depth_flow`` (from its metadata) and its plane-stacked convolutions."""
     import onnxruntime as ort
 
     model = _as_model(module).eval()
     with torch.no_grad():
-        expected = FlowGraph(model)(*inputs).numpy()
+        expected = FlowGraph(model, graph_depth_flow(onnx_path))(*inputs).numpy()
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     got = session.run(None, {name: t.numpy() for name, t in zip(input_names(model), inputs)})[0]
     if got.shape != expected.shape:
@@ -210,6 +238,9 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     parser.add_argument("--num-planes", type=int, default=None,
                         help="export the same weights for this many MPI planes Z (3d networks only; default: the "
                              "Z it was trained with); 'interleave sweep --planes' uses such exports")
+    parser.add_argument("--no-depth-flow", action="store_true",
+                        help="leave dz out (returned as 0, not computed): the engine's default decomp[depth_flow=0] "
+                             "uses only (du, dv); saves the plane softmax at full size")
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
@@ -218,7 +249,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     model = load_model(args.checkpoint)
     if args.num_planes is not None:
         model = with_planes(model, args.num_planes)
-    path = export_flow(model, args.out, working_width=_working_width(args.checkpoint))
+    path = export_flow(model, args.out, working_width=_working_width(args.checkpoint),
+                       depth_flow=not args.no_depth_flow)
     err = check_parity(path, model, example_inputs(model, 96, 160, seed=1))
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); max |onnxruntime - torch| = {err:.2e}")
     if err > args.tolerance:

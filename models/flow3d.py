@@ -41,7 +41,7 @@ from models.geometry import Mpi, _check_mpi, build_mpi, forward_warp_mpi, visibi
 
 __all__ = ["Flow3DConfig", "PartialConv3d", "partial_conv3d", "masked_correlation", "plane_offset",
            "backward_warp", "flow_from_output", "extrapolate", "encode_color", "mpi_features", "mpi_pair",
-           "surface_flow", "Flow3D", "pyramid_stride"]
+           "surface_flow", "Flow3D", "pyramid_stride", "set_direct_conv3d"]
 
 #: Logit added to plane offsets that leave the MPI (z + z' < 0 or >= Z): exp(-1e4) is exactly 0 in float32.
 _OUTSIDE_LOGIT = -1.0e4
@@ -179,8 +179,19 @@ def _plane_weight(weight: Tensor) -> Tensor:
     return torch.cat([data, count], dim=0).reshape(c_out + 1, kz * (c_in + 1), ky, kx)
 
 
+def _count_weight(weight: Tensor) -> Tensor:
+    """Conv3d weight of the direct partial conv: (C_out, C_in, kz, ky, kx) -> (C_out + 1, C_in + 1, kz, ky, kx).
+
+    Input channel C_in is the mask count (no data weight); output C_out sums it over the window (weights 1).
+    """
+    c_out, c_in, kz, ky, kx = weight.shape
+    data = F.pad(weight, (0, 0, 0, 0, 0, 0, 0, 1))
+    count = F.pad(torch.ones((1, 1, kz, ky, kx), dtype=weight.dtype, device=weight.device), (0, 0, 0, 0, 0, 0, c_in, 0))
+    return torch.cat([data, count], dim=0)
+
+
 def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
-                    stride: tuple[int, int, int] = (1, 1, 1)) -> tuple[Tensor, Tensor]:
+                    stride: tuple[int, int, int] = (1, 1, 1), direct: bool = False) -> tuple[Tensor, Tensor]:
     """Unvalidated body of ``partial_conv3d``."""
     c_in = x.shape[1]
     c_out, _, kz, ky, kx = weight.shape
@@ -190,9 +201,14 @@ def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tens
         location, counts = mask, mask * float(c_in)
     else:
         location, counts = mask.amax(dim=1, keepdim=True), mask.sum(dim=1, keepdim=True)
-    y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
-                 hw_stride, (ky // 2, kx // 2))
-    y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
+    if direct:
+        # an explicit zero bias: onnxruntime rejected the exporter's Conv without one for a computed weight
+        y = F.conv3d(torch.cat([x * mask, counts], dim=1), _count_weight(weight),
+                     torch.zeros(c_out + 1, dtype=x.dtype, device=x.device), (1, *hw_stride), (kz // 2, ky // 2, kx // 2))
+    else:
+        y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
+                     hw_stride, (ky // 2, kx // 2))
+        y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
     raw, window = y[:, :c_out], y[:, c_out:]
     out_mask = _downsample_mask(location, (1, *hw_stride))
     # out_mask > 0 implies a positive window count (the pooled block lies inside the kernel window)
@@ -203,7 +219,7 @@ def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tens
 
 
 def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
-                   stride: tuple[int, int, int] = (1, 1, 1)) -> tuple[Tensor, Tensor]:
+                   stride: tuple[int, int, int] = (1, 1, 1), direct: bool = False) -> tuple[Tensor, Tensor]:
     """3D partial convolution (Liu et al. 2018) that does not dilate the mask (thesis Sec. 6.3.3).
 
     ``out = W^T (x * mask) * (C_in k_vol / sum(mask in window)) + bias`` where the output location is valid,
@@ -219,8 +235,10 @@ def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tenso
     Runs as one Conv2d over the planes, each stacked with its kz - 1 neighbours as extra channels, with the
     mask count as one more input/output channel (``_plane_weight``): the same linear map as
     ``F.conv3d(x * mask, weight, None, stride, kernel // 2)`` plus the window count, but the CPU build of
-    torch runs Conv3d through its slow im2col path and Conv2d through oneDNN (about 3x faster here), and it
-    keeps the exported graph small.
+    torch runs Conv3d through its slow im2col path and Conv2d through oneDNN (about 3x faster here).
+    ``direct=True`` runs the same map as one ``F.conv3d`` (the mask count as an extra input channel,
+    ``_count_weight``): what the ONNX export uses, because onnxruntime's Conv3d is fast and the plane
+    stacking costs the exported graph a transpose, padding and concatenations per layer.
 
     Args:
         x: (B, C_in, Z, H, W); mask: (B, 1 or C_in, Z, H, W) in [0, 1].
@@ -237,11 +255,15 @@ def partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tenso
     if sizes["M"] not in (1, sizes["C"]) or any(k % 2 == 0 for k in weight.shape[2:]) or int(stride[0]) != 1:
         raise InputError(f"needs a mask with 1 or C_in channels, odd kernels and stride[0] = 1, got mask "
                          f"{tuple(mask.shape)}, weight {tuple(weight.shape)}, stride {stride}", field="partial_conv3d")
-    return _partial_conv3d(x, mask, weight, bias, stride)
+    return _partial_conv3d(x, mask, weight, bias, stride, direct)
 
 
 class PartialConv3d(nn.Module):
-    """Thin module over ``partial_conv3d``: holds the weights (Conv3d's default init), kernel and stride."""
+    """Thin module over ``partial_conv3d``: holds the weights (Conv3d's default init), kernel and stride.
+
+    ``direct`` (default False: the plane-stacked Conv2d, fast in torch) selects the single-Conv3d form, which
+    ``export.flow`` switches on for the ONNX graph (``set_direct_conv3d``).
+    """
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: tuple[int, int, int] = (3, 3, 3),
                  stride: tuple[int, int, int] = (1, 1, 1), bias: bool = True) -> None:
@@ -253,9 +275,22 @@ class PartialConv3d(nn.Module):
         self.weight = conv.weight
         self.bias = conv.bias
         self.stride = tuple(stride)
+        self.direct = False
 
     def forward(self, x: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
-        return _partial_conv3d(x, mask, self.weight, self.bias, self.stride)
+        return _partial_conv3d(x, mask, self.weight, self.bias, self.stride, self.direct)
+
+
+def set_direct_conv3d(module: nn.Module, direct: bool = True) -> nn.Module:
+    """Switch every ``PartialConv3d`` in ``module`` to the single-Conv3d form (or back); returns ``module``.
+
+    The two forms are the same linear map (tested to 1e-5); the choice only changes speed: plane-stacked
+    Conv2d in torch, one Conv3d in onnxruntime.
+    """
+    for layer in module.modules():
+        if isinstance(layer, PartialConv3d):
+            layer.direct = bool(direct)
+    return module
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -637,8 +672,13 @@ class Flow3D(nn.Module):
                 raise InputError("has NaN or inf values", field="initial_flow")
         return self.flow_unchecked(mpi_n, mpi_prev_warped, initial_flow)
 
-    def flow_unchecked(self, mpi_n: Mpi, mpi_prev_warped: Mpi, initial_flow: Optional[Tensor] = None) -> Tensor:
-        """``forward`` without validation (for ``torch.export``: no shape is read as a Python int)."""
+    def flow_unchecked(self, mpi_n: Mpi, mpi_prev_warped: Mpi, initial_flow: Optional[Tensor] = None,
+                       depth_flow: bool = True) -> Tensor:
+        """``forward`` without validation (for ``torch.export``: no shape is read as a Python int).
+
+        ``depth_flow=False`` returns dz = 0 without computing it (no plane softmax, no logits upsampling at
+        full size): (du, dv) are the same; for engines that use only those (``DecompConfig.depth_flow=0``).
+        """
         planes = mpi_n.plane_depths
         h, w = mpi_n.alpha.shape[-2:]
         stride = pyramid_stride(self.config)
@@ -646,12 +686,20 @@ class Flow3D(nn.Module):
         x1, a1 = F.pad(mpi_features(mpi_n, planes), pad), F.pad(mpi_n.alpha, pad)
         x2, a2 = F.pad(mpi_features(mpi_prev_warped, planes), pad), F.pad(mpi_prev_warped.alpha, pad)
         init = None if initial_flow is None else F.pad(initial_flow, pad)
-        disp, logits, coarse_mask = self._coarse_to_fine(self.pyramid(x1, a1), self.pyramid(x2, a2), planes, init)
+        # both MPIs through the shared encoder as one batch
+        batch = x1.shape[0]
+        pyramid = self.pyramid(torch.cat([x1, x2]), torch.cat([a1, a2]))
+        pyr1 = [(f[:batch], m[:batch]) for f, m in pyramid]
+        pyr2 = [(f[batch:], m[batch:]) for f, m in pyramid]
+        disp, logits, coarse_mask = self._coarse_to_fine(pyr1, pyr2, planes, init)
         disp = _masked_upsample(disp, coarse_mask, 4, a1) * 4.0
         if init is not None:  # the given flow at full detail on every plane, plus the network's residual
             disp = disp + init[:, :, None] * (a1 > 0).to(disp.dtype)
-        logits = _masked_upsample(logits, coarse_mask, 4, a1)
-        flow = _flow_from_output(disp, logits, planes) * a1
+        if depth_flow:
+            logits = _masked_upsample(logits, coarse_mask, 4, a1)
+            flow = _flow_from_output(disp, logits, planes) * a1
+        else:
+            flow = torch.cat([disp * a1, torch.zeros_like(a1)], dim=1)
         return flow[..., :h, :w]
 
     def _coarse_to_fine(self, pyr1, pyr2, planes: Tensor,

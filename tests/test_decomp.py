@@ -463,3 +463,15 @@ def test_method_options_parse_and_reject_bad_ones():
     for bad in ("flow2d[gate=0]", "flow2d[preset=slow]"):
         with pytest.raises(InputError, match="preset"):
             make_predictor(bad)
+
+
+def test_depth_flow_needs_a_graph_that_computes_dz(network):
+    """The committed graph is exported without dz (--no-depth-flow): decomp[depth_flow=1] says so instead of
+    applying dz = 0; a graph with dz (metadata depth_flow true, e.g. the 2D ablation's) is accepted."""
+    assert not network.depth_flow
+    with pytest.raises(InputError, match="no-depth-flow"):
+        DecompPredictor(DecompConfig(depth_flow=True), network=network)
+    DecompPredictor(DecompConfig(depth_flow=False), network=network)
+    with_dz = FlowNetwork(DEFAULT_MODEL.with_name("flow2d.onnx"), threads=1)
+    assert with_dz.depth_flow
+    DecompPredictor(DecompConfig(depth_flow=True), network=with_dz)

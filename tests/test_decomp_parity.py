@@ -45,6 +45,8 @@ def test_committed_network_matches_its_checkpoint(pair):
     init = _initial_flow(tensors_n[0], m_w)  # the DIS flow the network refines, as in training
     with torch.no_grad():
         want = model(m_n, m_w, init)[0].numpy()
+    assert not net.depth_flow  # exported with --no-depth-flow: dz comes out 0, (du, dv) as torch computes them
+    want[2] = 0.0
     init_np = init[0].permute(1, 2, 0).numpy()
 
     def numpy_mpi(m):
@@ -74,3 +76,4 @@ def test_onnx_metadata_records_the_working_width():
     meta = {p.key: p.value for p in onnx.load(str(DEFAULT_MODEL), load_external_data=False).metadata_props}
     info = json.loads(meta[METADATA_KEY])
     assert info["working_width"] == 480 and info["model"]["num_planes"] == 2  # exported with --num-planes 2
+    assert info["depth_flow"] is False  # and --no-depth-flow (the engine's decomp[depth_flow=0] uses no dz)

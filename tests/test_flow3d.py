@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from engine.errors import InputError
 from models.flow3d import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, encode_color, extrapolate,
                            flow_from_output, masked_correlation, mpi_features, mpi_pair, partial_conv3d,
-                           plane_offset, pyramid_stride, surface_flow)
+                           plane_offset, pyramid_stride, set_direct_conv3d, surface_flow)
 from models.geometry import Mpi, build_mpi
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -67,9 +67,11 @@ def reference_partial_conv(x, mask, weight, bias, stride):
     ((3, 3, 3), (1, 1, 1), False, (4, 10, 12)), ((3, 3, 3), (1, 2, 2), False, (4, 10, 12)),
     ((1, 3, 3), (1, 2, 2), False, (3, 9, 7)), ((1, 1, 1), (1, 1, 1), True, (4, 6, 8)),
     ((3, 3, 3), (1, 1, 1), True, (2, 5, 6))])
-def test_partial_conv_matches_conv3d_reference(kernel, stride, channel_mask, size):
+@pytest.mark.parametrize("direct", [False, True])
+def test_partial_conv_matches_conv3d_reference(kernel, stride, channel_mask, size, direct):
     torch.manual_seed(1)
     layer = PartialConv3d(5, 7, kernel, stride)
+    layer.direct = direct  # the plane-stacked Conv2d (torch) or the one Conv3d the ONNX export uses
     x = torch.randn(2, 5, *size)
     mask = random_mask((2, 5 if channel_mask else 1, *size), seed=2)
     out, out_mask = layer(x, mask)
@@ -77,6 +79,26 @@ def test_partial_conv_matches_conv3d_reference(kernel, stride, channel_mask, siz
     assert out.shape == ref.shape and out_mask.shape == (2, 1, *ref.shape[2:])
     torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(out_mask, ref_mask)
+
+
+def test_network_with_direct_conv3d_equals_plane_stacked(net):
+    """``set_direct_conv3d`` (the export's form) changes no flow beyond float rounding, with and without dz."""
+    import copy
+
+    mpi_n = random_mpi(batch=1, height=48, width=64, seed=11, sky_rows=4)
+    mpi_p = random_mpi(batch=1, height=48, width=64, seed=12)._replace(plane_depths=mpi_n.plane_depths)
+    direct = set_direct_conv3d(copy.deepcopy(net))
+    assert all(m.direct for m in direct.modules() if isinstance(m, PartialConv3d))
+    assert not any(m.direct for m in net.modules() if isinstance(m, PartialConv3d))
+    with torch.no_grad():
+        want = net(mpi_n, mpi_p)
+        got = direct(mpi_n, mpi_p)
+        xy = direct.flow_unchecked(mpi_n, mpi_p, depth_flow=False)
+    assert float(want[:, 2].abs().max()) > 0  # the comparison of dz is not between zeros
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    # depth_flow=False: the same (du, dv), dz exactly 0 (not computed)
+    torch.testing.assert_close(xy[:, :2], got[:, :2], atol=0, rtol=0)
+    assert torch.equal(xy[:, 2], torch.zeros_like(xy[:, 2]))
 
 
 def test_partial_conv_ignores_values_under_alpha_zero():

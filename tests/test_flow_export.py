@@ -21,9 +21,10 @@ import torch
 from torch import nn
 
 from engine.errors import InputError
-from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
+from export.flow import (INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, graph_depth_flow,
+                         with_planes)
 from models.flow3d import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
-                           masked_correlation)
+                           masked_correlation, set_direct_conv3d)
 from models.train_flow import (TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items,
                                train)
 
@@ -50,11 +51,13 @@ class Blocks(nn.Module):
         return backward_warp(torch.cat([h2, m2], 1), flow, planes)
 
 
-def test_export_blocks_dynamic_shapes_parity(tmp_path):
+@pytest.mark.parametrize("direct", [False, True], ids=["plane-stacked", "conv3d"])
+def test_export_blocks_dynamic_shapes_parity(tmp_path, direct):
+    """Both forms of the partial conv (``export_flow`` uses the one-Conv3d form) against torch."""
     import onnxruntime as ort
 
     torch.manual_seed(0)
-    blocks = Blocks().eval()
+    blocks = set_direct_conv3d(Blocks().eval(), direct)
 
     def inputs(h, w, seed):
         g = torch.Generator().manual_seed(seed)
@@ -81,14 +84,26 @@ def test_export_blocks_dynamic_shapes_parity(tmp_path):
 
 
 @pytest.mark.slow
-def test_export_network_parity_at_two_resolutions(tmp_path):
+@pytest.mark.parametrize("depth_flow", [True, False])
+def test_export_network_parity_at_two_resolutions(tmp_path, depth_flow):
+    import onnxruntime as ort
+
     torch.manual_seed(0)
     model = Flow3D(TINY_NET).eval()
-    path = export_flow(model, tmp_path / "flow3d.onnx")
-    assert path.exists()
+    path = export_flow(model, tmp_path / "flow3d.onnx", depth_flow=depth_flow)
+    assert path.exists() and graph_depth_flow(path) == depth_flow
+    assert not any(m.direct for m in model.modules() if isinstance(m, PartialConv3d))  # exported from a copy
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     for size, batch in [((64, 96), 1), ((96, 48), 2)]:
-        err = check_parity(path, model, example_inputs(model, *size, batch=batch, seed=size[0]))
+        inputs = example_inputs(model, *size, batch=batch, seed=size[0])
+        err = check_parity(path, model, inputs)
         assert err < TOLERANCE, (size, err)
+        got = session.run(None, {n: t.numpy() for n, t in zip(INPUT_NAMES, inputs)})[0]
+        with torch.no_grad():
+            full = FlowGraph(model)(*inputs).numpy()
+        if not depth_flow:  # (du, dv) of the full graph, dz exactly 0
+            assert np.max(np.abs(got[:, :2] - full[:, :2])) < TOLERANCE and not got[:, 2].any()
+            assert np.abs(full[:, 2]).max() > 0
 
 
 def test_export_rejects_sizes_off_the_stride(tmp_path):

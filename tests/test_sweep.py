@@ -67,6 +67,6 @@ def test_points_are_grouped_by_frame_size_with_their_own_fronts():
 
 def test_plane_models_use_the_committed_network_for_its_own_planes(tmp_path):
     assert plane_models([2], tmp_path) == {2: ""}
-    shutil.copy(DEFAULT_MODEL, tmp_path / "flow3d_z4.onnx")  # a 2-plane network under a 4-plane name
+    shutil.copy(DEFAULT_MODEL, tmp_path / "flow3d_z4_xy.onnx")  # a 2-plane network under a 4-plane name (no dz)
     with pytest.raises(InputError, match="holds a network for 2 planes, expected 4"):
         plane_models([4], tmp_path)

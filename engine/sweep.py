@@ -155,12 +155,12 @@ def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_ite
 
 
 def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
-                 checkpoint: Path = DEFAULT_CHECKPOINT, depth_flow: bool = False) -> dict[int, str]:
+                 checkpoint: Path = DEFAULT_CHECKPOINT) -> dict[int, str]:
     """Z -> ONNX flow network for each plane count: '' (the committed ``engine/weights/flow3d.onnx``) for its
-    own Z, else ``models_dir/flow3d_z{Z}.onnx``, exported from ``checkpoint`` with ``export.flow --num-planes``
-    when missing (needs torch; about 2 minutes per Z on 2 CPU cores). Without ``depth_flow`` (the engine's
-    default ``decomp[depth_flow=0]``) they are exported like the committed one, with ``--no-depth-flow``
-    (``flow3d_z{Z}_xy.onnx``), so every Z is timed with the same graph."""
+    own Z, else ``models_dir/flow3d_z{Z}_xy.onnx``, exported from ``checkpoint`` with ``export.flow --num-planes``
+    when missing (needs torch; about 2 minutes per Z on 2 CPU cores), with ``--no-depth-flow`` like the
+    committed one, so every Z is timed with the same graph (a sweep cannot ask for dz: ``depth_flow=1`` fails
+    on the committed graph)."""
     from engine.decomp import DEFAULT_MODEL, FlowNetwork
 
     own = FlowNetwork(DEFAULT_MODEL, threads=1).num_planes
@@ -169,10 +169,9 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
         if z == own:
             out[z] = ""
             continue
-        path = Path(models_dir) / f"flow3d_z{z}{'' if depth_flow else '_xy'}.onnx"
-        extra = [] if depth_flow else ["--no-depth-flow"]
+        path = Path(models_dir) / f"flow3d_z{z}_xy.onnx"
         if not path.is_file():
-            command = " ".join([f"interleave export flow {checkpoint} {path} --num-planes {z}", *extra])
+            command = f"interleave export flow {checkpoint} {path} --num-planes {z} --no-depth-flow"
             try:
                 from export.flow import main as export_flow_main
             except ImportError as exc:
@@ -181,7 +180,7 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
             if not Path(checkpoint).is_file():
                 raise InputError("checkpoint to export the plane variants from not found", file=checkpoint)
             print(f"exporting the flow network for Z = {z} planes: {command}", flush=True)
-            export_flow_main([str(checkpoint), str(path), "--num-planes", str(z), *extra],
+            export_flow_main([str(checkpoint), str(path), "--num-planes", str(z), "--no-depth-flow"],
                              prog="interleave export flow")
         got = FlowNetwork(path, threads=1).num_planes
         if got != z:

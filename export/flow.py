@@ -40,7 +40,7 @@ from models.flow3d import Flow3D, pyramid_stride, set_direct_conv3d
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
-           "example_inputs", "with_planes", "graph_depth_flow"]
+           "example_inputs", "with_planes"]
 
 INPUT_NAMES = ("color_n", "depth_n", "alpha_n", "color_prev", "depth_prev", "alpha_prev", "plane_depths")
 #: the extra input of networks built with ``Flow3DConfig.initial_flow``: (B, 2, H, W) pixels, u(n -> n-k)
@@ -198,28 +198,17 @@ def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optio
     onnx.save(proto, str(path))
 
 
-def graph_depth_flow(onnx_path: Union[str, Path]) -> bool:
-    """Whether an exported flow graph computes dz (its ``depth_flow`` metadata; graphs without the entry do)."""
-    import json
-
-    import onnx
-
-    from engine.decomp import METADATA_KEY
-
-    meta = {p.key: p.value for p in onnx.load(str(onnx_path), load_external_data=False).metadata_props}
-    return bool(json.loads(meta.get(METADATA_KEY, "{}")).get("depth_flow", True))
-
-
 def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[Tensor, ...]) -> float:
     """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order); torch
-    runs with the graph's own ``depth_flow`` (from its metadata) and its plane-stacked convolutions."""
-    import onnxruntime as ort
+    runs with the graph's own ``depth_flow`` (from its metadata, as the engine reads it) and its plane-stacked
+    convolutions."""
+    from engine.decomp import FlowNetwork
 
     model = _as_model(module).eval()
+    network = FlowNetwork(onnx_path, threads=1)
     with torch.no_grad():
-        expected = FlowGraph(model, graph_depth_flow(onnx_path))(*inputs).numpy()
-    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    got = session.run(None, {name: t.numpy() for name, t in zip(input_names(model), inputs)})[0]
+        expected = FlowGraph(model, network.depth_flow)(*inputs).numpy()
+    got = network.session.run(None, {name: t.numpy() for name, t in zip(input_names(model), inputs)})[0]
     if got.shape != expected.shape:
         raise InputError(f"onnxruntime returned shape {got.shape}, torch {expected.shape}", field="onnx_path")
     return float(np.max(np.abs(got - expected))) if expected.size else 0.0

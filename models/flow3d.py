@@ -166,28 +166,29 @@ def _stack_planes(x: Tensor, kz: int) -> Tensor:
     return planes.reshape(b * z, kz * c, h, w)
 
 
-def _plane_weight(weight: Tensor) -> Tensor:
-    """Conv2d weight of the plane-stacked partial conv, with one extra input and output channel for the mask.
-
-    (C_out, C_in, kz, ky, kx) -> (C_out + 1, kz (C_in + 1), ky, kx). Input channel ``i (C_in + 1) + c`` is
-    channel c of plane ``z + i - kz // 2`` (c = C_in: the mask count); outputs 0..C_out-1 apply ``weight``
-    to the data channels, output C_out sums the mask count over the window (weights 1).
-    """
-    c_out, c_in, kz, ky, kx = weight.shape
-    data = F.pad(weight.transpose(1, 2), (0, 0, 0, 0, 0, 1))  # (C_out, kz, C_in + 1, ky, kx)
-    count = F.pad(torch.ones((1, kz, 1, ky, kx), dtype=weight.dtype, device=weight.device), (0, 0, 0, 0, c_in, 0))
-    return torch.cat([data, count], dim=0).reshape(c_out + 1, kz * (c_in + 1), ky, kx)
-
-
 def _count_weight(weight: Tensor) -> Tensor:
-    """Conv3d weight of the direct partial conv: (C_out, C_in, kz, ky, kx) -> (C_out + 1, C_in + 1, kz, ky, kx).
+    """Weight of the partial conv with its mask count: (C_out, C_in, kz, ky, kx) -> (C_out + 1, C_in + 1, kz, ky, kx);
+    the direct form convolves with it as is, the plane-stacked one rearranged (``_plane_weight``).
 
     Input channel C_in is the mask count (no data weight); output C_out sums it over the window (weights 1).
     """
     c_out, c_in, kz, ky, kx = weight.shape
     data = F.pad(weight, (0, 0, 0, 0, 0, 0, 0, 1))
-    count = F.pad(torch.ones((1, 1, kz, ky, kx), dtype=weight.dtype, device=weight.device), (0, 0, 0, 0, 0, 0, c_in, 0))
+    ones = torch.ones((1, 1, kz, ky, kx), dtype=weight.dtype, device=weight.device)
+    count = F.pad(ones, (0, 0, 0, 0, 0, 0, c_in, 0))
     return torch.cat([data, count], dim=0)
+
+
+def _plane_weight(weight: Tensor) -> Tensor:
+    """Conv2d weight of the plane-stacked partial conv, with one extra input and output channel for the mask.
+
+    (C_out, C_in, kz, ky, kx) -> (C_out + 1, kz (C_in + 1), ky, kx): ``_count_weight`` with the planes moved
+    ahead of the channels. Input channel ``i (C_in + 1) + c`` is channel c of plane ``z + i - kz // 2`` (c =
+    C_in: the mask count); outputs 0..C_out-1 apply ``weight`` to the data channels, output C_out sums the
+    mask count over the window (weights 1).
+    """
+    c_out, c_in, kz, ky, kx = weight.shape
+    return _count_weight(weight).transpose(1, 2).reshape(c_out + 1, kz * (c_in + 1), ky, kx)
 
 
 def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tensor],
@@ -204,7 +205,8 @@ def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tens
     if direct:
         # an explicit zero bias: onnxruntime rejected the exporter's Conv without one for a computed weight
         y = F.conv3d(torch.cat([x * mask, counts], dim=1), _count_weight(weight),
-                     torch.zeros(c_out + 1, dtype=x.dtype, device=x.device), (1, *hw_stride), (kz // 2, ky // 2, kx // 2))
+                     torch.zeros(c_out + 1, dtype=x.dtype, device=x.device), (1, *hw_stride),
+                     (kz // 2, ky // 2, kx // 2))
     else:
         y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
                      hw_stride, (ky // 2, kx // 2))

@@ -21,8 +21,8 @@ import torch
 from torch import nn
 
 from engine.errors import InputError
-from export.flow import (INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, graph_depth_flow,
-                         with_planes)
+from engine.decomp import FlowNetwork
+from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
 from models.flow3d import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
                            masked_correlation, set_direct_conv3d)
 from models.train_flow import (TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items,
@@ -91,7 +91,7 @@ def test_export_network_parity_at_two_resolutions(tmp_path, depth_flow):
     torch.manual_seed(0)
     model = Flow3D(TINY_NET).eval()
     path = export_flow(model, tmp_path / "flow3d.onnx", depth_flow=depth_flow)
-    assert path.exists() and graph_depth_flow(path) == depth_flow
+    assert path.exists() and FlowNetwork(path, threads=1).depth_flow == depth_flow
     assert not any(m.direct for m in model.modules() if isinstance(m, PartialConv3d))  # exported from a copy
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     for size, batch in [((64, 96), 1), ((96, 48), 2)]:

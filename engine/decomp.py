@@ -6,7 +6,7 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
    function the training data went through);
 2. the *motion gate*: frame n-k (a one-plane MPI) is forward-warped into frame n's view
    (``geometry.forward_warp_mpi``), cancelling camera motion; tiles where colour or depth still changed
-   mark object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when
+   (among pixels frame n-k saw, ``seen_before``) mark object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when
    no tile moved (measured costs, static scene included: ``docs/flow3d.md``);
 3. for the boxes, both frames become one-hot MPIs on frame n's planes and the MPI of n-k is warped into
    frame n's view (into the boxes' bounding box only): the network's input;
@@ -48,7 +48,7 @@ from engine.predictors import (PreparedState, Predictor, Target, dis_block, dis_
                                extrapolation_factor, luma8, true_object_flow)
 
 __all__ = ["DecompConfig", "FlowNetwork", "DecompPredictor", "DEFAULT_MODEL", "motion_residual", "motion_boxes",
-           "upsample_flow", "merge_planes", "encode_color", "config_from_options", "initial_flow"]
+           "seen_before", "upsample_flow", "merge_planes", "encode_color", "config_from_options", "initial_flow"]
 
 #: The committed 3D flow network (``configs/flow3d.json``; see ``engine/weights/README.md``).
 DEFAULT_MODEL = Path(__file__).resolve().parent / "weights" / "flow3d.onnx"
@@ -70,6 +70,9 @@ class DecompConfig:
     depth_threshold: float = option(0.02, "relative inverse-depth change that marks a pixel as changed")
     erode: bool = option(True, "erode the changed-pixel mask by 3 x 3 before counting tiles (removes the "
                                "one-pixel seams that resampling leaves along depth edges of a static scene)")
+    gate_unseen: bool = option(True, "the gate ignores pixels of frame n whose surface, if static, lay outside "
+                                     "frame n-k's view (content entering at the frame border under camera motion: "
+                                     "frame n-k holds nothing to compare it with, and no flow can be estimated there)")
     tile: int = option(8, "tile size of the motion gate, in network pixels")
     min_tiles: int = option(3, "smallest group of connected moving tiles that counts as motion (smaller groups: "
                                 "resampling noise along depth edges of a static view)")
@@ -395,6 +398,20 @@ def motion_residual(mpi_n: Mpi, mpi_prev_warped: Mpi, color_threshold: float, de
     return cv2.erode(changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
 
 
+def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: np.ndarray, T_prev: np.ndarray,
+                size_prev: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: pixels of frame n whose surface, were it static, lay inside frame n-k's view (reprojected
+    into camera n-k in front of it and inside its (h, w) = ``size_prev`` image; sky by the rotation alone).
+
+    Elsewhere frame n-k never saw the surface, so the camera-compensated frame n-k (whatever the warp put
+    there: a farther surface, or nothing) says nothing about object motion. ``depth_n`` (H, W) planar depth,
+    +inf sky; cameras as ``geometry.reproject`` takes them (pixel centres at +0.5: inside is [0, w) x [0, h)).
+    """
+    uv, _, valid = geometry.reproject(depth_n, K_n, T_n, K_prev, T_prev)
+    h, w = size_prev
+    return valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+
+
 def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: int, stride: int,
                  full_frame_fraction: float, min_tiles: int = 1) -> list[tuple[int, int, int, int]]:
     """Boxes (y0, y1, x0, x1) the network must see: moving tiles, grown by ``margin``, snapped to ``stride``.
@@ -604,6 +621,8 @@ class DecompPredictor(Predictor):
             g_w, _ = timer("gate", geometry.forward_warp_mpi, g_p, low_p[2], t_p, low_n[2], t_n)
             changed = timer("gate", motion_residual, g_n, g_w, cfg.color_threshold, cfg.depth_threshold,
                             cfg.erode)
+            if cfg.gate_unseen and changed.any():
+                changed &= timer("gate", seen_before, low_n[1], low_n[2], t_n, low_p[2], t_p, low_p[1].shape)
             boxes = motion_boxes(changed, cfg.tile, cfg.tile_fraction, cfg.margin, net.stride,
                                  cfg.full_frame_fraction, cfg.min_tiles)
         else:

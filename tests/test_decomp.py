@@ -5,7 +5,7 @@ import pytest
 from engine import geometry
 from engine.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
                            context_region, context_span, dis_flow, dis_target, full_box, initial_flow, merge_planes,
-                           merge_regions, motion_boxes, upsample_blocks, upsample_flow, warp_error)
+                           merge_regions, motion_boxes, seen_before, upsample_blocks, upsample_flow, warp_error)
 from engine.errors import InputError
 from engine.frames import Camera, Frame
 from engine.metrics import score_frame
@@ -149,6 +149,75 @@ def test_static_scene_skips_the_network_and_matches_reproject(network):
     assert score_frame(truth, out.color).psnr > score_frame(truth, ref.color).psnr - 0.5
 
 
+def _noisy(frames, sigma):
+    """The frames with the colour noise of a path tracer at few samples per pixel (the scene generator's)."""
+    import dataclasses
+
+    from engine.scenegen.render import monte_carlo_noise
+
+    return [dataclasses.replace(f, color=monte_carlo_noise(f.color, sigma, np.random.default_rng([7, f.index])))
+            for f in frames]
+
+
+@pytest.mark.parametrize("sigma", [0.05, 0.15])
+def test_render_noise_keeps_a_static_view_off_the_motion_path(network, sigma):
+    """Independent per-frame noise is a colour residual everywhere; the gate must not read it as motion."""
+    frames, _ = two_layer_sequence(5, width=192, height=128, camera_speed=0.06, object_speed=0.0)
+    frames = _noisy(frames, sigma)
+    pred = DecompPredictor(DecompConfig(), network)
+    state = pred.prepare(frames[1:3])
+    assert state.data["boxes"] == [] and state.data["flow"] is None
+    if sigma >= 0.15:  # hard enough that the gate's 3 x 3 erosion is what keeps it off the motion path
+        assert DecompPredictor(DecompConfig(erode=False), network).prepare(frames[1:3]).data["boxes"]
+    out = pred.render(state, _target(frames[3]))
+    ref = Reproject().predict(frames[1:3], _target(frames[3]))
+    assert np.isfinite(out.color).all()
+    assert score_frame(frames[3].color, out.color).psnr > score_frame(frames[3].color, ref.color).psnr - 0.5
+
+
+def _crop_columns(frame, x0, x1):
+    """The frame's columns [x0, x1) as a frame of its own (principal point shifted)."""
+    import dataclasses
+
+    k = frame.camera.intrinsics.copy()
+    k[0, 2] -= x0
+    cut = lambda a: None if a is None else np.ascontiguousarray(a[:, x0:x1])  # noqa: E731
+    return dataclasses.replace(frame, color=cut(frame.color), depth=cut(frame.depth),
+                               camera=Camera(k, frame.camera.world_to_camera), object_id=cut(frame.object_id),
+                               moving=cut(frame.moving), flow=cut(frame.flow), object_flow=cut(frame.object_flow))
+
+
+def test_seen_before_marks_what_the_older_view_contained():
+    frames, _ = two_layer_sequence(3, width=96, height=64, camera_speed=0.15, object_speed=0.0)
+    old, new = frames[0], frames[2]
+    size = old.depth.shape
+    same = seen_before(new.depth, new.camera.intrinsics, new.camera.world_to_camera, new.camera.intrinsics,
+                       new.camera.world_to_camera, size)
+    assert same.all()
+    seen = seen_before(new.depth, new.camera.intrinsics, new.camera.world_to_camera, old.camera.intrinsics,
+                       old.camera.world_to_camera, size)
+    # the camera moved +x: frame n's right border shows what frame n-k had right of its image
+    uv, _, _ = geometry.reproject(new.depth, new.camera.intrinsics, new.camera.world_to_camera,
+                                  old.camera.intrinsics, old.camera.world_to_camera)
+    np.testing.assert_array_equal(seen, uv[..., 0] < size[1])
+    assert seen[:, :40].all() and not seen[:, -4:].any()
+    sky = np.full(size, np.inf, np.float32)  # sky moves with the rotation alone: a translation keeps it in view
+    assert seen_before(sky, new.camera.intrinsics, new.camera.world_to_camera, old.camera.intrinsics,
+                       old.camera.world_to_camera, size).all()
+
+
+def test_gate_ignores_a_static_surface_entering_at_the_border(network):
+    """A near static surface entering the view lands on the far background frame n-k saw beside it: a
+    colour and depth residual, but not motion (frame n-k never saw the surface)."""
+    frames, _ = two_layer_sequence(3, width=384, height=128, camera_speed=0.15, object_speed=0.0)
+    left = np.nonzero(frames[2].object_id.any(0))[0].min()  # the square's left edge in frame n
+    pair = [_crop_columns(f, left + 30 - 96, left + 30) for f in (frames[0], frames[2])]
+    assert not pair[0].object_id.any() and pair[1].object_id.any()  # in view in frame n only
+    assert DecompPredictor(DecompConfig(gate_unseen=False), network).prepare(pair).data["boxes"]
+    state = DecompPredictor(DecompConfig(), network).prepare(pair)
+    assert state.data["boxes"] == [] and state.data["flow"] is None
+
+
 def test_identical_frames_give_zero_flow(network):
     frames, _ = two_layer_sequence(2, width=128, height=96)
     still = Frame(index=1, time=frames[0].time + 1 / 30, color=frames[0].color, depth=frames[0].depth,
@@ -162,8 +231,11 @@ def test_identical_frames_give_zero_flow(network):
     assert np.isfinite(flow).all() and np.abs(flow[:2]).max() < 1.5
 
 
-def test_moving_object_beats_reproject_on_moving_pixels(network):
+@pytest.mark.parametrize("sigma", [0.0, 0.1])
+def test_moving_object_beats_reproject_on_moving_pixels(network, sigma):
+    """Also through a path tracer's colour noise (``sigma``), which must not hide the object from the gate."""
     frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12)
+    frames = _noisy(frames, sigma) if sigma else frames
     pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare([frames[2], frames[4]])
     assert state.data["boxes"] and state.data["flow"] is not None

@@ -281,3 +281,45 @@ def test_generate_sequence_writes_rgbd_seq(tmp_path):
     assert meta["width"] == W and len(meta["frames"]) == 2
     assert len(meta["objects"]) == len(make_scene(config).objects)
     assert json.loads((out / "scenegen_config.json").read_text())["seed"] == 81
+
+
+def test_monte_carlo_noise_is_unbiased_non_negative_and_mostly_luminance():
+    from engine.scenegen.render import monte_carlo_noise
+
+    color = np.full((200, 200, 3), 0.5, np.float32)
+    color[:20] = 0.0  # black stays black
+    out = monte_carlo_noise(color, 0.1, np.random.default_rng(0))
+    assert out.dtype == np.float32 and out.shape == color.shape and (out >= 0).all()
+    assert (out[:20] == 0).all()
+    ratio = out[20:] / 0.5
+    assert abs(ratio.mean() - 1.0) < 0.003 and abs(ratio.std() - 0.1) < 0.003
+    flat = ratio.reshape(-1, 3)
+    corr = np.corrcoef(flat[:, 0], flat[:, 1])[0, 1]
+    assert 0.75 < corr < 0.85, corr  # 80 % of the variance shared by the channels
+    assert monte_carlo_noise(color, 0.0, np.random.default_rng(0)) is color
+    np.testing.assert_array_equal(out, monte_carlo_noise(color, 0.1, np.random.default_rng(0)))
+
+
+def test_render_noise_is_seeded_per_frame_and_camera_and_leaves_the_ground_truth_exact():
+    clean_scene = make_scene(_config(21, num_frames=2))
+    noisy_scene = make_scene(_config(21, num_frames=2, render_noise=0.2))
+    with SceneRenderer(clean_scene) as r:
+        clean = [r.render_frame(i) for i in range(2)]
+    with SceneRenderer(noisy_scene) as r:
+        noisy = [r.render_frame(i) for i in range(2)]
+        again, other_camera = r.render_frame(0), r.render_frame(0, camera=1)
+    np.testing.assert_array_equal(noisy[0].color, again.color)
+    assert not np.array_equal(noisy[0].color, other_camera.color)
+    ratios = []
+    for c, n in zip(clean, noisy):
+        validate_frame(n)
+        for name in ("depth", "object_id", "moving", "flow", "object_flow"):
+            np.testing.assert_array_equal(getattr(c, name), getattr(n, name), err_msg=name)
+        lit = c.color > 1e-3
+        ratios.append(n.color[lit] / c.color[lit])
+        assert (n.color[c.color == 0] == 0).all() and (n.color >= 0).all()
+    for ratio in ratios:
+        assert abs(ratio.mean() - 1.0) < 0.02 and abs(ratio.std() - 0.2) < 0.03, (ratio.mean(), ratio.std())
+    assert not np.allclose(ratios[0][:100], ratios[1][:100])  # each frame its own noise
+    with pytest.raises(InputError, match="render_noise"):
+        SceneConfig(render_noise=-0.1)

@@ -240,8 +240,10 @@ class SceneRenderer:
         self._set("color", "u_seed", int(m.seed) & 0xFFFFFFFF)
 
     # -------------------------------------------------------------------------------------- frames
-    def render_frame(self, index: int) -> Frame:
-        """Render frame ``index`` (0 <= index < num_frames) with colour and every ground-truth channel."""
+    def render_frame(self, index: int, camera: int = 0) -> Frame:
+        """Render frame ``index`` (0 <= index < num_frames) with colour and every ground-truth channel;
+        ``camera`` (a rig's camera number) only keys the colour noise of ``config.render_noise``, so that
+        each camera of a rig gets its own."""
         mgl, ctx, scene, cfg = self._moderngl, self.ctx, self.scene, self.scene.config
         if not 0 <= index < cfg.num_frames:
             raise InputError(f"must be in [0, {cfg.num_frames}), got {index}", field="index")
@@ -324,6 +326,8 @@ class SceneRenderer:
             return data.reshape(h, w, 4)[::-1]
 
         color = np.ascontiguousarray(read(self.fbo_color, 0)[..., :3])
+        if cfg.render_noise > 0:
+            color = monte_carlo_noise(color, cfg.render_noise, np.random.default_rng([cfg.seed, index, NOISE_STREAM, camera]))
         geo = read(self.fbo_truth, 0)
         flow = read(self.fbo_truth, 1)
         depth = np.where(geo[..., 3] > 0.5, geo[..., 0], np.inf).astype(np.float32)
@@ -350,6 +354,27 @@ class SceneRenderer:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+#: Third entry of the colour noise generator's seed ``(config.seed, frame index, NOISE_STREAM, camera)``.
+NOISE_STREAM = 0x4E4F
+
+
+def monte_carlo_noise(color: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W, 3) float32 linear RGB with the noise a path tracer leaves at few samples per pixel.
+
+    Multiplicative and unbiased: each pixel is scaled by a shared factor (luminance noise, 80 % of the
+    variance) times a per-channel factor (colour noise), both gamma-distributed with mean 1, so values stay
+    non-negative, black stays black, and the product has mean 1 and standard deviation ``sigma`` with the
+    long bright tail (fireflies) of Monte Carlo estimates.
+    """
+    if sigma <= 0:
+        return color
+    # (1 + a) (1 + a / 4) = 1 + sigma^2: variances a (shared) and a / 4 (per channel) of the two factors
+    a = 2.0 * (math.sqrt(25.0 / 16.0 + sigma * sigma) - 1.25)
+    shared = rng.gamma(1.0 / a, a, size=color.shape[:2] + (1,))
+    channel = rng.gamma(4.0 / a, a / 4.0, size=color.shape)
+    return (color * (shared * channel)).astype(np.float32)
 
 
 def render_scene(scene: Scene, *, progress: bool = False) -> Iterator[Frame]:

@@ -268,7 +268,7 @@ def render_rig(rig: Rig, *, progress: bool = False) -> Iterator[tuple[str, Frame
             view = rig.camera_scene(k)
             for index in range(rig.num_frames):
                 renderer.scene = view  # render_frame reads the camera (only) from the scene it holds
-                frame = renderer.render_frame(index)
+                frame = renderer.render_frame(index, camera=k)
                 bar.update()
                 yield name, frame
     finally:

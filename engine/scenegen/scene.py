@@ -80,6 +80,9 @@ class SceneConfig:
     back_wall_probability: float = option(0.6, "probability of large walls behind the stage")
     supersample: int = option(2, "colour supersampling factor per axis (ground truth is never supersampled)")
     shadow_map_size: int = option(2048, "sun shadow map resolution in texels per side")
+    render_noise: float = option(0.0, "relative standard deviation of per-pixel Monte Carlo-like noise on the "
+                                      "colour, as a path tracer with few samples per pixel leaves (0: none; e.g. "
+                                      "0.05); drawn per frame from the seed, depth and ground truth stay exact")
 
     def __post_init__(self) -> None:
         checks = [
@@ -98,6 +101,7 @@ class SceneConfig:
             (0 <= self.num_props[0] <= self.num_props[1], "num_props must be (low, high), 0 <= low <= high"),
             (1 <= self.supersample <= 4, "supersample must be 1..4"),
             (64 <= self.shadow_map_size <= 8192, "shadow_map_size must be 64..8192"),
+            (math.isfinite(self.render_noise) and 0.0 <= self.render_noise <= 1.0, "render_noise must be in [0, 1]"),
         ]
         for name in ("pause_probability", "shake_probability", "zoom_probability", "fog_probability",
                      "sky_probability", "thin_probability", "back_wall_probability"):

@@ -6,8 +6,9 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n:
    function the training data went through);
 2. the *motion gate*: frame n-k (a one-plane MPI) is forward-warped into frame n's view
    (``geometry.forward_warp_mpi``), cancelling camera motion; tiles where colour or depth still changed
-   (among pixels frame n-k saw, ``seen_before``) mark object motion; the network runs only on boxes around them (``motion_boxes``), and not at all when
-   no tile moved (measured costs, static scene included: ``docs/flow3d.md``);
+   (among pixels frame n-k saw, ``seen_before``) mark object motion; the network runs only on boxes around
+   them (``motion_boxes``), and not at all when no tile moved (measured costs, static scene included:
+   ``docs/flow3d.md``);
 3. for the boxes, both frames become one-hot MPIs on frame n's planes and the MPI of n-k is warped into
    frame n's view (into the boxes' bounding box only): the network's input;
 4. OpenCV DIS gives the 2D flow the network refines (``initial_flow``; by default at full resolution on

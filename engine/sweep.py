@@ -171,7 +171,8 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
             continue
         path = Path(models_dir) / f"flow3d_z{z}_xy.onnx"
         if not path.is_file():
-            command = f"interleave export flow {checkpoint} {path} --num-planes {z} --no-depth-flow"
+            export_args = [str(checkpoint), str(path), "--num-planes", str(z), "--no-depth-flow"]
+            command = "interleave export flow " + " ".join(export_args)
             try:
                 from export.flow import main as export_flow_main
             except ImportError as exc:
@@ -180,8 +181,7 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
             if not Path(checkpoint).is_file():
                 raise InputError("checkpoint to export the plane variants from not found", file=checkpoint)
             print(f"exporting the flow network for Z = {z} planes: {command}", flush=True)
-            export_flow_main([str(checkpoint), str(path), "--num-planes", str(z), "--no-depth-flow"],
-                             prog="interleave export flow")
+            export_flow_main(export_args, prog="interleave export flow")
         got = FlowNetwork(path, threads=1).num_planes
         if got != z:
             raise InputError(f"holds a network for {got} planes, expected {z}", file=path, field="planes")

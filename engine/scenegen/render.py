@@ -327,7 +327,8 @@ class SceneRenderer:
 
         color = np.ascontiguousarray(read(self.fbo_color, 0)[..., :3])
         if cfg.render_noise > 0:
-            color = monte_carlo_noise(color, cfg.render_noise, np.random.default_rng([cfg.seed, index, NOISE_STREAM, camera]))
+            rng = np.random.default_rng([cfg.seed, index, NOISE_STREAM, camera])
+            color = monte_carlo_noise(color, cfg.render_noise, rng)
         geo = read(self.fbo_truth, 0)
         flow = read(self.fbo_truth, 1)
         depth = np.where(geo[..., 3] > 0.5, geo[..., 0], np.inf).astype(np.float32)

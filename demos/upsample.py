@@ -5,7 +5,7 @@ comes out, either the rendered one or one predicted from the last two rendered f
 that tick. ``run_demo`` renders the built-in procedural scene, evaluates every method on it, and writes a
 side-by-side video (truth | prediction | error) of the best method, the table, the JSON and the plot.
 ``run_field_demo`` does the same with a trained radiance field (``interleave export field``) rendered by
-``engine.glfield`` along a camera path through its scene.
+``engine.fields.gl`` along a camera path through its scene.
 """
 from __future__ import annotations
 
@@ -16,10 +16,10 @@ from typing import Iterator, Optional, Sequence
 import cv2
 import numpy as np
 
-from engine.frames import Frame
-from engine.colorspace import display_encode
-from engine.metrics import flip_map
-from engine.predictors import Predictor, Reproject, Target
+from engine.core.frames import Frame
+from engine.core.colorspace import display_encode
+from engine.eval.metrics import flip_map
+from engine.predict.predictors import Predictor, Reproject, Target
 
 
 @dataclass
@@ -78,7 +78,7 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
 
     Returns the evaluation summary; prints the table.
     """
-    from engine.io import read_sequence
+    from engine.io.rgbd import read_sequence
     from engine.scenegen import SceneConfig, generate_sequence
 
     out_dir = Path(out_dir)
@@ -96,8 +96,8 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
     (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table."""
     from tqdm import tqdm
 
-    from engine.evaluate import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
-    from engine.predictors import make_predictor
+    from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
+    from engine.predict.predictors import make_predictor
 
     results = evaluate_sequence(sequence, list(methods), k, progress=progress)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
@@ -134,7 +134,7 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
 def resolve_field_dir(path: Path) -> tuple[Path, Optional[Path]]:
     """(export folder with ``field.json``, run folder or None) for an export folder or a run folder holding
     ``export/``; the run folder is the export's parent when that holds ``data.json`` (the run's cameras)."""
-    from engine.errors import InputError
+    from engine.core.errors import InputError
 
     path = Path(path)
     if (path / "field.json").is_file():
@@ -153,7 +153,7 @@ def _train_cameras(run: Optional[Path]):
     if run is None:
         return None
     try:
-        from models.fields.train import load_run_views
+        from models.fields.train_static import load_run_views
     except ImportError:  # no torch: the path is derived from the manifest alone
         return None
     import warnings
@@ -202,8 +202,8 @@ def field_camera_path(assets, train=None, count: int = 48, width: Optional[int] 
     view) scaled so that its whole view fits ``width`` x ``height`` (default: the training size, else
     640 x 360).
     """
-    from engine.frames import Camera
-    from engine.glfield import scale_intrinsics
+    from engine.core.frames import Camera
+    from engine.fields.gl import scale_intrinsics
 
     scene = assets.scene
     cams = list(train[0]) if train else []
@@ -270,22 +270,22 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                    orbit_degrees: float = 90.0, progress: bool = True) -> dict:
     """The frame-upsampling demo with a trained field as the renderer.
 
-    The field (``engine.glfield.GlFieldRenderer``) renders colour and planar depth along
+    The field (``engine.fields.gl.GlFieldRenderer``) renders colour and planar depth along
     :func:`field_camera_path` into ``out_dir/field`` (an rgbd-seq); every k-th frame is "rendered", the
     predictors predict the others, and each prediction is scored against the field's own render at that
     pose. Writes what :func:`run_demo` writes; the field's render time is in ``table.md`` and
     ``results.json``. ``oracle`` is dropped from ``methods`` (a static field has no object motion).
     """
-    from engine.glfield import GlFieldRenderer
-    from engine.fieldrender import load_field
-    from engine.io import read_sequence, write_sequence
+    from engine.fields.gl import GlFieldRenderer
+    from engine.fields.render import load_field
+    from engine.io.rgbd import read_sequence, write_sequence
 
     export, run = resolve_field_dir(field_dir)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = [m for m in methods if m != "oracle"]
     if not methods:
-        from engine.errors import InputError
+        from engine.core.errors import InputError
 
         raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
     assets = load_field(export)
@@ -297,7 +297,7 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                                  progress=progress)
         compile_s = renderer.compile_seconds
     render_ms = 1e3 * float(np.median(timings))
-    note = (f"Field renderer (engine.glfield, {'uint8' if quantized else 'float'} planes, {width}x{height}): "
+    note = (f"Field renderer (engine.fields.gl, {'uint8' if quantized else 'float'} planes, {width}x{height}): "
             f"{render_ms:.1f} ms per rendered frame (median of {len(timings)}; shader compiled in {compile_s:.2f} s). "
             f"Truth for the predicted frames is the field's own render at their pose.")
     extra = {"field": {"export": str(export), "run": None if run is None else str(run),

@@ -18,13 +18,13 @@ import typing
 from pathlib import Path
 from typing import Optional, Sequence
 
-from engine.errors import InterleaveError
+from engine.core.errors import InterleaveError
 
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
                "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
                "ablation network), oracle (true object motion; needs object_id and objects). decomp and "
-               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/decomp.py); a name "
+               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/predict/decomp/predictor.py); a name "
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
 
 
@@ -111,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "infilling each predicted or true (motion=truth; true pixels in the holes); needs the "
                          "sequences' objects")
 
-    from engine.sweep import add_arguments as add_sweep_arguments
+    from tools.sweep import add_arguments as add_sweep_arguments
 
     sw = sub.add_parser("sweep", help="speed against error of decomp's knobs (network width, fill, infill "
                                       "passes, MPI planes) with reproject and flow2d, Pareto front marked",
@@ -120,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "prints median ms per predicted frame against PSNR and FLIP per frame size with "
                                     "the Pareto front (fastest for its error) and the stage breakdown, and writes "
                                     "sweep.json, sweep.md and sweep.png (matplotlib) to --out. Same as "
-                                    "'python -m engine.sweep'.")
+                                    "'python -m tools.sweep'.")
     add_sweep_arguments(sw)
 
     rs = sub.add_parser("render-scene", help="render a procedural dynamic scene to an rgbd-seq folder",
@@ -144,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_dataclass_options(rr, RigConfig, skip=("scene",))
 
     imp = sub.add_parser("import", help="convert Blender multilayer EXR, MPI-Sintel or DeCOMPnet/VEED data to rgbd-seq",
-                         description="See engine/importers.py for each layout's expected files.")
+                         description="See engine/io/importers.py for each layout's expected files.")
     imp.add_argument("layout", choices=["blender", "sintel", "veed"], help="the source layout")
     imp.add_argument("src", type=Path, help="source folder (for sintel: the dataset root, with --scene)")
     imp.add_argument("dst", type=Path, help="rgbd-seq folder to write")
@@ -174,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
-                                    "(docs/server.md, engine/include/interleave_protocol.h). Runs until SIGINT or "
+                                    "(docs/server.md, engine/runtime/include/interleave_protocol.h). Runs until SIGINT or "
                                     "SIGTERM, then unlinks every shared-memory segment and the socket file.")
     sv.add_argument("--listen", default="unix:/tmp/interleave.sock",
                     help="unix:/path/to.sock or tcp:PORT (127.0.0.1 only; tcp:0 picks a free port) "
@@ -190,7 +190,7 @@ def _needs_torch(command: str):
 
 
 def _methods(text: str) -> list[str]:
-    from engine.predictors import split_methods
+    from engine.predict.predictors import split_methods
 
     return split_methods(text)
 
@@ -198,7 +198,7 @@ def _methods(text: str) -> list[str]:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # 'interleave eval field|dynamic RUN_DIR': radiance-field runs, not rgbd-seq sequences
-    field_evals = {"field": "models.fields.train", "dynamic": "models.fields.dynamic_train"}
+    field_evals = {"field": "models.fields.train_static", "dynamic": "models.fields.train_dynamic"}
     if argv[:1] == ["eval"] and argv[1:2] and argv[1] in field_evals:
         command = f"eval {argv[1]}"
         try:
@@ -225,7 +225,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "eval":
             return _run_eval(args)
         elif args.command == "sweep":
-            from engine.sweep import run_sweep_command
+            from tools.sweep import run_sweep_command
 
             return run_sweep_command(args)
         elif args.command == "render-scene":
@@ -240,7 +240,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             path = generate_rig(config, args.out, progress=True)
             print(f"wrote {path}")
         elif args.command == "import":
-            from engine.importers import import_any
+            from engine.io.importers import import_any
 
             kwargs = {k: v for k, v in (("scene", args.scene), ("fps", args.fps),
                                         ("depth_channel", args.depth_channel)) if v is not None}
@@ -253,18 +253,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "train":
             _needs_torch("train")
             if args.what == "dynamic":
-                from models.fields.dynamic_train import main as train_dynamic
+                from models.fields.train_dynamic import main as train_dynamic
 
                 return train_dynamic(args.options, prog="interleave train dynamic")
             if args.what == "field":
-                from models.fields.train import main as train_field
+                from models.fields.train_static import main as train_field
 
                 return train_field(args.options, prog="interleave train field")
             if args.what == "infill":
-                from models.train_infill import main as train_infill
+                from models.infill.train import main as train_infill
 
                 return train_infill(args.options, prog="interleave train infill")
-            from models.train_flow import main as train_flow
+            from models.flow.train import main as train_flow
 
             train_flow(args.options, prog="interleave train flow")
         elif args.command == "export":
@@ -286,7 +286,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
                 export_flow(args.options, prog="interleave export flow")
         elif args.command == "serve":
-            from engine.server import parse_address, serve
+            from engine.runtime.server import parse_address, serve
 
             serve(parse_address(args.listen))
     except InterleaveError as exc:
@@ -296,10 +296,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from engine.evaluate import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
+    from engine.eval.protocol import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
                                  per_step_table, plot, split_scoring, stage_table, summarize, write_json)
-    from engine.io import read_sequence
-    from engine.predictors import METHODS
+    from engine.io.rgbd import read_sequence
+    from engine.predict.predictors import METHODS
 
     bounds = None if args.bounds is None else bound_methods(args.bounds)
     methods = _methods(args.methods) if bounds is None else [row.method for row in bounds]

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.errors import InputError
+from engine.core.errors import InputError
 from export.field import OPSET, _mlp_layers, _strip_debug, quantize_planes, report_export
 
 __all__ = ["DynamicQueryGraph", "export_dynamic", "check_parity", "example_queries", "main", "ASSET_FORMAT",
@@ -62,8 +62,8 @@ class DynamicQueryGraph(nn.Module):
 
 
 def _model(run_or_model):
-    from models.fields.dynamic import DynamicFieldModel
-    from models.fields.dynamic_train import load_dynamic_model
+    from models.fields.dynamic.model import DynamicFieldModel
+    from models.fields.train_dynamic import load_dynamic_model
 
     if isinstance(run_or_model, DynamicFieldModel):
         return run_or_model.eval()
@@ -118,7 +118,7 @@ def _mlps(model) -> dict[str, nn.Module]:
 def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict:
     """Write ``dynamic.onnx``, ``dynamic.npz`` and ``dynamic.json`` for the run into ``out_dir``; returns the
     manifest (with the parity of onnxruntime against torch under ``parity``)."""
-    from models.fields.field import MAX_LOG_DENSITY
+    from models.fields.static.field import MAX_LOG_DENSITY
 
     model = _model(run_dir)
     out = Path(out_dir)

@@ -9,7 +9,7 @@
   dynamo=True, opset_version=20)``; N is dynamic.
 - ``field.npz`` + ``field.json``: the tri-plane textures (float32, and uint8 with a per-plane, per-channel
   [min, max] range), the MLP weights, the occupancy grid, the scene contraction, the background and the
-  sampling settings, so a shader (or :mod:`engine.fieldrender`, its numpy reference) can render the field
+  sampling settings, so a shader (or :mod:`engine.fields.render`, its numpy reference) can render the field
   without torch or onnxruntime.
 
 Parity: :func:`check_parity` holds onnxruntime against torch on random points in and around the cube and
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.errors import InputError
+from engine.core.errors import InputError
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET"]
@@ -58,8 +58,8 @@ class FieldQueryGraph(nn.Module):
 
 
 def _model(run_or_model):
-    from models.fields.model import StaticFieldModel
-    from models.fields.train import load_model
+    from models.fields.static.model import StaticFieldModel
+    from models.fields.train_static import load_model
 
     if isinstance(run_or_model, StaticFieldModel):
         return run_or_model.eval()
@@ -92,7 +92,7 @@ def example_points(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Ten
 def ray_points(model, intrinsics, world_to_camera, height: int, width: int, count: int = 4096,
                seed: int = 0) -> tuple[Tensor, Tensor]:
     """Points where the renderer samples along ``count`` random rays of a view (bin centres)."""
-    from models.fields.sampling import camera_rays, sample_intervals
+    from models.fields.components.sampling import camera_rays, sample_intervals
 
     origins, dirs = camera_rays(intrinsics, world_to_camera, height, width)
     g = torch.Generator().manual_seed(seed)
@@ -145,12 +145,12 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
     Args:
         run_dir: a run directory from ``interleave train field``.
         out_dir: where to write (created).
-        views: optional :class:`~models.fields.data.Views` whose first camera is used for the ray-point
+        views: optional :class:`~models.fields.data.views.Views` whose first camera is used for the ray-point
             parity check and the quantization check (default: the run's first test view if the run
             records its data, else only random points are checked).
     """
-    from models.fields.field import MAX_LOG_DENSITY
-    from models.fields.render import render_image
+    from models.fields.static.field import MAX_LOG_DENSITY
+    from models.fields.components.render import render_image
 
     model = _model(run_dir)
     out = Path(out_dir)
@@ -231,7 +231,7 @@ def _first_test_camera(run_dir, views):
         cam = views.cameras[0]
         return cam.intrinsics, cam.world_to_camera, views.height, views.width
     if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "data.json").is_file():
-        from models.fields.train import load_run_views
+        from models.fields.train_static import load_run_views
 
         _, test = load_run_views(run_dir)
         cam = test.cameras[0]
@@ -241,8 +241,8 @@ def _first_test_camera(run_dir, views):
 
 def _quantization_check(model, arrays: dict, camera, render_image) -> dict:
     """PSNR between renders with float planes and with uint8 planes (display-encoded), one view."""
-    from engine.colorspace import display_encode
-    from engine.metrics import psnr
+    from engine.core.colorspace import display_encode
+    from engine.eval.metrics import psnr
 
     k, w2c, h, w = camera
     ref = render_image(model, k, w2c, h, w, model.scene.near, model.scene.far)

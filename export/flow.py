@@ -1,4 +1,4 @@
-"""ONNX export of the 3D flow network (``models.flow3d.Flow3D``) and an onnxruntime parity check.
+"""ONNX export of the 3D flow network (``models.flow.network.Flow3D``) and an onnxruntime parity check.
 
 The exported graph takes the two MPIs as flat tensors and returns the 3D flow ``u(n -> n-k)``:
 
@@ -14,12 +14,12 @@ The exported graph takes the two MPIs as flat tensors and returns the 3D flow ``
 the output keeps its shape with dz = 0 and the same (du, dv), without the plane softmax and the logits'
 upsampling at full size. The metadata records which (``depth_flow``), and the engine refuses
 ``decomp[depth_flow=1]`` with a graph that has no dz. Every partial convolution is exported as one Conv3d
-(``models.flow3d.set_direct_conv3d``): the same map as torch's plane-stacked Conv2d, faster in onnxruntime.
+(``models.flow.network.set_direct_conv3d``): the same map as torch's plane-stacked Conv2d, faster in onnxruntime.
 
 B, H and W are dynamic; Z is fixed by the network (``Flow3DConfig.num_planes``; ``with_planes`` rebuilds
 the same weights for another Z before export). Any H, W >= 1 run:
 the graph pads both with alpha = 0 to multiples of the pyramid stride (16 for 4 levels,
-``models.flow3d.pyramid_stride``) and crops the flow back; sizes that are already multiples skip that
+``models.flow.network.pyramid_stride``) and crops the flow back; sizes that are already multiples skip that
 work and are the recommended ones. Exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``.
 
 >>> path = export_flow("runs/flow3d/checkpoint.pt", "flow3d.onnx")          # doctest: +SKIP
@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.errors import InputError
-from models.flow3d import Flow3D, pyramid_stride, set_direct_conv3d
+from engine.core.errors import InputError
+from models.flow.network import Flow3D, pyramid_stride, set_direct_conv3d
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
@@ -75,7 +75,7 @@ def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
     if isinstance(checkpoint_or_module, Flow3D):
         return checkpoint_or_module
     if isinstance(checkpoint_or_module, (str, Path)):
-        from models.train_flow import load_model
+        from models.flow.train import load_model
         return load_model(checkpoint_or_module)
     raise InputError(f"must be a Flow3D, a FlowGraph or a checkpoint path, got {type(checkpoint_or_module).__name__}",
                      field="checkpoint_or_module")
@@ -177,14 +177,14 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
 def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None,
                     extra: Optional[dict] = None) -> None:
     """Store the network config (``model.config``), its working width and ``extra`` entries in the ONNX
-    metadata under ``key`` (default ``engine.decomp.METADATA_KEY``; ``export.infill`` passes its own); drop
+    metadata under ``key`` (default ``engine.predict.decomp.predictor.METADATA_KEY``; ``export.infill`` passes its own); drop
     the per-node debug records (source stack traces) the exporter writes."""
     import dataclasses
     import json
 
     import onnx
 
-    from engine.decomp import METADATA_KEY
+    from engine.predict.decomp.predictor import METADATA_KEY
 
     proto = onnx.load(str(path))
     for node in proto.graph.node:  # the exporter's per-node stack traces: 6.5 MB of the 7.4 MB file
@@ -202,7 +202,7 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
     """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order); torch
     runs with the graph's own ``depth_flow`` (from its metadata, as the engine reads it) and its plane-stacked
     convolutions."""
-    from engine.decomp import FlowNetwork
+    from engine.predict.decomp.predictor import FlowNetwork
 
     model = _as_model(module).eval()
     network = FlowNetwork(onnx_path, threads=1)
@@ -233,7 +233,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
-    from models.train_flow import load_model
+    from models.flow.train import load_model
 
     model = load_model(args.checkpoint)
     if args.num_planes is not None:

@@ -1,19 +1,19 @@
-"""ONNX export of the disocclusion infilling network (``models.infill.InfillNet``) and its parity check.
+"""ONNX export of the disocclusion infilling network (``models.infill.network.InfillNet``) and its parity check.
 
 | input | shape | meaning |
 | --- | --- | --- |
-| ``color`` | (B, 3, Z, H, W) float32 | the predicted frame's MPI (``engine.infill.hole_mpi``), linear RGB |
+| ``color`` | (B, 3, Z, H, W) float32 | the predicted frame's MPI (``engine.predict.decomp.infill.hole_mpi``), linear RGB |
 | ``depth`` | (B, 1, Z, H, W) float32 | planar depth where alpha = 1 (+inf sky), 0 elsewhere |
 | ``alpha`` | (B, 1, Z, H, W) float32 | occupancy, 0 on every plane of a hole pixel |
 | ``plane_depths`` | (B, Z) float32 | frame n's plane depths |
 | ``holes`` | (B, H, W) float32 | 1 where the pixel is a disocclusion |
-| ``prior`` | (B, 2, H, W) float32 | prior vectors (``engine.infill.prior_vectors``), pixels; choice head: (B, 2 K, H, W) candidate vectors (``engine.infill.candidate_vectors``) |
+| ``prior`` | (B, 2, H, W) float32 | prior vectors (``engine.predict.decomp.infill.prior_vectors``), pixels; choice head: (B, 2 K, H, W) candidate vectors (``engine.predict.decomp.infill.candidate_vectors``) |
 | output ``residual`` | (B, 2, Z, H, W) float32 | residual head: the correction; vectors = prior + residual |
 | output ``logits`` | (B, K, H, W) float32 | choice head: candidate scores; the engine copies the highest |
 
 B, H and W are dynamic; H and W must be multiples of ``InfillConfig.stride`` (the engine pads). Exported
 with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; the ONNX metadata key
-``engine.infill.METADATA_KEY`` holds the network config and its working width.
+``engine.predict.decomp.infill.METADATA_KEY`` holds the network config and its working width.
 """
 from __future__ import annotations
 
@@ -24,9 +24,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.errors import InputError
+from engine.core.errors import InputError
 from models.geometry import Mpi, build_mpi
-from models.infill import InfillNet, infill_inputs
+from models.infill.network import InfillNet, infill_inputs
 
 __all__ = ["InfillGraph", "INPUT_NAMES", "export_infill", "check_parity", "example_inputs", "main"]
 
@@ -70,7 +70,7 @@ def _as_net(checkpoint_or_module: Union[str, Path, nn.Module]) -> InfillNet:
     if isinstance(checkpoint_or_module, InfillNet):
         return checkpoint_or_module
     if isinstance(checkpoint_or_module, (str, Path)):
-        from models.train_infill import load_model
+        from models.infill.train import load_model
         return load_model(checkpoint_or_module)
     raise InputError(f"must be an InfillNet or a checkpoint path, got {type(checkpoint_or_module).__name__}",
                      field="checkpoint_or_module")
@@ -109,7 +109,7 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
                                     dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
-    from engine.infill import METADATA_KEY
+    from engine.predict.decomp.infill import METADATA_KEY
     from export.flow import _write_metadata
 
     _write_metadata(out, net, working_width, METADATA_KEY)
@@ -143,7 +143,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.infill"
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
-    from models.train_infill import load_model
+    from models.infill.train import load_model
 
     net = load_model(args.checkpoint)
     path = export_infill(net, args.out, working_width=_working_width(args.checkpoint))

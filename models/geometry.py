@@ -1,10 +1,10 @@
 """Reprojection, multi-plane images (MPI), forward splatting and compositing in torch: the reference.
 
 Batched and differentiable where it means something (colour, alpha, flow); training uses these functions
-and ``engine/geometry.py`` is their numpy mirror (same names, same semantics, no batch axis), checked
-against them by ``tests/test_geometry.py``. The design note is ``docs/geometry.md``.
+and ``engine/geometry/ops.py`` is their numpy mirror (same names, same semantics, no batch axis), checked
+against them by ``tests/geometry/test_geometry.py``. The design note is ``docs/geometry.md``.
 
-Conventions (those of ``engine/frames.py``; every function below depends on them):
+Conventions (those of ``engine/core/frames.py``; every function below depends on them):
 
 - Camera axes are OpenCV's: x right, y down, z forward. ``world_to_camera`` is a rigid 4x4 matrix;
   ``intrinsics`` is a 3x3 pinhole matrix whose last row is [0, 0, 1].
@@ -31,9 +31,10 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from engine.errors import InputError
+from engine.core.checks import check_shape
+from engine.core.errors import InputError
 from engine.geometry import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MAX_PIXEL_COORD, MIN_LOG_WEIGHT,
-                             SUBPIXEL_SNAP, TINY_DEPTH, check_shape)
+                             SUBPIXEL_SNAP, TINY_DEPTH)
 
 __all__ = ["Mpi", "pixel_centers", "unproject", "relative_transform", "project", "reproject", "plane_depths",
            "build_mpi", "forward_warp_mpi", "forward_warp_frame", "composite", "disocclusion_mask",

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.frames import Camera, Frame, SceneObject
+from engine.core.frames import Camera, Frame, SceneObject
 
 BACKGROUND_Z = 6.0
 SQUARE_Z = 3.0

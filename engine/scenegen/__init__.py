@@ -1,10 +1,10 @@
 """Procedural dynamic scenes with exact ground truth: the demo scene, evaluation sequences, training data.
 
 - ``SceneConfig`` / ``make_scene``: the random scene description (pure numpy, deterministic by seed);
-- ``render_scene`` / ``SceneRenderer``: the moderngl renderer (headless EGL), yielding ``engine.frames.Frame``;
-- ``generate_sequence``: both, written as an rgbd-seq folder by ``engine.io.write_sequence``;
+- ``render_scene`` / ``SceneRenderer``: the moderngl renderer (headless EGL), yielding ``engine.core.frames.Frame``;
+- ``generate_sequence``: both, written as an rgbd-seq folder by ``engine.io.rgbd.write_sequence``;
 - ``RigConfig`` / ``make_rig`` / ``render_rig`` / ``generate_rig``: fixed multi-camera rigs on a scene, written as
-  an rgbd-rig capture by ``engine.io.write_rig`` (training data for the radiance fields).
+  an rgbd-rig capture by ``engine.io.rgbd.write_rig`` (training data for the radiance fields).
 
 See ``docs/scenegen.md`` for what is randomised and how the ground truth is computed.
 
@@ -33,7 +33,7 @@ def generate_sequence(config: SceneConfig, out_dir: str | Path, *, progress: boo
     world_from_object transforms of every moving object; the config that produced it is saved beside
     as ``scenegen_config.json``.
     """
-    from engine.io import write_sequence  # imported here: the renderer works without the EXR stack
+    from engine.io.rgbd import write_sequence  # imported here: the renderer works without the EXR stack
 
     scene = make_scene(config)
     out = Path(out_dir)

@@ -23,8 +23,8 @@ from typing import Iterator
 
 import numpy as np
 
-from engine.errors import InputError
-from engine.frames import Camera, Frame
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame
 from engine.scenegen import glsl
 from engine.scenegen.meshes import merge_parts
 from engine.scenegen.scene import PATTERNS, Scene
@@ -381,7 +381,7 @@ def monte_carlo_noise(color: np.ndarray, sigma: float, rng: np.random.Generator)
 def render_scene(scene: Scene, *, progress: bool = False) -> Iterator[Frame]:
     """Yield every frame of ``scene`` in order (one GL context, released when the iterator ends or closes).
 
-    Frames follow ``engine/frames.py``: linear RGB colour, planar depth with +inf sky, OpenCV cameras,
+    Frames follow ``engine/core/frames.py``: linear RGB colour, planar depth with +inf sky, OpenCV cameras,
     object_id (0 = background), moving, flow and object_flow in pixels to the next frame. The last
     frame's flow uses the paths one step further (they are defined for all times).
     """

@@ -2,7 +2,7 @@
 
 ``make_rig(RigConfig(...))`` samples the scene of ``config.scene`` with ``make_scene`` and places
 ``num_cameras`` FIXED cameras (a rig: the same pose at every frame) around it; ``generate_rig`` renders
-every camera with one GL context and writes an rgbd-rig capture (``engine.io.write_rig``): ``cam0`` ..
+every camera with one GL context and writes an rgbd-rig capture (``engine.io.rgbd.write_rig``): ``cam0`` ..
 ``cam<N-1>``, each an rgbd-seq with linear-sRGB colour, planar depth, object_id, moving, flow, object_flow
 and the per-frame ``world_from_object`` of the moving objects, plus the train/test split in ``rig.json``.
 
@@ -55,9 +55,9 @@ from typing import Iterator
 
 import numpy as np
 
-from engine.config import option
-from engine.errors import InputError
-from engine.frames import Camera, Frame
+from engine.core.config import option
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame
 from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig, _box_distance, make_scene
 
 __all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "generate_rig", "make_rig", "render_rig"]
@@ -279,11 +279,11 @@ def render_rig(rig: Rig, *, progress: bool = False) -> Iterator[tuple[str, Frame
 def generate_rig(config: RigConfig, out_dir: str | Path, *, progress: bool = True) -> Path:
     """Make the rig of ``config``, render it and write it as an rgbd-rig capture to ``out_dir``; returns the path.
 
-    One rgbd-seq per camera (``cam0`` ...; see ``engine.io.write_rig``) with every ground-truth channel of
+    One rgbd-seq per camera (``cam0`` ...; see ``engine.io.rgbd.write_rig``) with every ground-truth channel of
     ``generate_sequence`` and the objects' per-frame transforms, ``rig.json`` with the default split, and the
     config beside it as ``rigscene_config.json``.
     """
-    from engine.io import write_rig  # imported here: the renderer works without the EXR stack
+    from engine.io.rgbd import write_rig  # imported here: the renderer works without the EXR stack
 
     rig = make_rig(config)
     stream = render_rig(rig, progress=progress)

@@ -6,7 +6,7 @@ and the sky. Every path is a closed-form function of continuous time in seconds,
 ``i`` is the path at ``i / fps`` and "frame N" (one step past the last frame, needed for the last frame's
 flow) is just the path evaluated further.
 
-Conventions (those of ``engine/frames.py``): world z is up and the ground is the plane z = 0; scene units
+Conventions (those of ``engine/core/frames.py``): world z is up and the ground is the plane z = 0; scene units
 are metres; cameras are OpenCV cameras (x right, y down, z forward) given as rigid ``world_to_camera``
 matrices; intrinsics put the principal point at the image centre, pixel centres at +0.5.
 
@@ -21,9 +21,9 @@ from typing import Optional
 
 import numpy as np
 
-from engine.config import option
-from engine.errors import InputError
-from engine.frames import Camera, SceneObject
+from engine.core.config import option
+from engine.core.errors import InputError
+from engine.core.frames import Camera, SceneObject
 
 #: Camera path types ``SceneConfig.camera_path`` may name ("random" picks one per seed).
 CAMERA_PATHS = ("static", "pan", "orbit", "dolly", "strafe", "handheld", "crane")

@@ -23,9 +23,9 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor
 
-from engine.errors import InputError
-from models.fields.encodings import plane_l1, plane_tv
-from models.fields.render import RayOutputs
+from engine.core.errors import InputError
+from models.fields.components.encodings import plane_l1, plane_tv
+from models.fields.components.render import RayOutputs
 
 __all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
            "default_loss_terms", "srgb_encode"]
@@ -36,7 +36,7 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "sparse_depth (the priors add theirs, models/fields/priors.py)"})
+                                        "sparse_depth (the priors add theirs, models/fields/priors/config.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})

@@ -1,0 +1,1 @@
+"""Speed against error: the evaluation protocol, image metrics, tables and plots."""

@@ -1,0 +1,379 @@
+"""Speed against error: run predictors over rgbd-seq sequences and score every predicted frame.
+
+Protocol (thesis Sec. 6.4, DeCOMPnet's evaluation): with upsampling factor k, frames 0, k, 2k, ... are
+"rendered"; for every rendered frame n that has a rendered predecessor n-k, each method predicts the
+frames n+1 .. n+k-1 from frames n-k and n (history) and the target cameras, and each prediction is
+scored against the true frame (``engine.eval.metrics.score_frame``). Time per predicted frame is the render
+time plus the once-per-rendered-frame preparation divided by the k-1 frames it serves (amortised).
+
+A method name ending in ``+true_holes`` (``TRUE_HOLES``) is scored with the true frame's pixels copied into
+the prediction's holes (``Prediction.holes``: its disocclusions before filling), i.e. with a perfect
+infilling; it shares the predictions (and times) of the method without the suffix. ``bound_methods`` uses
+it for the performance bounds of thesis Table 6.3 (``interleave eval --bounds``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+import numpy as np
+
+from engine.core.colorspace import display_encode
+from engine.core.errors import InputError
+from engine.eval.metrics import crop_slices, psnr, score_frame
+from engine.predict.predictors import Target, make_predictor
+
+#: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).
+TRUE_HOLES = "+true_holes"
+
+
+@dataclass
+class MethodResult:
+    """Scores of one method on one sequence for one k (means over predicted frames; medians for time)."""
+
+    sequence: str
+    method: str
+    k: int
+    frames: int
+    psnr: float
+    ssim: float
+    flip: float
+    psnr_moving: float
+    ssim_moving: float
+    flip_moving: float
+    ms_per_frame: float
+    stages_ms: dict[str, float] = field(default_factory=dict)
+    per_step: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: mean x-y endpoint error (pixels) of the method's object flow u(n -> n+1) on frame n's moving pixels,
+    #: against the true ``object_flow`` (thesis Tab. 6.2); NaN for methods that estimate no flow
+    epe_moving: float = float("nan")
+    #: mean fraction of the cropped frame that the method left as holes (disocclusions) before filling
+    hole_fraction: float = float("nan")
+    #: PSNR (dB) over the cropped hole pixels, mean over the frames that have some (NaN: none had any;
+    #: +inf: every hole pixel exact, as in ``+true_holes`` rows)
+    psnr_holes: float = float("nan")
+
+
+def _mean(values: Iterable[float]) -> float:
+    vals = [v for v in values if not math.isnan(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def evaluation_pairs(num_frames: int, k: int) -> list[tuple[int, int, list[int]]]:
+    """(n-k, n, [n+1 .. n+k-1]) for every rendered frame n with history and all its targets in range."""
+    if k < 2:
+        raise InputError(f"k must be >= 2 (k = 1 predicts nothing), got {k}", field="k")
+    return [(n - k, n, list(range(n + 1, n + k))) for n in range(k, num_frames - k + 1, k)]
+
+
+def split_scoring(method: str) -> tuple[str, bool]:
+    """(predictor name, true_holes) of a method name: ``"decomp[fill=simple]+true_holes"`` ->
+    ``("decomp[fill=simple]", True)``; names without the ``TRUE_HOLES`` suffix give ``(method, False)``."""
+    if method.endswith(TRUE_HOLES):
+        return method[: -len(TRUE_HOLES)], True
+    return method, False
+
+
+def with_true_holes(color: np.ndarray, holes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """A copy of the predicted ``color`` (H, W, 3) with the true frame's ``truth`` (H, W, 3) where ``holes``
+    (H, W) bool is set: the prediction a perfect disocclusion infilling would give (linear RGB)."""
+    if color.shape != truth.shape or holes.shape != color.shape[:2]:
+        raise InputError(f"color {color.shape}, truth {truth.shape} and holes {holes.shape} must be (H, W, 3), "
+                         f"(H, W, 3) and (H, W)", field="holes")
+    return np.where(holes[..., None], truth, color).astype(color.dtype, copy=False)
+
+
+def hole_scores(truth: np.ndarray, color: np.ndarray, holes: np.ndarray) -> tuple[float, float]:
+    """(fraction of the cropped frame that is holes, PSNR over those pixels or NaN if none), on sRGB-encoded
+    frames with the border crop of ``engine.eval.metrics``."""
+    rows, cols = crop_slices(*truth.shape[:2])
+    mask = np.asarray(holes, dtype=bool)[rows, cols]
+    if not mask.any():
+        return 0.0, float("nan")
+    return float(mask.mean()), psnr(display_encode(truth[rows, cols]), display_encode(color[rows, cols]), mask)
+
+
+def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
+                      max_groups: Optional[int] = None, progress: bool = False) -> list[MethodResult]:
+    """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
+
+    ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence). Methods
+    that differ only by the ``TRUE_HOLES`` suffix share one predictor, its predictions and its times.
+    """
+    from tqdm import tqdm
+
+    groups = evaluation_pairs(len(sequence), k)
+    if not groups:
+        raise InputError(f"sequence has {len(sequence)} frames: too few for k = {k} (needs at least {2 * k})",
+                         file=sequence.path)
+    if max_groups is not None and len(groups) > max_groups:
+        pick = np.linspace(0, len(groups) - 1, max_groups).round().astype(int)
+        groups = [groups[i] for i in sorted(set(pick.tolist()))]
+    sources = {m: split_scoring(m)[0] for m in methods}
+    predictors = {}
+    for name in dict.fromkeys(sources.values()):
+        try:
+            predictors[name] = make_predictor(name, sequence.objects)
+        except InputError as exc:  # name the sequence (e.g. motion=truth on a sequence without objects)
+            if exc.file is not None:
+                raise
+            raise InputError(f"method '{name}': {exc.problem}", file=sequence.path, field=exc.field) from exc
+    if "oracle" in predictors and not sequence.objects:
+        raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
+    scores: dict[str, list] = {m: [] for m in methods}
+    times: dict[str, list[float]] = {p: [] for p in predictors}
+    stages: dict[str, list[dict[str, float]]] = {p: [] for p in predictors}
+    epes: dict[str, list[float]] = {p: [] for p in predictors}
+    bar = tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
+               disable=not progress, unit="frame")
+    for older_i, newest_i, target_is in groups:
+        history = [sequence[older_i], sequence[newest_i]]
+        truths = [sequence[i] for i in target_is]
+        for name, predictor in predictors.items():
+            start = time.perf_counter()
+            state = predictor.prepare(history)
+            prep_ms = 1e3 * (time.perf_counter() - start)
+            if hasattr(predictor, "object_flow"):
+                epes[name].append(flow_epe(predictor.object_flow(state), history[0], history[1], truths[0]))
+            for step, truth in enumerate(truths, start=1):
+                target = Target(truth.camera, truth.time, truth.index)
+                start = time.perf_counter()
+                pred = predictor.render(state, target)
+                render_ms = 1e3 * (time.perf_counter() - start)
+                per_frame = {s: v for s, v in pred.stages_ms.items()}
+                for s, v in state.stages_ms.items():
+                    per_frame[f"prepare:{s}"] = v / (k - 1)
+                times[name].append(render_ms + prep_ms / (k - 1))
+                stages[name].append(per_frame)
+                for method in (m for m in methods if sources[m] == name):
+                    color = pred.color
+                    if split_scoring(method)[1]:
+                        color = with_true_holes(pred.color, pred.holes, truth.color)
+                    scores[method].append((step, score_frame(truth.color, color, truth.moving, with_flip=with_flip),
+                                           hole_scores(truth.color, color, pred.holes)))
+                    bar.update(1)
+    bar.close()
+    results = []
+    for name in methods:
+        source = sources[name]
+        frame_scores = [s for _, s, _ in scores[name]]
+        stage_names = sorted({s for d in stages[source] for s in d})
+        per_step = {}
+        for step in range(1, k):
+            at = [s for st, s, _ in scores[name] if st == step]
+            per_step[str(step)] = {"frames": len(at), "psnr": _mean(s.psnr for s in at),
+                                   "ssim": _mean(s.ssim for s in at), "flip": _mean(s.flip for s in at),
+                                   "psnr_moving": _mean(s.psnr_moving for s in at)}
+        results.append(MethodResult(
+            sequence=Path(str(sequence.path)).name, method=name, k=k, frames=len(frame_scores),
+            psnr=_mean(s.psnr for s in frame_scores), ssim=_mean(s.ssim for s in frame_scores),
+            flip=_mean(s.flip for s in frame_scores), psnr_moving=_mean(s.psnr_moving for s in frame_scores),
+            ssim_moving=_mean(s.ssim_moving for s in frame_scores),
+            flip_moving=_mean(s.flip_moving for s in frame_scores),
+            ms_per_frame=float(statistics.median(times[source])),
+            stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[source])) for s in stage_names},
+            per_step=per_step, epe_moving=_mean(epes[source]),
+            hole_fraction=_mean(h[0] for _, _, h in scores[name]),
+            psnr_holes=_mean(h[1] for _, _, h in scores[name])))
+    return results
+
+
+def flow_epe(flow_back: np.ndarray, older, newest, following) -> float:
+    """EPE of an estimated u(n -> n-k) (H, W, 2), extrapolated to u(n -> n+1) (Eq. 6.13 with the frame
+    times), against frame n's true object flow (n -> n+1) on its moving pixels; NaN if it has neither."""
+    if newest.object_flow is None or newest.moving is None or not newest.moving.any():
+        return float("nan")
+    step = (following.time - newest.time) / (newest.time - older.time)
+    error = np.linalg.norm(-step * flow_back[..., :2] - newest.object_flow, axis=-1)
+    return float(error[newest.moving].mean())
+
+
+def summarize(results: Sequence[MethodResult]) -> dict:
+    """Per (method, k): means over sequences, and each method's time relative to `reproject` in the same run."""
+    out: dict = {}
+    for method in dict.fromkeys(r.method for r in results):
+        for k in sorted({r.k for r in results}):
+            rows = [r for r in results if r.method == method and r.k == k]
+            if not rows:
+                continue
+            out[f"{method}/k={k}"] = {
+                "method": method, "k": k, "sequences": len(rows), "frames": sum(r.frames for r in rows),
+                "psnr": _mean(r.psnr for r in rows), "ssim": _mean(r.ssim for r in rows),
+                "flip": _mean(r.flip for r in rows), "psnr_moving": _mean(r.psnr_moving for r in rows),
+                "ssim_moving": _mean(r.ssim_moving for r in rows), "flip_moving": _mean(r.flip_moving for r in rows),
+                "ms_per_frame": float(statistics.median(r.ms_per_frame for r in rows)),
+                "epe_moving": _mean(r.epe_moving for r in rows),
+                "hole_fraction": _mean(r.hole_fraction for r in rows),
+                "psnr_holes": _mean(r.psnr_holes for r in rows),
+            }
+    for key, row in out.items():
+        base = out.get(f"reproject/k={row['k']}")
+        row["time_vs_reproject"] = row["ms_per_frame"] / base["ms_per_frame"] if base else float("nan")
+    return out
+
+
+def markdown_table(results: Sequence[MethodResult]) -> str:
+    """One row per (sequence, method, k), then the per-method means."""
+    head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | FLIP moving | EPE moving (px) "
+            "| ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    lines = [head]
+
+    def epe(value: float) -> str:
+        return "-" if math.isnan(value) else f"{value:.2f}"
+
+    for r in results:
+        lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {r.psnr:.2f} | {r.ssim:.4f} | "
+                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.flip_moving:.4f} | {epe(r.epe_moving)} | "
+                     f"{r.ms_per_frame:.1f} |")
+    for row in summarize(results).values():
+        lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {row['psnr']:.2f} | "
+                     f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | {row['flip_moving']:.4f} | "
+                     f"{epe(row['epe_moving'])} | {row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
+    return "\n".join(lines)
+
+
+def stage_table(results: Sequence[MethodResult]) -> str:
+    """Median milliseconds per predicted frame of each stage, per (method, k), medians over sequences.
+
+    ``prepare:`` stages run once per rendered frame and are shown divided by the k-1 frames they serve.
+    """
+    keys = list(dict.fromkeys((r.method, r.k) for r in results))
+    stages = sorted({s for r in results for s in r.stages_ms})
+    lines = ["| method | k | " + " | ".join(stages) + " | total |", "|---|---|" + "---|" * (len(stages) + 1)]
+    for method, k in keys:
+        rows = [r for r in results if r.method == method and r.k == k]
+        cells = [f"{statistics.median(r.stages_ms.get(s, 0.0) for r in rows):.1f}" for s in stages]
+        total = statistics.median(r.ms_per_frame for r in rows)
+        lines.append(f"| {method} | {k} | " + " | ".join(cells) + f" | {total:.1f} |")
+    return "\n".join(lines)
+
+
+def per_step_table(results: Sequence[MethodResult]) -> str:
+    """Scores per future step k' = 1 .. k-1 (the frame n + k' predicted from frames n-k and n), per (method, k):
+    means over sequences of each sequence's per-step means; frames summed."""
+    lines = ["| method | k | k' | frames | PSNR | SSIM | FLIP | PSNR moving |", "|---|---|---|---|---|---|---|---|"]
+    for method, k in dict.fromkeys((r.method, r.k) for r in results):
+        rows = [r for r in results if r.method == method and r.k == k]
+        for step in range(1, k):
+            at = [r.per_step[str(step)] for r in rows if str(step) in r.per_step]
+            if not at:
+                continue
+            frames = sum(int(a.get("frames", 0)) for a in at)
+            lines.append(f"| {method} | {k} | {step} | {frames} | {_mean(a['psnr'] for a in at):.2f} | "
+                         f"{_mean(a['ssim'] for a in at):.4f} | {_mean(a['flip'] for a in at):.4f} | "
+                         f"{_mean(a['psnr_moving'] for a in at):.2f} |")
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class BoundRow:
+    """One row of the performance-bound analysis (thesis Table 6.3).
+
+    ``motion`` (LMP, local motion prediction): 'pred' = the variant's flow network, 'GT' = the sequence's
+    true object motion (``motion=truth``); ``infill`` (DI, disocclusion infilling): 'pred' = the variant's
+    own fill, 'GT' = the true frame's pixels in its holes (``TRUE_HOLES``). ``method`` is what the evaluator runs.
+    """
+
+    motion: str
+    infill: str
+    method: str
+
+
+def bound_methods(variant: str = "decomp") -> list[BoundRow]:
+    """The four rows of thesis Table 6.3 for a ``decomp`` / ``decomp2d`` variant (e.g. ``decomp[fill=simple]``):
+    (pred, pred) the variant itself, (GT, pred) with ``motion=truth``, (pred, GT) and (GT, GT) the same two
+    scored with the true pixels in the holes. The variant must not set ``motion`` itself."""
+    base, bracket, rest = variant.strip().partition("[")
+    if base not in ("decomp", "decomp2d") or (bracket and not rest.endswith("]")) or TRUE_HOLES in variant:
+        raise InputError(f"the bound analysis takes a decomp variant such as decomp or decomp[fill=simple], "
+                         f"got '{variant}'", field="bounds")
+    options = [p.strip() for p in rest[:-1].split(",") if p.strip()] if bracket else []
+    if any(p.partition("=")[0].strip() == "motion" for p in options):
+        raise InputError(f"'{variant}': the bound analysis sets motion=truth itself; leave motion out",
+                         field="bounds")
+    own = f"{base}[{','.join(options)}]" if options else base
+    truth = f"{base}[{','.join(options + ['motion=truth'])}]"
+    return [BoundRow("pred", "pred", own), BoundRow("GT", "pred", truth),
+            BoundRow("pred", "GT", own + TRUE_HOLES), BoundRow("GT", "GT", truth + TRUE_HOLES)]
+
+
+def bounds_summary(results: Sequence[MethodResult], rows: Sequence[BoundRow]) -> list[dict]:
+    """Per (k, bound row): ``summarize``'s means over sequences, with the row's ``motion`` and ``infill``."""
+    summary = summarize(results)
+    out = []
+    for k in sorted({r.k for r in results}):
+        for row in rows:
+            entry = summary.get(f"{row.method}/k={k}")
+            if entry is not None:
+                out.append({"motion": row.motion, "infill": row.infill, **entry})
+    return out
+
+
+def bounds_table(results: Sequence[MethodResult], rows: Sequence[BoundRow]) -> str:
+    """Thesis Table 6.3: LMP / DI as pred or GT against PSNR, SSIM, FLIP and PSNR over moving pixels, means
+    over sequences per k; also the share of the frame that was holes and the PSNR over those pixels."""
+    def holes_psnr(value: float) -> str:
+        return "exact" if value == math.inf else "-" if math.isnan(value) else f"{value:.2f}"
+
+    lines = ["| k | LMP | DI | method | frames | PSNR | SSIM | FLIP | PSNR moving | holes (%) | PSNR holes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for e in bounds_summary(results, rows):
+        lines.append(f"| {e['k']} | {e['motion']} | {e['infill']} | {e['method']} | {e['frames']} | {e['psnr']:.2f} | "
+                     f"{e['ssim']:.4f} | {e['flip']:.4f} | {e['psnr_moving']:.2f} | {100 * e['hole_fraction']:.2f} | "
+                     f"{holes_psnr(e['psnr_holes'])} |")
+    return "\n".join(lines)
+
+
+def write_json(results: Sequence[MethodResult], path: Path, extra: Optional[dict] = None) -> None:
+    """Records (one per sequence, method, k) plus the summary; NaN and inf written as null."""
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [clean(v) for v in x]
+        return x
+
+    doc = {"records": [asdict(r) for r in results], "summary": summarize(results), **(extra or {})}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(clean(doc), indent=2))
+
+
+def plot(results: Sequence[MethodResult], path: Path) -> None:
+    """Time per predicted frame against PSNR and FLIP, one colour per method, one marker per k."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    methods = list(dict.fromkeys(r.method for r in results))
+    markers = {k: m for k, m in zip(sorted({r.k for r in results}), "os^Dv")}
+    colors = plt.get_cmap("tab10")
+    for ax, metric, label in ((axes[0], "psnr", "PSNR (dB, higher is better)"),
+                              (axes[1], "flip", "FLIP (lower is better)")):
+        for mi, method in enumerate(methods):
+            for k, marker in markers.items():
+                rows = [r for r in results if r.method == method and r.k == k]
+                xs = [max(r.ms_per_frame, 1e-2) for r in rows]
+                ys = [getattr(r, metric) for r in rows]
+                ax.scatter(xs, ys, color=colors(mi), marker=marker, alpha=0.45, s=22)
+                if rows:
+                    ax.scatter([statistics.median(xs)], [_mean(ys)], color=colors(mi), marker=marker, s=90,
+                               edgecolor="black", label=f"{method} k={k}")
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per predicted frame (median, log scale)")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.suptitle("Speed against error (small: one sequence; large: mean over sequences)")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

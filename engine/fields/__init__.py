@@ -1,0 +1,1 @@
+"""Exported radiance fields rendered without torch: assets, numpy references, moderngl renderers."""

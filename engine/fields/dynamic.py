@@ -1,0 +1,289 @@
+"""Render an exported dynamic radiance field without torch: the numpy reference renderer of its assets.
+
+Reads what ``interleave export dynamic`` writes (``dynamic.json`` + ``dynamic.npz`` + ``dynamic.onnx``; the
+format is ``docs/field-assets.md``, "Dynamic fields") and renders colour and planar depth for any camera at
+any time inside the trained range. The field is evaluated by the numpy code here (``query="numpy"``, the
+oracle of the asset format and of the real-time shader ``engine/fields/gldynamic.py``) or by the exported ONNX
+graph through onnxruntime (``query="onnx"``, the torch code that training ran).
+
+Per sample (DeRF, thesis Ch. 5): the contracted point c and the normalised time tau give the motion
+features (hex-planes xy, xz, yz, xt, yt, zt, Hadamard product per scale, scales concatenated), the flow MLP
+gives ``flow = max_flow * tanh(.)``, the canonical point ``c' = clamp(c + flow, -1, 1)`` is looked up in the
+canonical tri-planes, the density MLP gives density and latent h, the colour MLP takes [h, encoded view
+direction, encoded tau]. K-Planes-style exports (``kind="kplanes"``) have no motion model: the hex-plane
+features of (c, tau) feed the density MLP and colour comes from [h, encoded view direction].
+
+Conventions are the static renderer's (``engine/fields/render.py``, whose pure functions this module imports:
+ray generation, sample placement, contraction, plane lookup, MLPs, compositing): OpenCV cameras, rigid
+``world_to_camera``, pixel centres at +0.5, planar depth (+inf where the opacity is below ``OPACITY_EPS``),
+linear RGB. Times are in the data's units (``time.range`` in the manifest); a time outside the trained range
+(beyond a relative 1e-6, as ``models.fields.dynamic.model.normalize_times``) raises ``InputError``.
+
+>>> field = load_dynamic_field("runs/dynamic/lego-derf/export")                    # doctest: +SKIP
+>>> out = render_dynamic_field(field, K, world_to_camera, 540, 960, time=0.5)      # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from engine.core.errors import InputError
+from engine.fields.render import (_PLANE_AXES, _bilinear, _mlp, array_getter, decode_plane, direction_encoding_np,
+                                load_mlp, march_field, read_asset_files, ExportedAssets)
+
+__all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
+           "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
+           "query_dynamic", "render_dynamic_field"]
+
+DYNAMIC_FORMAT = "interleave-dynamic-field"
+DYNAMIC_VERSION = 1
+#: A time may exceed the trained range by this fraction of the range (at least 1e-6 absolute) before it is
+#: refused; the same as ``models.fields.dynamic.model.TIME_TOLERANCE``.
+TIME_TOLERANCE = 1e-6
+
+#: Plane groups and MLPs each kind of export holds.
+_GROUPS = {"derf": ("canonical_spatial", "motion_spatial", "motion_temporal"), "kplanes": ("spatial", "temporal")}
+_MLPS = {"derf": ("density", "color", "flow"), "kplanes": ("density", "color")}
+
+
+@dataclass(eq=False)
+class DynamicAssets(ExportedAssets):
+    """An exported dynamic field in memory (see ``docs/field-assets.md``, "Dynamic fields").
+
+    Attributes:
+        manifest: ``dynamic.json``.
+        planes: plane groups by name, one array per scale: ``canonical_spatial`` (3, C, R, R) xy, xz, yz;
+            ``motion_spatial`` (3, Cm, Rm, Rm); ``motion_temporal`` (3, Cm, Rt, Rm) xt, yt, zt (DeRF), or
+            ``spatial`` / ``temporal`` (K-Planes). float32, dequantized when loaded with ``quantized``.
+        mlps: ``density``, ``color`` (and ``flow`` for DeRF): ``(weight (out, in), bias (out,))`` per layer.
+        occupancy: (R, R, R) bool over the contracted cube indexed [ix, iy, iz] (time-agnostic), or None.
+        onnx_path: the exported query graph.
+
+    The attributes the static shader generator reads (``manifest``, ``density_layers``, ``color_layers``,
+    ``occupancy``, ``bounded``, ``scene``, ``background``) mean what they mean for
+    :class:`engine.fields.render.FieldAssets`; ``density_layers`` and ``color_layers`` are the canonical field's.
+    """
+
+    manifest: dict
+    planes: dict[str, list[np.ndarray]] = field(repr=False)
+    mlps: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(repr=False)
+    occupancy: Optional[np.ndarray] = field(repr=False)
+    onnx_path: Path
+    _session: object = field(default=None, repr=False)
+
+    @property
+    def kind(self) -> str:
+        return self.manifest["kind"]
+
+    @property
+    def has_motion(self) -> bool:
+        return self.kind == "derf"
+
+    @property
+    def time_range(self) -> tuple[float, float]:
+        t0, t1 = self.manifest["time"]["range"]
+        return float(t0), float(t1)
+
+    @property
+    def max_flow(self) -> float:
+        """The flow bound (contracted units): ``flow = max_flow * tanh(flow MLP output)``."""
+        spec = self.manifest["field"]
+        if "max_flow" in spec:
+            return float(spec["max_flow"])
+        return float(self.manifest["field_config"]["motion"]["max_flow"])  # exports made before the key
+
+    @property
+    def canonical_planes(self) -> list[np.ndarray]:
+        """The spatial planes the density MLP's features come from (``canonical_spatial`` or ``spatial``)."""
+        return self.planes["canonical_spatial" if self.has_motion else "spatial"]
+
+    @property
+    def density_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        return self.mlps["density"]
+
+    @property
+    def color_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        return self.mlps["color"]
+
+    @property
+    def flow_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        return self.mlps["flow"]
+
+
+
+def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicAssets:
+    """Load exported dynamic assets from a folder (or its ``dynamic.json``); ``quantized`` uses the uint8 planes.
+
+    Raises:
+        InputError: missing files, another format or version, an unknown kind, a bad time range, arrays whose
+            shapes disagree with the manifest or with each other.
+    """
+    root, manifest, arrays = read_asset_files(path, "dynamic", DYNAMIC_FORMAT, DYNAMIC_VERSION,
+                                              "interleave export dynamic RUN_DIR")
+    meta_file, npz_file = root / "dynamic.json", root / "dynamic.npz"
+    kind = manifest.get("kind")
+    if kind not in _GROUPS:
+        raise InputError(f"has kind {kind!r}, expected one of {sorted(_GROUPS)}", file=meta_file)
+    t0, t1 = (float(x) for x in manifest["time"]["range"])
+    if not (math.isfinite(t0) and math.isfinite(t1) and t1 >= t0):
+        raise InputError(f"has time range {[t0, t1]}, expected finite t_min <= t_max", file=meta_file)
+    get = array_getter(arrays, npz_file, "dynamic.json")
+    planes: dict[str, list[np.ndarray]] = {}
+    for group in _GROUPS[kind]:
+        if group not in manifest["field"]["planes"]:
+            raise InputError(f"lists no plane group {group!r} (a {kind} export has {_GROUPS[kind]})", file=meta_file)
+        planes[group] = []
+        for p in manifest["field"]["planes"][group]:
+            plane = decode_plane(p, get, group, quantized)
+            if list(plane.shape) != list(p["shape"]) or plane.ndim != 4 or plane.shape[0] != 3 \
+                    or min(plane.shape[2:]) < 2:
+                raise InputError(f"plane {p['float']} has shape {plane.shape}, dynamic.json says {p['shape']} "
+                                 "(3 planes, C channels, both sides >= 2)", file=npz_file)
+            planes[group].append(plane)
+    spatial, temporal = ("motion_spatial", "motion_temporal") if kind == "derf" else ("spatial", "temporal")
+    rows = int(manifest["time"]["time_resolution"])
+    if len(planes[spatial]) != len(planes[temporal]) or any(
+            s.shape[:2] != t.shape[:2] or t.shape[3] != s.shape[3] or t.shape[2] != rows
+            for s, t in zip(planes[spatial], planes[temporal])):
+        raise InputError(f"{temporal} planes {[t.shape for t in planes[temporal]]} do not match {spatial} "
+                         f"{[s.shape for s in planes[spatial]]} with {rows} time rows", file=npz_file)
+    mlps: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for name in _MLPS[kind]:
+        if name not in manifest["field"]["mlps"]:
+            raise InputError(f"lists no MLP {name!r}", file=meta_file)
+        mlps[name] = load_mlp(manifest["field"]["mlps"][name], get, name, npz_file)
+    occ = manifest.get("occupancy")
+    occupancy = get(occ["array"], "occupancy").astype(bool) if occ else None
+    return DynamicAssets(manifest, planes, mlps, occupancy, root / manifest["onnx"]["file"])
+
+
+# ----------------------------------------------------------------------------------------------------
+# Pure functions (numpy mirrors of models/fields/dynamic/model.py; tested against it)
+
+
+def normalize_time(time: float, time_range: tuple[float, float]) -> np.float32:
+    """A time in the data's units -> tau in [-1, 1] (float32; 0 when the range is one time).
+
+    Raises:
+        InputError: ``time`` not finite, or outside ``time_range`` by more than :data:`TIME_TOLERANCE` of it;
+            the message names the time and the range (the field cannot extrapolate in time).
+    """
+    t_min, t_max = float(time_range[0]), float(time_range[1])
+    t = float(time)
+    if not math.isfinite(t):
+        raise InputError(f"must be finite, got {time!r}", field="time")
+    span = t_max - t_min
+    tol = TIME_TOLERANCE * max(1.0, abs(span), abs(t_min), abs(t_max))
+    if t < t_min - tol or t > t_max + tol:
+        raise InputError(f"time {t:.6g} is outside the trained range [{t_min:.6g}, {t_max:.6g}]: the field cannot "
+                         "extrapolate in time", field="time")
+    if span <= 0:
+        return np.float32(0.0)
+    # float32 arithmetic as models.fields.dynamic.model.normalize_times on a float32 tensor
+    tau = np.float32(2.0) * (np.float32(t) - np.float32(t_min)) / np.float32(span) - np.float32(1.0)
+    return np.float32(min(max(tau, -1.0), 1.0))
+
+
+def time_encoding_np(taus: np.ndarray, frequencies: int) -> np.ndarray:
+    """The canonical colour MLP's time input: (N,) -> (N, 2 L + 1) = [tau, sin(2^k tau), cos(2^k tau)], k < L."""
+    scaled = taus[:, None] * (2.0 ** np.arange(frequencies, dtype=np.float32))
+    return np.concatenate([taus[:, None], np.sin(scaled), np.cos(scaled)], axis=-1).astype(np.float32)
+
+
+def triplane_features_np(planes: list[np.ndarray], coords: np.ndarray) -> np.ndarray:
+    """Tri-plane features (N, C x scales) at contracted coordinates (N, 3): per scale the product of the xy,
+    xz, yz planes' bilinear lookups (border-clamped), scales concatenated, scale 0 first."""
+    feats = []
+    for plane in planes:
+        prod = None
+        for k, (a, b) in enumerate(_PLANE_AXES):
+            f = _bilinear(plane[k], coords[:, a], coords[:, b])
+            prod = f if prod is None else prod * f
+        feats.append(prod)
+    return np.concatenate(feats, axis=0).T
+
+
+def hex_plane_features_np(spatial: list[np.ndarray], temporal: list[np.ndarray], coords: np.ndarray,
+                          taus: np.ndarray) -> np.ndarray:
+    """Hex-plane features (thesis Eq. 5.1) (N, C x scales) at contracted coordinates (N, 3) and normalised
+    times (N,): per scale (xy xz yz product) times (xt yt zt product); a time plane (3, C, Rt, R) has the
+    spatial coordinate along its width and tau along its height."""
+    feats = []
+    for s_plane, t_plane in zip(spatial, temporal):
+        space = triplane_features_np([s_plane], coords)
+        prod = None
+        for k in range(3):
+            f = _bilinear(t_plane[k], coords[:, k], taus)
+            prod = f if prod is None else prod * f
+        feats.append(space * prod.T)
+    return np.concatenate(feats, axis=1)
+
+
+def deform_np(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The motion field: contracted points (N, 3) at normalised times (N,) -> canonical points (N, 3) (not
+    clamped) and flow (N, 3), ``flow = max_flow * tanh(flow MLP(hex-plane features))``."""
+    feats = hex_plane_features_np(assets.planes["motion_spatial"], assets.planes["motion_temporal"], coords, taus)
+    flow = (np.float32(assets.max_flow) * np.tanh(_mlp(feats, assets.flow_layers))).astype(np.float32)
+    return coords + flow, flow
+
+
+def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, directions: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Density (N,) per scene unit and linear RGB (N, 3) at contracted coordinates (N, 3) in [-1, 1]^3,
+    normalised times (N,) and unit world view directions (N, 3) (numpy, float32).
+
+    DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes, density MLP (density and latent
+    h), colour MLP on [h, direction encoding, time encoding]. K-Planes: hex-plane features of (c, tau),
+    density MLP, colour MLP on [h, direction encoding].
+    """
+    coords = np.asarray(coords, np.float32)
+    taus = np.asarray(taus, np.float32)
+    spec = assets.manifest["field"]
+    if assets.has_motion:
+        canonical, _ = deform_np(assets, coords, taus)
+        feats = triplane_features_np(assets.canonical_planes, np.clip(canonical, -1.0, 1.0))
+    else:
+        feats = hex_plane_features_np(assets.planes["spatial"], assets.planes["temporal"], coords, taus)
+    out = _mlp(feats, assets.density_layers)
+    sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
+    inputs = [out[:, 1:], direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
+                                                spec["direction_degree"])]
+    if assets.has_motion:
+        inputs.append(time_encoding_np(taus, int(spec["time_frequencies"])))
+    rgb = 1.0 / (1.0 + np.exp(-_mlp(np.concatenate(inputs, axis=-1), assets.color_layers)))
+    return sigma.astype(np.float32), rgb.astype(np.float32)
+
+
+def render_dynamic_field(assets: DynamicAssets, intrinsics, world_to_camera, height: int, width: int,
+                         time: float, *, query: str = "numpy", chunk: int = 16384, near: Optional[float] = None,
+                         far: Optional[float] = None) -> dict[str, np.ndarray]:
+    """Render colour (H, W, 3) linear RGB, planar depth (H, W) (+inf: no surface) and opacity (H, W) at a time.
+
+    Sampling and compositing are the static renderer's (:func:`engine.fields.render.render_field`); the
+    occupancy grid is time-agnostic (the max over trained times).
+
+    Args:
+        assets: from :func:`load_dynamic_field`.
+        intrinsics, world_to_camera: the camera (validated: K finite with positive focal lengths, pose rigid).
+        time: in the data's units, inside ``assets.time_range`` (else InputError naming the time and range).
+        query: ``numpy`` (:func:`query_dynamic`) or ``onnx`` (``dynamic.onnx`` in onnxruntime).
+        near, far: planar-depth bounds of every ray (default: the scene's).
+
+    Returns:
+        ``color``, ``depth``, ``opacity`` and ``seconds`` (wall time, ray generation included).
+    """
+    if query not in ("numpy", "onnx"):
+        raise InputError(f"must be numpy or onnx, got {query!r}", field="query")
+    tau = normalize_time(time, assets.time_range)
+
+    def evaluate(points: np.ndarray, coords: np.ndarray, directions: np.ndarray):
+        if query == "numpy":
+            return query_dynamic(assets, coords, np.full(coords.shape[0], tau, np.float32), directions)
+        return assets.onnx_session().run(None, {"points": points, "times": np.full(points.shape[0], time, np.float32),
+                                                "directions": directions})
+
+    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)

@@ -1,0 +1,967 @@
+"""Real-time rendering of an exported static radiance field: one OpenGL compute-shader invocation per pixel.
+
+``GlFieldRenderer(assets, width, height).render(K, world_to_camera)`` renders what
+:func:`engine.fields.render.render_field` (the numpy reference, its test oracle) renders: colour (H, W, 3)
+linear RGB, planar depth (H, W) with ``+inf`` where the opacity is below ``OPACITY_EPS``, and opacity, for
+the assets ``interleave export field`` writes (``docs/field-assets.md``). It runs on a headless moderngl
+context (EGL; Mesa llvmpipe is enough: OpenGL 4.5 compute shaders and ``GL_ARB_gpu_shader_fp64``).
+
+How the shader maps the format (the design note is ``docs/field-assets.md``, "Real-time rendering"):
+
+- **Shader per asset.** The GLSL is generated for one field: the number of samples, the spacing, the
+  scene kind, the plane resolutions and channels and the MLP sizes are compile-time constants, and every
+  MLP layer is emitted as straight-line ``dot`` products over vec4s, so nothing is indexed dynamically.
+- **Planes** are one 2D array texture per scale, layer ``k * G + g`` holding channels ``4g .. 4g + 3`` of
+  plane k (xy, xz, yz; G = ceil(C / 4), zero padding): float32 (``RGBA32F``) or, with ``quantized=True``,
+  the uint8 codes (normalised ``RGBA8``) dequantised in the shader with the per-plane, per-channel
+  ``[min, max]`` ranges of the export (``min + code / 255 (max - min)``, applied after the bilinear
+  interpolation, with which it commutes). ``filtering="hardware"`` (default) lets the sampler interpolate
+  (``GL_LINEAR``, clamp to edge) at texture coordinate ``(x + 0.5) / R`` with
+  ``x = clamp((c + 1) / 2 (R - 1), 0, R - 1)`` (GL puts texel centres at ``(i + 0.5) / R``), which is
+  ``grid_sample(align_corners=True, padding_mode="border")``: one fetch per texel group, at the filtering
+  precision of the GL implementation (llvmpipe filters float textures in float32, identical to the
+  reference here, but 8-bit textures to 8 bits; GPUs typically use 8-bit sub-texel weights).
+  ``filtering="exact"`` reads the four texels with ``texelFetch`` and interpolates in float32.
+- **MLP weights** are literals in the generated code (``weights="inline"``, default; 2.5x faster on
+  llvmpipe than reading them from a buffer) or a uniform / storage buffer (``weights="buffer"``), rows
+  padded to vec4. The columns of the first colour layer that multiply the view-direction encoding are
+  applied once per pixel (the direction is the same for every sample of a ray): per sample only ``W_h h``.
+- **Sampling** is the reference's: rays through pixel centres with camera z = 1 (t is planar depth; the
+  direction is computed in float64 like ``camera_rays_np``), ``[near, far]`` clipped to the box for
+  bounded scenes, ``num_samples`` bin-centre samples linear in t or in 1/t, ``torch.lerp``'s rounding.
+- **Empty-space skipping**: samples are visited in chunks of 32; a cheap pass marks the samples of a chunk
+  that are inside the cube, in an occupied cell (bit-packed grid in a storage buffer) and in a non-empty
+  bin, then the field is evaluated by looping over the marked ones only. SIMD hardware (and llvmpipe, which
+  runs 8 invocations per AVX2 vector and executes both sides of every branch under a mask) pays a loop
+  iteration when any lane of the group needs it, so a loop over all samples that skips empty ones costs
+  every sample; the loop over marked samples costs the most any lane has. Invocations are laid out so
+  that each group of 8 is a 4x2 pixel block (coherent rays).
+- **Early ray termination**: the march stops once the transmittance falls below ``transmittance_eps``;
+  the latent rows of the density MLP and the colour MLP run only where the sample's weight exceeds
+  ``color_eps`` (a saving on GPUs; llvmpipe evaluates the branch under a mask anyway).
+
+Error bounds against the reference (colour in linear RGB, background and colours in [0, 1]): stopping at
+transmittance T < ``transmittance_eps`` drops samples whose weights sum to at most T, so colour and
+opacity change by at most ``transmittance_eps`` (1e-4 by default). A sample whose weight w is at most
+``color_eps`` gets the background colour instead of its own (its weight still counts in the opacity): at
+most ``num_samples * color_eps`` per pixel in total (64 * 1e-5 = 6.4e-4 by default; measured errors are far
+smaller, see the tests). Planar depth moves by at most ``transmittance_eps / opacity * (far - near)``. Both
+set to 0 give the reference's compositing up to float32 rounding. ``color_mode="latent"`` (colour MLP once
+per pixel on the weight-averaged latent) is an approximation for comparison only: the MLP is not linear in
+its input, and the bench measures ~27 dB against the exact colour.
+
+The EGL context stays current on the thread that created the renderer; use it from that thread.
+
+>>> with GlFieldRenderer(load_field("runs/lego/export"), 960, 540) as r:     # doctest: +SKIP
+...     out = r.render(K, world_to_camera)
+>>> out["color"].shape, out["depth"].shape                                   # doctest: +SKIP
+((540, 960, 3), (540, 960))
+
+``python -m engine.fields.gl --bench EXPORT_DIR --sizes 512x512,960x540`` times this renderer against the
+numpy and onnxruntime paths of :mod:`engine.fields.render` and (when torch is importable) the torch renderer.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence, Union
+
+import numpy as np
+
+from engine.core.errors import InputError
+from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, SH_C0, SH_C1, SH_C2, SH_C3, FieldAssets,
+                                load_field, render_field)
+from engine.core.frames import validate_intrinsics, validate_pose
+
+__all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "scale_intrinsics", "run_bench",
+           "bench_table", "main"]
+
+#: Default early-termination threshold: a ray stops once its transmittance is below this.
+TRANSMITTANCE_EPS = 1e-4
+#: Default weight below which a sample's colour MLP is not evaluated (the background colour stands in).
+COLOR_EPS = 1e-5
+#: Largest uniform-buffer size used for the weights (bytes); bigger MLPs go to a storage buffer.
+_UBO_LIMIT = 65536
+_TILE = 8
+_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+
+_AVAILABLE: Optional[bool] = None
+
+
+def available() -> bool:
+    """True when a headless EGL context with OpenGL 4.5 compute shaders and fp64 can be created (cached)."""
+    global _AVAILABLE
+    if _AVAILABLE is None:
+        try:
+            import moderngl
+
+            ctx = moderngl.create_standalone_context(backend="egl")
+            try:
+                _AVAILABLE = ctx.version_code >= 430 and "GL_ARB_gpu_shader_fp64" in ctx.extensions
+            finally:
+                ctx.release()
+        except Exception:  # no moderngl, no EGL
+            _AVAILABLE = False
+    return _AVAILABLE
+
+
+# ----------------------------------------------------------------------------------------------------
+# Packing the arrays and generating the shader
+
+
+class _Params:
+    """The weights and ranges as one (M, 4) float32 array of vec4 rows, with GLSL references to them."""
+
+    def __init__(self) -> None:
+        self.rows: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, array: np.ndarray) -> int:
+        """Append an array whose size is a multiple of 4 (row-major), return its first vec4 row."""
+        a = np.ascontiguousarray(array, np.float32).reshape(-1, 4)
+        offset = self.count
+        self.rows.append(a)
+        self.count += a.shape[0]
+        return offset
+
+    def array(self) -> np.ndarray:
+        return np.concatenate(self.rows, axis=0) if self.rows else np.zeros((1, 4), np.float32)
+
+
+def _pad_to(n: int) -> int:
+    return -(-n // 4) * 4
+
+
+def _pad_matrix(w: np.ndarray, rows: int, cols: int, col_map: Optional[np.ndarray] = None) -> np.ndarray:
+    """(out, in) -> (rows, cols) zero-padded; ``col_map[j]`` is the padded column of input j."""
+    out = np.zeros((rows, cols), np.float32)
+    cm = np.arange(w.shape[1]) if col_map is None else col_map
+    out[:w.shape[0], cm] = w
+    return out
+
+
+def _linear(name: str, xs: list[str], w_off: int, n_out4: int, biases: list[str], relu: bool
+            ) -> tuple[list[str], list[str]]:
+    """GLSL for ``y = W x + b`` on vec4 inputs ``xs``: rows of W at ``P[w_off + j * len(xs) + k]``."""
+    ni = len(xs)
+    lines, outs = [], []
+    for q in range(n_out4):
+        comps = []
+        for r in range(4):
+            j = 4 * q + r
+            terms = [f"dot(P[{w_off + j * ni + k}], {xs[k]})" for k in range(ni)]
+            comps.append(" + ".join(terms) if terms else "0.0")
+        expr = f"vec4({', '.join(comps)}) + {biases[q]}"
+        if relu:
+            expr = f"max({expr}, vec4(0.0))"
+        lines.append(f"vec4 {name}{q} = {expr};")
+        outs.append(f"{name}{q}")
+    return lines, outs
+
+
+def _mlp_hidden(prefix: str, params: _Params, xs: list[str], layers, first_cols: Optional[np.ndarray] = None
+                ) -> tuple[list[str], list[str]]:
+    """All layers of ``layers`` (each (W, b)) with ReLU after each one; returns code and output vec4s."""
+    lines: list[str] = []
+    for i, (w, b) in enumerate(layers):
+        rows = _pad_to(w.shape[0])
+        wp = _pad_matrix(w, rows, 4 * len(xs), first_cols if i == 0 else None)
+        w_off = params.add(wp)
+        b_off = params.add(np.pad(b, (0, rows - b.shape[0])))
+        code, xs = _linear(f"{prefix}{i}_", xs, w_off, rows // 4, [f"P[{b_off + q}]" for q in range(rows // 4)], True)
+        lines += code
+    return lines, xs
+
+
+def _direction_encoding(kind: str, degree: int) -> list[str]:
+    """Scalar GLSL expressions of the encoding of unit direction ``dir`` (``direction_encoding_np``)."""
+    if kind == "sh":
+        out = [f"{SH_C0!r}"]
+        if degree > 1:
+            out += [f"-{SH_C1!r} * dir.y", f"{SH_C1!r} * dir.z", f"-{SH_C1!r} * dir.x"]
+        if degree > 2:
+            out += [f"{SH_C2[0]!r} * dir.x * dir.y", f"-{SH_C2[1]!r} * dir.y * dir.z",
+                    f"{SH_C2[2]!r} * (3.0 * dir.z * dir.z - 1.0)", f"-{SH_C2[3]!r} * dir.x * dir.z",
+                    f"{SH_C2[4]!r} * (dir.x * dir.x - dir.y * dir.y)"]
+        if degree > 3:
+            xx, yy, zz = "(dir.x * dir.x)", "(dir.y * dir.y)", "(dir.z * dir.z)"
+            out += [f"-{SH_C3[0]!r} * dir.y * (3.0 * {xx} - {yy})", f"{SH_C3[1]!r} * dir.x * dir.y * dir.z",
+                    f"-{SH_C3[2]!r} * dir.y * (5.0 * {zz} - 1.0)", f"{SH_C3[3]!r} * dir.z * (5.0 * {zz} - 3.0)",
+                    f"-{SH_C3[4]!r} * dir.x * (5.0 * {zz} - 1.0)", f"{SH_C3[5]!r} * dir.z * ({xx} - {yy})",
+                    f"-{SH_C3[6]!r} * dir.x * ({xx} - 3.0 * {yy})"]
+        return out
+    if kind == "fourier":
+        axes = ("dir.x", "dir.y", "dir.z")
+        scaled = [f"{axes[a]} * {float(2.0 ** k)!r}" for k in range(degree) for a in range(3)]
+        return list(axes) + [f"sin({s})" for s in scaled] + [f"cos({s})" for s in scaled]
+    if kind == "none":
+        return []
+    raise InputError(f"unknown direction encoding {kind!r} (expected sh, fourier or none)", field="direction_encoding")
+
+
+_TEMPLATE = """
+#version 450
+layout(local_size_x = 64) in;
+
+%(params_decl)s
+layout(std430, binding = 1) readonly buffer OccBuf { uint occ_bits[]; };
+layout(std430, binding = 2) writeonly buffer RgbdBuf { vec4 out_rgbd[]; };
+layout(std430, binding = 3) writeonly buffer OpacityBuf { float out_opacity[]; };
+%(samplers)s
+
+uniform ivec2 size;             // W, H
+uniform dvec4 k_vals;           // K00 (fx), K01, K02 (cx), K11 (fy)
+uniform double k_cy;            // K12
+uniform dmat3 rot;              // world_to_camera rotation: rot[i][j] = R[i, j]
+uniform vec3 origin;            // camera centre, float32
+uniform float near;
+uniform float far;
+uniform vec3 box_lo;
+uniform vec3 box_hi;
+uniform vec3 box_center;
+uniform vec3 box_half;
+uniform mat3 ndc_rot;           // NDC reference camera rotation (q = R p + t)
+uniform vec3 ndc_t;
+uniform vec4 ndc_k;             // k00, k01, k02, k11
+uniform float ndc_k12;
+uniform vec2 ndc_size;          // W, H
+uniform float ndc_margin;
+uniform float scene_near;
+uniform vec3 background;
+uniform float transmittance_eps;
+uniform float color_eps;
+
+const int N = %(num_samples)d;
+const float INF = uintBitsToFloat(0x7f800000u);
+
+float lerp_(float a, float b, float w) {
+    // torch.lerp's formula, exact at both ends (sample positions round as in training)
+    precise float r = w < 0.5 ? a + w * (b - a) : b - (b - a) * (1.0 - w);
+    return r;
+}
+
+float one_minus_exp(float x) {  // 1 - exp(-x) = -expm1(-x), accurate for small x
+    return x < 1e-3 ? x * (1.0 - x * (0.5 - x * (1.0 / 6.0))) : 1.0 - exp(-x);
+}
+
+void main() {
+    // 8x8 tiles whose SIMD groups of 8 invocations are 4x2 pixel blocks (coherent rays: fewer idle lanes)
+    uint lid = gl_LocalInvocationIndex, chunk = lid >> 3u, lane = lid & 7u;
+    ivec2 pix = ivec2(gl_WorkGroupID.xy) * 8
+              + ivec2((chunk & 1u) * 4u + (lane & 3u), (chunk >> 1u) * 2u + (lane >> 2u));
+    if (pix.x >= size.x || pix.y >= size.y) return;
+    int o = pix.y * size.x + pix.x;
+
+    // ray through the pixel centre with camera z = 1, in float64 like camera_rays_np, then float32
+    double u = double(pix.x) + 0.5LF, v = double(pix.y) + 0.5LF;
+    double cy = (v - k_cy) / k_vals.w;
+    double cx = (u - k_vals.z - k_vals.y * (v - k_cy) / k_vals.w) / k_vals.x;
+    dvec3 cam = dvec3(cx, cy, 1.0LF);
+    vec3 d = vec3(cam.x * rot[0][0] + cam.y * rot[1][0] + cam.z * rot[2][0],   // R^T cam
+                  cam.x * rot[0][1] + cam.y * rot[1][1] + cam.z * rot[2][1],
+                  cam.x * rot[0][2] + cam.y * rot[1][2] + cam.z * rot[2][2]);
+    float dnorm = length(d);
+    vec3 dir = d / dnorm;
+
+    float t0 = near, t1 = far;
+%(bounds)s
+    t1 = max(t1, t0);
+%(spacing_setup)s
+
+%(per_pixel)s
+
+    float tau_sum = 0.0, trans = 1.0, acc = 0.0, dsum = 0.0;
+    vec3 col = vec3(0.0);
+%(accum_decl)s
+    // Samples are visited in chunks of 32: first the cheap test of every sample of the chunk (inside the
+    // cube, occupied cell, non-empty bin) into a bit mask, then the field only at the kept ones. A GPU or
+    // llvmpipe executes a branch for all the lanes of a SIMD group, so a loop over the kept samples costs
+    // (max kept in the group) evaluations where a loop over all samples with a skip would cost N.
+    bool done = false;
+    for (int base = 0; base < N && !done; base += 32) {
+        uint kept = 0u;
+        for (int j = 0; j < 32 && base + j < N; ++j) {
+            int i = base + j;
+%(locate)s
+            if (keep) kept |= 1u << uint(j);
+        }
+        while (kept != 0u) {
+            int j = findLSB(kept);
+            kept &= kept - 1u;
+            int i = base + j;
+%(locate)s
+%(features)s
+%(density)s
+            float sigma = exp(min(raw + %(density_bias)r, %(max_log)r));
+            float len = delta * dnorm;
+            float tau = (sigma == 0.0 || len == 0.0) ? 0.0 : sigma * len;
+            float w = trans * one_minus_exp(tau);
+            tau_sum += tau;
+            trans = exp(-tau_sum);  // T_i = exp(-sum_{j<i} tau_j), as the reference
+            acc += w;
+            dsum += w * t;
+            if (w > color_eps) {
+%(latent)s
+%(color_sample)s
+            } else {
+                col += w * background;
+            }
+            if (trans < transmittance_eps) {  // early ray termination
+                done = true;
+                break;
+            }
+        }
+    }
+%(color_final)s
+    col += (1.0 - acc) * background;
+    float depth = acc >= %(opacity_eps)r ? dsum / max(acc, %(opacity_eps)r) : INF;
+    out_rgbd[o] = vec4(col, depth);
+    out_opacity[o] = acc;
+}
+"""
+
+
+def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
+              filtering: str, color_mode: str, params_kind: str, extra_encoding: Sequence[str] = (),
+              sample_code: Optional[Callable[["_Params"], tuple[list[str], list[str], list[str]]]] = None
+              ) -> tuple[str, np.ndarray, list[dict], str]:
+    """GLSL source, the packed parameter array, the plane-texture specs and where the weights live
+    (``const``: literals in the source, ``ubo`` or ``ssbo``) of one field.
+
+    Two hooks let ``engine/fields/gldynamic.py`` render a dynamic field with this shader: ``extra_encoding`` are
+    scalar GLSL expressions appended to the view-direction encoding (further per-pixel inputs of the colour
+    MLP's first layer: the encoded time); ``sample_code(params)`` returns GLSL declarations (samplers,
+    uniforms), code run per evaluated sample before the plane lookup, which may move the contracted point
+    ``c`` (a motion field: ``c = clamp(c + flow, -1, 1)``), and code run after it, which may change the
+    features ``f<scale>_<group>`` (vec4s of channels 4 group .. 4 group + 3; K-Planes' time planes), its
+    weights added to ``params``."""
+    spec = assets.manifest["field"]
+    render = assets.manifest["render"]
+    params = _Params()
+    quantized = ranges is not None
+
+    # tri-plane features: per scale and channel group, the product over the three planes
+    samplers, feat_lines, feat_vecs, tex_specs = [], [], [], []
+    col_map, base = [], 0
+    for s, plane in enumerate(planes):
+        _, c, r, _ = plane.shape
+        g = -(-c // 4)
+        samplers.append(f"uniform sampler2DArray planes{s};")
+        tex_specs.append({"scale": s, "resolution": r, "channels": c, "groups": g})
+        col_map += [base + ch for ch in range(c)]
+        base += 4 * g
+        rng_off = None
+        if quantized:
+            lo = np.zeros((3, 4 * g), np.float32)
+            span = np.zeros((3, 4 * g), np.float32)
+            lo[:, :c] = ranges[s][..., 0]
+            span[:, :c] = ranges[s][..., 1] - ranges[s][..., 0]
+            rng_off = params.add(np.stack([lo.reshape(3, g, 4), span.reshape(3, g, 4)], axis=2))  # (3, g, 2, 4)
+        rm1 = float(r - 1)
+        for k, (a, b) in enumerate(_PLANE_AXES):
+            ca, cb = "xyz"[a], "xyz"[b]
+            feat_lines.append(f"        {{ // scale {s}, plane {k} ({ca}{cb})")
+            feat_lines.append(f"            float x = clamp((c.{ca} + 1.0) * 0.5 * {rm1!r}, 0.0, {rm1!r});")
+            feat_lines.append(f"            float y = clamp((c.{cb} + 1.0) * 0.5 * {rm1!r}, 0.0, {rm1!r});")
+            if filtering == "exact":
+                last = float(r - 2)
+                feat_lines.append(f"            float x0 = min(floor(x), {last!r}), y0 = min(floor(y), {last!r});")
+                feat_lines.append("            float fx = x - x0, fy = y - y0;")
+                feat_lines.append("            ivec2 i0 = ivec2(int(x0), int(y0));")
+            else:
+                feat_lines.append(f"            vec2 uv = (vec2(x, y) + 0.5) * {1.0 / r!r};")
+            for gi in range(g):
+                layer = k * g + gi
+                if filtering == "exact":
+                    fetch = [f"texelFetch(planes{s}, ivec3(i0 + ivec2({dx}, {dy}), {layer}), 0)"
+                             for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))]
+                    val = (f"({fetch[0]} * (1.0 - fx) + {fetch[1]} * fx) * (1.0 - fy) + "
+                           f"({fetch[2]} * (1.0 - fx) + {fetch[3]} * fx) * fy")
+                else:
+                    val = f"texture(planes{s}, vec3(uv, {float(layer)!r}))"
+                if quantized:
+                    lo_ref = f"P[{rng_off + (k * g + gi) * 2}]"
+                    span_ref = f"P[{rng_off + (k * g + gi) * 2 + 1}]"
+                    val = f"{lo_ref} + ({val}) * {span_ref}"
+                name = f"f{s}_{gi}"
+                if k == 0:
+                    feat_lines.append(f"            {name} = {val};")
+                else:
+                    feat_lines.append(f"            {name} *= {val};")
+            feat_lines.append("        }")
+        feat_vecs += [f"f{s}_{gi}" for gi in range(g)]
+    feat_decl = "        vec4 " + ", ".join(feat_vecs) + ";"
+    features = feat_decl + "\n" + "\n".join(feat_lines)
+    if sample_code is not None:  # a dynamic field's motion field or time planes
+        declarations, before, after = sample_code(params)
+        samplers += declarations
+        indent = "        "
+        features = "\n".join([indent + line for line in before] + [features] + [indent + line for line in after])
+
+    # density MLP: hidden layers, then the raw density row; the latent rows only where needed
+    dens = assets.density_layers
+    hidden_code, hid = _mlp_hidden("dh", params, feat_vecs, dens[:-1], np.asarray(col_map))
+    w_last, b_last = dens[-1]
+    first_cols = np.asarray(col_map) if len(dens) == 1 else None
+    in_cols = 4 * len(hid)
+    raw_off = params.add(_pad_matrix(w_last[:1], 1, in_cols, first_cols).reshape(-1))
+    latent_dim = w_last.shape[0] - 1
+    lat_rows = _pad_to(latent_dim)
+    lat_w = params.add(_pad_matrix(w_last[1:], lat_rows, in_cols, first_cols))
+    lat_b = params.add(np.pad(b_last[1:], (0, lat_rows - latent_dim)))
+    bias_vec = params.add(np.array([b_last[0], 0, 0, 0], np.float32))
+    raw_terms = " + ".join(f"dot(P[{raw_off + kk}], {hid[kk]})" for kk in range(len(hid)))
+    density = "\n".join("        " + line for line in hidden_code)
+    density += f"\n        float raw = {raw_terms} + P[{bias_vec}].x;"
+    lat_code, lat_vecs = _linear("h", hid, lat_w, lat_rows // 4, [f"P[{lat_b + q}]" for q in range(lat_rows // 4)],
+                                 False)
+
+    # colour MLP: the direction columns of its first layer once per pixel, the rest per sample
+    enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"])) + list(extra_encoding)
+    enc_rows = _pad_to(len(enc))
+    enc_vecs = [f"e{q}" for q in range(enc_rows // 4)]
+    per_pixel = []
+    for q in range(enc_rows // 4):
+        comps = [enc[4 * q + r] if 4 * q + r < len(enc) else "0.0" for r in range(4)]
+        per_pixel.append(f"    vec4 e{q} = vec4({', '.join(comps)});")
+    colr = assets.color_layers
+    w0, b0 = colr[0]
+    if w0.shape[1] != latent_dim + len(enc):
+        raise InputError(f"colour MLP takes {w0.shape[1]} inputs, expected latent {latent_dim} + encoding {len(enc)}",
+                         field="mlps")
+    rows0 = _pad_to(w0.shape[0])
+    we_off = params.add(_pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
+    b0_off = params.add(np.pad(b0, (0, rows0 - b0.shape[0])))
+    if enc:
+        code, base_vecs = _linear("cb", enc_vecs, we_off, rows0 // 4, [f"P[{b0_off + q}]" for q in range(rows0 // 4)],
+                                  False)
+        per_pixel += ["    " + line for line in code]
+    else:
+        base_vecs = [f"P[{b0_off + q}]" for q in range(rows0 // 4)]
+    wh_off = params.add(_pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
+    last_is_first = len(colr) == 1
+
+    def color_net(inputs: list[str], indent: str) -> tuple[list[str], str]:
+        code, xs = _linear("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
+        lines = list(code)
+        if not last_is_first:
+            hidden, xs = _mlp_hidden("ch", params, xs, colr[1:-1]) if len(colr) > 2 else ([], xs)
+            lines += hidden
+            w_l, b_l = colr[-1]
+            out_off = params.add(_pad_matrix(w_l, 4, 4 * len(xs)))
+            b_off = params.add(np.pad(b_l, (0, 4 - b_l.shape[0])))
+            code, xs = _linear("co", xs, out_off, 1, [f"P[{b_off}]"], False)
+            lines += code
+        rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))"
+        return [indent + line for line in lines], rgb
+
+    latent = "\n".join("            " + line for line in lat_code)
+    if color_mode == "per-sample":
+        code, rgb = color_net(lat_vecs, "            ")
+        color_sample = "\n".join(code) + f"\n            col += w * {rgb};"
+        accum_decl, color_final = "", ""
+    else:  # "latent": the colour MLP once per pixel on the weight-averaged latent (an approximation)
+        accum_decl = "\n".join(f"    vec4 ha{q} = vec4(0.0);" for q in range(lat_rows // 4)) + "\n    float wl = 0.0;"
+        color_sample = "\n".join(f"            ha{q} += w * {v};" for q, v in enumerate(lat_vecs))
+        color_sample += "\n            wl += w;"
+        code, rgb = color_net([f"(ha{q} / wl)" for q in range(lat_rows // 4)], "        ")
+        color_final = "    if (wl > 0.0) {\n" + "\n".join(code) + f"\n        col += wl * {rgb};\n    }}"
+
+    if assets.bounded:
+        bounds = """    {   // slab test against the box (as engine.fields.render._ray_box)
+        float enter = -1e30, leave = 1e30;
+        for (int a = 0; a < 3; ++a) {
+            bool parallel = d[a] == 0.0;
+            float inv = 1.0 / (parallel ? 1.0 : d[a]);
+            float ta = (box_lo[a] - origin[a]) * inv, tb = (box_hi[a] - origin[a]) * inv;
+            bool inside = origin[a] >= box_lo[a] && origin[a] <= box_hi[a];
+            float lo_a = parallel ? (inside ? -1e30 : 1e30) : min(ta, tb);
+            float hi_a = parallel ? (inside ? 1e30 : -1e30) : max(ta, tb);
+            enter = max(enter, lo_a);
+            leave = min(leave, hi_a);
+        }
+        t0 = max(t0, enter);
+        t1 = min(t1, leave);
+    }"""
+        contract = "        vec3 c = (p - box_center) / box_half;"
+    else:
+        bounds = ""
+        contract = """        vec3 q = ndc_rot * p + ndc_t;
+        vec3 c = vec3(-2.0);
+        if (q.z > 0.0) {
+            float pu = (ndc_k.x * q.x + ndc_k.y * q.y) / q.z + ndc_k.z;
+            float pv = ndc_k.w * q.y / q.z + ndc_k12;
+            c = vec3((2.0 * pu / ndc_size.x - 1.0) / (1.0 + ndc_margin),
+                     (2.0 * pv / ndc_size.y - 1.0) / (1.0 + ndc_margin), 1.0 - 2.0 * scene_near / q.z);
+        }"""
+    if render["spacing"] == "linear":
+        spacing_setup = ""
+        sample_t = """        float e0 = lerp_(t0, t1, float(i) / float(N));
+        float e1 = lerp_(t0, t1, float(i + 1) / float(N));
+        float t = lerp_(t0, t1, (float(i) + 0.5) / float(N));
+        float delta = max(e1 - e0, 0.0);"""
+    else:
+        spacing_setup = f"""    float s_near = 1.0 / max(t0, {MIN_NEAR!r});
+    float s_far = 1.0 / max(min(t1, {FAR_AT_INFINITY!r}), max(t0, {MIN_NEAR!r}));"""
+        sample_t = """        float e0 = 1.0 / lerp_(s_near, s_far, float(i) / float(N));
+        float e1 = 1.0 / lerp_(s_near, s_far, float(i + 1) / float(N));
+        float t = 1.0 / lerp_(s_near, s_far, (float(i) + 0.5) / float(N));
+        float delta = max(e1 - e0, 0.0);"""
+    occupancy = ""
+    if assets.occupancy is not None:
+        res = assets.occupancy.shape[0]
+        occupancy = f"""if (keep) {{  // occupancy grid [ix, iy, iz], bit-packed
+    ivec3 oi = clamp(ivec3(floor((c + 1.0) * {0.5 * res!r})), ivec3(0), ivec3({res - 1}));
+    uint bit = uint((oi.x * {res} + oi.y) * {res} + oi.z);
+    keep = (occ_bits[bit >> 5u] & (1u << (bit & 31u))) != 0u;
+}}"""
+    packed = params.array()
+    if params_kind == "const":
+        params_decl = ""
+        kind = "const"
+    elif params_kind == "ubo" and packed.nbytes <= _UBO_LIMIT:
+        params_decl = f"layout(std140, binding = 0) uniform Params {{ vec4 P[{packed.shape[0]}]; }};"
+        kind = "ubo"
+    else:
+        params_decl = "layout(std430, binding = 0) readonly buffer Params { vec4 P[]; };"
+        kind = "ssbo"
+    locate = "\n".join(sample_t.splitlines() + ["precise vec3 p = origin + t * d;"] + contract.splitlines()
+                        + ["bool keep = delta > 0.0 && all(lessThanEqual(abs(c), vec3(1.0)));"]
+                        + occupancy.splitlines())
+    locate = "\n".join("            " + line.strip() for line in locate.splitlines())
+    features = "\n".join("    " + line for line in features.splitlines())
+    density = "\n".join("    " + line for line in density.splitlines())
+    source = _TEMPLATE % {
+        "params_decl": params_decl, "samplers": "\n".join(samplers),
+        "num_samples": int(render["num_samples"]), "bounds": bounds, "spacing_setup": spacing_setup,
+        "per_pixel": "\n".join(per_pixel), "accum_decl": accum_decl, "locate": locate, "features": features,
+        "density": density,
+        "density_bias": float(spec["density_bias"]), "max_log": float(spec["max_log_density"]),
+        "latent": latent, "color_sample": color_sample, "color_final": color_final,
+        "opacity_eps": float(OPACITY_EPS),
+    }
+    if kind == "const":  # the weights as literals in the code (float32 round-trips through 9 digits)
+        source = re.sub(r"P\[(\d+)\]", lambda m: "vec4(%s)" % ", ".join("%.9g" % v for v in packed[int(m.group(1))]),
+                        source)
+    return source, packed, tex_specs, kind
+
+
+# ----------------------------------------------------------------------------------------------------
+# The renderer
+
+
+def _uint8_planes(assets: FieldAssets) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The uint8 plane codes (3, C, R, R) and ranges (3, C, 2) of each scale, from the assets' ``field.npz``."""
+    npz = assets.onnx_path.parent / "field.npz"
+    if not npz.is_file():
+        raise InputError("file does not exist (quantized=True reads the uint8 planes from it)", file=npz)
+    codes, ranges = [], []
+    with np.load(npz) as data:
+        for p in assets.manifest["field"]["planes"]:
+            if p["uint8"] not in data.files or p["range"] not in data.files:
+                raise InputError(f"lacks the uint8 planes {p['uint8']!r} / {p['range']!r}", file=npz)
+            c, r = data[p["uint8"]], data[p["range"]].astype(np.float32)
+            if c.dtype != np.uint8 or c.shape != (3, p["channels"], p["resolution"], p["resolution"]) \
+                    or r.shape != (3, p["channels"], 2):
+                raise InputError(f"uint8 plane {p['uint8']!r} has shape {c.shape} / {c.dtype}, range {r.shape}",
+                                 file=npz)
+            codes.append(c)
+            ranges.append(r)
+    return codes, ranges
+
+
+def _texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
+    """(3, C, H, W) -> (3 * G, H, W, 4): layer k * G + g holds channels 4g .. 4g + 3 of plane k (zero padded)."""
+    three, c, h, w = plane.shape
+    padded = np.zeros((three, 4 * groups, h, w), plane.dtype)
+    padded[:, :c] = plane
+    return np.ascontiguousarray(padded.reshape(three, groups, 4, h, w).transpose(0, 1, 3, 4, 2).reshape(-1, h, w, 4))
+
+
+def _check_options(width, height, *, filtering: str, color_mode: str, weights: str, transmittance_eps: float,
+                   color_eps: float) -> None:
+    """InputError naming the first bad renderer option."""
+    if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 16384
+               for v in (width, height)):
+        raise InputError(f"must be integers in [1, 16384], got {width!r} x {height!r}", field="size")
+    if filtering not in ("exact", "hardware"):
+        raise InputError(f"must be exact or hardware, got {filtering!r}", field="filtering")
+    if color_mode not in ("per-sample", "latent"):
+        raise InputError(f"must be per-sample or latent, got {color_mode!r}", field="color_mode")
+    if weights not in ("inline", "buffer"):
+        raise InputError(f"must be inline or buffer, got {weights!r}", field="weights")
+    for name, value in (("transmittance_eps", transmittance_eps), ("color_eps", color_eps)):
+        if not (math.isfinite(value) and 0.0 <= value < 1.0):
+            raise InputError(f"must be in [0, 1), got {value}", field=name)
+
+
+class GlFieldRenderer:
+    """One headless GL context with the compute shader, textures and buffers of one exported field.
+
+    Args:
+        assets: :func:`engine.fields.render.load_field`'s result, or the export folder.
+        width, height: the output size in pixels (fixed for the renderer: buffers are allocated once).
+        quantized: sample the uint8 planes (with their per-plane, per-channel ranges) instead of float32.
+        filtering: ``exact`` (four ``texelFetch`` + float32 bilinear, as the reference) or ``hardware``
+            (the texture unit's bilinear filter).
+        transmittance_eps: early ray termination once the transmittance is below this (0: never).
+        color_eps: samples with weight at most this skip the colour MLP and count as background colour
+            (0: every sample with a non-zero weight is coloured).
+        color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
+            latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
+
+    Raises:
+        InputError: bad size or option, assets the shader cannot map (plane resolution below 2).
+    """
+
+    def __init__(self, assets: Union[FieldAssets, str, Path], width: int, height: int, *, quantized: bool = False,
+                 filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
+                 color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline") -> None:
+        if not isinstance(assets, FieldAssets):
+            assets = load_field(assets)
+        _check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
+                       transmittance_eps=transmittance_eps, color_eps=color_eps)
+        for p in assets.planes:
+            if p.shape[-1] < 2:
+                raise InputError(f"plane resolution {p.shape[-1]} < 2 cannot be interpolated", field="planes")
+        self.assets = assets
+        self.width, self.height = int(width), int(height)
+        self.quantized = bool(quantized)
+        self.filtering = filtering
+        self.color_mode = color_mode
+        self.transmittance_eps = float(transmittance_eps)
+        self.color_eps = float(color_eps)
+        if quantized:
+            planes, ranges = _uint8_planes(assets)
+        else:
+            planes, ranges = assets.planes, None
+        self.source, packed, tex_specs, self.params_kind = _generate(
+            assets, planes, ranges, filtering=filtering, color_mode=color_mode,
+            params_kind="const" if weights == "inline" else "ubo")
+        self._setup(packed, [(f"planes{spec['scale']}", _texture_layers(plane, spec["groups"]))
+                             for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4")
+
+    def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str) -> None:
+        """Create the context, compile ``self.source`` and upload the parameters, the occupancy grid and the
+        plane textures: ``(sampler name, (layers, H, W, 4) array)``, bound to units 0, 1, ... in that order
+        (``dtype`` ``f4``: RGBA32F; ``f1``: normalised RGBA8)."""
+        import moderngl
+
+        self._lock = threading.Lock()
+        self.ctx = moderngl.create_standalone_context(backend="egl")
+        self._textures, self._buffers = [], []
+        with self.ctx:
+            start = time.perf_counter()
+            self.program = self.ctx.compute_shader(self.source)
+            self.compile_seconds = time.perf_counter() - start
+            for unit, (name, layers) in enumerate(textures):
+                tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
+                                             dtype=dtype)
+                linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
+                tex.filter = (linear, linear)
+                tex.repeat_x = tex.repeat_y = False
+                tex.use(location=unit)
+                self._set(name, unit)
+                self._textures.append(tex)
+            self._params = self.ctx.buffer(packed.tobytes())
+            occ = self.assets.occupancy
+            bits = np.zeros(1, np.uint32)
+            if occ is not None:
+                flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
+                bits = np.packbits(np.pad(flat, (0, (-flat.size) % 32)), bitorder="little").view(np.uint32)
+            self._occ = self.ctx.buffer(bits.tobytes())
+            n = self.width * self.height
+            self._rgbd = self.ctx.buffer(reserve=16 * n)
+            self._opacity = self.ctx.buffer(reserve=4 * n)
+            self._buffers += [self._params, self._occ, self._rgbd, self._opacity]
+            self._set_static_uniforms()
+
+    def _set(self, name: str, value) -> None:
+        try:
+            self.program[name].value = value
+        except KeyError:  # optimised out of this field's shader
+            pass
+
+    def _set_static_uniforms(self) -> None:
+        scene = self.assets.scene
+        self._set("size", (self.width, self.height))
+        self._set("near", float(np.float32(scene["near"])))
+        self._set("far", float(np.float32(scene["far"])))
+        self._set("scene_near", float(np.float32(scene["near"])))
+        self._set("background", tuple(float(x) for x in self.assets.background))
+        self._set("transmittance_eps", self.transmittance_eps)
+        self._set("color_eps", self.color_eps)
+        if self.assets.bounded:
+            lo = np.asarray(scene["box_min"], np.float32)
+            hi = np.asarray(scene["box_max"], np.float32)
+            self._set("box_lo", tuple(map(float, lo)))
+            self._set("box_hi", tuple(map(float, hi)))
+            self._set("box_center", tuple(map(float, (lo + hi) / np.float32(2))))
+            self._set("box_half", tuple(map(float, (hi - lo) / np.float32(2))))
+        else:
+            k = np.asarray(scene["ndc_intrinsics"], np.float32)
+            t = np.asarray(scene["ndc_world_to_camera"], np.float32)
+            self._set("ndc_rot", tuple(float(x) for x in t[:3, :3].flatten(order="F")))  # column-major
+            self._set("ndc_t", tuple(float(x) for x in t[:3, 3]))
+            self._set("ndc_k", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
+            self._set("ndc_k12", float(k[1, 2]))
+            self._set("ndc_size", tuple(float(x) for x in scene["ndc_size"]))
+            self._set("ndc_margin", float(np.float32(self.assets.manifest["render"]["ndc_margin"])))
+
+    def render(self, intrinsics, world_to_camera) -> dict[str, np.ndarray]:
+        """Render the field from a camera (OpenCV axes, rigid world-to-camera, pixel centres at +0.5).
+
+        Returns:
+            ``color`` (H, W, 3) float32 linear RGB, ``depth`` (H, W) float32 planar (+inf where the opacity
+            is below ``OPACITY_EPS``), ``opacity`` (H, W) float32, ``seconds`` (wall time of the dispatch
+            and read-back).
+
+        Raises:
+            InputError: intrinsics not a finite pinhole K with positive focal lengths; pose not rigid.
+        """
+        k = validate_intrinsics(intrinsics)
+        pose = validate_pose(world_to_camera)
+        rot = pose[:3, :3]
+        origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
+        with self._lock, self.ctx:  # make this context current (another module's GL context may be)
+            start = time.perf_counter()
+            self._set("k_vals", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
+            self._set("k_cy", float(k[1, 2]))
+            self._set("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
+            self._set("origin", tuple(float(x) for x in origin))
+            self._bind()
+            gx, gy = -(-self.width // _TILE), -(-self.height // _TILE)
+            self.program.run(gx, gy, 1)
+            self.ctx.memory_barrier()
+            n = self.width * self.height
+            rgbd = np.frombuffer(self._rgbd.read(size=16 * n), np.float32).reshape(self.height, self.width, 4)
+            opacity = np.frombuffer(self._opacity.read(size=4 * n), np.float32).reshape(self.height, self.width)
+            seconds = time.perf_counter() - start
+        return {"color": rgbd[..., :3].copy(), "depth": rgbd[..., 3].copy(), "opacity": opacity.copy(),
+                "seconds": seconds}
+
+    def _bind(self) -> None:
+        for spec_unit, tex in enumerate(self._textures):
+            tex.use(location=spec_unit)
+        if self.params_kind == "ubo":
+            self._params.bind_to_uniform_block(0)
+        elif self.params_kind == "ssbo":
+            self._params.bind_to_storage_buffer(0)
+        self._occ.bind_to_storage_buffer(1)
+        self._rgbd.bind_to_storage_buffer(2)
+        self._opacity.bind_to_storage_buffer(3)
+
+    def release(self) -> None:
+        """Free the GL objects and the context (the renderer is unusable afterwards)."""
+        if self.ctx is None:
+            return
+        with self.ctx:
+            for obj in self._textures + self._buffers + [self.program]:
+                obj.release()
+        self.ctx.release()
+        self.ctx = None
+
+    def __enter__(self) -> "GlFieldRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+# ----------------------------------------------------------------------------------------------------
+# Benchmark: python -m engine.fields.gl --bench EXPORT_DIR
+
+
+def scale_intrinsics(intrinsics, width: int, height: int, to_width: int, to_height: int, *,
+                     fit: str = "width") -> np.ndarray:
+    """K of a ``width`` x ``height`` camera for a ``to_width`` x ``to_height`` image: the same horizontal field
+    of view (``fit="width"``; the vertical extent cropped or extended about the centre) or the largest scale
+    at which the whole original view fits (``fit="contain"``; the other axis extended about the centre)."""
+    k = np.array(intrinsics, np.float64)
+    s = to_width / width if fit == "width" else min(to_width / width, to_height / height)
+    out = k.copy()
+    out[:2, :3] = k[:2, :3] * s
+    out[0, 2] = k[0, 2] * s + (to_width - width * s) / 2.0
+    out[1, 2] = k[1, 2] * s + (to_height - height * s) / 2.0
+    return out
+
+
+def _bench_camera(export: Path, run: Optional[Path]):
+    """(K, world_to_camera, width, height, where) of a held-out view of the run, else of the demo path."""
+    if run is not None and (run / "data.json").is_file():
+        try:
+            from models.fields.train_static import load_run_views
+
+            _, test = load_run_views(run)
+            cam = test.cameras[0]
+            return cam.intrinsics, cam.world_to_camera, test.width, test.height, f"held-out view {test.names[0]}"
+        except ImportError:
+            pass
+    from demos.upsample import field_camera_path
+
+    assets = load_field(export)
+    cams, width, height = field_camera_path(assets, None, 8)
+    return cams[0].intrinsics, cams[0].world_to_camera, width, height, "first camera of the demo path"
+
+
+def _psnr(reference: dict, test: dict) -> float:
+    from engine.core.colorspace import display_encode
+    from engine.eval.metrics import psnr
+
+    return psnr(display_encode(reference["color"]), display_encode(test["color"]))
+
+
+def report_bench(records: list[dict], json_path: Optional[Path] = None) -> None:
+    """Print the benchmark table; write the records as strict JSON (non-finite numbers as null) if asked."""
+    print(bench_table(records))
+    if json_path:
+        json_path.write_text(json.dumps([{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                                          for k, v in r.items()} for r in records], indent=2) + "\n")
+
+
+def bench_records(outs: dict, width: int, height: int) -> list[dict]:
+    """One benchmark record per renderer: ``outs`` maps a renderer name to (render, wall seconds, CPU
+    seconds, compile seconds); scores are against the torch render (else numpy's, else the first)."""
+    ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
+    ref = outs[ref_name][0]
+    records = []
+    for name, (out, walls, cpus, compile_s) in outs.items():
+        ms = 1e3 * float(np.median(walls))
+        finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
+        records.append({
+            "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
+            "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
+            "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
+            "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
+            "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
+            if finite.any() else float("nan"),
+            "depth_finite_agree": float(np.mean(np.isfinite(ref["depth"]) == np.isfinite(out["depth"]))),
+        })
+        print(f"{width}x{height} {name}: {ms:.1f} ms", file=sys.stderr, flush=True)
+    return records
+
+
+def run_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
+              skip: tuple[str, ...] = (), threads: int = 0) -> list[dict]:
+    """Time every renderer of the field at every size on one camera; PSNR of each against the torch render
+    (or the numpy one when torch is not importable). Returns one record per (size, renderer)."""
+    export = Path(export)
+    if not (export / "field.json").is_file() and (export / "export" / "field.json").is_file():
+        export = export / "export"
+    if run is None and (export.parent / "checkpoint.pt").is_file():
+        run = export.parent
+    k0, w2c, w0, h0, where = _bench_camera(export, run)
+    assets = load_field(export)
+    model = None
+    if "torch" not in skip and run is not None:
+        try:
+            import torch
+
+            from models.fields.train_static import load_model
+
+            if threads:
+                torch.set_num_threads(threads)
+            model = load_model(run)
+        except ImportError:
+            model = None
+    gl_variants = [("gl float", {}), ("gl float, exact filtering", {"filtering": "exact"}),
+                   ("gl uint8", {"quantized": True}),
+                   ("gl float, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0}),
+                   ("gl float, weights in a UBO", {"weights": "buffer"}),
+                   ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"})]
+    def timed(fn):
+        wall, cpu = time.perf_counter(), time.process_time()
+        out = fn()
+        return out, time.perf_counter() - wall, time.process_time() - cpu
+
+    records = []
+    for width, height in sizes:
+        k = scale_intrinsics(k0, w0, h0, width, height)
+        outs: dict[str, tuple[dict, list[float], list[float], float]] = {}
+        if model is not None:
+            from models.fields.components.render import render_image
+
+            render_image(model, k, w2c, 16, 16, model.scene.near, model.scene.far)  # warm-up
+            out, wall, cpu = timed(lambda: render_image(model, k, w2c, height, width, model.scene.near,
+                                                        model.scene.far))
+            outs["torch"] = (out, [wall], [cpu], 0.0)
+        for name, kwargs in gl_variants:
+            if "gl" in skip:
+                break
+            with GlFieldRenderer(assets, width, height, **kwargs) as r:
+                out = r.render(k, w2c)  # warm-up
+                runs = [timed(lambda: r.render(k, w2c)) for _ in range(repeat)]
+                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
+        for query in ("numpy", "onnx"):
+            if query in skip:
+                continue
+            out, wall, cpu = timed(lambda: render_field(assets, k, w2c, height, width, query=query))
+            outs[query] = (out, [wall], [cpu], 0.0)
+        records.extend(bench_records(outs, width, height))
+    for r in records:
+        r["camera"] = where
+    return records
+
+
+def bench_table(records: list[dict]) -> str:
+    """Markdown table of :func:`run_bench` records."""
+    lines = ["| size | renderer | ms / frame | fps | CPU ms / frame | PSNR vs reference (dB) | max abs colour "
+             "| median abs depth | depth inf agree |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        psnr = "ref." if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
+        lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {r['cpu_ms']:.0f} "
+                     f"| {psnr} ({r['reference']}) "
+                     f"| {r['max_abs_color']:.1e} | {r['depth_median_abs']:.1e} "
+                     f"| {100 * r['depth_finite_agree']:.2f}% |")
+    return "\n".join(lines)
+
+
+def _sizes(text: str) -> list[tuple[int, int]]:
+    try:
+        out = [tuple(int(v) for v in item.lower().split("x")) for item in text.split(",") if item.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}") from None
+    if not out or any(len(s) != 2 or min(s) < 1 for s in out):
+        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}")
+    return out
+
+
+def add_bench_options(parser: argparse.ArgumentParser) -> None:
+    """--repeat, --skip, --threads and --json, shared by the static and dynamic benchmarks."""
+    parser.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
+    parser.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """``python -m engine.fields.gl --bench EXPORT_DIR``: the speed / parity table of the field renderers."""
+    parser = argparse.ArgumentParser(prog="python -m engine.fields.gl", description=(
+        "Benchmark the GL field renderer against the numpy / onnxruntime renderers of engine.fields.render and the "
+        "torch renderer (ms per frame, fps, PSNR against the torch render on one held-out view)."))
+    parser.add_argument("--bench", type=Path, required=True, metavar="EXPORT_DIR",
+                        help="folder with field.json (or a run directory holding export/)")
+    parser.add_argument("--run", type=Path, default=None,
+                        help="the run directory (torch renderer and held-out camera; default: EXPORT_DIR/..)")
+    parser.add_argument("--sizes", type=_sizes, default=[(512, 512), (960, 540)],
+                        help="WxH,... (default 512x512,960x540)")
+    add_bench_options(parser)
+    args = parser.parse_args(argv)
+    try:
+        records = run_bench(args.bench, args.sizes, run=args.run, repeat=max(1, args.repeat),
+                            skip=tuple(s.strip() for s in args.skip.split(",") if s.strip()), threads=args.threads)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    report_bench(records, args.json)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

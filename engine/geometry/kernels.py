@@ -1,0 +1,419 @@
+"""Compiled (numba) kernels of the engine's hot loops, each held to a numpy reference by the tests.
+
+- ``encode8``: 8-bit display encoding of linear RGB (``engine.core.colorspace.encode8_reference``), by the
+  exact per-bucket table of ``engine.core.colorspace.encode8_table``.
+- ``project_points``, ``splat_points``, ``normalize``: ``engine.geometry._forward_warp_mpi``, the forward
+  splat, in one pass per stage. The numpy body in ``engine/geometry/ops.py`` (``_forward_warp_mpi_reference``)
+  is the test oracle of these kernels and states the semantics: every point with alpha > 0 moves by its
+  object flow, is reprojected with one 4x4 matrix on homogeneous pixel points (float32 arithmetic, float32
+  coefficients), lands on the destination plane nearest in inverse depth and is splatted into its 4
+  neighbouring pixels (a volume padded by one pixel, then cropped) with inverse bilinear weights times
+  alpha times the soft z-buffer weight; sums accumulate in float64. The numpy version needs ~30 array
+  passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
+- ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
+- ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
+- ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.predictor.upsample_flow`` (to 1e-5: OpenCV's
+  resize, the reference, may round its bilinear sums differently).
+
+``tests/geometry/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6, the
+flow upsampling to 1e-5; a warp split over threads, ``split_ranges`` / ``run_ranges``, to 1e-6, because
+its per-thread partial sums are added in another order).
+Conventions are ``engine/geometry/ops.py``'s (pixel centres at +0.5, planar depth, +inf sky).
+
+The kernels are compiled on first use (about 3 s for all, then cached on disk beside this file) and
+release the GIL: ``engine.geometry`` splits the warp's passes over a pool of plain threads
+(``thread_count``: the CPUs the process may use, at most 8, or ``$INTERLEAVE_KERNEL_THREADS``), which sleep
+when idle, unlike numba's OpenMP threads (tried and dropped: they spun and slowed onnxruntime and OpenCV).
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+from numba import njit
+
+_F32 = np.float32
+
+#: Environment variable that sets how many threads the split kernels use (default: the CPUs this process
+#: may run on, at most 8; 1: everything on the calling thread).
+THREADS_ENV = "INTERLEAVE_KERNEL_THREADS"
+_POOL: dict = {}
+_IN_WORKER = threading.local()
+
+
+def thread_count() -> int:
+    """Threads the split kernels use: ``$INTERLEAVE_KERNEL_THREADS`` if set (>= 1), else the CPUs this
+    process may run on (at most 8)."""
+    raw = os.environ.get(THREADS_ENV, "").strip()
+    if raw:
+        try:
+            value = int(raw)
+        except ValueError:
+            value = 0
+        if value < 1:
+            raise ValueError(f"{THREADS_ENV} must be an integer >= 1, got {raw!r}")
+        return value
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(8, cpus))
+
+
+def split_ranges(count: int, min_size: int, parts: int = 0) -> list[tuple[int, int]]:
+    """[0, count) cut into at most ``parts`` (default ``thread_count()``) contiguous ranges of >= ``min_size``
+    items each (one range when ``count`` < 2 ``min_size``, or from a worker thread of ``run_ranges``).
+
+    >>> split_ranges(10, 3, 2), split_ranges(10, 6, 2), split_ranges(0, 1, 2)
+    ([(0, 5), (5, 10)], [(0, 10)], [(0, 0)])
+    """
+    parts = parts or thread_count()
+    if getattr(_IN_WORKER, "active", False):
+        parts = 1
+    parts = max(1, min(parts, count // max(1, min_size)))
+    edges = [count * i // parts for i in range(parts + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) -> list:
+    """[fn(start, stop) for each range], the first on the calling thread and the others on a shared pool
+    (the kernels release the GIL, so they run in parallel); results in range order."""
+    if len(ranges) == 1:
+        return [fn(*ranges[0])]
+    workers = len(ranges) - 1
+    pool = _POOL.get(workers)
+    if pool is None:
+        pool = _POOL[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="interleave-kernel",
+                                                   initializer=_mark_worker)
+    futures = [pool.submit(fn, *r) for r in ranges[1:]]
+    first = fn(*ranges[0])
+    return [first] + [f.result() for f in futures]
+
+
+def _mark_worker() -> None:
+    _IN_WORKER.active = True
+
+
+@njit(cache=True, nogil=True)
+def encode8(linear, level, step, buckets, out):
+    """``out`` (H, W, C) uint8 = the 8-bit display encoding of ``linear`` (H, W, C) float32: per value,
+    clipped to [0, 1], ``level[b] + (c >= step[b])`` in its bucket b = floor(c * buckets); NaN -> 0."""
+    h, w, channels = linear.shape
+    for y in range(h):
+        for x in range(w):
+            for ch in range(channels):
+                c = linear[y, x, ch]
+                if not c > 0.0:  # also NaN
+                    out[y, x, ch] = level[0]
+                    continue
+                if c > 1.0:
+                    c = _F32(1.0)
+                b = int(c * _F32(buckets))
+                out[y, x, ch] = level[b] + 1 if c >= step[b] else level[b]
+
+
+@njit(cache=True, nogil=True)
+def _plane_of(inv_depth, half_inv):
+    """Index of the plane nearest in inverse depth: the number of mid-points ``inv_depth`` is <= to."""
+    index = 0
+    for k in range(half_inv.shape[0]):
+        if inv_depth <= half_inv[k]:
+            index += 1
+    return index
+
+
+@njit(cache=True, nogil=True)
+def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
+                   tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
+    """Pass 1: per source point (Z * H * W, plane-major) of rows [``row_start``, ``row_stop``) its top-left
+    tap ``base_out`` in the padded (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and
+    alpha (0 when dropped). Calls on disjoint row ranges write disjoint points (threads may share the arrays).
+
+    ``log_out`` gets log(1 + z) (float64) of the landing finite points (the splat's soft z-buffer reads it).
+    Returns (min, max) of it over them ((inf, 0) when none lands).
+    """
+    num_z, h, w = alpha.shape
+    hp, wp = ho + 2, wo + 2
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]  # in registers: the loop writes other arrays
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
+    x_max, y_max, edge_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)  # the clip of _bilinear_fraction
+    lo, hi = np.inf, 0.0
+    for z_index in range(num_z):
+        for y in range(row_start, row_stop):
+            for x in range(w):
+                i = (z_index * h + y) * w + x
+                a = alpha[z_index, y, x]
+                base_out[i] = 0
+                a_out[i] = zero
+                fx_out[i] = zero
+                fy_out[i] = zero
+                z_out[i] = zero
+                if num_z > 1 and a == zero:  # empty MPI entries are never read again
+                    continue
+                u = _F32(x) + half
+                v = _F32(y) + half
+                d = depth[z_index, y, x]
+                if has_flow:
+                    u += flow[0, z_index, y, x]
+                    v += flow[1, z_index, y, x]
+                    d += flow[2, z_index, y, x]
+                # homogeneous pixel point (d u, d v, d, 1); sky (+inf) -> (u, v, 1, 0)
+                if math.isinf(d):
+                    px, py, pz, pw = u, v, one, zero
+                else:
+                    px, py, pz, pw = u * d, v * d, d, one
+                hu = m00 * px + m01 * py + m02 * pz + m03 * pw
+                hv = m10 * px + m11 * py + m12 * pz + m13 * pw
+                hz = m20 * px + m21 * py + m22 * pz + m23 * pw
+                valid = hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny
+                if valid:
+                    uo = hu / hz
+                    vo = hv / hz
+                    zo = hz / pw if pw > zero else _F32(np.inf)
+                else:
+                    uo = zero
+                    vo = zero
+                    zo = zero
+                xc = min(max(uo - half, edge_min), x_max)
+                yc = min(max(vo - half, edge_min), y_max)
+                left = math.floor(xc)
+                top = math.floor(yc)
+                fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
+                fy = min(max((yc - _F32(top) - snap) * snap_scale, zero), one)
+                x0 = int(left) + 1
+                y0 = int(top) + 1
+                fx_out[i] = fx
+                fy_out[i] = fy
+                z_out[i] = zo
+                if not (valid and 0 <= x0 <= wo and 0 <= y0 <= ho):
+                    continue
+                a_out[i] = a
+                plane = _plane_of(one / (zo if valid else one), half_inv)
+                base_out[i] = (plane * hp + y0) * wp + x0
+                if a > zero and not math.isinf(zo):
+                    log_z = math.log1p(np.float64(zo))
+                    log_out[i] = log_z
+                    lo = min(lo, log_z)
+                    hi = max(hi, log_z)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row, min_log_weight, sky_weight,
+                 start, stop, sums):
+    """Pass 2: splat [coverage, weight, weight * (r, g, b, z)] of the landing points (``a`` > 0) among points
+    [``start``, ``stop``) into the padded volume ``sums`` (N, 6), zeroed first (``flat_color`` (3, points),
+    the other per-point arrays from pass 1). Threads splat disjoint point ranges into their own ``sums``."""
+    sums[:] = 0.0
+    scale = -sharpness / max(hi, 1e-30)
+    for i in range(start, stop):
+        ai = a[i]
+        if ai == 0.0:
+            continue
+        z = zs[i]
+        sky = math.isinf(z)
+        if sky:
+            zbuf = sky_weight
+            zval = 0.0
+        else:
+            log_z = log_z1[i]
+            if lo != np.inf:
+                log_z -= lo
+            zbuf = math.exp(min(max(log_z * scale, min_log_weight), 0.0))
+            zval = np.float64(z)
+        r = np.float64(flat_color[0, i])
+        g = np.float64(flat_color[1, i])
+        b = np.float64(flat_color[2, i])
+        gx = np.float32(1.0) - fx[i]
+        gy = np.float32(1.0) - fy[i]
+        b0 = base[i]
+        for tap in range(4):
+            if tap == 0:
+                t, wx, wy = b0, gx, gy
+            elif tap == 1:
+                t, wx, wy = b0 + 1, fx[i], gy
+            elif tap == 2:
+                t, wx, wy = b0 + row, gx, fy[i]
+            else:
+                t, wx, wy = b0 + row + 1, fx[i], fy[i]
+            cover = np.float64(wx) * np.float64(wy) * np.float64(ai)
+            weight = cover * zbuf
+            sums[t, 0] += cover
+            sums[t, 1] += weight
+            sums[t, 2] += weight * r
+            sums[t, 3] += weight * g
+            sums[t, 4] += weight * b
+            sums[t, 5] += weight * zval
+
+
+@njit(cache=True, nogil=True)
+def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_start, row_stop, out_color, out_depth,
+              out_alpha, out_cov):
+    """Add up the splat's partial sums (P, N, 6) (one per thread, in order), crop the padding and divide by
+    the weight, for output rows [``row_start``, ``row_stop``): colour, depth (+inf where only sky landed),
+    alpha (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
+    hp, wp = ho + 2, wo + 2
+    parts = sums.shape[0]
+    for z in range(num_z):
+        for y in range(row_start, row_stop):
+            for x in range(wo):
+                t = (z * hp + y + 1) * wp + x + 1
+                cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], \
+                    sums[0, t, 5]
+                for p in range(1, parts):
+                    cov += sums[p, t, 0]
+                    wsum += sums[p, t, 1]
+                    r += sums[p, t, 2]
+                    g += sums[p, t, 3]
+                    b += sums[p, t, 4]
+                    d += sums[p, t, 5]
+                covered = cov > coverage_threshold
+                inv_w = 1.0 / wsum if covered and wsum > 0.0 else 0.0
+                out_color[0, z, y, x] = r * inv_w
+                out_color[1, z, y, x] = g * inv_w
+                out_color[2, z, y, x] = b * inv_w
+                out_depth[z, y, x] = np.inf if covered and wsum < sky_only_weight else d * inv_w
+                out_alpha[z, y, x] = 1.0 if covered else 0.0
+                out_cov[z, y, x] = cov
+
+
+@njit(cache=True, nogil=True)
+def row_sources(depth, holes, out):
+    """``engine.geometry.holefill._row_sources_reference`` compiled: ``out`` (H, W) int64 = per hole pixel the column
+    of the farther (larger ``depth``; ties: the left one) of its nearest known left / right pixels on its
+    row, -1 for known pixels and rows without a known pixel."""
+    h, w = holes.shape
+    for y in range(h):
+        last = -1
+        for x in range(w):  # left neighbours, kept in ``out`` until the right pass
+            if holes[y, x]:
+                out[y, x] = last
+            else:
+                last = x
+                out[y, x] = -1
+        after = -1
+        for x in range(w - 1, -1, -1):
+            if not holes[y, x]:
+                after = x
+                continue
+            left = out[y, x]
+            depth_left = depth[y, left] if left >= 0 else -np.inf
+            depth_right = depth[y, after] if after >= 0 else -np.inf
+            out[y, x] = after if depth_right > depth_left else left
+
+
+@njit(cache=True, nogil=True)
+def one_hot_mpi(color, depth, half_inv, out_color, out_depth, out_alpha):
+    """``engine.geometry._build_mpi_reference`` compiled: each pixel of ``color`` (H, W, 3) / ``depth`` (H, W)
+    goes to the plane nearest in inverse depth (``half_inv``: the Z - 1 mid-points between the planes'
+    inverse depths; sky -> the farthest plane); ``out_*`` (3, Z, H, W) / (Z, H, W) are written whole."""
+    num_z = out_alpha.shape[0]
+    h, w = depth.shape
+    one, zero = _F32(1.0), _F32(0.0)
+    for z in range(num_z):
+        for y in range(h):
+            for x in range(w):
+                out_alpha[z, y, x] = zero
+                out_depth[z, y, x] = zero
+                out_color[0, z, y, x] = zero
+                out_color[1, z, y, x] = zero
+                out_color[2, z, y, x] = zero
+    for y in range(h):
+        for x in range(w):
+            d = depth[y, x]
+            z = _plane_of(one / d, half_inv)
+            out_alpha[z, y, x] = one
+            out_depth[z, y, x] = d
+            out_color[0, z, y, x] = color[y, x, 0]
+            out_color[1, z, y, x] = color[y, x, 1]
+            out_color[2, z, y, x] = color[y, x, 2]
+
+
+@njit(cache=True, nogil=True)
+def composite(color, depth, alpha, out_color, out_depth, out_acc):
+    """``engine.geometry._composite_reference`` compiled: front-to-back "over" of an MPI (colour (3, Z, H, W),
+    depth and alpha (Z, H, W)) into colour (H, W, 3), depth (H, W) (weight-normalised over the finite
+    surfaces seen; +inf where sky is seen or nothing is covered) and accumulated alpha (H, W)."""
+    num_z, h, w = alpha.shape
+    for y in range(h):
+        for x in range(w):
+            vis = _F32(1.0)
+            r = g = b = acc = dsum = _F32(0.0)
+            sky = False
+            for z in range(num_z):
+                a = alpha[z, y, x]
+                weight = a * vis
+                if z + 1 < num_z:
+                    vis = vis * (_F32(1.0) - a)
+                if not weight > 0.0:
+                    continue
+                r += color[0, z, y, x] * weight
+                g += color[1, z, y, x] * weight
+                b += color[2, z, y, x] * weight
+                acc += weight
+                d = depth[z, y, x]
+                if math.isinf(d):
+                    sky = True
+                else:
+                    dsum += d * weight
+            out_color[y, x, 0] = r
+            out_color[y, x, 1] = g
+            out_color[y, x, 2] = b
+            out_acc[y, x] = acc
+            out_depth[y, x] = dsum / acc if acc > 0.0 and not sky else np.inf
+
+
+@njit(cache=True, nogil=True)
+def _linear_taps(size, small, factor):
+    """OpenCV INTER_LINEAR taps of an upscale by ``factor``: per output index (past ``small * factor``: the
+    last one's), the left source index, the right one (clamped) and the right weight (float32)."""
+    left = np.empty(size, np.int64)
+    right = np.empty(size, np.int64)
+    weight = np.empty(size, np.float32)
+    inv = 1.0 / factor
+    for i in range(size):
+        f = _F32((min(i, small * factor - 1) + 0.5) * inv - 0.5)
+        s = math.floor(f)
+        t = f - _F32(s)
+        if s < 0:
+            s, t = 0, _F32(0.0)
+        if s >= small - 1:
+            s, t = small - 1, _F32(0.0)
+        left[i], right[i], weight[i] = s, min(s + 1, small - 1), t
+    return left, right, weight
+
+
+@njit(cache=True, nogil=True)
+def upsample_planes(packed, factor, full_alpha, scale, out):
+    """The full-resolution half of ``engine.predict.decomp.predictor.upsample_flow_reference``: per plane z, ``packed``
+    (Z, h, w, 4) (alpha-weighted (du, dv, dz) and alpha, already spread into empty neighbours) is sampled
+    bilinearly at each full-resolution pixel with ``full_alpha`` (Z, H, W) != 0, as OpenCV's INTER_LINEAR
+    resize by ``factor`` samples it (source x = (X + 0.5) / factor - 0.5, clamped at the borders; rows and
+    columns past the last whole block repeat the last one), then divided by the sampled alpha (0 where it
+    is <= 1e-6) and multiplied by ``scale`` (3,); ``out`` (3, Z, H, W) is written whole (0 where
+    ``full_alpha`` is 0)."""
+    num_z, h, w, _ = packed.shape
+    big_h, big_w = full_alpha.shape[1:]
+    top, bottom, v_weight = _linear_taps(big_h, h, factor)
+    left, right, u_weight = _linear_taps(big_w, w, factor)
+    one = _F32(1.0)
+    for z in range(num_z):
+        for y in range(big_h):
+            sy, sy1, v = top[y], bottom[y], v_weight[y]
+            for x in range(big_w):
+                if full_alpha[z, y, x] == 0.0:
+                    out[0, z, y, x] = out[1, z, y, x] = out[2, z, y, x] = 0.0
+                    continue
+                sx, sx1, u = left[x], right[x], u_weight[x]
+                a = (packed[z, sy, sx, 3] * (one - u) + packed[z, sy, sx1, 3] * u) * (one - v) \
+                    + (packed[z, sy1, sx, 3] * (one - u) + packed[z, sy1, sx1, 3] * u) * v
+                for c in range(3):
+                    value = (packed[z, sy, sx, c] * (one - u) + packed[z, sy, sx1, c] * u) * (one - v) \
+                        + (packed[z, sy1, sx, c] * (one - u) + packed[z, sy1, sx1, c] * u) * v
+                    out[c, z, y, x] = value / a * scale[c] if a > _F32(1e-6) else _F32(0.0)

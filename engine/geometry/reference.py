@@ -1,0 +1,188 @@
+"""numpy oracles of the compiled geometry (imported by tests and benchmarks only).
+
+Each computes what its fast twin computes, in plain numpy: ``build_mpi_reference`` (``mpi.build_mpi``),
+``composite_reference`` (``mpi.composite``), ``forward_warp_mpi_reference``
+(``splat.forward_warp_mpi_unchecked``, same arguments), ``row_sources_reference``
+(``holefill.fill_sources``' row search). The kernels reproduce them bit for bit (compositing to 1e-6).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from engine.geometry.holefill import nearest_known
+from engine.geometry.camera import pixel_grid, reprojection_matrix, reproject_points
+from engine.geometry.mpi import Mpi, nearest_plane, plane_depths, plane_index, visibility
+from engine.geometry.splat import (COVERAGE_THRESHOLD, MIN_LOG_WEIGHT, SCRATCH, SKY_ONLY_WEIGHT, SKY_WEIGHT,
+                                   SUBPIXEL_SNAP)
+
+#: Points per chunk of the numpy warp (work arrays of 32k values stay in the L2 cache).
+CHUNK = 1 << 15
+#: The splat pass skips the points that do not land (alpha 0 or outside the output) when fewer than this
+#: fraction land: e.g. a box-sized output of a whole frame costs in proportion to the box, not the frame.
+COMPACT_BELOW = 0.94
+
+
+def build_mpi_reference(color: np.ndarray, depth: np.ndarray, num_planes: int,
+                         planes: Optional[np.ndarray] = None) -> Mpi:
+    h, w = depth.shape
+    planes = plane_depths(depth, num_planes) if planes is None else planes
+    index = plane_index(depth, planes)
+    alpha = np.zeros((num_planes, h, w), dtype=np.float32)
+    np.put_along_axis(alpha, index[None], np.float32(1.0), axis=0)
+    on = alpha > 0
+    mpi_depth = np.where(on, depth[None], np.float32(0.0))
+    mpi_color = np.where(on[None], np.moveaxis(color, -1, 0)[:, None], np.float32(0.0))
+    return Mpi(mpi_color, mpi_depth, alpha, planes)
+
+
+def composite_reference(mpi: Mpi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    weight = mpi.alpha * visibility(mpi)
+    color = np.einsum("czhw,zhw->hwc", mpi.color, weight, optimize=False)
+    acc = weight.sum(axis=0)
+    seen = weight > 0
+    sky = (seen & np.isinf(mpi.depth)).any(axis=0)
+    depth_sum = (np.where(seen & ~np.isinf(mpi.depth), mpi.depth, np.float32(0.0)) * weight).sum(axis=0)
+    covered = (acc > 0) & ~sky
+    depth = np.where(covered, depth_sum / np.where(covered, acc, np.float32(1.0)), np.float32(np.inf))
+    return color, depth.astype(np.float32, copy=False), acc
+
+
+def _log_depth_range(z: np.ndarray, finite: np.ndarray, current: tuple[float, float]) -> tuple[float, float]:
+    """Update (min, max) of log(1 + z) over the ``finite`` points (finite z, alpha > 0, splatted)."""
+    if not finite.any():
+        return current
+    log_z = np.log1p(z[finite], dtype=np.float64)
+    return min(current[0], float(log_z.min())), max(current[1], float(log_z.max()))
+
+
+def _soft_zbuffer_weight(z: np.ndarray, sky: np.ndarray, log_range: tuple[float, float],
+                         sharpness: float) -> np.ndarray:
+    """exp(-sharpness * log(1 + z) / max log(1 + z)) relative to the nearest point (largest weight 1), float64.
+
+    ``log_range`` = (min, max) of log(1 + z) over the finite points of the warp (``_log_depth_range``). The
+    log-weight is clipped to [MIN_LOG_WEIGHT, 0]: finite points are >= e^MIN_LOG_WEIGHT, nothing overflows.
+    Sky points get SKY_WEIGHT = e^-300, so any finite point outweighs them by > e^200 (the torch reference
+    keeps sky in a separate layer instead: the results agree to ~1e-100).
+    """
+    lo, hi = log_range
+    log_z = np.log1p(np.where(sky, np.float32(0.0), z), dtype=np.float64)
+    if lo != np.inf:  # else no finite point is splatted at all
+        log_z -= lo
+    log_z *= -sharpness / max(hi, 1e-30)
+    np.clip(log_z, MIN_LOG_WEIGHT, 0.0, out=log_z)
+    weight = np.exp(log_z, out=log_z)
+    weight[sky] = SKY_WEIGHT
+    return weight
+
+
+def _bilinear_fraction(x: np.ndarray, limit: int):
+    """Integer left/top tap (padded coordinates, 1 = first pixel) and snapped fraction of the right/bottom tap."""
+    x = np.clip(x - np.float32(0.5), np.float32(-2.0), np.float32(limit + 1))
+    left = np.floor(x)
+    frac = np.clip((x - left - np.float32(SUBPIXEL_SNAP)) * np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)),
+                   np.float32(0.0), np.float32(1.0))
+    return left.astype(np.intp) + 1, frac
+
+
+def _splat(sums: np.ndarray, base, row, fx, fy, point_alpha, zbuf, values) -> None:
+    """Add a chunk of points to ``sums`` (2 + len(values), bins): bilinear splat with ``np.add.at``.
+
+    ``base`` is each point's top-left tap in the flat padded volume, whose rows are ``row`` long: the taps
+    are base, base + 1, base + row, base + row + 1 with weights (1-fx)(1-fy), fx(1-fy), (1-fx)fy, fx fy.
+    Row 0 of ``sums`` gets the coverage (weights times ``point_alpha``), row 1 the weight (coverage times
+    ``zbuf``), the others the weighted ``values``.
+    """
+    gx, gy = 1.0 - fx, 1.0 - fy
+    for offset, wx, wy in ((0, gx, gy), (1, fx, gy), (row, gx, fy), (row + 1, fx, fy)):
+        taps = base + offset
+        cover = np.multiply(wx, wy, dtype=np.float64)
+        cover *= point_alpha
+        weight = cover * zbuf
+        np.add.at(sums[0], taps, cover)
+        np.add.at(sums[1], taps, weight)
+        for i, value in enumerate(values):
+            np.add.at(sums[2 + i], taps, weight * value)
+
+
+def forward_warp_mpi_reference(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
+    """numpy body of ``forward_warp_mpi``: the oracle of the compiled ``forward_warp_mpi_unchecked`` (same arguments).
+
+    Points are processed in chunks of CHUNK so every temporary stays in cache and is recycled by the
+    allocator (fresh multi-megabyte arrays cost a page fault per 4 KiB); two passes, because the soft
+    z-buffer needs the depth range of the whole warp before the first splat.
+    """
+    color, depth, alpha, planes = mpi
+    num_z, h, w = alpha.shape
+    ho, wo = out_size
+    hp, wp = ho + 2, wo + 2
+    # the source points: every pixel of a one-plane MPI (in order, no gather), else the alpha > 0 ones
+    index = None if num_z == 1 else np.flatnonzero(alpha)
+    n = h * w if index is None else index.size
+    gu, gv = pixel_grid(h, w)
+    flat_depth, flat_alpha = depth.reshape(-1), alpha.reshape(-1)
+    flat_flow = None if object_flow is None else object_flow.reshape(3, -1)
+    flat_color = color.reshape(3, -1)
+    matrix = reprojection_matrix(k_src, t_src, k_dst, t_dst)
+    point_base = SCRATCH.get("base", n, np.intp)
+    point_fx, point_fy, point_z, point_alpha = (SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
+    log_range = (np.inf, 0.0)
+    # pass 1: reproject, pick the pixel taps and the destination plane of every point
+    for start in range(0, n, CHUNK):
+        part = slice(start, min(start + CHUNK, n))
+        src = part if index is None else index[part]
+        pixel = src if index is None else src % (h * w)
+        u, v, d = gu[pixel], gv[pixel], flat_depth[src]
+        if flat_flow is not None:
+            u, v, d = u + flat_flow[0, src], v + flat_flow[1, src], d + flat_flow[2, src]  # sky stays +inf
+        uo, vo, z, valid = reproject_points(u, v, d, matrix)
+        x0, point_fx[part] = _bilinear_fraction(uo, wo)
+        y0, point_fy[part] = _bilinear_fraction(vo, ho)
+        keep = valid & (x0 >= 0) & (x0 <= wo) & (y0 >= 0) & (y0 <= ho)  # else dropped: weight 0
+        a = point_alpha[part]
+        np.multiply(flat_alpha[src], keep, out=a)
+        plane = nearest_plane(np.float32(1.0) / np.where(valid, z, np.float32(1.0)), planes)  # sky: far
+        base = point_base[part]
+        np.multiply(plane * hp + y0, wp, out=base)
+        base += x0
+        base[~keep] = 0
+        point_z[part] = z
+        log_range = _log_depth_range(z, (a > 0) & np.isfinite(z), log_range)
+    # pass 2: splat [coverage, weight, weight * (r, g, b, z)] with the soft z-buffer, only the points that
+    # land (alpha > 0 inside the output): a box-sized output of a full frame splats the box's points only
+    kept = np.flatnonzero(point_alpha[:n])
+    compact = kept.size < COMPACT_BELOW * n
+    m = kept.size if compact else n
+    sums = SCRATCH.get("sums", 6 * num_z * hp * wp).reshape(6, -1)
+    sums.fill(0.0)
+    for start in range(0, m, CHUNK):
+        part = kept[start:start + CHUNK] if compact else slice(start, min(start + CHUNK, n))
+        src = part if index is None else index[part]
+        z = point_z[part]
+        sky = np.isinf(z)
+        zbuf = _soft_zbuffer_weight(z, sky, log_range, sharpness)
+        values = [flat_color[0, src], flat_color[1, src], flat_color[2, src], np.where(sky, np.float32(0.0), z)]
+        _splat(sums, point_base[part], wp, point_fx[part], point_fy[part], point_alpha[part], zbuf, values)
+    cov, wsum, r, g, b, dsum = (s.reshape(num_z, hp, wp)[:, 1:ho + 1, 1:wo + 1] for s in sums)
+    # normalise; pixels whose weight is all sky (below any finite point's) get depth +inf
+    covered = cov > COVERAGE_THRESHOLD
+    inv_w = np.divide(1.0, wsum, out=np.zeros_like(wsum), where=covered & (wsum > 0))
+    out_color = np.empty((3,) + covered.shape, dtype=np.float32)
+    for c, channel in enumerate((r, g, b)):
+        np.multiply(channel, inv_w, out=out_color[c])
+    out_depth = np.empty(covered.shape, dtype=np.float32)
+    np.multiply(dsum, inv_w, out=out_depth)
+    out_depth[covered & (wsum < SKY_ONLY_WEIGHT)] = np.inf
+    warped = Mpi(out_color, out_depth, covered.astype(np.float32), planes)
+    return warped, cov.astype(np.float32)
+
+
+def row_sources_reference(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """numpy ``holefill.row_sources``: the oracle of the compiled kernel."""
+    left, right = nearest_known(~holes)
+    rows = np.broadcast_to(np.arange(holes.shape[0])[:, None], holes.shape)
+    depth_left = np.where(left >= 0, depth[rows, np.maximum(left, 0)], -np.inf)
+    depth_right = np.where(right >= 0, depth[rows, np.maximum(right, 0)], -np.inf)
+    source = np.where(depth_right > depth_left, right, left)
+    return np.where(holes, source, -1)

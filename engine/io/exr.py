@@ -1,0 +1,82 @@
+"""Small OpenEXR helpers over the ``OpenEXR`` 3.x package: channel dicts in, channel dicts out.
+
+Arrays are (H, W), row 0 at the top of the image (EXR scanline order). HALF and FLOAT channels are
+returned as float32; UINT channels as uint32. Only the first part of a multi-part file is read.
+
+>>> write_exr("a.exr", {"R": r, "G": g, "B": b, "Z": z}, half={"R", "G", "B"})  # doctest: +SKIP
+>>> read_exr("a.exr")["Z"].dtype  # doctest: +SKIP
+dtype('float32')
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import OpenEXR
+
+from engine.core.errors import InputError
+
+_MAGIC = b"\x76\x2f\x31\x01"
+
+
+@dataclass(frozen=True)
+class ExrInfo:
+    """What an EXR header says: image size and channel names (in file order)."""
+
+    width: int
+    height: int
+    channels: tuple[str, ...]
+
+
+def _check_exr(path: Path) -> None:
+    if not path.is_file():
+        raise InputError("file does not exist", file=path)
+    with open(path, "rb") as f:
+        if f.read(4) != _MAGIC:
+            raise InputError("is not an OpenEXR file (bad magic number)", file=path)
+
+
+def read_exr_info(path: str | Path) -> ExrInfo:
+    """Read only the header of an EXR: size (from the data window) and channel names."""
+    path = Path(path)
+    _check_exr(path)
+    try:
+        header = OpenEXR.File(str(path), header_only=True).header()
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise InputError(f"cannot read EXR header ({exc})", file=path) from None
+    lo, hi = header["dataWindow"]
+    names = tuple(c.name for c in header["channels"])
+    return ExrInfo(width=int(hi[0] - lo[0] + 1), height=int(hi[1] - lo[1] + 1), channels=names)
+
+
+def read_exr(path: str | Path) -> dict[str, np.ndarray]:
+    """Read every channel of an EXR: name -> (H, W) array, float32 for HALF/FLOAT, uint32 for UINT.
+
+    Raises InputError naming the file if it is missing, not an EXR, or unreadable (e.g. truncated).
+    """
+    path = Path(path)
+    _check_exr(path)
+    try:
+        channels = OpenEXR.File(str(path), separate_channels=True).channels()
+        out = {name: ch.pixels for name, ch in channels.items()}
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise InputError(f"cannot read EXR pixels ({exc})", file=path) from None
+    return {name: (a.astype(np.float32) if a.dtype == np.float16 else a) for name, a in out.items()}
+
+
+def write_exr(path: str | Path, channels: Mapping[str, np.ndarray],
+              half: set[str] | frozenset[str] = frozenset()) -> None:
+    """Write (H, W) channels to a single-part, ZIP-compressed scanline EXR.
+
+    Channels named in ``half`` are stored as HALF (16-bit float); every other channel is stored as FLOAT
+    (32-bit), so float32 data round-trips bit-exactly. Integer and boolean arrays are stored as FLOAT.
+    """
+    data = {name: np.ascontiguousarray(a, dtype=np.float16 if name in half else np.float32)
+            for name, a in channels.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    try:
+        OpenEXR.File(header, data).write(str(path))
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise InputError(f"cannot write EXR ({exc})", file=path) from None

@@ -1,0 +1,519 @@
+"""Read and write rgbd-seq (version 1) sequences and rgbd-rig captures.
+
+The on-disk format is specified in ``shared/formats/rgbd-seq.md``; in short::
+
+    <sequence>/sequence.json           metadata, cameras, object transforms
+    <sequence>/frames/000000.exr       R, G, B, Z (+ object_id, moving, flow.X/Y, object_flow.X/Y)
+
+Conventions (the same as :mod:`engine.core.frames`): OpenCV camera axes (x right, y down, z forward),
+``world_to_camera`` rigid 4x4, pixel (u, v) centred at (u + 0.5, v + 0.5), planar depth > 0 with +inf for
+sky, flow in pixels from this frame to the next (x right, y down). In memory colour is always linear
+Rec.709 (``linear-srgb``); ``srgb`` files are decoded with the exact sRGB EOTF on load.
+
+All metadata is validated eagerly by :func:`read_sequence` (a bad pose in frame 9 000 fails at open
+time); pixel data is decoded and validated lazily, one frame per ``seq[i]``.
+
+>>> seq = read_sequence("capture/cam0")            # doctest: +SKIP
+>>> frame = seq[0]; frame.depth.shape == (seq.height, seq.width)  # doctest: +SKIP
+True
+>>> seq.has_channel("object_flow")                 # doctest: +SKIP
+False
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping
+
+import numpy as np
+
+from engine.core.colorspace import linear_to_srgb, srgb_to_linear
+from engine.core.errors import InputError
+from engine.io.exr import read_exr, read_exr_info, write_exr
+from engine.core.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
+
+FORMAT = "rgbd-seq"
+RIG_FORMAT = "rgbd-rig"
+VERSION = 1
+COLOR_SPACES = ("linear-srgb", "srgb")
+REQUIRED_CHANNELS = ("R", "G", "B", "Z")
+#: EXR channels of each Frame field. ``has_channel`` accepts a field name or a channel name.
+FIELD_CHANNELS: dict[str, tuple[str, ...]] = {
+    "color": ("R", "G", "B"),
+    "depth": ("Z",),
+    "object_id": ("object_id",),
+    "moving": ("moving",),
+    "flow": ("flow.X", "flow.Y"),
+    "object_flow": ("object_flow.X", "object_flow.Y"),
+}
+#: Largest difference (seconds) between the times of frame i of two cameras of a rig.
+RIG_TIME_TOLERANCE = 1e-6
+
+
+# --------------------------------------------------------------------------------------------------
+# sRGB transfer function (IEC 61966-2-1)
+# --------------------------------------------------------------------------------------------------
+
+# --------------------------------------------------------------------------------------------------
+# JSON field checks (each raises InputError naming file, frame and field)
+# --------------------------------------------------------------------------------------------------
+
+def _load_header(path: Path, expected_format: str) -> dict[str, Any]:
+    """Load a metadata JSON and check its ``format`` and ``version`` fields."""
+    meta = _load_json(path)
+    if meta.get("format") != expected_format:
+        raise InputError(f"must be '{expected_format}', got {meta.get('format')!r}", file=path, field="format")
+    version = meta.get("version")
+    if isinstance(version, bool) or version != VERSION:
+        raise InputError(f"unsupported version {version!r} (this reader knows version {VERSION})",
+                         file=path, field="version")
+    return meta
+
+
+def _load_json(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise InputError("file does not exist", file=path)
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"is not valid JSON ({exc})", file=path) from None
+    if not isinstance(data, dict):
+        raise InputError(f"must hold a JSON object, got {type(data).__name__}", file=path)
+    return data
+
+
+def _get(obj: Mapping[str, Any], key: str, file: Path, frame: int | None = None, name: str | None = None) -> Any:
+    if key not in obj:
+        raise InputError(f"missing key '{key}'", file=file, frame=frame, field=name or key)
+    return obj[key]
+
+
+def _int(value: Any, file: Path, name: str, frame: int | None = None, minimum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"must be an integer, got {value!r}", file=file, frame=frame, field=name)
+    if minimum is not None and value < minimum:
+        raise InputError(f"must be >= {minimum}, got {value}", file=file, frame=frame, field=name)
+    return int(value)
+
+
+def _finite(value: Any, file: Path | None, name: str, frame: int | None = None, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value):
+        raise InputError(f"must be a finite number, got {value!r}", file=file, frame=frame, field=name)
+    if positive and value <= 0:
+        raise InputError(f"must be > 0, got {value}", file=file, frame=frame, field=name)
+    return float(value)
+
+
+def _choice(value: Any, allowed: tuple[str, ...], file: Path, name: str) -> str:
+    if value not in allowed:
+        raise InputError(f"must be one of {list(allowed)}, got {value!r}", file=file, field=name)
+    return value
+
+
+def _parse_objects(raw: Any, indices: list[int] | None, file: Path | None) -> list[SceneObject]:
+    """Validate the ``objects`` list; with ``indices`` also check one transform per frame."""
+    if not isinstance(raw, list):
+        raise InputError(f"must be a list, got {type(raw).__name__}", file=file, field="objects")
+    objects: list[SceneObject] = []
+    for k, entry in enumerate(raw):
+        if not isinstance(entry, dict):
+            raise InputError("must be an object", file=file, field=f"objects[{k}]")
+        oid = _int(_get(entry, "id", file, name=f"objects[{k}].id"), file, f"objects[{k}].id", minimum=1)
+        where = f"objects[id={oid}]"
+        if any(o.id == oid for o in objects):
+            raise InputError(f"duplicate object id {oid}", file=file, field=f"{where}.id")
+        name = _get(entry, "name", file, name=f"{where}.name")
+        moving = _get(entry, "moving", file, name=f"{where}.moving")
+        if not isinstance(name, str):
+            raise InputError(f"must be a string, got {name!r}", file=file, field=f"{where}.name")
+        if not isinstance(moving, bool):
+            raise InputError(f"must be true or false, got {moving!r}", file=file, field=f"{where}.moving")
+        transforms = _get(entry, "world_from_object", file, name=f"{where}.world_from_object")
+        try:
+            transforms = np.asarray(transforms, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"is not a numeric array ({exc})", file=file, field=f"{where}.world_from_object") from None
+        n = len(transforms) if indices is None else len(indices)
+        if transforms.shape != (n, 4, 4):
+            raise InputError(f"must have shape ({n}, 4, 4) (one transform per frame), got {transforms.shape}",
+                             file=file, field=f"{where}.world_from_object")
+        for f, transform in enumerate(transforms):
+            validate_pose(transform, file=file, frame=f if indices is None else indices[f],
+                          field_name=f"{where}.world_from_object")
+        objects.append(SceneObject(id=oid, name=name, moving=moving, world_from_object=transforms))
+    return objects
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------------
+
+@dataclass(eq=False)
+class RgbdSequence:
+    """An rgbd-seq on disk with validated metadata; frames are decoded on access.
+
+    ``seq[i]`` is the i-th listed frame (position, not ``index``; negative positions count from the end);
+    ``seq.indices[i]`` is its frame number. Each access reads, validates and returns a fresh
+    :class:`Frame` (colour linear, depth planar, OpenCV camera).
+
+    Attributes:
+        path: the sequence folder.
+        width, height: frame size in pixels.
+        fps: nominal frame rate.
+        color_space: ``linear-srgb`` or ``srgb`` (how the EXR colour is stored; frames are always linear).
+        cameras: per-frame :class:`Camera`.
+        times: (N,) float64 seconds.
+        indices: (N,) int64 frame numbers, strictly increasing.
+        files: per-frame EXR paths.
+        objects: scene objects with one world-from-object transform per frame.
+    """
+
+    path: Path
+    width: int
+    height: int
+    fps: float
+    color_space: str
+    cameras: list[Camera] = field(repr=False)
+    times: np.ndarray = field(repr=False)
+    indices: np.ndarray = field(repr=False)
+    files: list[Path] = field(repr=False)
+    objects: list[SceneObject] = field(repr=False)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, position: int) -> Frame:
+        if not -len(self) <= position < len(self):
+            raise IndexError(f"frame position {position} out of range for {len(self)} frames")
+        return self._load(position % len(self))
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self._load(k) for k in range(len(self)))
+
+    @cached_property
+    def channels(self) -> tuple[str, ...]:
+        """EXR channel names of the first frame (read from its header only)."""
+        return read_exr_info(self.files[0]).channels
+
+    def has_channel(self, name: str) -> bool:
+        """Whether the first frame carries ``name``.
+
+        ``name`` is a Frame field (``"flow"``, ``"object_flow"``, ``"object_id"``, ``"moving"``: true when
+        all its EXR channels are present) or an EXR channel name (``"flow.X"``). Later frames are assumed
+        to carry the same channels; a frame that does not simply loads with that field set to None.
+        """
+        return all(c in self.channels for c in FIELD_CHANNELS.get(name, (name,)))
+
+    def _load(self, k: int) -> Frame:
+        file, index = self.files[k], int(self.indices[k])
+        ch = read_exr(file)
+        missing = [c for c in REQUIRED_CHANNELS if c not in ch]
+        if missing:
+            raise InputError(
+                f"missing required channel(s) {missing}; channels present: {sorted(ch)}. rgbd-seq needs "
+                f"R, G, B and Z (planar depth); other layouts can be converted with engine.io.importers",
+                file=file, frame=index, field=missing[0])
+        if ch["Z"].shape != (self.height, self.width):
+            h, w = ch["Z"].shape
+            raise InputError(f"image is {w}x{h}, sequence.json says {self.width}x{self.height}",
+                             file=file, frame=index, field="Z")
+        optional: dict[str, np.ndarray | None] = {}
+        for name in ("object_id", "moving", "flow", "object_flow"):
+            names = FIELD_CHANNELS[name]
+            present = [c for c in names if c in ch]
+            if present and len(present) < len(names):
+                absent = [c for c in names if c not in ch]
+                raise InputError(f"has {present} without {absent}: both components are needed",
+                                 file=file, frame=index, field=present[0])
+            optional[name] = np.stack([ch[c] for c in names], axis=-1) if present else None
+        color = np.stack([ch["R"], ch["G"], ch["B"]], axis=-1)
+        if self.color_space == "srgb":
+            outside = int(np.count_nonzero((color < 0) | (color > 1)))
+            if outside:
+                raise InputError(f"has {outside} values outside [0, 1] (color_space is srgb)",
+                                 file=file, frame=index, field="RGB")
+            color = srgb_to_linear(color)
+        frame = Frame(index=index, time=float(self.times[k]), color=color, depth=ch["Z"], camera=self.cameras[k],
+                      object_id=None if optional["object_id"] is None else optional["object_id"][..., 0],
+                      moving=None if optional["moving"] is None else optional["moving"][..., 0],
+                      flow=optional["flow"], object_flow=optional["object_flow"])
+        return validate_frame(frame, file=file)
+
+
+def read_sequence(path: str | Path) -> RgbdSequence:
+    """Open an rgbd-seq folder (or its ``sequence.json``) and validate all of its metadata.
+
+    Checks: format/version, positive integer width/height, fps > 0, color_space, depth == planar-z,
+    camera_convention == opencv, each frame's index/time/file/intrinsics/world_to_camera, strictly
+    increasing indices, non-decreasing finite times, that every frame file exists, and the objects.
+    Pixel data is not read (see :class:`RgbdSequence`).
+
+    Raises:
+        InputError: naming the file, frame and field of the first problem found.
+    """
+    root = Path(path)
+    if root.name == "sequence.json":
+        root = root.parent
+    meta_file = root / "sequence.json"
+    meta = _load_header(meta_file, FORMAT)
+    width = _int(_get(meta, "width", meta_file), meta_file, "width", minimum=1)
+    height = _int(_get(meta, "height", meta_file), meta_file, "height", minimum=1)
+    fps = _finite(_get(meta, "fps", meta_file), meta_file, "fps", positive=True)
+    color_space = _choice(_get(meta, "color_space", meta_file), COLOR_SPACES, meta_file, "color_space")
+    _choice(_get(meta, "depth", meta_file), ("planar-z",), meta_file, "depth")
+    _choice(_get(meta, "camera_convention", meta_file), ("opencv",), meta_file, "camera_convention")
+    entries = _get(meta, "frames", meta_file)
+    if not isinstance(entries, list) or not entries:
+        raise InputError("must be a non-empty list", file=meta_file, field="frames")
+
+    cameras, times, indices, files = [], [], [], []
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise InputError("must be an object", file=meta_file, field=f"frames[{k}]")
+        index = _int(_get(entry, "index", meta_file, frame=k), meta_file, "index", frame=k, minimum=0)
+        time = _finite(_get(entry, "time", meta_file, frame=index), meta_file, "time", frame=index)
+        if indices and index <= indices[-1]:
+            raise InputError(f"index {index} follows {indices[-1]}: indices must be strictly increasing",
+                             file=meta_file, frame=index, field="index")
+        if times and time < times[-1]:
+            raise InputError(f"time {time} is before the previous frame's {times[-1]}: times must not decrease",
+                             file=meta_file, frame=index, field="time")
+        rel = _get(entry, "file", meta_file, frame=index)
+        if not isinstance(rel, str) or not rel:
+            raise InputError(f"must be a relative path string, got {rel!r}", file=meta_file, frame=index, field="file")
+        intrinsics = validate_intrinsics(_get(entry, "intrinsics", meta_file, frame=index), file=meta_file, frame=index)
+        pose = validate_pose(_get(entry, "world_to_camera", meta_file, frame=index), file=meta_file, frame=index)
+        if not (root / rel).is_file():
+            raise InputError(f"frame file {rel} does not exist (listed in {meta_file})",
+                             file=root / rel, frame=index, field="file")
+        cameras.append(Camera(intrinsics, pose))
+        times.append(time)
+        indices.append(index)
+        files.append(root / rel)
+    objects = _parse_objects(meta.get("objects", []), indices, meta_file)
+    return RgbdSequence(path=root, width=width, height=height, fps=fps, color_space=color_space,
+                        cameras=cameras, times=np.asarray(times, dtype=np.float64),
+                        indices=np.asarray(indices, dtype=np.int64), files=files, objects=objects)
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------------
+
+def _frame_channels(frame: Frame, color_space: str, file: Path) -> dict[str, np.ndarray]:
+    color = frame.color
+    if color_space == "srgb":
+        over = int(np.count_nonzero(color > 1))
+        if over:
+            raise InputError(f"has {over} values > 1, which srgb cannot store; write linear-srgb instead",
+                             file=file, frame=frame.index, field="RGB")
+        color = linear_to_srgb(color)
+    channels = {"R": color[..., 0], "G": color[..., 1], "B": color[..., 2], "Z": frame.depth}
+    for name in ("object_id", "moving"):
+        if getattr(frame, name) is not None:
+            channels[name] = getattr(frame, name)
+    for name in ("flow", "object_flow"):
+        if getattr(frame, name) is not None:
+            channels[f"{name}.X"], channels[f"{name}.Y"] = getattr(frame, name)[..., 0], getattr(frame, name)[..., 1]
+    return channels
+
+
+def _objects_json(objects: list[SceneObject]) -> list[dict[str, Any]]:
+    return [{"id": o.id, "name": o.name, "moving": o.moving,
+             "world_from_object": np.asarray(o.world_from_object, dtype=np.float64).tolist()} for o in objects]
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON atomically, one line per top-level key and per entry of a list of objects (frames)."""
+    lines = []
+    for key, value in data.items():
+        if isinstance(value, list) and value and isinstance(value[0], dict):
+            items = ",\n    ".join(json.dumps(v) for v in value)
+            lines.append(f"  {json.dumps(key)}: [\n    {items}\n  ]")
+        else:
+            lines.append(f"  {json.dumps(key)}: {json.dumps(value)}")
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text("{\n" + ",\n".join(lines) + "\n}\n")
+    os.replace(tmp, path)
+
+
+def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
+                   objects: list[SceneObject] | None = None, color_space: str = "linear-srgb",
+                   half_color: bool = False, progress: bool = False) -> Path:
+    """Write frames as an rgbd-seq folder: ``frames/<index:06d>.exr`` per frame, then ``sequence.json``.
+
+    Frames are consumed one at a time (a generator is never held in memory), each validated with
+    :func:`validate_frame` before it is written. Their indices must strictly increase, times must not
+    decrease, and all must have the same size. Optional channels are written for the frames that carry
+    them. Colour is stored as FLOAT (bit-exact round trip) or, with ``half_color``, as HALF; Z, flow and
+    the other channels are always FLOAT. With ``color_space="srgb"`` the (linear) colour is encoded with
+    the sRGB transfer function and must lie in [0, 1]. An existing ``sequence.json`` is removed first and
+    the new one written last, atomically, so a folder without it is an interrupted write. Existing frame
+    files of the same names are replaced.
+
+    Args:
+        path: the sequence folder (created if needed).
+        frames: the frames, in order.
+        fps: nominal frame rate, > 0.
+        objects: scene objects, each with one world-from-object transform per written frame.
+        color_space: ``linear-srgb`` or ``srgb``.
+        half_color: store R, G, B as 16-bit floats.
+        progress: show a progress bar (tqdm).
+
+    Returns:
+        The sequence folder.
+    """
+    root = Path(path)
+    meta_file = root / "sequence.json"
+    fps = _finite(fps, None, "fps", positive=True)
+    if color_space not in COLOR_SPACES:
+        raise InputError(f"must be one of {list(COLOR_SPACES)}, got {color_space!r}", field="color_space")
+    objects_raw = _objects_json(objects or [])
+    _parse_objects(objects_raw, None, None)  # ids and rigidity now; the per-frame count once all are written
+    if progress:
+        from tqdm import tqdm
+        frames = tqdm(frames, desc=f"writing {root.name}", unit="frame")
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    meta_file.unlink(missing_ok=True)  # until the new one is written, the folder reads as incomplete
+    entries: list[dict[str, Any]] = []
+    for frame in frames:
+        if isinstance(frame.index, bool) or not isinstance(frame.index, (int, np.integer)) or frame.index < 0:
+            raise InputError(f"must be a non-negative integer, got {frame.index!r}", field="index")
+        rel = f"frames/{int(frame.index):06d}.exr"
+        frame = validate_frame(frame, file=root / rel)
+        where = dict(file=root / rel, frame=frame.index)
+        if entries:
+            first = entries[0]
+            if (frame.width, frame.height) != (first["_w"], first["_h"]):
+                raise InputError(f"is {frame.width}x{frame.height}, the first frame is {first['_w']}x{first['_h']}",
+                                 **where, field="Z")
+            if frame.index <= entries[-1]["index"]:
+                raise InputError(f"index {frame.index} follows {entries[-1]['index']}: indices must strictly increase",
+                                 **where, field="index")
+            if frame.time < entries[-1]["time"]:
+                raise InputError(f"time {frame.time} is before the previous frame's {entries[-1]['time']}",
+                                 **where, field="time")
+        write_exr(root / rel, _frame_channels(frame, color_space, root / rel),
+                  half={"R", "G", "B"} if half_color else frozenset())
+        entries.append({"index": int(frame.index), "time": float(frame.time), "file": rel,
+                        "intrinsics": frame.camera.intrinsics.tolist(),
+                        "world_to_camera": frame.camera.world_to_camera.tolist(),
+                        "_w": frame.width, "_h": frame.height})
+    if not entries:
+        raise InputError("no frames to write", file=meta_file, field="frames")
+    _parse_objects(objects_raw, [e["index"] for e in entries], meta_file)
+    meta = {"format": FORMAT, "version": VERSION, "width": entries[0]["_w"], "height": entries[0]["_h"],
+            "fps": fps, "color_space": color_space, "depth": "planar-z", "camera_convention": "opencv",
+            "frames": [{k: v for k, v in e.items() if not k.startswith("_")} for e in entries]}
+    if objects_raw:
+        meta["objects"] = objects_raw
+    _write_json(meta_file, meta)
+    return root
+
+
+# --------------------------------------------------------------------------------------------------
+# Multi-camera rigs
+# --------------------------------------------------------------------------------------------------
+
+@dataclass(eq=False)
+class RgbdRig:
+    """A synchronized multi-camera capture: one :class:`RgbdSequence` per camera, same frame count and times.
+
+    Attributes:
+        path: the capture folder (holding ``rig.json``).
+        cameras: camera name -> its sequence, in ``rig.json`` order.
+        train_cameras, test_cameras: the default split (tools may override it).
+    """
+
+    path: Path
+    cameras: dict[str, RgbdSequence] = field(repr=False)
+    train_cameras: list[str]
+    test_cameras: list[str]
+
+    def __len__(self) -> int:
+        """Number of frames (time steps), the same for every camera."""
+        return len(next(iter(self.cameras.values())))
+
+    @property
+    def times(self) -> np.ndarray:
+        """(N,) float64 seconds, shared by all cameras (those of the first camera)."""
+        return next(iter(self.cameras.values())).times
+
+
+def _check_rig_names(cameras: Any, train: Any, test: Any, file: Path) -> tuple[list[str], list[str], list[str]]:
+    if not isinstance(cameras, list) or not cameras:
+        raise InputError("must be a non-empty list of camera folder names", file=file, field="cameras")
+    for name in cameras:
+        if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name:
+            raise InputError(f"{name!r} is not a plain folder name", file=file, field="cameras")
+    if len(set(cameras)) != len(cameras):
+        raise InputError(f"has duplicate names: {cameras}", file=file, field="cameras")
+    for key, names in (("train_cameras", train), ("test_cameras", test)):
+        if not isinstance(names, list):
+            raise InputError("must be a list of camera names", file=file, field=key)
+        unknown = [n for n in names if n not in cameras]
+        if unknown:
+            raise InputError(f"names cameras not in 'cameras' {cameras}: {unknown}", file=file, field=key)
+    return list(cameras), list(train), list(test)
+
+
+def _check_synchronized(sequences: Mapping[str, RgbdSequence]) -> None:
+    (first_name, first), *others = sequences.items()
+    for name, seq in others:
+        meta_file = seq.path / "sequence.json"
+        if len(seq) != len(first):
+            raise InputError(f"camera '{name}' has {len(seq)} frames, camera '{first_name}' has {len(first)}",
+                             file=meta_file, field="frames")
+        off = np.flatnonzero(np.abs(seq.times - first.times) > RIG_TIME_TOLERANCE)
+        if off.size:
+            k = int(off[0])
+            raise InputError(f"camera '{name}' has time {seq.times[k]} at position {k}, camera '{first_name}' "
+                             f"has {first.times[k]}: frame i of every camera must share its time",
+                             file=meta_file, frame=int(seq.indices[k]), field="time")
+
+
+def read_rig(path: str | Path) -> RgbdRig:
+    """Open an rgbd-rig capture (folder or its ``rig.json``) and validate it and every camera's sequence.
+
+    Raises InputError for a bad ``rig.json`` (format, version, camera names, split naming unknown cameras)
+    or cameras that differ in frame count or times (beyond ``RIG_TIME_TOLERANCE``).
+    """
+    root = Path(path)
+    if root.name == "rig.json":
+        root = root.parent
+    rig_file = root / "rig.json"
+    meta = _load_header(rig_file, RIG_FORMAT)
+    cameras, train, test = _check_rig_names(_get(meta, "cameras", rig_file), meta.get("train_cameras", []),
+                                            meta.get("test_cameras", []), rig_file)
+    sequences = {name: read_sequence(root / name) for name in cameras}
+    _check_synchronized(sequences)
+    return RgbdRig(path=root, cameras=sequences, train_cameras=train, test_cameras=test)
+
+
+def write_rig(path: str | Path, camera_sequences: Mapping[str, Iterable[Frame]], train: list[str],
+              test: list[str], *, fps: float, objects: list[SceneObject] | None = None,
+              color_space: str = "linear-srgb", half_color: bool = False, progress: bool = False) -> Path:
+    """Write an rgbd-rig: one rgbd-seq per camera (``<path>/<name>/``, see :func:`write_sequence`), then ``rig.json``.
+
+    ``camera_sequences`` maps camera folder names to their frames (any iterable, e.g. an
+    :class:`RgbdSequence` or a generator); frame i of every camera must share its time. ``rig.json`` is
+    written only after every sequence is written and the cameras are checked to be synchronized.
+
+    Returns:
+        The capture folder.
+    """
+    root = Path(path)
+    rig_file = root / "rig.json"
+    cameras, train, test = _check_rig_names(list(camera_sequences), list(train), list(test), rig_file)
+    for name in cameras:
+        write_sequence(root / name, camera_sequences[name], fps=fps, objects=objects, color_space=color_space,
+                       half_color=half_color, progress=progress)
+    _check_synchronized({name: read_sequence(root / name) for name in cameras})
+    _write_json(rig_file, {"format": RIG_FORMAT, "version": VERSION, "cameras": cameras,
+                           "train_cameras": train, "test_cameras": test})
+    return root

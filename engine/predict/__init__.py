@@ -1,0 +1,1 @@
+"""Frame predictors: the interface, the registry (``decomp[k=v]`` parsed here), the classic methods, DeCOMPnet."""

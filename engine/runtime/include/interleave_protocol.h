@@ -1,0 +1,198 @@
+/*
+ * interleave_protocol.h - wire format of `interleave serve`, protocol version 1.
+ *
+ * The Python side is engine/runtime/protocol.py; tests/test_server.py compiles this header and checks that every
+ * constant, struct size and field offset below matches it. Prose: docs/server.md.
+ *
+ * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1). Every message, request or reply,
+ * is one il_header followed by header.payload_size bytes. All integers and doubles are little-endian
+ * (x86-64 and ARM64 hosts need no conversion); structs are packed by their natural alignment (no
+ * padding is implied anywhere: the static asserts below hold on any C11 compiler).
+ *
+ * Exchange:
+ *   HELLO   il_hello            -> il_layout          one session per connection; shared memory created
+ *   SUBMIT  il_frame            -> il_submit_reply    colour + depth already written to shared memory
+ *   PREDICT il_frame            -> il_predict_reply   colour + holes read back from shared memory
+ *   RESET   il_reset            -> il_layout          clear history; a new size moves to a new segment
+ *   BYE     (empty)             -> (empty)            the server frees the session and closes
+ * A reply has type = request type | IL_MSG_REPLY and echoes request_id. status != IL_OK replies carry
+ * UTF-8 error text (not NUL-terminated) as payload. Replies come in request order; requests may be
+ * pipelined. After IL_BAD_MAGIC, IL_BAD_VERSION, IL_TOO_LARGE or IL_TRUNCATED the server closes the
+ * connection; after any other error the connection stays usable.
+ *
+ * Shared memory: il_layout.shm_name is a POSIX name for shm_open(name, O_RDWR, 0) + mmap(shm_size).
+ * The server owns and unlinks it (on BYE, disconnect, a size change, or server shutdown). Images are
+ * row-major, row 0 at the top (bottom-up readbacks: set IL_FLAG_FLIP_ROWS), pixels interleaved:
+ *   color_in  : height * width * channels, float32 (IL_COLOR_LINEAR, IL_COLOR_SRGB) or uint8 (IL_COLOR_SRGB8)
+ *   depth     : height * width float32, in il_hello.depth_convention (IL_DEPTH_LINEAR: planar, engine units)
+ *   color_out : like color_in, in il_hello.color_out (alpha, if channels == 4, is 1.0 or 255)
+ *   holes     : height * width uint8, 1 where no rendered pixel landed (filled by the hole fill)
+ * The server copies color_in / depth during SUBMIT: once the reply arrives they may be overwritten.
+ * color_out / holes stay valid until the next request.
+ *
+ * Matrices: 16 doubles, row-major (m[4 * row + col]) math matrices, unless IL_FLAG_COLUMN_MAJOR (GLM,
+ * Unity Matrix4x4, Godot Projection memory order). Per engine (docs/server.md, engine/runtime/session.py):
+ *   IL_ENGINE_OPENCV : view = world_to_camera (x right, y down, z forward); projection = K in the top-left 3x3
+ *   IL_ENGINE_OPENGL : view = world -> eye (looks down -z); projection = perspective, clip = P * eye
+ *   IL_ENGINE_UNITY  : view = camera.worldToCameraMatrix; projection = camera.projectionMatrix
+ *   IL_ENGINE_GODOT  : view = camera.get_camera_transform().affine_inverse(); projection = get_camera_projection()
+ *   IL_ENGINE_UNREAL : view = the camera's FMatrix (row vectors, translation in row 3) as Unreal stores it;
+ *                      projection = FReversedZPerspectiveMatrix / FPerspectiveMatrix as Unreal stores it
+ */
+#ifndef INTERLEAVE_PROTOCOL_H
+#define INTERLEAVE_PROTOCOL_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#define IL_MAGIC 0x4C544E49u /* "INTL" in memory */
+#define IL_VERSION 1
+#define IL_MAX_PAYLOAD 65536
+#define IL_MAX_SIDE 16384
+#define IL_ALIGNMENT 64
+
+/* il_header.type */
+#define IL_MSG_HELLO 1
+#define IL_MSG_SUBMIT 2
+#define IL_MSG_PREDICT 3
+#define IL_MSG_RESET 4
+#define IL_MSG_BYE 5
+#define IL_MSG_REPLY 0x8000 /* or-ed into the type of every reply */
+#define IL_MSG_ERROR 0xFFFF /* reply to a header that could not be read */
+
+/* il_header.status (0 in requests) */
+#define IL_OK 0
+#define IL_BAD_MAGIC 1   /* connection closed after the reply */
+#define IL_BAD_VERSION 2 /* connection closed after the reply */
+#define IL_UNKNOWN_TYPE 3
+#define IL_BAD_SIZE 4  /* payload_size does not match the type */
+#define IL_TOO_LARGE 5 /* payload_size > IL_MAX_PAYLOAD; connection closed after the reply */
+#define IL_TRUNCATED 6 /* stream ended inside a message; connection closed after the reply */
+#define IL_NO_SESSION 7
+#define IL_BAD_INPUT 8 /* NaN pixels, non-rigid pose, unknown method, ...: the text names the frame */
+#define IL_NOT_READY 9 /* PREDICT before any SUBMIT since HELLO / RESET */
+#define IL_INTERNAL 10
+
+/* il_hello.engine */
+#define IL_ENGINE_OPENCV 0
+#define IL_ENGINE_OPENGL 1
+#define IL_ENGINE_UNITY 2
+#define IL_ENGINE_UNREAL 3
+#define IL_ENGINE_GODOT 4
+
+/* il_hello.depth_convention (engine/conventions/cameras.py, decode_depth_buffer) */
+#define IL_DEPTH_OPENGL 0            /* (ndc_z + 1) / 2, near -> 0 */
+#define IL_DEPTH_D3D 1               /* ndc_z in [0, 1], near -> 0 */
+#define IL_DEPTH_REVERSED 2          /* near -> 1, far -> 0 (0 = sky) */
+#define IL_DEPTH_INFINITE 3          /* standard, far = inf */
+#define IL_DEPTH_REVERSED_INFINITE 4 /* near / z (Unreal); 0 = sky */
+#define IL_DEPTH_LINEAR 5            /* planar depth in engine units; >= far or +inf = sky */
+#define IL_DEPTH_LINEAR01 6          /* z / far (Unity Linear01Depth) */
+
+/* il_hello.color_in / color_out */
+#define IL_COLOR_LINEAR 0 /* float32 linear-light Rec.709 */
+#define IL_COLOR_SRGB 1   /* float32 sRGB-encoded, [0, 1] */
+#define IL_COLOR_SRGB8 2  /* uint8 sRGB-encoded */
+
+/* il_hello.flags */
+#define IL_FLAG_FLIP_ROWS 1u     /* images are bottom-up (glReadPixels): flipped in and out */
+#define IL_FLAG_NDC_Y_DOWN 2u    /* the projection's NDC y points down (Vulkan-style) */
+#define IL_FLAG_COLUMN_MAJOR 4u  /* matrices are sent column-major */
+
+/* il_submit_reply.reset */
+#define IL_RESET_NONE 0
+#define IL_RESET_CAMERA_CUT 1     /* pose jump: history restarted from this frame */
+#define IL_RESET_TIME_BACKWARDS 2 /* time not after the newest frame's: history restarted */
+
+/* il_predict_reply.fallback */
+#define IL_FALLBACK_NONE 0
+#define IL_FALLBACK_HISTORY 1    /* method needs more frames since the start / last reset: reproject used */
+#define IL_FALLBACK_CAMERA_CUT 2 /* target pose too far from the newest frame: newest frame repeated */
+
+typedef struct il_header {
+    uint32_t magic;        /* IL_MAGIC */
+    uint16_t version;      /* IL_VERSION */
+    uint16_t type;         /* IL_MSG_* (| IL_MSG_REPLY in replies) */
+    uint32_t request_id;   /* chosen by the client, echoed in the reply */
+    uint32_t status;       /* 0 in requests; IL_OK or an error code in replies */
+    uint64_t payload_size; /* bytes after the header */
+} il_header;
+
+typedef struct il_hello {
+    uint32_t engine;           /* IL_ENGINE_* */
+    uint32_t depth_convention; /* IL_DEPTH_* */
+    uint32_t color_in;         /* IL_COLOR_* of submitted colour */
+    uint32_t color_out;        /* IL_COLOR_* of predicted colour */
+    uint32_t width;            /* pixels, 1..IL_MAX_SIDE */
+    uint32_t height;
+    uint32_t k;                /* one rendered frame every k (informational) */
+    uint32_t channels;         /* 3 (RGB) or 4 (RGBA; alpha ignored in, 1 out) */
+    uint32_t flags;            /* IL_FLAG_* */
+    uint32_t reserved;         /* 0 */
+    double near_plane;         /* engine units */
+    double far_plane;          /* engine units; INFINITY for an infinite far plane */
+    double meters_per_unit;    /* 0 = engine default (0.01 Unreal, 1 otherwise) */
+    double cut_translation;    /* camera cut: centre moves > this * median depth; 0 = default 0.5 */
+    double cut_rotation_deg;   /* camera cut: turns > this; 0 = default 45 */
+    char method[64];           /* NUL-terminated predictor name, e.g. "reproject"; "" = reproject */
+} il_hello;
+
+typedef struct il_layout {
+    char shm_name[64];         /* NUL-terminated POSIX shared-memory name (leading '/') */
+    uint64_t shm_size;         /* bytes to mmap */
+    uint64_t color_in_offset;  /* byte offsets, multiples of IL_ALIGNMENT */
+    uint64_t depth_offset;
+    uint64_t color_out_offset;
+    uint64_t holes_offset;
+    uint32_t width;            /* frame size the offsets are for */
+    uint32_t height;
+} il_layout;
+
+typedef struct il_frame {      /* payload of SUBMIT and PREDICT */
+    uint64_t frame_id;         /* the client's frame number (named in error text) */
+    double time;               /* seconds; SUBMIT times must increase (else history reset) */
+    double view[16];
+    double projection[16];
+} il_frame;
+
+typedef struct il_submit_reply {
+    uint64_t frame;            /* the session's number of this frame */
+    uint32_t reset;            /* IL_RESET_* */
+    uint32_t history;          /* rendered frames the next predictions use */
+} il_submit_reply;
+
+typedef struct il_predict_reply {
+    uint64_t frame;            /* session number of the newest rendered frame used */
+    uint32_t fallback;         /* IL_FALLBACK_* */
+    uint32_t holes;            /* number of hole pixels */
+    double elapsed_ms;         /* server time for the prediction */
+    char method[32];           /* NUL-terminated name of the method used */
+} il_predict_reply;
+
+typedef struct il_reset {
+    uint32_t width;            /* new size, or 0 to keep */
+    uint32_t height;
+} il_reset;
+
+#if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L
+#define IL_STATIC_ASSERT(cond, msg) _Static_assert(cond, msg)
+#elif defined(__cplusplus) && __cplusplus >= 201103L
+#define IL_STATIC_ASSERT(cond, msg) static_assert(cond, msg)
+#else
+#define IL_STATIC_ASSERT(cond, msg)
+#endif
+
+IL_STATIC_ASSERT(sizeof(il_header) == 24, "il_header is 24 bytes");
+IL_STATIC_ASSERT(sizeof(il_hello) == 144, "il_hello is 144 bytes");
+IL_STATIC_ASSERT(offsetof(il_hello, near_plane) == 40, "il_hello.near_plane at 40");
+IL_STATIC_ASSERT(offsetof(il_hello, method) == 80, "il_hello.method at 80");
+IL_STATIC_ASSERT(sizeof(il_layout) == 112, "il_layout is 112 bytes");
+IL_STATIC_ASSERT(offsetof(il_layout, shm_size) == 64, "il_layout.shm_size at 64");
+IL_STATIC_ASSERT(sizeof(il_frame) == 272, "il_frame is 272 bytes");
+IL_STATIC_ASSERT(offsetof(il_frame, projection) == 144, "il_frame.projection at 144");
+IL_STATIC_ASSERT(sizeof(il_submit_reply) == 16, "il_submit_reply is 16 bytes");
+IL_STATIC_ASSERT(sizeof(il_predict_reply) == 56, "il_predict_reply is 56 bytes");
+IL_STATIC_ASSERT(offsetof(il_predict_reply, method) == 24, "il_predict_reply.method at 24");
+IL_STATIC_ASSERT(sizeof(il_reset) == 8, "il_reset is 8 bytes");
+
+#endif /* INTERLEAVE_PROTOCOL_H */

@@ -1,0 +1,446 @@
+"""`interleave serve`: the frame-prediction session behind a local socket, for engines not written in Python.
+
+One connection = one :class:`~engine.runtime.session.Session`. The client sends HELLO (the session config), the
+server answers with a shared-memory segment's name and layout; then for each rendered frame the client
+writes colour and depth into the segment and sends SUBMIT (pose, time), and for each frame in between it
+sends PREDICT (pose, time) and reads the predicted colour and hole mask from the segment. RESET clears
+the history (and may change the frame size, which moves to a new segment); BYE ends the session.
+Wire format: ``engine/runtime/protocol.py``, ``engine/runtime/include/interleave_protocol.h``, ``docs/server.md``.
+
+Robustness: each connection runs in its own thread. A malformed message gets an error reply with a
+status code and text; if the byte stream is still in step (unknown type, wrong payload size, bad values)
+the connection stays open, otherwise (bad magic or version, oversized or truncated message) the
+connection is closed after the reply. Either way the server keeps serving. A client that disconnects,
+even mid-message, loses its session and its segment; stopping the server (SIGINT / SIGTERM or
+:meth:`Server.stop`) closes every connection and unlinks every segment and the socket file.
+
+Requests on one connection are answered in order, each reply echoing the request's ``request_id``;
+a client may pipeline requests. Sockets listen on a Unix path or on 127.0.0.1 only.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import stat
+import threading
+import time
+from itertools import count
+from multiprocessing import shared_memory
+from pathlib import Path
+from typing import Callable, Optional, Union
+
+import numpy as np
+
+from engine.runtime import protocol as wire
+from engine.core.errors import InputError, InterleaveError
+from engine.runtime.protocol import MessageType, Status
+from engine.runtime.session import NotReadyError, Session, SessionConfig
+
+Address = Union[str, Path, tuple]
+
+_segment_numbers = count()
+
+
+class _ProtocolError(Exception):
+    """A request that gets an error reply: status code and text."""
+
+    def __init__(self, status: Status, text: str) -> None:
+        super().__init__(text)
+        self.status = status
+        self.text = text
+
+
+def parse_address(text: str) -> Address:
+    """``unix:/path`` or a path -> Unix socket; ``tcp:PORT`` or ``tcp:127.0.0.1:PORT`` -> loopback TCP."""
+    if text.startswith("tcp:"):
+        host, _, port = text[4:].rpartition(":")
+        if host not in ("", "127.0.0.1", "localhost"):
+            raise InputError(f"the server listens on 127.0.0.1 only, got host {host!r}", field="address")
+        try:
+            return ("127.0.0.1", int(port))
+        except ValueError:
+            raise InputError(f"bad TCP port in {text!r}", field="address") from None
+    return Path(text[5:] if text.startswith("unix:") else text)
+
+
+def format_address(address: Address) -> str:
+    return f"tcp:{address[0]}:{address[1]}" if isinstance(address, tuple) else f"unix:{address}"
+
+
+class _Segment:
+    """A shared-memory segment owned by the server: created for a layout, unlinked on release."""
+
+    def __init__(self, config: SessionConfig, channels: int, width: int, height: int) -> None:
+        name = f"interleave-{os.getpid()}-{next(_segment_numbers)}"
+        probe = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out)
+        self.shm = shared_memory.SharedMemory(name=name, create=True, size=probe.shm_size)
+        self.layout = probe
+        self.channels = channels
+        self.config = config
+
+    def array(self, offset: int, shape: tuple, dtype) -> np.ndarray:
+        return np.ndarray(shape, dtype=dtype, buffer=self.shm.buf, offset=offset)
+
+    def release(self) -> None:
+        try:
+            self.shm.close()
+        except BufferError:  # a view is still alive somewhere: unlinking frees the name; the mapping goes with it
+            pass
+        try:
+            self.shm.unlink()
+        except FileNotFoundError:
+            pass
+
+
+class _Connection:
+    """One client: reads requests, answers them in order, owns the session and its segment."""
+
+    def __init__(self, sock: socket.socket, server: "Server") -> None:
+        self.sock = sock
+        self.server = server
+        self.session: Optional[Session] = None
+        self.segment: Optional[_Segment] = None
+        self.column_major = False
+        self._header = bytearray(wire.HEADER.size)
+
+    # -- byte stream ------------------------------------------------------------------------------
+
+    def _read_into(self, view: memoryview) -> int:
+        got = 0
+        while got < len(view):
+            n = self.sock.recv_into(view[got:])
+            if n == 0:
+                break
+            got += n
+        return got
+
+    def _send(self, type_: int, request_id: int, payload: bytes = b"", status: int = Status.OK) -> None:
+        self.sock.sendall(wire.pack_header(type_, request_id, len(payload), status) + payload)
+
+    def _send_error(self, type_: int, request_id: int, status: Status, text: str) -> None:
+        try:
+            self._send(type_, request_id, text.encode("utf-8")[:4096], status)
+        except OSError:
+            pass
+
+    # -- main loop --------------------------------------------------------------------------------
+
+    def run(self) -> None:
+        try:
+            while not self.server.stopping:
+                got = self._read_into(memoryview(self._header))
+                if got == 0:
+                    return  # clean end of stream between messages
+                if got < wire.HEADER.size:
+                    self._send_error(MessageType.ERROR, 0, Status.TRUNCATED,
+                                     f"truncated header: {got} of {wire.HEADER.size} bytes")
+                    return
+                magic, version, type_, request_id, _, size = wire.HEADER.unpack(self._header)
+                if magic != wire.MAGIC:
+                    self._send_error(MessageType.ERROR, request_id, Status.BAD_MAGIC,
+                                     f"bad magic 0x{magic:08x}, expected 0x{wire.MAGIC:08x} (b'INTL')")
+                    return
+                if version != wire.VERSION:
+                    self._send_error(MessageType.ERROR, request_id, Status.BAD_VERSION,
+                                     f"protocol version {version} is not supported; this server speaks {wire.VERSION}")
+                    return
+                reply_type = (type_ | MessageType.REPLY) & 0xFFFF
+                if size > wire.MAX_PAYLOAD:
+                    self._send_error(reply_type, request_id, Status.TOO_LARGE,
+                                     f"payload_size {size} exceeds the limit {wire.MAX_PAYLOAD}")
+                    return
+                payload = bytearray(size)
+                got = self._read_into(memoryview(payload))
+                if got < size:
+                    self._send_error(reply_type, request_id, Status.TRUNCATED,
+                                     f"truncated message: {got} of {size} payload bytes before the stream ended")
+                    return
+                try:
+                    reply = self._handle(type_, bytes(payload))
+                except _ProtocolError as exc:
+                    self._send_error(reply_type, request_id, exc.status, exc.text)
+                    continue
+                except NotReadyError as exc:
+                    self._send_error(reply_type, request_id, Status.NOT_READY, str(exc))
+                    continue
+                except InterleaveError as exc:
+                    self._send_error(reply_type, request_id, Status.BAD_INPUT, str(exc))
+                    continue
+                except Exception as exc:  # noqa: BLE001 - the server must outlive any one request
+                    self._send_error(reply_type, request_id, Status.INTERNAL, f"{type(exc).__name__}: {exc}")
+                    continue
+                self._send(reply_type, request_id, reply)
+                if type_ == MessageType.BYE:
+                    return
+        except OSError:
+            return  # the peer went away (or the server is stopping)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self.session = None
+        if self.segment is not None:
+            self.segment.release()
+            self.server._untrack(self.segment)
+            self.segment = None
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    # -- messages ---------------------------------------------------------------------------------
+
+    def _handle(self, type_: int, payload: bytes) -> bytes:
+        handlers: dict[int, tuple[Optional[int], Callable[[bytes], bytes]]] = {
+            MessageType.HELLO: (wire.HELLO.size, self._hello),
+            MessageType.SUBMIT: (wire.FRAME.size, self._submit),
+            MessageType.PREDICT: (wire.FRAME.size, self._predict),
+            MessageType.RESET: (wire.RESET.size, self._reset),
+            MessageType.BYE: (0, lambda _: b""),
+        }
+        if type_ not in handlers:
+            raise _ProtocolError(Status.UNKNOWN_TYPE, f"unknown message type {type_}; expected one of "
+                                 + ", ".join(f"{t.name}={int(t)}" for t in MessageType if t < MessageType.REPLY))
+        size, handler = handlers[type_]
+        if len(payload) != size:
+            raise _ProtocolError(Status.BAD_SIZE, f"{MessageType(type_).name} takes a {size}-byte payload, "
+                                 f"got {len(payload)}")
+        if type_ in (MessageType.SUBMIT, MessageType.PREDICT, MessageType.RESET) and self.session is None:
+            raise _ProtocolError(Status.NO_SESSION, f"{MessageType(type_).name} before HELLO: no session")
+        return handler(payload)
+
+    def _hello(self, payload: bytes) -> bytes:
+        (engine, depth, color_in, color_out, width, height, k, channels, flags, _,
+         near, far, meters_per_unit, cut_translation, cut_rotation, method) = wire.HELLO.unpack(payload)
+        for name, value, codes in (("engine", engine, wire.ENGINE_CODES),
+                                   ("depth_convention", depth, wire.DEPTH_CODES),
+                                   ("color_in", color_in, wire.COLOR_CODES),
+                                   ("color_out", color_out, wire.COLOR_CODES)):
+            if value >= len(codes):
+                raise _ProtocolError(Status.BAD_INPUT, f"HELLO field '{name}': code {value} is not one of 0.."
+                                     f"{len(codes) - 1} ({', '.join(codes)})")
+        _check_size(width, height)
+        if channels not in (3, 4):
+            raise _ProtocolError(Status.BAD_INPUT, f"HELLO field 'channels' must be 3 or 4, got {channels}")
+        if flags & ~wire.KNOWN_FLAGS:
+            raise _ProtocolError(Status.BAD_INPUT,
+                                 f"HELLO field 'flags' has unknown bits 0x{flags & ~wire.KNOWN_FLAGS:x}")
+        config = SessionConfig(
+            engine=wire.ENGINE_CODES[engine], width=width, height=height, k=k, depth_convention=wire.DEPTH_CODES[depth],
+            near=near, far=far, meters_per_unit=meters_per_unit, ndc_y_down=bool(flags & wire.FLAG_NDC_Y_DOWN),
+            flip_rows=bool(flags & wire.FLAG_FLIP_ROWS), color_in=wire.COLOR_CODES[color_in],
+            color_out=wire.COLOR_CODES[color_out], method=wire.cstring(method) or "reproject",
+            cut_translation=cut_translation if cut_translation > 0 else SessionConfig.cut_translation,
+            cut_rotation_deg=cut_rotation if cut_rotation > 0 else SessionConfig.cut_rotation_deg)
+        session = Session(config)
+        self._replace_segment(_Segment(config, channels, width, height))
+        self.session = session
+        self.column_major = bool(flags & wire.FLAG_COLUMN_MAJOR)
+        return self.segment.layout.pack()
+
+    def _replace_segment(self, segment: _Segment) -> None:
+        old, self.segment = self.segment, segment
+        self.server._track(segment)
+        if old is not None:
+            old.release()
+            self.server._untrack(old)
+
+    def _pose(self, payload: bytes):
+        frame_id, time_s, *values = wire.FRAME.unpack(payload)
+        view = np.array(values[:16], dtype=np.float64).reshape(4, 4)
+        projection = np.array(values[16:], dtype=np.float64).reshape(4, 4)
+        if self.column_major:
+            view, projection = view.T, projection.T
+        return frame_id, time_s, view, projection
+
+    def _submit(self, payload: bytes) -> bytes:
+        frame_id, time_s, view, projection = self._pose(payload)
+        seg, lay = self.segment, self.segment.layout
+        dtype = np.uint8 if seg.config.color_in == "srgb8" else np.float32
+        color = seg.array(lay.color_in_offset, (lay.height, lay.width, seg.channels), dtype)
+        depth = seg.array(lay.depth_offset, (lay.height, lay.width), np.float32)
+        try:
+            result = self.session.submit(color, depth, view, projection, time_s, frame=frame_id, copy=True)
+        finally:
+            del color, depth
+        return wire.SUBMIT_REPLY.pack(result.frame, wire.RESET_CODES.index(result.reset), result.history)
+
+    def _predict(self, payload: bytes) -> bytes:
+        frame_id, time_s, view, projection = self._pose(payload)
+        start = time.perf_counter()
+        out = self.session.predict(view, projection, time_s, frame=frame_id)
+        seg, lay = self.segment, self.segment.layout
+        dtype = np.uint8 if seg.config.color_out == "srgb8" else np.float32
+        color = seg.array(lay.color_out_offset, (lay.height, lay.width, seg.channels), dtype)
+        holes = seg.array(lay.holes_offset, (lay.height, lay.width), np.uint8)
+        try:
+            color[..., :3] = out.color
+            if seg.channels == 4:
+                color[..., 3] = 255 if dtype == np.uint8 else 1.0
+            holes[...] = out.holes
+        finally:
+            del color, holes
+        elapsed = 1e3 * (time.perf_counter() - start)
+        return wire.PREDICT_REPLY.pack(out.frame, wire.FALLBACK_CODES.index(out.fallback), int(out.holes.sum()),
+                                       elapsed, out.method.encode()[:31])
+
+    def _reset(self, payload: bytes) -> bytes:
+        width, height = wire.RESET.unpack(payload)
+        session = self.session
+        width, height = width or session.width, height or session.height
+        _check_size(width, height)
+        if (width, height) != (session.width, session.height):
+            segment = _Segment(session.config, self.segment.channels, width, height)
+            session.reset(width=width, height=height)
+            self._replace_segment(segment)
+        else:
+            session.reset()
+        return self.segment.layout.pack()
+
+
+def _check_size(width: int, height: int) -> None:
+    if not (1 <= width <= wire.MAX_SIDE and 1 <= height <= wire.MAX_SIDE):
+        raise _ProtocolError(Status.BAD_INPUT, f"frame size {width}x{height} is outside 1..{wire.MAX_SIDE} pixels")
+
+
+class Server:
+    """Listens on ``address`` (a Unix socket path, or ("127.0.0.1", port)) and serves sessions.
+
+    ``serve_forever()`` returns after :meth:`stop`; everything it created is released on return.
+    """
+
+    def __init__(self, address: Address) -> None:
+        if isinstance(address, tuple):
+            host, port = address
+            if host not in ("127.0.0.1", "localhost"):
+                raise InputError(f"the server listens on 127.0.0.1 only, got {host!r}", field="address")
+            self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self._listener.bind(("127.0.0.1", int(port)))
+            self.address: Address = self._listener.getsockname()
+            self._path: Optional[Path] = None
+        else:
+            path = Path(address)
+            _remove_stale_socket(path)
+            self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            self._listener.bind(str(path))
+            self.address = path
+            self._path = path
+        self._listener.listen(16)
+        self._listener.settimeout(0.1)
+        self.stopping = False
+        self._lock = threading.Lock()
+        self._connections: dict[_Connection, threading.Thread] = {}
+        self._segments: set[_Segment] = set()
+
+    def _track(self, segment: _Segment) -> None:
+        with self._lock:
+            self._segments.add(segment)
+
+    def _untrack(self, segment: _Segment) -> None:
+        with self._lock:
+            self._segments.discard(segment)
+
+    def segment_names(self) -> list[str]:
+        """Names of the shared-memory segments held now (POSIX names, leading slash)."""
+        with self._lock:
+            return sorted(s.layout.shm_name for s in self._segments)
+
+    def serve_forever(self) -> None:
+        try:
+            while not self.stopping:
+                try:
+                    sock, _ = self._listener.accept()
+                except socket.timeout:
+                    continue
+                except OSError:
+                    if self.stopping:
+                        break
+                    raise
+                sock.settimeout(None)
+                if sock.family == socket.AF_INET:
+                    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn = _Connection(sock, self)
+                thread = threading.Thread(target=self._run_connection, args=(conn,), daemon=True,
+                                          name="interleave-connection")
+                with self._lock:
+                    self._connections[conn] = thread
+                thread.start()
+        finally:
+            self._shutdown()
+
+    def _run_connection(self, conn: _Connection) -> None:
+        try:
+            conn.run()
+        finally:
+            with self._lock:
+                self._connections.pop(conn, None)
+
+    def stop(self) -> None:
+        """Ask ``serve_forever`` to return (safe from any thread and from signal handlers)."""
+        self.stopping = True
+
+    def _shutdown(self) -> None:
+        self.stopping = True
+        try:
+            self._listener.close()
+        except OSError:
+            pass
+        with self._lock:
+            connections = dict(self._connections)
+        for conn in connections:
+            try:
+                conn.sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        for thread in connections.values():
+            thread.join(timeout=5.0)
+        with self._lock:
+            segments, self._segments = list(self._segments), set()
+        for segment in segments:
+            segment.release()
+        if self._path is not None:
+            try:
+                self._path.unlink()
+            except FileNotFoundError:
+                pass
+
+
+def _remove_stale_socket(path: Path) -> None:
+    """Remove a socket file that nobody listens on; refuse to replace a live server or a non-socket file."""
+    if not path.exists():
+        return
+    if not stat.S_ISSOCK(path.stat().st_mode):
+        raise InputError("exists and is not a socket", file=path, field="address")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.connect(str(path))
+    except OSError:
+        path.unlink()
+        return
+    finally:
+        probe.close()
+    raise InputError("another server is listening there", file=path, field="address")
+
+
+def _announce(text: str) -> None:
+    print(text, flush=True)
+
+
+def serve(address: Address, *, announce: Callable[[str], None] = _announce) -> None:
+    """Run a server until SIGINT or SIGTERM; prints ``listening on <address>`` once it accepts connections."""
+    try:
+        server = Server(address)
+    except OSError as exc:
+        raise InterleaveError(f"cannot listen on {format_address(address)}: {exc}") from None
+    previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        announce(f"interleave serve: listening on {format_address(server.address)}")
+        server.serve_forever()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+__all__ = ["Server", "serve", "parse_address", "format_address"]

@@ -1,0 +1,520 @@
+"""The game-engine integration API: a session that a game loop feeds without knowing the method.
+
+A game renders every k-th frame. For each rendered frame it calls ``submit(color, depth, view,
+projection, time)``; for each frame in between it calls ``predict(view, projection, time)`` and shows
+the returned colour. ``reset()`` clears the history (level load, camera cut the game knows about).
+
+Inputs are what the engine has, in the engine's own conventions (``SessionConfig.engine``); the session
+converts them once, with the converters of ``engine/conventions/cameras.py``, into Interleave's convention
+(``engine/core/frames.py``: OpenCV camera axes, rigid ``world_to_camera``, pixel centres at +0.5, planar
+depth in metres with ``+inf`` for sky, linear-light Rec.709 colour):
+
+==========  ===============================================  ==============================================
+engine      ``view``                                         ``projection``
+==========  ===============================================  ==============================================
+opencv      ``world_to_camera`` (4, 4), OpenCV axes          K (3, 3), or (4, 4) with K in the top-left
+opengl      world -> eye matrix (4, 4), eye looks down -z    perspective matrix (4, 4), ``clip = P @ eye``
+unity       ``camera.worldToCameraMatrix``                   ``camera.projectionMatrix`` (or the GPU matrix
+                                                             with ``ndc_y_down`` if it flips y)
+godot       view matrix: ``camera.get_camera_transform()``   ``camera.get_camera_projection()``
+            ``.affine_inverse()`` (world -> camera)
+unreal      the camera's FMatrix (row vectors, translation   full horizontal FOV in degrees, or the
+            in the bottom row, ``FRotationTranslationMatrix  FMatrix of ``FReversedZPerspectiveMatrix`` /
+            (Rotation, Location)``), or 6 numbers            ``FPerspectiveMatrix`` (row vectors, "maintain
+            (x, y, z, pitch, yaw, roll) in cm and degrees    X FOV", centred)
+==========  ===============================================  ==============================================
+
+Matrices are math matrices indexed ``[row, col]`` (``M[0, 3]`` is the x translation of a column-vector
+matrix). Unity's ``Matrix4x4``, GLM and Godot store columns first in memory: pass ``M.T`` of a buffer
+read as rows (the server has a flag for it). The output world is each converter's default (right-handed,
+metres); every pose of one session goes through the same conversion, so the predicted frames are those
+of the engine's cameras.
+
+Depth is the engine's depth buffer in ``SessionConfig.depth_convention`` (decoded with
+:func:`engine.conventions.decode_depth_buffer`, ``near``/``far`` in engine units); ``"linear"`` means
+planar depth in engine units (``+inf`` or values >= ``far`` = sky). Colour is linear float, sRGB-encoded
+float or sRGB-encoded uint8 (``color_in``), with 3 or 4 channels (alpha is ignored), row 0 at the top
+unless ``flip_rows`` (bottom-up readbacks such as ``glReadPixels``: inputs are flipped on submit and
+outputs flipped back, so the caller sees its own row order everywhere).
+
+Hard cases, and what the session does:
+
+- **Camera cut**: a submitted frame whose pose differs from the previous one by more than
+  ``cut_rotation_deg`` or by a camera-centre distance above ``cut_translation`` times the median scene
+  depth resets the history (``SubmitResult.reset == "camera_cut"``); two-frame methods then fall back to
+  ``reproject`` until a second frame arrives (``SessionPrediction.fallback == "history"``). A *predicted*
+  pose that far from the newest frame is answered with that frame unchanged (``repeat``,
+  ``fallback == "camera_cut"``): the game should render that frame instead. Never a smear across a cut.
+- **Time going backwards / frames out of order**: a submit whose time is not after the newest frame's
+  resets the history and starts again from that frame (``reset == "time_backwards"``), so a rewinding
+  game and a late frame both give a valid, single-frame history; the predictor never sees a history out
+  of time order. ``predict`` times are free (a two-frame method extrapolates to any time).
+- **Resolution change**: a frame of another size is rejected with an :class:`~engine.core.errors.InputError`
+  naming the frame and both sizes; ``reset(width=..., height=...)`` changes the size (and clears the
+  history). A wrong-size buffer is far more often a bug than a deliberate change.
+- **Bad values**: NaN or inf in colour, negative colour, NaN / out-of-range depth-buffer values,
+  non-rigid or non-finite poses are rejected with an ``InputError`` naming the frame (the caller's
+  ``frame`` number, or the session's submit counter) and its time; the history is left as it was.
+  Reversed-Z depth 0 (the far clear value) is sky (``+inf``), not an error.
+
+Thread-safety: a ``Session`` may be called from several threads (e.g. ``submit`` from the render thread,
+``predict`` from the present thread). Input conversion and validation run without a lock; one lock
+serialises the history update + the predictor's ``prepare`` and each ``render``, so a ``predict`` that
+arrives during a ``submit`` waits for it and then sees the new frame.
+
+Zero-copy: ``submit`` keeps references to the caller's arrays, without copying, when nothing has to
+change: colour ``float32`` (H, W, 3) or (H, W, 4) with ``color_in="linear"``, and depth ``float32``
+(H, W) with ``depth_convention="linear"``, ``far=inf`` and a unit scale of 1 (the alpha channel is
+dropped and ``flip_rows`` applied as views, also without a copy). The session holds them until they
+leave the history (at the next submit, or the one after for two-frame methods): do not write into a
+submitted array before that, or pass ``copy=True``. Every other input is converted into a new array.
+Returned arrays are always new.
+
+Example:
+    >>> import numpy as np
+    >>> session = Session(SessionConfig(engine="opencv", width=8, height=6, method="reproject"))
+    >>> K = [[8.0, 0, 4], [0, 8.0, 3], [0, 0, 1]]
+    >>> _ = session.submit(np.full((6, 8, 3), 0.5, np.float32), np.full((6, 8), 2.0, np.float32), np.eye(4), K, 0.0)
+    >>> out = session.predict(np.eye(4), K, 1 / 60)
+    >>> out.color.shape, out.method, out.fallback
+    ((6, 8, 3), 'reproject', None)
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from engine import conventions
+from engine.core.colorspace import display_encode, srgb_to_linear
+from engine.core.config import option
+from engine.core.errors import InputError, InterleaveError
+from engine.core.frames import Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics, \
+    validate_pose
+from engine.predict.predictors import Predictor, Repeat, Reproject, Target, make_predictor
+
+__all__ = ["ENGINES", "COLOR_SPACES", "SessionConfig", "Session", "SubmitResult", "SessionPrediction",
+           "NotReadyError", "engine_camera"]
+
+#: Engines whose view / projection ``Session`` understands (see the module docstring for each one's form).
+ENGINES = ("opencv", "opengl", "unity", "unreal", "godot")
+#: Colour encodings: linear-light float, sRGB-encoded float in [0, 1], sRGB-encoded uint8.
+COLOR_SPACES = ("linear", "srgb", "srgb8")
+#: Default ``meters_per_unit`` of each engine (Unreal works in centimetres).
+DEFAULT_METERS_PER_UNIT = {"opencv": 1.0, "opengl": 1.0, "unity": 1.0, "unreal": 0.01, "godot": 1.0}
+#: Why the history was reset before a submitted frame.
+RESET_REASONS = ("camera_cut", "time_backwards")
+#: Why a prediction did not come from the configured method.
+FALLBACK_REASONS = ("history", "camera_cut")
+#: Every ``_CUT_STRIDE``-th pixel in each direction estimates the median scene depth of a frame.
+_CUT_STRIDE = 4
+
+_SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float64) / 255.0)  # (256,) float32 lookup table
+
+
+class NotReadyError(InterleaveError):
+    """``predict`` was called before any frame was submitted (or right after ``reset``)."""
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """How the game hands over its frames and what it wants back. Checked when created."""
+
+    engine: str = option("opencv", f"engine whose view/projection matrices are passed: {', '.join(ENGINES)}")
+    width: int = option(640, "frame width in pixels (the viewport the projection maps to)")
+    height: int = option(360, "frame height in pixels")
+    k: int = option(2, "one rendered frame every k displayed frames (informational: predictions follow the "
+                       "times and poses passed to predict)")
+    depth_convention: str = option("linear", "depth buffer convention, one of engine.conventions.DEPTH_CONVENTIONS; "
+                                             "'linear' = planar depth in engine units")
+    near: float = option(0.1, "near plane, engine units (decodes non-linear depth buffers)")
+    far: float = option(math.inf, "far plane, engine units; inf for an infinite far plane")
+    meters_per_unit: float = option(0.0, "engine length unit in metres; 0 = the engine's default (0.01 for "
+                                         "Unreal, 1 otherwise)")
+    ndc_y_down: bool = option(False, "the projection's NDC y points down (Vulkan-style, projection[1,1] < 0)")
+    flip_rows: bool = option(False, "images are bottom-up (glReadPixels, Unity Texture2D): flip inputs and outputs")
+    color_in: str = option("linear", f"encoding of submitted colour: {', '.join(COLOR_SPACES)}")
+    color_out: str = option("linear", f"encoding of predicted colour: {', '.join(COLOR_SPACES)}")
+    method: str = option("reproject", "predictor (engine.predict.predictors), options in brackets, e.g. decomp[gate=0]")
+    cut_translation: float = option(0.5, "camera cut when the camera centre moves more than this times the "
+                                          "median scene depth")
+    cut_rotation_deg: float = option(45.0, "camera cut when the camera turns by more than this many degrees")
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("engine", ENGINES), ("depth_convention", conventions.DEPTH_CONVENTIONS),
+                              ("color_in", COLOR_SPACES), ("color_out", COLOR_SPACES)):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"must be one of {', '.join(allowed)}, got {getattr(self, name)!r}", field=name)
+        for name in ("width", "height", "k"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise InputError(f"must be a positive integer, got {value!r}", field=name)
+        if not (math.isfinite(self.near) and self.near > 0):
+            raise InputError(f"must be a positive finite number, got {self.near}", field="near")
+        if math.isnan(self.far) or self.far <= self.near:
+            raise InputError(f"must be greater than near ({self.near}), or inf, got {self.far}", field="far")
+        if self.depth_convention in ("infinite", "reversed_infinite") and math.isfinite(self.far):
+            raise InputError(f"must be inf for depth convention {self.depth_convention!r}, got {self.far}",
+                             field="far")
+        if self.depth_convention == "linear01" and not math.isfinite(self.far):
+            raise InputError("must be finite for depth convention 'linear01'", field="far")
+        if not (math.isfinite(self.meters_per_unit) and self.meters_per_unit >= 0):
+            raise InputError(f"must be >= 0 (0 = engine default), got {self.meters_per_unit}", field="meters_per_unit")
+        for name in ("cut_translation", "cut_rotation_deg"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"must be positive (inf disables the check), got {getattr(self, name)}", field=name)
+        if self.method.partition("[")[0] == "oracle":
+            raise InputError("'oracle' needs ground-truth object motion, which a game session does not have",
+                             field="method")
+
+    @property
+    def unit_scale(self) -> float:
+        """Metres per engine unit actually used (``meters_per_unit`` or the engine's default)."""
+        return self.meters_per_unit or DEFAULT_METERS_PER_UNIT[self.engine]
+
+
+@dataclass(frozen=True)
+class SubmitResult:
+    """What ``submit`` did with a frame.
+
+    Attributes:
+        frame: the session's number of the frame (0, 1, ... in submit order, not reset by ``reset``).
+        reset: why the history was cleared before this frame ("camera_cut", "time_backwards"), or None.
+        history: rendered frames the next predictions use (1 after a reset, up to what the method needs).
+    """
+
+    frame: int
+    reset: Optional[str]
+    history: int
+
+
+@dataclass
+class SessionPrediction:
+    """A predicted frame.
+
+    Attributes:
+        color: (H, W, 3) in ``SessionConfig.color_out`` (float32, or uint8 for "srgb8"), rows in the
+            caller's order.
+        holes: (H, W) bool, True where no rendered pixel landed (disocclusions, filled by the hole fill):
+            the pixels to trust least.
+        method: the predictor that made it ("reproject", "repeat", ...).
+        fallback: why that is not the configured method ("history": the method needs more rendered frames
+            than there are since the start or the last reset; "camera_cut": the target pose is too far from
+            the newest frame's, so the newest frame is shown unchanged), or None.
+        frame: the session number of the newest rendered frame it was predicted from.
+        stages_ms: wall-clock milliseconds of the predictor's stages.
+    """
+
+    color: np.ndarray
+    holes: np.ndarray
+    method: str
+    fallback: Optional[str]
+    frame: int
+    stages_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class _History:
+    """Rendered frames (oldest first), the predictor chosen for them and what it prepared."""
+
+    frames: list[Frame]
+    predictor: Predictor
+    fallback: Optional[str]
+    state: object
+    scene_depth: float
+
+
+# --------------------------------------------------------------------------------------------
+# Engine poses -> OpenCV cameras
+# --------------------------------------------------------------------------------------------
+
+def _unreal_hfov(projection: object, width: int, height: int) -> float:
+    """Full horizontal FOV (degrees) from a scalar or from Unreal's projection FMatrix (row vectors)."""
+    p = np.asarray(projection, dtype=np.float64)
+    if p.ndim == 0:
+        return float(p)
+    if p.shape != (4, 4) or not np.all(np.isfinite(p)):
+        raise InputError(f"must be a horizontal FOV in degrees or a finite 4x4 FMatrix, got shape {p.shape}",
+                         field="projection")
+    scale = max(abs(p[0, 0]), 1e-300)
+    if abs(p[2, 3] - 1.0) > 1e-6 or abs(p[3, 3]) > 1e-6 or abs(p[0, 3]) > 1e-6 or abs(p[1, 3]) > 1e-6:
+        raise InputError("is not Unreal's perspective FMatrix (row vectors: column 3 must be [0, 0, 1, 0]); "
+                         "pass the matrix as Unreal stores it, or the horizontal FOV", field="projection")
+    if abs(p[2, 0]) > 1e-6 * scale or abs(p[2, 1]) > 1e-6 * scale or abs(p[0, 1]) > 1e-6 * scale \
+            or abs(p[1, 0]) > 1e-6 * scale:
+        raise InputError("is off-centre or skewed; only centred 'maintain X FOV' projections are supported",
+                         field="projection")
+    if not p[0, 0] > 0 or abs(p[1, 1] - p[0, 0] * width / height) > 1e-4 * p[1, 1]:
+        raise InputError(f"projection[1,1] = {p[1, 1]:.6g} is not projection[0,0] * W / H = "
+                         f"{p[0, 0] * width / height:.6g}: only 'maintain X FOV' with square pixels is supported",
+                         field="projection")
+    return math.degrees(2.0 * math.atan(1.0 / p[0, 0]))
+
+
+def engine_camera(config: SessionConfig, view: object, projection: object,
+                  width: Optional[int] = None, height: Optional[int] = None) -> Camera:
+    """The OpenCV :class:`~engine.core.frames.Camera` of an engine pose, as a ``Session`` converts it.
+
+    ``view`` and ``projection`` take the forms of the table in this module's docstring for
+    ``config.engine``; ``width``/``height`` default to the config's. Raises InputError for bad matrices.
+    """
+    w = config.width if width is None else width
+    h = config.height if height is None else height
+    scale = config.unit_scale
+    engine = config.engine
+    if engine == "opencv":
+        k = np.asarray(projection, dtype=np.float64)
+        if k.shape == (4, 4):
+            k = k[:3, :3]
+        pose = validate_pose(view, field_name="view").copy()
+        pose[:3, 3] *= scale
+        return Camera(validate_intrinsics(k, field_name="projection"), pose)
+    if engine == "opengl":
+        k, pose = conventions.from_opengl(w, h, view=view, projection=projection, ndc_y_down=config.ndc_y_down,
+                                          meters_per_unit=scale)
+    elif engine == "unity":
+        k, pose = conventions.from_unity(w, h, matrix=view, matrix_is_world_to_camera=True, projection=projection,
+                                         ndc_y_down=config.ndc_y_down, meters_per_unit=scale)
+    elif engine == "godot":
+        camera_to_world = rigid_inverse(validate_pose(view, field_name="view"))
+        k, pose = conventions.from_godot(w, h, basis=camera_to_world[:3, :3], origin=camera_to_world[:3, 3],
+                                         projection=projection, ndc_y_down=config.ndc_y_down,
+                                         meters_per_unit=scale)
+    else:  # unreal
+        v = np.asarray(view, dtype=np.float64)
+        hfov = _unreal_hfov(projection, w, h)
+        if v.shape == (6,):
+            k, pose = conventions.from_unreal(w, h, location=v[:3], rotation=v[3:], horizontal_fov_deg=hfov,
+                                              meters_per_unit=scale)
+        else:
+            k, pose = conventions.from_unreal(w, h, transform=view, horizontal_fov_deg=hfov, meters_per_unit=scale)
+    return Camera(k, pose)
+
+
+# --------------------------------------------------------------------------------------------
+# Pixels in and out
+# --------------------------------------------------------------------------------------------
+
+def _rgb(color: object, where: dict) -> np.ndarray:
+    c = np.asarray(color)
+    if c.ndim != 3 or c.shape[2] not in (3, 4):
+        raise InputError(f"must have shape (H, W, 3) or (H, W, 4), got {c.shape}", **where)
+    return c[..., :3]
+
+
+def _decode_color(color: np.ndarray, space: str, where: dict) -> np.ndarray:
+    """Linear float32 (H, W, 3) from the submitted encoding; no copy for float32 linear input."""
+    if space == "srgb8":
+        if color.dtype != np.uint8:
+            raise InputError(f"must be uint8 for color_in 'srgb8', got dtype {color.dtype}", **where)
+        return _SRGB8_TO_LINEAR[color]
+    linear = validate_color(color, frame=where["frame"], field_name=where["field"])
+    return linear if space == "linear" else srgb_to_linear(linear)
+
+
+def _encode_color(linear: np.ndarray, space: str) -> np.ndarray:
+    if space == "linear":
+        return linear
+    encoded = display_encode(linear)
+    return encoded if space == "srgb" else (encoded * 255.0 + 0.5).astype(np.uint8)
+
+
+def _scene_depth(depth: np.ndarray) -> float:
+    """Median finite depth of a strided subsample (metres), inf for an all-sky frame."""
+    sample = depth[::_CUT_STRIDE, ::_CUT_STRIDE]
+    finite = sample[np.isfinite(sample)]
+    return float(np.median(finite)) if finite.size else math.inf
+
+
+def _cut(a: Camera, b: Camera, scene_depth: float, config: SessionConfig) -> bool:
+    """True when the pose change a -> b is a camera cut (see ``SessionConfig.cut_*``)."""
+    ra, rb = a.world_to_camera[:3, :3], b.world_to_camera[:3, :3]
+    cos_angle = (float(np.sum(ra * rb)) - 1.0) / 2.0  # trace(rb @ ra.T) = 1 + 2 cos(angle)
+    if math.degrees(math.acos(min(1.0, max(-1.0, cos_angle)))) > config.cut_rotation_deg:
+        return True
+    centre_a, centre_b = -ra.T @ a.world_to_camera[:3, 3], -rb.T @ b.world_to_camera[:3, 3]
+    distance = float(np.linalg.norm(centre_a - centre_b))
+    return math.isfinite(scene_depth) and distance > config.cut_translation * scene_depth
+
+
+def _located(exc: InputError, frame: int, time: object, what: str) -> InputError:
+    return InputError(f"{exc.problem} ({what} at time {time})", file=exc.file, frame=frame, field=exc.field)
+
+
+# --------------------------------------------------------------------------------------------
+# The session
+# --------------------------------------------------------------------------------------------
+
+class Session:
+    """Feed rendered frames, get in-between frames. See the module docstring for conventions and hard cases.
+
+    Args:
+        config: a :class:`SessionConfig` (or None for the defaults).
+    """
+
+    def __init__(self, config: Optional[SessionConfig] = None) -> None:
+        self.config = config or SessionConfig()
+        self._predictor = make_predictor(self.config.method)
+        self._fallback = Reproject()
+        self._repeat = Repeat()
+        self._lock = threading.Lock()
+        self._size = (self.config.height, self.config.width)
+        self._history: Optional[_History] = None
+        self._frames_submitted = 0
+        self._predictions = 0
+        self._resets = {reason: 0 for reason in RESET_REASONS + ("reset",)}
+
+    @property
+    def width(self) -> int:
+        return self._size[1]
+
+    @property
+    def height(self) -> int:
+        return self._size[0]
+
+    @property
+    def stats(self) -> dict:
+        """Counts so far: frames submitted, predictions made, history resets by reason."""
+        with self._lock:
+            return {"submitted": self._frames_submitted, "predicted": self._predictions, "resets": dict(self._resets),
+                    "history": 0 if self._history is None else len(self._history.frames)}
+
+    def camera(self, view: object, projection: object) -> Camera:
+        """The OpenCV camera the session makes of an engine pose (for checks and debugging)."""
+        return engine_camera(self.config, view, projection, self.width, self.height)
+
+    def submit(self, color: object, depth: object, view: object, projection: object, time: float, *,
+               frame: Optional[int] = None, copy: bool = False) -> SubmitResult:
+        """Hand over one rendered frame.
+
+        Args:
+            color: (H, W, 3) or (H, W, 4) in ``config.color_in``; alpha is ignored.
+            depth: (H, W) depth buffer in ``config.depth_convention``.
+            view, projection: the frame's camera in ``config.engine``'s form.
+            time: seconds (any origin), must be finite; not after the newest frame's -> history reset.
+            frame: the caller's frame number, used in error messages (default: the session's counter).
+            copy: never keep references to ``color`` / ``depth`` (see "Zero-copy").
+
+        Returns:
+            a :class:`SubmitResult`. Raises InputError (naming the frame and time) for bad input; the
+            history is then unchanged.
+        """
+        with self._lock:
+            size = self._size
+            label = self._frames_submitted if frame is None else int(frame)  # for error messages
+        where = dict(frame=label, field="color")
+        try:
+            if not isinstance(time, (int, float, np.floating, np.integer)) or not math.isfinite(time):
+                raise InputError(f"must be a finite number of seconds, got {time!r}", field="time")
+            rgb = _rgb(color, where)
+            depth_in = np.asarray(depth)
+            if self.config.flip_rows:
+                rgb, depth_in = rgb[::-1], depth_in[::-1]
+            if rgb.shape[:2] != size or depth_in.shape != size:
+                raise InputError(f"frame size is color {rgb.shape[:2]}, depth {depth_in.shape}; the session expects "
+                                 f"(H, W) = {size}: call reset(width=..., height=...) to change the resolution",
+                                 field="size")
+            linear = _decode_color(rgb, self.config.color_in, where)
+            planar = self._decode_depth(depth_in, label)
+            if copy:
+                linear = linear.copy() if np.may_share_memory(linear, color) else linear
+                planar = planar.copy() if np.may_share_memory(planar, depth) else planar
+            camera = engine_camera(self.config, view, projection, size[1], size[0])
+        except InputError as exc:
+            raise _located(exc, label, time, "submitted frame") from None
+        scene_depth = _scene_depth(planar)
+        with self._lock:
+            if self._size != size:
+                raise InputError(f"the session was reset to (H, W) = {self._size} during this submit",
+                                 frame=label, field="size")
+            number = self._frames_submitted  # numbered under the lock: concurrent submits never share one
+            new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera)
+            old = self._history
+            reset = None
+            frames = [new]
+            if old is not None:
+                newest = old.frames[-1]
+                if not new.time > newest.time:
+                    reset = "time_backwards"
+                elif _cut(newest.camera, new.camera, min(scene_depth, old.scene_depth), self.config):
+                    reset = "camera_cut"
+                else:
+                    frames = (old.frames + [new])[-max(self._predictor.history_needed, 1):]
+            if len(frames) >= self._predictor.history_needed:
+                predictor, fallback = self._predictor, None
+            else:
+                predictor, fallback = self._fallback, "history"
+            state = predictor.prepare(frames)
+            self._history = _History(frames, predictor, fallback, state, scene_depth)
+            self._frames_submitted += 1
+            if reset is not None:
+                self._resets[reset] += 1
+            return SubmitResult(frame=number, reset=reset, history=len(frames))
+
+    def _decode_depth(self, buffer: np.ndarray, label: int) -> np.ndarray:
+        cfg = self.config
+        where = dict(frame=label, field_name="depth")
+        scale = cfg.unit_scale
+        if cfg.depth_convention == "linear" and math.isinf(cfg.far) and scale == 1.0:
+            return validate_depth(buffer, **where)  # no copy for float32
+        far = None if math.isinf(cfg.far) else cfg.far
+        planar = conventions.decode_depth_buffer(buffer, cfg.near, far, convention=cfg.depth_convention, **where)
+        if scale != 1.0:
+            planar *= scale
+        return validate_depth(planar, **where)
+
+    def predict(self, view: object, projection: object, time: float, *,
+                frame: Optional[int] = None) -> SessionPrediction:
+        """Predict the frame seen from ``view``/``projection`` at ``time`` (seconds).
+
+        Raises NotReadyError before the first submit (and after ``reset``), InputError (naming the frame
+        and time) for a bad pose. ``frame`` is the caller's number for the predicted frame, for errors.
+        """
+        with self._lock:
+            size = self._size
+            label = self._predictions if frame is None else int(frame)
+        try:
+            if not isinstance(time, (int, float, np.floating, np.integer)) or not math.isfinite(time):
+                raise InputError(f"must be a finite number of seconds, got {time!r}", field="time")
+            camera = engine_camera(self.config, view, projection, size[1], size[0])
+        except InputError as exc:
+            raise _located(exc, label, time, "predicted frame") from None
+        with self._lock:
+            history = self._history
+            if history is None:
+                raise NotReadyError("predict before any frame was submitted since the start or the last reset")
+            if self._size != size:
+                raise InputError(f"the session was reset to (H, W) = {self._size} during this predict",
+                                 frame=label, field="size")
+            newest = history.frames[-1]
+            target = Target(camera, float(time), label)
+            if _cut(newest.camera, camera, history.scene_depth, self.config):
+                predictor, fallback = self._repeat, "camera_cut"
+            else:
+                predictor, fallback = history.predictor, history.fallback
+            out = predictor.render(history.state, target)
+            self._predictions += 1
+        color = _encode_color(out.color, self.config.color_out)
+        holes = out.holes
+        if self.config.flip_rows:
+            color, holes = color[::-1], holes[::-1]
+        return SessionPrediction(color=color, holes=holes, method=predictor.name, fallback=fallback,
+                                 frame=newest.index, stages_ms=out.stages_ms)
+
+    def reset(self, width: Optional[int] = None, height: Optional[int] = None) -> None:
+        """Forget every rendered frame (camera cut, level load); optionally change the frame size.
+
+        The next ``predict`` needs a ``submit`` first. ``width``/``height`` default to the current size.
+        """
+        w = self.width if width is None else width
+        h = self.height if height is None else height
+        for name, value in (("width", w), ("height", h)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise InputError(f"must be a positive integer, got {value!r}", field=name)
+        with self._lock:
+            self._history = None
+            self._size = (int(h), int(w))
+            self._resets["reset"] += 1

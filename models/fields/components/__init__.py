@@ -1,0 +1,1 @@
+"""Field components: tri-plane encodings, rays and samples, volume rendering."""

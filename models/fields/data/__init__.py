@@ -1,0 +1,1 @@
+"""Posed (and time-stamped) views: dataset loaders and train/test splits."""

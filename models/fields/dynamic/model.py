@@ -1,0 +1,583 @@
+"""Dynamic radiance fields (thesis Ch. 5): a canonical field deformed by a hex-plane motion field (DeRF),
+and the K-Planes-style 4D baseline without a motion model.
+
+Layers as in the static module (``docs/fields.md``): components (:func:`sample_hex_planes`,
+:class:`HexPlaneEncoding`) -> fields (:class:`CanonicalField`, :class:`MotionField`, :class:`DeRFField`,
+:class:`KPlanesField`) -> model (:class:`DynamicFieldModel`: scene, sampling, rendering at a time). The design
+note is ``docs/dynamic_fields.md``.
+
+Conventions (written once here, named wherever they matter):
+
+- **Coordinates.** Both fields work in the static model's *contracted* cube [-1, 1]^3 (box coordinates for
+  ``bounded-360``, the NDC of the reference camera for ``forward-facing``; ``models/fields/components/sampling.py``).
+  The motion field's flow is in contracted units and the canonical point is ``c' = c + flow(c, t)``
+  (thesis Eq. 5.2, written in the contracted cube as K-Planes-based code does). A canonical point outside
+  the cube reads the cube's border texels (clamped, as every plane lookup here): mapping content out of the
+  canonical volume does not make it vanish, so the motion field cannot hide matched rays by emptying them
+  (with zero density there, the sparse flow loss of Eq. 5.7 was minimised by pushing 16% of the samples out
+  of the cube, halving the rendered opacity). How often it happens is a diagnostic
+  (``DynamicRayOutputs.canonical_outside``).
+- **Time.** Times are the data's own units (seconds for rgbd-rig captures, D-NeRF's [0, 1] for D-NeRF);
+  the model holds the trained range [t_min, t_max] and normalises ``tau = 2 (t - t_min) / (t_max - t_min) - 1``
+  (tau = 0 for a single trained time). A time outside the trained range (beyond a relative tolerance of
+  :data:`TIME_TOLERANCE`) raises :class:`~engine.core.errors.InputError` naming it and the range.
+- **Planes.** The spatial planes of one scale are stored (3, C, R, R) in the order xy, xz, yz (as
+  :data:`~models.fields.components.encodings.PLANE_AXES`); the time planes (3, C, Rt, R) in the order xt, yt, zt, the
+  spatial coordinate along the width (grid_sample's x) and time along the height (grid_sample's y). Plane
+  groups are named: ``spatial`` (canonical tri-planes, or the 4D field's space planes), ``motion_spatial``
+  (DeRF), ``temporal`` (the xt, yt, zt planes: the motion field's for DeRF, the 4D field's for K-Planes).
+
+Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX.
+
+>>> model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0],
+...                           (0.0, 1.0), DynamicFieldConfig(canonical=FieldConfig(resolutions=(8,))),
+...                           time_resolution=4)
+>>> o, d = torch.zeros(2, 3) - torch.tensor([0.0, 0.0, 3.0]), torch.tensor([[0.0, 0.0, 1.0]] * 2)
+>>> model.render_rays(o, d, torch.ones(2), torch.full((2,), 5.0), torch.tensor([0.0, 0.5])).color.shape
+torch.Size([2, 3])
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from engine.core.errors import InputError
+from engine.core.checks import check_shape
+from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, sample_planes
+from models.fields.static.field import FieldConfig, density_activation
+from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
+from models.fields.components.render import _composite, _weights
+from models.fields.components.sampling import sample_intervals
+
+__all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "sample_hex_planes", "time_smoothness",
+           "HexPlaneEncoding", "MotionConfig", "DynamicFieldConfig", "CanonicalField", "MotionField",
+           "DeRFField", "KPlanesField", "FieldSamples", "DynamicRayOutputs", "DynamicFieldModel",
+           "auto_time_resolution", "normalize_times", "AtTime"]
+
+#: ``DynamicFieldConfig.kind``: the canonical + motion model (DeRF, thesis Ch. 5) or the K-Planes-style 4D
+#: field without a motion model.
+FIELD_KINDS = ("derf", "kplanes")
+#: A time may exceed the trained range by this fraction of the range (at least 1e-6 absolute) before it is
+#: refused (float round-off of times read from files).
+TIME_TOLERANCE = 1e-6
+
+
+# ----------------------------------------------------------------------------------------------------
+# Components: hex-planes
+
+
+def sample_time_planes(planes: Sequence[Tensor], coords: Tensor, times: Tensor) -> Tensor:
+    """Multi-resolution time-plane features: product across the xt, yt, zt planes, concatenated across scales.
+
+    Args:
+        planes: one tensor per scale, each (3, C, Rt, R): the xt, yt, zt planes, the spatial coordinate along
+            the width and time along the height.
+        coords: (..., 3) contracted coordinates in [-1, 1] (``align_corners=True``; outside reads the border).
+        times: (...) normalised times in [-1, 1].
+
+    Returns:
+        (..., C * len(planes)).
+
+    Example:
+        >>> sample_time_planes([torch.ones(3, 2, 4, 8)], torch.zeros(5, 3), torch.zeros(5)).shape
+        torch.Size([5, 2])
+    """
+    lead = coords.shape[:-1]
+    flat = coords.reshape(1, -1, 3)
+    t = times.reshape(1, -1, 1).to(flat.dtype)
+    grid = torch.stack([torch.cat([flat[..., k:k + 1], t], dim=-1) for k in range(3)], dim=0)  # (3, 1, N, 2)
+    feats = []
+    for plane in planes:
+        f = torch.nn.functional.grid_sample(plane, grid.to(plane.dtype), mode="bilinear", padding_mode="border",
+                                            align_corners=True)  # (3, C, 1, N)
+        feats.append(f[:, :, 0, :].prod(dim=0))
+    out = torch.cat(feats, dim=0).transpose(0, 1)
+    return out.reshape(*lead, out.shape[-1])
+
+
+def sample_hex_planes(spatial: Sequence[Tensor], temporal: Sequence[Tensor], coords: Tensor, times: Tensor) -> Tensor:
+    """Hex-plane features (thesis Eq. 5.1): per scale the Hadamard product of the six planes xy, xz, yz,
+    xt, yt, zt read at (p, t), concatenated across scales.
+
+    Args:
+        spatial: per scale (3, C, R, R) (xy, xz, yz; read with :func:`~models.fields.components.encodings.sample_planes`).
+        temporal: per scale (3, C, Rt, R) (xt, yt, zt; :func:`sample_time_planes`), same C and R as ``spatial``.
+        coords: (..., 3) contracted coordinates; times: (...) normalised times.
+
+    Returns:
+        (..., C * scales), scale 0 first.
+    """
+    feats = [sample_planes([s], coords) * sample_time_planes([t], coords, times) for s, t in zip(spatial, temporal)]
+    return torch.cat(feats, dim=-1)
+
+
+def time_smoothness(planes: Sequence[Tensor]) -> Tensor:
+    """K-Planes' temporal smoothness: mean squared second difference along the time axis (the height of
+    each (3, C, Rt, R) time plane), summed over the tensors of the group; 0 for fewer than 3 time rows."""
+    total = planes[0].new_zeros(()) if planes else torch.zeros(())
+    for p in planes:
+        if p.shape[-2] >= 3:
+            total = total + (p[..., 2:, :] - 2.0 * p[..., 1:-1, :] + p[..., :-2, :]).square().mean()
+    return total
+
+
+class HexPlaneEncoding(nn.Module):
+    """Thin module holding multi-resolution hex-planes, read by :func:`sample_hex_planes`.
+
+    Args:
+        resolutions: spatial plane side R per scale.
+        time_resolution: rows Rt of every time plane (the same at every scale, as K-Planes).
+        feature_dim: channels C per plane.
+        init_range: spatial features start uniform in this range; time planes start at ``time_init``
+            (K-Planes: 1, so that a fresh field is time-independent).
+    """
+
+    def __init__(self, resolutions: Sequence[int], time_resolution: int, feature_dim: int,
+                 init_range: tuple[float, float] = (0.1, 0.5), time_init: float = 1.0):
+        super().__init__()
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.time_resolution = int(time_resolution)
+        self.feature_dim = int(feature_dim)
+        lo, hi = init_range
+        c = self.feature_dim
+        self.spatial = nn.ParameterList(nn.Parameter(torch.empty(3, c, r, r).uniform_(lo, hi))
+                                        for r in self.resolutions)
+        self.temporal = nn.ParameterList(nn.Parameter(torch.full((3, c, self.time_resolution, r), float(time_init)))
+                                         for r in self.resolutions)
+
+    @property
+    def output_dim(self) -> int:
+        return self.feature_dim * len(self.resolutions)
+
+    def spatial_planes(self) -> list[Tensor]:
+        """The spatial group: one (3, C, R, R) tensor (xy, xz, yz) per scale, coarse to fine."""
+        return list(self.spatial)
+
+    def temporal_planes(self) -> list[Tensor]:
+        """The temporal group: one (3, C, Rt, R) tensor (xt, yt, zt) per scale, coarse to fine."""
+        return list(self.temporal)
+
+    def forward(self, coords: Tensor, times: Tensor) -> Tensor:
+        """(..., 3) contracted coordinates and (...) normalised times -> (..., C * scales)."""
+        return sample_hex_planes(self.spatial_planes(), self.temporal_planes(), coords, times)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Configs
+
+
+@dataclass
+class MotionConfig:
+    """Size of the hex-plane motion field (DeRF's F_f = G_f o M_f)."""
+
+    resolutions: tuple[int, ...] = field(default=(16, 32), metadata={
+        "help": "motion plane side per scale, coarse to fine"})
+    feature_dim: int = field(default=4, metadata={"help": "feature channels per motion plane and scale"})
+    init_range: tuple[float, float] = field(default=(0.1, 0.5), metadata={
+        "help": "spatial motion features start uniform in this range (time planes start at 1)"})
+    hidden: int = field(default=32, metadata={"help": "hidden width of the flow MLP (M_f)"})
+    layers: int = field(default=1, metadata={"help": "hidden layers of the flow MLP (0: one linear layer, as RF-DeRF)"})
+    max_flow: float = field(default=1.0, metadata={
+        "help": "flow = max_flow * tanh(MLP output), in contracted units (RF-DeRF: linear + tanh, bound 1)"})
+    zero_init: bool = field(default=True, metadata={
+        "help": "start with flow exactly 0 (the flow MLP's last layer starts at zero)"})
+
+    def validate(self) -> "MotionConfig":
+        if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
+            raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
+                             field="field.motion.resolutions")
+        for name in ("feature_dim", "hidden"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.motion.{name}")
+        if self.layers < 0:
+            raise InputError(f"must be >= 0, got {self.layers}", field="field.motion.layers")
+        if not self.max_flow > 0:
+            raise InputError(f"must be > 0, got {self.max_flow}", field="field.motion.max_flow")
+        return self
+
+
+@dataclass
+class DynamicFieldConfig:
+    """Which dynamic field, and its size."""
+
+    kind: str = field(default="derf", metadata={
+        "help": "derf (canonical tri-plane field + hex-plane motion field) or kplanes (4D hex-plane field, "
+                "no motion model)"})
+    canonical: FieldConfig = field(default_factory=FieldConfig, metadata={
+        "help": "the canonical field (derf) or the 4D field's planes and MLPs (kplanes)"})
+    motion: MotionConfig = field(default_factory=MotionConfig, metadata={"help": "the motion field (derf only)"})
+    time_resolution: int = field(default=0, metadata={
+        "help": "rows of every time plane; 0: half the number of trained times, at least 2"})
+    time_frequencies: int = field(default=2, metadata={
+        "help": "Fourier frequencies of the time fed to the canonical colour MLP (Eq. 5.4; derf only)"})
+
+    def validate(self) -> "DynamicFieldConfig":
+        if self.kind not in FIELD_KINDS:
+            raise InputError(f"must be one of {FIELD_KINDS}, got {self.kind!r}", field="field.kind")
+        if self.time_resolution < 0 or self.time_resolution == 1:
+            raise InputError(f"must be 0 (auto) or >= 2, got {self.time_resolution}", field="field.time_resolution")
+        if self.time_frequencies < 0:
+            raise InputError(f"must be >= 0, got {self.time_frequencies}", field="field.time_frequencies")
+        self.canonical.validate()
+        self.motion.validate()
+        return self
+
+
+def auto_time_resolution(config: DynamicFieldConfig, num_times: int) -> int:
+    """The time planes' rows: ``config.time_resolution``, or half the number of trained times (>= 2)."""
+    return int(config.time_resolution) if config.time_resolution else max(2, int(num_times) // 2)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Fields
+
+
+class FieldSamples(NamedTuple):
+    """What a dynamic field returns for M samples.
+
+    Attributes:
+        sigma: (M,) density per scene unit.
+        rgb: (M, 3) linear RGB in [0, 1].
+        canonical: (M, 3) canonical point c' (contracted; equal to c for K-Planes).
+        flow: (M, 3) c' - c (zero for K-Planes).
+    """
+
+    sigma: Tensor
+    rgb: Tensor
+    canonical: Tensor
+    flow: Tensor
+
+
+class CanonicalField(nn.Module):
+    """The canonical scene F_s (Eq. 5.3, 5.4): tri-planes -> density and latent h; colour from h, the encoded
+    view direction and the encoded (normalised) time."""
+
+    def __init__(self, config: FieldConfig, time_frequencies: int):
+        super().__init__()
+        self.config = cfg = config.validate()
+        self.time_frequencies = int(time_frequencies)
+        self.encoding = TriPlaneEncoding(cfg.resolutions, cfg.feature_dim, tuple(cfg.init_range))
+        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
+        self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
+        self.time_dim = 2 * self.time_frequencies + 1
+        self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim + self.time_dim,
+                             cfg.color_hidden, 3, layers=cfg.color_layers)
+
+    def spatial_planes(self) -> list[Tensor]:
+        return self.encoding.spatial_planes()
+
+    def get_density(self, coords: Tensor) -> tuple[Tensor, Tensor]:
+        """(..., 3) canonical coordinates -> density (...), latent h (..., G)."""
+        out = self.density_mlp(self.encoding(coords))
+        return density_activation(out[..., 0], self.config.density_bias), out[..., 1:]
+
+    def get_outputs(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
+        """Latent h (..., G), unit directions (..., 3), normalised times (...) -> linear RGB (..., 3)."""
+        t = fourier_encoding(times[..., None], self.time_frequencies)
+        return torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions), t], dim=-1)))
+
+
+class MotionField(nn.Module):
+    """The motion field F_f (Eq. 5.1, 5.2): hex-planes -> tiny MLP -> flow = max_flow * tanh(.) from (c, t) to
+    the canonical time, in contracted units."""
+
+    def __init__(self, config: MotionConfig, time_resolution: int):
+        super().__init__()
+        self.config = cfg = config.validate()
+        self.encoding = HexPlaneEncoding(cfg.resolutions, time_resolution, cfg.feature_dim, tuple(cfg.init_range))
+        self.flow_mlp = MLP(self.encoding.output_dim, cfg.hidden, 3, layers=cfg.layers)
+        if cfg.zero_init:
+            last = [m for m in self.flow_mlp.net if isinstance(m, nn.Linear)][-1]
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+
+    def spatial_planes(self) -> list[Tensor]:
+        return self.encoding.spatial_planes()
+
+    def temporal_planes(self) -> list[Tensor]:
+        return self.encoding.temporal_planes()
+
+    def forward(self, coords: Tensor, times: Tensor) -> Tensor:
+        """(..., 3) contracted coordinates, (...) normalised times -> flow (..., 3) in contracted units."""
+        return self.config.max_flow * torch.tanh(self.flow_mlp(self.encoding(coords, times)))
+
+
+class DeRFField(nn.Module):
+    """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``,
+    ``rgb = M_s(h, gamma(v), gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
+
+    kind = "derf"
+
+    def __init__(self, config: DynamicFieldConfig, time_resolution: int):
+        super().__init__()
+        self.canonical_field = CanonicalField(config.canonical, config.time_frequencies)
+        self.motion_field = MotionField(config.motion, time_resolution)
+
+    def plane_groups(self) -> dict[str, list[Tensor]]:
+        return {"spatial": self.canonical_field.spatial_planes(),
+                "motion_spatial": self.motion_field.spatial_planes(),
+                "temporal": self.motion_field.temporal_planes()}
+
+    def deform(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor]:
+        """(..., 3) contracted points at normalised times (...) -> canonical points (..., 3), flow (..., 3)."""
+        flow = self.motion_field(coords, times)
+        return coords + flow, flow
+
+    def density(self, coords: Tensor, times: Tensor) -> Tensor:
+        canonical, _ = self.deform(coords, times)
+        return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0))[0]
+
+    def forward(self, coords: Tensor, times: Tensor, directions: Tensor) -> FieldSamples:
+        canonical, flow = self.deform(coords, times)
+        sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0))
+        return FieldSamples(sigma, self.canonical_field.get_outputs(h, directions, times), canonical, flow)
+
+
+class KPlanesField(nn.Module):
+    """The K-Planes-style 4D baseline: hex-plane features of (c, t) -> density and latent h -> colour from h
+    and the encoded view direction; no motion model (canonical = c, flow = 0)."""
+
+    kind = "kplanes"
+
+    def __init__(self, config: DynamicFieldConfig, time_resolution: int):
+        super().__init__()
+        self.config = cfg = config.canonical.validate()
+        self.encoding = HexPlaneEncoding(cfg.resolutions, time_resolution, cfg.feature_dim, tuple(cfg.init_range))
+        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
+        self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
+        self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim, cfg.color_hidden, 3,
+                             layers=cfg.color_layers)
+
+    def plane_groups(self) -> dict[str, list[Tensor]]:
+        return {"spatial": self.encoding.spatial_planes(), "temporal": self.encoding.temporal_planes()}
+
+    def _density(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor]:
+        out = self.density_mlp(self.encoding(coords, times))
+        return density_activation(out[..., 0], self.config.density_bias), out[..., 1:]
+
+    def density(self, coords: Tensor, times: Tensor) -> Tensor:
+        return self._density(coords, times)[0]
+
+    def forward(self, coords: Tensor, times: Tensor, directions: Tensor) -> FieldSamples:
+        sigma, h = self._density(coords, times)
+        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
+        return FieldSamples(sigma, rgb, coords, torch.zeros_like(coords))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Model
+
+
+class DynamicRayOutputs(NamedTuple):
+    """Rendered rays at given times: :class:`~models.fields.components.render.RayOutputs`' fields, then per sample the
+    canonical point, the flow, whether the sample was evaluated and whether its canonical point left the
+    cube. R rays, N samples each.
+
+    Attributes:
+        color (R, 3), depth (R,), expected_depth (R,), opacity (R,), weights (R, N), transmittance (R, N),
+        t (R, N): as ``RayOutputs`` (planar depth, linear RGB on the model's background).
+        canonical: (R, N, 3) canonical points c' (contracted); the contracted world point where not evaluated.
+        flow: (R, N, 3) c' - c (0 where not evaluated).
+        evaluated: (R, N) bool, samples inside the scene cube (and occupied cells) that the field evaluated.
+        canonical_outside: (R, N) bool, evaluated samples whose canonical point left the cube (they read its
+            border).
+    """
+
+    color: Tensor
+    depth: Tensor
+    expected_depth: Tensor
+    opacity: Tensor
+    weights: Tensor
+    transmittance: Tensor
+    t: Tensor
+    canonical: Tensor
+    flow: Tensor
+    evaluated: Tensor
+    canonical_outside: Tensor
+
+
+def normalize_times(times: Tensor, time_range: tuple[float, float]) -> Tensor:
+    """Times in the data's units -> [-1, 1] over ``time_range`` (0 for a single trained time); raises
+    InputError naming the first time outside the range (beyond :data:`TIME_TOLERANCE` of its length)."""
+    t_min, t_max = float(time_range[0]), float(time_range[1])
+    span = t_max - t_min
+    tol = TIME_TOLERANCE * max(1.0, abs(span), abs(t_min), abs(t_max))
+    if times.numel():
+        lo, hi = float(times.min()), float(times.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise InputError("must be finite", field="times")
+        if lo < t_min - tol or hi > t_max + tol:
+            bad = lo if lo < t_min - tol else hi
+            raise InputError(f"time {bad:.6g} is outside the trained range [{t_min:.6g}, {t_max:.6g}]: the "
+                             "field cannot extrapolate in time", field="times")
+    if span <= 0:
+        return torch.zeros_like(times)
+    return (2.0 * (times - t_min) / span - 1.0).clamp(-1.0, 1.0)
+
+
+def _placeholder_field_config() -> FieldConfig:
+    # StaticFieldModel builds a TriPlaneField; the dynamic model replaces it at once, so keep it tiny
+    return FieldConfig(resolutions=(2,), feature_dim=1, density_hidden=1, geo_feature_dim=1, color_hidden=1,
+                       direction_encoding="none")
+
+
+class DynamicFieldModel(StaticFieldModel):
+    """A dynamic field with its scene, sampler and renderer; rays are rendered at given times.
+
+    The scene (contraction, ray clipping, occupancy threshold) is :class:`StaticFieldModel`'s; ``field`` is a
+    :class:`DeRFField` or a :class:`KPlanesField`. The occupancy grid (bounded scenes by default) is
+    time-agnostic: each update keeps the running max of the density at ``occupancy_times`` random trained
+    times, so a cell is empty only if it was empty at every time drawn recently.
+
+    Args:
+        scene: where the field lives (``SceneBox``).
+        background: (3,) linear RGB.
+        time_range: (t_min, t_max), the trained times in the data's units.
+        config: which dynamic field and its size.
+        render_config: sampling and rendering.
+        time_resolution: rows of the time planes (default: ``config.time_resolution``, which must then be set).
+    """
+
+    def __init__(self, scene: SceneBox, background, time_range: tuple[float, float],
+                 config: Optional[DynamicFieldConfig] = None, render_config: Optional[RenderConfig] = None, *,
+                 time_resolution: Optional[int] = None, occupancy_times: int = 4):
+        super().__init__(scene, background, _placeholder_field_config(), render_config)
+        self.config = cfg = (config or DynamicFieldConfig()).validate()
+        rows = int(time_resolution if time_resolution is not None else cfg.time_resolution)
+        if rows < 2:
+            raise InputError(f"must be >= 2, got {rows}", field="time_resolution")
+        t0, t1 = (float(x) for x in time_range)
+        if not (math.isfinite(t0) and math.isfinite(t1) and t1 >= t0):
+            raise InputError(f"must be finite with t_min <= t_max, got {time_range}", field="time_range")
+        self.time_range = (t0, t1)
+        self.time_resolution = rows
+        self.occupancy_times = int(occupancy_times)
+        self.field = (DeRFField if cfg.kind == "derf" else KPlanesField)(cfg, rows)
+
+    @property
+    def has_motion(self) -> bool:
+        return isinstance(self.field, DeRFField)
+
+    def normalize_times(self, times: Tensor) -> Tensor:
+        """Data times -> [-1, 1]; InputError outside the trained range (see :func:`normalize_times`)."""
+        return normalize_times(times, self.time_range)
+
+    def update_occupancy(self, generator: Optional[torch.Generator] = None) -> float:
+        """Re-evaluate the (time-agnostic) occupancy grid; returns the occupied fraction (1 without grid)."""
+        if self.occupancy is None:
+            return 1.0
+        taus = torch.rand(self.occupancy_times, generator=generator) * 2.0 - 1.0
+        if self.time_range[1] <= self.time_range[0]:
+            taus = torch.zeros(1)
+
+        def density(coords: Tensor) -> Tensor:
+            return torch.stack([self.field.density(coords, torch.full(coords.shape[:-1], float(t)))
+                                for t in taus]).amax(dim=0)
+
+        return self.occupancy.update(density, self.occupancy_threshold(), decay=self.render_config.occupancy_decay,
+                                     generator=generator)
+
+    def query(self, points: Tensor, times: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """World points (M, 3), data times (M,), view directions (M, 3) -> density (M,), linear RGB (M, 3).
+
+        Density is 0 outside the scene cube (the renderer never samples there). Raises InputError for times
+        outside the trained range.
+        """
+        sizes: dict = {}
+        check_shape(points, "points", ("M", 3), sizes)
+        check_shape(times, "times", ("M",), sizes)
+        check_shape(directions, "directions", ("M", 3), sizes)
+        return self._query(points, self.normalize_times(times), directions)
+
+    def _query(self, points: Tensor, taus: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        coords = self.contract(points)
+        inside = (coords.abs() <= 1.0).all(dim=-1)
+        out = self.field(coords.clamp(-1.0, 1.0), taus, torch.nn.functional.normalize(directions, dim=-1))
+        return torch.where(inside, out.sigma, torch.zeros_like(out.sigma)), out.rgb
+
+    def render_rays(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor, *,
+                    jitter: bool = False, generator: Optional[torch.Generator] = None) -> DynamicRayOutputs:
+        """Render R rays, ray r at time ``times[r]``.
+
+        Args:
+            origins, directions: (R, 3) world; directions with camera z = 1 (t is planar depth).
+            near, far: (R,) planar-depth bounds.
+            times: (R,) in the data's units, inside the trained range (else InputError naming the time).
+            jitter: stratified random sample positions (training) instead of bin centres.
+
+        Returns:
+            :class:`DynamicRayOutputs`.
+        """
+        sizes: dict = {}
+        check_shape(origins, "origins", ("R", 3), sizes)
+        check_shape(directions, "directions", ("R", 3), sizes)
+        check_shape(near, "near", ("R",), sizes)
+        check_shape(far, "far", ("R",), sizes)
+        check_shape(times, "times", ("R",), sizes)
+        return self._render_dynamic(origins, directions, near, far, self.normalize_times(times), jitter, generator)
+
+    def _render_dynamic(self, origins, directions, near, far, taus, jitter, generator) -> DynamicRayOutputs:
+        rc = self.render_config
+        t_near, t_far = self.ray_bounds(origins, directions, near, far)
+        t, deltas = sample_intervals(t_near, t_far, rc.num_samples, spacing="linear" if self.bounded else "disparity",
+                                     jitter=jitter, generator=generator)
+        points = origins[:, None, :] + t[..., None] * directions[:, None, :]
+        coords = self.contract(points)
+        keep = (coords.abs() <= 1.0).all(dim=-1) & (deltas > 0)
+        if self.occupancy is not None and int(self.occupancy.updates) > 0:
+            keep = keep & self.occupancy.query(coords)
+        r, n = t.shape
+        sigma = coords.new_zeros(r, n)
+        rgb = coords.new_zeros(r, n, 3)
+        canonical = coords.detach()
+        flow = coords.new_zeros(r, n, 3)
+        idx = keep.nonzero(as_tuple=True)
+        if idx[0].numel() > 0:
+            unit = torch.nn.functional.normalize(directions, dim=-1)
+            out = self.field(coords[idx], taus[idx[0]], unit[idx[0]])
+            sigma = sigma.index_put(idx, out.sigma)
+            rgb = rgb.index_put(idx, out.rgb)
+            canonical = canonical.index_put(idx, out.canonical)
+            flow = flow.index_put(idx, out.flow)
+        outside = keep & ~(canonical.abs() <= 1.0).all(dim=-1)
+        lengths = deltas * directions.norm(dim=-1, keepdim=True)
+        weights, trans = _weights(sigma, lengths)
+        color, depth, expected, opacity = _composite(weights, rgb, t, self.background)
+        return DynamicRayOutputs(color, depth, expected, opacity, weights, trans, t, canonical, flow, keep, outside)
+
+    def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor
+                ) -> DynamicRayOutputs:
+        return self.render_rays(origins, directions, near, far, times)
+
+
+class AtTime:
+    """``model`` seen at one time: ``render_rays(origins, directions, near, far)`` renders every ray at
+    ``time``, so :func:`~models.fields.components.render.render_image` renders dynamic fields too.
+
+    With ``flow_bins`` (edges of |flow| bins, contracted units) it also accumulates, over every call, the
+    number of evaluated samples and of those whose canonical point left the cube, and per bin the number of
+    evaluated samples and their summed rendering weight (the visible mass)."""
+
+    def __init__(self, model: DynamicFieldModel, time: float, *, flow_bins: Optional[Sequence[float]] = None):
+        self.model, self.time = model, float(time)
+        self.bins = None if flow_bins is None else np.asarray(flow_bins, np.float64)
+        self.evaluated = 0
+        self.outside = 0
+        n = 0 if self.bins is None else len(self.bins) - 1
+        self.flow_counts = np.zeros(n, np.int64)
+        self.flow_mass = np.zeros(n, np.float64)
+
+    def render_rays(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> DynamicRayOutputs:
+        out = self.model.render_rays(origins, directions, near, far, torch.full((origins.shape[0],), self.time))
+        if self.bins is not None:
+            self.evaluated += int(out.evaluated.sum())
+            self.outside += int(out.canonical_outside.sum())
+            mags = out.flow[out.evaluated].norm(dim=-1).double().numpy()
+            self.flow_counts += np.histogram(mags, bins=self.bins)[0]
+            self.flow_mass += np.histogram(mags, bins=self.bins, weights=out.weights[out.evaluated].double().numpy())[0]
+        return out

@@ -1,0 +1,1 @@
+"""Sparse-input priors: sparse depth, Simple-RF, ViP visibility, sparse flow."""

@@ -1,0 +1,128 @@
+"""The sparse-input priors of thesis Ch. 3-4, switchable per run: ``depth`` (DS-NeRF sparse depth from
+SIFT, ``priors_depth``), ``simple`` (Simple-RF augmented model, ``priors_simple``), ``vip`` (ViP-NeRF
+visibility, ``priors_vip``).
+
+A run's :class:`PriorsConfig` (``FieldTrainConfig.priors``) says which are on and holds their knobs and
+weights; :func:`prior_loss_terms` turns the enabled ones into named :class:`~models.fields.losses.LossTerm`
+s appended to the run's loss, and :class:`Priors` (built by ``train_field``) holds their per-run state
+(cached matches / visibility maps, the augmented model, the visibility head), whose parameters join the
+optimiser (group ``priors``) and whose state is saved in the checkpoint under ``priors``. Each step
+``Priors.extras`` renders what the terms need (keypoint rays, the augmented model's rays, secondary-view
+visibilities) into ``LossInputs.extras``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import torch
+from torch import nn
+
+from engine.core.errors import InputError
+from models.fields.losses import LossTerm
+from models.fields.priors.depth import SparseDepthPrior, SparseDepthState
+from models.fields.priors.simple import AugmentedState, SimplePrior
+from models.fields.priors.vip import VisibilityPrior, VisibilityState
+
+__all__ = ["PRIOR_NAMES", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors"]
+
+PRIOR_NAMES = ("depth", "simple", "vip")
+
+
+@dataclass
+class PriorsConfig:
+    """Which sparse-input priors a run uses, and their settings."""
+
+    depth: SparseDepthPrior = field(default_factory=SparseDepthPrior, metadata={"help": "DS-NeRF sparse depth"})
+    simple: SimplePrior = field(default_factory=SimplePrior, metadata={"help": "Simple-RF augmented model"})
+    vip: VisibilityPrior = field(default_factory=VisibilityPrior, metadata={"help": "ViP-NeRF visibility"})
+
+    def enabled(self) -> list[str]:
+        """Names of the priors switched on."""
+        return [name for name in PRIOR_NAMES if getattr(self, name).enabled]
+
+    def validate(self) -> "PriorsConfig":
+        """Raise InputError naming the first bad option; returns self."""
+        if self.depth.rays < 1:
+            raise InputError(f"must be >= 1, got {self.depth.rays}", field="priors.depth.rays")
+        if not 0 <= self.simple.near_shift < 1:
+            raise InputError(f"must be in [0, 1), got {self.simple.near_shift}", field="priors.simple.near_shift")
+        if self.simple.patch_size < 1 or self.simple.patch_size % 2 == 0:
+            raise InputError(f"must be odd and >= 1, got {self.simple.patch_size}", field="priors.simple.patch_size")
+        if self.simple.mass_intervals < 1:
+            raise InputError(f"must be >= 1, got {self.simple.mass_intervals}", field="priors.simple.mass_intervals")
+        if self.vip.num_planes < 2:
+            raise InputError(f"must be >= 2, got {self.vip.num_planes}", field="priors.vip.num_planes")
+        if not 0 <= self.vip.start_fraction <= 1:
+            raise InputError(f"must be in [0, 1], got {self.vip.start_fraction}", field="priors.vip.start_fraction")
+        if self.vip.rays < 1:
+            raise InputError(f"must be >= 1, got {self.vip.rays}", field="priors.vip.rays")
+        for name, value in (("depth.weight", self.depth.weight), ("simple.photometric_weight",
+                            self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
+                            ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
+                            self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight)):
+            if not value >= 0:
+                raise InputError(f"must be >= 0, got {value}", field=f"priors.{name}")
+        return self
+
+
+def with_priors(priors: PriorsConfig, names: Sequence[str]) -> PriorsConfig:
+    """``priors`` with exactly ``names`` (a subset of ``PRIOR_NAMES``) switched on."""
+    unknown = sorted(set(names) - set(PRIOR_NAMES))
+    if unknown:
+        raise InputError(f"unknown prior(s) {unknown}; choose from {list(PRIOR_NAMES)}", field="priors")
+    return dataclasses.replace(priors, **{name: dataclasses.replace(getattr(priors, name), enabled=name in names)
+                                          for name in PRIOR_NAMES})
+
+
+def prior_loss_terms(priors: PriorsConfig, steps: int) -> tuple[LossTerm, ...]:
+    """The loss terms of the enabled priors (their weights and start steps come from ``priors``)."""
+    terms: list[LossTerm] = []
+    if priors.depth.enabled:
+        terms.append(LossTerm("sift_depth", priors.depth.weight, start_step=priors.depth.start_step))
+    if priors.simple.enabled:
+        s = priors.simple
+        terms += [LossTerm("augmented_photometric", s.photometric_weight),
+                  LossTerm("mass_concentration", s.mass_weight),
+                  LossTerm("augmented_depth", s.depth_weight, start_step=int(s.depth_start_fraction * steps))]
+    if priors.vip.enabled:
+        v = priors.vip
+        terms += [LossTerm("visibility_prior", v.prior_weight, start_step=int(v.start_fraction * steps)),
+                  LossTerm("visibility_consistency", v.consistency_weight)]
+    return tuple(terms)
+
+
+class Priors(nn.Module):
+    """Per-run state of the enabled priors (see the module doc); ``None`` slots for disabled ones."""
+
+    def __init__(self, views, config, model, cache_dir: Optional[str | Path] = None):
+        super().__init__()
+        p = config.priors
+        self.depth = SparseDepthState(views, p.depth, cache_dir) if p.depth.enabled else None
+        self.simple = AugmentedState(views, config, p.simple, model) if p.simple.enabled else None
+        self.vip = VisibilityState(views, config, p.vip, cache_dir) if p.vip.enabled else None
+
+    def update_occupancy(self, generator: torch.Generator) -> None:
+        """The augmented model's occupancy-grid callback (the main model's is the training loop's)."""
+        if self.simple is not None:
+            self.simple.model.update_occupancy(generator)
+
+    def extras(self, model, batch, outputs, step: int, generator: torch.Generator) -> dict[str, Any]:
+        """Everything the enabled priors' loss terms read this step."""
+        extras: dict[str, Any] = {}
+        if self.depth is not None:
+            extras.update(self.depth.extras(model, generator))
+        if self.simple is not None:
+            extras.update(self.simple.extras(model, batch, outputs, generator))
+        if self.vip is not None:
+            extras.update(self.vip.extras(model, batch, outputs, step, generator))
+        return extras
+
+
+def build_priors(views, config, model, cache_dir: Optional[str | Path] = None) -> Optional[Priors]:
+    """The run's :class:`Priors`, or None when no prior is enabled."""
+    if not config.priors.enabled():
+        return None
+    return Priors(views, config, model, cache_dir)

@@ -1,0 +1,1 @@
+"""The static radiance field and model (thesis Ch. 3-4)."""

@@ -1,0 +1,114 @@
+"""The static radiance field: tri-plane features -> density MLP (F1) -> colour MLP (F2).
+
+Thesis Eq. 4.1: ``sigma_i, h_i = F1(p_i)``, ``c_i = F2(h_i, v)``. Here ``F1`` is the K-Planes-style
+multi-resolution tri-plane encoding (features multiplied across the xy, xz, yz planes and concatenated
+across scales) followed by a tiny MLP, and ``F2`` a tiny MLP on ``h_i`` and the encoded view direction.
+
+Inputs are *contracted* coordinates in [-1, 1]^3 (the model maps world points there, see
+``models/fields/components/sampling.py``) and unit view directions in world axes. Colour is linear RGB in [0, 1]
+(sigmoid); density is ``exp`` of the MLP output, clamped before the exponential (``MAX_LOG_DENSITY``) so
+it is always finite. Plain torch only (grid_sample, Linear, ReLU, exp, sigmoid): exportable to ONNX.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+from torch import Tensor, nn
+
+from engine.core.errors import InputError
+from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
+
+__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "density_activation"]
+
+#: Density is exp(min(raw, MAX_LOG_DENSITY)): at most ~3.3e6 per scene unit, so sigma * delta never
+#: overflows float32 and rendering needs no NaN guards.
+MAX_LOG_DENSITY = 15.0
+
+DIRECTION_ENCODINGS = ("sh", "fourier", "none")
+
+
+@dataclass
+class FieldConfig:
+    """Size of the tri-plane field (one per component, saved with every run)."""
+
+    resolutions: tuple[int, ...] = field(default=(32, 64, 128), metadata={
+        "help": "plane side per scale, coarse to fine (K-Planes multi-resolution)"})
+    feature_dim: int = field(default=8, metadata={"help": "feature channels per plane and scale"})
+    init_range: tuple[float, float] = field(default=(0.1, 0.5), metadata={
+        "help": "plane features start uniform in this range (K-Planes space planes)"})
+    density_hidden: int = field(default=32, metadata={"help": "hidden width of the density MLP (F1)"})
+    geo_feature_dim: int = field(default=15, metadata={"help": "latent h passed from F1 to the colour MLP"})
+    color_hidden: int = field(default=32, metadata={"help": "hidden width of the colour MLP (F2)"})
+    color_layers: int = field(default=1, metadata={"help": "hidden layers of the colour MLP"})
+    direction_encoding: str = field(default="sh", metadata={
+        "help": "view-direction encoding: sh (spherical harmonics), fourier, or none (Lambertian colour)"})
+    direction_degree: int = field(default=3, metadata={
+        "help": "SH bands (1-4) or Fourier frequencies of the direction encoding"})
+    density_bias: float = field(default=0.0, metadata={
+        "help": "added to the raw density before exp (negative: start emptier)"})
+
+    def validate(self) -> "FieldConfig":
+        """Raise InputError naming the first bad option; returns self."""
+        if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
+            raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
+                             field="field.resolutions")
+        for name in ("feature_dim", "density_hidden", "geo_feature_dim", "color_hidden"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.{name}")
+        if self.direction_encoding not in DIRECTION_ENCODINGS:
+            raise InputError(f"must be one of {DIRECTION_ENCODINGS}, got {self.direction_encoding!r}",
+                             field="field.direction_encoding")
+        if self.direction_encoding == "sh" and not 1 <= self.direction_degree <= 4:
+            raise InputError(f"SH bands must be in 1..4, got {self.direction_degree}", field="field.direction_degree")
+        return self
+
+
+def density_activation(raw: Tensor, bias: float = 0.0) -> Tensor:
+    """``exp(min(raw + bias, MAX_LOG_DENSITY))``: positive, finite, exportable."""
+    return torch.exp(torch.clamp(raw + bias, max=MAX_LOG_DENSITY))
+
+
+class TriPlaneField(nn.Module):
+    """K-Planes-style static field (nerfstudio's ``Field``: ``get_density`` then ``get_outputs``).
+
+    >>> f = TriPlaneField(FieldConfig(resolutions=(8,), feature_dim=4))
+    >>> sigma, h = f.get_density(torch.zeros(10, 3))
+    >>> f.get_outputs(h, torch.nn.functional.normalize(torch.ones(10, 3), dim=-1)).shape
+    torch.Size([10, 3])
+    """
+
+    def __init__(self, config: Optional[FieldConfig] = None):
+        super().__init__()
+        self.config = cfg = (config or FieldConfig()).validate()
+        self.encoding = TriPlaneEncoding(cfg.resolutions, cfg.feature_dim, tuple(cfg.init_range))
+        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
+        self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
+        self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim, cfg.color_hidden, 3,
+                             layers=cfg.color_layers)
+
+    # named plane groups -------------------------------------------------------------------------------
+    def spatial_planes(self) -> list[Tensor]:
+        """The spatial plane group (xy, xz, yz per scale); what plane regularisers act on."""
+        return self.encoding.spatial_planes()
+
+    def plane_groups(self) -> dict[str, list[Tensor]]:
+        """Plane groups by name, for loss terms that name the group they act on."""
+        return {"spatial": self.spatial_planes()}
+
+    # F1, F2 -----------------------------------------------------------------------------------------
+    def get_density(self, coords: Tensor) -> tuple[Tensor, Tensor]:
+        """F1: (..., 3) contracted coordinates -> density (...) per scene unit, latent h (..., geo_feature_dim)."""
+        out = self.density_mlp(self.encoding(coords))
+        return density_activation(out[..., 0], self.config.density_bias), out[..., 1:]
+
+    def get_outputs(self, geo_features: Tensor, directions: Tensor) -> Tensor:
+        """F2: latent h (..., G) and unit view directions (..., 3) -> linear RGB (..., 3) in [0, 1]."""
+        x = torch.cat([geo_features, self.direction_encoding(directions)], dim=-1)
+        return torch.sigmoid(self.color_mlp(x))
+
+    def forward(self, coords: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """(..., 3) contracted coordinates, (..., 3) unit directions -> density (...), linear RGB (..., 3)."""
+        sigma, h = self.get_density(coords)
+        return sigma, self.get_outputs(h, directions)

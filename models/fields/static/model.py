@@ -1,0 +1,222 @@
+"""The model: field + scene contraction + sampler + renderer (nerfstudio's "model" layer).
+
+:class:`StaticFieldModel` turns rays into :class:`~models.fields.components.render.RayOutputs`: clip each ray to the
+scene (box or NDC frustum, ``models/fields/components/sampling.py``), place stratified samples (linear in depth for
+``bounded-360``, linear in disparity for ``forward-facing``), drop samples outside the cube or in empty
+occupancy cells, query the field on the rest only, and volume-render (``models/fields/components/render.py``).
+Losses live in ``models/fields/losses.py`` and the training loop in ``models/fields/train_static.py``.
+
+The scene description (:class:`SceneBox`) and the background colour are part of the model, saved with its
+checkpoint, so a run directory renders without the data it was trained on.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from engine.core.errors import InputError
+from engine.core.checks import check_shape
+from models.fields.static.field import FieldConfig, TriPlaneField
+from models.fields.components.render import RayOutputs, _composite, _weights
+from models.fields.components.sampling import (OccupancyGrid, contract_box, contract_ndc, ray_box_intersection,
+                                    sample_intervals)
+
+__all__ = ["SCENE_TYPES", "RenderConfig", "SceneBox", "StaticFieldModel"]
+
+SCENE_TYPES = ("bounded-360", "forward-facing")
+
+
+@dataclass
+class RenderConfig:
+    """How rays are sampled and rendered."""
+
+    num_samples: int = field(default=64, metadata={"help": "stratified samples per ray (before empty-space skipping)"})
+    occupancy: Optional[bool] = field(default=None, metadata={
+        "help": "use an occupancy grid to skip empty space (default: on for bounded-360, off for forward-facing)"})
+    occupancy_resolution: int = field(default=64, metadata={"help": "occupancy grid cells per axis"})
+    occupancy_alpha: float = field(default=0.01, metadata={
+        "help": "a cell is occupied when one typical sample step through it has alpha above this"})
+    occupancy_decay: float = field(default=0.95, metadata={
+        "help": "decay of the grid's running max density per update"})
+    ndc_margin: float = field(default=0.25, metadata={
+        "help": "forward-facing: widen the reference frustum by this fraction so side views fit"})
+
+
+@dataclass
+class SceneBox:
+    """Where the field lives, in world units (JSON-serialisable).
+
+    Attributes:
+        kind: ``bounded-360`` (an axis-aligned box) or ``forward-facing`` (NDC of a reference camera).
+        near, far: planar-depth bounds of every ray (far may be inf for forward-facing).
+        box_min, box_max: the box (bounded-360).
+        ndc_intrinsics, ndc_world_to_camera, ndc_size: the reference camera (forward-facing); size (W, H).
+    """
+
+    kind: str
+    near: float
+    far: float
+    box_min: Optional[list[float]] = None
+    box_max: Optional[list[float]] = None
+    ndc_intrinsics: Optional[list[list[float]]] = None
+    ndc_world_to_camera: Optional[list[list[float]]] = None
+    ndc_size: Optional[list[float]] = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (None if v is None else (v if k == "kind" else _jsonable(v))) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SceneBox":
+        return cls(**data)
+
+    @classmethod
+    def from_views(cls, views) -> "SceneBox":
+        """The scene of a :class:`~models.fields.data.views.Views`: its box (or one fitted to the cameras) for
+        bounded-360, its mean pose as the NDC reference for forward-facing; near/far over all views."""
+        from models.fields.data.views import box_from_cameras  # data imports nothing from here
+
+        near = float(np.min(views.near_far[:, 0]))
+        far = float(np.max(views.near_far[:, 1]))
+        if views.scene_type == "bounded-360":
+            bounds = views.bounds if views.bounds is not None else box_from_cameras(
+                views.cameras, views.height, views.width)
+            return cls("bounded-360", near, far, box_min=[float(x) for x in bounds[0]],
+                       box_max=[float(x) for x in bounds[1]])
+        centers = np.stack([c.position for c in views.cameras])
+        rotations = np.stack([c.world_to_camera[:3, :3] for c in views.cameras])
+        u, _, vt = np.linalg.svd(rotations.mean(axis=0))
+        rot = u @ vt
+        if np.linalg.det(rot) < 0:
+            rot = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+        w2c = np.eye(4)
+        w2c[:3, :3] = rot
+        w2c[:3, 3] = -rot @ centers.mean(axis=0)
+        k = views.cameras[0].intrinsics
+        return cls("forward-facing", near, far, ndc_intrinsics=k.tolist(), ndc_world_to_camera=w2c.tolist(),
+                   ndc_size=[float(views.width), float(views.height)])
+
+
+def _jsonable(value):
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return float(value)
+
+
+class StaticFieldModel(nn.Module):
+    """A tri-plane field with its scene, sampler and renderer.
+
+    Args:
+        scene: where the field lives.
+        background: (3,) linear RGB composited behind every ray (white for NeRF-synthetic).
+        field_config, render_config: component configs.
+    """
+
+    def __init__(self, scene: SceneBox, background, field_config: Optional[FieldConfig] = None,
+                 render_config: Optional[RenderConfig] = None):
+        super().__init__()
+        if scene.kind not in SCENE_TYPES:
+            raise InputError(f"must be one of {SCENE_TYPES}, got {scene.kind!r}", field="scene_type")
+        self.scene = scene
+        self.render_config = rc = render_config or RenderConfig()
+        self.field = TriPlaneField(field_config or FieldConfig())
+        self.register_buffer("background", torch.as_tensor(np.asarray(background, np.float32)).reshape(3))
+        self.bounded = scene.kind == "bounded-360"
+        if self.bounded:
+            lo = torch.tensor(scene.box_min, dtype=torch.float32)
+            hi = torch.tensor(scene.box_max, dtype=torch.float32)
+            self.register_buffer("box_min", lo)
+            self.register_buffer("box_max", hi)
+            self.register_buffer("center", (lo + hi) / 2)
+            self.register_buffer("half_size", (hi - lo) / 2)
+        else:
+            self.register_buffer("ndc_intrinsics", torch.tensor(scene.ndc_intrinsics, dtype=torch.float32))
+            self.register_buffer("ndc_world_to_camera", torch.tensor(scene.ndc_world_to_camera, dtype=torch.float32))
+        use_grid = rc.occupancy if rc.occupancy is not None else self.bounded
+        self.occupancy = OccupancyGrid(rc.occupancy_resolution) if use_grid else None
+
+    # scene ------------------------------------------------------------------------------------------------
+    def contract(self, points: Tensor) -> Tensor:
+        """World points (..., 3) -> the field's cube coordinates (..., 3) (inside = all in [-1, 1])."""
+        if self.bounded:
+            return contract_box(points, self.center, self.half_size)
+        w, h = self.scene.ndc_size
+        return contract_ndc(points, self.ndc_intrinsics, self.ndc_world_to_camera, w, h, self.scene.near,
+                            self.render_config.ndc_margin)
+
+    def occupancy_threshold(self) -> float:
+        """Density at which one typical sample step has alpha ``occupancy_alpha``."""
+        rc = self.render_config
+        if self.bounded:
+            step = 2.0 * float(self.half_size.norm()) / rc.num_samples
+        else:
+            step = (min(self.scene.far, 100.0 * self.scene.near) - self.scene.near) / rc.num_samples
+        return -math.log(1.0 - rc.occupancy_alpha) / max(step, 1e-9)
+
+    def update_occupancy(self, generator: Optional[torch.Generator] = None) -> float:
+        """Re-evaluate the occupancy grid (a training callback); returns the occupied fraction (1 without grid)."""
+        if self.occupancy is None:
+            return 1.0
+        return self.occupancy.update(lambda c: self.field.get_density(c)[0], self.occupancy_threshold(),
+                                     decay=self.render_config.occupancy_decay, generator=generator)
+
+    # rendering --------------------------------------------------------------------------------------------
+    def ray_bounds(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
+        """Per-ray planar-depth interval inside the scene; empty (far <= near) for rays that miss the box."""
+        if not self.bounded:
+            return near, far
+        t_enter, t_exit = ray_box_intersection(origins, directions, self.box_min, self.box_max)
+        return torch.maximum(near, t_enter), torch.minimum(far, t_exit)
+
+    def render_rays(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, *,
+                    jitter: bool = False, generator: Optional[torch.Generator] = None) -> RayOutputs:
+        """Render R rays.
+
+        Args:
+            origins: (R, 3) world.
+            directions: (R, 3) world, camera-z = 1 (from :func:`~models.fields.components.sampling.camera_rays`), so t is
+                planar depth.
+            near, far: (R,) planar-depth bounds.
+            jitter: stratified random sample positions (training) instead of bin centres.
+
+        Returns:
+            :class:`~models.fields.components.render.RayOutputs` (colour composited on the model's background).
+        """
+        sizes: dict = {}
+        check_shape(origins, "origins", ("R", 3), sizes)
+        check_shape(directions, "directions", ("R", 3), sizes)
+        check_shape(near, "near", ("R",), sizes)
+        check_shape(far, "far", ("R",), sizes)
+        return self._render_rays(origins, directions, near, far, jitter, generator)
+
+    def _render_rays(self, origins, directions, near, far, jitter, generator) -> RayOutputs:
+        rc = self.render_config
+        t_near, t_far = self.ray_bounds(origins, directions, near, far)
+        spacing = "linear" if self.bounded else "disparity"
+        t, deltas = sample_intervals(t_near, t_far, rc.num_samples, spacing=spacing, jitter=jitter,
+                                     generator=generator)
+        points = origins[:, None, :] + t[..., None] * directions[:, None, :]
+        coords = self.contract(points)
+        keep = (coords.abs() <= 1.0).all(dim=-1) & (deltas > 0)
+        if self.occupancy is not None and int(self.occupancy.updates) > 0:
+            keep = keep & self.occupancy.query(coords)
+        r, n = t.shape
+        sigma = coords.new_zeros(r, n)
+        rgb = coords.new_zeros(r, n, 3)
+        idx = keep.nonzero(as_tuple=True)
+        if idx[0].numel() > 0:
+            unit = torch.nn.functional.normalize(directions, dim=-1)
+            s, c = self.field(coords[idx], unit[idx[0]])
+            sigma = sigma.index_put(idx, s)
+            rgb = rgb.index_put(idx, c)
+        lengths = deltas * directions.norm(dim=-1, keepdim=True)  # t is camera z; densities are per unit length
+        weights, trans = _weights(sigma, lengths)
+        color, depth, expected, opacity = _composite(weights, rgb, t, self.background)
+        return RayOutputs(color, depth, expected, opacity, weights, trans, t)
+
+    def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> RayOutputs:
+        return self.render_rays(origins, directions, near, far)

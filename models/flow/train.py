@@ -1,0 +1,575 @@
+"""Unsupervised training of the 3D flow network on procedural scenes (thesis Sec. 6.3.3, 6.4).
+
+Training pairs come from ``engine.scenegen``: each scene seed is rendered once into an rgbd-seq under
+``<data_dir>/scene_<seed>`` (its ``scenegen_config.json`` records how). A step draws, from a random
+stream seeded by ``(seed, step)``, ``batch_size`` items ``(scene, k, n, crop)``: frames n and n-k are
+turned into ``m_n`` and ``m^w_{n-k}`` at full size (``models.flow.network.mpi_pair``: MPIs with
+``models.geometry``, camera motion cancelled by ``forward_warp_mpi``), then cropped. The loss is
+``models.flow.losses.flow_loss`` (Eq. 6.12); ground-truth flow is never used for training, only by
+``endpoint_error`` for reporting.
+
+Outputs in ``out_dir``: ``config.json`` (the ``TrainFlowConfig``), ``checkpoint.pt`` (model, optimiser,
+step; written every ``checkpoint_every`` steps and at the end), ``metrics.jsonl`` (one line per logged
+step, with the items drawn). ``train(config, resume=True)`` continues from ``checkpoint.pt``; because the
+data of a step depend only on ``(seed, step)`` and the optimiser state is saved, the result equals an
+uninterrupted run's (same thread count).
+
+Data parallel: launched under ``torchrun`` (``WORLD_SIZE`` > 1), ranks join a gloo process group, each
+takes every ``world_size``-th item of the step's batch, and DistributedDataParallel averages gradients,
+so the update equals the single-process one. Only rank 0 writes files.
+
+>>> train(TrainFlowConfig(out_dir="runs/flow3d", steps=10000))      # doctest: +SKIP
+>>> # torchrun --standalone --nproc_per_node 2 -m models.flow.train --out-dir runs/flow3d --steps 10000
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import gc
+import json
+import os
+import time
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from engine.core.config import option
+from engine.core.errors import InputError
+from engine.geometry import downsample_flow, downsample_frame
+from engine.core.checks import check_shape
+from models.flow.network import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
+from models.geometry import Mpi, composite
+from models.flow.losses import FlowLossConfig, flow_loss
+
+__all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
+           "prepare_data", "config_from_dict", "open_sequences", "StepBatches"]
+
+CHECKPOINT = "checkpoint.pt"
+CONFIG = "config.json"
+METRICS = "metrics.jsonl"
+
+
+
+@dataclass(frozen=True)
+class TrainFlowConfig:
+    """What and how to train. Defaults follow the thesis (256x256 crops, batch 4, Adam 1e-4 (0.9, 0.999))."""
+
+    out_dir: str = option("runs/flow3d", "folder for config.json, checkpoint.pt and metrics.jsonl")
+    data_dir: str = option("runs/flow_data", "folder the training scenes are rendered to (shared between runs)")
+    seed: int = option(0, "seed of the weights and of the data drawn at every step")
+    steps: int = option(10000, "optimiser steps")
+    batch_size: int = option(4, "pairs per step, over all processes (divisible by the number of processes)")
+    crop: int = option(128, "square crop size in pixels of the downsampled frames (a multiple of 16 avoids "
+                            "internal padding)")
+    downsample: int = option(2, "block size the frames are downsampled by before the MPIs are built "
+                                "(engine.geometry.downsample_frame; the engine's decomp predictor runs the "
+                                "network at the same working width, 480 px)")
+    lr: float = option(1e-4, "Adam learning rate")
+    betas: tuple[float, float] = option((0.9, 0.999), "Adam betas")
+    k_values: tuple[int, ...] = option((1, 2, 4), "frame gaps k of the pairs (m_n, m_{n-k}), drawn uniformly")
+    scene_seeds: tuple[int, ...] = option(tuple(range(5000, 5032)),
+                                          "engine.scenegen seeds of the training scenes (held-out: 1001-1003)")
+    scene_width: int = option(960, "rendered scene width")
+    scene_height: int = option(540, "rendered scene height")
+    scene_frames: int = option(12, "frames rendered per scene (the thesis' sequences have 12)")
+    crop_candidates: int = option(4, "random crop positions drawn per frame pair; the crops_per_pair with the "
+                                     "largest camera-compensated colour residual (m_n vs m^w_{n-k}) are trained on")
+    crops_per_pair: int = option(2, "crops taken from each frame pair (building a pair costs more than a "
+                                    "network step on a crop); batch_size / crops_per_pair pairs per step")
+    threads: int = option(2, "torch intra-op threads per process")
+    workers: int = option(0, "processes that build the batches of the coming steps while the network trains "
+                             "(torch DataLoader, each with its own frame cache); 0: built in the training "
+                             "process. The batches are the same either way")
+    device: str = option("cpu", "torch device the network trains on (e.g. cuda); batches are built on the CPU")
+    checkpoint_every: int = option(500, "save checkpoint.pt every this many steps (and at the end)")
+    log_every: int = option(10, "append to metrics.jsonl every this many steps")
+    model: Flow3DConfig = field(default_factory=Flow3DConfig,
+                                metadata={"help": "network hyper-parameters (num_planes, mode, channels, ranges)"})
+    loss: FlowLossConfig = field(default_factory=FlowLossConfig, metadata={"help": "loss weights (Eq. 6.8-6.12)"})
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.steps >= 0 and self.batch_size >= 1, "steps must be >= 0 and batch_size >= 1"),
+            (self.crop >= 1, "crop must be >= 1"),
+            (self.downsample >= 1 and 1 <= self.crops_per_pair <= self.crop_candidates,
+             "downsample must be >= 1 and 1 <= crops_per_pair <= crop_candidates"),
+            (self.batch_size % self.crops_per_pair == 0, "batch_size must be a multiple of crops_per_pair"),
+            (self.crop <= min(self.scene_width, self.scene_height) // self.downsample,
+             "crop must fit in the downsampled scene size"),
+            (self.lr > 0 and all(0.0 <= b < 1.0 for b in self.betas), "lr must be > 0, betas in [0, 1)"),
+            (len(self.k_values) >= 1 and all(k >= 1 for k in self.k_values), "k_values must be >= 1"),
+            (max(self.k_values) < self.scene_frames, "scene_frames must exceed the largest k"),
+            (len(self.scene_seeds) >= 1, "scene_seeds must not be empty"),
+            (self.threads >= 1 and self.checkpoint_every >= 1 and self.log_every >= 1,
+             "threads, checkpoint_every and log_every must be >= 1"),
+            (self.workers >= 0, "workers must be >= 0"),
+        ]
+        for ok, problem in checks:
+            if not ok:
+                raise InputError(problem, field="TrainFlowConfig")
+
+
+def config_from_dict(data: dict) -> TrainFlowConfig:
+    """Inverse of ``dataclasses.asdict`` for ``TrainFlowConfig`` (lists back to tuples, nested configs)."""
+    return _from_dict(TrainFlowConfig, data)
+
+
+def _from_dict(cls, data: dict):
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value, hint = data[f.name], hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            value = _from_dict(hint, value)
+        elif typing.get_origin(hint) is tuple:
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Data
+
+
+def prepare_data(config: TrainFlowConfig, *, progress: bool = False) -> list[Path]:
+    """Render every scene seed that is not cached yet; returns the rgbd-seq folders, one per seed."""
+    return render_scenes(config.data_dir, config.scene_seeds, config.scene_width, config.scene_height,
+                         config.scene_frames, progress=progress)
+
+
+def render_scenes(data_dir: str | Path, seeds, width: int, height: int, frames: int, *,
+                  progress: bool = False) -> list[Path]:
+    """``<data_dir>/scene_<seed>`` rgbd-seq folders from ``engine.scenegen``, rendering those not cached yet
+    (written to a ``.tmp`` folder, then renamed: an interrupted render is never taken for a finished one)."""
+    from engine.scenegen import SceneConfig, generate_sequence
+
+    root = Path(data_dir)
+    paths = []
+    for seed in seeds:
+        path = root / f"scene_{seed:06d}"
+        if not (path / "sequence.json").exists():
+            scene = SceneConfig(seed=seed, width=width, height=height, num_frames=frames)
+            generate_sequence(scene, path.with_name(path.name + ".tmp"), progress=progress)
+            path.with_name(path.name + ".tmp").rename(path)
+        paths.append(path)
+    return paths
+
+
+def sample_items(config: TrainFlowConfig, step: int) -> list[dict]:
+    """The frame pairs of a step, a function of (seed, step) only: ``batch_size / crops_per_pair`` items
+    ``{"scene", "k", "n", "crops"}`` with ``crops`` the ``crop_candidates`` (y, x) corners ``make_batch``
+    chooses ``crops_per_pair`` from."""
+    rng = np.random.default_rng([config.seed, step])
+    items = []
+    for _ in range(config.batch_size // config.crops_per_pair):
+        k = int(rng.choice(config.k_values))
+        items.append({"scene": int(rng.choice(config.scene_seeds)), "k": k,
+                      "n": int(rng.integers(k, config.scene_frames)),
+                      "crops": [[int(rng.integers(0, config.scene_height // config.downsample - config.crop + 1)),
+                                 int(rng.integers(0, config.scene_width // config.downsample - config.crop + 1))]
+                                for _ in range(config.crop_candidates)]})
+    return items
+
+
+def _residual(m_n: Mpi, m_p: Mpi) -> Tensor:
+    """(H, W) camera-compensated colour residual: |encoded colour difference| where both MPIs hold a point."""
+    both = m_n.alpha * m_p.alpha
+    diff = (encode_color(m_n.color) - encode_color(m_p.color)).abs().sum(dim=1, keepdim=True)
+    return (diff * both).sum(dim=(1, 2))[0]
+
+
+def choose_crops(residual: Tensor, crops: list, size: int, count: int) -> list[list[int]]:
+    """The ``count`` candidate [y, x] corners whose ``size`` crops hold the largest residual sums (stable order)."""
+    sums = np.array([float(residual[y:y + size, x:x + size].sum()) for y, x in crops])
+    order = np.argsort(-sums, kind="stable")[:count]
+    return [list(crops[i]) for i in sorted(order.tolist())]
+
+
+def _frame_tensors(frame, factor: int) -> tuple[Tensor, ...]:
+    """(color, depth, K, T) batched tensors of a frame block-downsampled by ``factor`` (as the engine does)."""
+    color, depth, k = downsample_frame(frame.color, frame.depth, frame.camera.intrinsics, factor)
+    t = torch.from_numpy(frame.camera.world_to_camera)[None].float()
+    return torch.from_numpy(color)[None], torch.from_numpy(depth)[None], torch.from_numpy(k)[None].float(), t
+
+
+def _object_flow(frame, factor: int) -> np.ndarray:
+    """Frame n's ground-truth object flow (n -> n+1) at the downsampled size, in downsampled pixels."""
+    if frame.object_flow is None:
+        return np.zeros((frame.depth.shape[0] // factor, frame.depth.shape[1] // factor, 2), dtype=np.float32)
+    return downsample_flow(frame.object_flow, factor)
+
+
+def _crop_mpi(mpi: Mpi, y: int, x: int, size: int) -> Mpi:
+    def crop(t: Tensor) -> Tensor:
+        return t[..., y:y + size, x:x + size]
+    return Mpi(crop(mpi.color), crop(mpi.depth), crop(mpi.alpha), mpi.plane_depths)
+
+
+def _low_res_frame(config: TrainFlowConfig, sequences: dict, scene: int, n: int, cache: Optional[dict]):
+    """(color, depth, K, T tensors, object flow array) of frame n of a scene at the downsampled size."""
+    key = (scene, n)
+    if cache is not None and key in cache:
+        return cache[key]
+    frame = sequences[scene][n]
+    value = (_frame_tensors(frame, config.downsample), _object_flow(frame, config.downsample))
+    if cache is not None:
+        cache[key] = value
+    return value
+
+
+def _initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
+    """``engine.predict.decomp.predictor.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
+    from engine.predict.decomp.predictor import initial_flow
+
+    warped_color, _, acc = composite(m_p)
+    flow = initial_flow(color_n[0].numpy(), warped_color[0].numpy(), acc[0].numpy() > 0)
+    return torch.from_numpy(flow).permute(2, 0, 1)[None]
+
+
+def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
+               cache: Optional[dict] = None) -> tuple[Mpi, Mpi, Tensor, Optional[Tensor]]:
+    """Crops of ``(m_n, m^w_{n-k})`` for ``items``, the ground-truth object flow of frame n (B, c, c, 2) and,
+    for networks that refine one (``Flow3DConfig.initial_flow``), the initial flow (B, 2, c, c), else None.
+
+    An item with ``crops`` candidates yields ``crops_per_pair`` crops (``choose_crops``, recorded in the
+    item as ``picked``); an item with ``y``, ``x`` yields that one crop.
+
+    Frames are block-downsampled by ``config.downsample`` first (``engine.geometry.downsample_frame``).
+    ``sequences`` maps scene seed -> ``engine.io.rgbd.RgbdSequence`` (or anything indexable the same way);
+    ``cache`` (a dict, optional) keeps the downsampled frames between calls (training passes one). The
+    object flow (frame n -> n+1, block mean, in downsampled pixels) is only for evaluation (zeros when the
+    sequence has none).
+    """
+    firsts, seconds, flows, inits = [], [], [], []
+    for item in items:
+        tensors_n, flow_n = _low_res_frame(config, sequences, item["scene"], item["n"], cache)
+        tensors_p, _ = _low_res_frame(config, sequences, item["scene"], item["n"] - item["k"], cache)
+        with torch.no_grad():
+            m_n, m_p = mpi_pair(*tensors_n, *tensors_p, config.model.num_planes)
+        init = _initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
+        c = config.crop
+        if "crops" in item:
+            item["picked"] = choose_crops(_residual(m_n, m_p), item["crops"], c, config.crops_per_pair)
+        for y, x in item.get("picked", [[item.get("y", 0), item.get("x", 0)]]):
+            firsts.append(_crop_mpi(m_n, y, x, c))
+            seconds.append(_crop_mpi(m_p, y, x, c))
+            flows.append(torch.from_numpy(np.ascontiguousarray(flow_n[y:y + c, x:x + c])))
+            if init is not None:
+                inits.append(init[..., y:y + c, x:x + c])
+
+    def stack(mpis: list[Mpi]) -> Mpi:
+        return Mpi(*(torch.cat(parts, dim=0) for parts in zip(*mpis)))
+
+    return stack(firsts), stack(seconds), torch.stack(flows), (torch.cat(inits) if inits else None)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Evaluation
+
+
+def endpoint_error(pred_flow: Tensor, gt_object_flow: Tensor, mask: Optional[Tensor] = None) -> Tensor:
+    """Average endpoint error in x-y (thesis Tab. 6.2), a scalar tensor: mean of ||pred_xy - gt|| over ``mask``.
+
+    Both flows must mean the same motion, e.g. the predicted ``u(n -> n+1)`` (``extrapolate(flow, 1 / k)``
+    collapsed to pixels with ``surface_flow``) against frame n's ``object_flow`` (n -> n+1, pixels).
+
+    Args:
+        pred_flow: (B, H, W, 2 or 3) pixels (a third component, dz, is ignored).
+        gt_object_flow: (B, H, W, 2) pixels.
+        mask: optional (B, H, W) bool, the pixels to score (e.g. moving pixels); default all.
+
+    Returns:
+        The mean EPE in pixels; NaN when the mask selects nothing.
+    """
+    sizes: dict = {}
+    check_shape(pred_flow, "pred_flow", ("B", "H", "W", "C"), sizes)
+    check_shape(gt_object_flow, "gt_object_flow", ("B", "H", "W", 2), sizes)
+    if sizes["C"] not in (2, 3):
+        raise InputError(f"must have 2 or 3 components, got {sizes['C']}", field="pred_flow")
+    epe = torch.linalg.vector_norm(pred_flow[..., :2] - gt_object_flow, dim=-1)
+    if mask is None:
+        return epe.mean()
+    check_shape(mask, "mask", ("B", "H", "W"), sizes, floating=False)
+    mask = mask.to(torch.bool)
+    return epe[mask].mean() if bool(mask.any()) else torch.tensor(float("nan"), dtype=epe.dtype)
+
+
+def _moving_epe(flow: Tensor, mpi_n: Mpi, gt_flow: Tensor, ks: list[int]) -> tuple[float, float]:
+    """Monitoring only: EPE of the predicted u(n -> n+1) = -u(n -> n-k) / k on pixels whose true object
+    flow exceeds 0.1 px, and the EPE of zero flow on the same pixels (NaN when none moves)."""
+    steps = torch.tensor([1.0 / k for k in ks], dtype=flow.dtype).reshape(-1, 1, 1, 1, 1)
+    pred = surface_flow(extrapolate(flow, 1.0) * steps, mpi_n)
+    moving = torch.linalg.vector_norm(gt_flow, dim=-1) > 0.1
+    return (float(endpoint_error(pred, gt_flow, moving)),
+            float(endpoint_error(torch.zeros_like(gt_flow), gt_flow, moving)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Training
+
+
+def open_sequences(config: TrainFlowConfig) -> dict:
+    """Scene seed -> ``engine.io.rgbd.RgbdSequence`` of the rendered training scenes (``prepare_data``)."""
+    from engine.io.rgbd import read_sequence
+
+    return {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
+
+
+class StepBatches(torch.utils.data.Dataset):
+    """Item i: ``(items, make_batch(...))`` of step ``start + i`` for process ``rank`` of ``world``, with
+    ``items`` = ``sample_items(config, step)`` (this rank's share marked with the crops it picked).
+
+    A function of (seed, step) only, so the batches are the same whether they are built in the training
+    process or in DataLoader workers (each keeps its own cache of downsampled frames, about 3 MB a frame).
+    """
+
+    def __init__(self, config: TrainFlowConfig, start: int, rank: int = 0, world: int = 1) -> None:
+        self.config, self.start, self.rank, self.world = config, start, rank, world
+        self.sequences: Optional[dict] = None
+        self.cache: dict = {}
+
+    def __len__(self) -> int:
+        return max(self.config.steps - self.start, 0)
+
+    def __getitem__(self, index: int):
+        if self.sequences is None:
+            self.sequences = open_sequences(self.config)
+        items = sample_items(self.config, self.start + index)
+        return items, make_batch(self.config, items[self.rank::self.world], self.sequences, self.cache)
+
+
+def _as_is(batch):
+    return batch
+
+
+def _distributed() -> tuple[int, int, bool]:
+    """(rank, world size, whether this call created the process group)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    created = False
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo")
+        created = True
+    if dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size(), created
+    return 0, 1, False
+
+
+def _load_network(path: str | Path, network_class, config_class):
+    """The network a checkpoint holds (``network_class(config_class(**model_config))``, eval mode); shared
+    with the infilling trainer."""
+    state = torch.load(Path(path), map_location="cpu", weights_only=False)
+    model = network_class(_from_dict(config_class, state["model_config"]))
+    model.load_state_dict(state["model"])
+    return model.eval()
+
+
+def load_model(path: str | Path) -> Flow3D:
+    """The ``Flow3D`` saved in a checkpoint (eval mode)."""
+    return _load_network(path, Flow3D, Flow3DConfig)
+
+
+def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, config) -> None:
+    """Atomic ``checkpoint.pt``: model and optimiser state, step, ``config.model`` and ``config`` as dicts
+    (any training config with a nested ``model`` dataclass; the infilling trainer uses it too)."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "model_config": dataclasses.asdict(config.model), "config": dataclasses.asdict(config)}, tmp)
+    tmp.replace(path)
+
+
+def _restore_checkpoint(path: Path, model: torch.nn.Module, optimizer, model_config) -> int:
+    """Load a ``_save_checkpoint`` file into ``model`` and ``optimizer`` and return its step; InputError when
+    it was trained with another network config than ``model_config`` (a dataclass)."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if state["model_config"] != dataclasses.asdict(model_config):
+        raise InputError("was trained with another network config; use a new out_dir", file=path,
+                         field="model_config")
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    return int(state["step"])
+
+
+def train(config: TrainFlowConfig, progress: bool = True, resume: bool = False) -> Path:
+    """Train ``Flow3D`` unsupervised (Eq. 6.12) and return the path of ``checkpoint.pt``.
+
+    Args:
+        config: everything that defines the run; saved as ``config.json`` in ``config.out_dir``.
+        progress: show a tqdm bar (rank 0).
+        resume: continue from ``checkpoint.pt`` if present (its network config must match).
+    """
+    if not isinstance(config, TrainFlowConfig):
+        raise InputError(f"must be a TrainFlowConfig, got {type(config).__name__}", field="config")
+    rank, world, created = _distributed()
+    try:
+        return _train(config, progress, resume, rank, world)
+    finally:
+        if created:
+            dist.destroy_process_group()
+
+
+def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, world: int) -> Path:
+    if (config.batch_size // config.crops_per_pair) % world:
+        raise InputError(f"the {config.batch_size // config.crops_per_pair} frame pairs per step (batch_size / "
+                         f"crops_per_pair) do not divide among {world} processes", field="batch_size")
+    torch.set_num_threads(config.threads)
+    out = Path(config.out_dir)
+    ckpt_path = out / CHECKPOINT
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / CONFIG).write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+        prepare_data(config, progress=progress)
+    if world > 1:
+        dist.barrier()
+
+    torch.manual_seed(config.seed)
+    device = torch.device(config.device)
+    model = Flow3D(config.model).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=tuple(config.betas))
+    start = 0
+    if resume and ckpt_path.exists():
+        start = _restore_checkpoint(ckpt_path, model, optimizer, config.model)
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model)
+    model.train()
+
+    bar = None
+    if progress and rank == 0:
+        from tqdm import tqdm
+        bar = tqdm(total=config.steps, initial=start, desc="flow3d", unit="step")
+    metrics = (out / METRICS).open("a") if rank == 0 else None
+    batches = StepBatches(config, start, rank, world)
+    if config.workers:
+        loader = iter(torch.utils.data.DataLoader(batches, batch_size=None, shuffle=False,
+                                                  num_workers=config.workers, collate_fn=_as_is))
+    else:
+        loader = (batches[i] for i in range(len(batches)))
+    try:
+        for step in range(start, config.steps):
+            t0 = time.perf_counter()
+            items, (mpi_n, mpi_p, gt_flow, init) = next(loader)
+            mine = items[rank::world]
+            t1 = time.perf_counter()
+            on_device = [Mpi(*(t.to(device) for t in mpi)) for mpi in (mpi_n, mpi_p)]
+            flow = net(*on_device, None if init is None else init.to(device))
+            loss, terms = flow_loss(*on_device, flow, config.loss)
+            optimizer.zero_grad(set_to_none=True)
+            loss.mean().backward()
+            optimizer.step()
+            done = step + 1
+            if rank == 0:
+                if done % config.log_every == 0 or done == config.steps:
+                    ks = [item["k"] for item in mine for _ in item.get("picked", [None])]
+                    epe, epe_zero = _moving_epe(flow.detach().cpu(), mpi_n, gt_flow, ks)
+                    record = {"step": done, "loss": float(loss.detach().mean()), "epe_moving": epe,
+                              "epe_moving_zero_flow": epe_zero,
+                              **{name: float(value.detach().mean()) for name, value in terms.items()},
+                              "data_s": round(t1 - t0, 4), "step_s": round(time.perf_counter() - t0, 4),
+                              "items": items}
+                    metrics.write(json.dumps(record) + "\n")
+                    metrics.flush()
+                if done % config.checkpoint_every == 0 or done == config.steps:
+                    _save_checkpoint(ckpt_path, model, optimizer, done, config)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{float(loss.detach().mean()):.4f}")
+            if world > 1 and (done % config.checkpoint_every == 0 or done == config.steps):
+                dist.barrier()
+    finally:
+        if bar is not None:
+            bar.close()
+        if metrics is not None:
+            metrics.close()
+    if rank == 0 and start >= config.steps and not ckpt_path.exists():
+        _save_checkpoint(ckpt_path, model, optimizer, start, config)
+    if world > 1:
+        # Drop the DDP reducer (it holds the process group and gloo work objects) before the group is
+        # destroyed, and let every rank get here first: a rank whose peer has already hung up while gloo
+        # still owns pending work aborts with "terminate called without an active exception".
+        del net
+        gc.collect()
+        dist.barrier()
+    return ckpt_path
+
+
+def build_parser(prog: str = "python -m models.flow.train") -> argparse.ArgumentParser:
+    """One ``--option`` per field of ``TrainFlowConfig``, ``Flow3DConfig`` and ``FlowLossConfig``
+    (``engine.cli.add_dataclass_options``; tuples comma-separated, e.g. ``--scene-seeds 1,2,3``), plus
+    ``--config FILE`` (a ``config.json`` as ``train`` writes it; options given on the command line override
+    it), ``--resume`` and ``--no-progress``."""
+    from engine.cli import add_dataclass_options
+
+    parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet 3D flow network (unsupervised, "
+                                                            "thesis Eq. 6.8-6.12) on procedural scenes.")
+    parser.add_argument("--config", metavar="FILE", help="JSON TrainFlowConfig (nested 'model' and 'loss'); "
+                                                         "command-line options override its values")
+    add_dataclass_options(parser, TrainFlowConfig, skip=("model", "loss"))
+    add_dataclass_options(parser, Flow3DConfig)
+    add_dataclass_options(parser, FlowLossConfig)
+    parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainFlowConfig:
+    """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
+    return merge_config_args(TrainFlowConfig, args, given, ("model", "loss"))
+
+
+def merge_config_args(cls, args: argparse.Namespace, given: set[str], nested: tuple[str, ...]):
+    """A training config of dataclass ``cls`` from the command line: ``args.config``'s JSON file (if any;
+    else the defaults), with every option named in ``given`` taken from ``args``. The fields of the nested
+    dataclass fields ``nested`` are flat options on the command line (``engine.cli.add_dataclass_options``).
+    Shared by the flow and infilling trainers."""
+    base = cls()
+    if args.config:
+        path = Path(args.config)
+        if not path.is_file():
+            raise InputError("config file not found", file=path, field="--config")
+        try:
+            base = _from_dict(cls, json.loads(path.read_text()))
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise InputError(f"is not a {cls.__name__} JSON: {exc}", file=path, field="--config") from exc
+    values = vars(args)
+
+    def merged(kind, current, skip=()) -> dict:
+        out = dataclasses.asdict(current)
+        for f in dataclasses.fields(kind):
+            if f.name in given and f.name not in skip:
+                out[f.name] = values[f.name]
+        return out
+
+    hints = typing.get_type_hints(cls)
+    top = merged(cls, base, nested)
+    for name in nested:
+        top[name] = merged(hints[name], getattr(base, name))
+    return _from_dict(cls, top)
+
+
+def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """Destinations of the options that appear in ``argv`` (``--name`` or ``--name=value``)."""
+    flags = {flag: action.dest for action in parser._actions for flag in action.option_strings}
+    return {flags[a.split("=", 1)[0]] for a in argv if a.split("=", 1)[0] in flags}
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m models.flow.train") -> None:
+    """Command line of ``train`` (``interleave train flow`` calls this); see ``build_parser``."""
+    import sys
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(prog)
+    args = parser.parse_args(argv)
+    config = config_from_args(args, _given_options(parser, argv))
+    train(config, progress=not args.no_progress, resume=args.resume)
+
+
+if __name__ == "__main__":
+    main()

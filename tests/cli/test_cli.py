@@ -1,0 +1,136 @@
+"""The `interleave` command line: help for every option, clear errors with exit status 2, end to end runs."""
+import json
+from pathlib import Path
+
+import pytest
+
+from engine.cli import build_parser, main
+from engine.io.rgbd import read_sequence, write_sequence
+from tests.synthetic import two_layer_sequence
+
+
+@pytest.mark.parametrize("command", ["demo", "eval", "sweep", "render-scene", "import"])
+def test_every_option_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    sub = build_parser()._subparsers._group_actions[0].choices[command]
+    for action in sub._actions:
+        if action.option_strings and action.dest != "help":
+            assert action.help and len(action.help) > 8, f"{command} {action.option_strings} lacks help"
+            assert action.option_strings[0] in text
+
+
+def test_missing_sequence_is_a_clear_error(tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert "interleave eval: error:" in err and "nope" in err and "Traceback" not in err
+
+
+def test_unknown_method_is_a_clear_error(tmp_path, capsys):
+    frames, objects = two_layer_sequence(5)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    assert main(["eval", str(path), "--methods", "reproject,magic"]) == 2
+    assert "magic" in capsys.readouterr().err
+
+
+def test_eval_writes_json_and_plot(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.1, object_speed=0.03)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
+    assert main(["eval", str(path), "--k", "2,4", "--json", str(out_json), "--plot", str(out_png)]) == 0
+    doc = json.loads(out_json.read_text())
+    methods = ("repeat", "reproject", "flow2d", "decomp", "oracle")
+    assert {(r["method"], r["k"]) for r in doc["records"]} == {(m, k) for m in methods for k in (2, 4)}
+    epe = {r["method"]: r["epe_moving"] for r in doc["records"] if r["k"] == 2}
+    assert epe["repeat"] is None and epe["flow2d"] > 0 and epe["decomp"] > 0  # only flow methods have an EPE
+    assert out_png.stat().st_size > 10_000
+    printed = capsys.readouterr().out
+    assert "| seq | 2 | reproject |" in printed and "reproject beats repeat (PSNR) on 1 of 1" in printed
+
+
+def test_render_scene_and_demo_end_to_end(tmp_path):
+    assert main(["render-scene", str(tmp_path / "scene"), "--width", "64", "--height", "48", "--num-frames", "5",
+                 "--seed", "3", "--supersample", "1"]) == 0
+    seq = read_sequence(tmp_path / "scene")
+    assert len(seq) == 5 and seq.has_channel("object_flow")
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--frames", "8", "--width", "96", "--height", "64"]) == 0
+    for name in ("side_by_side.mp4", "table.md", "results.json", "speed_vs_error.png"):
+        assert (tmp_path / "demo" / name).stat().st_size > 0
+
+
+def test_eval_bounds_prints_the_four_rows_and_writes_json(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.1, object_speed=0.08)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json = tmp_path / "bounds.json"
+    assert main(["eval", str(path), "--bounds", "decomp[fill=simple]", "--k", "4", "--no-flip",
+                 "--json", str(out_json)]) == 0
+    printed = capsys.readouterr().out
+    for motion, infill in (("pred", "pred"), ("GT", "pred"), ("pred", "GT"), ("GT", "GT")):
+        assert f"| 4 | {motion} | {infill} | decomp[fill=simple" in printed
+    assert "Per future step k'" in printed  # k > 2
+    doc = json.loads(out_json.read_text())
+    assert doc["bounds_variant"] == "decomp[fill=simple]" and len(doc["bounds"]) == 4
+    assert {"motion", "infill", "psnr", "ssim", "flip", "psnr_moving", "hole_fraction"} <= set(doc["bounds"][0])
+
+
+def test_eval_bounds_errors(tmp_path, capsys):
+    frames, _ = two_layer_sequence(5)
+    path = write_sequence(tmp_path / "no_objects", frames, fps=30.0)
+    assert main(["eval", str(path), "--bounds", "decomp[fill=simple]", "--no-flip"]) == 2
+    err = capsys.readouterr().err
+    assert "motion=truth needs the sequence's moving objects" in err and "no_objects" in err
+    assert "Traceback" not in err
+    assert main(["eval", str(path), "--bounds", "flow2d"]) == 2
+    assert "decomp variant" in capsys.readouterr().err
+
+
+def test_eval_k5_prints_a_per_step_table(tmp_path, capsys):
+    frames, objects = two_layer_sequence(11, width=80, height=60, camera_speed=0.05, object_speed=0.03)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json = tmp_path / "k5.json"
+    methods = ("reproject", "flow2d", "decomp[fill=simple]")
+    assert main(["eval", str(path), "--k", "5", "--methods", ",".join(methods), "--json", str(out_json)]) == 0
+    printed = capsys.readouterr().out
+    for method in methods:
+        for step in (1, 2, 3, 4):
+            assert f"| {method} | 5 | {step} | 1 |" in printed
+    doc = json.loads(out_json.read_text())
+    assert all(set(r["per_step"]) == {"1", "2", "3", "4"} for r in doc["records"])
+    assert all(r["per_step"]["4"]["flip"] > 0 for r in doc["records"])
+
+
+def test_sweep_runs_on_a_tiny_sequence(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.05, object_speed=0.08)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out = tmp_path / "sweep"
+    assert main(["sweep", str(path), "--fill", "simple", "--flow-width", "80,40", "--max-groups", "2",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| 80x60 | reproject |" in printed and "Stage breakdown at 80x60" in printed
+    doc = json.loads((out / "sweep.json").read_text())
+    assert [p["label"] for p in doc["points"]] == ["reproject", "flow2d", "decomp w80 Z4 simple",
+                                                   "decomp w40 Z4 simple"]
+    assert any(p["pareto_psnr"] for p in doc["points"]) and any(p["pareto_flip"] for p in doc["points"])
+    fastest = min(doc["points"], key=lambda p: p["ms_per_frame"])
+    assert fastest["pareto_psnr"] and fastest["pareto_flip"]  # nothing is faster than the fastest
+    assert len(doc["records"]) == len(doc["resolutions"]) == 4
+    assert (out / "sweep.md").stat().st_size > 0 and (out / "sweep.png").stat().st_size > 10_000
+    assert main(["sweep", str(path), "--fill", "simple", "--decomp-options", "flow_width=10",
+                 "--out", str(out)]) == 2
+    assert "swept by the sweep itself" in capsys.readouterr().err
+
+
+def test_import_through_the_command_line(tmp_path, capsys):
+    from tests.io.test_importers import write_veed
+
+    src = write_veed(tmp_path / "veed", channel="Y")
+    assert main(["import", "veed", str(src), str(tmp_path / "out"), "--depth-channel", "Y", "--fps", "60"]) == 0
+    seq = read_sequence(tmp_path / "out")
+    assert len(seq) == 3 and seq.fps == 60.0
+    assert main(["import", "blender", str(src), str(tmp_path / "out2"), "--fps", "60"]) == 2
+    assert "does not take --fps" in capsys.readouterr().err
+    assert main(["import", "veed", str(src), str(tmp_path / "out3")]) == 2  # depth is in Y, not B
+    err = capsys.readouterr().err
+    assert "interleave import: error:" in err and "B" in err and "Traceback" not in err

@@ -1,0 +1,272 @@
+"""Renderers of exported dynamic fields (engine/fields/dynamic.py numpy / onnxruntime, engine/fields/gldynamic.py GL)
+against the torch renderer of models/fields/dynamic/model.py, and the numpy reference against the GL shader.
+
+Fixtures: a tiny DeRF trained on the moving sphere of tests/fields/test_dynamic_field.py (40 steps), then given a
+motion that matters (time planes and flow MLP perturbed: |flow| 0.19 contracted units on average, up to 0.43,
+changing with time; 40 steps alone leave |flow| < 0.02) and an occupancy grid with empty cells (a ball),
+exported; and an untrained forward-facing (NDC) K-Planes field with perturbed time planes and no grid, exported
+(its tests are marked slow: another ONNX export, ~10 s).
+
+Tolerances (measured in brackets): numpy query against torch's field 1e-5 [1.2e-7]; renders (numpy and
+onnxruntime) against torch without the occupancy grid: colour and opacity within 1e-5 [2.4e-7]; with it:
+colour within 1e-4 on > 97% of the pixels [99.7%] and 0.05 everywhere [1.3e-2 on 2 of 768 pixels: a sample
+within float rounding of an occupancy-cell boundary is skipped by one renderer and not the other, as in
+tests/fields/test_field_export.py], opacity within 0.05 [3.1e-2], the same pixels without a surface. GL against numpy
+with early termination and the colour skip off and exact filtering: colour and opacity within 1e-4 [6.6e-7],
+the same +inf depth pixels, median depth within 1e-4 [2.4e-7]; with the defaults colour within
+transmittance_eps + num_samples * color_eps and PSNR > 40 dB [134-144 dB; these tiny fields are
+semi-transparent, so early termination never triggers]; hardware filtering > 60 dB [139-144 dB].
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from engine.core.colorspace import display_encode
+from engine.fields.dynamic import (deform_np, load_dynamic_field, normalize_time, query_dynamic,
+                              render_dynamic_field)
+from engine.core.errors import InputError
+from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available, scale_intrinsics
+from engine.eval.metrics import psnr
+from export.dynamic import export_dynamic
+from models.fields.dynamic.model import AtTime, DynamicFieldModel
+from models.fields.data.timed import split_by_camera
+from models.fields.train_dynamic import load_dynamic_model, train_dynamic
+from models.fields.static.model import RenderConfig, SceneBox
+from models.fields.components.render import render_image
+from tests.fields.test_dynamic_field import TIMES, TINY, sphere_video, tiny_config
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+H, W = 24, 32
+EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0, "filtering": "exact"}
+#: DeRF by default; the K-Planes fixture costs another ONNX export (~10 s), so it runs with ``-m slow``.
+BOTH = ["derf", pytest.param("kplanes", marks=pytest.mark.slow)]
+gl_only = pytest.mark.skipif(not available(), reason="no EGL context with OpenGL 4.3 compute shaders and fp64")
+
+
+@pytest.fixture(scope="module")
+def derf(tmp_path_factory):
+    """(model, export folder, held-out camera scaled to W x H) of the trained, motion-perturbed DeRF."""
+    root = tmp_path_factory.mktemp("dynrender")
+    train, test = split_by_camera(sphere_video([0, 30, 15, 60], TIMES), ["cam0", "cam1", "cam3"], ["cam2"])
+    run = train_dynamic(train, tiny_config(40), root / "run", progress=False)
+    model = load_dynamic_model(run)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for plane in model.field.motion_field.temporal_planes():
+            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+        last = model.field.motion_field.flow_mlp.net[-1]
+        last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
+        last.bias.copy_(torch.randn(last.bias.shape, generator=g) * 0.02)
+        axis = (torch.arange(64) + 0.5) / 32.0 - 1.0
+        cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)
+        model.occupancy.occupied.copy_(cells.norm(dim=-1) < 0.8)
+        model.occupancy.updates.fill_(1)  # the renderers use a grid once it has been updated
+    export_dynamic(model, root / "export")
+    cam = test.cameras[0]
+    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
+
+
+@pytest.fixture(scope="module")
+def kplanes(tmp_path_factory):
+    """(model, export folder, camera) of an untrained forward-facing K-Planes field with time-varying planes."""
+    root = tmp_path_factory.mktemp("dynrender_kplanes")
+    video = sphere_video([0, 20, 40], [0.0, 1.0])
+    video = dataclasses.replace(video, scene_type="forward-facing", bounds=None, background=np.zeros(3, np.float32))
+    torch.manual_seed(0)
+    model = DynamicFieldModel(SceneBox.from_views(video), [0.0, 0.0, 0.0], (2.0, 4.0),
+                              dataclasses.replace(TINY, kind="kplanes"), RenderConfig(num_samples=24),
+                              time_resolution=3).eval()
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for plane in model.field.encoding.temporal_planes():
+            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+    export_dynamic(model, root / "export")
+    cam = sphere_video([10], [0.0]).cameras[0]
+    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
+
+
+def _torch(model, camera, t: float) -> dict:
+    k, w2c = camera
+    return render_image(AtTime(model, t), k, w2c, H, W, model.scene.near, model.scene.far)
+
+
+def _psnr(a: dict, b: dict) -> float:
+    return psnr(display_encode(a["color"]), display_encode(b["color"]))
+
+
+def assert_close_to_torch(ref: dict, got: dict, *, grid: bool) -> None:
+    error = np.abs(got["color"] - ref["color"]).max(-1)
+    if grid:  # a few samples within float rounding of an occupancy-cell boundary
+        assert np.mean(error < 1e-4) > 0.97 and error.max() < 0.05
+        assert np.abs(got["opacity"] - ref["opacity"]).max() < 0.05
+    else:
+        assert error.max() < 1e-5 and np.abs(got["opacity"] - ref["opacity"]).max() < 1e-5
+    finite = np.isfinite(ref["depth"])
+    assert np.array_equal(np.isfinite(got["depth"]), finite) and finite.any()
+    assert np.median(np.abs(got["depth"][finite] - ref["depth"][finite])) < 1e-4
+
+
+def assert_same_render(ref: dict, got: dict, tol: float) -> None:
+    assert got["color"].shape == (H, W, 3) and got["depth"].shape == (H, W) and got["opacity"].shape == (H, W)
+    assert all(got[k].dtype == np.float32 for k in ("color", "depth", "opacity"))
+    assert np.abs(got["color"] - ref["color"]).max() <= tol
+    assert np.abs(got["opacity"] - ref["opacity"]).max() <= tol
+    finite = np.isfinite(ref["depth"])
+    assert np.array_equal(np.isfinite(got["depth"]), finite)
+    if finite.any():
+        assert np.median(np.abs(got["depth"][finite] - ref["depth"][finite])) < 1e-4
+    assert _psnr(ref, got) > 40.0
+
+
+# ----------------------------------------------------------------------------------------------------
+# numpy / onnxruntime against torch
+
+
+@pytest.mark.parametrize("which", BOTH)
+def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
+    model, out, _ = request.getfixturevalue(which)
+    assets = load_dynamic_field(out)
+    g = torch.Generator().manual_seed(2)
+    coords = torch.rand(3000, 3, generator=g) * 2 - 1
+    taus = torch.rand(3000, generator=g) * 2 - 1
+    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1)
+    with torch.no_grad():
+        want = model.field(coords, taus, dirs)
+    sigma, rgb = query_dynamic(assets, coords.numpy(), taus.numpy(), dirs.numpy())
+    np.testing.assert_allclose(sigma, want.sigma.numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(rgb, want.rgb.numpy(), atol=1e-5)
+    if which == "derf":  # the motion field is exercised: large flows that depend on time
+        canonical, flow = deform_np(assets, coords.numpy(), taus.numpy())
+        np.testing.assert_allclose(canonical, want.canonical.numpy(), atol=1e-5)
+        magnitude = np.linalg.norm(flow, axis=-1)
+        assert magnitude.max() > 0.1 and magnitude.mean() > 0.02
+        _, early = deform_np(assets, coords.numpy(), np.full(3000, -1.0, np.float32))
+        _, late = deform_np(assets, coords.numpy(), np.full(3000, 1.0, np.float32))
+        assert np.abs(early - late).max() > 0.05
+    assert sigma.dtype == np.float32
+    assert query_dynamic(assets, np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))[0].shape == (0,)  # empty batch
+
+
+@pytest.mark.parametrize("which", BOTH)
+def test_numpy_and_onnx_renders_match_the_torch_renderer(which, request):
+    model, out, camera = request.getfixturevalue(which)
+    assets = load_dynamic_field(out)
+    grid = assets.occupancy is not None
+    assert grid == (which == "derf")
+    t0, t1 = assets.time_range
+    renders = []
+    for t in (t0 + 0.3 * (t1 - t0), t1):
+        ref = _torch(model, camera, t)
+        got = render_dynamic_field(assets, *camera, H, W, t, chunk=300)
+        assert_close_to_torch(ref, got, grid=grid)
+        assert_close_to_torch(ref, render_dynamic_field(assets, *camera, H, W, t, query="onnx"), grid=grid)
+        renders.append(got)
+        if grid:  # without the grid, the renderers agree everywhere
+            assets.occupancy, updates = None, int(model.occupancy.updates)
+            model.occupancy.updates.fill_(0)
+            try:
+                assert_close_to_torch(_torch(model, camera, t), render_dynamic_field(assets, *camera, H, W, t),
+                                      grid=False)
+            finally:
+                model.occupancy.updates.fill_(updates)
+            assets = load_dynamic_field(out)
+    assert np.abs(renders[0]["color"] - renders[1]["color"]).max() > 1e-4  # time matters
+
+
+def test_manifest_describes_what_the_renderers_read(derf):
+    _, out, camera = derf
+    assets = load_dynamic_field(out)
+    spec = assets.manifest["field"]
+    assert assets.kind == "derf" and spec["max_flow"] == 1.0 and spec["time_frequencies"] == 2
+    assert assets.occupancy is not None and 0.1 < assets.occupancy.mean() < 0.5
+    assert [p.shape[2] for p in assets.planes["motion_temporal"]] == [assets.manifest["time"]["time_resolution"]]
+    assert assets.mlps["color"][0][0].shape[1] == spec["geo_feature_dim"] + 9 + 5  # h, SH (3 bands), time
+    quantized = load_dynamic_field(out, quantized=True)  # every plane group from its uint8 codes and ranges
+    full = render_dynamic_field(assets, *camera, H, W, 0.5)
+    assert np.abs(render_dynamic_field(quantized, *camera, H, W, 0.5)["color"] - full["color"]).max() < 0.02
+
+
+# ----------------------------------------------------------------------------------------------------
+# GL against the numpy reference
+
+
+@gl_only
+@pytest.mark.parametrize("which", BOTH)
+def test_gl_matches_the_numpy_reference_at_two_times(which, request):
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    _, out, camera = request.getfixturevalue(which)
+    assets = load_dynamic_field(out)
+    t0, t1 = assets.time_range
+    bound = TRANSMITTANCE_EPS + assets.manifest["render"]["num_samples"] * COLOR_EPS
+    with GlDynamicRenderer(assets, W, H) as fast, GlDynamicRenderer(assets, W, H, **EXACT) as exact:
+        for t in (t0 + 0.3 * (t1 - t0), t1, t0 + 0.3 * (t1 - t0)):  # and back: the renderer is reusable
+            ref = render_dynamic_field(assets, *camera, H, W, t)
+            assert_same_render(ref, exact.render(*camera, t), 1e-4)
+            assert_same_render(ref, fast.render(*camera, t), bound)
+    with GlDynamicRenderer(assets, W, H, transmittance_eps=0.0, color_eps=0.0) as hardware:  # sampler filtering
+        assert _psnr(ref, hardware.render(*camera, t0 + 0.3 * (t1 - t0))) > 60.0
+
+
+# ----------------------------------------------------------------------------------------------------
+# Errors
+
+
+def test_time_outside_the_trained_range_is_refused(derf):
+    _, out, camera = derf
+    assets = load_dynamic_field(out)
+    with pytest.raises(InputError, match=r"time 1\.5 is outside the trained range \[0, 1\]"):
+        render_dynamic_field(assets, *camera, H, W, 1.5)
+    with pytest.raises(InputError, match=r"time -0\.1 is outside"):
+        render_dynamic_field(assets, *camera, H, W, -0.1, query="onnx")
+    with pytest.raises(InputError, match="time"):
+        render_dynamic_field(assets, *camera, H, W, float("nan"))
+    assert normalize_time(1.0 + 1e-9, assets.time_range) == 1.0  # round-off is accepted
+    assert normalize_time(0.5, (0.5, 0.5)) == 0.0  # one trained time
+    if available():
+        from engine.fields.gldynamic import GlDynamicRenderer
+
+        with GlDynamicRenderer(assets, 8, 8) as renderer:
+            with pytest.raises(InputError, match=r"time 2 is outside the trained range \[0, 1\]"):
+                renderer.render(*camera, 2.0)
+
+
+def test_bad_cameras_sizes_and_assets_are_refused(derf, tmp_path):
+    _, out, (k, w2c) = derf
+    assets = load_dynamic_field(out)
+    squashed = w2c.copy()
+    squashed[:3, :3] *= 1.5
+    flat = k.copy()
+    flat[0, 0] = 0.0
+    renderers = [lambda k_, p_: render_dynamic_field(assets, k_, p_, 8, 8, 0.5)]
+    if available():
+        from engine.fields.gldynamic import GlDynamicRenderer
+
+        gl = GlDynamicRenderer(assets, 8, 8)
+        renderers.append(lambda k_, p_: gl.render(k_, p_, 0.5))
+        with pytest.raises(InputError, match="size"):
+            GlDynamicRenderer(assets, 0, 8)
+        with pytest.raises(InputError, match="filtering"):
+            GlDynamicRenderer(assets, 8, 8, filtering="cubic")
+    for render in renderers:
+        with pytest.raises(InputError, match="world_to_camera"):
+            render(k, squashed)
+        with pytest.raises(InputError):
+            render(flat, w2c)
+        with pytest.raises(InputError):
+            render(np.full((3, 3), np.nan), w2c)
+    if available():
+        gl.release()
+    with pytest.raises(InputError, match="query"):
+        render_dynamic_field(assets, k, w2c, 8, 8, 0.5, query="cuda")
+    with pytest.raises(InputError, match="does not exist"):
+        load_dynamic_field(tmp_path)
+    with pytest.raises(InputError, match="interleave-dynamic-field"):  # a static export is not a dynamic one
+        (tmp_path / "dynamic.json").write_text('{"format": "interleave-field", "version": 1}')
+        np.savez(tmp_path / "dynamic.npz", a=np.zeros(1))
+        load_dynamic_field(tmp_path)

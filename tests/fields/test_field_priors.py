@@ -1,0 +1,378 @@
+"""The sparse-input priors of models.fields: SIFT sparse depth (DS-NeRF), Simple-RF augmentation, ViP-NeRF
+visibility; each on hand-built scenes with a known answer, then switched on in short training runs."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from engine.core.errors import InputError
+from engine.core.frames import Camera
+from models.fields.data.views import Views
+from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm
+from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors, prior_loss_terms, with_priors
+from models.fields.priors.depth import (SparseDepthPrior, SparseDepthState, projection_matrix, sparse_depth_points,
+                                        triangulate_checked, triangulate_dlt)
+from models.fields.priors.simple import mass_concentration, patch_reprojection_error, reliable_depth_masks
+from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
+from tools.field_ablation import main as ablation_main
+from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
+from tests.fields.test_field_train import _write_blender, sphere_views, tiny_config
+
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _camera(position, look_at=(0.0, 0.0, 0.0), focal=80.0, size=64) -> Camera:
+    eye = np.asarray(position, np.float64)
+    f = np.asarray(look_at, np.float64) - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    rot = np.stack([r, np.cross(f, r), f])
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = rot, -rot @ eye
+    return Camera(np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]]), w2c)
+
+
+def _project(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    cam_pts = world @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    pix = cam_pts @ cam.intrinsics.T
+    return pix[:, :2] / pix[:, 2:], cam_pts[:, 2]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Sparse depth: triangulation with known poses
+
+
+def test_dlt_triangulation_is_exact_on_synthetic_correspondences():
+    rng = np.random.default_rng(0)
+    cams = [_camera([4.0, 0.5, 1.0]), _camera([0.3, 4.2, 0.8]), _camera([-3.0, 2.5, 2.0])]
+    world = rng.uniform(-1.0, 1.0, (200, 3))
+    obs = np.stack([_project(c, world)[0] for c in cams], axis=1)
+    true_depth = np.stack([_project(c, world)[1] for c in cams], axis=1)
+    proj = np.stack([projection_matrix(c.intrinsics, c.world_to_camera) for c in cams])
+    for views in ([0, 1], [0, 2], [0, 1, 2]):
+        keep, depth, errors = triangulate_checked([cams[v] for v in views], obs[:, views])
+        assert keep.all() and errors.max() < 1e-3
+        assert np.abs(depth / true_depth[:, views] - 1).max() < 1e-6
+    assert np.abs(triangulate_dlt(proj, obs) - world).max() < 1e-8
+    observed = np.ones((200, 3), bool)
+    observed[:, 2] = False
+    assert np.abs(triangulate_dlt(proj, obs, observed) - world).max() < 1e-8
+    observed[0, 1] = False  # one observation: undetermined
+    assert np.isnan(triangulate_dlt(proj, obs, observed)[0]).all()
+
+
+def test_triangulation_rejects_outliers_and_points_behind_a_camera():
+    rng = np.random.default_rng(1)
+    cams = [_camera([4.0, 0.0, 1.0]), _camera([2.8, 2.8, 1.0])]
+    world = rng.uniform(-1.0, 1.0, (50, 3))
+    obs = np.stack([_project(c, world)[0] for c in cams], axis=1)
+    # wrong matches: moved 10 px across the epipolar line (the image in b of a's ray through the point)
+    centre_a = cams[0].position
+    near_pt = _project(cams[1], centre_a + 0.5 * (world[:10] - centre_a))[0]
+    along = obs[:10, 1] - near_pt
+    across = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.linalg.norm(along, axis=1, keepdims=True)
+    obs[:10, 1] += 10.0 * across
+    # a point behind both cameras projects to pixels too; its DLT solution lies behind them and is rejected
+    behind = np.array([[12.0, 4.0, 3.0]])
+    obs_b = np.stack([_project(c, behind)[0] for c in cams], axis=1)
+    keep, depth, errors = triangulate_checked(cams, np.concatenate([obs, obs_b]), max_error=2.0)
+    assert not keep[:10].any() and keep[10:50].all() and not keep[50]
+    assert (depth[10:50] > 0).all()
+
+
+def _flat_views(n: int = 3, size: int = 24) -> Views:
+    cams = [_camera([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0], size=size, focal=30.0) for a in np.linspace(0, 1.2, n)]
+    return Views(images=np.full((n, size, size, 3), 0.5, np.float32), cameras=cams,
+                 near_far=np.tile([1.0, 5.0], (n, 1)), scene_type="bounded-360",
+                 bounds=np.array([[-1.0] * 3, [1.0] * 3]), background=np.ones(3, np.float32))
+
+
+def test_depth_prior_without_matches_warns_and_adds_zero_loss(tmp_path):
+    views = _flat_views()
+    points = sparse_depth_points(views, SparseDepthPrior(enabled=True))
+    assert len(points) == 0 and all(n == 0 for n in points.matches.values())
+    with pytest.warns(UserWarning, match="no SIFT match"):
+        state = SparseDepthState(views, SparseDepthPrior(enabled=True), tmp_path / "cache")
+    config = tiny_config(steps=3)
+    model = build_model(views, config)
+    assert state.extras(model, torch.Generator().manual_seed(0)) == {}
+    out = model.render_rays(torch.zeros(2, 3), torch.tensor([[0.0, 0, 1]] * 2), torch.ones(2), torch.full((2,), 5.0))
+    value = LOSS_TERMS["sift_depth"](LossInputs(model, None, out, 0, LossTerm("sift_depth"), {}))
+    assert float(value) == 0.0
+    # and a run with the prior on trains (finitely) rather than crashing
+    config = dataclasses.replace(tiny_config(steps=3, rays_per_batch=64), priors=with_priors(PriorsConfig(), ["depth"]))
+    with pytest.warns(UserWarning, match="no SIFT match"):
+        run = train_field(views, config, tmp_path / "run", progress=False)
+    last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
+    assert last["sift_depth"] == 0.0 and np.isfinite(last["loss"])
+    assert json.loads((run / "priors" / "sparse_depth.json").read_text())["points"] == 0
+
+
+# ----------------------------------------------------------------------------------------------------
+# Simple-RF
+
+
+def test_mass_concentration_is_finite_with_zero_weights():
+    weights = torch.zeros(4, 20, requires_grad=True)
+    value = mass_concentration(weights, 5)
+    value.sum().backward()
+    assert torch.equal(value.detach(), torch.zeros(4)) and torch.isfinite(weights.grad).all()
+    w = torch.zeros(3, 20)
+    w[0, 7] = 1.0  # all mass in one interval: entropy 0
+    w[1] = 1.0 / 20  # spread evenly over the 5 intervals: log 5
+    w[2, :4] = 0.25  # partial zeros
+    w.requires_grad_(True)
+    value = mass_concentration(w, 5)
+    value.sum().backward()
+    assert value[0].item() == pytest.approx(0.0, abs=1e-7)
+    assert value[1].item() == pytest.approx(np.log(5), rel=1e-5)
+    assert torch.isfinite(w.grad).all()
+
+
+def _plane_views(size: int = 48, depth: float = 4.0):
+    """A textured fronto-parallel plane Z = depth seen by two cameras 0.6 apart (one slightly rotated)."""
+    k = np.array([[50.0, 0, size / 2], [0, 50.0, size / 2], [0, 0, 1.0]])
+    w2c_a = np.eye(4)
+    angle = np.radians(4.0)
+    rot = np.array([[np.cos(angle), 0, -np.sin(angle)], [0, 1, 0], [np.sin(angle), 0, np.cos(angle)]])
+    centre_b = np.array([0.6, 0.1, 0.0])
+    w2c_b = np.eye(4)
+    w2c_b[:3, :3], w2c_b[:3, 3] = rot, -rot @ centre_b
+    cams = [Camera(k, w2c_a), Camera(k, w2c_b)]
+    u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    images = []
+    for cam in cams:
+        d = np.stack([(u - size / 2) / 50.0, (v - size / 2) / 50.0, np.ones_like(u)], -1) @ cam.world_to_camera[:3, :3]
+        o = cam.position
+        t = (depth - o[2]) / d[..., 2]
+        p = o + t[..., None] * d
+        images.append(0.5 + 0.4 * np.stack([np.sin(7 * p[..., 0]), np.cos(5 * p[..., 1] + 2 * p[..., 0]),
+                                             np.sin(6 * (p[..., 0] - p[..., 1]))], -1))
+    return np.stack(images).astype(np.float32), cams
+
+
+def test_patch_reprojection_error_picks_the_true_depth():
+    images, cams = _plane_views()
+    pixel = np.array([[20, 20], [24, 30], [15, 25]])
+    view, target = np.zeros(3, np.int64), np.ones(3, np.int64)
+    e_true = patch_reprojection_error(images, cams, view, pixel, np.full(3, 4.0), target)
+    e_wrong = patch_reprojection_error(images, cams, view, pixel, np.full(3, 2.5), target)
+    assert (e_true < 2e-3).all() and (e_wrong > 5 * e_true).all()
+    m_a, m_m = reliable_depth_masks(torch.from_numpy(e_true), torch.from_numpy(e_wrong), 0.1)  # main right
+    assert m_m.all() and not m_a.any()
+    m_a, m_m = reliable_depth_masks(torch.from_numpy(e_wrong), torch.from_numpy(e_true), 0.1)  # augmented right
+    assert m_a.all() and not m_m.any()
+    m_a, m_m = reliable_depth_masks(torch.from_numpy(e_true), torch.from_numpy(e_wrong), 1e-9)  # both above e_tau
+    assert not (m_a | m_m).any()
+    # no depth, a patch leaving the image, or a point behind the target: never reliable
+    bad = patch_reprojection_error(images, cams, np.zeros(3, np.int64), np.array([[20, 20], [1, 20], [20, 20]]),
+                                   np.array([np.inf, 4.0, -1.0]), np.ones(3, np.int64))
+    assert np.isinf(bad).all()
+
+
+# ----------------------------------------------------------------------------------------------------
+# ViP-NeRF
+
+
+def test_plane_sweep_marks_an_occluded_region_invisible():
+    """Primary at the origin, secondary 1.26 to the right (f b = 63 px, so the 64 planes from near 1 to
+    infinity sit at integer disparities 63..0). Background at disparity 10 (Z = 6.3), a foreground square
+    at disparity 30 (Z = 2.1) over columns 40-59 of the primary. In the secondary the square covers columns
+    10-29, hiding the background of primary columns 20-39; background columns < 10 leave the secondary."""
+    h = w = 80
+    rng = np.random.default_rng(3)
+    background = rng.integers(0, 256, (h, w + 80, 3)).astype(np.float32)  # indexed by primary column + 40
+    square = rng.integers(0, 256, (h, 20, 3)).astype(np.float32)
+    rows = slice(20, 60)
+    primary = background[:, 40:40 + w].copy()
+    primary[rows, 40:60] = square[rows]
+    secondary = background[:, 50:50 + w].copy()  # secondary column x2 sees background column x2 + 10
+    secondary[rows, 10:30] = square[rows]
+    k = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1.0]])
+    w2c_b = np.eye(4)
+    w2c_b[0, 3] = -1.26
+    np.testing.assert_allclose(63.0 / plane_depths_inverse(1.0, np.inf, 64), np.arange(63, -1, -1), atol=1e-9)
+    visible, error = plane_sweep_visibility(primary, secondary, Camera(k, np.eye(4)), Camera(k, w2c_b), 1.0, np.inf)
+    assert not visible[rows, 22:38].any()  # occluded by the square in the secondary
+    assert not visible[:, :8].any()  # outside the secondary image
+    assert visible[rows, 42:58].all() and visible[:, 62:78].all() and visible[:15, 15:75].all()
+    assert np.isfinite(error[rows, 42:58]).all() and error[rows, 42:58].max() < 1e-2  # float32 warp, 0-255 scale
+
+
+# ----------------------------------------------------------------------------------------------------
+# Switching and training
+
+
+def test_each_prior_switches_on_and_off_via_config(tmp_path):
+    config = tiny_config(steps=4)
+    assert prior_loss_terms(config.priors, config.steps) == () and build_priors(None, config, None) is None
+    expected = {"depth": {"sift_depth"}, "simple": {"augmented_photometric", "mass_concentration", "augmented_depth"},
+                "vip": {"visibility_prior", "visibility_consistency"}}
+    views = sphere_views([0, 40, 80], size=16)
+    for name in PRIOR_NAMES:
+        on = dataclasses.replace(config, rays_per_batch=64, priors=with_priors(config.priors, [name]))
+        assert on.priors.enabled() == [name]
+        assert {t.name for t in prior_loss_terms(on.priors, on.steps)} == expected[name]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            run = train_field(views, on, tmp_path / name, progress=False)
+        logged = set(json.loads((run / "log.jsonl").read_text().splitlines()[-1]))
+        others = set().union(*(expected[n] for n in PRIOR_NAMES if n != name))
+        assert expected[name] - {"augmented_depth"} <= logged and not logged & others
+        saved = FieldTrainConfig.from_dict(json.loads((run / "config.json").read_text()))
+        assert saved.priors.enabled() == [name]
+    off = dataclasses.replace(config, priors=with_priors(with_priors(config.priors, ["vip"]), []))
+    assert off.priors.enabled() == []
+    with pytest.raises(InputError):
+        with_priors(config.priors, ["dept"])
+    with pytest.raises(InputError):
+        dataclasses.replace(config, priors=dataclasses.replace(
+            config.priors, simple=dataclasses.replace(config.priors.simple, patch_size=4))).validate()
+
+
+def test_all_priors_train_finite_resume_and_keep_only_the_main_field(tmp_path):
+    views = sphere_views([0, 40, 80], size=24)
+    config = dataclasses.replace(tiny_config(steps=40, rays_per_batch=128, occupancy_warmup=10, occupancy_every=10,
+                                             log_every=10), priors=with_priors(PriorsConfig(), PRIOR_NAMES))
+    config.priors.simple.depth_start_fraction = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run = train_field(views, dataclasses.replace(config, steps=20), tmp_path / "run", progress=False)
+        run = train_field(views, config, tmp_path / "run", progress=False)  # resumed and extended
+    lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert lines[-1]["step"] == 40
+    for line in lines:
+        assert all(np.isfinite(v) for v in line.values())
+    assert {"sift_depth", "augmented_depth", "visibility_prior", "mass_concentration"} <= set(lines[-1])
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert any(k.startswith("simple.model.") for k in state["priors"]) and any(k.startswith("vip.head.")
+                                                                              for k in state["priors"])
+    model = load_model(run)  # the main field alone
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert (run / "priors" / "visibility.npz").is_file() and (run / "priors" / "sparse_depth.npz").is_file()
+
+
+def test_interrupted_run_with_all_priors_resumes_exactly(tmp_path):
+    views = sphere_views([0, 40, 80], size=16)
+    config = dataclasses.replace(tiny_config(steps=10, rays_per_batch=64, warmup_steps=2, occupancy_warmup=3,
+                                             occupancy_every=3, checkpoint_every=5, log_every=1),
+                                 priors=with_priors(PriorsConfig(), PRIOR_NAMES))
+
+    def crash(model, batch, outputs, step):
+        if step == 7:
+            raise KeyboardInterrupt
+        return {}
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        straight = train_field(views, config, tmp_path / "straight", progress=False)
+        with pytest.raises(KeyboardInterrupt):
+            train_field(views, config, tmp_path / "resumed", progress=False, extras_fn=crash)
+        resumed = train_field(views, config, tmp_path / "resumed", progress=False)
+    a = torch.load(straight / "checkpoint.pt", weights_only=True)
+    b = torch.load(resumed / "checkpoint.pt", weights_only=True)
+    for part in ("model", "priors"):
+        for name in a[part]:
+            assert torch.equal(a[part][name], b[part][name]), (part, name)
+
+
+def test_command_line_priors_flag(tmp_path):
+    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
+                     "--views", "3", "--downscale", "2", "--steps", "3", "--rays-per-batch", "64",
+                     "--field.resolutions", "8", "16", "--render.num-samples", "16", "--priors", "depth,vip",
+                     "--priors.vip.rays", "32"])
+    assert code == 0
+    saved = FieldTrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text()))
+    assert saved.priors.enabled() == ["depth", "vip"] and saved.priors.vip.rays == 32
+
+
+def test_ablation_command_prints_a_table_and_writes_json(tmp_path, capsys):
+    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        code = ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",
+                              str(tmp_path / "abl"), "--views", "3", "--downscale", "2", "--steps", "2",
+                              "--rays-per-batch", "64", "--field.resolutions", "8", "16", "--render.num-samples",
+                              "16", "--variants", "plain,+simple", "--threads", "1"])
+    assert code == 0
+    report = json.loads((tmp_path / "abl" / "ablation.json").read_text())
+    assert [r["variant"] for r in report["rows"]] == ["plain", "+simple"]
+    assert report["rows"][1]["priors"] == ["simple"] and np.isfinite(report["rows"][1]["psnr"])
+    out = capsys.readouterr().out
+    assert "| variant | PSNR (dB) |" in out and "| +simple |" in out
+    assert ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",
+                          str(tmp_path / "abl2"), "--variants", "+nothing"]) == 2
+
+
+def test_triangulation_angle_drops_points_whose_depth_the_baseline_cannot_fix():
+    from models.fields.priors.depth import triangulate_checked, triangulation_angles
+
+    k = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cams = []
+    for x in (0.0, 0.1):  # two cameras 0.1 apart looking down +z
+        w2c = np.eye(4)
+        w2c[0, 3] = -x
+        cams.append(Camera(k, w2c))
+    world = np.array([[0.05, 0.0, 1.0], [0.05, 0.0, 1000.0]])
+    angles = triangulation_angles(world, cams)
+    np.testing.assert_allclose(angles, np.degrees(2 * np.arctan(0.05 / np.array([1.0, 1000.0]))), rtol=1e-6)
+    obs = np.stack([np.stack([k[0, 0] * (p[0] - c.world_to_camera[0, 3] * -1) / p[2] + k[0, 2] for c in cams])
+                    for p in world])
+    pix = np.stack([obs, np.full_like(obs, 50.0)], axis=-1)  # (M, V, 2)
+    keep, depths, _ = triangulate_checked(cams, pix, max_error=2.0, min_angle=1.0)
+    assert keep.tolist() == [True, False]  # the far point reprojects perfectly but its depth is unknown
+    np.testing.assert_allclose(depths[0], [1.0, 1.0], rtol=1e-6)
+
+
+def test_forward_facing_sparse_depth_compares_disparities():
+    from models.fields.components.render import RayOutputs
+
+    near = 2.0
+    t = torch.tensor([[2.0, 4.0, 8.0, 1e10]])
+    weights = torch.tensor([[0.0, 1.0, 0.0, 0.0]], requires_grad=True)
+    out = RayOutputs(torch.zeros(1, 3), torch.tensor([4.0]), (weights * t).sum(-1), weights.sum(-1), weights,
+                     torch.ones(1, 4), t)
+    extras = {"sift_depth": {"outputs": out, "depth": torch.tensor([4.0]), "scale": near, "disparity": True}}
+    term = LOSS_TERMS["sift_depth"]
+    zero = term(LossInputs(None, None, out, 0, LossTerm("sift_depth"), extras))
+    assert float(zero) == 0.0
+    extras["sift_depth"]["depth"] = torch.tensor([8.0])  # truth farther: |2/4 - 2/8| = 0.25
+    loss = term(LossInputs(None, None, out, 0, LossTerm("sift_depth"), extras))
+    assert float(loss) == pytest.approx(0.25)
+    loss.backward()
+    g = weights.grad[0]  # descent moves mass from the sample at 4 towards the farther ones
+    assert torch.isfinite(g).all() and g[3] < g[2] < g[1]
+
+
+def test_forward_facing_augmented_depth_compares_disparities_and_stays_bounded():
+    from models.fields.components.render import RayOutputs
+
+    def outputs(depth):
+        d = torch.tensor(depth, requires_grad=True)
+        return d, RayOutputs(torch.zeros(len(depth), 3), d, d, torch.ones(len(depth)), torch.ones(len(depth), 1),
+                             torch.ones(len(depth), 1), torch.ones(len(depth), 1))
+
+    z_main, main = outputs([2.0, 1e10])
+    _, aug = outputs([4.0, 4.0])
+    mask = torch.tensor([True, True])
+    extras = {"augmented": {"outputs": aug, "mask_main": ~mask, "mask_aug": mask, "scale": 2.0, "disparity": True}}
+    loss = LOSS_TERMS["augmented_depth"](LossInputs(None, None, main, 0, LossTerm("augmented_depth"), extras))
+    # disparities near / z: main (1, 2e-10) against the augmented model's (0.5, 0.5)
+    assert float(loss) == pytest.approx((0.5 ** 2 + 0.5 ** 2) / 2, rel=1e-6)
+    loss.backward()
+    assert torch.isfinite(z_main.grad).all()
+    extras["augmented"]["disparity"] = False  # bounded scenes: depth / scale, which a far depth blows up
+    assert float(LOSS_TERMS["augmented_depth"](LossInputs(None, None, main, 0, LossTerm("augmented_depth"),
+                                                           extras))) > 1e18

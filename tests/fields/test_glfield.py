@@ -1,0 +1,192 @@
+"""GL field renderer (engine/fields/gl.py) against its oracle, engine.fields.render.render_field, and the torch renderer.
+
+Tolerances (measured on these fields in brackets): with early termination and the colour skip off, GL and
+numpy agree to float32 rounding: colour within 1e-4 [2e-6], opacity within 1e-4, the same pixels without a
+surface, median planar depth within 1e-4 [< 1e-5], PSNR above 40 dB [~130 dB]. With the defaults
+(transmittance_eps 1e-4, color_eps 1e-5) the colour stays within transmittance_eps + num_samples * color_eps
+of it [1.1e-4]. uint8 planes: GL against numpy on the same uint8 planes above 60 dB [exact filtering ~130,
+hardware ~70], against the float planes above 40 dB.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.fields import gl as glfield
+from engine.core.colorspace import display_encode
+from engine.core.errors import InputError
+from engine.fields.render import load_field, render_field
+from engine.eval.metrics import psnr
+from tests.fields.test_field_export import bounded_run, ndc_run  # noqa: F401  (module fixtures: tiny trained fields)
+from tests.fields.test_field_train import sphere_views
+
+if not glfield.available():
+    pytest.skip("no EGL context with OpenGL 4.3 compute shaders and fp64", allow_module_level=True)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+H, W = 32, 48
+EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0}
+
+
+def _camera(which: str):
+    return sphere_views([20] if which == "bounded_run" else [10]).cameras[0]
+
+
+def _psnr(a: dict, b: dict) -> float:
+    return psnr(display_encode(a["color"]), display_encode(b["color"]))
+
+
+def _gl(out, cam, **kwargs) -> dict:
+    with glfield.GlFieldRenderer(out, W, H, **kwargs) as renderer:
+        return renderer.render(cam.intrinsics, cam.world_to_camera)
+
+
+def assert_same_render(ref: dict, got: dict, color_tol: float) -> None:
+    assert got["color"].shape == (H, W, 3) and got["depth"].shape == (H, W) and got["opacity"].shape == (H, W)
+    assert all(got[k].dtype == np.float32 for k in ("color", "depth", "opacity"))
+    assert not np.isnan(got["color"]).any() and not np.isnan(got["depth"]).any()
+    assert np.abs(got["color"] - ref["color"]).max() <= color_tol
+    assert np.abs(got["opacity"] - ref["opacity"]).max() <= color_tol
+    finite = np.isfinite(ref["depth"])
+    assert np.array_equal(np.isfinite(got["depth"]), finite) and finite.any() and not finite.all()
+    assert np.median(np.abs(got["depth"][finite] - ref["depth"][finite])) < 1e-4
+    assert _psnr(ref, got) > 40.0
+
+
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+@pytest.mark.parametrize("filtering", ["exact", "hardware"])
+def test_gl_matches_the_numpy_reference(which, filtering, request):
+    _, out, manifest = request.getfixturevalue(which)
+    assert (manifest["occupancy"] is not None) == (which == "bounded_run")
+    cam = _camera(which)
+    ref = render_field(load_field(out), cam.intrinsics, cam.world_to_camera, H, W)
+    assert_same_render(ref, _gl(out, cam, filtering=filtering, **EXACT), 1e-4)
+    # defaults: early ray termination and the colour skip stay within their documented bound
+    bound = glfield.TRANSMITTANCE_EPS + manifest["render"]["num_samples"] * glfield.COLOR_EPS
+    assert_same_render(ref, _gl(out, cam, filtering=filtering), bound)
+
+
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+def test_gl_matches_the_torch_renderer(which, request):
+    from models.fields.components.render import render_image
+    from models.fields.train_static import load_model
+
+    run, out, _ = request.getfixturevalue(which)
+    model = load_model(run)
+    cam = _camera(which)
+    ref = render_image(model, cam.intrinsics, cam.world_to_camera, H, W, model.scene.near, model.scene.far)
+    got = _gl(out, cam)
+    # a sample within float rounding of an occupancy-cell boundary may be skipped by one and not the other
+    # (see tests/fields/test_field_export.py), so a few pixels may differ slightly
+    error = np.abs(got["color"] - ref["color"]).max(-1)
+    assert np.mean(error < 1e-3) > 0.97 and _psnr(ref, got) > 40.0
+
+
+def test_uint8_planes(bounded_run):
+    _, out, manifest = bounded_run
+    cam = _camera("bounded_run")
+    float_ref = render_field(load_field(out), cam.intrinsics, cam.world_to_camera, H, W)
+    quant_ref = render_field(load_field(out, quantized=True), cam.intrinsics, cam.world_to_camera, H, W)
+    exact = _gl(out, cam, quantized=True, filtering="exact", **EXACT)
+    assert_same_render(quant_ref, exact, 1e-4)
+    hardware = _gl(out, cam, quantized=True, **EXACT)  # 8-bit texture filtering: llvmpipe rounds the result
+    assert _psnr(quant_ref, hardware) > 60.0
+    assert _psnr(float_ref, hardware) > 40.0 and manifest["quantization"]["psnr_uint8_vs_float"] > 40.0
+
+
+def test_early_termination_and_colour_skip_are_bounded(bounded_run):
+    _, out, manifest = bounded_run
+    cam = _camera("bounded_run")
+    full = _gl(out, cam, **EXACT)
+    n = manifest["render"]["num_samples"]
+    for eps in (0.05, 0.3):  # large thresholds make the effect visible; it never exceeds the bound
+        stopped = _gl(out, cam, transmittance_eps=eps, color_eps=0.0)
+        diff = np.abs(stopped["color"] - full["color"]).max()
+        assert 0.0 < diff <= eps and np.abs(stopped["opacity"] - full["opacity"]).max() <= eps
+        skipped = _gl(out, cam, transmittance_eps=0.0, color_eps=eps / n)
+        assert np.abs(skipped["color"] - full["color"]).max() <= eps
+        np.testing.assert_allclose(skipped["opacity"], full["opacity"], atol=1e-6)  # weights still count
+
+
+def test_renders_are_repeatable_and_the_renderer_reusable(bounded_run):
+    _, out, _ = bounded_run
+    views = sphere_views([20, 50])
+    assets = load_field(out)
+    with glfield.GlFieldRenderer(assets, W, H) as renderer:
+        a = renderer.render(views.cameras[0].intrinsics, views.cameras[0].world_to_camera)
+        b = renderer.render(views.cameras[1].intrinsics, views.cameras[1].world_to_camera)
+        c = renderer.render(views.cameras[0].intrinsics, views.cameras[0].world_to_camera)
+    assert np.array_equal(a["color"], c["color"]) and np.array_equal(a["depth"], c["depth"])
+    assert not np.array_equal(a["color"], b["color"]) and a["seconds"] > 0
+    renderer.release()  # a second release is harmless
+
+
+def test_bad_inputs_raise_input_error(bounded_run, tmp_path):
+    _, out, _ = bounded_run
+    cam = _camera("bounded_run")
+    assets = load_field(out)
+    for size in ((0, 8), (8, -1), (1.5, 8), (True, 8)):
+        with pytest.raises(InputError, match="size"):
+            glfield.GlFieldRenderer(assets, *size)
+    with pytest.raises(InputError, match="filtering"):
+        glfield.GlFieldRenderer(assets, 8, 8, filtering="cubic")
+    with pytest.raises(InputError, match="transmittance_eps"):
+        glfield.GlFieldRenderer(assets, 8, 8, transmittance_eps=1.0)
+    with pytest.raises(InputError, match="color_eps"):
+        glfield.GlFieldRenderer(assets, 8, 8, color_eps=float("nan"))
+    with pytest.raises(InputError, match="does not exist"):
+        glfield.GlFieldRenderer(tmp_path, 8, 8)
+    with glfield.GlFieldRenderer(assets, 8, 8) as renderer:
+        squashed = cam.world_to_camera.copy()
+        squashed[:3, :3] *= 1.5
+        with pytest.raises(InputError, match="world_to_camera"):
+            renderer.render(cam.intrinsics, squashed)
+        with pytest.raises(InputError, match="intrinsics"):
+            renderer.render(np.full((3, 3), np.nan), cam.world_to_camera)
+        with pytest.raises(InputError, match="intrinsics"):
+            renderer.render(np.eye(4), cam.world_to_camera)
+
+
+def test_scale_intrinsics_keeps_the_horizontal_field_of_view_or_the_whole_view():
+    k = np.array([[50.0, 0, 50], [0, 50, 50], [0, 0, 1]])
+    out = glfield.scale_intrinsics(k, 100, 100, 960, 540)
+    np.testing.assert_allclose(out, [[480, 0, 480], [0, 480, 270], [0, 0, 1]])
+    out = glfield.scale_intrinsics(k, 100, 100, 960, 540, fit="contain")  # the whole square view fits
+    np.testing.assert_allclose(out, [[270, 0, 480], [0, 270, 270], [0, 0, 1]])
+
+
+def test_camera_path_orbits_at_the_training_radius(bounded_run):
+    from demos.upsample import field_camera_path
+
+    _, out, _ = bounded_run
+    train = sphere_views([0, 40, 80])  # distance 3, elevation 25 degrees, looking at the origin
+    cams, w, h = field_camera_path(load_field(out), (train.cameras, train.width, train.height), 12, 40, 30)
+    assert (w, h) == (40, 30) and len(cams) == 12
+    pos = np.stack([c.position for c in cams])
+    np.testing.assert_allclose(np.linalg.norm(pos, axis=1), 3.0, rtol=1e-6)
+    np.testing.assert_allclose(np.degrees(np.arcsin(pos[:, 2] / 3.0)), 25.0, atol=1e-6)
+    np.testing.assert_allclose(pos[0], train.cameras[0].position, atol=1e-6)
+    centre_ray = np.array([c.world_to_camera[2, :3] for c in cams])  # camera z axis in world
+    np.testing.assert_allclose(np.einsum("ij,ij->i", centre_ray, -pos / 3.0), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+def test_field_demo_writes_the_scene_demo_outputs(which, request, tmp_path):
+    from demos.upsample import run_field_demo
+
+    run, out, _ = request.getfixturevalue(which)
+    summary = run_field_demo(out, tmp_path, k=2, frames=6, width=32, height=24, methods=("repeat", "reproject",
+                                                                                          "oracle"), progress=False)
+    assert set(summary) == {"repeat/k=2", "reproject/k=2"}  # oracle dropped: a static field has no object motion
+    for name in ("table.md", "results.json", "speed_vs_error.png", "side_by_side.mp4", "field/sequence.json"):
+        assert (tmp_path / name).is_file()
+    assert "Field renderer" in (tmp_path / "table.md").read_text()
+    assert summary["reproject/k=2"]["psnr"] > summary["repeat/k=2"]["psnr"]
+
+
+def test_field_demo_explains_a_missing_export(tmp_path, capsys):
+    from engine.cli import main as cli_main
+
+    assert cli_main(["demo", "--field", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "interleave export field" in capsys.readouterr().err

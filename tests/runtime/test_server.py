@@ -1,0 +1,454 @@
+"""Tests of `interleave serve` (engine/runtime/server.py), its wire format (engine/runtime/protocol.py, the C header) and
+the reference client (engine/runtime/client.py).
+
+The server always runs in its own process (``python -m engine.cli serve``); the tests are its clients:
+this process through ``engine.runtime.client.Client`` or raw bytes, a ``python -m engine.runtime.client`` process, and
+the C example client compiled from ``engine/runtime/include``. Checked: the header's constants and struct layout
+against Python, predictions identical to an in-process Session, request ordering under pipelining,
+RESET and size changes, every malformed-message class (error reply, server keeps serving), a client
+vanishing mid-message, 10 000 frames without memory growth, and shutdown removing every segment.
+"""
+from __future__ import annotations
+
+import math
+import re
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from engine.runtime import protocol as wire
+from engine.runtime.client import Client, ServerError
+from engine.runtime.protocol import MessageType, Status
+from engine.runtime.session import Session, SessionConfig
+
+ROOT = Path(__file__).resolve().parents[2]
+INCLUDE = ROOT / "engine" / "runtime" / "include"
+SHM = Path("/dev/shm")
+CC = shutil.which("cc") or shutil.which("gcc")
+
+pytestmark = pytest.mark.skipif(not SHM.is_dir() or not hasattr(socket, "AF_UNIX"),
+                                reason="needs POSIX shared memory in /dev/shm and Unix sockets")
+
+W, H = 64, 48
+K = np.array([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]])
+
+
+def start_server(listen: str, log: Path) -> tuple[subprocess.Popen, str]:
+    """Start `interleave serve` in its own process; returns it and the address it announced."""
+    proc = subprocess.Popen([sys.executable, "-m", "engine.cli", "serve", "--listen", listen], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=log.open("w"), text=True)
+    line = proc.stdout.readline()
+    if "listening on" not in line:
+        proc.kill()
+        raise RuntimeError(f"server did not start: {line!r} {log.read_text()}")
+    return proc, line.split("listening on ", 1)[1].strip()
+
+
+def stop_server(proc: subprocess.Popen) -> int:
+    proc.send_signal(signal.SIGTERM)
+    return proc.wait(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("serve")
+    proc, address = start_server(f"unix:{tmp / 'interleave.sock'}", tmp / "server.log")
+    yield proc, address
+    stop_server(proc)
+
+
+def segment_exists(name: str) -> bool:
+    return (SHM / name.lstrip("/")).exists()
+
+
+def wait_until(condition, timeout=5.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+def pose(x=0.0):
+    p = np.eye(4)
+    p[0, 3] = -x
+    return p
+
+
+def frame_arrays(seed=0, size=(H, W), channels=3):
+    rng = np.random.default_rng(seed)
+    color = rng.uniform(0.05, 0.95, size + (channels,)).astype(np.float32)
+    depth = np.broadcast_to(np.linspace(2.0, 5.0, size[0], dtype=np.float32)[:, None], size).copy()
+    return color, depth
+
+
+def config(**overrides) -> SessionConfig:
+    return SessionConfig(**{"engine": "opencv", "width": W, "height": H, **overrides})
+
+
+def raw_connect(address: str) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(10)
+    sock.connect(address.removeprefix("unix:"))
+    return sock
+
+
+def read_reply(sock: socket.socket):
+    """(type, request_id, status, payload) of the next reply, or None when the server closed the connection."""
+    data = b""
+    while len(data) < wire.HEADER.size:
+        chunk = sock.recv(wire.HEADER.size - len(data))
+        if not chunk:
+            return None
+        data += chunk
+    magic, version, type_, request_id, status, size = wire.HEADER.unpack(data)
+    assert magic == wire.MAGIC and version == wire.VERSION
+    payload = b""
+    while len(payload) < size:
+        payload += sock.recv(size - len(payload))
+    return type_, request_id, status, payload
+
+
+def closed(sock: socket.socket) -> bool:
+    try:
+        return sock.recv(1) == b""
+    except ConnectionResetError:
+        return True
+
+
+def frame_payload(frame_id=0, time_s=0.0, view=None, projection=None) -> bytes:
+    view = np.eye(4) if view is None else view
+    projection = np.pad(K, ((0, 1), (0, 1))) if projection is None else projection
+    return wire.FRAME.pack(frame_id, time_s, *np.ravel(view), *np.ravel(projection))
+
+
+# --------------------------------------------------------------------------------------------
+# The C header states the same protocol
+# --------------------------------------------------------------------------------------------
+
+HEADER_TEXT = (INCLUDE / "interleave_protocol.h").read_text()
+
+#: C struct -> (Python struct, [(field, element count)] in declaration order)
+C_STRUCTS = {
+    "il_header": (wire.HEADER, [("magic", 1), ("version", 1), ("type", 1), ("request_id", 1), ("status", 1),
+                                ("payload_size", 1)]),
+    "il_hello": (wire.HELLO, [(n, 1) for n in ("engine", "depth_convention", "color_in", "color_out", "width",
+                                              "height", "k", "channels", "flags", "reserved", "near_plane",
+                                              "far_plane", "meters_per_unit", "cut_translation",
+                                              "cut_rotation_deg")] + [("method", 1)]),
+    "il_layout": (wire.LAYOUT, [("shm_name", 1), ("shm_size", 1), ("color_in_offset", 1), ("depth_offset", 1),
+                                ("color_out_offset", 1), ("holes_offset", 1), ("width", 1), ("height", 1)]),
+    "il_frame": (wire.FRAME, [("frame_id", 1), ("time", 1), ("view", 16), ("projection", 16)]),
+    "il_submit_reply": (wire.SUBMIT_REPLY, [("frame", 1), ("reset", 1), ("history", 1)]),
+    "il_predict_reply": (wire.PREDICT_REPLY, [("frame", 1), ("fallback", 1), ("holes", 1), ("elapsed_ms", 1),
+                                              ("method", 1)]),
+    "il_reset": (wire.RESET, [("width", 1), ("height", 1)]),
+}
+
+
+def python_offsets(layout: struct.Struct) -> list[int]:
+    """Byte offset of every element of a little-endian struct format ('16d' is 16 elements, '64s' one)."""
+    offsets, offset = [], 0
+    for count, code in re.findall(r"(\d*)([a-zA-Z?])", layout.format.lstrip("<")):
+        n = int(count or 1)
+        size = struct.calcsize("<" + code)
+        if code == "s":
+            offsets.append(offset)
+            offset += n
+        else:
+            offsets.extend(offset + i * size for i in range(n))
+            offset += n * size
+    assert offset == layout.size
+    return offsets
+
+
+def header_defines() -> dict[str, int]:
+    return {name: int(value, 0) for name, value in
+            re.findall(r"^#define IL_(\w+) (0x[0-9A-Fa-f]+|\d+)u?\b", HEADER_TEXT, flags=re.MULTILINE)}
+
+
+def test_header_constants_match_python():
+    d = header_defines()
+    assert (d["MAGIC"], d["VERSION"], d["MAX_PAYLOAD"], d["MAX_SIDE"], d["ALIGNMENT"]) == (
+        wire.MAGIC, wire.VERSION, wire.MAX_PAYLOAD, wire.MAX_SIDE, wire.ALIGNMENT)
+    assert struct.pack("<I", wire.MAGIC) == b"INTL"
+    assert {t.name: int(t) for t in MessageType} == {k[4:]: v for k, v in d.items() if k.startswith("MSG_")}
+    assert {k: v for k, v in d.items() if k in Status.__members__} == {s.name: int(s) for s in Status}
+    for prefix, codes in (("ENGINE_", wire.ENGINE_CODES), ("DEPTH_", wire.DEPTH_CODES), ("COLOR_", wire.COLOR_CODES),
+                          ("RESET_", wire.RESET_CODES), ("FALLBACK_", wire.FALLBACK_CODES)):
+        names = [(c or "none").upper() for c in codes]
+        assert {k[len(prefix):]: v for k, v in d.items() if k.startswith(prefix)} == {n: i for i, n in enumerate(names)}
+    assert (d["FLAG_FLIP_ROWS"], d["FLAG_NDC_Y_DOWN"], d["FLAG_COLUMN_MAJOR"]) == (
+        wire.FLAG_FLIP_ROWS, wire.FLAG_NDC_Y_DOWN, wire.FLAG_COLUMN_MAJOR)
+    for name, (layout, _) in C_STRUCTS.items():  # the header's own static asserts state the Python sizes
+        assert f"sizeof({name}) == {layout.size}" in HEADER_TEXT
+
+
+@pytest.mark.skipif(CC is None, reason="no C compiler")
+def test_header_struct_layout_matches_python_when_compiled(tmp_path):
+    lines = ['#include <stdio.h>', '#include "interleave_protocol.h"', "int main(void) {"]
+    for name, (_, fields) in C_STRUCTS.items():
+        lines.append(f'printf("{name} size %zu\\n", sizeof({name}));')
+        lines += [f'printf("{name} {f} %zu\\n", offsetof({name}, {f}));' for f, _ in fields]
+    lines += ["return 0;", "}"]
+    source = tmp_path / "layout.c"
+    source.write_text("\n".join(lines) + "\n")
+    exe = tmp_path / "layout"
+    subprocess.run([CC, "-std=c11", "-Wall", "-Werror", "-I", str(INCLUDE), str(source), "-o", str(exe)], check=True)
+    printed = dict(line.rsplit(" ", 1) for line in subprocess.run([str(exe)], capture_output=True, text=True,
+                                                                  check=True).stdout.splitlines())
+    for name, (layout, fields) in C_STRUCTS.items():
+        assert int(printed[f"{name} size"]) == layout.size
+        offsets, element = python_offsets(layout), 0
+        for f, count in fields:
+            assert int(printed[f"{name} {f}"]) == offsets[element], (name, f)
+            element += count
+        assert element == len(offsets)
+
+
+@pytest.mark.skipif(CC is None, reason="no C compiler")
+def test_c_example_client_talks_to_the_server(server, tmp_path):
+    exe = tmp_path / "il_example"
+    subprocess.run([CC, "-std=c11", "-Wall", "-Wextra", "-Werror", "-O2", "-I", str(INCLUDE),
+                    str(INCLUDE / "interleave_example.c"), "-o", str(exe), "-lrt", "-lm"], check=True)
+    _, address = server
+    out = subprocess.run([str(exe), address.removeprefix("unix:")], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+    # A 1 cm step right in front of a wall 2 m away (fx = 50) moves the red ramp by 0.25 px: 32.25 / 64.
+    assert re.fullmatch(r"method=reproject fallback=0 holes=\d+ centre_red=0\.5039 centre_hole=0\n", out.stdout)
+
+
+# --------------------------------------------------------------------------------------------
+# Sessions over the socket
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cfg, channels, column_major", [
+    (config(method="reproject"), 3, False),
+    (config(method="flow2d", color_in="srgb8", color_out="srgb8", flip_rows=True), 4, True),
+])
+def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, channels, column_major):
+    _, address = server
+    local = Session(cfg)
+    with Client(address) as client:
+        layout = client.hello(cfg, channels=channels, column_major=column_major)
+        assert segment_exists(layout.shm_name) and (layout.width, layout.height) == (W, H)
+        for i in range(7):
+            color, depth = frame_arrays(i, channels=channels)
+            if cfg.color_in == "srgb8":
+                color = (color * 255).astype(np.uint8)
+            t = i / 60
+            if i % 2 == 0:
+                remote_result = client.submit(color, depth, pose(0.01 * i), K, t)
+                assert remote_result == local.submit(color, depth, pose(0.01 * i), K, t)
+            else:
+                remote = client.predict(pose(0.01 * i), K, t)
+                expected = local.predict(pose(0.01 * i), K, t)
+                np.testing.assert_array_equal(remote.color, expected.color)
+                np.testing.assert_array_equal(remote.holes, expected.holes)
+                assert (remote.method, remote.fallback, remote.frame) == (expected.method, expected.fallback,
+                                                                          expected.frame)
+        client.bye()
+    assert wait_until(lambda: not segment_exists(layout.shm_name))
+
+
+def test_pipelined_requests_are_answered_in_order_with_their_ids(server):
+    _, address = server
+    sock = raw_connect(address)
+    hello = wire.HELLO.pack(0, wire.DEPTH_CODES.index("reversed"), 0, 0, W, H, 2, 3, 0, 0, 0.1, 100.0, 0.0, 0.0,
+                            0.0, b"reproject")  # zero-filled shared memory = black sky: a valid frame
+    requests = [(MessageType.HELLO, 42, hello), (MessageType.SUBMIT, 7, frame_payload(0, 0.0)),
+                (MessageType.PREDICT, 1000, frame_payload(1, 1 / 60)), (99, 5, b""),
+                (MessageType.PREDICT, 6, frame_payload(2, 2 / 60)), (MessageType.BYE, 0xFFFFFFFF, b"")]
+    sock.sendall(b"".join(wire.pack_header(t, rid, len(p)) + p for t, rid, p in requests))
+    replies = [read_reply(sock) for _ in requests]
+    assert [(r[0], r[1], r[2]) for r in replies] == [
+        (MessageType.HELLO | MessageType.REPLY, 42, Status.OK), (MessageType.SUBMIT | MessageType.REPLY, 7, Status.OK),
+        (MessageType.PREDICT | MessageType.REPLY, 1000, Status.OK), (99 | MessageType.REPLY, 5, Status.UNKNOWN_TYPE),
+        (MessageType.PREDICT | MessageType.REPLY, 6, Status.OK), (MessageType.BYE | MessageType.REPLY, 0xFFFFFFFF,
+                                                                  Status.OK)]
+    assert wire.PREDICT_REPLY.unpack(replies[4][3])[0] == 0  # predicted from session frame 0
+    assert closed(sock)
+    sock.close()
+
+
+def test_reset_and_resolution_change(server):
+    _, address = server
+    with Client(address) as client:
+        first = client.hello(config())
+        color, depth = frame_arrays()
+        client.submit(color, depth, pose(), K, 0.0)
+        same = client.reset()
+        assert same == first
+        with pytest.raises(ServerError) as info:
+            client.predict(pose(), K, 0.1)
+        assert info.value.status == Status.NOT_READY
+        small = client.reset(width=32, height=24)
+        assert small.shm_name != first.shm_name and (small.width, small.height) == (32, 24)
+        assert not segment_exists(first.shm_name) and segment_exists(small.shm_name)
+        k_small = K * np.array([[0.5], [0.5], [1.0]])
+        client.submit(*frame_arrays(size=(24, 32)), pose(), k_small, 0.2)
+        out = client.predict(pose(0.01), k_small, 0.25)
+        assert out.color.shape == (24, 32, 3) and out.fallback is None
+        client.bye()
+    assert wait_until(lambda: not segment_exists(small.shm_name))
+
+
+def test_malformed_messages_get_an_error_reply_and_the_server_keeps_serving(server):
+    proc, address = server
+    with Client(address) as client:
+        client.hello(config())
+        for type_, payload, status in ((77, b"", Status.UNKNOWN_TYPE),
+                                       (MessageType.SUBMIT, b"x" * 10, Status.BAD_SIZE),
+                                       (MessageType.HELLO, b"\0" * 12, Status.BAD_SIZE),
+                                       (MessageType.HELLO, wire.HELLO.pack(9, *([0] * 9), *([0.0] * 5), b""),
+                                        Status.BAD_INPUT)):
+            with pytest.raises(ServerError) as info:
+                client.request(type_, payload)
+            assert info.value.status == status and info.value.text
+        color, depth = frame_arrays()
+        color[5, 6, 1] = np.nan
+        with pytest.raises(ServerError, match=r"BAD_INPUT: frame 123, field 'color': has 1 non-finite") as info:
+            client.submit(color, depth, pose(), K, 0.5, frame_id=123)
+        with pytest.raises(ServerError, match=r"BAD_INPUT: frame 124, field 'view'.*non-finite"):
+            client.predict(np.full((4, 4), np.nan), K, 0.5, frame_id=124)
+        client.submit(*frame_arrays(), pose(), K, 0.5)  # the same connection still works
+        assert client.predict(pose(), K, 0.55).fallback is None
+
+    with Client(address) as fresh:
+        with pytest.raises(ServerError) as info:
+            fresh.request(MessageType.PREDICT, frame_payload())
+        assert info.value.status == Status.NO_SESSION
+
+    fatal = [(wire.HEADER.pack(0xDEADBEEF, 1, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_MAGIC),
+             (wire.HEADER.pack(wire.MAGIC, 2, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_VERSION),
+             (wire.pack_header(MessageType.SUBMIT, 9, 1 << 40), MessageType.SUBMIT | MessageType.REPLY,
+              Status.TOO_LARGE),
+             (wire.pack_header(MessageType.SUBMIT, 9, wire.FRAME.size) + b"\0" * 100,
+              MessageType.SUBMIT | MessageType.REPLY, Status.TRUNCATED),
+             (b"INTL\x01\0", MessageType.ERROR, Status.TRUNCATED)]
+    for data, reply_type, status in fatal:
+        sock = raw_connect(address)
+        sock.sendall(data)
+        sock.shutdown(socket.SHUT_WR)  # the stream ends here
+        type_, _, got_status, text = read_reply(sock)
+        assert (type_, got_status) == (reply_type, status), text
+        assert text and closed(sock)
+        sock.close()
+
+    assert proc.poll() is None
+    with Client(address) as client:  # still serving
+        client.hello(config(width=16, height=16))
+        client.submit(*frame_arrays(size=(16, 16)), pose(), K, 0.0)
+        client.bye()
+
+
+def test_a_client_vanishing_mid_frame_loses_its_session_and_segment(server):
+    proc, address = server
+    client = Client(address)
+    layout = client.hello(config())
+    client.submit(*frame_arrays(), pose(), K, 0.0)
+    client.send_raw(wire.pack_header(MessageType.SUBMIT, 2, wire.FRAME.size) + frame_payload(1, 0.1)[:100])
+    client.sock.close()  # gone mid-message, without BYE
+    client._unmap()
+    assert wait_until(lambda: not segment_exists(layout.shm_name))
+    assert proc.poll() is None
+    with Client(address) as other:
+        other.hello(config())
+        other.submit(*frame_arrays(), pose(), K, 0.0)
+        assert other.predict(pose(0.01), K, 0.05).method == "reproject"
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError("no VmRSS")
+
+
+def test_sustained_load_of_10000_frames_without_memory_growth(server):
+    proc, address = server
+    size, warmup, cycles = 16, 500, 5000  # each cycle: one SUBMIT and one PREDICT, 10 000 frames in all
+    k = np.array([[16.0, 0.0, 8.0], [0.0, 16.0, 8.0], [0.0, 0.0, 1.0]])
+    color, depth = frame_arrays(size=(size, size))
+    with Client(address) as client:
+        client.hello(config(width=size, height=size, method="repeat"))
+        start = time.perf_counter()
+        for i in range(cycles):
+            if i == warmup:
+                before = rss_kib(proc.pid)
+            client.submit(color, depth, pose(1e-4 * i), k, i / 30)
+            out = client.predict(pose(1e-4 * i), k, i / 30 + 1 / 60, copy=False)
+            assert out.frame == i
+        elapsed = time.perf_counter() - start
+        after = rss_kib(proc.pid)
+        client.bye()
+    print(f"\n{2 * cycles} frames in {elapsed:.1f} s ({1e3 * elapsed / cycles:.2f} ms per SUBMIT + PREDICT); "
+          f"server RSS {before} -> {after} KiB")
+    assert after - before < 2048  # a leak of even 0.5 KiB per message would show as > 2 MiB
+
+
+def test_reference_client_process_over_tcp_and_clean_shutdown(tmp_path):
+    proc, address = start_server("tcp:0", tmp_path / "tcp.log")
+    try:
+        assert re.fullmatch(r"tcp:127\.0\.0\.1:\d+", address)
+        run = subprocess.run([sys.executable, "-m", "engine.runtime.client", address, "--frames", "12", "--width", "32",
+                              "--height", "24"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0, run.stderr
+        assert "socket: PREDICT 32x24 reproject (reproject)" in run.stdout
+        # Two sessions left open at shutdown: SIGTERM must unlink both segments.
+        clients = [Client(address) for _ in range(2)]
+        names = [c.hello(config()).shm_name for c in clients]
+        clients[0].submit(*frame_arrays(), pose(), K, 0.0)
+        assert all(segment_exists(n) for n in names)
+        assert stop_server(proc) == 0
+        assert not any(segment_exists(n) for n in names)
+        for c in clients:
+            assert closed(c.sock)
+            c.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_shutdown_removes_the_socket_file_and_segments(tmp_path):
+    path = tmp_path / "s.sock"
+    proc, address = start_server(f"unix:{path}", tmp_path / "unix.log")
+    client = Client(address)
+    name = client.hello(config()).shm_name
+    assert path.exists() and segment_exists(name)
+    assert stop_server(proc) == 0
+    assert not path.exists() and not segment_exists(name)
+    assert not any(p.name.startswith(f"interleave-{proc.pid}-") for p in SHM.iterdir())
+    client.close()
+
+
+def test_serve_refuses_other_hosts_and_a_live_socket(server, capsys):
+    from engine.cli import main
+
+    _, address = server
+    assert main(["serve", "--listen", "tcp:10.1.2.3:9000"]) == 2
+    assert main(["serve", "--listen", address]) == 2
+    err = capsys.readouterr().err
+    assert "127.0.0.1 only" in err and "another server is listening there" in err
+
+
+def test_hello_rejects_bad_fields(server):
+    _, address = server
+    cases = [(dict(channels=5), "channels"), (dict(flags=64), "flags"), (dict(width=0), "size"),
+             (dict(method=b"warp9"), "unknown method"), (dict(far=0.01), "far")]
+    for change, match in cases:
+        fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, k=2, channels=3, flags=0,
+                      reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
+        fields.update(change)
+        with Client(address) as client, pytest.raises(ServerError, match=match) as info:
+            client.request(MessageType.HELLO, wire.HELLO.pack(*fields.values()))
+        assert info.value.status == Status.BAD_INPUT

@@ -1,0 +1,469 @@
+"""Tests of engine/runtime/session.py: the game-engine integration API.
+
+Per engine, the engine's own pipeline (view and projection matrices, clip -> NDC -> window pixel with row 0
+at the top, window depth; the reference math of tests/conventions/test_conventions.py) places a known point; the
+session, fed the same matrices and depth buffer, must put it on the same pixel: exactly for the converted
+camera, and within a tenth of a pixel end to end (submit a textured wall, predict another view, read back
+which source pixel landed there). Then the hard cases of issue 7: camera cuts, time going backwards and
+frames out of order, resolution changes, NaN / negative values, reversed-Z zeros, two threads, zero-copy.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import pytest
+
+from engine.conventions import UNITY_FLIP, UNREAL_FLIP, encode_depth_buffer
+from engine.core.errors import InputError
+from engine.core.frames import rigid_inverse
+from engine.runtime.session import NotReadyError, Session, SessionConfig
+from tests.conventions.test_conventions import (
+    UE_VIEW_SWAP, clip_to_window, gl_frustum, gl_look_at, gl_perspective, homogeneous, reversed_zero_to_one, rot_x,
+    rot_y, rot_z, ue_reversed_z_perspective, ue_transform_fmatrix,
+)
+
+W, H = 64, 48
+PIXEL_A = (30.5, 22.5)  # the centre of pixel (column 30, row 22) in the submitted view
+EXACT_TOL = 1e-6        # pixels, converted camera against the engine's pipeline
+END_TO_END_TOL = 0.1    # pixels, through submit -> forward splat -> hole fill -> predict
+
+
+# --------------------------------------------------------------------------------------------
+# One rig per engine: two cameras in the engine's own form and the engine's projection math
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class Rig:
+    """Two cameras A (submitted) and B (predicted) of one engine, and that engine's pipeline."""
+
+    config: dict
+    view_a: np.ndarray
+    proj_a: object
+    view_b: np.ndarray
+    proj_b: object
+    project: Callable          # (view, proj, world point) -> (u, v, window depth), engine math
+    unproject: Callable        # (view, proj, u, v, depth in engine units) -> world point, engine math
+    to_output: Callable        # engine world point -> Interleave's output world (metres)
+    depth: float               # planar depth of the wall in A, engine units
+    extra: dict = field(default_factory=dict)
+
+
+def ndc(u, v):
+    return 2.0 * u / W - 1.0, 1.0 - 2.0 * v / H
+
+
+def gl_family_rig(config, view_a, view_b, proj, depth_proj, clip_range, depth):
+    """OpenGL, Unity (worldToCameraMatrix) and Godot (view matrix): column vectors, clip = P @ V @ x."""
+
+    def project(view, p, point):
+        u, v, _ = clip_to_window(p @ view @ np.append(point, 1.0), W, H, clip_range="minus_one_to_one")
+        _, _, d = clip_to_window(depth_proj @ view @ np.append(point, 1.0), W, H, clip_range=clip_range)
+        return u, v, d
+
+    def unproject(view, p, u, v, z):
+        nx, ny = ndc(u, v)
+        clip = np.array([nx * z, ny * z, -p[2, 2] * z + p[2, 3], z])
+        return (np.linalg.inv(p @ view) @ clip)[:3]
+
+    return Rig(config, view_a, proj, view_b, proj, project, unproject, lambda x: x, depth)
+
+
+def opengl_rig():
+    up = (0.1, 1.0, 0.0)
+    view_a = gl_look_at((2.0, 1.5, 6.0), (0.3, 0.2, -1.0), up)
+    view_b = gl_look_at((2.4, 1.3, 6.2), (0.35, 0.2, -1.0), up)
+    proj = gl_frustum(-0.06, 0.1, -0.04, 0.05, 0.1, 100.0)  # off-centre, non-square pixels at 64x48
+    config = dict(engine="opengl", depth_convention="opengl", near=0.1, far=100.0)
+    return gl_family_rig(config, view_a, view_b, proj, proj, "minus_one_to_one", 4.0)
+
+
+def unity_view(position, euler):
+    ex, ey, ez = euler
+    local_to_world = homogeneous(rot_y(ey) @ rot_x(ex) @ rot_z(ez), position)  # Unity: z, then x, then y
+    return np.diag([1.0, 1.0, -1.0, 1.0]) @ np.linalg.inv(local_to_world)   # camera.worldToCameraMatrix
+
+
+def unity_rig():
+    proj = gl_perspective(60.0, W / H, 0.3, 1000.0)  # camera.projectionMatrix
+    config = dict(engine="unity", depth_convention="reversed", near=0.3, far=1000.0)
+    rig = gl_family_rig(config, unity_view([1.0, 2.0, -3.0], (10.0, 30.0, 5.0)),
+                        unity_view([1.5, 2.1, -3.1], (11.0, 30.0, 5.0)), proj, reversed_zero_to_one(proj),
+                        "zero_to_one", 5.0)
+    rig.to_output = lambda x: (UNITY_FLIP @ np.append(x, 1.0))[:3]
+    return rig
+
+
+def godot_view(origin, euler):
+    ex, ey, ez = euler
+    camera_to_world = homogeneous(rot_y(ey) @ rot_x(ex) @ rot_z(ez), origin)  # Basis.from_euler, YXZ order
+    return np.linalg.inv(camera_to_world)  # get_camera_transform().affine_inverse()
+
+
+def godot_rig():
+    proj = gl_perspective(75.0, W / H, 0.05, 4000.0)  # get_camera_projection(), KEEP_HEIGHT
+    config = dict(engine="godot", depth_convention="reversed", near=0.05, far=4000.0)  # Godot 4.3+
+    return gl_family_rig(config, godot_view([3.0, 1.7, 4.0], (-15.0, 40.0, 8.0)),
+                         godot_view([2.8, 1.75, 4.1], (-14.0, 42.0, 8.0)), proj, reversed_zero_to_one(proj),
+                         "zero_to_one", 4.0)
+
+
+def unreal_rig():
+    near_cm, hfov = 10.0, 90.0
+    proj = ue_reversed_z_perspective(math.radians(hfov) / 2, W, H, near_cm)  # row vectors, as Unreal stores it
+    cams = {"a": (np.array([120.0, -340.0, 175.0]), (-12.0, 35.0, 7.0)),
+            "b": (np.array([97.0, -307.0, 170.0]), (-11.0, 37.0, 7.0))}
+
+    transforms = {name: ue_transform_fmatrix(*c) for name, c in cams.items()}  # the cameras' FMatrix
+
+    def view_matrix(transform):  # FViewMatrices: Translation(-loc) * FInverseRotationMatrix * axis swap
+        return np.linalg.inv(transform) @ UE_VIEW_SWAP
+
+    def project(view, p, point):
+        clip = np.append(point, 1.0) @ view_matrix(view) @ p
+        return clip_to_window(clip, W, H, clip_range="zero_to_one")
+
+    def unproject(view, p, u, v, w):
+        nx, ny = ndc(u, v)
+        clip = np.array([nx * w, ny * w, near_cm, w])
+        return (clip @ np.linalg.inv(view_matrix(view) @ p))[:3]
+
+    config = dict(engine="unreal", depth_convention="reversed_infinite", near=near_cm, far=math.inf)
+    rig = Rig(config, transforms["a"], proj, transforms["b"], proj, project, unproject,
+              lambda x: (UNREAL_FLIP @ np.append(0.01 * x, 1.0))[:3], 400.0)
+    rig.extra = dict(cams=cams, hfov=hfov)
+    return rig
+
+
+def opencv_rig():
+    k = np.array([[50.0, 0.0, 31.0], [0.0, 52.0, 25.0], [0.0, 0.0, 1.0]])
+    view_a = homogeneous(rot_x(5.0) @ rot_y(-8.0), [0.1, -0.2, 0.3])
+    view_b = homogeneous(rot_x(6.0) @ rot_y(-6.5), [0.25, -0.15, 0.35])
+
+    def project(view, kk, point):
+        cam = view[:3, :3] @ point + view[:3, 3]
+        uvw = kk @ cam
+        return uvw[0] / uvw[2], uvw[1] / uvw[2], cam[2]
+
+    def unproject(view, kk, u, v, z):
+        cam = z * np.linalg.solve(kk, [u, v, 1.0])
+        return view[:3, :3].T @ (cam - view[:3, 3])
+
+    return Rig(dict(engine="opencv", depth_convention="linear"), view_a, k, view_b, k, project, unproject,
+               lambda x: x, 3.0)
+
+
+RIGS = {"opengl": opengl_rig, "unity": unity_rig, "godot": godot_rig, "unreal": unreal_rig, "opencv": opencv_rig}
+#: The point's pixel in view B and its depth-buffer value in view A, as printed in docs/server.md.
+DOC_EXAMPLES = {"opengl": ((28.3918, 21.6331), 0.975976), "unity": ((26.3040, 22.4539), 0.059718),
+                "godot": ((33.0929, 23.9003), 0.012488), "unreal": ((26.1950, 23.2205), 0.025),
+                "opencv": ((34.1170, 22.5879), 3.0)}
+
+
+def known_point(rig):
+    """The wall point seen at PIXEL_A's centre in view A, its window depth there and its pixel in view B."""
+    point = rig.unproject(rig.view_a, rig.proj_a, *PIXEL_A, rig.depth)
+    u_a, v_a, d_a = rig.project(rig.view_a, rig.proj_a, point)
+    assert (u_a, v_a) == pytest.approx(PIXEL_A, abs=1e-9)  # the engine math round-trips
+    u_b, v_b, _ = rig.project(rig.view_b, rig.proj_b, point)
+    return point, d_a, (u_b, v_b)
+
+
+def ramp_image():
+    """Colour that encodes the pixel-centre coordinates: R = (u + 0.5) / W, G = (v + 0.5) / H."""
+    u = (np.arange(W, dtype=np.float32) + 0.5) / W
+    v = (np.arange(H, dtype=np.float32) + 0.5) / H
+    return np.stack([np.broadcast_to(u, (H, W)), np.broadcast_to(v[:, None], (H, W)),
+                     np.full((H, W), 0.5, np.float32)], axis=-1)
+
+
+def bilinear(image, x, y):
+    """Sample an (H, W, C) image at continuous coordinates (x, y), pixel centres at +0.5."""
+    x0, y0 = math.floor(x - 0.5), math.floor(y - 0.5)
+    fx, fy = x - 0.5 - x0, y - 0.5 - y0
+    patch = image[y0:y0 + 2, x0:x0 + 2].astype(np.float64)
+    return ((1 - fy) * ((1 - fx) * patch[0, 0] + fx * patch[0, 1]) + fy * ((1 - fx) * patch[1, 0] + fx * patch[1, 1]))
+
+
+@pytest.mark.parametrize("engine", list(RIGS))
+def test_known_point_lands_on_the_engines_pixel(engine):
+    rig = RIGS[engine]()
+    point, d_a, (u_b, v_b) = known_point(rig)
+    (doc_u, doc_v), doc_d = DOC_EXAMPLES[engine]
+    assert (u_b, v_b, d_a) == pytest.approx((doc_u, doc_v, doc_d), abs=1e-4, rel=1e-5)
+    session = Session(SessionConfig(width=W, height=H, method="reproject", **rig.config))
+
+    # The converted camera projects the point exactly where the engine does.
+    for view, proj, expected in ((rig.view_a, rig.proj_a, PIXEL_A), (rig.view_b, rig.proj_b, (u_b, v_b))):
+        camera = session.camera(view, proj)
+        cam = camera.world_to_camera[:3, :3] @ rig.to_output(point) + camera.world_to_camera[:3, 3]
+        uvw = camera.intrinsics @ cam
+        assert uvw[:2] / uvw[2] == pytest.approx(expected, abs=EXACT_TOL)
+
+    # End to end: a wall at the point's depth (the same window depth everywhere in A), textured with a
+    # coordinate ramp; in the prediction for B the point's pixel shows the colour of A's pixel PIXEL_A.
+    buffer = np.full((H, W), d_a, dtype=np.float32)
+    session.submit(ramp_image(), buffer, rig.view_a, rig.proj_a, 0.0)
+    out = session.predict(rig.view_b, rig.proj_b, 1.0 / 60.0)
+    assert out.method == "reproject" and out.fallback is None
+    assert math.hypot(u_b - PIXEL_A[0], v_b - PIXEL_A[1]) > 2.0  # the views differ by more than two pixels
+    r, g, _ = bilinear(out.color, u_b, v_b)
+    assert (r * W, g * H) == pytest.approx(PIXEL_A, abs=END_TO_END_TOL)
+
+
+def test_unreal_pose_and_fov_forms_agree():
+    rig = unreal_rig()
+    (location, rotator), hfov = rig.extra["cams"]["a"], rig.extra["hfov"]
+    session = Session(SessionConfig(width=W, height=H, **rig.config))
+    reference = session.camera(rig.view_a, rig.proj_a)
+    for view, proj in ((np.concatenate([location, rotator]), hfov), (rig.view_a, hfov)):
+        camera = session.camera(view, proj)
+        np.testing.assert_allclose(camera.world_to_camera, reference.world_to_camera, atol=1e-12)
+        np.testing.assert_allclose(camera.intrinsics, reference.intrinsics, atol=1e-9)
+    off_centre = rig.proj_a.copy()
+    off_centre[2, 0] = 0.1
+    with pytest.raises(InputError, match="off-centre"):
+        session.camera(rig.view_a, off_centre)
+
+
+# --------------------------------------------------------------------------------------------
+# A small OpenCV scene for the hard cases
+# --------------------------------------------------------------------------------------------
+
+K = np.array([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]])
+
+
+def pose(x=0.0, y=0.0, z=0.0, yaw_deg=0.0):
+    """world_to_camera of a camera at (x, y, z) turned by yaw about the y axis (OpenCV axes)."""
+    rotation = rot_y(yaw_deg)
+    return homogeneous(rotation, -rotation @ np.array([x, y, z]))
+
+
+def frame_arrays(seed=0, depth=3.0, size=(H, W)):
+    rng = np.random.default_rng(seed)
+    color = rng.uniform(0.05, 0.95, size + (3,)).astype(np.float32)
+    return color, np.full(size, depth, np.float32)
+
+
+def make_session(**overrides):
+    return Session(SessionConfig(**{"engine": "opencv", "width": W, "height": H, **overrides}))
+
+
+def test_camera_cut_on_submit_resets_history_and_never_smears():
+    session = make_session(method="flow2d")
+    color0, depth = frame_arrays(0)
+    color1, _ = frame_arrays(1)
+    assert session.submit(color0, depth, pose(), K, 0.0).reset is None
+    small = session.submit(color1, depth, pose(x=0.05), K, 1 / 30)
+    assert small.reset is None and small.history == 2
+    assert session.predict(pose(x=0.06), K, 1 / 20).fallback is None
+
+    jump = session.submit(color0, depth, pose(x=100.0), K, 2 / 30)  # teleport: 100 m against a 3 m scene
+    assert jump.reset == "camera_cut" and jump.history == 1
+    out = session.predict(pose(x=100.01), K, 2 / 30 + 1 / 60)
+    assert out.method == "reproject" and out.fallback == "history" and out.frame == jump.frame
+    turn = session.submit(color1, depth, pose(x=100.0, yaw_deg=90.0), K, 3 / 30)
+    assert turn.reset == "camera_cut"
+    assert session.stats["resets"]["camera_cut"] == 2
+
+
+def test_camera_cut_on_predict_repeats_the_newest_frame():
+    session = make_session(method="reproject", cut_rotation_deg=30.0)
+    color, depth = frame_arrays(3)
+    session.submit(color, depth, pose(), K, 0.0)
+    for target in (pose(x=5.0), pose(yaw_deg=60.0)):
+        out = session.predict(target, K, 1 / 60)
+        assert out.method == "repeat" and out.fallback == "camera_cut"
+        np.testing.assert_array_equal(out.color, color)  # the newest frame, not a smear
+        assert not out.holes.any()
+    assert session.predict(pose(yaw_deg=20.0), K, 1 / 60).fallback is None  # under the threshold
+
+
+def test_time_going_backwards_and_out_of_order_frames_reset_history():
+    session = make_session(method="flow2d")
+    depth = frame_arrays()[1]
+    arrivals = [(0, 0.0), (2, 2 / 30), (1, 1 / 30), (3, 3 / 30)]  # frame 1 arrives late
+    results = [session.submit(frame_arrays(i)[0], depth, pose(x=0.01 * i), K, t, frame=i) for i, t in arrivals]
+    assert [r.reset for r in results] == [None, None, "time_backwards", None]
+    assert [r.history for r in results] == [1, 2, 1, 2]
+    out = session.predict(pose(x=0.035), K, 3.5 / 30)
+    assert out.fallback is None and np.all(np.isfinite(out.color))
+    assert session.submit(frame_arrays(4)[0], depth, pose(), K, 3 / 30).reset == "time_backwards"  # same time
+    # A game rewinding to t = 0: the history starts again from the rewound frame.
+    rewind = session.submit(frame_arrays(5)[0], depth, pose(), K, 0.0)
+    assert rewind.reset == "time_backwards" and rewind.history == 1
+    assert session.predict(pose(), K, 1 / 60).fallback == "history"
+
+
+def test_resolution_change_is_an_error_until_reset_with_the_new_size():
+    session = make_session()
+    color, depth = frame_arrays()
+    session.submit(color, depth, pose(), K, 0.0)
+    small_color, small_depth = frame_arrays(size=(24, 32))
+    with pytest.raises(InputError, match=r"frame 7.*\(H, W\) = \(48, 64\).*reset\(width"):
+        session.submit(small_color, small_depth, pose(), K, 0.1, frame=7)
+    assert session.predict(pose(), K, 0.05).color.shape == (H, W, 3)  # history intact
+
+    session.reset(width=32, height=24)
+    with pytest.raises(NotReadyError):
+        session.predict(pose(), K, 0.1)
+    k_small = K * np.array([[0.5], [0.5], [1.0]])
+    session.submit(small_color, small_depth, pose(), k_small, 0.2)
+    out = session.predict(pose(x=0.01), k_small, 0.25)
+    assert out.color.shape == (24, 32, 3) and out.holes.shape == (24, 32)
+
+
+def test_predict_before_submit_is_not_ready():
+    with pytest.raises(NotReadyError, match="before any frame"):
+        make_session().predict(pose(), K, 0.0)
+
+
+@pytest.mark.parametrize("what, change, match", [
+    ("nan colour", lambda c, d: c.__setitem__((3, 4, 1), np.nan), r"frame 12, field 'color': has 1 non-finite"),
+    ("inf colour", lambda c, d: c.__setitem__((0, 0, 0), np.inf), r"frame 12, field 'color': has 1 non-finite"),
+    ("negative colour", lambda c, d: c.__setitem__((0, 0, 0), -0.5), r"frame 12, field 'color': has 1 negative"),
+    ("negative depth", lambda c, d: d.__setitem__((5, 5), -1.0), r"frame 12, field 'depth': has 1 zero or negative"),
+    ("nan depth", lambda c, d: d.__setitem__((5, 5), np.nan), r"frame 12, field 'depth': has 1 NaN"),
+])
+def test_bad_values_are_rejected_naming_the_frame(what, change, match):
+    session = make_session()
+    color, depth = frame_arrays()
+    session.submit(color, depth, pose(), K, 0.0)
+    bad_color, bad_depth = frame_arrays(1)
+    change(bad_color, bad_depth)
+    with pytest.raises(InputError, match=match) as info:
+        session.submit(bad_color, bad_depth, pose(), K, 0.25, frame=12)
+    assert "time 0.25" in str(info.value)
+    assert session.stats["submitted"] == 1  # rejected frames leave the history as it was
+    np.testing.assert_array_equal(session.predict(pose(), K, 0.3).color.shape, (H, W, 3))
+
+
+def test_errors_name_the_session_counter_by_default_and_catch_bad_poses():
+    session = make_session()
+    color, depth = frame_arrays()
+    session.submit(color, depth, pose(), K, 0.0)
+    color[0, 0, 0] = np.nan
+    with pytest.raises(InputError, match=r"^frame 1, field 'color'"):
+        session.submit(color, depth, pose(), K, 0.1)
+    with pytest.raises(InputError, match="frame 1, field 'view'.*not rigid"):
+        session.submit(frame_arrays()[0], depth, np.diag([2.0, 2.0, 2.0, 1.0]), K, 0.1)
+    with pytest.raises(InputError, match="field 'time'"):
+        session.submit(frame_arrays()[0], depth, pose(), K, float("nan"))
+    with pytest.raises(InputError, match="frame 5, field 'view'.*non-finite"):
+        session.predict(np.full((4, 4), np.nan), K, 0.1, frame=5)
+    with pytest.raises(InputError, match="UNORM"):
+        make_session(depth_convention="reversed", near=0.1, far=100.0).submit(
+            frame_arrays()[0], np.zeros((H, W), np.uint16), pose(), K, 0.0)
+
+
+def test_reversed_z_zero_is_sky_and_nan_buffer_is_rejected():
+    session = make_session(depth_convention="reversed", near=0.1, far=100.0)
+    color, planar = frame_arrays(depth=4.0)
+    buffer = encode_depth_buffer(planar, 0.1, 100.0, convention="reversed").astype(np.float32)
+    buffer[:, : W // 2] = 0.0  # left half: the reversed-Z clear value, i.e. no surface
+    session.submit(color, buffer, pose(), K, 0.0)
+    out = session.predict(pose(yaw_deg=2.0), K, 1 / 60)
+    assert np.all(np.isfinite(out.color)) and out.fallback is None
+    sky_only = make_session(depth_convention="reversed_infinite", near=0.1, far=math.inf)
+    sky_only.submit(color, np.zeros((H, W), np.float32), pose(), K, 0.0)  # all sky: rotation-only warp
+    assert np.all(np.isfinite(sky_only.predict(pose(x=1.0, yaw_deg=3.0), K, 1 / 60).color))
+    buffer[1, 1] = np.nan
+    with pytest.raises(InputError, match=r"frame 1, field 'depth': has 1 NaN"):
+        session.submit(color, buffer, pose(), K, 0.1)
+
+
+def test_two_threads_submit_and_predict_concurrently():
+    session = make_session(method="reproject")
+    color, depth = frame_arrays()
+    session.submit(color, depth, pose(), K, 0.0)
+    errors, seen = [], []
+
+    def submitter():
+        try:
+            for i in range(1, 41):
+                session.submit(frame_arrays(i)[0], depth, pose(x=0.01 * i), K, i / 30)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    def predictor():
+        try:
+            for i in range(80):
+                out = session.predict(pose(x=0.005 * i), K, i / 60)
+                assert out.color.shape == (H, W, 3) and np.all(np.isfinite(out.color))
+                seen.append(out.frame)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=submitter), threading.Thread(target=predictor)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not errors
+    assert seen == sorted(seen)  # a predict never sees an older frame than the one before it
+    assert session.stats["submitted"] == 41 and session.stats["predicted"] == 80
+
+
+def test_zero_copy_where_layouts_match():
+    color, depth = frame_arrays()
+    session = make_session()
+    session.submit(color, depth, pose(), K, 0.0)
+    newest = session._history.frames[-1]
+    assert np.shares_memory(newest.color, color) and np.shares_memory(newest.depth, depth)
+    session.submit(color, depth, pose(), K, 0.1, copy=True)
+    newest = session._history.frames[-1]
+    assert not np.shares_memory(newest.color, color) and not np.shares_memory(newest.depth, depth)
+    rgba = np.concatenate([color, np.ones((H, W, 1), np.float32)], axis=-1)
+    flipped = make_session(flip_rows=True)
+    flipped.submit(rgba, depth, pose(), K, 0.0)  # a 4-channel, bottom-up buffer is still only viewed
+    assert np.shares_memory(flipped._history.frames[-1].color, rgba)
+    out = session.predict(pose(), K, 0.2)
+    assert not np.shares_memory(out.color, color)
+
+
+def test_colour_spaces_and_flipped_rows():
+    rng = np.random.default_rng(4)
+    srgb8 = rng.integers(0, 256, (H, W, 4), dtype=np.uint8)
+    depth = frame_arrays()[1]
+    session = make_session(method="repeat", color_in="srgb8", color_out="srgb8")
+    session.submit(srgb8, depth, pose(), K, 0.0)
+    out = session.predict(pose(), K, 0.1)
+    assert out.color.dtype == np.uint8
+    np.testing.assert_array_equal(out.color, srgb8[..., :3])  # 8-bit sRGB survives the linear round trip
+
+    color = frame_arrays(5)[0]
+    depth = np.broadcast_to(np.linspace(2.0, 6.0, H, dtype=np.float32)[:, None], (H, W))
+    plain, flipped = make_session(), make_session(flip_rows=True)
+    plain.submit(color, depth, pose(), K, 0.0)
+    flipped.submit(color[::-1], depth[::-1], pose(), K, 0.0)  # a bottom-up readback of the same frame
+    target = pose(y=0.05, yaw_deg=1.0)
+    a, b = plain.predict(target, K, 0.1), flipped.predict(target, K, 0.1)
+    np.testing.assert_array_equal(b.color, a.color[::-1])
+    np.testing.assert_array_equal(b.holes, a.holes[::-1])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(engine="cryengine"), "engine"),
+    (dict(method="oracle"), "ground-truth"),
+    (dict(far=0.05), "far"),
+    (dict(depth_convention="reversed_infinite", far=100.0), "far"),
+    (dict(color_in="hdr"), "color_in"),
+    (dict(width=0), "width"),
+    (dict(cut_rotation_deg=0.0), "cut_rotation_deg"),
+])
+def test_bad_configs(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        SessionConfig(**kwargs)
+
+
+def test_unknown_method_is_an_input_error():
+    with pytest.raises(InputError, match="unknown method"):
+        Session(SessionConfig(method="warp9"))
+
+
+def test_rigid_inverse_helper_matches_numpy():  # the Godot rig relies on it being an exact inverse
+    view = godot_view([3.0, 1.7, 4.0], (-15.0, 40.0, 8.0))
+    np.testing.assert_allclose(rigid_inverse(view), np.linalg.inv(view), atol=1e-12)

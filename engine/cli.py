@@ -12,12 +12,11 @@ traceback.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
-import typing
 from pathlib import Path
 from typing import Optional, Sequence
 
+from engine.core.config import add_options, config_from_args
 from engine.core.errors import InterleaveError
 
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
@@ -33,34 +32,6 @@ def _int_list(text: str) -> list[int]:
         return [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got '{text}'") from None
-
-
-def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, skip: Sequence[str] = ()) -> None:
-    """One ``--option`` per field of a dataclass config; the field's ``metadata['help']`` is the help text."""
-    hints = typing.get_type_hints(cls)
-    for f in dataclasses.fields(cls):
-        if f.name in skip:
-            continue
-        kind = hints[f.name]
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        help_text = f.metadata.get("help", f.name.replace("_", " "))
-        flag = "--" + f.name.replace("_", "-")
-        if kind is bool:
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
-                                help=f"{help_text} (default: {default})")
-        elif kind in (int, float, str):
-            parser.add_argument(flag, type=kind, default=default, help=f"{help_text} (default: {default})")
-        elif typing.get_origin(kind) is tuple and typing.get_args(kind) and typing.get_args(kind)[0] in (int, float):
-            elem = typing.get_args(kind)[0]
-            parser.add_argument(flag, type=lambda s, e=elem: tuple(e(v) for v in s.split(",")), default=default,
-                                help=f"{help_text}, comma-separated (default: {','.join(map(str, default))})")
-
-
-def _config_from_args(cls: type, args: argparse.Namespace, **fixed):
-    names = {f.name for f in dataclasses.fields(cls)}
-    values = {n: getattr(args, n) for n in names if hasattr(args, n)}
-    values.update(fixed)
-    return cls(**values)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -128,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "structures, sky at infinite depth, lighting, and ground truth (depth, poses, "
                                     "object ids, moving mask, total and object-only flow). Headless (EGL).")
     rs.add_argument("out", type=Path, metavar="OUT_DIR", help="folder to write (sequence.json + frames/)")
-    add_dataclass_options(rs, SceneConfig)
+    add_options(rs, SceneConfig)
 
     from engine.scenegen import RigConfig
 
@@ -140,8 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "every ground-truth channel plus rig.json with the train/test split. "
                                     "--static: no moving objects, one frame. Headless (EGL).")
     rr.add_argument("out", type=Path, metavar="OUT_DIR", help="folder to write (rig.json + cam0/ ...)")
-    add_dataclass_options(rr, SceneConfig)
-    add_dataclass_options(rr, RigConfig, skip=("scene",))
+    add_options(rr, SceneConfig)
+    add_options(rr, RigConfig, skip=("scene",))
 
     imp = sub.add_parser("import", help="convert Blender multilayer EXR, MPI-Sintel or DeCOMPnet/VEED data to rgbd-seq",
                          description="See engine/io/importers.py for each layout's expected files.")
@@ -231,12 +202,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "render-scene":
             from engine.scenegen import SceneConfig, generate_sequence
 
-            path = generate_sequence(_config_from_args(SceneConfig, args), args.out, progress=True)
+            path = generate_sequence(config_from_args(SceneConfig, args), args.out, progress=True)
             print(f"wrote {path}")
         elif args.command == "render-rig":
             from engine.scenegen import RigConfig, SceneConfig, generate_rig
 
-            config = _config_from_args(RigConfig, args, scene=_config_from_args(SceneConfig, args))
+            config = config_from_args(RigConfig, args, RigConfig(scene=config_from_args(SceneConfig, args)))
             path = generate_rig(config, args.out, progress=True)
             print(f"wrote {path}")
         elif args.command == "import":

@@ -64,7 +64,10 @@ UNITY_FLIP = np.diag([1.0, 1.0, -1.0, 1.0])
 #: i.e. y is negated (the ROS / REP-103 axes). Applied after scaling centimetres to metres.
 UNREAL_FLIP = np.diag([1.0, -1.0, 1.0, 1.0])
 
-#: OpenGL eye space (x right, y up, looks down -z) -> OpenCV camera (x right, y down, z forward).
+#: OpenGL eye space (x right, y up, looks down -z) <-> OpenCV camera (x right, y down, z forward): y and z
+#: flip; its own inverse. The one definition of this flip (OpenGL, Blender, NeRF-synthetic cameras, GL clip
+#: matrices of OpenCV cameras); ``OPENGL_EYE_TO_OPENCV`` is its 3x3 block.
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 OPENGL_EYE_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 
 #: Unity camera local space (left-handed: x right, y up, z forward) -> OpenCV camera. det = -1.
@@ -139,6 +142,33 @@ def _rigid_camera(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     out[:3, :3] = rotation
     out[:3, 3] = translation
     return out
+
+
+def opengl_to_opencv_world_to_camera(camera_to_world_gl: np.ndarray) -> np.ndarray:
+    """OpenCV world-to-camera (4, 4) from an OpenGL/Blender camera-to-world matrix (y up, looking down -z).
+
+    ``camera_to_world_cv = camera_to_world_gl @ OPENGL_TO_OPENCV`` (flip the camera's y and z axes), then the
+    rigid inverse.
+    """
+    return rigid_inverse(np.asarray(camera_to_world_gl, dtype=np.float64) @ OPENGL_TO_OPENCV)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV rotation (3, 3) of a camera at ``eye`` facing ``target`` without roll: world -> camera rows
+    x right, y down, z forward, with the world's ``up`` direction (default z up) pointing up in the image.
+    Looking along ``up`` itself, the right vector is taken against the world y axis instead.
+
+    >>> look_at(np.zeros(3), np.array([0.0, 1.0, 0.0])).tolist()
+    [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+    """
+    forward = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, np.float64))
+    if np.linalg.norm(right) < 1e-6:  # looking straight along up: any right vector will do
+        right = np.cross(forward, np.array([0.0, 1.0, 0.0]))
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward])
 
 
 # --------------------------------------------------------------------------------------------

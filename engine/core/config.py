@@ -29,14 +29,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import os
 import types
 import typing
+from pathlib import Path
 from typing import Any, Iterable, Literal, Optional, Union
 
 from engine.core.errors import InputError
 
-__all__ = ["option", "add_options", "config_from_args", "config_from_dict", "config_to_dict", "config_from_text",
-           "parse_value", "option_names"]
+__all__ = ["option", "add_options", "config_from_args", "config_from_dict", "config_from_file", "config_to_dict",
+           "config_from_text", "parse_value", "option_names"]
 
 _TRUE, _FALSE = ("true", "1"), ("false", "0")
 
@@ -250,6 +253,20 @@ def config_from_dict(cls: type, data: Any, *, where: Optional[str] = None) -> An
         return cls(**values)
     except TypeError as exc:
         raise InputError(str(exc), field=where) from exc
+
+
+def config_from_file(cls: type, path: Union[str, "os.PathLike[str]"], *, field: str = "--config") -> Any:
+    """A ``cls`` from a JSON file in the form :func:`config_to_dict` writes; a missing file, bad JSON or a
+    wrong key raise InputError naming the file and ``field``."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("config file not found", file=path, field=field)
+    try:
+        return config_from_dict(cls, json.loads(path.read_text()))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"is not a {cls.__name__} JSON: {exc}", file=path, field=field) from None
+    except InputError as exc:
+        raise InputError(f"is not a {cls.__name__} JSON: {exc.problem}", file=path, field=field) from None
 
 
 def _from_json(kind: Any, value: Any, where: str) -> Any:

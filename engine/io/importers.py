@@ -28,20 +28,17 @@ from typing import Any, Callable, Iterator
 import cv2
 import numpy as np
 
+from engine.conventions.cameras import opengl_to_opencv_world_to_camera
 from engine.core.errors import InputError
 from engine.io.exr import read_exr
-from engine.core.frames import (Camera, Frame, rigid_inverse, validate_depth, validate_frame, validate_intrinsics,
+from engine.core.frames import (Camera, Frame, validate_depth, validate_frame, validate_intrinsics,
                            validate_pose)
 from engine.core.colorspace import srgb_to_linear
-from engine.io.rgbd import _finite, _get, _int, _load_json, write_sequence
+from engine.io.meta import json_finite, json_int, load_json, require
+from engine.io.rgbd import write_sequence
 
 #: Depth at or beyond which a pixel is "no surface" (+inf). Blender (Cycles) writes 1e10 for background.
 BACKGROUND_DEPTH = 1e9
-
-#: Camera-to-camera change of axes between OpenGL/Blender cameras (x right, y up, looking down -z) and
-#: OpenCV cameras (x right, y down, looking down +z). Its own inverse.
-OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-
 
 @dataclass
 class ImportedFrames:
@@ -50,15 +47,6 @@ class ImportedFrames:
     frames: Iterator[Frame]
     fps: float
     count: int
-
-
-def opengl_to_opencv_world_to_camera(camera_to_world_gl: np.ndarray) -> np.ndarray:
-    """OpenCV world-to-camera from an OpenGL/Blender camera-to-world matrix (y up, looking down -z).
-
-    ``camera_to_world_cv = camera_to_world_gl @ diag(1, -1, -1, 1)`` (flip the camera's y and z axes),
-    then the rigid inverse.
-    """
-    return rigid_inverse(np.asarray(camera_to_world_gl, dtype=np.float64) @ OPENGL_TO_OPENCV)
 
 
 def _background_to_inf(depth: np.ndarray, background_depth: float | None) -> np.ndarray:
@@ -141,9 +129,9 @@ def _blender_intrinsics(entry: dict[str, Any], file: Path, frame: int) -> Callab
         k = validate_intrinsics(entry["intrinsics"], file=file, frame=frame)
         return lambda width, height: k
     if "focal_px" in entry:
-        focal = _finite(entry["focal_px"], file, "focal_px", frame, positive=True)
+        focal = json_finite(entry["focal_px"], file, "focal_px", frame, positive=True)
         return lambda width, height: _centered_intrinsics(focal, width, height)
-    lens, sensor = (_finite(_get(entry, key, file, frame), file, key, frame, positive=True)
+    lens, sensor = (json_finite(require(entry, key, file, frame), file, key, frame, positive=True)
                     for key in ("lens_mm", "sensor_width_mm"))
     return lambda width, height: _centered_intrinsics(lens / sensor * max(width, height), width, height)
 
@@ -201,24 +189,24 @@ def frames_from_blender(cameras_json: str | Path, *, layer: str = "ViewLayer",
         json.dump(out, open(bpy.path.abspath("//render/cameras.json"), "w"))
     """
     cameras_json = Path(cameras_json)
-    meta = _load_json(cameras_json)
-    fps = _finite(_get(meta, "fps", cameras_json), cameras_json, "fps", positive=True)
-    entries = _get(meta, "frames", cameras_json)
+    meta = load_json(cameras_json)
+    fps = json_finite(require(meta, "fps", cameras_json), cameras_json, "fps", positive=True)
+    entries = require(meta, "frames", cameras_json)
     if not isinstance(entries, list) or not entries:
         raise InputError("must be a non-empty list", file=cameras_json, field="frames")
     parsed, numbers = [], []
     for k, entry in enumerate(entries):
         if not isinstance(entry, dict):
             raise InputError("must be an object", file=cameras_json, field=f"frames[{k}]")
-        number = _int(_get(entry, "frame", cameras_json, frame=k), cameras_json, "frame", frame=k)
+        number = json_int(require(entry, "frame", cameras_json, frame=k), cameras_json, "frame", frame=k)
         if numbers and number <= numbers[-1]:
             raise InputError(f"frame {number} follows {numbers[-1]}: frame numbers must strictly increase",
                              file=cameras_json, frame=k, field="frame")
         numbers.append(number)
-        camera_to_world = validate_pose(_get(entry, "camera_to_world", cameras_json, frame=k),
+        camera_to_world = validate_pose(require(entry, "camera_to_world", cameras_json, frame=k),
                                         file=cameras_json, frame=k, field_name="camera_to_world")
         world_to_camera = opengl_to_opencv_world_to_camera(camera_to_world)
-        exr = cameras_json.parent / str(_get(entry, "file", cameras_json, frame=k))
+        exr = cameras_json.parent / str(require(entry, "file", cameras_json, frame=k))
         if not exr.is_file():
             _missing(f"render {exr} is missing", skip_missing, file=exr, frame=number - numbers[0])
             continue
@@ -313,7 +301,7 @@ def frames_from_sintel(root: str | Path, scene: str, *, image_pass: str = "final
     """
     root = Path(root)
     images = Path(image_dir) if image_dir is not None else root / image_pass / scene
-    fps = _finite(fps, None, "fps", positive=True)
+    fps = json_finite(fps, None, "fps", positive=True)
     entries = _with_companions(
         _numbered_files(images, ".png", skip_missing),
         {"depth": lambda p: root / "depth" / scene / f"{p.stem}.dpt",
@@ -396,7 +384,7 @@ def frames_from_veed(seq_dir: str | Path, *, color_dir: str | Path = "rgb", dept
     """
     seq_dir = Path(seq_dir)
     csv_path = seq_dir / matrices
-    fps = _finite(fps, None, "fps", positive=True)
+    fps = json_finite(fps, None, "fps", positive=True)
     fixed_intrinsics = None if intrinsics is None else validate_intrinsics(intrinsics, field_name="intrinsics")
     images = _numbered_files(seq_dir / color_dir, ".png", skip_missing)
     poses = read_transformation_csv(csv_path)

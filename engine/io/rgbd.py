@@ -22,7 +22,6 @@ False
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -33,6 +32,7 @@ import numpy as np
 
 from engine.core.colorspace import linear_to_srgb, srgb_to_linear
 from engine.core.errors import InputError
+from engine.io.meta import json_choice, json_finite, json_int, load_json, require
 from engine.io.exr import read_exr, read_exr_info, write_exr
 from engine.core.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
 
@@ -58,13 +58,9 @@ RIG_TIME_TOLERANCE = 1e-6
 # sRGB transfer function (IEC 61966-2-1)
 # --------------------------------------------------------------------------------------------------
 
-# --------------------------------------------------------------------------------------------------
-# JSON field checks (each raises InputError naming file, frame and field)
-# --------------------------------------------------------------------------------------------------
-
 def _load_header(path: Path, expected_format: str) -> dict[str, Any]:
     """Load a metadata JSON and check its ``format`` and ``version`` fields."""
-    meta = _load_json(path)
+    meta = load_json(path)
     if meta.get("format") != expected_format:
         raise InputError(f"must be '{expected_format}', got {meta.get('format')!r}", file=path, field="format")
     version = meta.get("version")
@@ -73,46 +69,6 @@ def _load_header(path: Path, expected_format: str) -> dict[str, Any]:
                          file=path, field="version")
     return meta
 
-
-def _load_json(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise InputError("file does not exist", file=path)
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"is not valid JSON ({exc})", file=path) from None
-    if not isinstance(data, dict):
-        raise InputError(f"must hold a JSON object, got {type(data).__name__}", file=path)
-    return data
-
-
-def _get(obj: Mapping[str, Any], key: str, file: Path, frame: int | None = None, name: str | None = None) -> Any:
-    if key not in obj:
-        raise InputError(f"missing key '{key}'", file=file, frame=frame, field=name or key)
-    return obj[key]
-
-
-def _int(value: Any, file: Path, name: str, frame: int | None = None, minimum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"must be an integer, got {value!r}", file=file, frame=frame, field=name)
-    if minimum is not None and value < minimum:
-        raise InputError(f"must be >= {minimum}, got {value}", file=file, frame=frame, field=name)
-    return int(value)
-
-
-def _finite(value: Any, file: Path | None, name: str, frame: int | None = None, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(value):
-        raise InputError(f"must be a finite number, got {value!r}", file=file, frame=frame, field=name)
-    if positive and value <= 0:
-        raise InputError(f"must be > 0, got {value}", file=file, frame=frame, field=name)
-    return float(value)
-
-
-def _choice(value: Any, allowed: tuple[str, ...], file: Path, name: str) -> str:
-    if value not in allowed:
-        raise InputError(f"must be one of {list(allowed)}, got {value!r}", file=file, field=name)
-    return value
 
 
 def _parse_objects(raw: Any, indices: list[int] | None, file: Path | None) -> list[SceneObject]:
@@ -123,17 +79,17 @@ def _parse_objects(raw: Any, indices: list[int] | None, file: Path | None) -> li
     for k, entry in enumerate(raw):
         if not isinstance(entry, dict):
             raise InputError("must be an object", file=file, field=f"objects[{k}]")
-        oid = _int(_get(entry, "id", file, name=f"objects[{k}].id"), file, f"objects[{k}].id", minimum=1)
+        oid = json_int(require(entry, "id", file, name=f"objects[{k}].id"), file, f"objects[{k}].id", minimum=1)
         where = f"objects[id={oid}]"
         if any(o.id == oid for o in objects):
             raise InputError(f"duplicate object id {oid}", file=file, field=f"{where}.id")
-        name = _get(entry, "name", file, name=f"{where}.name")
-        moving = _get(entry, "moving", file, name=f"{where}.moving")
+        name = require(entry, "name", file, name=f"{where}.name")
+        moving = require(entry, "moving", file, name=f"{where}.moving")
         if not isinstance(name, str):
             raise InputError(f"must be a string, got {name!r}", file=file, field=f"{where}.name")
         if not isinstance(moving, bool):
             raise InputError(f"must be true or false, got {moving!r}", file=file, field=f"{where}.moving")
-        transforms = _get(entry, "world_from_object", file, name=f"{where}.world_from_object")
+        transforms = require(entry, "world_from_object", file, name=f"{where}.world_from_object")
         try:
             transforms = np.asarray(transforms, dtype=np.float64)
         except (TypeError, ValueError) as exc:
@@ -261,13 +217,13 @@ def read_sequence(path: str | Path) -> RgbdSequence:
         root = root.parent
     meta_file = root / "sequence.json"
     meta = _load_header(meta_file, FORMAT)
-    width = _int(_get(meta, "width", meta_file), meta_file, "width", minimum=1)
-    height = _int(_get(meta, "height", meta_file), meta_file, "height", minimum=1)
-    fps = _finite(_get(meta, "fps", meta_file), meta_file, "fps", positive=True)
-    color_space = _choice(_get(meta, "color_space", meta_file), COLOR_SPACES, meta_file, "color_space")
-    _choice(_get(meta, "depth", meta_file), ("planar-z",), meta_file, "depth")
-    _choice(_get(meta, "camera_convention", meta_file), ("opencv",), meta_file, "camera_convention")
-    entries = _get(meta, "frames", meta_file)
+    width = json_int(require(meta, "width", meta_file), meta_file, "width", minimum=1)
+    height = json_int(require(meta, "height", meta_file), meta_file, "height", minimum=1)
+    fps = json_finite(require(meta, "fps", meta_file), meta_file, "fps", positive=True)
+    color_space = json_choice(require(meta, "color_space", meta_file), COLOR_SPACES, meta_file, "color_space")
+    json_choice(require(meta, "depth", meta_file), ("planar-z",), meta_file, "depth")
+    json_choice(require(meta, "camera_convention", meta_file), ("opencv",), meta_file, "camera_convention")
+    entries = require(meta, "frames", meta_file)
     if not isinstance(entries, list) or not entries:
         raise InputError("must be a non-empty list", file=meta_file, field="frames")
 
@@ -275,19 +231,19 @@ def read_sequence(path: str | Path) -> RgbdSequence:
     for k, entry in enumerate(entries):
         if not isinstance(entry, dict):
             raise InputError("must be an object", file=meta_file, field=f"frames[{k}]")
-        index = _int(_get(entry, "index", meta_file, frame=k), meta_file, "index", frame=k, minimum=0)
-        time = _finite(_get(entry, "time", meta_file, frame=index), meta_file, "time", frame=index)
+        index = json_int(require(entry, "index", meta_file, frame=k), meta_file, "index", frame=k, minimum=0)
+        time = json_finite(require(entry, "time", meta_file, frame=index), meta_file, "time", frame=index)
         if indices and index <= indices[-1]:
             raise InputError(f"index {index} follows {indices[-1]}: indices must be strictly increasing",
                              file=meta_file, frame=index, field="index")
         if times and time < times[-1]:
             raise InputError(f"time {time} is before the previous frame's {times[-1]}: times must not decrease",
                              file=meta_file, frame=index, field="time")
-        rel = _get(entry, "file", meta_file, frame=index)
+        rel = require(entry, "file", meta_file, frame=index)
         if not isinstance(rel, str) or not rel:
             raise InputError(f"must be a relative path string, got {rel!r}", file=meta_file, frame=index, field="file")
-        intrinsics = validate_intrinsics(_get(entry, "intrinsics", meta_file, frame=index), file=meta_file, frame=index)
-        pose = validate_pose(_get(entry, "world_to_camera", meta_file, frame=index), file=meta_file, frame=index)
+        intrinsics = validate_intrinsics(require(entry, "intrinsics", meta_file, frame=index), file=meta_file, frame=index)
+        pose = validate_pose(require(entry, "world_to_camera", meta_file, frame=index), file=meta_file, frame=index)
         if not (root / rel).is_file():
             raise InputError(f"frame file {rel} does not exist (listed in {meta_file})",
                              file=root / rel, frame=index, field="file")
@@ -370,7 +326,7 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
     """
     root = Path(path)
     meta_file = root / "sequence.json"
-    fps = _finite(fps, None, "fps", positive=True)
+    fps = json_finite(fps, None, "fps", positive=True)
     if color_space not in COLOR_SPACES:
         raise InputError(f"must be one of {list(COLOR_SPACES)}, got {color_space!r}", field="color_space")
     objects_raw = _objects_json(objects or [])
@@ -488,7 +444,7 @@ def read_rig(path: str | Path) -> RgbdRig:
         root = root.parent
     rig_file = root / "rig.json"
     meta = _load_header(rig_file, RIG_FORMAT)
-    cameras, train, test = _check_rig_names(_get(meta, "cameras", rig_file), meta.get("train_cameras", []),
+    cameras, train, test = _check_rig_names(require(meta, "cameras", rig_file), meta.get("train_cameras", []),
                                             meta.get("test_cameras", []), rig_file)
     sequences = {name: read_sequence(root / name) for name in cameras}
     _check_synchronized(sequences)

@@ -23,6 +23,7 @@ from typing import Iterator
 
 import numpy as np
 
+from engine.conventions import OPENGL_TO_OPENCV, projection_from_intrinsics
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
 from engine.scenegen import glsl
@@ -42,10 +43,7 @@ def clip_from_camera(intrinsics: np.ndarray, width: int, height: int, near: floa
     [near, far] to NDC [-1, 1]. The mapping flips only y, so counter-clockwise front faces stay
     counter-clockwise.
     """
-    from engine.conventions import projection_from_intrinsics
-
-    opengl_from_opencv = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y and z flip
-    return projection_from_intrinsics(intrinsics, width, height, near, far) @ opengl_from_opencv
+    return projection_from_intrinsics(intrinsics, width, height, near, far) @ OPENGL_TO_OPENCV  # its own inverse
 
 
 def _scaled(intrinsics: np.ndarray, factor: float) -> np.ndarray:

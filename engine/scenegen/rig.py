@@ -55,6 +55,7 @@ from typing import Iterator
 
 import numpy as np
 
+from engine.conventions.cameras import look_at
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
@@ -172,12 +173,8 @@ def _layout(config: RigConfig, centre: np.ndarray, target: np.ndarray, scale: fl
     row = np.repeat(rows - 1.0 - np.arange(rows), cols)  # top row first (+ up); the bottom row passes through E
     distance = float(np.linalg.norm(target - centre))
     if config.arrangement == "forward-facing":
-        forward = (target - centre) / distance
-        right = np.cross(forward, [0.0, 0.0, 1.0])  # as engine.scenegen.scene.look_at
-        if np.linalg.norm(right) < 1e-6:
-            right = np.cross(forward, [0.0, 1.0, 0.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, forward)
+        rotation = look_at(centre, target)  # the rig's own view: rows right, down, forward
+        right, up = rotation[0], -rotation[1]
         spacing = scale * config.baseline * distance / (cols - 1)
         return centre + spacing * (col[:, None] * right + row[:, None] * up)
     offset = centre[:2] - target[:2]

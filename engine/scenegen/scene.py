@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from engine.conventions.cameras import look_at
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.core.frames import Camera, SceneObject
@@ -135,19 +136,6 @@ def rigid(rotation: np.ndarray, translation) -> np.ndarray:
     out[..., :3, 3] = translation
     out[..., 3, 3] = 1.0
     return out
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV rotation (3, 3) (world -> camera rows x right, y down, z forward) looking from eye at target, z up."""
-    forward = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
-    forward = forward / np.linalg.norm(forward)
-    up = np.array([0.0, 0.0, 1.0])
-    right = np.cross(forward, up)
-    if np.linalg.norm(right) < 1e-6:  # looking straight up or down: any right vector will do
-        right = np.cross(forward, np.array([0.0, 1.0, 0.0]))
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    return np.stack([right, down, forward])
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -39,6 +39,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
+from engine.core import config as core_config
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
@@ -117,22 +118,7 @@ class TrainFlowConfig:
 
 def config_from_dict(data: dict) -> TrainFlowConfig:
     """Inverse of ``dataclasses.asdict`` for ``TrainFlowConfig`` (lists back to tuples, nested configs)."""
-    return _from_dict(TrainFlowConfig, data)
-
-
-def _from_dict(cls, data: dict):
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        value, hint = data[f.name], hints[f.name]
-        if dataclasses.is_dataclass(hint):
-            value = _from_dict(hint, value)
-        elif typing.get_origin(hint) is tuple:
-            value = tuple(value)
-        kwargs[f.name] = value
-    return cls(**kwargs)
+    return core_config.config_from_dict(TrainFlowConfig, data)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -366,7 +352,7 @@ def _load_network(path: str | Path, network_class, config_class):
     """The network a checkpoint holds (``network_class(config_class(**model_config))``, eval mode); shared
     with the infilling trainer."""
     state = torch.load(Path(path), map_location="cpu", weights_only=False)
-    model = network_class(_from_dict(config_class, state["model_config"]))
+    model = network_class(core_config.config_from_dict(config_class, state["model_config"]))
     model.load_state_dict(state["model"])
     return model.eval()
 
@@ -501,73 +487,31 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
 
 
 def build_parser(prog: str = "python -m models.flow.train") -> argparse.ArgumentParser:
-    """One ``--option`` per field of ``TrainFlowConfig``, ``Flow3DConfig`` and ``FlowLossConfig``
-    (``engine.cli.add_dataclass_options``; tuples comma-separated, e.g. ``--scene-seeds 1,2,3``), plus
-    ``--config FILE`` (a ``config.json`` as ``train`` writes it; options given on the command line override
-    it), ``--resume`` and ``--no-progress``."""
-    from engine.cli import add_dataclass_options
-
+    """One ``--option`` per field of ``TrainFlowConfig`` (``engine.core.config.add_options``; the network's
+    fields as ``--model.name``, the loss's as ``--loss.name``; tuples comma-separated, e.g.
+    ``--scene-seeds 1,2,3``), plus ``--config FILE`` (a ``config.json`` as ``train`` writes it; options given
+    on the command line override it), ``--resume`` and ``--no-progress``."""
     parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet 3D flow network (unsupervised, "
                                                             "thesis Eq. 6.8-6.12) on procedural scenes.")
-    parser.add_argument("--config", metavar="FILE", help="JSON TrainFlowConfig (nested 'model' and 'loss'); "
-                                                         "command-line options override its values")
-    add_dataclass_options(parser, TrainFlowConfig, skip=("model", "loss"))
-    add_dataclass_options(parser, Flow3DConfig)
-    add_dataclass_options(parser, FlowLossConfig)
+    parser.add_argument("--config", metavar="FILE", help="JSON TrainFlowConfig as a run writes it; command-line "
+                                                         "options override its values")
+    core_config.add_options(parser, TrainFlowConfig)
     parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
-def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainFlowConfig:
-    """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
-    return merge_config_args(TrainFlowConfig, args, given, ("model", "loss"))
-
-
-def merge_config_args(cls, args: argparse.Namespace, given: set[str], nested: tuple[str, ...]):
-    """A training config of dataclass ``cls`` from the command line: ``args.config``'s JSON file (if any;
-    else the defaults), with every option named in ``given`` taken from ``args``. The fields of the nested
-    dataclass fields ``nested`` are flat options on the command line (``engine.cli.add_dataclass_options``).
-    Shared by the flow and infilling trainers."""
-    base = cls()
-    if args.config:
-        path = Path(args.config)
-        if not path.is_file():
-            raise InputError("config file not found", file=path, field="--config")
-        try:
-            base = _from_dict(cls, json.loads(path.read_text()))
-        except (json.JSONDecodeError, TypeError) as exc:
-            raise InputError(f"is not a {cls.__name__} JSON: {exc}", file=path, field="--config") from exc
-    values = vars(args)
-
-    def merged(kind, current, skip=()) -> dict:
-        out = dataclasses.asdict(current)
-        for f in dataclasses.fields(kind):
-            if f.name in given and f.name not in skip:
-                out[f.name] = values[f.name]
-        return out
-
-    hints = typing.get_type_hints(cls)
-    top = merged(cls, base, nested)
-    for name in nested:
-        top[name] = merged(hints[name], getattr(base, name))
-    return _from_dict(cls, top)
-
-
-def _given_options(parser: argparse.ArgumentParser, argv: list[str]) -> set[str]:
-    """Destinations of the options that appear in ``argv`` (``--name`` or ``--name=value``)."""
-    flags = {flag: action.dest for action in parser._actions for flag in action.option_strings}
-    return {flags[a.split("=", 1)[0]] for a in argv if a.split("=", 1)[0] in flags}
+def config_from_args(args: argparse.Namespace) -> TrainFlowConfig:
+    """The run's config: ``args.config``'s file (if any; else the defaults) with the options given on the
+    command line set."""
+    base = core_config.config_from_file(TrainFlowConfig, args.config) if args.config else None
+    return core_config.config_from_args(TrainFlowConfig, args, base)
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.flow.train") -> None:
     """Command line of ``train`` (``interleave train flow`` calls this); see ``build_parser``."""
-    import sys
-
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(prog)
-    args = parser.parse_args(argv)
-    config = config_from_args(args, _given_options(parser, argv))
+    args = build_parser(prog).parse_args(argv)
+    config = config_from_args(args)
     train(config, progress=not args.no_progress, resume=args.resume)
 
 

@@ -28,6 +28,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from engine.core import config as core_config
 from engine.core.config import option
 from engine.core.errors import InputError
 from models.infill.network import InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs, infill_loss
@@ -92,12 +93,6 @@ class TrainInfillConfig:
         for ok, problem in checks:
             if not ok:
                 raise InputError(problem, field="TrainInfillConfig")
-
-
-def _from_dict(data: dict) -> TrainInfillConfig:
-    from models.flow.train import _from_dict as typed
-
-    return typed(TrainInfillConfig, data)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -323,38 +318,29 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
 
 
 def build_parser(prog: str = "python -m models.infill.train") -> argparse.ArgumentParser:
-    """One ``--option`` per field of ``TrainInfillConfig`` and ``InfillConfig``, ``--config FILE`` (options
-    on the command line override it), ``--resume``, ``--no-progress``."""
-    from engine.cli import add_dataclass_options
-
+    """One ``--option`` per field of ``TrainInfillConfig`` (the network's as ``--model.name``), ``--config
+    FILE`` (options on the command line override it), ``--resume``, ``--no-progress``."""
     parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet disocclusion infilling network "
                                                             "(thesis Sec. 6.3.4) on procedural scenes.")
-    parser.add_argument("--config", metavar="FILE", help="JSON TrainInfillConfig (nested 'model'); command-line "
+    parser.add_argument("--config", metavar="FILE", help="JSON TrainInfillConfig as a run writes it; command-line "
                                                          "options override its values")
-    add_dataclass_options(parser, TrainInfillConfig, skip=("model",))
-    add_dataclass_options(parser, InfillConfig)
+    core_config.add_options(parser, TrainInfillConfig)
     parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
-def config_from_args(args: argparse.Namespace, given: set[str]) -> TrainInfillConfig:
-    """The run's config: ``args.config``'s file (if any), with the options in ``given`` taken from ``args``."""
-    from models.flow.train import merge_config_args
-
-    return merge_config_args(TrainInfillConfig, args, given, ("model",))
+def config_from_args(args: argparse.Namespace) -> TrainInfillConfig:
+    """The run's config: ``args.config``'s file (if any; else the defaults) with the options given on the
+    command line set."""
+    base = core_config.config_from_file(TrainInfillConfig, args.config) if args.config else None
+    return core_config.config_from_args(TrainInfillConfig, args, base)
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.infill.train") -> None:
     """Command line of ``train`` (``interleave train infill`` calls this)."""
-    import sys
-
-    from models.flow.train import _given_options
-
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(prog)
-    args = parser.parse_args(argv)
-    train(config_from_args(args, _given_options(parser, argv)), progress=not args.no_progress, resume=args.resume)
+    args = build_parser(prog).parse_args(argv)
+    train(config_from_args(args), progress=not args.no_progress, resume=args.resume)
 
 
 if __name__ == "__main__":

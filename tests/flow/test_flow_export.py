@@ -202,9 +202,9 @@ def test_two_process_gloo_matches_one_process(tmp_path, data_dir):
            "--batch-size", "2", "--crop", "32", "--downsample", "1", "--crop-candidates", "2", "--crops-per-pair", "1",
            "--scene-width", "64", "--scene-height", "48", "--scene-frames", "5", "--scene-seeds", "1,2",
            "--k-values", "1,2", "--checkpoint-every", "2", "--log-every", "1", "--threads", "1",
-           "--encoder-channels", ",".join(map(str, net.encoder_channels)), "--reduce-channels",
-           str(net.reduce_channels), "--decoder-channels", ",".join(map(str, net.decoder_channels)),
-           "--search-range", str(net.search_range), "--no-progress"]
+           "--model.encoder-channels", ",".join(map(str, net.encoder_channels)), "--model.reduce-channels",
+           str(net.reduce_channels), "--model.decoder-channels", ",".join(map(str, net.decoder_channels)),
+           "--model.search-range", str(net.search_range), "--no-progress"]
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
     result = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -216,21 +216,21 @@ def test_two_process_gloo_matches_one_process(tmp_path, data_dir):
 
 
 def test_config_file_with_command_line_overrides(tmp_path):
-    from models.flow.train import _given_options, build_parser, config_from_args
+    from models.flow.train import build_parser, config_from_args
 
     base = tiny_config(tmp_path, steps=5, lr=3e-4)
     path = tmp_path / "config.json"
     path.write_text(json.dumps(dataclasses.asdict(base)))
     parser = build_parser()
-    argv = ["--config", str(path), "--steps", "7", "--search-range", "2"]
-    config = config_from_args(parser.parse_args(argv), _given_options(parser, argv))
+    argv = ["--config", str(path), "--steps", "7", "--model.search-range", "2"]
+    config = config_from_args(parser.parse_args(argv))
     assert config.steps == 7 and config.model.search_range == 2  # given on the command line
     assert config.lr == 3e-4 and config.crop == base.crop and config.model.encoder_channels == TINY_NET.encoder_channels
     with pytest.raises(InputError, match="config file not found"):
-        config_from_args(parser.parse_args(["--config", str(tmp_path / "nope.json")]), set())
+        config_from_args(parser.parse_args(["--config", str(tmp_path / "nope.json")]))
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(InputError, match="TrainFlowConfig JSON"):
-        config_from_args(parser.parse_args(["--config", str(tmp_path / "bad.json")]), set())
+        config_from_args(parser.parse_args(["--config", str(tmp_path / "bad.json")]))
 
 
 def test_with_planes_rebuilds_the_same_weights_for_another_plane_count():

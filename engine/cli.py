@@ -2,7 +2,7 @@
 
 Subcommands: ``demo`` (the frame-upsampling demo on the built-in scene), ``eval`` (speed against error
 on rgbd-seq sequences; ``eval --bounds`` the performance bounds of thesis Table 6.3; ``eval field RUN_DIR``
-scores a trained radiance field), ``sweep`` (speed against error of decomp's knobs), ``render-scene`` (write a
+scores a trained radiance field), ``render-scene`` (write a
 procedural dynamic scene as rgbd-seq), ``render-rig`` (the same scene seen by a rig of fixed cameras, as
 rgbd-rig), ``import`` (convert Blender, MPI-Sintel or DeCOMPnet/VEED layouts to rgbd-seq), ``train`` /
 ``export`` (``flow`` network, static ``field``; need torch) and ``serve`` (prediction sessions for game
@@ -81,18 +81,6 @@ def build_parser() -> argparse.ArgumentParser:
                          "(default: decomp; e.g. 'decomp[fill=simple]'): local motion prediction and disocclusion "
                          "infilling each predicted or true (motion=truth; true pixels in the holes); needs the "
                          "sequences' objects")
-
-    from tools.sweep import add_arguments as add_sweep_arguments
-
-    sw = sub.add_parser("sweep", help="speed against error of decomp's knobs (network width, fill, infill "
-                                      "passes, MPI planes) with reproject and flow2d, Pareto front marked",
-                        description="Evaluates every combination of the knobs as decomp[...] variants together with "
-                                    "the baselines on the given sequences (their frame size is the resolution), "
-                                    "prints median ms per predicted frame against PSNR and FLIP per frame size with "
-                                    "the Pareto front (fastest for its error) and the stage breakdown, and writes "
-                                    "sweep.json, sweep.md and sweep.png (matplotlib) to --out. Same as "
-                                    "'python -m tools.sweep'.")
-    add_sweep_arguments(sw)
 
     rs = sub.add_parser("render-scene", help="render a procedural dynamic scene to an rgbd-seq folder",
                         description="Deterministic by --seed: camera path, moving rigid objects, textures, thin "
@@ -195,10 +183,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                      methods=_methods(args.methods))
         elif args.command == "eval":
             return _run_eval(args)
-        elif args.command == "sweep":
-            from tools.sweep import run_sweep_command
-
-            return run_sweep_command(args)
         elif args.command == "render-scene":
             from engine.scenegen import SceneConfig, generate_sequence
 

@@ -170,11 +170,11 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
                                     output_names=["flow"], dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
-    _write_metadata(out, model, working_width, extra={"depth_flow": bool(depth_flow)})
+    write_metadata(out, model, working_width, extra={"depth_flow": bool(depth_flow)})
     return out
 
 
-def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None,
+def write_metadata(path: Path, model: nn.Module, working_width: int, key: Optional[str] = None,
                     extra: Optional[dict] = None) -> None:
     """Store the network config (``model.config``), its working width and ``extra`` entries in the ONNX
     metadata under ``key`` (default ``engine.predict.decomp.predictor.METADATA_KEY``; ``export.infill`` passes its own); drop

@@ -110,9 +110,9 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
                                     optimize=False)
     program.save(str(out))
     from engine.predict.decomp.infill import METADATA_KEY
-    from export.flow import _write_metadata
+    from export.flow import write_metadata
 
-    _write_metadata(out, net, working_width, METADATA_KEY)
+    write_metadata(out, net, working_width, METADATA_KEY)
     return out
 
 

@@ -61,7 +61,7 @@ class Mpi(NamedTuple):
 # Validation (public entry points only)
 
 
-def _check_mpi(mpi, sizes: dict) -> Mpi:
+def check_mpi(mpi, sizes: dict) -> Mpi:
     if not isinstance(mpi, tuple) or len(mpi) != 4:
         raise InputError(f"must be an Mpi(color, depth, alpha, plane_depths), got {type(mpi).__name__}", field="mpi")
     check_shape(mpi[0], "mpi.color", ("B", 3, "Z", "H", "W"), sizes)
@@ -353,7 +353,7 @@ def build_mpi(color: Tensor, depth: Tensor, num_planes: int) -> Mpi:
     return _build_mpi(color, depth, _num_planes(num_planes))
 
 
-def _visibility(alpha: Tensor) -> Tensor:
+def alpha_visibility(alpha: Tensor) -> Tensor:
     planes = [torch.ones_like(alpha[:, :, 0])]
     for z in range(1, alpha.shape[2]):
         planes.append(planes[-1] * (1.0 - alpha[:, :, z - 1]))
@@ -362,11 +362,11 @@ def _visibility(alpha: Tensor) -> Tensor:
 
 def visibility(mpi: Mpi) -> Tensor:
     """Transmittance in front of each plane (thesis Eq. 6.9), (B, 1, Z, H, W): ``prod_{j < z} (1 - alpha_j)``."""
-    return _visibility(_check_mpi(mpi, {}).alpha)
+    return alpha_visibility(check_mpi(mpi, {}).alpha)
 
 
-def _composite(mpi: Mpi) -> tuple[Tensor, Tensor, Tensor]:
-    weight = mpi.alpha * _visibility(mpi.alpha)  # (B, 1, Z, H, W)
+def composite_unchecked(mpi: Mpi) -> tuple[Tensor, Tensor, Tensor]:
+    weight = mpi.alpha * alpha_visibility(mpi.alpha)  # (B, 1, Z, H, W)
     color = (mpi.color * weight).sum(dim=2).permute(0, 2, 3, 1)
     acc = weight.sum(dim=2)[:, 0]
     seen = weight > 0
@@ -387,12 +387,12 @@ def composite(mpi: Mpi) -> tuple[Tensor, Tensor, Tensor]:
         weight-normalised depth of the visible surfaces; +inf where sky is visible or nothing is covered),
         accumulated alpha (B, H, W). Uncovered pixels are reported by ``disocclusion_mask``.
     """
-    return _composite(_check_mpi(mpi, {}))
+    return composite_unchecked(check_mpi(mpi, {}))
 
 
 def disocclusion_mask(mpi: Mpi) -> Tensor:
     """(B, H, W) bool, True where no plane has alpha > 0 (a hole left by warping)."""
-    return ~(_check_mpi(mpi, {}).alpha > 0).any(dim=2)[:, 0]
+    return ~(check_mpi(mpi, {}).alpha > 0).any(dim=2)[:, 0]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -505,7 +505,7 @@ def forward_warp_mpi(mpi: Mpi, K_src: Tensor, T_src: Tensor, K_dst: Tensor, T_ds
         colour = depth = alpha = 0 elsewhere.
     """
     sizes: dict = {}
-    mpi = _check_mpi(mpi, sizes)
+    mpi = check_mpi(mpi, sizes)
     _check_cameras(sizes, K_src=K_src, T_src=T_src, K_dst=K_dst, T_dst=T_dst)
     if object_flow is not None:
         check_shape(object_flow, "object_flow", ("B", 3, "Z", "H", "W"), sizes)
@@ -535,5 +535,5 @@ def forward_warp_frame(color: Tensor, depth: Tensor, K_src: Tensor, T_src: Tenso
     mpi = _build_mpi(color, depth, 1)
     warped, _ = _forward_warp_mpi(mpi, K_src, T_src, K_dst, T_dst, object_flow, (sizes["H"], sizes["W"]),
                                   _sharpness(sharpness))
-    out_color, out_depth, _ = _composite(warped)
+    out_color, out_depth, _ = composite_unchecked(warped)
     return out_color, out_depth, warped.alpha[:, 0, 0] <= 0

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from engine.core.errors import InputError
 from models.flow.network import mpi_pair
 from models.flow.losses import FlowLossConfig, flow_loss
-from models.flow.train import _frame_tensors, _initial_flow, load_model
+from models.flow.train import frame_tensors, dis_initial_flow, load_model
 
 
 def _lift(flow_2d: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -58,10 +58,10 @@ def rank_pairs(sequences: list[str], factor: int = 2, num_planes: int = 4, every
         for n in range(max(ks), len(seq), every):
             for k in ks:
                 frame_n, frame_p = seq[n], seq[n - k]
-                t_n, t_p = _frame_tensors(frame_n, factor), _frame_tensors(frame_p, factor)
+                t_n, t_p = frame_tensors(frame_n, factor), frame_tensors(frame_p, factor)
                 with torch.no_grad():
                     m_n, m_p = mpi_pair(*t_n, *t_p, num_planes)
-                    dis = _initial_flow(t_n[0], m_p)
+                    dis = dis_initial_flow(t_n[0], m_p)
                     h, w = m_n.alpha.shape[-2:]
                     truth = torch.from_numpy(true_object_flow(frame_n, objects, frame_p.index)).permute(2, 0, 1)[None]
                     truth = F.avg_pool2d(truth, factor)[..., :h, :w]

@@ -146,7 +146,7 @@ class Client:
         payload = wire.HELLO.pack(
             wire.ENGINE_CODES.index(config.engine), wire.DEPTH_CODES.index(config.depth_convention),
             wire.COLOR_CODES.index(config.color_in), wire.COLOR_CODES.index(config.color_out),
-            config.width, config.height, config.k, channels, flags, 0,
+            config.width, config.height, 0, channels, flags, 0,
             config.near, config.far, config.meters_per_unit, config.cut_translation, config.cut_rotation_deg,
             config.method.encode())
         layout = Layout.unpack(self.request(MessageType.HELLO, payload))
@@ -267,7 +267,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--method", default="reproject", help="predictor (default: reproject)")
     parser.add_argument("--in-process", action="store_true", help="also time an in-process Session")
     args = parser.parse_args(argv)
-    config = SessionConfig(engine="opencv", width=args.width, height=args.height, k=args.k, method=args.method)
+    config = SessionConfig(engine="opencv", width=args.width, height=args.height, method=args.method)
     try:
         with Client(args.address) as client:
             client.hello(config)

@@ -30,8 +30,8 @@ ALIGNMENT = 64
 
 #: struct il_header: magic, version, type, request_id, status, payload_size.
 HEADER = struct.Struct("<IHHIIQ")
-#: struct il_hello: engine, depth_convention, color_in, color_out, width, height, k, channels, flags,
-#: reserved; near, far, meters_per_unit, cut_translation, cut_rotation_deg; method[64].
+#: struct il_hello: engine, depth_convention, color_in, color_out, width, height, reserved0 (ignored; was k),
+#: channels, flags, reserved; near, far, meters_per_unit, cut_translation, cut_rotation_deg; method[64].
 HELLO = struct.Struct("<10I5d64s")
 #: struct il_layout: shm_name[64]; shm_size, color_in_offset, depth_offset, color_out_offset,
 #: holes_offset; width, height.

@@ -211,7 +211,7 @@ class _Connection:
         return handler(payload)
 
     def _hello(self, payload: bytes) -> bytes:
-        (engine, depth, color_in, color_out, width, height, k, channels, flags, _,
+        (engine, depth, color_in, color_out, width, height, _reserved, channels, flags, _,
          near, far, meters_per_unit, cut_translation, cut_rotation, method) = wire.HELLO.unpack(payload)
         for name, value, codes in (("engine", engine, wire.ENGINE_CODES),
                                    ("depth_convention", depth, wire.DEPTH_CODES),
@@ -227,7 +227,7 @@ class _Connection:
             raise _ProtocolError(Status.BAD_INPUT,
                                  f"HELLO field 'flags' has unknown bits 0x{flags & ~wire.KNOWN_FLAGS:x}")
         config = SessionConfig(
-            engine=wire.ENGINE_CODES[engine], width=width, height=height, k=k, depth_convention=wire.DEPTH_CODES[depth],
+            engine=wire.ENGINE_CODES[engine], width=width, height=height, depth_convention=wire.DEPTH_CODES[depth],
             near=near, far=far, meters_per_unit=meters_per_unit, ndc_y_down=bool(flags & wire.FLAG_NDC_Y_DOWN),
             flip_rows=bool(flags & wire.FLAG_FLIP_ROWS), color_in=wire.COLOR_CODES[color_in],
             color_out=wire.COLOR_CODES[color_out], method=wire.cstring(method) or "reproject",

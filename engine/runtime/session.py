@@ -126,8 +126,6 @@ class SessionConfig:
     engine: str = option("opencv", f"engine whose view/projection matrices are passed: {', '.join(ENGINES)}")
     width: int = option(640, "frame width in pixels (the viewport the projection maps to)")
     height: int = option(360, "frame height in pixels")
-    k: int = option(2, "one rendered frame every k displayed frames (informational: predictions follow the "
-                       "times and poses passed to predict)")
     depth_convention: str = option("linear", "depth buffer convention, one of engine.conventions.DEPTH_CONVENTIONS; "
                                              "'linear' = planar depth in engine units")
     near: float = option(0.1, "near plane, engine units (decodes non-linear depth buffers)")
@@ -148,7 +146,7 @@ class SessionConfig:
                               ("color_in", COLOR_SPACES), ("color_out", COLOR_SPACES)):
             if getattr(self, name) not in allowed:
                 raise InputError(f"must be one of {', '.join(allowed)}, got {getattr(self, name)!r}", field=name)
-        for name in ("width", "height", "k"):
+        for name in ("width", "height"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise InputError(f"must be a positive integer, got {value!r}", field=name)

@@ -59,7 +59,7 @@ from engine.conventions.cameras import look_at
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
-from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig, _box_distance, make_scene
+from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig, box_distance, make_scene
 
 __all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "generate_rig", "make_rig", "render_rig"]
 
@@ -228,7 +228,7 @@ def make_rig(config: RigConfig) -> Rig:
                          f"try another seed or a smaller baseline", field="baseline")
 
     kept_parts = [p for p in scene.static_parts
-                  if p.shape in ("plane", "room") or _box_distance(eyes, p).min() > CAMERA_CLEARANCE]
+                  if p.shape in ("plane", "room") or box_distance(eyes, p).min() > CAMERA_CLEARANCE]
     times = np.arange(scene.num_frames + 1) / scene.config.fps  # every frame and the one past the last
     objects = [o for o in scene.objects
                if np.linalg.norm(o.motion.position(times)[:, None] - eyes[None], axis=-1).min()

@@ -553,7 +553,7 @@ class _Builder:
         return len(self.materials) - 1
 
 
-def _box_distance(points: np.ndarray, part: Part) -> np.ndarray:
+def box_distance(points: np.ndarray, part: Part) -> np.ndarray:
     """Distance from world points (N, 3) to a static part's oriented bounding box."""
     inv = np.linalg.inv(part.transform)
     local = points @ inv[:3, :3].T + inv[:3, 3]
@@ -562,7 +562,7 @@ def _box_distance(points: np.ndarray, part: Part) -> np.ndarray:
 
 
 def _clear_of_camera(part: Part, eyes: np.ndarray, margin: float) -> bool:
-    return bool(_box_distance(eyes, part).min() > margin)
+    return bool(box_distance(eyes, part).min() > margin)
 
 
 def _sample_camera(rng: np.random.Generator, cfg: SceneConfig, b: _Builder) -> CameraPath:

@@ -26,8 +26,8 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import DEFAULT_SHARPNESS
 from engine.core.checks import check_shape
-from models.flow.network import _backward_warp, _plane_offset, encode_color
-from models.geometry import Mpi, _check_mpi, _visibility, forward_warp_mpi
+from models.flow.network import backward_warp_unchecked, plane_offset_unchecked, encode_color
+from models.geometry import Mpi, check_mpi, alpha_visibility, forward_warp_mpi
 
 __all__ = ["FlowLossConfig", "masked_mean", "ssim", "photometric_loss", "occlusion_mask", "smoothness_loss",
            "photometric_channels", "reconstruct", "flow_loss"]
@@ -134,7 +134,7 @@ def occlusion_mask(mpi_n: Mpi, flow: Tensor, threshold: float = 0.5,
         (B, 1, Z, H, W) float in {0, 1} (defined everywhere; multiply by alpha_n for the points of m_n).
     """
     sizes: dict = {}
-    mpi_n = _check_mpi(mpi_n, sizes)
+    mpi_n = check_mpi(mpi_n, sizes)
     check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
     return _occlusion_mask(mpi_n, flow.detach(), float(threshold), float(sharpness))
 
@@ -144,7 +144,7 @@ def _occlusion_mask(mpi_n: Mpi, flow: Tensor, threshold: float, sharpness: float
     eye_k = torch.eye(3, dtype=flow.dtype, device=flow.device).expand(b, 3, 3)
     eye_t = torch.eye(4, dtype=flow.dtype, device=flow.device).expand(b, 4, 4)
     moved, _ = forward_warp_mpi(mpi_n, eye_k, eye_t, eye_k, eye_t, flow, sharpness=sharpness)
-    seen = _backward_warp(_visibility(moved.alpha), flow, mpi_n.plane_depths)
+    seen = backward_warp_unchecked(alpha_visibility(moved.alpha), flow, mpi_n.plane_depths)
     return (seen > threshold).to(flow.dtype)
 
 
@@ -201,10 +201,10 @@ def reconstruct(mpi_prev_warped: Mpi, flow: Tensor, plane_depths: Tensor) -> Ten
     Differentiable w.r.t. the flow (bilinear in x/y, linear along the planes; see ``backward_warp``).
     """
     sizes: dict = {}
-    mpi_prev_warped = _check_mpi(mpi_prev_warped, sizes)
+    mpi_prev_warped = check_mpi(mpi_prev_warped, sizes)
     check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
     check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
-    return _backward_warp(photometric_channels(mpi_prev_warped), flow, plane_depths)
+    return backward_warp_unchecked(photometric_channels(mpi_prev_warped), flow, plane_depths)
 
 
 def flow_loss(mpi_n: Mpi, mpi_prev_warped: Mpi, flow: Tensor,
@@ -221,15 +221,15 @@ def flow_loss(mpi_n: Mpi, mpi_prev_warped: Mpi, flow: Tensor,
         m_n's points counted by the photometric term.
     """
     sizes: dict = {}
-    mpi_n = _check_mpi(mpi_n, sizes)
-    mpi_prev_warped = _check_mpi(mpi_prev_warped, sizes)
+    mpi_n = check_mpi(mpi_n, sizes)
+    mpi_prev_warped = check_mpi(mpi_prev_warped, sizes)
     check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
     planes = mpi_n.plane_depths
     valid = _occlusion_mask(mpi_n, flow.detach(), config.occlusion_threshold, config.sharpness)
     valid = valid * (mpi_n.alpha > 0).to(flow.dtype)
-    reconstruction = _backward_warp(photometric_channels(mpi_prev_warped), flow, planes)
+    reconstruction = backward_warp_unchecked(photometric_channels(mpi_prev_warped), flow, planes)
     photometric = _photometric_loss(photometric_channels(mpi_n), reconstruction, valid, config.beta)
-    field_ = torch.cat([flow[:, :2], _plane_offset(flow[:, 2:3], planes)], dim=1)
+    field_ = torch.cat([flow[:, :2], plane_offset_unchecked(flow[:, 2:3], planes)], dim=1)
     smooth = _smoothness_loss(field_, encode_color(mpi_n.color) * mpi_n.alpha, mpi_n.alpha, config.edge_weight)
     points = (mpi_n.alpha > 0).to(flow.dtype).sum(dim=(1, 2, 3, 4))
     visible = valid.sum(dim=(1, 2, 3, 4)) / points.clamp(min=1.0)

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.core.checks import check_shape
-from models.geometry import Mpi, _check_mpi, build_mpi, forward_warp_mpi, visibility
+from models.geometry import Mpi, check_mpi, build_mpi, forward_warp_mpi, visibility
 
 __all__ = ["Flow3DConfig", "PartialConv3d", "partial_conv3d", "masked_correlation", "plane_offset",
            "backward_warp", "flow_from_output", "extrapolate", "encode_color", "mpi_features", "mpi_pair",
@@ -151,7 +151,7 @@ def _downsample_mask(mask: Tensor, stride: tuple[int, int, int]) -> Tensor:
 # Partial convolution (no mask dilation)
 
 
-def _stack_planes(x: Tensor, kz: int) -> Tensor:
+def stack_planes(x: Tensor, kz: int) -> Tensor:
     """(B, C, Z, H, W) -> (B * Z, kz * C, H, W): each plane with its kz - 1 neighbours (zeros beyond the ends).
 
     Channel ``i * C + c`` of plane z holds channel c of plane ``z + i - kz // 2``. Works in plane-major
@@ -208,7 +208,7 @@ def _partial_conv3d(x: Tensor, mask: Tensor, weight: Tensor, bias: Optional[Tens
                      torch.zeros(c_out + 1, dtype=x.dtype, device=x.device), (1, *hw_stride),
                      (kz // 2, ky // 2, kx // 2))
     else:
-        y = F.conv2d(_stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
+        y = F.conv2d(stack_planes(torch.cat([x * mask, counts], dim=1), kz), _plane_weight(weight), None,
                      hw_stride, (ky // 2, kx // 2))
         y = y.reshape(b, z, c_out + 1, y.shape[-2], y.shape[-1]).transpose(1, 2)
     raw, window = y[:, :c_out], y[:, c_out:]
@@ -364,7 +364,7 @@ def _plane_gaps(plane_depths: Tensor) -> tuple[Tensor, Tensor]:
     return torch.cat([gap, zero], dim=1), torch.cat([zero, gap], dim=1)
 
 
-def _plane_offset(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
+def plane_offset_unchecked(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
     """Unvalidated body of ``plane_offset``."""
     far, near = _plane_gaps(plane_depths)
     far = far[:, None, :, None, None]
@@ -389,10 +389,10 @@ def plane_offset(flow_z: Tensor, plane_depths: Tensor) -> Tensor:
     sizes: dict = {}
     check_shape(flow_z, "flow_z", ("B", 1, "Z", "H", "W"), sizes)
     check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
-    return _plane_offset(flow_z, plane_depths)
+    return plane_offset_unchecked(flow_z, plane_depths)
 
 
-def _backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
+def backward_warp_unchecked(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
     """Unvalidated body of ``backward_warp``."""
     b, c, z, h, w = values.shape
     offsets = (-1, 0, 1) if z > 1 else (0,)
@@ -410,7 +410,7 @@ def _backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor
                                     align_corners=False), b, z)
     if len(offsets) == 1:
         return sampled
-    e = _plane_offset(flow[:, 2:3], plane_depths)
+    e = plane_offset_unchecked(flow[:, 2:3], plane_depths)
     out = sampled[:, :c] * torch.relu(-e)  # tent weights max(0, 1 - |e - o|) for o = -1, 0, 1
     out = out + sampled[:, c:2 * c] * (1.0 - e.abs())
     return out + sampled[:, 2 * c:] * torch.relu(e)
@@ -437,7 +437,7 @@ def backward_warp(values: Tensor, flow: Tensor, plane_depths: Tensor) -> Tensor:
     check_shape(values, "values", ("B", "C", "Z", "H", "W"), sizes)
     check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
     check_shape(plane_depths, "plane_depths", ("B", "Z"), sizes)
-    return _backward_warp(values, flow, plane_depths)
+    return backward_warp_unchecked(values, flow, plane_depths)
 
 
 def _check_planes(plane_depths: Tensor, sizes: dict) -> None:
@@ -568,7 +568,7 @@ def surface_flow(flow: Tensor, mpi: Mpi) -> Tensor:
     Compare its (du, dv) with a frame's ``object_flow`` (``train_flow.endpoint_error``).
     """
     sizes: dict = {}
-    mpi = _check_mpi(mpi, sizes)
+    mpi = check_mpi(mpi, sizes)
     check_shape(flow, "flow", ("B", 3, "Z", "H", "W"), sizes)
     weight = mpi.alpha * visibility(mpi)
     return (flow * weight).sum(dim=2).permute(0, 2, 3, 1)
@@ -660,8 +660,8 @@ class Flow3D(nn.Module):
         Z must equal ``config.num_planes``; ``initial_flow`` is required exactly when ``config.initial_flow``.
         """
         sizes: dict = {}
-        mpi_n = _check_mpi(mpi_n, sizes)
-        mpi_prev_warped = _check_mpi(mpi_prev_warped, sizes)
+        mpi_n = check_mpi(mpi_n, sizes)
+        mpi_prev_warped = check_mpi(mpi_prev_warped, sizes)
         if sizes["Z"] != self.config.num_planes:
             raise InputError(f"has Z = {sizes['Z']} planes, the network is built for {self.config.num_planes}",
                              field="mpi_n")
@@ -733,7 +733,7 @@ class Flow3D(nn.Module):
             if initial_flow is None and level == cfg.levels - 1:
                 f2w, m2w = f2, m2  # zero flow: nothing to warp
             else:
-                warped = _backward_warp(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes), planes)
+                warped = backward_warp_unchecked(torch.cat([f2, m2], dim=1), _flow_from_output(disp, logits, planes), planes)
                 f2w, m2w = warped[:, :-1], warped[:, -1:]
             cv, cv_mask = _masked_correlation(f1, m1, f2w, m2w, cfg.search_range, cfg.plane_range)
             reduced, _ = self.reduce[level - 1](f1, m1)

@@ -29,7 +29,6 @@ import gc
 import json
 import os
 import time
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -179,7 +178,7 @@ def choose_crops(residual: Tensor, crops: list, size: int, count: int) -> list[l
     return [list(crops[i]) for i in sorted(order.tolist())]
 
 
-def _frame_tensors(frame, factor: int) -> tuple[Tensor, ...]:
+def frame_tensors(frame, factor: int) -> tuple[Tensor, ...]:
     """(color, depth, K, T) batched tensors of a frame block-downsampled by ``factor`` (as the engine does)."""
     color, depth, k = downsample_frame(frame.color, frame.depth, frame.camera.intrinsics, factor)
     t = torch.from_numpy(frame.camera.world_to_camera)[None].float()
@@ -205,13 +204,13 @@ def _low_res_frame(config: TrainFlowConfig, sequences: dict, scene: int, n: int,
     if cache is not None and key in cache:
         return cache[key]
     frame = sequences[scene][n]
-    value = (_frame_tensors(frame, config.downsample), _object_flow(frame, config.downsample))
+    value = (frame_tensors(frame, config.downsample), _object_flow(frame, config.downsample))
     if cache is not None:
         cache[key] = value
     return value
 
 
-def _initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
+def dis_initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
     """``engine.predict.decomp.predictor.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
     from engine.predict.decomp.predictor import initial_flow
 
@@ -240,7 +239,7 @@ def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
         tensors_p, _ = _low_res_frame(config, sequences, item["scene"], item["n"] - item["k"], cache)
         with torch.no_grad():
             m_n, m_p = mpi_pair(*tensors_n, *tensors_p, config.model.num_planes)
-        init = _initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
+        init = dis_initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
         c = config.crop
         if "crops" in item:
             item["picked"] = choose_crops(_residual(m_n, m_p), item["crops"], c, config.crops_per_pair)
@@ -348,7 +347,7 @@ def _distributed() -> tuple[int, int, bool]:
     return 0, 1, False
 
 
-def _load_network(path: str | Path, network_class, config_class):
+def load_network(path: str | Path, network_class, config_class):
     """The network a checkpoint holds (``network_class(config_class(**model_config))``, eval mode); shared
     with the infilling trainer."""
     state = torch.load(Path(path), map_location="cpu", weights_only=False)
@@ -359,10 +358,10 @@ def _load_network(path: str | Path, network_class, config_class):
 
 def load_model(path: str | Path) -> Flow3D:
     """The ``Flow3D`` saved in a checkpoint (eval mode)."""
-    return _load_network(path, Flow3D, Flow3DConfig)
+    return load_network(path, Flow3D, Flow3DConfig)
 
 
-def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, config) -> None:
+def save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, config) -> None:
     """Atomic ``checkpoint.pt``: model and optimiser state, step, ``config.model`` and ``config`` as dicts
     (any training config with a nested ``model`` dataclass; the infilling trainer uses it too)."""
     tmp = path.with_name(path.name + ".tmp")
@@ -371,8 +370,8 @@ def _save_checkpoint(path: Path, model: torch.nn.Module, optimizer, step: int, c
     tmp.replace(path)
 
 
-def _restore_checkpoint(path: Path, model: torch.nn.Module, optimizer, model_config) -> int:
-    """Load a ``_save_checkpoint`` file into ``model`` and ``optimizer`` and return its step; InputError when
+def restore_checkpoint(path: Path, model: torch.nn.Module, optimizer, model_config) -> int:
+    """Load a ``save_checkpoint`` file into ``model`` and ``optimizer`` and return its step; InputError when
     it was trained with another network config than ``model_config`` (a dataclass)."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     if state["model_config"] != dataclasses.asdict(model_config):
@@ -421,7 +420,7 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=tuple(config.betas))
     start = 0
     if resume and ckpt_path.exists():
-        start = _restore_checkpoint(ckpt_path, model, optimizer, config.model)
+        start = restore_checkpoint(ckpt_path, model, optimizer, config.model)
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model)
@@ -463,7 +462,7 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
                     metrics.write(json.dumps(record) + "\n")
                     metrics.flush()
                 if done % config.checkpoint_every == 0 or done == config.steps:
-                    _save_checkpoint(ckpt_path, model, optimizer, done, config)
+                    save_checkpoint(ckpt_path, model, optimizer, done, config)
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix(loss=f"{float(loss.detach().mean()):.4f}")
@@ -475,7 +474,7 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
         if metrics is not None:
             metrics.close()
     if rank == 0 and start >= config.steps and not ckpt_path.exists():
-        _save_checkpoint(ckpt_path, model, optimizer, start, config)
+        save_checkpoint(ckpt_path, model, optimizer, start, config)
     if world > 1:
         # Drop the DDP reducer (it holds the process group and gloo work objects) before the group is
         # destroyed, and let every rank get here first: a rank whose peer has already hung up while gloo

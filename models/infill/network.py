@@ -34,8 +34,8 @@ from torch import Tensor, nn
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from models.flow.network import _stack_planes, encode_color, mpi_features
-from models.geometry import Mpi, _composite
+from models.flow.network import stack_planes, encode_color, mpi_features
+from models.geometry import Mpi, composite_unchecked
 
 __all__ = ["InfillConfig", "InfillNet", "infill_inputs", "apply_vectors", "infill", "infill_loss", "choice_loss",
            "PRIOR_SCALE", "RESIDUAL_SCALE", "NUM_CANDIDATES"]
@@ -81,7 +81,7 @@ class InfillConfig:
 
 class PlaneConv3d(nn.Conv3d):
     """``nn.Conv3d`` with a 3 x 3 x 3 kernel, padding 1 and stride (1, s, s), run as one Conv2d over the
-    planes with each plane's two neighbours stacked as channels (``models.flow.network._stack_planes``): the same
+    planes with each plane's two neighbours stacked as channels (``models.flow.network.stack_planes``): the same
     linear map (tested against ``F.conv3d``), several times faster on torch's CPU build."""
 
     def __init__(self, c_in: int, c_out: int, stride: int = 1) -> None:
@@ -91,7 +91,7 @@ class PlaneConv3d(nn.Conv3d):
         b, _, z = x.shape[:3]
         c_out, c_in = self.weight.shape[:2]
         weight = self.weight.transpose(1, 2).reshape(c_out, 3 * c_in, 3, 3)
-        y = F.conv2d(_stack_planes(x, 3), weight, self.bias, self.stride[1:], 1)
+        y = F.conv2d(stack_planes(x, 3), weight, self.bias, self.stride[1:], 1)
         return y.reshape(b, z, c_out, y.shape[-2], y.shape[-1]).transpose(1, 2)
 
 
@@ -237,7 +237,7 @@ def choice_loss(logits: Tensor, errors: Tensor, holes: Tensor, kind: str = "expe
 def infill_loss(mpi: Mpi, holes: Tensor, truth: Tensor) -> Tensor:
     """Mean squared error of the composited infilled MPI against the true frame (encoded colour, thesis:
     MSE), over the pixels that were holes; per batch item (B,). Holes left open composite to black."""
-    color, _, _ = _composite(mpi)
+    color, _, _ = composite_unchecked(mpi)
     err = ((encode_color(color) - encode_color(truth)) ** 2).mean(dim=-1)
     mask = holes.to(err.dtype)
     return (err * mask).sum(dim=(1, 2)) / mask.sum(dim=(1, 2)).clamp(min=1.0)

@@ -228,14 +228,14 @@ def evaluate_samples(net: Optional[InfillNet], samples: list[dict], mode: str = 
 
 def load_model(path: str | Path) -> InfillNet:
     """The ``InfillNet`` saved in a checkpoint (eval mode)."""
-    from models.flow.train import _load_network
+    from models.flow.train import load_network
 
-    return _load_network(path, InfillNet, InfillConfig)
+    return load_network(path, InfillNet, InfillConfig)
 
 
 def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False) -> Path:
     """Train ``InfillNet`` and return the path of ``checkpoint.pt`` (see the module docstring)."""
-    from models.flow.train import _restore_checkpoint, _save_checkpoint
+    from models.flow.train import restore_checkpoint, save_checkpoint
 
     if not isinstance(config, TrainInfillConfig):
         raise InputError(f"must be a TrainInfillConfig, got {type(config).__name__}", field="config")
@@ -253,7 +253,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     optimizer = torch.optim.Adam(net.parameters(), lr=config.lr)
     start = 0
     if resume and ckpt.exists():
-        start = _restore_checkpoint(ckpt, net, optimizer, config.model)
+        start = restore_checkpoint(ckpt, net, optimizer, config.model)
     metrics = (out / METRICS).open("a")
     bar = None
     if progress:
@@ -263,7 +263,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     best_val = float("inf")
     if val_samples and not (out / BEST).exists():  # step 0 (the prior alone) is the first candidate
         best_val = val_prior
-        _save_checkpoint(out / BEST, net, optimizer, start, config)
+        save_checkpoint(out / BEST, net, optimizer, start, config)
     elif (out / BEST).exists():
         best_val = min((json.loads(line).get("val_loss", float("inf"))
                         for line in (out / METRICS).read_text().splitlines() if line.strip()), default=float("inf"))
@@ -300,11 +300,11 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
                     record.update(val_loss=evaluate_samples(net, val_samples), val_loss_prior_only=val_prior)
                     if record["val_loss"] < best_val:  # the export takes best.pt: the lowest held-out loss
                         best_val = record["val_loss"]
-                        _save_checkpoint(out / BEST, net, optimizer, done, config)
+                        save_checkpoint(out / BEST, net, optimizer, done, config)
                 metrics.write(json.dumps(record) + "\n")
                 metrics.flush()
             if done % config.checkpoint_every == 0 or done == config.steps:
-                _save_checkpoint(ckpt, net, optimizer, done, config)
+                save_checkpoint(ckpt, net, optimizer, done, config)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float(loss.detach()):.5f}")
@@ -313,7 +313,7 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
         if bar is not None:
             bar.close()
     if start >= config.steps and not ckpt.exists():
-        _save_checkpoint(ckpt, net, optimizer, start, config)
+        save_checkpoint(ckpt, net, optimizer, start, config)
     return ckpt
 
 

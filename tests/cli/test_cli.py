@@ -1,6 +1,5 @@
 """The `interleave` command line: help for every option, clear errors with exit status 2, end to end runs."""
 import json
-from pathlib import Path
 
 import pytest
 
@@ -9,7 +8,7 @@ from engine.io.rgbd import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
 
-@pytest.mark.parametrize("command", ["demo", "eval", "sweep", "render-scene", "import"])
+@pytest.mark.parametrize("command", ["demo", "eval", "render-scene", "import"])
 def test_every_option_has_help(command, capsys):
     with pytest.raises(SystemExit) as exc:
         main([command, "--help"])
@@ -99,27 +98,6 @@ def test_eval_k5_prints_a_per_step_table(tmp_path, capsys):
     doc = json.loads(out_json.read_text())
     assert all(set(r["per_step"]) == {"1", "2", "3", "4"} for r in doc["records"])
     assert all(r["per_step"]["4"]["flip"] > 0 for r in doc["records"])
-
-
-def test_sweep_runs_on_a_tiny_sequence(tmp_path, capsys):
-    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.05, object_speed=0.08)
-    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
-    out = tmp_path / "sweep"
-    assert main(["sweep", str(path), "--fill", "simple", "--flow-width", "80,40", "--max-groups", "2",
-                 "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "| 80x60 | reproject |" in printed and "Stage breakdown at 80x60" in printed
-    doc = json.loads((out / "sweep.json").read_text())
-    assert [p["label"] for p in doc["points"]] == ["reproject", "flow2d", "decomp w80 Z4 simple",
-                                                   "decomp w40 Z4 simple"]
-    assert any(p["pareto_psnr"] for p in doc["points"]) and any(p["pareto_flip"] for p in doc["points"])
-    fastest = min(doc["points"], key=lambda p: p["ms_per_frame"])
-    assert fastest["pareto_psnr"] and fastest["pareto_flip"]  # nothing is faster than the fastest
-    assert len(doc["records"]) == len(doc["resolutions"]) == 4
-    assert (out / "sweep.md").stat().st_size > 0 and (out / "sweep.png").stat().st_size > 10_000
-    assert main(["sweep", str(path), "--fill", "simple", "--decomp-options", "flow_width=10",
-                 "--out", str(out)]) == 2
-    assert "swept by the sweep itself" in capsys.readouterr().err
 
 
 def test_import_through_the_command_line(tmp_path, capsys):

@@ -21,7 +21,7 @@ from engine.predict.decomp.predictor import DEFAULT_MODEL, METADATA_KEY, FlowNet
 from engine.geometry import Mpi as NpMpi
 from export.flow import with_planes
 from models.flow.network import mpi_pair
-from models.flow.train import _frame_tensors, _initial_flow, load_model
+from models.flow.train import frame_tensors, dis_initial_flow, load_model
 from tests.synthetic import two_layer_sequence
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -40,9 +40,9 @@ def test_committed_network_matches_its_checkpoint(pair):
     model = with_planes(load_model(CHECKPOINT), net.num_planes)  # the export's plane count (2; trained at 4)
     assert net.config == json.loads(json.dumps(model.config.__dict__))
     older, newest = pair
-    tensors_n = _frame_tensors(newest, 2)
-    m_n, m_w = mpi_pair(*tensors_n, *_frame_tensors(older, 2), net.num_planes)
-    init = _initial_flow(tensors_n[0], m_w)  # the DIS flow the network refines, as in training
+    tensors_n = frame_tensors(newest, 2)
+    m_n, m_w = mpi_pair(*tensors_n, *frame_tensors(older, 2), net.num_planes)
+    init = dis_initial_flow(tensors_n[0], m_w)  # the DIS flow the network refines, as in training
     with torch.no_grad():
         want = model(m_n, m_w, init)[0].numpy()
     assert not net.depth_flow  # exported with --no-depth-flow: dz comes out 0, (du, dv) as torch computes them

@@ -142,7 +142,7 @@ C_STRUCTS = {
     "il_header": (wire.HEADER, [("magic", 1), ("version", 1), ("type", 1), ("request_id", 1), ("status", 1),
                                 ("payload_size", 1)]),
     "il_hello": (wire.HELLO, [(n, 1) for n in ("engine", "depth_convention", "color_in", "color_out", "width",
-                                              "height", "k", "channels", "flags", "reserved", "near_plane",
+                                              "height", "reserved0", "channels", "flags", "reserved", "near_plane",
                                               "far_plane", "meters_per_unit", "cut_translation",
                                               "cut_rotation_deg")] + [("method", 1)]),
     "il_layout": (wire.LAYOUT, [("shm_name", 1), ("shm_size", 1), ("color_in_offset", 1), ("depth_offset", 1),
@@ -446,8 +446,8 @@ def test_hello_rejects_bad_fields(server):
     cases = [(dict(channels=5), "channels"), (dict(flags=64), "flags"), (dict(width=0), "size"),
              (dict(method=b"warp9"), "unknown method"), (dict(far=0.01), "far")]
     for change, match in cases:
-        fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, k=2, channels=3, flags=0,
-                      reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
+        fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, reserved0=0, channels=3,
+                      flags=0, reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
         fields.update(change)
         with Client(address) as client, pytest.raises(ServerError, match=match) as info:
             client.request(MessageType.HELLO, wire.HELLO.pack(*fields.values()))

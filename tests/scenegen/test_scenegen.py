@@ -270,9 +270,7 @@ def test_scene_objects_list_matches_transforms():
 
 
 def test_generate_sequence_writes_rgbd_seq(tmp_path):
-    io = pytest.importorskip("engine.io.rgbd")
-    if not hasattr(io, "write_sequence"):
-        pytest.skip("engine.io.rgbd.write_sequence not available yet")
+    from engine.io.rgbd import read_sequence
     from engine.scenegen import generate_sequence
 
     config = _config(81, num_frames=2, num_objects=(1, 2))
@@ -281,6 +279,8 @@ def test_generate_sequence_writes_rgbd_seq(tmp_path):
     assert meta["width"] == W and len(meta["frames"]) == 2
     assert len(meta["objects"]) == len(make_scene(config).objects)
     assert json.loads((out / "scenegen_config.json").read_text())["seed"] == 81
+    seq = read_sequence(out)
+    assert len(seq) == 2 and seq[1].color.shape == (H, W, 3) and np.isfinite(seq[1].depth).any()
 
 
 def test_monte_carlo_noise_is_unbiased_non_negative_and_mostly_luminance():

@@ -17,7 +17,7 @@ from engine.geometry import reproject
 from engine.io.rgbd import read_rig
 from engine.scenegen import RigConfig, SceneConfig, generate_rig, make_rig, render_rig
 from engine.scenegen.rig import MIN_CAMERA_HEIGHT
-from engine.scenegen.scene import CAMERA_CLEARANCE, _box_distance
+from engine.scenegen.scene import CAMERA_CLEARANCE, box_distance
 
 W, H = 96, 64
 CHANNELS = ("color", "depth", "object_id", "moving", "flow", "object_flow")
@@ -168,7 +168,7 @@ def test_every_camera_is_clear_of_the_scene(arrangement, baseline):
         assert eyes[:, 2].min() >= MIN_CAMERA_HEIGHT
         for part in rig.scene.static_parts:
             if part.shape not in ("plane", "room"):
-                assert _box_distance(eyes, part).min() > CAMERA_CLEARANCE, (seed, part.name)
+                assert box_distance(eyes, part).min() > CAMERA_CLEARANCE, (seed, part.name)
         times = np.arange(21) / 30.0
         for obj in rig.scene.objects:
             gap = np.linalg.norm(obj.motion.position(times)[:, None] - eyes[None], axis=-1).min()

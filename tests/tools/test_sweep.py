@@ -1,4 +1,5 @@
 """The decomp speed/error sweep (tools/sweep.py): Pareto front, variant grid, plane-count networks."""
+import json
 import math
 import shutil
 
@@ -7,7 +8,10 @@ import pytest
 from engine.predict.decomp.predictor import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.eval.protocol import MethodResult
+from engine.io.rgbd import write_sequence
+from tests.synthetic import two_layer_sequence
 from tools.sweep import Variant, decomp_variants, pareto_front, plane_models, sweep_points, sweep_table
+from tools.sweep import main as sweep_main
 
 
 def test_pareto_front_keeps_the_fastest_for_each_error():
@@ -70,3 +74,24 @@ def test_plane_models_use_the_committed_network_for_its_own_planes(tmp_path):
     shutil.copy(DEFAULT_MODEL, tmp_path / "flow3d_z4_xy.onnx")  # a 2-plane network under a 4-plane name (no dz)
     with pytest.raises(InputError, match="holds a network for 2 planes, expected 4"):
         plane_models([4], tmp_path)
+
+
+def test_sweep_runs_on_a_tiny_sequence(tmp_path, capsys):
+    frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.05, object_speed=0.08)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out = tmp_path / "sweep"
+    assert sweep_main([str(path), "--fill", "simple", "--flow-width", "80,40", "--max-groups", "2",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| 80x60 | reproject |" in printed and "Stage breakdown at 80x60" in printed
+    doc = json.loads((out / "sweep.json").read_text())
+    assert [p["label"] for p in doc["points"]] == ["reproject", "flow2d", "decomp w80 Z4 simple",
+                                                   "decomp w40 Z4 simple"]
+    assert any(p["pareto_psnr"] for p in doc["points"]) and any(p["pareto_flip"] for p in doc["points"])
+    fastest = min(doc["points"], key=lambda p: p["ms_per_frame"])
+    assert fastest["pareto_psnr"] and fastest["pareto_flip"]  # nothing is faster than the fastest
+    assert len(doc["records"]) == len(doc["resolutions"]) == 4
+    assert (out / "sweep.md").stat().st_size > 0 and (out / "sweep.png").stat().st_size > 10_000
+    assert sweep_main([str(path), "--fill", "simple", "--decomp-options", "flow_width=10",
+                 "--out", str(out)]) == 2
+    assert "swept by the sweep itself" in capsys.readouterr().err

@@ -95,7 +95,6 @@ int main(int argc, char **argv) {
     hello.color_in = hello.color_out = IL_COLOR_LINEAR;
     hello.width = WIDTH;
     hello.height = HEIGHT;
-    hello.k = 2;
     hello.channels = CHANNELS;
     hello.near_plane = 0.1;
     hello.far_plane = INFINITY;

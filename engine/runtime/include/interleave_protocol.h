@@ -125,7 +125,7 @@ typedef struct il_hello {
     uint32_t color_out;        /* IL_COLOR_* of predicted colour */
     uint32_t width;            /* pixels, 1..IL_MAX_SIDE */
     uint32_t height;
-    uint32_t k;                /* one rendered frame every k (informational) */
+    uint32_t reserved0;        /* ignored (0); the server follows the times and poses of each PREDICT */
     uint32_t channels;         /* 3 (RGB) or 4 (RGBA; alpha ignored in, 1 out) */
     uint32_t flags;            /* IL_FLAG_* */
     uint32_t reserved;         /* 0 */

@@ -19,7 +19,8 @@ import numpy as np
 from engine.core.frames import Frame
 from engine.core.colorspace import display_encode
 from engine.eval.metrics import flip_map
-from engine.predict.predictors import Predictor, Reproject, Target
+from engine.predict.predictors import Predictor, Target
+from engine.runtime.stream import PredictionLoop
 
 
 @dataclass
@@ -38,17 +39,13 @@ def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> It
     Only each predicted tick's camera and time are read from the frames in between (what a game knows
     before rendering). Until two frames are rendered, a two-frame method falls back to `reproject`.
     """
-    fallback = Reproject()
-    rendered: list[Frame] = []
-    state = None
+    loop = PredictionLoop(predictor)
     for frame in frames:
         if frame.index % k == 0:
-            rendered = (rendered + [frame])[-2:]
-            method = predictor if len(rendered) >= predictor.history_needed else fallback
-            state = method.prepare(rendered)
+            loop.submit(frame)
             yield OutputFrame(frame.index, frame.color, False, frame)
-        elif state is not None:
-            pred = method.render(state, Target(frame.camera, frame.time, frame.index))
+        elif loop.prepared is not None:
+            pred = loop.predict(Target(frame.camera, frame.time, frame.index))
             yield OutputFrame(frame.index, pred.color, True, frame)
 
 

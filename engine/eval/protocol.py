@@ -27,6 +27,7 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import crop_slices, psnr, score_frame
 from engine.predict.predictors import Target, make_predictor
+from engine.runtime.stream import PredictionLoop
 
 #: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).
 TRUE_HOLES = "+true_holes"
@@ -125,6 +126,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             raise InputError(f"method '{name}': {exc.problem}", file=sequence.path, field=exc.field) from exc
     if "oracle" in predictors and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
+    loops = {name: PredictionLoop(predictor) for name, predictor in predictors.items()}
     scores: dict[str, list] = {m: [] for m in methods}
     times: dict[str, list[float]] = {p: [] for p in predictors}
     stages: dict[str, list[dict[str, float]]] = {p: [] for p in predictors}
@@ -134,16 +136,16 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     for older_i, newest_i, target_is in groups:
         history = [sequence[older_i], sequence[newest_i]]
         truths = [sequence[i] for i in target_is]
-        for name, predictor in predictors.items():
+        for name, loop in loops.items():
             start = time.perf_counter()
-            state = predictor.prepare(history)
+            state = loop.load(history).state
             prep_ms = 1e3 * (time.perf_counter() - start)
-            if hasattr(predictor, "object_flow"):
-                epes[name].append(flow_epe(predictor.object_flow(state), history[0], history[1], truths[0]))
+            if hasattr(loop.predictor, "object_flow"):
+                epes[name].append(flow_epe(loop.predictor.object_flow(state), history[0], history[1], truths[0]))
             for step, truth in enumerate(truths, start=1):
                 target = Target(truth.camera, truth.time, truth.index)
                 start = time.perf_counter()
-                pred = predictor.render(state, target)
+                pred = loop.predict(target)
                 render_ms = 1e3 * (time.perf_counter() - start)
                 per_frame = {s: v for s, v in pred.stages_ms.items()}
                 for s, v in state.stages_ms.items():

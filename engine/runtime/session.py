@@ -94,7 +94,8 @@ from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics, \
     validate_pose
-from engine.predict.predictors import Predictor, Repeat, Reproject, Target, make_predictor
+from engine.predict.predictors import Repeat, Target, make_predictor
+from engine.runtime.stream import PredictionLoop
 
 __all__ = ["ENGINES", "COLOR_SPACES", "SessionConfig", "Session", "SubmitResult", "SessionPrediction",
            "NotReadyError", "engine_camera"]
@@ -212,17 +213,6 @@ class SessionPrediction:
     fallback: Optional[str]
     frame: int
     stages_ms: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass
-class _History:
-    """Rendered frames (oldest first), the predictor chosen for them and what it prepared."""
-
-    frames: list[Frame]
-    predictor: Predictor
-    fallback: Optional[str]
-    state: object
-    scene_depth: float
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,12 +345,11 @@ class Session:
 
     def __init__(self, config: Optional[SessionConfig] = None) -> None:
         self.config = config or SessionConfig()
-        self._predictor = make_predictor(self.config.method)
-        self._fallback = Reproject()
+        self._loop = PredictionLoop(make_predictor(self.config.method))
         self._repeat = Repeat()
+        self._scene_depth = math.inf  # of the newest rendered frame
         self._lock = threading.Lock()
         self._size = (self.config.height, self.config.width)
-        self._history: Optional[_History] = None
         self._frames_submitted = 0
         self._predictions = 0
         self._resets = {reason: 0 for reason in RESET_REASONS + ("reset",)}
@@ -378,7 +367,7 @@ class Session:
         """Counts so far: frames submitted, predictions made, history resets by reason."""
         with self._lock:
             return {"submitted": self._frames_submitted, "predicted": self._predictions, "resets": dict(self._resets),
-                    "history": 0 if self._history is None else len(self._history.frames)}
+                    "history": 0 if self._loop.prepared is None else len(self._loop.prepared.frames)}
 
     def camera(self, view: object, projection: object) -> Camera:
         """The OpenCV camera the session makes of an engine pose (for checks and debugging)."""
@@ -430,23 +419,19 @@ class Session:
                                  frame=label, field="size")
             number = self._frames_submitted  # numbered under the lock: concurrent submits never share one
             new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera)
-            old = self._history
+            old = self._loop.prepared
             reset = None
             frames = [new]
             if old is not None:
                 newest = old.frames[-1]
                 if not new.time > newest.time:
                     reset = "time_backwards"
-                elif _cut(newest.camera, new.camera, min(scene_depth, old.scene_depth), self.config):
+                elif _cut(newest.camera, new.camera, min(scene_depth, self._scene_depth), self.config):
                     reset = "camera_cut"
                 else:
-                    frames = (old.frames + [new])[-max(self._predictor.history_needed, 1):]
-            if len(frames) >= self._predictor.history_needed:
-                predictor, fallback = self._predictor, None
-            else:
-                predictor, fallback = self._fallback, "history"
-            state = predictor.prepare(frames)
-            self._history = _History(frames, predictor, fallback, state, scene_depth)
+                    frames = (old.frames + [new])[-max(self._loop.predictor.history_needed, 1):]
+            self._loop.load(frames)  # on a bad frame this raises and the previous history stays
+            self._scene_depth = scene_depth
             self._frames_submitted += 1
             if reset is not None:
                 self._resets[reset] += 1
@@ -481,7 +466,7 @@ class Session:
         except InputError as exc:
             raise _located(exc, label, time, "predicted frame") from None
         with self._lock:
-            history = self._history
+            history = self._loop.prepared
             if history is None:
                 raise NotReadyError("predict before any frame was submitted since the start or the last reset")
             if self._size != size:
@@ -489,7 +474,7 @@ class Session:
                                  frame=label, field="size")
             newest = history.frames[-1]
             target = Target(camera, float(time), label)
-            if _cut(newest.camera, camera, history.scene_depth, self.config):
+            if _cut(newest.camera, camera, self._scene_depth, self.config):
                 predictor, fallback = self._repeat, "camera_cut"
             else:
                 predictor, fallback = history.predictor, history.fallback
@@ -513,6 +498,6 @@ class Session:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise InputError(f"must be a positive integer, got {value!r}", field=name)
         with self._lock:
-            self._history = None
+            self._loop.restart()
             self._size = (int(h), int(w))
             self._resets["reset"] += 1

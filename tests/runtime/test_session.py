@@ -411,15 +411,15 @@ def test_zero_copy_where_layouts_match():
     color, depth = frame_arrays()
     session = make_session()
     session.submit(color, depth, pose(), K, 0.0)
-    newest = session._history.frames[-1]
+    newest = session._loop.prepared.frames[-1]
     assert np.shares_memory(newest.color, color) and np.shares_memory(newest.depth, depth)
     session.submit(color, depth, pose(), K, 0.1, copy=True)
-    newest = session._history.frames[-1]
+    newest = session._loop.prepared.frames[-1]
     assert not np.shares_memory(newest.color, color) and not np.shares_memory(newest.depth, depth)
     rgba = np.concatenate([color, np.ones((H, W, 1), np.float32)], axis=-1)
     flipped = make_session(flip_rows=True)
     flipped.submit(rgba, depth, pose(), K, 0.0)  # a 4-channel, bottom-up buffer is still only viewed
-    assert np.shares_memory(flipped._history.frames[-1].color, rgba)
+    assert np.shares_memory(flipped._loop.prepared.frames[-1].color, rgba)
     out = session.predict(pose(), K, 0.2)
     assert not np.shares_memory(out.color, color)
 

@@ -31,7 +31,7 @@ from typing import NamedTuple, Optional
 import torch
 from torch import Tensor
 
-from engine.core.checks import check_shape
+from engine.core.checks import check_shape, checked_out_size, checked_sharpness
 from engine.core.errors import InputError
 from engine.geometry import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MAX_PIXEL_COORD, MIN_LOG_WEIGHT,
                              SUBPIXEL_SNAP, TINY_DEPTH)
@@ -83,25 +83,6 @@ def _num_planes(num_planes) -> int:
     if isinstance(num_planes, bool) or not isinstance(num_planes, int) or num_planes < 1:
         raise InputError(f"must be an integer >= 1, got {num_planes!r}", field="num_planes")
     return num_planes
-
-
-def _sharpness(sharpness) -> float:
-    s = float(sharpness)
-    if not s >= 0 or s == float("inf"):
-        raise InputError(f"must be finite and >= 0, got {sharpness!r}", field="sharpness")
-    return s
-
-
-def _out_size(out_size, default):
-    if out_size is None:
-        return default
-    try:
-        h, w = (int(n) for n in out_size)
-    except (TypeError, ValueError):
-        raise InputError(f"must be (height, width), got {out_size!r}", field="out_size") from None
-    if h < 1 or w < 1:
-        raise InputError(f"must be positive, got {out_size!r}", field="out_size")
-    return h, w
 
 
 def _flow3(flow: Tensor, sizes: dict, name: str = "flow") -> Tensor:
@@ -509,8 +490,8 @@ def forward_warp_mpi(mpi: Mpi, K_src: Tensor, T_src: Tensor, K_dst: Tensor, T_ds
     _check_cameras(sizes, K_src=K_src, T_src=T_src, K_dst=K_dst, T_dst=T_dst)
     if object_flow is not None:
         check_shape(object_flow, "object_flow", ("B", 3, "Z", "H", "W"), sizes)
-    out = _out_size(out_size, (sizes["H"], sizes["W"]))
-    return _forward_warp_mpi(mpi, K_src, T_src, K_dst, T_dst, object_flow, out, _sharpness(sharpness))
+    out = checked_out_size(out_size, (sizes["H"], sizes["W"]))
+    return _forward_warp_mpi(mpi, K_src, T_src, K_dst, T_dst, object_flow, out, checked_sharpness(sharpness))
 
 
 def forward_warp_frame(color: Tensor, depth: Tensor, K_src: Tensor, T_src: Tensor, K_dst: Tensor, T_dst: Tensor,
@@ -534,6 +515,6 @@ def forward_warp_frame(color: Tensor, depth: Tensor, K_src: Tensor, T_src: Tenso
     object_flow = None if flow is None else _flow3(flow, sizes).permute(0, 3, 1, 2)[:, :, None]
     mpi = _build_mpi(color, depth, 1)
     warped, _ = _forward_warp_mpi(mpi, K_src, T_src, K_dst, T_dst, object_flow, (sizes["H"], sizes["W"]),
-                                  _sharpness(sharpness))
+                                  checked_sharpness(sharpness))
     out_color, out_depth, _ = composite_unchecked(warped)
     return out_color, out_depth, warped.alpha[:, 0, 0] <= 0

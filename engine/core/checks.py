@@ -54,3 +54,24 @@ def checked_array(value, name, dims, sizes, dtype=np.float32, floating=True):
 
 def checked_matrix(value, name, n):
     return checked_array(value, name, (n, n), None, np.float64, floating=False)
+
+
+def checked_sharpness(sharpness) -> float:
+    """The splat's soft z-buffer sharpness as a float; InputError unless finite and >= 0."""
+    s = float(sharpness)
+    if not np.isfinite(s) or s < 0:
+        raise InputError(f"must be finite and >= 0, got {sharpness!r}", field="sharpness")
+    return s
+
+
+def checked_out_size(out_size, default):
+    """``(height, width)`` of an output image, ``default`` when None; InputError unless two positive ints."""
+    if out_size is None:
+        return default
+    try:
+        h, w = (int(n) for n in out_size)
+    except (TypeError, ValueError):
+        raise InputError(f"must be (height, width), got {out_size!r}", field="out_size") from None
+    if h < 1 or w < 1:
+        raise InputError(f"must be positive, got {out_size!r}", field="out_size")
+    return h, w

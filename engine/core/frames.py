@@ -102,6 +102,19 @@ def rigid_inverse(transform: np.ndarray) -> np.ndarray:
     return out
 
 
+def _finite_matrix(value: object, n: int, where: dict) -> np.ndarray:
+    """``value`` as an (n, n) float64 matrix of finite numbers; InputError naming ``where`` otherwise."""
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"is not a numeric matrix ({exc})", **where) from None
+    if m.shape != (n, n):
+        raise InputError(f"must have shape ({n}, {n}), got {m.shape}", **where)
+    if not np.all(np.isfinite(m)):
+        raise InputError("has non-finite entries", **where)
+    return m
+
+
 def validate_intrinsics(intrinsics: object, *, file=None, frame=None, field_name="intrinsics") -> np.ndarray:
     """Check a 3x3 pinhole intrinsics matrix and return it as float64.
 
@@ -109,14 +122,7 @@ def validate_intrinsics(intrinsics: object, *, file=None, frame=None, field_name
     row other than [0, 0, 1] (a singular or non-pinhole matrix).
     """
     where = dict(file=file, frame=frame, field=field_name)
-    try:
-        k = np.asarray(intrinsics, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"is not a numeric matrix ({exc})", **where) from None
-    if k.shape != (3, 3):
-        raise InputError(f"must have shape (3, 3), got {k.shape}", **where)
-    if not np.all(np.isfinite(k)):
-        raise InputError("has non-finite entries", **where)
+    k = _finite_matrix(intrinsics, 3, where)
     if not np.allclose(k[2], [0.0, 0.0, 1.0]):
         raise InputError(f"last row must be [0, 0, 1], got {k[2].tolist()}", **where)
     if k[0, 0] <= 0 or k[1, 1] <= 0:
@@ -133,14 +139,7 @@ def validate_pose(world_to_camera: object, *, file=None, frame=None, field_name=
     rotation block that is not orthonormal with determinant +1 (scale, shear, reflection).
     """
     where = dict(file=file, frame=frame, field=field_name)
-    try:
-        t = np.asarray(world_to_camera, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"is not a numeric matrix ({exc})", **where) from None
-    if t.shape != (4, 4):
-        raise InputError(f"must have shape (4, 4), got {t.shape}", **where)
-    if not np.all(np.isfinite(t)):
-        raise InputError("has non-finite entries", **where)
+    t = _finite_matrix(world_to_camera, 4, where)
     if not np.allclose(t[3], [0.0, 0.0, 0.0, 1.0]):
         raise InputError(f"last row must be [0, 0, 0, 1], got {t[3].tolist()}", **where)
     rotation = t[:3, :3]

@@ -39,8 +39,8 @@ import numpy as np
 from engine.core.checks import checked_array, checked_matrix
 from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, reprojection_matrix
 from engine.geometry.mpi import Mpi, checked_mpi
-from engine.geometry.splat import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP,
-                                   checked_out_size, checked_sharpness)
+from engine.core.checks import checked_out_size, checked_sharpness
+from engine.geometry.splat import COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP
 
 _LOCAL = 256
 #: 32-bit words of fixed-point accumulators per bin: (low, high) of coverage, weight, w r, w g, w b, w z.

@@ -12,8 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from engine.core.checks import checked_array, checked_matrix
-from engine.core.errors import InputError
+from engine.core.checks import checked_array, checked_matrix, checked_out_size, checked_sharpness
 from engine.geometry import kernels
 from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, checked_flow, reprojection_matrix
 from engine.geometry.mpi import Mpi, build_mpi, checked_mpi, composite, plane_bounds
@@ -32,25 +31,6 @@ SKY_WEIGHT = float(np.exp(-300.0))
 SKY_ONLY_WEIGHT = float(np.exp(-200.0))
 #: Default soft z-buffer sharpness (the authors' 50).
 DEFAULT_SHARPNESS = 50.0
-
-
-def checked_sharpness(sharpness) -> float:
-    s = float(sharpness)
-    if not np.isfinite(s) or s < 0:
-        raise InputError(f"must be finite and >= 0, got {sharpness!r}", field="sharpness")
-    return s
-
-
-def checked_out_size(out_size, default):
-    if out_size is None:
-        return default
-    try:
-        h, w = (int(n) for n in out_size)
-    except (TypeError, ValueError):
-        raise InputError(f"must be (height, width), got {out_size!r}", field="out_size") from None
-    if h < 1 or w < 1:
-        raise InputError(f"must be positive, got {out_size!r}", field="out_size")
-    return h, w
 
 
 class _Scratch(threading.local):

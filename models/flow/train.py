@@ -40,6 +40,7 @@ from torch import Tensor
 
 from engine.core import config as core_config
 from engine.core.config import option
+from models.trainer_cli import add_trainer_options, trainer_config
 from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
 from engine.core.checks import check_shape
@@ -492,19 +493,14 @@ def build_parser(prog: str = "python -m models.flow.train") -> argparse.Argument
     on the command line override it), ``--resume`` and ``--no-progress``."""
     parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet 3D flow network (unsupervised, "
                                                             "thesis Eq. 6.8-6.12) on procedural scenes.")
-    parser.add_argument("--config", metavar="FILE", help="JSON TrainFlowConfig as a run writes it; command-line "
-                                                         "options override its values")
-    core_config.add_options(parser, TrainFlowConfig)
-    parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_trainer_options(parser, TrainFlowConfig)
     return parser
 
 
 def config_from_args(args: argparse.Namespace) -> TrainFlowConfig:
     """The run's config: ``args.config``'s file (if any; else the defaults) with the options given on the
     command line set."""
-    base = core_config.config_from_file(TrainFlowConfig, args.config) if args.config else None
-    return core_config.config_from_args(TrainFlowConfig, args, base)
+    return trainer_config(TrainFlowConfig, args)
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.flow.train") -> None:

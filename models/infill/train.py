@@ -28,8 +28,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from engine.core import config as core_config
 from engine.core.config import option
+from models.trainer_cli import add_trainer_options, trainer_config
 from engine.core.errors import InputError
 from models.infill.network import InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs, infill_loss
 from models.geometry import Mpi
@@ -322,19 +322,14 @@ def build_parser(prog: str = "python -m models.infill.train") -> argparse.Argume
     FILE`` (options on the command line override it), ``--resume``, ``--no-progress``."""
     parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet disocclusion infilling network "
                                                             "(thesis Sec. 6.3.4) on procedural scenes.")
-    parser.add_argument("--config", metavar="FILE", help="JSON TrainInfillConfig as a run writes it; command-line "
-                                                         "options override its values")
-    core_config.add_options(parser, TrainInfillConfig)
-    parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_trainer_options(parser, TrainInfillConfig)
     return parser
 
 
 def config_from_args(args: argparse.Namespace) -> TrainInfillConfig:
     """The run's config: ``args.config``'s file (if any; else the defaults) with the options given on the
     command line set."""
-    base = core_config.config_from_file(TrainInfillConfig, args.config) if args.config else None
-    return core_config.config_from_args(TrainInfillConfig, args, base)
+    return trainer_config(TrainInfillConfig, args)
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.infill.train") -> None:

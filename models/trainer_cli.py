@@ -1,0 +1,29 @@
+"""Command-line pieces every trainer shares: a ``--config FILE`` the options override, ``--resume``, ``--no-progress``.
+
+The options themselves are the training config's fields (``engine.core.config.add_options``: nested
+configs as ``--model.name``); the config a run used is saved beside it as JSON and reads back with
+``--config``.
+"""
+from __future__ import annotations
+
+import argparse
+
+from engine.core import config as core_config
+
+__all__ = ["add_trainer_options", "trainer_config"]
+
+
+def add_trainer_options(parser: argparse.ArgumentParser, cls: type) -> None:
+    """``--config FILE``, one ``--option`` per field of the training config ``cls``, ``--resume``, ``--no-progress``."""
+    parser.add_argument("--config", metavar="FILE", help=f"JSON {cls.__name__} as a run writes it; command-line "
+                                                         "options override its values")
+    core_config.add_options(parser, cls)
+    parser.add_argument("--resume", action="store_true", help="continue from out_dir/checkpoint.pt")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def trainer_config(cls: type, args: argparse.Namespace):
+    """The run's ``cls``: ``args.config``'s file (if any; else the defaults) with the options given on the
+    command line set."""
+    base = core_config.config_from_file(cls, args.config) if args.config else None
+    return core_config.config_from_args(cls, args, base)

@@ -1,6 +1,6 @@
 """Read and write rgbd-seq (version 1) sequences and rgbd-rig captures.
 
-The on-disk format is specified in ``shared/formats/rgbd-seq.md``; in short::
+The on-disk format is specified in ``docs/formats/rgbd-seq.md``; in short::
 
     <sequence>/sequence.json           metadata, cameras, object transforms
     <sequence>/frames/000000.exr       R, G, B, Z (+ object_id, moving, flow.X/Y, object_flow.X/Y)

@@ -28,6 +28,10 @@ work and are the recommended ones. Exported with ``torch.onnx.export(..., dynamo
 """
 from __future__ import annotations
 
+import argparse
+import copy
+import dataclasses
+import json
 from pathlib import Path
 from typing import Optional, Union
 
@@ -36,7 +40,9 @@ import torch
 from torch import Tensor, nn
 
 from engine.core.errors import InputError
+from engine.predict.decomp.predictor import METADATA_KEY, FlowNetwork
 from models.flow.network import Flow3D, pyramid_stride, set_direct_conv3d
+from models.flow.train import load_model
 from models.geometry import Mpi, build_mpi
 
 __all__ = ["FlowGraph", "INPUT_NAMES", "INITIAL_FLOW", "input_names", "export_flow", "check_parity",
@@ -75,7 +81,6 @@ def _as_model(checkpoint_or_module: Union[str, Path, nn.Module]) -> Flow3D:
     if isinstance(checkpoint_or_module, Flow3D):
         return checkpoint_or_module
     if isinstance(checkpoint_or_module, (str, Path)):
-        from models.flow.train import load_model
         return load_model(checkpoint_or_module)
     raise InputError(f"must be a Flow3D, a FlowGraph or a checkpoint path, got {type(checkpoint_or_module).__name__}",
                      field="checkpoint_or_module")
@@ -89,7 +94,6 @@ def with_planes(model: Flow3D, num_planes: int) -> Flow3D:
     trained at its own Z: other values are an extrapolation whose quality is measured, not assumed
     (``interleave sweep --planes``).
     """
-    import dataclasses
 
     if model.config.mode != "3d":
         raise InputError(f"only '3d' networks have MPI planes to change (this one is '{model.config.mode}')",
@@ -142,7 +146,6 @@ def export_flow(checkpoint_or_module: Union[str, Path, nn.Module], path: Union[s
             the engine); default: from the checkpoint's training config, else 480.
         depth_flow: False: the graph returns dz = 0 without computing it (recorded in the metadata).
     """
-    import copy
 
     if working_width is None:
         working_width = _working_width(checkpoint_or_module)
@@ -179,12 +182,8 @@ def write_metadata(path: Path, model: nn.Module, working_width: int, key: Option
     """Store the network config (``model.config``), its working width and ``extra`` entries in the ONNX
     metadata under ``key`` (default ``engine.predict.decomp.predictor.METADATA_KEY``; ``export.infill`` passes its own); drop
     the per-node debug records (source stack traces) the exporter writes."""
-    import dataclasses
-    import json
 
     import onnx
-
-    from engine.predict.decomp.predictor import METADATA_KEY
 
     proto = onnx.load(str(path))
     for node in proto.graph.node:  # the exporter's per-node stack traces: 6.5 MB of the 7.4 MB file
@@ -202,7 +201,6 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
     """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order); torch
     runs with the graph's own ``depth_flow`` (from its metadata, as the engine reads it) and its plane-stacked
     convolutions."""
-    from engine.predict.decomp.predictor import FlowNetwork
 
     model = _as_model(module).eval()
     network = FlowNetwork(onnx_path, threads=1)
@@ -217,7 +215,6 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
 def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") -> None:
     """``interleave export flow CHECKPOINT OUT.onnx``: export, then check onnxruntime against torch on a
     random two-layer input and print the largest difference (fails above ``--tolerance``)."""
-    import argparse
 
     parser = argparse.ArgumentParser(prog=prog, description="Export the flow network to ONNX and check parity.")
     parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by 'interleave train flow'")
@@ -233,7 +230,6 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.flow") 
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
-    from models.flow.train import load_model
 
     model = load_model(args.checkpoint)
     if args.num_planes is not None:

@@ -17,6 +17,7 @@ with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; the ONNX metadat
 """
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Optional, Union
 
@@ -25,8 +26,11 @@ import torch
 from torch import Tensor, nn
 
 from engine.core.errors import InputError
+from engine.predict.decomp.infill import METADATA_KEY
+from export.flow import write_metadata
 from models.geometry import Mpi, build_mpi
 from models.infill.network import InfillNet, infill_inputs
+from models.infill.train import load_model
 
 __all__ = ["InfillGraph", "INPUT_NAMES", "export_infill", "check_parity", "example_inputs", "main"]
 
@@ -70,7 +74,6 @@ def _as_net(checkpoint_or_module: Union[str, Path, nn.Module]) -> InfillNet:
     if isinstance(checkpoint_or_module, InfillNet):
         return checkpoint_or_module
     if isinstance(checkpoint_or_module, (str, Path)):
-        from models.infill.train import load_model
         return load_model(checkpoint_or_module)
     raise InputError(f"must be an InfillNet or a checkpoint path, got {type(checkpoint_or_module).__name__}",
                      field="checkpoint_or_module")
@@ -109,8 +112,6 @@ def export_infill(checkpoint_or_module: Union[str, Path, nn.Module], path: Union
                                     dynamic_shapes=dynamic, verbose=False,
                                     optimize=False)
     program.save(str(out))
-    from engine.predict.decomp.infill import METADATA_KEY
-    from export.flow import write_metadata
 
     write_metadata(out, net, working_width, METADATA_KEY)
     return out
@@ -133,7 +134,6 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m export.infill") -> None:
     """``interleave export infill CHECKPOINT OUT.onnx``: export, then check onnxruntime against torch."""
-    import argparse
 
     parser = argparse.ArgumentParser(prog=prog, description="Export the infilling network to ONNX and check parity.")
     parser.add_argument("checkpoint", type=Path, help="checkpoint.pt written by 'interleave train infill'")
@@ -143,7 +143,6 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.infill"
     args = parser.parse_args(argv)
     if not args.checkpoint.is_file():
         raise InputError("checkpoint not found", file=args.checkpoint)
-    from models.infill.train import load_model
 
     net = load_model(args.checkpoint)
     path = export_infill(net, args.out, working_width=_working_width(args.checkpoint))

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
@@ -106,7 +107,6 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence). Methods
     that differ only by the ``TRUE_HOLES`` suffix share one predictor, its predictions and its times.
     """
-    from tqdm import tqdm
 
     groups = evaluation_pairs(len(sequence), k)
     if not groups:

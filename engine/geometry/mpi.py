@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Optional
 
+import cv2
 import numpy as np
 
 from engine.core.checks import checked_array, checked_matrix
@@ -180,7 +181,6 @@ def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarra
     h, w = sizes["H"] // f, sizes["W"] // f
     if f == 1:
         return color.copy(), depth.copy(), np.array(k, dtype=np.float64)
-    import cv2  # INTER_AREA with an integer factor is the exact block mean, several times faster than numpy's
 
     out_color = cv2.resize(np.ascontiguousarray(color[:h * f, :w * f]), (w, h), interpolation=cv2.INTER_AREA)
     out_depth = depth[0:h * f:f, 0:w * f:f].copy()  # block minimum: f x f strided minima (no reductions)

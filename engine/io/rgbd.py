@@ -29,12 +29,13 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
+from tqdm import tqdm
 
 from engine.core.colorspace import linear_to_srgb, srgb_to_linear
 from engine.core.errors import InputError
-from engine.io.meta import json_choice, json_finite, json_int, load_json, require
-from engine.io.exr import read_exr, read_exr_info, write_exr
 from engine.core.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
+from engine.io.exr import read_exr, read_exr_info, write_exr
+from engine.io.meta import json_choice, json_finite, json_int, load_json, require
 
 FORMAT = "rgbd-seq"
 RIG_FORMAT = "rgbd-rig"
@@ -332,7 +333,6 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
     objects_raw = _objects_json(objects or [])
     _parse_objects(objects_raw, None, None)  # ids and rigidity now; the per-frame count once all are written
     if progress:
-        from tqdm import tqdm
         frames = tqdm(frames, desc=f"writing {root.name}", unit="frame")
     (root / "frames").mkdir(parents=True, exist_ok=True)
     meta_file.unlink(missing_ok=True)  # until the new one is written, the folder reads as incomplete

@@ -16,10 +16,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+from engine.io.rgbd import write_sequence
 from engine.scenegen.render import SceneRenderer, render_scene
 from engine.scenegen.rig import ARRANGEMENTS, Rig, RigConfig, generate_rig, make_rig, render_rig
-from engine.scenegen.scene import (CAMERA_PATHS, LIGHTING_STYLES, MOTIONS, OBJECT_SHAPES, PATTERNS, Scene,
-                                   SceneConfig, make_scene)
+from engine.scenegen.scene import (CAMERA_PATHS, LIGHTING_STYLES, MOTIONS, OBJECT_SHAPES, PATTERNS, Scene, SceneConfig,
+                                   make_scene)
 
 __all__ = ["ARRANGEMENTS", "CAMERA_PATHS", "LIGHTING_STYLES", "MOTIONS", "OBJECT_SHAPES", "PATTERNS", "Rig",
            "RigConfig", "Scene", "SceneConfig", "SceneRenderer", "generate_rig", "generate_sequence", "make_rig",
@@ -33,7 +34,6 @@ def generate_sequence(config: SceneConfig, out_dir: str | Path, *, progress: boo
     world_from_object transforms of every moving object; the config that produced it is saved beside
     as ``scenegen_config.json``.
     """
-    from engine.io.rgbd import write_sequence  # imported here: the renderer works without the EXR stack
 
     scene = make_scene(config)
     out = Path(out_dir)

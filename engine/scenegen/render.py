@@ -22,6 +22,7 @@ import math
 from typing import Iterator
 
 import numpy as np
+from tqdm import tqdm
 
 from engine.conventions import OPENGL_TO_OPENCV, projection_from_intrinsics
 from engine.core.errors import InputError
@@ -383,7 +384,6 @@ def render_scene(scene: Scene, *, progress: bool = False) -> Iterator[Frame]:
     object_id (0 = background), moving, flow and object_flow in pixels to the next frame. The last
     frame's flow uses the paths one step further (they are defined for all times).
     """
-    from tqdm import tqdm
 
     renderer = SceneRenderer(scene)
     try:

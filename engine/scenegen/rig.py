@@ -54,11 +54,14 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from tqdm import tqdm
 
 from engine.conventions.cameras import look_at
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
+from engine.io.rgbd import write_rig
+from engine.scenegen.render import SceneRenderer
 from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig, box_distance, make_scene
 
 __all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "generate_rig", "make_rig", "render_rig"]
@@ -254,9 +257,6 @@ def render_rig(rig: Rig, *, progress: bool = False) -> Iterator[tuple[str, Frame
     moving, flow and object_flow); the cameras do not move, so flow is object motion alone. The shadow map
     is the scene's own (fitted to the sampled path), the same for every camera.
     """
-    from tqdm import tqdm
-
-    from engine.scenegen.render import SceneRenderer
 
     renderer = SceneRenderer(rig.scene)  # builds the geometry and the shadow map set-up once
     bar = tqdm(total=len(rig.names) * rig.num_frames, desc="render rig", unit="frame", disable=not progress)
@@ -280,7 +280,6 @@ def generate_rig(config: RigConfig, out_dir: str | Path, *, progress: bool = Tru
     ``generate_sequence`` and the objects' per-frame transforms, ``rig.json`` with the default split, and the
     config beside it as ``rigscene_config.json``.
     """
-    from engine.io.rgbd import write_rig  # imported here: the renderer works without the EXR stack
 
     rig = make_rig(config)
     stream = render_rig(rig, progress=progress)

@@ -37,16 +37,20 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import Tensor
+from tqdm import tqdm
 
 from engine.core import config as core_config
+from engine.core.checks import check_shape
 from engine.core.config import option
-from models.trainer_cli import add_trainer_options, trainer_config
 from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
-from engine.core.checks import check_shape
+from engine.io.rgbd import read_sequence
+from engine.predict.decomp.predictor import initial_flow
+from engine.scenegen import SceneConfig, generate_sequence
+from models.flow.losses import FlowLossConfig, flow_loss
 from models.flow.network import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
 from models.geometry import Mpi, composite
-from models.flow.losses import FlowLossConfig, flow_loss
+from models.trainer_cli import add_trainer_options, trainer_config
 
 __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
            "prepare_data", "config_from_dict", "open_sequences", "StepBatches"]
@@ -135,7 +139,6 @@ def render_scenes(data_dir: str | Path, seeds, width: int, height: int, frames: 
                   progress: bool = False) -> list[Path]:
     """``<data_dir>/scene_<seed>`` rgbd-seq folders from ``engine.scenegen``, rendering those not cached yet
     (written to a ``.tmp`` folder, then renamed: an interrupted render is never taken for a finished one)."""
-    from engine.scenegen import SceneConfig, generate_sequence
 
     root = Path(data_dir)
     paths = []
@@ -213,7 +216,6 @@ def _low_res_frame(config: TrainFlowConfig, sequences: dict, scene: int, n: int,
 
 def dis_initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
     """``engine.predict.decomp.predictor.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
-    from engine.predict.decomp.predictor import initial_flow
 
     warped_color, _, acc = composite(m_p)
     flow = initial_flow(color_n[0].numpy(), warped_color[0].numpy(), acc[0].numpy() > 0)
@@ -304,7 +306,6 @@ def _moving_epe(flow: Tensor, mpi_n: Mpi, gt_flow: Tensor, ks: list[int]) -> tup
 
 def open_sequences(config: TrainFlowConfig) -> dict:
     """Scene seed -> ``engine.io.rgbd.RgbdSequence`` of the rendered training scenes (``prepare_data``)."""
-    from engine.io.rgbd import read_sequence
 
     return {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
 
@@ -429,7 +430,6 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
 
     bar = None
     if progress and rank == 0:
-        from tqdm import tqdm
         bar = tqdm(total=config.steps, initial=start, desc="flow3d", unit="step")
     metrics = (out / METRICS).open("a") if rank == 0 else None
     batches = StepBatches(config, start, rank, world)

@@ -27,12 +27,20 @@ from typing import Optional
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from engine import geometry
 from engine.core.config import option
-from models.trainer_cli import add_trainer_options, trainer_config
 from engine.core.errors import InputError
-from models.infill.network import InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs, infill_loss
+from engine.io.rgbd import read_sequence
+from engine.predict.decomp.infill import candidate_vectors, downsample_holes, hole_mpi, prior_vectors
+from engine.predict.decomp.predictor import encode_color
+from engine.predict.predictors import true_object_flow
+from models.flow.train import load_network, render_scenes, restore_checkpoint, save_checkpoint
 from models.geometry import Mpi
+from models.infill.network import (InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs,
+                                   infill_loss)
+from models.trainer_cli import add_trainer_options, trainer_config
 
 __all__ = ["TrainInfillConfig", "make_samples", "batch_tensors", "choice_tensors", "candidate_errors", "train",
            "load_model", "evaluate_samples", "main"]
@@ -103,13 +111,6 @@ def make_samples(config: TrainInfillConfig, seeds, *, progress: bool = False) ->
     """Training crops of the scenes ``seeds`` (see the module docstring), each a dict of numpy arrays:
     ``color`` (h, w, 3), ``depth`` (h, w) (+inf in holes), ``holes`` (h, w), ``prior`` (2, h, w), ``truth``
     (h, w, 3), ``planes`` (Z,), plus ``scene``, ``n``, ``step`` and the crop corner."""
-    from tqdm import tqdm
-
-    from engine import geometry
-    from engine.predict.decomp.infill import candidate_vectors, downsample_holes, prior_vectors
-    from engine.io.rgbd import read_sequence
-    from engine.predict.predictors import true_object_flow
-    from models.flow.train import render_scenes
 
     paths = render_scenes(config.data_dir, seeds, config.scene_width, config.scene_height, config.scene_frames,
                           progress=progress)
@@ -156,7 +157,6 @@ def candidate_errors(color: np.ndarray, holes: np.ndarray, candidates: np.ndarra
                      truth: np.ndarray) -> np.ndarray:
     """(K, h, w) float32 squared error (encoded colour, channel mean, as ``infill_loss``) of copying each
     candidate's source pixel into each hole pixel; 0 at known pixels. ``candidates`` (2 K, h, w)."""
-    from engine.predict.decomp.predictor import encode_color
 
     rows, cols = np.indices(holes.shape)
     enc, target = encode_color(color), encode_color(truth)
@@ -186,7 +186,6 @@ def _masked_mean(err: torch.Tensor, holes: torch.Tensor) -> torch.Tensor:
 def batch_tensors(samples: list[dict]) -> tuple[Mpi, torch.Tensor, torch.Tensor, torch.Tensor]:
     """(MPI (B, ...), holes (B, h, w) bool, prior (B, 2, h, w), truth (B, h, w, 3)) of a list of crops; the
     MPIs are built by ``engine.predict.decomp.infill.hole_mpi``, the function the engine uses."""
-    from engine.predict.decomp.infill import hole_mpi
 
     mpis = [hole_mpi(s["color"], s["depth"], s["holes"], s["planes"]) for s in samples]
     mpi = Mpi(torch.from_numpy(np.stack([m.color for m in mpis])),
@@ -228,14 +227,12 @@ def evaluate_samples(net: Optional[InfillNet], samples: list[dict], mode: str = 
 
 def load_model(path: str | Path) -> InfillNet:
     """The ``InfillNet`` saved in a checkpoint (eval mode)."""
-    from models.flow.train import load_network
 
     return load_network(path, InfillNet, InfillConfig)
 
 
 def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False) -> Path:
     """Train ``InfillNet`` and return the path of ``checkpoint.pt`` (see the module docstring)."""
-    from models.flow.train import restore_checkpoint, save_checkpoint
 
     if not isinstance(config, TrainInfillConfig):
         raise InputError(f"must be a TrainInfillConfig, got {type(config).__name__}", field="config")
@@ -257,7 +254,6 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     metrics = (out / METRICS).open("a")
     bar = None
     if progress:
-        from tqdm import tqdm
         bar = tqdm(total=config.steps, initial=start, desc="infill", unit="step")
     val_prior = evaluate_samples(None, val_samples) if val_samples else float("nan")
     best_val = float("inf")

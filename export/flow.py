@@ -184,7 +184,7 @@ def _write_metadata(path: Path, model: nn.Module, working_width: int, key: Optio
 
     import onnx
 
-    from engine.predict.decomp.predictor import METADATA_KEY
+    from engine.predict.decomp.network import METADATA_KEY
 
     proto = onnx.load(str(path))
     for node in proto.graph.node:  # the exporter's per-node stack traces: 6.5 MB of the 7.4 MB file
@@ -202,7 +202,7 @@ def check_parity(onnx_path: Union[str, Path], module: nn.Module, inputs: tuple[T
     """Max abs difference between onnxruntime (CPU) and torch on ``inputs`` (``INPUT_NAMES`` order); torch
     runs with the graph's own ``depth_flow`` (from its metadata, as the engine reads it) and its plane-stacked
     convolutions."""
-    from engine.predict.decomp.predictor import FlowNetwork
+    from engine.predict.decomp.network import FlowNetwork
 
     model = _as_model(module).eval()
     network = FlowNetwork(onnx_path, threads=1)

@@ -26,7 +26,7 @@ import numpy as np
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import crop_slices, psnr, score_frame
-from engine.predict.predictors import Target, make_predictor
+from engine.predict import Target, make_predictor
 
 #: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).
 TRUE_HOLES = "+true_holes"

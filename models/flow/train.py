@@ -212,8 +212,8 @@ def _low_res_frame(config: TrainFlowConfig, sequences: dict, scene: int, n: int,
 
 
 def _initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
-    """``engine.predict.decomp.predictor.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
-    from engine.predict.decomp.predictor import initial_flow
+    """``engine.predict.dis.initial_flow`` (OpenCV DIS, the engine's function) for one pair, (1, 2, H, W)."""
+    from engine.predict.dis import initial_flow
 
     warped_color, _, acc = composite(m_p)
     flow = initial_flow(color_n[0].numpy(), warped_color[0].numpy(), acc[0].numpy() > 0)

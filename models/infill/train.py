@@ -2,7 +2,7 @@
 
 Data (``make_samples``; numpy, the engine's own functions): for a scene of ``engine.scenegen`` and frames
 n, n + k' (k' in 1..``max_step``), frame n is splatted into frame n + k''s camera with the TRUE object
-motion (``engine.predict.predictors.true_object_flow``; camera and objects, as the ``oracle``), so its holes are
+motion (``engine.predict.base.true_object_flow``; camera and objects, as the ``oracle``), so its holes are
 real disocclusions and frame n + k' is the truth there. The splatted frame is block-downsampled to the
 working width (``engine.predict.decomp.infill.downsample_holes``), the truth likewise (``geometry.downsample_frame``),
 and crops with the most holes are kept, each with its prior vectors computed on the crop
@@ -108,7 +108,7 @@ def make_samples(config: TrainInfillConfig, seeds, *, progress: bool = False) ->
     from engine import geometry
     from engine.predict.decomp.infill import candidate_vectors, downsample_holes, prior_vectors
     from engine.io.rgbd import read_sequence
-    from engine.predict.predictors import true_object_flow
+    from engine.predict import true_object_flow
     from models.flow.train import render_scenes
 
     paths = render_scenes(config.data_dir, seeds, config.scene_width, config.scene_height, config.scene_frames,
@@ -156,7 +156,7 @@ def candidate_errors(color: np.ndarray, holes: np.ndarray, candidates: np.ndarra
                      truth: np.ndarray) -> np.ndarray:
     """(K, h, w) float32 squared error (encoded colour, channel mean, as ``infill_loss``) of copying each
     candidate's source pixel into each hole pixel; 0 at known pixels. ``candidates`` (2 K, h, w)."""
-    from engine.predict.decomp.predictor import encode_color
+    from engine.predict.decomp.gate import encode_color
 
     rows, cols = np.indices(holes.shape)
     enc, target = encode_color(color), encode_color(truth)

@@ -4,7 +4,7 @@ import shutil
 
 import pytest
 
-from engine.predict.decomp.predictor import DEFAULT_MODEL
+from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.eval.protocol import MethodResult
 from tools.sweep import Variant, decomp_variants, pareto_front, plane_models, sweep_points, sweep_table

@@ -254,8 +254,11 @@ class DecompPredictor(Predictor):
             low_n, low_p = downsample(newest, factor), downsample(older, factor)
         t_p, t_n = older.camera.world_to_camera, newest.camera.world_to_camera
         low_size = low_n[1].shape
-        with timer("gate"):
-            boxes = gate_boxes(cfg.gate, low_n, low_p, t_n, t_p, net.stride)
+        if cfg.gate.enabled:
+            with timer("gate"):
+                boxes = gate_boxes(cfg.gate, low_n, low_p, t_n, t_p, net.stride)
+        else:
+            boxes = [(0, low_size[0], 0, low_size[1])]
         planes = geometry.plane_depths(low_n[1], net.num_planes)  # the network's planes: frame n's, low resolution
         flow = None
         if boxes:

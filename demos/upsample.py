@@ -19,7 +19,7 @@ import numpy as np
 from engine.core.frames import Frame
 from engine.core.colorspace import display_encode
 from engine.eval.metrics import flip_map
-from engine.predict.predictors import Predictor, Target
+from engine.predict import Predictor, Target
 from engine.runtime.stream import PredictionLoop
 
 
@@ -94,7 +94,7 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
     from tqdm import tqdm
 
     from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
-    from engine.predict.predictors import make_predictor
+    from engine.predict import make_predictor
 
     results = evaluate_sequence(sequence, list(methods), k, progress=progress)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)

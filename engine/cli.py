@@ -23,7 +23,8 @@ METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproj
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
                "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
                "ablation network), oracle (true object motion; needs object_id and objects). decomp and "
-               "decomp2d take options in brackets, e.g. decomp[gate=0,flow_width=240] (engine/predict/decomp/predictor.py); a name "
+               "decomp2d take options in brackets, e.g. decomp[gate.enabled=false,flow_width=240] "
+               "(engine/predict/decomp/predictor.py); a name "
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
 
 
@@ -149,7 +150,7 @@ def _needs_torch(command: str):
 
 
 def _methods(text: str) -> list[str]:
-    from engine.predict.predictors import split_methods
+    from engine.predict import split_methods
 
     return split_methods(text)
 
@@ -254,7 +255,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     from engine.eval.protocol import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
                                  per_step_table, plot, split_scoring, stage_table, summarize, write_json)
     from engine.io.rgbd import read_sequence
-    from engine.predict.predictors import METHODS
+    from engine.predict import METHODS
 
     bounds = None if args.bounds is None else bound_methods(args.bounds)
     methods = _methods(args.methods) if bounds is None else [row.method for row in bounds]

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from engine.core.errors import InputError
-from engine.predict.decomp.predictor import METADATA_KEY, FlowNetwork
+from engine.predict.decomp.network import METADATA_KEY, FlowNetwork
 from models.flow.network import Flow3D, pyramid_stride, set_direct_conv3d
 from models.flow.train import load_model
 from models.geometry import Mpi, build_mpi

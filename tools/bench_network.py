@@ -24,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from engine.predict.decomp.predictor import DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork
+from engine.predict.decomp import DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork
 from engine.core.errors import InputError
 from engine.eval.protocol import evaluation_pairs
 from engine.io.rgbd import read_sequence

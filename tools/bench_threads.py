@@ -27,7 +27,7 @@ from engine import geometry
 from engine.geometry import kernels
 from engine.eval.protocol import evaluation_pairs
 from engine.io.rgbd import read_sequence
-from engine.predict.predictors import Target, make_predictor
+from engine.predict import Target, make_predictor
 
 
 def _with_env(name: str, value: str, fn):

@@ -4,8 +4,8 @@ trained networks land? A diagnostic of the training objective, not of any one ne
 For frame pairs (n - k, n) of rgbd-seq sequences that carry moving objects, on whole frames at the training
 resolution (block-downsampled like training): ``flow_loss`` and the end-point error on moving pixels of
 
-- ``zero``: no motion; ``dis``: the initial flow (``engine.predict.decomp.predictor.initial_flow``) lifted onto every plane;
-- ``truth``: the true object flow u(n -> n-k) (``engine.predict.predictors.true_object_flow``, block mean, dz = 0);
+- ``zero``: no motion; ``dis``: the initial flow (``engine.predict.dis.initial_flow``) lifted onto every plane;
+- ``truth``: the true object flow u(n -> n-k) (``engine.predict.base.true_object_flow``, block mean, dz = 0);
 - ``dis+quarter``: DIS plus the truth's residual averaged over 4 x 4 blocks and upsampled (what a network
   whose output is at 1/4 resolution could reach);
 - every ``NAME=CHECKPOINT`` given: that network on (m_n, m^w_{n-k}, DIS).
@@ -45,7 +45,7 @@ def rank_pairs(sequences: list[str], factor: int = 2, num_planes: int = 4, every
                ks=(1, 2, 4), nets: dict | None = None, min_moving: int = 50) -> list[dict]:
     """One record per pair: {"sequence", "n", "k", "moving", candidate: (loss, photometric, epe)}."""
     from engine.io.rgbd import read_sequence
-    from engine.predict.predictors import true_object_flow
+    from engine.predict import true_object_flow
 
     nets = nets or {}
     config = FlowLossConfig()

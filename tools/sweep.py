@@ -161,7 +161,7 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
     when missing (needs torch; about 2 minutes per Z on 2 CPU cores), with ``--no-depth-flow`` like the
     committed one, so every Z is timed with the same graph (a sweep cannot ask for dz: ``depth_flow=1`` fails
     on the committed graph)."""
-    from engine.predict.decomp.predictor import DEFAULT_MODEL, FlowNetwork
+    from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 
     own = FlowNetwork(DEFAULT_MODEL, threads=1).num_planes
     out: dict[int, str] = {}
@@ -316,7 +316,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dis-presets", type=_words, default=["medium"], metavar="PRESET,...",
                         help="OpenCV DIS presets of decomp's initial flow: ultrafast, fast, medium (default: medium)")
     parser.add_argument("--decomp-options", default="", metavar="KEY=VALUE,...",
-                        help="DecompConfig options added to every variant, e.g. 'gate=0' (not the swept knobs)")
+                        help="DecompConfig options added to every variant, e.g. 'gate.enabled=false' (not the swept knobs)")
     parser.add_argument("--baselines", type=_words, default=["reproject", "flow2d"], metavar="METHOD,...",
                         help="methods measured in the same run (default: reproject,flow2d)")
     parser.add_argument("--models-dir", type=Path, default=DEFAULT_MODELS_DIR,
@@ -335,7 +335,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run_sweep_command(args: argparse.Namespace) -> int:
     """Run the sweep described by ``add_arguments``' options: print the tables, write sweep.json / .md / .png."""
     from engine.io.rgbd import read_sequence
-    from engine.predict.predictors import METHODS, make_predictor
+    from engine.predict import METHODS, make_predictor
 
     unknown = [m for m in args.baselines if m.partition("[")[0] not in METHODS]
     if unknown:

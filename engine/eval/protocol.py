@@ -27,7 +27,7 @@ from tqdm import tqdm
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import crop_slices, psnr, score_frame
-from engine.predict.predictors import Target, make_predictor
+from engine.predict import Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 
 #: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).

@@ -1,1 +1,21 @@
-"""Frame predictors: the interface, the registry (``decomp[k=v]`` parsed here), the classic methods, DeCOMPnet."""
+"""Frame predictors: the interface (``base``), the classic methods (``classic``), DIS optical flow (``dis``),
+DeCOMPnet (``decomp``) and the registry of method names (``registry``, where ``decomp[k=v]`` is parsed).
+
+Modules import downhill only: ``base``, ``dis``, ``onnx`` <- ``classic``, ``decomp`` <- ``registry`` <- this
+face, which re-exports the public names (``from engine.predict import make_predictor, Target``).
+"""
+from engine.predict.base import (Prediction, PreparedState, Predictor, Target, Timer, extrapolation_factor,
+                                 true_object_flow, warp_and_fill)
+from engine.predict.classic import Flow2D, Flow2DState, Oracle, Repeat, Reproject
+from engine.predict.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompState, DecompTrueMotion,
+                                   FlowNetwork, GateConfig, InfillNetwork, encode_color)
+from engine.predict.dis import (DIS_MIN_SIDE, dis_block, dis_calc, dis_estimator, dis_flow, dis_target, encode8,
+                                initial_flow, luma8, warp_error)
+from engine.predict.registry import METHODS, decomp_config, make_predictor, split_methods
+
+__all__ = ["Prediction", "PreparedState", "Predictor", "Target", "Timer", "extrapolation_factor",
+           "true_object_flow", "warp_and_fill", "Flow2D", "Flow2DState", "Oracle", "Repeat", "Reproject",
+           "DEFAULT_MODEL", "DecompConfig", "DecompPredictor", "DecompState", "DecompTrueMotion", "FlowNetwork",
+           "GateConfig", "InfillNetwork", "encode_color", "DIS_MIN_SIDE", "dis_block", "dis_calc", "dis_estimator",
+           "dis_flow", "dis_target", "encode8", "initial_flow", "luma8", "warp_error", "METHODS", "decomp_config",
+           "make_predictor", "split_methods"]

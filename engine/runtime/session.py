@@ -94,7 +94,7 @@ from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics, \
     validate_pose
-from engine.predict.predictors import Repeat, Target, make_predictor
+from engine.predict import Repeat, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 
 __all__ = ["ENGINES", "COLOR_SPACES", "SessionConfig", "Session", "SubmitResult", "SessionPrediction",
@@ -137,7 +137,7 @@ class SessionConfig:
     flip_rows: bool = option(False, "images are bottom-up (glReadPixels, Unity Texture2D): flip inputs and outputs")
     color_in: str = option("linear", f"encoding of submitted colour: {', '.join(COLOR_SPACES)}")
     color_out: str = option("linear", f"encoding of predicted colour: {', '.join(COLOR_SPACES)}")
-    method: str = option("reproject", "predictor (engine.predict.predictors), options in brackets, e.g. decomp[gate=0]")
+    method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. decomp[gate.enabled=false]")
     cut_translation: float = option(0.5, "camera cut when the camera centre moves more than this times the "
                                           "median scene depth")
     cut_rotation_deg: float = option(45.0, "camera cut when the camera turns by more than this many degrees")

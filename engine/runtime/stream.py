@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 from engine.core.frames import Frame
-from engine.predict.predictors import Prediction, PreparedState, Predictor, Reproject, Target
+from engine.predict import Prediction, PreparedState, Predictor, Reproject, Target
 
 __all__ = ["Prepared", "PredictionLoop"]
 
@@ -35,7 +35,7 @@ class PredictionLoop:
     """Keeps the rendered frames a predictor needs and what it prepared from them.
 
     Args:
-        predictor: the method (``engine.predict.predictors.make_predictor``).
+        predictor: the method (``engine.predict.make_predictor``).
         fallback: the method used while fewer frames than ``predictor.history_needed`` are rendered
             (default: camera-only ``reproject``, which needs one).
     """

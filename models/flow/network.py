@@ -66,7 +66,7 @@ class Flow3DConfig:
     negative_slope: float = option(0.1, "LeakyReLU slope")
     initial_flow: bool = option(False, "refine a given 2D flow u(n -> n-k) (pixels, per pixel of the input; e.g. "
                                        "OpenCV DIS between frame n and the camera-compensated frame n-k, "
-                                       "engine.predict.decomp.predictor.initial_flow) lifted onto every plane, instead of "
+                                       "engine.predict.dis.initial_flow) lifted onto every plane, instead of "
                                        "starting the coarsest level from zero")
 
     def __post_init__(self) -> None:

@@ -45,7 +45,7 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
 from engine.io.rgbd import read_sequence
-from engine.predict.decomp.predictor import initial_flow
+from engine.predict.dis import initial_flow
 from engine.scenegen import SceneConfig, generate_sequence
 from models.flow.losses import FlowLossConfig, flow_loss
 from models.flow.network import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow

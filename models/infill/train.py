@@ -2,7 +2,7 @@
 
 Data (``make_samples``; numpy, the engine's own functions): for a scene of ``engine.scenegen`` and frames
 n, n + k' (k' in 1..``max_step``), frame n is splatted into frame n + k''s camera with the TRUE object
-motion (``engine.predict.predictors.true_object_flow``; camera and objects, as the ``oracle``), so its holes are
+motion (``engine.predict.base.true_object_flow``; camera and objects, as the ``oracle``), so its holes are
 real disocclusions and frame n + k' is the truth there. The splatted frame is block-downsampled to the
 working width (``engine.predict.decomp.infill.downsample_holes``), the truth likewise (``geometry.downsample_frame``),
 and crops with the most holes are kept, each with its prior vectors computed on the crop
@@ -34,8 +34,8 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.io.rgbd import read_sequence
 from engine.predict.decomp.infill import candidate_vectors, downsample_holes, hole_mpi, prior_vectors
-from engine.predict.decomp.predictor import encode_color
-from engine.predict.predictors import true_object_flow
+from engine.predict.decomp.gate import encode_color
+from engine.predict import true_object_flow
 from models.flow.train import load_network, render_scenes, restore_checkpoint, save_checkpoint
 from models.geometry import Mpi
 from models.infill.network import (InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs,

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from engine.core.errors import InputError
-from engine.predict.decomp.predictor import FlowNetwork
+from engine.predict.decomp.network import FlowNetwork
 from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
 from models.flow.network import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
                            masked_correlation, set_direct_conv3d)

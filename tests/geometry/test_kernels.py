@@ -13,7 +13,7 @@ import pytest
 from engine import geometry as ng
 from engine.geometry import holefill, reference, splat
 from engine.core.colorspace import encode8_reference, encode8_table
-from engine.predict.predictors import encode8, luma8
+from engine.predict import encode8, luma8
 from tests.random_scenes import extreme_scene, moving_cameras, pose, random_scene
 
 
@@ -194,7 +194,8 @@ def test_luma8_is_the_grey_of_the_encoded_frame():
 
 @pytest.mark.parametrize("factor", [1, 2, 4])
 def test_flow_upsampling_kernel_matches_the_reference(factor):
-    from engine.predict.decomp.predictor import upsample_flow, upsample_flow_reference
+    from engine.predict.decomp.reference import upsample_flow_reference
+    from engine.predict.decomp.upsample import upsample_flow
 
     rng = np.random.default_rng(9)
     num_z, h, w = 4, 13, 17

@@ -3,13 +3,16 @@ import numpy as np
 import pytest
 
 from engine import geometry
-from engine.predict.decomp.predictor import (DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork, config_from_options,
-                           context_region, context_span, dis_flow, dis_target, full_box, initial_flow, merge_planes,
-                           merge_regions, motion_boxes, seen_before, upsample_blocks, upsample_flow, warp_error)
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
 from engine.eval.metrics import score_frame
-from engine.predict.predictors import Reproject, Target, dis_block, luma8, make_predictor, split_methods
+from engine.predict import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompTrueMotion, FlowNetwork, GateConfig,
+                            Reproject, Target, decomp_config, dis_block, dis_flow, dis_target, initial_flow, luma8,
+                            make_predictor, split_methods, warp_error)
+from engine.predict.decomp import predictor as decomp_module
+from engine.predict.decomp.gate import motion_boxes, seen_before
+from engine.predict.decomp.predictor import full_box, whole_frame_initial_flow
+from engine.predict.decomp.upsample import upsample_blocks, upsample_flow
 from tests.synthetic import rigid, two_layer_sequence
 
 
@@ -140,7 +143,7 @@ def test_static_scene_skips_the_network_and_matches_reproject(network):
     frames, _ = two_layer_sequence(5, width=128, height=96, camera_speed=0.06, object_speed=0.0)
     pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare(frames[1:3])
-    assert state.data["boxes"] == [] and state.data["flow"] is None
+    assert state.data.boxes == [] and state.data.flow is None
     # no box: the network's 4-plane MPIs, camera warp, initial flow and network never run
     assert not {"flow", "camera_warp", "initial_flow", "upsample"} & set(state.stages_ms)
     out = pred.render(state, _target(frames[3]))
@@ -166,9 +169,9 @@ def test_render_noise_keeps_a_static_view_off_the_motion_path(network, sigma):
     frames = _noisy(frames, sigma)
     pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare(frames[1:3])
-    assert state.data["boxes"] == [] and state.data["flow"] is None
+    assert state.data.boxes == [] and state.data.flow is None
     if sigma >= 0.15:  # hard enough that the gate's 3 x 3 erosion is what keeps it off the motion path
-        assert DecompPredictor(DecompConfig(erode=False), network).prepare(frames[1:3]).data["boxes"]
+        assert DecompPredictor(DecompConfig(gate=GateConfig(erode=False)), network).prepare(frames[1:3]).data.boxes
     out = pred.render(state, _target(frames[3]))
     ref = Reproject().predict(frames[1:3], _target(frames[3]))
     assert np.isfinite(out.color).all()
@@ -213,9 +216,9 @@ def test_gate_ignores_a_static_surface_entering_at_the_border(network):
     left = np.nonzero(frames[2].object_id.any(0))[0].min()  # the square's left edge in frame n
     pair = [_crop_columns(f, left + 30 - 96, left + 30) for f in (frames[0], frames[2])]
     assert not pair[0].object_id.any() and pair[1].object_id.any()  # in view in frame n only
-    assert DecompPredictor(DecompConfig(gate_unseen=False), network).prepare(pair).data["boxes"]
+    assert DecompPredictor(DecompConfig(gate=GateConfig(unseen=False)), network).prepare(pair).data.boxes
     state = DecompPredictor(DecompConfig(), network).prepare(pair)
-    assert state.data["boxes"] == [] and state.data["flow"] is None
+    assert state.data.boxes == [] and state.data.flow is None
 
 
 def test_identical_frames_give_zero_flow(network):
@@ -223,11 +226,11 @@ def test_identical_frames_give_zero_flow(network):
     still = Frame(index=1, time=frames[0].time + 1 / 30, color=frames[0].color, depth=frames[0].depth,
                   camera=frames[0].camera)
     gated = DecompPredictor(DecompConfig(), network).prepare([frames[0], still])
-    assert gated.data["flow"] is None  # exactly zero: the gate sees no motion
+    assert gated.data.flow is None  # exactly zero: the gate sees no motion
     # without the gate the committed network's residual is not exactly zero on identical frames (measured:
     # under 1 px everywhere); the gate is what guarantees zero, so it is on by default
-    ungated = DecompPredictor(DecompConfig(gate=False), network).prepare([frames[0], still])
-    flow = ungated.data["flow"]
+    ungated = DecompPredictor(DecompConfig(gate=GateConfig(enabled=False)), network).prepare([frames[0], still])
+    flow = ungated.data.flow
     assert np.isfinite(flow).all() and np.abs(flow[:2]).max() < 1.5
 
 
@@ -238,7 +241,7 @@ def test_moving_object_beats_reproject_on_moving_pixels(network, sigma):
     frames = _noisy(frames, sigma) if sigma else frames
     pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare([frames[2], frames[4]])
-    assert state.data["boxes"] and state.data["flow"] is not None
+    assert state.data.boxes and state.data.flow is not None
     truth = frames[5]
     out = pred.render(state, _target(truth))
     ref = Reproject().predict([frames[2], frames[4]], _target(truth))
@@ -251,55 +254,40 @@ def test_moving_object_beats_reproject_on_moving_pixels(network, sigma):
     assert np.median(np.abs(flow_x - expected)) < 0.35 * np.abs(expected).mean()
 
 
-def test_refine_off_keeps_the_initial_flow_alone_in_the_boxes(network):
+def test_initial_flow_is_flow2ds_dis_on_the_whole_frame_and_kept_outside_the_boxes(network):
     frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12,
                                    square_half=0.25)  # a box smaller than the frame
-    pred = DecompPredictor(DecompConfig(refine=False), network)
+    pred = DecompPredictor(DecompConfig(), network)
     state = pred.prepare([frames[2], frames[4]])
-    assert state.data["boxes"] and "flow" not in state.stages_ms  # the network never ran
-    f = state.data["factor"]
-    y0, y1, x0, x1 = (v * f for v in state.data["boxes"][0])
+    assert state.data.boxes and "flow" in state.stages_ms
+    f = state.data.factor
+    y0, y1, x0, x1 = (v * f for v in state.data.boxes[0])
     older, newest = frames[2], frames[4]
-    # DIS runs on the whole frame (dis_context=-1), and its flow is kept outside the boxes too (dis_outside)
-    (ry0, ry1), (rx0, rx1) = (context_span(y0, y1, -1, 128), context_span(x0, x1, -1, 192))
-    assert (ry0, ry1, rx0, rx1) == (0, 128, 0, 192)
-    k_box = np.array(newest.camera.intrinsics, np.float64)
-    k_box[0, 2] -= rx0
-    k_box[1, 2] -= ry0
+    # DIS runs on the whole frame, and its flow is kept outside the boxes too
     moved, _ = geometry.forward_warp_mpi(geometry.build_mpi(older.color, older.depth, 1), older.camera.intrinsics,
-                                         older.camera.world_to_camera, k_box, newest.camera.world_to_camera,
-                                         out_size=(ry1 - ry0, rx1 - rx0))
+                                         older.camera.world_to_camera, np.array(newest.camera.intrinsics, np.float64),
+                                         newest.camera.world_to_camera, out_size=(128, 192))
     color_w, depth_w, acc = geometry.composite(moved)
-    color_n = newest.color[ry0:ry1, rx0:rx1]
-    dis = dis_flow(luma8(color_n), dis_target(color_n, color_w, acc > 0, depth_w))  # dis_holes=fill
-    np.testing.assert_allclose(state.data["flow"][:2, 0], np.moveaxis(dis, -1, 0), atol=1e-5)
-    assert not state.data["flow"][2].any()
+    color_n = newest.color
+    dis = dis_flow(luma8(color_n), dis_target(color_n, color_w, acc > 0, depth_w))  # holes: reproject's fill
+    initial = whole_frame_initial_flow(older, newest, "medium")
+    np.testing.assert_allclose(initial.flow, dis, atol=1e-5)
     # ... which is flow2d's DIS flow (the same camera warp and hole fill; frames here leave no hole whose row
     # and column are both empty, the one place the two fills' fallbacks differ)
-    flow2d = make_predictor("flow2d").prepare([older, newest]).data["flow_back"]
-    np.testing.assert_allclose(state.data["flow"][:2, 0], np.moveaxis(flow2d, -1, 0), atol=1e-5)
-    # dis_holes=own: frame n's own colour in the holes (the network's training data), initial_flow's target
-    own = DecompPredictor(DecompConfig(refine=False, dis_holes="own"), network).prepare([older, newest])
-    np.testing.assert_allclose(own.data["flow"][:2, 0],
-                               np.moveaxis(initial_flow(color_n, color_w, acc > 0), -1, 0), atol=1e-5)
-    assert (acc <= 0).any() and np.abs(own.data["flow"] - state.data["flow"]).max() > 0.01
-    with pytest.raises(InputError, match="dis_holes must be 'fill' or 'own'"):
-        DecompConfig(dis_holes="black")
-    # without dis_outside the flow is zero outside the boxes, DIS (cut from the same whole-frame DIS) inside
-    inside_only = DecompPredictor(DecompConfig(refine=False, dis_outside=False), network).prepare(
-        [frames[2], frames[4]]).data["flow"]
+    flow2d = make_predictor("flow2d").prepare([older, newest]).data.flow_back
+    np.testing.assert_allclose(initial.flow, flow2d, atol=1e-5)
+    # frame n's own colour in the holes (initial_flow's target, the network's training data) gives another flow
+    own = initial_flow(color_n, color_w, acc > 0)
+    assert (acc <= 0).any() and np.abs(own - dis).max() > 0.01
+    flow = state.data.flow
     outside = np.ones(newest.depth.shape, bool)
-    for b in state.data["boxes"]:
+    for b in state.data.boxes:
         outside[b[0] * f:b[1] * f, b[2] * f:b[3] * f] = False
-    assert not inside_only[:, 0][:, outside].any() and outside.any()
-    np.testing.assert_allclose(inside_only[:2, 0, y0:y1, x0:x1], np.moveaxis(dis, -1, 0)[:, y0:y1, x0:x1], atol=1e-5)
-    # and the network changes that flow (what refine=1 adds is measured in docs/flow3d.md)
-    refined = DecompPredictor(DecompConfig(), network).prepare([frames[2], frames[4]]).data["flow"]
-    assert np.abs(refined - state.data["flow"]).max() > 0.01
-    plain = FlowNetwork(DEFAULT_MODEL)
-    plain.needs_initial_flow = False  # a network trained without an initial flow: nothing to keep
-    with pytest.raises(InputError, match="refine"):
-        DecompPredictor(DecompConfig(refine=False), plain)
+    assert outside.any()
+    np.testing.assert_allclose(flow[:2, 0][:, outside], np.moveaxis(dis, -1, 0)[:, outside], atol=1e-5)
+    assert not flow[2].any()
+    # and the network changes that flow inside the boxes
+    assert np.abs(flow[:2, 0, y0:y1, x0:x1] - np.moveaxis(dis, -1, 0)[:, y0:y1, x0:x1]).max() > 0.01
 
 
 def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
@@ -317,45 +305,39 @@ def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
     assert np.allclose(warp_error(luma_n, target, (2, 10), far, window=1), 255.0)
 
 
-def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(network):
+def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(network, monkeypatch):
     frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12, square_half=0.25)
     pair = [frames[2], frames[4]]
-    checked = DecompPredictor(DecompConfig(), network).prepare(pair).data["flow"]
-    refined = DecompPredictor(DecompConfig(refine_check=False), network).prepare(pair).data["flow"]
-    initial = DecompPredictor(DecompConfig(refine=False), network).prepare(pair).data["flow"]
+
+    def flow_with_margin(margin):
+        monkeypatch.setattr(decomp_module, "REFINE_MARGIN", margin)
+        return DecompPredictor(DecompConfig(), network).prepare(pair).data.flow
+
+    checked = flow_with_margin(1.0)
+    refined = flow_with_margin(-np.inf)  # every pixel keeps the refined flow: no check
+    initial = np.zeros_like(checked)
+    initial[:2, 0] = np.moveaxis(whole_frame_initial_flow(*pair, "medium").flow, -1, 0)
     is_refined = np.isclose(checked, refined, atol=1e-6).all(axis=0)
     is_initial = np.isclose(checked, initial, atol=1e-6).all(axis=0)
     assert (is_refined | is_initial).all()
     differ = ~np.isclose(refined, initial, atol=1e-6).all(axis=0)
     assert (differ & is_refined).any() and (differ & is_initial).any()  # both choices occur where they differ
     # the margin only moves pixels from the refined to the initial flow; an unreachable margin keeps DIS alone
-    strict = DecompPredictor(DecompConfig(refine_margin=0.0), network).prepare(pair).data["flow"]
+    strict = flow_with_margin(0.0)
     kept_strict = ~np.isclose(strict, initial, atol=1e-6).all(axis=0)
     kept_margin = ~np.isclose(checked, initial, atol=1e-6).all(axis=0)
     assert not (kept_margin & ~kept_strict).any() and kept_margin.sum() <= kept_strict.sum()
-    never = DecompPredictor(DecompConfig(refine_margin=256.0), network).prepare(pair).data["flow"]
+    never = flow_with_margin(256.0)
     np.testing.assert_allclose(never, initial, atol=1e-6)
-    for bad in (-1.0, float("nan"), float("inf")):
-        with pytest.raises(InputError, match="refine_margin"):
-            DecompConfig(refine_margin=bad)
 
 
-def test_dis_regions_grow_clip_and_merge():
-    assert context_span(200, 300, 300, 1000) == (100, 400)  # grown on both sides
-    assert context_span(0, 50, 300, 1000) == (0, 300) and context_span(900, 990, 300, 1000) == (700, 1000)
-    assert context_span(100, 700, 300, 1000) == (100, 700)  # already large enough
-    assert context_span(10, 20, 720, 256) == (0, 256)  # a context larger than the frame: the whole frame
-    assert context_region((10, 20, 400, 500), 100, (64, 1000)) == (0, 64, 400, 500)
+def test_full_box_takes_the_rows_past_the_last_block():
     assert full_box((0, 5, 2, 8), 4, (5, 8), (22, 35)) == (0, 22, 8, 35)  # last block row/column take the rest
-    assert merge_regions([(0, 10, 0, 10), (5, 20, 5, 20), (30, 40, 30, 40)]) == [(0, 20, 0, 20), (30, 40, 30, 40)]
-    # a merge that makes a region overlap a third one merges that one too
-    assert merge_regions([(0, 10, 0, 10), (0, 10, 20, 30), (0, 10, 8, 22)]) == [(0, 10, 0, 30)]
-    assert merge_regions([(0, 10, 0, 10), (10, 20, 0, 10)]) == [(0, 10, 0, 10), (10, 20, 0, 10)]  # touching only
-    assert merge_regions([]) == []
+    assert full_box((1, 3, 2, 4), 4, (5, 8), (22, 35)) == (4, 12, 8, 16)
 
 
 def test_dis_at_its_finest_scale_equals_dis_on_the_full_image():
-    """The fact dis_resolution=finest rests on: DIS 'medium' (finest scale 1) on a full-size image is DIS with
+    """DIS 'medium' (finest scale 1) on a full-size image is DIS with
     finest scale 0 on the image's 2 x 2 block means, bilinearly upsampled (``upsample_blocks``) and doubled."""
     import cv2
 
@@ -382,55 +364,33 @@ def test_upsample_blocks_matches_the_block_grid_and_pads_the_remainder():
     np.testing.assert_array_equal(upsample_blocks(image, 1, (3, 4)), image)
 
 
-def test_dis_resolution_finest_finds_the_motion_and_rejects_bad_values(network):
-    frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12,
-                                   square_half=0.25)
-    moving = frames[4].moving
-    expected = -2.0 * frames[4].object_flow[..., 0][moving]
-    errors = {}
-    for resolution in ("full", "finest"):
-        pred = DecompPredictor(DecompConfig(dis_resolution=resolution), network)
-        state = pred.prepare([frames[2], frames[4]])
-        assert state.data["boxes"]
-        errors[resolution] = float(np.median(np.abs(pred.object_flow(state)[..., 0][moving] - expected)))
-        out = pred.render(state, _target(frames[5]))
-        assert np.isfinite(out.color).all()
-    assert errors["finest"] < 0.35 * np.abs(expected).mean(), errors
-    with pytest.raises(InputError, match="dis_resolution must be 'finest' or 'full'"):
-        DecompConfig(dis_resolution="half")
-
-
 @pytest.mark.parametrize("size", [(65, 97), (5, 7), (3, 200)])
-def test_dis_resolution_finest_on_odd_and_tiny_frames(network, size):
-    """Sizes that are no multiple of the DIS block (the last full-size rows / columns take the last block's
-    flow), frames of a few pixels and a frame 3 px high (smaller than the network's stride and DIS's block
-    on one side): finite output of the frame's size, the initial flow covering every pixel."""
+def test_odd_and_tiny_frames(network, size):
+    """Sizes that are no multiple of the working-resolution block (the last full-size rows / columns take the
+    last block's flow), frames of a few pixels and a frame 3 px high (smaller than the network's stride and
+    DIS's block on one side): finite output of the frame's size, the initial flow covering every pixel."""
     h, w = size
     frames, _ = two_layer_sequence(4, width=w, height=h, camera_speed=0.02, object_speed=0.15)
-    pred = DecompPredictor(DecompConfig(dis_resolution="finest", gate=False), network)
+    pred = DecompPredictor(DecompConfig(gate=GateConfig(enabled=False)), network)
     state = pred.prepare([frames[1], frames[3]])
-    assert state.data["flow"].shape[-2:] == (h, w) and np.isfinite(state.data["flow"]).all()
+    assert state.data.flow.shape[-2:] == (h, w) and np.isfinite(state.data.flow).all()
     out = pred.render(state, _target(frames[3]))
     assert out.color.shape == (h, w, 3) and np.isfinite(out.color).all()
 
 
-def test_dis_context_finds_motion_larger_than_a_small_box_reaches(network):
-    """A small square moving 29 px a frame (58 px between the two frames): DIS on its gate box alone has too few
-    pyramid levels and stops short; on the box grown to ``dis_context`` pixels it finds the motion."""
+def test_whole_frame_dis_finds_motion_larger_than_a_small_box_reaches(network):
+    """A small square moving 29 px a frame (58 px between the two frames): DIS on its gate box alone would
+    have too few pyramid levels and stop short; DIS on the whole frame finds the motion."""
     frames, _ = two_layer_sequence(5, width=480, height=256, camera_speed=0.01, object_speed=0.2, square_half=0.2)
     moving = frames[3].moving
     expected = -2.0 * frames[3].object_flow[..., 0][moving]
     assert np.abs(expected).min() > 55
-    errors = {}
-    for context in (0, 720):
-        pred = DecompPredictor(DecompConfig(refine=False, dis_context=context, dis_outside=False), network)
-        state = pred.prepare([frames[1], frames[3]])
-        (y0, y1, x0, x1), = state.data["boxes"]
-        assert (y1 - y0) * (x1 - x0) < 0.3 * 480 * 256  # one box, well inside the frame
-        errors[context] = float(np.median(np.abs(pred.object_flow(state)[..., 0][moving] - expected)))
-    assert errors[720] < 0.15 * np.abs(expected).mean() and errors[0] > 2.0 * errors[720], errors
-    with pytest.raises(InputError, match="dis_context"):
-        DecompConfig(dis_context=-2)
+    pred = DecompPredictor(DecompConfig(), network)
+    state = pred.prepare([frames[1], frames[3]])
+    (y0, y1, x0, x1), = state.data.boxes
+    assert (y1 - y0) * (x1 - x0) < 0.3 * 480 * 256  # one box, well inside the frame
+    error = float(np.median(np.abs(pred.object_flow(state)[..., 0][moving] - expected)))
+    assert error < 0.15 * np.abs(expected).mean(), error
 
 
 def _sky_frame(index, camera, width=96, height=64):
@@ -445,7 +405,7 @@ def test_all_sky_and_one_to_thousand_depth_stay_finite(network):
     cams = [Camera(k, rigid([0, 1, 0], 0.02 * i, [0.05 * i, 0, 0])) for i in range(3)]
     sky = [_sky_frame(i, cams[i]) for i in range(3)]
     for gate in (True, False):
-        out = DecompPredictor(DecompConfig(gate=gate), network).predict(sky[:2], _target(sky[2]))
+        out = DecompPredictor(DecompConfig(gate=GateConfig(enabled=gate)), network).predict(sky[:2], _target(sky[2]))
         assert np.isfinite(out.color).all()
     frames = []
     for i in range(3):  # a near square at depth 0.01 in front of a wall at 10 (1:1000), moving
@@ -456,7 +416,7 @@ def test_all_sky_and_one_to_thousand_depth_stay_finite(network):
         color[20:40, 30 + 4 * i:50 + 4 * i] = [0.9, 0.1, 0.1]
         frames.append(Frame(index=i, time=f.time, color=color, depth=depth, camera=cams[i]))
     for gate in (True, False):
-        out = DecompPredictor(DecompConfig(gate=gate), network).predict(frames[:2], _target(frames[2]))
+        out = DecompPredictor(DecompConfig(gate=GateConfig(enabled=gate)), network).predict(frames[:2], _target(frames[2]))
         assert np.isfinite(out.color).all() and out.color.shape == frames[2].color.shape
 
 
@@ -490,8 +450,10 @@ def test_single_plane_network_and_tiny_frames():
 def test_bad_inputs_name_the_problem(network, tmp_path):
     with pytest.raises(InputError, match="flow network not found"):
         FlowNetwork(tmp_path / "missing.onnx")
+    with pytest.raises(InputError, match="GateConfig"):
+        GateConfig(tile=0)
     with pytest.raises(InputError, match="DecompConfig"):
-        DecompConfig(tile=0)
+        DecompConfig(threads=0)
     frames, _ = two_layer_sequence(3)
     pred = DecompPredictor(DecompConfig(), network)
     with pytest.raises(InputError, match="needs 2 rendered frames"):
@@ -500,50 +462,34 @@ def test_bad_inputs_name_the_problem(network, tmp_path):
         pred.prepare([frames[1], frames[0]])
 
 
-def test_merge_planes_adds_disjoint_planes_and_keeps_their_flow():
-    rng = np.random.default_rng(3)
-    depth = np.full((10, 12), 8.0, np.float32)
-    depth[:, :6] = 1.0
-    depth[0, 0] = 2.0  # plane holding 1 of 120 pixels
-    mpi = geometry.build_mpi(rng.random((10, 12, 3), dtype=np.float32), depth, 4)
-    share = mpi.alpha.reshape(4, -1).mean(axis=1)
-    assert (share == 0).any() and ((share > 0) & (share < 0.02)).any()
-    flow = rng.random((3,) + mpi.alpha.shape).astype(np.float32) * mpi.alpha[None]
-    dropped, dropped_flow = merge_planes(mpi, flow, 0.0)  # empty planes only
-    assert dropped.alpha.shape[0] == int((share > 0).sum())
-    merged, merged_flow = merge_planes(mpi, flow, 0.02)
-    assert merged.alpha.shape[0] == 2
-    for full, fewer in ((mpi.alpha, merged.alpha), (mpi.depth, merged.depth)):
-        np.testing.assert_array_equal(full.sum(axis=0), fewer.sum(axis=0))  # every pixel kept once
-    np.testing.assert_array_equal(flow.sum(axis=1), merged_flow.sum(axis=1))
-    np.testing.assert_array_equal(mpi.color.sum(axis=1), merged.color.sum(axis=1))
-    a, b, _ = geometry.composite(mpi), geometry.composite(merged), None
-    np.testing.assert_allclose(a[0], b[0])
-
-
 def test_method_options_parse_and_reject_bad_ones():
-    assert split_methods("reproject, decomp[gate=0,flow_width=240],flow2d") == [
-        "reproject", "decomp[gate=0,flow_width=240]", "flow2d"]
-    config = config_from_options("gate=0,flow_width=240,min_plane_fraction=0.01", model="x.onnx")
-    assert (config.gate, config.flow_width, config.min_plane_fraction, config.model) == (False, 240, 0.01, "x.onnx")
-    for bad in ("gate=maybe", "flow_width=wide", "nonsense=1", "gate"):
+    assert split_methods("reproject, decomp[gate.enabled=false,flow_width=240],flow2d") == [
+        "reproject", "decomp[gate.enabled=false,flow_width=240]", "flow2d"]
+    config = decomp_config("gate.enabled=0,flow_width=240,gate.tile=16,model=x.onnx")
+    assert (config.gate.enabled, config.flow_width, config.gate.tile, config.model) == (False, 240, 16, "x.onnx")
+    assert decomp_config("").model == str(DEFAULT_MODEL)
+    for bad in ("gate.enabled=maybe", "flow_width=wide", "nonsense=1", "gate", "gate=0"):
         with pytest.raises(InputError, match="option"):
-            config_from_options(bad)
+            decomp_config(bad)
     with pytest.raises(InputError, match="only decomp"):
         make_predictor("reproject[gate=0]")
     assert make_predictor("flow2d[preset=fast]").name == "flow2d"
     for bad in ("flow2d[gate=0]", "flow2d[preset=slow]"):
         with pytest.raises(InputError, match="preset"):
             make_predictor(bad)
+    # motion=truth: decomp given the true object motion (the bound), which needs the sequence's objects
+    _, objects = two_layer_sequence(2)
+    assert type(make_predictor("decomp[motion=truth,fill=simple]", objects)) is DecompTrueMotion
+    assert type(make_predictor("decomp[motion=predicted]")) is DecompPredictor
+    with pytest.raises(InputError, match="motion=truth needs the sequence's moving objects"):
+        make_predictor("decomp[motion=truth]")
+    with pytest.raises(InputError, match="motion must be 'predicted' or 'truth'"):
+        make_predictor("decomp[motion=guess]")
 
 
-def test_depth_flow_needs_a_graph_that_computes_dz(network):
-    """The committed graph is exported without dz (--no-depth-flow): decomp[depth_flow=1] says so instead of
-    applying dz = 0; a graph with dz (metadata depth_flow true, e.g. the 2D ablation's) is accepted."""
+def test_committed_networks_and_dz(network):
+    """The committed graph is exported without dz (--no-depth-flow); the 2D ablation's computes it. decomp
+    uses (du, dv) only either way (dz comes out 0)."""
     assert not network.depth_flow
-    with pytest.raises(InputError, match="no-depth-flow"):
-        DecompPredictor(DecompConfig(depth_flow=True), network=network)
-    DecompPredictor(DecompConfig(depth_flow=False), network=network)
     with_dz = FlowNetwork(DEFAULT_MODEL.with_name("flow2d.onnx"), threads=1)
     assert with_dz.depth_flow
-    DecompPredictor(DecompConfig(depth_flow=True), network=with_dz)

@@ -17,7 +17,8 @@ import pytest
 import torch
 
 from engine import geometry
-from engine.predict.decomp.predictor import DEFAULT_MODEL, METADATA_KEY, FlowNetwork, initial_flow
+from engine.predict.decomp.network import DEFAULT_MODEL, METADATA_KEY, FlowNetwork
+from engine.predict.dis import initial_flow
 from engine.geometry import Mpi as NpMpi
 from export.flow import with_planes
 from models.flow.network import mpi_pair
@@ -76,4 +77,4 @@ def test_onnx_metadata_records_the_working_width():
     meta = {p.key: p.value for p in onnx.load(str(DEFAULT_MODEL), load_external_data=False).metadata_props}
     info = json.loads(meta[METADATA_KEY])
     assert info["working_width"] == 480 and info["model"]["num_planes"] == 2  # exported with --num-planes 2
-    assert info["depth_flow"] is False  # and --no-depth-flow (the engine's decomp[depth_flow=0] uses no dz)
+    assert info["depth_flow"] is False  # and --no-depth-flow (the engine's decomp uses no dz)

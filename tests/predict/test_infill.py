@@ -330,9 +330,8 @@ def test_train_config_errors(tmp_path):
 def test_decomp_with_infilling_and_true_motion(exported):
     """decomp with the infilling network: finite, known pixels copied; motion=truth (the bound) beats the
     predicted motion on moving pixels; the simple fill stays available as an ablation."""
-    from engine.predict.decomp.predictor import DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork
     from engine.eval.metrics import score_frame
-    from engine.predict.predictors import Target
+    from engine.predict import DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompTrueMotion, FlowNetwork, Target
     from tests.synthetic import two_layer_sequence
 
     _, path = exported
@@ -341,9 +340,10 @@ def test_decomp_with_infilling_and_true_motion(exported):
     truth = frames[5]
     target = Target(truth.camera, truth.time, truth.index)
     scores = {}
-    for name, cfg in {"infill": DecompConfig(), "simple": DecompConfig(fill="simple"),
-                      "truth": DecompConfig(motion="truth")}.items():
-        pred = DecompPredictor(cfg, flow_net, objects, infill=infill_net if cfg.fill == "infill" else None)
+    for name, (kind, cfg) in {"infill": (DecompPredictor, DecompConfig()),
+                              "simple": (DecompPredictor, DecompConfig(fill="simple")),
+                              "truth": (DecompTrueMotion, DecompConfig())}.items():
+        pred = kind(cfg, flow_net, objects, infill=infill_net if cfg.fill == "infill" else None)
         out = pred.predict([frames[2], frames[4]], target)
         assert np.isfinite(out.color).all() and out.holes.any()
         if cfg.fill == "infill":
@@ -357,4 +357,4 @@ def test_decomp_with_infilling_and_true_motion(exported):
     out = pred.predict([frames[2], frames[4]], target)
     assert np.isfinite(out.color).all() and "infill_network" in out.stages_ms
     with pytest.raises(InputError, match="motion=truth"):
-        DecompPredictor(DecompConfig(motion="truth"), flow_net, (), infill=infill_net)
+        DecompTrueMotion(DecompConfig(), flow_net, (), infill=infill_net)

@@ -4,7 +4,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.eval.metrics import score_frame
-from engine.predict.predictors import Flow2D, Oracle, Repeat, Reproject, Target, make_predictor
+from engine.predict import Flow2D, Oracle, Repeat, Reproject, Target, make_predictor
 from tests.synthetic import two_layer_sequence
 
 
@@ -121,7 +121,7 @@ def test_upsample_stream_shows_rendered_ticks_and_predicts_the_rest():
 def test_dis_on_images_smaller_than_it_takes(size):
     """OpenCV's DIS raises on, or crashes the process for, images with a side under ~32 px (12 x 200 crashed
     it): ``dis_calc`` pads them by repeating edges and crops the flow; flow2d and decomp run on such frames."""
-    from engine.predict.predictors import dis_calc, dis_estimator, luma8
+    from engine.predict import dis_calc, dis_estimator, luma8
 
     h, w = size
     frames, _ = two_layer_sequence(4, width=w, height=h, camera_speed=0.02, object_speed=0.15)
@@ -130,13 +130,13 @@ def test_dis_on_images_smaller_than_it_takes(size):
         flow = dis_calc(dis_estimator(preset, 0), a, b)
         assert flow.shape == (h, w, 2) and np.isfinite(flow).all()
     target = Target(frames[3].camera, frames[3].time, frames[3].index)
-    for method in ("flow2d", "decomp[gate=0]", "decomp[gate=0,dis_resolution=finest]"):
+    for method in ("flow2d", "decomp[gate.enabled=false]"):
         out = make_predictor(method).predict([frames[1], frames[3]], target)
         assert out.color.shape == (h, w, 3) and np.isfinite(out.color).all()
 
 
 def test_dis_calc_leaves_large_images_alone_and_checks_shapes():
-    from engine.predict.predictors import dis_calc, dis_estimator, luma8
+    from engine.predict import dis_calc, dis_estimator, luma8
 
     frames, _ = two_layer_sequence(4, width=96, height=64, camera_speed=0.02, object_speed=0.15)
     a, b = luma8(frames[3].color), luma8(frames[1].color)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from engine.predict.predictors import Repeat, Target, make_predictor
+from engine.predict import Repeat, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 from tests.synthetic import two_layer_sequence
 

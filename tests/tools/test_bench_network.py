@@ -7,7 +7,7 @@ import json
 import pytest
 
 from tools import bench_network
-from engine.predict.decomp.predictor import DEFAULT_MODEL
+from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.io.rgbd import write_sequence
 from tests.synthetic import two_layer_sequence

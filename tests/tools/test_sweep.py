@@ -5,7 +5,7 @@ import shutil
 
 import pytest
 
-from engine.predict.decomp.predictor import DEFAULT_MODEL
+from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.eval.protocol import MethodResult
 from engine.io.rgbd import write_sequence

@@ -15,7 +15,7 @@ Conventions: ``engine/geometry/ops.py`` (pixel centres at +0.5, planar depth, +i
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from engine.core.errors import InputError, InterleaveError
 from engine.geometry import Mpi
 from engine.weights import INFILL
 from engine.geometry.holefill import fill_holes, fill_sources
+from engine.predict.base import Timer
+from engine.predict.decomp.gate import motion_boxes
+from engine.predict.onnx import open_network
 
 __all__ = ["InfillNetwork", "DEFAULT_INFILL_MODEL", "METADATA_KEY", "downsample_holes", "hole_mpi",
            "prior_vectors", "candidate_vectors", "apply_vectors", "composite_holes", "copy_along_vectors", "hole_boxes",
@@ -177,9 +180,7 @@ def hole_boxes(holes: np.ndarray, margin: int, stride: int,
     """Boxes (y0, y1, x0, x1) of the network grid the infilling network must see: tiles of ``stride``
     pixels holding a hole, grown by ``margin`` pixels of context, snapped to ``stride`` (so a box sees the
     same U-Net grid as the whole frame); the whole frame when the boxes cover more than
-    ``full_frame_fraction`` of it (the motion gate's ``engine.predict.decomp.predictor.motion_boxes``)."""
-    from engine.predict.decomp.predictor import motion_boxes
-
+    ``full_frame_fraction`` of it (the motion gate's ``engine.predict.decomp.gate.motion_boxes``)."""
     return motion_boxes(holes, stride, 0.0, margin, stride, full_frame_fraction)
 
 
@@ -187,8 +188,6 @@ class InfillNetwork:
     """The exported infilling network in onnxruntime, and the engine's infilling loop (``fill``)."""
 
     def __init__(self, path: str | Path, threads: int = 2) -> None:
-        from engine.predict.decomp.predictor import open_network
-
         path = Path(path)
         self.session, info = open_network(path, threads, METADATA_KEY, "infill_model", "infilling network not "
                                           "found (train and export one: interleave train infill / interleave "
@@ -238,13 +237,13 @@ class InfillNetwork:
 
     def fill(self, color: np.ndarray, depth: np.ndarray, holes: np.ndarray, plane_depths: np.ndarray,
              fallback: Optional[np.ndarray] = None, iterations: int = 3,
-             timer: Optional[Callable] = None, margin: Optional[int] = RECEPTIVE_MARGIN) -> tuple[np.ndarray, np.ndarray]:
+             timer: Optional[Timer] = None, margin: Optional[int] = RECEPTIVE_MARGIN) -> tuple[np.ndarray, np.ndarray]:
         """Infill the holes of a predicted frame in ``iterations`` passes, then the simple fill for the rest.
 
         Args:
             color: (H, W, 3) linear RGB; depth: (H, W) planar (+inf sky or hole); holes: (H, W) bool.
             plane_depths: (Z,) planes of frame n (the network's Z); fallback: colour for pixels nothing
-                can reach (``engine.geometry.holefill``); timer: optional ``timer(stage, fn, *args)`` (stage times).
+                can reach (``engine.geometry.holefill``); timer: collects the stage times (``engine.predict.base.Timer``).
             margin: the hole gate: the network runs on boxes around the holes with this many pixels of its
                 grid as context (``hole_boxes``; the frame is downsampled and the prior vectors found within
                 each box; at ``RECEPTIVE_MARGIN`` or more the vectors equal the whole-frame run's, tested);
@@ -252,7 +251,7 @@ class InfillNetwork:
         Returns:
             (colour, depth) with every hole filled by a copy of a known pixel.
         """
-        run = timer if timer is not None else (lambda _name, fn, *a: fn(*a))
+        timer = timer if timer is not None else Timer()
         planes = np.asarray(plane_depths, np.float32)
         if planes.shape != (self.num_planes,):
             raise InputError(f"needs {self.num_planes} plane depths, got shape {planes.shape}", field="plane_depths")
@@ -268,33 +267,38 @@ class InfillNetwork:
             low_h = holes[:h * factor, :w * factor].reshape(h, factor, w, factor).any(axis=(1, 3))
             if not low_h.any() or low_h.all():
                 break  # nothing at this scale to fill from (all hole) or the holes vanished in the blocks
-            boxes = [(0, h, 0, w)] if margin is None else run("infill_prepare", hole_boxes, low_h, int(margin),
-                                                                self.stride)
+            if margin is None:
+                boxes = [(0, h, 0, w)]
+            else:
+                with timer("infill_prepare"):
+                    boxes = hole_boxes(low_h, int(margin), self.stride)
             choice = self.head == "choice"
             vec = np.zeros((2, self.num_planes, h, w), dtype=np.float32)
             pick = np.zeros((h, w), dtype=np.intp)
             for y0, y1, x0, x1 in boxes:  # the frame is downsampled and the prior found inside each box only
                 full = (slice(y0 * factor, y1 * factor), slice(x0 * factor, x1 * factor))
-                low_c, low_d, box_h = run("infill_prepare", downsample_holes, color[full], depth[full], holes[full],
-                                          factor)
-                prior = run("infill_prepare", candidate_vectors if choice else prior_vectors, low_d, box_h)
-                low_mpi = run("infill_prepare", hole_mpi, low_c, low_d, box_h, planes)
-                if choice:
-                    pick[y0:y1, x0:x1] = run("infill_network", self.choices, low_mpi, box_h, prior)
-                else:
-                    vec[:, :, y0:y1, x0:x1] = run("infill_network", self.vectors, low_mpi, box_h, prior)
+                with timer("infill_prepare"):
+                    low_c, low_d, box_h = downsample_holes(color[full], depth[full], holes[full], factor)
+                    prior = (candidate_vectors if choice else prior_vectors)(low_d, box_h)
+                    low_mpi = hole_mpi(low_c, low_d, box_h, planes)
+                with timer("infill_network"):
+                    if choice:
+                        pick[y0:y1, x0:x1] = self.choices(low_mpi, box_h, prior)
+                    else:
+                        vec[:, :, y0:y1, x0:x1] = self.vectors(low_mpi, box_h, prior)
             # full resolution: each hole pixel takes its block's vector times the block size (residual head),
             # or its block's choice of candidate, found at full resolution (choice head); edge blocks repeat
             rows, cols = np.nonzero(holes)
             brow, bcol = np.minimum(rows // factor, h - 1), np.minimum(cols // factor, w - 1)
-            if choice:
-                cand = run("infill_apply", candidate_vectors, depth, holes).reshape(-1, 2, big_h, big_w)
-                full_vec = np.broadcast_to(cand[pick[brow, bcol], :, rows, cols].T[:, None],
-                                           (2, self.num_planes, rows.size))
-            else:
-                full_vec = vec[:, :, brow, bcol] * np.float32(factor)
-            color, depth, holes = run("infill_apply", copy_along_vectors, color, depth, holes, planes, rows, cols,
-                                      full_vec)
+            with timer("infill_apply"):
+                if choice:
+                    cand = candidate_vectors(depth, holes).reshape(-1, 2, big_h, big_w)
+                    full_vec = np.broadcast_to(cand[pick[brow, bcol], :, rows, cols].T[:, None],
+                                               (2, self.num_planes, rows.size))
+                else:
+                    full_vec = vec[:, :, brow, bcol] * np.float32(factor)
+                color, depth, holes = copy_along_vectors(color, depth, holes, planes, rows, cols, full_vec)
         if holes.any():
-            color, depth = run("fill", fill_holes, color, depth, holes, fallback)
+            with timer("fill"):
+                color, depth = fill_holes(color, depth, holes, fallback)
         return color, depth

@@ -231,7 +231,7 @@ def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4
     ``consistency`` px and they land inside image b. Returns (xy_a (M, 2), xy_b (M, 2)), centres at +0.5."""
     import cv2
 
-    from engine.predict.predictors import dis_calc, dis_estimator, luma8
+    from engine.predict import dis_calc, dis_estimator, luma8
 
     ga, gb = luma8(image_a), luma8(image_b)
     dis = dis_estimator("medium")

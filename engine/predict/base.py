@@ -1,0 +1,170 @@
+"""The predictor interface: targets, predictions, the prepared state, stage timing and the ``Predictor`` base.
+
+Every method sits behind one interface so the evaluation, the demo and the game-engine API call them alike:
+
+- ``prepare(history)`` does the work that depends only on the rendered frames (e.g. estimating motion
+  between frame n-k and frame n) once per rendered frame;
+- ``render(state, target)`` predicts one in-between frame from that state;
+- ``predict(history, target)`` is both in one call.
+
+``history`` lists rendered frames oldest first and ends with frame n (the newest); methods that need
+motion use ``history[-2]`` as frame n-k. Timings of each stage are returned in milliseconds.
+Conventions are those of ``engine/core/frames.py`` (OpenCV cameras, planar depth, linear RGB).
+"""
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Iterator, Optional, Sequence
+
+import numpy as np
+
+from engine import geometry
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame, rigid_inverse
+from engine.geometry.holefill import fill_holes
+
+__all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
+           "true_object_flow"]
+
+
+@dataclass(frozen=True)
+class Target:
+    """The frame to predict: its camera, its time in seconds, and its index in the stream."""
+
+    camera: Camera
+    time: float
+    index: int = -1
+
+
+@dataclass
+class Prediction:
+    """A predicted frame: colour (H, W, 3) linear RGB, the holes the method had to fill, stage timings."""
+
+    color: np.ndarray
+    holes: np.ndarray
+    stages_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PreparedState:
+    """What ``prepare`` computed from the rendered frames, reused for every predicted frame until the next:
+    ``data`` is the method's own typed per-frame state (a dataclass, e.g. ``Flow2DState``; None when the
+    method keeps none)."""
+
+    history: Sequence[Frame]
+    data: Any = None
+    stages_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Timer:
+    """Collects wall-clock milliseconds of named stages: ``with timer("stage"): ...`` adds the block's time
+    to ``into["stage"]`` (a stage entered several times accumulates)."""
+
+    def __init__(self, into: Optional[dict[str, float]] = None) -> None:
+        self.into = {} if into is None else into
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.into[name] = self.into.get(name, 0.0) + 1e3 * (time.perf_counter() - start)
+
+
+class Predictor:
+    """Base class: subclasses set ``name``, ``history_needed`` and implement ``_prepare``/``_render``."""
+
+    name = "base"
+    #: number of rendered frames the method needs (1: frame n only, 2: frames n-k and n)
+    history_needed = 1
+
+    def prepare(self, history: Sequence[Frame]) -> PreparedState:
+        if len(history) < self.history_needed:
+            raise InputError(f"method '{self.name}' needs {self.history_needed} rendered frames, got {len(history)}",
+                             field="history")
+        newest = history[-1]
+        for f in history[-self.history_needed:]:
+            if f.depth.shape != newest.depth.shape:
+                raise InputError(f"frame size {f.depth.shape} differs from the newest frame's {newest.depth.shape}",
+                                 frame=f.index, field="history")
+        if self.history_needed > 1 and not history[-2].time < newest.time:
+            raise InputError(f"frames must be in time order: frame {history[-2].index} at t={history[-2].time} "
+                             f"is not before frame {newest.index} at t={newest.time}", field="history")
+        state = PreparedState(history=history)
+        state.data = self._prepare(state, Timer(state.stages_ms))
+        return state
+
+    def render(self, state: PreparedState, target: Target) -> Prediction:
+        stages: dict[str, float] = {}
+        color, holes = self._render(state, target, Timer(stages))
+        return Prediction(color=color, holes=holes, stages_ms=stages)
+
+    def predict(self, history: Sequence[Frame], target: Target) -> Prediction:
+        """Prepare and render in one call (stage timings include the preparation)."""
+        state = self.prepare(history)
+        out = self.render(state, target)
+        out.stages_ms = {**state.stages_ms, **out.stages_ms}
+        return out
+
+    def _prepare(self, state: PreparedState, timer: Timer) -> Any:
+        """The method's per-frame state (``state.data``) from ``state.history``; None by default."""
+        return None
+
+    def _render(self, state: PreparedState, target: Target, timer: Timer) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+def warp_and_fill(frame: Frame, target: Target, timer: Timer,
+                  flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and
+    fill the holes (``engine.geometry.holefill``); stages ``warp`` and ``fill``. Returns (colour, holes)."""
+    src, dst = frame.camera, target.camera
+    with timer("warp"):
+        color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
+                                                          src.world_to_camera, dst.intrinsics, dst.world_to_camera,
+                                                          flow)
+    with timer("fill"):
+        color, _ = fill_holes(color, depth, holes, frame.color)
+    return color, holes
+
+
+def extrapolation_factor(state: PreparedState, target: Target) -> float:
+    """k'/k of thesis Eq. 6.13 from the frame times: how far past frame n the target lies, per step n-k -> n."""
+    older, newest = state.history[-2], state.history[-1]
+    return (target.time - newest.time) / (newest.time - older.time)
+
+
+def true_object_flow(frame: Frame, objects: dict, target_index: int) -> np.ndarray:
+    """(H, W, 3) flow in frame n's view from TRUE object motion to frame ``target_index``: pixel displacement
+    (du, dv) and planar depth change dz of every pixel whose object moves (0 elsewhere and for sky).
+
+    ``objects`` maps object id -> ``SceneObject`` (per-frame world-from-object transforms); the frame must
+    carry its ``object_id`` channel.
+    """
+    if frame.object_id is None or not objects:
+        raise InputError("true object motion needs the object_id channel and the sequence's objects",
+                         frame=frame.index, field="object_id")
+    k, t = frame.camera.intrinsics, frame.camera.world_to_camera
+    flow = np.zeros(frame.depth.shape + (3,), dtype=np.float32)
+    ids = frame.object_id
+    points_all = geometry.unproject(frame.depth, k)  # (H, W, 4) homogeneous
+    pixels_all = geometry.pixel_centers(*frame.depth.shape)
+    for oid in np.unique(ids):
+        obj = objects.get(int(oid))
+        if obj is None or not obj.moving:
+            continue
+        if not 0 <= target_index < len(obj.world_from_object):
+            raise InputError(f"no transform of object {oid} for frame {target_index}", frame=frame.index,
+                             field="objects")
+        motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
+        camera_motion = t @ motion @ rigid_inverse(t)  # object motion expressed in frame n's camera
+        mask = (ids == oid) & np.isfinite(frame.depth)
+        moved = points_all[mask] @ camera_motion.T  # (N, 4), w = 1 (finite depth only)
+        uv, z, valid = geometry.project(moved, k)
+        pix = pixels_all[mask]
+        d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
+        flow[mask] = d
+    return flow

@@ -1,0 +1,91 @@
+"""The classic predictors: ``repeat``, ``reproject`` (timewarp), ``flow2d`` (2D optical-flow extrapolation)
+and ``oracle`` (true object motion, the upper bound). Conventions: ``engine/predict/base.py``."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from engine.core.frames import SceneObject
+from engine.predict.base import (PreparedState, Predictor, Target, Timer, extrapolation_factor, true_object_flow,
+                                 warp_and_fill)
+from engine.predict.dis import dis_calc, dis_estimator, luma8
+
+__all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle"]
+
+
+class Repeat(Predictor):
+    """The last rendered frame, unchanged (what a game shows without frame generation)."""
+
+    name = "repeat"
+
+    def _render(self, state, target, timer):
+        frame = state.history[-1]
+        return frame.color.copy(), np.zeros(frame.depth.shape, dtype=bool)
+
+
+class Reproject(Predictor):
+    """Camera-only depth reprojection of the last frame (timewarp), with the background-biased hole fill."""
+
+    name = "reproject"
+
+    def _render(self, state, target, timer):
+        return warp_and_fill(state.history[-1], target, timer)
+
+
+@dataclass
+class Flow2DState:
+    """``flow2d``'s per-frame state: ``flow_back`` (H, W, 2), the estimated u(n -> n-k) in pixels."""
+
+    flow_back: np.ndarray
+
+
+class Flow2D(Predictor):
+    """2D optical-flow extrapolation in the spirit of spacewarp.
+
+    Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); OpenCV's DIS optical
+    flow estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma; the
+    flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
+    forward-warped by that 2D flow plus the target camera's motion.
+    """
+
+    name = "flow2d"
+    history_needed = 2
+
+    def __init__(self, preset: str = "medium") -> None:
+        self._dis = dis_estimator(preset)
+
+    def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:
+        older, newest = state.history[-2], state.history[-1]
+        warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
+        luma_n, luma_w = luma8(newest.color), luma8(warped)
+        with timer("flow"):
+            return Flow2DState(dis_calc(self._dis, luma_n, luma_w))
+
+    def object_flow(self, state: PreparedState) -> np.ndarray:
+        """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""
+        return state.data.flow_back
+
+    def _render(self, state, target, timer):
+        flow = -extrapolation_factor(state, target) * state.data.flow_back
+        return warp_and_fill(state.history[-1], target, timer, flow)
+
+
+class Oracle(Predictor):
+    """Upper bound: moves every pixel of frame n by its object's TRUE rigid motion, then by the camera's.
+
+    Uses the ``object_id`` channel and the sequence's per-frame object transforms; times between frames
+    are not interpolated, so the target must be a frame of the sequence (``target.index``).
+    """
+
+    name = "oracle"
+
+    def __init__(self, objects: Sequence[SceneObject]) -> None:
+        self.objects = {o.id: o for o in objects}
+
+    def _render(self, state, target, timer):
+        frame = state.history[-1]
+        with timer("motion"):
+            flow = true_object_flow(frame, self.objects, target.index)
+        return warp_and_fill(frame, target, timer, flow)

@@ -1,0 +1,131 @@
+"""OpenCV DIS optical flow as the predictors use it: 8-bit luma, presets, any image size, the target image
+frame n is matched against, and the photometric error that scores a flow.
+
+Flows are (H, W, 2) float32 pixels (du, dv), u(n -> n-k): where frame n's pixel lies in the other image.
+Pixel centres at +0.5; colours are linear RGB, display-encoded to 8 bits before DIS reads them.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
+from engine.core.errors import InputError
+from engine.geometry import kernels
+from engine.geometry.holefill import fill_holes
+
+__all__ = ["DIS_MIN_SIDE", "dis_estimator", "dis_calc", "dis_block", "luma8", "encode8", "dis_flow", "dis_target",
+           "initial_flow", "warp_error"]
+
+#: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
+#: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
+DIS_MIN_SIDE = 32
+
+
+def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
+    """An OpenCV DIS optical-flow object for a preset name ('ultrafast', 'fast', 'medium'; others raise),
+    with its finest pyramid scale replaced by ``finest_scale`` when given (0: the input's own resolution)."""
+    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
+    if preset not in presets:
+        raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
+    estimator = cv2.DISOpticalFlow_create(presets[preset])
+    if finest_scale is not None:
+        estimator.setFinestScale(int(finest_scale))
+    return estimator
+
+
+def dis_calc(estimator, luma_a: np.ndarray, luma_b: np.ndarray) -> np.ndarray:
+    """``estimator.calc(luma_a, luma_b)``, (H, W, 2) float32 flow from a to b, for any size: images with a
+    side under ``DIS_MIN_SIDE`` are padded by repeating their edge pixels (no motion there) and the flow is
+    cropped back. Same-size uint8 (H, W) images."""
+    h, w = luma_a.shape
+    if luma_b.shape != (h, w):
+        raise InputError(f"DIS images of shapes {luma_a.shape} and {luma_b.shape}: expected the same", field="luma")
+    pad_h, pad_w = max(0, DIS_MIN_SIDE - h), max(0, DIS_MIN_SIDE - w)
+    if not (pad_h or pad_w):
+        return estimator.calc(luma_a, luma_b, None)
+    a, b = (cv2.copyMakeBorder(x, 0, pad_h, 0, pad_w, cv2.BORDER_REPLICATE) for x in (luma_a, luma_b))
+    return np.ascontiguousarray(estimator.calc(a, b, None)[:h, :w])
+
+
+def dis_block(preset: str = "medium") -> int:
+    """Block size 2^s of a DIS preset's finest pyramid scale s (medium: 2, fast and ultrafast: 4). DIS
+    computes nothing finer: its flow on a full-size image is its flow on the image's ``cv2.INTER_AREA``
+    block means (finest scale 0), bilinearly upsampled and scaled by the block size."""
+    return 2 ** int(dis_estimator(preset).getFinestScale())
+
+
+def luma8(color: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 luma of display-encoded linear RGB (H, W, 3): what DIS optical flow reads."""
+    return cv2.cvtColor(encode8(color), cv2.COLOR_RGB2GRAY)
+
+
+def encode8(color: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 display encoding of linear RGB (H, W, 3), equal to ``colorspace.encode8_reference``
+    (compiled: ``engine.geometry.kernels.encode8``)."""
+    level, step = _encode8_table()
+    out = np.empty(color.shape, dtype=np.uint8)
+    kernels.encode8(np.ascontiguousarray(color, dtype=np.float32), level, step, ENCODE8_BUCKETS, out)
+    return out
+
+
+@lru_cache(maxsize=1)
+def _encode8_table() -> tuple[np.ndarray, np.ndarray]:
+    return encode8_table()
+
+
+def dis_flow(luma_n: np.ndarray, target: np.ndarray, preset: str = "medium",
+             finest_scale: Optional[int] = None) -> np.ndarray:
+    """``initial_flow`` on lumas already made: ``luma8`` of frame n and its ``dis_target``, (H, W, 2) float32
+    (``finest_scale``: see ``dis_estimator``)."""
+    return np.ascontiguousarray(dis_calc(dis_estimator(preset, finest_scale), luma_n, target), dtype=np.float32)
+
+
+def dis_target(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray,
+               warped_depth: Optional[np.ndarray] = None) -> np.ndarray:
+    """(H, W) uint8 luma of the camera-compensated frame n-k that ``initial_flow`` matches frame n against:
+    the warp's colour where it landed; elsewhere frame n's own colour, or, given the warp's depth (H, W),
+    the background-biased row fill of ``reproject`` (``engine.geometry.holefill``, frame n's colour where a hole's row
+    and column hold no known pixel), which is what ``flow2d`` matches against."""
+    if warped_depth is None:
+        return luma8(np.where(covered[..., None], warped_color, color_n))
+    return luma8(fill_holes(warped_color, warped_depth, ~covered, color_n)[0])
+
+
+def initial_flow(color_n: np.ndarray, warped_color: np.ndarray, covered: np.ndarray,
+                 preset: str = "medium") -> np.ndarray:
+    """2D flow u(n -> n-k) a flow network refines: OpenCV DIS from frame n to the camera-compensated frame n-k.
+
+    Both images are display-encoded 8-bit luma; pixels the warp left uncovered (disocclusions) take frame
+    n's own colour, so they read as "no motion" instead of as edges. Training (``models.flow.train``)
+    calls this function.
+
+    Args:
+        color_n: (H, W, 3) linear RGB of frame n; warped_color: (H, W, 3) composite of m^w_{n-k};
+        covered: (H, W) bool, where the warp landed; preset: DIS preset 'ultrafast', 'fast' or 'medium'.
+
+    Returns:
+        (H, W, 2) float32 pixels.
+    """
+    return dis_flow(luma8(color_n), dis_target(color_n, warped_color, covered), preset)
+
+
+def warp_error(luma_n: np.ndarray, target: np.ndarray, offset: tuple[int, int], flow: np.ndarray,
+               window: int = 9) -> np.ndarray:
+    """(h, w) photometric error of a flow u(n -> n-k): |luma of frame n - ``target`` sampled at x + u| (8-bit
+    levels, bilinear; a sample outside ``target`` costs 255), averaged over ``window`` x ``window`` pixels.
+
+    ``luma_n`` (h, w) is a part of frame n whose top-left pixel is pixel ``offset`` (y, x) of ``target``
+    (``dis_target`` of a larger region); ``flow`` (h, w, 2) pixels.
+    """
+    h, w = luma_n.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32) + np.float32(offset[1]),
+                         np.arange(h, dtype=np.float32) + np.float32(offset[0]))
+    sampled = cv2.remap(target.astype(np.float32), gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
+    error = np.where(sampled < 0, np.float32(255.0), np.abs(luma_n.astype(np.float32) - sampled))
+    return cv2.blur(error, (window, window), borderType=cv2.BORDER_REFLECT)

@@ -1,0 +1,104 @@
+"""Method names -> predictors, for the command line, the evaluation, the demo and the runtime session.
+
+A name may carry options in brackets: ``decomp`` and ``decomp2d`` take ``DecompConfig``'s (through
+``engine.core.config.config_from_text``: ``decomp[flow_width=240,gate.tile=16]``) and ``motion=truth``, the
+true object motion instead of the estimated one (``DecompTrueMotion``, the bound of thesis Table 6.3);
+``flow2d`` its DIS preset, ``flow2d[preset=fast]``.
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+from engine.core.config import config_from_text
+from engine.core.errors import InputError
+from engine.core.frames import SceneObject
+from engine.predict.base import Predictor
+from engine.predict.classic import Flow2D, Oracle, Repeat, Reproject
+from engine.predict.decomp.network import DEFAULT_MODEL
+from engine.predict.decomp.predictor import DecompConfig, DecompPredictor, DecompTrueMotion
+
+__all__ = ["METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor"]
+
+#: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.
+DECOMP_WEIGHTS = {"decomp": "flow3d.onnx", "decomp2d": "flow2d.onnx"}
+#: Values of a decomp method's ``motion`` option: the estimated object motion or the true one.
+MOTIONS = ("predicted", "truth")
+
+
+def decomp_config(text: str, weights: str = "flow3d.onnx") -> DecompConfig:
+    """The ``DecompConfig`` of bracket options ``"key=value,sub.key=value"`` on top of the defaults with the
+    committed network ``weights`` (its ``model`` may be overridden). Unknown keys and bad values raise
+    InputError."""
+    base = DecompConfig(model=str(DEFAULT_MODEL.with_name(weights)))
+    try:
+        return config_from_text(DecompConfig, text, base)
+    except InputError as exc:
+        raise InputError(f"options '{text}': {exc.problem}", field="decomp") from None
+
+
+def make_decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequence[SceneObject] = ()) -> Predictor:
+    """A DeCOMPnet predictor with committed ``weights`` and bracket ``options``; ``motion=truth`` among them
+    gives the true-motion bound (``DecompTrueMotion``), ``motion=predicted`` (the default) ``DecompPredictor``."""
+    motion, rest = "predicted", []
+    for part in filter(None, (p.strip() for p in options.split(","))):
+        key, sep, value = part.partition("=")
+        if key.strip() == "motion" and sep:
+            motion = value.strip()
+        else:
+            rest.append(part)
+    if motion not in MOTIONS:
+        raise InputError(f"motion must be 'predicted' or 'truth', got {motion!r}", field="motion")
+    kind = DecompTrueMotion if motion == "truth" else DecompPredictor
+    return kind(decomp_config(",".join(rest), weights), objects=objects)
+
+
+#: Registry of method names -> factory(objects) for the CLI and the evaluation.
+METHODS: dict[str, Callable[[Sequence[SceneObject]], Predictor]] = {
+    "repeat": lambda objects: Repeat(),
+    "reproject": lambda objects: Reproject(),
+    "flow2d": lambda objects: Flow2D(),
+    "oracle": lambda objects: Oracle(objects),
+    "decomp": lambda objects: make_decomp(DECOMP_WEIGHTS["decomp"], objects=objects),
+    "decomp2d": lambda objects: make_decomp(DECOMP_WEIGHTS["decomp2d"], objects=objects),
+}
+
+
+def split_methods(text: str) -> list[str]:
+    """Comma-separated method names, where a name may carry options in brackets with commas inside:
+    ``"reproject,decomp[gate.enabled=false,flow_width=240]"`` -> ``["reproject",
+    "decomp[gate.enabled=false,flow_width=240]"]``."""
+    out, depth, current = [], 0, ""
+    for ch in text:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            out.append(current.strip())
+            current = ""
+        else:
+            current += ch
+    out.append(current.strip())
+    return [m for m in out if m]
+
+
+def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
+    """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones.
+
+    ``decomp`` and ``decomp2d`` take options of ``engine.predict.decomp.predictor.DecompConfig`` and
+    ``motion=truth`` in brackets, e.g. ``decomp[flow_width=240,gate.tile=16]``; ``flow2d`` its DIS preset,
+    ``flow2d[preset=fast]``.
+    """
+    base, _, rest = name.partition("[")
+    if base not in METHODS:
+        raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}", field="methods")
+    if not rest:
+        return METHODS[base](objects)
+    if base == "flow2d" and rest.endswith("]"):
+        key, _, value = rest[:-1].partition("=")
+        if key.strip() != "preset":
+            raise InputError(f"method '{name}': flow2d takes one option, preset (ultrafast, fast, medium)",
+                             field="methods")
+        return Flow2D(value.strip())
+    if base not in DECOMP_WEIGHTS or not rest.endswith("]"):
+        raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.predict.decomp.predictor."
+                         f"DecompConfig) and flow2d (preset=...) take options, as decomp[key=value,...]",
+                         field="methods")
+    return make_decomp(DECOMP_WEIGHTS[base], rest[:-1], objects)

@@ -12,7 +12,7 @@
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
 - ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
-- ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.predictor.upsample_flow`` (to 1e-5: OpenCV's
+- ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.upsample.upsample_flow`` (to 1e-5: OpenCV's
   resize, the reference, may round its bilinear sums differently).
 
 ``tests/geometry/test_kernels.py`` holds every kernel to its reference (bit-identical, compositing to 1e-6, the
@@ -391,7 +391,7 @@ def _linear_taps(size, small, factor):
 
 @njit(cache=True, nogil=True)
 def upsample_planes(packed, factor, full_alpha, scale, out):
-    """The full-resolution half of ``engine.predict.decomp.predictor.upsample_flow_reference``: per plane z, ``packed``
+    """The full-resolution half of ``engine.predict.decomp.reference.upsample_flow_reference``: per plane z, ``packed``
     (Z, h, w, 4) (alpha-weighted (du, dv, dz) and alpha, already spread into empty neighbours) is sampled
     bilinearly at each full-resolution pixel with ``full_alpha`` (Z, H, W) != 0, as OpenCV's INTER_LINEAR
     resize by ``factor`` samples it (source x = (X + 0.5) / factor - 0.5, clamped at the borders; rows and

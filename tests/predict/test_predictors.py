@@ -117,8 +117,14 @@ def test_upsample_stream_shows_rendered_ticks_and_predicts_the_rest():
         assert np.all(np.isfinite(s.color))
 
 
+@pytest.fixture(scope="module")
+def small_frame_predictors():
+    """One flow2d and one decomp (one ONNX session) for every small-frame case."""
+    return [make_predictor(method) for method in ("flow2d", "decomp[gate.enabled=false]")]
+
+
 @pytest.mark.parametrize("size", [(1, 1), (5, 7), (3, 200), (12, 200), (200, 12), (31, 33)])
-def test_dis_on_images_smaller_than_it_takes(size):
+def test_dis_on_images_smaller_than_it_takes(size, small_frame_predictors):
     """OpenCV's DIS raises on, or crashes the process for, images with a side under ~32 px (12 x 200 crashed
     it): ``dis_calc`` pads them by repeating edges and crops the flow; flow2d and decomp run on such frames."""
     from engine.predict import dis_calc, dis_estimator, luma8
@@ -130,8 +136,8 @@ def test_dis_on_images_smaller_than_it_takes(size):
         flow = dis_calc(dis_estimator(preset, 0), a, b)
         assert flow.shape == (h, w, 2) and np.isfinite(flow).all()
     target = Target(frames[3].camera, frames[3].time, frames[3].index)
-    for method in ("flow2d", "decomp[gate.enabled=false]"):
-        out = make_predictor(method).predict([frames[1], frames[3]], target)
+    for predictor in small_frame_predictors:
+        out = predictor.predict([frames[1], frames[3]], target)
         assert out.color.shape == (h, w, 3) and np.isfinite(out.color).all()
 
 

@@ -19,8 +19,8 @@ from pathlib import Path
 from engine.io.rgbd import write_sequence
 from engine.scenegen.render import SceneRenderer, render_scene
 from engine.scenegen.rig import ARRANGEMENTS, Rig, RigConfig, generate_rig, make_rig, render_rig
-from engine.scenegen.scene import (CAMERA_PATHS, LIGHTING_STYLES, MOTIONS, OBJECT_SHAPES, PATTERNS, Scene, SceneConfig,
-                                   make_scene)
+from engine.scenegen.sample import make_scene
+from engine.scenegen.scene import CAMERA_PATHS, LIGHTING_STYLES, MOTIONS, OBJECT_SHAPES, PATTERNS, Scene, SceneConfig
 
 __all__ = ["ARRANGEMENTS", "CAMERA_PATHS", "LIGHTING_STYLES", "MOTIONS", "OBJECT_SHAPES", "PATTERNS", "Rig",
            "RigConfig", "Scene", "SceneConfig", "SceneRenderer", "generate_rig", "generate_sequence", "make_rig",

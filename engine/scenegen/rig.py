@@ -62,7 +62,8 @@ from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
 from engine.io.rgbd import write_rig
 from engine.scenegen.render import SceneRenderer
-from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig, box_distance, make_scene
+from engine.scenegen.sample import box_distance, make_scene
+from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig
 
 __all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "generate_rig", "make_rig", "render_rig"]
 

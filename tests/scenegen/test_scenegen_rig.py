@@ -17,7 +17,8 @@ from engine.geometry import reproject
 from engine.io.rgbd import read_rig
 from engine.scenegen import RigConfig, SceneConfig, generate_rig, make_rig, render_rig
 from engine.scenegen.rig import MIN_CAMERA_HEIGHT
-from engine.scenegen.scene import CAMERA_CLEARANCE, box_distance
+from engine.scenegen.sample import box_distance
+from engine.scenegen.scene import CAMERA_CLEARANCE
 
 W, H = 96, 64
 CHANNELS = ("color", "depth", "object_id", "moving", "flow", "object_flow")

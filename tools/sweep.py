@@ -1,4 +1,4 @@
-"""Speed against error of the ``decomp`` predictor's knobs: ``interleave sweep`` (= ``python -m tools.sweep``).
+"""Speed against error of the ``decomp`` predictor's knobs: ``python -m tools.sweep SEQ_DIR...``.
 
 Each variant is ``decomp[...]`` with one value per knob:
 
@@ -299,7 +299,7 @@ def _words(text: str) -> list[str]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The sweep's options (shared by ``interleave sweep`` and ``python -m tools.sweep``)."""
+    """The sweep's options."""
     parser.add_argument("sequences", nargs="+", type=Path, metavar="SEQ_DIR",
                         help="rgbd-seq folders; their frame size is the resolution swept (results are grouped by it)")
     parser.add_argument("--k", type=int, default=2, help="upsampling factor: one rendered frame every k (default: 2)")
@@ -385,7 +385,7 @@ def run_sweep_command(args: argparse.Namespace) -> int:
 
 
 def main(argv: Optional[Sequence[str]] = None, prog: str = "python -m tools.sweep") -> int:
-    """``python -m tools.sweep SEQ_DIR... [options]``: the same as ``interleave sweep``."""
+    """``python -m tools.sweep SEQ_DIR... [options]`` (run from the repository root)."""
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     add_arguments(parser)
     args = parser.parse_args(None if argv is None else list(argv))

@@ -12,6 +12,7 @@ traceback.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
@@ -26,6 +27,15 @@ METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproj
                "decomp2d take options in brackets, e.g. decomp[gate.enabled=false,flow_width=240] "
                "(engine/predict/decomp/predictor.py); a name "
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
+
+#: The torch-side entry points that ``train`` and ``export`` dispatch to: each module's ``main(argv, prog)``.
+#: Imported only when asked for, so every other command runs without torch.
+TORCH_COMMANDS = {
+    "train": {"flow": "models.flow.train", "infill": "models.infill.train", "field": "models.fields.train_static",
+              "dynamic": "models.fields.train_dynamic"},
+    "export": {"flow": "export.flow", "infill": "export.infill", "field": "export.field",
+               "dynamic": "export.dynamic"},
+}
 
 
 def _int_list(text: str) -> list[int]:
@@ -122,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "'interleave train field --scene DIR --views 3' a static radiance "
                                     "field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
                                     "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option.")
-    tr.add_argument("what", choices=["flow", "infill", "field", "dynamic"], help="what to train")
+    tr.add_argument("what", choices=list(TORCH_COMMANDS["train"]), help="what to train")
     tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
     ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
                         description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
@@ -130,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "infilling network's); 'interleave export field RUN_DIR' a "
                                     "trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
                                     "dynamic field's (p, t, d) query); '... --help' for options.")
-    ex.add_argument("what", choices=["flow", "infill", "field", "dynamic"], help="what to export")
+    ex.add_argument("what", choices=list(TORCH_COMMANDS["export"]), help="what to export")
     ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
@@ -158,7 +168,7 @@ def _methods(text: str) -> list[str]:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # 'interleave eval field|dynamic RUN_DIR': radiance-field runs, not rgbd-seq sequences
-    field_evals = {"field": "models.fields.train_static", "dynamic": "models.fields.train_dynamic"}
+    field_evals = {"field": TORCH_COMMANDS["train"]["field"], "dynamic": TORCH_COMMANDS["train"]["dynamic"]}
     if argv[:1] == ["eval"] and argv[1:2] and argv[1] in field_evals:
         command = f"eval {argv[1]}"
         try:
@@ -166,8 +176,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         except InterleaveError as exc:
             print(f"interleave {command}: error: {exc}", file=sys.stderr)
             return 2
-        import importlib
-
         return importlib.import_module(field_evals[argv[1]]).eval_main(argv[2:], prog=f"interleave {command}")
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -206,41 +214,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                                       f"{', '.join('--' + k.replace('_', '-') for k in sorted(set(kwargs) - allowed))}")
             path = import_any(args.src, args.dst, args.layout, skip_missing=args.skip_missing, progress=True, **kwargs)
             print(f"wrote {path}")
-        elif args.command == "train":
-            _needs_torch("train")
-            if args.what == "dynamic":
-                from models.fields.train_dynamic import main as train_dynamic
-
-                return train_dynamic(args.options, prog="interleave train dynamic")
-            if args.what == "field":
-                from models.fields.train_static import main as train_field
-
-                return train_field(args.options, prog="interleave train field")
-            if args.what == "infill":
-                from models.infill.train import main as train_infill
-
-                return train_infill(args.options, prog="interleave train infill")
-            from models.flow.train import main as train_flow
-
-            train_flow(args.options, prog="interleave train flow")
-        elif args.command == "export":
-            _needs_torch("export")
-            if args.what == "dynamic":
-                from export.dynamic import main as export_dynamic
-
-                export_dynamic(args.options, prog="interleave export dynamic")
-            elif args.what == "field":
-                from export.field import main as export_field
-
-                export_field(args.options, prog="interleave export field")
-            elif args.what == "infill":
-                from export.infill import main as export_infill
-
-                export_infill(args.options, prog="interleave export infill")
-            else:
-                from export.flow import main as export_flow
-
-                export_flow(args.options, prog="interleave export flow")
+        elif args.command in TORCH_COMMANDS:
+            _needs_torch(args.command)
+            module = importlib.import_module(TORCH_COMMANDS[args.command][args.what])
+            result = module.main(args.options, prog=f"interleave {args.command} {args.what}")
+            return result if isinstance(result, int) else 0
         elif args.command == "serve":
             from engine.runtime.server import parse_address, serve
 

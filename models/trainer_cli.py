@@ -7,10 +7,11 @@ configs as ``--model.name``); the config a run used is saved beside it as JSON a
 from __future__ import annotations
 
 import argparse
+from typing import Callable, Optional, Sequence
 
 from engine.core import config as core_config
 
-__all__ = ["add_trainer_options", "trainer_config"]
+__all__ = ["add_trainer_options", "trainer_config", "trainer_parser", "trainer_main"]
 
 
 def add_trainer_options(parser: argparse.ArgumentParser, cls: type) -> None:
@@ -27,3 +28,16 @@ def trainer_config(cls: type, args: argparse.Namespace):
     command line set."""
     base = core_config.config_from_file(cls, args.config) if args.config else None
     return core_config.config_from_args(cls, args, base)
+
+
+def trainer_parser(cls: type, prog: str, description: str) -> argparse.ArgumentParser:
+    """The command line of a trainer whose run is configured by ``cls`` (see :func:`add_trainer_options`)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    add_trainer_options(parser, cls)
+    return parser
+
+
+def trainer_main(argv: Optional[Sequence[str]], prog: str, description: str, cls: type, train: Callable) -> None:
+    """Parse ``argv`` and run ``train(config, progress=..., resume=...)`` with the run's ``cls``."""
+    args = trainer_parser(cls, prog, description).parse_args(None if argv is None else list(argv))
+    train(trainer_config(cls, args), progress=not args.no_progress, resume=args.resume)

@@ -7,7 +7,7 @@ crops the border in proportion to DeCOMPnet's protocol (40 px top/bottom and 60 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Optional
 
 import cv2
@@ -75,8 +75,9 @@ def flip_map(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class FrameScores:
-    """Scores of one predicted frame against the true one (over the cropped region)."""
+class Scores:
+    """PSNR (dB, sRGB-encoded), SSIM and FLIP over the cropped region and over its moving pixels (NaN where
+    there are none, or FLIP was skipped)."""
 
     psnr: float
     ssim: float
@@ -84,6 +85,16 @@ class FrameScores:
     psnr_moving: float
     ssim_moving: float
     flip_moving: float
+
+
+#: The score fields every frame and every method result carries.
+SCORE_FIELDS = tuple(f.name for f in fields(Scores))
+
+
+@dataclass(frozen=True)
+class FrameScores(Scores):
+    """Scores of one predicted frame against the true one (over the cropped region)."""
+
     moving_fraction: float
 
 

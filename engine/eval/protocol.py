@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
-from engine.eval.metrics import crop_slices, psnr, score_frame
+from engine.eval.metrics import SCORE_FIELDS, Scores, crop_slices, psnr, score_frame
 from engine.predict import Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 
@@ -34,20 +34,14 @@ from engine.runtime.stream import PredictionLoop
 TRUE_HOLES = "+true_holes"
 
 
-@dataclass
-class MethodResult:
+@dataclass(frozen=True)
+class MethodResult(Scores):
     """Scores of one method on one sequence for one k (means over predicted frames; medians for time)."""
 
     sequence: str
     method: str
     k: int
     frames: int
-    psnr: float
-    ssim: float
-    flip: float
-    psnr_moving: float
-    ssim_moving: float
-    flip_moving: float
     ms_per_frame: float
     stages_ms: dict[str, float] = field(default_factory=dict)
     per_step: dict[str, dict[str, float]] = field(default_factory=dict)
@@ -173,10 +167,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
                                    "psnr_moving": _mean(s.psnr_moving for s in at)}
         results.append(MethodResult(
             sequence=Path(str(sequence.path)).name, method=name, k=k, frames=len(frame_scores),
-            psnr=_mean(s.psnr for s in frame_scores), ssim=_mean(s.ssim for s in frame_scores),
-            flip=_mean(s.flip for s in frame_scores), psnr_moving=_mean(s.psnr_moving for s in frame_scores),
-            ssim_moving=_mean(s.ssim_moving for s in frame_scores),
-            flip_moving=_mean(s.flip_moving for s in frame_scores),
+            **{f: _mean(getattr(s, f) for s in frame_scores) for f in SCORE_FIELDS},
             ms_per_frame=float(statistics.median(times[source])),
             stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[source])) for s in stage_names},
             per_step=per_step, epe_moving=_mean(epes[source]),

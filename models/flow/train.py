@@ -50,7 +50,7 @@ from engine.scenegen import SceneConfig, generate_sequence
 from models.flow.losses import FlowLossConfig, flow_loss
 from models.flow.network import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
 from models.geometry import Mpi, composite
-from models.trainer_cli import add_trainer_options, trainer_config
+from models.trainer_cli import trainer_config, trainer_main, trainer_parser
 
 __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
            "prepare_data", "config_from_dict", "open_sequences", "StepBatches"]
@@ -486,15 +486,15 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     return ckpt_path
 
 
+DESCRIPTION = "Train the DeCOMPnet 3D flow network (unsupervised, thesis Eq. 6.8-6.12) on procedural scenes."
+
+
 def build_parser(prog: str = "python -m models.flow.train") -> argparse.ArgumentParser:
-    """One ``--option`` per field of ``TrainFlowConfig`` (``engine.core.config.add_options``; the network's
-    fields as ``--model.name``, the loss's as ``--loss.name``; tuples comma-separated, e.g.
-    ``--scene-seeds 1,2,3``), plus ``--config FILE`` (a ``config.json`` as ``train`` writes it; options given
-    on the command line override it), ``--resume`` and ``--no-progress``."""
-    parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet 3D flow network (unsupervised, "
-                                                            "thesis Eq. 6.8-6.12) on procedural scenes.")
-    add_trainer_options(parser, TrainFlowConfig)
-    return parser
+    """One ``--option`` per field of ``TrainFlowConfig`` (the network's fields as ``--model.name``, the loss's
+    as ``--loss.name``; tuples comma-separated, e.g. ``--scene-seeds 1,2,3``), plus ``--config FILE`` (a
+    ``config.json`` as ``train`` writes it; options given on the command line override it), ``--resume`` and
+    ``--no-progress`` (``models.trainer_cli``)."""
+    return trainer_parser(TrainFlowConfig, prog, DESCRIPTION)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainFlowConfig:
@@ -505,9 +505,7 @@ def config_from_args(args: argparse.Namespace) -> TrainFlowConfig:
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.flow.train") -> None:
     """Command line of ``train`` (``interleave train flow`` calls this); see ``build_parser``."""
-    args = build_parser(prog).parse_args(argv)
-    config = config_from_args(args)
-    train(config, progress=not args.no_progress, resume=args.resume)
+    trainer_main(argv, prog, DESCRIPTION, TrainFlowConfig, train)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ the engine's nearest-point copy. ``config.json``, an atomic ``checkpoint.pt`` (r
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -40,7 +39,7 @@ from models.flow.train import load_network, render_scenes, restore_checkpoint, s
 from models.geometry import Mpi
 from models.infill.network import (InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs,
                                    infill_loss)
-from models.trainer_cli import add_trainer_options, trainer_config
+from models.trainer_cli import trainer_main
 
 __all__ = ["TrainInfillConfig", "make_samples", "batch_tensors", "choice_tensors", "candidate_errors", "train",
            "load_model", "evaluate_samples", "main"]
@@ -313,25 +312,11 @@ def train(config: TrainInfillConfig, progress: bool = True, resume: bool = False
     return ckpt
 
 
-def build_parser(prog: str = "python -m models.infill.train") -> argparse.ArgumentParser:
-    """One ``--option`` per field of ``TrainInfillConfig`` (the network's as ``--model.name``), ``--config
-    FILE`` (options on the command line override it), ``--resume``, ``--no-progress``."""
-    parser = argparse.ArgumentParser(prog=prog, description="Train the DeCOMPnet disocclusion infilling network "
-                                                            "(thesis Sec. 6.3.4) on procedural scenes.")
-    add_trainer_options(parser, TrainInfillConfig)
-    return parser
-
-
-def config_from_args(args: argparse.Namespace) -> TrainInfillConfig:
-    """The run's config: ``args.config``'s file (if any; else the defaults) with the options given on the
-    command line set."""
-    return trainer_config(TrainInfillConfig, args)
-
-
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.infill.train") -> None:
-    """Command line of ``train`` (``interleave train infill`` calls this)."""
-    args = build_parser(prog).parse_args(argv)
-    train(config_from_args(args), progress=not args.no_progress, resume=args.resume)
+    """Command line of ``train`` (``interleave train infill`` calls this): one ``--option`` per field of
+    ``TrainInfillConfig`` (the network's as ``--model.name``), ``--config FILE``, ``--resume``, ``--no-progress``."""
+    trainer_main(argv, prog, "Train the DeCOMPnet disocclusion infilling network (thesis Sec. 6.3.4) on "
+                             "procedural scenes.", TrainInfillConfig, train)
 
 
 if __name__ == "__main__":

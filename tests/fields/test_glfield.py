@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from engine.fields.camera_path import field_camera_path, scale_intrinsics
 from engine.fields import gl as glfield
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
@@ -150,15 +151,13 @@ def test_bad_inputs_raise_input_error(bounded_run, tmp_path):
 
 def test_scale_intrinsics_keeps_the_horizontal_field_of_view_or_the_whole_view():
     k = np.array([[50.0, 0, 50], [0, 50, 50], [0, 0, 1]])
-    out = glfield.scale_intrinsics(k, 100, 100, 960, 540)
+    out = scale_intrinsics(k, 100, 100, 960, 540)
     np.testing.assert_allclose(out, [[480, 0, 480], [0, 480, 270], [0, 0, 1]])
-    out = glfield.scale_intrinsics(k, 100, 100, 960, 540, fit="contain")  # the whole square view fits
+    out = scale_intrinsics(k, 100, 100, 960, 540, fit="contain")  # the whole square view fits
     np.testing.assert_allclose(out, [[270, 0, 480], [0, 270, 270], [0, 0, 1]])
 
 
 def test_camera_path_orbits_at_the_training_radius(bounded_run):
-    from demos.upsample import field_camera_path
-
     _, out, _ = bounded_run
     train = sphere_views([0, 40, 80])  # distance 3, elevation 25 degrees, looking at the origin
     cams, w, h = field_camera_path(load_field(out), (train.cameras, train.width, train.height), 12, 40, 30)

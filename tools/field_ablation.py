@@ -21,8 +21,8 @@ import torch
 
 from engine.core.errors import InputError
 from models.fields.priors.config import PRIOR_NAMES, with_priors
-from models.fields.train_static import (FieldTrainConfig, _add_config_args, _apply_args, _apply_losses, _load_views,
-                                 add_run_arguments, config_from_file, evaluate_field, train_field)
+from models.fields.train_static import (FieldTrainConfig, add_config_options, add_run_arguments, config_from_command_line,
+                                       evaluate_field, train_field, views_from_args)
 
 __all__ = ["VARIANTS", "run_ablation", "markdown_table", "main"]
 
@@ -73,7 +73,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     add_run_arguments(parser, "folder of the variants' run directories")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, from {','.join(VARIANTS)}")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the evaluation")
-    _add_config_args(parser, FieldTrainConfig)
+    add_config_options(parser)
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -82,10 +82,8 @@ def main(argv: Optional[list[str]] = None) -> int:
         unknown = sorted(set(variants) - set(VARIANTS))
         if unknown:
             raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}", field="--variants")
-        config = _apply_losses(_apply_args(config_from_file(args.config), args), args.loss)
-        if args.downscale is None:
-            args.downscale = config.downscale
-        train, test, record = _load_views(args)
+        config = config_from_command_line(args)
+        train, test, record = views_from_args(args, config.downscale)
         rows = run_ablation(train, test, config, args.out, variants, data_record=record, with_flip=not args.no_flip)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -23,8 +23,8 @@ from typing import Optional, Sequence
 import torch
 
 from engine.core.errors import InputError
-from models.fields.train_static import (FieldTrainConfig, _add_config_args, _apply_args, _apply_losses, _load_views,
-                                 add_run_arguments, config_from_file, evaluate_field, load_model, train_field)
+from models.fields.train_static import (FieldTrainConfig, add_config_options, add_run_arguments, config_from_command_line,
+                                       evaluate_field, load_model, train_field, views_from_args)
 
 __all__ = ["DEFAULT_LADDER", "field_size", "run_capacity_sweep", "markdown_table", "main"]
 
@@ -102,15 +102,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--min-gain-db", type=float, default=0.25, help="smallest PSNR gain worth a bigger field")
     parser.add_argument("--patience", type=int, default=1, help="rungs without that gain before stopping")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP")
-    _add_config_args(parser, FieldTrainConfig)
+    add_config_options(parser)
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        config = _apply_losses(_apply_args(config_from_file(args.config), args), args.loss)
-        if args.downscale is None:
-            args.downscale = config.downscale
-        train, test, record = _load_views(args)
+        config = config_from_command_line(args)
+        train, test, record = views_from_args(args, config.downscale)
         report = run_capacity_sweep(train, test, config, args.out, min_gain_db=args.min_gain_db,
                                     patience=args.patience, data_record=record, with_flip=not args.no_flip)
     except InputError as exc:

@@ -512,7 +512,7 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     run = tmp_path / "run"
     with pytest.warns(UserWarning, match="outside the trained time range"):
         code = main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(run), "--steps", "8",
-                     "--rays-per-batch", "128", "--field.canonical.resolutions", "8", "16",
+                     "--rays-per-batch", "128", "--field.canonical.resolutions", "8,16",
                      "--field.motion.resolutions", "8", "--render.num-samples", "16", "--no-flip",
                      "--render.occupancy", "false"])
     assert code == 0

@@ -290,7 +290,7 @@ def test_command_line_priors_flag(tmp_path):
         warnings.simplefilter("ignore")
         code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
                      "--views", "3", "--downscale", "2", "--steps", "3", "--rays-per-batch", "64",
-                     "--field.resolutions", "8", "16", "--render.num-samples", "16", "--priors", "depth,vip",
+                     "--field.resolutions", "8,16", "--render.num-samples", "16", "--priors", "depth,vip",
                      "--priors.vip.rays", "32"])
     assert code == 0
     saved = FieldTrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text()))
@@ -304,7 +304,7 @@ def test_ablation_command_prints_a_table_and_writes_json(tmp_path, capsys):
         warnings.simplefilter("ignore")
         code = ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",
                               str(tmp_path / "abl"), "--views", "3", "--downscale", "2", "--steps", "2",
-                              "--rays-per-batch", "64", "--field.resolutions", "8", "16", "--render.num-samples",
+                              "--rays-per-batch", "64", "--field.resolutions", "8,16", "--render.num-samples",
                               "16", "--variants", "plain,+simple", "--threads", "1"])
     assert code == 0
     report = json.loads((tmp_path / "abl" / "ablation.json").read_text())

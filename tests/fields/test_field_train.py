@@ -231,7 +231,7 @@ def test_command_line_trains_and_scores(tmp_path, capsys):
     _write_blender(tmp_path / "scene", sphere_views([20]), "test")
     code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
                  "--views", "3", "--downscale", "2", "--steps", "20", "--rays-per-batch", "128",
-                 "--field.resolutions", "8", "16", "--render.num-samples", "24", "--loss", "plane_tv=0",
+                 "--field.resolutions", "8,16", "--render.num-samples", "24", "--loss", "plane_tv=0",
                  "--render.occupancy", "false"])
     assert code == 0
     scores = json.loads((tmp_path / "run" / "scores.json").read_text())

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -444,8 +445,6 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
     warning: the field cannot extrapolate in time). ``test_every`` keeps every k-th test view,
     ``max_test_views`` at most that many.
     """
-    import warnings
-
     if dataset not in DYNAMIC_DATASETS:
         raise InputError(f"must be one of {DYNAMIC_DATASETS}, got {dataset!r}", field="dataset")
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
@@ -499,8 +498,6 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
 
 def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]:
     """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``."""
-    import warnings
-
     file = Path(run_dir) / "data.json"
     if not file.is_file():
         raise InputError("file does not exist: the run was not made by 'interleave train dynamic' (or the folder "

@@ -33,6 +33,7 @@ from typing import Any, Callable, Optional, Protocol
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
 from engine.core.config import config_from_dict, config_from_file, config_to_dict
@@ -301,7 +302,6 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
 
     bar = None
     if progress and step < config.steps:
-        from tqdm import tqdm  # only with a progress bar
         bar = tqdm(total=config.steps, initial=step, desc=f"training {out.name}", unit="step")
     log = open_log(out, step)
     n_rays = rays.color.shape[0]

@@ -21,7 +21,7 @@ from models.fields.priors.simple import mass_concentration, patch_reprojection_e
 from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
 from tools.field_ablation import main as ablation_main
 from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
-from tests.fields.test_field_train import _write_blender, sphere_views, tiny_config
+from tests.fields.test_field_train import write_blender, sphere_views, tiny_config
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -284,8 +284,8 @@ def test_interrupted_run_with_all_priors_resumes_exactly(tmp_path):
 
 
 def test_command_line_priors_flag(tmp_path):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
@@ -298,8 +298,8 @@ def test_command_line_priors_flag(tmp_path):
 
 
 def test_ablation_command_prints_a_table_and_writes_json(tmp_path, capsys):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         code = ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",

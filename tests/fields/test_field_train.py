@@ -213,7 +213,7 @@ def test_sparse_depth_term_pulls_expected_depth(tmp_path):
 # Command line, on the sphere written as a NeRF-synthetic scene
 
 
-def _write_blender(root: Path, views: Views, split: str) -> None:
+def write_blender(root: Path, views: Views, split: str) -> None:
     frames = []
     (root / split).mkdir(parents=True, exist_ok=True)
     for i, (image, cam) in enumerate(zip(views.images, views.cameras)):
@@ -227,8 +227,8 @@ def _write_blender(root: Path, views: Views, split: str) -> None:
 
 
 def test_command_line_trains_and_scores(tmp_path, capsys):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
                  "--views", "3", "--downscale", "2", "--steps", "20", "--rays-per-batch", "128",
                  "--field.resolutions", "8,16", "--render.num-samples", "24", "--loss", "plane_tv=0",

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from engine.core.errors import InputError
 from engine.core.checks import check_shape
+from models.fields.data.views import box_from_cameras
 from models.fields.static.field import FieldConfig, TriPlaneField
 from models.fields.components.render import RayOutputs, composite_samples
 from models.fields.components.sampling import (OccupancyGrid, contract_box, contract_ndc, ray_box_intersection,
@@ -78,8 +79,6 @@ class SceneBox:
     def from_views(cls, views) -> "SceneBox":
         """The scene of a :class:`~models.fields.data.views.Views`: its box (or one fitted to the cameras) for
         bounded-360, its mean pose as the NDC reference for forward-facing; near/far over all views."""
-        from models.fields.data.views import box_from_cameras  # data imports nothing from here
-
         near = float(np.min(views.near_far[:, 0]))
         far = float(np.max(views.near_far[:, 1]))
         if views.scene_type == "bounded-360":

@@ -21,7 +21,6 @@ around the cube; the command fails above ``--tolerance``.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -32,7 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from engine.core.errors import InputError
-from export.field import OPSET, example_points, mlp_layers, quantize_planes, report_export, strip_debug
+from export.field import OPSET, example_points, export_command, mlp_layers, quantize_planes, strip_debug
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.train_dynamic import load_dynamic_model
@@ -203,17 +202,9 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic") -> None:
     """``interleave export dynamic RUN_DIR [--out DIR]``: export, check parity, print a summary."""
-    parser = argparse.ArgumentParser(prog=prog, description="Export a trained dynamic field (ONNX (p, t, d) query + "
-                                                            "renderer assets) and check onnxruntime against torch.")
-    parser.add_argument("run", type=Path, help="run directory written by 'interleave train dynamic'")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
-    parser.add_argument("--tolerance", type=float, default=1e-4,
-                        help="largest accepted |onnxruntime - torch| colour difference and relative density "
-                             "difference (default 1e-4)")
-    args = parser.parse_args(argv)
-    out = args.out or args.run / "export"
-    manifest = export_dynamic(args.run, out)
-    report_export(out, manifest, "dynamic.onnx", args.tolerance, time_range=manifest["time"]["range"])
+    export_command(argv, prog, "Export a trained dynamic field (ONNX (p, t, d) query + renderer assets) and check "
+                               "onnxruntime against torch.", "interleave train dynamic", export_dynamic, "dynamic.onnx",
+                   lambda manifest: {"time_range": manifest["time"]["range"]})
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -38,7 +38,7 @@ from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model, load_run_views
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
-           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug"]
+           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -268,19 +268,27 @@ def strip_debug(path: Path) -> None:
     onnx.save(proto, str(path))
 
 
-def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field") -> None:
-    """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
-    parser = argparse.ArgumentParser(prog=prog, description="Export a trained static field (ONNX query + "
-                                                            "renderer assets) and check onnxruntime against torch.")
-    parser.add_argument("run", type=Path, help="run directory written by 'interleave train field'")
+def export_command(argv: Optional[list[str]], prog: str, description: str, made_by: str, export, onnx_name: str,
+                   extra) -> None:
+    """``interleave export field|dynamic RUN_DIR [--out DIR] [--tolerance T]``: ``export(run, out) -> manifest``,
+    then :func:`report_export` with ``extra(manifest)`` (a dict) printed beside the parity."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("run", type=Path, help=f"run directory written by '{made_by}'")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
     parser.add_argument("--tolerance", type=float, default=1e-4,
                         help="largest accepted |onnxruntime - torch| colour difference and relative density "
                              "difference (default 1e-4)")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
-    manifest = export_field(args.run, out)
-    report_export(out, manifest, "field.onnx", args.tolerance, quantization=manifest.get("quantization"))
+    manifest = export(args.run, out)
+    report_export(out, manifest, onnx_name, args.tolerance, **extra(manifest))
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field") -> None:
+    """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
+    export_command(argv, prog, "Export a trained static field (ONNX query + renderer assets) and check onnxruntime "
+                               "against torch.", "interleave train field", export_field, "field.onnx",
+                   lambda manifest: {"quantization": manifest.get("quantization")})
 
 
 def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, **extra) -> None:

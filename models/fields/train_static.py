@@ -36,7 +36,7 @@ from models.fields.trainer import (apply_loss_weights, check_run, json_safe, ran
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
            "config_from_file", "add_run_arguments", "add_config_options", "config_from_command_line",
-           "views_from_args", "main", "eval_main"]
+           "views_from_args", "parse_run_command", "run_inputs", "main", "eval_main"]
 
 
 
@@ -171,16 +171,9 @@ def load_model(run_dir: str | Path) -> StaticFieldModel:
 
 def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *, chunk: int = 8192,
                    with_flip: bool = True, return_images: bool = False) -> dict[str, Any]:
-    """Render every view and score it against the truth.
-
-    PSNR, SSIM (``engine.eval.metrics.psnr`` / ``ssim_map``, Gaussian window) and FLIP (``flip_map``, LDR, 67
-    pixels per degree) are computed on display-encoded images (``engine.core.colorspace.display_encode``) over
-    the whole frame (the NeRF protocol: no border crop) and averaged over views. ``depth_mae`` is the mean
-    |rendered - true| planar depth over pixels where both are finite and ``depth_spearman`` the rank
-    correlation of the two over those pixels, all views pooled (NaN when the views carry no depth);
-    ``depth_valid_fraction`` is the share of pixels with a finite true depth where the field also rendered
-    a surface. ``render_ms_per_frame`` is the median wall time of rendering one view (rays, sampling,
-    field, compositing). ``train_seconds`` is the run's training wall time (NaN for a bare model).
+    """Render every view and score it against the truth: :func:`models.fields.trainer.score_views` (PSNR,
+    SSIM, FLIP on display-encoded images over the whole frame, depth MAE and rank correlation, median render
+    time per view) plus ``train_seconds``, the run's training wall time (NaN for a bare model).
     ``return_images`` adds ``images``: the rendered colour and depth per view.
     """
     check_views(views)
@@ -348,6 +341,23 @@ def views_from_args(args: argparse.Namespace, downscale: int) -> tuple[Views, Vi
                         max_test_views=args.max_test_views)
 
 
+def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]) -> argparse.Namespace:
+    """Add the :class:`FieldTrainConfig` options to a parser made with :func:`add_run_arguments`, parse
+    ``argv`` and set the torch threads (``--threads``)."""
+    add_config_options(parser)
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    return args
+
+
+def run_inputs(args: argparse.Namespace) -> tuple[FieldTrainConfig, Views, Views, dict[str, Any]]:
+    """(config, train views, test views, data record) of a command line parsed by :func:`parse_run_command`."""
+    config = config_from_command_line(args)
+    train, test, record = views_from_args(args, config.downscale)
+    return config, train, test, record
+
+
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.train_static") -> int:
     """``interleave train field``: train on a scene, evaluate the held-out views, print the scores."""
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
@@ -355,13 +365,9 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
                         help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none)")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
-    add_config_options(parser)
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_run_command(parser, argv)
     try:
-        config = config_from_command_line(args)
-        train, test, record = views_from_args(args, config.downscale)
+        config, train, test, record = run_inputs(args)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out)
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")

@@ -35,7 +35,8 @@ from models.fields.components.render import render_image
 from models.fields.components.sampling import camera_rays, sample_intervals
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.static.model import StaticFieldModel
-from models.fields.train_static import load_model, load_run_views
+from models.fields.data.select import load_run_views
+from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command"]

@@ -96,7 +96,7 @@ def _static_camera(export: Path, run: Optional[Path]):
     """(K, world_to_camera, width, height, where) of a held-out view of the run, else of the demo path."""
     if run is not None and (run / "data.json").is_file():
         try:
-            from models.fields.train_static import load_run_views  # torch: optional here
+            from models.fields.data.select import load_run_views  # torch: optional here
         except ImportError:
             pass
         else:
@@ -179,7 +179,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
     import torch  # the held-out views come from the run's data (models.fields): torch is needed here
 
     from models.fields.dynamic.model import AtTime
-    from models.fields.train_dynamic import load_dynamic_model, load_dynamic_run_views
+    from models.fields.data.select import load_dynamic_run_views
+    from models.fields.train_dynamic import load_dynamic_model
 
     export = Path(export)
     if not (export / "dynamic.json").is_file() and (export / "export" / "dynamic.json").is_file():

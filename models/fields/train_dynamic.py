@@ -21,7 +21,6 @@ import dataclasses
 import json
 import math
 import sys
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -33,8 +32,9 @@ from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
 from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import render_image
-from models.fields.data.timed import (TimedViews, border_crossings, check_timed_views, load_dnerf, load_rig_video,
-                                      split_by_camera)
+from models.fields.data.select import (DYNAMIC_DATASETS, detect_dynamic_dataset, load_dynamic_run_views,
+                                       select_dynamic_views)
+from models.fields.data.timed import TimedViews, border_crossings, check_timed_views
 from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFieldModel, auto_time_resolution,
                                          time_smoothness)
 from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
@@ -385,132 +385,6 @@ def _crossings(views: TimedViews, context: Optional[TimedViews]) -> dict[str, An
     return {"events": [e for f in found for e in f["events"]],
             "tested_cameras": [c for f in found for c in f["tested_cameras"]],
             "skipped_cameras": [c for f in found for c in f["skipped_cameras"]]}
-
-
-# ----------------------------------------------------------------------------------------------------
-# Data selection
-
-
-DYNAMIC_DATASETS = ("rig", "dnerf")
-
-
-def detect_dynamic_dataset(path: str | Path) -> str:
-    """``rig`` (rig.json) or ``dnerf`` (transforms_train.json whose frames carry a time)."""
-    root = Path(path)
-    if (root / "rig.json").is_file():
-        return "rig"
-    meta = root / "transforms_train.json"
-    if meta.is_file():
-        try:
-            frames = json.loads(meta.read_text()).get("frames", [])
-        except json.JSONDecodeError:
-            frames = []
-        if frames and all("time" in f for f in frames):
-            return "dnerf"
-        raise InputError("is a static NeRF-synthetic scene (its frames have no 'time'): use 'interleave train "
-                         "field'", file=meta)
-    if not root.exists():
-        raise InputError("folder does not exist", file=root)
-    raise InputError("is not a dynamic scene folder: expected rig.json (rgbd-rig video) or a D-NeRF "
-                     "transforms_train.json", file=root)
-
-
-def _camera_names(pool: TimedViews, spec, name: str) -> list[str]:
-    out = []
-    for item in spec:
-        if isinstance(item, int):
-            if not 0 <= item < len(pool.camera_names):
-                raise InputError(f"camera position {item} out of range for {len(pool.camera_names)} cameras",
-                                 field=name)
-            out.append(pool.camera_names[item])
-        elif item in pool.camera_names:
-            out.append(item)
-        else:
-            raise InputError(f"no camera named {item!r} (cameras: {', '.join(pool.camera_names)})", field=name)
-    if len(set(out)) != len(out):
-        raise InputError(f"names a camera twice: {spec}", field=name)
-    return out
-
-
-def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cameras: Optional[int] = None,
-                         train_cameras: Optional[list] = None, test_cameras: Optional[list] = None,
-                         frames: Optional[list[int]] = None, test_every: int = 1, max_test_views: int = 0
-                         ) -> tuple[TimedViews, TimedViews, dict[str, Any]]:
-    """Load a dynamic scene and split it into (train, test) views; the third item is ``data.json``'s record.
-
-    rgbd-rig: every frame (or ``frames``) of the train cameras trains, the test cameras' frames are held out;
-    the default split is the rig's, ``cameras`` picks that many train cameras spread over the non-test ones,
-    ``train_cameras`` / ``test_cameras`` name them (names or positions). D-NeRF: the train split trains, the
-    test split's frames whose times lie in the trained range are held out (the others are dropped with a
-    warning: the field cannot extrapolate in time). ``test_every`` keeps every k-th test view,
-    ``max_test_views`` at most that many.
-    """
-    if dataset not in DYNAMIC_DATASETS:
-        raise InputError(f"must be one of {DYNAMIC_DATASETS}, got {dataset!r}", field="dataset")
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
-        raise InputError(f"must be a positive integer, got {test_every!r}", field="test_every")
-    dropped: list[str] = []
-    if dataset == "rig":
-        pool = load_rig_video(scene, downscale=downscale, frames=frames)
-        split = pool.default_split or ([], [])
-        rig_train = [pool.camera_names[c] for c in np.unique(pool.camera_ids[split[0]])] if split[0] else []
-        rig_test = [pool.camera_names[c] for c in np.unique(pool.camera_ids[split[1]])] if split[1] else []
-        test_names = _camera_names(pool, test_cameras, "test_cameras") if test_cameras is not None else rig_test
-        if train_cameras is not None:
-            train_names = _camera_names(pool, train_cameras, "train_cameras")
-        else:
-            rest = [n for n in pool.camera_names if n not in test_names]
-            if cameras is None:
-                train_names = [n for n in rig_train if n not in test_names] or rest
-            else:
-                if isinstance(cameras, bool) or not isinstance(cameras, int) or not 1 <= cameras <= len(rest):
-                    raise InputError(f"must be an integer in 1..{len(rest)} (cameras left after the test cameras), "
-                                     f"got {cameras!r}", field="cameras")
-                positions = np.floor(np.linspace(0, len(rest) - 1, cameras) + 0.5).astype(int)
-                train_names = [rest[p] for p in positions]
-        train, test = split_by_camera(pool, train_names, test_names)
-        record_cams = {"train_cameras": train_names, "test_cameras": test_names}
-    else:
-        if cameras is not None or train_cameras is not None or test_cameras is not None:
-            raise InputError("D-NeRF is monocular: it takes no camera choice", field="cameras")
-        train = load_dnerf(scene, "train", downscale=downscale)
-        test = load_dnerf(scene, "test", downscale=downscale, bounds=train.bounds)
-        lo, hi = train.time_range
-        inside = [i for i in range(len(test)) if lo <= test.times[i] <= hi]
-        dropped = [test.names[i] for i in range(len(test)) if i not in inside]
-        if dropped:
-            warnings.warn(f"{len(dropped)} test view(s) lie outside the trained time range [{lo:.4g}, {hi:.4g}] and "
-                          f"are not evaluated: {', '.join(dropped)}", stacklevel=2)
-        test = test.subset(inside)
-        record_cams = {"train_cameras": [], "test_cameras": []}
-    keep = list(range(0, len(test), test_every))
-    if max_test_views:
-        keep = keep[:max_test_views]
-    test = test.subset(keep)
-    if len(test) == 0:
-        raise InputError("no test view selected", field="test_cameras")
-    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale), **record_cams,
-              "frames": None if frames is None else [int(f) for f in frames], "test_every": int(test_every),
-              "max_test_views": int(max_test_views), "train_views": len(train), "test_names": list(test.names),
-              "dropped_test_views": dropped}
-    return train, test, record
-
-
-def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]:
-    """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``."""
-    file = Path(run_dir) / "data.json"
-    if not file.is_file():
-        raise InputError("file does not exist: the run was not made by 'interleave train dynamic' (or the folder "
-                         "is not a run directory)", file=file)
-    rec = json.loads(file.read_text())
-    with warnings.catch_warnings():  # the warnings were given when the run was made
-        warnings.simplefilter("ignore")
-        is_rig = rec["dataset"] == "rig"
-        train, test, _ = select_dynamic_views(
-            rec["dataset"], rec["scene"], rec["downscale"], train_cameras=rec["train_cameras"] if is_rig else None,
-            test_cameras=rec["test_cameras"] if is_rig else None, frames=rec.get("frames"),
-            test_every=rec.get("test_every", 1), max_test_views=rec.get("max_test_views", 0))
-    return train, test
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -24,7 +24,8 @@ import torch
 from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
 from models.fields.components.render import render_image
-from models.fields.data.views import Views, check_views, load_llff, load_nerf_synthetic, load_rig, split_indices
+from models.fields.data.select import DATASETS, detect_dataset, load_run_views, select_views
+from models.fields.data.views import Views, check_views
 from models.fields.losses import LossTerm, RayBatch, default_loss_terms
 from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors, prior_loss_terms, with_priors
 from models.fields.static.field import FieldConfig
@@ -193,101 +194,6 @@ def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *,
 
 # ----------------------------------------------------------------------------------------------------
 # Command line
-
-
-DATASETS = ("nerf-synthetic", "llff", "rig")
-
-
-def detect_dataset(path: str | Path) -> str:
-    """The layout of a scene folder: ``nerf-synthetic`` (transforms_train.json), ``llff``
-    (poses_bounds.npy) or ``rig`` (rig.json)."""
-    root = Path(path)
-    for marker, kind in (("transforms_train.json", "nerf-synthetic"), ("poses_bounds.npy", "llff"),
-                         ("rig.json", "rig")):
-        if (root / marker).is_file():
-            return kind
-    if not root.exists():
-        raise InputError("folder does not exist", file=root)
-    raise InputError("is not a scene folder: expected transforms_train.json (NeRF-synthetic), poses_bounds.npy "
-                     "(LLFF) or rig.json (rgbd-rig)", file=root)
-
-
-def _positions(pool: Views, spec: list, name: str) -> list[int]:
-    """View positions in ``pool`` for a list of positions and/or names (a name matches a view's name or
-    its file stem)."""
-    stems = [Path(n).stem if n else "" for n in pool.names]
-    out = []
-    for item in spec:
-        if isinstance(item, int):
-            if not 0 <= item < len(pool):
-                raise InputError(f"position {item} out of range: {len(pool)} views were loaded", field=name)
-            out.append(item)
-        elif item in pool.names or item in stems:
-            out.append(pool.names.index(item) if item in pool.names else stems.index(item))
-        else:
-            raise InputError(f"no view named {item!r} (views: {', '.join(stems[:8])}{'...' if len(stems) > 8 else ''})",
-                             field=name)
-    if len(set(out)) != len(out):
-        raise InputError(f"names a view twice: {spec}", field=name)
-    return out
-
-
-def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Optional[int] = None,
-                 train_views: Optional[list] = None, test_views: Optional[list] = None,
-                 max_test_views: int = 0) -> tuple[Views, Views, dict[str, Any]]:
-    """Load a scene and split it into (train, test) views; the third item records the choice (``data.json``).
-
-    NeRF-synthetic: train views come from the train split, test views from the test split (all present
-    frames unless ``test_views``). LLFF and rigs: one pool; the default split is ``split_indices`` (every
-    8th frame held out, train views spread over the rest), or the rig's own train/test cameras when
-    ``views`` is not given. ``train_views`` / ``test_views`` are positions among the *loaded* frames
-    (listed frames whose files are missing are skipped) or view names (``r_20``, ``cam3``).
-    """
-    if dataset not in DATASETS:
-        raise InputError(f"must be one of {DATASETS}, got {dataset!r}", field="dataset")
-    if dataset == "nerf-synthetic":
-        pool = load_nerf_synthetic(scene, "train", downscale=downscale)
-        test_pool = load_nerf_synthetic(scene, "test", downscale=downscale)
-        train_idx = (_positions(pool, train_views, "train_views") if train_views is not None
-                     else split_indices(len(pool), views=views, test_every=0)[0])
-        test_idx = (_positions(test_pool, test_views, "test_views") if test_views is not None
-                    else list(range(len(test_pool))))
-    else:
-        pool = load_llff(scene, factor=downscale) if dataset == "llff" else load_rig(scene).downscaled(downscale)
-        test_pool = pool
-        tr = _positions(pool, train_views, "train_views") if train_views is not None else None
-        te = _positions(pool, test_views, "test_views") if test_views is not None else None
-        if dataset == "rig" and pool.default_split is not None and views is None and tr is None and te is None:
-            train_idx, test_idx = (list(x) for x in pool.default_split)
-        else:
-            if tr is not None and te is None:
-                te = split_indices(len(pool))[1]
-                te = [i for i in te if i not in tr]
-            train_idx, test_idx = split_indices(len(pool), views=None if tr is not None else views,
-                                                train_views=tr, test_views=te)
-    if max_test_views:
-        test_idx = test_idx[:max_test_views]
-    if not train_idx:
-        raise InputError("no train views selected", field="train_views")
-    if not test_idx:
-        raise InputError("no test views selected", field="test_views")
-    train, test = pool.subset(train_idx), test_pool.subset(test_idx)
-    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale),
-              "train_views": [int(i) for i in train_idx], "test_views": [int(i) for i in test_idx],
-              "train_names": list(train.names), "test_names": list(test.names)}
-    return train, test, record
-
-
-def load_run_views(run_dir: str | Path) -> tuple[Views, Views]:
-    """The (train, test) views a run was trained and is evaluated on, from its ``data.json``."""
-    file = Path(run_dir) / "data.json"
-    if not file.is_file():
-        raise InputError("file does not exist: the run was not made by 'interleave train field' (or the "
-                         "folder is not a run directory)", file=file)
-    rec = json.loads(file.read_text())
-    train, test, _ = select_views(rec["dataset"], rec["scene"], rec["downscale"], train_views=rec["train_views"],
-                                  test_views=rec["test_views"])
-    return train, test
 
 
 def add_run_arguments(parser: argparse.ArgumentParser, out_help: str, *, out_required: bool = True) -> None:

@@ -107,13 +107,26 @@ def _static_camera(export: Path, run: Optional[Path]):
     return cams[0].intrinsics, cams[0].world_to_camera, width, height, "first camera of the demo path"
 
 
-def _gl_outs(renderer_cls, assets, width, height, variants, render, repeat) -> dict:
-    outs = {}
-    for name, kwargs in variants:
-        with renderer_cls(assets, width, height, **kwargs) as r:
-            out = render(r)  # warm-up
-            runs = [_timed(lambda: render(r)) for _ in range(repeat)]
-            outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
+def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_render, gl_renderer, variants,
+               reference, skip: tuple[str, ...], repeat: int) -> dict:
+    """``{renderer: (render, wall seconds, CPU seconds, compile seconds)}`` at one size: the torch render
+    (one timed run after a 16 x 16 warm-up), every GL variant (``repeat`` timed runs after a warm-up) and
+    the numpy / onnx references; ``extra`` follows the camera in every render call (a dynamic field's time)."""
+    outs: dict[str, tuple[dict, list[float], list[float], float]] = {}
+    if torch_render is not None:
+        torch_render(k, w2c, 16, 16)  # warm-up
+        out, wall, cpu = _timed(lambda: torch_render(k, w2c, height, width))
+        outs["torch"] = (out, [wall], [cpu], 0.0)
+    if "gl" not in skip:
+        for name, kwargs in variants:
+            with gl_renderer(assets, width, height, **kwargs) as r:
+                out = r.render(k, w2c, *extra)  # warm-up
+                runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
+                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
+    for query in ("numpy", "onnx"):
+        if query not in skip:
+            out, wall, cpu = _timed(lambda: reference(assets, k, w2c, height, width, *extra, query=query))
+            outs[query] = (out, [wall], [cpu], 0.0)
     return outs
 
 
@@ -153,18 +166,9 @@ def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optiona
     records = []
     for width, height in sizes:
         k = scale_intrinsics(k0, w0, h0, width, height)
-        outs: dict[str, tuple[dict, list[float], list[float], float]] = {}
-        if torch_render is not None:
-            torch_render(k, w2c, 16, 16)  # warm-up
-            out, wall, cpu = _timed(lambda: torch_render(k, w2c, height, width))
-            outs["torch"] = (out, [wall], [cpu], 0.0)
-        if "gl" not in skip:
-            outs.update(_gl_outs(GlFieldRenderer, assets, width, height, STATIC_GL_VARIANTS,
-                                 lambda r: r.render(k, w2c), repeat))
-        for query in ("numpy", "onnx"):
-            if query not in skip:
-                out, wall, cpu = _timed(lambda: render_field(assets, k, w2c, height, width, query=query))
-                outs[query] = (out, [wall], [cpu], 0.0)
+        outs = _size_outs(width, height, k, w2c, (), assets=assets, torch_render=torch_render,
+                          gl_renderer=GlFieldRenderer, variants=STATIC_GL_VARIANTS, reference=render_field, skip=skip,
+                          repeat=repeat)
         records.extend(bench_records(outs, width, height))
     for r in records:
         r["camera"] = where
@@ -201,19 +205,9 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
     records = []
     for width, height in sizes:
         k = scale_intrinsics(cam.intrinsics, test.width, test.height, width, height)
-        w2c = cam.world_to_camera
-        outs = {}
-        if torch_render is not None:
-            torch_render(k, w2c, 16, 16)  # warm-up
-            out, wall, cpu = _timed(lambda: torch_render(k, w2c, height, width))
-            outs["torch"] = (out, [wall], [cpu], 0.0)
-        if "gl" not in skip:
-            outs.update(_gl_outs(GlDynamicRenderer, assets, width, height, DYNAMIC_GL_VARIANTS,
-                                 lambda r: r.render(k, w2c, t), repeat))
-        for query in ("numpy", "onnx"):
-            if query not in skip:
-                out, wall, cpu = _timed(lambda: render_dynamic_field(assets, k, w2c, height, width, t, query=query))
-                outs[query] = (out, [wall], [cpu], 0.0)
+        outs = _size_outs(width, height, k, cam.world_to_camera, (t,), assets=assets, torch_render=torch_render,
+                          gl_renderer=GlDynamicRenderer, variants=DYNAMIC_GL_VARIANTS, reference=render_dynamic_field,
+                          skip=skip, repeat=repeat)
         for record in bench_records(outs, width, height):
             records.append({**record, "time": t, "camera": f"held-out view {test.names[view]}"})
     return records

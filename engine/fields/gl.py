@@ -50,7 +50,10 @@ set to 0 give the reference's compositing up to float32 rounding. ``color_mode="
 per pixel on the weight-averaged latent) is an approximation for comparison only: the MLP is not linear in
 its input, and the bench measures ~27 dB against the exact colour.
 
-The EGL context stays current on the thread that created the renderer; use it from that thread.
+The EGL context stays current on the thread that created the renderer; use it from that thread. The shader
+generator and the renderer that compiles and feeds it stay in one module (~770 lines): every uniform,
+buffer binding and texture layer is named by both sides; ``engine.fields.gldynamic`` reuses the generator
+through its public hooks (``generate_shader``, ``ShaderParams``, ``linear_code``, ``mlp_hidden_code``).
 
 >>> with GlFieldRenderer(load_field("runs/lego/export"), 960, 540) as r:     # doctest: +SKIP
 ...     out = r.render(K, world_to_camera)

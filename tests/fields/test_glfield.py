@@ -189,3 +189,15 @@ def test_field_demo_explains_a_missing_export(tmp_path, capsys):
 
     assert cli_main(["demo", "--field", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "interleave export field" in capsys.readouterr().err
+
+
+def test_field_benchmark_scores_every_renderer_against_torch(bounded_run, tmp_path):
+    from tools.bench_fields import bench_table, run_static_bench
+
+    run, out, _ = bounded_run
+    records = run_static_bench(out, [(24, 16)], run=run, repeat=1, skip=("onnx",))
+    names = [r["renderer"] for r in records]
+    assert names[0] == "torch" and "gl float" in names and "numpy" in names and "onnx" not in names
+    assert all(r["reference"] == "torch" and r["size"] == "24x16" for r in records)
+    assert min(r["psnr"] for r in records if r["renderer"] in ("gl float", "numpy")) > 60.0
+    assert "| 24x16 | gl float |" in bench_table(records)

@@ -28,12 +28,11 @@ import numpy as np
 
 from engine.core.colorspace import display_encode, srgb_to_linear
 from engine.core.errors import InputError
-from engine.core.frames import Camera, validate_pose
-from engine.io.importers import opengl_to_opencv_world_to_camera
+from engine.core.frames import Camera
 from engine.io.rgbd import read_rig
 from models.fields.data.views import (IMAGE_SUFFIXES, NERF_SYNTHETIC_NEAR_FAR, Views, box_from_cameras,
-                                      check_listed_frames, check_views, nearest_depth, read_png, read_transforms,
-                                      resize_image, scale_k)
+                                      check_listed_frames, check_views, nearest_depth, read_blender_frame,
+                                      read_transforms, resize_image, scale_k)
 
 __all__ = ["TimedViews", "check_timed_views", "load_dnerf", "load_rig_video", "split_by_camera", "frame_step",
            "border_crossings"]
@@ -161,13 +160,7 @@ def load_dnerf(root: str | Path, split: str = "train", *, downscale: int = 1, wh
         if path is None:
             missing.append(rel)
             continue
-        if matrix.shape != (4, 4):
-            raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=i, field="transform_matrix")
-        w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=i,
-                            field_name="transform_matrix")
-        rgb, alpha = read_png(path)
-        if alpha is not None:  # composite in display-encoded values, as the protocol does
-            rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+        w2c, rgb = read_blender_frame(path, matrix, background, meta_file, i)
         if size is None:
             size = rgb.shape[:2]
         elif rgb.shape[:2] != size:

@@ -45,7 +45,7 @@ from engine.io.rgbd import read_rig
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
            "load_llff", "load_rig", "LLFF_TO_OPENCV", "llff_to_world_to_camera",
-           "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "resize_image", "nearest_depth", "scale_k"]
+           "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth", "scale_k"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
 
@@ -267,6 +267,22 @@ def scale_k(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return np.diag([sx, sy, 1.0]) @ np.asarray(k, dtype=np.float64)
 
 
+def read_blender_frame(path: Path, matrix: np.ndarray, background: np.ndarray, meta_file: Path, index: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame of a Blender-style ``transforms_*.json`` (NeRF-synthetic, D-NeRF): the OpenCV world-to-camera
+    of its OpenGL camera-to-world ``matrix`` and its display-encoded RGB, an RGBA image composited on
+    ``background`` in display-encoded values (as the NeRF-synthetic protocol does). InputError names the
+    file and frame of a bad matrix."""
+    if matrix.shape != (4, 4):
+        raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=index, field="transform_matrix")
+    w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=index,
+                        field_name="transform_matrix")
+    rgb, alpha = read_png(path)
+    if alpha is not None:
+        rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+    return w2c, rgb
+
+
 def read_png(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Display-encoded RGB in [0, 1] (H, W, 3) float64 and alpha (H, W) or None."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -345,13 +361,7 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
         if not path.is_file():
             missing.append(rel)
             continue
-        if matrix.shape != (4, 4):
-            raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=i, field="transform_matrix")
-        w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=i,
-                            field_name="transform_matrix")
-        rgb, alpha = read_png(path)
-        if alpha is not None:  # composite in display-encoded values, as the NeRF-synthetic protocol does
-            rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+        w2c, rgb = read_blender_frame(path, matrix, background, meta_file, i)
         images.append(srgb_to_linear(rgb))
         poses.append(w2c)
         names.append(rel)

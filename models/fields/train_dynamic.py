@@ -40,9 +40,9 @@ from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFiel
 from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
 from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.static.model import RenderConfig, SceneBox
-from models.fields.trainer import (apply_loss_weights, check_run, json_safe, run_config_from_dict,
-                                   run_config_from_file, run_config_to_dict, run_eval_command, run_train_seconds,
-                                   score_views, train_run, validate_run_config, view_list)
+from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, run_config_from_file,
+                                   run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
+                                   view_list)
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
@@ -100,19 +100,10 @@ def default_dynamic_loss_terms() -> tuple[LossTerm, ...]:
 
 
 @dataclass
-class DynamicTrainConfig:
-    """Everything that defines a dynamic training run (saved as ``config.json`` beside its outputs)."""
+class DynamicTrainConfig(RunConfig):
+    """Everything that defines a dynamic training run (saved as ``config.json`` beside its outputs): the shared
+    :class:`~models.fields.trainer.RunConfig` options, then the dynamic field's."""
 
-    seed: int = field(default=0, metadata={"help": "seed of parameter initialisation and ray/sample choice"})
-    steps: int = field(default=2000, metadata={"help": "optimisation steps"})
-    rays_per_batch: int = field(default=1024, metadata={"help": "rays per step, drawn uniformly from all train pixels"})
-    lr: float = field(default=0.02, metadata={"help": "peak Adam learning rate (planes and MLPs)"})
-    lr_schedule: str = field(default="cosine", metadata={
-        "help": "decay after warm-up: cosine, exponential or constant"})
-    lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
-    warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
-    downscale: int = field(default=1, metadata={
-        "help": "image resolution factor relative to the dataset's images (views are reduced to it if needed)"})
     losses: tuple[LossTerm, ...] = field(default_factory=default_dynamic_loss_terms, metadata={
         "help": "named loss terms with weights; see models/fields/train_dynamic.py"})
     occupancy_warmup: int = field(default=64, metadata={"help": "steps before the first occupancy-grid update"})
@@ -144,14 +135,6 @@ class DynamicTrainConfig:
         if self.field.kind != "derf":
             terms = [t for t in terms if t.name not in MOTION_TERMS]
         return tuple(terms)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON data (tuples become lists), as written to ``config.json``."""
-        return run_config_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "DynamicTrainConfig":
-        return run_config_from_dict(cls, data)
 
 
 def _resolved(config: DynamicTrainConfig, views: TimedViews) -> DynamicTrainConfig:

@@ -30,9 +30,9 @@ from models.fields.losses import LossTerm, RayBatch, default_loss_terms
 from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors, prior_loss_terms, with_priors
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.trainer import (apply_loss_weights, check_run, json_safe, rank_correlation, run_config_from_dict,
-                                   run_config_from_file, run_config_to_dict, run_eval_command, run_train_seconds,
-                                   score_views, train_run, validate_run_config, view_list)
+from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, rank_correlation,
+                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
+                                   validate_run_config, view_list)
 
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
@@ -42,19 +42,10 @@ __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_
 
 
 @dataclass
-class FieldTrainConfig:
-    """Everything that defines a training run (saved as ``config.json`` beside its outputs)."""
+class FieldTrainConfig(RunConfig):
+    """Everything that defines a training run (saved as ``config.json`` beside its outputs): the shared
+    :class:`~models.fields.trainer.RunConfig` options, then the static field's."""
 
-    seed: int = field(default=0, metadata={"help": "seed of parameter initialisation and ray/sample choice"})
-    steps: int = field(default=2000, metadata={"help": "optimisation steps"})
-    rays_per_batch: int = field(default=1024, metadata={"help": "rays per step, drawn uniformly from all train pixels"})
-    lr: float = field(default=0.02, metadata={"help": "peak Adam learning rate (planes and MLPs)"})
-    lr_schedule: str = field(default="cosine", metadata={
-        "help": "decay after warm-up: cosine, exponential or constant"})
-    lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
-    warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
-    downscale: int = field(default=1, metadata={
-        "help": "image resolution factor relative to the dataset's images (views are reduced to it if needed)"})
     losses: tuple[LossTerm, ...] = field(default_factory=default_loss_terms, metadata={
         "help": "named loss terms with weights; see models/fields/losses.py"})
     occupancy_warmup: int = field(default=64, metadata={"help": "steps before the first occupancy-grid update"})
@@ -76,14 +67,6 @@ class FieldTrainConfig:
     def loss_terms(self) -> tuple[LossTerm, ...]:
         """``losses`` plus the terms of the enabled priors."""
         return tuple(self.losses) + prior_loss_terms(self.priors, self.steps)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON data (tuples become lists), as written to ``config.json``."""
-        return run_config_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "FieldTrainConfig":
-        return run_config_from_dict(cls, data)
 
 
 # ----------------------------------------------------------------------------------------------------

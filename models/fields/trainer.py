@@ -27,6 +27,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Protocol
 
@@ -42,7 +43,7 @@ from engine.eval.metrics import flip_map, psnr, ssim_map
 from models.fields.components.sampling import camera_rays
 from models.fields.losses import LossTerm, RayBatch, assemble_loss, check_loss_terms
 
-__all__ = ["LR_SCHEDULES", "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
+__all__ = ["LR_SCHEDULES", "RunConfig", "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
            "check_run", "all_rays", "take_rays", "open_run_dir", "restore_training_state", "open_log", "run_config_to_dict",
            "run_config_from_dict", "run_config_from_file", "apply_loss_weights", "view_list", "rank_correlation",
            "run_train_seconds", "score_views", "json_safe", "write_renders", "run_eval_command"]
@@ -52,6 +53,32 @@ LR_SCHEDULES = ("cosine", "exponential", "constant")
 
 # ----------------------------------------------------------------------------------------------------
 # Run configs (FieldTrainConfig, DynamicTrainConfig): validation and the JSON form
+
+
+@dataclass
+class RunConfig:
+    """The options every training run has (seed, steps, learning-rate schedule, resolution); the static and
+    dynamic run configs (``FieldTrainConfig``, ``DynamicTrainConfig``) add theirs after these, so
+    ``config.json`` lists these first. Saved as ``config.json`` through :meth:`to_dict`."""
+
+    seed: int = field(default=0, metadata={"help": "seed of parameter initialisation and ray/sample choice"})
+    steps: int = field(default=2000, metadata={"help": "optimisation steps"})
+    rays_per_batch: int = field(default=1024, metadata={"help": "rays per step, drawn uniformly from all train pixels"})
+    lr: float = field(default=0.02, metadata={"help": "peak Adam learning rate (planes and MLPs)"})
+    lr_schedule: str = field(default="cosine", metadata={
+        "help": "decay after warm-up: cosine, exponential or constant"})
+    lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
+    warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
+    downscale: int = field(default=1, metadata={
+        "help": "image resolution factor relative to the dataset's images (views are reduced to it if needed)"})
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON data (tuples become lists), as written to ``config.json``."""
+        return run_config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RunConfig":
+        return run_config_from_dict(cls, data)
 
 
 def validate_run_config(config, positive_ints: tuple[str, ...]) -> None:

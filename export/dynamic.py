@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.errors import InputError
-from export.field import OPSET, example_points, export_command, mlp_layers, quantize_planes, strip_debug
+from export.field import (OPSET, example_points, export_command, mlp_layers, quantize_planes, run_as_script,
+                          strip_debug)
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.train_dynamic import load_dynamic_model
@@ -208,10 +208,4 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic
 
 
 if __name__ == "__main__":  # pragma: no cover
-    import sys
-
-    try:
-        main()
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_as_script(main)

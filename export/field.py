@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Optional, Union
 
@@ -39,7 +40,7 @@ from models.fields.data.select import load_run_views
 from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
-           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command"]
+           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -302,11 +303,14 @@ def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, *
         raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {tolerance:.0e}", file=out / onnx_name)
 
 
-if __name__ == "__main__":  # pragma: no cover
-    import sys
-
+def run_as_script(main) -> None:
+    """``python -m export.field|dynamic``: run ``main`` (no arguments); on InputError print it and exit 2."""
     try:
         main()
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run_as_script(main)

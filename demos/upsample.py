@@ -18,10 +18,10 @@ import numpy as np
 
 from engine.core.frames import Frame
 from engine.core.colorspace import display_encode
-from engine.eval.metrics import flip_map
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
+from engine.eval.metrics import flip_map
 from engine.predict.predictors import Predictor, Reproject, Target
 
 

@@ -20,7 +20,16 @@ from models.fields.data.timed import TimedViews, load_dnerf, load_rig_video, spl
 from models.fields.data.views import Views, load_llff, load_nerf_synthetic, load_rig, split_indices
 
 __all__ = ["DATASETS", "detect_dataset", "select_views", "load_run_views", "DYNAMIC_DATASETS",
-           "detect_dynamic_dataset", "select_dynamic_views", "load_dynamic_run_views"]
+           "detect_dynamic_dataset", "select_dynamic_views", "load_dynamic_run_views", "read_data_record"]
+
+
+def read_data_record(run_dir: str | Path, made_by: str) -> dict[str, Any]:
+    """The ``data.json`` record of a run directory; InputError naming the file when it is missing."""
+    file = Path(run_dir) / "data.json"
+    if not file.is_file():
+        raise InputError(f"file does not exist: the run was not made by '{made_by}' (or the folder is not a run "
+                         "directory)", file=file)
+    return json.loads(file.read_text())
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -112,11 +121,7 @@ def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Opti
 
 def load_run_views(run_dir: str | Path) -> tuple[Views, Views]:
     """The (train, test) views a run was trained and is evaluated on, from its ``data.json``."""
-    file = Path(run_dir) / "data.json"
-    if not file.is_file():
-        raise InputError("file does not exist: the run was not made by 'interleave train field' (or the "
-                         "folder is not a run directory)", file=file)
-    rec = json.loads(file.read_text())
+    rec = read_data_record(run_dir, "interleave train field")
     train, test, _ = select_views(rec["dataset"], rec["scene"], rec["downscale"], train_views=rec["train_views"],
                                   test_views=rec["test_views"])
     return train, test
@@ -233,11 +238,7 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
 
 def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]:
     """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``."""
-    file = Path(run_dir) / "data.json"
-    if not file.is_file():
-        raise InputError("file does not exist: the run was not made by 'interleave train dynamic' (or the folder "
-                         "is not a run directory)", file=file)
-    rec = json.loads(file.read_text())
+    rec = read_data_record(run_dir, "interleave train dynamic")
     with warnings.catch_warnings():  # the warnings were given when the run was made
         warnings.simplefilter("ignore")
         is_rig = rec["dataset"] == "rig"

@@ -18,6 +18,9 @@ import numpy as np
 
 from engine.core.frames import Frame
 from engine.core.colorspace import display_encode
+from engine.fields.camera_path import field_camera_path
+from engine.fields.gl import GlFieldRenderer
+from engine.fields.render import load_field
 from engine.eval.metrics import flip_map
 from engine.predict import Predictor, Target
 from engine.runtime.stream import PredictionLoop
@@ -161,96 +164,6 @@ def _train_cameras(run: Optional[Path]):
     return list(train.cameras), train.width, train.height
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """Rigid world-to-camera (OpenCV axes: x right, y down, z forward) of a camera at ``eye`` facing ``target``."""
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    rot = np.stack([right, np.cross(forward, right), forward])
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = rot, -rot @ eye
-    return out
-
-
-def _world_up(cameras) -> np.ndarray:
-    """The world's up direction seen by cameras without roll: the direction orthogonal to every camera's x
-    axis (smallest eigenvector of sum x x^T), signed like their mean up (-y) axis; that mean if ambiguous."""
-    rights = np.stack([c.world_to_camera[0, :3] for c in cameras])
-    ups = np.stack([-c.world_to_camera[1, :3] for c in cameras])
-    mean_up = ups.sum(axis=0) / np.linalg.norm(ups.sum(axis=0))
-    values, vectors = np.linalg.eigh(rights.T @ rights)
-    if len(cameras) < 2 or values[1] < 1e-3 * max(values[2], 1e-12):
-        return mean_up
-    up = vectors[:, 0]
-    return up if up @ mean_up >= 0 else -up
-
-
-def field_camera_path(assets, train=None, count: int = 48, width: Optional[int] = None,
-                      height: Optional[int] = None, *, orbit_degrees: float = 90.0):
-    """A smooth camera path through a field's scene: ``(cameras, width, height)``.
-
-    ``train`` is ``(cameras, width, height)`` of the training views or None. Bounded-360 scenes: an arc of
-    ``orbit_degrees`` around the box centre at the training cameras' median radius and elevation, starting
-    at the first training camera, looking at the centre, about the up direction of the training cameras
-    (:func:`_world_up`; without training cameras: radius (near + far) / 2,
-    30 degrees above the xy plane, z up). Forward-facing scenes: the NDC reference orientation, the camera
-    centre swaying on a figure eight within the spread of the training cameras (without them: 5% of near).
-    Intrinsics: the first training camera's (else the NDC camera's, else a 40-degree horizontal field of
-    view) scaled so that its whole view fits ``width`` x ``height`` (default: the training size, else
-    640 x 360).
-    """
-    from engine.core.frames import Camera
-    from engine.fields.gl import scale_intrinsics
-
-    scene = assets.scene
-    cams = list(train[0]) if train else []
-    if train:
-        k0, w0, h0 = cams[0].intrinsics, train[1], train[2]
-    elif not assets.bounded:
-        k0, (w0, h0) = np.asarray(scene["ndc_intrinsics"], np.float64), scene["ndc_size"]
-    else:
-        w0, h0 = 640, 360
-        f = w0 / (2 * np.tan(np.radians(20.0)))
-        k0 = np.array([[f, 0, w0 / 2], [0, f, h0 / 2], [0, 0, 1.0]])
-    width, height = int(width or w0), int(height or h0)
-    k = scale_intrinsics(k0, w0, h0, width, height, fit="contain")
-    s = np.arange(count) / max(count, 1)
-    poses = []
-    if assets.bounded:
-        center = (np.asarray(scene["box_min"]) + np.asarray(scene["box_max"])) / 2
-        if cams:
-            up = _world_up(cams)
-            offsets = np.stack([c.position - center for c in cams])
-            radius = float(np.median(np.linalg.norm(offsets, axis=1)))
-            elevation = float(np.median(np.arcsin(np.clip(offsets @ up / np.linalg.norm(offsets, axis=1), -1, 1))))
-            first = offsets[0] - (offsets[0] @ up) * up
-        else:
-            up, radius, elevation = np.array([0.0, 0.0, 1.0]), (scene["near"] + scene["far"]) / 2, np.radians(30.0)
-            first = np.array([1.0, 0.0, 0.0])
-        e1 = first / np.linalg.norm(first)
-        e2 = np.cross(up, e1)
-        for a in s * np.radians(orbit_degrees):
-            eye = center + radius * (np.cos(elevation) * (np.cos(a) * e1 + np.sin(a) * e2) + np.sin(elevation) * up)
-            poses.append(_look_at(eye, center, up))
-    else:
-        ref = np.asarray(scene["ndc_world_to_camera"], np.float64)
-        rot = ref[:3, :3]
-        if cams:
-            centers = np.stack([c.position for c in cams])
-            mean = centers.mean(axis=0)
-            local = (centers - mean) @ rot.T  # in the reference camera's axes
-            amp = np.maximum((local.max(axis=0) - local.min(axis=0)) / 2, 1e-3 * scene["near"])
-        else:
-            mean = -rot.T @ ref[:3, 3]
-            amp = np.full(3, 0.05 * scene["near"])
-        for phase in 2 * np.pi * s:
-            eye = mean + rot.T @ np.array([amp[0] * np.sin(phase), 0.5 * amp[1] * np.sin(2 * phase), 0.0])
-            pose = np.eye(4)
-            pose[:3, :3], pose[:3, 3] = rot, -rot @ eye
-            poses.append(pose)
-    return [Camera(k.copy(), p) for p in poses], width, height
-
-
 def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] = None) -> Iterator[Frame]:
     """Frames (colour, planar depth, camera) of a field rendered along ``cameras``, one at a time; each
     render's seconds are appended to ``timings``."""
@@ -273,8 +186,6 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
     pose. Writes what :func:`run_demo` writes; the field's render time is in ``table.md`` and
     ``results.json``. ``oracle`` is dropped from ``methods`` (a static field has no object motion).
     """
-    from engine.fields.gl import GlFieldRenderer
-    from engine.fields.render import load_field
     from engine.io.rgbd import read_sequence, write_sequence
 
     export, run = resolve_field_dir(field_dir)

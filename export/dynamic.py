@@ -21,7 +21,6 @@ around the cube; the command fails above ``--tolerance``.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -31,8 +30,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.errors import InputError
-from export.field import OPSET, _mlp_layers, _strip_debug, quantize_planes, report_export
+from export.field import (OPSET, example_points, export_command, mlp_layers, quantize_planes, run_as_script,
+                          strip_debug)
+from models.fields.dynamic.model import DynamicFieldModel
+from models.fields.static.field import MAX_LOG_DENSITY
+from models.fields.train_dynamic import load_dynamic_model
 
 __all__ = ["DynamicQueryGraph", "export_dynamic", "check_parity", "example_queries", "main", "ASSET_FORMAT",
            "ASSET_VERSION"]
@@ -62,9 +64,6 @@ class DynamicQueryGraph(nn.Module):
 
 
 def _model(run_or_model):
-    from models.fields.dynamic.model import DynamicFieldModel
-    from models.fields.train_dynamic import load_dynamic_model
-
     if isinstance(run_or_model, DynamicFieldModel):
         return run_or_model.eval()
     return load_dynamic_model(run_or_model)
@@ -72,8 +71,6 @@ def _model(run_or_model):
 
 def example_queries(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """Random world points over the field's cube and 10% beyond it, random trained times, unit directions."""
-    from export.field import example_points
-
     points, directions = example_points(model, count, seed)
     g = torch.Generator().manual_seed(seed + 7)
     t0, t1 = model.time_range
@@ -118,8 +115,6 @@ def _mlps(model) -> dict[str, nn.Module]:
 def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict:
     """Write ``dynamic.onnx``, ``dynamic.npz`` and ``dynamic.json`` for the run into ``out_dir``; returns the
     manifest (with the parity of onnxruntime against torch under ``parity``)."""
-    from models.fields.static.field import MAX_LOG_DENSITY
-
     model = _model(run_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -133,7 +128,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
                                     dynamic_shapes={"points": {0: n}, "times": {0: n}, "directions": {0: n}},
                                     verbose=False, optimize=False)
     program.save(str(onnx_path))
-    _strip_debug(onnx_path)
+    strip_debug(onnx_path)
 
     arrays: dict[str, np.ndarray] = {}
     planes_meta: dict[str, list] = {}
@@ -149,7 +144,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     mlps = {}
     for name, mlp in _mlps(model).items():
         layers = []
-        for j, lin in enumerate(_mlp_layers(mlp)):
+        for j, lin in enumerate(mlp_layers(mlp)):
             arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()
             arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
             layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}", "in": int(lin.in_features),
@@ -207,24 +202,10 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic") -> None:
     """``interleave export dynamic RUN_DIR [--out DIR]``: export, check parity, print a summary."""
-    parser = argparse.ArgumentParser(prog=prog, description="Export a trained dynamic field (ONNX (p, t, d) query + "
-                                                            "renderer assets) and check onnxruntime against torch.")
-    parser.add_argument("run", type=Path, help="run directory written by 'interleave train dynamic'")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
-    parser.add_argument("--tolerance", type=float, default=1e-4,
-                        help="largest accepted |onnxruntime - torch| colour difference and relative density "
-                             "difference (default 1e-4)")
-    args = parser.parse_args(argv)
-    out = args.out or args.run / "export"
-    manifest = export_dynamic(args.run, out)
-    report_export(out, manifest, "dynamic.onnx", args.tolerance, time_range=manifest["time"]["range"])
+    export_command(argv, prog, "Export a trained dynamic field (ONNX (p, t, d) query + renderer assets) and check "
+                               "onnxruntime against torch.", "interleave train dynamic", export_dynamic, "dynamic.onnx",
+                   lambda manifest: {"time_range": manifest["time"]["range"]})
 
 
 if __name__ == "__main__":  # pragma: no cover
-    import sys
-
-    try:
-        main()
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    run_as_script(main)

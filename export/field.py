@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Optional, Union
 
@@ -28,10 +29,18 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
+from engine.eval.metrics import psnr
+from models.fields.components.render import render_image
+from models.fields.components.sampling import camera_rays, sample_intervals
+from models.fields.static.field import MAX_LOG_DENSITY
+from models.fields.static.model import StaticFieldModel
+from models.fields.data.select import load_run_views
+from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
-           "ASSET_FORMAT", "ASSET_VERSION", "OPSET"]
+           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -58,9 +67,6 @@ class FieldQueryGraph(nn.Module):
 
 
 def _model(run_or_model):
-    from models.fields.static.model import StaticFieldModel
-    from models.fields.train_static import load_model
-
     if isinstance(run_or_model, StaticFieldModel):
         return run_or_model.eval()
     return load_model(run_or_model)
@@ -92,8 +98,6 @@ def example_points(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Ten
 def ray_points(model, intrinsics, world_to_camera, height: int, width: int, count: int = 4096,
                seed: int = 0) -> tuple[Tensor, Tensor]:
     """Points where the renderer samples along ``count`` random rays of a view (bin centres)."""
-    from models.fields.components.sampling import camera_rays, sample_intervals
-
     origins, dirs = camera_rays(intrinsics, world_to_camera, height, width)
     g = torch.Generator().manual_seed(seed)
     pick = torch.randint(origins.shape[0], (max(1, count // model.render_config.num_samples),), generator=g)
@@ -134,7 +138,8 @@ def quantize_planes(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return codes, np.stack([lo, hi], axis=-1).astype(np.float32)
 
 
-def _mlp_layers(mlp: nn.Module) -> list[nn.Linear]:
+def mlp_layers(mlp: nn.Module) -> list[nn.Linear]:
+    """The linear layers of an ``MLP`` (``models.fields.components.encodings``), input to output."""
     return [m for m in mlp.net if isinstance(m, nn.Linear)]
 
 
@@ -149,9 +154,6 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
             parity check and the quantization check (default: the run's first test view if the run
             records its data, else only random points are checked).
     """
-    from models.fields.static.field import MAX_LOG_DENSITY
-    from models.fields.components.render import render_image
-
     model = _model(run_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -165,7 +167,7 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
                                     dynamic_shapes={"points": {0: n}, "directions": {0: n}}, verbose=False,
                                     optimize=False)
     program.save(str(onnx_path))
-    _strip_debug(onnx_path)
+    strip_debug(onnx_path)
 
     cfg = model.field.config
     arrays: dict[str, np.ndarray] = {}
@@ -181,7 +183,7 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
     mlps = {}
     for name, mlp in (("density", model.field.density_mlp), ("color", model.field.color_mlp)):
         layers = []
-        for j, lin in enumerate(_mlp_layers(mlp)):
+        for j, lin in enumerate(mlp_layers(mlp)):
             arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()  # (out, in): y = W x + b
             arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
             layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}",
@@ -231,8 +233,6 @@ def _first_test_camera(run_dir, views):
         cam = views.cameras[0]
         return cam.intrinsics, cam.world_to_camera, views.height, views.width
     if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "data.json").is_file():
-        from models.fields.train_static import load_run_views
-
         _, test = load_run_views(run_dir)
         cam = test.cameras[0]
         return cam.intrinsics, cam.world_to_camera, test.height, test.width
@@ -241,9 +241,6 @@ def _first_test_camera(run_dir, views):
 
 def _quantization_check(model, arrays: dict, camera, render_image) -> dict:
     """PSNR between renders with float planes and with uint8 planes (display-encoded), one view."""
-    from engine.core.colorspace import display_encode
-    from engine.eval.metrics import psnr
-
     k, w2c, h, w = camera
     ref = render_image(model, k, w2c, h, w, model.scene.near, model.scene.far)
     saved = [p.detach().clone() for p in model.field.encoding.planes]
@@ -262,7 +259,8 @@ def _quantization_check(model, arrays: dict, camera, render_image) -> dict:
     return {"psnr_uint8_vs_float": float(value) if np.isfinite(value) else None, "view_size": [int(h), int(w)]}
 
 
-def _strip_debug(path: Path) -> None:
+def strip_debug(path: Path) -> None:
+    """Remove the debug metadata (names of source lines) that the torch exporter writes into an ONNX file."""
     import onnx
 
     proto = onnx.load(str(path))
@@ -272,19 +270,27 @@ def _strip_debug(path: Path) -> None:
     onnx.save(proto, str(path))
 
 
-def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field") -> None:
-    """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
-    parser = argparse.ArgumentParser(prog=prog, description="Export a trained static field (ONNX query + "
-                                                            "renderer assets) and check onnxruntime against torch.")
-    parser.add_argument("run", type=Path, help="run directory written by 'interleave train field'")
+def export_command(argv: Optional[list[str]], prog: str, description: str, made_by: str, export, onnx_name: str,
+                   extra) -> None:
+    """``interleave export field|dynamic RUN_DIR [--out DIR] [--tolerance T]``: ``export(run, out) -> manifest``,
+    then :func:`report_export` with ``extra(manifest)`` (a dict) printed beside the parity."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("run", type=Path, help=f"run directory written by '{made_by}'")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
     parser.add_argument("--tolerance", type=float, default=1e-4,
                         help="largest accepted |onnxruntime - torch| colour difference and relative density "
                              "difference (default 1e-4)")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
-    manifest = export_field(args.run, out)
-    report_export(out, manifest, "field.onnx", args.tolerance, quantization=manifest.get("quantization"))
+    manifest = export(args.run, out)
+    report_export(out, manifest, onnx_name, args.tolerance, **extra(manifest))
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field") -> None:
+    """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
+    export_command(argv, prog, "Export a trained static field (ONNX query + renderer assets) and check onnxruntime "
+                               "against torch.", "interleave train field", export_field, "field.onnx",
+                   lambda manifest: {"quantization": manifest.get("quantization")})
 
 
 def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, **extra) -> None:
@@ -297,11 +303,14 @@ def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, *
         raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {tolerance:.0e}", file=out / onnx_name)
 
 
-if __name__ == "__main__":  # pragma: no cover
-    import sys
-
+def run_as_script(main) -> None:
+    """``python -m export.field|dynamic``: run ``main`` (no arguments); on InputError print it and exit 2."""
     try:
         main()
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run_as_script(main)

@@ -17,12 +17,10 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-import torch
-
 from engine.core.errors import InputError
 from models.fields.priors.config import PRIOR_NAMES, with_priors
-from models.fields.train_static import (FieldTrainConfig, _add_config_args, _apply_args, _apply_losses, _load_views,
-                                 add_run_arguments, config_from_file, evaluate_field, train_field)
+from models.fields.train_static import (FieldTrainConfig, add_run_arguments, evaluate_field, parse_run_command,
+                                       run_inputs, train_field)
 
 __all__ = ["VARIANTS", "run_ablation", "markdown_table", "main"]
 
@@ -67,35 +65,37 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def write_report(out_dir: str | Path, file_name: str, prog: str, argv: Optional[list[str]], record: dict, train,
+                 config: FieldTrainConfig, body: dict) -> dict:
+    """Write ``out_dir/file_name``: the command, the train / test views, image size and steps, then ``body``;
+    returns it. Shared by the ablation and capacity commands."""
+    report = {"command": f"python -m {prog} " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "train_views": record["train_names"], "test_views": record["test_names"],
+              "image_size": [train.height, train.width], "steps": config.steps, **body}
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    (Path(out_dir) / file_name).write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
 def main(argv: Optional[list[str]] = None) -> int:
     """``python -m tools.field_ablation``: train every variant, print the table, write ``ablation.json``."""
     parser = argparse.ArgumentParser(prog="python -m tools.field_ablation", description=__doc__.split("\n")[0])
     add_run_arguments(parser, "folder of the variants' run directories")
     parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, from {','.join(VARIANTS)}")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the evaluation")
-    _add_config_args(parser, FieldTrainConfig)
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_run_command(parser, argv)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     try:
         unknown = sorted(set(variants) - set(VARIANTS))
         if unknown:
             raise InputError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}", field="--variants")
-        config = _apply_losses(_apply_args(config_from_file(args.config), args), args.loss)
-        if args.downscale is None:
-            args.downscale = config.downscale
-        train, test, record = _load_views(args)
+        config, train, test, record = run_inputs(args)
         rows = run_ablation(train, test, config, args.out, variants, data_record=record, with_flip=not args.no_flip)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     rows = [{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()} for r in rows]
-    report = {"command": "python -m tools.field_ablation " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "train_views": record["train_names"], "test_views": record["test_names"],
-              "image_size": [train.height, train.width], "steps": config.steps, "rows": rows}
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    (Path(args.out) / "ablation.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_report(args.out, "ablation.json", "tools.field_ablation", argv, record, train, config, {"rows": rows})
     print(markdown_table(rows))
     return 0
 

@@ -20,11 +20,10 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-import torch
-
 from engine.core.errors import InputError
-from models.fields.train_static import (FieldTrainConfig, _add_config_args, _apply_args, _apply_losses, _load_views,
-                                 add_run_arguments, config_from_file, evaluate_field, load_model, train_field)
+from models.fields.train_static import (FieldTrainConfig, add_run_arguments, evaluate_field, load_model,
+                                       parse_run_command, run_inputs, train_field)
+from tools.field_ablation import write_report
 
 __all__ = ["DEFAULT_LADDER", "field_size", "run_capacity_sweep", "markdown_table", "main"]
 
@@ -102,15 +101,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--min-gain-db", type=float, default=0.25, help="smallest PSNR gain worth a bigger field")
     parser.add_argument("--patience", type=int, default=1, help="rungs without that gain before stopping")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP")
-    _add_config_args(parser, FieldTrainConfig)
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = parse_run_command(parser, argv)
     try:
-        config = _apply_losses(_apply_args(config_from_file(args.config), args), args.loss)
-        if args.downscale is None:
-            args.downscale = config.downscale
-        train, test, record = _load_views(args)
+        config, train, test, record = run_inputs(args)
         report = run_capacity_sweep(train, test, config, args.out, min_gain_db=args.min_gain_db,
                                     patience=args.patience, data_record=record, with_flip=not args.no_flip)
     except InputError as exc:
@@ -118,11 +111,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         return 2
     report["rows"] = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}
                       for r in report["rows"]]
-    report = {"command": "python -m tools.field_capacity " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "train_views": record["train_names"], "test_views": record["test_names"],
-              "image_size": [train.height, train.width], "steps": config.steps, **report}
-    Path(args.out).mkdir(parents=True, exist_ok=True)
-    (Path(args.out) / "capacity.json").write_text(json.dumps(report, indent=2) + "\n")
+    report = write_report(args.out, "capacity.json", "tools.field_capacity", argv, record, train, config, report)
     print(markdown_table(report))
     return 0
 

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.render import (_PLANE_AXES, _bilinear, _mlp, array_getter, decode_plane, direction_encoding_np,
+from engine.fields.render import (PLANE_AXES, bilinear_np, mlp_np, array_getter, decode_plane, direction_encoding_np,
                                 load_mlp, march_field, read_asset_files, ExportedAssets)
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
@@ -200,8 +200,8 @@ def triplane_features_np(planes: list[np.ndarray], coords: np.ndarray) -> np.nda
     feats = []
     for plane in planes:
         prod = None
-        for k, (a, b) in enumerate(_PLANE_AXES):
-            f = _bilinear(plane[k], coords[:, a], coords[:, b])
+        for k, (a, b) in enumerate(PLANE_AXES):
+            f = bilinear_np(plane[k], coords[:, a], coords[:, b])
             prod = f if prod is None else prod * f
         feats.append(prod)
     return np.concatenate(feats, axis=0).T
@@ -217,7 +217,7 @@ def hex_plane_features_np(spatial: list[np.ndarray], temporal: list[np.ndarray],
         space = triplane_features_np([s_plane], coords)
         prod = None
         for k in range(3):
-            f = _bilinear(t_plane[k], coords[:, k], taus)
+            f = bilinear_np(t_plane[k], coords[:, k], taus)
             prod = f if prod is None else prod * f
         feats.append(space * prod.T)
     return np.concatenate(feats, axis=1)
@@ -227,7 +227,7 @@ def deform_np(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray) -> tu
     """The motion field: contracted points (N, 3) at normalised times (N,) -> canonical points (N, 3) (not
     clamped) and flow (N, 3), ``flow = max_flow * tanh(flow MLP(hex-plane features))``."""
     feats = hex_plane_features_np(assets.planes["motion_spatial"], assets.planes["motion_temporal"], coords, taus)
-    flow = (np.float32(assets.max_flow) * np.tanh(_mlp(feats, assets.flow_layers))).astype(np.float32)
+    flow = (np.float32(assets.max_flow) * np.tanh(mlp_np(feats, assets.flow_layers))).astype(np.float32)
     return coords + flow, flow
 
 
@@ -248,13 +248,13 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
         feats = triplane_features_np(assets.canonical_planes, np.clip(canonical, -1.0, 1.0))
     else:
         feats = hex_plane_features_np(assets.planes["spatial"], assets.planes["temporal"], coords, taus)
-    out = _mlp(feats, assets.density_layers)
+    out = mlp_np(feats, assets.density_layers)
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
     inputs = [out[:, 1:], direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                                 spec["direction_degree"])]
     if assets.has_motion:
         inputs.append(time_encoding_np(taus, int(spec["time_frequencies"])))
-    rgb = 1.0 / (1.0 + np.exp(-_mlp(np.concatenate(inputs, axis=-1), assets.color_layers)))
+    rgb = 1.0 / (1.0 + np.exp(-mlp_np(np.concatenate(inputs, axis=-1), assets.color_layers)))
     return sigma.astype(np.float32), rgb.astype(np.float32)
 
 

@@ -50,23 +50,23 @@ set to 0 give the reference's compositing up to float32 rounding. ``color_mode="
 per pixel on the weight-averaged latent) is an approximation for comparison only: the MLP is not linear in
 its input, and the bench measures ~27 dB against the exact colour.
 
-The EGL context stays current on the thread that created the renderer; use it from that thread.
+The EGL context stays current on the thread that created the renderer; use it from that thread. The shader
+generator and the renderer that compiles and feeds it stay in one module (~770 lines): every uniform,
+buffer binding and texture layer is named by both sides; ``engine.fields.gldynamic`` reuses the generator
+through its public hooks (``generate_shader``, ``ShaderParams``, ``linear_code``, ``mlp_hidden_code``).
 
 >>> with GlFieldRenderer(load_field("runs/lego/export"), 960, 540) as r:     # doctest: +SKIP
 ...     out = r.render(K, world_to_camera)
 >>> out["color"].shape, out["depth"].shape                                   # doctest: +SKIP
 ((540, 960, 3), (540, 960))
 
-``python -m engine.fields.gl --bench EXPORT_DIR --sizes 512x512,960x540`` times this renderer against the
+``python -m tools.bench_fields static EXPORT_DIR --sizes 512x512,960x540`` times this renderer against the
 numpy and onnxruntime paths of :mod:`engine.fields.render` and (when torch is importable) the torch renderer.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import re
-import sys
 import threading
 import time
 from pathlib import Path
@@ -75,12 +75,12 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, SH_C0, SH_C1, SH_C2, SH_C3, FieldAssets,
-                                load_field, render_field)
+from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_AXES, SH_C0, SH_C1, SH_C2, SH_C3,
+                                  FieldAssets, load_field)
 from engine.core.frames import validate_intrinsics, validate_pose
 
-__all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "scale_intrinsics", "run_bench",
-           "bench_table", "main"]
+__all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
+           "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options"]
 
 #: Default early-termination threshold: a ray stops once its transmittance is below this.
 TRANSMITTANCE_EPS = 1e-4
@@ -89,7 +89,6 @@ COLOR_EPS = 1e-5
 #: Largest uniform-buffer size used for the weights (bytes); bigger MLPs go to a storage buffer.
 _UBO_LIMIT = 65536
 _TILE = 8
-_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 
 _AVAILABLE: Optional[bool] = None
 
@@ -115,7 +114,7 @@ def available() -> bool:
 # Packing the arrays and generating the shader
 
 
-class _Params:
+class ShaderParams:
     """The weights and ranges as one (M, 4) float32 array of vec4 rows, with GLSL references to them."""
 
     def __init__(self) -> None:
@@ -138,7 +137,7 @@ def _pad_to(n: int) -> int:
     return -(-n // 4) * 4
 
 
-def _pad_matrix(w: np.ndarray, rows: int, cols: int, col_map: Optional[np.ndarray] = None) -> np.ndarray:
+def pad_matrix(w: np.ndarray, rows: int, cols: int, col_map: Optional[np.ndarray] = None) -> np.ndarray:
     """(out, in) -> (rows, cols) zero-padded; ``col_map[j]`` is the padded column of input j."""
     out = np.zeros((rows, cols), np.float32)
     cm = np.arange(w.shape[1]) if col_map is None else col_map
@@ -146,7 +145,7 @@ def _pad_matrix(w: np.ndarray, rows: int, cols: int, col_map: Optional[np.ndarra
     return out
 
 
-def _linear(name: str, xs: list[str], w_off: int, n_out4: int, biases: list[str], relu: bool
+def linear_code(name: str, xs: list[str], w_off: int, n_out4: int, biases: list[str], relu: bool
             ) -> tuple[list[str], list[str]]:
     """GLSL for ``y = W x + b`` on vec4 inputs ``xs``: rows of W at ``P[w_off + j * len(xs) + k]``."""
     ni = len(xs)
@@ -165,16 +164,16 @@ def _linear(name: str, xs: list[str], w_off: int, n_out4: int, biases: list[str]
     return lines, outs
 
 
-def _mlp_hidden(prefix: str, params: _Params, xs: list[str], layers, first_cols: Optional[np.ndarray] = None
+def mlp_hidden_code(prefix: str, params: ShaderParams, xs: list[str], layers, first_cols: Optional[np.ndarray] = None
                 ) -> tuple[list[str], list[str]]:
     """All layers of ``layers`` (each (W, b)) with ReLU after each one; returns code and output vec4s."""
     lines: list[str] = []
     for i, (w, b) in enumerate(layers):
         rows = _pad_to(w.shape[0])
-        wp = _pad_matrix(w, rows, 4 * len(xs), first_cols if i == 0 else None)
+        wp = pad_matrix(w, rows, 4 * len(xs), first_cols if i == 0 else None)
         w_off = params.add(wp)
         b_off = params.add(np.pad(b, (0, rows - b.shape[0])))
-        code, xs = _linear(f"{prefix}{i}_", xs, w_off, rows // 4, [f"P[{b_off + q}]" for q in range(rows // 4)], True)
+        code, xs = linear_code(f"{prefix}{i}_", xs, w_off, rows // 4, [f"P[{b_off + q}]" for q in range(rows // 4)], True)
         lines += code
     return lines, xs
 
@@ -327,9 +326,9 @@ void main() {
 """
 
 
-def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
+def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
               filtering: str, color_mode: str, params_kind: str, extra_encoding: Sequence[str] = (),
-              sample_code: Optional[Callable[["_Params"], tuple[list[str], list[str], list[str]]]] = None
+              sample_code: Optional[Callable[["ShaderParams"], tuple[list[str], list[str], list[str]]]] = None
               ) -> tuple[str, np.ndarray, list[dict], str]:
     """GLSL source, the packed parameter array, the plane-texture specs and where the weights live
     (``const``: literals in the source, ``ubo`` or ``ssbo``) of one field.
@@ -343,7 +342,7 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
     weights added to ``params``."""
     spec = assets.manifest["field"]
     render = assets.manifest["render"]
-    params = _Params()
+    params = ShaderParams()
     quantized = ranges is not None
 
     # tri-plane features: per scale and channel group, the product over the three planes
@@ -364,7 +363,7 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
             span[:, :c] = ranges[s][..., 1] - ranges[s][..., 0]
             rng_off = params.add(np.stack([lo.reshape(3, g, 4), span.reshape(3, g, 4)], axis=2))  # (3, g, 2, 4)
         rm1 = float(r - 1)
-        for k, (a, b) in enumerate(_PLANE_AXES):
+        for k, (a, b) in enumerate(PLANE_AXES):
             ca, cb = "xyz"[a], "xyz"[b]
             feat_lines.append(f"        {{ // scale {s}, plane {k} ({ca}{cb})")
             feat_lines.append(f"            float x = clamp((c.{ca} + 1.0) * 0.5 * {rm1!r}, 0.0, {rm1!r});")
@@ -406,20 +405,20 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
 
     # density MLP: hidden layers, then the raw density row; the latent rows only where needed
     dens = assets.density_layers
-    hidden_code, hid = _mlp_hidden("dh", params, feat_vecs, dens[:-1], np.asarray(col_map))
+    hidden_code, hid = mlp_hidden_code("dh", params, feat_vecs, dens[:-1], np.asarray(col_map))
     w_last, b_last = dens[-1]
     first_cols = np.asarray(col_map) if len(dens) == 1 else None
     in_cols = 4 * len(hid)
-    raw_off = params.add(_pad_matrix(w_last[:1], 1, in_cols, first_cols).reshape(-1))
+    raw_off = params.add(pad_matrix(w_last[:1], 1, in_cols, first_cols).reshape(-1))
     latent_dim = w_last.shape[0] - 1
     lat_rows = _pad_to(latent_dim)
-    lat_w = params.add(_pad_matrix(w_last[1:], lat_rows, in_cols, first_cols))
+    lat_w = params.add(pad_matrix(w_last[1:], lat_rows, in_cols, first_cols))
     lat_b = params.add(np.pad(b_last[1:], (0, lat_rows - latent_dim)))
     bias_vec = params.add(np.array([b_last[0], 0, 0, 0], np.float32))
     raw_terms = " + ".join(f"dot(P[{raw_off + kk}], {hid[kk]})" for kk in range(len(hid)))
     density = "\n".join("        " + line for line in hidden_code)
     density += f"\n        float raw = {raw_terms} + P[{bias_vec}].x;"
-    lat_code, lat_vecs = _linear("h", hid, lat_w, lat_rows // 4, [f"P[{lat_b + q}]" for q in range(lat_rows // 4)],
+    lat_code, lat_vecs = linear_code("h", hid, lat_w, lat_rows // 4, [f"P[{lat_b + q}]" for q in range(lat_rows // 4)],
                                  False)
 
     # colour MLP: the direction columns of its first layer once per pixel, the rest per sample
@@ -436,27 +435,27 @@ def _generate(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[li
         raise InputError(f"colour MLP takes {w0.shape[1]} inputs, expected latent {latent_dim} + encoding {len(enc)}",
                          field="mlps")
     rows0 = _pad_to(w0.shape[0])
-    we_off = params.add(_pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
+    we_off = params.add(pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
     b0_off = params.add(np.pad(b0, (0, rows0 - b0.shape[0])))
     if enc:
-        code, base_vecs = _linear("cb", enc_vecs, we_off, rows0 // 4, [f"P[{b0_off + q}]" for q in range(rows0 // 4)],
+        code, base_vecs = linear_code("cb", enc_vecs, we_off, rows0 // 4, [f"P[{b0_off + q}]" for q in range(rows0 // 4)],
                                   False)
         per_pixel += ["    " + line for line in code]
     else:
         base_vecs = [f"P[{b0_off + q}]" for q in range(rows0 // 4)]
-    wh_off = params.add(_pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
+    wh_off = params.add(pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
     last_is_first = len(colr) == 1
 
     def color_net(inputs: list[str], indent: str) -> tuple[list[str], str]:
-        code, xs = _linear("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
+        code, xs = linear_code("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
         lines = list(code)
         if not last_is_first:
-            hidden, xs = _mlp_hidden("ch", params, xs, colr[1:-1]) if len(colr) > 2 else ([], xs)
+            hidden, xs = mlp_hidden_code("ch", params, xs, colr[1:-1]) if len(colr) > 2 else ([], xs)
             lines += hidden
             w_l, b_l = colr[-1]
-            out_off = params.add(_pad_matrix(w_l, 4, 4 * len(xs)))
+            out_off = params.add(pad_matrix(w_l, 4, 4 * len(xs)))
             b_off = params.add(np.pad(b_l, (0, 4 - b_l.shape[0])))
-            code, xs = _linear("co", xs, out_off, 1, [f"P[{b_off}]"], False)
+            code, xs = linear_code("co", xs, out_off, 1, [f"P[{b_off}]"], False)
             lines += code
         rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))"
         return [indent + line for line in lines], rgb
@@ -576,7 +575,7 @@ def _uint8_planes(assets: FieldAssets) -> tuple[list[np.ndarray], list[np.ndarra
     return codes, ranges
 
 
-def _texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
+def texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
     """(3, C, H, W) -> (3 * G, H, W, 4): layer k * G + g holds channels 4g .. 4g + 3 of plane k (zero padded)."""
     three, c, h, w = plane.shape
     padded = np.zeros((three, 4 * groups, h, w), plane.dtype)
@@ -584,7 +583,7 @@ def _texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
     return np.ascontiguousarray(padded.reshape(three, groups, 4, h, w).transpose(0, 1, 3, 4, 2).reshape(-1, h, w, 4))
 
 
-def _check_options(width, height, *, filtering: str, color_mode: str, weights: str, transmittance_eps: float,
+def check_options(width, height, *, filtering: str, color_mode: str, weights: str, transmittance_eps: float,
                    color_eps: float) -> None:
     """InputError naming the first bad renderer option."""
     if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 1 <= v <= 16384
@@ -625,7 +624,7 @@ class GlFieldRenderer:
                  color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline") -> None:
         if not isinstance(assets, FieldAssets):
             assets = load_field(assets)
-        _check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
+        check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
                        transmittance_eps=transmittance_eps, color_eps=color_eps)
         for p in assets.planes:
             if p.shape[-1] < 2:
@@ -641,10 +640,10 @@ class GlFieldRenderer:
             planes, ranges = _uint8_planes(assets)
         else:
             planes, ranges = assets.planes, None
-        self.source, packed, tex_specs, self.params_kind = _generate(
+        self.source, packed, tex_specs, self.params_kind = generate_shader(
             assets, planes, ranges, filtering=filtering, color_mode=color_mode,
             params_kind="const" if weights == "inline" else "ubo")
-        self._setup(packed, [(f"planes{spec['scale']}", _texture_layers(plane, spec["groups"]))
+        self._setup(packed, [(f"planes{spec['scale']}", texture_layers(plane, spec["groups"]))
                              for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4")
 
     def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str) -> None:
@@ -772,196 +771,3 @@ class GlFieldRenderer:
 
     def __exit__(self, *exc) -> None:
         self.release()
-
-
-# ----------------------------------------------------------------------------------------------------
-# Benchmark: python -m engine.fields.gl --bench EXPORT_DIR
-
-
-def scale_intrinsics(intrinsics, width: int, height: int, to_width: int, to_height: int, *,
-                     fit: str = "width") -> np.ndarray:
-    """K of a ``width`` x ``height`` camera for a ``to_width`` x ``to_height`` image: the same horizontal field
-    of view (``fit="width"``; the vertical extent cropped or extended about the centre) or the largest scale
-    at which the whole original view fits (``fit="contain"``; the other axis extended about the centre)."""
-    k = np.array(intrinsics, np.float64)
-    s = to_width / width if fit == "width" else min(to_width / width, to_height / height)
-    out = k.copy()
-    out[:2, :3] = k[:2, :3] * s
-    out[0, 2] = k[0, 2] * s + (to_width - width * s) / 2.0
-    out[1, 2] = k[1, 2] * s + (to_height - height * s) / 2.0
-    return out
-
-
-def _bench_camera(export: Path, run: Optional[Path]):
-    """(K, world_to_camera, width, height, where) of a held-out view of the run, else of the demo path."""
-    if run is not None and (run / "data.json").is_file():
-        try:
-            from models.fields.train_static import load_run_views
-
-            _, test = load_run_views(run)
-            cam = test.cameras[0]
-            return cam.intrinsics, cam.world_to_camera, test.width, test.height, f"held-out view {test.names[0]}"
-        except ImportError:
-            pass
-    from demos.upsample import field_camera_path
-
-    assets = load_field(export)
-    cams, width, height = field_camera_path(assets, None, 8)
-    return cams[0].intrinsics, cams[0].world_to_camera, width, height, "first camera of the demo path"
-
-
-def _psnr(reference: dict, test: dict) -> float:
-    from engine.core.colorspace import display_encode
-    from engine.eval.metrics import psnr
-
-    return psnr(display_encode(reference["color"]), display_encode(test["color"]))
-
-
-def report_bench(records: list[dict], json_path: Optional[Path] = None) -> None:
-    """Print the benchmark table; write the records as strict JSON (non-finite numbers as null) if asked."""
-    print(bench_table(records))
-    if json_path:
-        json_path.write_text(json.dumps([{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                                          for k, v in r.items()} for r in records], indent=2) + "\n")
-
-
-def bench_records(outs: dict, width: int, height: int) -> list[dict]:
-    """One benchmark record per renderer: ``outs`` maps a renderer name to (render, wall seconds, CPU
-    seconds, compile seconds); scores are against the torch render (else numpy's, else the first)."""
-    ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
-    ref = outs[ref_name][0]
-    records = []
-    for name, (out, walls, cpus, compile_s) in outs.items():
-        ms = 1e3 * float(np.median(walls))
-        finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
-        records.append({
-            "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
-            "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
-            "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
-            "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
-            "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
-            if finite.any() else float("nan"),
-            "depth_finite_agree": float(np.mean(np.isfinite(ref["depth"]) == np.isfinite(out["depth"]))),
-        })
-        print(f"{width}x{height} {name}: {ms:.1f} ms", file=sys.stderr, flush=True)
-    return records
-
-
-def run_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
-              skip: tuple[str, ...] = (), threads: int = 0) -> list[dict]:
-    """Time every renderer of the field at every size on one camera; PSNR of each against the torch render
-    (or the numpy one when torch is not importable). Returns one record per (size, renderer)."""
-    export = Path(export)
-    if not (export / "field.json").is_file() and (export / "export" / "field.json").is_file():
-        export = export / "export"
-    if run is None and (export.parent / "checkpoint.pt").is_file():
-        run = export.parent
-    k0, w2c, w0, h0, where = _bench_camera(export, run)
-    assets = load_field(export)
-    model = None
-    if "torch" not in skip and run is not None:
-        try:
-            import torch
-
-            from models.fields.train_static import load_model
-
-            if threads:
-                torch.set_num_threads(threads)
-            model = load_model(run)
-        except ImportError:
-            model = None
-    gl_variants = [("gl float", {}), ("gl float, exact filtering", {"filtering": "exact"}),
-                   ("gl uint8", {"quantized": True}),
-                   ("gl float, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0}),
-                   ("gl float, weights in a UBO", {"weights": "buffer"}),
-                   ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"})]
-    def timed(fn):
-        wall, cpu = time.perf_counter(), time.process_time()
-        out = fn()
-        return out, time.perf_counter() - wall, time.process_time() - cpu
-
-    records = []
-    for width, height in sizes:
-        k = scale_intrinsics(k0, w0, h0, width, height)
-        outs: dict[str, tuple[dict, list[float], list[float], float]] = {}
-        if model is not None:
-            from models.fields.components.render import render_image
-
-            render_image(model, k, w2c, 16, 16, model.scene.near, model.scene.far)  # warm-up
-            out, wall, cpu = timed(lambda: render_image(model, k, w2c, height, width, model.scene.near,
-                                                        model.scene.far))
-            outs["torch"] = (out, [wall], [cpu], 0.0)
-        for name, kwargs in gl_variants:
-            if "gl" in skip:
-                break
-            with GlFieldRenderer(assets, width, height, **kwargs) as r:
-                out = r.render(k, w2c)  # warm-up
-                runs = [timed(lambda: r.render(k, w2c)) for _ in range(repeat)]
-                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
-        for query in ("numpy", "onnx"):
-            if query in skip:
-                continue
-            out, wall, cpu = timed(lambda: render_field(assets, k, w2c, height, width, query=query))
-            outs[query] = (out, [wall], [cpu], 0.0)
-        records.extend(bench_records(outs, width, height))
-    for r in records:
-        r["camera"] = where
-    return records
-
-
-def bench_table(records: list[dict]) -> str:
-    """Markdown table of :func:`run_bench` records."""
-    lines = ["| size | renderer | ms / frame | fps | CPU ms / frame | PSNR vs reference (dB) | max abs colour "
-             "| median abs depth | depth inf agree |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in records:
-        psnr = "ref." if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
-        lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {r['cpu_ms']:.0f} "
-                     f"| {psnr} ({r['reference']}) "
-                     f"| {r['max_abs_color']:.1e} | {r['depth_median_abs']:.1e} "
-                     f"| {100 * r['depth_finite_agree']:.2f}% |")
-    return "\n".join(lines)
-
-
-def _sizes(text: str) -> list[tuple[int, int]]:
-    try:
-        out = [tuple(int(v) for v in item.lower().split("x")) for item in text.split(",") if item.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}") from None
-    if not out or any(len(s) != 2 or min(s) < 1 for s in out):
-        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}")
-    return out
-
-
-def add_bench_options(parser: argparse.ArgumentParser) -> None:
-    """--repeat, --skip, --threads and --json, shared by the static and dynamic benchmarks."""
-    parser.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
-    parser.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
-
-
-def main(argv: Optional[list[str]] = None) -> int:
-    """``python -m engine.fields.gl --bench EXPORT_DIR``: the speed / parity table of the field renderers."""
-    parser = argparse.ArgumentParser(prog="python -m engine.fields.gl", description=(
-        "Benchmark the GL field renderer against the numpy / onnxruntime renderers of engine.fields.render and the "
-        "torch renderer (ms per frame, fps, PSNR against the torch render on one held-out view)."))
-    parser.add_argument("--bench", type=Path, required=True, metavar="EXPORT_DIR",
-                        help="folder with field.json (or a run directory holding export/)")
-    parser.add_argument("--run", type=Path, default=None,
-                        help="the run directory (torch renderer and held-out camera; default: EXPORT_DIR/..)")
-    parser.add_argument("--sizes", type=_sizes, default=[(512, 512), (960, 540)],
-                        help="WxH,... (default 512x512,960x540)")
-    add_bench_options(parser)
-    args = parser.parse_args(argv)
-    try:
-        records = run_bench(args.bench, args.sizes, run=args.run, repeat=max(1, args.repeat),
-                            skip=tuple(s.strip() for s in args.skip.split(",") if s.strip()), threads=args.threads)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    report_bench(records, args.json)
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

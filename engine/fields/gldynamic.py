@@ -7,7 +7,7 @@ linear RGB, planar depth (H, W) with ``+inf`` where the opacity is below ``OPACI
 the assets ``interleave export dynamic`` writes (``docs/field-assets.md``, "Dynamic fields"). Headless
 moderngl (EGL; Mesa llvmpipe is enough), no torch.
 
-The shader is :func:`engine.fields.gl._generate`'s, with the same ray setup, sampling, occupancy skipping
+The shader is :func:`engine.fields.gl.generate_shader`'s, with the same ray setup, sampling, occupancy skipping
 (the time-agnostic grid of the export), chunked loop over kept samples, early ray termination and colour
 skip, and the same error bounds (``transmittance_eps``, ``num_samples * color_eps``). Its two hooks add:
 
@@ -29,27 +29,22 @@ Plane lookups are ``grid_sample(align_corners=True, padding_mode="border")`` as 
 >>> with GlDynamicRenderer(load_dynamic_field("runs/dyn/export"), 960, 540) as r:     # doctest: +SKIP
 ...     frames = [r.render(K, world_to_camera, t) for t in (0.2, 0.4, 0.6)]
 
-``python -m engine.fields.gldynamic --bench EXPORT_DIR --sizes 160x90,512x512`` times this renderer against the
+``python -m tools.bench_fields dynamic EXPORT_DIR --sizes 160x90,512x512`` times this renderer against the
 numpy and onnxruntime paths of :mod:`engine.fields.dynamic` and (when torch is importable) the torch renderer.
 """
 from __future__ import annotations
 
-import argparse
-import sys
-import time
 from pathlib import Path
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 
-from engine.fields.dynamic import (DynamicAssets, load_dynamic_field, normalize_time, render_dynamic_field,
-                              time_encoding_np)
-from engine.core.errors import InputError
-from engine.fields.gl import (_PLANE_AXES, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, _check_options, _generate,
-                            _linear, _mlp_hidden, _pad_matrix, _Params, _texture_layers, available, bench_records,
-                            report_bench, scale_intrinsics)
+from engine.fields.dynamic import DynamicAssets, load_dynamic_field, normalize_time, time_encoding_np
+from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available, check_options,
+                              generate_shader, linear_code, mlp_hidden_code, pad_matrix, texture_layers)
+from engine.fields.render import PLANE_AXES
 
-__all__ = ["GlDynamicRenderer", "available", "run_bench", "main"]
+__all__ = ["GlDynamicRenderer", "available"]
 
 
 def _groups(plane: np.ndarray) -> int:
@@ -92,7 +87,7 @@ def _time_plane_code(temporal: list[np.ndarray], filtering: str, prefix: str, sa
     return lines
 
 
-def _motion_code(assets: DynamicAssets, filtering: str, params: _Params) -> tuple[list[str], list[str], list[str]]:
+def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
     """DeRF: declarations and the per-sample code that moves c to the canonical point (no code after)."""
     spatial, temporal = assets.planes["motion_spatial"], assets.planes["motion_temporal"]
     decls = ["uniform float tau;",
@@ -103,7 +98,7 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: _Params) -> tupl
         decls += [f"uniform sampler2DArray motion_s{s};", f"uniform sampler2DArray motion_t{s};"]
         g, c = _groups(plane), plane.shape[1]
         lines.append("vec4 " + ", ".join(f"ms{s}_{gi}" for gi in range(g)) + ";")
-        for k, (a, b) in enumerate(_PLANE_AXES):
+        for k, (a, b) in enumerate(PLANE_AXES):
             lines += _plane_block(f"motion_s{s}", f"c.{'xyz'[a]}", f"c.{'xyz'[b]}", plane.shape[3], plane.shape[2],
                                   filtering, [(k * g + gi, f"ms{s}_{gi}", "=" if k == 0 else "*=") for gi in range(g)])
         feats += [f"(ms{s}_{gi} * mt{s}_{gi})" for gi in range(g)]
@@ -111,18 +106,18 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: _Params) -> tupl
         base += 4 * g
     lines += _time_plane_code(temporal, filtering, "mt", "motion_t")
     layers = assets.flow_layers
-    hidden, xs = _mlp_hidden("fh", params, feats, layers[:-1], np.asarray(col_map))
+    hidden, xs = mlp_hidden_code("fh", params, feats, layers[:-1], np.asarray(col_map))
     w_last, b_last = layers[-1]
-    out_off = params.add(_pad_matrix(w_last, 4, 4 * len(xs), np.asarray(col_map) if len(layers) == 1 else None))
+    out_off = params.add(pad_matrix(w_last, 4, 4 * len(xs), np.asarray(col_map) if len(layers) == 1 else None))
     b_off = params.add(np.pad(b_last, (0, 4 - b_last.shape[0])))
-    out, (fo,) = _linear("fo", xs, out_off, 1, [f"P[{b_off}]"], False)
+    out, (fo,) = linear_code("fo", xs, out_off, 1, [f"P[{b_off}]"], False)
     lines += hidden + out
     lines += ["vec3 fe = exp(-2.0 * abs(" + fo + ".xyz));  // tanh, without overflow",
               f"c = clamp(c + {assets.max_flow!r} * sign({fo}.xyz) * ((1.0 - fe) / (1.0 + fe)), -1.0, 1.0);"]
     return decls, lines, []
 
 
-def _kplanes_code(assets: DynamicAssets, filtering: str, params: _Params) -> tuple[list[str], list[str], list[str]]:
+def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
     """K-Planes: the xt, yt, zt product before the tri-plane lookup, multiplied into its features after."""
     temporal = assets.planes["temporal"]
     decls = ["uniform float tau;"] + [f"uniform sampler2DArray temporal{s};" for s in range(len(temporal))]
@@ -147,7 +142,7 @@ class GlDynamicRenderer(GlFieldRenderer):
                  color_eps: float = COLOR_EPS, weights: str = "inline") -> None:
         if not isinstance(assets, DynamicAssets):
             assets = load_dynamic_field(assets)
-        _check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
+        check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
                        transmittance_eps=transmittance_eps, color_eps=color_eps)
         self.assets = assets
         self.width, self.height = int(width), int(height)
@@ -167,13 +162,13 @@ class GlDynamicRenderer(GlFieldRenderer):
             extra_planes = [("temporal", assets.planes["temporal"])]
             code = _kplanes_code
         self._time_frequencies = frequencies
-        self.source, packed, _, self.params_kind = _generate(
+        self.source, packed, _, self.params_kind = generate_shader(
             assets, assets.canonical_planes, None, filtering=filtering, color_mode="per-sample",
             params_kind="const" if weights == "inline" else "ubo", extra_encoding=extra,
             sample_code=lambda params: code(assets, filtering, params))
-        textures = [(f"planes{s}", _texture_layers(p, _groups(p))) for s, p in enumerate(assets.canonical_planes)]
+        textures = [(f"planes{s}", texture_layers(p, _groups(p))) for s, p in enumerate(assets.canonical_planes)]
         for prefix, planes in extra_planes:
-            textures += [(f"{prefix}{s}", _texture_layers(p, _groups(p))) for s, p in enumerate(planes)]
+            textures += [(f"{prefix}{s}", texture_layers(p, _groups(p))) for s, p in enumerate(planes)]
         self._setup(packed, textures, "f4")
 
     def render(self, intrinsics, world_to_camera, time: float) -> dict[str, np.ndarray]:
@@ -197,102 +192,3 @@ class GlDynamicRenderer(GlFieldRenderer):
                 except KeyError:  # optimised out: the colour MLP ignores time
                     pass
         return super().render(intrinsics, world_to_camera)
-
-
-# ----------------------------------------------------------------------------------------------------
-# Benchmark: python -m engine.fields.gldynamic --bench EXPORT_DIR
-
-
-def run_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
-              skip: tuple[str, ...] = (), view: int = 0, time_value: Optional[float] = None) -> list[dict]:
-    """Time every renderer of the dynamic field at every size on one held-out view of the run (at its time,
-    or ``time_value``); PSNR of each against the torch render (or the numpy one without torch)."""
-    export = Path(export)
-    if not (export / "dynamic.json").is_file() and (export / "export" / "dynamic.json").is_file():
-        export = export / "export"
-    run = run or export.parent
-    if not (run / "data.json").is_file():
-        raise InputError("has no data.json: pass --run RUN_DIR (the held-out camera comes from it)", file=run)
-    from models.fields.train_dynamic import load_dynamic_run_views
-
-    _, test = load_dynamic_run_views(run)
-    cam = test.cameras[view]
-    t = float(test.times[view]) if time_value is None else float(time_value)
-    assets = load_dynamic_field(export)
-    model = None
-    if "torch" not in skip:
-        try:
-            from models.fields.dynamic.model import AtTime
-            from models.fields.train_dynamic import load_dynamic_model
-
-            model = AtTime(load_dynamic_model(run), t)
-        except ImportError:
-            model = None
-    variants = [("gl", {}), ("gl, exact filtering", {"filtering": "exact"}),
-                ("gl, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0})]
-
-    def timed(fn):
-        wall, cpu = time.perf_counter(), time.process_time()
-        out = fn()
-        return out, time.perf_counter() - wall, time.process_time() - cpu
-
-    records = []
-    for width, height in sizes:
-        k = scale_intrinsics(cam.intrinsics, test.width, test.height, width, height)
-        w2c = cam.world_to_camera
-        outs = {}
-        if model is not None:
-            from models.fields.components.render import render_image
-
-            near, far = model.model.scene.near, model.model.scene.far
-            render_image(model, k, w2c, 16, 16, near, far)  # warm-up
-            out, wall, cpu = timed(lambda: render_image(model, k, w2c, height, width, near, far))
-            outs["torch"] = (out, [wall], [cpu], 0.0)
-        for name, kwargs in variants:
-            if "gl" in skip:
-                break
-            with GlDynamicRenderer(assets, width, height, **kwargs) as r:
-                out = r.render(k, w2c, t)  # warm-up
-                runs = [timed(lambda: r.render(k, w2c, t)) for _ in range(repeat)]
-                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
-        for query in ("numpy", "onnx"):
-            if query not in skip:
-                out, wall, cpu = timed(lambda: render_dynamic_field(assets, k, w2c, height, width, t, query=query))
-                outs[query] = (out, [wall], [cpu], 0.0)
-        for record in bench_records(outs, width, height):
-            records.append({**record, "time": t, "camera": f"held-out view {test.names[view]}"})
-    return records
-
-
-def main(argv: Optional[list[str]] = None) -> int:
-    """``python -m engine.fields.gldynamic --bench EXPORT_DIR``: the speed / parity table of the dynamic renderers."""
-    from engine.fields.gl import _sizes, add_bench_options
-
-    parser = argparse.ArgumentParser(prog="python -m engine.fields.gldynamic", description=(
-        "Benchmark the GL dynamic-field renderer against the numpy / onnxruntime renderers of engine.fields.dynamic and "
-        "the torch renderer (ms per frame, PSNR against the torch render, one held-out view at its time)."))
-    parser.add_argument("--bench", type=Path, required=True, metavar="EXPORT_DIR",
-                        help="folder with dynamic.json (or a run directory holding export/)")
-    parser.add_argument("--run", type=Path, default=None, help="the run directory (default: EXPORT_DIR/..)")
-    parser.add_argument("--sizes", type=_sizes, default=[(160, 90), (512, 512)],
-                        help="WxH,... (default 160x90,512x512)")
-    parser.add_argument("--view", type=int, default=0, help="index of the held-out view (default 0)")
-    parser.add_argument("--time", type=float, default=None, help="render time (default: the view's own)")
-    add_bench_options(parser)
-    args = parser.parse_args(argv)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    try:
-        records = run_bench(args.bench, args.sizes, run=args.run, repeat=max(1, args.repeat), view=args.view,
-                            skip=tuple(s.strip() for s in args.skip.split(",") if s.strip()), time_value=args.time)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    report_bench(records, args.json)
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

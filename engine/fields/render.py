@@ -50,7 +50,7 @@ SH_C2 = (1.0925484305920792, 1.0925484305920792, 0.31539156525252005, 1.09254843
 SH_C3 = (0.5900435899266435, 2.890611442640554, 0.4570457994644658, 0.3731763325901154, 0.4570457994644658,
          1.445305721320277, 0.5900435899266435)
 
-_PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 
 
 class ExportedAssets:
@@ -255,7 +255,7 @@ def contract_np(scene: dict, points: np.ndarray, ndc_margin: float) -> np.ndarra
     return np.where(ahead[..., None], out, np.float32(-2.0))
 
 
-def _bilinear(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def bilinear_np(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(C, H, W) plane at coordinates a (along the width), b (along the height) in [-1, 1] -> (C, N);
     ``grid_sample(align_corners=True, padding_mode='border')``. H, W >= 2 (tri-planes are square; the time
     planes of dynamic fields are (C, Rt, R))."""
@@ -269,7 +269,7 @@ def _bilinear(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (p00 * (1 - fx) + p01 * fx) * (1 - fy) + (p10 * (1 - fx) + p11 * fx) * fy
 
 
-def _mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+def mlp_np(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
     for i, (w, b) in enumerate(layers):
         x = x @ w.T + b
         if i < len(layers) - 1:
@@ -285,17 +285,17 @@ def query_field(assets: FieldAssets, coords: np.ndarray, directions: np.ndarray)
     feats = []
     for plane in assets.planes:
         prod = None
-        for k, (a, b) in enumerate(_PLANE_AXES):
-            f = _bilinear(plane[k], coords[:, a], coords[:, b])
+        for k, (a, b) in enumerate(PLANE_AXES):
+            f = bilinear_np(plane[k], coords[:, a], coords[:, b])
             prod = f if prod is None else prod * f
         feats.append(prod)
     x = np.concatenate(feats, axis=0).T
-    out = _mlp(x, assets.density_layers)
+    out = mlp_np(x, assets.density_layers)
     spec = assets.manifest["field"]
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
     enc = direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                 spec["direction_degree"])
-    rgb = 1.0 / (1.0 + np.exp(-_mlp(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers)))
+    rgb = 1.0 / (1.0 + np.exp(-mlp_np(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers)))
     return sigma.astype(np.float32), rgb.astype(np.float32)
 
 

@@ -28,7 +28,7 @@ from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import RayOutputs
 
 __all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
-           "default_loss_terms", "srgb_encode"]
+           "default_loss_terms", "srgb_encode", "plane_group"]
 
 
 @dataclass
@@ -121,7 +121,8 @@ def photometric_linear(inputs: LossInputs) -> Tensor:
     return (inputs.outputs.color - inputs.batch.color).square().mean()
 
 
-def _group(inputs: LossInputs) -> list[Tensor]:
+def plane_group(inputs: LossInputs) -> list[Tensor]:
+    """The planes of the group the term names (``term.planes``, e.g. ``spatial``); InputError if the field has none."""
     groups = inputs.model.field.plane_groups()
     if inputs.term.planes not in groups:
         raise InputError(f"unknown plane group {inputs.term.planes!r}; the field has {sorted(groups)}",
@@ -132,13 +133,13 @@ def _group(inputs: LossInputs) -> list[Tensor]:
 @register_loss_term("plane_tv")
 def plane_tv_term(inputs: LossInputs) -> Tensor:
     """Total variation of the named plane group (K-Planes' plane TV)."""
-    return plane_tv(_group(inputs))
+    return plane_tv(plane_group(inputs))
 
 
 @register_loss_term("plane_l1")
 def plane_l1_term(inputs: LossInputs) -> Tensor:
     """Mean |feature| of the named plane group (sparsity: empty space)."""
-    return plane_l1(_group(inputs))
+    return plane_l1(plane_group(inputs))
 
 
 @register_loss_term("sparse_depth", needs_depth=True)

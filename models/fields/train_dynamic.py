@@ -21,7 +21,6 @@ import dataclasses
 import json
 import math
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -29,25 +28,23 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from engine.core.colorspace import display_encode
+from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
-from engine.eval.metrics import psnr, ssim_map
-from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFieldModel, auto_time_resolution,
-                                   time_smoothness)
-from models.fields.data.timed import (TimedViews, border_crossings, check_timed_views, load_dnerf, load_rig_video,
-                                        split_by_camera)
-from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.components.encodings import plane_l1, plane_tv
-from models.fields.losses import (LossInputs, LossTerm, _group, assemble_loss, check_loss_terms,
-                                  register_loss_term)
-from models.fields.static.model import RenderConfig, SceneBox
 from models.fields.components.render import render_image
-from models.fields.train_static import (LR_SCHEDULES, _add_config_args, _all_rays, _apply_args, _apply_losses,
-                                 _from_dict, _lr_factor, _matching_views, _take, open_log, open_run_dir,
-                                 restore_training_state, _view_list, rank_correlation,
-                                 run_train_seconds)
+from models.fields.data.select import (DYNAMIC_DATASETS, detect_dynamic_dataset, load_dynamic_run_views,
+                                       select_dynamic_views)
+from models.fields.data.timed import TimedViews, border_crossings, check_timed_views
+from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFieldModel, auto_time_resolution,
+                                         time_smoothness)
+from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
+from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
+from models.fields.static.model import RenderConfig, SceneBox
+from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, run_config_from_file,
+                                   run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
+                                   view_list)
 
-__all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "train_dynamic",
+__all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
            "select_dynamic_views", "load_dynamic_run_views", "detect_dynamic_dataset", "main", "eval_main",
            "FLOW_BINS"]
@@ -65,19 +62,19 @@ FLOW_BINS = (0.0, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 @register_loss_term("motion_tv")
 def motion_tv(inputs: LossInputs) -> torch.Tensor:
     """Total variation of the named plane group (default ``motion_spatial``)."""
-    return plane_tv(_group(inputs))
+    return plane_tv(plane_group(inputs))
 
 
 @register_loss_term("time_smoothness")
 def time_smoothness_term(inputs: LossInputs) -> torch.Tensor:
     """K-Planes' temporal smoothness (second difference along time) of the named group (``temporal``)."""
-    return time_smoothness(_group(inputs))
+    return time_smoothness(plane_group(inputs))
 
 
 @register_loss_term("temporal_l1")
 def temporal_l1(inputs: LossInputs) -> torch.Tensor:
     """Mean |1 - feature| of the named time planes (K-Planes: a point whose time planes are 1 is static)."""
-    return plane_l1(_group(inputs), target=1.0)
+    return plane_l1(plane_group(inputs), target=1.0)
 
 
 @register_loss_term("flow_l1")
@@ -103,19 +100,10 @@ def default_dynamic_loss_terms() -> tuple[LossTerm, ...]:
 
 
 @dataclass
-class DynamicTrainConfig:
-    """Everything that defines a dynamic training run (saved as ``config.json`` beside its outputs)."""
+class DynamicTrainConfig(RunConfig):
+    """Everything that defines a dynamic training run (saved as ``config.json`` beside its outputs): the shared
+    :class:`~models.fields.trainer.RunConfig` options, then the dynamic field's."""
 
-    seed: int = field(default=0, metadata={"help": "seed of parameter initialisation and ray/sample choice"})
-    steps: int = field(default=2000, metadata={"help": "optimisation steps"})
-    rays_per_batch: int = field(default=1024, metadata={"help": "rays per step, drawn uniformly from all train pixels"})
-    lr: float = field(default=0.02, metadata={"help": "peak Adam learning rate (planes and MLPs)"})
-    lr_schedule: str = field(default="cosine", metadata={
-        "help": "decay after warm-up: cosine, exponential or constant"})
-    lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
-    warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
-    downscale: int = field(default=1, metadata={
-        "help": "image resolution factor relative to the dataset's images (views are reduced to it if needed)"})
     losses: tuple[LossTerm, ...] = field(default_factory=default_dynamic_loss_terms, metadata={
         "help": "named loss terms with weights; see models/fields/train_dynamic.py"})
     occupancy_warmup: int = field(default=64, metadata={"help": "steps before the first occupancy-grid update"})
@@ -132,21 +120,8 @@ class DynamicTrainConfig:
 
     def validate(self) -> "DynamicTrainConfig":
         """Raise InputError naming the first bad option; returns self."""
-        for name in ("steps", "rays_per_batch", "downscale", "occupancy_every", "occupancy_times",
-                     "checkpoint_every", "log_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "steps" else 1):
-                raise InputError(f"must be a positive integer, got {value!r}", field=name)
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise InputError(f"must be a positive number, got {self.lr!r}", field="lr")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise InputError(f"must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}", field="lr_schedule")
-        if not 0 < self.lr_final_factor <= 1:
-            raise InputError(f"must be in (0, 1], got {self.lr_final_factor}", field="lr_final_factor")
-        if self.render.num_samples < 1:
-            raise InputError(f"must be >= 1, got {self.render.num_samples}", field="render.num_samples")
-        self.field.validate()
-        self.priors.validate()
+        validate_run_config(self, ("steps", "rays_per_batch", "downscale", "occupancy_every", "occupancy_times",
+                                   "checkpoint_every", "log_every"))
         if self.field.kind != "derf" and self.priors.enabled():
             raise InputError(f"the sparse flow prior needs a motion field (field.kind derf), got {self.field.kind!r}",
                              field="priors.flow.enabled")
@@ -160,13 +135,6 @@ class DynamicTrainConfig:
         if self.field.kind != "derf":
             terms = [t for t in terms if t.name not in MOTION_TERMS]
         return tuple(terms)
-
-    def to_dict(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "DynamicTrainConfig":
-        return _from_dict(cls, data)
 
 
 def _resolved(config: DynamicTrainConfig, views: TimedViews) -> DynamicTrainConfig:
@@ -227,6 +195,52 @@ def _plane_params(model: DynamicFieldModel) -> tuple[list, list]:
 # Training
 
 
+class DynamicKind:
+    """The dynamic field's part of the shared training loop (``models.fields.trainer.FieldKind``): time-stamped
+    views, the time planes' size fixed from them, ray times, the sparse flow prior (no parameters), the time
+    range in the checkpoint and the mean flow in the log."""
+
+    def prepare(self, views: TimedViews, config: DynamicTrainConfig):
+        views, terms = check_run(views, config, check_timed_views, views.depth is not None)
+        return views, _resolved(config, views), terms
+
+    def new_model(self, views: TimedViews, config: DynamicTrainConfig) -> DynamicFieldModel:
+        return build_dynamic_model(views, config)
+
+    def model_from_state(self, state: dict, config: DynamicTrainConfig) -> DynamicFieldModel:
+        return _model_from_state(state, config)
+
+    def ray_inputs(self, views: TimedViews, model: DynamicFieldModel) -> torch.Tensor:
+        ray_times = torch.from_numpy(np.repeat(views.times, views.height * views.width).astype(np.float32))
+        model.normalize_times(ray_times)  # the views must lie in the model's range (a resumed run's own range)
+        return ray_times
+
+    def build_priors(self, views: TimedViews, config: DynamicTrainConfig, model, cache_dir: Path):
+        return build_dynamic_priors(views, config.priors, cache_dir)
+
+    def param_groups(self, model: DynamicFieldModel) -> list[dict]:
+        planes, mlps = _plane_params(model)
+        return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}]
+
+    def render(self, model: DynamicFieldModel, batch: RayBatch, inputs: torch.Tensor, generator: torch.Generator):
+        return model.render_rays(batch.origins, batch.directions, batch.near, batch.far, inputs, jitter=True,
+                                 generator=generator)
+
+    def prior_extras(self, priors, model, batch, outputs, step: int, generator: torch.Generator) -> dict:
+        return priors.extras(model, generator)
+
+    def checkpoint_fields(self, model: DynamicFieldModel) -> dict:
+        return {"time_range": list(model.time_range), "time_resolution": model.time_resolution}
+
+    def log_fields(self, outputs) -> dict:
+        flow = outputs.flow[outputs.evaluated].detach()
+        return {"flow_mean": float(flow.norm(dim=-1).mean()) if flow.numel() else 0.0}
+
+
+#: The dynamic specifics of the training loop.
+DYNAMIC = DynamicKind()
+
+
 def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | Path, progress: bool = True, *,
                   extras_fn=None) -> Path:
     """Train a dynamic field on time-stamped ``views`` and write the run into ``out_dir``; returns ``out_dir``.
@@ -242,86 +256,7 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
     Raises:
         InputError: bad views or config, or ``out_dir`` holding a run with a different config.
     """
-    check_timed_views(views)
-    config.validate()
-    terms = config.loss_terms()
-    check_loss_terms(terms, views.depth is not None)
-    views = _matching_views(views, config)
-    config = _resolved(config, views)
-    out = Path(out_dir)
-    ckpt_file = open_run_dir(out, config)
-
-    state = torch.load(ckpt_file, map_location="cpu", weights_only=True) if ckpt_file.is_file() else None
-    model = build_dynamic_model(views, config) if state is None else _model_from_state(state, config)
-    rays = _all_rays(views, model.scene)
-    ray_times = torch.from_numpy(np.repeat(views.times, views.height * views.width).astype(np.float32))
-    model.normalize_times(ray_times)  # the views must lie in the model's range (a resumed run's own range)
-    priors = build_dynamic_priors(views, config.priors, out / "priors")
-    planes, mlps = _plane_params(model)
-    optimizer = torch.optim.Adam([{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}],
-                                 lr=config.lr, betas=(0.9, 0.99), eps=1e-15)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _lr_factor(config))
-    generator = torch.Generator().manual_seed(config.seed)
-    step, elapsed_before = 0, 0.0
-    if state is not None:
-        elapsed_before = float(state.get("train_seconds", 0.0))
-        model.load_state_dict(state["model"])
-        step = restore_training_state(state, optimizer, scheduler, generator, config)
-
-    def save(at: int) -> None:
-        tmp = ckpt_file.with_suffix(".pt.tmp")
-        torch.save({"step": at, "train_seconds": elapsed_before + time.perf_counter() - start,
-                    "model": model.state_dict(), "scene": model.scene.to_dict(),
-                    "background": model.background.tolist(), "time_range": list(model.time_range),
-                    "time_resolution": model.time_resolution, "optimizer": optimizer.state_dict(),
-                    "scheduler": scheduler.state_dict(), "generator": generator.get_state()}, tmp)
-        tmp.replace(ckpt_file)
-
-    bar = None
-    if progress and step < config.steps:
-        from tqdm import tqdm
-        bar = tqdm(total=config.steps, initial=step, desc=f"training {out.name}", unit="step")
-    log = open_log(out, step)
-    n_rays = rays.color.shape[0]
-    occupied = 1.0
-    start = time.perf_counter()
-    model.train()
-    try:
-        while step < config.steps:
-            if step >= config.occupancy_warmup and (step - config.occupancy_warmup) % config.occupancy_every == 0:
-                occupied = model.update_occupancy(generator)
-            idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator)
-            batch = _take(rays, idx)
-            outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, ray_times[idx],
-                                        jitter=True, generator=generator)
-            extras = priors.extras(model, generator) if priors is not None else {}
-            if extras_fn is not None:
-                extras.update(extras_fn(model, batch, outputs, step) or {})
-            loss, values = assemble_loss(terms, model, batch, outputs, step, extras)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            scheduler.step()
-            step += 1
-            if step % config.log_every == 0 or step == config.steps:
-                flow = outputs.flow[outputs.evaluated].detach()
-                log.write(json.dumps({
-                    "step": step, "loss": float(loss.detach()), **values, "lr": optimizer.param_groups[0]["lr"],
-                    "occupied": occupied, "flow_mean": float(flow.norm(dim=-1).mean()) if flow.numel() else 0.0,
-                    "seconds": round(elapsed_before + time.perf_counter() - start, 2)}) + "\n")
-                log.flush()
-            if bar is not None:
-                bar.update(1)
-                if step % 10 == 0:
-                    bar.set_postfix(loss=f"{float(loss.detach()):.4f}", occ=f"{occupied:.2f}")
-            if step % config.checkpoint_every == 0 and step < config.steps:
-                save(step)
-    finally:
-        log.close()
-        if bar is not None:
-            bar.close()
-    save(step)
-    return out
+    return train_run(DYNAMIC, views, config, out_dir, progress, extras_fn=extras_fn)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -386,60 +321,33 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     Raises:
         InputError: bad views, or a view whose time lies outside the model's trained range.
     """
-    from engine.eval.metrics import flip_map
-
     check_timed_views(views)
     model = run_or_model if isinstance(run_or_model, DynamicFieldModel) else load_dynamic_model(run_or_model)
     model.normalize_times(torch.as_tensor(views.times, dtype=torch.float32))  # refuse out-of-range times first
-    was_training = model.training
-    model.eval()
-    psnrs, ssims, flips, times_ms, abs_errors, pairs, valid, known, images = [], [], [], [], [], [], 0, 0, []
     edges = np.array(FLOW_BINS[:-1] + (max(FLOW_BINS[-1], math.sqrt(3.0) * model.config.motion.max_flow),))
     outside, evaluated = [], []
     counts, mass = np.zeros(len(edges) - 1, np.int64), np.zeros(len(edges) - 1)
-    try:
-        for i, cam in enumerate(views.cameras):
-            at = AtTime(model, float(views.times[i]), flow_bins=edges)
-            out = render_image(at, cam.intrinsics, cam.world_to_camera, views.height, views.width, model.scene.near,
-                               model.scene.far, chunk=chunk)
-            truth, pred = display_encode(views.images[i]), display_encode(out["color"])
-            psnrs.append(psnr(truth, pred))
-            ssims.append(float(np.mean(ssim_map(truth, pred))))
-            if with_flip:
-                flips.append(float(np.mean(flip_map(truth, pred))))
-            times_ms.append(float(out["seconds"]) * 1000.0)
-            outside.append(at.outside)
-            evaluated.append(at.evaluated)
-            counts += at.flow_counts
-            mass += at.flow_mass
-            if return_images:
-                images.append({"color": out["color"], "depth": out["depth"]})
-            if views.depth is not None:
-                true_depth = views.depth[i]
-                mask = np.isfinite(true_depth)
-                both = mask & np.isfinite(out["depth"])
-                known += int(mask.sum())
-                valid += int(both.sum())
-                abs_errors.append(np.abs(out["depth"][both] - true_depth[both]))
-                pairs.append((out["depth"][both], true_depth[both]))
-    finally:
-        model.train(was_training)
-    errors = np.concatenate(abs_errors) if abs_errors else np.zeros(0)
-    spearman = (rank_correlation(np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs]))
-                if pairs else float("nan"))
+
+    def render_view(i: int, cam) -> dict:
+        nonlocal counts, mass
+        at = AtTime(model, float(views.times[i]), flow_bins=edges)
+        out = render_image(at, cam.intrinsics, cam.world_to_camera, views.height, views.width, model.scene.near,
+                           model.scene.far, chunk=chunk)
+        outside.append(at.outside)
+        evaluated.append(at.evaluated)
+        counts += at.flow_counts
+        mass += at.flow_mass
+        return out
+
+    scores, psnrs, images = score_views(model, views, render_view, with_flip=with_flip,
+                                        return_images=return_images)
     per_time = []
     for t in np.unique(views.times):
         sel = np.flatnonzero(views.times == t)
         ev = sum(evaluated[i] for i in sel)
         per_time.append({"time": float(t), "psnr": float(np.mean([psnrs[i] for i in sel])),
                          "canonical_outside_fraction": float(sum(outside[i] for i in sel) / ev) if ev else 0.0})
-    scores: dict[str, Any] = {
-        "psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
-        "flip": float(np.mean(flips)) if flips else float("nan"),
-        "depth_mae": float(errors.mean()) if errors.size else float("nan"),
-        "depth_spearman": spearman,
-        "depth_valid_fraction": valid / known if known else float("nan"),
-        "render_ms_per_frame": float(np.median(times_ms)), "num_views": len(views),
+    scores.update({
         "train_seconds": (run_train_seconds(run_or_model) if not isinstance(run_or_model, DynamicFieldModel)
                           else float("nan")),
         **model_bytes(model),
@@ -449,7 +357,7 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
         "flow_moving_fraction": float(mass[3:].sum() / mass.sum()) if mass.sum() > 0 else 0.0,
         "per_time": per_time,
         "canonical_limit": canonical_limit(per_time, _crossings(views, context_views)),
-    }
+    })
     if return_images:
         scores["images"] = images
     return scores
@@ -463,167 +371,7 @@ def _crossings(views: TimedViews, context: Optional[TimedViews]) -> dict[str, An
 
 
 # ----------------------------------------------------------------------------------------------------
-# Data selection
-
-
-DYNAMIC_DATASETS = ("rig", "dnerf")
-
-
-def detect_dynamic_dataset(path: str | Path) -> str:
-    """``rig`` (rig.json) or ``dnerf`` (transforms_train.json whose frames carry a time)."""
-    root = Path(path)
-    if (root / "rig.json").is_file():
-        return "rig"
-    meta = root / "transforms_train.json"
-    if meta.is_file():
-        try:
-            frames = json.loads(meta.read_text()).get("frames", [])
-        except json.JSONDecodeError:
-            frames = []
-        if frames and all("time" in f for f in frames):
-            return "dnerf"
-        raise InputError("is a static NeRF-synthetic scene (its frames have no 'time'): use 'interleave train "
-                         "field'", file=meta)
-    if not root.exists():
-        raise InputError("folder does not exist", file=root)
-    raise InputError("is not a dynamic scene folder: expected rig.json (rgbd-rig video) or a D-NeRF "
-                     "transforms_train.json", file=root)
-
-
-def _camera_names(pool: TimedViews, spec, name: str) -> list[str]:
-    out = []
-    for item in spec:
-        if isinstance(item, int):
-            if not 0 <= item < len(pool.camera_names):
-                raise InputError(f"camera position {item} out of range for {len(pool.camera_names)} cameras",
-                                 field=name)
-            out.append(pool.camera_names[item])
-        elif item in pool.camera_names:
-            out.append(item)
-        else:
-            raise InputError(f"no camera named {item!r} (cameras: {', '.join(pool.camera_names)})", field=name)
-    if len(set(out)) != len(out):
-        raise InputError(f"names a camera twice: {spec}", field=name)
-    return out
-
-
-def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cameras: Optional[int] = None,
-                         train_cameras: Optional[list] = None, test_cameras: Optional[list] = None,
-                         frames: Optional[list[int]] = None, test_every: int = 1, max_test_views: int = 0
-                         ) -> tuple[TimedViews, TimedViews, dict[str, Any]]:
-    """Load a dynamic scene and split it into (train, test) views; the third item is ``data.json``'s record.
-
-    rgbd-rig: every frame (or ``frames``) of the train cameras trains, the test cameras' frames are held out;
-    the default split is the rig's, ``cameras`` picks that many train cameras spread over the non-test ones,
-    ``train_cameras`` / ``test_cameras`` name them (names or positions). D-NeRF: the train split trains, the
-    test split's frames whose times lie in the trained range are held out (the others are dropped with a
-    warning: the field cannot extrapolate in time). ``test_every`` keeps every k-th test view,
-    ``max_test_views`` at most that many.
-    """
-    import warnings
-
-    if dataset not in DYNAMIC_DATASETS:
-        raise InputError(f"must be one of {DYNAMIC_DATASETS}, got {dataset!r}", field="dataset")
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
-        raise InputError(f"must be a positive integer, got {test_every!r}", field="test_every")
-    dropped: list[str] = []
-    if dataset == "rig":
-        pool = load_rig_video(scene, downscale=downscale, frames=frames)
-        split = pool.default_split or ([], [])
-        rig_train = [pool.camera_names[c] for c in np.unique(pool.camera_ids[split[0]])] if split[0] else []
-        rig_test = [pool.camera_names[c] for c in np.unique(pool.camera_ids[split[1]])] if split[1] else []
-        test_names = _camera_names(pool, test_cameras, "test_cameras") if test_cameras is not None else rig_test
-        if train_cameras is not None:
-            train_names = _camera_names(pool, train_cameras, "train_cameras")
-        else:
-            rest = [n for n in pool.camera_names if n not in test_names]
-            if cameras is None:
-                train_names = [n for n in rig_train if n not in test_names] or rest
-            else:
-                if isinstance(cameras, bool) or not isinstance(cameras, int) or not 1 <= cameras <= len(rest):
-                    raise InputError(f"must be an integer in 1..{len(rest)} (cameras left after the test cameras), "
-                                     f"got {cameras!r}", field="cameras")
-                positions = np.floor(np.linspace(0, len(rest) - 1, cameras) + 0.5).astype(int)
-                train_names = [rest[p] for p in positions]
-        train, test = split_by_camera(pool, train_names, test_names)
-        record_cams = {"train_cameras": train_names, "test_cameras": test_names}
-    else:
-        if cameras is not None or train_cameras is not None or test_cameras is not None:
-            raise InputError("D-NeRF is monocular: it takes no camera choice", field="cameras")
-        train = load_dnerf(scene, "train", downscale=downscale)
-        test = load_dnerf(scene, "test", downscale=downscale, bounds=train.bounds)
-        lo, hi = train.time_range
-        inside = [i for i in range(len(test)) if lo <= test.times[i] <= hi]
-        dropped = [test.names[i] for i in range(len(test)) if i not in inside]
-        if dropped:
-            warnings.warn(f"{len(dropped)} test view(s) lie outside the trained time range [{lo:.4g}, {hi:.4g}] and "
-                          f"are not evaluated: {', '.join(dropped)}", stacklevel=2)
-        test = test.subset(inside)
-        record_cams = {"train_cameras": [], "test_cameras": []}
-    keep = list(range(0, len(test), test_every))
-    if max_test_views:
-        keep = keep[:max_test_views]
-    test = test.subset(keep)
-    if len(test) == 0:
-        raise InputError("no test view selected", field="test_cameras")
-    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale), **record_cams,
-              "frames": None if frames is None else [int(f) for f in frames], "test_every": int(test_every),
-              "max_test_views": int(max_test_views), "train_views": len(train), "test_names": list(test.names),
-              "dropped_test_views": dropped}
-    return train, test, record
-
-
-def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]:
-    """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``."""
-    import warnings
-
-    file = Path(run_dir) / "data.json"
-    if not file.is_file():
-        raise InputError("file does not exist: the run was not made by 'interleave train dynamic' (or the folder "
-                         "is not a run directory)", file=file)
-    rec = json.loads(file.read_text())
-    with warnings.catch_warnings():  # the warnings were given when the run was made
-        warnings.simplefilter("ignore")
-        is_rig = rec["dataset"] == "rig"
-        train, test, _ = select_dynamic_views(
-            rec["dataset"], rec["scene"], rec["downscale"], train_cameras=rec["train_cameras"] if is_rig else None,
-            test_cameras=rec["test_cameras"] if is_rig else None, frames=rec.get("frames"),
-            test_every=rec.get("test_every", 1), max_test_views=rec.get("max_test_views", 0))
-    return train, test
-
-
-# ----------------------------------------------------------------------------------------------------
 # Command line
-
-
-def _config_from_file(path: Optional[Path]) -> DynamicTrainConfig:
-    if path is None:
-        return DynamicTrainConfig()
-    if not Path(path).is_file():
-        raise InputError("config file does not exist", file=path)
-    try:
-        data = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"is not valid JSON: {exc}", file=path) from None
-
-    def merge(base: dict, over: dict) -> dict:
-        out = dict(base)
-        for k, v in over.items():
-            out[k] = merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
-        return out
-
-    return DynamicTrainConfig.from_dict(merge(DynamicTrainConfig().to_dict(), data))
-
-
-def _json_safe(value):
-    """NaN / inf -> None, recursively (JSON has neither)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.train_dynamic") -> int:
@@ -648,12 +396,13 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="JSON with any DynamicTrainConfig fields; command-line options override it")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
-    _add_config_args(parser, DynamicTrainConfig)
+    add_options(parser, DynamicTrainConfig)
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        config = _apply_losses(_apply_args(_config_from_file(args.config), args), args.loss)
+        config = apply_loss_weights(config_from_args(DynamicTrainConfig, args,
+                                                     run_config_from_file(DynamicTrainConfig, args.config)), args.loss)
         if args.prior_names is not None:
             names = [n.strip() for n in args.prior_names.split(",") if n.strip()]
             unknown = sorted(set(names) - {"flow"})
@@ -662,11 +411,11 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
             config = dataclasses.replace(config, priors=dataclasses.replace(
                 config.priors, flow=dataclasses.replace(config.priors.flow, enabled="flow" in names)))
         dataset = args.dataset or detect_dynamic_dataset(args.data)
-        frames = _view_list(args.frames, "frames")
+        frames = view_list(args.frames, "frames")
         train, test, record = select_dynamic_views(
             dataset, args.data, config.downscale, cameras=args.cameras,
-            train_cameras=_view_list(args.train_cameras, "train_cameras"),
-            test_cameras=_view_list(args.test_cameras, "test_cameras"), frames=frames,
+            train_cameras=view_list(args.train_cameras, "train_cameras"),
+            test_cameras=view_list(args.test_cameras, "test_cameras"), frames=frames,
             test_every=args.test_every, max_test_views=args.max_test_views)
         kind = config.field.kind + ("+flow" if config.priors.flow.enabled else "")
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
@@ -676,7 +425,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    scores = _json_safe({"run": str(out), "dataset": dataset, "train_views": len(train), "test_views": len(test),
+    scores = json_safe({"run": str(out), "dataset": dataset, "train_views": len(train), "test_views": len(test),
                           "image_size": [train.height, train.width], "steps": config.steps, **scores})
     text = json.dumps(scores, indent=2)
     (out / "scores.json").write_text(text + "\n")
@@ -686,38 +435,14 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
 
 def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval dynamic") -> int:
     """``interleave eval dynamic RUN_DIR [--json OUT.json]``: render the run's held-out views and score them."""
-    parser = argparse.ArgumentParser(prog=prog, description="Render a trained dynamic field's held-out views at "
-                                                            "their times and print PSNR, SSIM, FLIP, depth MAE, train "
-                                                            "and render time, model size and the motion diagnostics.")
-    parser.add_argument("run", type=Path, help="run directory written by 'interleave train dynamic'")
-    parser.add_argument("--json", type=Path, default=None, help="also write the scores to this JSON file")
-    parser.add_argument("--no-flip", action="store_true", help="skip FLIP")
-    parser.add_argument("--images", type=Path, default=None,
-                        help="write each held-out render (PNG, display-encoded) beside its truth into this folder")
-    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    try:
-        train, test = load_dynamic_run_views(args.run)
-        scores = evaluate_dynamic(args.run, test, with_flip=not args.no_flip, return_images=args.images is not None,
-                                  context_views=train)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    images = scores.pop("images", None)
-    if images is not None:
-        from models.fields.train_static import _write_renders
-
-        _write_renders(args.images, test, images)
-    scores = _json_safe({"run": str(args.run), "train_views": len(train), "test_views": len(test),
-                          "image_size": [test.height, test.width], **scores})
-    text = json.dumps(scores, indent=2)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
-    print(text)
-    return 0
+    return run_eval_command(
+        argv, prog, "Render a trained dynamic field's held-out views at their times and print PSNR, SSIM, FLIP, "
+                    "depth MAE, train and render time, model size and the motion diagnostics.",
+        "interleave train dynamic", load_dynamic_run_views,
+        lambda run, test, train, with_flip, images: evaluate_dynamic(run, test, with_flip=with_flip,
+                                                                     return_images=images, context_views=train),
+        lambda run, train, test: {"run": str(run), "train_views": len(train), "test_views": len(test),
+                                  "image_size": [test.height, test.width]})
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -27,22 +27,13 @@ from models.fields.train_dynamic import (DynamicTrainConfig, MOTION_TERMS, evalu
 from models.fields.static.field import FieldConfig
 from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch
 from models.fields.static.model import RenderConfig, SceneBox
+from tests.fields.test_field_train import look_at_origin
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ----------------------------------------------------------------------------------------------------
 # A textured sphere moving along x, rendered in closed form (white background, true planar depth)
-
-
-def _look_at(eye: np.ndarray) -> np.ndarray:
-    f = -eye / np.linalg.norm(eye)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    rot = np.stack([r, np.cross(f, r), f])  # OpenCV rows: x right, y down, z forward
-    w2c = np.eye(4)
-    w2c[:3, :3], w2c[:3, 3] = rot, -rot @ eye
-    return w2c
 
 
 def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius: float = 0.55,
@@ -55,7 +46,7 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
     for c, az in enumerate(azimuths):
         a, e = np.radians(az), np.radians(25.0)
         eye = 3.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
-        w2c = _look_at(eye)
+        w2c = look_at_origin(eye)
         d = np.stack([(u - k[0, 2]) / focal, (v - k[1, 2]) / focal, np.ones_like(u)], -1) @ w2c[:3, :3]
         for f, t in enumerate(times):
             centre = np.array([speed * t, 0.0, 0.0])
@@ -512,7 +503,7 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     run = tmp_path / "run"
     with pytest.warns(UserWarning, match="outside the trained time range"):
         code = main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(run), "--steps", "8",
-                     "--rays-per-batch", "128", "--field.canonical.resolutions", "8", "16",
+                     "--rays-per-batch", "128", "--field.canonical.resolutions", "8,16",
                      "--field.motion.resolutions", "8", "--render.num-samples", "16", "--no-flip",
                      "--render.occupancy", "false"])
     assert code == 0

@@ -29,7 +29,8 @@ from engine.core.colorspace import display_encode
 from engine.fields.dynamic import (deform_np, load_dynamic_field, normalize_time, query_dynamic,
                               render_dynamic_field)
 from engine.core.errors import InputError
-from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available, scale_intrinsics
+from engine.fields.camera_path import scale_intrinsics
+from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available
 from engine.eval.metrics import psnr
 from export.dynamic import export_dynamic
 from models.fields.dynamic.model import AtTime, DynamicFieldModel

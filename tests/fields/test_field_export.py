@@ -18,7 +18,7 @@ from models.fields.components.encodings import sh_encoding
 from models.fields.static.model import RenderConfig
 from models.fields.components.render import render_image
 from models.fields.train_static import load_model, rank_correlation, train_field
-from tests.fields.test_field_train import _write_blender, sphere_views, tiny_config
+from tests.fields.test_field_train import write_blender, sphere_views, tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -180,8 +180,8 @@ def test_rank_correlation():
 
 def test_train_eval_export_field_commands(tmp_path, capsys):
     scene = tmp_path / "scene"
-    _write_blender(scene, sphere_views([0, 40, 80, 120]), "train")
-    _write_blender(scene, sphere_views([20, 60]), "test")
+    write_blender(scene, sphere_views([0, 40, 80, 120]), "train")
+    write_blender(scene, sphere_views([20, 60]), "test")
     config = tmp_path / "small.json"
     config.write_text(json.dumps({"steps": 30, "rays_per_batch": 128, "field": {"resolutions": [8, 16]},
                                   "render": {"num_samples": 24, "occupancy": False}}))
@@ -214,8 +214,8 @@ def test_field_commands_report_bad_input(tmp_path, capsys):
     assert cli_main(["eval", "field", str(tmp_path)]) == 2
     assert "data.json" in capsys.readouterr().err
     scene = tmp_path / "scene"
-    _write_blender(scene, sphere_views([0, 40]), "train")
-    _write_blender(scene, sphere_views([20]), "test")
+    write_blender(scene, sphere_views([0, 40]), "train")
+    write_blender(scene, sphere_views([20]), "test")
     assert cli_main(["train", "field", "--scene", str(scene), "--train-views", "r_0,r_7", "--out",
                      str(tmp_path / "r2"), "--steps", "1"]) == 2
     assert "r_7" in capsys.readouterr().err

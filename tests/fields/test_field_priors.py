@@ -21,7 +21,7 @@ from models.fields.priors.simple import mass_concentration, patch_reprojection_e
 from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
 from tools.field_ablation import main as ablation_main
 from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
-from tests.fields.test_field_train import _write_blender, sphere_views, tiny_config
+from tests.fields.test_field_train import write_blender, sphere_views, tiny_config
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -284,13 +284,13 @@ def test_interrupted_run_with_all_priors_resumes_exactly(tmp_path):
 
 
 def test_command_line_priors_flag(tmp_path):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
                      "--views", "3", "--downscale", "2", "--steps", "3", "--rays-per-batch", "64",
-                     "--field.resolutions", "8", "16", "--render.num-samples", "16", "--priors", "depth,vip",
+                     "--field.resolutions", "8,16", "--render.num-samples", "16", "--priors", "depth,vip",
                      "--priors.vip.rays", "32"])
     assert code == 0
     saved = FieldTrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text()))
@@ -298,13 +298,13 @@ def test_command_line_priors_flag(tmp_path):
 
 
 def test_ablation_command_prints_a_table_and_writes_json(tmp_path, capsys):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         code = ablation_main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out",
                               str(tmp_path / "abl"), "--views", "3", "--downscale", "2", "--steps", "2",
-                              "--rays-per-batch", "64", "--field.resolutions", "8", "16", "--render.num-samples",
+                              "--rays-per-batch", "64", "--field.resolutions", "8,16", "--render.num-samples",
                               "16", "--variants", "plain,+simple", "--threads", "1"])
     assert code == 0
     report = json.loads((tmp_path / "abl" / "ablation.json").read_text())

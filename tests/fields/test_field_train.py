@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from engine.conventions.cameras import look_at
 from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
@@ -27,11 +28,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 # A textured sphere rendered in closed form (white background, true planar depth)
 
 
-def _look_at(eye: np.ndarray) -> np.ndarray:
-    f = -eye / np.linalg.norm(eye)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    rot = np.stack([r, np.cross(f, r), f])  # OpenCV rows: x right, y down, z forward
+def look_at_origin(eye: np.ndarray) -> np.ndarray:
+    """World-to-camera (OpenCV axes) of a camera at ``eye`` looking at the origin, z up."""
+    rot = look_at(eye, np.zeros(3), (0.0, 0.0, 1.0))
     w2c = np.eye(4)
     w2c[:3, :3], w2c[:3, 3] = rot, -rot @ eye
     return w2c
@@ -45,7 +44,7 @@ def sphere_views(azimuths_deg, size: int = 32, radius: float = 0.8, distance: fl
     for az in azimuths_deg:
         a, e = np.radians(az), np.radians(25.0)
         eye = distance * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
-        w2c = _look_at(eye)
+        w2c = look_at_origin(eye)
         d = np.stack([(u - k[0, 2]) / focal, (v - k[1, 2]) / focal, np.ones_like(u)], -1) @ w2c[:3, :3]
         qa, qb, qc = (d * d).sum(-1), 2 * (d @ eye), eye @ eye - radius ** 2
         disc = qb * qb - 4 * qa * qc
@@ -213,7 +212,7 @@ def test_sparse_depth_term_pulls_expected_depth(tmp_path):
 # Command line, on the sphere written as a NeRF-synthetic scene
 
 
-def _write_blender(root: Path, views: Views, split: str) -> None:
+def write_blender(root: Path, views: Views, split: str) -> None:
     frames = []
     (root / split).mkdir(parents=True, exist_ok=True)
     for i, (image, cam) in enumerate(zip(views.images, views.cameras)):
@@ -227,11 +226,11 @@ def _write_blender(root: Path, views: Views, split: str) -> None:
 
 
 def test_command_line_trains_and_scores(tmp_path, capsys):
-    _write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
-    _write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
     code = main(["--dataset", "nerf-synthetic", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "run"),
                  "--views", "3", "--downscale", "2", "--steps", "20", "--rays-per-batch", "128",
-                 "--field.resolutions", "8", "16", "--render.num-samples", "24", "--loss", "plane_tv=0",
+                 "--field.resolutions", "8,16", "--render.num-samples", "24", "--loss", "plane_tv=0",
                  "--render.occupancy", "false"])
     assert code == 0
     scores = json.loads((tmp_path / "run" / "scores.json").read_text())

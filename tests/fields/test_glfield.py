@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from engine.fields.camera_path import field_camera_path, scale_intrinsics
 from engine.fields import gl as glfield
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
@@ -150,15 +151,13 @@ def test_bad_inputs_raise_input_error(bounded_run, tmp_path):
 
 def test_scale_intrinsics_keeps_the_horizontal_field_of_view_or_the_whole_view():
     k = np.array([[50.0, 0, 50], [0, 50, 50], [0, 0, 1]])
-    out = glfield.scale_intrinsics(k, 100, 100, 960, 540)
+    out = scale_intrinsics(k, 100, 100, 960, 540)
     np.testing.assert_allclose(out, [[480, 0, 480], [0, 480, 270], [0, 0, 1]])
-    out = glfield.scale_intrinsics(k, 100, 100, 960, 540, fit="contain")  # the whole square view fits
+    out = scale_intrinsics(k, 100, 100, 960, 540, fit="contain")  # the whole square view fits
     np.testing.assert_allclose(out, [[270, 0, 480], [0, 270, 270], [0, 0, 1]])
 
 
 def test_camera_path_orbits_at_the_training_radius(bounded_run):
-    from demos.upsample import field_camera_path
-
     _, out, _ = bounded_run
     train = sphere_views([0, 40, 80])  # distance 3, elevation 25 degrees, looking at the origin
     cams, w, h = field_camera_path(load_field(out), (train.cameras, train.width, train.height), 12, 40, 30)
@@ -190,3 +189,15 @@ def test_field_demo_explains_a_missing_export(tmp_path, capsys):
 
     assert cli_main(["demo", "--field", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "interleave export field" in capsys.readouterr().err
+
+
+def test_field_benchmark_scores_every_renderer_against_torch(bounded_run, tmp_path):
+    from tools.bench_fields import bench_table, run_static_bench
+
+    run, out, _ = bounded_run
+    records = run_static_bench(out, [(24, 16)], run=run, repeat=1, skip=("onnx",))
+    names = [r["renderer"] for r in records]
+    assert names[0] == "torch" and "gl float" in names and "numpy" in names and "onnx" not in names
+    assert all(r["reference"] == "torch" and r["size"] == "24x16" for r in records)
+    assert min(r["psnr"] for r in records if r["renderer"] in ("gl float", "numpy")) > 60.0
+    assert "| 24x16 | gl float |" in bench_table(records)

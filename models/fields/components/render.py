@@ -36,7 +36,8 @@ from engine.core.errors import InputError
 from engine.core.checks import check_shape
 from models.fields.components.sampling import camera_rays
 
-__all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "render_image", "stack_outputs"]
+__all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "composite_samples", "render_image",
+           "stack_outputs"]
 
 #: Opacity below which a ray has "no surface": its normalised depth is +inf.
 from engine.fields.render import OPACITY_EPS  # noqa: E402  (shared with the engine)
@@ -126,6 +127,15 @@ def composite(weights: Tensor, colors: Tensor, t: Tensor, background: Tensor) ->
     check_shape(colors, "colors", ("R", "N", 3), sizes)
     check_shape(t, "t", ("R", "N"), sizes)
     return _composite(weights, colors, t, background)
+
+
+def composite_samples(sigma: Tensor, colors: Tensor, lengths: Tensor, t: Tensor, background: Tensor) -> RayOutputs:
+    """Volume-render samples (the last step of every ray marcher): :func:`volume_weights` of ``sigma`` (R, N)
+    over interval ``lengths`` (R, N, scene units), then :func:`composite` of ``colors`` (R, N, 3) at planar
+    depths ``t`` (R, N) onto ``background``. The marchers call it with checked shapes, so it checks none."""
+    weights, trans = _weights(sigma, lengths)
+    color, depth, expected, opacity = _composite(weights, colors, t, background)
+    return RayOutputs(color, depth, expected, opacity, weights, trans, t)
 
 
 @torch.no_grad()

@@ -36,6 +36,7 @@ __all__ = ["FAR_AT_INFINITY", "camera_rays", "ray_box_intersection", "sample_int
 from engine.fields.render import FAR_AT_INFINITY  # noqa: E402  (shared with the engine)
 #: Smallest near bound used when sampling in disparity (keeps 1 / near finite).
 from engine.fields.render import MIN_NEAR  # noqa: E402
+from engine.fields.render import camera_rays_np  # noqa: E402  (one implementation, shared with the engine)
 #: "Unbounded" ray parameter of a slab a ray runs parallel to (finite, so no inf - inf).
 _NO_LIMIT = 1e30
 
@@ -57,8 +58,6 @@ def camera_rays(intrinsics, world_to_camera, height: int, width: int, *,
         >>> d[1].tolist()  # pixel (u=1, v=0): centre (1.5, 0.5)
         [-0.25, -0.25, 1.0]
     """
-    from engine.fields.render import camera_rays_np  # one implementation, shared with the engine
-
     k = np.asarray(intrinsics.detach().cpu() if isinstance(intrinsics, Tensor) else intrinsics, dtype=np.float64)
     t = np.asarray(world_to_camera.detach().cpu() if isinstance(world_to_camera, Tensor) else world_to_camera,
                    dtype=np.float64)

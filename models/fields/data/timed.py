@@ -23,14 +23,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
+import cv2
 import numpy as np
 
-from engine.core.colorspace import srgb_to_linear
+from engine.core.colorspace import display_encode, srgb_to_linear
 from engine.core.errors import InputError
-from engine.core.frames import Camera, validate_pose
-from engine.io.importers import opengl_to_opencv_world_to_camera
-from models.fields.data.views import (NERF_SYNTHETIC_NEAR_FAR, Views, _IMAGE_SUFFIXES, _read_png, _resize, _scale_k,
-                                box_from_cameras, check_listed_frames, check_views, read_transforms)
+from engine.core.frames import Camera
+from engine.io.rgbd import read_rig
+from models.fields.data.views import (IMAGE_SUFFIXES, NERF_SYNTHETIC_NEAR_FAR, Views, box_from_cameras,
+                                      check_listed_frames, check_views, nearest_depth, read_blender_frame,
+                                      read_transforms, resize_image, scale_k)
 
 __all__ = ["TimedViews", "check_timed_views", "load_dnerf", "load_rig_video", "split_by_camera", "frame_step",
            "border_crossings"]
@@ -107,7 +109,7 @@ def frame_step(times: np.ndarray) -> float:
 
 def _dnerf_image(root: Path, split: str, rel: str) -> Optional[Path]:
     path = root / rel
-    if path.suffix.lower() not in _IMAGE_SUFFIXES:
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
         path = path.with_name(path.name + ".png")
     if path.is_file():
         return path
@@ -158,27 +160,21 @@ def load_dnerf(root: str | Path, split: str = "train", *, downscale: int = 1, wh
         if path is None:
             missing.append(rel)
             continue
-        if matrix.shape != (4, 4):
-            raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=i, field="transform_matrix")
-        w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=i,
-                            field_name="transform_matrix")
-        rgb, alpha = _read_png(path)
-        if alpha is not None:  # composite in display-encoded values, as the protocol does
-            rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+        w2c, rgb = read_blender_frame(path, matrix, background, meta_file, i)
         if size is None:
             size = rgb.shape[:2]
         elif rgb.shape[:2] != size:
             raise InputError(f"image is {rgb.shape[1]}x{rgb.shape[0]}, the first was {size[1]}x{size[0]}", file=path)
         linear = srgb_to_linear(rgb).astype(np.float32)
         h, w = size
-        images.append(_resize(linear, max(1, w // downscale), max(1, h // downscale)))
+        images.append(resize_image(linear, max(1, w // downscale), max(1, h // downscale)))
         poses.append(w2c)
         names.append(Path(rel).name)
         times.append(time)
     check_listed_frames(meta_file, missing, len(images))
     h, w = size
     focal = 0.5 * w / np.tan(0.5 * angle)
-    k = _scale_k(np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]]),
+    k = scale_k(np.array([[focal, 0.0, w / 2.0], [0.0, focal, h / 2.0], [0.0, 0.0, 1.0]]),
                  images[0].shape[1] / w, images[0].shape[0] / h)
     order = np.argsort(np.asarray(times), kind="stable")
     n = len(images)
@@ -210,9 +206,6 @@ def load_rig_video(path: str | Path, *, downscale: int = 1, frames: Optional[Seq
     Views are ordered camera by camera (``rig.json`` order), then by time; ``default_split`` holds the view
     indices of the rig's train and test cameras.
     """
-    from engine.io.rgbd import read_rig
-    from models.fields.data.views import _nearest
-
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise InputError(f"must be a positive integer, got {downscale!r}", field="downscale")
     rig = read_rig(path)
@@ -236,9 +229,9 @@ def load_rig_video(path: str | Path, *, downscale: int = 1, frames: Optional[Seq
                 far = near * 1.01
             h, w = f.depth.shape
             w2, h2 = max(1, w // downscale), max(1, h // downscale)
-            images.append(_resize(f.color.astype(np.float32), w2, h2))
-            depths.append(_nearest(f.depth, downscale, w2, h2) if downscale > 1 else f.depth)
-            cams.append(Camera(_scale_k(f.camera.intrinsics, w2 / w, h2 / h), f.camera.world_to_camera))
+            images.append(resize_image(f.color.astype(np.float32), w2, h2))
+            depths.append(nearest_depth(f.depth, downscale, w2, h2) if downscale > 1 else f.depth)
+            cams.append(Camera(scale_k(f.camera.intrinsics, w2 / w, h2 / h), f.camera.world_to_camera))
             near_far.append((near, far))
             times.append(float(f.time))
             cam_ids.append(c)
@@ -292,10 +285,6 @@ def border_crossings(views: TimedViews, *, threshold: float = 0.1, ring: int = 2
         "border_fraction"}], "tested_cameras": [...], "skipped_cameras": [...], "threshold", "ring",
         "min_fraction"}``.
     """
-    import cv2
-
-    from engine.core.colorspace import display_encode
-
     events, tested, skipped = [], [], []
     kernel = np.ones((3, 3), np.uint8)
     for c, name in enumerate(views.camera_names):

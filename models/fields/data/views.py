@@ -41,10 +41,11 @@ from engine.core.colorspace import srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import Camera, validate_intrinsics, validate_pose
 from engine.io.importers import opengl_to_opencv_world_to_camera
+from engine.io.rgbd import read_rig
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
            "load_llff", "load_rig", "LLFF_TO_OPENCV", "llff_to_world_to_camera",
-           "read_transforms", "check_listed_frames"]
+           "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth", "scale_k"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
 
@@ -55,7 +56,7 @@ LLFF_TO_OPENCV = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: NeRF-synthetic's ray bounds (planar depth, scene units).
 NERF_SYNTHETIC_NEAR_FAR = (2.0, 6.0)
 
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 @dataclass(eq=False)
@@ -116,12 +117,12 @@ class Views:
         if factor == 1:
             return self
         w, h = max(1, self.width // factor), max(1, self.height // factor)
-        images = np.stack([_resize(im, w, h) for im in self.images])
-        cameras = [Camera(_scale_k(c.intrinsics, w / self.width, h / self.height), c.world_to_camera)
+        images = np.stack([resize_image(im, w, h) for im in self.images])
+        cameras = [Camera(scale_k(c.intrinsics, w / self.width, h / self.height), c.world_to_camera)
                    for c in self.cameras]
         depth = None
         if self.depth is not None:
-            depth = np.stack([_nearest(d, factor, w, h) for d in self.depth])
+            depth = np.stack([nearest_depth(d, factor, w, h) for d in self.depth])
         return replace(self, images=images, cameras=cameras, depth=depth, downscale=self.downscale * int(factor))
 
 
@@ -248,23 +249,41 @@ def box_from_cameras(cameras: Sequence[Camera], height: int, width: int) -> np.n
 # Image helpers
 
 
-def _resize(image: np.ndarray, w: int, h: int) -> np.ndarray:
+def resize_image(image: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``image`` resized to w x h (area filter, float32); itself when it already has that size."""
     if image.shape[1] == w and image.shape[0] == h:
         return image
     return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32)
 
 
-def _nearest(depth: np.ndarray, factor: int, w: int, h: int) -> np.ndarray:
+def nearest_depth(depth: np.ndarray, factor: int, w: int, h: int) -> np.ndarray:
     """Depth at the block-centre sample of each factor x factor block."""
     o = factor // 2
     return np.ascontiguousarray(depth[o::factor, o::factor][:h, :w])
 
 
-def _scale_k(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
+def scale_k(k: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics scaled by sx along x and sy along y (a resized image; float64)."""
     return np.diag([sx, sy, 1.0]) @ np.asarray(k, dtype=np.float64)
 
 
-def _read_png(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
+def read_blender_frame(path: Path, matrix: np.ndarray, background: np.ndarray, meta_file: Path, index: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame of a Blender-style ``transforms_*.json`` (NeRF-synthetic, D-NeRF): the OpenCV world-to-camera
+    of its OpenGL camera-to-world ``matrix`` and its display-encoded RGB, an RGBA image composited on
+    ``background`` in display-encoded values (as the NeRF-synthetic protocol does). InputError names the
+    file and frame of a bad matrix."""
+    if matrix.shape != (4, 4):
+        raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=index, field="transform_matrix")
+    w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=index,
+                        field_name="transform_matrix")
+    rgb, alpha = read_png(path)
+    if alpha is not None:
+        rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+    return w2c, rgb
+
+
+def read_png(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Display-encoded RGB in [0, 1] (H, W, 3) float64 and alpha (H, W) or None."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
@@ -337,18 +356,12 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"malformed frame entry ({exc})", file=meta_file, frame=i) from None
         path = root / rel
-        if path.suffix.lower() not in _IMAGE_SUFFIXES:
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
             path = path.with_name(path.name + ".png")
         if not path.is_file():
             missing.append(rel)
             continue
-        if matrix.shape != (4, 4):
-            raise InputError(f"must be 4x4, got {matrix.shape}", file=meta_file, frame=i, field="transform_matrix")
-        w2c = validate_pose(opengl_to_opencv_world_to_camera(matrix), file=meta_file, frame=i,
-                            field_name="transform_matrix")
-        rgb, alpha = _read_png(path)
-        if alpha is not None:  # composite in display-encoded values, as the NeRF-synthetic protocol does
-            rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None]) * background
+        w2c, rgb = read_blender_frame(path, matrix, background, meta_file, i)
         images.append(srgb_to_linear(rgb))
         poses.append(w2c)
         names.append(rel)
@@ -410,12 +423,12 @@ def load_llff(root: str | Path, *, factor: int = 8, scene_type: str = "forward-f
     folder = root / ("images" if factor == 1 else f"images_{factor}")
     if not folder.is_dir():
         raise InputError(f"folder does not exist (LLFF ships images_4 and images_8; factor={factor})", file=folder)
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(files) != len(poses):
         raise InputError(f"has {len(files)} images for {len(poses)} poses in {pb_file.name}", file=folder)
     images, cams = [], []
     for i, (path, pose) in enumerate(zip(files, poses)):
-        rgb, _ = _read_png(path)
+        rgb, _ = read_png(path)
         h_img, w_img = rgb.shape[:2]
         h0, w0, focal = pose[:, 4]
         if h0 <= 0 or w0 <= 0 or focal <= 0:
@@ -443,8 +456,6 @@ def load_rig(path: str | Path, *, frame: int = 0, scene_type: str = "forward-fac
     Colour and planar depth come straight from the rgbd-seq frames; ``near_far`` is each view's finite depth
     range (far = +inf where the view sees sky); ``default_split`` is the rig's train/test cameras.
     """
-    from engine.io.rgbd import read_rig
-
     rig = read_rig(path)
     names = list(rig.cameras)
     images, depths, cams, near_far = [], [], [], []

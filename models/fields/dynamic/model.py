@@ -27,7 +27,9 @@ Conventions (written once here, named wherever they matter):
   groups are named: ``spatial`` (canonical tri-planes, or the 4D field's space planes), ``motion_spatial``
   (DeRF), ``temporal`` (the xt, yt, zt planes: the motion field's for DeRF, the 4D field's for K-Planes).
 
-Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX.
+Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX. One module
+(~570 lines) because the three layers share the conventions above; rendering itself is the static model's
+ray marcher (``StaticFieldModel.march``).
 
 >>> model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0],
 ...                           (0.0, 1.0), DynamicFieldConfig(canonical=FieldConfig(resolutions=(8,))),
@@ -51,8 +53,6 @@ from engine.core.checks import check_shape
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, sample_planes
 from models.fields.static.field import FieldConfig, density_activation
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.components.render import _composite, _weights
-from models.fields.components.sampling import sample_intervals
 
 __all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "sample_hex_planes", "time_smoothness",
            "HexPlaneEncoding", "MotionConfig", "DynamicFieldConfig", "CanonicalField", "MotionField",
@@ -522,33 +522,22 @@ class DynamicFieldModel(StaticFieldModel):
         return self._render_dynamic(origins, directions, near, far, self.normalize_times(times), jitter, generator)
 
     def _render_dynamic(self, origins, directions, near, far, taus, jitter, generator) -> DynamicRayOutputs:
-        rc = self.render_config
-        t_near, t_far = self.ray_bounds(origins, directions, near, far)
-        t, deltas = sample_intervals(t_near, t_far, rc.num_samples, spacing="linear" if self.bounded else "disparity",
-                                     jitter=jitter, generator=generator)
-        points = origins[:, None, :] + t[..., None] * directions[:, None, :]
-        coords = self.contract(points)
-        keep = (coords.abs() <= 1.0).all(dim=-1) & (deltas > 0)
-        if self.occupancy is not None and int(self.occupancy.updates) > 0:
-            keep = keep & self.occupancy.query(coords)
-        r, n = t.shape
-        sigma = coords.new_zeros(r, n)
-        rgb = coords.new_zeros(r, n, 3)
+        evaluated = {}
+
+        def query(coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
+            out = self.field(coords, taus[idx[0]], unit)
+            evaluated["canonical"], evaluated["flow"] = out.canonical, out.flow
+            return out.sigma, out.rgb
+
+        base, coords, keep, idx = self.march(origins, directions, near, far, query, jitter=jitter,
+                                             generator=generator)
         canonical = coords.detach()
-        flow = coords.new_zeros(r, n, 3)
-        idx = keep.nonzero(as_tuple=True)
-        if idx[0].numel() > 0:
-            unit = torch.nn.functional.normalize(directions, dim=-1)
-            out = self.field(coords[idx], taus[idx[0]], unit[idx[0]])
-            sigma = sigma.index_put(idx, out.sigma)
-            rgb = rgb.index_put(idx, out.rgb)
-            canonical = canonical.index_put(idx, out.canonical)
-            flow = flow.index_put(idx, out.flow)
+        flow = coords.new_zeros(coords.shape)
+        if evaluated:
+            canonical = canonical.index_put(idx, evaluated["canonical"])
+            flow = flow.index_put(idx, evaluated["flow"])
         outside = keep & ~(canonical.abs() <= 1.0).all(dim=-1)
-        lengths = deltas * directions.norm(dim=-1, keepdim=True)
-        weights, trans = _weights(sigma, lengths)
-        color, depth, expected, opacity = _composite(weights, rgb, t, self.background)
-        return DynamicRayOutputs(color, depth, expected, opacity, weights, trans, t, canonical, flow, keep, outside)
+        return DynamicRayOutputs(*base, canonical, flow, keep, outside)
 
     def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor
                 ) -> DynamicRayOutputs:

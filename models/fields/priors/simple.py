@@ -34,7 +34,7 @@ from models.fields.static.model import StaticFieldModel
 from models.fields.priors.depth import scene_depth_scale
 
 __all__ = ["SimplePrior", "mass_concentration", "patch_reprojection_error", "reliable_depth_masks",
-           "nearest_views", "augmented_near", "AugmentedState"]
+           "nearest_views", "augmented_near", "AugmentedState", "bilinear_sample"]
 
 
 @dataclass
@@ -81,7 +81,7 @@ def nearest_views(cameras) -> np.ndarray:
     return dist.argmin(axis=1)
 
 
-def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+def bilinear_sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Sample (H, W, C) at continuous pixel coordinates (..., 2) (pixel centres at +0.5, edge-clamped)."""
     h, w = image.shape[:2]
     x = np.clip(uv[..., 0] - 0.5, 0.0, w - 1.0)
@@ -135,7 +135,7 @@ def patch_reprojection_error(images: np.ndarray, cameras, view: np.ndarray, pixe
         in_target = valid & (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
         ok = inside & in_target.all(axis=-1)
         ref = images[s][src[..., 1], src[..., 0]]
-        warped = _bilinear(images[t], uv)
+        warped = bilinear_sample(images[t], uv)
         mse = ((ref - warped) ** 2).mean(axis=(-1, -2))
         errors[sel] = np.where(ok, mse, np.inf)
     return errors

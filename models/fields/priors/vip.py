@@ -44,7 +44,7 @@ from engine.core.colorspace import display_encode
 from engine.geometry import reproject
 from models.fields.components.encodings import MLP, DirectionEncoding
 from models.fields.losses import LossInputs, register_loss_term
-from models.fields.priors.simple import _bilinear
+from models.fields.priors.simple import bilinear_sample
 
 __all__ = ["VisibilityPrior", "plane_depths_inverse", "plane_sweep_visibility", "visibility_maps",
            "load_or_compute_visibility", "VisibilityHead", "VisibilityState"]
@@ -94,7 +94,7 @@ def plane_sweep_visibility(primary: np.ndarray, secondary: np.ndarray, cam_prima
         uv, _, valid = reproject(np.full((h, w), z, np.float32), cam_primary.intrinsics, cam_primary.world_to_camera,
                                  cam_secondary.intrinsics, cam_secondary.world_to_camera)
         inside = valid & (uv[..., 0] >= 0.5) & (uv[..., 0] <= ws - 0.5) & (uv[..., 1] >= 0.5) & (uv[..., 1] <= hs - 0.5)
-        error = np.abs(primary - _bilinear(secondary, uv)).sum(axis=-1)
+        error = np.abs(primary - bilinear_sample(secondary, uv)).sum(axis=-1)
         best = np.minimum(best, np.where(inside, error, np.inf).astype(np.float32))
     return np.exp(-best / gamma) > threshold, best
 

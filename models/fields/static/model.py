@@ -21,8 +21,9 @@ from torch import Tensor, nn
 
 from engine.core.errors import InputError
 from engine.core.checks import check_shape
+from models.fields.data.views import box_from_cameras
 from models.fields.static.field import FieldConfig, TriPlaneField
-from models.fields.components.render import RayOutputs, _composite, _weights
+from models.fields.components.render import RayOutputs, composite_samples
 from models.fields.components.sampling import (OccupancyGrid, contract_box, contract_ndc, ray_box_intersection,
                                     sample_intervals)
 
@@ -78,8 +79,6 @@ class SceneBox:
     def from_views(cls, views) -> "SceneBox":
         """The scene of a :class:`~models.fields.data.views.Views`: its box (or one fitted to the cameras) for
         bounded-360, its mean pose as the NDC reference for forward-facing; near/far over all views."""
-        from models.fields.data.views import box_from_cameras  # data imports nothing from here
-
         near = float(np.min(views.near_far[:, 0]))
         far = float(np.max(views.near_far[:, 1]))
         if views.scene_type == "bounded-360":
@@ -191,9 +190,25 @@ class StaticFieldModel(nn.Module):
         check_shape(directions, "directions", ("R", 3), sizes)
         check_shape(near, "near", ("R",), sizes)
         check_shape(far, "far", ("R",), sizes)
-        return self._render_rays(origins, directions, near, far, jitter, generator)
+        return self.march(origins, directions, near, far, self._query, jitter=jitter, generator=generator)[0]
 
-    def _render_rays(self, origins, directions, near, far, jitter, generator) -> RayOutputs:
+    def _query(self, coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
+        return self.field(coords, unit)
+
+    def march(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, query, *, jitter: bool = False,
+              generator: Optional[torch.Generator] = None) -> tuple[RayOutputs, Tensor, Tensor, tuple[Tensor, Tensor]]:
+        """The ray marcher of the static and the dynamic field (shapes as :meth:`render_rays`, unchecked here).
+
+        Samples ``num_samples`` intervals per ray between the scene bounds (linear in t for bounded scenes, in
+        1/t for forward-facing ones; jittered with ``jitter``), contracts them, keeps the samples inside the
+        cube, in a non-empty interval and (once the grid has been updated) in an occupied cell, evaluates
+        ``query(coords, idx, unit_directions) -> (sigma, rgb)`` on the kept ones only (``idx``: their (ray,
+        sample) indices) and composites (:func:`~models.fields.components.render.composite_samples`; densities
+        per unit length, so interval lengths are ``delta t |d|``).
+
+        Returns:
+            (outputs, contracted sample coordinates (R, N, 3), kept samples (R, N) bool, ``idx``).
+        """
         rc = self.render_config
         t_near, t_far = self.ray_bounds(origins, directions, near, far)
         spacing = "linear" if self.bounded else "disparity"
@@ -210,13 +225,11 @@ class StaticFieldModel(nn.Module):
         idx = keep.nonzero(as_tuple=True)
         if idx[0].numel() > 0:
             unit = torch.nn.functional.normalize(directions, dim=-1)
-            s, c = self.field(coords[idx], unit[idx[0]])
+            s, c = query(coords[idx], idx, unit[idx[0]])
             sigma = sigma.index_put(idx, s)
             rgb = rgb.index_put(idx, c)
         lengths = deltas * directions.norm(dim=-1, keepdim=True)  # t is camera z; densities are per unit length
-        weights, trans = _weights(sigma, lengths)
-        color, depth, expected, opacity = _composite(weights, rgb, t, self.background)
-        return RayOutputs(color, depth, expected, opacity, weights, trans, t)
+        return composite_samples(sigma, rgb, lengths, t, self.background), coords, keep, idx
 
     def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> RayOutputs:
         return self.render_rays(origins, directions, near, far)

@@ -1,0 +1,267 @@
+"""Speed / parity table of the field renderers: the GL compute shaders against the numpy / onnxruntime
+references of ``engine.fields`` and (when torch is importable) the torch renderer of the trained run.
+
+``python -m tools.bench_fields static EXPORT_DIR [--run RUN_DIR] [--sizes 512x512,960x540]`` (an exported
+static field: ``engine.fields.gl``) and ``python -m tools.bench_fields dynamic EXPORT_DIR [--sizes 160x90]
+[--view 0] [--time T]`` (an exported dynamic field: ``engine.fields.gldynamic``) print ms per frame, fps,
+CPU ms and the PSNR / colour / depth differences of every renderer against the torch render (the numpy
+one without torch) on one camera: a held-out view of the run, else (static) the first camera of the demo
+path (``engine.fields.camera_path``). ``--json FILE`` also writes the records.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from engine.core.colorspace import display_encode
+from engine.core.errors import InputError
+from engine.eval.metrics import psnr
+from engine.fields.camera_path import field_camera_path, scale_intrinsics
+from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
+from engine.fields.gl import GlFieldRenderer
+from engine.fields.gldynamic import GlDynamicRenderer
+from engine.fields.render import load_field, render_field
+
+__all__ = ["run_static_bench", "run_dynamic_bench", "bench_records", "bench_table", "report_bench", "main"]
+
+
+def _timed(fn):
+    wall, cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - wall, time.process_time() - cpu
+
+
+def _psnr(reference: dict, test: dict) -> float:
+    return psnr(display_encode(reference["color"]), display_encode(test["color"]))
+
+
+def report_bench(records: list[dict], json_path: Optional[Path] = None) -> None:
+    """Print the benchmark table; write the records as strict JSON (non-finite numbers as null) if asked."""
+    print(bench_table(records))
+    if json_path:
+        json_path.write_text(json.dumps([{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                                          for k, v in r.items()} for r in records], indent=2) + "\n")
+
+
+def bench_records(outs: dict, width: int, height: int) -> list[dict]:
+    """One benchmark record per renderer: ``outs`` maps a renderer name to (render, wall seconds, CPU
+    seconds, compile seconds); scores are against the torch render (else numpy's, else the first)."""
+    ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
+    ref = outs[ref_name][0]
+    records = []
+    for name, (out, walls, cpus, compile_s) in outs.items():
+        ms = 1e3 * float(np.median(walls))
+        finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
+        records.append({
+            "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
+            "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
+            "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
+            "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
+            "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
+            if finite.any() else float("nan"),
+            "depth_finite_agree": float(np.mean(np.isfinite(ref["depth"]) == np.isfinite(out["depth"]))),
+        })
+        print(f"{width}x{height} {name}: {ms:.1f} ms", file=sys.stderr, flush=True)
+    return records
+
+
+def bench_table(records: list[dict]) -> str:
+    """Markdown table of benchmark records."""
+    lines = ["| size | renderer | ms / frame | fps | CPU ms / frame | PSNR vs reference (dB) | max abs colour "
+             "| median abs depth | depth inf agree |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        value = "ref." if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
+        lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {r['cpu_ms']:.0f} "
+                     f"| {value} ({r['reference']}) "
+                     f"| {r['max_abs_color']:.1e} | {r['depth_median_abs']:.1e} "
+                     f"| {100 * r['depth_finite_agree']:.2f}% |")
+    return "\n".join(lines)
+
+
+def _torch_renderer(model, near: float, far: float):
+    """``(K, world_to_camera, height, width) -> render`` of a torch model (``render_image``)."""
+    from models.fields.components.render import render_image  # torch: optional here
+
+    return lambda k, w2c, height, width: render_image(model, k, w2c, height, width, near, far)
+
+
+def _static_camera(export: Path, run: Optional[Path]):
+    """(K, world_to_camera, width, height, where) of a held-out view of the run, else of the demo path."""
+    if run is not None and (run / "data.json").is_file():
+        try:
+            from models.fields.data.select import load_run_views  # torch: optional here
+        except ImportError:
+            pass
+        else:
+            _, test = load_run_views(run)
+            cam = test.cameras[0]
+            return cam.intrinsics, cam.world_to_camera, test.width, test.height, f"held-out view {test.names[0]}"
+    cams, width, height = field_camera_path(load_field(export), None, 8)
+    return cams[0].intrinsics, cams[0].world_to_camera, width, height, "first camera of the demo path"
+
+
+def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_render, gl_renderer, variants,
+               reference, skip: tuple[str, ...], repeat: int) -> dict:
+    """``{renderer: (render, wall seconds, CPU seconds, compile seconds)}`` at one size: the torch render
+    (one timed run after a 16 x 16 warm-up), every GL variant (``repeat`` timed runs after a warm-up) and
+    the numpy / onnx references; ``extra`` follows the camera in every render call (a dynamic field's time)."""
+    outs: dict[str, tuple[dict, list[float], list[float], float]] = {}
+    if torch_render is not None:
+        torch_render(k, w2c, 16, 16)  # warm-up
+        out, wall, cpu = _timed(lambda: torch_render(k, w2c, height, width))
+        outs["torch"] = (out, [wall], [cpu], 0.0)
+    if "gl" not in skip:
+        for name, kwargs in variants:
+            with gl_renderer(assets, width, height, **kwargs) as r:
+                out = r.render(k, w2c, *extra)  # warm-up
+                runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
+                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
+    for query in ("numpy", "onnx"):
+        if query not in skip:
+            out, wall, cpu = _timed(lambda: reference(assets, k, w2c, height, width, *extra, query=query))
+            outs[query] = (out, [wall], [cpu], 0.0)
+    return outs
+
+
+STATIC_GL_VARIANTS = [("gl float", {}), ("gl float, exact filtering", {"filtering": "exact"}),
+                      ("gl uint8", {"quantized": True}),
+                      ("gl float, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0}),
+                      ("gl float, weights in a UBO", {"weights": "buffer"}),
+                      ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"})]
+DYNAMIC_GL_VARIANTS = [("gl", {}), ("gl, exact filtering", {"filtering": "exact"}),
+                       ("gl, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0})]
+
+
+def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
+                     skip: tuple[str, ...] = (), threads: int = 0) -> list[dict]:
+    """Time every renderer of the static field at every size on one camera; PSNR of each against the torch
+    render (or the numpy one when torch is not importable). Returns one record per (size, renderer)."""
+    export = Path(export)
+    if not (export / "field.json").is_file() and (export / "export" / "field.json").is_file():
+        export = export / "export"
+    if run is None and (export.parent / "checkpoint.pt").is_file():
+        run = export.parent
+    k0, w2c, w0, h0, where = _static_camera(export, run)
+    assets = load_field(export)
+    torch_render = None
+    if "torch" not in skip and run is not None:
+        try:
+            import torch  # optional: the bench runs without it
+
+            from models.fields.train_static import load_model
+        except ImportError:
+            pass
+        else:
+            if threads:
+                torch.set_num_threads(threads)
+            model = load_model(run)
+            torch_render = _torch_renderer(model, model.scene.near, model.scene.far)
+    records = []
+    for width, height in sizes:
+        k = scale_intrinsics(k0, w0, h0, width, height)
+        outs = _size_outs(width, height, k, w2c, (), assets=assets, torch_render=torch_render,
+                          gl_renderer=GlFieldRenderer, variants=STATIC_GL_VARIANTS, reference=render_field, skip=skip,
+                          repeat=repeat)
+        records.extend(bench_records(outs, width, height))
+    for r in records:
+        r["camera"] = where
+    return records
+
+
+def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
+                      skip: tuple[str, ...] = (), view: int = 0, time_value: Optional[float] = None,
+                      threads: int = 0) -> list[dict]:
+    """Time every renderer of the dynamic field at every size on one held-out view of the run (at its time,
+    or ``time_value``); PSNR of each against the torch render (or the numpy one without torch)."""
+    import torch  # the held-out views come from the run's data (models.fields): torch is needed here
+
+    from models.fields.dynamic.model import AtTime
+    from models.fields.data.select import load_dynamic_run_views
+    from models.fields.train_dynamic import load_dynamic_model
+
+    export = Path(export)
+    if not (export / "dynamic.json").is_file() and (export / "export" / "dynamic.json").is_file():
+        export = export / "export"
+    run = run or export.parent
+    if not (run / "data.json").is_file():
+        raise InputError("has no data.json: pass --run RUN_DIR (the held-out camera comes from it)", file=run)
+    if threads:
+        torch.set_num_threads(threads)
+    _, test = load_dynamic_run_views(run)
+    cam = test.cameras[view]
+    t = float(test.times[view]) if time_value is None else float(time_value)
+    assets = load_dynamic_field(export)
+    torch_render = None
+    if "torch" not in skip:
+        model = AtTime(load_dynamic_model(run), t)
+        torch_render = _torch_renderer(model, model.model.scene.near, model.model.scene.far)
+    records = []
+    for width, height in sizes:
+        k = scale_intrinsics(cam.intrinsics, test.width, test.height, width, height)
+        outs = _size_outs(width, height, k, cam.world_to_camera, (t,), assets=assets, torch_render=torch_render,
+                          gl_renderer=GlDynamicRenderer, variants=DYNAMIC_GL_VARIANTS, reference=render_dynamic_field,
+                          skip=skip, repeat=repeat)
+        for record in bench_records(outs, width, height):
+            records.append({**record, "time": t, "camera": f"held-out view {test.names[view]}"})
+    return records
+
+
+def _sizes(text: str) -> list[tuple[int, int]]:
+    try:
+        out = [tuple(int(v) for v in item.lower().split("x")) for item in text.split(",") if item.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}") from None
+    if not out or any(len(s) != 2 or min(s) < 1 for s in out):
+        raise argparse.ArgumentTypeError(f"expected WxH[,WxH...], got {text!r}")
+    return out
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """``python -m tools.bench_fields {static,dynamic} EXPORT_DIR``: the speed / parity table."""
+    parser = argparse.ArgumentParser(prog="python -m tools.bench_fields", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="kind", required=True)
+    static = sub.add_parser("static", help="an exported static field (engine.fields.gl)")
+    dynamic = sub.add_parser("dynamic", help="an exported dynamic field (engine.fields.gldynamic)")
+    static.add_argument("export", type=Path, metavar="EXPORT_DIR",
+                        help="folder with field.json (or a run directory holding export/)")
+    static.add_argument("--run", type=Path, default=None,
+                        help="the run directory (torch renderer and held-out camera; default: EXPORT_DIR/..)")
+    static.add_argument("--sizes", type=_sizes, default=[(512, 512), (960, 540)],
+                        help="WxH,... (default 512x512,960x540)")
+    dynamic.add_argument("export", type=Path, metavar="EXPORT_DIR",
+                         help="folder with dynamic.json (or a run directory holding export/)")
+    dynamic.add_argument("--run", type=Path, default=None, help="the run directory (default: EXPORT_DIR/..)")
+    dynamic.add_argument("--sizes", type=_sizes, default=[(160, 90), (512, 512)],
+                         help="WxH,... (default 160x90,512x512)")
+    dynamic.add_argument("--view", type=int, default=0, help="index of the held-out view (default 0)")
+    dynamic.add_argument("--time", type=float, default=None, help="render time (default: the view's own)")
+    for p in (static, dynamic):
+        p.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
+        p.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
+        p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+        p.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
+    args = parser.parse_args(argv)
+    skip = tuple(s.strip() for s in args.skip.split(",") if s.strip())
+    try:
+        if args.kind == "static":
+            records = run_static_bench(args.export, args.sizes, run=args.run, repeat=max(1, args.repeat), skip=skip,
+                                       threads=args.threads)
+        else:
+            records = run_dynamic_bench(args.export, args.sizes, run=args.run, repeat=max(1, args.repeat),
+                                        skip=skip, view=args.view, time_value=args.time, threads=args.threads)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    report_bench(records, args.json)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -16,12 +16,12 @@ from typing import Iterator, Optional, Sequence
 import cv2
 import numpy as np
 
-from engine.core.frames import Frame
 from engine.core.colorspace import display_encode
+from engine.core.frames import Frame
+from engine.eval.metrics import flip_map
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
-from engine.eval.metrics import flip_map
 from engine.predict import Predictor, Target
 from engine.runtime.stream import PredictionLoop
 

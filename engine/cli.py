@@ -231,7 +231,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 def _run_eval(args: argparse.Namespace) -> int:
     from engine.eval.protocol import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
-                                 per_step_table, plot, split_scoring, stage_table, summarize, write_json)
+                                      per_step_table, plot, split_scoring, stage_table, summarize, write_json)
     from engine.io.rgbd import read_sequence
     from engine.predict import METHODS
 

@@ -30,8 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from export.field import (OPSET, example_points, export_command, mlp_layers, quantize_planes, run_as_script,
-                          strip_debug)
+from export.field import OPSET, example_points, export_command, mlp_layers, quantize_planes, run_as_script, strip_debug
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.train_dynamic import load_dynamic_model

@@ -34,9 +34,9 @@ from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from models.fields.components.render import render_image
 from models.fields.components.sampling import camera_rays, sample_intervals
+from models.fields.data.select import load_run_views
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.static.model import StaticFieldModel
-from models.fields.data.select import load_run_views
 from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",

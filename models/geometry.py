@@ -33,8 +33,8 @@ from torch import Tensor
 
 from engine.core.checks import check_shape, checked_out_size, checked_sharpness
 from engine.core.errors import InputError
-from engine.geometry import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MAX_PIXEL_COORD, MIN_LOG_WEIGHT,
-                             SUBPIXEL_SNAP, TINY_DEPTH)
+from engine.geometry import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MAX_PIXEL_COORD, MIN_LOG_WEIGHT, SUBPIXEL_SNAP,
+                             TINY_DEPTH)
 
 __all__ = ["Mpi", "pixel_centers", "unproject", "relative_transform", "project", "reproject", "plane_depths",
            "build_mpi", "forward_warp_mpi", "forward_warp_frame", "composite", "disocclusion_mask",

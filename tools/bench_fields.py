@@ -182,8 +182,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
     or ``time_value``); PSNR of each against the torch render (or the numpy one without torch)."""
     import torch  # the held-out views come from the run's data (models.fields): torch is needed here
 
-    from models.fields.dynamic.model import AtTime
     from models.fields.data.select import load_dynamic_run_views
+    from models.fields.dynamic.model import AtTime
     from models.fields.train_dynamic import load_dynamic_model
 
     export = Path(export)

@@ -24,10 +24,10 @@ from typing import Sequence
 
 import numpy as np
 
-from engine.predict.decomp import DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork
 from engine.core.errors import InputError
 from engine.eval.protocol import evaluation_pairs
 from engine.io.rgbd import read_sequence
+from engine.predict.decomp import DEFAULT_MODEL, DecompConfig, DecompPredictor, FlowNetwork
 
 
 class _Recorder:

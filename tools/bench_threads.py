@@ -23,9 +23,8 @@ import time
 from pathlib import Path
 
 from engine import geometry
-
-from engine.geometry import kernels
 from engine.eval.protocol import evaluation_pairs
+from engine.geometry import kernels
 from engine.io.rgbd import read_sequence
 from engine.predict import Target, make_predictor
 

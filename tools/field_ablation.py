@@ -20,7 +20,7 @@ from typing import Optional
 from engine.core.errors import InputError
 from models.fields.priors.config import PRIOR_NAMES, with_priors
 from models.fields.train_static import (FieldTrainConfig, add_run_arguments, evaluate_field, parse_run_command,
-                                       run_inputs, train_field)
+                                        run_inputs, train_field)
 
 __all__ = ["VARIANTS", "run_ablation", "markdown_table", "main"]
 

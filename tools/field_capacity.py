@@ -22,7 +22,7 @@ from typing import Optional, Sequence
 
 from engine.core.errors import InputError
 from models.fields.train_static import (FieldTrainConfig, add_run_arguments, evaluate_field, load_model,
-                                       parse_run_command, run_inputs, train_field)
+                                        parse_run_command, run_inputs, train_field)
 from tools.field_ablation import write_report
 
 __all__ = ["DEFAULT_LADDER", "field_size", "run_capacity_sweep", "markdown_table", "main"]

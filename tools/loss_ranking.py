@@ -28,9 +28,9 @@ import torch
 import torch.nn.functional as F
 
 from engine.core.errors import InputError
-from models.flow.network import mpi_pair
 from models.flow.losses import FlowLossConfig, flow_loss
-from models.flow.train import frame_tensors, dis_initial_flow, load_model
+from models.flow.network import mpi_pair
+from models.flow.train import dis_initial_flow, frame_tensors, load_model
 
 
 def _lift(flow_2d: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:

@@ -1,8 +1,8 @@
 """Game-engine conventions in, OpenCV out: cameras (``cameras``), depth buffers (``depth``), motion vectors
 (``motion``). Interleave's own convention and the engine table: ``engine.conventions.cameras``."""
-from engine.conventions.cameras import (CLIP_RANGES, IDENTITY_FLIP, OPENGL_EYE_TO_OPENCV, OPENGL_TO_OPENCV,
-                                        UNITY_FLIP, UNITY_LOCAL_TO_OPENCV, UNREAL_FLIP, UNREAL_LOCAL_TO_OPENCV,
-                                        from_godot, from_opengl, from_unity, from_unreal, intrinsics_from_fov,
+from engine.conventions.cameras import (CLIP_RANGES, IDENTITY_FLIP, OPENGL_EYE_TO_OPENCV, OPENGL_TO_OPENCV, UNITY_FLIP,
+                                        UNITY_LOCAL_TO_OPENCV, UNREAL_FLIP, UNREAL_LOCAL_TO_OPENCV, from_godot,
+                                        from_opengl, from_unity, from_unreal, intrinsics_from_fov,
                                         intrinsics_from_projection, look_at, opengl_to_opencv_world_to_camera,
                                         projection_from_intrinsics, quaternion_to_matrix, unreal_rotation_matrix)
 from engine.conventions.depth import (DEPTH_CONVENTIONS, decode_depth_buffer, decode_from_projection,

@@ -44,8 +44,8 @@ from typing import Literal, Optional, Sequence
 
 import numpy as np
 
-from engine.core.errors import InputError
 from engine.conventions.values import frame_size, near_far, positive
+from engine.core.errors import InputError
 from engine.core.frames import RIGID_TOLERANCE, rigid_inverse, validate_intrinsics, validate_pose
 
 #: Clip-space z ranges understood by :func:`decode_from_projection` and

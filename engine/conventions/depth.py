@@ -8,10 +8,10 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from engine.core.errors import InputError
-from engine.core.frames import validate_intrinsics
 from engine.conventions.cameras import CLIP_RANGES, perspective_matrix
 from engine.conventions.values import count_bad, float_buffer, near_far
+from engine.core.errors import InputError
+from engine.core.frames import validate_intrinsics
 
 #: Depth-buffer conventions understood by :func:`decode_depth_buffer` / :func:`encode_depth_buffer`.
 DEPTH_CONVENTIONS = ("opengl", "d3d", "reversed", "infinite", "reversed_infinite", "linear", "linear01")

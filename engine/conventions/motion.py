@@ -5,8 +5,8 @@ from typing import Literal
 
 import numpy as np
 
-from engine.core.errors import InputError
 from engine.conventions.values import float_buffer, frame_size
+from engine.core.errors import InputError
 
 # --------------------------------------------------------------------------------------------
 # Motion vectors

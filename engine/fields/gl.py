@@ -75,9 +75,9 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 
 from engine.core.errors import InputError
+from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_AXES, SH_C0, SH_C1, SH_C2, SH_C3,
                                   FieldAssets, load_field)
-from engine.core.frames import validate_intrinsics, validate_pose
 
 __all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
            "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options"]

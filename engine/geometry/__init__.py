@@ -6,8 +6,8 @@ pixel centres at +0.5, planar depth with +inf sky, linear RGB); design note: ``d
 Modules: ``camera`` (unproject, project, reproject), ``mpi`` (build, downsample, composite), ``splat``
 (forward warp), ``holefill``, ``kernels`` (numba), ``glsplat`` (moderngl), ``reference`` (numpy oracles).
 """
-from engine.geometry.camera import (MAX_PIXEL_COORD, TINY_DEPTH, pixel_centers, project, relative_transform,
-                                    reproject, unproject)
+from engine.geometry.camera import (MAX_PIXEL_COORD, TINY_DEPTH, pixel_centers, project, relative_transform, reproject,
+                                    unproject)
 from engine.geometry.mpi import (Mpi, build_mpi, composite, disocclusion_mask, downsample_factor, downsample_flow,
                                  downsample_frame, plane_depths, plane_index, visibility)
 from engine.geometry.splat import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP,

@@ -36,10 +36,9 @@ from typing import Optional
 
 import numpy as np
 
-from engine.core.checks import checked_array, checked_matrix
+from engine.core.checks import checked_array, checked_matrix, checked_out_size, checked_sharpness
 from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, reprojection_matrix
 from engine.geometry.mpi import Mpi, checked_mpi
-from engine.core.checks import checked_out_size, checked_sharpness
 from engine.geometry.splat import COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP
 
 _LOCAL = 256

@@ -11,8 +11,8 @@ from typing import Optional
 
 import numpy as np
 
+from engine.geometry.camera import pixel_grid, reproject_points, reprojection_matrix
 from engine.geometry.holefill import nearest_known
-from engine.geometry.camera import pixel_grid, reprojection_matrix, reproject_points
 from engine.geometry.mpi import Mpi, nearest_plane, plane_depths, plane_index, visibility
 from engine.geometry.splat import (COVERAGE_THRESHOLD, MIN_LOG_WEIGHT, SCRATCH, SKY_ONLY_WEIGHT, SKY_WEIGHT,
                                    SUBPIXEL_SNAP)

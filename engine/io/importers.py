@@ -29,11 +29,10 @@ import cv2
 import numpy as np
 
 from engine.conventions.cameras import opengl_to_opencv_world_to_camera
-from engine.core.errors import InputError
-from engine.io.exr import read_exr
-from engine.core.frames import (Camera, Frame, validate_depth, validate_frame, validate_intrinsics,
-                           validate_pose)
 from engine.core.colorspace import srgb_to_linear
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame, validate_depth, validate_frame, validate_intrinsics, validate_pose
+from engine.io.exr import read_exr
 from engine.io.meta import json_finite, json_int, load_json, require
 from engine.io.rgbd import write_sequence
 

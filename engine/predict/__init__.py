@@ -4,7 +4,7 @@ DeCOMPnet (``decomp``) and the registry of method names (``registry``, where ``d
 Modules import downhill only: ``base``, ``dis``, ``onnx`` <- ``classic``, ``decomp`` <- ``registry`` <- this
 face, which re-exports the public names (``from engine.predict import make_predictor, Target``).
 """
-from engine.predict.base import (Prediction, PreparedState, Predictor, Target, Timer, extrapolation_factor,
+from engine.predict.base import (Prediction, Predictor, PreparedState, Target, Timer, extrapolation_factor,
                                  true_object_flow, warp_and_fill)
 from engine.predict.classic import Flow2D, Flow2DState, Oracle, Repeat, Reproject
 from engine.predict.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompState, DecompTrueMotion,

@@ -8,7 +8,7 @@ from typing import Sequence
 import numpy as np
 
 from engine.core.frames import SceneObject
-from engine.predict.base import (PreparedState, Predictor, Target, Timer, extrapolation_factor, true_object_flow,
+from engine.predict.base import (Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow,
                                  warp_and_fill)
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 

@@ -25,8 +25,8 @@ from typing import Optional
 
 import numpy as np
 
-from engine.runtime import protocol as wire
 from engine.core.errors import InterleaveError
+from engine.runtime import protocol as wire
 from engine.runtime.protocol import Layout, MessageType, Status
 from engine.runtime.server import Address, parse_address
 from engine.runtime.session import Session, SessionConfig, SubmitResult

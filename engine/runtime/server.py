@@ -32,8 +32,8 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from engine.runtime import protocol as wire
 from engine.core.errors import InputError, InterleaveError
+from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, Status
 from engine.runtime.session import NotReadyError, Session, SessionConfig
 

@@ -92,8 +92,8 @@ from engine import conventions
 from engine.core.colorspace import display_encode, srgb_to_linear
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
-from engine.core.frames import Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics, \
-    validate_pose
+from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
+                                validate_pose)
 from engine.predict import Repeat, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 from engine.core.frames import Frame
-from engine.predict import Prediction, PreparedState, Predictor, Reproject, Target
+from engine.predict import Prediction, Predictor, PreparedState, Reproject, Target
 
 __all__ = ["Prepared", "PredictionLoop"]
 

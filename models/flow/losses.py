@@ -22,12 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from engine.core.checks import check_shape
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import DEFAULT_SHARPNESS
-from engine.core.checks import check_shape
-from models.flow.network import backward_warp_unchecked, plane_offset_unchecked, encode_color
-from models.geometry import Mpi, check_mpi, alpha_visibility, forward_warp_mpi
+from models.flow.network import backward_warp_unchecked, encode_color, plane_offset_unchecked
+from models.geometry import Mpi, alpha_visibility, check_mpi, forward_warp_mpi
 
 __all__ = ["FlowLossConfig", "masked_mean", "ssim", "photometric_loss", "occlusion_mask", "smoothness_loss",
            "photometric_channels", "reconstruct", "flow_loss"]

@@ -34,10 +34,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from engine.core.checks import check_shape
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.core.checks import check_shape
-from models.geometry import Mpi, check_mpi, build_mpi, forward_warp_mpi, visibility
+from models.geometry import Mpi, build_mpi, check_mpi, forward_warp_mpi, visibility
 
 __all__ = ["Flow3DConfig", "PartialConv3d", "partial_conv3d", "masked_correlation", "plane_offset",
            "backward_warp", "flow_from_output", "extrapolate", "encode_color", "mpi_features", "mpi_pair",

@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from models.flow.network import stack_planes, encode_color, mpi_features
+from models.flow.network import encode_color, mpi_features, stack_planes
 from models.geometry import Mpi, composite_unchecked
 
 __all__ = ["InfillConfig", "InfillNet", "infill_inputs", "apply_vectors", "infill", "infill_loss", "choice_loss",

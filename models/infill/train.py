@@ -32,9 +32,9 @@ from engine import geometry
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.io.rgbd import read_sequence
-from engine.predict.decomp.infill import candidate_vectors, downsample_holes, hole_mpi, prior_vectors
-from engine.predict.decomp.gate import encode_color
 from engine.predict import true_object_flow
+from engine.predict.decomp.gate import encode_color
+from engine.predict.decomp.infill import candidate_vectors, downsample_holes, hole_mpi, prior_vectors
 from models.flow.train import load_network, render_scenes, restore_checkpoint, save_checkpoint
 from models.geometry import Mpi
 from models.infill.network import (InfillConfig, InfillNet, apply_vectors, choice_loss, infill, infill_inputs,

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from engine.conventions import (
-    UNITY_FLIP, UNREAL_FLIP, decode_depth_buffer, decode_from_projection, encode_depth_buffer, from_godot,
-    from_opengl, from_unity, from_unreal, intrinsics_from_fov, intrinsics_from_projection,
-    motion_vectors_to_flow, planar_to_radial, projection_from_intrinsics, radial_to_planar,
-)
+from engine.conventions import (UNITY_FLIP, UNREAL_FLIP, decode_depth_buffer, decode_from_projection,
+                                encode_depth_buffer, from_godot, from_opengl, from_unity, from_unreal,
+                                intrinsics_from_fov, intrinsics_from_projection, motion_vectors_to_flow,
+                                planar_to_radial, projection_from_intrinsics, radial_to_planar)
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
 

@@ -4,7 +4,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_frame,
-                           validate_intrinsics, validate_pose)
+                                validate_intrinsics, validate_pose)
 from tests.synthetic import rigid, two_layer_sequence
 
 

@@ -6,8 +6,8 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.eval.protocol import (TRUE_HOLES, bound_methods, bounds_summary, bounds_table, evaluate_sequence,
-                             evaluation_pairs, markdown_table, per_step_table, plot, split_scoring, stage_table,
-                             with_true_holes, write_json)
+                                  evaluation_pairs, markdown_table, per_step_table, plot, split_scoring, stage_table,
+                                  with_true_holes, write_json)
 from engine.io.rgbd import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from engine.core.errors import InputError
 from engine.core.colorspace import display_encode, srgb_to_linear
+from engine.core.errors import InputError
 from engine.eval.metrics import crop_slices, psnr, score_frame, ssim_map
 
 

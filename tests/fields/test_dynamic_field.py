@@ -17,16 +17,16 @@ import torch
 from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
+from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
-                                   sample_hex_planes, time_smoothness)
-from models.fields.data.timed import (TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera)
-from models.fields.priors.flow import (SparseFlowPrior, SparseFlowState, coherent_matches, flow_pairs,
-                                          fundamental_matrix, sampson_distance, sparse_flow_loss)
-from models.fields.train_dynamic import (DynamicTrainConfig, MOTION_TERMS, evaluate_dynamic, load_dynamic_model,
-                                         train_dynamic)
-from models.fields.static.field import FieldConfig
+                                         sample_hex_planes, time_smoothness)
 from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch
+from models.fields.priors.flow import (SparseFlowPrior, SparseFlowState, coherent_matches, flow_pairs,
+                                       fundamental_matrix, sampson_distance, sparse_flow_loss)
+from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox
+from models.fields.train_dynamic import (MOTION_TERMS, DynamicTrainConfig, evaluate_dynamic, load_dynamic_model,
+                                         train_dynamic)
 from tests.fields.test_field_train import look_at_origin
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

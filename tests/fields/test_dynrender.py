@@ -26,18 +26,17 @@ import pytest
 import torch
 
 from engine.core.colorspace import display_encode
-from engine.fields.dynamic import (deform_np, load_dynamic_field, normalize_time, query_dynamic,
-                              render_dynamic_field)
 from engine.core.errors import InputError
-from engine.fields.camera_path import scale_intrinsics
-from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available
 from engine.eval.metrics import psnr
+from engine.fields.camera_path import scale_intrinsics
+from engine.fields.dynamic import deform_np, load_dynamic_field, normalize_time, query_dynamic, render_dynamic_field
+from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available
 from export.dynamic import export_dynamic
-from models.fields.dynamic.model import AtTime, DynamicFieldModel
-from models.fields.data.timed import split_by_camera
-from models.fields.train_dynamic import load_dynamic_model, train_dynamic
-from models.fields.static.model import RenderConfig, SceneBox
 from models.fields.components.render import render_image
+from models.fields.data.timed import split_by_camera
+from models.fields.dynamic.model import AtTime, DynamicFieldModel
+from models.fields.static.model import RenderConfig, SceneBox
+from models.fields.train_dynamic import load_dynamic_model, train_dynamic
 from tests.fields.test_dynamic_field import TIMES, TINY, sphere_video, tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -14,7 +14,7 @@ from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
 from engine.io.rgbd import write_rig
 from models.fields.data.views import (Views, box_from_cameras, check_views, load_llff, load_nerf_synthetic, load_rig,
-                                split_indices)
+                                      split_indices)
 
 
 def _project(camera: Camera, point: np.ndarray) -> tuple[np.ndarray, float]:

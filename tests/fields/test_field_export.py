@@ -13,12 +13,12 @@ from engine.cli import main as cli_main
 from engine.core.errors import InputError
 from engine.fields.render import contract_np, load_field, query_field, render_field, sh_encoding_np
 from export.field import FieldQueryGraph, check_parity, example_points, export_field, quantize_planes
-from models.fields.data.views import Views
 from models.fields.components.encodings import sh_encoding
-from models.fields.static.model import RenderConfig
 from models.fields.components.render import render_image
+from models.fields.data.views import Views
+from models.fields.static.model import RenderConfig
 from models.fields.train_static import load_model, rank_correlation, train_field
-from tests.fields.test_field_train import write_blender, sphere_views, tiny_config
+from tests.fields.test_field_train import sphere_views, tiny_config, write_blender
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -19,10 +19,9 @@ from models.fields.priors.depth import (SparseDepthPrior, SparseDepthState, proj
                                         triangulate_checked, triangulate_dlt)
 from models.fields.priors.simple import mass_concentration, patch_reprojection_error, reliable_depth_masks
 from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
-from tools.field_ablation import main as ablation_main
 from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
-from tests.fields.test_field_train import write_blender, sphere_views, tiny_config
-
+from tests.fields.test_field_train import sphere_views, tiny_config, write_blender
+from tools.field_ablation import main as ablation_main
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -9,11 +9,11 @@ import torch
 
 from engine.core.errors import InputError
 from models.fields.components.encodings import sample_planes, sh_encoding
-from models.fields.static.field import FieldConfig, TriPlaneField
-from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.components.render import OPACITY_EPS, composite, render_image, volume_weights
 from models.fields.components.sampling import (OccupancyGrid, camera_rays, contract_ndc, ray_box_intersection,
-                                    sample_intervals)
+                                               sample_intervals)
+from models.fields.static.field import FieldConfig, TriPlaneField
+from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 
 TINY_FIELD = FieldConfig(resolutions=(4, 8), feature_dim=4, density_hidden=8, geo_feature_dim=3, color_hidden=8)
 

@@ -15,11 +15,10 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from models.fields.data.views import Views
-from models.fields.static.field import FieldConfig
 from models.fields.losses import LOSS_TERMS, LossTerm, register_loss_term
+from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig
 from models.fields.train_static import FieldTrainConfig, build_model, evaluate_field, load_model, main, train_field
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -107,8 +106,8 @@ def test_gradient_reaches_every_plane():
     views = sphere_views([0, 90])
     config = tiny_config()
     model = build_model(views, config)
-    from models.fields.losses import RayBatch, assemble_loss
     from models.fields.components.sampling import camera_rays
+    from models.fields.losses import RayBatch, assemble_loss
 
     o, d = camera_rays(views.cameras[0].intrinsics, views.cameras[0].world_to_camera, 32, 32)
     batch = RayBatch(o, d, torch.full((1024,), 1.0), torch.full((1024,), 5.0),

@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.fields.camera_path import field_camera_path, scale_intrinsics
-from engine.fields import gl as glfield
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
-from engine.fields.render import load_field, render_field
 from engine.eval.metrics import psnr
+from engine.fields import gl as glfield
+from engine.fields.camera_path import field_camera_path, scale_intrinsics
+from engine.fields.render import load_field, render_field
 from tests.fields.test_field_export import bounded_run, ndc_run  # noqa: F401  (module fixtures: tiny trained fields)
 from tests.fields.test_field_train import sphere_views
 

@@ -16,8 +16,8 @@ import torch.nn.functional as F
 
 from engine.core.errors import InputError
 from models.flow.network import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, encode_color, extrapolate,
-                           flow_from_output, masked_correlation, mpi_features, mpi_pair, partial_conv3d,
-                           plane_offset, pyramid_stride, set_direct_conv3d, surface_flow)
+                                 flow_from_output, masked_correlation, mpi_features, mpi_pair, partial_conv3d,
+                                 plane_offset, pyramid_stride, set_direct_conv3d, surface_flow)
 from models.geometry import Mpi, build_mpi
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

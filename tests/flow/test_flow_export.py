@@ -24,9 +24,8 @@ from engine.core.errors import InputError
 from engine.predict.decomp.network import FlowNetwork
 from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
 from models.flow.network import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
-                           masked_correlation, set_direct_conv3d)
-from models.flow.train import (TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items,
-                               train)
+                                 masked_correlation, set_direct_conv3d)
+from models.flow.train import TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items, train
 
 ROOT = Path(__file__).resolve().parents[2]
 TOLERANCE = 1e-4

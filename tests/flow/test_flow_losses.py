@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from engine.core.errors import InputError
-from models.flow.network import Flow3D, Flow3DConfig
-from models.geometry import Mpi, build_mpi
 from models.flow.losses import (FlowLossConfig, flow_loss, masked_mean, occlusion_mask, photometric_channels,
-                           photometric_loss, reconstruct, smoothness_loss, ssim)
+                                photometric_loss, reconstruct, smoothness_loss, ssim)
+from models.flow.network import Flow3D, Flow3DConfig
 from models.flow.train import endpoint_error
+from models.geometry import Mpi, build_mpi
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -246,8 +246,8 @@ def test_loss_ranking_rewards_the_true_motion_of_a_written_sequence(tmp_path):
     """tools.loss_ranking on a two-layer sequence on disk: the true flow has zero end-point error and a lower
     loss than zero flow; a sequence without objects is refused by name."""
     from engine.io.rgbd import write_sequence
-    from tools.loss_ranking import rank_pairs, summary
     from tests.synthetic import two_layer_sequence
+    from tools.loss_ranking import rank_pairs, summary
 
     frames, objects = two_layer_sequence(6, width=128, height=96, camera_speed=0.05, object_speed=0.1)
     path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)

@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from engine import geometry as ng
-from engine.geometry import reference, splat
 from engine.core.errors import InputError
+from engine.geometry import reference, splat
 from models import geometry as tg
 from tests.random_scenes import extreme_scene, intrinsics, moving_cameras, pose, random_scene, rotation
 

@@ -1,6 +1,7 @@
 """The background-biased hole fill: copies only known pixels, prefers the farther side, never NaN."""
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from engine.geometry.holefill import fill_holes
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from engine import geometry as ng
-from engine.geometry import holefill, reference, splat
 from engine.core.colorspace import encode8_reference, encode8_table
+from engine.geometry import holefill, reference, splat
 from engine.predict import encode8, luma8
 from tests.random_scenes import extreme_scene, moving_cameras, pose, random_scene
 
@@ -218,11 +218,10 @@ def test_thread_benchmark_runs_every_setting_and_restores_the_environment(tmp_pa
     import json
     import os
 
-    from tools import bench_threads
-
     from engine.geometry import kernels
     from engine.io.rgbd import write_sequence
     from tests.synthetic import two_layer_sequence
+    from tools import bench_threads
 
     monkeypatch.delenv(kernels.THREADS_ENV, raising=False)
     monkeypatch.delenv("INTERLEAVE_ORT_SPIN", raising=False)

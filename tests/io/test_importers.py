@@ -10,13 +10,13 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from engine.core.colorspace import srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
 from engine.io.importers import (SINTEL_TAG, frames_from_blender, frames_from_sintel, frames_from_veed, import_any,
-                              read_cam, read_dpt, read_transformation_csv)
-from engine.core.colorspace import srgb_to_linear
-from tests.synthetic import rigid, rotation
+                                 read_cam, read_dpt, read_transformation_csv)
 from engine.io.rgbd import read_sequence
+from tests.synthetic import rigid, rotation
 
 H, W = 16, 24
 

@@ -8,12 +8,12 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
-from engine.core.errors import InputError
-from engine.io.exr import read_exr, read_exr_info, write_exr
-from engine.core.frames import Camera, Frame, SceneObject
 from engine.core.colorspace import linear_to_srgb, srgb_to_linear
-from tests.synthetic import rigid, rotation
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame, SceneObject
+from engine.io.exr import read_exr, read_exr_info, write_exr
 from engine.io.rgbd import read_rig, read_sequence, write_rig, write_sequence
+from tests.synthetic import rigid, rotation
 
 H, W, N = 16, 24, 4
 BAD_POSITION, BAD_INDEX = 1, 2  # the frame the bad-input tests break: position 1 has index 2

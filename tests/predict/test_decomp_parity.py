@@ -17,12 +17,12 @@ import pytest
 import torch
 
 from engine import geometry
+from engine.geometry import Mpi as NpMpi
 from engine.predict.decomp.network import DEFAULT_MODEL, METADATA_KEY, FlowNetwork
 from engine.predict.dis import initial_flow
-from engine.geometry import Mpi as NpMpi
 from export.flow import with_planes
 from models.flow.network import mpi_pair
-from models.flow.train import frame_tensors, dis_initial_flow, load_model
+from models.flow.train import dis_initial_flow, frame_tensors, load_model
 from tests.synthetic import two_layer_sequence
 
 ROOT = Path(__file__).resolve().parents[2]

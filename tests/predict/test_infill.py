@@ -14,11 +14,13 @@ import torch.nn.functional as F
 from engine import geometry
 from engine.core.errors import InputError
 from engine.geometry.holefill import fill_holes
-from engine.predict.decomp.infill import (DEFAULT_INFILL_MODEL, RECEPTIVE_MARGIN, InfillNetwork, apply_vectors, candidate_vectors,
-                           composite_holes, copy_along_vectors, downsample_holes, hole_boxes, hole_mpi, prior_vectors)
+from engine.predict.decomp.infill import (DEFAULT_INFILL_MODEL, RECEPTIVE_MARGIN, InfillNetwork, apply_vectors,
+                                          candidate_vectors, composite_holes, copy_along_vectors, downsample_holes,
+                                          hole_boxes, hole_mpi, prior_vectors)
 from export.infill import check_parity, example_inputs, export_infill
-from models.infill.network import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d, choice_loss, infill
+from models.infill.network import NUM_CANDIDATES, InfillConfig, InfillNet, PlaneConv3d
 from models.infill.network import apply_vectors as torch_apply_vectors
+from models.infill.network import choice_loss, infill
 from models.infill.train import TrainInfillConfig, candidate_errors, evaluate_samples, make_samples, train
 from tests.geometry.test_geometry import mpi_to_torch
 

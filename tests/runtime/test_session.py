@@ -21,10 +21,9 @@ from engine.conventions import UNITY_FLIP, UNREAL_FLIP, encode_depth_buffer
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
 from engine.runtime.session import NotReadyError, Session, SessionConfig
-from tests.conventions.test_conventions import (
-    UE_VIEW_SWAP, clip_to_window, gl_frustum, gl_look_at, gl_perspective, homogeneous, reversed_zero_to_one, rot_x,
-    rot_y, rot_z, ue_reversed_z_perspective, ue_transform_fmatrix,
-)
+from tests.conventions.test_conventions import (UE_VIEW_SWAP, clip_to_window, gl_frustum, gl_look_at, gl_perspective,
+                                                homogeneous, reversed_zero_to_one, rot_x, rot_y, rot_z,
+                                                ue_reversed_z_perspective, ue_transform_fmatrix)
 
 W, H = 64, 48
 PIXEL_A = (30.5, 22.5)  # the centre of pixel (column 30, row 22) in the submitted view

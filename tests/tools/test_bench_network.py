@@ -6,11 +6,11 @@ import json
 
 import pytest
 
-from tools import bench_network
-from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.io.rgbd import write_sequence
+from engine.predict.decomp.network import DEFAULT_MODEL
 from tests.synthetic import two_layer_sequence
+from tools import bench_network
 
 
 @pytest.fixture(scope="module")

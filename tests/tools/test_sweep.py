@@ -5,13 +5,14 @@ import shutil
 
 import pytest
 
-from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.core.errors import InputError
 from engine.eval.protocol import MethodResult
 from engine.io.rgbd import write_sequence
+from engine.predict.decomp.network import DEFAULT_MODEL
 from tests.synthetic import two_layer_sequence
-from tools.sweep import Variant, decomp_variants, pareto_front, plane_models, sweep_points, sweep_table
+from tools.sweep import Variant, decomp_variants
 from tools.sweep import main as sweep_main
+from tools.sweep import pareto_front, plane_models, sweep_points, sweep_table
 
 
 def test_pareto_front_keeps_the_fastest_for_each_error():

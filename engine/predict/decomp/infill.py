@@ -22,11 +22,11 @@ import numpy as np
 from engine import geometry
 from engine.core.errors import InputError, InterleaveError
 from engine.geometry import Mpi
-from engine.weights import INFILL
 from engine.geometry.holefill import fill_holes, fill_sources
 from engine.predict.base import Timer
 from engine.predict.decomp.gate import motion_boxes
 from engine.predict.onnx import open_network
+from engine.weights import INFILL
 
 __all__ = ["InfillNetwork", "DEFAULT_INFILL_MODEL", "METADATA_KEY", "downsample_holes", "hole_mpi",
            "prior_vectors", "candidate_vectors", "apply_vectors", "composite_holes", "copy_along_vectors", "hole_boxes",

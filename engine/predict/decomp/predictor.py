@@ -40,7 +40,7 @@ from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.geometry.holefill import fill_holes
-from engine.predict.base import PreparedState, Predictor, Target, Timer, extrapolation_factor, true_object_flow
+from engine.predict.base import Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow
 from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork

@@ -32,8 +32,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from engine.core.errors import InputError
 from engine.core.checks import check_shape
+from engine.core.errors import InputError
 from models.fields.components.sampling import camera_rays
 
 __all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "composite_samples", "render_image",

@@ -32,11 +32,12 @@ from torch import Tensor, nn
 __all__ = ["FAR_AT_INFINITY", "camera_rays", "ray_box_intersection", "sample_intervals", "contract_box",
            "contract_ndc", "OccupancyGrid"]
 
+#: Smallest near bound used when sampling in disparity (keeps 1 / near finite).
 #: Stand-in for an infinite far bound in disparity sampling (scene units along camera z).
 from engine.fields.render import FAR_AT_INFINITY  # noqa: E402  (shared with the engine)
-#: Smallest near bound used when sampling in disparity (keeps 1 / near finite).
 from engine.fields.render import MIN_NEAR  # noqa: E402
 from engine.fields.render import camera_rays_np  # noqa: E402  (one implementation, shared with the engine)
+
 #: "Unbounded" ray parameter of a slab a ray runs parallel to (finite, so no inf - inf).
 _NO_LIMIT = 1e30
 

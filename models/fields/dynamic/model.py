@@ -48,8 +48,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.errors import InputError
 from engine.core.checks import check_shape
+from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, sample_planes
 from models.fields.static.field import FieldConfig, density_activation
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel

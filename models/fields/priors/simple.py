@@ -30,8 +30,8 @@ from torch import Tensor, nn
 from engine.core.colorspace import display_encode
 from engine.geometry import project, relative_transform
 from models.fields.losses import LossInputs, register_loss_term, srgb_encode
-from models.fields.static.model import StaticFieldModel
 from models.fields.priors.depth import scene_depth_scale
+from models.fields.static.model import StaticFieldModel
 
 __all__ = ["SimplePrior", "mass_concentration", "patch_reprojection_error", "reliable_depth_masks",
            "nearest_views", "augmented_near", "AugmentedState", "bilinear_sample"]

@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.errors import InputError
 from engine.core.checks import check_shape
-from models.fields.data.views import box_from_cameras
-from models.fields.static.field import FieldConfig, TriPlaneField
+from engine.core.errors import InputError
 from models.fields.components.render import RayOutputs, composite_samples
 from models.fields.components.sampling import (OccupancyGrid, contract_box, contract_ndc, ray_box_intersection,
-                                    sample_intervals)
+                                               sample_intervals)
+from models.fields.data.views import box_from_cameras
+from models.fields.static.field import FieldConfig, TriPlaneField
 
 __all__ = ["SCENE_TYPES", "RenderConfig", "SceneBox", "StaticFieldModel"]
 

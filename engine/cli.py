@@ -126,22 +126,22 @@ def build_parser() -> argparse.ArgumentParser:
                      help="veed: the EXR channel holding planar depth (default: B, as in the authors' data)")
     imp.add_argument("--skip-missing", action="store_true", help="skip frames with missing files (warn) "
                                                                  "instead of stopping with an error")
-    tr = sub.add_parser("train", help="train a network (needs the 'train' extra: torch)",
-                        description="'interleave train flow --config configs/flow3d.json' trains the 3D flow "
-                                    "network; 'interleave train infill' the disocclusion infilling network; "
-                                    "'interleave train field --scene DIR --views 3' a static radiance "
-                                    "field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
-                                    "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option.")
-    tr.add_argument("what", choices=list(TORCH_COMMANDS["train"]), help="what to train")
-    tr.add_argument("options", nargs=argparse.REMAINDER, help="options of that trainer (see its --help)")
-    ex = sub.add_parser("export", help="export a trained network to ONNX (needs the 'train' extra: torch)",
-                        description="'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX "
-                                    "graph and checks it against torch ('export infill CHECKPOINT OUT.onnx': the "
-                                    "infilling network's); 'interleave export field RUN_DIR' a "
-                                    "trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
-                                    "dynamic field's (p, t, d) query); '... --help' for options.")
-    ex.add_argument("what", choices=list(TORCH_COMMANDS["export"]), help="what to export")
-    ex.add_argument("options", nargs=argparse.REMAINDER, help="options of that exporter (see its --help)")
+    descriptions = {
+        "train": ("train a network (needs the 'train' extra: torch)",
+                  "'interleave train flow --config configs/flow3d.json' trains the 3D flow network; 'interleave "
+                  "train infill' the disocclusion infilling network; 'interleave train field --scene DIR --views 3' "
+                  "a static radiance field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
+                  "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option."),
+        "export": ("export a trained network to ONNX (needs the 'train' extra: torch)",
+                   "'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX graph and checks it "
+                   "against torch ('export infill CHECKPOINT OUT.onnx': the infilling network's); 'interleave export "
+                   "field RUN_DIR' a trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
+                   "dynamic field's (p, t, d) query); '... --help' for options."),
+    }
+    for command, (help_text, description) in descriptions.items():
+        sp = sub.add_parser(command, help=help_text, description=description)
+        sp.add_argument("what", choices=list(TORCH_COMMANDS[command]), help=f"what to {command}")
+        sp.add_argument("options", nargs=argparse.REMAINDER, help=f"options of that {command}er (see its --help)")
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
                                     "(docs/server.md, engine/runtime/include/interleave_protocol.h). Runs until SIGINT or "

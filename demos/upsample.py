@@ -9,21 +9,27 @@ side-by-side video (truth | prediction | error) of the best method, the table, t
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
+from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.eval.metrics import flip_map
+from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
-from engine.predict import Predictor, Target
+from engine.io.rgbd import read_sequence, write_sequence
+from engine.predict import Predictor, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
+from engine.scenegen import SceneConfig, generate_sequence
 
 
 @dataclass
@@ -78,8 +84,6 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
 
     Returns the evaluation summary; prints the table.
     """
-    from engine.io.rgbd import read_sequence
-    from engine.scenegen import SceneConfig, generate_sequence
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -94,10 +98,6 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
     """Evaluate ``methods`` on a loaded sequence and write the demo's outputs into ``out_dir``: ``table.md``
     (with ``note`` under it), ``results.json`` (with ``extra``), ``speed_vs_error.png``, ``side_by_side.mp4``
     (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table."""
-    from tqdm import tqdm
-
-    from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
-    from engine.predict import make_predictor
 
     results = evaluate_sequence(sequence, list(methods), k, progress=progress)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
@@ -134,7 +134,6 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
 def resolve_field_dir(path: Path) -> tuple[Path, Optional[Path]]:
     """(export folder with ``field.json``, run folder or None) for an export folder or a run folder holding
     ``export/``; the run folder is the export's parent when that holds ``data.json`` (the run's cameras)."""
-    from engine.core.errors import InputError
 
     path = Path(path)
     if (path / "field.json").is_file():
@@ -156,7 +155,6 @@ def _train_cameras(run: Optional[Path]):
         from models.fields.train_static import load_run_views
     except ImportError:  # no torch: the path is derived from the manifest alone
         return None
-    import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -186,14 +184,12 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
     pose. Writes what :func:`run_demo` writes; the field's render time is in ``table.md`` and
     ``results.json``. ``oracle`` is dropped from ``methods`` (a static field has no object motion).
     """
-    from engine.io.rgbd import read_sequence, write_sequence
 
     export, run = resolve_field_dir(field_dir)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = [m for m in methods if m != "oracle"]
     if not methods:
-        from engine.core.errors import InputError
 
         raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
     assets = load_field(export)

@@ -28,6 +28,8 @@ import torch
 import torch.nn.functional as F
 
 from engine.core.errors import InputError
+from engine.io.rgbd import read_sequence
+from engine.predict import true_object_flow
 from models.flow.losses import FlowLossConfig, flow_loss
 from models.flow.network import mpi_pair
 from models.flow.train import dis_initial_flow, frame_tensors, load_model
@@ -44,8 +46,6 @@ def _lift(flow_2d: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
 def rank_pairs(sequences: list[str], factor: int = 2, num_planes: int = 4, every: int = 3,
                ks=(1, 2, 4), nets: dict | None = None, min_moving: int = 50) -> list[dict]:
     """One record per pair: {"sequence", "n", "k", "moving", candidate: (loss, photometric, epe)}."""
-    from engine.io.rgbd import read_sequence
-    from engine.predict import true_object_flow
 
     nets = nets or {}
     config = FlowLossConfig()

@@ -28,6 +28,9 @@ from typing import Optional, Sequence
 
 from engine.core.errors import InputError, InterleaveError
 from engine.eval.protocol import MethodResult, evaluate_sequence, stage_table, write_json
+from engine.io.rgbd import read_sequence
+from engine.predict import METHODS, make_predictor
+from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 
 __all__ = ["Variant", "SweepPoint", "pareto_front", "decomp_variants", "plane_models", "sweep_points",
            "sweep_table", "plot_sweep", "add_arguments", "run_sweep_command", "main"]
@@ -161,7 +164,6 @@ def plane_models(planes: Sequence[int], models_dir: Path = DEFAULT_MODELS_DIR,
     when missing (needs torch; about 2 minutes per Z on 2 CPU cores), with ``--no-depth-flow`` like the
     committed one, so every Z is timed with the same graph (a sweep cannot ask for dz: ``depth_flow=1`` fails
     on the committed graph)."""
-    from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 
     own = FlowNetwork(DEFAULT_MODEL, threads=1).num_planes
     out: dict[int, str] = {}
@@ -334,8 +336,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_sweep_command(args: argparse.Namespace) -> int:
     """Run the sweep described by ``add_arguments``' options: print the tables, write sweep.json / .md / .png."""
-    from engine.io.rgbd import read_sequence
-    from engine.predict import METHODS, make_predictor
 
     unknown = [m for m in args.baselines if m.partition("[")[0] not in METHODS]
     if unknown:

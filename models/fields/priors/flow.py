@@ -41,11 +41,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from engine.core.errors import InputError
+from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
 from models.fields.losses import LossInputs, register_loss_term
 from models.fields.priors.depth import keypoint_rays, sift_features
@@ -229,9 +231,6 @@ def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4
     """Dense matches from OpenCV DIS optical flow (no downloaded weights): pixel centres of image a on a grid
     of ``stride`` px and where the flow a -> b takes them, kept where the flow b -> a brings them back within
     ``consistency`` px and they land inside image b. Returns (xy_a (M, 2), xy_b (M, 2)), centres at +0.5."""
-    import cv2
-
-    from engine.predict import dis_calc, dis_estimator, luma8
 
     ga, gb = luma8(image_a), luma8(image_b)
     dis = dis_estimator("medium")

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from engine.core.config import add_options, config_from_args
-from engine.core.errors import InterleaveError
+from engine.core.errors import InputError, InterleaveError
 
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", type=Path, default=None, help="write records and summary to this JSON file")
     ev.add_argument("--plot", type=Path, default=None, help="write the time-against-error plot to this PNG")
     ev.add_argument("--no-flip", action="store_true", help="skip FLIP (about 0.4 s per 960x540 frame)")
-    ev.add_argument("--max-groups", type=int, default=None,
+    ev.add_argument("--max-groups", type=_positive_int, default=None,
                     help="use at most this many rendered frames n per sequence, spread evenly (default: all)")
     ev.add_argument("--bounds", nargs="?", const="decomp", default=None, metavar="DECOMP_VARIANT",
                     help="instead of --methods, the performance bounds of thesis Table 6.3 for this decomp variant "
@@ -162,7 +162,10 @@ def _needs_torch(command: str):
 def _methods(text: str) -> list[str]:
     from engine.predict import split_methods
 
-    return split_methods(text)
+    methods = split_methods(text)
+    if not methods:
+        raise InputError("names no method", field="--methods")
+    return methods
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -209,6 +212,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             kwargs = {k: v for k, v in (("scene", args.scene), ("fps", args.fps),
                                         ("depth_channel", args.depth_channel)) if v is not None}
             allowed = {"blender": set(), "sintel": {"scene", "fps"}, "veed": {"fps", "depth_channel"}}[args.layout]
+            if args.layout == "sintel" and "scene" not in kwargs:
+                raise InputError("layout sintel needs --scene NAME (one of the folders under SRC/final)",
+                                 field="--scene")
             if set(kwargs) - allowed:
                 raise InterleaveError(f"layout {args.layout} does not take "
                                       f"{', '.join('--' + k.replace('_', '-') for k in sorted(set(kwargs) - allowed))}")
@@ -229,6 +235,36 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
+def _check_output_file(path: Path, name: str) -> None:
+    """An output file the command will write at the end: its folder must be creatable and writable and the
+    path must not be a folder."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError("is a folder, not a file", file=path, field=name)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create its folder ({exc.strerror})", file=path, field=name) from None
+    existed = path.exists()
+    try:
+        with open(path, "a"):
+            pass
+    except OSError as exc:
+        raise InputError(f"cannot be written ({exc.strerror})", file=path, field=name) from None
+    if not existed:
+        path.unlink()
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def _run_eval(args: argparse.Namespace) -> int:
     from engine.eval.protocol import (bound_methods, bounds_summary, bounds_table, evaluate_sequence, markdown_table,
                                       per_step_table, plot, split_scoring, stage_table, summarize, write_json)
@@ -240,9 +276,12 @@ def _run_eval(args: argparse.Namespace) -> int:
     unknown = [m for m in methods if split_scoring(m)[0].partition("[")[0] not in METHODS]
     if unknown:  # fail before any work
         raise InterleaveError(f"unknown method(s) {', '.join(unknown)}; expected some of {', '.join(METHODS)}")
+    for name, path in (("--json", args.json), ("--plot", args.plot)):
+        if path is not None:
+            _check_output_file(path, name)  # before any work, not after it
+    sequences = [read_sequence(path) for path in args.sequences]  # every sequence's metadata before any work
     results = []
-    for path in args.sequences:
-        sequence = read_sequence(path)
+    for sequence in sequences:
         for k in args.k:
             results.extend(evaluate_sequence(sequence, methods, k, with_flip=not args.no_flip,
                                              max_groups=args.max_groups, progress=True))

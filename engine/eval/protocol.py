@@ -125,35 +125,35 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     times: dict[str, list[float]] = {p: [] for p in predictors}
     stages: dict[str, list[dict[str, float]]] = {p: [] for p in predictors}
     epes: dict[str, list[float]] = {p: [] for p in predictors}
-    bar = tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
-               disable=not progress, unit="frame")
-    for older_i, newest_i, target_is in groups:
-        history = [sequence[older_i], sequence[newest_i]]
-        truths = [sequence[i] for i in target_is]
-        for name, loop in loops.items():
-            start = time.perf_counter()
-            state = loop.load(history).state
-            prep_ms = 1e3 * (time.perf_counter() - start)
-            if hasattr(loop.predictor, "object_flow"):
-                epes[name].append(flow_epe(loop.predictor.object_flow(state), history[0], history[1], truths[0]))
-            for step, truth in enumerate(truths, start=1):
-                target = Target(truth.camera, truth.time, truth.index)
+    with tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
+              disable=not progress, unit="frame") as bar:  # closed (its line ended) on an error too
+        for older_i, newest_i, target_is in groups:
+            history = [sequence[older_i], sequence[newest_i]]
+            truths = [sequence[i] for i in target_is]
+            for name, loop in loops.items():
                 start = time.perf_counter()
-                pred = loop.predict(target)
-                render_ms = 1e3 * (time.perf_counter() - start)
-                per_frame = {s: v for s, v in pred.stages_ms.items()}
-                for s, v in state.stages_ms.items():
-                    per_frame[f"prepare:{s}"] = v / (k - 1)
-                times[name].append(render_ms + prep_ms / (k - 1))
-                stages[name].append(per_frame)
-                for method in (m for m in methods if sources[m] == name):
-                    color = pred.color
-                    if split_scoring(method)[1]:
-                        color = with_true_holes(pred.color, pred.holes, truth.color)
-                    scores[method].append((step, score_frame(truth.color, color, truth.moving, with_flip=with_flip),
-                                           hole_scores(truth.color, color, pred.holes)))
-                    bar.update(1)
-    bar.close()
+                state = loop.load(history).state
+                prep_ms = 1e3 * (time.perf_counter() - start)
+                if hasattr(loop.predictor, "object_flow"):
+                    epes[name].append(flow_epe(loop.predictor.object_flow(state), history[0], history[1],
+                                               truths[0]))
+                for step, truth in enumerate(truths, start=1):
+                    target = Target(truth.camera, truth.time, truth.index)
+                    start = time.perf_counter()
+                    pred = loop.predict(target)
+                    render_ms = 1e3 * (time.perf_counter() - start)
+                    per_frame = {s: v for s, v in pred.stages_ms.items()}
+                    for s, v in state.stages_ms.items():
+                        per_frame[f"prepare:{s}"] = v / (k - 1)
+                    times[name].append(render_ms + prep_ms / (k - 1))
+                    stages[name].append(per_frame)
+                    for method in (m for m in methods if sources[m] == name):
+                        color = pred.color
+                        if split_scoring(method)[1]:
+                            color = with_true_holes(pred.color, pred.holes, truth.color)
+                        frame_score = score_frame(truth.color, color, truth.moving, with_flip=with_flip)
+                        scores[method].append((step, frame_score, hole_scores(truth.color, color, pred.holes)))
+                        bar.update(1)
     results = []
     for name in methods:
         source = sources[name]
@@ -210,23 +210,28 @@ def summarize(results: Sequence[MethodResult]) -> dict:
     return out
 
 
+def _cell(value: float, digits: int) -> str:
+    """A table cell: ``-`` for a score that was not computed or has no pixels (NaN)."""
+    return "-" if math.isnan(value) else f"{value:.{digits}f}"
+
+
 def markdown_table(results: Sequence[MethodResult]) -> str:
-    """One row per (sequence, method, k), then the per-method means."""
+    """One row per (sequence, method, k), then the per-method means; ``-`` where a score is NaN (no FLIP after
+    ``--no-flip``, no moving pixels, no flow)."""
     head = ("| sequence | k | method | frames | PSNR | SSIM | FLIP | PSNR moving | FLIP moving | EPE moving (px) "
             "| ms/frame |\n|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
 
-    def epe(value: float) -> str:
-        return "-" if math.isnan(value) else f"{value:.2f}"
+    def scores(row) -> str:
+        return " | ".join(_cell(row[name], digits) for name, digits in (
+            ("psnr", 2), ("ssim", 4), ("flip", 4), ("psnr_moving", 2), ("flip_moving", 4), ("epe_moving", 2)))
 
     for r in results:
-        lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {r.psnr:.2f} | {r.ssim:.4f} | "
-                     f"{r.flip:.4f} | {r.psnr_moving:.2f} | {r.flip_moving:.4f} | {epe(r.epe_moving)} | "
+        lines.append(f"| {r.sequence} | {r.k} | {r.method} | {r.frames} | {scores(asdict(r))} | "
                      f"{r.ms_per_frame:.1f} |")
     for row in summarize(results).values():
-        lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {row['psnr']:.2f} | "
-                     f"{row['ssim']:.4f} | {row['flip']:.4f} | {row['psnr_moving']:.2f} | {row['flip_moving']:.4f} | "
-                     f"{epe(row['epe_moving'])} | {row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
+        lines.append(f"| **mean** | {row['k']} | {row['method']} | {row['frames']} | {scores(row)} | "
+                     f"{row['ms_per_frame']:.1f} (x{row['time_vs_reproject']:.2f}) |")
     return "\n".join(lines)
 
 
@@ -345,15 +350,20 @@ def plot(results: Sequence[MethodResult], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    panels = [(metric, label) for metric, label in (("psnr", "PSNR (dB, higher is better)"),
+                                                     ("flip", "FLIP (lower is better)"))
+              if any(math.isfinite(getattr(r, metric)) for r in results)]  # no FLIP panel after --no-flip
+    if not panels:
+        raise InputError("no finite score to plot", file=path, field="--plot")
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False)
+    axes = axes[0]
     methods = list(dict.fromkeys(r.method for r in results))
     markers = {k: m for k, m in zip(sorted({r.k for r in results}), "os^Dv")}
     colors = plt.get_cmap("tab10")
-    for ax, metric, label in ((axes[0], "psnr", "PSNR (dB, higher is better)"),
-                              (axes[1], "flip", "FLIP (lower is better)")):
+    for ax, (metric, label) in zip(axes, panels):
         for mi, method in enumerate(methods):
             for k, marker in markers.items():
-                rows = [r for r in results if r.method == method and r.k == k]
+                rows = [r for r in results if r.method == method and r.k == k and math.isfinite(getattr(r, metric))]
                 xs = [max(r.ms_per_frame, 1e-2) for r in rows]
                 ys = [getattr(r, metric) for r in rows]
                 ax.scatter(xs, ys, color=colors(mi), marker=marker, alpha=0.45, s=22)

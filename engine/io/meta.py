@@ -19,6 +19,8 @@ def load_json(path: Path) -> dict[str, Any]:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"is not valid JSON ({exc})", file=path) from None
+    except RecursionError:
+        raise InputError("nests too deeply to be a metadata file", file=path) from None
     if not isinstance(data, dict):
         raise InputError(f"must hold a JSON object, got {type(data).__name__}", file=path)
     return data

@@ -243,6 +243,9 @@ def read_sequence(path: str | Path) -> RgbdSequence:
         rel = require(entry, "file", meta_file, frame=index)
         if not isinstance(rel, str) or not rel:
             raise InputError(f"must be a relative path string, got {rel!r}", file=meta_file, frame=index, field="file")
+        if not _inside(root, rel):  # checked before the file system is asked anything about it
+            raise InputError(f"must name a file inside the sequence folder, got {rel!r}", file=meta_file,
+                             frame=index, field="file")
         intrinsics = validate_intrinsics(require(entry, "intrinsics", meta_file, frame=index), file=meta_file, frame=index)
         pose = validate_pose(require(entry, "world_to_camera", meta_file, frame=index), file=meta_file, frame=index)
         if not (root / rel).is_file():
@@ -256,6 +259,16 @@ def read_sequence(path: str | Path) -> RgbdSequence:
     return RgbdSequence(path=root, width=width, height=height, fps=fps, color_space=color_space,
                         cameras=cameras, times=np.asarray(times, dtype=np.float64),
                         indices=np.asarray(indices, dtype=np.int64), files=files, objects=objects)
+
+
+def _inside(root: Path, rel: str) -> bool:
+    """``rel`` is a relative path that stays inside ``root`` (no absolute path, no ``..`` out of it, no
+    symbolic link out of it)."""
+    path = Path(rel)
+    if path.is_absolute() or ".." in path.parts or "\\" in rel:
+        return False
+    base = root.resolve()
+    return (base / path).resolve().is_relative_to(base)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -326,6 +339,8 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
         The sequence folder.
     """
     root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise InputError("exists and is not a folder", file=root)
     meta_file = root / "sequence.json"
     fps = json_finite(fps, None, "fps", positive=True)
     if color_space not in COLOR_SPACES:
@@ -464,6 +479,8 @@ def write_rig(path: str | Path, camera_sequences: Mapping[str, Iterable[Frame]],
         The capture folder.
     """
     root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise InputError("exists and is not a folder", file=root)
     rig_file = root / "rig.json"
     cameras, train, test = _check_rig_names(list(camera_sequences), list(train), list(test), rig_file)
     for name in cameras:

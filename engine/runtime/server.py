@@ -58,9 +58,12 @@ def parse_address(text: str) -> Address:
         if host not in ("", "127.0.0.1", "localhost"):
             raise InputError(f"the server listens on 127.0.0.1 only, got host {host!r}", field="address")
         try:
-            return ("127.0.0.1", int(port))
+            number = int(port)
         except ValueError:
             raise InputError(f"bad TCP port in {text!r}", field="address") from None
+        if not 0 <= number <= 65535:
+            raise InputError(f"TCP port must be 0..65535, got {number}", field="address")
+        return ("127.0.0.1", number)
     return Path(text[5:] if text.startswith("unix:") else text)
 
 

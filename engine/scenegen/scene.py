@@ -48,6 +48,8 @@ PART_SHAPES = {
 
 #: Closest a camera centre may come to any surface's bounding volume, in metres.
 CAMERA_CLEARANCE = 0.6
+#: Largest framebuffer side the renderer makes (width or height times supersample), pixels.
+MAX_RENDER_SIDE = 8192
 #: Half size of the ground plane, metres.
 GROUND_HALF_SIZE = 200.0
 
@@ -87,6 +89,8 @@ class SceneConfig:
     def __post_init__(self) -> None:
         checks = [
             (self.width >= 1 and self.height >= 1, "width and height must be >= 1"),
+            (max(self.width, self.height) * self.supersample <= MAX_RENDER_SIDE,
+             f"width and height times supersample must be <= {MAX_RENDER_SIDE} (the renderer's framebuffer)"),
             (self.num_frames >= 1, "num_frames must be >= 1"),
             (self.fps > 0, "fps must be > 0"),
             (0 <= self.num_objects[0] <= self.num_objects[1], "num_objects must be (low, high), 0 <= low <= high"),

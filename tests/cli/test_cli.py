@@ -112,3 +112,47 @@ def test_import_through_the_command_line(tmp_path, capsys):
     assert main(["import", "veed", str(src), str(tmp_path / "out3")]) == 2  # depth is in Y, not B
     err = capsys.readouterr().err
     assert "interleave import: error:" in err and "B" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["eval", "{seq}", "--max-groups", "0"], "--max-groups"),
+    (["eval", "{seq}", "--max-groups", "-3"], "--max-groups"),
+    (["eval", "{seq}", "--methods", ""], "--methods"),
+    (["eval", "{seq}", "--methods", "reproject", "--json", "{tmp}"], "is a folder"),
+    (["eval", "{seq}", "--methods", "reproject", "--json", "/proc/no/x.json"], "--json"),
+    (["eval", "{seq}", "{tmp}/missing", "--methods", "reproject", "--json", "{tmp}/r.json"], "missing"),
+    (["render-scene", "{tmp}/big", "--width", "20000", "--height", "20000", "--num-frames", "1"], "8192"),
+    (["render-scene", "{tmp}/afile", "--width", "32", "--height", "24", "--num-frames", "2"], "not a folder"),
+    (["import", "sintel", "{tmp}", "{tmp}/out"], "--scene"),
+    (["serve", "--listen", "tcp:70000"], "0..65535"),
+    (["eval", "{tmp}/deep"], "nests too deeply"),
+])
+def test_careless_input_is_one_line_and_exit_2(tmp_path, capsys, argv, names):
+    """Each of these ended in a traceback or exit 1 (issue 20, D6/D11); a bad output file is caught before the
+    work, and a bad second sequence before the first is evaluated."""
+    frames, objects = two_layer_sequence(5, width=48, height=32)
+    seq = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "deep").mkdir()
+    (tmp_path / "deep" / "sequence.json").write_text("[" * 200_000 + "]" * 200_000)
+    args = [a.format(seq=seq, tmp=tmp_path) for a in argv]
+    try:
+        code = main(args)
+    except SystemExit as exc:  # argparse's own errors (usage, then one error line)
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"interleave {args[0]}: error:") and names in last and "Traceback" not in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_no_flip_plots_psnr_alone_and_prints_dashes(tmp_path, capsys):
+    """--no-flip --plot crashed in matplotlib (no finite FLIP on a log-scaled axis) and printed nan (issue 20)."""
+    frames, objects = two_layer_sequence(7, width=48, height=32)
+    seq = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    png = tmp_path / "p.png"
+    assert main(["eval", str(seq), "--methods", "repeat,reproject", "--no-flip", "--plot", str(png)]) == 0
+    assert png.stat().st_size > 5_000
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| seq | 2 | reproject"))
+    assert "nan" not in row and row.split("|")[7].strip() == "-"  # the FLIP column

@@ -13,7 +13,7 @@ from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, SceneObject
 from engine.io.exr import read_exr, read_exr_info, write_exr
 from engine.io.rgbd import read_rig, read_sequence, write_rig, write_sequence
-from tests.synthetic import rigid, rotation
+from tests.synthetic import rigid, rotation, two_layer_sequence
 
 H, W, N = 16, 24, 4
 BAD_POSITION, BAD_INDEX = 1, 2  # the frame the bad-input tests break: position 1 has index 2
@@ -504,3 +504,19 @@ def test_write_rig_rejects_unknown_split(tmp_path: Path) -> None:
         write_rig(tmp_path / "r", {"cam0": make_frames(1)}, train=["cam0"], test=["cam1"], fps=24.0)
     assert exc.value.field == "test_cameras"
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("name", ["../../x.exr", "/etc/passwd", "frames/../../outside.exr", "link/0000.exr"])
+def test_frame_files_cannot_leave_the_sequence_folder(tmp_path, name):
+    """A frame ``file`` that escapes the folder (``..``, an absolute path, a symbolic link out of it) is refused
+    before anything is read, and the error is the same whether the target exists or not (issue 20, D7)."""
+    frames, _ = two_layer_sequence(2, width=16, height=12)
+    root = write_sequence(tmp_path / "seq", frames, fps=30.0)
+    (tmp_path / "x.exr").write_bytes((root / "frames").iterdir().__next__().read_bytes())
+    (root / "link").symlink_to(tmp_path)
+    meta = json.loads((root / "sequence.json").read_text())
+    meta["frames"][1]["file"] = name
+    (root / "sequence.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="inside the sequence folder") as info:
+        read_sequence(root)
+    assert info.value.frame == meta["frames"][1]["index"] and info.value.field == "file"

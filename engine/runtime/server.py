@@ -20,13 +20,12 @@ a client may pipeline requests. Sockets listen on a Unix path or on 127.0.0.1 on
 from __future__ import annotations
 
 import os
+import secrets
 import signal
 import socket
 import stat
 import threading
 import time
-from itertools import count
-from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Callable, Optional, Union
 
@@ -39,7 +38,8 @@ from engine.runtime.session import NotReadyError, Session, SessionConfig
 
 Address = Union[str, Path, tuple]
 
-_segment_numbers = count()
+#: Where POSIX shared memory lives (``shm_open("/name")`` is this folder's ``name`` on Linux).
+SHM_DIR = Path("/dev/shm")
 
 
 class _ProtocolError(Exception):
@@ -72,26 +72,62 @@ def format_address(address: Address) -> str:
 
 
 class _Segment:
-    """A shared-memory segment owned by the server: created for a layout, unlinked on release."""
+    """A shared-memory segment owned by the server: created for a layout, unlinked on release.
+
+    The client maps it; the server never does. It reads the submitted frame with ``pread`` and writes the
+    prediction with ``pwrite`` on the segment's file descriptor, so a client that shrinks the segment
+    (``ftruncate``) gets a BAD_INPUT answer (a short read) instead of killing the server with SIGBUS.
+    The name is random and created exclusively, readable and writable by the server's user only.
+    """
 
     def __init__(self, config: SessionConfig, channels: int, width: int, height: int) -> None:
-        name = f"interleave-{os.getpid()}-{next(_segment_numbers)}"
-        probe = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out)
-        self.shm = shared_memory.SharedMemory(name=name, create=True, size=probe.shm_size)
-        self.layout = probe
+        for _ in range(8):
+            name = f"interleave-{os.getpid()}-{secrets.token_hex(8)}"
+            try:
+                self.fd = os.open(SHM_DIR / name, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+                break
+            except FileExistsError:  # a name someone created first: draw another
+                continue
+        else:
+            raise _ProtocolError(Status.INTERNAL, "could not create a shared-memory segment with a fresh name")
+        self.path = SHM_DIR / name
+        self.layout = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out)
+        try:
+            os.ftruncate(self.fd, self.layout.shm_size)
+        except OSError as exc:
+            self.release()
+            raise _ProtocolError(Status.INTERNAL, f"could not size the shared-memory segment ({exc.strerror})")
         self.channels = channels
         self.config = config
 
-    def array(self, offset: int, shape: tuple, dtype) -> np.ndarray:
-        return np.ndarray(shape, dtype=dtype, buffer=self.shm.buf, offset=offset)
+    def read(self, offset: int, shape: tuple, dtype) -> np.ndarray:
+        """A private copy of the region at ``offset``; BAD_INPUT if the client shrank the segment."""
+        out = np.empty(shape, dtype=dtype)
+        view = memoryview(out).cast("B")
+        done = 0
+        while done < out.nbytes:
+            n = os.preadv(self.fd, [view[done:]], offset + done)
+            if n <= 0:
+                raise _ProtocolError(Status.BAD_INPUT, f"the shared-memory segment {self.layout.shm_name} holds "
+                                                       f"{os.fstat(self.fd).st_size} bytes, fewer than its layout "
+                                                       f"({self.layout.shm_size}): the client truncated it")
+            done += n
+        return out
+
+    def write(self, offset: int, values: np.ndarray) -> None:
+        """Write ``values`` (C-contiguous) at ``offset``."""
+        view = memoryview(np.ascontiguousarray(values)).cast("B")
+        done = 0
+        while done < len(view):
+            done += os.pwrite(self.fd, view[done:], offset + done)
 
     def release(self) -> None:
         try:
-            self.shm.close()
-        except BufferError:  # a view is still alive somewhere: unlinking frees the name; the mapping goes with it
+            os.close(self.fd)
+        except OSError:
             pass
         try:
-            self.shm.unlink()
+            os.unlink(self.path)
         except FileNotFoundError:
             pass
 
@@ -261,12 +297,9 @@ class _Connection:
         frame_id, time_s, view, projection = self._pose(payload)
         seg, lay = self.segment, self.segment.layout
         dtype = np.uint8 if seg.config.color_in == "srgb8" else np.float32
-        color = seg.array(lay.color_in_offset, (lay.height, lay.width, seg.channels), dtype)
-        depth = seg.array(lay.depth_offset, (lay.height, lay.width), np.float32)
-        try:
-            result = self.session.submit(color, depth, view, projection, time_s, frame=frame_id, copy=True)
-        finally:
-            del color, depth
+        color = seg.read(lay.color_in_offset, (lay.height, lay.width, seg.channels), dtype)
+        depth = seg.read(lay.depth_offset, (lay.height, lay.width), np.float32)
+        result = self.session.submit(color, depth, view, projection, time_s, frame=frame_id, copy=False)
         return wire.SUBMIT_REPLY.pack(result.frame, wire.RESET_CODES.index(result.reset), result.history)
 
     def _predict(self, payload: bytes) -> bytes:
@@ -275,15 +308,12 @@ class _Connection:
         out = self.session.predict(view, projection, time_s, frame=frame_id)
         seg, lay = self.segment, self.segment.layout
         dtype = np.uint8 if seg.config.color_out == "srgb8" else np.float32
-        color = seg.array(lay.color_out_offset, (lay.height, lay.width, seg.channels), dtype)
-        holes = seg.array(lay.holes_offset, (lay.height, lay.width), np.uint8)
-        try:
-            color[..., :3] = out.color
-            if seg.channels == 4:
-                color[..., 3] = 255 if dtype == np.uint8 else 1.0
-            holes[...] = out.holes
-        finally:
-            del color, holes
+        color = np.empty((lay.height, lay.width, seg.channels), dtype)
+        color[..., :3] = out.color
+        if seg.channels == 4:
+            color[..., 3] = 255 if dtype == np.uint8 else 1.0
+        seg.write(lay.color_out_offset, color)
+        seg.write(lay.holes_offset, out.holes.astype(np.uint8))
         elapsed = 1e3 * (time.perf_counter() - start)
         return wire.PREDICT_REPLY.pack(out.frame, wire.FALLBACK_CODES.index(out.fallback), int(out.holes.sum()),
                                        elapsed, out.method.encode()[:31])

@@ -11,9 +11,11 @@ vanishing mid-message, 10 000 frames without memory growth, and shutdown removin
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 import signal
+import stat
 import socket
 import struct
 import subprocess
@@ -452,3 +454,36 @@ def test_hello_rejects_bad_fields(server):
         with Client(address) as client, pytest.raises(ServerError, match=match) as info:
             client.request(MessageType.HELLO, wire.HELLO.pack(*fields.values()))
         assert info.value.status == Status.BAD_INPUT
+
+
+def test_a_client_shrinking_its_segment_gets_an_error_not_a_dead_server(server):
+    """Issue 20, D1: a client that truncated the segment the server named and then sent SUBMIT killed the
+    server with SIGBUS (every session lost). The server now reads the frame with pread: a short read is a
+    BAD_INPUT answer, and the server keeps serving."""
+    proc, address = server
+    with Client(address) as client:
+        layout = client.hello(config())
+        client.submit(*frame_arrays(), pose(), K, 0.0)
+        client._unmap()  # the client's own mapping would fault on the pages cut off next
+        os.truncate(SHM / layout.shm_name.lstrip("/"), 0)
+        with pytest.raises(ServerError, match="truncated") as info:
+            client.request(MessageType.SUBMIT, frame_payload(1, 0.1))
+        assert info.value.status == Status.BAD_INPUT
+        client.request(MessageType.PREDICT, frame_payload(2, 0.05))  # written with pwrite: no fault either
+    assert proc.poll() is None
+    with Client(address) as other:
+        other.hello(config())
+        other.submit(*frame_arrays(), pose(), K, 0.0)
+        assert other.predict(pose(0.01), K, 0.05).method == "reproject"
+
+
+def test_segment_names_are_random_and_private(server):
+    """Issue 20, D11: predictable names let another process pre-create the next one; they are now random,
+    created exclusively and readable by the server's user only."""
+    _, address = server
+    with Client(address) as a, Client(address) as b:
+        names = [a.hello(config()).shm_name, b.hello(config()).shm_name]
+        assert names[0] != names[1]
+        for name in names:
+            assert len(name.rsplit("-", 1)[1]) == 16
+            assert stat.S_IMODE((SHM / name.lstrip("/")).stat().st_mode) == 0o600

@@ -146,9 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
                                     "(docs/server.md, engine/runtime/include/interleave_protocol.h). Runs until SIGINT or "
                                     "SIGTERM, then unlinks every shared-memory segment and the socket file.")
-    sv.add_argument("--listen", default="unix:/tmp/interleave.sock",
-                    help="unix:/path/to.sock or tcp:PORT (127.0.0.1 only; tcp:0 picks a free port) "
-                         "(default: unix:/tmp/interleave.sock)")
+    sv.add_argument("--listen", default="default",
+                    help="unix:/path/to.sock or tcp:PORT (127.0.0.1 only; tcp:0 picks a free port) (default: "
+                         "$XDG_RUNTIME_DIR/interleave.sock, else /tmp/interleave-UID/interleave.sock in a folder "
+                         "only this user can enter)")
+    from engine.runtime.server import ServerLimits
+
+    add_options(sv, ServerLimits)
     return parser
 
 
@@ -226,9 +230,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             result = module.main(args.options, prog=f"interleave {args.command} {args.what}")
             return result if isinstance(result, int) else 0
         elif args.command == "serve":
-            from engine.runtime.server import parse_address, serve
+            from engine.runtime.server import ServerLimits, parse_address, serve
 
-            serve(parse_address(args.listen))
+            serve(parse_address(args.listen), config_from_args(ServerLimits, args))
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)
         return 2

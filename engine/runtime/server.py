@@ -19,6 +19,7 @@ a client may pipeline requests. Sockets listen on a Unix path or on 127.0.0.1 on
 """
 from __future__ import annotations
 
+import math
 import os
 import secrets
 import signal
@@ -26,11 +27,13 @@ import socket
 import stat
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Union
 
 import numpy as np
 
+from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, Status
@@ -40,6 +43,38 @@ Address = Union[str, Path, tuple]
 
 #: Where POSIX shared memory lives (``shm_open("/name")`` is this folder's ``name`` on Linux).
 SHM_DIR = Path("/dev/shm")
+#: ``decomp`` options that name files: the server's own configuration, never settable by a client.
+FILE_OPTIONS = ("model", "infill_model")
+
+
+@dataclass(frozen=True)
+class ServerLimits:
+    """What one client may take (``interleave serve --max-connections 16 ...``)."""
+
+    max_connections: int = option(16, "connections served at once; further ones are closed on accept")
+    max_pixels: int = option(3840 * 2160, "largest frame (width x height) a session may ask for")
+    max_threads: int = option(4, "largest 'threads' option a client may give a method (decomp[threads=N])")
+    idle_timeout: float = option(300.0, "seconds a connection may stay silent before it is closed (0: never)")
+
+    def __post_init__(self) -> None:
+        if min(self.max_connections, self.max_pixels, self.max_threads) < 1:
+            raise InputError("max_connections, max_pixels and max_threads must be >= 1", field="ServerLimits")
+        if not (math.isfinite(self.idle_timeout) and self.idle_timeout >= 0):
+            raise InputError(f"must be >= 0 seconds, got {self.idle_timeout}", field="idle_timeout")
+
+
+def check_remote_method(method: str, limits: ServerLimits) -> None:
+    """A method string as a client may send it: no option names a file (``model``, ``infill_model``) and
+    ``threads`` stays within ``limits.max_threads``; the registry then checks the rest."""
+    _, _, rest = method.partition("[")
+    for part in filter(None, (p.strip() for p in rest.rstrip("]").split(","))):
+        key, _, value = (x.strip() for x in part.partition("="))
+        if key in FILE_OPTIONS:
+            raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' names a file: model files are the "
+                                                   "server's own configuration, not a client's")
+        if key == "threads" and value.lstrip("-").isdigit() and int(value) > limits.max_threads:
+            raise _ProtocolError(Status.BAD_INPUT, f"method option threads={value} exceeds the server's limit "
+                                                   f"{limits.max_threads} (serve --max-threads)")
 
 
 class _ProtocolError(Exception):
@@ -52,7 +87,8 @@ class _ProtocolError(Exception):
 
 
 def parse_address(text: str) -> Address:
-    """``unix:/path`` or a path -> Unix socket; ``tcp:PORT`` or ``tcp:127.0.0.1:PORT`` -> loopback TCP."""
+    """``unix:/path`` or a path -> Unix socket; ``tcp:PORT`` or ``tcp:127.0.0.1:PORT`` -> loopback TCP;
+    ``default`` -> :func:`default_socket_path`."""
     if text.startswith("tcp:"):
         host, _, port = text[4:].rpartition(":")
         if host not in ("", "127.0.0.1", "localhost"):
@@ -64,6 +100,8 @@ def parse_address(text: str) -> Address:
         if not 0 <= number <= 65535:
             raise InputError(f"TCP port must be 0..65535, got {number}", field="address")
         return ("127.0.0.1", number)
+    if text in ("", "unix:", "default"):
+        return default_socket_path()
     return Path(text[5:] if text.startswith("unix:") else text)
 
 
@@ -259,7 +297,8 @@ class _Connection:
             if value >= len(codes):
                 raise _ProtocolError(Status.BAD_INPUT, f"HELLO field '{name}': code {value} is not one of 0.."
                                      f"{len(codes) - 1} ({', '.join(codes)})")
-        _check_size(width, height)
+        self._check_size(width, height)
+        check_remote_method(wire.cstring(method) or "reproject", self.server.limits)
         if channels not in (3, 4):
             raise _ProtocolError(Status.BAD_INPUT, f"HELLO field 'channels' must be 3 or 4, got {channels}")
         if flags & ~wire.KNOWN_FLAGS:
@@ -277,6 +316,13 @@ class _Connection:
         self.session = session
         self.column_major = bool(flags & wire.FLAG_COLUMN_MAJOR)
         return self.segment.layout.pack()
+
+    def _check_size(self, width: int, height: int) -> None:
+        if not (1 <= width <= wire.MAX_SIDE and 1 <= height <= wire.MAX_SIDE):
+            raise _ProtocolError(Status.BAD_INPUT, f"frame size {width}x{height} is outside 1..{wire.MAX_SIDE} pixels")
+        if width * height > self.server.limits.max_pixels:
+            raise _ProtocolError(Status.BAD_INPUT, f"frame size {width}x{height} exceeds the server's limit of "
+                                                   f"{self.server.limits.max_pixels} pixels (serve --max-pixels)")
 
     def _replace_segment(self, segment: _Segment) -> None:
         old, self.segment = self.segment, segment
@@ -322,7 +368,7 @@ class _Connection:
         width, height = wire.RESET.unpack(payload)
         session = self.session
         width, height = width or session.width, height or session.height
-        _check_size(width, height)
+        self._check_size(width, height)
         if (width, height) != (session.width, session.height):
             segment = _Segment(session.config, self.segment.channels, width, height)
             session.reset(width=width, height=height)
@@ -332,9 +378,6 @@ class _Connection:
         return self.segment.layout.pack()
 
 
-def _check_size(width: int, height: int) -> None:
-    if not (1 <= width <= wire.MAX_SIDE and 1 <= height <= wire.MAX_SIDE):
-        raise _ProtocolError(Status.BAD_INPUT, f"frame size {width}x{height} is outside 1..{wire.MAX_SIDE} pixels")
 
 
 class Server:
@@ -343,7 +386,8 @@ class Server:
     ``serve_forever()`` returns after :meth:`stop`; everything it created is released on return.
     """
 
-    def __init__(self, address: Address) -> None:
+    def __init__(self, address: Address, limits: ServerLimits = ServerLimits()) -> None:
+        self.limits = limits
         if isinstance(address, tuple):
             host, port = address
             if host not in ("127.0.0.1", "localhost"):
@@ -391,7 +435,12 @@ class Server:
                     if self.stopping:
                         break
                     raise
-                sock.settimeout(None)
+                with self._lock:
+                    full = len(self._connections) >= self.limits.max_connections
+                if full:  # over the limit: closed at once, before it can hold a thread
+                    sock.close()
+                    continue
+                sock.settimeout(self.limits.idle_timeout or None)  # a silent peer is dropped (socket.timeout)
                 if sock.family == socket.AF_INET:
                     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 conn = _Connection(sock, self)
@@ -440,12 +489,35 @@ class Server:
                 pass
 
 
+def default_socket_path(tmp: Path = Path("/tmp")) -> Path:
+    """The default socket: ``$XDG_RUNTIME_DIR/interleave.sock`` (a folder only its user can enter), else
+    ``/tmp/interleave-<uid>/interleave.sock`` in a folder made with mode 0700. A folder of that name that is
+    not this user's own, or that others can write into, is refused (another user squatting the name)."""
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    if runtime and Path(runtime).is_dir():
+        folder = Path(runtime)
+    else:
+        folder = Path(tmp) / f"interleave-{os.getuid()}"
+        try:
+            folder.mkdir(mode=0o700)
+        except FileExistsError:
+            pass
+    info = os.lstat(folder)
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        raise InputError("is not a folder of this user's that only it can write into", file=folder,
+                         field="address")
+    return folder / "interleave.sock"
+
+
 def _remove_stale_socket(path: Path) -> None:
-    """Remove a socket file that nobody listens on; refuse to replace a live server or a non-socket file."""
+    """Remove a socket file that nobody listens on; refuse to replace a live server, a non-socket file or
+    a socket file of another user."""
     if not path.exists():
         return
     if not stat.S_ISSOCK(path.stat().st_mode):
         raise InputError("exists and is not a socket", file=path, field="address")
+    if path.stat().st_uid != os.getuid():
+        raise InputError("is another user's socket", file=path, field="address")
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         probe.connect(str(path))
@@ -461,10 +533,11 @@ def _announce(text: str) -> None:
     print(text, flush=True)
 
 
-def serve(address: Address, *, announce: Callable[[str], None] = _announce) -> None:
+def serve(address: Address, limits: ServerLimits = ServerLimits(), *,
+          announce: Callable[[str], None] = _announce) -> None:
     """Run a server until SIGINT or SIGTERM; prints ``listening on <address>`` once it accepts connections."""
     try:
-        server = Server(address)
+        server = Server(address, limits)
     except OSError as exc:
         raise InterleaveError(f"cannot listen on {format_address(address)}: {exc}") from None
     previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -476,4 +549,5 @@ def serve(address: Address, *, announce: Callable[[str], None] = _announce) -> N
             signal.signal(sig, handler)
 
 
-__all__ = ["Server", "serve", "parse_address", "format_address"]
+__all__ = ["Server", "ServerLimits", "serve", "parse_address", "format_address", "check_remote_method",
+           "default_socket_path"]

@@ -15,8 +15,8 @@ import os
 import re
 import shutil
 import signal
-import stat
 import socket
+import stat
 import struct
 import subprocess
 import sys
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from engine.core.errors import InputError
 from engine.runtime import protocol as wire
 from engine.runtime.client import Client, ServerError
 from engine.runtime.protocol import MessageType, Status
@@ -487,3 +488,83 @@ def test_segment_names_are_random_and_private(server):
         for name in names:
             assert len(name.rsplit("-", 1)[1]) == 16
             assert stat.S_IMODE((SHM / name.lstrip("/")).stat().st_mode) == 0o600
+
+
+def _hello_fields(**change) -> bytes:
+    fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, reserved0=0, channels=3, flags=0,
+                  reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
+    fields.update(change)
+    return wire.HELLO.pack(*fields.values())
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(method=b"decomp[model=/etc/passwd]"), "names a file"),
+    (dict(method=b"decomp[fill=infill,infill_model=/etc/hostname]"), "names a file"),
+    (dict(method=b"decomp[threads=48]"), "threads=48 exceeds"),
+    (dict(width=8192, height=8192), "exceeds the server's limit"),
+])
+def test_a_client_cannot_name_files_or_take_more_than_its_share(server, change, match):
+    """Issue 20, D2/D3: method options named any file for the server to open and run; sizes and threads had no
+    limit. Each is now a BAD_INPUT answer, the same whether the file exists or not."""
+    _, address = server
+    with Client(address) as client, pytest.raises(ServerError, match=match) as info:
+        client.request(MessageType.HELLO, _hello_fields(**change))
+    assert info.value.status == Status.BAD_INPUT
+
+
+def test_connection_limit_and_idle_timeout(tmp_path):
+    """Issue 20, D3: stalled connections each held a thread forever. Past --max-connections a connection is
+    closed at once; a silent one is closed after --idle-timeout."""
+    sock_path = tmp_path / "s.sock"
+    proc = subprocess.Popen([sys.executable, "-m", "engine.cli", "serve", "--listen", f"unix:{sock_path}",
+                             "--max-connections", "2", "--idle-timeout", "1"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert "listening on" in proc.stdout.readline()
+        first, second, third = (socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(3))
+        for s in (first, second, third):
+            s.settimeout(5.0)
+        first.connect(str(sock_path))
+        second.connect(str(sock_path))
+        time.sleep(0.3)  # both accepted
+        third.connect(str(sock_path))
+        start = time.monotonic()
+        assert third.recv(1) == b"" and time.monotonic() - start < 2.0  # closed at once: over the limit
+        assert first.recv(1) == b"" and 0.5 < time.monotonic() - start < 4.0  # closed for silence
+        assert second.recv(1) == b""
+        with Client(f"unix:{sock_path}") as client:  # room again
+            client.hello(config())
+    finally:
+        for s in (first, second, third):
+            s.close()
+        assert stop_server(proc) == 0
+
+
+def test_default_socket_folder_is_private_and_a_squatted_one_is_refused(tmp_path, monkeypatch):
+    """Issue 20, D4: the default socket was /tmp/interleave.sock, which any user could squat."""
+    from engine.runtime.server import default_socket_path
+
+    monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
+    path = default_socket_path(tmp_path)
+    assert path.parent == tmp_path / f"interleave-{os.getuid()}"
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    path.parent.chmod(0o777)  # as another user would leave a folder they made first
+    with pytest.raises(InputError, match="only it can write"):
+        default_socket_path(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run"))
+    (tmp_path / "run").mkdir(mode=0o700)
+    assert default_socket_path(tmp_path) == tmp_path / "run" / "interleave.sock"
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="making a file of another user needs root")
+def test_another_users_socket_is_not_removed(tmp_path):
+    from engine.runtime.server import Server
+
+    path = tmp_path / "s.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(path))
+    listener.close()  # a stale socket file, but not ours
+    os.chown(path, 12345, 12345)
+    with pytest.raises(InputError, match="another user's socket"):
+        Server(path)
+    assert path.exists()

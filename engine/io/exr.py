@@ -31,11 +31,21 @@ class ExrInfo:
 
 
 def _check_exr(path: Path) -> None:
+    if path.is_dir():
+        raise InputError("is a folder, not an EXR file", file=path)
     if not path.is_file():
         raise InputError("file does not exist", file=path)
     with open(path, "rb") as f:
         if f.read(4) != _MAGIC:
             raise InputError("is not an OpenEXR file (bad magic number)", file=path)
+
+
+def _reason(exc: Exception) -> str:
+    """OpenEXR's message, with the one it gives for a cut-off file ("file has 0 parts") said plainly."""
+    text = str(exc)
+    if "0 parts" in text or "unexpected end of file" in text.lower():
+        return "the file is truncated (it ends before its header or pixels do)"
+    return text
 
 
 def read_exr_info(path: str | Path) -> ExrInfo:
@@ -45,7 +55,7 @@ def read_exr_info(path: str | Path) -> ExrInfo:
     try:
         header = OpenEXR.File(str(path), header_only=True).header()
     except (RuntimeError, ValueError, OSError) as exc:
-        raise InputError(f"cannot read EXR header ({exc})", file=path) from None
+        raise InputError(f"cannot read EXR header: {_reason(exc)}", file=path) from None
     lo, hi = header["dataWindow"]
     names = tuple(c.name for c in header["channels"])
     return ExrInfo(width=int(hi[0] - lo[0] + 1), height=int(hi[1] - lo[1] + 1), channels=names)
@@ -62,7 +72,7 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
         channels = OpenEXR.File(str(path), separate_channels=True).channels()
         out = {name: ch.pixels for name, ch in channels.items()}
     except (RuntimeError, ValueError, OSError) as exc:
-        raise InputError(f"cannot read EXR pixels ({exc})", file=path) from None
+        raise InputError(f"cannot read EXR pixels: {_reason(exc)}", file=path) from None
     return {name: (a.astype(np.float32) if a.dtype == np.float16 else a) for name, a in out.items()}
 
 

@@ -13,6 +13,10 @@ from engine.core.errors import InputError
 
 
 def load_json(path: Path) -> dict[str, Any]:
+    if path.parent.is_file():
+        raise InputError("is a file, not a folder", file=path.parent)
+    if path.is_dir():
+        raise InputError("is a folder, not a file", file=path)
     if not path.is_file():
         raise InputError("file does not exist", file=path)
     try:

@@ -168,6 +168,10 @@ class RgbdSequence:
 
     def _load(self, k: int) -> Frame:
         file, index = self.files[k], int(self.indices[k])
+        info = read_exr_info(file)  # the size from the header, before any pixel is decoded
+        if (info.height, info.width) != (self.height, self.width):
+            raise InputError(f"image is {info.width}x{info.height}, sequence.json says {self.width}x{self.height}",
+                             file=file, frame=index, field="Z")
         ch = read_exr(file)
         missing = [c for c in REQUIRED_CHANNELS if c not in ch]
         if missing:
@@ -217,6 +221,10 @@ def read_sequence(path: str | Path) -> RgbdSequence:
     if root.name == "sequence.json":
         root = root.parent
     meta_file = root / "sequence.json"
+    if root.is_dir() and not meta_file.exists():
+        raise InputError("is a folder without sequence.json: not an rgbd-seq sequence", file=root)
+    if root.is_file():
+        raise InputError("is a file; an rgbd-seq sequence is a folder holding sequence.json", file=root)
     meta = _load_header(meta_file, FORMAT)
     width = json_int(require(meta, "width", meta_file), meta_file, "width", minimum=1)
     height = json_int(require(meta, "height", meta_file), meta_file, "height", minimum=1)

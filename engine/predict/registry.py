@@ -49,7 +49,9 @@ def make_decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequen
     if motion not in MOTIONS:
         raise InputError(f"motion must be 'predicted' or 'truth', got {motion!r}", field="motion")
     kind = DecompTrueMotion if motion == "truth" else DecompPredictor
-    return kind(decomp_config(",".join(rest), weights), objects=objects)
+    predictor = kind(decomp_config(",".join(rest), weights), objects=objects)
+    predictor.name = next((name for name, file in DECOMP_WEIGHTS.items() if file == weights), predictor.name)
+    return predictor
 
 
 #: Registry of method names -> factory(objects) for the CLI and the evaluation.

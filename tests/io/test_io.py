@@ -520,3 +520,37 @@ def test_frame_files_cannot_leave_the_sequence_folder(tmp_path, name):
     with pytest.raises(InputError, match="inside the sequence folder") as info:
         read_sequence(root)
     assert info.value.frame == meta["frames"][1]["index"] and info.value.field == "file"
+
+
+def test_frame_size_is_checked_from_the_header_before_pixels_are_decoded(tmp_path, monkeypatch):
+    """Issue 20, D9: a small EXR whose data window claims a huge image was decoded whole (646 MB) before its
+    size was compared with sequence.json."""
+    import engine.io.rgbd as rgbd
+
+    frames, _ = two_layer_sequence(2, width=16, height=12)
+    root = write_sequence(tmp_path / "seq", frames, fps=30.0)
+    big, _ = two_layer_sequence(2, width=32, height=24)
+    write_sequence(tmp_path / "big", big, fps=30.0)
+    victim = read_sequence(root).files[1]
+    victim.write_bytes(read_sequence(tmp_path / "big").files[1].read_bytes())
+    monkeypatch.setattr(rgbd, "read_exr", lambda path: pytest.fail("pixels decoded before the size check"))
+    with pytest.raises(InputError, match="image is 32x24, sequence.json says 16x12") as info:
+        read_sequence(root)[1]
+    assert info.value.frame == 1 and info.value.field == "Z"
+
+
+def test_truncated_exr_and_folders_are_named_plainly(tmp_path):
+    """Issue 20, D11: a truncated EXR said "file has 0 parts"; a folder was reported as not existing."""
+    frames, _ = two_layer_sequence(2, width=16, height=12)
+    root = write_sequence(tmp_path / "seq", frames, fps=30.0)
+    file = read_sequence(root).files[0]
+    file.write_bytes(file.read_bytes()[:40])
+    with pytest.raises(InputError, match="truncated"):
+        read_sequence(root)[0]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="folder without sequence.json"):
+        read_sequence(tmp_path / "empty")
+    with pytest.raises(InputError, match="is a file"):
+        read_sequence(file)
+    with pytest.raises(InputError, match="is a folder, not an EXR"):
+        read_exr(tmp_path / "empty")

@@ -149,3 +149,9 @@ def test_dis_calc_leaves_large_images_alone_and_checks_shapes():
     np.testing.assert_array_equal(dis_calc(dis_estimator(), a, b), dis_estimator().calc(a, b, None))
     with pytest.raises(InputError, match="same"):
         dis_calc(dis_estimator(), a, b[:, :-1])
+
+
+def test_decomp2d_reports_its_own_name():
+    """Issue 20, D11: a decomp2d session reported its method as decomp."""
+    assert make_predictor("decomp2d").name == "decomp2d" and make_predictor("decomp").name == "decomp"
+    assert make_predictor("decomp2d[gate.enabled=false]").name == "decomp2d"

@@ -151,6 +151,38 @@ def decode_from_projection(buffer: object, projection_matrix: object,
     return np.where(clear, np.inf, z)
 
 
+def projection_planes(projection_matrix: object) -> tuple[float, ...]:
+    """The depths (camera z > 0) at which an OpenGL-style perspective matrix puts NDC z = -1, 0 and 1:
+    its near and far planes are among them whatever its clip range and reversed-Z (an infinite far
+    plane is ``inf``). With z = -z_eye, ``ndc_z = -P22 + P23 / z``, so ``z = P23 / (ndc_z + P22)``."""
+    p = perspective_matrix(projection_matrix, "projection_matrix")
+    out = []
+    for ndc in (-1.0, 0.0, 1.0):
+        denominator = ndc + p[2, 2]
+        z = math.inf if denominator == 0.0 else p[2, 3] / denominator
+        if z > 0:
+            out.append(float(z))
+    return tuple(out)
+
+
+def near_far_problem(near: float, far: float, projection_matrix: object,
+                     rtol: float = 0.01) -> Optional[tuple[str, str]]:
+    """``(field, why)`` when ``near`` / ``far`` (``far`` may be inf) disagree with the planes of
+    ``projection_matrix``, else None: each must be within ``rtol`` of one of :func:`projection_planes` (a
+    depth buffer decoded with other planes than the GPU used is wrong everywhere)."""
+    planes = projection_planes(projection_matrix)
+
+    def matches(value: float) -> bool:
+        return any((math.isinf(value) and math.isinf(z)) or
+                   (math.isfinite(value) and math.isfinite(z) and abs(z - value) <= rtol * value) for z in planes)
+
+    for name, value in (("near", near), ("far", far)):
+        if not matches(value):
+            shown = ", ".join(f"{z:.6g}" for z in planes)
+            return name, f"{name} = {value:g} is not a plane of the projection matrix (its planes are at {shown})"
+    return None
+
+
 # --------------------------------------------------------------------------------------------
 # Radial vs planar depth
 # --------------------------------------------------------------------------------------------

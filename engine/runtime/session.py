@@ -104,6 +104,10 @@ __all__ = ["ENGINES", "COLOR_SPACES", "SessionConfig", "Session", "SubmitResult"
 ENGINES = ("opencv", "opengl", "unity", "unreal", "godot")
 #: Colour encodings: linear-light float, sRGB-encoded float in [0, 1], sRGB-encoded uint8.
 COLOR_SPACES = ("linear", "srgb", "srgb8")
+#: Depth conventions decoded with ``SessionConfig.near`` / ``far`` (checked against a 4x4 projection).
+PLANE_DEPTH_CONVENTIONS = ("opengl", "d3d", "reversed", "infinite", "reversed_infinite")
+#: Engines whose ``projection`` is an OpenGL-style 4x4 matrix (eye looking down -z).
+GL_PROJECTION_ENGINES = ("opengl", "unity", "godot")
 #: Default ``meters_per_unit`` of each engine (Unreal works in centimetres).
 DEFAULT_METERS_PER_UNIT = {"opencv": 1.0, "opengl": 1.0, "unity": 1.0, "unreal": 0.01, "godot": 1.0}
 #: Why the history was reset before a submitted frame.
@@ -410,6 +414,7 @@ class Session:
                 linear = linear.copy() if np.may_share_memory(linear, color) else linear
                 planar = planar.copy() if np.may_share_memory(planar, depth) else planar
             camera = engine_camera(self.config, view, projection, size[1], size[0])
+            self._check_planes(projection)
         except InputError as exc:
             raise _located(exc, label, time, "submitted frame") from None
         scene_depth = _scene_depth(planar)
@@ -436,6 +441,19 @@ class Session:
             if reset is not None:
                 self._resets[reset] += 1
             return SubmitResult(frame=number, reset=reset, history=len(frames))
+
+    def _check_planes(self, projection: object) -> None:
+        """A depth buffer decoded with near/far other than the projection's is wrong everywhere (21.9 ->
+        15.3 dB in one case): where the engine passes an OpenGL-style 4x4 projection and the depth
+        convention decodes with near/far, they must be planes of that projection (1 %)."""
+        cfg = self.config
+        if (cfg.depth_convention not in PLANE_DEPTH_CONVENTIONS or cfg.engine not in GL_PROJECTION_ENGINES
+                or np.shape(projection) != (4, 4)):
+            return
+        problem = conventions.near_far_problem(cfg.near, cfg.far, projection)
+        if problem is not None:
+            name, why = problem
+            raise InputError(f"SessionConfig.{why}: the depth buffer would decode to wrong depths", field=name)
 
     def _decode_depth(self, buffer: np.ndarray, label: int) -> np.ndarray:
         cfg = self.config

@@ -466,3 +466,25 @@ def test_unknown_method_is_an_input_error():
 def test_rigid_inverse_helper_matches_numpy():  # the Godot rig relies on it being an exact inverse
     view = godot_view([3.0, 1.7, 4.0], (-15.0, 40.0, 8.0))
     np.testing.assert_allclose(rigid_inverse(view), np.linalg.inv(view), atol=1e-12)
+
+
+def test_near_and_far_must_be_planes_of_the_projection():
+    """Issue 20, D10: a SessionConfig near/far that disagreed with the projection decoded every depth
+    wrongly without a word (21.9 -> 15.3 dB). Now the submit names the field."""
+    from engine.conventions import encode_depth_buffer, projection_from_intrinsics
+
+    k = np.array([[40.0, 0.0, 16.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]])
+    projection = projection_from_intrinsics(k, 32, 24, 0.1, 100.0)
+    depth = encode_depth_buffer(np.full((24, 32), 5.0), 0.1, 100.0, convention="opengl").astype(np.float32)
+    color = np.full((24, 32, 3), 0.5, np.float32)
+    view = np.eye(4)
+    good = Session(SessionConfig(engine="opengl", width=32, height=24, depth_convention="opengl", near=0.1, far=100.0))
+    good.submit(color, depth, view, projection, 0.0)
+    for near, far, field in ((0.3, 100.0, "near"), (0.1, 1000.0, "far")):
+        session = Session(SessionConfig(engine="opengl", width=32, height=24, depth_convention="opengl",
+                                        near=near, far=far))
+        with pytest.raises(InputError, match="not a plane of the projection") as info:
+            session.submit(color, depth, view, projection, 0.0)
+        assert info.value.field == field and info.value.frame == 0
+    linear = Session(SessionConfig(engine="opengl", width=32, height=24, near=0.3))  # linear depth: unused
+    linear.submit(color, np.full((24, 32), 5.0, np.float32), view, projection, 0.0)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from engine.core.errors import InputError
 from engine.runtime import protocol as wire
@@ -568,3 +570,55 @@ def test_another_users_socket_is_not_removed(tmp_path):
     with pytest.raises(InputError, match="another user's socket"):
         Server(path)
     assert path.exists()
+
+
+_KNOWN_TYPES = [int(t) for t in MessageType if t != MessageType.REPLY]
+
+
+@st.composite
+def _messages(draw) -> bytes:
+    """A request as a careless or hostile client might send it: known or unknown types, right or wrong
+    sizes, random payloads, HELLOs with random field values, or bytes that are no header at all."""
+    kind = draw(st.sampled_from(["header", "hello", "garbage"]))
+    if kind == "garbage":
+        return draw(st.binary(min_size=1, max_size=64))
+    if kind == "hello":
+        ints = [draw(st.integers(0, 2 ** 32 - 1)) for _ in range(10)]
+        ints[4], ints[5] = draw(st.integers(0, 20000)), draw(st.integers(0, 20000))  # width, height
+        floats = [draw(st.floats(allow_nan=True, allow_infinity=True, width=64)) for _ in range(5)]
+        method = draw(st.sampled_from([b"reproject", b"decomp[threads=64]", b"decomp[model=/etc/passwd]",
+                                       b"flow2d[preset=x]", b"\xff\xfe", b"decomp[" + b"a" * 50]))
+        payload = wire.HELLO.pack(*ints, *floats, method)
+        return wire.pack_header(MessageType.HELLO, 1, len(payload)) + payload
+    type_ = draw(st.sampled_from(_KNOWN_TYPES) | st.integers(0, 0xFFFF))
+    payload = draw(st.binary(max_size=300))
+    size = draw(st.sampled_from([len(payload), len(payload) + 7, 0, wire.MAX_PAYLOAD + 1]))
+    return wire.pack_header(type_, draw(st.integers(0, 2 ** 32 - 1)), size) + payload
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(messages=st.lists(_messages(), min_size=1, max_size=4))
+def test_fuzzed_requests_get_an_answer_or_a_close_and_the_server_lives(server, messages):
+    """Bounded fuzz test of the protocol (issue 20): whatever a client sends, the server answers or closes
+    the connection, and keeps serving others."""
+    proc, address = server
+    path = address.split(":", 1)[1]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(0.5)
+        sock.connect(path)
+        try:
+            for message in messages:
+                sock.sendall(message)
+            sock.recv(1 << 16)  # a reply, b"" for a close, or a timeout when it waits for more bytes
+        except (socket.timeout, ConnectionError, BrokenPipeError):
+            pass
+    assert proc.poll() is None
+
+
+def test_the_server_serves_after_the_fuzzing(server):
+    proc, address = server
+    assert proc.poll() is None
+    with Client(address) as client:
+        client.hello(config())
+        client.submit(*frame_arrays(), pose(), K, 0.0)
+        assert client.predict(pose(0.01), K, 0.05).method == "reproject"

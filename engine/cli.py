@@ -150,6 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="unix:/path/to.sock or tcp:PORT (127.0.0.1 only; tcp:0 picks a free port) (default: "
                          "$XDG_RUNTIME_DIR/interleave.sock, else /tmp/interleave-UID/interleave.sock in a folder "
                          "only this user can enter)")
+    sv.add_argument("--models", type=Path, default=None,
+                    help="folder of the networks decomp sessions use (flow3d.onnx, flow2d.onnx, infill.onnx; "
+                         "default: the committed engine/weights); clients cannot name files")
     from engine.runtime.server import ServerLimits
 
     add_options(sv, ServerLimits)
@@ -232,7 +235,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "serve":
             from engine.runtime.server import ServerLimits, parse_address, serve
 
-            serve(parse_address(args.listen), config_from_args(ServerLimits, args))
+            serve(parse_address(args.listen), config_from_args(ServerLimits, args), args.models)
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)
         return 2

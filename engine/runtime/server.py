@@ -35,6 +35,7 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
+from engine.predict.registry import DECOMP_WEIGHTS
 from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, Status
 from engine.runtime.session import NotReadyError, Session, SessionConfig
@@ -61,6 +62,27 @@ class ServerLimits:
             raise InputError("max_connections, max_pixels and max_threads must be >= 1", field="ServerLimits")
         if not (math.isfinite(self.idle_timeout) and self.idle_timeout >= 0):
             raise InputError(f"must be >= 0 seconds, got {self.idle_timeout}", field="idle_timeout")
+
+
+def with_server_models(method: str, models: Optional[Path]) -> str:
+    """``method`` with the server's own network files (``serve --models DIR``: ``flow3d.onnx`` /
+    ``flow2d.onnx`` and ``infill.onnx`` there) for the DeCOMPnet methods; unchanged without ``models``."""
+    base, _, rest = method.partition("[")
+    if models is None or base not in DECOMP_WEIGHTS:
+        return method
+    options = [o for o in (rest[:-1] if rest.endswith("]") else rest).split(",") if o.strip()]
+    options += [f"model={models / DECOMP_WEIGHTS[base]}", f"infill_model={models / 'infill.onnx'}"]
+    return f"{base}[{','.join(options)}]"
+
+
+def check_models_dir(models: Path) -> Path:
+    """``serve --models DIR``: an existing folder whose path can sit inside a method's options."""
+    models = Path(models).resolve()
+    if not models.is_dir():
+        raise InputError("is not a folder", file=models, field="--models")
+    if any(c in str(models) for c in ",[]="):
+        raise InputError("must not contain ',', '[', ']' or '='", file=models, field="--models")
+    return models
 
 
 def check_remote_method(method: str, limits: ServerLimits) -> None:
@@ -308,7 +330,8 @@ class _Connection:
             engine=wire.ENGINE_CODES[engine], width=width, height=height, depth_convention=wire.DEPTH_CODES[depth],
             near=near, far=far, meters_per_unit=meters_per_unit, ndc_y_down=bool(flags & wire.FLAG_NDC_Y_DOWN),
             flip_rows=bool(flags & wire.FLAG_FLIP_ROWS), color_in=wire.COLOR_CODES[color_in],
-            color_out=wire.COLOR_CODES[color_out], method=wire.cstring(method) or "reproject",
+            color_out=wire.COLOR_CODES[color_out],
+            method=with_server_models(wire.cstring(method) or "reproject", self.server.models),
             cut_translation=cut_translation if cut_translation > 0 else SessionConfig.cut_translation,
             cut_rotation_deg=cut_rotation if cut_rotation > 0 else SessionConfig.cut_rotation_deg)
         session = Session(config)
@@ -386,8 +409,10 @@ class Server:
     ``serve_forever()`` returns after :meth:`stop`; everything it created is released on return.
     """
 
-    def __init__(self, address: Address, limits: ServerLimits = ServerLimits()) -> None:
+    def __init__(self, address: Address, limits: ServerLimits = ServerLimits(),
+                 models: Optional[Path] = None) -> None:
         self.limits = limits
+        self.models = None if models is None else check_models_dir(models)
         if isinstance(address, tuple):
             host, port = address
             if host not in ("127.0.0.1", "localhost"):
@@ -533,11 +558,12 @@ def _announce(text: str) -> None:
     print(text, flush=True)
 
 
-def serve(address: Address, limits: ServerLimits = ServerLimits(), *,
+def serve(address: Address, limits: ServerLimits = ServerLimits(), models: Optional[Path] = None, *,
           announce: Callable[[str], None] = _announce) -> None:
-    """Run a server until SIGINT or SIGTERM; prints ``listening on <address>`` once it accepts connections."""
+    """Run a server until SIGINT or SIGTERM; prints ``listening on <address>`` once it accepts connections.
+    ``models``: the folder of the DeCOMPnet networks its sessions use (default: ``engine/weights``)."""
     try:
-        server = Server(address, limits)
+        server = Server(address, limits, models)
     except OSError as exc:
         raise InterleaveError(f"cannot listen on {format_address(address)}: {exc}") from None
     previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}

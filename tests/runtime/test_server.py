@@ -622,3 +622,25 @@ def test_the_server_serves_after_the_fuzzing(server):
         client.hello(config())
         client.submit(*frame_arrays(), pose(), K, 0.0)
         assert client.predict(pose(0.01), K, 0.05).method == "reproject"
+
+
+def test_models_folder_is_the_servers_own_configuration(tmp_path):
+    """Issue 20, D2: network files are the server's configuration (serve --models DIR), not a client's."""
+    from engine.runtime.server import with_server_models
+
+    assert with_server_models("reproject", tmp_path) == "reproject"
+    assert with_server_models("decomp2d[flow_width=240]", tmp_path) == (
+        f"decomp2d[flow_width=240,model={tmp_path / 'flow2d.onnx'},infill_model={tmp_path / 'infill.onnx'}]")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    sock = tmp_path / "m.sock"
+    proc = subprocess.Popen([sys.executable, "-m", "engine.cli", "serve", "--listen", f"unix:{sock}", "--models",
+                             str(empty)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert "listening on" in proc.stdout.readline()
+        with Client(f"unix:{sock}") as client:
+            client.hello(config(method="reproject"))
+            with pytest.raises(ServerError, match="flow network not found"):
+                client.hello(config(method="decomp"))  # looked for in the server's folder, which has none
+    finally:
+        assert stop_server(proc) == 0

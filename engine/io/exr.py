@@ -45,6 +45,8 @@ def _reason(exc: Exception) -> str:
     text = str(exc)
     if "0 parts" in text or "unexpected end of file" in text.lower():
         return "the file is truncated (it ends before its header or pixels do)"
+    if "Unable to open" in text:  # the file exists and starts like an EXR (checked): its header is cut or damaged
+        return "the file is truncated or damaged (OpenEXR cannot parse its header)"
     return text
 
 

@@ -1,5 +1,8 @@
 """The `interleave` command line: help for every option, clear errors with exit status 2, end to end runs."""
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -156,3 +159,18 @@ def test_no_flip_plots_psnr_alone_and_prints_dashes(tmp_path, capsys):
     assert png.stat().st_size > 5_000
     row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| seq | 2 | reproject"))
     assert "nan" not in row and row.split("|")[7].strip() == "-"  # the FLIP column
+
+
+def test_an_error_during_eval_starts_its_own_line(tmp_path):
+    """Issue 20, D8: the one-line error was printed onto the progress bar's line, and the bar redrawn."""
+    frames, objects = two_layer_sequence(7, width=48, height=32)
+    seq = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    broken = read_sequence(seq).files[4]
+    broken.write_bytes(broken.read_bytes()[:40])
+    result = subprocess.run([sys.executable, "-m", "engine.cli", "eval", str(seq), "--methods", "reproject"],
+                            capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2], timeout=120)
+    assert result.returncode == 2
+    lines = result.stderr.replace("\r", "\n").splitlines()
+    errors = [line for line in lines if "error:" in line]
+    assert len(errors) == 1 and errors[0].startswith("interleave eval: error:") and "truncated" in errors[0]
+    assert lines[-1] == errors[0]  # nothing redrawn after it

@@ -269,6 +269,14 @@ def read_sequence(path: str | Path) -> RgbdSequence:
                         indices=np.asarray(indices, dtype=np.int64), files=files, objects=objects)
 
 
+def _output_folder(path: str | Path) -> Path:
+    """The folder a writer will fill: absent or a folder, never a file."""
+    root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise InputError("exists and is not a folder", file=root)
+    return root
+
+
 def _inside(root: Path, rel: str) -> bool:
     """``rel`` is a relative path that stays inside ``root`` (no absolute path, no ``..`` out of it, no
     symbolic link out of it)."""
@@ -346,9 +354,7 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
     Returns:
         The sequence folder.
     """
-    root = Path(path)
-    if root.exists() and not root.is_dir():
-        raise InputError("exists and is not a folder", file=root)
+    root = _output_folder(path)
     meta_file = root / "sequence.json"
     fps = json_finite(fps, None, "fps", positive=True)
     if color_space not in COLOR_SPACES:
@@ -486,9 +492,7 @@ def write_rig(path: str | Path, camera_sequences: Mapping[str, Iterable[Frame]],
     Returns:
         The capture folder.
     """
-    root = Path(path)
-    if root.exists() and not root.is_dir():
-        raise InputError("exists and is not a folder", file=root)
+    root = _output_folder(path)
     rig_file = root / "rig.json"
     cameras, train, test = _check_rig_names(list(camera_sequences), list(train), list(test), rig_file)
     for name in cameras:

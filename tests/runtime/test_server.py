@@ -70,6 +70,15 @@ def server(tmp_path_factory):
     stop_server(proc)
 
 
+def assert_serves(proc: subprocess.Popen, address: str) -> None:
+    """The server process is alive and a new client gets predictions."""
+    assert proc.poll() is None
+    with Client(address) as client:
+        client.hello(config())
+        client.submit(*frame_arrays(), pose(), K, 0.0)
+        assert client.predict(pose(0.01), K, 0.05).method == "reproject"
+
+
 def segment_exists(name: str) -> bool:
     return (SHM / name.lstrip("/")).exists()
 
@@ -365,11 +374,7 @@ def test_a_client_vanishing_mid_frame_loses_its_session_and_segment(server):
     client.sock.close()  # gone mid-message, without BYE
     client._unmap()
     assert wait_until(lambda: not segment_exists(layout.shm_name))
-    assert proc.poll() is None
-    with Client(address) as other:
-        other.hello(config())
-        other.submit(*frame_arrays(), pose(), K, 0.0)
-        assert other.predict(pose(0.01), K, 0.05).method == "reproject"
+    assert_serves(proc, address)
 
 
 def rss_kib(pid: int) -> int:
@@ -473,11 +478,7 @@ def test_a_client_shrinking_its_segment_gets_an_error_not_a_dead_server(server):
             client.request(MessageType.SUBMIT, frame_payload(1, 0.1))
         assert info.value.status == Status.BAD_INPUT
         client.request(MessageType.PREDICT, frame_payload(2, 0.05))  # written with pwrite: no fault either
-    assert proc.poll() is None
-    with Client(address) as other:
-        other.hello(config())
-        other.submit(*frame_arrays(), pose(), K, 0.0)
-        assert other.predict(pose(0.01), K, 0.05).method == "reproject"
+    assert_serves(proc, address)
 
 
 def test_segment_names_are_random_and_private(server):
@@ -616,12 +617,7 @@ def test_fuzzed_requests_get_an_answer_or_a_close_and_the_server_lives(server, m
 
 
 def test_the_server_serves_after_the_fuzzing(server):
-    proc, address = server
-    assert proc.poll() is None
-    with Client(address) as client:
-        client.hello(config())
-        client.submit(*frame_arrays(), pose(), K, 0.0)
-        assert client.predict(pose(0.01), K, 0.05).method == "reproject"
+    assert_serves(*server)
 
 
 def test_models_folder_is_the_servers_own_configuration(tmp_path):

@@ -29,7 +29,7 @@ from typing import Optional, Sequence
 from engine.core.errors import InputError, InterleaveError
 from engine.eval.protocol import MethodResult, evaluate_sequence, stage_table, write_json
 from engine.io.rgbd import read_sequence
-from engine.predict import METHODS, make_predictor
+from engine.predict import METHODS, make_predictor, option_parts
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 
 __all__ = ["Variant", "SweepPoint", "pareto_front", "decomp_variants", "plane_models", "sweep_points",
@@ -120,7 +120,7 @@ def decomp_variants(flow_widths: Sequence[int], fills: Sequence[str], infill_ite
     ``models`` maps each Z in ``planes`` to its ONNX flow network ('' for the committed one, see
     ``plane_models``); ``options`` ("key=value,...") are added to every variant and may not set a swept knob.
     """
-    extra = [p.strip() for p in options.split(",") if p.strip()]
+    extra = option_parts(options)
     clash = [p for p in extra if p.partition("=")[0].strip() in SWEPT_KEYS]
     if clash:
         raise InputError(f"{', '.join(clash)}: swept by the sweep itself (use its own option)", field="decomp_options")

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import SCORE_FIELDS, Scores, crop_slices, psnr, score_frame
-from engine.predict import Target, make_predictor
+from engine.predict import Target, make_predictor, method_with, option_parts
 from engine.runtime.stream import PredictionLoop
 
 #: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).
@@ -290,12 +290,11 @@ def bound_methods(variant: str = "decomp") -> list[BoundRow]:
     if base not in ("decomp", "decomp2d") or (bracket and not rest.endswith("]")) or TRUE_HOLES in variant:
         raise InputError(f"the bound analysis takes a decomp variant such as decomp or decomp[fill=simple], "
                          f"got '{variant}'", field="bounds")
-    options = [p.strip() for p in rest[:-1].split(",") if p.strip()] if bracket else []
+    options = option_parts(rest[:-1]) if bracket else []
     if any(p.partition("=")[0].strip() == "motion" for p in options):
         raise InputError(f"'{variant}': the bound analysis sets motion=truth itself; leave motion out",
                          field="bounds")
-    own = f"{base}[{','.join(options)}]" if options else base
-    truth = f"{base}[{','.join(options + ['motion=truth'])}]"
+    own, truth = method_with(base, options), method_with(base, options + ["motion=truth"])
     return [BoundRow("pred", "pred", own), BoundRow("GT", "pred", truth),
             BoundRow("pred", "GT", own + TRUE_HOLES), BoundRow("GT", "GT", truth + TRUE_HOLES)]
 

@@ -11,11 +11,12 @@ from engine.predict.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor,
                                    FlowNetwork, GateConfig, InfillNetwork, encode_color)
 from engine.predict.dis import (DIS_MIN_SIDE, dis_block, dis_calc, dis_estimator, dis_flow, dis_target, encode8,
                                 initial_flow, luma8, warp_error)
-from engine.predict.registry import METHODS, decomp_config, make_predictor, split_methods
+from engine.predict.registry import (METHODS, decomp_config, make_predictor, method_parts, method_with, option_parts,
+                                     split_methods)
 
 __all__ = ["Prediction", "PreparedState", "Predictor", "Target", "Timer", "extrapolation_factor",
            "true_object_flow", "warp_and_fill", "Flow2D", "Flow2DState", "Oracle", "Repeat", "Reproject",
            "DEFAULT_MODEL", "DecompConfig", "DecompPredictor", "DecompState", "DecompTrueMotion", "FlowNetwork",
            "GateConfig", "InfillNetwork", "encode_color", "DIS_MIN_SIDE", "dis_block", "dis_calc", "dis_estimator",
            "dis_flow", "dis_target", "encode8", "initial_flow", "luma8", "warp_error", "METHODS", "decomp_config",
-           "make_predictor", "split_methods"]
+           "make_predictor", "split_methods", "option_parts", "method_parts", "method_with"]

@@ -17,12 +17,30 @@ from engine.predict.classic import Flow2D, Oracle, Repeat, Reproject
 from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.predict.decomp.predictor import DecompConfig, DecompPredictor, DecompTrueMotion
 
-__all__ = ["METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor"]
+__all__ = ["METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor",
+           "option_parts", "method_parts", "method_with"]
 
 #: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.
 DECOMP_WEIGHTS = {"decomp": "flow3d.onnx", "decomp2d": "flow2d.onnx"}
 #: Values of a decomp method's ``motion`` option: the estimated object motion or the true one.
 MOTIONS = ("predicted", "truth")
+
+
+def option_parts(options: str) -> list[str]:
+    """The bracket options ``"key=value, sub.key=value"`` as stripped ``key=value`` parts, empty ones dropped."""
+    return [p.strip() for p in options.split(",") if p.strip()]
+
+
+def method_parts(name: str) -> tuple[str, list[str]]:
+    """``"decomp[flow_width=240,gate.tile=16]"`` -> ``("decomp", ["flow_width=240", "gate.tile=16"])``: the
+    base name and :func:`option_parts` of its brackets (a missing ``]`` is :func:`make_predictor`'s to refuse)."""
+    base, _, rest = name.partition("[")
+    return base, option_parts(rest[:-1] if rest.endswith("]") else rest)
+
+
+def method_with(base: str, parts: Sequence[str]) -> str:
+    """The method name of ``base`` with option ``parts`` (the inverse of :func:`method_parts`)."""
+    return f"{base}[{','.join(parts)}]" if parts else base
 
 
 def decomp_config(text: str, weights: str = "flow3d.onnx") -> DecompConfig:
@@ -40,7 +58,7 @@ def make_decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequen
     """A DeCOMPnet predictor with committed ``weights`` and bracket ``options``; ``motion=truth`` among them
     gives the true-motion bound (``DecompTrueMotion``), ``motion=predicted`` (the default) ``DecompPredictor``."""
     motion, rest = "predicted", []
-    for part in filter(None, (p.strip() for p in options.split(","))):
+    for part in option_parts(options):
         key, sep, value = part.partition("=")
         if key.strip() == "motion" and sep:
             motion = value.strip()

@@ -33,9 +33,9 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from engine.core.config import option
+from engine.core.config import option, parse_value
 from engine.core.errors import InputError, InterleaveError
-from engine.predict.registry import DECOMP_WEIGHTS
+from engine.predict.registry import DECOMP_WEIGHTS, method_parts, method_with
 from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, Status
 from engine.runtime.session import NotReadyError, Session, SessionConfig
@@ -67,12 +67,11 @@ class ServerLimits:
 def with_server_models(method: str, models: Optional[Path]) -> str:
     """``method`` with the server's own network files (``serve --models DIR``: ``flow3d.onnx`` /
     ``flow2d.onnx`` and ``infill.onnx`` there) for the DeCOMPnet methods; unchanged without ``models``."""
-    base, _, rest = method.partition("[")
+    base, options = method_parts(method)
     if models is None or base not in DECOMP_WEIGHTS:
         return method
-    options = [o for o in (rest[:-1] if rest.endswith("]") else rest).split(",") if o.strip()]
-    options += [f"model={models / DECOMP_WEIGHTS[base]}", f"infill_model={models / 'infill.onnx'}"]
-    return f"{base}[{','.join(options)}]"
+    return method_with(base, options + [f"model={models / DECOMP_WEIGHTS[base]}",
+                                        f"infill_model={models / 'infill.onnx'}"])
 
 
 def check_models_dir(models: Path) -> Path:
@@ -87,14 +86,14 @@ def check_models_dir(models: Path) -> Path:
 
 def check_remote_method(method: str, limits: ServerLimits) -> None:
     """A method string as a client may send it: no option names a file (``model``, ``infill_model``) and
-    ``threads`` stays within ``limits.max_threads``; the registry then checks the rest."""
-    _, _, rest = method.partition("[")
-    for part in filter(None, (p.strip() for p in rest.rstrip("]").split(","))):
+    ``threads`` stays within ``limits.max_threads`` (read as the config reads it); the registry then checks
+    the rest."""
+    for part in method_parts(method)[1]:
         key, _, value = (x.strip() for x in part.partition("="))
         if key in FILE_OPTIONS:
             raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' names a file: model files are the "
                                                    "server's own configuration, not a client's")
-        if key == "threads" and value.lstrip("-").isdigit() and int(value) > limits.max_threads:
+        if key == "threads" and parse_value(int, value, "threads") > limits.max_threads:
             raise _ProtocolError(Status.BAD_INPUT, f"method option threads={value} exceeds the server's limit "
                                                    f"{limits.max_threads} (serve --max-threads)")
 

@@ -426,16 +426,13 @@ class Session:
             new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera)
             old = self._loop.prepared
             reset = None
-            frames = [new]
             if old is not None:
                 newest = old.frames[-1]
                 if not new.time > newest.time:
                     reset = "time_backwards"
                 elif _cut(newest.camera, new.camera, min(scene_depth, self._scene_depth), self.config):
                     reset = "camera_cut"
-                else:
-                    frames = (old.frames + [new])[-max(self._loop.predictor.history_needed, 1):]
-            self._loop.load(frames)  # on a bad frame this raises and the previous history stays
+            frames = self._loop.submit(new, restart=reset is not None).frames  # raises: the history stays
             self._scene_depth = scene_depth
             self._frames_submitted += 1
             if reset is not None:

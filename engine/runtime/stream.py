@@ -51,10 +51,12 @@ class PredictionLoop:
         """Forget every rendered frame (camera cut, time going backwards, a new sequence)."""
         self.prepared = None
 
-    def submit(self, frame: Frame) -> Prepared:
-        """Add a rendered frame (after the previous one in time) and prepare the predictions that follow it."""
+    def submit(self, frame: Frame, *, restart: bool = False) -> Prepared:
+        """Add a rendered frame (after the previous one in time) and prepare the predictions that follow it;
+        ``restart``: forget the earlier frames first (a camera cut). If the predictor refuses the frames,
+        the history stays as it was."""
         frames = [frame]
-        if self.prepared is not None:
+        if self.prepared is not None and not restart:
             frames = (self.prepared.frames + frames)[-max(self.predictor.history_needed, 1):]
         return self.load(frames)
 

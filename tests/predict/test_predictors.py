@@ -155,3 +155,12 @@ def test_decomp2d_reports_its_own_name():
     """Issue 20, D11: a decomp2d session reported its method as decomp."""
     assert make_predictor("decomp2d").name == "decomp2d" and make_predictor("decomp").name == "decomp"
     assert make_predictor("decomp2d[gate.enabled=false]").name == "decomp2d"
+
+
+def test_method_names_split_into_options_and_back():
+    from engine.predict import method_parts, method_with
+
+    assert method_parts("decomp[flow_width=240, gate.tile=16]") == ("decomp", ["flow_width=240", "gate.tile=16"])
+    assert method_parts("reproject") == ("reproject", [])
+    assert method_with("decomp", ["flow_width=240", "gate.tile=16"]) == "decomp[flow_width=240,gate.tile=16]"
+    assert method_with("decomp", []) == "decomp"

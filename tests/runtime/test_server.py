@@ -504,6 +504,7 @@ def _hello_fields(**change) -> bytes:
     (dict(method=b"decomp[model=/etc/passwd]"), "names a file"),
     (dict(method=b"decomp[fill=infill,infill_model=/etc/hostname]"), "names a file"),
     (dict(method=b"decomp[threads=48]"), "threads=48 exceeds"),
+    (dict(method=b"decomp[threads=+48]"), "exceeds"),  # read as the config reads it, not as digits
     (dict(width=8192, height=8192), "exceeds the server's limit"),
 ])
 def test_a_client_cannot_name_files_or_take_more_than_its_share(server, change, match):

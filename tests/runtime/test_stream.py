@@ -26,6 +26,8 @@ def test_falls_back_until_enough_frames_then_matches_the_predictor():
     assert [f.index for f in third.frames] == [2, 4]  # only the frames the method needs
     np.testing.assert_array_equal(loop.predict(_target(frames[3])).color,
                                   make_predictor("flow2d").predict(frames[2:5:2], _target(frames[3])).color)
+    cut = loop.submit(frames[4], restart=True)  # a camera cut: only the new frame, the fallback again
+    assert [f.index for f in cut.frames] == [4] and cut.fallback == "history"
     loop.restart()
     assert loop.prepared is None and loop.submit(frames[4]).fallback == "history"
 

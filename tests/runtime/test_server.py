@@ -451,16 +451,20 @@ def test_serve_refuses_other_hosts_and_a_live_socket(server, capsys):
     assert "127.0.0.1 only" in err and "another server is listening there" in err
 
 
+def _hello_fields(**change) -> bytes:
+    fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, reserved0=0, channels=3, flags=0,
+                  reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
+    fields.update(change)
+    return wire.HELLO.pack(*fields.values())
+
+
 def test_hello_rejects_bad_fields(server):
     _, address = server
     cases = [(dict(channels=5), "channels"), (dict(flags=64), "flags"), (dict(width=0), "size"),
              (dict(method=b"warp9"), "unknown method"), (dict(far=0.01), "far")]
     for change, match in cases:
-        fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, reserved0=0, channels=3,
-                      flags=0, reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
-        fields.update(change)
         with Client(address) as client, pytest.raises(ServerError, match=match) as info:
-            client.request(MessageType.HELLO, wire.HELLO.pack(*fields.values()))
+            client.request(MessageType.HELLO, _hello_fields(**change))
         assert info.value.status == Status.BAD_INPUT
 
 
@@ -491,13 +495,6 @@ def test_segment_names_are_random_and_private(server):
         for name in names:
             assert len(name.rsplit("-", 1)[1]) == 16
             assert stat.S_IMODE((SHM / name.lstrip("/")).stat().st_mode) == 0o600
-
-
-def _hello_fields(**change) -> bytes:
-    fields = dict(engine=0, depth=5, color_in=0, color_out=0, width=W, height=H, reserved0=0, channels=3, flags=0,
-                  reserved=0, near=0.1, far=math.inf, mpu=0.0, cut_t=0.0, cut_r=0.0, method=b"reproject")
-    fields.update(change)
-    return wire.HELLO.pack(*fields.values())
 
 
 @pytest.mark.parametrize("change, match", [

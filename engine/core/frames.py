@@ -56,6 +56,14 @@ class Frame:
         moving: (H, W) bool, True where the visible surface moves in world space before the next frame.
         flow: (H, W, 2) float32, total screen motion to the next frame in pixels (x right, y down).
         object_flow: (H, W, 2) float32, screen motion to the next frame from object motion alone.
+        motion_vectors: (h, w, 2) float32 or None, a renderer's motion vectors, an INPUT of predictors
+            (unlike the ground-truth ``flow`` / ``object_flow``): for each pixel, the screen displacement
+            in pixels of this frame's full resolution (x right, y down) from the pixel centre to where the
+            same surface point was in the previous frame of its stream (a sequence: the previous frame;
+            a predictor's history: the previous rendered frame), camera motion included. NaN marks
+            pixels without a vector (sky, particles). ``(h, w)`` may be smaller than ``(H, W)`` (vectors
+            rendered at a lower resolution); the vector of output pixel (x, y) sits at
+            ``((x + 0.5) w / W - 0.5, (y + 0.5) h / H - 0.5)`` in the small grid.
     """
 
     index: int
@@ -67,6 +75,7 @@ class Frame:
     moving: Optional[np.ndarray] = None
     flow: Optional[np.ndarray] = None
     object_flow: Optional[np.ndarray] = None
+    motion_vectors: Optional[np.ndarray] = None
 
     @property
     def height(self) -> int:
@@ -200,6 +209,39 @@ def validate_color(color: object, shape: tuple[int, int] | None = None, *, file=
     return c
 
 
+#: Largest motion vector accepted, in frame diagonals: a longer one is a unit or scale error, not motion.
+MAX_MOTION_DIAGONALS = 64.0
+
+
+def validate_motion_vectors(vectors: object, shape: tuple[int, int], *, file=None, frame=None,
+                            field_name="motion_vectors") -> np.ndarray:
+    """Check motion vectors (h, w, 2) in pixels for a frame of ``shape`` (H, W); returns float32.
+
+    ``h <= H`` and ``w <= W`` (vectors may be rendered at a lower resolution). NaN marks a pixel without a
+    vector and is legal; +-inf, and vectors longer than ``MAX_MOTION_DIAGONALS`` frame diagonals (a unit
+    or scale error), are errors.
+    """
+    where = dict(file=file, frame=frame, field=field_name)
+    v = np.asarray(vectors)
+    if v.ndim != 3 or v.shape[2] != 2:
+        raise InputError(f"must have shape (h, w, 2), got {v.shape}", **where)
+    if not np.issubdtype(v.dtype, np.floating):
+        raise InputError(f"must be a float array, got dtype {v.dtype}", **where)
+    h, w = v.shape[:2]
+    if not (1 <= h <= shape[0] and 1 <= w <= shape[1]):
+        raise InputError(f"are {w}x{h}: must be at most the frame's {shape[1]}x{shape[0]} and not empty", **where)
+    v = v.astype(np.float32, copy=False)
+    inf = int(np.count_nonzero(np.isinf(v)))
+    if inf:
+        raise InputError(f"has {inf} infinite values (NaN marks a pixel without a vector; inf is an error)", **where)
+    limit = MAX_MOTION_DIAGONALS * float(np.hypot(*shape))
+    longest = float(np.nanmax(np.abs(v))) if np.isfinite(v).any() else 0.0
+    if longest > limit:
+        raise InputError(f"has a component of {longest:.4g} px, over {MAX_MOTION_DIAGONALS:g} frame diagonals "
+                         f"({limit:.0f} px): wrong units or scale?", **where)
+    return v
+
+
 def validate_frame(frame: Frame, *, file=None) -> Frame:
     """Validate every array of a frame against the others; returns a frame with normalised dtypes."""
     idx = frame.index
@@ -221,6 +263,8 @@ def validate_frame(frame: Frame, *, file=None) -> Frame:
         if not np.all(np.isfinite(v)):
             raise InputError("has non-finite values", file=file, frame=idx, field=name)
         out = replace(out, **{name: v})
+    if frame.motion_vectors is not None:
+        out = replace(out, motion_vectors=validate_motion_vectors(frame.motion_vectors, shape, file=file, frame=idx))
     if frame.object_id is not None:
         ids = np.asarray(frame.object_id)
         if ids.shape != shape:

@@ -1,9 +1,9 @@
-"""Read and write rgbd-seq (version 1) sequences and rgbd-rig captures.
+"""Read and write rgbd-seq (versions 1 and 2) sequences and rgbd-rig captures.
 
 The on-disk format is specified in ``docs/formats/rgbd-seq.md``; in short::
 
     <sequence>/sequence.json           metadata, cameras, object transforms
-    <sequence>/frames/000000.exr       R, G, B, Z (+ object_id, moving, flow.X/Y, object_flow.X/Y)
+    <sequence>/frames/000000.exr       R, G, B, Z (+ motion.X/Y; object_id, moving, flow.X/Y, object_flow.X/Y)
 
 Conventions (the same as :mod:`engine.core.frames`): OpenCV camera axes (x right, y down, z forward),
 ``world_to_camera`` rigid 4x4, pixel (u, v) centred at (u + 0.5, v + 0.5), planar depth > 0 with +inf for
@@ -34,12 +34,19 @@ from tqdm import tqdm
 from engine.core.colorspace import linear_to_srgb, srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
+from engine.geometry.motion import camera_motion_vectors
 from engine.io.exr import read_exr, read_exr_info, write_exr
 from engine.io.meta import json_choice, json_finite, json_int, load_json, require
 
 FORMAT = "rgbd-seq"
 RIG_FORMAT = "rgbd-rig"
+#: The version written when no frame carries motion vectors (what every version-1 reader reads) ...
 VERSION = 1
+#: ... and when some do (version 2 adds the ``motion.X/Y`` channels and the ``motion_vectors`` entry).
+MOTION_VERSION = 2
+VERSIONS = (VERSION, MOTION_VERSION)
+#: ``motion_vectors.camera`` of sequence.json: the vectors include the camera's motion, or only the objects'.
+MOTION_CAMERA = ("included", "excluded")
 COLOR_SPACES = ("linear-srgb", "srgb")
 REQUIRED_CHANNELS = ("R", "G", "B", "Z")
 #: EXR channels of each Frame field. ``has_channel`` accepts a field name or a channel name.
@@ -50,6 +57,7 @@ FIELD_CHANNELS: dict[str, tuple[str, ...]] = {
     "moving": ("moving",),
     "flow": ("flow.X", "flow.Y"),
     "object_flow": ("object_flow.X", "object_flow.Y"),
+    "motion_vectors": ("motion.X", "motion.Y"),
 }
 #: Largest difference (seconds) between the times of frame i of two cameras of a rig.
 RIG_TIME_TOLERANCE = 1e-6
@@ -59,14 +67,15 @@ RIG_TIME_TOLERANCE = 1e-6
 # sRGB transfer function (IEC 61966-2-1)
 # --------------------------------------------------------------------------------------------------
 
-def _load_header(path: Path, expected_format: str) -> dict[str, Any]:
+def _load_header(path: Path, expected_format: str, versions: tuple[int, ...] = (VERSION,)) -> dict[str, Any]:
     """Load a metadata JSON and check its ``format`` and ``version`` fields."""
     meta = load_json(path)
     if meta.get("format") != expected_format:
         raise InputError(f"must be '{expected_format}', got {meta.get('format')!r}", file=path, field="format")
     version = meta.get("version")
-    if isinstance(version, bool) or version != VERSION:
-        raise InputError(f"unsupported version {version!r} (this reader knows version {VERSION})",
+    if isinstance(version, bool) or version not in versions:
+        known = " and ".join(str(v) for v in versions)
+        raise InputError(f"unsupported version {version!r} (this reader knows version {known})",
                          file=path, field="version")
     return meta
 
@@ -128,6 +137,11 @@ class RgbdSequence:
         indices: (N,) int64 frame numbers, strictly increasing.
         files: per-frame EXR paths.
         objects: scene objects with one world-from-object transform per frame.
+        version: the file's rgbd-seq version (1, or 2 with motion vectors).
+        motion_camera: ``included`` or ``excluded``: whether the stored ``motion.X/Y`` vectors include the
+            camera's motion. Frames always hold vectors with it included: ``excluded`` vectors get the
+            camera's own motion added on load (from the frame's depth and the previous frame's camera;
+            the first frame, which has no previous frame, loads without vectors).
     """
 
     path: Path
@@ -140,6 +154,8 @@ class RgbdSequence:
     indices: np.ndarray = field(repr=False)
     files: list[Path] = field(repr=False)
     objects: list[SceneObject] = field(repr=False)
+    version: int = VERSION
+    motion_camera: str = "included"
 
     def __len__(self) -> int:
         return len(self.files)
@@ -160,7 +176,7 @@ class RgbdSequence:
     def has_channel(self, name: str) -> bool:
         """Whether the first frame carries ``name``.
 
-        ``name`` is a Frame field (``"flow"``, ``"object_flow"``, ``"object_id"``, ``"moving"``: true when
+        ``name`` is a Frame field (``"flow"``, ``"object_flow"``, ``"motion_vectors"``, ``"object_id"``, ``"moving"``: true when
         all its EXR channels are present) or an EXR channel name (``"flow.X"``). Later frames are assumed
         to carry the same channels; a frame that does not simply loads with that field set to None.
         """
@@ -184,7 +200,7 @@ class RgbdSequence:
             raise InputError(f"image is {w}x{h}, sequence.json says {self.width}x{self.height}",
                              file=file, frame=index, field="Z")
         optional: dict[str, np.ndarray | None] = {}
-        for name in ("object_id", "moving", "flow", "object_flow"):
+        for name in ("object_id", "moving", "flow", "object_flow", "motion_vectors"):
             names = FIELD_CHANNELS[name]
             present = [c for c in names if c in ch]
             if present and len(present) < len(names):
@@ -202,8 +218,13 @@ class RgbdSequence:
         frame = Frame(index=index, time=float(self.times[k]), color=color, depth=ch["Z"], camera=self.cameras[k],
                       object_id=None if optional["object_id"] is None else optional["object_id"][..., 0],
                       moving=None if optional["moving"] is None else optional["moving"][..., 0],
-                      flow=optional["flow"], object_flow=optional["object_flow"])
-        return validate_frame(frame, file=file)
+                      flow=optional["flow"], object_flow=optional["object_flow"],
+                      motion_vectors=optional["motion_vectors"])
+        frame = validate_frame(frame, file=file)
+        if frame.motion_vectors is not None and self.motion_camera == "excluded":
+            frame.motion_vectors = (None if k == 0 else frame.motion_vectors + camera_motion_vectors(
+                frame.depth, frame.camera, self.cameras[k - 1]))
+        return frame
 
 
 def read_sequence(path: str | Path) -> RgbdSequence:
@@ -225,7 +246,16 @@ def read_sequence(path: str | Path) -> RgbdSequence:
         raise InputError("is a folder without sequence.json: not an rgbd-seq sequence", file=root)
     if root.is_file():
         raise InputError("is a file; an rgbd-seq sequence is a folder holding sequence.json", file=root)
-    meta = _load_header(meta_file, FORMAT)
+    meta = _load_header(meta_file, FORMAT, VERSIONS)
+    version = int(meta["version"])
+    motion_camera = "included"
+    if version >= MOTION_VERSION and "motion_vectors" in meta:
+        entry = meta["motion_vectors"]
+        if not isinstance(entry, dict):
+            raise InputError("must be an object such as {\"camera\": \"included\"}", file=meta_file,
+                             field="motion_vectors")
+        motion_camera = json_choice(entry.get("camera", "included"), MOTION_CAMERA, meta_file,
+                                    "motion_vectors.camera")
     width = json_int(require(meta, "width", meta_file), meta_file, "width", minimum=1)
     height = json_int(require(meta, "height", meta_file), meta_file, "height", minimum=1)
     fps = json_finite(require(meta, "fps", meta_file), meta_file, "fps", positive=True)
@@ -266,7 +296,8 @@ def read_sequence(path: str | Path) -> RgbdSequence:
     objects = _parse_objects(meta.get("objects", []), indices, meta_file)
     return RgbdSequence(path=root, width=width, height=height, fps=fps, color_space=color_space,
                         cameras=cameras, times=np.asarray(times, dtype=np.float64),
-                        indices=np.asarray(indices, dtype=np.int64), files=files, objects=objects)
+                        indices=np.asarray(indices, dtype=np.int64), files=files, objects=objects,
+                        version=version, motion_camera=motion_camera)
 
 
 def _output_folder(path: str | Path) -> Path:
@@ -303,9 +334,15 @@ def _frame_channels(frame: Frame, color_space: str, file: Path) -> dict[str, np.
     for name in ("object_id", "moving"):
         if getattr(frame, name) is not None:
             channels[name] = getattr(frame, name)
-    for name in ("flow", "object_flow"):
-        if getattr(frame, name) is not None:
-            channels[f"{name}.X"], channels[f"{name}.Y"] = getattr(frame, name)[..., 0], getattr(frame, name)[..., 1]
+    for name in ("flow", "object_flow", "motion_vectors"):
+        value = getattr(frame, name)
+        if value is not None:
+            if value.shape[:2] != frame.depth.shape:
+                raise InputError(f"are {value.shape[1]}x{value.shape[0]}: rgbd-seq stores motion vectors at the "
+                                 f"frame's size {frame.width}x{frame.height}", file=file, frame=frame.index,
+                                 field=name)
+            x, y = FIELD_CHANNELS[name]
+            channels[x], channels[y] = value[..., 0], value[..., 1]
     return channels
 
 
@@ -388,13 +425,16 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
         entries.append({"index": int(frame.index), "time": float(frame.time), "file": rel,
                         "intrinsics": frame.camera.intrinsics.tolist(),
                         "world_to_camera": frame.camera.world_to_camera.tolist(),
-                        "_w": frame.width, "_h": frame.height})
+                        "_w": frame.width, "_h": frame.height, "_mv": frame.motion_vectors is not None})
     if not entries:
         raise InputError("no frames to write", file=meta_file, field="frames")
     _parse_objects(objects_raw, [e["index"] for e in entries], meta_file)
-    meta = {"format": FORMAT, "version": VERSION, "width": entries[0]["_w"], "height": entries[0]["_h"],
+    with_motion = any(e["_mv"] for e in entries)
+    meta = {"format": FORMAT, "version": MOTION_VERSION if with_motion else VERSION, "width": entries[0]["_w"], "height": entries[0]["_h"],
             "fps": fps, "color_space": color_space, "depth": "planar-z", "camera_convention": "opencv",
             "frames": [{k: v for k, v in e.items() if not k.startswith("_")} for e in entries]}
+    if with_motion:
+        meta["motion_vectors"] = {"camera": "included"}
     if objects_raw:
         meta["objects"] = objects_raw
     _write_json(meta_file, meta)

@@ -12,6 +12,8 @@ Per frame, with one GL context reused across frames:
    the three interpolated camera-space points, so flow = project(t+1 view) - project(t view) is exact for
    rigid motion (camera-space points are affine on a triangle; perspective-correct interpolation keeps
    them exact). The sky gets the flow of a point at infinity: only the camera rotation moves it.
+4. motion vectors as an engine writes them (current -> previous frame, camera included), computed
+   exactly on the CPU from that pass's depth and object ids (``engine.geometry.motion``).
 
 All render targets are float32. Camera space is OpenCV's; ``clip_from_camera`` maps it to GL clip space
 and rows are flipped on readback (GL images are bottom-up).
@@ -26,7 +28,8 @@ from tqdm import tqdm
 
 from engine.conventions import OPENGL_TO_OPENCV, projection_from_intrinsics
 from engine.core.errors import InputError
-from engine.core.frames import Camera, Frame
+from engine.core.frames import Camera, Frame, rigid_inverse
+from engine.geometry.motion import rigid_motion_vectors
 from engine.scenegen import glsl
 from engine.scenegen.meshes import merge_parts
 from engine.scenegen.scene import PATTERNS, Scene
@@ -331,10 +334,23 @@ class SceneRenderer:
         geo = read(self.fbo_truth, 0)
         flow = read(self.fbo_truth, 1)
         depth = np.where(geo[..., 3] > 0.5, geo[..., 0], np.inf).astype(np.float32)
-        return Frame(index=index, time=scene.time(index), color=color, depth=depth,
-                     camera=Camera(cam0.intrinsics, cam0.world_to_camera),
-                     object_id=np.rint(geo[..., 1]).astype(np.int32), moving=geo[..., 2] > 0.5,
-                     flow=np.ascontiguousarray(flow[..., :2]), object_flow=np.ascontiguousarray(flow[..., 2:]))
+        object_id = np.rint(geo[..., 1]).astype(np.int32)
+        camera = Camera(cam0.intrinsics, cam0.world_to_camera)
+        return Frame(index=index, time=scene.time(index), color=color, depth=depth, camera=camera,
+                     object_id=object_id, moving=geo[..., 2] > 0.5,
+                     flow=np.ascontiguousarray(flow[..., :2]), object_flow=np.ascontiguousarray(flow[..., 2:]),
+                     motion_vectors=self.motion_vectors(index, depth, object_id, camera))
+
+    def motion_vectors(self, index: int, depth: np.ndarray, object_id: np.ndarray, camera: Camera) -> np.ndarray:
+        """What an engine writes as motion vectors: exact current -> previous vectors of frame ``index``
+        (rigid objects + camera, from the truth pass's depth and ids at pixel centres). Frame 0 points to
+        frame -1 of the paths (defined for all times)."""
+        scene = self.scene
+        motions = {}
+        if scene.objects:
+            now, before = scene.object_transforms(index), scene.object_transforms(index - 1)
+            motions = {o.id: before[i] @ rigid_inverse(now[i]) for i, o in enumerate(scene.objects)}
+        return rigid_motion_vectors(depth, camera, scene.camera_at(index - 1), object_id, motions)
 
     # -------------------------------------------------------------------------------------- clean-up
     def release(self) -> None:

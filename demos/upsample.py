@@ -26,6 +26,7 @@ from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
+from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import read_sequence, write_sequence
 from engine.predict import Predictor, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
@@ -78,7 +79,7 @@ def side_by_side(truth: np.ndarray, shown: np.ndarray, predicted: bool, index: i
 
 
 def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, width: int = 640,
-             height: int = 360, methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp", "oracle"),
+             height: int = 360, methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp", "mvec", "oracle"),
              progress: bool = True) -> dict:
     """Render the built-in scene into ``out_dir/scene``, evaluate ``methods``, write video and reports.
 
@@ -163,13 +164,16 @@ def _train_cameras(run: Optional[Path]):
 
 
 def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] = None) -> Iterator[Frame]:
-    """Frames (colour, planar depth, camera) of a field rendered along ``cameras``, one at a time; each
-    render's seconds are appended to ``timings``."""
+    """Frames (colour, planar depth, camera, motion vectors) of a static field rendered along ``cameras``, one
+    at a time; each render's seconds are appended to ``timings``. A static field's motion vectors are the
+    camera's alone, exact from the rendered depth (``camera_motion_vectors``; zero on the first frame)."""
     for i, cam in enumerate(cameras):
         out = renderer.render(cam.intrinsics, cam.world_to_camera)
         if timings is not None:
             timings.append(out["seconds"])
-        yield Frame(index=i, time=i / fps, color=out["color"], depth=out["depth"], camera=cam)
+        vectors = camera_motion_vectors(out["depth"], cam, cameras[max(i - 1, 0)])
+        yield Frame(index=i, time=i / fps, color=out["color"], depth=out["depth"], camera=cam,
+                    motion_vectors=vectors)
 
 
 def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 48, width: Optional[int] = 640,

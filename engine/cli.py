@@ -23,7 +23,9 @@ from engine.core.errors import InputError, InterleaveError
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
                "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
-               "ablation network), oracle (true object motion; needs object_id and objects). decomp and "
+               "ablation network), mvec (the renderer's motion vectors, motion.X/Y, extrapolated in 3D; "
+               "mvec[undilate=true] for dilated vectors), auto (mvec where a sequence has motion vectors, else "
+               "decomp), oracle (true object motion; needs object_id and objects). decomp and "
                "decomp2d take options in brackets, e.g. decomp[gate.enabled=false,flow_width=240] "
                "(engine/predict/decomp/predictor.py); a name "
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
@@ -66,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--frames", type=int, default=48, help="frames to render (default: 48)")
     demo.add_argument("--width", type=int, default=640, help="frame width in pixels (default: 640)")
     demo.add_argument("--height", type=int, default=360, help="frame height in pixels (default: 360)")
-    demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
+    demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,mvec,oracle", help=METHOD_HELP)
     demo.add_argument("--field", type=Path, default=None, metavar="RUN_OR_EXPORT_DIR",
                       help="render a trained radiance field (the folder 'interleave export field' wrote, or its run "
                            "folder) with the GL field renderer along a camera path through its scene instead of the "
@@ -81,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "moving pixels. Time per predicted frame is the median, preparation amortised.")
     ev.add_argument("sequences", nargs="+", type=Path, metavar="SEQ_DIR", help="rgbd-seq folders")
     ev.add_argument("--k", type=_int_list, default=[2], help="upsampling factor(s), comma-separated (default: 2)")
-    ev.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle", help=METHOD_HELP)
+    ev.add_argument("--methods", default="repeat,reproject,flow2d,decomp,mvec,oracle", help=METHOD_HELP)
     ev.add_argument("--json", type=Path, default=None, help="write records and summary to this JSON file")
     ev.add_argument("--plot", type=Path, default=None, help="write the time-against-error plot to this PNG")
     ev.add_argument("--no-flip", action="store_true", help="skip FLIP (about 0.4 s per 960x540 frame)")

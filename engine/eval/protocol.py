@@ -27,7 +27,9 @@ from tqdm import tqdm
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import SCORE_FIELDS, Scores, crop_slices, psnr, score_frame
-from engine.predict import Target, make_predictor, method_with, option_parts
+from engine.core.frames import Frame, rigid_inverse
+from engine.geometry.motion import compose_motion_vectors, rigid_motion_vectors
+from engine.predict import Mvec, Target, make_predictor, method_with, option_parts, resolve_auto
 from engine.runtime.stream import PredictionLoop
 
 #: Suffix of a method name scored with the true pixels in its holes (perfect disocclusion infilling).
@@ -94,6 +96,36 @@ def hole_scores(truth: np.ndarray, color: np.ndarray, holes: np.ndarray) -> tupl
     return float(mask.mean()), psnr(display_encode(truth[rows, cols]), display_encode(color[rows, cols]), mask)
 
 
+def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Frame] = None) -> np.ndarray:
+    """Motion vectors (H, W, 2) of the frame at position ``newest`` pointing to the frame at position ``older``
+    (the previous RENDERED frame when only every k-th frame is rendered), from a sequence whose stored
+    ``motion.X/Y`` point one frame back.
+
+    Recomputed exactly (``rigid_motion_vectors``) where the sequence has its object transforms and the frame
+    its ``object_id`` channel; otherwise the stored vectors are chained frame by frame
+    (``compose_motion_vectors``: exact where each intermediate frame sees the point, NaN where it does not).
+    ``frame`` is the loaded frame at ``newest`` (read again when not given).
+    """
+    frame = sequence[newest] if frame is None else frame
+    if newest - older == 1 and frame.motion_vectors is not None:
+        return frame.motion_vectors
+    if sequence.objects and frame.object_id is not None:
+        motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest])
+                   for o in sequence.objects if o.moving}
+        return rigid_motion_vectors(frame.depth, frame.camera, sequence.cameras[older], frame.object_id, motions)
+    if frame.motion_vectors is None:
+        raise InputError("has no motion vectors (channels motion.X/Y) to derive the vectors of 'mvec' from",
+                         file=sequence.files[newest], frame=int(sequence.indices[newest]), field="motion.X")
+    vectors = frame.motion_vectors
+    for position in range(newest - 1, older, -1):
+        step = sequence[position].motion_vectors
+        if step is None:
+            raise InputError("has no motion vectors (channels motion.X/Y) to chain", file=sequence.files[position],
+                             frame=int(sequence.indices[position]), field="motion.X")
+        vectors = compose_motion_vectors(vectors, step)
+    return vectors
+
+
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
                       max_groups: Optional[int] = None, progress: bool = False) -> list[MethodResult]:
     """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
@@ -109,7 +141,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     if max_groups is not None and len(groups) > max_groups:
         pick = np.linspace(0, len(groups) - 1, max_groups).round().astype(int)
         groups = [groups[i] for i in sorted(set(pick.tolist()))]
-    sources = {m: split_scoring(m)[0] for m in methods}
+    has_vectors = sequence.has_channel("motion_vectors")
+    sources = {m: resolve_auto(split_scoring(m)[0], has_vectors) for m in methods}
     predictors = {}
     for name in dict.fromkeys(sources.values()):
         try:
@@ -120,6 +153,10 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             raise InputError(f"method '{name}': {exc.problem}", file=sequence.path, field=exc.field) from exc
     if "oracle" in predictors and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
+    with_vectors = any(isinstance(p, Mvec) for p in predictors.values())
+    if with_vectors and not has_vectors and not (sequence.objects and sequence.has_channel("object_id")):
+        raise InputError("method 'mvec' needs motion vectors (channels motion.X/Y) or the objects and object_id "
+                         "to derive them", file=sequence.path, field="motion_vectors")
     loops = {name: PredictionLoop(predictor) for name, predictor in predictors.items()}
     scores: dict[str, list] = {m: [] for m in methods}
     times: dict[str, list[float]] = {p: [] for p in predictors}
@@ -129,6 +166,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
               disable=not progress, unit="frame") as bar:  # closed (its line ended) on an error too
         for older_i, newest_i, target_is in groups:
             history = [sequence[older_i], sequence[newest_i]]
+            if with_vectors:  # the renderer's vectors of frame n point to the previous rendered frame, n-k
+                history[1].motion_vectors = history_motion_vectors(sequence, older_i, newest_i, history[1])
             truths = [sequence[i] for i in target_is]
             for name, loop in loops.items():
                 start = time.perf_counter()

@@ -417,3 +417,69 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
                     value = (packed[z, sy, sx, c] * (one - u) + packed[z, sy, sx1, c] * u) * (one - v) \
                         + (packed[z, sy1, sx, c] * (one - u) + packed[z, sy1, sx1, c] * u) * v
                     out[c, z, y, x] = value / a * scale[c] if a > _F32(1e-6) else _F32(0.0)
+
+
+@njit(cache=True, nogil=True)
+def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance, band,
+                   row_start, row_stop, out):
+    """``engine.geometry.reference.scene_velocity_reference`` compiled, rows [``row_start``, ``row_stop``):
+    ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
+    point was in the previous frame to where it is now; 0 for sky, missing (NaN) vectors and pixels whose
+    vector is the camera's own (within ``static_tolerance`` px). Returns the number of moving pixels."""
+    h, w = depth.shape
+    hp, wp = prev_depth.shape
+    moving = 0
+    for y in range(row_start, row_stop):
+        for x in range(w):
+            out[y, x, 0] = 0.0
+            out[y, x, 1] = 0.0
+            out[y, x, 2] = 0.0
+            z = np.float64(depth[y, x])
+            mx = np.float64(vectors[y, x, 0])
+            my = np.float64(vectors[y, x, 1])
+            if math.isinf(z) or math.isnan(mx) or math.isnan(my):
+                continue
+            u = x + 0.5
+            v = y + 0.5
+            px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
+            py = z * (k_inv[1, 0] * u + k_inv[1, 1] * v + k_inv[1, 2])
+            pz = z * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2])
+            sx = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
+            sy = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
+            sz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
+            if not sz > 1e-9 * z:
+                continue  # behind the previous camera if it had not moved: no reference to measure from
+            qx = u + mx
+            qy = v + my
+            su = (k_prev[0, 0] * sx + k_prev[0, 1] * sy) / sz + k_prev[0, 2]
+            sv = k_prev[1, 1] * sy / sz + k_prev[1, 2]
+            if abs(qx - su) <= static_tolerance and abs(qy - sv) <= static_tolerance:
+                continue
+            # depth of the point in the previous frame: the 2x2 neighbour closest to the static guess sz
+            d = sz
+            best = math.log(band)
+            x0 = math.floor(qx - 0.5)
+            y0 = math.floor(qy - 0.5)
+            for dy in range(2):
+                for dx in range(2):
+                    xi = x0 + dx
+                    yi = y0 + dy
+                    if 0 <= xi < wp and 0 <= yi < hp:
+                        c = np.float64(prev_depth[yi, xi])
+                        if not math.isinf(c):
+                            off = abs(math.log(c / sz))
+                            if off <= best:
+                                best = off
+                                d = c
+            # previous point in the previous camera, then in this camera's axes
+            ax = d * (k_prev_inv[0, 0] * qx + k_prev_inv[0, 1] * qy + k_prev_inv[0, 2]) - trans[0]
+            ay = d * (k_prev_inv[1, 0] * qx + k_prev_inv[1, 1] * qy + k_prev_inv[1, 2]) - trans[1]
+            az = d * (k_prev_inv[2, 0] * qx + k_prev_inv[2, 1] * qy + k_prev_inv[2, 2]) - trans[2]
+            bx = rot[0, 0] * ax + rot[1, 0] * ay + rot[2, 0] * az
+            by = rot[0, 1] * ax + rot[1, 1] * ay + rot[2, 1] * az
+            bz = rot[0, 2] * ax + rot[1, 2] * ay + rot[2, 2] * az
+            out[y, x, 0] = px - bx
+            out[y, x, 1] = py - by
+            out[y, x, 2] = pz - bz
+            moving += 1
+    return moving

@@ -14,8 +14,17 @@ import numpy as np
 from engine.core.checks import checked_array, checked_matrix
 from engine.core.errors import InputError
 from engine.core.frames import Camera, rigid_inverse
+from engine.geometry import kernels
 
-__all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest"]
+__all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
+           "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "extrapolated_flow",
+           "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+
+#: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface.
+DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
+#: The previous frame's depth at a vector's end is trusted within this ratio of the depth the point would
+#: have there had it not moved (else it belongs to another surface, e.g. an occluder).
+DEFAULT_DEPTH_BAND = 1.5
 
 
 def _pixels(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -120,3 +129,153 @@ def compose_motion_vectors(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     bu, bv = u + first[..., 0], v + first[..., 1]
     step = sample_nearest(second, bu, bv)
     return (first.astype(np.float64) + step).astype(np.float32)
+
+
+def upsample_motion_vectors(vectors: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Motion vectors (h, w, 2) of a lower resolution at the frame's size (H, W) of ``depth``, float32.
+
+    Depth-guided nearest neighbour (no blending across silhouettes, where a blend is a vector of neither
+    surface): each full-resolution pixel takes, of the 4 low-resolution samples around it, the one whose
+    surface depth (the full-resolution depth at the sample's centre) is closest to its own in log depth;
+    sky matches sky. Vectors are already in full-resolution pixels (``Frame.motion_vectors``). The
+    low-resolution grid spans the frame: sample (i, j) is centred at full-resolution ((j + 0.5) W / w,
+    (i + 0.5) H / h).
+    """
+    sizes: dict = {}
+    depth = checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("h", "w", 2), {})
+    big_h, big_w = depth.shape
+    h, w = vectors.shape[:2]
+    if (h, w) == (big_h, big_w):
+        return vectors
+    if h > big_h or w > big_w:
+        raise InputError(f"are {w}x{h}, larger than the frame's {big_w}x{big_h}", field="motion_vectors")
+    log_d = np.log(np.where(np.isfinite(depth), depth, np.float32(1e30)).astype(np.float64))
+    # centres of the low-resolution samples in full-resolution pixels, and their surfaces' log depths
+    cy = np.minimum(((np.arange(h) + 0.5) * big_h / h).astype(np.intp), big_h - 1)
+    cx = np.minimum(((np.arange(w) + 0.5) * big_w / w).astype(np.intp), big_w - 1)
+    small_log = log_d[cy[:, None], cx[None, :]]
+    # continuous position of each full-resolution pixel centre in the low-resolution grid
+    fy = (np.arange(big_h) + 0.5) * h / big_h - 0.5
+    fx = (np.arange(big_w) + 0.5) * w / big_w - 0.5
+    y0 = np.clip(np.floor(fy).astype(np.intp), 0, h - 1)
+    x0 = np.clip(np.floor(fx).astype(np.intp), 0, w - 1)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    best = np.full((big_h, big_w), np.inf)
+    pick_y = np.broadcast_to(y0[:, None], (big_h, big_w)).copy()
+    pick_x = np.broadcast_to(x0[None, :], (big_h, big_w)).copy()
+    for ys in (y0, y1):
+        for xs in (x0, x1):
+            cand_y = np.broadcast_to(ys[:, None], (big_h, big_w))
+            cand_x = np.broadcast_to(xs[None, :], (big_h, big_w))
+            off = np.abs(small_log[cand_y, cand_x] - log_d)
+            take = off < best
+            best = np.where(take, off, best)
+            pick_y = np.where(take, cand_y, pick_y)
+            pick_x = np.where(take, cand_x, pick_x)
+    return vectors[pick_y, pick_x]
+
+
+def undilate_motion_vectors(vectors: np.ndarray, depth: np.ndarray, depth_gap: float = 0.1) -> np.ndarray:
+    """Undo the edge dilation of motion vectors (FSR-style: each pixel takes the vector of the nearest
+    surface in its 3x3 neighbourhood), float32 (H, W, 2), NaN where a vector was dilated.
+
+    A pixel's vector counts as dilated when it equals (within 1e-3 px) the vector of the nearest pixel of
+    its 3x3 neighbourhood while its own surface lies more than ``depth_gap`` (relative) behind that pixel's:
+    a background pixel that was handed the foreground's motion. Such pixels lose their vector (NaN: treated
+    as static by ``mvec``). Vectors and depth at the same (H, W).
+    """
+    sizes: dict = {}
+    depth = checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
+    h, w = depth.shape
+    pad_d = np.pad(np.where(np.isfinite(depth), depth, np.float32(np.inf)), 1, constant_values=np.inf)
+    pad_v = np.pad(vectors, ((1, 1), (1, 1), (0, 0)), constant_values=np.nan)
+    nearest = np.full((h, w), np.inf, dtype=np.float32)
+    nearest_v = np.full((h, w, 2), np.nan, dtype=np.float32)
+    for dy in range(3):
+        for dx in range(3):
+            d = pad_d[dy:dy + h, dx:dx + w]
+            closer = d < nearest
+            nearest = np.where(closer, d, nearest)
+            nearest_v = np.where(closer[..., None], pad_v[dy:dy + h, dx:dx + w], nearest_v)
+    behind = depth > nearest * (1.0 + depth_gap)
+    same = np.all(np.abs(vectors - nearest_v) <= 1e-3, axis=-1)
+    out = vectors.copy()
+    out[behind & same] = np.nan
+    return out
+
+
+def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarray, camera: Camera,
+                   previous: Camera, *, static_tolerance: float = DEFAULT_STATIC_TOLERANCE,
+                   band: float = DEFAULT_DEPTH_BAND) -> tuple[np.ndarray, int]:
+    """The 3D motion of every pixel's surface point between two frames, from motion vectors and depth.
+
+    For pixel p with depth z, ``P = z K^-1 p`` in this camera; its vector says where it was in the previous
+    frame's image, ``q = p + vector``. The point's previous depth is the previous frame's depth at q (the
+    2x2 neighbour closest to the depth the point would have there had it not moved, trusted within
+    ``band``; else that static depth, i.e. motion parallel to the previous image plane). The previous point
+    ``Q`` is brought into this camera's axes; the velocity is ``P - Q`` (scene units per frame interval).
+
+    Args:
+        depth: (H, W) planar depth of this frame, +inf for sky; vectors: (H, W, 2) current -> previous
+            pixels, NaN for none; prev_depth: (h', w') planar depth of the previous frame.
+        camera, previous: the two frames' cameras.
+        static_tolerance: pixels; a vector this close to the camera's own motion means a static surface.
+        band: ratio > 1 (see above).
+
+    Returns:
+        velocity (H, W, 3) float32 in this camera's axes (0 for sky, missing vectors and static pixels; a
+        static scene gives exactly 0), and the number of moving pixels.
+    """
+    sizes: dict = {}
+    depth = checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
+    prev_depth = checked_array(prev_depth, "prev_depth", ("h", "w"), {})
+    if not (static_tolerance >= 0 and band > 1 and np.isfinite(band)):
+        raise InputError(f"need static_tolerance >= 0 and a finite band > 1, got {static_tolerance}, {band}",
+                         field="mvec")
+    relative = previous.world_to_camera @ camera.camera_to_world
+    args = (np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(prev_depth),
+            np.linalg.inv(camera.intrinsics), np.ascontiguousarray(previous.intrinsics, dtype=np.float64),
+            np.linalg.inv(previous.intrinsics), np.ascontiguousarray(relative[:3, :3]),
+            np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), float(band))
+    out = np.empty(depth.shape + (3,), dtype=np.float32)
+    ranges = kernels.split_ranges(depth.shape[0], 64)
+    counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out), ranges)
+    return out, int(sum(counts))
+
+
+def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.ndarray, step: float,
+                      where: Optional[np.ndarray] = None) -> np.ndarray:
+    """The (H, W, 3) flow (du, dv pixels, dz planar depth) that moves each pixel's point P by ``step`` times
+    its velocity (constant-velocity extrapolation in 3D, this camera's axes): ``P' = P + step * velocity``,
+    flow = project(P') - (pixel centre, z). ``where`` (flat indices) limits the work to the pixels that
+    move (the rest get 0). A point that would reach or cross the camera plane gets NaN (the warp drops it).
+    The result is the object flow of ``engine.geometry.forward_warp_frame``.
+    """
+    sizes: dict = {}
+    depth = checked_array(depth, "depth", ("H", "W"), sizes)
+    velocity = checked_array(velocity, "velocity", ("H", "W", 3), sizes)
+    k = checked_matrix(intrinsics, "intrinsics", 3)
+    h, w = depth.shape
+    idx = np.flatnonzero(np.any(velocity != 0, axis=-1)) if where is None else np.asarray(where)
+    out = np.zeros((h * w, 3), dtype=np.float32)
+    if idx.size == 0:
+        return out.reshape(h, w, 3)
+    y, x = np.divmod(idx, w)
+    u, v = x + 0.5, y + 0.5
+    z = depth.reshape(-1)[idx].astype(np.float64)
+    k_inv = np.linalg.inv(k)
+    px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
+    py = z * (k_inv[1, 1] * v + k_inv[1, 2])
+    vel = velocity.reshape(-1, 3)[idx].astype(np.float64)
+    nx, ny, nz = px + step * vel[:, 0], py + step * vel[:, 1], z + step * vel[:, 2]
+    ok = nz > 1e-6 * z
+    nz_safe = np.where(ok, nz, 1.0)
+    du = (k[0, 0] * nx + k[0, 1] * ny) / nz_safe + k[0, 2] - u
+    dv = k[1, 1] * ny / nz_safe + k[1, 2] - v
+    flow = np.stack([du, dv, nz - z], axis=-1)
+    flow[~ok] = np.nan
+    out[idx] = flow
+    return out.reshape(h, w, 3)

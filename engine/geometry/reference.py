@@ -186,3 +186,44 @@ def row_sources_reference(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
     depth_right = np.where(right >= 0, depth[rows, np.maximum(right, 0)], -np.inf)
     source = np.where(depth_right > depth_left, right, left)
     return np.where(holes, source, -1)
+
+
+def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarray, k_inv: np.ndarray,
+                             k_prev: np.ndarray, k_prev_inv: np.ndarray, rot: np.ndarray, trans: np.ndarray,
+                             static_tolerance: float, band: float) -> np.ndarray:
+    """numpy ``kernels.scene_velocity`` (whole frame): the oracle of the compiled kernel (float64 inside)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    z = depth.astype(np.float64)
+    mx, my = vectors[..., 0].astype(np.float64), vectors[..., 1].astype(np.float64)
+    usable = np.isfinite(z) & ~np.isnan(mx) & ~np.isnan(my)
+    zz = np.where(usable, z, 1.0)
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+    p = zz[..., None] * (pix @ k_inv.T)
+    s = p @ rot.T + trans
+    usable &= s[..., 2] > 1e-9 * zz
+    sz = np.where(usable, s[..., 2], 1.0)
+    su = (k_prev[0, 0] * s[..., 0] + k_prev[0, 1] * s[..., 1]) / sz + k_prev[0, 2]
+    sv = k_prev[1, 1] * s[..., 1] / sz + k_prev[1, 2]
+    qx, qy = u + np.where(usable, mx, 0.0), v + np.where(usable, my, 0.0)
+    usable &= ~((np.abs(qx - su) <= static_tolerance) & (np.abs(qy - sv) <= static_tolerance))
+    hp, wp = prev_depth.shape
+    d = sz.copy()
+    best = np.full(depth.shape, np.log(band))
+    x0, y0 = np.floor(qx - 0.5), np.floor(qy - 0.5)
+    for dy in range(2):
+        for dx in range(2):
+            xi, yi = x0 + dx, y0 + dy
+            inside = (xi >= 0) & (xi < wp) & (yi >= 0) & (yi < hp) & usable
+            c = np.full(depth.shape, np.inf)
+            c[inside] = prev_depth[yi[inside].astype(np.intp), xi[inside].astype(np.intp)]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                off = np.abs(np.log(c / sz))
+            take = inside & np.isfinite(c) & (off <= best)
+            best = np.where(take, off, best)
+            d = np.where(take, c, d)
+    q = np.stack([qx, qy, np.ones_like(qx)], axis=-1)
+    a = d[..., None] * (q @ k_prev_inv.T) - trans
+    b = a @ rot
+    out = np.where(usable[..., None], p - b, 0.0)
+    return out.astype(np.float32)

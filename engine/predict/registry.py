@@ -3,7 +3,9 @@
 A name may carry options in brackets: ``decomp`` and ``decomp2d`` take ``DecompConfig``'s (through
 ``engine.core.config.config_from_text``: ``decomp[flow_width=240,gate.tile=16]``) and ``motion=truth``, the
 true object motion instead of the estimated one (``DecompTrueMotion``, the bound of thesis Table 6.3);
-``flow2d`` its DIS preset, ``flow2d[preset=fast]``.
+``flow2d`` its DIS preset, ``flow2d[preset=fast]``; ``mvec`` its ``MvecConfig``, ``mvec[undilate=true]``.
+``auto`` is not a predictor but a choice made where frames arrive (``resolve_auto``): ``mvec`` for frames
+that carry the renderer's motion vectors, ``decomp`` for frames that do not.
 """
 from __future__ import annotations
 
@@ -16,8 +18,9 @@ from engine.predict.base import Predictor
 from engine.predict.classic import Flow2D, Oracle, Repeat, Reproject
 from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.predict.decomp.predictor import DecompConfig, DecompPredictor, DecompTrueMotion
+from engine.predict.mvec import Mvec, MvecConfig
 
-__all__ = ["METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor",
+__all__ = ["AUTO", "resolve_auto", "METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor",
            "option_parts", "method_parts", "method_with"]
 
 #: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.
@@ -72,11 +75,23 @@ def make_decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequen
     return predictor
 
 
+#: The method name that picks ``mvec`` when motion vectors come and ``decomp`` otherwise.
+AUTO = "auto"
+
+
+def resolve_auto(name: str, has_motion_vectors: bool) -> str:
+    """``name``, or for ``auto`` the method it stands for: ``mvec`` with motion vectors, else ``decomp``."""
+    if name.strip() != AUTO:
+        return name
+    return "mvec" if has_motion_vectors else "decomp"
+
+
 #: Registry of method names -> factory(objects) for the CLI and the evaluation.
 METHODS: dict[str, Callable[[Sequence[SceneObject]], Predictor]] = {
     "repeat": lambda objects: Repeat(),
     "reproject": lambda objects: Reproject(),
     "flow2d": lambda objects: Flow2D(),
+    "mvec": lambda objects: Mvec(),
     "oracle": lambda objects: Oracle(objects),
     "decomp": lambda objects: make_decomp(DECOMP_WEIGHTS["decomp"], objects=objects),
     "decomp2d": lambda objects: make_decomp(DECOMP_WEIGHTS["decomp2d"], objects=objects),
@@ -107,10 +122,19 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
     ``flow2d[preset=fast]``.
     """
     base, _, rest = name.partition("[")
+    if base == AUTO:
+        raise InputError("method 'auto' is chosen per stream: resolve it with resolve_auto (mvec with motion "
+                         "vectors, decomp without)", field="methods")
     if base not in METHODS:
-        raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}", field="methods")
+        raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}, or auto",
+                         field="methods")
     if not rest:
         return METHODS[base](objects)
+    if base == "mvec" and rest.endswith("]"):
+        try:
+            return Mvec(config_from_text(MvecConfig, rest[:-1]))
+        except InputError as exc:
+            raise InputError(f"method '{name}': {exc.problem}", field="methods") from None
     if base == "flow2d" and rest.endswith("]"):
         key, _, value = rest[:-1].partition("=")
         if key.strip() != "preset":
@@ -119,6 +143,7 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
         return Flow2D(value.strip())
     if base not in DECOMP_WEIGHTS or not rest.endswith("]"):
         raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.predict.decomp.predictor."
-                         f"DecompConfig) and flow2d (preset=...) take options, as decomp[key=value,...]",
+                         f"DecompConfig), mvec (MvecConfig) and flow2d (preset=...) take options, as "
+                         f"decomp[key=value,...]",
                          field="methods")
     return make_decomp(DECOMP_WEIGHTS[base], rest[:-1], objects)

@@ -1,0 +1,104 @@
+"""``mvec``: frame extrapolation from the renderer's own motion vectors (no motion estimation).
+
+A renderer that knows its motion writes motion vectors (``Frame.motion_vectors``: per pixel, the screen
+displacement in pixels to where the surface point was in the previous rendered frame, camera motion
+included). ``mvec`` turns them into 3D motion and extrapolates it, in passes over a typed state:
+
+1. ``vectors``: the newest frame's vectors at full resolution (``upsample_motion_vectors``, depth-guided
+   nearest, when they come smaller) and, with ``undilate``, without FSR-style edge dilation;
+2. ``velocity``: each pixel's 3D displacement since frame n-k in frame n's camera axes
+   (``engine.geometry.motion.scene_velocity``: frame n's depth, frame n-k's depth at the vector's end,
+   both cameras), zero for static surfaces, sky and pixels without a vector;
+3. ``render``: constant velocity in 3D, ``P(n + k') = P(n) + (k'/k) (P(n) - P(n-k))`` with k'/k from the
+   frame times (``extrapolation_factor``), so camera motion and object motion toward the camera both come
+   out right; frame n is forward-splatted by that 3D flow to the target camera and hole-filled exactly like
+   ``reproject`` (``warp_and_fill``). Where nothing moves the result is ``reproject``'s, bit for bit.
+
+Vectors of frame n must point to frame n-k, the previous rendered frame (what an engine that renders every
+k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame vectors). Conventions:
+``engine/core/frames.py``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from engine.core.config import option
+from engine.core.errors import InputError
+from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
+                                    undilate_motion_vectors, upsample_motion_vectors)
+from engine.predict.base import Predictor, PreparedState, Timer, extrapolation_factor, warp_and_fill
+
+__all__ = ["MvecConfig", "MvecState", "Mvec"]
+
+
+@dataclass(frozen=True)
+class MvecConfig:
+    """Options of ``mvec`` (``mvec[undilate=true]``)."""
+
+    undilate: bool = option(False, "undo FSR-style edge dilation of the vectors (a background pixel handed "
+                                   "the nearer neighbour's vector loses it)")
+    static_tolerance: float = option(DEFAULT_STATIC_TOLERANCE, "pixels: a vector this close to the camera's own "
+                                                               "motion marks a static surface")
+    depth_band: float = option(DEFAULT_DEPTH_BAND, "ratio > 1 within which frame n-k's depth at a vector's end "
+                                                   "is trusted as the point's previous depth")
+
+    def __post_init__(self) -> None:
+        if not (self.static_tolerance >= 0 and np.isfinite(self.static_tolerance)):
+            raise InputError(f"must be finite and >= 0, got {self.static_tolerance}", field="static_tolerance")
+        if not (self.depth_band > 1 and np.isfinite(self.depth_band)):
+            raise InputError(f"must be finite and > 1, got {self.depth_band}", field="depth_band")
+
+
+@dataclass
+class MvecState:
+    """``mvec``'s per-frame state: ``velocity`` (H, W, 3) scene units per frame interval n-k -> n in frame
+    n's camera axes, ``moving`` the flat indices of the pixels with a non-zero velocity."""
+
+    velocity: np.ndarray
+    moving: np.ndarray
+
+
+class Mvec(Predictor):
+    """Constant-velocity 3D extrapolation of the renderer's motion vectors (module docstring)."""
+
+    name = "mvec"
+    history_needed = 2
+
+    def __init__(self, config: Optional[MvecConfig] = None) -> None:
+        self.config = MvecConfig() if config is None else config
+
+    def _prepare(self, state: PreparedState, timer: Timer) -> MvecState:
+        older, newest = state.history[-2], state.history[-1]
+        if newest.motion_vectors is None:
+            raise InputError("method 'mvec' needs the renderer's motion vectors of the newest frame (rgbd-seq "
+                             "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'decomp' or 'auto'",
+                             frame=newest.index, field="motion_vectors")
+        with timer("vectors"):
+            vectors = upsample_motion_vectors(newest.motion_vectors, newest.depth)
+            if self.config.undilate:
+                vectors = undilate_motion_vectors(vectors, newest.depth)
+        with timer("velocity"):
+            velocity, count = scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
+                                             static_tolerance=self.config.static_tolerance,
+                                             band=self.config.depth_band)
+            moving = np.flatnonzero(np.any(velocity != 0, axis=-1)) if count else np.zeros(0, dtype=np.intp)
+        return MvecState(velocity, moving)
+
+    def object_flow(self, state: PreparedState) -> np.ndarray:
+        """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen
+        from frame n's camera: the 3D velocity reversed and projected), for the end-point error."""
+        newest = state.history[-1]
+        return extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics, -1.0,
+                                 state.data.moving)[..., :2]
+
+    def _render(self, state, target, timer):
+        newest = state.history[-1]
+        flow = None
+        if state.data.moving.size:
+            with timer("motion"):
+                flow = extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics,
+                                         extrapolation_factor(state, target), state.data.moving)
+        return warp_and_fill(newest, target, timer, flow)

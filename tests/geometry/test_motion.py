@@ -1,0 +1,165 @@
+"""Motion vectors of rigid scenes (``engine.geometry.motion``) and the compiled velocity kernel against its oracle."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine import geometry
+from engine.core.errors import InputError
+from engine.core.frames import Camera
+from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
+                                    rigid_motion_vectors, scene_velocity, undilate_motion_vectors,
+                                    upsample_motion_vectors)
+from engine.geometry.reference import scene_velocity_reference
+from tests.synthetic import rigid
+
+W, H = 48, 32
+K = np.array([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]])
+
+
+def _camera(angle=0.0, t=(0.0, 0.0, 0.0)) -> Camera:
+    return Camera(K, rigid([0, 1, 0], angle, t))
+
+
+def _depth(seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(2.0, 9.0, (H, W)).astype(np.float32)
+    d[:4] = np.inf  # sky band
+    return d
+
+
+def test_camera_vectors_are_the_reprojection_back_to_the_previous_camera():
+    depth, now, before = _depth(), _camera(0.02, (0.1, 0.0, 0.05)), _camera()
+    vectors = camera_motion_vectors(depth, now, before)
+    uv, _, valid = geometry.reproject(depth, now.intrinsics, now.world_to_camera, before.intrinsics,
+                                      before.world_to_camera)
+    pixels = geometry.pixel_centers(H, W)
+    np.testing.assert_allclose(vectors[valid], (uv - pixels)[valid], atol=2e-3)
+    # the sky moves with the rotation alone: the same vector for any depth of a sky pixel
+    assert np.all(np.isfinite(vectors[:4]))
+
+
+def test_object_motion_is_added_where_the_object_is():
+    depth = np.full((H, W), 5.0, np.float32)
+    ids = np.zeros((H, W), np.int32)
+    ids[10:20, 10:20] = 3
+    cam = _camera()
+    motion = np.eye(4)
+    motion[0, 3] = -0.5  # the object was 0.5 to the left in the previous frame
+    vectors = rigid_motion_vectors(depth, cam, cam, ids, {3: motion})
+    np.testing.assert_allclose(vectors[15, 15], [-0.5 * 40.0 / 5.0, 0.0], atol=1e-4)
+    np.testing.assert_allclose(vectors[0, 0], [0.0, 0.0], atol=1e-6)
+
+
+def test_a_point_behind_the_previous_camera_has_no_vector():
+    depth = np.full((H, W), 0.5, np.float32)
+    vectors = camera_motion_vectors(depth, _camera(), _camera(t=(0.0, 0.0, -1.0)))  # it stood 1 unit ahead
+    assert np.isnan(vectors).all()
+
+
+def test_composing_two_steps_equals_the_direct_vectors_on_a_plane():
+    depth = np.full((H, W), 4.0, np.float32)
+    a, b, c = _camera(t=(0.0, 0.0, 0.0)), _camera(t=(-0.1, 0.0, 0.0)), _camera(t=(-0.25, 0.0, 0.0))
+    direct = camera_motion_vectors(depth, c, a)
+    chained = compose_motion_vectors(camera_motion_vectors(depth, c, b), camera_motion_vectors(depth, b, a))
+    inside = np.isfinite(chained[..., 0])
+    assert inside.mean() > 0.8
+    np.testing.assert_allclose(chained[inside], direct[inside], atol=1e-4)
+    assert np.isnan(chained[~inside]).all()  # left the middle frame: unknown, not guessed
+
+
+def _velocity_inputs(seed=0):
+    rng = np.random.default_rng(seed)
+    depth = _depth(seed)
+    vectors = rng.normal(0, 3, (H, W, 2)).astype(np.float32)
+    vectors[5, :6] = np.nan
+    vectors[6, 0] = (1000.0, -1000.0)  # far off screen
+    vectors[7, :5] = 0.0
+    prev_depth = _depth(seed + 1)
+    now, before = _camera(0.03, (0.1, 0.05, 0.2)), _camera()
+    return depth, vectors, prev_depth, now, before
+
+
+def test_velocity_kernel_matches_its_numpy_oracle():
+    depth, vectors, prev_depth, now, before = _velocity_inputs()
+    fast, count = scene_velocity(depth, vectors, prev_depth, now, before)
+    rel = before.world_to_camera @ now.camera_to_world
+    slow = scene_velocity_reference(depth, vectors, prev_depth, np.linalg.inv(K), K, np.linalg.inv(K), rel[:3, :3],
+                                    rel[:3, 3], 1 / 32, 1.5)
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-5)
+    assert count == int(np.count_nonzero(np.any(slow != 0, axis=-1)))
+    assert np.all(np.isfinite(fast))
+    assert np.all(fast[:4] == 0) and np.all(fast[5, :6] == 0)  # sky and missing vectors do not move
+
+
+def test_a_static_scene_has_exactly_zero_velocity():
+    depth, now, before = _depth(), _camera(0.04, (0.2, 0.0, 0.1)), _camera()
+    vectors = camera_motion_vectors(depth, now, before)
+    velocity, count = scene_velocity(depth, vectors, _depth(3), now, before)
+    assert count == 0 and not velocity.any()
+
+
+def test_velocity_of_a_plane_approaching_a_moving_camera_is_exact():
+    # frame n: a plane at z = 3 (this camera); frame n-k: the same plane 0.6 farther and 0.2 to the left, seen
+    # by a camera that has since turned and moved
+    now, before = _camera(0.05, (0.1, 0.0, 0.0)), _camera()
+    depth = np.full((H, W), 3.0, np.float32)
+    motion = np.eye(4)
+    shift = np.array([-0.2, 0.0, 0.6])  # world-space displacement from now to before, in this camera's axes
+    motion[:3, 3] = now.camera_to_world[:3, :3] @ shift
+    vectors = rigid_motion_vectors(depth, now, before, np.ones((H, W), np.int32), {1: motion})
+    # the previous frame's depth where each point was
+    before_points = geometry.unproject(depth, K)[..., :3] + shift  # in this camera's axes
+    world = before_points @ now.camera_to_world[:3, :3].T + now.camera_to_world[:3, 3]
+    prev_z = (world @ before.world_to_camera[:3, :3].T + before.world_to_camera[:3, 3])[..., 2]
+    prev_depth = np.full((H, W), float(np.median(prev_z)), np.float32)  # a fronto-parallel plane there
+    velocity, count = scene_velocity(depth, vectors, prev_depth, now, before, band=2.0)
+    assert count > 0
+    inside = np.abs(prev_z - np.median(prev_z)) < 1e-3  # where the previous plane is exactly that depth
+    np.testing.assert_allclose(velocity[inside], np.broadcast_to(-shift, velocity[inside].shape), atol=2e-3)
+
+
+def test_extrapolated_flow_moves_points_in_3d_and_drops_those_crossing_the_camera():
+    depth = np.full((H, W), 2.0, np.float32)
+    velocity = np.zeros((H, W, 3), np.float32)
+    velocity[10, 10] = (0.1, 0.0, 0.0)
+    velocity[11, 11] = (0.0, 0.0, -3.0)  # through the camera plane within one step
+    flow = extrapolated_flow(depth, velocity, K, 1.0)
+    np.testing.assert_allclose(flow[10, 10], [0.1 * 40.0 / 2.0, 0.0, 0.0], atol=1e-4)
+    assert np.isnan(flow[11, 11]).all()
+    assert not flow[0, 0].any()
+
+
+def test_low_resolution_vectors_take_the_sample_of_their_own_surface():
+    depth = np.full((H, W), 8.0, np.float32)
+    depth[:, : W // 2 + 1] = 2.0  # a near surface on the left, one pixel past the half-resolution edge
+    small_depth = depth[1::2, 1::2]  # the surfaces at the small grid's sample centres, (2j + 1, 2i + 1)
+    small = np.zeros((H // 2, W // 2, 2), np.float32)
+    small[small_depth == 2.0] = (5.0, 0.0)
+    full = upsample_motion_vectors(small, depth)
+    assert full.shape == (H, W, 2)
+    np.testing.assert_array_equal(full[depth == 2.0], np.broadcast_to([5.0, 0.0], full[depth == 2.0].shape))
+    np.testing.assert_array_equal(full[depth == 8.0], 0.0)
+    with pytest.raises(InputError):
+        upsample_motion_vectors(np.zeros((H * 2, W, 2), np.float32), depth)
+
+
+def test_undilation_removes_the_foreground_vector_from_background_pixels_only():
+    depth = np.full((H, W), 8.0, np.float32)
+    depth[10:20, 10:20] = 2.0
+    truth = np.zeros((H, W, 2), np.float32)
+    truth[10:20, 10:20] = (6.0, -2.0)
+    # FSR-style dilation: every pixel takes the vector of the nearest surface of its 3x3 neighbourhood
+    dilated = truth.copy()
+    for y in range(H):
+        for x in range(W):
+            ys, xs = slice(max(y - 1, 0), y + 2), slice(max(x - 1, 0), x + 2)
+            win = depth[ys, xs]
+            j = np.unravel_index(np.argmin(win), win.shape)
+            dilated[y, x] = truth[ys, xs][j]
+    assert (dilated != truth).any()
+    fixed = undilate_motion_vectors(dilated, depth)
+    np.testing.assert_array_equal(fixed[10:20, 10:20], truth[10:20, 10:20])
+    ring = (dilated != truth).any(axis=-1)
+    assert np.isnan(fixed[ring]).all()
+    np.testing.assert_array_equal(fixed[~ring & (depth == 8.0)], 0.0)

@@ -235,7 +235,7 @@ def scale_object(m: dict) -> None:
 BAD_METADATA = [
     # (id, edit, field, frame index named in the message or None)
     ("format", set_top("format", "rgbd-sequence"), "format", None),
-    ("version", set_top("version", 2), "version", None),
+    ("version", set_top("version", 3), "version", None),
     ("version-string", set_top("version", "1"), "version", None),
     ("width-zero", set_top("width", 0), "width", None),
     ("width-string", set_top("width", "24"), "width", None),

@@ -101,17 +101,18 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     (the previous RENDERED frame when only every k-th frame is rendered), from a sequence whose stored
     ``motion.X/Y`` point one frame back.
 
-    Recomputed exactly (``rigid_motion_vectors``) where the sequence has its object transforms and the frame
-    its ``object_id`` channel; otherwise the stored vectors are chained frame by frame
+    Recomputed exactly (``rigid_motion_vectors``) where the frame has its ``object_id`` channel and the sequence
+    the transforms of every object it shows (none for a static scene); otherwise the stored vectors are chained frame by frame
     (``compose_motion_vectors``: exact where each intermediate frame sees the point, NaN where it does not).
     ``frame`` is the loaded frame at ``newest`` (read again when not given).
     """
     frame = sequence[newest] if frame is None else frame
     if newest - older == 1 and frame.motion_vectors is not None:
         return frame.motion_vectors
-    if sequence.objects and frame.object_id is not None:
+    known = {o.id for o in sequence.objects}
+    if frame.object_id is not None and set(np.unique(frame.object_id).tolist()) <= known | {0}:
         motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest])
-                   for o in sequence.objects if o.moving}
+                   for o in sequence.objects if o.moving}  # none listed and only id 0 seen: a static scene
         return rigid_motion_vectors(frame.depth, frame.camera, sequence.cameras[older], frame.object_id, motions)
     if frame.motion_vectors is None:
         raise InputError("has no motion vectors (channels motion.X/Y) to derive the vectors of 'mvec' from",
@@ -154,9 +155,9 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     if "oracle" in predictors and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
     with_vectors = any(isinstance(p, Mvec) for p in predictors.values())
-    if with_vectors and not has_vectors and not (sequence.objects and sequence.has_channel("object_id")):
-        raise InputError("method 'mvec' needs motion vectors (channels motion.X/Y) or the objects and object_id "
-                         "to derive them", file=sequence.path, field="motion_vectors")
+    if with_vectors and not has_vectors and not sequence.has_channel("object_id"):
+        raise InputError("method 'mvec' needs motion vectors (channels motion.X/Y), or object_id and the objects' "
+                         "transforms to derive them", file=sequence.path, field="motion_vectors")
     loops = {name: PredictionLoop(predictor) for name, predictor in predictors.items()}
     scores: dict[str, list] = {m: [] for m in methods}
     times: dict[str, list[float]] = {p: [] for p in predictors}

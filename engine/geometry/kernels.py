@@ -420,12 +420,14 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 
 
 @njit(cache=True, nogil=True)
-def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance, band,
-                   row_start, row_stop, out):
+def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance,
+                   relative_tolerance, band, row_start, row_stop, out, moving_out):
     """``engine.geometry.reference.scene_velocity_reference`` compiled, rows [``row_start``, ``row_stop``):
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
     point was in the previous frame to where it is now; 0 for sky, missing (NaN) vectors and pixels whose
-    vector is the camera's own (within ``static_tolerance`` px). Returns the number of moving pixels."""
+    vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
+    largest component); ``moving_out`` (H, W) bool marks the
+    others. Returns the number of moving pixels."""
     h, w = depth.shape
     hp, wp = prev_depth.shape
     moving = 0
@@ -434,6 +436,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             out[y, x, 0] = 0.0
             out[y, x, 1] = 0.0
             out[y, x, 2] = 0.0
+            moving_out[y, x] = False
             z = np.float64(depth[y, x])
             mx = np.float64(vectors[y, x, 0])
             my = np.float64(vectors[y, x, 1])
@@ -453,7 +456,8 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             qy = v + my
             su = (k_prev[0, 0] * sx + k_prev[0, 1] * sy) / sz + k_prev[0, 2]
             sv = k_prev[1, 1] * sy / sz + k_prev[1, 2]
-            if abs(qx - su) <= static_tolerance and abs(qy - sv) <= static_tolerance:
+            tolerance = static_tolerance + relative_tolerance * max(abs(mx), abs(my))
+            if abs(qx - su) <= tolerance and abs(qy - sv) <= tolerance:
                 continue
             # depth of the point in the previous frame: the 2x2 neighbour closest to the static guess sz
             d = sz
@@ -481,5 +485,6 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             out[y, x, 0] = px - bx
             out[y, x, 1] = py - by
             out[y, x, 2] = pz - bz
+            moving_out[y, x] = True
             moving += 1
     return moving

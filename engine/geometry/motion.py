@@ -20,8 +20,11 @@ __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vect
            "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "extrapolated_flow",
            "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
-#: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface.
+#: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
+#: ... plus this fraction of the vector's largest component: twice the rounding of a half float (engines
+#: often store vectors as RG16F), so a static surface's stored vector never reads as motion.
+RELATIVE_TOLERANCE = 2.0 ** -10
 #: The previous frame's depth at a vector's end is trusted within this ratio of the depth the point would
 #: have there had it not moved (else it belongs to another surface, e.g. an occluder).
 DEFAULT_DEPTH_BAND = 1.5
@@ -208,7 +211,7 @@ def undilate_motion_vectors(vectors: np.ndarray, depth: np.ndarray, depth_gap: f
 
 def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarray, camera: Camera,
                    previous: Camera, *, static_tolerance: float = DEFAULT_STATIC_TOLERANCE,
-                   band: float = DEFAULT_DEPTH_BAND) -> tuple[np.ndarray, int]:
+                   band: float = DEFAULT_DEPTH_BAND) -> tuple[np.ndarray, np.ndarray]:
     """The 3D motion of every pixel's surface point between two frames, from motion vectors and depth.
 
     For pixel p with depth z, ``P = z K^-1 p`` in this camera; its vector says where it was in the previous
@@ -221,12 +224,13 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
         depth: (H, W) planar depth of this frame, +inf for sky; vectors: (H, W, 2) current -> previous
             pixels, NaN for none; prev_depth: (h', w') planar depth of the previous frame.
         camera, previous: the two frames' cameras.
-        static_tolerance: pixels; a vector this close to the camera's own motion means a static surface.
+        static_tolerance: pixels; a vector this close to the camera's own motion (plus ``RELATIVE_TOLERANCE``
+            of its length, for half-float storage) means a static surface.
         band: ratio > 1 (see above).
 
     Returns:
         velocity (H, W, 3) float32 in this camera's axes (0 for sky, missing vectors and static pixels; a
-        static scene gives exactly 0), and the number of moving pixels.
+        static scene gives exactly 0), and the flat indices of the moving pixels (the others).
     """
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
@@ -239,11 +243,12 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
     args = (np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(prev_depth),
             np.linalg.inv(camera.intrinsics), np.ascontiguousarray(previous.intrinsics, dtype=np.float64),
             np.linalg.inv(previous.intrinsics), np.ascontiguousarray(relative[:3, :3]),
-            np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), float(band))
+            np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
     out = np.empty(depth.shape + (3,), dtype=np.float32)
+    moving = np.empty(depth.shape, dtype=bool)
     ranges = kernels.split_ranges(depth.shape[0], 64)
-    counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out), ranges)
-    return out, int(sum(counts))
+    counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out, moving), ranges)
+    return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))
 
 
 def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.ndarray, step: float,
@@ -251,7 +256,7 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     """The (H, W, 3) flow (du, dv pixels, dz planar depth) that moves each pixel's point P by ``step`` times
     its velocity (constant-velocity extrapolation in 3D, this camera's axes): ``P' = P + step * velocity``,
     flow = project(P') - (pixel centre, z). ``where`` (flat indices) limits the work to the pixels that
-    move (the rest get 0). A point that would reach or cross the camera plane gets NaN (the warp drops it).
+    move (the rest get 0; default: those with a non-zero velocity). A point that would reach or cross the camera plane gets NaN (the warp drops it).
     The result is the object flow of ``engine.geometry.forward_warp_frame``.
     """
     sizes: dict = {}

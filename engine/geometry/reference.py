@@ -190,7 +190,7 @@ def row_sources_reference(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
 
 def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarray, k_inv: np.ndarray,
                              k_prev: np.ndarray, k_prev_inv: np.ndarray, rot: np.ndarray, trans: np.ndarray,
-                             static_tolerance: float, band: float) -> np.ndarray:
+                             static_tolerance: float, relative_tolerance: float, band: float) -> np.ndarray:
     """numpy ``kernels.scene_velocity`` (whole frame): the oracle of the compiled kernel (float64 inside)."""
     h, w = depth.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
@@ -206,7 +206,8 @@ def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth:
     su = (k_prev[0, 0] * s[..., 0] + k_prev[0, 1] * s[..., 1]) / sz + k_prev[0, 2]
     sv = k_prev[1, 1] * s[..., 1] / sz + k_prev[1, 2]
     qx, qy = u + np.where(usable, mx, 0.0), v + np.where(usable, my, 0.0)
-    usable &= ~((np.abs(qx - su) <= static_tolerance) & (np.abs(qy - sv) <= static_tolerance))
+    tolerance = static_tolerance + relative_tolerance * np.maximum(np.abs(mx), np.abs(my))
+    usable &= ~((np.abs(qx - su) <= tolerance) & (np.abs(qy - sv) <= tolerance))
     hp, wp = prev_depth.shape
     d = sz.copy()
     best = np.full(depth.shape, np.log(band))

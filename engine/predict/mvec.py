@@ -81,10 +81,9 @@ class Mvec(Predictor):
             if self.config.undilate:
                 vectors = undilate_motion_vectors(vectors, newest.depth)
         with timer("velocity"):
-            velocity, count = scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
-                                             static_tolerance=self.config.static_tolerance,
-                                             band=self.config.depth_band)
-            moving = np.flatnonzero(np.any(velocity != 0, axis=-1)) if count else np.zeros(0, dtype=np.intp)
+            velocity, moving = scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
+                                              static_tolerance=self.config.static_tolerance,
+                                              band=self.config.depth_band)
         return MvecState(velocity, moving)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:

@@ -444,14 +444,15 @@ def _try_object(rng, cfg, b: _Builder, camera: CameraPath, kind: str, mat: int, 
     kw: dict = dict(kind=motion_kind, anchor=anchor, t_ref=b.t_mid, spin_axis=axis, spin_rate=float(spin * speed),
                     orientation=orientation)
     horizontal = np.array([1.0, 1.0, 0.0])
+    travel = cfg.object_travel
     if motion_kind == "linear":
         v = random_unit(rng) * (horizontal if grounded else np.array([1, 1, 0.3])) * rng.uniform(0.3, 3.0)
-        kw.update(velocity=v * speed)
+        kw.update(velocity=v * speed * travel)
     elif motion_kind == "wander":
-        amp = rng.uniform(0.3, 2.5, 3) * (horizontal if grounded else np.array([1, 1, 0.4]))
+        amp = rng.uniform(0.3, 2.5, 3) * (horizontal if grounded else np.array([1, 1, 0.4])) * travel
         kw.update(amplitude=amp, frequency=rng.uniform(0.4, 2.0, 3) * speed, phase=rng.uniform(0, 2 * np.pi, 3))
     elif motion_kind == "circle":
-        r = rng.uniform(0.5, 3.0)
+        r = rng.uniform(0.5, 3.0) * travel
         rate = float(rng.choice([-1, 1]) * rng.uniform(0.4, 2.0) * speed)
         kw.update(circle=(float(r), rate, float(rng.uniform(0, 2 * np.pi))))
     elif motion_kind == "approach":  # towards and away from the camera
@@ -464,7 +465,7 @@ def _try_object(rng, cfg, b: _Builder, camera: CameraPath, kind: str, mat: int, 
     elif motion_kind == "bounce":
         v = random_unit(rng) * horizontal * rng.uniform(0.0, 1.5)
         anchor[2] = floor
-        kw.update(anchor=anchor, velocity=v * speed,
+        kw.update(anchor=anchor, velocity=v * speed * travel,
                   hop=(float(rng.uniform(0.3, 1.5)), float(rng.uniform(2.0, 5.0) * speed),
                        float(rng.uniform(0, np.pi))))
     if rng.uniform() < cfg.pause_probability and b.duration > 0:

@@ -64,7 +64,11 @@ class SceneConfig:
     fps: float = option(30.0, "frames per second (frame i is at time i / fps)")
     seed: int = option(0, "random seed: the same seed gives the same scene and the same pixels")
     num_objects: tuple[int, int] = option((1, 6), "range of the number of moving objects")
-    object_speed: float = option(1.0, "scale of object speeds (linear and angular)")
+    object_speed: float = option(1.0, "scale of object speeds (linear and angular): the same paths run faster, "
+                                      "so oscillations and turns also come faster")
+    object_travel: float = option(1.0, "scale of the distances objects travel at unchanged rates (linear "
+                                       "velocities, wander amplitudes, circle radii, bounce drift): faster "
+                                       "objects on equally smooth paths; 1 keeps every seed's scene")
     pause_probability: float = option(0.2, "probability that an object stops for a while mid-sequence")
     camera_path: str = option("random", "camera path: random, " + ", ".join(CAMERA_PATHS))
     camera_speed: float = option(1.0, "scale of camera speeds")
@@ -95,6 +99,7 @@ class SceneConfig:
             (self.fps > 0, "fps must be > 0"),
             (0 <= self.num_objects[0] <= self.num_objects[1], "num_objects must be (low, high), 0 <= low <= high"),
             (self.object_speed >= 0 and self.camera_speed >= 0, "speeds must be >= 0"),
+            (math.isfinite(self.object_travel) and self.object_travel > 0, "object_travel must be > 0"),
             (self.camera_path == "random" or self.camera_path in CAMERA_PATHS,
              f"camera_path must be random or one of {', '.join(CAMERA_PATHS)}"),
             (self.lighting == "random" or self.lighting in LIGHTING_STYLES,

@@ -1,7 +1,8 @@
 """Small OpenEXR helpers over the ``OpenEXR`` 3.x package: channel dicts in, channel dicts out.
 
 Arrays are (H, W), row 0 at the top of the image (EXR scanline order). HALF and FLOAT channels are
-returned as float32; UINT channels as uint32. Only the first part of a multi-part file is read.
+returned as float32; UINT channels as uint32. Only the first part of a multi-part file is read, unless
+``read_exr(path, all_parts=True)`` (Blender 5 writes a multilayer EXR as one part per render pass).
 
 >>> write_exr("a.exr", {"R": r, "G": g, "B": b, "Z": z}, half={"R", "G", "B"})  # doctest: +SKIP
 >>> read_exr("a.exr")["Z"].dtype  # doctest: +SKIP
@@ -63,18 +64,31 @@ def read_exr_info(path: str | Path) -> ExrInfo:
     return ExrInfo(width=int(hi[0] - lo[0] + 1), height=int(hi[1] - lo[1] + 1), channels=names)
 
 
-def read_exr(path: str | Path) -> dict[str, np.ndarray]:
+def read_exr(path: str | Path, *, all_parts: bool = False) -> dict[str, np.ndarray]:
     """Read every channel of an EXR: name -> (H, W) array, float32 for HALF/FLOAT, uint32 for UINT.
 
+    ``all_parts``: read the channels of every part of a multi-part file, not only the first (channel names
+    must then be unique across parts, as in Blender's multilayer files, ``ViewLayer.Depth.Z``...; every
+    part must have the first part's size).
     Raises InputError naming the file if it is missing, not an EXR, or unreadable (e.g. truncated).
     """
     path = Path(path)
     _check_exr(path)
     try:
-        channels = OpenEXR.File(str(path), separate_channels=True).channels()
-        out = {name: ch.pixels for name, ch in channels.items()}
+        exr = OpenEXR.File(str(path), separate_channels=True)
+        parts = [[(name, ch.pixels) for name, ch in part.channels.items()]
+                 for part in (exr.parts if all_parts else exr.parts[:1])]
     except (RuntimeError, ValueError, OSError) as exc:
         raise InputError(f"cannot read EXR pixels: {_reason(exc)}", file=path) from None
+    out: dict[str, np.ndarray] = {}
+    for k, part in enumerate(parts):
+        for name, pixels in part:
+            if name in out:
+                raise InputError(f"channel {name!r} is in two parts (part {k} repeats it)", file=path, field=name)
+            if out and pixels.shape != next(iter(out.values())).shape:
+                raise InputError(f"part {k} is {pixels.shape[1]}x{pixels.shape[0]}, unlike part 0", file=path,
+                                 field=name)
+            out[name] = pixels
     return {name: (a.astype(np.float32) if a.dtype == np.float16 else a) for name, a in out.items()}
 
 

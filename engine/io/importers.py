@@ -6,7 +6,8 @@ read lazily, one frame at a time) and ``import_<layout>(src, dst, ...) -> Path``
 
 Every importer produces the conventions of :mod:`engine.core.frames`: OpenCV camera axes, rigid
 world-to-camera, pixel centres at +0.5, planar depth (+inf for sky), linear colour, flow to the next
-frame in pixels (x right, y down). Frame ``index`` is the file number minus the first file number and
+frame in pixels (x right, y down), motion vectors to the previous frame in pixels (x right, y down, NaN
+where there is none; only Blender's Vector pass gives them, see :func:`frames_from_blender`). Frame ``index`` is the file number minus the first file number and
 ``time = index / fps``. Depth values ``>= background_depth`` (default 1e9; Blender's renderers write 1e10
 where no surface is hit) become +inf; pass ``background_depth=None`` to keep them.
 
@@ -153,11 +154,36 @@ def frames_from_blender(cameras_json: str | Path, *, layer: str = "ViewLayer",
       distance along the optical axis (Cycles ``camera_z_depth``), not the distance along the ray.
       Values ``>= background_depth`` (Cycles writes 1e10 for background) become +inf. Panoramic cameras
       (where Blender writes ray distance) are not supported.
-    - ``<layer>.Vector.X/Y/Z/W`` (optional, the Vector pass): Blender image space, y up, in pixels. Per
-      Cycles' ``primitive_motion_vector``: ``XY = p_prev - p``, the vector towards the position in the
-      previous frame, and ``ZW = p - p_next``, the vector from the position in the next frame back to
-      this one. The format's flow is ``p_next - p`` with y down, so ``flow.x = -Z`` and ``flow.y = +W``
-      (negate ZW, then negate y for the y-down image).
+    - ``<layer>.Vector.X/Y/Z/W`` (optional, the Vector pass; Cycles writes it only with motion blur off).
+      Blender's manual (Render > View Layers > Passes, "Vector"): "the four components consist of 2D
+      vectors giving the motion towards the next and previous frame position in pixel space". Cycles
+      computes it in ``primitive_motion_vector`` (``intern/cycles/kernel/geom/primitive.h``): the
+      surface point P at the scene's frame - 1 and frame + 1 (object, deformation and camera motion
+      included) is projected with the previous / next camera's world-to-raster transform, then
+      ``motion_pre = raster_pre - raster(P)`` and ``motion_post = raster(P) - raster_post`` are returned
+      as ``(X, Y, Z, W) = (motion_pre.xy, motion_post.xy)``; raster y points UP (row 0 of Blender's
+      buffers is the bottom one). So ``XY = p_prev - p`` and ``ZW = p - p_next``, in pixels, y up.
+      Measured on a Cycles render (Blender 5.0.1, ``tools/blender_vector_check.py``, fixture
+      ``tests/io/data/blender_vectors``): a surface seen moving DOWN the image (rows increasing) towards
+      the current frame has ``Y > 0``, i.e. y up as the source says; ``(X, -Y)`` matches the exact
+      current -> previous vectors within 0.12 px (mean 0.001 px) on pixels away from object edges, and
+      ``(-Z, W)`` the exact vectors to the next frame as closely.
+
+      * ``motion_vectors`` (current -> previous, y down) ``= (X, -Y)``.
+      * ``flow`` (to the next frame, y down) ``= (-Z, +W)`` (negate ``ZW``, then negate y).
+      * Background: Cycles writes no vector where a camera ray hits the world (the pass is divided by
+        its per-pixel weight and is 0 where no sample hit a surface), and the Depth pass (one sample,
+        not anti-aliased) marks the pixel with 1e10 even where some anti-aliased samples hit a surface
+        (those pixels get the mean vector of the samples that did). The sky's real motion (the camera's
+        rotation) is therefore missing: ``motion_vectors`` are NaN wherever the depth is background
+        (``>= background_depth``, or 1e10 with ``background_depth=None``). ``flow`` keeps Cycles'
+        values there (0 for pure sky pixels), as before: it must be finite.
+      * The vectors point to the Blender frame ``number - 1``: a frame whose previous imported frame is
+        another one (a gap in the frame numbers, a frame step, a skipped render) gets no
+        ``motion_vectors`` (a warning names it). The first frame keeps its vectors (they point to the
+        frame before the sequence, as the scene generator's frame 0 does).
+
+      Blender 5 writes multilayer EXRs as one part per pass; every part is read.
 
     Camera JSON (this project's own, written by the script below)::
 
@@ -217,21 +243,33 @@ def frames_from_blender(cameras_json: str | Path, *, layer: str = "ViewLayer",
     def frames() -> Iterator[Frame]:
         names = {c: f"{layer}.{c}" for c in ("Combined.R", "Combined.G", "Combined.B", "Depth.Z")}
         vector = [f"{layer}.Vector.{c}" for c in "XYZW"]
+        previous_number = None
         for index, exr, world_to_camera, intrinsics in parsed:
-            ch = read_exr(exr)
+            number = numbers[0] + index
+            ch = read_exr(exr, all_parts=True)
             absent = [n for n in names.values() if n not in ch]
             if absent:
                 raise InputError(f"missing Blender pass channel(s) {absent}; channels present: {sorted(ch)} "
                                  f"(enable the Combined and Z passes; is the view layer named '{layer}'?)",
                                  file=exr, frame=index, field=absent[0])
-            depth = _background_to_inf(ch[names["Depth.Z"]], background_depth)
+            raw_depth = ch[names["Depth.Z"]]
+            depth = _background_to_inf(raw_depth, background_depth)
             height, width = depth.shape
-            flow = None
+            flow = motion = None
             if all(v in ch for v in vector):
                 flow = np.stack([-ch[vector[2]], ch[vector[3]]], axis=-1)
+                if previous_number is None and index != 0 or previous_number not in (None, number - 1):
+                    warnings.warn(f"{exr.name} (frame {number}): no motion vectors: Blender's point to frame "
+                                  f"{number - 1}, which is not the previous imported frame", stacklevel=2)
+                else:
+                    no_surface = raw_depth >= (BACKGROUND_DEPTH if background_depth is None else background_depth)
+                    motion = np.stack([ch[vector[0]], -ch[vector[1]]], axis=-1)
+                    motion[no_surface] = np.nan
             color = np.stack([ch[names[f"Combined.{c}"]] for c in "RGB"], axis=-1)
             frame = Frame(index=index, time=index / fps, color=color, depth=depth,
-                          camera=Camera(intrinsics(width, height), world_to_camera), flow=flow)
+                          camera=Camera(intrinsics(width, height), world_to_camera), flow=flow,
+                          motion_vectors=motion)
+            previous_number = number
             yield validate_frame(frame, file=exr)
 
     return ImportedFrames(frames=frames(), fps=fps, count=len(parsed))

@@ -1,7 +1,10 @@
 """Reference client of `interleave serve` (protocol version 1, ``engine/runtime/protocol.py``, ``docs/server.md``).
 
 It speaks the same bytes a C or C++ engine plugin would (``engine/runtime/include/interleave_protocol.h``):
-HELLO, then SUBMIT / PREDICT with the pixels in the server's shared-memory segment, RESET, BYE.
+HELLO, then SUBMIT / PREDICT with the pixels in the server's shared-memory segment, RESET, BYE. It speaks
+protocol version 2 (``Client(..., version=1)`` speaks version 1, as clients from before motion vectors do);
+``hello(..., motion=MotionPlane(...))`` opens a motion-vector plane, and ``submit(..., motion_vectors=)``
+writes each frame's vectors into it.
 
     >>> with Client("unix:/tmp/interleave.sock") as client:              # doctest: +SKIP
     ...     client.hello(SessionConfig(engine="opengl", width=640, height=360, method="reproject"))
@@ -27,7 +30,7 @@ import numpy as np
 
 from engine.core.errors import InterleaveError
 from engine.runtime import protocol as wire
-from engine.runtime.protocol import Layout, MessageType, Status
+from engine.runtime.protocol import Layout, MessageType, MotionPlane, Status
 from engine.runtime.server import Address, parse_address
 from engine.runtime.session import Session, SessionConfig, SubmitResult
 
@@ -71,9 +74,12 @@ class Client:
     Args:
         address: "unix:/path", a path, "tcp:PORT", or a parsed address.
         timeout: seconds to wait for any reply.
+        version: the protocol version of every request (``wire.VERSIONS``); motion vectors need 2.
     """
 
-    def __init__(self, address: Address | str, timeout: float = 30.0) -> None:
+    def __init__(self, address: Address | str, timeout: float = 30.0, version: int = wire.VERSION) -> None:
+        if version not in wire.VERSIONS:
+            raise InterleaveError(f"protocol version must be one of {wire.VERSIONS}, got {version}")
         addr = parse_address(address) if isinstance(address, str) else address
         if isinstance(addr, tuple):
             self.sock = socket.create_connection(addr, timeout=timeout)
@@ -82,6 +88,7 @@ class Client:
             self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             self.sock.settimeout(timeout)
             self.sock.connect(str(Path(addr)))
+        self.version = version
         self._next_id = 1
         self._frame = 0
         self._shm: Optional[shared_memory.SharedMemory] = None
@@ -89,6 +96,7 @@ class Client:
         self.config: Optional[SessionConfig] = None
         self.channels = 3
         self.column_major = False
+        self.motion: Optional[MotionPlane] = None
         self._views: dict[str, np.ndarray] = {}
 
     def __enter__(self) -> "Client":
@@ -116,7 +124,7 @@ class Client:
     def read_reply(self) -> tuple[int, int, int, bytes]:
         """(type, request_id, status, payload) of the next reply."""
         magic, version, type_, request_id, status, size = wire.HEADER.unpack(self._read_exact(wire.HEADER.size))
-        if magic != wire.MAGIC or version != wire.VERSION:
+        if magic != wire.MAGIC or version not in wire.VERSIONS:
             raise ConnectionError(f"not an interleave server reply (magic 0x{magic:08x}, version {version})")
         return type_, request_id, status, self._read_exact(size)
 
@@ -124,7 +132,7 @@ class Client:
         """Send one request; returns its request id (consecutive from 1 unless given)."""
         if request_id is None:
             request_id, self._next_id = self._next_id, self._next_id + 1
-        self.sock.sendall(wire.pack_header(type_, request_id, len(payload)) + payload)
+        self.sock.sendall(wire.pack_header(type_, request_id, len(payload), version=self.version) + payload)
         return request_id
 
     def request(self, type_: int, payload: bytes = b"") -> bytes:
@@ -139,8 +147,10 @@ class Client:
 
     # -- session ----------------------------------------------------------------------------------
 
-    def hello(self, config: SessionConfig, *, channels: int = 3, column_major: bool = False) -> Layout:
-        """Open a session with ``config``; ``channels`` (3 or 4) of colour in shared memory."""
+    def hello(self, config: SessionConfig, *, channels: int = 3, column_major: bool = False,
+              motion: Optional[MotionPlane] = None) -> Layout:
+        """Open a session with ``config``; ``channels`` (3 or 4) of colour in shared memory; ``motion``: a
+        motion-vector plane (protocol version 2) for vectors in ``config``'s ``motion_*`` conventions."""
         flags = ((wire.FLAG_FLIP_ROWS if config.flip_rows else 0) | (wire.FLAG_NDC_Y_DOWN if config.ndc_y_down else 0)
                  | (wire.FLAG_COLUMN_MAJOR if column_major else 0))
         payload = wire.HELLO.pack(
@@ -149,8 +159,17 @@ class Client:
             config.width, config.height, 0, channels, flags, 0,
             config.near, config.far, config.meters_per_unit, config.cut_translation, config.cut_rotation_deg,
             config.method.encode())
+        if motion is not None:
+            if self.version < 2:
+                raise InterleaveError("motion vectors need protocol version 2 (Client(..., version=2))")
+            payload += wire.MOTION.pack(
+                wire.MOTION_UNIT_CODES.index(config.motion_units),
+                wire.MOTION_DIRECTION_CODES.index(config.motion_direction),
+                wire.MOTION_Y_CODES.index(config.motion_y_up), wire.MOTION_CAMERA_CODES.index(config.motion_includes_camera),
+                wire.MOTION_MISSING_CODES.index(config.motion_missing), motion.width, motion.height, motion.channels,
+                wire.MOTION_FORMATS.index(motion.format), 0, *config.motion_scale)
         layout = Layout.unpack(self.request(MessageType.HELLO, payload))
-        self.config, self.channels, self.column_major = config, channels, column_major
+        self.config, self.channels, self.column_major, self.motion = config, channels, column_major, motion
         self._map(layout)
         return layout
 
@@ -169,6 +188,11 @@ class Client:
                        "depth": np.ndarray((h, w), np.float32, buffer=self._shm.buf, offset=layout.depth_offset),
                        "color_out": view(layout.color_out_offset, (h, w, c), self.config.color_out),
                        "holes": view(layout.holes_offset, (h, w))}
+        if layout.has_motion:
+            mh, mw = layout.motion_height, layout.motion_width
+            self._views["motion"] = np.ndarray((mh, mw, self.motion.channels), np.dtype(self.motion.format),
+                                               buffer=self._shm.buf, offset=layout.motion_offset)
+            self._views["motion_valid"] = view(layout.motion_valid_offset, (mh, mw))
 
     def _unmap(self) -> None:
         self._views = {}
@@ -190,12 +214,30 @@ class Client:
             v, p = v.T, p.T
         return wire.FRAME.pack(frame_id, time_s, *v.ravel(), *p.ravel())
 
-    def submit(self, color, depth, view, projection, time: float, *, frame_id: Optional[int] = None) -> SubmitResult:
-        """Write colour and depth into shared memory and submit them with their camera and time."""
+    def submit(self, color, depth, view, projection, time: float, *, frame_id: Optional[int] = None,
+               motion_vectors=None, motion_valid=None) -> SubmitResult:
+        """Write colour and depth (and the frame's motion vectors, and their valid mask, into the session's
+        motion plane) into shared memory and submit them with their camera and time."""
         color = np.asarray(color)
         self._views["color_in"][..., :min(color.shape[-1], self.channels)] = color[..., :self.channels]
         self._views["depth"][...] = depth
-        reply = self.request(MessageType.SUBMIT, self._frame_payload(frame_id, time, view, projection))
+        payload = self._frame_payload(frame_id, time, view, projection)
+        if motion_vectors is not None or motion_valid is not None:
+            if "motion" not in self._views:
+                raise InterleaveError("motion vectors need a motion plane: hello(..., motion=MotionPlane(...))")
+            plane, flags = self._views["motion"], wire.SUBMIT_VECTORS
+            vectors = np.asarray(motion_vectors)
+            if vectors.shape != plane.shape:
+                raise InterleaveError(f"motion_vectors must have the plane's shape {plane.shape}, got {vectors.shape}")
+            plane[...] = vectors
+            if motion_valid is not None:
+                mask = np.asarray(motion_valid)
+                if mask.shape != plane.shape[:2]:
+                    raise InterleaveError(f"motion_valid must have shape {plane.shape[:2]}, got {mask.shape}")
+                self._views["motion_valid"][...] = mask != 0
+                flags |= wire.SUBMIT_VALID
+            payload += wire.SUBMIT_MOTION.pack(flags, 0)
+        reply = self.request(MessageType.SUBMIT, payload)
         frame, reset, history = wire.SUBMIT_REPLY.unpack(reply)
         return SubmitResult(frame=frame, reset=wire.RESET_CODES[reset], history=history)
 
@@ -210,9 +252,16 @@ class Client:
             color, holes = color.copy(), holes.astype(bool)
         return ClientPrediction(color, holes, wire.cstring(method), wire.FALLBACK_CODES[fallback], frame, server_ms)
 
-    def reset(self, width: Optional[int] = None, height: Optional[int] = None) -> Layout:
-        """Clear the session's history; a new size moves the pixels to a new segment (remapped here)."""
-        layout = Layout.unpack(self.request(MessageType.RESET, wire.RESET.pack(width or 0, height or 0)))
+    def reset(self, width: Optional[int] = None, height: Optional[int] = None,
+              motion_size: Optional[tuple[int, int]] = None) -> Layout:
+        """Clear the session's history; a new size moves the pixels to a new segment (remapped here).
+        ``motion_size``: the motion plane's new (width, height) ((0, 0): the frame's); else it is kept."""
+        payload = wire.RESET.pack(width or 0, height or 0)
+        if motion_size is not None:
+            payload += wire.RESET_MOTION.pack(*motion_size)
+        layout = Layout.unpack(self.request(MessageType.RESET, payload))
+        if motion_size is not None:
+            self.motion = MotionPlane(*motion_size, self.motion.channels, self.motion.format)
         self._map(layout)
         return layout
 

@@ -5,6 +5,9 @@ server answers with a shared-memory segment's name and layout; then for each ren
 writes colour and depth into the segment and sends SUBMIT (pose, time), and for each frame in between it
 sends PREDICT (pose, time) and reads the predicted colour and hole mask from the segment. RESET clears
 the history (and may change the frame size, which moves to a new segment); BYE ends the session.
+Protocol version 2 adds an optional motion-vector plane: HELLO carries its conventions and size, a SUBMIT
+says whether the plane holds the frame's vectors (and their valid mask); version-1 clients are answered in
+version 1, unchanged.
 Wire format: ``engine/runtime/protocol.py``, ``engine/runtime/include/interleave_protocol.h``, ``docs/server.md``.
 
 Robustness: each connection runs in its own thread. A malformed message gets an error reply with a
@@ -35,9 +38,9 @@ import numpy as np
 
 from engine.core.config import option, parse_value
 from engine.core.errors import InputError, InterleaveError
-from engine.predict.registry import DECOMP_WEIGHTS, method_parts, method_with
+from engine.predict.registry import DECOMP_WEIGHTS, make_predictor, method_parts, method_with
 from engine.runtime import protocol as wire
-from engine.runtime.protocol import MessageType, Status
+from engine.runtime.protocol import MessageType, MotionPlane, Status
 from engine.runtime.session import NotReadyError, Session, SessionConfig
 
 Address = Union[str, Path, tuple]
@@ -139,7 +142,8 @@ class _Segment:
     The name is random and created exclusively, readable and writable by the server's user only.
     """
 
-    def __init__(self, config: SessionConfig, channels: int, width: int, height: int) -> None:
+    def __init__(self, config: SessionConfig, channels: int, width: int, height: int,
+                 motion: Optional[MotionPlane] = None) -> None:
         for _ in range(8):
             name = f"interleave-{os.getpid()}-{secrets.token_hex(8)}"
             try:
@@ -150,7 +154,7 @@ class _Segment:
         else:
             raise _ProtocolError(Status.INTERNAL, "could not create a shared-memory segment with a fresh name")
         self.path = SHM_DIR / name
-        self.layout = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out)
+        self.layout = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out, motion)
         try:
             os.ftruncate(self.fd, self.layout.shm_size)
         except OSError as exc:
@@ -158,6 +162,7 @@ class _Segment:
             raise _ProtocolError(Status.INTERNAL, f"could not size the shared-memory segment ({exc.strerror})")
         self.channels = channels
         self.config = config
+        self.motion = motion
 
     def read(self, offset: int, shape: tuple, dtype) -> np.ndarray:
         """A private copy of the region at ``offset``; BAD_INPUT if the client shrank the segment."""
@@ -213,12 +218,14 @@ class _Connection:
             got += n
         return got
 
-    def _send(self, type_: int, request_id: int, payload: bytes = b"", status: int = Status.OK) -> None:
-        self.sock.sendall(wire.pack_header(type_, request_id, len(payload), status) + payload)
+    def _send(self, type_: int, request_id: int, payload: bytes = b"", status: int = Status.OK,
+              version: int = wire.VERSION_MIN) -> None:
+        self.sock.sendall(wire.pack_header(type_, request_id, len(payload), status, version) + payload)
 
-    def _send_error(self, type_: int, request_id: int, status: Status, text: str) -> None:
+    def _send_error(self, type_: int, request_id: int, status: Status, text: str,
+                    version: int = wire.VERSION_MIN) -> None:
         try:
-            self._send(type_, request_id, text.encode("utf-8")[:4096], status)
+            self._send(type_, request_id, text.encode("utf-8")[:4096], status, version)
         except OSError:
             pass
 
@@ -239,36 +246,39 @@ class _Connection:
                     self._send_error(MessageType.ERROR, request_id, Status.BAD_MAGIC,
                                      f"bad magic 0x{magic:08x}, expected 0x{wire.MAGIC:08x} (b'INTL')")
                     return
-                if version != wire.VERSION:
+                if version not in wire.VERSIONS:
                     self._send_error(MessageType.ERROR, request_id, Status.BAD_VERSION,
-                                     f"protocol version {version} is not supported; this server speaks {wire.VERSION}")
+                                     f"protocol version {version} is not supported; this server speaks "
+                                     f"{', '.join(map(str, wire.VERSIONS))}")
                     return
                 reply_type = (type_ | MessageType.REPLY) & 0xFFFF
                 if size > wire.MAX_PAYLOAD:
                     self._send_error(reply_type, request_id, Status.TOO_LARGE,
-                                     f"payload_size {size} exceeds the limit {wire.MAX_PAYLOAD}")
+                                     f"payload_size {size} exceeds the limit {wire.MAX_PAYLOAD}", version)
                     return
                 payload = bytearray(size)
                 got = self._read_into(memoryview(payload))
                 if got < size:
                     self._send_error(reply_type, request_id, Status.TRUNCATED,
-                                     f"truncated message: {got} of {size} payload bytes before the stream ended")
+                                     f"truncated message: {got} of {size} payload bytes before the stream ended",
+                                     version)
                     return
                 try:
-                    reply = self._handle(type_, bytes(payload))
+                    reply = self._handle(type_, bytes(payload), version)
                 except _ProtocolError as exc:
-                    self._send_error(reply_type, request_id, exc.status, exc.text)
+                    self._send_error(reply_type, request_id, exc.status, exc.text, version)
                     continue
                 except NotReadyError as exc:
-                    self._send_error(reply_type, request_id, Status.NOT_READY, str(exc))
+                    self._send_error(reply_type, request_id, Status.NOT_READY, str(exc), version)
                     continue
                 except InterleaveError as exc:
-                    self._send_error(reply_type, request_id, Status.BAD_INPUT, str(exc))
+                    self._send_error(reply_type, request_id, Status.BAD_INPUT, str(exc), version)
                     continue
                 except Exception as exc:  # noqa: BLE001 - the server must outlive any one request
-                    self._send_error(reply_type, request_id, Status.INTERNAL, f"{type(exc).__name__}: {exc}")
+                    self._send_error(reply_type, request_id, Status.INTERNAL, f"{type(exc).__name__}: {exc}",
+                                     version)
                     continue
-                self._send(reply_type, request_id, reply)
+                self._send(reply_type, request_id, reply, version=version)
                 if type_ == MessageType.BYE:
                     return
         except OSError:
@@ -289,28 +299,60 @@ class _Connection:
 
     # -- messages ---------------------------------------------------------------------------------
 
-    def _handle(self, type_: int, payload: bytes) -> bytes:
-        handlers: dict[int, tuple[Optional[int], Callable[[bytes], bytes]]] = {
-            MessageType.HELLO: (wire.HELLO.size, self._hello),
-            MessageType.SUBMIT: (wire.FRAME.size, self._submit),
-            MessageType.PREDICT: (wire.FRAME.size, self._predict),
-            MessageType.RESET: (wire.RESET.size, self._reset),
-            MessageType.BYE: (0, lambda _: b""),
+    def _handle(self, type_: int, payload: bytes, version: int) -> bytes:
+        v2 = version >= 2  # version 2: an optional motion extension after the version-1 payload
+        handlers: dict[int, tuple[tuple[int, ...], Callable[[bytes, int], bytes]]] = {
+            MessageType.HELLO: ((wire.HELLO.size,) + ((wire.HELLO.size + wire.MOTION.size,) if v2 else ()),
+                                self._hello),
+            MessageType.SUBMIT: ((wire.FRAME.size,) + ((wire.FRAME.size + wire.SUBMIT_MOTION.size,) if v2 else ()),
+                                 self._submit),
+            MessageType.PREDICT: ((wire.FRAME.size,), self._predict),
+            MessageType.RESET: ((wire.RESET.size,) + ((wire.RESET.size + wire.RESET_MOTION.size,) if v2 else ()),
+                                self._reset),
+            MessageType.BYE: ((0,), lambda _, __: b""),
         }
         if type_ not in handlers:
             raise _ProtocolError(Status.UNKNOWN_TYPE, f"unknown message type {type_}; expected one of "
                                  + ", ".join(f"{t.name}={int(t)}" for t in MessageType if t < MessageType.REPLY))
-        size, handler = handlers[type_]
-        if len(payload) != size:
-            raise _ProtocolError(Status.BAD_SIZE, f"{MessageType(type_).name} takes a {size}-byte payload, "
+        sizes, handler = handlers[type_]
+        if len(payload) not in sizes:
+            raise _ProtocolError(Status.BAD_SIZE, f"{MessageType(type_).name} takes a "
+                                 f"{' or '.join(map(str, sizes))}-byte payload in protocol version {version}, "
                                  f"got {len(payload)}")
         if type_ in (MessageType.SUBMIT, MessageType.PREDICT, MessageType.RESET) and self.session is None:
             raise _ProtocolError(Status.NO_SESSION, f"{MessageType(type_).name} before HELLO: no session")
-        return handler(payload)
+        return handler(payload, version)
 
-    def _hello(self, payload: bytes) -> bytes:
+    @staticmethod
+    def _motion_fields(raw: bytes, width: int, height: int) -> tuple[dict, MotionPlane]:
+        """il_motion -> SessionConfig's motion fields and the plane; BAD_INPUT naming the field."""
+        (units, direction, y_axis, camera, missing, mw, mh, channels, fmt, _reserved,
+         scale_x, scale_y) = wire.MOTION.unpack(raw)
+        for name, value, codes in (("units", units, wire.MOTION_UNIT_CODES),
+                                   ("direction", direction, wire.MOTION_DIRECTION_CODES),
+                                   ("y_axis", y_axis, wire.MOTION_Y_CODES),
+                                   ("camera", camera, wire.MOTION_CAMERA_CODES),
+                                   ("missing", missing, wire.MOTION_MISSING_CODES),
+                                   ("format", fmt, wire.MOTION_FORMATS)):
+            if value >= len(codes):
+                raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field '{name}': code {value} is not one of "
+                                                       f"0..{len(codes) - 1}")
+        if channels not in (2, 3, 4):
+            raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field 'channels' must be 2, 3 or 4, got {channels}")
+        if not (mw <= width and mh <= height) or (mw == 0) != (mh == 0):
+            raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field 'width', 'height': the plane is {mw}x{mh}; "
+                                                   f"it must be at most the frame's {width}x{height}, or 0x0 for "
+                                                   "the frame's size")
+        fields = dict(motion_units=wire.MOTION_UNIT_CODES[units], motion_direction=wire.MOTION_DIRECTION_CODES[direction],
+                      motion_y_up=wire.MOTION_Y_CODES[y_axis], motion_includes_camera=wire.MOTION_CAMERA_CODES[camera],
+                      motion_missing=wire.MOTION_MISSING_CODES[missing],
+                      motion_scale=(scale_x if scale_x != 0 else 1.0, scale_y if scale_y != 0 else 1.0))
+        return fields, MotionPlane(mw, mh, channels, wire.MOTION_FORMATS[fmt])
+
+    def _hello(self, payload: bytes, version: int) -> bytes:
         (engine, depth, color_in, color_out, width, height, _reserved, channels, flags, _,
-         near, far, meters_per_unit, cut_translation, cut_rotation, method) = wire.HELLO.unpack(payload)
+         near, far, meters_per_unit, cut_translation, cut_rotation, method) = wire.HELLO.unpack(
+            payload[:wire.HELLO.size])
         for name, value, codes in (("engine", engine, wire.ENGINE_CODES),
                                    ("depth_convention", depth, wire.DEPTH_CODES),
                                    ("color_in", color_in, wire.COLOR_CODES),
@@ -325,19 +367,24 @@ class _Connection:
         if flags & ~wire.KNOWN_FLAGS:
             raise _ProtocolError(Status.BAD_INPUT,
                                  f"HELLO field 'flags' has unknown bits 0x{flags & ~wire.KNOWN_FLAGS:x}")
+        motion_fields, plane = {}, None
+        if len(payload) > wire.HELLO.size:
+            motion_fields, plane = self._motion_fields(payload[wire.HELLO.size:], width, height)
         config = SessionConfig(
             engine=wire.ENGINE_CODES[engine], width=width, height=height, depth_convention=wire.DEPTH_CODES[depth],
             near=near, far=far, meters_per_unit=meters_per_unit, ndc_y_down=bool(flags & wire.FLAG_NDC_Y_DOWN),
             flip_rows=bool(flags & wire.FLAG_FLIP_ROWS), color_in=wire.COLOR_CODES[color_in],
-            color_out=wire.COLOR_CODES[color_out],
-            method=with_server_models(wire.cstring(method) or "reproject", self.server.models),
+            color_out=wire.COLOR_CODES[color_out], method=wire.cstring(method) or "reproject",
             cut_translation=cut_translation if cut_translation > 0 else SessionConfig.cut_translation,
-            cut_rotation_deg=cut_rotation if cut_rotation > 0 else SessionConfig.cut_rotation_deg)
-        session = Session(config)
-        self._replace_segment(_Segment(config, channels, width, height))
+            cut_rotation_deg=cut_rotation if cut_rotation > 0 else SessionConfig.cut_rotation_deg, **motion_fields)
+        if plane is not None:
+            config.motion_conventions()  # an engine without defaults (OpenGL) must state them now
+        models = self.server.models
+        session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)))
+        self._replace_segment(_Segment(config, channels, width, height, plane))
         self.session = session
         self.column_major = bool(flags & wire.FLAG_COLUMN_MAJOR)
-        return self.segment.layout.pack()
+        return self.segment.layout.pack(version)
 
     def _check_size(self, width: int, height: int) -> None:
         if not (1 <= width <= wire.MAX_SIDE and 1 <= height <= wire.MAX_SIDE):
@@ -361,16 +408,35 @@ class _Connection:
             view, projection = view.T, projection.T
         return frame_id, time_s, view, projection
 
-    def _submit(self, payload: bytes) -> bytes:
-        frame_id, time_s, view, projection = self._pose(payload)
+    def _submit(self, payload: bytes, version: int) -> bytes:
+        frame_id, time_s, view, projection = self._pose(payload[:wire.FRAME.size])
         seg, lay = self.segment, self.segment.layout
+        flags = 0
+        if len(payload) > wire.FRAME.size:
+            flags, _reserved = wire.SUBMIT_MOTION.unpack(payload[wire.FRAME.size:])
+        if flags & ~wire.KNOWN_SUBMIT_FLAGS:
+            raise _ProtocolError(Status.BAD_INPUT, f"frame {frame_id}: SUBMIT motion field 'flags' has unknown bits "
+                                                   f"0x{flags & ~wire.KNOWN_SUBMIT_FLAGS:x}")
+        if flags and seg.motion is None:
+            raise _ProtocolError(Status.BAD_INPUT, f"frame {frame_id}: SUBMIT carries motion vectors but the session "
+                                                   "has no motion plane (HELLO without il_motion)")
+        if flags == wire.SUBMIT_VALID:
+            raise _ProtocolError(Status.BAD_INPUT, f"frame {frame_id}: SUBMIT has a valid mask without vectors")
         dtype = np.uint8 if seg.config.color_in == "srgb8" else np.float32
         color = seg.read(lay.color_in_offset, (lay.height, lay.width, seg.channels), dtype)
         depth = seg.read(lay.depth_offset, (lay.height, lay.width), np.float32)
-        result = self.session.submit(color, depth, view, projection, time_s, frame=frame_id, copy=False)
+        vectors = valid = None
+        if flags & wire.SUBMIT_VECTORS:
+            shape = (lay.motion_height, lay.motion_width)
+            vectors = seg.read(lay.motion_offset, shape + (seg.motion.channels,),
+                               np.float16 if seg.motion.format == "float16" else np.float32)
+            if flags & wire.SUBMIT_VALID:
+                valid = seg.read(lay.motion_valid_offset, shape, np.uint8) != 0
+        result = self.session.submit(color, depth, view, projection, time_s, frame=frame_id, copy=False,
+                                     motion_vectors=vectors, motion_valid=valid)
         return wire.SUBMIT_REPLY.pack(result.frame, wire.RESET_CODES.index(result.reset), result.history)
 
-    def _predict(self, payload: bytes) -> bytes:
+    def _predict(self, payload: bytes, version: int) -> bytes:
         frame_id, time_s, view, projection = self._pose(payload)
         start = time.perf_counter()
         out = self.session.predict(view, projection, time_s, frame=frame_id)
@@ -386,18 +452,30 @@ class _Connection:
         return wire.PREDICT_REPLY.pack(out.frame, wire.FALLBACK_CODES.index(out.fallback), int(out.holes.sum()),
                                        elapsed, out.method.encode()[:31])
 
-    def _reset(self, payload: bytes) -> bytes:
-        width, height = wire.RESET.unpack(payload)
-        session = self.session
+    def _reset(self, payload: bytes, version: int) -> bytes:
+        width, height = wire.RESET.unpack(payload[:wire.RESET.size])
+        session, plane = self.session, self.segment.motion
         width, height = width or session.width, height or session.height
         self._check_size(width, height)
-        if (width, height) != (session.width, session.height):
-            segment = _Segment(session.config, self.segment.channels, width, height)
+        if len(payload) > wire.RESET.size:
+            mw, mh = wire.RESET_MOTION.unpack(payload[wire.RESET.size:])
+            if plane is None:
+                raise _ProtocolError(Status.BAD_INPUT, "RESET gives a motion plane size but the session has no "
+                                                       "motion plane (HELLO without il_motion)")
+            plane = MotionPlane(mw, mh, plane.channels, plane.format)
+        if plane is not None and (not (plane.width <= width and plane.height <= height)
+                                  or (plane.width == 0) != (plane.height == 0)):
+            raise _ProtocolError(Status.BAD_INPUT, f"RESET motion field 'width', 'height': the plane is "
+                                                   f"{plane.width}x{plane.height}; it must be at most the frame's "
+                                                   f"{width}x{height}, or 0x0 for the frame's size (RESET takes "
+                                                   "il_reset_motion in version 2)")
+        if (width, height) != (session.width, session.height) or plane != self.segment.motion:
+            segment = _Segment(session.config, self.segment.channels, width, height, plane)
             session.reset(width=width, height=height)
             self._replace_segment(segment)
         else:
             session.reset()
-        return self.segment.layout.pack()
+        return self.segment.layout.pack(version)
 
 
 

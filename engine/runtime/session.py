@@ -37,6 +37,73 @@ float or sRGB-encoded uint8 (``color_in``), with 3 or 4 channels (alpha is ignor
 unless ``flip_rows`` (bottom-up readbacks such as ``glReadPixels``: inputs are flipped on submit and
 outputs flipped back, so the caller sees its own row order everywhere).
 
+Motion vectors (optional, ``submit(..., motion_vectors=, motion_valid=)``) are the engine's own buffer:
+(h, w, 2), or (h, w, 3) / (h, w, 4) of which only the first two channels (x, y) are read (the RG of an
+RGB(A) texture), float16/32/64, at the frame's resolution or lower (h <= H, w <= W: vectors rendered at a
+lower resolution, FSR/DLSS render resolution). Sample (i, j) of a lower-resolution buffer belongs to the
+full-resolution point ((j + 0.5) W / w, (i + 0.5) H / h). ``flip_rows`` reverses their rows as it does
+colour's. The session converts them with :func:`engine.conventions.motion_vectors_to_previous` into
+``Frame.motion_vectors`` (pixels of the full resolution, x right, y down, from each pixel centre to where
+its surface point was in the previous *submitted* frame): first ``motion_scale`` (x, y), then the units
+(``"pixels"`` of the vector buffer, rescaled by (W / w, H / h); ``"uv"``: the viewport spans 1; ``"ndc"``:
+it spans 2), then ``motion_y_up`` (y is negated when it points to the top of the picture; this describes
+the picture, not the memory rows, so a bottom-up readback needs ``flip_rows`` and the same ``motion_y_up``)
+and ``motion_direction`` (``"previous"``: from this pixel to where the point was; ``"next"``: the reverse,
+previous -> current, the motion since the previous frame; negated, which is exact). With
+``motion_includes_camera=False`` (object motion only) the session adds the motion the camera alone causes
+(:func:`engine.geometry.motion.camera_motion_vectors` from this frame's depth, this camera and the previous
+submitted frame's camera, at the vector samples' positions). A pixel without a vector (NaN in the buffer,
+or False in ``motion_valid``, an (h, w) bool mask) stays NaN, or with ``motion_missing="camera"`` gets the
+camera's motion (a static surface). Each engine's own buffer, as its renderer writes it (``""`` / ``None``
+in a ``motion_*`` field means this default):
+
+======  ======  =====  ===========  ======  ========  ==================================================
+engine  units   y      direction    camera  missing   source
+======  ======  =====  ===========  ======  ========  ==================================================
+unity   uv      up     next         yes     none      ``_CameraMotionVectorsTexture`` /
+                                                      ``_MotionVectorTexture`` (RGHalf, "encoded in
+                                                      screen UV space"); the URP manual: "subtract the
+                                                      motion vector ... from its current UV" to get last
+                                                      frame's UV; URP ``CalcNdcMotionVectorFromCsPositions``
+                                                      = (posNDC - prevPosNDC) * 0.5, y flipped back where
+                                                      ``UNITY_UV_STARTS_AT_TOP``; camera pass + object pass
+unreal  ndc     up     next         yes     camera    ``DecodeVelocityFromTexture(...).xy`` of the velocity
+                                                      buffer (``Common.ush``; it undoes
+                                                      ``EncodeVelocityToTexture``'s bias, scale and, SM5+,
+                                                      ``VELOCITY_ENCODE_GAMMA``): ``Calculate3DVelocity`` =
+                                                      ScreenPos now - ScreenPos before, jitter removed.
+                                                      Static geometry is not written (the clear value 0,
+                                                      which TAA/TSR fill with camera motion from depth):
+                                                      mark those pixels False in ``motion_valid``
+godot   uv      down   previous     yes     none      Godot 4 velocity texture (``scene_forward_clustered
+                                                      .glsl``: ``motion_vector = prev_position_uv -
+                                                      position_uv``, uv = clip.xy / w * 0.5 in
+                                                      RenderingDevice clip space, y down); Godot hands it
+                                                      to FSR 2 with ``motionVectorScale`` = render size
+opencv  pixels  down   previous     yes     none      Interleave's own ``Frame.motion_vectors``
+opengl  --      --     --           yes     none      no engine buffer: ``motion_units``, ``motion_y_up``
+                                                      and ``motion_direction`` must be set
+======  ======  =====  ===========  ======  ========  ==================================================
+
+Upscaler-ready buffers: FSR 2/3 take "the motion from a pixel in the current frame to the position of
+that same pixel in the previous frame" in render-resolution pixels, y down, after ``motionVectorScale``:
+``motion_units="pixels"``, ``motion_direction="previous"``, ``motion_y_up=False``, ``motion_scale`` = the
+``motionVectorScale`` the game gives FSR. DLSS (Streamline ``sl::Constants``): ``mvecScale`` "normalize[s]
+motion vectors (so the values are in [-1,1] range)", i.e. into uv units: ``motion_units="uv"``,
+``motion_scale`` = the ``mvecScale``, ``motion_includes_camera`` = ``cameraMotionIncluded``; set
+``motion_direction`` and ``motion_y_up`` to what the game's buffer holds (not established here). Remove
+TAA jitter from the vectors (engines and upscalers expect unjittered vectors). A vector buffer whose
+values are encoded (UNORM, Unreal's velocity texture) must be decoded to floats first.
+
+Vectors point into the previous submitted frame, so a frame whose history was just reset (the first
+frame, after ``reset()``, a camera cut, time going backwards) enters the history without vectors: they
+would point into a frame the predictor does not have (``stats["motion_vectors"]["dropped"]``).
+
+``method="auto"`` picks, per submitted frame, ``mvec`` (the renderer's motion vectors) when the frame
+enters the history with motion vectors and ``decomp`` when it does not (``engine.predict.resolve_auto``);
+the choice can change at any submit (both keep the same two-frame history), and
+``SessionPrediction.method`` says which one predicted.
+
 Hard cases, and what the session does:
 
 - **Camera cut**: a submitted frame whose pose differs from the previous one by more than
@@ -53,9 +120,12 @@ Hard cases, and what the session does:
   naming the frame and both sizes; ``reset(width=..., height=...)`` changes the size (and clears the
   history). A wrong-size buffer is far more often a bug than a deliberate change.
 - **Bad values**: NaN or inf in colour, negative colour, NaN / out-of-range depth-buffer values,
-  non-rigid or non-finite poses are rejected with an ``InputError`` naming the frame (the caller's
-  ``frame`` number, or the session's submit counter) and its time; the history is left as it was.
-  Reversed-Z depth 0 (the far clear value) is sky (``+inf``), not an error.
+  non-rigid or non-finite poses, infinite motion vectors (NaN is "no vector"), vectors longer than
+  ``engine.core.frames.MAX_MOTION_DIAGONALS`` frame diagonals once converted (wrong units or scale), a
+  vector buffer of the wrong shape, dtype or channel count or larger than the frame are rejected with an
+  ``InputError`` naming the frame (the caller's ``frame`` number, or the session's submit counter), the
+  field and its time; the history is left as it was. Reversed-Z depth 0 (the far clear value) is sky
+  (``+inf``), not an error.
 
 Thread-safety: a ``Session`` may be called from several threads (e.g. ``submit`` from the render thread,
 ``predict`` from the present thread). Input conversion and validation run without a lock; one lock
@@ -67,8 +137,8 @@ change: colour ``float32`` (H, W, 3) or (H, W, 4) with ``color_in="linear"``, an
 (H, W) with ``depth_convention="linear"``, ``far=inf`` and a unit scale of 1 (the alpha channel is
 dropped and ``flip_rows`` applied as views, also without a copy). The session holds them until they
 leave the history (at the next submit, or the one after for two-frame methods): do not write into a
-submitted array before that, or pass ``copy=True``. Every other input is converted into a new array.
-Returned arrays are always new.
+submitted array before that, or pass ``copy=True``. Every other input (motion vectors always) is
+converted into a new array. Returned arrays are always new.
 
 Example:
     >>> import numpy as np
@@ -84,21 +154,24 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
 from engine import conventions
+from engine.conventions import MOTION_DIRECTIONS, MOTION_UNITS
 from engine.core.colorspace import display_encode, srgb_to_linear
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
-from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
-                                validate_pose)
-from engine.predict import Repeat, Target, make_predictor
+from engine.core.frames import (MAX_MOTION_DIAGONALS, Camera, Frame, rigid_inverse, validate_color, validate_depth,
+                                validate_intrinsics, validate_motion_vectors, validate_pose)
+from engine.geometry.motion import camera_motion_vectors
+from engine.predict import Predictor, Repeat, Target, make_predictor
+from engine.predict.registry import AUTO, resolve_auto
 from engine.runtime.stream import PredictionLoop
 
-__all__ = ["ENGINES", "COLOR_SPACES", "SessionConfig", "Session", "SubmitResult", "SessionPrediction",
-           "NotReadyError", "engine_camera"]
+__all__ = ["ENGINES", "COLOR_SPACES", "MOTION_MISSING", "ENGINE_MOTION", "SessionConfig", "MotionConventions",
+           "Session", "SubmitResult", "SessionPrediction", "NotReadyError", "engine_camera"]
 
 #: Engines whose view / projection ``Session`` understands (see the module docstring for each one's form).
 ENGINES = ("opencv", "opengl", "unity", "unreal", "godot")
@@ -114,6 +187,18 @@ DEFAULT_METERS_PER_UNIT = {"opencv": 1.0, "opengl": 1.0, "unity": 1.0, "unreal":
 RESET_REASONS = ("camera_cut", "time_backwards")
 #: Why a prediction did not come from the configured method.
 FALLBACK_REASONS = ("history", "camera_cut")
+#: What a pixel without a motion vector means: "none" (nothing known: NaN), "camera" (a static surface:
+#: the camera's motion, as Unreal's unwritten velocity pixels).
+MOTION_MISSING = ("none", "camera")
+#: The motion-vector conventions of each engine's own buffer (module docstring: the table and its sources).
+#: OpenGL has no engine buffer: units, y_up and direction must be set in SessionConfig.
+ENGINE_MOTION = {
+    "opencv": dict(units="pixels", y_up=False, direction="previous", includes_camera=True, missing="none"),
+    "unity": dict(units="uv", y_up=True, direction="next", includes_camera=True, missing="none"),
+    "unreal": dict(units="ndc", y_up=True, direction="next", includes_camera=True, missing="camera"),
+    "godot": dict(units="uv", y_up=False, direction="previous", includes_camera=True, missing="none"),
+    "opengl": dict(includes_camera=True, missing="none"),
+}
 #: Every ``_CUT_STRIDE``-th pixel in each direction estimates the median scene depth of a frame.
 _CUT_STRIDE = 4
 
@@ -141,10 +226,24 @@ class SessionConfig:
     flip_rows: bool = option(False, "images are bottom-up (glReadPixels, Unity Texture2D): flip inputs and outputs")
     color_in: str = option("linear", f"encoding of submitted colour: {', '.join(COLOR_SPACES)}")
     color_out: str = option("linear", f"encoding of predicted colour: {', '.join(COLOR_SPACES)}")
-    method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. decomp[gate.enabled=false]")
+    method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. decomp[gate.enabled=false]; "
+                                      "auto: mvec for frames with motion vectors, decomp for frames without")
     cut_translation: float = option(0.5, "camera cut when the camera centre moves more than this times the "
                                           "median scene depth")
     cut_rotation_deg: float = option(45.0, "camera cut when the camera turns by more than this many degrees")
+    motion_units: str = option("", f"units of submitted motion vectors: {', '.join(MOTION_UNITS)} (pixels of the "
+                                   "vector buffer; uv: the viewport spans 1; ndc: it spans 2); '' = the engine's")
+    motion_scale: tuple[float, float] = option((1.0, 1.0), "x, y multipliers applied to the vectors first (FSR "
+                                                           "motionVectorScale, DLSS mvecScale)")
+    motion_y_up: Optional[bool] = option(None, "the vectors' y points to the top of the picture; None = the "
+                                               "engine's")
+    motion_direction: str = option("", "previous: from the pixel to where its point was in the previous frame; "
+                                       "next: the reverse (previous -> current); '' = the engine's")
+    motion_includes_camera: Optional[bool] = option(None, "the vectors include camera motion (False: object "
+                                                          "motion only, the session adds the camera's); None = "
+                                                          "the engine's")
+    motion_missing: str = option("", "a pixel without a vector (NaN, motion_valid False): none (no vector) or "
+                                     "camera (static: the camera's motion); '' = the engine's")
 
     def __post_init__(self) -> None:
         for name, allowed in (("engine", ENGINES), ("depth_convention", conventions.DEPTH_CONVENTIONS),
@@ -172,11 +271,72 @@ class SessionConfig:
         if self.method.partition("[")[0] == "oracle":
             raise InputError("'oracle' needs ground-truth object motion, which a game session does not have",
                              field="method")
+        if self.method.partition("[")[0].strip() == AUTO and self.method.strip() != AUTO:
+            raise InputError(f"'auto' takes no options (it picks mvec or decomp per frame), got {self.method!r}",
+                             field="method")
+        for name, allowed in (("motion_units", MOTION_UNITS), ("motion_direction", MOTION_DIRECTIONS),
+                              ("motion_missing", MOTION_MISSING)):
+            if getattr(self, name) not in ("",) + allowed:
+                raise InputError(f"must be one of {', '.join(allowed)}, or '' for the engine's, got "
+                                 f"{getattr(self, name)!r}", field=name)
+        for name in ("motion_y_up", "motion_includes_camera"):
+            if getattr(self, name) not in (None, True, False):
+                raise InputError(f"must be true, false or None (the engine's), got {getattr(self, name)!r}",
+                                 field=name)
+        scale = self.motion_scale
+        if (not isinstance(scale, (tuple, list)) or len(scale) != 2
+                or not all(isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+                           and math.isfinite(x) and x != 0 for x in scale)):
+            raise InputError(f"must be two finite non-zero numbers (x, y), got {scale!r}", field="motion_scale")
 
     @property
     def unit_scale(self) -> float:
         """Metres per engine unit actually used (``meters_per_unit`` or the engine's default)."""
         return self.meters_per_unit or DEFAULT_METERS_PER_UNIT[self.engine]
+
+    def motion_conventions(self) -> "MotionConventions":
+        """The motion-vector conventions actually used: each ``motion_*`` field, or the engine's default
+        (``ENGINE_MOTION``). InputError naming the field where the engine has none (OpenGL: set
+        ``motion_units``, ``motion_y_up`` and ``motion_direction``)."""
+        engine = ENGINE_MOTION[self.engine]
+        values = {}
+        for key, given in (("units", self.motion_units), ("y_up", self.motion_y_up),
+                           ("direction", self.motion_direction), ("includes_camera", self.motion_includes_camera),
+                           ("missing", self.motion_missing)):
+            if given not in ("", None):
+                values[key] = given
+            elif key in engine:
+                values[key] = engine[key]
+            else:
+                raise InputError(f"engine {self.engine!r} has no motion-vector convention of its own: set "
+                                 f"SessionConfig.motion_{key} to what the submitted vectors hold", field=f"motion_{key}")
+        return MotionConventions(scale=(float(self.motion_scale[0]), float(self.motion_scale[1])), **values)
+
+
+@dataclass(frozen=True)
+class MotionConventions:
+    """Resolved motion-vector conventions of a session (``SessionConfig.motion_conventions()``).
+
+    Attributes:
+        units: "pixels" (of the vector buffer), "uv" (the viewport spans 1) or "ndc" (it spans 2).
+        scale: (x, y) applied first.
+        y_up: the vectors' y points to the top of the picture.
+        direction: "previous" (pixel -> where its point was) or "next" (the reverse).
+        includes_camera: False when the vectors hold object motion only.
+        missing: "none" (a pixel without a vector stays NaN) or "camera" (it gets the camera's motion).
+    """
+
+    units: str
+    scale: tuple[float, float]
+    y_up: bool
+    direction: str
+    includes_camera: bool
+    missing: str
+
+    @property
+    def needs_camera(self) -> bool:
+        """Whether converting needs the camera-only vectors (object-only vectors, or missing = camera)."""
+        return not self.includes_camera or self.missing == "camera"
 
 
 @dataclass(frozen=True)
@@ -314,6 +474,88 @@ def _encode_color(linear: np.ndarray, space: str) -> np.ndarray:
     return encoded if space == "srgb" else (encoded * 255.0 + 0.5).astype(np.uint8)
 
 
+def _motion_mask(valid: object, shape: tuple[int, int], label: int) -> np.ndarray:
+    """``motion_valid`` as a bool (h, w) mask: bool, or integers holding only 0 and 1."""
+    where = dict(frame=label, field="motion_valid")
+    m = np.asarray(valid)
+    if m.shape != shape:
+        raise InputError(f"must have the vectors' shape (h, w) = {shape}, got {m.shape}", **where)
+    if m.dtype == bool:
+        return m
+    if not np.issubdtype(m.dtype, np.integer) or np.any((m != 0) & (m != 1)):
+        raise InputError(f"must be a bool mask (or integers 0 / 1), got dtype {m.dtype}", **where)
+    return m.astype(bool)
+
+
+def _engine_vectors(vectors: object, valid: object, motion: "MotionConventions", size: tuple[int, int],
+                    flip_rows: bool, label: int) -> np.ndarray:
+    """The submitted motion vectors as (h, w, 2) float64 full-resolution pixels pointing to the previous
+    frame (object motion only if the engine's are), NaN for no vector; InputError for bad input."""
+    where = dict(frame=label, field="motion_vectors")
+    mv = np.asarray(vectors)
+    if mv.ndim != 3 or mv.shape[2] not in (2, 3, 4):
+        raise InputError(f"must have shape (h, w, 2), or (h, w, 3) / (h, w, 4) whose first two channels are x, y "
+                         f"(the RG of an RGB(A) texture), got {mv.shape}", **where)
+    if not np.issubdtype(mv.dtype, np.floating):
+        raise InputError(f"must be a float array (float16, float32 or float64), got dtype {mv.dtype}: decode "
+                         "integer-encoded vectors first (Unreal: DecodeVelocityFromTexture)", **where)
+    h, w = mv.shape[:2]
+    big_h, big_w = size
+    if not (1 <= h <= big_h and 1 <= w <= big_w):
+        raise InputError(f"are {w}x{h}: must be at most the frame's {big_w}x{big_h} and not empty", **where)
+    xy = mv[..., :2]
+    mask = None if valid is None else _motion_mask(valid, (h, w), label)
+    if flip_rows:
+        xy = xy[::-1]
+        mask = None if mask is None else mask[::-1]
+    out = conventions.motion_vectors_to_previous(xy, big_w, big_h, units=motion.units, direction=motion.direction,
+                                                 y_up=motion.y_up, scale=motion.scale, buffer_size=(w, h),
+                                                 frame=label, field_name="motion_vectors")
+    if mask is not None:
+        out[~mask] = np.nan
+    limit = MAX_MOTION_DIAGONALS * math.hypot(big_h, big_w)
+    longest = float(np.nanmax(np.abs(out))) if np.isfinite(out).any() else 0.0
+    if longest > limit:  # checked in float64, before a float32 cast could turn it into inf
+        raise InputError(f"has a component of {longest:.4g} px once converted, over {MAX_MOTION_DIAGONALS:g} frame "
+                         f"diagonals ({limit:.0f} px): wrong motion_units or motion_scale?", **where)
+    return out
+
+
+def _camera_vectors(depth: np.ndarray, camera: Camera, previous: Camera, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w, 2) float64 full-resolution pixel vectors of camera motion alone (a static scene) at the samples
+    of an (h, w) vector buffer: sample (i, j) sits at full-resolution ((j + 0.5) W / w, (i + 0.5) H / h) and
+    takes the depth of the full-resolution pixel there. Exact for that depth: the cameras' intrinsics are
+    scaled by (w / W, h / H), which maps the sample centres onto the small grid's pixel centres."""
+    big_h, big_w = depth.shape
+    h, w = shape
+    if (h, w) == (big_h, big_w):
+        return camera_motion_vectors(depth, camera, previous).astype(np.float64)
+    rows = np.minimum(((np.arange(h) + 0.5) * big_h / h).astype(np.intp), big_h - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * big_w / w).astype(np.intp), big_w - 1)
+    shrink = np.diag([w / big_w, h / big_h, 1.0])
+    small = camera_motion_vectors(np.ascontiguousarray(depth[rows[:, None], cols[None, :]]),
+                                  Camera(shrink @ camera.intrinsics, camera.world_to_camera),
+                                  Camera(shrink @ previous.intrinsics, previous.world_to_camera))
+    return small.astype(np.float64) * np.array([big_w / w, big_h / h])
+
+
+def _with_camera_motion(vectors: np.ndarray, motion: "MotionConventions", depth: np.ndarray, camera: Camera,
+                        previous: Camera, label: int) -> np.ndarray:
+    """Total motion vectors (float32): object-only vectors plus the camera's motion, and/or pixels without a
+    vector filled with the camera's motion (``motion.missing == "camera"``). Camera vectors longer than the
+    validator's limit (points at the previous camera's plane) count as none."""
+    out = vectors
+    if motion.needs_camera:
+        cam = _camera_vectors(depth, camera, previous, vectors.shape[:2])
+        cam[np.abs(cam).max(axis=-1) > MAX_MOTION_DIAGONALS * math.hypot(*depth.shape)] = np.nan
+        if not motion.includes_camera:
+            out = out + cam
+        if motion.missing == "camera":
+            none = np.isnan(out).any(axis=-1)
+            out = np.where(none[..., None], cam, out)
+    return validate_motion_vectors(out.astype(np.float32), depth.shape, frame=label, field_name="motion_vectors")
+
+
 def _scene_depth(depth: np.ndarray) -> float:
     """Median finite depth of a strided subsample (metres), inf for an all-sky frame."""
     sample = depth[::_CUT_STRIDE, ::_CUT_STRIDE]
@@ -345,11 +587,23 @@ class Session:
 
     Args:
         config: a :class:`SessionConfig` (or None for the defaults).
+        make_method: how a method name becomes a predictor (default :func:`engine.predict.make_predictor`;
+            the server passes one that adds its own network files). ``"auto"`` makes both of its methods
+            here, so a bad name fails now, not at a later submit.
     """
 
-    def __init__(self, config: Optional[SessionConfig] = None) -> None:
+    def __init__(self, config: Optional[SessionConfig] = None, *,
+                 make_method: Optional[Callable[[str], Predictor]] = None) -> None:
         self.config = config or SessionConfig()
-        self._loop = PredictionLoop(make_predictor(self.config.method))
+        make = make_predictor if make_method is None else make_method
+        if self.config.method.strip() == AUTO:
+            # predictor for frames with (True) and without (False) motion vectors
+            self._auto: Optional[dict[bool, Predictor]] = {
+                has: make(resolve_auto(self.config.method, has)) for has in (False, True)}
+            self._loop = PredictionLoop(self._auto[False])
+        else:
+            self._auto = None
+            self._loop = PredictionLoop(make(self.config.method))
         self._repeat = Repeat()
         self._scene_depth = math.inf  # of the newest rendered frame
         self._lock = threading.Lock()
@@ -357,6 +611,7 @@ class Session:
         self._frames_submitted = 0
         self._predictions = 0
         self._resets = {reason: 0 for reason in RESET_REASONS + ("reset",)}
+        self._vectors = {"kept": 0, "dropped": 0}
 
     @property
     def width(self) -> int:
@@ -368,17 +623,20 @@ class Session:
 
     @property
     def stats(self) -> dict:
-        """Counts so far: frames submitted, predictions made, history resets by reason."""
+        """Counts so far: frames submitted, predictions made, history resets by reason, submitted motion
+        vectors kept and dropped (the frame's history had just been reset: the first frame, after a reset)."""
         with self._lock:
             return {"submitted": self._frames_submitted, "predicted": self._predictions, "resets": dict(self._resets),
-                    "history": 0 if self._loop.prepared is None else len(self._loop.prepared.frames)}
+                    "history": 0 if self._loop.prepared is None else len(self._loop.prepared.frames),
+                    "motion_vectors": dict(self._vectors)}
 
     def camera(self, view: object, projection: object) -> Camera:
         """The OpenCV camera the session makes of an engine pose (for checks and debugging)."""
         return engine_camera(self.config, view, projection, self.width, self.height)
 
     def submit(self, color: object, depth: object, view: object, projection: object, time: float, *,
-               frame: Optional[int] = None, copy: bool = False) -> SubmitResult:
+               frame: Optional[int] = None, copy: bool = False, motion_vectors: object = None,
+               motion_valid: object = None) -> SubmitResult:
         """Hand over one rendered frame.
 
         Args:
@@ -388,10 +646,14 @@ class Session:
             time: seconds (any origin), must be finite; not after the newest frame's -> history reset.
             frame: the caller's frame number, used in error messages (default: the session's counter).
             copy: never keep references to ``color`` / ``depth`` (see "Zero-copy").
+            motion_vectors: the engine's motion vectors of this frame, pointing into the previously
+                submitted frame: (h, w, 2..4) float, h <= H, w <= W, in ``config.motion_conventions()``
+                (module docstring); NaN = no vector. Dropped when the history restarts at this frame.
+            motion_valid: optional (h, w) bool mask of the pixels that have a vector (False -> NaN).
 
         Returns:
-            a :class:`SubmitResult`. Raises InputError (naming the frame and time) for bad input; the
-            history is then unchanged.
+            a :class:`SubmitResult`. Raises InputError (naming the frame, the field and the time) for bad
+            input; the history is then unchanged.
         """
         with self._lock:
             size = self._size
@@ -415,6 +677,12 @@ class Session:
                 planar = planar.copy() if np.may_share_memory(planar, depth) else planar
             camera = engine_camera(self.config, view, projection, size[1], size[0])
             self._check_planes(projection)
+            vectors, motion = None, None
+            if motion_vectors is not None:
+                motion = self.config.motion_conventions()
+                vectors = _engine_vectors(motion_vectors, motion_valid, motion, size, self.config.flip_rows, label)
+            elif motion_valid is not None:
+                raise InputError("is given without motion_vectors", field="motion_valid")
         except InputError as exc:
             raise _located(exc, label, time, "submitted frame") from None
         scene_depth = _scene_depth(planar)
@@ -423,20 +691,30 @@ class Session:
                 raise InputError(f"the session was reset to (H, W) = {self._size} during this submit",
                                  frame=label, field="size")
             number = self._frames_submitted  # numbered under the lock: concurrent submits never share one
-            new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera)
             old = self._loop.prepared
             reset = None
             if old is not None:
                 newest = old.frames[-1]
-                if not new.time > newest.time:
+                if not float(time) > newest.time:
                     reset = "time_backwards"
-                elif _cut(newest.camera, new.camera, min(scene_depth, self._scene_depth), self.config):
+                elif _cut(newest.camera, camera, min(scene_depth, self._scene_depth), self.config):
                     reset = "camera_cut"
-            frames = self._loop.submit(new, restart=reset is not None).frames  # raises: the history stays
+            kept = None
+            if vectors is not None and old is not None and reset is None:  # else they point into a lost frame
+                try:
+                    kept = _with_camera_motion(vectors, motion, planar, camera, old.frames[-1].camera, label)
+                except InputError as exc:
+                    raise _located(exc, label, time, "submitted frame") from None
+            new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera,
+                        motion_vectors=kept)
+            predictor = None if self._auto is None else self._auto[kept is not None]
+            frames = self._loop.submit(new, restart=reset is not None, predictor=predictor).frames  # raises: kept
             self._scene_depth = scene_depth
             self._frames_submitted += 1
             if reset is not None:
                 self._resets[reset] += 1
+            if vectors is not None:
+                self._vectors["kept" if kept is not None else "dropped"] += 1
             return SubmitResult(frame=number, reset=reset, history=len(frames))
 
     def _check_planes(self, projection: object) -> None:

@@ -5,7 +5,8 @@ frames the predictor needs and runs its ``prepare`` once; each frame in between 
 camera and time, which runs only the predictor's ``render`` on what was prepared. Until enough frames are
 rendered (a two-frame method after the first frame, or after ``restart``), the fallback predictor (camera-only
 ``reproject``) stands in. :class:`engine.runtime.session.Session` (the game-engine API and the server), the
-demo and ``interleave eval`` all drive predictors through this loop.
+demo and ``interleave eval`` all drive predictors through this loop. A frame's ``motion_vectors`` (the
+renderer's, converted by the session) travel with it into the history, where ``mvec`` reads them.
 """
 from __future__ import annotations
 
@@ -51,10 +52,13 @@ class PredictionLoop:
         """Forget every rendered frame (camera cut, time going backwards, a new sequence)."""
         self.prepared = None
 
-    def submit(self, frame: Frame, *, restart: bool = False) -> Prepared:
+    def submit(self, frame: Frame, *, restart: bool = False, predictor: Optional[Predictor] = None) -> Prepared:
         """Add a rendered frame (after the previous one in time) and prepare the predictions that follow it;
-        ``restart``: forget the earlier frames first (a camera cut). If the predictor refuses the frames,
-        the history stays as it was."""
+        ``restart``: forget the earlier frames first (a camera cut); ``predictor``: the method from this frame
+        on (the session's ``auto`` switches between ``mvec`` and ``decomp``; the kept frames stay). If the
+        predictor refuses the frames, the history stays as it was."""
+        if predictor is not None:
+            self.predictor = predictor
         frames = [frame]
         if self.prepared is not None and not restart:
             frames = (self.prepared.frames + frames)[-max(self.predictor.history_needed, 1):]

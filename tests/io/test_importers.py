@@ -40,8 +40,17 @@ def blender_camera_to_world(i: int) -> np.ndarray:
     return rigid([1.0, 0.3, -0.2], 1.2 + 0.05 * i, [1.0 + 0.1 * i, -5.0, 2.0])
 
 
+#: Cycles' Vector pass of the synthetic renders, (X, Y, Z, W) in Blender's y-up pixels: XY = p_prev - p,
+#: ZW = p - p_next. The surface was 2.5 px left of and 1.5 px BELOW (y up: Y = -1.5) its current position
+#: in the previous frame, and will be 3 px right of and 2 px below it (ZW = -(3, -2)) in the next.
+BLENDER_VECTOR = (-2.5, -1.5, -3.0, 2.0)
+#: What the importer must make of it (x right, y down): current -> previous, and flow to the next frame.
+BLENDER_MOTION, BLENDER_FLOW = (-2.5, 1.5), (3.0, 2.0)
+
+
 def write_blender_render(path: Path, vector: bool = True, layer: str = "ViewLayer", depth: bool = True) -> None:
-    """A Blender-style multilayer EXR: half colour, float depth with 1e10 background, Vector pass."""
+    """A Blender-style multilayer EXR (single part, as Blender 4 writes it): half colour, float depth with
+    1e10 background, Vector pass."""
     rng = np.random.default_rng(0)
     z = np.full((H, W), BLENDER_DEPTH, np.float32)
     z[:4, :] = 1e10  # background (no surface), as Cycles writes it
@@ -49,9 +58,8 @@ def write_blender_render(path: Path, vector: bool = True, layer: str = "ViewLaye
     if depth:
         channels[f"{layer}.Depth.Z"] = z
     if vector:
-        # A surface moving 3 px right and 2 px down (image, y down) towards the next frame: in Blender's
-        # y-up image p_next - p = (3, -2), so ZW = p - p_next = (-3, +2). XY (towards previous) is arbitrary.
-        for c, value in zip("XYZW", (1.0, 1.0, -3.0, 2.0)):
+        # Cycles writes 0 where no sample hit a surface (the background rows): the importer must not trust it.
+        for c, value in zip("XYZW", BLENDER_VECTOR):
             channels[f"{layer}.Vector.{c}"] = np.full((H, W), value, np.float32)
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
 
@@ -91,6 +99,25 @@ def test_blender_conventions(tmp_path: Path) -> None:
     assert frame.color.dtype == np.float32 and frame.color.shape == (H, W, 3)
 
 
+def test_blender_motion_vectors_sign_flip_and_background(tmp_path: Path) -> None:
+    """Vector XY (p_prev - p, y up) -> motion_vectors (X, -Y), y down, pixels; NaN on background.
+
+    A wrong x sign gives +2.5 instead of -2.5; forgetting the y flip gives -1.5 instead of +1.5; taking ZW
+    (the next-frame half) instead of XY gives (3, 2) or (-3, -2): each fails the equality below.
+    """
+    frames = list(frames_from_blender(write_blender_scene(tmp_path)).frames)
+    for frame in frames:
+        mv = frame.motion_vectors
+        assert mv is not None and mv.shape == (H, W, 2) and mv.dtype == np.float32
+        assert np.isnan(mv[:4]).all()  # depth 1e10: Cycles wrote no (or a partial) vector there
+        np.testing.assert_array_equal(mv[4:, :, 0], BLENDER_MOTION[0])
+        np.testing.assert_array_equal(mv[4:, :, 1], BLENDER_MOTION[1])
+        np.testing.assert_array_equal(frame.flow[4:], np.broadcast_to(BLENDER_FLOW, (H - 4, W, 2)))
+    # background_depth=None keeps the 1e10 depth, and the vectors there are still NaN
+    kept = next(frames_from_blender(tmp_path / "cameras.json", background_depth=None).frames)
+    assert (kept.depth[:4] == 1e10).all() and np.isnan(kept.motion_vectors[:4]).all()
+
+
 @pytest.mark.parametrize("camera, focal", [
     ({"focal_px": 40.0}, 40.0),
     ({"intrinsics": [[41.0, 0, 12.5], [0, 42.0, 7.5], [0, 0, 1]]}, 41.0),
@@ -109,7 +136,63 @@ def test_blender_incomplete_camera_is_rejected_at_open(tmp_path: Path) -> None:
 def test_blender_without_vector_pass_has_no_flow(tmp_path: Path) -> None:
     cameras = write_blender_scene(tmp_path, numbers=(1,))
     write_blender_render(tmp_path / "render" / "0001.exr", vector=False)
-    assert next(frames_from_blender(cameras).frames).flow is None
+    frame = next(frames_from_blender(cameras).frames)
+    assert frame.flow is None and frame.motion_vectors is None
+    seq = read_sequence(import_any(tmp_path, tmp_path / "seq", "blender"))
+    assert not seq.has_channel("motion_vectors") and seq.version == 1
+
+
+def test_blender_vectors_dropped_after_a_gap(tmp_path: Path) -> None:
+    """Frame 8's vectors point to Blender frame 7, which is not in the sequence: dropped, with a warning."""
+    with pytest.warns(UserWarning, match=r"0008.exr \(frame 8\): no motion vectors.*frame 7"):
+        frames = list(frames_from_blender(write_blender_scene(tmp_path, numbers=(5, 6, 8))).frames)
+    assert [f.motion_vectors is not None for f in frames] == [True, True, False]
+    assert all(f.flow is not None for f in frames)
+    (tmp_path / "render" / "0005.exr").unlink()  # a skipped first render: frame 6's vectors point to 5
+    with pytest.warns(UserWarning) as record:
+        frames = list(frames_from_blender(tmp_path / "cameras.json", skip_missing=True).frames)
+    assert [(f.index, f.motion_vectors is not None) for f in frames] == [(1, False), (3, False)]
+    messages = [str(w.message) for w in record]
+    assert len(messages) == 3 and "0005.exr is missing" in messages[0]
+    assert "0006.exr (frame 6): no motion vectors" in messages[1] and "0008.exr (frame 8)" in messages[2]
+
+
+def test_blender_multipart_exr_with_a_repeated_channel_is_rejected(tmp_path: Path) -> None:
+    cameras = write_blender_scene(tmp_path, numbers=(1,))
+    z = np.full((H, W), 2.0, np.float32)
+    parts = [OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                          {"ViewLayer.Depth.Z": z}, name) for name in ("ViewLayer.Depth", "ViewLayer.Depth2")]
+    OpenEXR.File(parts).write(str(tmp_path / "render" / "0001.exr"))
+    with pytest.raises(InputError, match="'ViewLayer.Depth.Z' is in two parts") as exc:
+        next(frames_from_blender(cameras).frames)
+    assert "0001.exr" in str(exc.value)
+
+
+BLENDER_FIXTURE = Path(__file__).parent / "data" / "blender_vectors"
+
+
+def test_blender_vectors_of_a_real_cycles_render() -> None:
+    """A real Cycles render (Blender 5.0.1, 32x24, two frames; made by tools/blender_vector_check.py, see
+    its docstring): a cube translating and a ground plane, seen by a camera that moves, pans and tilts.
+
+    Blender 5 writes one EXR part per pass (read here). The imported motion vectors match the exact
+    current -> previous vectors (rigid motion from depth, cameras, the Object Index pass and the cube's
+    recorded transforms) and Blender's own projections of surface points (``world_to_camera_view``)
+    within 0.05 px (measured 0.008 px); the sky is NaN. With the y flip missing, the ground's y components
+    (-0.5 to -1.3 px: it was higher up the image in the previous frame) would have the wrong sign (errors
+    up to 2.6 px); with the x sign wrong, the cube's x (about -2.1 px) would be off by about 4.2 px.
+    """
+    from tools.blender_vector_check import compare
+
+    report = compare(BLENDER_FIXTURE)
+    assert report["rigid_count"] > 300 and report["points_count"] >= 10 and report["background_count"] > 500
+    assert report["rigid_max"] < 0.05 and report["points_max"] < 0.05 and report["flow_max"] < 0.05
+    assert report["background_not_nan"] == 0
+    raw = report["raw_background"]  # what Cycles wrote where its depth says "no surface"
+    assert (raw == 0).all(axis=1).mean() > 0.8 and (raw != 0).any()  # mostly 0, some partial edge pixels
+    frames = list(frames_from_blender(BLENDER_FIXTURE / "cameras.json").frames)
+    ground = frames[1].motion_vectors[-4:]  # bottom rows: ground, which was up-left of where it is now
+    assert (ground[..., 0] < -0.3).all() and (ground[..., 1] < -0.5).all()
 
 
 def test_blender_missing_pass_lists_channels(tmp_path: Path) -> None:
@@ -131,7 +214,8 @@ def test_blender_missing_render(tmp_path: Path) -> None:
     assert "0006.exr" in str(exc.value) and exc.value.frame == 1
     with pytest.warns(UserWarning, match="0006.exr"):
         imported = frames_from_blender(cameras, skip_missing=True)
-    assert [f.index for f in imported.frames] == [0, 2]
+    with pytest.warns(UserWarning, match="0007.exr .*no motion vectors"):  # they would point to the missing 0006
+        assert [f.index for f in imported.frames] == [0, 2]
 
 
 def test_blender_scaled_camera_is_rejected(tmp_path: Path) -> None:
@@ -149,9 +233,11 @@ def test_import_any_blender_writes_a_valid_sequence(tmp_path: Path) -> None:
     seq = read_sequence(import_any(tmp_path / "blender", tmp_path / "seq", "blender"))
     assert (len(seq), seq.width, seq.height, seq.fps) == (3, W, H, 24.0)
     assert seq.has_channel("flow") and not seq.has_channel("object_flow")
+    assert seq.has_channel("motion_vectors") and seq.version == 2 and seq.motion_camera == "included"
     expected = next(frames_from_blender(tmp_path / "blender" / "cameras.json").frames)
     np.testing.assert_array_equal(seq[0].depth, expected.depth)
     np.testing.assert_array_equal(seq[0].color, expected.color)
+    np.testing.assert_array_equal(seq[0].motion_vectors, expected.motion_vectors)  # NaN in the same places
 
 
 # ---------------------------------------------------------------------------------------------- MPI-Sintel

@@ -6,7 +6,9 @@ this process through ``engine.runtime.client.Client`` or raw bytes, a ``python -
 the C example client compiled from ``engine/runtime/include``. Checked: the header's constants and struct layout
 against Python, predictions identical to an in-process Session, request ordering under pipelining,
 RESET and size changes, every malformed-message class (error reply, server keeps serving), a client
-vanishing mid-message, 10 000 frames without memory growth, and shutdown removing every segment.
+vanishing mid-message, 10 000 frames without memory growth, and shutdown removing every segment; protocol
+version 2's motion-vector plane (vectors arrive converted, at lower resolution too; bad vectors are errors)
+and version-1 clients answered as before.
 """
 from __future__ import annotations
 
@@ -30,8 +32,8 @@ from hypothesis import strategies as st
 
 from engine.core.errors import InputError
 from engine.runtime import protocol as wire
-from engine.runtime.client import Client, ServerError
-from engine.runtime.protocol import MessageType, Status
+from engine.runtime.client import Client, ServerError, _attach
+from engine.runtime.protocol import Layout, MessageType, MotionPlane, Status
 from engine.runtime.session import Session, SessionConfig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -116,16 +118,18 @@ def raw_connect(address: str) -> socket.socket:
     return sock
 
 
-def read_reply(sock: socket.socket):
-    """(type, request_id, status, payload) of the next reply, or None when the server closed the connection."""
+def read_reply(sock: socket.socket, version=None):
+    """(type, request_id, status, payload) of the next reply, or None when the server closed the connection;
+    ``version``: the protocol version the reply must carry (else any the server speaks)."""
     data = b""
     while len(data) < wire.HEADER.size:
         chunk = sock.recv(wire.HEADER.size - len(data))
         if not chunk:
             return None
         data += chunk
-    magic, version, type_, request_id, status, size = wire.HEADER.unpack(data)
-    assert magic == wire.MAGIC and version == wire.VERSION
+    magic, got_version, type_, request_id, status, size = wire.HEADER.unpack(data)
+    assert magic == wire.MAGIC and got_version in wire.VERSIONS
+    assert version is None or got_version == version
     payload = b""
     while len(payload) < size:
         payload += sock.recv(size - len(payload))
@@ -166,7 +170,17 @@ C_STRUCTS = {
     "il_predict_reply": (wire.PREDICT_REPLY, [("frame", 1), ("fallback", 1), ("holes", 1), ("elapsed_ms", 1),
                                               ("method", 1)]),
     "il_reset": (wire.RESET, [("width", 1), ("height", 1)]),
+    "il_motion": (wire.MOTION, [(n, 1) for n in ("units", "direction", "y_axis", "camera", "missing", "width",
+                                                 "height", "channels", "format", "reserved", "scale_x", "scale_y")]),
+    "il_submit_motion": (wire.SUBMIT_MOTION, [("flags", 1), ("reserved", 1)]),
+    "il_reset_motion": (wire.RESET_MOTION, [("width", 1), ("height", 1)]),
+    "il_motion_layout": (wire.MOTION_LAYOUT, [("motion_offset", 1), ("motion_valid_offset", 1), ("width", 1),
+                                              ("height", 1)]),
 }
+#: Version-2 payloads: a version-1 struct followed by its motion extension (C struct -> (first, second)).
+C_PAIRS = {"il_hello_with_motion": ("il_hello", "il_motion"), "il_submit_with_motion": ("il_frame", "il_submit_motion"),
+           "il_reset_with_motion": ("il_reset", "il_reset_motion"),
+           "il_layout_with_motion": ("il_layout", "il_motion_layout")}
 
 
 def python_offsets(layout: struct.Struct) -> list[int]:
@@ -192,8 +206,9 @@ def header_defines() -> dict[str, int]:
 
 def test_header_constants_match_python():
     d = header_defines()
-    assert (d["MAGIC"], d["VERSION"], d["MAX_PAYLOAD"], d["MAX_SIDE"], d["ALIGNMENT"]) == (
-        wire.MAGIC, wire.VERSION, wire.MAX_PAYLOAD, wire.MAX_SIDE, wire.ALIGNMENT)
+    assert (d["MAGIC"], d["VERSION"], d["VERSION_MIN"], d["MAX_PAYLOAD"], d["MAX_SIDE"], d["ALIGNMENT"]) == (
+        wire.MAGIC, wire.VERSION, wire.VERSION_MIN, wire.MAX_PAYLOAD, wire.MAX_SIDE, wire.ALIGNMENT)
+    assert wire.VERSIONS == tuple(range(wire.VERSION_MIN, wire.VERSION + 1))
     assert struct.pack("<I", wire.MAGIC) == b"INTL"
     assert {t.name: int(t) for t in MessageType} == {k[4:]: v for k, v in d.items() if k.startswith("MSG_")}
     assert {k: v for k, v in d.items() if k in Status.__members__} == {s.name: int(s) for s in Status}
@@ -205,6 +220,19 @@ def test_header_constants_match_python():
         wire.FLAG_FLIP_ROWS, wire.FLAG_NDC_Y_DOWN, wire.FLAG_COLUMN_MAJOR)
     for name, (layout, _) in C_STRUCTS.items():  # the header's own static asserts state the Python sizes
         assert f"sizeof({name}) == {layout.size}" in HEADER_TEXT
+    for name, (first, second) in C_PAIRS.items():
+        assert f"sizeof({name}) == {C_STRUCTS[first][0].size + C_STRUCTS[second][0].size}" in HEADER_TEXT
+    motion_codes = {"PIXELS": wire.MOTION_UNIT_CODES.index("pixels"), "UV": wire.MOTION_UNIT_CODES.index("uv"),
+                    "NDC": wire.MOTION_UNIT_CODES.index("ndc"),
+                    "PREVIOUS": wire.MOTION_DIRECTION_CODES.index("previous"),
+                    "NEXT": wire.MOTION_DIRECTION_CODES.index("next"), "Y_DOWN": wire.MOTION_Y_CODES.index(False),
+                    "Y_UP": wire.MOTION_Y_CODES.index(True), "CAMERA_INCLUDED": wire.MOTION_CAMERA_CODES.index(True),
+                    "OBJECT_ONLY": wire.MOTION_CAMERA_CODES.index(False),
+                    "MISSING_NONE": wire.MOTION_MISSING_CODES.index("none"),
+                    "MISSING_CAMERA": wire.MOTION_MISSING_CODES.index("camera"),
+                    "F32": wire.MOTION_FORMATS.index("float32"), "F16": wire.MOTION_FORMATS.index("float16")}
+    assert {k[7:]: v for k, v in d.items() if k.startswith("MOTION_")} == motion_codes
+    assert (d["SUBMIT_VECTORS"], d["SUBMIT_VALID"]) == (wire.SUBMIT_VECTORS, wire.SUBMIT_VALID)
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")
@@ -213,6 +241,8 @@ def test_header_struct_layout_matches_python_when_compiled(tmp_path):
     for name, (_, fields) in C_STRUCTS.items():
         lines.append(f'printf("{name} size %zu\\n", sizeof({name}));')
         lines += [f'printf("{name} {f} %zu\\n", offsetof({name}, {f}));' for f, _ in fields]
+    for name in C_PAIRS:
+        lines.append(f'printf("{name} size %zu\\n", sizeof({name}));')
     lines += ["return 0;", "}"]
     source = tmp_path / "layout.c"
     source.write_text("\n".join(lines) + "\n")
@@ -227,6 +257,8 @@ def test_header_struct_layout_matches_python_when_compiled(tmp_path):
             assert int(printed[f"{name} {f}"]) == offsets[element], (name, f)
             element += count
         assert element == len(offsets)
+    for name, (first, second) in C_PAIRS.items():  # no padding between a payload and its extension
+        assert int(printed[f"{name} size"]) == C_STRUCTS[first][0].size + C_STRUCTS[second][0].size
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")
@@ -237,22 +269,25 @@ def test_c_example_client_talks_to_the_server(server, tmp_path):
     _, address = server
     out = subprocess.run([str(exe), address.removeprefix("unix:")], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0, out.stderr
-    # A 1 cm step right in front of a wall 2 m away (fx = 50) moves the red ramp by 0.25 px: 32.25 / 64.
-    assert re.fullmatch(r"method=reproject fallback=0 holes=\d+ centre_red=0\.5039 centre_hole=0\n", out.stdout)
+    # A 1 cm step right in front of a wall 2 m away (fx = 50) moves the red ramp by 0.25 px: 32.25 / 64. The
+    # motion vectors of the second frame reached mvec (it refuses a frame without them): a static wall.
+    assert re.fullmatch(r"history=2 method=mvec fallback=0 holes=\d+ centre_red=0\.5039 centre_hole=0\n",
+                        out.stdout)
 
 
 # --------------------------------------------------------------------------------------------
 # Sessions over the socket
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("cfg, channels, column_major", [
-    (config(method="reproject"), 3, False),
-    (config(method="flow2d", color_in="srgb8", color_out="srgb8", flip_rows=True), 4, True),
+@pytest.mark.parametrize("cfg, channels, column_major, version", [
+    (config(method="reproject"), 3, False, wire.VERSION),
+    (config(method="flow2d", color_in="srgb8", color_out="srgb8", flip_rows=True), 4, True, wire.VERSION),
+    (config(method="flow2d"), 4, False, 1),  # a client that speaks version 1
 ])
-def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, channels, column_major):
+def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, channels, column_major, version):
     _, address = server
     local = Session(cfg)
-    with Client(address) as client:
+    with Client(address, version=version) as client:
         layout = client.hello(cfg, channels=channels, column_major=column_major)
         assert segment_exists(layout.shm_name) and (layout.width, layout.height) == (W, H)
         for i in range(7):
@@ -343,7 +378,8 @@ def test_malformed_messages_get_an_error_reply_and_the_server_keeps_serving(serv
         assert info.value.status == Status.NO_SESSION
 
     fatal = [(wire.HEADER.pack(0xDEADBEEF, 1, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_MAGIC),
-             (wire.HEADER.pack(wire.MAGIC, 2, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_VERSION),
+             (wire.HEADER.pack(wire.MAGIC, wire.VERSION + 1, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_VERSION),
+             (wire.HEADER.pack(wire.MAGIC, 0, 1, 9, 0, 0), MessageType.ERROR, Status.BAD_VERSION),
              (wire.pack_header(MessageType.SUBMIT, 9, 1 << 40), MessageType.SUBMIT | MessageType.REPLY,
               Status.TOO_LARGE),
              (wire.pack_header(MessageType.SUBMIT, 9, wire.FRAME.size) + b"\0" * 100,
@@ -578,17 +614,26 @@ _KNOWN_TYPES = [int(t) for t in MessageType if t != MessageType.REPLY]
 def _messages(draw) -> bytes:
     """A request as a careless or hostile client might send it: known or unknown types, right or wrong
     sizes, random payloads, HELLOs with random field values, or bytes that are no header at all."""
-    kind = draw(st.sampled_from(["header", "hello", "garbage"]))
+    kind = draw(st.sampled_from(["header", "hello", "hello_motion", "submit_motion", "garbage"]))
     if kind == "garbage":
         return draw(st.binary(min_size=1, max_size=64))
-    if kind == "hello":
+    if kind in ("hello", "hello_motion"):
         ints = [draw(st.integers(0, 2 ** 32 - 1)) for _ in range(10)]
         ints[4], ints[5] = draw(st.integers(0, 20000)), draw(st.integers(0, 20000))  # width, height
         floats = [draw(st.floats(allow_nan=True, allow_infinity=True, width=64)) for _ in range(5)]
         method = draw(st.sampled_from([b"reproject", b"decomp[threads=64]", b"decomp[model=/etc/passwd]",
-                                       b"flow2d[preset=x]", b"\xff\xfe", b"decomp[" + b"a" * 50]))
+                                       b"flow2d[preset=x]", b"\xff\xfe", b"decomp[" + b"a" * 50, b"auto", b"mvec"]))
         payload = wire.HELLO.pack(*ints, *floats, method)
-        return wire.pack_header(MessageType.HELLO, 1, len(payload)) + payload
+        if kind == "hello_motion":  # small codes mostly, so that some HELLOs get through to a session
+            codes = [draw(st.integers(0, 4) | st.integers(0, 2 ** 32 - 1)) for _ in range(10)]
+            scales = [draw(st.floats(allow_nan=True, allow_infinity=True, width=64)) for _ in range(2)]
+            payload += wire.MOTION.pack(*codes, *scales)
+        version = draw(st.sampled_from(wire.VERSIONS))
+        return wire.pack_header(MessageType.HELLO, 1, len(payload), version=version) + payload
+    if kind == "submit_motion":
+        payload = frame_payload(draw(st.integers(0, 9)), draw(st.floats(0.0, 1.0))) + wire.SUBMIT_MOTION.pack(
+            draw(st.integers(0, 7)), draw(st.integers(0, 2 ** 32 - 1)))
+        return wire.pack_header(MessageType.SUBMIT, 2, len(payload), version=draw(st.sampled_from(wire.VERSIONS))) + payload
     type_ = draw(st.sampled_from(_KNOWN_TYPES) | st.integers(0, 0xFFFF))
     payload = draw(st.binary(max_size=300))
     size = draw(st.sampled_from([len(payload), len(payload) + 7, 0, wire.MAX_PAYLOAD + 1]))
@@ -638,3 +683,183 @@ def test_models_folder_is_the_servers_own_configuration(tmp_path):
                 client.hello(config(method="decomp"))  # looked for in the server's folder, which has none
     finally:
         assert stop_server(proc) == 0
+
+
+# --------------------------------------------------------------------------------------------
+# Motion vectors (protocol version 2) and version-1 clients
+# --------------------------------------------------------------------------------------------
+
+def _raw_request(sock, type_, payload, request_id, version):
+    sock.sendall(wire.pack_header(type_, request_id, len(payload), version=version) + payload)
+    reply = read_reply(sock, version=version)
+    assert reply is not None and reply[1] == request_id
+    return reply
+
+
+def test_a_version_1_client_is_answered_exactly_as_before(server):
+    """A client written before motion vectors: version-1 headers and payloads, answered in version 1 with
+    the version-1 layout (il_layout alone); the version-2 extensions are wrong sizes for it."""
+    proc, address = server
+    sock = raw_connect(address)
+    hello = _hello_fields(channels=4)
+    type_, _, status, payload = _raw_request(sock, MessageType.HELLO, hello, 1, version=1)
+    assert (type_, status, len(payload)) == (MessageType.HELLO | MessageType.REPLY, Status.OK, wire.LAYOUT.size)
+    layout = wire.Layout.unpack(payload)
+    assert not layout.has_motion and layout == wire.make_layout(layout.shm_name, W, H, 4, "linear", "linear")
+    shm = _attach(layout.shm_name)
+    try:
+        color, depth = frame_arrays(channels=4)
+        np.ndarray((H, W, 4), np.float32, buffer=shm.buf, offset=layout.color_in_offset)[...] = color
+        np.ndarray((H, W), np.float32, buffer=shm.buf, offset=layout.depth_offset)[...] = depth
+        assert _raw_request(sock, MessageType.SUBMIT, frame_payload(0, 0.0), 2, version=1)[2] == Status.OK
+        _, _, status, reply = _raw_request(sock, MessageType.PREDICT, frame_payload(1, 0.05, pose(0.01)), 3, version=1)
+        assert status == Status.OK and wire.cstring(wire.PREDICT_REPLY.unpack(reply)[4]) == "reproject"
+        expected = Session(config()).submit(color, depth, pose(), K, 0.0)
+        assert expected.frame == 0
+        for type_, payload in ((MessageType.HELLO, hello + bytes(wire.MOTION.size)),
+                               (MessageType.SUBMIT, frame_payload(2, 0.1) + wire.SUBMIT_MOTION.pack(1, 0)),
+                               (MessageType.RESET, wire.RESET.pack(0, 0) + wire.RESET_MOTION.pack(0, 0))):
+            _, _, status, text = _raw_request(sock, type_, payload, 4, version=1)
+            assert status == Status.BAD_SIZE and b"protocol version 1" in text
+        _, _, status, payload = _raw_request(sock, MessageType.RESET, wire.RESET.pack(0, 0), 5, version=1)
+        assert status == Status.OK and len(payload) == wire.LAYOUT.size
+        assert _raw_request(sock, MessageType.BYE, b"", 6, version=1)[2] == Status.OK
+    finally:
+        shm.close()
+    sock.close()
+    bad = raw_connect(address)  # a header the server cannot trust is answered in the version every client reads
+    bad.sendall(wire.HEADER.pack(wire.MAGIC, 7, 1, 9, 0, 0))
+    assert read_reply(bad, version=wire.VERSION_MIN)[2] == Status.BAD_VERSION
+    bad.close()
+    assert_serves(proc, address)
+
+
+def motion_config(**overrides) -> SessionConfig:
+    return config(**{"method": "mvec", **overrides})
+
+
+def _vectors(shape, seed, dtype=np.float32):
+    rng = np.random.default_rng(seed)
+    return (rng.uniform(-0.02, 0.02, shape) + np.array([0.01, -0.005] + [0.0] * (shape[-1] - 2))).astype(dtype)
+
+
+@pytest.mark.parametrize("cfg, plane", [
+    # Unity-style: UV, y up, previous -> current; a bottom-up RGBA half-float readback at half resolution
+    (motion_config(motion_units="uv", motion_y_up=True, motion_direction="next", flip_rows=True),
+     MotionPlane(32, 24, 4, "float16")),
+    # object motion only with a valid mask (Streamline cameraMotionIncluded = false), full resolution
+    (motion_config(motion_units="pixels", motion_includes_camera=False, motion_scale=(40.0, 30.0)),
+     MotionPlane(0, 0, 2, "float32")),
+    # auto: mvec for the frames with vectors, decomp for the one without
+    (motion_config(method="auto", motion_units="ndc", motion_missing="camera"), MotionPlane(16, 12, 3, "float32")),
+])
+def test_motion_vectors_arrive_converted_as_in_an_in_process_session(server, cfg, plane):
+    """The vectors written into the motion plane reach the session converted as an in-process Session
+    converts them: mvec, which extrapolates them, predicts the same frames bit for bit."""
+    _, address = server
+    local = Session(cfg)
+    with Client(address) as client:
+        layout = client.hello(cfg, channels=3, motion=plane)
+        mw, mh = plane.size(W, H)
+        assert layout.has_motion and (layout.motion_width, layout.motion_height) == (mw, mh)
+        assert layout.shm_size >= layout.motion_valid_offset + mw * mh
+        methods = []
+        for i in range(8):
+            t = i / 60
+            if i % 2 == 0:
+                color, depth = frame_arrays(i)
+                vectors = _vectors((mh, mw, plane.channels), i, np.dtype(plane.format))
+                valid = np.random.default_rng(i).random((mh, mw)) > 0.2
+                auto_without = cfg.method == "auto" and i == 4  # (mvec refuses a frame without vectors)
+                kwargs = {} if auto_without else dict(motion_vectors=vectors, motion_valid=valid)
+                assert client.submit(color, depth, pose(0.01 * i), K, t, **kwargs) == local.submit(
+                    color, depth, pose(0.01 * i), K, t, **kwargs)
+            else:
+                remote, expected = client.predict(pose(0.01 * i), K, t), local.predict(pose(0.01 * i), K, t)
+                np.testing.assert_array_equal(remote.color, expected.color)
+                np.testing.assert_array_equal(remote.holes, expected.holes)
+                assert (remote.method, remote.fallback) == (expected.method, expected.fallback)
+                methods.append(remote.method if remote.fallback is None else remote.fallback)
+        assert methods == ["history", "mvec", "decomp" if cfg.method == "auto" else "mvec", "mvec"]
+        kept = 2 if cfg.method == "auto" else 3
+        assert local.stats["motion_vectors"] == {"kept": kept, "dropped": 1}  # frame 0: nothing to point into
+        client.bye()
+
+
+def test_reset_can_resize_the_motion_plane(server):
+    _, address = server
+    with Client(address) as client:
+        first = client.hello(motion_config(), motion=MotionPlane(32, 24))
+        color, depth = frame_arrays()
+        client.submit(color, depth, pose(), K, 0.0, motion_vectors=np.zeros((24, 32, 2), np.float32))
+        same = client.reset()
+        assert same == first
+        full = client.reset(motion_size=(0, 0))
+        assert (full.motion_width, full.motion_height) == (W, H) and full.shm_name != first.shm_name
+        small = client.reset(width=32, height=24)  # the plane follows the frame (0 x 0)
+        assert (small.motion_width, small.motion_height) == (32, 24)
+        k_small = K * np.array([[0.5], [0.5], [1.0]])
+        client.submit(*frame_arrays(size=(24, 32)), pose(), k_small, 0.1,
+                      motion_vectors=np.zeros((24, 32, 2), np.float32))
+        with pytest.raises(ServerError, match="at most the frame's 32x24") as info:
+            client.reset(motion_size=(64, 48))
+        assert info.value.status == Status.BAD_INPUT
+        client.bye()
+
+
+def test_bad_motion_vectors_get_an_error_and_the_server_keeps_serving(server):
+    proc, address = server
+    with Client(address) as client:
+        client.hello(motion_config(motion_units="uv"), motion=MotionPlane(32, 24))
+        color, depth = frame_arrays()
+        client.submit(color, depth, pose(), K, 0.0)
+        bad = np.zeros((24, 32, 2), np.float32)
+        bad[3, 4, 1] = np.inf
+        with pytest.raises(ServerError, match=r"BAD_INPUT: frame 7, field 'motion_vectors': has 1 infinite values"):
+            client.submit(color, depth, pose(0.01), K, 0.1, frame_id=7, motion_vectors=bad)
+        bad[3, 4, 1] = 200.0  # 200 viewport heights: 9600 px once converted
+        with pytest.raises(ServerError, match=r"frame 8, field 'motion_vectors': has a component of 9600 px once "
+                                              r"converted"):
+            client.submit(color, depth, pose(0.01), K, 0.1, frame_id=8, motion_vectors=bad)
+        for flags, match in ((wire.SUBMIT_VALID, "valid mask without vectors"), (8, "unknown bits 0x8")):
+            with pytest.raises(ServerError, match=match) as info:
+                client.request(MessageType.SUBMIT, frame_payload(9, 0.1) + wire.SUBMIT_MOTION.pack(flags, 0))
+            assert info.value.status == Status.BAD_INPUT
+        client.submit(color, depth, pose(0.01), K, 0.1, motion_vectors=np.zeros((24, 32, 2), np.float32))
+        assert client.predict(pose(0.02), K, 0.15).method == "mvec"  # the same connection still works
+    with Client(address) as plain:
+        plain.hello(config())
+        with pytest.raises(ServerError, match="has no motion plane") as info:
+            plain.request(MessageType.SUBMIT, frame_payload() + wire.SUBMIT_MOTION.pack(wire.SUBMIT_VECTORS, 0))
+        assert info.value.status == Status.BAD_INPUT
+    assert_serves(proc, address)
+
+
+def _motion_hello(engine=0, **change) -> bytes:
+    fields = dict(units=0, direction=0, y_axis=0, camera=0, missing=0, width=0, height=0, channels=2, format=0,
+                  reserved=0, scale_x=0.0, scale_y=0.0)
+    fields.update(change)
+    return _hello_fields(engine=engine) + wire.MOTION.pack(*fields.values())
+
+
+@pytest.mark.parametrize("payload, match", [
+    (_motion_hello(units=4), "motion field 'units': code 4"),
+    (_motion_hello(direction=3), "motion field 'direction'"),
+    (_motion_hello(y_axis=3), "motion field 'y_axis'"),
+    (_motion_hello(camera=9), "motion field 'camera'"),
+    (_motion_hello(missing=3), "motion field 'missing'"),
+    (_motion_hello(format=2), "motion field 'format'"),
+    (_motion_hello(channels=1), "motion field 'channels' must be 2, 3 or 4"),
+    (_motion_hello(width=W + 1, height=H), "at most the frame's 64x48"),
+    (_motion_hello(width=0, height=10), "0x0 for the frame's size"),
+    (_motion_hello(scale_x=float("nan")), "motion_scale"),
+    (_motion_hello(engine=wire.ENGINE_CODES.index("opengl")), "field 'motion_units': engine 'opengl' has no"),
+])
+def test_hello_rejects_bad_motion_fields(server, payload, match):
+    _, address = server
+    with Client(address) as client, pytest.raises(ServerError, match=match) as info:
+        client.request(MessageType.HELLO, payload)
+    assert info.value.status == Status.BAD_INPUT
+    with Client(address) as client:  # a zero-filled il_motion: the engine's conventions, a full-size plane
+        layout = Layout.unpack(client.request(MessageType.HELLO, _motion_hello()))
+        assert (layout.motion_width, layout.motion_height) == (W, H)

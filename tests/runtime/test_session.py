@@ -488,3 +488,268 @@ def test_near_and_far_must_be_planes_of_the_projection():
         assert info.value.field == field and info.value.frame == 0
     linear = Session(SessionConfig(engine="opengl", width=32, height=24, near=0.3))  # linear depth: unused
     linear.submit(color, np.full((24, 32), 5.0, np.float32), view, projection, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Motion vectors: each engine's convention, NaN and masks, lower resolution, object-only vectors,
+# bad input, camera cuts, "auto"
+# --------------------------------------------------------------------------------------------
+
+def true_vectors(points):
+    """The true motion of the test: at full-resolution pixel coordinates ``points`` (..., 2) = (x, y), the
+    vector in full-resolution pixels (x right, y down) to where the surface point was in the previous frame."""
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([1.5 + 0.02 * x - 0.01 * y, -0.75 + 0.015 * y + 0.005 * x], axis=-1)
+
+
+def sample_centres(h, w):
+    """Full-resolution (x, y) of the centres of an (h, w) vector buffer's samples: ((j + 0.5) W / w, ...)."""
+    x, y = np.meshgrid((np.arange(w) + 0.5) * W / w, (np.arange(h) + 0.5) * H / h)
+    return np.stack([x, y], axis=-1)
+
+
+# Each engine's buffer for the same motion, from the engine's own formulas on the two positions of each
+# sample (cur: where the point is now, prev: where it was; full-resolution pixels, row 0 at the top).
+def unity_uv(p):  # Unity screen UV: v = 0 at the bottom
+    return np.stack([p[..., 0] / W, 1.0 - p[..., 1] / H], axis=-1)
+
+
+def unreal_screen_pos(p):  # Unreal ScreenPos: NDC, y up
+    return np.stack([2.0 * p[..., 0] / W - 1.0, 1.0 - 2.0 * p[..., 1] / H], axis=-1)
+
+
+def godot_uv(p):  # Godot 4: RenderingDevice clip space (y down) times 0.5
+    return 0.5 * np.stack([2.0 * p[..., 0] / W - 1.0, 2.0 * p[..., 1] / H - 1.0], axis=-1)
+
+
+def buffer_pixels(p, h, w):  # pixels of an (h, w) buffer spanning the viewport
+    return p * np.array([w / W, h / H])
+
+
+CONVENTIONS = {
+    # name: (rig, SessionConfig motion fields, encoder (cur, prev, h, w) -> the engine's buffer)
+    "unity": ("unity", {}, lambda cur, prev, h, w: unity_uv(cur) - unity_uv(prev)),        # current - previous UV
+    "unreal": ("unreal", {}, lambda cur, prev, h, w: unreal_screen_pos(cur) - unreal_screen_pos(prev)),
+    "godot": ("godot", {}, lambda cur, prev, h, w: godot_uv(prev) - godot_uv(cur)),          # prev_uv - uv
+    "opencv": ("opencv", {}, lambda cur, prev, h, w: buffer_pixels(prev - cur, h, w)),
+    # an OpenGL renderer's own buffer: NDC (y up), current -> previous; OpenGL has no default, so it is set
+    "opengl": ("opengl", dict(motion_units="ndc", motion_y_up=True, motion_direction="previous"),
+               lambda cur, prev, h, w: unreal_screen_pos(prev) - unreal_screen_pos(cur)),
+    # FSR 2/3: a UV-space buffer handed to FSR with motionVectorScale = render size (pixels, y down, to previous)
+    "fsr_uv_buffer": ("godot", dict(motion_units="pixels", motion_direction="previous", motion_y_up=False),
+                      lambda cur, prev, h, w: (prev - cur) / np.array([W, H])),
+    # DLSS (Streamline): a pixel-space buffer with mvecScale = (1 / w, 1 / h) into the [-1, 1] (uv) range
+    "dlss_pixel_buffer": ("unreal", dict(motion_units="uv", motion_direction="previous", motion_y_up=False),
+                          lambda cur, prev, h, w: buffer_pixels(prev - cur, h, w)),
+}
+SCALES = {"fsr_uv_buffer": lambda h, w: (float(w), float(h)), "dlss_pixel_buffer": lambda h, w: (1.0 / w, 1.0 / h)}
+
+
+def submit_pair(session, rig, vectors, **kwargs):
+    """Submit the rig's view A twice (a static camera), the second time with ``vectors``; returns the frame
+    that entered the history."""
+    _, d_a, _ = known_point(rig)
+    buffer = np.full((H, W), d_a, dtype=np.float32)
+    color = ramp_image()
+    flip = session.config.flip_rows
+    rows = (lambda a: a[::-1]) if flip else (lambda a: a)
+    session.submit(rows(color), rows(buffer), rig.view_a, rig.proj_a, 0.0)
+    vectors = None if vectors is None else rows(vectors)
+    mask = kwargs.pop("motion_valid", None)
+    result = session.submit(rows(color), rows(buffer), rig.view_a, rig.proj_a, 1.0 / 60.0, motion_vectors=vectors,
+                            motion_valid=None if mask is None else rows(mask), **kwargs)
+    assert result.reset is None and result.history == 1  # reproject keeps one frame: the second
+    return session._loop.prepared.frames[-1]
+
+
+@pytest.mark.parametrize("size", [(H, W), (24, 32), (18, 40)], ids=["full", "half", "uneven"])
+@pytest.mark.parametrize("name", list(CONVENTIONS))
+def test_each_engines_motion_vectors_give_the_same_pixel_vectors(name, size):
+    """The same true motion, written as each engine (or upscaler integration) writes its buffer, at full and
+    at lower resolution, enters the history as the same full-resolution pixel vectors."""
+    rig_name, motion, encode = CONVENTIONS[name]
+    rig = RIGS[rig_name]()
+    h, w = size
+    cur = sample_centres(h, w)
+    engine_buffer = encode(cur, cur + true_vectors(cur), h, w).astype(np.float32)
+    if name in SCALES:
+        motion = dict(motion, motion_scale=SCALES[name](h, w))
+    session = Session(SessionConfig(width=W, height=H, method="reproject", **rig.config, **motion))
+    frame = submit_pair(session, rig, engine_buffer)
+    assert frame.motion_vectors.shape == (h, w, 2) and frame.motion_vectors.dtype == np.float32
+    np.testing.assert_allclose(frame.motion_vectors, true_vectors(cur), atol=2e-4)
+
+
+def test_bottom_up_vectors_with_flip_rows_and_rgba_float16_buffers():
+    """A bottom-up readback (Unity Texture2D) of the same buffer, with flip_rows, and an RGBA half-float
+    texture whose RG hold the vectors, give the same vectors; y_up describes the picture, not the rows."""
+    rig = unity_rig()
+    cur = sample_centres(24, 32)
+    uv = (unity_uv(cur) - unity_uv(cur + true_vectors(cur))).astype(np.float32)
+    rgba = np.concatenate([uv, np.full(uv.shape[:2] + (2,), 7.0, np.float32)], axis=-1).astype(np.float16)
+    flipped = Session(SessionConfig(width=W, height=H, method="reproject", flip_rows=True, **rig.config))
+    frame = submit_pair(flipped, rig, rgba)  # submit_pair flips every buffer's rows: a bottom-up readback
+    np.testing.assert_allclose(frame.motion_vectors, true_vectors(cur), atol=5e-2)  # float16 precision
+    plain = Session(SessionConfig(width=W, height=H, method="reproject", **rig.config))
+    np.testing.assert_array_equal(submit_pair(plain, rig, rgba).motion_vectors, frame.motion_vectors)
+
+
+def test_nan_and_the_valid_mask_mark_pixels_without_a_vector():
+    rig = opencv_rig()
+    cur = sample_centres(H, W)
+    buffer = (true_vectors(cur)).astype(np.float32)
+    buffer[3, 4] = np.nan
+    valid = np.ones((H, W), bool)
+    valid[5, 6] = False
+    for mask in (valid, valid.astype(np.uint8)):  # a bool mask, or 0 / 1 as a texture holds it
+        session = Session(SessionConfig(width=W, height=H, **rig.config))
+        vectors = submit_pair(session, rig, buffer, motion_valid=mask).motion_vectors
+        missing = np.isnan(vectors).any(axis=-1)
+        assert np.argwhere(missing).tolist() == [[3, 4], [5, 6]] and np.isnan(vectors[missing]).all()
+        np.testing.assert_allclose(vectors[~missing], true_vectors(cur)[~missing], atol=1e-4)
+
+
+CAMERA_STEP = 0.06  # m along x between frames A and B: at 3 m and fx = 50, static points move 1 px
+
+
+@pytest.mark.parametrize("size", [(H, W), (24, 32)], ids=["full", "half"])
+def test_object_only_vectors_get_the_cameras_motion_added(size):
+    """Object-motion-only vectors (Streamline cameraMotionIncluded = false): the session adds the camera's
+    motion. Camera B is 6 cm right of A in front of a wall 3 m away (fx = 50): a static point was 1 px
+    further right in A, so the total vector is the object's plus (+1, 0)."""
+    h, w = size
+    session = make_session(method="reproject", motion_includes_camera=False)
+    color, depth = frame_arrays(0)
+    objects = np.zeros((h, w, 2), np.float32)
+    objects[4:9, 5:12] = (0.5, -0.25)  # a moving object; the rest is static
+    objects[1, 1] = np.nan
+    session.submit(color, depth, pose(), K, 0.0)
+    session.submit(frame_arrays(1)[0], depth, pose(x=CAMERA_STEP), K, 1 / 30, motion_vectors=objects)
+    vectors = session._loop.prepared.frames[-1].motion_vectors
+    expected = objects * np.array([W / w, H / h]) + np.array([1.0, 0.0])  # "pixels" are the buffer's
+    np.testing.assert_allclose(vectors, expected, atol=1e-5)  # NaN stays NaN (assert_allclose: same places)
+
+
+def test_object_only_vectors_at_low_resolution_sample_the_camera_at_their_own_centres():
+    """A camera turning in front of the sky: the camera's motion differs across the picture; at (24, 32) the
+    added vectors are those of each sample's own centre (rotation only: q = K R K^-1 p)."""
+    h, w = 24, 32
+    session = make_session(method="reproject", motion_includes_camera=False)
+    color = frame_arrays(0)[0]
+    sky = np.full((H, W), np.inf, np.float32)
+    session.submit(color, sky, pose(), K, 0.0)
+    session.submit(color, sky, pose(yaw_deg=3.0), K, 1 / 30, motion_vectors=np.zeros((h, w, 2), np.float32))
+    vectors = session._loop.prepared.frames[-1].motion_vectors
+    p = sample_centres(h, w)
+    rays = np.concatenate([p, np.ones(p.shape[:2] + (1,))], axis=-1) @ np.linalg.inv(K).T
+    b_to_a = pose()[:3, :3] @ pose(yaw_deg=3.0)[:3, :3].T  # camera B axes -> camera A axes
+    q = rays @ (K @ b_to_a).T
+    np.testing.assert_allclose(vectors, q[..., :2] / q[..., 2:] - p, atol=1e-4)
+
+
+def test_missing_vectors_can_mean_static_geometry():
+    """Unreal leaves static geometry out of its velocity buffer (the clear value): with motion_missing=
+    "camera" (Unreal's default) those pixels, marked in motion_valid, get the camera's motion."""
+    session = make_session(method="reproject", motion_missing="camera")
+    color, depth = frame_arrays(0)
+    written = np.zeros((H, W), bool)
+    written[10:20, 10:30] = True
+    moving = np.where(written[..., None], np.float32(2.5), np.float32(-99.0)) * np.array([1, 0], np.float32)
+    session.submit(color, depth, pose(), K, 0.0)
+    session.submit(color, depth, pose(x=CAMERA_STEP), K, 1 / 30, motion_vectors=moving, motion_valid=written)
+    vectors = session._loop.prepared.frames[-1].motion_vectors
+    np.testing.assert_allclose(vectors[written], np.tile([2.5, 0.0], (written.sum(), 1)))
+    np.testing.assert_allclose(vectors[~written], np.tile([1.0, 0.0], ((~written).sum(), 1)), atol=1e-5)
+    assert SessionConfig(engine="unreal").motion_conventions().missing == "camera"
+
+
+def _bad(vectors=None, valid=None):
+    return dict(motion_vectors=np.zeros((H, W, 2), np.float32) if vectors is None else vectors, motion_valid=valid)
+
+
+def _with(index, value, shape=(H, W, 2)):
+    v = np.zeros(shape, np.float32)
+    v[index] = value
+    return v
+
+
+@pytest.mark.parametrize("what, kwargs, config, match", [
+    ("inf", _bad(_with((2, 3, 0), np.inf)), {}, r"field 'motion_vectors': has 1 infinite values"),
+    ("2-D", _bad(np.zeros((H, W), np.float32)), {}, r"field 'motion_vectors': must have shape \(h, w, 2\)"),
+    ("1 channel", _bad(np.zeros((H, W, 1), np.float32)), {}, r"field 'motion_vectors': must have shape"),
+    ("5 channels", _bad(np.zeros((H, W, 5), np.float32)), {}, r"field 'motion_vectors': must have shape"),
+    ("integers", _bad(np.zeros((H, W, 2), np.uint16)), {}, r"field 'motion_vectors': must be a float array"),
+    ("larger", _bad(np.zeros((H + 2, W, 2), np.float32)), {}, r"field 'motion_vectors': are 64x50: must be at most"),
+    ("absurd", _bad(_with((0, 0, 1), 1e6)), {}, r"field 'motion_vectors': has a component of 1e\+06 px"),
+    ("uv as pixels", _bad(_with((0, 0, 0), 200.0)), dict(motion_units="uv"),
+     r"field 'motion_vectors': has a component of 1\.28e\+04 px once converted, over 64 frame diagonals"),
+    ("mask shape", _bad(valid=np.ones((H, W - 1), bool)), {}, r"field 'motion_valid': must have the vectors' shape"),
+    ("mask values", _bad(valid=np.full((H, W), 2, np.uint8)), {}, r"field 'motion_valid': must be a bool mask"),
+    ("mask alone", dict(motion_valid=np.ones((H, W), bool)), {}, r"field 'motion_valid': is given without"),
+    ("no convention", _bad(), dict(engine="opengl"), r"field 'motion_units': engine 'opengl' has no motion-vector"),
+])
+def test_bad_motion_vectors_are_one_line_errors_naming_frame_and_field(what, kwargs, config, match):
+    if config.get("engine") == "opengl":
+        session = Session(SessionConfig(engine="opengl", width=W, height=H))
+        view, projection = np.eye(4), gl_perspective(60.0, W / H, 0.1, 100.0)
+    else:
+        session, view, projection = make_session(**config), pose(), K
+    color, depth = frame_arrays()
+    session.submit(color, depth, view, projection, 0.0)
+    with pytest.raises(InputError, match=r"^frame 12, " + match) as info:
+        session.submit(frame_arrays(1)[0], depth, view, projection, 0.25, frame=12, **kwargs)
+    assert "\n" not in str(info.value) and "time 0.25" in str(info.value)
+    assert session.stats["submitted"] == 1  # the history is as it was
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(motion_units="furlongs"), "motion_units"), (dict(motion_direction="sideways"), "motion_direction"),
+    (dict(motion_missing="zero"), "motion_missing"), (dict(motion_scale=(1.0, 0.0)), "motion_scale"),
+    (dict(motion_scale=(float("nan"), 1.0)), "motion_scale"), (dict(motion_y_up=2), "motion_y_up"),
+])
+def test_bad_motion_configs(kwargs, match):
+    with pytest.raises(InputError, match=match):
+        SessionConfig(**kwargs)
+
+
+def test_a_camera_cut_with_motion_vectors_resets_and_drops_them_no_smearing():
+    """Vectors point into the previous submitted frame: after a cut (or time going backwards) that frame
+    is gone from the history, so the new frame enters it without vectors and nothing is smeared across."""
+    session = make_session(method="flow2d")
+    color0, depth = frame_arrays(0)
+    color1, _ = frame_arrays(1)
+    step = np.tile(np.array([1.0, 0.0], np.float32), (H, W, 1))
+    assert session.submit(color0, depth, pose(), K, 0.0, motion_vectors=step).history == 1
+    assert session._loop.prepared.frames[-1].motion_vectors is None  # the first frame: nothing to point into
+    session.submit(color1, depth, pose(x=CAMERA_STEP), K, 1 / 30, motion_vectors=step)
+    np.testing.assert_array_equal(session._loop.prepared.frames[-1].motion_vectors, step)
+
+    jump = session.submit(color0, depth, pose(x=100.0), K, 2 / 30, motion_vectors=step)
+    assert jump.reset == "camera_cut" and jump.history == 1
+    newest = session._loop.prepared.frames[-1]
+    assert newest.motion_vectors is None and newest.index == jump.frame
+    out = session.predict(pose(x=100.0), K, 2 / 30 + 1 / 60)
+    assert out.method == "reproject" and out.fallback == "history"
+    np.testing.assert_allclose(out.color, color0, atol=1e-6)  # the new frame only: nothing of before
+    back = session.submit(color1, depth, pose(x=100.0), K, 0.0, motion_vectors=step)
+    assert back.reset == "time_backwards" and session._loop.prepared.frames[-1].motion_vectors is None
+    session.reset()
+    session.submit(color1, depth, pose(x=100.0), K, 1.0, motion_vectors=step)
+    assert session._loop.prepared.frames[-1].motion_vectors is None
+    assert session.stats["motion_vectors"] == {"kept": 1, "dropped": 4}
+
+
+def test_auto_picks_mvec_with_vectors_and_decomp_without_per_submit():
+    session = make_session(method="auto")
+    depth = frame_arrays()[1]
+    step = np.tile(np.array([1.0, 0.0], np.float32), (24, 32, 1))  # the camera's motion, at half resolution
+    methods = []
+    for i, with_vectors in enumerate([False, True, False, True, True]):
+        session.submit(frame_arrays(i)[0], depth, pose(x=CAMERA_STEP * i), K, i / 30,
+                       motion_vectors=step if with_vectors else None)
+        out = session.predict(pose(x=CAMERA_STEP * (i + 0.5)), K, (i + 0.5) / 30)
+        assert np.all(np.isfinite(out.color))
+        methods.append(out.method if out.fallback is None else out.fallback)
+    assert methods == ["history", "mvec", "decomp", "mvec", "mvec"]
+    with pytest.raises(InputError, match="'auto' takes no options"):
+        SessionConfig(method="auto[x=1]")

@@ -5,9 +5,11 @@
  *   interleave serve --listen unix:/tmp/interleave.sock &
  *   ./il_example /tmp/interleave.sock
  *
- * Opens an OpenCV-convention session (64x48 RGBA float, planar depth), submits one frame of a
- * fronto-parallel wall 2 m away, predicts the frame of a camera 1 cm to the right and prints what came
- * back. tests/test_server.py compiles and runs it. Error handling is minimal: any failure exits with 1.
+ * Opens an OpenCV-convention session (64x48 RGBA float, planar depth) with a half-resolution motion-vector
+ * plane (protocol version 2), submits two frames of a fronto-parallel wall 2 m away while the camera moves
+ * 1 cm to the right per frame (the second with its motion vectors), predicts the frame of the next step
+ * and prints what came back. tests/runtime/test_server.py compiles and runs it. Error handling is minimal:
+ * any failure exits with 1.
  */
 #define _POSIX_C_SOURCE 200809L
 #include <fcntl.h>
@@ -22,7 +24,7 @@
 
 #include "interleave_protocol.h"
 
-enum { WIDTH = 64, HEIGHT = 48, CHANNELS = 4 };
+enum { WIDTH = 64, HEIGHT = 48, CHANNELS = 4, MV_WIDTH = 32, MV_HEIGHT = 24 };
 
 static int sock_fd = -1;
 static uint32_t next_id = 1;
@@ -89,18 +91,30 @@ int main(int argc, char **argv) {
     sock_fd = socket(AF_UNIX, SOCK_STREAM, 0);
     if (sock_fd < 0 || connect(sock_fd, (struct sockaddr *)&addr, sizeof addr) != 0) die("cannot connect");
 
-    il_hello hello = {0};
-    hello.engine = IL_ENGINE_OPENCV;
-    hello.depth_convention = IL_DEPTH_LINEAR;
-    hello.color_in = hello.color_out = IL_COLOR_LINEAR;
-    hello.width = WIDTH;
-    hello.height = HEIGHT;
-    hello.channels = CHANNELS;
-    hello.near_plane = 0.1;
-    hello.far_plane = INFINITY;
-    strcpy(hello.method, "reproject");
-    il_layout layout;
-    request(IL_MSG_HELLO, &hello, sizeof hello, &layout, sizeof layout);
+    il_hello_with_motion hello = {0};
+    hello.hello.engine = IL_ENGINE_OPENCV;
+    hello.hello.depth_convention = IL_DEPTH_LINEAR;
+    hello.hello.color_in = hello.hello.color_out = IL_COLOR_LINEAR;
+    hello.hello.width = WIDTH;
+    hello.hello.height = HEIGHT;
+    hello.hello.channels = CHANNELS;
+    hello.hello.near_plane = 0.1;
+    hello.hello.far_plane = INFINITY;
+    strcpy(hello.hello.method, "mvec"); /* extrapolates the engine's motion vectors */
+    /* The vectors as an FSR-ready buffer: pixels of the plane, to the previous frame, y down, camera included */
+    hello.motion.units = IL_MOTION_PIXELS;
+    hello.motion.direction = IL_MOTION_PREVIOUS;
+    hello.motion.y_axis = IL_MOTION_Y_DOWN;
+    hello.motion.camera = IL_MOTION_CAMERA_INCLUDED;
+    hello.motion.missing = IL_MOTION_MISSING_NONE;
+    hello.motion.width = MV_WIDTH;
+    hello.motion.height = MV_HEIGHT;
+    hello.motion.channels = 2;
+    hello.motion.format = IL_MOTION_F32;
+    hello.motion.scale_x = hello.motion.scale_y = 1.0;
+    il_layout_with_motion reply;
+    request(IL_MSG_HELLO, &hello, sizeof hello, &reply, sizeof reply);
+    const il_layout layout = reply.layout;
 
     int shm_fd = shm_open(layout.shm_name, O_RDWR, 0);
     if (shm_fd < 0) die("shm_open failed");
@@ -110,6 +124,7 @@ int main(int argc, char **argv) {
 
     float *color = (float *)(shm + layout.color_in_offset);
     float *depth = (float *)(shm + layout.depth_offset);
+    float *motion = (float *)(shm + reply.motion.motion_offset);
     for (int i = 0; i < WIDTH * HEIGHT; ++i) {
         int x = i % WIDTH;
         color[CHANNELS * i + 0] = (float)x / WIDTH; /* a horizontal ramp */
@@ -118,23 +133,38 @@ int main(int argc, char **argv) {
         color[CHANNELS * i + 3] = 1.0f;
         depth[i] = 2.0f;
     }
-    il_frame frame = {0};
-    frame.frame_id = 0;
-    frame.time = 0.0;
-    set_pose(&frame, 0.0);
+    /* Frame 0: the camera at x = -1 cm, no vectors (il_frame alone, as in version 1). */
+    il_submit_with_motion frame = {0};
+    frame.frame.frame_id = 0;
+    frame.frame.time = 0.0;
+    set_pose(&frame.frame, -0.01);
     il_submit_reply submitted;
+    request(IL_MSG_SUBMIT, &frame.frame, sizeof frame.frame, &submitted, sizeof submitted);
+
+    /* Frame 1: the camera at x = 0. The wall 2 m away (fx = 50) was 0.25 px further right in frame 0:
+     * 0.125 px of the half-resolution plane, to the previous frame, y down. */
+    for (uint32_t i = 0; i < reply.motion.width * reply.motion.height; ++i) {
+        motion[2 * i + 0] = 0.125f;
+        motion[2 * i + 1] = 0.0f;
+    }
+    frame.frame.frame_id = 1;
+    frame.frame.time = 1.0 / 60.0;
+    set_pose(&frame.frame, 0.0);
+    frame.motion.flags = IL_SUBMIT_VECTORS;
     request(IL_MSG_SUBMIT, &frame, sizeof frame, &submitted, sizeof submitted);
 
-    frame.frame_id = 1;
-    frame.time = 1.0 / 60.0;
-    set_pose(&frame, 0.01);
+    /* The frame in between: the camera at x = +1 cm. */
+    il_frame target = frame.frame;
+    target.frame_id = 2;
+    target.time = 2.0 / 60.0;
+    set_pose(&target, 0.01);
     il_predict_reply predicted;
-    request(IL_MSG_PREDICT, &frame, sizeof frame, &predicted, sizeof predicted);
+    request(IL_MSG_PREDICT, &target, sizeof target, &predicted, sizeof predicted);
     const float *out = (const float *)(shm + layout.color_out_offset);
     const unsigned char *holes = shm + layout.holes_offset;
     int centre = (HEIGHT / 2) * WIDTH + WIDTH / 2;
-    printf("method=%s fallback=%u holes=%u centre_red=%.4f centre_hole=%u\n", predicted.method,
-           predicted.fallback, predicted.holes, out[CHANNELS * centre], holes[centre]);
+    printf("history=%u method=%s fallback=%u holes=%u centre_red=%.4f centre_hole=%u\n", submitted.history,
+           predicted.method, predicted.fallback, predicted.holes, out[CHANNELS * centre], holes[centre]);
 
     munmap(shm, layout.shm_size);
     request(IL_MSG_BYE, NULL, 0, NULL, 0);

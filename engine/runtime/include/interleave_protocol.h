@@ -1,7 +1,7 @@
 /*
- * interleave_protocol.h - wire format of `interleave serve`, protocol version 1.
+ * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 and 2.
  *
- * The Python side is engine/runtime/protocol.py; tests/test_server.py compiles this header and checks that every
+ * The Python side is engine/runtime/protocol.py; tests/runtime/test_server.py compiles this header and checks that every
  * constant, struct size and field offset below matches it. Prose: docs/server.md.
  *
  * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1). Every message, request or reply,
@@ -15,6 +15,16 @@
  *   PREDICT il_frame            -> il_predict_reply   colour + holes read back from shared memory
  *   RESET   il_reset            -> il_layout          clear history; a new size moves to a new segment
  *   BYE     (empty)             -> (empty)            the server frees the session and closes
+ *
+ * Versions: il_header.version is the version a request is written in; its reply carries the same one.
+ * Version 1 is the exchange above, unchanged. Version 2 (IL_VERSION) adds motion vectors, each an optional
+ * extension appended to the version-1 payload; payload_size says whether it is there:
+ *   HELLO   il_hello + il_motion (il_hello_with_motion)   -> il_layout + il_motion_layout
+ *   SUBMIT  il_frame + il_submit_motion                   -> il_submit_reply
+ *   RESET   il_reset + il_reset_motion                    -> il_layout + il_motion_layout
+ * A session opened without il_motion has no motion plane and gets il_layout alone, as in version 1.
+ * A version-2 server answers version-1 clients unchanged; a version-1 server answers a version-2 request
+ * with IL_BAD_VERSION (and closes), so a client may fall back to version 1 without motion vectors.
  * A reply has type = request type | IL_MSG_REPLY and echoes request_id. status != IL_OK replies carry
  * UTF-8 error text (not NUL-terminated) as payload. Replies come in request order; requests may be
  * pipelined. After IL_BAD_MAGIC, IL_BAD_VERSION, IL_TOO_LARGE or IL_TRUNCATED the server closes the
@@ -29,6 +39,16 @@
  *   holes     : height * width uint8, 1 where no rendered pixel landed (filled by the hole fill)
  * The server copies color_in / depth during SUBMIT: once the reply arrives they may be overwritten.
  * color_out / holes stay valid until the next request.
+ * With a motion plane (version 2), after holes:
+ *   motion       : motion_height * motion_width * il_motion.channels, float32 or float16 (il_motion.format);
+ *                  the first two channels are the vector's x, y (the RG of an RG/RGB/RGBA texture), in the
+ *                  conventions il_motion states; NaN = no vector; rows like the images (IL_FLAG_FLIP_ROWS)
+ *   motion_valid : motion_height * motion_width uint8, non-zero where a pixel has a vector (read only when
+ *                  il_submit_motion.flags has IL_SUBMIT_VALID)
+ * The plane may be smaller than the frame (vectors rendered at a lower resolution): sample (i, j) belongs
+ * to the frame point ((j + 0.5) * width / motion_width, (i + 0.5) * height / motion_height).
+ * Vectors point into the previously submitted frame: a SUBMIT whose history is reset (first frame, RESET,
+ * camera cut, time going backwards) drops them.
  *
  * Matrices: 16 doubles, row-major (m[4 * row + col]) math matrices, unless IL_FLAG_COLUMN_MAJOR (GLM,
  * Unity Matrix4x4, Godot Projection memory order). Per engine (docs/server.md, engine/runtime/session.py):
@@ -46,7 +66,8 @@
 #include <stdint.h>
 
 #define IL_MAGIC 0x4C544E49u /* "INTL" in memory */
-#define IL_VERSION 1
+#define IL_VERSION 2     /* the newest version; a request's version is also its reply's */
+#define IL_VERSION_MIN 1 /* the oldest version still answered (and the version of replies to bad headers) */
 #define IL_MAX_PAYLOAD 65536
 #define IL_MAX_SIDE 16384
 #define IL_ALIGNMENT 64
@@ -98,6 +119,34 @@
 #define IL_FLAG_FLIP_ROWS 1u     /* images are bottom-up (glReadPixels): flipped in and out */
 #define IL_FLAG_NDC_Y_DOWN 2u    /* the projection's NDC y points down (Vulkan-style) */
 #define IL_FLAG_COLUMN_MAJOR 4u  /* matrices are sent column-major */
+
+/* il_motion codes (version 2). 0 everywhere = the engine's own convention (engine/runtime/session.py):
+ *   engine  units   y     direction  camera    missing
+ *   unity   UV      up    NEXT       included  none     _CameraMotionVectorsTexture: uv now - uv before
+ *   unreal  NDC     up    NEXT       included  camera   DecodeVelocityFromTexture(): ScreenPos now - before;
+ *                                                        unwritten (static) pixels: IL_SUBMIT_VALID mask 0
+ *   godot   UV      down  PREVIOUS   included  none     velocity texture: prev_uv - uv
+ *   opencv  PIXELS  down  PREVIOUS   included  none     Interleave's own Frame.motion_vectors
+ *   opengl  (no default: units, y_axis and direction must be given)
+ * FSR 2/3 buffers: IL_MOTION_PIXELS, IL_MOTION_PREVIOUS, IL_MOTION_Y_DOWN, scale = motionVectorScale.
+ * DLSS (Streamline) buffers: IL_MOTION_UV with scale = mvecScale; camera = cameraMotionIncluded. */
+#define IL_MOTION_PIXELS 1   /* il_motion.units: pixels of the motion plane */
+#define IL_MOTION_UV 2       /* the viewport spans 1 */
+#define IL_MOTION_NDC 3      /* the viewport spans 2 */
+#define IL_MOTION_PREVIOUS 1 /* il_motion.direction: from the pixel to where its point was in the previous frame */
+#define IL_MOTION_NEXT 2     /* the reverse: previous -> current, the motion since the previous frame */
+#define IL_MOTION_Y_DOWN 1   /* il_motion.y_axis: y points down the picture */
+#define IL_MOTION_Y_UP 2     /* y points to the top of the picture (NDC y up, UV v = 0 at the bottom) */
+#define IL_MOTION_CAMERA_INCLUDED 1 /* il_motion.camera: the vectors include camera motion */
+#define IL_MOTION_OBJECT_ONLY 2     /* object motion only: the server adds the camera's */
+#define IL_MOTION_MISSING_NONE 1    /* il_motion.missing: a pixel without a vector has none (NaN) */
+#define IL_MOTION_MISSING_CAMERA 2  /* it is static: it gets the camera's motion */
+#define IL_MOTION_F32 0      /* il_motion.format */
+#define IL_MOTION_F16 1
+
+/* il_submit_motion.flags */
+#define IL_SUBMIT_VECTORS 1u /* the motion plane holds this frame's vectors */
+#define IL_SUBMIT_VALID 2u   /* the motion_valid plane holds their mask (needs IL_SUBMIT_VECTORS) */
 
 /* il_submit_reply.reset */
 #define IL_RESET_NONE 0
@@ -174,6 +223,44 @@ typedef struct il_reset {
     uint32_t height;
 } il_reset;
 
+/* Version 2: motion vectors. */
+typedef struct il_motion {     /* after il_hello in HELLO: the vectors' conventions and plane */
+    uint32_t units;            /* IL_MOTION_PIXELS / _UV / _NDC; 0 = the engine's */
+    uint32_t direction;        /* IL_MOTION_PREVIOUS / _NEXT; 0 = the engine's */
+    uint32_t y_axis;           /* IL_MOTION_Y_DOWN / _Y_UP; 0 = the engine's */
+    uint32_t camera;           /* IL_MOTION_CAMERA_INCLUDED / _OBJECT_ONLY; 0 = the engine's */
+    uint32_t missing;          /* IL_MOTION_MISSING_NONE / _CAMERA; 0 = the engine's */
+    uint32_t width;            /* the motion plane, at most the frame; 0 x 0 = the frame's size */
+    uint32_t height;
+    uint32_t channels;         /* 2, 3 or 4 per pixel; x, y are the first two */
+    uint32_t format;           /* IL_MOTION_F32 / IL_MOTION_F16 */
+    uint32_t reserved;         /* 0 */
+    double scale_x;            /* applied to the vectors first (FSR motionVectorScale, DLSS mvecScale); 0 = 1 */
+    double scale_y;
+} il_motion;
+
+typedef struct il_submit_motion { /* after il_frame in SUBMIT */
+    uint32_t flags;            /* IL_SUBMIT_*; 0 = this frame has no vectors */
+    uint32_t reserved;         /* 0 */
+} il_submit_motion;
+
+typedef struct il_reset_motion { /* after il_reset in RESET: the motion plane's new size */
+    uint32_t width;            /* 0 x 0 = the frame's size */
+    uint32_t height;
+} il_reset_motion;
+
+typedef struct il_motion_layout { /* after il_layout, for a session with a motion plane */
+    uint64_t motion_offset;       /* byte offsets, multiples of IL_ALIGNMENT */
+    uint64_t motion_valid_offset;
+    uint32_t width;               /* the plane's size */
+    uint32_t height;
+} il_motion_layout;
+
+typedef struct il_hello_with_motion { il_hello hello; il_motion motion; } il_hello_with_motion;
+typedef struct il_submit_with_motion { il_frame frame; il_submit_motion motion; } il_submit_with_motion;
+typedef struct il_reset_with_motion { il_reset reset; il_reset_motion motion; } il_reset_with_motion;
+typedef struct il_layout_with_motion { il_layout layout; il_motion_layout motion; } il_layout_with_motion;
+
 #if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L
 #define IL_STATIC_ASSERT(cond, msg) _Static_assert(cond, msg)
 #elif defined(__cplusplus) && __cplusplus >= 201103L
@@ -194,5 +281,14 @@ IL_STATIC_ASSERT(sizeof(il_submit_reply) == 16, "il_submit_reply is 16 bytes");
 IL_STATIC_ASSERT(sizeof(il_predict_reply) == 56, "il_predict_reply is 56 bytes");
 IL_STATIC_ASSERT(offsetof(il_predict_reply, method) == 24, "il_predict_reply.method at 24");
 IL_STATIC_ASSERT(sizeof(il_reset) == 8, "il_reset is 8 bytes");
+IL_STATIC_ASSERT(sizeof(il_motion) == 56, "il_motion is 56 bytes");
+IL_STATIC_ASSERT(offsetof(il_motion, scale_x) == 40, "il_motion.scale_x at 40");
+IL_STATIC_ASSERT(sizeof(il_submit_motion) == 8, "il_submit_motion is 8 bytes");
+IL_STATIC_ASSERT(sizeof(il_reset_motion) == 8, "il_reset_motion is 8 bytes");
+IL_STATIC_ASSERT(sizeof(il_motion_layout) == 24, "il_motion_layout is 24 bytes");
+IL_STATIC_ASSERT(sizeof(il_hello_with_motion) == 200, "il_hello_with_motion is 200 bytes");
+IL_STATIC_ASSERT(sizeof(il_submit_with_motion) == 280, "il_submit_with_motion is 280 bytes");
+IL_STATIC_ASSERT(sizeof(il_reset_with_motion) == 16, "il_reset_with_motion is 16 bytes");
+IL_STATIC_ASSERT(sizeof(il_layout_with_motion) == 136, "il_layout_with_motion is 136 bytes");
 
 #endif /* INTERLEAVE_PROTOCOL_H */

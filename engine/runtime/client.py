@@ -165,7 +165,8 @@ class Client:
             payload += wire.MOTION.pack(
                 wire.MOTION_UNIT_CODES.index(config.motion_units),
                 wire.MOTION_DIRECTION_CODES.index(config.motion_direction),
-                wire.MOTION_Y_CODES.index(config.motion_y_up), wire.MOTION_CAMERA_CODES.index(config.motion_includes_camera),
+                wire.MOTION_Y_CODES.index(config.motion_y_up),
+                wire.MOTION_CAMERA_CODES.index(config.motion_includes_camera),
                 wire.MOTION_MISSING_CODES.index(config.motion_missing), motion.width, motion.height, motion.channels,
                 wire.MOTION_FORMATS.index(motion.format), 0, *config.motion_scale)
         layout = Layout.unpack(self.request(MessageType.HELLO, payload))

@@ -343,7 +343,8 @@ class _Connection:
             raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field 'width', 'height': the plane is {mw}x{mh}; "
                                                    f"it must be at most the frame's {width}x{height}, or 0x0 for "
                                                    "the frame's size")
-        fields = dict(motion_units=wire.MOTION_UNIT_CODES[units], motion_direction=wire.MOTION_DIRECTION_CODES[direction],
+        fields = dict(motion_units=wire.MOTION_UNIT_CODES[units],
+                      motion_direction=wire.MOTION_DIRECTION_CODES[direction],
                       motion_y_up=wire.MOTION_Y_CODES[y_axis], motion_includes_camera=wire.MOTION_CAMERA_CODES[camera],
                       motion_missing=wire.MOTION_MISSING_CODES[missing],
                       motion_scale=(scale_x if scale_x != 0 else 1.0, scale_y if scale_y != 0 else 1.0))

@@ -226,8 +226,9 @@ class SessionConfig:
     flip_rows: bool = option(False, "images are bottom-up (glReadPixels, Unity Texture2D): flip inputs and outputs")
     color_in: str = option("linear", f"encoding of submitted colour: {', '.join(COLOR_SPACES)}")
     color_out: str = option("linear", f"encoding of predicted colour: {', '.join(COLOR_SPACES)}")
-    method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. decomp[gate.enabled=false]; "
-                                      "auto: mvec for frames with motion vectors, decomp for frames without")
+    method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. "
+                                      "decomp[gate.enabled=false]; auto: mvec for frames with motion vectors, "
+                                      "decomp for frames without")
     cut_translation: float = option(0.5, "camera cut when the camera centre moves more than this times the "
                                           "median scene depth")
     cut_rotation_deg: float = option(45.0, "camera cut when the camera turns by more than this many degrees")
@@ -309,7 +310,8 @@ class SessionConfig:
                 values[key] = engine[key]
             else:
                 raise InputError(f"engine {self.engine!r} has no motion-vector convention of its own: set "
-                                 f"SessionConfig.motion_{key} to what the submitted vectors hold", field=f"motion_{key}")
+                                 f"SessionConfig.motion_{key} to what the submitted vectors hold",
+                                 field=f"motion_{key}")
         return MotionConventions(scale=(float(self.motion_scale[0]), float(self.motion_scale[1])), **values)
 
 
@@ -708,7 +710,10 @@ class Session:
             new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera,
                         motion_vectors=kept)
             predictor = None if self._auto is None else self._auto[kept is not None]
-            frames = self._loop.submit(new, restart=reset is not None, predictor=predictor).frames  # raises: kept
+            try:  # a predictor that refuses the frames (mvec without vectors) leaves the history as it was
+                frames = self._loop.submit(new, restart=reset is not None, predictor=predictor).frames
+            except InputError as exc:
+                raise _located(exc, label, time, "submitted frame") from None
             self._scene_depth = scene_depth
             self._frames_submitted += 1
             if reset is not None:

@@ -633,7 +633,8 @@ def _messages(draw) -> bytes:
     if kind == "submit_motion":
         payload = frame_payload(draw(st.integers(0, 9)), draw(st.floats(0.0, 1.0))) + wire.SUBMIT_MOTION.pack(
             draw(st.integers(0, 7)), draw(st.integers(0, 2 ** 32 - 1)))
-        return wire.pack_header(MessageType.SUBMIT, 2, len(payload), version=draw(st.sampled_from(wire.VERSIONS))) + payload
+        version = draw(st.sampled_from(wire.VERSIONS))
+        return wire.pack_header(MessageType.SUBMIT, 2, len(payload), version=version) + payload
     type_ = draw(st.sampled_from(_KNOWN_TYPES) | st.integers(0, 0xFFFF))
     payload = draw(st.binary(max_size=300))
     size = draw(st.sampled_from([len(payload), len(payload) + 7, 0, wire.MAX_PAYLOAD + 1]))

@@ -753,3 +753,15 @@ def test_auto_picks_mvec_with_vectors_and_decomp_without_per_submit():
     assert methods == ["history", "mvec", "decomp", "mvec", "mvec"]
     with pytest.raises(InputError, match="'auto' takes no options"):
         SessionConfig(method="auto[x=1]")
+
+
+def test_mvec_without_vectors_is_an_error_naming_the_callers_frame():
+    session = make_session(method="mvec")
+    color, depth = frame_arrays()
+    step = np.tile(np.array([1.0, 0.0], np.float32), (H, W, 1))
+    session.submit(color, depth, pose(), K, 0.0, motion_vectors=step)
+    session.submit(color, depth, pose(x=CAMERA_STEP), K, 1 / 30, motion_vectors=step)
+    with pytest.raises(InputError, match=r"^frame 41, field 'motion_vectors': .*needs.*time 0\.1") as info:
+        session.submit(color, depth, pose(x=2 * CAMERA_STEP), K, 0.1, frame=41)
+    assert "\n" not in str(info.value) and session.stats["submitted"] == 2
+    assert session.predict(pose(x=2 * CAMERA_STEP), K, 0.09).method == "mvec"  # the history is intact

@@ -1,8 +1,8 @@
 /*
  * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 and 2.
  *
- * The Python side is engine/runtime/protocol.py; tests/runtime/test_server.py compiles this header and checks that every
- * constant, struct size and field offset below matches it. Prose: docs/server.md.
+ * The Python side is engine/runtime/protocol.py; tests/runtime/test_server.py compiles this header and checks
+ * that every constant, struct size and field offset below matches it. Prose: docs/server.md.
  *
  * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1). Every message, request or reply,
  * is one il_header followed by header.payload_size bytes. All integers and doubles are little-endian

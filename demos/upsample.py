@@ -22,7 +22,7 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.eval.metrics import flip_map
-from engine.eval.protocol import evaluate_sequence, markdown_table, plot, stage_table, summarize, write_json
+from engine.eval.protocol import evaluate_sequence, history_motion_vectors, markdown_table, plot, stage_table, summarize, write_json
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
@@ -47,11 +47,17 @@ def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> It
     """Show frames 0, k, 2k, ... as rendered and predict the others from the last rendered frames.
 
     Only each predicted tick's camera and time are read from the frames in between (what a game knows
-    before rendering). Until two frames are rendered, a two-frame method falls back to `reproject`.
+    before rendering). Until two frames are rendered, a two-frame method falls back to `reproject`. The
+    motion vectors of a rendered frame of a sequence are re-derived to point k frames back, to the previous
+    rendered frame (``engine.eval.protocol.history_motion_vectors``).
     """
     loop = PredictionLoop(predictor)
-    for frame in frames:
+    for position, frame in enumerate(frames):
         if frame.index % k == 0:
+            if frame.motion_vectors is not None and hasattr(frames, "objects"):
+                # a renderer drawing every k-th frame writes vectors to its previous rendered frame
+                frame.motion_vectors = (history_motion_vectors(frames, position - k, position, frame)
+                                        if position >= k else None)
             loop.submit(frame)
             yield OutputFrame(frame.index, frame.color, False, frame)
         elif loop.prepared is not None:

@@ -25,14 +25,18 @@ def _texture(x: np.ndarray, y: np.ndarray, phase: float) -> np.ndarray:
 
 def two_layer_sequence(num_frames: int = 8, width: int = 64, height: int = 48, camera_speed: float = 0.05,
                        object_speed: float = 0.08, fps: float = 30.0,
-                       square_half: float = SQUARE_HALF) -> tuple[list[Frame], list[SceneObject]]:
+                       square_half: float = SQUARE_HALF,
+                       object_path=None) -> tuple[list[Frame], list[SceneObject]]:
+    """``object_path(i)``, when given, is the square's x at frame i instead of ``object_speed * i`` (its
+    ``flow`` / ``object_flow`` channels still assume ``object_speed``: use the object transforms)."""
     fx = fy = 0.9 * width
     k = np.array([[fx, 0, width / 2], [0, fy, height / 2], [0, 0, 1]], dtype=np.float64)
     u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     rx, ry = (u - k[0, 2]) / fx, (v - k[1, 2]) / fy
     frames, transforms = [], []
     for i in range(num_frames + 1):
-        cam_x, obj_x = camera_speed * i, object_speed * i
+        cam_x = camera_speed * i
+        obj_x = object_speed * i if object_path is None else float(object_path(i))
         w2c = np.eye(4)
         w2c[0, 3] = -cam_x
         world_from_object = np.eye(4)

@@ -2,7 +2,8 @@
 
 Protocol (thesis Sec. 6.4, DeCOMPnet's evaluation): with upsampling factor k, frames 0, k, 2k, ... are
 "rendered"; for every rendered frame n that has a rendered predecessor n-k, each method predicts the
-frames n+1 .. n+k-1 from frames n-k and n (history) and the target cameras, and each prediction is
+frames n+1 .. n+k-1 from frames n-k and n (history; also frame n-2k, where it exists, when a method uses
+three frames: ``mvec``) and the target cameras, and each prediction is
 scored against the true frame (``engine.eval.metrics.score_frame``). Time per predicted frame is the render
 time plus the once-per-rendered-frame preparation divided by the k-1 frames it serves (amortised).
 
@@ -155,6 +156,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     if "oracle" in predictors and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
     with_vectors = any(isinstance(p, Mvec) for p in predictors.values())
+    wants_three = any(p.history_wanted >= 3 for p in predictors.values())
     if with_vectors and not has_vectors and not sequence.has_channel("object_id"):
         raise InputError("method 'mvec' needs motion vectors (channels motion.X/Y), or object_id and the objects' "
                          "transforms to derive them", file=sequence.path, field="motion_vectors")
@@ -169,13 +171,16 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             history = [sequence[older_i], sequence[newest_i]]
             if with_vectors:  # the renderer's vectors of frame n point to the previous rendered frame, n-k
                 history[1].motion_vectors = history_motion_vectors(sequence, older_i, newest_i, history[1])
+                if wants_three and older_i - k >= 0:  # and frame n-k's to frame n-2k
+                    history.insert(0, sequence[older_i - k])
+                    history[1].motion_vectors = history_motion_vectors(sequence, older_i - k, older_i, history[1])
             truths = [sequence[i] for i in target_is]
             for name, loop in loops.items():
                 start = time.perf_counter()
                 state = loop.load(history).state
                 prep_ms = 1e3 * (time.perf_counter() - start)
                 if hasattr(loop.predictor, "object_flow"):
-                    epes[name].append(flow_epe(loop.predictor.object_flow(state), history[0], history[1],
+                    epes[name].append(flow_epe(loop.predictor.object_flow(state), history[-2], history[-1],
                                                truths[0]))
                 for step, truth in enumerate(truths, start=1):
                     target = Target(truth.camera, truth.time, truth.index)

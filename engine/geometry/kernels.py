@@ -454,14 +454,14 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                 continue  # behind the previous camera if it had not moved: no reference to measure from
             qx = u + mx
             qy = v + my
-            su = (k_prev[0, 0] * sx + k_prev[0, 1] * sy) / sz + k_prev[0, 2]
-            sv = k_prev[1, 1] * sy / sz + k_prev[1, 2]
-            tolerance = static_tolerance + relative_tolerance * max(abs(mx), abs(my))
-            if abs(qx - su) <= tolerance and abs(qy - sv) <= tolerance:
+            # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0 (no division)
+            tolerance = (static_tolerance + relative_tolerance * max(abs(mx), abs(my))) * sz
+            if (abs(qx * sz - (k_prev[0, 0] * sx + k_prev[0, 1] * sy + k_prev[0, 2] * sz)) <= tolerance
+                    and abs(qy * sz - (k_prev[1, 1] * sy + k_prev[1, 2] * sz)) <= tolerance):
                 continue
             # depth of the point in the previous frame: the 2x2 neighbour closest to the static guess sz
             d = sz
-            best = math.log(band)
+            best = band  # the ratio max(c / sz, sz / c) of the best candidate so far
             x0 = math.floor(qx - 0.5)
             y0 = math.floor(qy - 0.5)
             for dy in range(2):
@@ -471,7 +471,9 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                     if 0 <= xi < wp and 0 <= yi < hp:
                         c = np.float64(prev_depth[yi, xi])
                         if not math.isinf(c):
-                            off = abs(math.log(c / sz))
+                            off = c / sz
+                            if off < 1.0:
+                                off = sz / c
                             if off <= best:
                                 best = off
                                 d = c
@@ -488,3 +490,83 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             moving_out[y, x] = True
             moving += 1
     return moving
+
+
+@njit(cache=True, nogil=True)
+def velocity_change(depth, vectors, velocity, moving, k_inv, rot, trans, prev_depth, prev_velocity, interval_ratio,
+                    log_band, limit, out):
+    """``engine.geometry.reference.velocity_change_reference`` compiled: ``out`` (len(moving), 3) float32, the
+    change of velocity of each moving pixel (0 where its point's previous pixel shows another surface or
+    the change exceeds ``limit`` times the velocity)."""
+    h, w = depth.shape
+    ph, pw = prev_depth.shape
+    for i in range(moving.shape[0]):
+        out[i, 0] = 0.0
+        out[i, 1] = 0.0
+        out[i, 2] = 0.0
+        y = moving[i] // w
+        x = moving[i] - y * w
+        qx = x + 0.5 + np.float64(vectors[y, x, 0])
+        qy = y + 0.5 + np.float64(vectors[y, x, 1])
+        if not (qx >= 0 and qx < pw and qy >= 0 and qy < ph):
+            continue
+        xi = int(qx)
+        yi = int(qy)
+        z = np.float64(depth[y, x])
+        v0 = np.float64(velocity[y, x, 0])
+        v1 = np.float64(velocity[y, x, 1])
+        v2 = np.float64(velocity[y, x, 2])
+        u = x + 0.5
+        v = y + 0.5
+        px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - v0
+        py = z * (k_inv[1, 0] * u + k_inv[1, 1] * v + k_inv[1, 2]) - v1
+        pz = z * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - v2
+        bz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
+        seen = np.float64(prev_depth[yi, xi])
+        if not (bz > 0) or math.isinf(seen) or abs(math.log(seen / bz)) > log_band:
+            continue
+        a0 = np.float64(prev_velocity[yi, xi, 0])
+        a1 = np.float64(prev_velocity[yi, xi, 1])
+        a2 = np.float64(prev_velocity[yi, xi, 2])
+        c0 = v0 - (a0 * rot[0, 0] + a1 * rot[1, 0] + a2 * rot[2, 0]) * interval_ratio
+        c1 = v1 - (a0 * rot[0, 1] + a1 * rot[1, 1] + a2 * rot[2, 1]) * interval_ratio
+        c2 = v2 - (a0 * rot[0, 2] + a1 * rot[1, 2] + a2 * rot[2, 2]) * interval_ratio
+        if c0 * c0 + c1 * c1 + c2 * c2 <= limit * limit * (v0 * v0 + v1 * v1 + v2 * v2):
+            out[i, 0] = c0
+            out[i, 1] = c1
+            out[i, 2] = c2
+
+
+@njit(cache=True, nogil=True)
+def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, k, k_inv, step, out):
+    """``engine.geometry.reference.extrapolated_flow_reference`` compiled: writes the (du, dv, dz) flow of the
+    ``moving`` pixels into ``out`` (H, W, 3) (other pixels are left as they are): P' = P + s V + s (s + 1) / 2 A,
+    NaN where P' reaches the camera plane."""
+    h, w = depth.shape
+    half = 0.5 * step * (step + 1.0)
+    for i in range(moving.shape[0]):
+        y = moving[i] // w
+        x = moving[i] - y * w
+        u = x + 0.5
+        v = y + 0.5
+        z = np.float64(depth[y, x])
+        px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
+        py = z * (k_inv[1, 1] * v + k_inv[1, 2])
+        mx = step * np.float64(velocity[y, x, 0])
+        my = step * np.float64(velocity[y, x, 1])
+        mz = step * np.float64(velocity[y, x, 2])
+        if has_acceleration:
+            mx += half * np.float64(acceleration[i, 0])
+            my += half * np.float64(acceleration[i, 1])
+            mz += half * np.float64(acceleration[i, 2])
+        nx = px + mx
+        ny = py + my
+        nz = z + mz
+        if nz > 1e-6 * z:
+            out[y, x, 0] = (k[0, 0] * nx + k[0, 1] * ny) / nz + k[0, 2] - u
+            out[y, x, 1] = k[1, 1] * ny / nz + k[1, 2] - v
+            out[y, x, 2] = nz - z
+        else:
+            out[y, x, 0] = np.nan
+            out[y, x, 1] = np.nan
+            out[y, x, 2] = np.nan

@@ -17,7 +17,8 @@ from engine.core.frames import Camera, rigid_inverse
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
-           "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "extrapolated_flow",
+           "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
+           "extrapolated_flow",
            "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
@@ -251,13 +252,48 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
     return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))
 
 
+def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray, moving: np.ndarray,
+                    camera: Camera, previous: Camera, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                    interval_ratio: float = 1.0, *, band: float = DEFAULT_DEPTH_BAND,
+                    limit: float = 0.5) -> np.ndarray:
+    """The change of velocity (len(moving), 3) of the moving pixels of a frame: its velocity minus the one its
+    point had in the previous frame, both in this camera's axes (an acceleration per frame interval).
+
+    The previous velocity is ``prev_velocity`` (the previous frame's ``scene_velocity``, in its camera's
+    axes) at the pixel of the previous frame the vector lands in, rotated into this camera and scaled by
+    ``interval_ratio`` (this frame's interval over the previous one). It counts only where that pixel shows
+    the same surface (its depth within ``band`` of the point's previous depth) and where the change is at
+    most ``limit`` times the velocity: smooth motion. Elsewhere (a point unseen in the previous frame, a
+    bounce, a start, a stop) the change is 0, i.e. constant velocity.
+    """
+    sizes: dict = {}
+    depth = checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
+    velocity = checked_array(velocity, "velocity", ("H", "W", 3), sizes)
+    prev_sizes: dict = {}
+    prev_depth = checked_array(prev_depth, "prev_depth", ("h", "w"), prev_sizes)
+    prev_velocity = checked_array(prev_velocity, "prev_velocity", ("h", "w", 3), prev_sizes)
+    moving = np.ascontiguousarray(moving, dtype=np.int64)
+    relative = previous.world_to_camera @ camera.camera_to_world
+    out = np.empty((moving.size, 3), dtype=np.float32)
+    kernels.velocity_change(np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(velocity),
+                            moving, np.linalg.inv(camera.intrinsics), np.ascontiguousarray(relative[:3, :3]),
+                            np.ascontiguousarray(relative[:3, 3]), np.ascontiguousarray(prev_depth),
+                            np.ascontiguousarray(prev_velocity), float(interval_ratio), float(np.log(band)),
+                            float(limit), out)
+    return out
+
+
 def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.ndarray, step: float,
-                      where: Optional[np.ndarray] = None) -> np.ndarray:
-    """The (H, W, 3) flow (du, dv pixels, dz planar depth) that moves each pixel's point P by ``step`` times
-    its velocity (constant-velocity extrapolation in 3D, this camera's axes): ``P' = P + step * velocity``,
-    flow = project(P') - (pixel centre, z). ``where`` (flat indices) limits the work to the pixels that
-    move (the rest get 0; default: those with a non-zero velocity). A point that would reach or cross the camera plane gets NaN (the warp drops it).
-    The result is the object flow of ``engine.geometry.forward_warp_frame``.
+                      where: Optional[np.ndarray] = None, acceleration: Optional[np.ndarray] = None) -> np.ndarray:
+    """The (H, W, 3) flow (du, dv pixels, dz planar depth) that moves each pixel's point P along its motion,
+    in 3D in this camera's axes: ``P' = P + s V + s (s + 1) / 2 A`` for ``s = step`` (frame intervals
+    n-k -> n ahead), the parabola through the point's positions at s = -2, -1, 0 (``A``: the change of
+    velocity V between the two intervals; without it, constant velocity); flow = project(P') - (pixel
+    centre, z). ``where`` (flat indices) limits the work to the pixels that move (the rest get 0; default:
+    those with a non-zero velocity); ``acceleration`` (len(where), 3) belongs to those. A point that would
+    reach or cross the camera plane gets NaN (the warp drops it). The result is the object flow of
+    ``engine.geometry.forward_warp_frame``.
     """
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
@@ -265,22 +301,13 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     k = checked_matrix(intrinsics, "intrinsics", 3)
     h, w = depth.shape
     idx = np.flatnonzero(np.any(velocity != 0, axis=-1)) if where is None else np.asarray(where)
-    out = np.zeros((h * w, 3), dtype=np.float32)
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    out = np.zeros((h, w, 3), dtype=np.float32)
     if idx.size == 0:
-        return out.reshape(h, w, 3)
-    y, x = np.divmod(idx, w)
-    u, v = x + 0.5, y + 0.5
-    z = depth.reshape(-1)[idx].astype(np.float64)
-    k_inv = np.linalg.inv(k)
-    px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
-    py = z * (k_inv[1, 1] * v + k_inv[1, 2])
-    vel = velocity.reshape(-1, 3)[idx].astype(np.float64)
-    nx, ny, nz = px + step * vel[:, 0], py + step * vel[:, 1], z + step * vel[:, 2]
-    ok = nz > 1e-6 * z
-    nz_safe = np.where(ok, nz, 1.0)
-    du = (k[0, 0] * nx + k[0, 1] * ny) / nz_safe + k[0, 2] - u
-    dv = k[1, 1] * ny / nz_safe + k[1, 2] - v
-    flow = np.stack([du, dv, nz - z], axis=-1)
-    flow[~ok] = np.nan
-    out[idx] = flow
-    return out.reshape(h, w, 3)
+        return out
+    has = acceleration is not None
+    accel = (np.ascontiguousarray(checked_array(acceleration, "acceleration", (idx.size, 3), {})) if has
+             else np.zeros((1, 3), np.float32))
+    kernels.extrapolate_points(np.ascontiguousarray(depth), np.ascontiguousarray(velocity), idx, accel, has, k,
+                               np.linalg.inv(k), float(step), out)
+    return out

@@ -1,6 +1,7 @@
 """numpy oracles of the compiled geometry (imported by tests and benchmarks only).
 
 Each computes what its fast twin computes, in plain numpy: ``build_mpi_reference`` (``mpi.build_mpi``),
+``scene_velocity_reference``, ``velocity_change_reference`` and ``extrapolated_flow_reference`` (``motion``),
 ``composite_reference`` (``mpi.composite``), ``forward_warp_mpi_reference``
 (``splat.forward_warp_mpi_unchecked``, same arguments), ``row_sources_reference``
 (``holefill.fill_sources``' row search). The kernels reproduce them bit for bit (compositing to 1e-6).
@@ -203,14 +204,15 @@ def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth:
     s = p @ rot.T + trans
     usable &= s[..., 2] > 1e-9 * zz
     sz = np.where(usable, s[..., 2], 1.0)
-    su = (k_prev[0, 0] * s[..., 0] + k_prev[0, 1] * s[..., 1]) / sz + k_prev[0, 2]
-    sv = k_prev[1, 1] * s[..., 1] / sz + k_prev[1, 2]
     qx, qy = u + np.where(usable, mx, 0.0), v + np.where(usable, my, 0.0)
-    tolerance = static_tolerance + relative_tolerance * np.maximum(np.abs(mx), np.abs(my))
-    usable &= ~((np.abs(qx - su) <= tolerance) & (np.abs(qy - sv) <= tolerance))
+    # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0
+    tolerance = (static_tolerance + relative_tolerance * np.maximum(np.abs(mx), np.abs(my))) * sz
+    nx = k_prev[0, 0] * s[..., 0] + k_prev[0, 1] * s[..., 1] + k_prev[0, 2] * sz
+    ny = k_prev[1, 1] * s[..., 1] + k_prev[1, 2] * sz
+    usable &= ~((np.abs(qx * sz - nx) <= tolerance) & (np.abs(qy * sz - ny) <= tolerance))
     hp, wp = prev_depth.shape
     d = sz.copy()
-    best = np.full(depth.shape, np.log(band))
+    best = np.full(depth.shape, float(band))
     x0, y0 = np.floor(qx - 0.5), np.floor(qy - 0.5)
     for dy in range(2):
         for dx in range(2):
@@ -219,7 +221,8 @@ def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth:
             c = np.full(depth.shape, np.inf)
             c[inside] = prev_depth[yi[inside].astype(np.intp), xi[inside].astype(np.intp)]
             with np.errstate(divide="ignore", invalid="ignore"):
-                off = np.abs(np.log(c / sz))
+                ratio = c / sz
+                off = np.where(ratio < 1.0, sz / c, ratio)
             take = inside & np.isfinite(c) & (off <= best)
             best = np.where(take, off, best)
             d = np.where(take, c, d)
@@ -228,3 +231,51 @@ def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth:
     b = a @ rot
     out = np.where(usable[..., None], p - b, 0.0)
     return out.astype(np.float32)
+
+
+def velocity_change_reference(depth, vectors, velocity, moving, k_inv, rot, trans, prev_depth, prev_velocity,
+                              interval_ratio, log_band, limit) -> np.ndarray:
+    """numpy ``kernels.velocity_change``: the oracle of the compiled kernel (float64 inside)."""
+    h, w = depth.shape
+    ph, pw = prev_depth.shape
+    idx = np.asarray(moving)
+    y, x = np.divmod(idx, w)
+    qx = x + 0.5 + vectors[y, x, 0].astype(np.float64)
+    qy = y + 0.5 + vectors[y, x, 1].astype(np.float64)
+    inside = (qx >= 0) & (qx < pw) & (qy >= 0) & (qy < ph)
+    xi, yi = np.where(inside, qx, 0).astype(np.intp), np.where(inside, qy, 0).astype(np.intp)
+    v1 = velocity[y, x].astype(np.float64)
+    z = depth[y, x].astype(np.float64)
+    rays = np.stack([x + 0.5, y + 0.5, np.ones_like(z)], axis=-1) @ k_inv.T
+    before_z = (rays * z[:, None] - v1) @ rot[2] + trans[2]
+    seen = prev_depth[yi, xi].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        same = inside & (before_z > 0) & np.isfinite(seen) & (np.abs(np.log(seen / before_z)) <= log_band)
+    v0 = prev_velocity[yi, xi].astype(np.float64) @ rot * interval_ratio  # into this camera's axes
+    change = v1 - v0
+    smooth = same & (np.sum(change * change, axis=-1) <= limit * limit * np.sum(v1 * v1, axis=-1))
+    return np.where(smooth[:, None], change, 0.0).astype(np.float32)
+
+
+def extrapolated_flow_reference(depth, velocity, moving, acceleration, k, k_inv, step) -> np.ndarray:
+    """numpy ``kernels.extrapolate_points`` into a zero (H, W, 3) flow: the oracle of the compiled kernel."""
+    h, w = depth.shape
+    idx = np.asarray(moving)
+    out = np.zeros((h * w, 3), dtype=np.float32)
+    y, x = np.divmod(idx, w)
+    u, v = x + 0.5, y + 0.5
+    z = depth.reshape(-1)[idx].astype(np.float64)
+    px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
+    py = z * (k_inv[1, 1] * v + k_inv[1, 2])
+    move = step * velocity.reshape(-1, 3)[idx].astype(np.float64)
+    if acceleration is not None:
+        move += (0.5 * step * (step + 1.0)) * acceleration.astype(np.float64)
+    nx, ny, nz = px + move[:, 0], py + move[:, 1], z + move[:, 2]
+    ok = nz > 1e-6 * z
+    nz_safe = np.where(ok, nz, 1.0)
+    du = (k[0, 0] * nx + k[0, 1] * ny) / nz_safe + k[0, 2] - u
+    dv = k[1, 1] * ny / nz_safe + k[1, 2] - v
+    flow = np.stack([du, dv, nz - z], axis=-1)
+    flow[~ok] = np.nan
+    out[idx] = flow
+    return out.reshape(h, w, 3)

@@ -80,6 +80,8 @@ class Predictor:
     name = "base"
     #: number of rendered frames the method needs (1: frame n only, 2: frames n-k and n)
     history_needed = 1
+    #: rendered frames the method uses when they exist (0: ``history_needed``); the loop keeps this many
+    history_wanted = 0
 
     def prepare(self, history: Sequence[Frame]) -> PreparedState:
         if len(history) < self.history_needed:

@@ -9,10 +9,14 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 2. ``velocity``: each pixel's 3D displacement since frame n-k in frame n's camera axes
    (``engine.geometry.motion.scene_velocity``: frame n's depth, frame n-k's depth at the vector's end,
    both cameras), zero for static surfaces, sky and pixels without a vector;
-3. ``render``: constant velocity in 3D, ``P(n + k') = P(n) + (k'/k) (P(n) - P(n-k))`` with k'/k from the
-   frame times (``extrapolation_factor``), so camera motion and object motion toward the camera both come
-   out right; frame n is forward-splatted by that 3D flow to the target camera and hole-filled exactly like
-   ``reproject`` (``warp_and_fill``). Where nothing moves the result is ``reproject``'s, bit for bit.
+3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
+   change of each moving point's velocity since the interval before (``velocity_change``), kept only where
+   it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
+4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
+   (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
+   so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
+   by that 3D flow to the target camera and hole-filled exactly like ``reproject`` (``warp_and_fill``).
+   Where nothing moves the result is ``reproject``'s, bit for bit.
 
 Vectors of frame n must point to frame n-k, the previous rendered frame (what an engine that renders every
 k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame vectors). Conventions:
@@ -28,7 +32,7 @@ import numpy as np
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
-                                    undilate_motion_vectors, upsample_motion_vectors)
+                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import Predictor, PreparedState, Timer, extrapolation_factor, warp_and_fill
 
 __all__ = ["MvecConfig", "MvecState", "Mvec"]
@@ -44,21 +48,29 @@ class MvecConfig:
                                                                "motion marks a static surface")
     depth_band: float = option(DEFAULT_DEPTH_BAND, "ratio > 1 within which frame n-k's depth at a vector's end "
                                                    "is trusted as the point's previous depth")
+    acceleration: bool = option(True, "with frame n-k's vectors too, extrapolate a smooth change of velocity "
+                                      "(the parabola through the last three positions)")
+    acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
+                                            "smooth motion (larger: constant velocity)")
 
     def __post_init__(self) -> None:
         if not (self.static_tolerance >= 0 and np.isfinite(self.static_tolerance)):
             raise InputError(f"must be finite and >= 0, got {self.static_tolerance}", field="static_tolerance")
         if not (self.depth_band > 1 and np.isfinite(self.depth_band)):
             raise InputError(f"must be finite and > 1, got {self.depth_band}", field="depth_band")
+        if not (self.acceleration_limit >= 0 and np.isfinite(self.acceleration_limit)):
+            raise InputError(f"must be finite and >= 0, got {self.acceleration_limit}", field="acceleration_limit")
 
 
 @dataclass
 class MvecState:
     """``mvec``'s per-frame state: ``velocity`` (H, W, 3) scene units per frame interval n-k -> n in frame
-    n's camera axes, ``moving`` the flat indices of the pixels with a non-zero velocity."""
+    n's camera axes, ``moving`` the flat indices of the pixels with a non-zero velocity, ``acceleration``
+    (len(moving), 3) their change of velocity per interval, or None (constant velocity)."""
 
     velocity: np.ndarray
     moving: np.ndarray
+    acceleration: Optional[np.ndarray] = None
 
 
 class Mvec(Predictor):
@@ -66,9 +78,22 @@ class Mvec(Predictor):
 
     name = "mvec"
     history_needed = 2
+    history_wanted = 3  # frame n-2k, when there, gives the change of velocity
 
     def __init__(self, config: Optional[MvecConfig] = None) -> None:
         self.config = MvecConfig() if config is None else config
+        # the last prepared frame's velocity, keyed by the pair of frames it came from (``_key``): frame n's
+        # preparation reuses it as frame n-k's (a stream prepares every rendered frame in turn)
+        self._last: tuple[tuple, np.ndarray] = ((), np.zeros((0, 0, 3), np.float32))
+        self._previous = self._last
+
+    @staticmethod
+    def _key(newest, older) -> tuple:
+        """Which pair of frames a velocity belongs to: indices, times and a sample of depth and vectors."""
+        sample = tuple(hash(np.ascontiguousarray(a[::17, ::13]).tobytes()) for a in (newest.depth, older.depth))
+        vectors = newest.motion_vectors
+        return (newest.index, newest.time, older.index, older.time, newest.depth.shape, sample,
+                None if vectors is None else hash(np.ascontiguousarray(vectors[::17, ::13]).tobytes()))
 
     def _prepare(self, state: PreparedState, timer: Timer) -> MvecState:
         older, newest = state.history[-2], state.history[-1]
@@ -76,6 +101,7 @@ class Mvec(Predictor):
             raise InputError("method 'mvec' needs the renderer's motion vectors of the newest frame (rgbd-seq "
                              "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'decomp' or 'auto'",
                              frame=newest.index, field="motion_vectors")
+        self._previous = self._last
         with timer("vectors"):
             vectors = upsample_motion_vectors(newest.motion_vectors, newest.depth)
             if self.config.undilate:
@@ -84,7 +110,31 @@ class Mvec(Predictor):
             velocity, moving = scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
                                               static_tolerance=self.config.static_tolerance,
                                               band=self.config.depth_band)
-        return MvecState(velocity, moving)
+        self._last = (self._key(newest, older), velocity)
+        state_data = MvecState(velocity, moving)
+        if self.config.acceleration and moving.size and len(state.history) >= 3:
+            with timer("acceleration"):
+                state_data.acceleration = self._acceleration(state.history[-3:], vectors, state_data)
+        return state_data
+
+    def _acceleration(self, frames, vectors: np.ndarray, data: MvecState) -> Optional[np.ndarray]:
+        """The change of velocity of the moving pixels of frame n (``velocity_change``) from frames n-2k, n-k
+        and frame n-k's vectors; None when frame n-k has none or the three frames do not line up."""
+        first, older, newest = frames
+        if (older.motion_vectors is None or first.depth.shape != older.depth.shape
+                or not first.time < older.time < newest.time):
+            return None
+        key, before = self._previous
+        if key != self._key(older, first):
+            older_vectors = upsample_motion_vectors(older.motion_vectors, older.depth)
+            if self.config.undilate:
+                older_vectors = undilate_motion_vectors(older_vectors, older.depth)
+            before, _ = scene_velocity(older.depth, older_vectors, first.depth, older.camera, first.camera,
+                                       static_tolerance=self.config.static_tolerance, band=self.config.depth_band)
+        ratio = (newest.time - older.time) / (older.time - first.time)
+        return velocity_change(newest.depth, vectors, data.velocity, data.moving, newest.camera, older.camera,
+                               older.depth, before, ratio, band=self.config.depth_band,
+                               limit=self.config.acceleration_limit)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen
@@ -99,5 +149,6 @@ class Mvec(Predictor):
         if state.data.moving.size:
             with timer("motion"):
                 flow = extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics,
-                                         extrapolation_factor(state, target), state.data.moving)
+                                         extrapolation_factor(state, target), state.data.moving,
+                                         state.data.acceleration)
         return warp_and_fill(newest, target, timer, flow)

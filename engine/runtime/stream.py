@@ -61,7 +61,8 @@ class PredictionLoop:
             self.predictor = predictor
         frames = [frame]
         if self.prepared is not None and not restart:
-            frames = (self.prepared.frames + frames)[-max(self.predictor.history_needed, 1):]
+            keep = max(self.predictor.history_needed, self.predictor.history_wanted, 1)
+            frames = (self.prepared.frames + frames)[-keep:]
         return self.load(frames)
 
     def load(self, frames: Sequence[Frame]) -> Prepared:

@@ -7,7 +7,7 @@ import pytest
 from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera
-from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
+from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow, velocity_change,
                                     rigid_motion_vectors, scene_velocity, undilate_motion_vectors,
                                     upsample_motion_vectors)
 from engine.geometry.reference import scene_velocity_reference
@@ -165,3 +165,24 @@ def test_undilation_removes_the_foreground_vector_from_background_pixels_only():
     ring = (dilated != truth).any(axis=-1)
     assert np.isnan(fixed[ring]).all()
     np.testing.assert_array_equal(fixed[~ring & (depth == 8.0)], 0.0)
+
+
+def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles():
+    from engine.geometry.reference import extrapolated_flow_reference, velocity_change_reference
+    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
+    vectors = np.nan_to_num(vectors)
+    rng = np.random.default_rng(5)
+    velocity = rng.normal(0, 0.2, (H, W, 3)).astype(np.float32)
+    prev_velocity = (velocity + rng.normal(0, 0.05, (H, W, 3))).astype(np.float32)
+    moving = np.flatnonzero(np.isfinite(depth))
+    rel = before.world_to_camera @ now.camera_to_world
+    fast = velocity_change(depth, vectors, velocity, moving, now, before, prev_depth, prev_velocity, 1.25,
+                           band=3.0, limit=0.5)
+    slow = velocity_change_reference(depth, vectors, velocity, moving, np.linalg.inv(K), rel[:3, :3], rel[:3, 3],
+                                     prev_depth, prev_velocity, 1.25, np.log(3.0), 0.5)
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6)
+    assert 0 < np.count_nonzero(np.any(fast != 0, axis=-1)) < moving.size  # some kept, some refused
+    for accel in (None, fast):
+        out = extrapolated_flow(depth, velocity, K, 0.75, moving, accel)
+        ref = extrapolated_flow_reference(depth, velocity, moving, accel, K, np.linalg.inv(K), 0.75)
+        np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)

@@ -8,7 +8,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
-from engine.geometry.motion import rigid_motion_vectors
+from engine.geometry.motion import extrapolated_flow, rigid_motion_vectors
 from engine.predict import Mvec, MvecConfig, Oracle, Reproject, Target, make_predictor, resolve_auto, true_object_flow
 from engine.runtime.stream import PredictionLoop
 from tests.synthetic import two_layer_sequence
@@ -157,3 +157,40 @@ def test_after_a_restart_the_loop_falls_back_to_reprojection_until_two_frames():
     assert loop.prepared.fallback is None
     loop.submit(_with_vectors(frames, objects, 2, 3), restart=True)  # a camera cut
     assert loop.prepared.fallback == "history"
+
+
+def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames():
+    # x(i) = 0.004 i^2: constant acceleration, which the parabola through frames n-2k, n-k, n extrapolates exactly
+    k = 2
+    frames, objects = two_layer_sequence(10, width=96, height=64, camera_speed=0.02,
+                                         object_path=lambda i: 0.004 * i * i)
+    history = [frames[2], _with_vectors(frames, objects, 2, 4), _with_vectors(frames, objects, 4, 6)]
+    truth = frames[7]
+    moving = history[-1].moving
+    flow = true_object_flow(history[-1], {o.id: o for o in objects}, truth.index)[..., :2]
+    with_acc, without = Mvec(), Mvec(MvecConfig(acceleration=False))
+    state = with_acc.prepare(history)
+    assert state.data.acceleration is not None and np.abs(state.data.acceleration).max() > 0
+    step = 0.5
+    mine = extrapolated_flow(history[-1].depth, state.data.velocity, history[-1].camera.intrinsics, step,
+                             state.data.moving, state.data.acceleration)[..., :2]
+    plain = without.prepare(history).data
+    linear = extrapolated_flow(history[-1].depth, plain.velocity, history[-1].camera.intrinsics, step, plain.moving)
+    interior = moving & (np.abs(mine - flow).max(axis=-1) < 1.0)  # the square's edge pixels differ by a sample
+    assert interior.sum() > 0.8 * moving.sum()
+    np.testing.assert_allclose(mine[interior], flow[interior], atol=1e-3)
+    assert np.abs(linear[..., :2] - flow)[interior].mean() > 0.05  # constant velocity misses it
+    # a stream prepares every rendered frame in turn: frame n-k's velocity is reused, not recomputed
+    fresh = Mvec()
+    fresh.prepare(history[:2])
+    again = fresh.prepare(history)
+    np.testing.assert_array_equal(again.data.acceleration, state.data.acceleration)
+
+
+def test_a_bounce_keeps_constant_velocity():
+    # the square reverses between the two intervals: the change of velocity is not small, so it is ignored
+    frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.0,
+                                         object_path=lambda i: 0.1 * (i if i <= 4 else 8 - i))
+    history = [frames[2], _with_vectors(frames, objects, 2, 4), _with_vectors(frames, objects, 4, 6)]
+    state = Mvec().prepare(history)
+    assert state.data.moving.size > 0 and not np.abs(state.data.acceleration).any()

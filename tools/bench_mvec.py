@@ -1,7 +1,7 @@
 """Benchmark of ``mvec`` (the renderer's motion vectors) against ``oracle``, ``reproject`` and ``decomp``.
 
-``python -m tools.bench_mvec [--out out/bench_mvec] [--size 640x360] [--frames 24] [--k 2,3,4]
-[--methods reproject,decomp,mvec,oracle] [--sets gentle,fast,faster,camera] [--json FILE]``
+``python -m tools.bench_mvec [--out out/bench_mvec] [--size 640x360] [--frames 16] [--k 2,3,4]
+[--methods reproject,decomp,mvec,oracle] [--sets gentle,fast,faster,glide,camera] [--json FILE]``
 
 Renders (once, cached under ``--out``) held-out sequences that no network was trained on, with the scene
 generator's exact motion vectors:
@@ -10,6 +10,8 @@ generator's exact motion vectors:
 - ``fast``: seeds 3202, 3203 at 10 fps (3x the motion per frame), objects 3x and camera 1.5x faster, Monte
   Carlo noise 0.05 (a median 10-20 px a frame over moving pixels);
 - ``faster``: the same scenes with objects 6x faster (tens of pixels a frame, fast spins and bounces);
+- ``glide``: seeds 3302, 3303 at 30 fps, objects travelling 3x farther at 2.5x the rates (fast but smooth
+  paths, spins to ~15 degrees a frame), camera 2x;
 - ``camera``: seed 1004 without objects at 10 fps, camera 3x faster (fast yaw); ``oracle`` is ``reproject``
   there (nothing but the camera moves) and is not run.
 
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.eval.protocol import evaluate_sequence, summarize
+from engine.eval.protocol import evaluate_sequence, json_safe, summarize
 from engine.io.rgbd import read_sequence
 from engine.predict import split_methods
 from engine.scenegen import SceneConfig, generate_sequence
@@ -40,6 +42,7 @@ SETS = {
     "fast": [(f"fast{s}", dict(seed=s, fps=10.0, object_speed=3.0, camera_speed=1.5, render_noise=0.05))
              for s in (3202, 3203)],
     "faster": [(f"faster{s}", dict(seed=s, fps=10.0, object_speed=6.0, camera_speed=1.5)) for s in (3202, 3203)],
+    "glide": [(f"glide{s}", dict(seed=s, object_travel=3.0, object_speed=2.5, camera_speed=2.0)) for s in (3302, 3303)],
     "camera": [("camera1004", dict(seed=1004, num_objects=(0, 0), fps=10.0, camera_speed=3.0))],
 }
 
@@ -74,7 +77,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_mvec"))
     parser.add_argument("--size", default="640x360")
-    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--frames", type=int, default=16)
     parser.add_argument("--k", default="2,3,4")
     parser.add_argument("--methods", default="reproject,decomp,mvec,oracle")
     parser.add_argument("--sets", default=",".join(SETS))
@@ -125,16 +128,8 @@ def main(argv=None) -> None:
     print("\nmedian ms per frame over all sets and k: " + ", ".join(
         f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods))
     if args.json:
-        def clean(x):
-            if isinstance(x, float) and not math.isfinite(x):
-                return None
-            if isinstance(x, dict):
-                return {k: clean(v) for k, v in x.items()}
-            if isinstance(x, list):
-                return [clean(v) for v in x]
-            return x
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(clean({"size": [width, height], "frames": args.frames, "k": ks,
+        args.json.write_text(json.dumps(json_safe({"size": [width, height], "frames": args.frames, "k": ks,
                                                "speeds": speeds, "rows": rows}), indent=1))
 
 

@@ -371,20 +371,22 @@ def bounds_table(results: Sequence[MethodResult], rows: Sequence[BoundRow]) -> s
     return "\n".join(lines)
 
 
+def json_safe(x):
+    """``x`` (nested dicts and lists) with NaN and +-inf floats replaced by None (JSON's null)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [json_safe(v) for v in x]
+    return x
+
+
 def write_json(results: Sequence[MethodResult], path: Path, extra: Optional[dict] = None) -> None:
     """Records (one per sequence, method, k) plus the summary; NaN and inf written as null."""
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, list):
-            return [clean(v) for v in x]
-        return x
-
     doc = {"records": [asdict(r) for r in results], "summary": summarize(results), **(extra or {})}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(clean(doc), indent=2))
+    Path(path).write_text(json.dumps(json_safe(doc), indent=2))
 
 
 def plot(results: Sequence[MethodResult], path: Path) -> None:

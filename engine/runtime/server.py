@@ -110,6 +110,15 @@ class _ProtocolError(Exception):
         self.text = text
 
 
+def _check_codes(label: str, fields) -> None:
+    """BAD_INPUT naming the first of ``fields`` ((name, code, codes), ...) whose code is out of range."""
+    for name, value, codes in fields:
+        if value >= len(codes):
+            names = ", ".join("default" if c is None else str(c) for c in codes)
+            raise _ProtocolError(Status.BAD_INPUT, f"{label} '{name}': code {value} is not one of 0..{len(codes) - 1} "
+                                                   f"({names})")
+
+
 def parse_address(text: str) -> Address:
     """``unix:/path`` or a path -> Unix socket; ``tcp:PORT`` or ``tcp:127.0.0.1:PORT`` -> loopback TCP;
     ``default`` -> :func:`default_socket_path`."""
@@ -328,15 +337,12 @@ class _Connection:
         """il_motion -> SessionConfig's motion fields and the plane; BAD_INPUT naming the field."""
         (units, direction, y_axis, camera, missing, mw, mh, channels, fmt, _reserved,
          scale_x, scale_y) = wire.MOTION.unpack(raw)
-        for name, value, codes in (("units", units, wire.MOTION_UNIT_CODES),
-                                   ("direction", direction, wire.MOTION_DIRECTION_CODES),
-                                   ("y_axis", y_axis, wire.MOTION_Y_CODES),
-                                   ("camera", camera, wire.MOTION_CAMERA_CODES),
-                                   ("missing", missing, wire.MOTION_MISSING_CODES),
-                                   ("format", fmt, wire.MOTION_FORMATS)):
-            if value >= len(codes):
-                raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field '{name}': code {value} is not one of "
-                                                       f"0..{len(codes) - 1}")
+        _check_codes("HELLO motion field", (("units", units, wire.MOTION_UNIT_CODES),
+                                            ("direction", direction, wire.MOTION_DIRECTION_CODES),
+                                            ("y_axis", y_axis, wire.MOTION_Y_CODES),
+                                            ("camera", camera, wire.MOTION_CAMERA_CODES),
+                                            ("missing", missing, wire.MOTION_MISSING_CODES),
+                                            ("format", fmt, wire.MOTION_FORMATS)))
         if channels not in (2, 3, 4):
             raise _ProtocolError(Status.BAD_INPUT, f"HELLO motion field 'channels' must be 2, 3 or 4, got {channels}")
         if not (mw <= width and mh <= height) or (mw == 0) != (mh == 0):
@@ -354,13 +360,10 @@ class _Connection:
         (engine, depth, color_in, color_out, width, height, _reserved, channels, flags, _,
          near, far, meters_per_unit, cut_translation, cut_rotation, method) = wire.HELLO.unpack(
             payload[:wire.HELLO.size])
-        for name, value, codes in (("engine", engine, wire.ENGINE_CODES),
-                                   ("depth_convention", depth, wire.DEPTH_CODES),
-                                   ("color_in", color_in, wire.COLOR_CODES),
-                                   ("color_out", color_out, wire.COLOR_CODES)):
-            if value >= len(codes):
-                raise _ProtocolError(Status.BAD_INPUT, f"HELLO field '{name}': code {value} is not one of 0.."
-                                     f"{len(codes) - 1} ({', '.join(codes)})")
+        _check_codes("HELLO field", (("engine", engine, wire.ENGINE_CODES),
+                                     ("depth_convention", depth, wire.DEPTH_CODES),
+                                     ("color_in", color_in, wire.COLOR_CODES),
+                                     ("color_out", color_out, wire.COLOR_CODES)))
         self._check_size(width, height)
         check_remote_method(wire.cstring(method) or "reproject", self.server.limits)
         if channels not in (3, 4):

@@ -43,7 +43,7 @@ def test_eval_writes_json_and_plot(tmp_path, capsys):
     out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
     assert main(["eval", str(path), "--k", "2,4", "--json", str(out_json), "--plot", str(out_png)]) == 0
     doc = json.loads(out_json.read_text())
-    methods = ("repeat", "reproject", "flow2d", "decomp", "oracle")
+    methods = ("repeat", "reproject", "flow2d", "decomp", "mvec", "oracle")
     assert {(r["method"], r["k"]) for r in doc["records"]} == {(m, k) for m in methods for k in (2, 4)}
     epe = {r["method"]: r["epe_moving"] for r in doc["records"] if r["k"] == 2}
     assert epe["repeat"] is None and epe["flow2d"] > 0 and epe["decomp"] > 0  # only flow methods have an EPE

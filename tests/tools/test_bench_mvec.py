@@ -1,0 +1,19 @@
+"""``tools.bench_mvec`` end to end on a tiny render: the table, the measured speeds and the JSON."""
+import json
+
+from tools import bench_mvec
+
+
+def test_bench_prints_speed_against_error_and_writes_json(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    bench_mvec.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
+                     "--methods", "reproject,mvec", "--sets", "gentle,camera", "--json", str(out)])
+    printed = capsys.readouterr().out
+    assert "| gentle | 2 | mvec |" in printed and "| camera | 2 | mvec |" in printed
+    doc = json.loads(out.read_text())
+    rows = {(r["set"], r["method"]): r for r in doc["rows"]}
+    assert rows[("gentle", "reproject")]["time_vs_reproject"] == 1.0
+    assert rows[("gentle", "mvec")]["psnr"] >= rows[("gentle", "reproject")]["psnr"]
+    # a camera-only scene: mvec is reproject exactly (nothing moves but the camera)
+    assert rows[("camera", "mvec")]["psnr"] == rows[("camera", "reproject")]["psnr"]
+    assert set(doc["speeds"]) == {"seed1001", "seed1002", "camera1004"}

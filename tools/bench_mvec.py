@@ -20,6 +20,11 @@ true object flow, px per frame), then per (set, k, method): PSNR over the whole 
 pixels, end-point error over moving pixels, median ms per predicted frame and its ratio to ``reproject``
 in the same run, and the share of the reproject -> oracle gap the method recovers (whole frame and moving
 pixels). Scores are those of ``interleave eval`` (sRGB PSNR with DeCOMPnet's border crop), FLIP off.
+
+The evaluation times each frame once, methods in a fixed order, which favours the later ones by a few
+milliseconds. ``--timing-size 960x540`` adds a fair timing: the gentle and glide scenes rendered at that
+size, each method's preparation plus its k-1 renders (k = 2 and 4) on the same frames in memory, methods in
+rotating order, repeated ``--repeats`` times; medians per predicted frame and the ratio to ``reproject``.
 """
 from __future__ import annotations
 
@@ -27,11 +32,13 @@ import argparse
 import json
 import math
 import statistics
+import time
 from pathlib import Path
 
 import numpy as np
 
-from engine.eval.protocol import evaluate_sequence, json_safe, summarize
+from engine.eval.protocol import evaluate_sequence, evaluation_pairs, history_motion_vectors, json_safe, summarize
+from engine.predict import Target, make_predictor
 from engine.io.rgbd import read_sequence
 from engine.predict import split_methods
 from engine.scenegen import SceneConfig, generate_sequence
@@ -68,6 +75,33 @@ def motion_speed(sequence) -> tuple[float, float]:
     return float(np.median(s)), float(np.percentile(s, 90))
 
 
+def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str, float]:
+    """Median ms per predicted frame of each method: prepare once + render the k-1 frames, on histories held
+    in memory (with the vectors ``mvec`` needs), methods in rotating order, ``repeats`` passes."""
+    predictors = {m: make_predictor(m, sequence.objects) for m in methods}
+    cases = []
+    for older, newest, targets in evaluation_pairs(len(sequence), k):
+        history = [sequence[older], sequence[newest]]
+        history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1])
+        if older - k >= 0:
+            history.insert(0, sequence[older - k])
+            history[1].motion_vectors = history_motion_vectors(sequence, older - k, older, history[1])
+        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets]))
+    times: dict[str, list[float]] = {m: [] for m in methods}
+    for r in range(repeats):
+        for c, (history, targets) in enumerate(cases):
+            order = methods[(r + c) % len(methods):] + methods[:(r + c) % len(methods)]
+            for m in order:
+                predictor = predictors[m]
+                frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
+                start = time.perf_counter()
+                state = predictor.prepare(frames)
+                for target in targets:
+                    predictor.render(state, target)
+                times[m].append(1e3 * (time.perf_counter() - start) / len(targets))
+    return {m: float(statistics.median(v)) for m, v in times.items()}
+
+
 def gap(value: float, base: float, bound: float) -> float:
     """Share of the base -> bound gap that ``value`` recovers (NaN when the gap is under 0.05 dB)."""
     return (value - base) / (bound - base) if abs(bound - base) >= 0.05 else float("nan")
@@ -82,6 +116,8 @@ def main(argv=None) -> None:
     parser.add_argument("--methods", default="reproject,decomp,mvec,oracle")
     parser.add_argument("--sets", default=",".join(SETS))
     parser.add_argument("--max-groups", type=int, default=None)
+    parser.add_argument("--timing-size", default=None, help="e.g. 960x540: add the fair timing at that size")
+    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.lower().split("x"))
@@ -125,12 +161,25 @@ def main(argv=None) -> None:
         print(f"| {r['set']} | {r['k']} | {r['method']} | {cell(r['psnr'])} | {cell(r['psnr_moving'])} | "
               f"{cell(r['epe_moving'])} | {cell(r['ms_per_frame'], 1)} | {cell(r['time_vs_reproject'])} | "
               f"{cell(100 * r['gap_whole'], 0)}% | {cell(100 * r['gap_moving'], 0)}% |")
+    timing = []
+    if args.timing_size:
+        tw, th = (int(v) for v in args.timing_size.lower().split("x"))
+        timed = [m for m in methods if m != "oracle"]
+        print(f"\nwarm timing at {tw}x{th}, median ms per predicted frame (x reproject):")
+        for seq_name, overrides in SETS["gentle"][:1] + SETS["glide"][:1]:
+            seq = read_sequence(render_set(args.out, seq_name, overrides, tw, th, args.frames))
+            for k in (2, 4):
+                ms = warm_timing(seq, timed, k, args.repeats)
+                timing.append({"sequence": seq_name, "size": [tw, th], "k": k, "ms": ms})
+                print(f"  {seq_name} k={k}: " + ", ".join(f"{m} {v:.1f} (x{v / ms['reproject']:.2f})"
+                                                        for m, v in ms.items()))
     print("\nmedian ms per frame over all sets and k: " + ", ".join(
-        f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods))
+        f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods
+        if any(r["method"] == m for r in rows)))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe({"size": [width, height], "frames": args.frames, "k": ks,
-                                               "speeds": speeds, "rows": rows}), indent=1))
+                                               "speeds": speeds, "rows": rows, "timing": timing}), indent=1))
 
 
 if __name__ == "__main__":

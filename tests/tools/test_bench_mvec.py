@@ -7,7 +7,8 @@ from tools import bench_mvec
 def test_bench_prints_speed_against_error_and_writes_json(tmp_path, capsys):
     out = tmp_path / "bench.json"
     bench_mvec.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
-                     "--methods", "reproject,mvec", "--sets", "gentle,camera", "--json", str(out)])
+                     "--methods", "reproject,mvec", "--sets", "gentle,camera", "--timing-size", "64x48",
+                     "--repeats", "1", "--json", str(out)])
     printed = capsys.readouterr().out
     assert "| gentle | 2 | mvec |" in printed and "| camera | 2 | mvec |" in printed
     doc = json.loads(out.read_text())
@@ -17,3 +18,5 @@ def test_bench_prints_speed_against_error_and_writes_json(tmp_path, capsys):
     # a camera-only scene: mvec is reproject exactly (nothing moves but the camera)
     assert rows[("camera", "mvec")]["psnr"] == rows[("camera", "reproject")]["psnr"]
     assert set(doc["speeds"]) == {"seed1001", "seed1002", "camera1004"}
+    assert {(t["sequence"], t["k"]) for t in doc["timing"]} == {(s, k) for s in ("seed1001", "glide3302") for k in (2, 4)}
+    assert all(t["ms"]["mvec"] > 0 and t["ms"]["reproject"] > 0 for t in doc["timing"])

@@ -424,19 +424,16 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                    relative_tolerance, band, row_start, row_stop, out, moving_out):
     """``engine.geometry.reference.scene_velocity_reference`` compiled, rows [``row_start``, ``row_stop``):
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
-    point was in the previous frame to where it is now; 0 for sky, missing (NaN) vectors and pixels whose
+    point was in the previous frame to where it is now, and ``moving_out`` (H, W) bool True, written only
+    for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
+    shared zero page, so a mostly static frame costs no writes). Sky, missing (NaN) vectors and pixels whose
     vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
-    largest component); ``moving_out`` (H, W) bool marks the
-    others. Returns the number of moving pixels."""
+    largest component) do not move. Returns the number of moving pixels."""
     h, w = depth.shape
     hp, wp = prev_depth.shape
     moving = 0
     for y in range(row_start, row_stop):
         for x in range(w):
-            out[y, x, 0] = 0.0
-            out[y, x, 1] = 0.0
-            out[y, x, 2] = 0.0
-            moving_out[y, x] = False
             z = np.float64(depth[y, x])
             mx = np.float64(vectors[y, x, 0])
             my = np.float64(vectors[y, x, 1])

@@ -245,8 +245,8 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
             np.linalg.inv(camera.intrinsics), np.ascontiguousarray(previous.intrinsics, dtype=np.float64),
             np.linalg.inv(previous.intrinsics), np.ascontiguousarray(relative[:3, :3]),
             np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
-    out = np.empty(depth.shape + (3,), dtype=np.float32)
-    moving = np.empty(depth.shape, dtype=bool)
+    out = np.zeros(depth.shape + (3,), dtype=np.float32)  # the kernel writes the moving pixels only
+    moving = np.zeros(depth.shape, dtype=bool)
     ranges = kernels.split_ranges(depth.shape[0], 64)
     counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out, moving), ranges)
     return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))

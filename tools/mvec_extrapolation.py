@@ -10,10 +10,15 @@ j = 1 .. k-1 (frame n + j): the end-point error in pixels over the moving pixels
 
 - ``velocity``: ``P(n + j) = P(n) + (j / k) (P(n) - P(n - k))``;
 - ``acceleration``: the parabola through P(n - 2k), P(n - k), P(n), evaluated at n + j;
-- ``guarded``: acceleration where the change of velocity is at most half the velocity, else velocity;
+- ``guarded``: acceleration where the change of velocity is at most half the velocity, else velocity
+  (what ``mvec`` does);
+- ``damped``: guarded, and where the motion is not smooth the velocity shrunk by 0.5 |V| / |change|;
+- ``rigid``: each object's points (exact masks) turning about their centroid at the rate of the last
+  interval while the centroid moves linearly (a spin-aware model a renderer's object ids would allow);
 - ``still``: no object motion (what camera-only reprojection assumes).
 
-Printed per (sequence, k, j), with the share of moving pixels for which acceleration beats velocity.
+Printed per (sequence, k, j): mean end-point errors, and the share of moving pixels for which acceleration
+beats velocity.
 """
 from __future__ import annotations
 
@@ -54,29 +59,61 @@ def project(points: np.ndarray, k: np.ndarray) -> np.ndarray:
     return np.stack([k[0, 0] * points[:, 0] / z + k[0, 2], k[1, 1] * points[:, 1] / z + k[1, 2]], axis=-1)
 
 
+MODELS = ("still", "velocity", "acceleration", "guarded", "damped", "rigid")
+
+
+def rotation_power(rotation: np.ndarray, s: float) -> np.ndarray:
+    """``rotation`` (3, 3) raised to the real power ``s`` (the same axis, ``s`` times the angle)."""
+    angle = float(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)))
+    if angle < 1e-9:
+        return np.eye(3)
+    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
+                     rotation[1, 0] - rotation[0, 1]]) / (2.0 * np.sin(angle))
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(s * angle) * cross + (1.0 - np.cos(s * angle)) * cross @ cross
+
+
+def rigid_fit(before: np.ndarray, now: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rotation R and centroids (c_before, c_now) with now ~ R (before - c_before) + c_now."""
+    cb, cn = before.mean(axis=0), now.mean(axis=0)
+    u, _, vt = np.linalg.svd((before - cb).T @ (now - cn))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T, cb, cn
+
+
+def predictions(a, b, c, ids, s: float) -> dict[str, np.ndarray]:
+    """Each model's position at s (frame intervals after n) of points at a (n-2k), b (n-k), c (n), (N, 3)."""
+    velocity = c + s * (c - b)
+    change = (c - b) - (b - a)
+    acceleration = velocity + 0.5 * s * (s + 1) * change  # the parabola through s = -2, -1, 0
+    ratio = np.linalg.norm(change, axis=-1) / np.maximum(np.linalg.norm(c - b, axis=-1), 1e-12)
+    smooth = ratio <= 0.5
+    guarded = np.where(smooth[:, None], acceleration, velocity)
+    # damped: where the motion is not smooth, the velocity shrunk by 0.5 |V| / |change| (tried, dropped)
+    damped = np.where(smooth[:, None], acceleration, c + s * (c - b) * np.minimum(1.0, 0.5 / ratio)[:, None])
+    # rigid: each object's points turn about their centroid at a constant rate while it moves linearly
+    rigid = velocity.copy()
+    for oid in np.unique(ids):
+        m = ids == oid
+        if m.sum() >= 10:
+            rotation, cb, cn = rigid_fit(b[m], c[m])
+            rigid[m] = cn + s * (cn - cb) + (c[m] - cn) @ rotation_power(rotation, s).T
+    return {"still": c, "velocity": velocity, "acceleration": acceleration, "guarded": guarded,
+            "damped": damped, "rigid": rigid}
+
+
 def measure(seq, k: int) -> list[dict]:
-    rows: dict[int, dict[str, list]] = {j: {"velocity": [], "acceleration": [], "guarded": [], "still": [],
-                                            "wins": []}
-                                        for j in range(1, k)}
+    rows: dict[int, dict[str, list]] = {j: {m: [] for m in MODELS + ("wins",)} for j in range(1, k)}
     for n in range(2 * k, len(seq) - k + 1, k):
         idx, pts = trajectories(seq, n, [n - 2 * k, n - k, n] + list(range(n + 1, n + k)))
         if idx.size == 0:
             continue
-        kk = seq[n].camera.intrinsics
-        a, b, c = pts[n - 2 * k], pts[n - k], pts[n]
+        frame = seq[n]
+        kk, ids = frame.camera.intrinsics, frame.object_id.reshape(-1)[idx]
         for j in range(1, k):
-            s = j / k
-            velocity = c + s * (c - b)
-            # parabola through s = -2, -1, 0 evaluated at s
-            accel = (c - b) - (b - a)
-            acceleration = c + s * (c - b) + 0.5 * s * (s + 1) * accel
-            # trusted only while the change of velocity is small against the velocity (smooth motion)
-            smooth = np.linalg.norm(accel, axis=-1) <= 0.5 * np.linalg.norm(c - b, axis=-1)
-            guarded = np.where(smooth[:, None], acceleration, velocity)
             truth = project(pts[n + j], kk)
-            errors = {name: np.linalg.norm(project(p, kk) - truth, axis=-1)
-                      for name, p in (("velocity", velocity), ("acceleration", acceleration), ("guarded", guarded),
-                                      ("still", c))}
+            guesses = predictions(pts[n - 2 * k], pts[n - k], pts[n], ids, j / k)
+            errors = {name: np.linalg.norm(project(p, kk) - truth, axis=-1) for name, p in guesses.items()}
             for name, e in errors.items():
                 rows[j][name].append(e)
             rows[j]["wins"].append(errors["acceleration"] < errors["velocity"])
@@ -86,9 +123,7 @@ def measure(seq, k: int) -> list[dict]:
             continue
         cat = {name: np.concatenate(v) for name, v in r.items()}
         out.append({"sequence": Path(str(seq.path)).name, "k": k, "step": j, "pixels": int(cat["velocity"].size),
-                    **{f"epe_{name}": float(cat[name].mean()) for name in ("still", "velocity", "acceleration", "guarded")},
-                    **{f"median_{name}": float(np.median(cat[name])) for name in ("still", "velocity", "acceleration",
-                                                                                    "guarded")},
+                    **{f"epe_{name}": float(cat[name].mean()) for name in MODELS},
                     "acceleration_wins": float(cat["wins"].mean())})
     return out
 
@@ -104,12 +139,11 @@ def main(argv=None) -> None:
         seq = read_sequence(path)
         for k in (int(v) for v in args.k.split(",")):
             rows += measure(seq, k)
-    print("| sequence | k | j | pixels | EPE still | EPE velocity | EPE acceleration | EPE guarded | median velocity | "
-          "median acceleration | acceleration better |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| sequence | k | j | pixels | " + " | ".join(f"EPE {m}" for m in MODELS) + " | acceleration better |\n"
+          + "|---" * (5 + len(MODELS)) + "|")
     for r in rows:
-        print(f"| {r['sequence']} | {r['k']} | {r['step']} | {r['pixels']} | {r['epe_still']:.2f} | "
-              f"{r['epe_velocity']:.2f} | {r['epe_acceleration']:.2f} | {r['epe_guarded']:.2f} | "
-              f"{r['median_velocity']:.2f} | {r['median_acceleration']:.2f} | {100 * r['acceleration_wins']:.0f}% |")
+        print(f"| {r['sequence']} | {r['k']} | {r['step']} | {r['pixels']} | "
+              + " | ".join(f"{r['epe_' + m]:.2f}" for m in MODELS) + f" | {100 * r['acceleration_wins']:.0f}% |")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

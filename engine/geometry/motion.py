@@ -285,12 +285,15 @@ def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray
 
 
 def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.ndarray, step: float,
-                      where: Optional[np.ndarray] = None, acceleration: Optional[np.ndarray] = None) -> np.ndarray:
+                      where: Optional[np.ndarray] = None, acceleration: Optional[np.ndarray] = None,
+                      out: Optional[np.ndarray] = None) -> np.ndarray:
     """The (H, W, 3) flow (du, dv pixels, dz planar depth) that moves each pixel's point P along its motion,
     in 3D in this camera's axes: ``P' = P + s V + s (s + 1) / 2 A`` for ``s = step`` (frame intervals
     n-k -> n ahead), the parabola through the point's positions at s = -2, -1, 0 (``A``: the change of
     velocity V between the two intervals; without it, constant velocity); flow = project(P') - (pixel
-    centre, z). ``where`` (flat indices) limits the work to the pixels that move (the rest get 0; default:
+    centre, z). ``out`` (H, W, 3) float32, zero outside ``where``, is written in place of a new array (a
+    caller that reuses one keeps it zero by clearing what it wrote). ``where`` (flat indices) limits the
+    work to the pixels that move (the rest get 0; default:
     those with a non-zero velocity); ``acceleration`` (len(where), 3) belongs to those. A point that would
     reach or cross the camera plane gets NaN (the warp drops it). The result is the object flow of
     ``engine.geometry.forward_warp_frame``.
@@ -302,7 +305,10 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     h, w = depth.shape
     idx = np.flatnonzero(np.any(velocity != 0, axis=-1)) if where is None else np.asarray(where)
     idx = np.ascontiguousarray(idx, dtype=np.int64)
-    out = np.zeros((h, w, 3), dtype=np.float32)
+    if out is None:
+        out = np.zeros((h, w, 3), dtype=np.float32)
+    elif out.shape != (h, w, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise InputError(f"must be a contiguous float32 ({h}, {w}, 3) array, got {out.dtype} {out.shape}", field="out")
     if idx.size == 0:
         return out
     has = acceleration is not None

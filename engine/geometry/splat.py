@@ -152,8 +152,11 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
     object_flow = None
     if flow is not None:
         flow = checked_flow(flow, sizes)
-        object_flow = np.zeros((3, 1) + depth.shape, dtype=np.float32)
+        # per-thread scratch, not a fresh 6 MB a 960x540 frame: first touches of new pages cost page faults
+        object_flow = SCRATCH.get("frame_flow", 3 * flow.shape[0] * flow.shape[1], np.float32).reshape(
+            (3, 1) + depth.shape)
         object_flow[:flow.shape[2], 0] = np.moveaxis(flow, -1, 0)
+        object_flow[flow.shape[2]:] = 0.0
     mpi = build_mpi(color, depth, 1)
     warped, _ = forward_warp_mpi_unchecked(mpi, checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
                                   checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,

@@ -24,6 +24,7 @@ k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame 
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Optional
 
@@ -86,6 +87,7 @@ class Mvec(Predictor):
         # preparation reuses it as frame n-k's (a stream prepares every rendered frame in turn)
         self._last: tuple[tuple, np.ndarray] = ((), np.zeros((0, 0, 3), np.float32))
         self._previous = self._last
+        self._local = threading.local()
 
     @staticmethod
     def _key(newest, older) -> tuple:
@@ -145,10 +147,22 @@ class Mvec(Predictor):
 
     def _render(self, state, target, timer):
         newest = state.history[-1]
-        flow = None
-        if state.data.moving.size:
-            with timer("motion"):
-                flow = extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics,
-                                         extrapolation_factor(state, target), state.data.moving,
-                                         state.data.acceleration)
-        return warp_and_fill(newest, target, timer, flow)
+        if not state.data.moving.size:
+            return warp_and_fill(newest, target, timer)
+        with timer("motion"):
+            # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch)
+            buffer = self._flow.get(newest.depth.shape)
+            if buffer is None:
+                buffer = self._flow[newest.depth.shape] = np.zeros(newest.depth.shape + (3,), np.float32)
+            flow = extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics,
+                                     extrapolation_factor(state, target), state.data.moving,
+                                     state.data.acceleration, out=buffer)
+        try:
+            return warp_and_fill(newest, target, timer, flow)
+        finally:
+            flow.reshape(-1, 3)[state.data.moving] = 0.0  # zero again for the next render
+
+    @property
+    def _flow(self) -> dict:
+        local = self._local.__dict__
+        return local.setdefault("flow", {})

@@ -172,14 +172,16 @@ def _train_cameras(run: Optional[Path]):
 def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] = None) -> Iterator[Frame]:
     """Frames (colour, planar depth, camera, motion vectors) of a static field rendered along ``cameras``, one
     at a time; each render's seconds are appended to ``timings``. A static field's motion vectors are the
-    camera's alone, exact from the rendered depth (``camera_motion_vectors``; zero on the first frame)."""
+    camera's alone, exact from the rendered depth (``camera_motion_vectors``; zero on the first frame), and
+    every pixel belongs to the static background (``object_id`` 0), so the evaluation can derive the
+    vectors to any earlier frame exactly."""
     for i, cam in enumerate(cameras):
         out = renderer.render(cam.intrinsics, cam.world_to_camera)
         if timings is not None:
             timings.append(out["seconds"])
         vectors = camera_motion_vectors(out["depth"], cam, cameras[max(i - 1, 0)])
         yield Frame(index=i, time=i / fps, color=out["color"], depth=out["depth"], camera=cam,
-                    motion_vectors=vectors)
+                    object_id=np.zeros(out["depth"].shape, np.int32), motion_vectors=vectors)
 
 
 def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 48, width: Optional[int] = 640,

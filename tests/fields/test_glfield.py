@@ -176,8 +176,11 @@ def test_field_demo_writes_the_scene_demo_outputs(which, request, tmp_path):
 
     run, out, _ = request.getfixturevalue(which)
     summary = run_field_demo(out, tmp_path, k=2, frames=6, width=32, height=24, methods=("repeat", "reproject",
-                                                                                          "oracle"), progress=False)
-    assert set(summary) == {"repeat/k=2", "reproject/k=2"}  # oracle dropped: a static field has no object motion
+                                                                                          "mvec", "oracle"),
+                             progress=False)
+    assert set(summary) == {"repeat/k=2", "reproject/k=2", "mvec/k=2"}  # oracle dropped: nothing moves
+    # the field's motion vectors are the camera's alone: mvec is reprojection, score for score
+    assert summary["mvec/k=2"]["psnr"] == summary["reproject/k=2"]["psnr"]
     for name in ("table.md", "results.json", "speed_vs_error.png", "side_by_side.mp4", "field/sequence.json"):
         assert (tmp_path / name).is_file()
     assert "Field renderer" in (tmp_path / "table.md").read_text()

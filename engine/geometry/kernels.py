@@ -491,7 +491,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
 
 @njit(cache=True, nogil=True)
 def velocity_change(depth, vectors, velocity, moving, k_inv, rot, trans, prev_depth, prev_velocity, interval_ratio,
-                    log_band, limit, out):
+                    band, limit, out):
     """``engine.geometry.reference.velocity_change_reference`` compiled: ``out`` (len(moving), 3) float32, the
     change of velocity of each moving pixel (0 where its point's previous pixel shows another surface or
     the change exceeds ``limit`` times the velocity)."""
@@ -520,7 +520,12 @@ def velocity_change(depth, vectors, velocity, moving, k_inv, rot, trans, prev_de
         pz = z * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - v2
         bz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
         seen = np.float64(prev_depth[yi, xi])
-        if not (bz > 0) or math.isinf(seen) or abs(math.log(seen / bz)) > log_band:
+        if not (bz > 0) or math.isinf(seen):
+            continue
+        off = seen / bz
+        if off < 1.0:
+            off = bz / seen
+        if off > band:  # another surface: the point was not seen there
             continue
         a0 = np.float64(prev_velocity[yi, xi, 0])
         a1 = np.float64(prev_velocity[yi, xi, 1])

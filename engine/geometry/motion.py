@@ -279,7 +279,7 @@ def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray
     kernels.velocity_change(np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(velocity),
                             moving, np.linalg.inv(camera.intrinsics), np.ascontiguousarray(relative[:3, :3]),
                             np.ascontiguousarray(relative[:3, 3]), np.ascontiguousarray(prev_depth),
-                            np.ascontiguousarray(prev_velocity), float(interval_ratio), float(np.log(band)),
+                            np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band),
                             float(limit), out)
     return out
 

@@ -234,7 +234,7 @@ def scene_velocity_reference(depth: np.ndarray, vectors: np.ndarray, prev_depth:
 
 
 def velocity_change_reference(depth, vectors, velocity, moving, k_inv, rot, trans, prev_depth, prev_velocity,
-                              interval_ratio, log_band, limit) -> np.ndarray:
+                              interval_ratio, band, limit) -> np.ndarray:
     """numpy ``kernels.velocity_change``: the oracle of the compiled kernel (float64 inside)."""
     h, w = depth.shape
     ph, pw = prev_depth.shape
@@ -250,7 +250,9 @@ def velocity_change_reference(depth, vectors, velocity, moving, k_inv, rot, tran
     before_z = (rays * z[:, None] - v1) @ rot[2] + trans[2]
     seen = prev_depth[yi, xi].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        same = inside & (before_z > 0) & np.isfinite(seen) & (np.abs(np.log(seen / before_z)) <= log_band)
+        ratio = seen / before_z
+        off = np.where(ratio < 1.0, before_z / seen, ratio)
+        same = inside & (before_z > 0) & np.isfinite(seen) & (off <= band)
     v0 = prev_velocity[yi, xi].astype(np.float64) @ rot * interval_ratio  # into this camera's axes
     change = v1 - v0
     smooth = same & (np.sum(change * change, axis=-1) <= limit * limit * np.sum(v1 * v1, axis=-1))

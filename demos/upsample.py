@@ -22,7 +22,8 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.eval.metrics import flip_map
-from engine.eval.protocol import evaluate_sequence, history_motion_vectors, markdown_table, plot, stage_table, summarize, write_json
+from engine.eval.protocol import (evaluate_sequence, history_motion_vectors, markdown_table, plot, stage_table,
+                                  summarize, write_json)
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field

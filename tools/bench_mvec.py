@@ -38,9 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from engine.eval.protocol import evaluate_sequence, evaluation_pairs, history_motion_vectors, json_safe, summarize
-from engine.predict import Target, make_predictor
 from engine.io.rgbd import read_sequence
-from engine.predict import split_methods
+from engine.predict import Target, make_predictor, split_methods
 from engine.scenegen import SceneConfig, generate_sequence
 
 #: set name -> [(sequence name, SceneConfig overrides)]

@@ -256,7 +256,8 @@ def compare(out: Path, layer: str = "ViewLayer") -> dict:
     raw = np.concatenate(raw_background) if raw_background else np.zeros((0, 4))
     lines.append(f"background: {len(raw)} pixels with depth 1e10, {int(np.all(raw == 0, axis=1).sum())} of them with "
                  f"a zero vector (no sample hit a surface); raw Vector pass there: "
-                 f"min {raw.min(axis=0).tolist() if len(raw) else []} max {raw.max(axis=0).tolist() if len(raw) else []}")
+                 f"min {raw.min(axis=0).tolist() if len(raw) else []} "
+                 f"max {raw.max(axis=0).tolist() if len(raw) else []}")
     rigid = np.concatenate(rigid_errors) if rigid_errors else np.zeros(0)
     flow = np.concatenate(flow_errors) if flow_errors else np.zeros(0)
     return {"flow_max": float(flow.max()) if flow.size else 0.0,"rigid_max": float(rigid.max()) if rigid.size else 0.0,

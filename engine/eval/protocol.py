@@ -27,8 +27,8 @@ from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
-from engine.eval.metrics import SCORE_FIELDS, Scores, crop_slices, psnr, score_frame
 from engine.core.frames import Frame, rigid_inverse
+from engine.eval.metrics import SCORE_FIELDS, Scores, crop_slices, psnr, score_frame
 from engine.geometry.motion import compose_motion_vectors, rigid_motion_vectors
 from engine.predict import Mvec, Target, make_predictor, method_with, option_parts, resolve_auto
 from engine.runtime.stream import PredictionLoop
@@ -102,9 +102,10 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     (the previous RENDERED frame when only every k-th frame is rendered), from a sequence whose stored
     ``motion.X/Y`` point one frame back.
 
-    Recomputed exactly (``rigid_motion_vectors``) where the frame has its ``object_id`` channel and the sequence
-    the transforms of every object it shows (none for a static scene); otherwise the stored vectors are chained frame by frame
-    (``compose_motion_vectors``: exact where each intermediate frame sees the point, NaN where it does not).
+    Recomputed exactly (``rigid_motion_vectors``) where the frame has its ``object_id`` channel and the
+    sequence the transforms of every object it shows (none for a static scene); otherwise the stored vectors
+    are chained frame by frame (``compose_motion_vectors``: exact where each intermediate frame sees the
+    point, NaN where it does not).
     ``frame`` is the loaded frame at ``newest`` (read again when not given).
     """
     frame = sequence[newest] if frame is None else frame

@@ -13,7 +13,7 @@ import numpy as np
 
 from engine.core.checks import checked_array, checked_matrix
 from engine.core.errors import InputError
-from engine.core.frames import Camera, rigid_inverse
+from engine.core.frames import Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",

@@ -176,7 +176,8 @@ class RgbdSequence:
     def has_channel(self, name: str) -> bool:
         """Whether the first frame carries ``name``.
 
-        ``name`` is a Frame field (``"flow"``, ``"object_flow"``, ``"motion_vectors"``, ``"object_id"``, ``"moving"``: true when
+        ``name`` is a Frame field (``"flow"``, ``"object_flow"``, ``"motion_vectors"``, ``"object_id"``,
+        ``"moving"``: true when
         all its EXR channels are present) or an EXR channel name (``"flow.X"``). Later frames are assumed
         to carry the same channels; a frame that does not simply loads with that field set to None.
         """
@@ -430,7 +431,8 @@ def write_sequence(path: str | Path, frames: Iterable[Frame], *, fps: float,
         raise InputError("no frames to write", file=meta_file, field="frames")
     _parse_objects(objects_raw, [e["index"] for e in entries], meta_file)
     with_motion = any(e["_mv"] for e in entries)
-    meta = {"format": FORMAT, "version": MOTION_VERSION if with_motion else VERSION, "width": entries[0]["_w"], "height": entries[0]["_h"],
+    meta = {"format": FORMAT, "version": MOTION_VERSION if with_motion else VERSION, "width": entries[0]["_w"],
+            "height": entries[0]["_h"],
             "fps": fps, "color_space": color_space, "depth": "planar-z", "camera_convention": "opencv",
             "frames": [{k: v for k, v in e.items() if not k.startswith("_")} for e in entries]}
     if with_motion:

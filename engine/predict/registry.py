@@ -20,7 +20,8 @@ from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.predict.decomp.predictor import DecompConfig, DecompPredictor, DecompTrueMotion
 from engine.predict.mvec import Mvec, MvecConfig
 
-__all__ = ["AUTO", "resolve_auto", "METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp", "split_methods", "make_predictor",
+__all__ = ["AUTO", "resolve_auto", "METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp",
+           "split_methods", "make_predictor",
            "option_parts", "method_parts", "method_with"]
 
 #: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.

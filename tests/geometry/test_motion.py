@@ -7,9 +7,9 @@ import pytest
 from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera
-from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow, velocity_change,
+from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
                                     rigid_motion_vectors, scene_velocity, undilate_motion_vectors,
-                                    upsample_motion_vectors)
+                                    upsample_motion_vectors, velocity_change)
 from engine.geometry.reference import scene_velocity_reference
 from tests.synthetic import rigid
 

@@ -161,7 +161,7 @@ def test_after_a_restart_the_loop_falls_back_to_reprojection_until_two_frames():
 
 def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames():
     # x(i) = 0.004 i^2: constant acceleration, which the parabola through frames n-2k, n-k, n extrapolates exactly
-    k = 2
+    # (k = 2: frames 2, 4, 6 rendered, frame 7 predicted)
     frames, objects = two_layer_sequence(10, width=96, height=64, camera_speed=0.02,
                                          object_path=lambda i: 0.004 * i * i)
     history = [frames[2], _with_vectors(frames, objects, 2, 4), _with_vectors(frames, objects, 4, 6)]

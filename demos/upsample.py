@@ -28,7 +28,7 @@ from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
 from engine.geometry.motion import camera_motion_vectors
-from engine.io.rgbd import read_sequence, write_sequence
+from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
 from engine.predict import Predictor, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 from engine.scenegen import SceneConfig, generate_sequence
@@ -55,7 +55,7 @@ def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> It
     loop = PredictionLoop(predictor)
     for position, frame in enumerate(frames):
         if frame.index % k == 0:
-            if frame.motion_vectors is not None and hasattr(frames, "objects"):
+            if frame.motion_vectors is not None and isinstance(frames, RgbdSequence):
                 # a renderer drawing every k-th frame writes vectors to its previous rendered frame
                 frame.motion_vectors = (history_motion_vectors(frames, position - k, position, frame)
                                         if position >= k else None)

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.eval.protocol import evaluate_sequence, evaluation_pairs, history_motion_vectors, json_safe, summarize
+from engine.eval.protocol import evaluate_sequence, evaluation_pairs, json_safe, rendered_history, summarize
 from engine.io.rgbd import read_sequence
 from engine.predict import Target, make_predictor, split_methods
 from engine.scenegen import SceneConfig, generate_sequence
@@ -80,11 +80,7 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
     predictors = {m: make_predictor(m, sequence.objects) for m in methods}
     cases = []
     for older, newest, targets in evaluation_pairs(len(sequence), k):
-        history = [sequence[older], sequence[newest]]
-        history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1])
-        if older - k >= 0:
-            history.insert(0, sequence[older - k])
-            history[1].motion_vectors = history_motion_vectors(sequence, older - k, older, history[1])
+        history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
         cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets]))
     times: dict[str, list[float]] = {m: [] for m in methods}
     for r in range(repeats):

@@ -129,6 +129,21 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     return vectors
 
 
+def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, three: bool) -> list[Frame]:
+    """The rendered frames (oldest first) that predict after frame position ``newest``: frames ``older`` and
+    ``newest``, and with ``three`` also ``2 older - newest`` where it exists. With ``with_vectors`` each
+    frame but the first gets motion vectors to the frame before it in this list, as a renderer drawing only
+    these frames writes them (``history_motion_vectors``)."""
+    history = [sequence[older], sequence[newest]]
+    if with_vectors:
+        history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1])
+        first = 2 * older - newest
+        if three and first >= 0:
+            history.insert(0, sequence[first])
+            history[1].motion_vectors = history_motion_vectors(sequence, first, older, history[1])
+    return history
+
+
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
                       max_groups: Optional[int] = None, progress: bool = False) -> list[MethodResult]:
     """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
@@ -169,12 +184,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     with tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
               disable=not progress, unit="frame") as bar:  # closed (its line ended) on an error too
         for older_i, newest_i, target_is in groups:
-            history = [sequence[older_i], sequence[newest_i]]
-            if with_vectors:  # the renderer's vectors of frame n point to the previous rendered frame, n-k
-                history[1].motion_vectors = history_motion_vectors(sequence, older_i, newest_i, history[1])
-                if wants_three and older_i - k >= 0:  # and frame n-k's to frame n-2k
-                    history.insert(0, sequence[older_i - k])
-                    history[1].motion_vectors = history_motion_vectors(sequence, older_i - k, older_i, history[1])
+            # the renderer's vectors of frame n point to the previous rendered frame, n-k (and n-k's to n-2k)
+            history = rendered_history(sequence, older_i, newest_i, with_vectors=with_vectors, three=wants_three)
             truths = [sequence[i] for i in target_is]
             for name, loop in loops.items():
                 start = time.perf_counter()

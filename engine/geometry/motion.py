@@ -17,9 +17,8 @@ from engine.core.frames import Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
-           "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "extrapolated_flow",
-           "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+           "sample_pixels", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
+           "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -38,7 +37,8 @@ def _pixels(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _vectors_of(k_now_inv_rays: np.ndarray, depth: np.ndarray, camera: Camera,
                 previous: Camera, transform: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Vectors of the pixels ``u, v`` (1-D) with ``depth`` whose world points move by ``transform``."""
+    """Vectors of the pixels ``u, v`` (1-D) with ``depth`` whose world points move by ``transform``, in float64
+    (``engine.geometry.reproject`` computes the same projection in float32, the warp's precision)."""
     finite = np.isfinite(depth)
     # finite points: camera -> world -> moved -> previous camera; sky: directions, rotation only
     to_prev = previous.world_to_camera @ transform @ camera.camera_to_world
@@ -135,6 +135,12 @@ def compose_motion_vectors(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     return (first.astype(np.float64) + step).astype(np.float32)
 
 
+def sample_pixels(small: int, big: int) -> np.ndarray:
+    """The full-resolution pixel (along one axis of ``big`` pixels) under the centre of each of ``small``
+    lower-resolution samples spanning the same frame: sample i is centred at (i + 0.5) big / small."""
+    return np.minimum(((np.arange(small) + 0.5) * big / small).astype(np.intp), big - 1)
+
+
 def upsample_motion_vectors(vectors: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Motion vectors (h, w, 2) of a lower resolution at the frame's size (H, W) of ``depth``, float32.
 
@@ -156,8 +162,7 @@ def upsample_motion_vectors(vectors: np.ndarray, depth: np.ndarray) -> np.ndarra
         raise InputError(f"are {w}x{h}, larger than the frame's {big_w}x{big_h}", field="motion_vectors")
     log_d = np.log(np.where(np.isfinite(depth), depth, np.float32(1e30)).astype(np.float64))
     # centres of the low-resolution samples in full-resolution pixels, and their surfaces' log depths
-    cy = np.minimum(((np.arange(h) + 0.5) * big_h / h).astype(np.intp), big_h - 1)
-    cx = np.minimum(((np.arange(w) + 0.5) * big_w / w).astype(np.intp), big_w - 1)
+    cy, cx = sample_pixels(h, big_h), sample_pixels(w, big_w)
     small_log = log_d[cy[:, None], cx[None, :]]
     # continuous position of each full-resolution pixel centre in the low-resolution grid
     fy = (np.arange(big_h) + 0.5) * h / big_h - 0.5

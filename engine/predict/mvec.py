@@ -97,6 +97,16 @@ class Mvec(Predictor):
         return (newest.index, newest.time, older.index, older.time, newest.depth.shape, sample,
                 None if vectors is None else hash(np.ascontiguousarray(vectors[::17, ::13]).tobytes()))
 
+    def _vectors(self, frame) -> np.ndarray:
+        """Pass 1: ``frame``'s vectors at its full resolution, undilated if configured."""
+        vectors = upsample_motion_vectors(frame.motion_vectors, frame.depth)
+        return undilate_motion_vectors(vectors, frame.depth) if self.config.undilate else vectors
+
+    def _velocity(self, newest, older, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pass 2: ``newest``'s 3D velocity since ``older`` and its moving pixels (``scene_velocity``)."""
+        return scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
+                              static_tolerance=self.config.static_tolerance, band=self.config.depth_band)
+
     def _prepare(self, state: PreparedState, timer: Timer) -> MvecState:
         older, newest = state.history[-2], state.history[-1]
         if newest.motion_vectors is None:
@@ -105,13 +115,9 @@ class Mvec(Predictor):
                              frame=newest.index, field="motion_vectors")
         self._previous = self._last
         with timer("vectors"):
-            vectors = upsample_motion_vectors(newest.motion_vectors, newest.depth)
-            if self.config.undilate:
-                vectors = undilate_motion_vectors(vectors, newest.depth)
+            vectors = self._vectors(newest)
         with timer("velocity"):
-            velocity, moving = scene_velocity(newest.depth, vectors, older.depth, newest.camera, older.camera,
-                                              static_tolerance=self.config.static_tolerance,
-                                              band=self.config.depth_band)
+            velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
         state_data = MvecState(velocity, moving)
         if self.config.acceleration and moving.size and len(state.history) >= 3:
@@ -128,11 +134,7 @@ class Mvec(Predictor):
             return None
         key, before = self._previous
         if key != self._key(older, first):
-            older_vectors = upsample_motion_vectors(older.motion_vectors, older.depth)
-            if self.config.undilate:
-                older_vectors = undilate_motion_vectors(older_vectors, older.depth)
-            before, _ = scene_velocity(older.depth, older_vectors, first.depth, older.camera, first.camera,
-                                       static_tolerance=self.config.static_tolerance, band=self.config.depth_band)
+            before, _ = self._velocity(older, first, self._vectors(older))
         ratio = (newest.time - older.time) / (older.time - first.time)
         return velocity_change(newest.depth, vectors, data.velocity, data.moving, newest.camera, older.camera,
                                older.depth, before, ratio, band=self.config.depth_band,

@@ -68,7 +68,7 @@ import numpy as np
 from engine import conventions
 from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, Camera, validate_motion_vectors
-from engine.geometry.motion import camera_motion_vectors
+from engine.geometry.motion import camera_motion_vectors, sample_pixels
 
 __all__ = ["MOTION_MISSING", "ENGINE_MOTION", "MotionConventions", "motion_mask", "engine_vectors",
            "camera_vectors_at", "with_camera_motion"]
@@ -169,8 +169,7 @@ def camera_vectors_at(depth: np.ndarray, camera: Camera, previous: Camera, shape
     h, w = shape
     if (h, w) == (big_h, big_w):
         return camera_motion_vectors(depth, camera, previous).astype(np.float64)
-    rows = np.minimum(((np.arange(h) + 0.5) * big_h / h).astype(np.intp), big_h - 1)
-    cols = np.minimum(((np.arange(w) + 0.5) * big_w / w).astype(np.intp), big_w - 1)
+    rows, cols = sample_pixels(h, big_h), sample_pixels(w, big_w)
     shrink = np.diag([w / big_w, h / big_h, 1.0])
     small = camera_motion_vectors(np.ascontiguousarray(depth[rows[:, None], cols[None, :]]),
                                   Camera(shrink @ camera.intrinsics, camera.world_to_camera),

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from engine.core.errors import InputError, InterleaveError
-from engine.eval.protocol import MethodResult, evaluate_sequence, stage_table, write_json
+from engine.eval.protocol import MethodResult, evaluate_sequence, score_cell, stage_table, write_json
 from engine.io.rgbd import read_sequence
 from engine.predict import METHODS, make_predictor, option_parts
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
@@ -236,7 +236,7 @@ def sweep_table(points: Sequence[SweepPoint]) -> str:
         lines.append(f"| {p.resolution} | {method} | {knob(p.flow_width)} | {knob(p.fill)} | "
                      f"{knob(p.infill_iterations)} | {knob(p.planes)} | {knob(p.dis_preset)} | {p.frames} | "
                      f"{p.ms_per_frame:.1f} | "
-                     f"{p.psnr:.2f} | {p.flip:.4f} | {p.psnr_moving:.2f} | {front} |")
+                     f"{p.psnr:.2f} | {score_cell(p.flip, 4)} | {score_cell(p.psnr_moving, 2)} | {front} |")
     return "\n".join(lines)
 
 

@@ -267,9 +267,15 @@ def summarize(results: Sequence[MethodResult]) -> dict:
     return out
 
 
-def _cell(value: float, digits: int) -> str:
-    """A table cell: ``-`` for a score that was not computed or has no pixels (NaN)."""
-    return "-" if math.isnan(value) else f"{value:.{digits}f}"
+def score_cell(value: Optional[float], digits: int) -> str:
+    """A table cell of a score: ``-`` for one that was not computed or has no pixels (NaN, or None as read
+    back from JSON), e.g. the moving-pixel columns of a static scene; the one formatter of every eval table
+    (JSON stores the same scores as null: :func:`json_safe`).
+
+    >>> score_cell(float("nan"), 2), score_cell(None, 2), score_cell(21.184, 2)
+    ('-', '-', '21.18')
+    """
+    return "-" if value is None or math.isnan(value) else f"{value:.{digits}f}"
 
 
 def markdown_table(results: Sequence[MethodResult]) -> str:
@@ -280,7 +286,7 @@ def markdown_table(results: Sequence[MethodResult]) -> str:
     lines = [head]
 
     def scores(row) -> str:
-        return " | ".join(_cell(row[name], digits) for name, digits in (
+        return " | ".join(score_cell(row[name], digits) for name, digits in (
             ("psnr", 2), ("ssim", 4), ("flip", 4), ("psnr_moving", 2), ("flip_moving", 4), ("epe_moving", 2)))
 
     for r in results:
@@ -319,9 +325,9 @@ def per_step_table(results: Sequence[MethodResult]) -> str:
             if not at:
                 continue
             frames = sum(int(a.get("frames", 0)) for a in at)
-            lines.append(f"| {method} | {k} | {step} | {frames} | {_mean(a['psnr'] for a in at):.2f} | "
-                         f"{_mean(a['ssim'] for a in at):.4f} | {_mean(a['flip'] for a in at):.4f} | "
-                         f"{_mean(a['psnr_moving'] for a in at):.2f} |")
+            cells = " | ".join(score_cell(_mean(a[name] for a in at), digits)
+                               for name, digits in (("psnr", 2), ("ssim", 4), ("flip", 4), ("psnr_moving", 2)))
+            lines.append(f"| {method} | {k} | {step} | {frames} | {cells} |")
     return "\n".join(lines)
 
 
@@ -372,13 +378,14 @@ def bounds_table(results: Sequence[MethodResult], rows: Sequence[BoundRow]) -> s
     """Thesis Table 6.3: LMP / DI as pred or GT against PSNR, SSIM, FLIP and PSNR over moving pixels, means
     over sequences per k; also the share of the frame that was holes and the PSNR over those pixels."""
     def holes_psnr(value: float) -> str:
-        return "exact" if value == math.inf else "-" if math.isnan(value) else f"{value:.2f}"
+        return "exact" if value == math.inf else score_cell(value, 2)
 
     lines = ["| k | LMP | DI | method | frames | PSNR | SSIM | FLIP | PSNR moving | holes (%) | PSNR holes |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for e in bounds_summary(results, rows):
-        lines.append(f"| {e['k']} | {e['motion']} | {e['infill']} | {e['method']} | {e['frames']} | {e['psnr']:.2f} | "
-                     f"{e['ssim']:.4f} | {e['flip']:.4f} | {e['psnr_moving']:.2f} | {100 * e['hole_fraction']:.2f} | "
+        lines.append(f"| {e['k']} | {e['motion']} | {e['infill']} | {e['method']} | {e['frames']} | "
+                     f"{score_cell(e['psnr'], 2)} | {score_cell(e['ssim'], 4)} | {score_cell(e['flip'], 4)} | "
+                     f"{score_cell(e['psnr_moving'], 2)} | {score_cell(100 * e['hole_fraction'], 2)} | "
                      f"{holes_psnr(e['psnr_holes'])} |")
     return "\n".join(lines)
 

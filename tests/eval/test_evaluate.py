@@ -133,3 +133,5 @@ def test_per_step_table_lists_every_future_step(sequence):
     table = per_step_table(results)
     assert [line.split("|")[3].strip() for line in table.splitlines()[2:]] == ["1", "2", "3"]
     assert results[0].per_step["2"]["frames"] == 1
+    assert [line.split(" | ")[6] for line in table.splitlines()[2:]] == ["-"] * 3  # FLIP skipped: '-', not nan
+    assert "nan" not in table.lower()

@@ -9,6 +9,8 @@ hardware ~70], against the float planes above 40 dB.
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -183,8 +185,15 @@ def test_field_demo_writes_the_scene_demo_outputs(which, request, tmp_path):
     assert summary["mvec/k=2"]["psnr"] == summary["reproject/k=2"]["psnr"]
     for name in ("table.md", "results.json", "speed_vs_error.png", "side_by_side.mp4", "field/sequence.json"):
         assert (tmp_path / name).is_file()
-    assert "Field renderer" in (tmp_path / "table.md").read_text()
+    table = (tmp_path / "table.md").read_text()
+    assert "Field renderer" in table
     assert summary["reproject/k=2"]["psnr"] > summary["repeat/k=2"]["psnr"]
+    # a static field has no moving pixels: '-' in the table, null in the JSON, never nan
+    assert "nan" not in table.lower()
+    row = next(line for line in table.splitlines() if line.startswith("| **mean** | 2 | reproject |"))
+    assert row.split(" | ")[7:10] == ["-", "-", "-"]  # PSNR moving, FLIP moving, EPE moving
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["summary"]["reproject/k=2"]["psnr_moving"] is None
 
 
 def test_field_demo_explains_a_missing_export(tmp_path, capsys):

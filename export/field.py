@@ -13,7 +13,8 @@
   without torch or onnxruntime.
 
 Parity: :func:`check_parity` holds onnxruntime against torch on random points in and around the cube and
-on points along the rays of a real view; the command fails above ``--tolerance``. The quantized planes are
+on points along the rays of a real view; the command fails above ``--tolerance`` (default
+:func:`parity_tolerance`, derived from the renderer's 8-bit output). The quantized planes are
 scored by rendering a view with float and with uint8 planes (PSNR between the two, in ``field.json``).
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.colorspace import display_encode
+from engine.core.colorspace import SRGB_LINEAR_SLOPE, display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from models.fields.components.render import render_image
@@ -39,8 +40,11 @@ from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
-__all__ = ["FieldQueryGraph", "export_field", "check_parity", "example_points", "quantize_planes", "report_export", "main",
+__all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance", "DISPLAY_LEVELS", "example_points", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
+
+#: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
+DISPLAY_LEVELS = 255
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -124,6 +128,30 @@ def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, dire
     s = sigma.numpy()
     return {"density": float(np.max(np.abs(got_sigma - s) / np.maximum(1.0, np.abs(s)))) if s.size else 0.0,
             "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
+
+
+def parity_tolerance(levels: int = DISPLAY_LEVELS) -> float:
+    """The default ``--tolerance`` of ``interleave export field|dynamic``: ``1 / (2 * levels * 12.92)``, 1.52e-4
+    for the renderer's 8-bit output, derived from what the renderer needs rather than chosen.
+
+    The renderer composites samples, ``C = sum_i T_i alpha_i c_i + T_N background``, and shows
+    ``round(levels * srgb(C))``. A colour error of at most ``e_c`` per sample moves C by at most ``e_c``
+    (the weights sum to at most 1). A relative density error of at most ``e_s`` per sample moves C by at most
+    ``e_s``: the derivative of C with respect to ``log sigma_i`` is ``sigma_i dt T_i (c_i - C_behind_i / T_i)``
+    with both colours in [0, 1], so its magnitude is at most ``sigma_i dt T_i``, and these sum to at most 1.
+    The sRGB encoding is steepest on its linear segment (slope ``SRGB_LINEAR_SLOPE`` = 12.92), so a linear
+    error ``e`` moves the 8-bit code by at most ``levels * 12.92 * e``. Giving colour and density half each
+    of one code step, ``e_c = e_s = 1 / (2 * levels * 12.92)`` moves no pixel's code by more than one step,
+    anywhere on the curve: never more than the rounding to 8 bits itself may (uint8 planes, which cost
+    ~61 dB, move codes too). The density check is relative to ``max(1, sigma)``, so below one per unit it
+    is absolute, where samples are nearly transparent over the renderer's steps.
+
+    >>> round(parity_tolerance(), 7)
+    0.0001518
+    """
+    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
+        raise InputError(f"must be a positive integer, got {levels!r}", field="levels")
+    return 1.0 / (2.0 * levels * SRGB_LINEAR_SLOPE)
 
 
 def quantize_planes(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -277,9 +305,11 @@ def export_command(argv: Optional[list[str]], prog: str, description: str, made_
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("run", type=Path, help=f"run directory written by '{made_by}'")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/export)")
-    parser.add_argument("--tolerance", type=float, default=1e-4,
+    parser.add_argument("--tolerance", type=float, default=parity_tolerance(),
                         help="largest accepted |onnxruntime - torch| colour difference and relative density "
-                             "difference (default 1e-4)")
+                             f"difference (default {parity_tolerance():.3g} = 1 / (2 * 255 * 12.92): colour and "
+                             "density each moving the renderer's 8-bit sRGB output by at most half a code step at "
+                             "the curve's steepest; see export.field.parity_tolerance)")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
     manifest = export(args.run, out)
@@ -300,7 +330,8 @@ def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, *
     sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
     print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"], **extra}, indent=2))
     if worst > tolerance:
-        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {tolerance:.0e}", file=out / onnx_name)
+        raise InputError(f"onnxruntime differs from torch by {worst:.2e} > {tolerance:.3g} (--tolerance)",
+                         file=out / onnx_name)
 
 
 def run_as_script(main) -> None:

@@ -7,6 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Slope of the sRGB encoding's linear segment, ``encoded = 12.92 * linear`` below linear 0.0031308: the
+#: steepest the encoding gets (the curve above it is flatter), so a linear-light error ``e`` moves an encoded
+#: value by at most ``SRGB_LINEAR_SLOPE * e``.
+SRGB_LINEAR_SLOPE = 12.92
+
 
 def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     """Exact sRGB EOTF: ``c / 12.92`` for ``c <= 0.04045``, else ``((c + 0.055) / 1.055) ** 2.4``.
@@ -15,14 +20,14 @@ def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     """
     c = np.asarray(encoded, dtype=np.float64)
     curve = ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4
-    return np.where(c <= 0.04045, c / 12.92, curve).astype(np.float32)
+    return np.where(c <= 0.04045, c / SRGB_LINEAR_SLOPE, curve).astype(np.float32)
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     """Inverse of :func:`srgb_to_linear`: ``12.92 c`` for ``c <= 0.0031308``, else ``1.055 c^(1/2.4) - 0.055``."""
     c = np.asarray(linear, dtype=np.float64)
     curve = 1.055 * np.maximum(c, 0.0031308) ** (1.0 / 2.4) - 0.055
-    return np.where(c <= 0.0031308, c * 12.92, curve).astype(np.float32)
+    return np.where(c <= 0.0031308, c * SRGB_LINEAR_SLOPE, curve).astype(np.float32)
 
 
 def display_encode(linear: np.ndarray) -> np.ndarray:

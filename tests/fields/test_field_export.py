@@ -290,3 +290,46 @@ def test_two_views_that_barely_overlap_train_with_every_prior(tmp_path):
     assert visible[0, 1][sphere[0]].mean() < 0.1 and visible[1, 0][sphere[1]].mean() < 0.1
     assert visible[0, 0].all()
     assert all(torch.isfinite(p).all() for p in load_model(run).parameters())
+
+
+def test_default_parity_tolerance_moves_no_8bit_code_by_more_than_one_step():
+    """The derivation of export.field.parity_tolerance on random composites: every sample's colour off by
+    +-tol and its density scaled by (1 +- tol) moves no 8-bit display code by more than one step, while
+    errors 4x larger do move some (the dark end of the sRGB curve is as steep as the bound assumes)."""
+    from engine.core.colorspace import encode8_reference
+    from export.field import parity_tolerance
+
+    tol = parity_tolerance()
+    rng = np.random.default_rng(0)
+    rays, samples = 20000, 32
+    sigma_dt = rng.exponential(0.3, (rays, samples)) * (rng.random((rays, 1)) < 0.8)
+    color = rng.random((rays, samples, 3)) ** 6  # many dark colours, where the encoding is steepest
+    background = rng.random((rays, 1, 3)) ** 6
+
+    def composite(sd, c):
+        alpha = 1.0 - np.exp(-sd)
+        trans = np.exp(-np.concatenate([np.zeros((rays, 1)), np.cumsum(sd, axis=1)], axis=1))
+        return (trans[:, :-1, None] * alpha[..., None] * c).sum(axis=1) + trans[:, -1:] * background[:, 0]
+
+    truth = encode8_reference(composite(sigma_dt, color)).astype(int)
+    for scale, bound in ((1.0, 1), (4.0, None)):
+        e = scale * tol
+        signs = rng.choice([-1.0, 1.0], (rays, samples, 1))
+        off = composite(sigma_dt * (1.0 + e * signs[..., 0]), np.clip(color + e * signs, 0, 1))
+        moved = np.abs(encode8_reference(off).astype(int) - truth).max()
+        if bound is not None:
+            assert moved <= bound
+        else:
+            assert moved > 1
+
+
+def test_export_default_tolerance_accepts_what_real_runs_reach(tmp_path):
+    """1.12e-4 (an all-priors LLFF run, issue 24) is within the derived default; an explicit tolerance still wins."""
+    from export.field import parity_tolerance, report_export
+
+    (tmp_path / "field.onnx").write_bytes(b"x")
+    manifest = {"parity": {"random_points": {"density": 1.12e-4, "color": 3e-6}}}
+    report_export(tmp_path, manifest, "field.onnx", parity_tolerance())
+    with pytest.raises(InputError, match=r"1\.12e-04 > 0\.0001 \(--tolerance\)") as exc:
+        report_export(tmp_path, manifest, "field.onnx", 1e-4)
+    assert "field.onnx" in str(exc.value)

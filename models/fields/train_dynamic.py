@@ -201,7 +201,7 @@ class DynamicKind:
     range in the checkpoint and the mean flow in the log."""
 
     def prepare(self, views: TimedViews, config: DynamicTrainConfig):
-        views, terms = check_run(views, config, check_timed_views, views.depth is not None)
+        views, config, terms = check_run(views, config, check_timed_views, views.depth is not None)
         return views, _resolved(config, views), terms
 
     def new_model(self, views: TimedViews, config: DynamicTrainConfig) -> DynamicFieldModel:
@@ -417,6 +417,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
             train_cameras=view_list(args.train_cameras, "train_cameras"),
             test_cameras=view_list(args.test_cameras, "test_cameras"), frames=frames,
             test_every=args.test_every, max_test_views=args.max_test_views)
+        config = dataclasses.replace(config, downscale=record["downscale"])
         kind = config.field.kind + ("+flow" if config.priors.flow.enabled else "")
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
         run = train_dynamic(train, config, out)

@@ -84,8 +84,7 @@ class StaticKind:
     model, the sparse-input priors (trained and checkpointed with it), planes and MLPs as parameter groups."""
 
     def prepare(self, views: Views, config: FieldTrainConfig):
-        views, terms = check_run(views, config, check_views, views.depth is not None)
-        return views, config, terms
+        return check_run(views, config, check_views, views.depth is not None)
 
     def new_model(self, views: Views, config: FieldTrainConfig) -> StaticFieldModel:
         return build_model(views, config)
@@ -244,7 +243,7 @@ def run_inputs(args: argparse.Namespace) -> tuple[FieldTrainConfig, Views, Views
     """(config, train views, test views, data record) of a command line parsed by :func:`parse_run_command`."""
     config = config_from_command_line(args)
     train, test, record = views_from_args(args, config.downscale)
-    return config, train, test, record
+    return dataclasses.replace(config, downscale=record["downscale"]), train, test, record
 
 
 def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.train_static") -> int:

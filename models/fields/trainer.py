@@ -69,8 +69,10 @@ class RunConfig:
         "help": "decay after warm-up: cosine, exponential or constant"})
     lr_final_factor: float = field(default=0.05, metadata={"help": "learning rate at the last step / peak"})
     warmup_steps: int = field(default=50, metadata={"help": "linear learning-rate warm-up steps"})
-    downscale: int = field(default=1, metadata={
-        "help": "image resolution factor relative to the dataset's images (views are reduced to it if needed)"})
+    downscale: int = field(default=0, metadata={
+        "help": "image resolution factor relative to the dataset's full-size images (views are reduced to it if "
+                "needed); 0: auto, the views' own resolution (the dataset's images; for an LLFF capture the "
+                "coarsest images_N folder it ships)"})
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON data (tuples become lists), as written to ``config.json``."""
@@ -82,12 +84,12 @@ class RunConfig:
 
 
 def validate_run_config(config, positive_ints: tuple[str, ...]) -> None:
-    """The checks every run config shares: ``positive_ints`` (``steps`` may be 0), learning rate and its
+    """The checks every run config shares: ``positive_ints`` (``steps`` and ``downscale`` may be 0), learning rate and its
     schedule, samples per ray, then the field's and the priors' own ``validate``; InputError naming the first
     bad option."""
     for name in positive_ints:
         value = getattr(config, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "steps" else 1):
+        if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name in ("steps", "downscale") else 1):
             raise InputError(f"must be a positive integer, got {value!r}", field=name)
     if not (config.lr > 0 and math.isfinite(config.lr)):
         raise InputError(f"must be a positive number, got {config.lr!r}", field="lr")
@@ -188,8 +190,9 @@ def lr_factor(config) -> Callable[[int], float]:
 
 
 def matching_views(views, config):
-    """``views`` reduced to ``config.downscale`` (InputError when their own downscale does not divide it)."""
-    if views.downscale == config.downscale:
+    """``views`` reduced to ``config.downscale`` (InputError when their own downscale does not divide it);
+    unchanged for ``downscale`` 0 (auto)."""
+    if views.downscale == config.downscale or config.downscale == 0:
         return views
     if config.downscale % views.downscale:
         raise InputError(f"views are at downscale {views.downscale}, which does not divide the config's "
@@ -378,12 +381,15 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
 
 def check_run(views, config, check_views: Callable, depth_known: bool):
     """Validate views and config, check the loss terms against them; ``(views at the config's downscale,
-    loss terms)``."""
+    config with downscale 0 (auto) resolved to the views', loss terms)``."""
     check_views(views)
     config.validate()
     terms = config.loss_terms()
     check_loss_terms(terms, depth_known)
-    return matching_views(views, config), terms
+    views = matching_views(views, config)
+    if config.downscale == 0:
+        config = dataclasses.replace(config, downscale=int(views.downscale))
+    return views, config, terms
 
 
 # ----------------------------------------------------------------------------------------------------

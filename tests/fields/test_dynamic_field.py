@@ -426,8 +426,8 @@ def test_interrupted_run_resumes_exactly(moving, tmp_path):
     with pytest.raises(InputError, match="different config"):
         train_dynamic(train, dataclasses.replace(config, seed=1), resumed, progress=False)
     saved = DynamicTrainConfig.from_dict(json.loads((resumed / "config.json").read_text()))
-    assert saved.field.time_resolution == 2 and saved.to_dict() == dataclasses.replace(
-        config, field=replace(TINY, time_resolution=2)).to_dict()
+    assert saved.field.time_resolution == 2 and saved.to_dict() == dataclasses.replace(  # auto values resolved
+        config, downscale=1, field=replace(TINY, time_resolution=2)).to_dict()
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -144,7 +144,7 @@ def _llff_scene(root: Path, rng: np.random.Generator, factor: int = 2, count: in
 def test_llff_conversion_projects_like_the_llff_convention(tmp_path):
     rng = np.random.default_rng(0)
     llff, bounds, (h0, w0, focal) = _llff_scene(tmp_path, rng, factor=2)
-    views = load_llff(tmp_path, factor=2)
+    views = load_llff(tmp_path, downscale=2)
     assert len(views) == 3 and views.images.shape == (3, 6, 8, 3) and views.scene_type == "forward-facing"
     np.testing.assert_allclose(views.near_far, bounds)
     for pose, cam in zip(llff, views.cameras):
@@ -162,10 +162,11 @@ def test_llff_conversion_projects_like_the_llff_convention(tmp_path):
 def test_llff_image_count_mismatch_is_an_error(tmp_path):
     _llff_scene(tmp_path, np.random.default_rng(1), factor=4)
     (tmp_path / "images_4" / "IMG_0000.png").unlink()
-    with pytest.raises(InputError, match="2 images for 3 poses"):
-        load_llff(tmp_path, factor=4)
-    with pytest.raises(InputError, match="images_8"):
-        load_llff(tmp_path, factor=8)
+    with pytest.raises(InputError, match="has 3 rows but images_4/ holds 2 images") as exc:
+        load_llff(tmp_path, downscale=4)
+    assert "poses_bounds.npy" in str(exc.value) and "'rows'" in str(exc.value)
+    with pytest.raises(InputError, match="images_2.*shipped: images_4"):
+        load_llff(tmp_path, downscale=2)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -94,7 +94,8 @@ def test_training_raises_held_out_psnr_clearly(trained):
 
 def test_run_directory_holds_config_checkpoint_and_log(trained):
     train, _, run = trained
-    assert json.loads((run / "config.json").read_text()) == tiny_config().to_dict()
+    assert tiny_config().downscale == 0  # auto: the saved config holds the resolution the views had
+    assert json.loads((run / "config.json").read_text()) == tiny_config(downscale=1).to_dict()
     lines = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert lines[-1]["step"] == 300 and "photometric" in lines[-1] and lines[-1]["occupied"] < 1.0
     assert lines[-1]["photometric"] < lines[0]["photometric"]
@@ -246,3 +247,49 @@ def test_command_line_trains_and_scores(tmp_path, capsys):
     assert not [t for t in saved.losses if t.name == "plane_tv" and t.enabled]
     assert '"psnr"' in capsys.readouterr().out
     assert main(["--dataset", "llff", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")]) == 2
+
+
+def test_llff_capture_as_shipped_trains_from_the_default_command(tmp_path, capsys):
+    """An LLFF-layout capture from the scene generator (images_2/, images_4/, poses_bounds.npy in LLFF's axis
+    order, no images/) trains through 'interleave train field --scene CAPTURE --train-views --test-views'
+    without --downscale: the coarsest shipped folder is read, and the run records it."""
+    from engine.cli import main as cli_main
+    from models.fields.data.select import load_run_views
+    from tests.io.test_llff import generated_llff
+
+    capture, cameras, _ = generated_llff(tmp_path)
+    run = tmp_path / "run"
+    assert cli_main(["train", "field", "--scene", str(capture), "--train-views", "0,2,5", "--test-views", "3",
+                     "--steps", "4", "--rays-per-batch", "64", "--field.resolutions", "8,16",
+                     "--render.num-samples", "8", "--render.occupancy", "false", "--priors", "", "--no-flip",
+                     "--out", str(run)]) == 0
+    scores = json.loads((run / "scores.json").read_text())
+    assert scores["image_size"] == [12, 16] and np.isfinite(scores["psnr"]) and scores["steps"] == 4
+    data = json.loads((run / "data.json").read_text())
+    assert data["dataset"] == "llff" and data["downscale"] == 4 and data["image_folder"] == "images_4"
+    assert json.loads((run / "config.json").read_text())["downscale"] == 4
+    train, test = load_run_views(run)  # what eval and export read back
+    np.testing.assert_allclose(test.cameras[0].world_to_camera, cameras[3].world_to_camera, atol=1e-12)
+    assert (train.height, train.width) == (12, 16)
+    # an explicit --downscale coarser than any folder is reached by area-averaging the nearest finer one
+    assert cli_main(["train", "field", "--scene", str(capture), "--train-views", "0,2,5", "--test-views", "3",
+                     "--downscale", "8", "--steps", "1", "--rays-per-batch", "64", "--field.resolutions", "8,16",
+                     "--render.num-samples", "8", "--render.occupancy", "false", "--priors", "", "--no-flip",
+                     "--out", str(tmp_path / "run8")]) == 0
+    assert json.loads((tmp_path / "run8" / "scores.json").read_text())["image_size"] == [6, 8]
+    capsys.readouterr()
+
+
+def test_llff_bad_capture_is_one_line_and_exit_2(tmp_path, capsys):
+    from engine.cli import main as cli_main
+    from tests.io.test_llff import generated_llff
+
+    capture, _, _ = generated_llff(tmp_path, factors=(4,), num_cameras=3)
+    rows = np.load(capture / "poses_bounds.npy")
+    rows[1, 15] = np.nan
+    np.save(capture / "poses_bounds.npy", rows)
+    assert cli_main(["train", "field", "--scene", str(capture), "--train-views", "0,2", "--test-views", "1",
+                     "--steps", "1", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "poses_bounds.npy" in err and "frame 1, field 'bounds'" in err
+    assert not (tmp_path / "run").exists()

@@ -16,6 +16,7 @@ from typing import Any, Optional
 import numpy as np
 
 from engine.core.errors import InputError
+from engine.io.llff import choose_image_folder
 from models.fields.data.timed import TimedViews, load_dnerf, load_rig_video, split_by_camera
 from models.fields.data.views import Views, load_llff, load_nerf_synthetic, load_rig, split_indices
 
@@ -83,9 +84,17 @@ def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Opti
     8th frame held out, train views spread over the rest), or the rig's own train/test cameras when
     ``views`` is not given. ``train_views`` / ``test_views`` are positions among the *loaded* frames
     (listed frames whose files are missing are skipped) or view names (``r_20``, ``cam3``).
+
+    ``downscale`` is relative to the dataset's full-size images; 0 (auto) keeps the dataset's own images, and
+    for LLFF picks the coarsest ``images_N`` folder shipped (``models.fields.data.views.load_llff``). The
+    record holds the resolution reached (``downscale``) and, for LLFF, the folder read (``image_folder``).
     """
     if dataset not in DATASETS:
         raise InputError(f"must be one of {DATASETS}, got {dataset!r}", field="dataset")
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 0:
+        raise InputError(f"must be an integer >= 0 (0: auto), got {downscale!r}", field="downscale")
+    auto = downscale == 0
+    downscale = 1 if auto and dataset != "llff" else int(downscale)
     if dataset == "nerf-synthetic":
         pool = load_nerf_synthetic(scene, "train", downscale=downscale)
         test_pool = load_nerf_synthetic(scene, "test", downscale=downscale)
@@ -94,7 +103,8 @@ def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Opti
         test_idx = (_positions(test_pool, test_views, "test_views") if test_views is not None
                     else list(range(len(test_pool))))
     else:
-        pool = load_llff(scene, factor=downscale) if dataset == "llff" else load_rig(scene).downscaled(downscale)
+        pool = (load_llff(scene, downscale=None if auto else downscale) if dataset == "llff"
+                else load_rig(scene).downscaled(downscale))
         test_pool = pool
         tr = _positions(pool, train_views, "train_views") if train_views is not None else None
         te = _positions(pool, test_views, "test_views") if test_views is not None else None
@@ -113,9 +123,11 @@ def select_views(dataset: str, scene: str | Path, downscale: int, *, views: Opti
     if not test_idx:
         raise InputError("no test views selected", field="test_views")
     train, test = pool.subset(train_idx), test_pool.subset(test_idx)
-    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale),
+    record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(train.downscale),
               "train_views": [int(i) for i in train_idx], "test_views": [int(i) for i in test_idx],
               "train_names": list(train.names), "test_names": list(test.names)}
+    if dataset == "llff":
+        record["image_folder"] = choose_image_folder(scene, record["downscale"])[0].name
     return train, test, record
 
 
@@ -187,6 +199,10 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
     """
     if dataset not in DYNAMIC_DATASETS:
         raise InputError(f"must be one of {DYNAMIC_DATASETS}, got {dataset!r}", field="dataset")
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 0:
+        raise InputError(f"must be an integer >= 0 (0: auto, the dataset's images), got {downscale!r}",
+                         field="downscale")
+    downscale = int(downscale) or 1
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
         raise InputError(f"must be a positive integer, got {test_every!r}", field="test_every")
     dropped: list[str] = []

@@ -12,11 +12,8 @@ Conversions (each written once, here):
   ``cx = W / 2``, ``cy = H / 2`` (the image centre in the +0.5 convention). The RGBA PNGs are composited on
   white (or black) *in display-encoded sRGB values*, ``rgb * a + (1 - a)``, exactly as the NeRF-synthetic
   protocol does, then decoded to linear. ``near, far = 2, 6`` (the protocol's).
-- **LLFF** ``poses_bounds.npy`` holds per image 17 numbers: a 3x5 matrix (row-major) whose first three
-  columns are the camera-to-world axes in the order [down, right, back], the fourth the camera centre and
-  the fifth [H, W, focal] of the full-size images, then the near and far depth bounds. OpenCV axes are
-  [right, down, forward] = [col 1, col 0, -col 2] (a proper rotation: det +1 in both). ``images_N`` are the
-  images downscaled by N: K is scaled by (image size / size in the file), ``cx = W / 2``, ``cy = H / 2``.
+- **LLFF** captures as shipped (``poses_bounds.npy`` with ``images/``, ``images_N/``) are read by
+  ``engine.io.llff`` (torch-free; LLFF's [down, right, back] axes and hwf convention are documented there);
   ``near_far`` holds the bounds as stored; the forward-facing scene starts at 0.9 x the smallest near bound
   and reaches infinity (``models/fields/static/model.py``).
 - **rgbd-rig**: already in the project's conventions (``engine.io.rgbd.read_rig``); true planar depth is kept for
@@ -41,17 +38,13 @@ from engine.core.colorspace import srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import Camera, validate_intrinsics, validate_pose
 from engine.io.importers import opengl_to_opencv_world_to_camera
+from engine.io.llff import read_llff
 from engine.io.rgbd import read_rig
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
-           "load_llff", "load_rig", "LLFF_TO_OPENCV", "llff_to_world_to_camera",
-           "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth", "scale_k"]
+           "load_llff", "load_rig", "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth", "scale_k"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
-
-#: Column selection turning LLFF camera axes [down, right, back] into OpenCV [right, down, forward]:
-#: ``R_opencv = R_llff @ LLFF_TO_OPENCV`` (columns are camera axes in world coordinates).
-LLFF_TO_OPENCV = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 #: NeRF-synthetic's ray bounds (planar depth, scene units).
 NERF_SYNTHETIC_NEAR_FAR = (2.0, 6.0)
@@ -386,64 +379,22 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
 # LLFF
 
 
-def llff_to_world_to_camera(pose: np.ndarray) -> np.ndarray:
-    """OpenCV world-to-camera (4, 4) from one LLFF 3x5 pose (columns [down, right, back, centre, hwf])."""
-    c2w = np.eye(4)
-    c2w[:3, :3] = pose[:, :3] @ LLFF_TO_OPENCV
-    c2w[:3, 3] = pose[:, 3]
-    w2c = np.eye(4)
-    w2c[:3, :3] = c2w[:3, :3].T
-    w2c[:3, 3] = -c2w[:3, :3].T @ c2w[:3, 3]
-    return w2c
+def load_llff(root: str | Path, *, downscale: Optional[int] = None, scene_type: str = "forward-facing") -> Views:
+    """Load an LLFF capture as shipped (``engine.io.llff``: ``poses_bounds.npy`` and ``images/``, ``images_N/``).
 
-
-def load_llff(root: str | Path, *, factor: int = 8, scene_type: str = "forward-facing") -> Views:
-    """Load an LLFF scene: ``poses_bounds.npy`` and the images in ``images_<factor>/`` (``images/`` for 1).
-
-    Images are matched to poses in sorted file-name order (as COLMAP/LLFF write them); their count must
-    equal the number of poses. See the module docstring for the pose conversion.
+    ``downscale`` is relative to ``images/`` (the size ``poses_bounds.npy`` describes): ``images_<downscale>``
+    when shipped, else the coarsest shipped folder that divides it, area-averaged to it; None picks the
+    coarsest folder shipped. ``Views.downscale`` is the resolution reached; ``near_far`` the file's bounds.
 
     Raises:
-        InputError: missing files, a malformed poses_bounds.npy, count or size mismatches.
+        InputError: a bad poses_bounds.npy, no usable image folder, count or size mismatches.
     """
-    root = Path(root)
-    pb_file = root / "poses_bounds.npy"
-    if not pb_file.is_file():
-        raise InputError("file does not exist", file=pb_file)
-    try:
-        data = np.load(pb_file)
-    except (ValueError, OSError) as exc:
-        raise InputError(f"cannot be read as .npy ({exc})", file=pb_file) from None
-    if data.ndim != 2 or data.shape[1] != 17 or data.shape[0] < 1 or not np.all(np.isfinite(data)):
-        raise InputError(f"must be a finite (N, 17) array, got shape {data.shape}", file=pb_file)
-    poses = data[:, :15].reshape(-1, 3, 5).astype(np.float64)
-    bounds = data[:, 15:].astype(np.float64)
-    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
-        raise InputError(f"must be a positive integer, got {factor!r}", field="factor")
-    folder = root / ("images" if factor == 1 else f"images_{factor}")
-    if not folder.is_dir():
-        raise InputError(f"folder does not exist (LLFF ships images_4 and images_8; factor={factor})", file=folder)
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if len(files) != len(poses):
-        raise InputError(f"has {len(files)} images for {len(poses)} poses in {pb_file.name}", file=folder)
-    images, cams = [], []
-    for i, (path, pose) in enumerate(zip(files, poses)):
-        rgb, _ = read_png(path)
-        h_img, w_img = rgb.shape[:2]
-        h0, w0, focal = pose[:, 4]
-        if h0 <= 0 or w0 <= 0 or focal <= 0:
-            raise InputError(f"hwf must be positive, got {pose[:, 4].tolist()}", file=pb_file, frame=i, field="hwf")
-        k = np.array([[focal * w_img / w0, 0.0, w_img / 2.0], [0.0, focal * h_img / h0, h_img / 2.0], [0, 0, 1.0]])
-        w2c = validate_pose(llff_to_world_to_camera(pose), file=pb_file, frame=i, field_name="pose")
-        images.append(srgb_to_linear(rgb))
-        cams.append(Camera(validate_intrinsics(k, file=pb_file, frame=i), w2c))
-    sizes = {im.shape for im in images}
-    if len(sizes) != 1:
-        raise InputError(f"images have different sizes {sorted(sizes)}", file=folder)
-    if np.any(bounds[:, 0] <= 0) or np.any(bounds[:, 1] <= bounds[:, 0]):
-        raise InputError("depth bounds must satisfy 0 < near < far", file=pb_file, field="bounds")
-    return check_views(Views(images=np.stack(images).astype(np.float32), cameras=cams, near_far=bounds,
-                             scene_type=scene_type, names=[p.name for p in files], downscale=int(factor)))
+    capture = read_llff(root, downscale)
+    views = Views(images=capture.images, cameras=capture.cameras, near_far=capture.near_far, scene_type=scene_type,
+                  names=capture.names, downscale=capture.factor)
+    if downscale is not None and downscale != capture.factor:
+        views = views.downscaled(int(downscale) // capture.factor)
+    return check_views(views)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, ClassVar, Optional
 
 import torch
 
@@ -27,7 +27,8 @@ from models.fields.components.render import render_image
 from models.fields.data.select import DATASETS, detect_dataset, load_run_views, select_views
 from models.fields.data.views import Views, check_views
 from models.fields.losses import LossTerm, RayBatch, default_loss_terms
-from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors, prior_loss_terms, with_priors
+from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_priors, build_priors, prior_loss_terms,
+                                        with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, rank_correlation,
@@ -37,7 +38,7 @@ from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, jso
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
            "config_from_file", "add_run_arguments", "add_config_options", "config_from_command_line",
-           "views_from_args", "parse_run_command", "run_inputs", "main", "eval_main"]
+           "views_from_args", "parse_run_command", "choose_priors", "run_inputs", "main", "eval_main"]
 
 
 
@@ -54,9 +55,15 @@ class FieldTrainConfig(RunConfig):
     log_every: int = field(default=50, metadata={"help": "steps between log.jsonl lines"})
     priors: PriorsConfig = field(default_factory=PriorsConfig, metadata={
         "help": "sparse-input priors (sparse depth, Simple-RF, ViP); see models/fields/priors/config.py"})
+    priors_choice: str = field(default="", metadata={
+        "help": "why the enabled priors are on, as 'interleave train field' chose them ('auto: ...' from the "
+                "number of train views, or 'explicit: ...'); a record, not an input"})
     render: RenderConfig = field(default_factory=RenderConfig, metadata={"help": "sampling and rendering"})
     # keep last: from here on the class body's name `field` is this attribute, not dataclasses.field
     field: FieldConfig = field(default_factory=FieldConfig, metadata={"help": "tri-plane field size"})
+
+    #: Fields that record how the run was set up rather than define it (a resumed run may differ in them).
+    RECORDS: ClassVar[tuple[str, ...]] = ("priors_choice",)
 
     def validate(self) -> "FieldTrainConfig":
         """Raise InputError naming the first bad option; returns self."""
@@ -202,7 +209,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, out_help: str, *, out_req
 def add_config_options(parser: argparse.ArgumentParser) -> None:
     """One option per :class:`FieldTrainConfig` field (``engine.core.config``: ``--steps 400``,
     ``--field.resolutions 64,128``, ``--render.occupancy`` / ``--no-render.occupancy``)."""
-    add_options(parser, FieldTrainConfig)
+    add_options(parser, FieldTrainConfig, skip=("priors_choice",))
 
 
 def config_from_file(path: Optional[Path]) -> FieldTrainConfig:
@@ -212,12 +219,9 @@ def config_from_file(path: Optional[Path]) -> FieldTrainConfig:
 
 def config_from_command_line(args: argparse.Namespace) -> FieldTrainConfig:
     """The run config of a command line made with :func:`add_run_arguments` and :func:`add_config_options`:
-    ``--config FILE``, then the config options given, then ``--loss NAME=WEIGHT`` and ``--priors NAMES``."""
-    config = apply_loss_weights(config_from_args(FieldTrainConfig, args, config_from_file(args.config)), args.loss)
-    if getattr(args, "prior_names", None) is not None:
-        names = [n.strip() for n in args.prior_names.split(",") if n.strip()]
-        config = dataclasses.replace(config, priors=with_priors(config.priors, names))
-    return config
+    ``--config FILE``, then the config options given, then ``--loss NAME=WEIGHT`` (``--priors NAMES``: see
+    :func:`choose_priors`)."""
+    return apply_loss_weights(config_from_args(FieldTrainConfig, args, config_from_file(args.config)), args.loss)
 
 
 def views_from_args(args: argparse.Namespace, downscale: int) -> tuple[Views, Views, dict[str, Any]]:
@@ -239,6 +243,24 @@ def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]
     return args
 
 
+def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None
+                  ) -> FieldTrainConfig:
+    """``config`` with the priors of a command line and ``priors_choice`` saying why.
+
+    ``explicit`` (the ``--priors`` text, ``''`` for none) wins; so do priors the config (file or
+    ``--priors.NAME.enabled``) already switches on; otherwise :func:`~models.fields.priors.config.auto_priors`
+    picks them from the number of train views and the scene type.
+    """
+    if explicit is not None:
+        names = [n.strip() for n in explicit.split(",") if n.strip()]
+        priors = with_priors(config.priors, names)
+        return dataclasses.replace(config, priors=priors, priors_choice=f"explicit: --priors '{','.join(names)}'")
+    if config.priors.enabled():
+        return dataclasses.replace(config, priors_choice=f"explicit: the config enables {','.join(config.priors.enabled())}")
+    names, reason = auto_priors(num_views, scene_type)
+    return dataclasses.replace(config, priors=with_priors(config.priors, names), priors_choice=f"auto: {reason}")
+
+
 def run_inputs(args: argparse.Namespace) -> tuple[FieldTrainConfig, Views, Views, dict[str, Any]]:
     """(config, train views, test views, data record) of a command line parsed by :func:`parse_run_command`."""
     config = config_from_command_line(args)
@@ -251,11 +273,15 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     add_run_arguments(parser, "run directory (default: runs/field/<scene>-<N>v)", out_required=False)
     parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
-                        help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none)")
+                        help=f"comma-separated priors to switch on, from {','.join(PRIOR_NAMES)} ('' for none; "
+                             "default: the ones that paid in the ablation for this few train views and this kind of "
+                             "scene, e.g. depth with <= 3 forward-facing views; printed and saved as priors_choice)")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
     args = parse_run_command(parser, argv)
     try:
         config, train, test, record = run_inputs(args)
+        config = choose_priors(config, len(train), train.scene_type, args.prior_names)
+        print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out)
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")

@@ -206,7 +206,8 @@ def matching_views(views, config):
 
 def open_run_dir(out: Path, config) -> Path:
     """Create the run directory, refuse one holding a run with another config (``steps`` may differ: a
-    larger one extends the run), write ``config.json``; returns the checkpoint path (which may not exist).
+    larger one extends the run; fields a config lists in ``RECORDS`` only record how it was made), write
+    ``config.json``; returns the checkpoint path (which may not exist).
     Options added since a run was made count as their defaults. ``config`` is any run config with
     ``to_dict`` / ``from_dict`` (static or dynamic)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -214,7 +215,8 @@ def open_run_dir(out: Path, config) -> Path:
     wanted = config.to_dict()
     if config_file.is_file() and ckpt_file.is_file():
         saved = type(config).from_dict(json.loads(config_file.read_text())).to_dict()
-        differ = sorted(k for k in set(saved) | set(wanted) if k != "steps" and saved.get(k) != wanted.get(k))
+        ignored = {"steps", *getattr(type(config), "RECORDS", ())}
+        differ = sorted(k for k in set(saved) | set(wanted) if k not in ignored and saved.get(k) != wanted.get(k))
         if differ:
             raise InputError(f"holds a run with a different config ({', '.join(differ)} differ); use a new "
                              "directory", file=config_file)

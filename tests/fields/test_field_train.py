@@ -293,3 +293,43 @@ def test_llff_bad_capture_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "poses_bounds.npy" in err and "frame 1, field 'bounds'" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_auto_priors_follow_the_ablation():
+    from models.fields.priors.config import PRIOR_NAMES, PRIORS_THAT_PAY, auto_priors
+
+    for scene_type, rule in PRIORS_THAT_PAY.items():
+        assert set(rule.names) <= set(PRIOR_NAMES) and rule.names
+        names, reason = auto_priors(rule.max_views, scene_type)
+        assert names == rule.names and reason.startswith(f"{rule.max_views} train views <=")
+        names, reason = auto_priors(rule.max_views + 1, scene_type)
+        assert names == () and "no prior paid" in reason
+    assert auto_priors(4, "bounded-360")[0] == ("depth", "simple", "vip")  # lego, 4 views: all three paid
+    assert auto_priors(3, "forward-facing")[0] == ("depth",)               # sparse depth alone paid there
+    with pytest.raises(InputError, match="scene_type"):
+        auto_priors(3, "indoor")
+
+
+@pytest.mark.parametrize("views, given, enabled, choice", [
+    ("0,2,5", None, ["depth"], "auto: 3 train views <= 3 on a forward-facing scene"),
+    ("0,1,2,4", None, [], "auto: 4 train views > 3"),
+    ("0,2,5", "", [], "explicit: --priors ''"),
+    ("0,1,2,4", "vip", ["vip"], "explicit: --priors 'vip'"),
+])
+def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, given, enabled, choice):
+    """The command line switches on the priors that paid for this few views unless --priors says otherwise;
+    the choice and its reason are printed and saved in config.json."""
+    from engine.cli import main as cli_main
+    from tests.io.test_llff import generated_llff
+
+    root = tmp_path_factory.mktemp("priors")
+    capture, _, _ = generated_llff(root)
+    run = root / "run"
+    argv = ["train", "field", "--scene", str(capture), "--train-views", views, "--test-views", "3", "--steps", "1",
+            "--rays-per-batch", "32", "--field.resolutions", "8,16", "--render.num-samples", "8",
+            "--render.occupancy", "false", "--priors.vip.num-planes", "4", "--no-flip", "--out", str(run)]
+    assert cli_main(argv + ([] if given is None else ["--priors", given])) == 0
+    saved = json.loads((run / "config.json").read_text())
+    assert [n for n in ("depth", "simple", "vip") if saved["priors"][n]["enabled"]] == enabled
+    assert saved["priors_choice"].startswith(choice)
+    assert f"priors: {', '.join(enabled) or 'none'} ({saved['priors_choice']})" in capsys.readouterr().err

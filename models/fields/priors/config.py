@@ -26,9 +26,52 @@ from models.fields.priors.depth import SparseDepthPrior, SparseDepthState
 from models.fields.priors.simple import AugmentedState, SimplePrior
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
-__all__ = ["PRIOR_NAMES", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors"]
+__all__ = ["PRIOR_NAMES", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
+           "PRIORS_THAT_PAY", "auto_priors"]
 
 PRIOR_NAMES = ("depth", "simple", "vip")
+
+
+@dataclass(frozen=True)
+class PriorRule:
+    """The priors that paid on one kind of scene up to ``max_views`` train views, and the measurement."""
+
+    max_views: int
+    names: tuple[str, ...]
+    evidence: str
+
+
+#: What paid in the prior ablation (``tools.field_ablation``, one seed; differences under ~0.6 dB are not
+#: resolved), ``docs/results/2026-11-22-static-field-priors.md``: per scene type, up to how many train views
+#: and which priors.
+PRIORS_THAT_PAY: dict[str, PriorRule] = {
+    "bounded-360": PriorRule(4, ("depth", "simple", "vip"),
+                             "lego 100x100, 4 views: all three +2.7 dB (each alone +0.6 to +1.9); 8 views: none "
+                             "pays (sparse depth -1.0 dB)"),
+    "forward-facing": PriorRule(3, ("depth",),
+                                "generated forward-facing 320x180: sparse depth +2.7 / +1.5 dB at 2 / 3 views, all "
+                                "three within 0.2 dB of it at 3-5x the time, Simple-RF and ViP alone -0.1 to "
+                                "-1.7 dB; 4 views: every prior costs 0.4-1.7 dB"),
+}
+
+
+def auto_priors(num_views: int, scene_type: str) -> tuple[tuple[str, ...], str]:
+    """(priors to switch on, the reason in words) for a run with ``num_views`` train views of a ``scene_type``
+    scene, from :data:`PRIORS_THAT_PAY`: the priors that paid with that few views, none with more.
+
+    >>> auto_priors(3, "forward-facing")[0], auto_priors(4, "forward-facing")[0]
+    (('depth',), ())
+    """
+    if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
+        raise InputError(f"must be a positive integer, got {num_views!r}", field="num_views")
+    if scene_type not in PRIORS_THAT_PAY:
+        raise InputError(f"must be one of {sorted(PRIORS_THAT_PAY)}, got {scene_type!r}", field="scene_type")
+    rule = PRIORS_THAT_PAY[scene_type]
+    if num_views <= rule.max_views:
+        return rule.names, (f"{num_views} train views <= {rule.max_views} on a {scene_type} scene: "
+                            f"{','.join(rule.names)} paid ({rule.evidence})")
+    return (), (f"{num_views} train views > {rule.max_views} on a {scene_type} scene: no prior paid "
+                f"({rule.evidence})")
 
 
 @dataclass

@@ -100,6 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
                                     "structures, sky at infinite depth, lighting, and ground truth (depth, poses, "
                                     "object ids, moving mask, total and object-only flow). Headless (EGL).")
     rs.add_argument("out", type=Path, metavar="OUT_DIR", help="folder to write (sequence.json + frames/)")
+    from engine.scenegen.presets import PRESETS
+
+    rs.add_argument("--preset", choices=list(PRESETS), default="gentle",
+                    help="motion preset the options below start from (engine/scenegen/presets.py): gentle (the "
+                         "defaults), medium, fast (the 10-35 px a frame of path-traced game footage: fast objects "
+                         "and spins, fast camera yaw, thin structures, Monte Carlo-like noise), extreme")
     add_options(rs, SceneConfig)
 
     from engine.scenegen import RigConfig
@@ -206,8 +212,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _run_eval(args)
         elif args.command == "render-scene":
             from engine.scenegen import SceneConfig, generate_sequence
+            from engine.scenegen.presets import preset_config
 
-            path = generate_sequence(config_from_args(SceneConfig, args), args.out, progress=True)
+            config = config_from_args(SceneConfig, args, preset_config(args.preset))
+            path = generate_sequence(config, args.out, progress=True)
             print(f"wrote {path}")
         elif args.command == "render-rig":
             from engine.scenegen import RigConfig, SceneConfig, generate_rig

@@ -35,12 +35,11 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
 
 from engine.eval.protocol import evaluate_sequence, evaluation_pairs, json_safe, rendered_history, summarize
 from engine.io.rgbd import read_sequence
 from engine.predict import Target, make_predictor, split_methods
-from engine.scenegen import SceneConfig, generate_sequence
+from tools.heldout import gap, motion_speed, render_set
 
 #: set name -> [(sequence name, SceneConfig overrides)]
 SETS = {
@@ -51,27 +50,6 @@ SETS = {
     "glide": [(f"glide{s}", dict(seed=s, object_travel=3.0, object_speed=2.5, camera_speed=2.0)) for s in (3302, 3303)],
     "camera": [("camera1004", dict(seed=1004, num_objects=(0, 0), fps=10.0, camera_speed=3.0))],
 }
-
-
-def render_set(out: Path, name: str, overrides: dict, width: int, height: int, frames: int) -> Path:
-    """The sequence folder, rendered unless it is already there."""
-    folder = out / f"{name}_{width}x{height}x{frames}"
-    if not (folder / "sequence.json").exists():
-        generate_sequence(SceneConfig(width=width, height=height, num_frames=frames, **overrides), folder,
-                          progress=False)
-    return folder
-
-
-def motion_speed(sequence) -> tuple[float, float]:
-    """(median, 90th percentile) of |true object flow| (px per frame) over the moving pixels of all frames."""
-    speeds = []
-    for frame in sequence:
-        if frame.moving is not None and frame.object_flow is not None and frame.moving.any():
-            speeds.append(np.linalg.norm(frame.object_flow[frame.moving], axis=-1))
-    if not speeds:
-        return 0.0, 0.0
-    s = np.concatenate(speeds)
-    return float(np.median(s)), float(np.percentile(s, 90))
 
 
 def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str, float]:
@@ -95,11 +73,6 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
                     predictor.render(state, target)
                 times[m].append(1e3 * (time.perf_counter() - start) / len(targets))
     return {m: float(statistics.median(v)) for m, v in times.items()}
-
-
-def gap(value: float, base: float, bound: float) -> float:
-    """Share of the base -> bound gap that ``value`` recovers (NaN when the gap is under 0.05 dB)."""
-    return (value - base) / (bound - base) if abs(bound - base) >= 0.05 else float("nan")
 
 
 def main(argv=None) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from engine.core.frames import SceneObject
 from engine.predict.base import (Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow,
                                  warp_and_fill)
-from engine.predict.dis import dis_calc, dis_estimator, luma8
+from engine.predict.dis import confident_motion, dis_calc, dis_estimator, luma8
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle"]
 
@@ -47,7 +47,8 @@ class Flow2D(Predictor):
     Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); OpenCV's DIS optical
     flow estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma; the
     flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
-    forward-warped by that 2D flow plus the target camera's motion.
+    forward-warped by that 2D flow plus the target camera's motion. Where the flow does not explain frame n
+    better than no object motion (``engine.predict.dis.confident_motion``), it is 0: the camera-only warp.
     """
 
     name = "flow2d"
@@ -61,7 +62,10 @@ class Flow2D(Predictor):
         warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
         luma_n, luma_w = luma8(newest.color), luma8(warped)
         with timer("flow"):
-            return Flow2DState(dis_calc(self._dis, luma_n, luma_w))
+            flow = dis_calc(self._dis, luma_n, luma_w)
+        with timer("confidence"):
+            flow[~confident_motion(luma_n, luma_w, flow)] = 0.0
+        return Flow2DState(flow)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""

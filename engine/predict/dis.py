@@ -17,12 +17,18 @@ from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.holefill import fill_holes
 
-__all__ = ["DIS_MIN_SIDE", "dis_estimator", "dis_calc", "dis_block", "luma8", "encode8", "dis_flow", "dis_target",
-           "initial_flow", "warp_error"]
+__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "dis_estimator", "dis_calc", "dis_block",
+           "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
 DIS_MIN_SIDE = 32
+
+#: ``confident_motion`` keeps an estimated object motion only where it explains frame n better than no object
+#: motion (the camera-only warp) by more than this many 8-bit levels, averaged over ``CONFIDENCE_WINDOW``^2
+#: pixels (docs/results/2026-11-25-fast-motion.md: chosen on the training scenes' preset, then held out).
+CONFIDENCE_MARGIN = 1.0
+CONFIDENCE_WINDOW = 9
 
 
 def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
@@ -129,3 +135,23 @@ def warp_error(luma_n: np.ndarray, target: np.ndarray, offset: tuple[int, int], 
                         borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
     error = np.where(sampled < 0, np.float32(255.0), np.abs(luma_n.astype(np.float32) - sampled))
     return cv2.blur(error, (window, window), borderType=cv2.BORDER_REFLECT)
+
+
+def confident_motion(luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, margin: float = CONFIDENCE_MARGIN,
+                     window: int = CONFIDENCE_WINDOW) -> np.ndarray:
+    """(H, W) bool: where the object motion ``flow`` u(n -> n-k) (H, W, 2 or more; its first two channels,
+    pixels) explains frame n better than no object motion, by more than ``margin`` 8-bit levels of
+    ``warp_error`` (``window`` x ``window`` means).
+
+    ``target`` is the camera-compensated frame n-k (``dis_target``), so zero flow is the camera-only warp:
+    elsewhere a predictor falls back to it, and an estimate that does not beat it (a textureless object, noise,
+    view-dependent colour of a static scene) cannot make the prediction worse than ``reproject``.
+    ``luma_n`` / ``target``: (H, W) uint8 of the same size.
+    """
+    h, w = luma_n.shape
+    if target.shape != (h, w) or flow.shape[:2] != (h, w) or flow.ndim != 3 or flow.shape[2] < 2:
+        raise InputError(f"confidence of a flow of shape {flow.shape} for lumas {luma_n.shape} and {target.shape}",
+                         field="flow")
+    still = cv2.blur(cv2.absdiff(luma_n, target).astype(np.float32), (window, window), borderType=cv2.BORDER_REFLECT)
+    moved = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow[..., :2], dtype=np.float32), window)
+    return moved + np.float32(margin) < still

@@ -45,7 +45,7 @@ from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import upsample_flow
-from engine.predict.dis import dis_flow, dis_target, luma8, warp_error
+from engine.predict.dis import confident_motion, dis_flow, dis_target, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
            "crop_mpi", "whole_frame_initial_flow", "REFINE_MARGIN"]
@@ -277,6 +277,10 @@ class DecompPredictor(Predictor):
                 flow[:, :, fy0:fy1, fx0:fx1] = part
             if not np.isfinite(flow).all():
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
+            if initial is not None:  # the camera-only warp wherever the motion does not explain frame n better
+                with timer("confidence"):
+                    keep = confident_motion(initial.luma_n, initial.target, np.moveaxis(flow[:2, 0], 0, -1))
+                flow[:, 0, ~keep] = 0.0
         with timer("mpi"):
             mpi = geometry.build_mpi(newest.color, newest.depth, 1)
         return DecompState(boxes=boxes, factor=factor, mpi=mpi, flow=flow, plane_depths=planes,

@@ -1,0 +1,89 @@
+"""The confidence check of estimated object motion: no estimate may make a frame worse than the camera-only
+warp (``engine.predict.dis.confident_motion``, used by ``flow2d`` and ``decomp``)."""
+import cv2
+import numpy as np
+import pytest
+
+from engine.core.errors import InputError
+from engine.eval.metrics import score_frame
+from engine.predict import Flow2D, Reproject, Target, make_predictor
+from engine.predict.dis import confident_motion
+from tests.synthetic import two_layer_sequence
+
+
+def _textured(seed: int, h: int = 96, w: int = 128) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 2.0)
+    return cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+
+
+def _target(frame):
+    return Target(frame.camera, frame.time, frame.index)
+
+
+def test_a_true_shift_is_kept_and_zero_or_wrong_motion_is_not():
+    luma_n = _textured(0)
+    shift = np.float32([6.0, -4.0])  # u(n -> n-k): frame n's pixel x lies at x + shift in the target
+    target = cv2.warpAffine(luma_n, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), luma_n.shape[::-1],
+                            borderMode=cv2.BORDER_REFLECT)
+    flow = np.broadcast_to(shift, luma_n.shape + (2,)).copy()
+    inner = (slice(16, -16), slice(16, -16))
+    assert confident_motion(luma_n, target, flow)[inner].mean() > 0.99
+    assert not confident_motion(luma_n, target, np.zeros_like(flow)).any()
+    # a wrong motion is kept only where it matches better than no motion (here by chance, where both are wrong)
+    assert confident_motion(luma_n, target, -flow)[inner].mean() < 0.5
+    assert confident_motion(luma_n, luma_n, flow).mean() < 0.01  # nothing moved: zero motion explains it
+
+
+def test_a_textureless_surface_keeps_no_motion():
+    flat = np.full((64, 80), 128, np.uint8)
+    flow = np.random.default_rng(1).normal(0, 20, (64, 80, 2)).astype(np.float32)
+    assert not confident_motion(flat, flat, flow).any()
+
+
+def test_shapes_are_checked():
+    luma = np.zeros((8, 8), np.uint8)
+    with pytest.raises(InputError, match="flow"):
+        confident_motion(luma, luma, np.zeros((8, 9, 2), np.float32))
+    with pytest.raises(InputError, match="flow"):
+        confident_motion(luma, np.zeros((8, 7), np.uint8), np.zeros((8, 8, 2), np.float32))
+
+
+def _noisy(frames, sigma: float, seed: int):
+    rng = np.random.default_rng(seed)
+    for f in frames:  # Monte Carlo-like noise, new every frame: changes that are not motion
+        f.color = np.clip(f.color * (1 + rng.normal(0, sigma, f.color.shape)), 0, None).astype(np.float32)
+    return frames
+
+
+@pytest.mark.parametrize("method", ["flow2d", "decomp"])
+def test_noise_only_motion_scores_as_reproject(method):
+    frames, _ = two_layer_sequence(6, width=160, height=96, camera_speed=0.05, object_speed=0.0)
+    frames = _noisy(frames, 0.08, 2)
+    history, truth = [frames[2], frames[4]], frames[5]
+    ref = Reproject().predict(history[-1:], _target(truth))
+    pred = make_predictor(method).predict(history, _target(truth))
+    a = score_frame(truth.color, ref.color, None, with_flip=False).psnr
+    b = score_frame(truth.color, pred.color, None, with_flip=False).psnr
+    assert b > a - 0.05, (method, a, b)
+
+
+def test_flow2d_on_a_textureless_moving_object_is_no_worse_than_reproject():
+    frames, objects = two_layer_sequence(6, width=160, height=96, camera_speed=0.02, object_speed=0.15)
+    for f in frames:  # the square becomes one flat colour: its motion cannot be seen inside it
+        f.color[f.object_id == 1] = np.float32([0.6, 0.2, 0.2])
+    predictor = Flow2D()
+    state = predictor.prepare([frames[2], frames[4]])
+    truth = frames[5]
+    ref = Reproject().predict([frames[4]], _target(truth))
+    pred = predictor.render(state, _target(truth))
+    assert (score_frame(truth.color, pred.color, None, with_flip=False).psnr
+            >= score_frame(truth.color, ref.color, None, with_flip=False).psnr - 0.05)
+
+
+def test_flow2d_keeps_motion_it_can_see():
+    frames, _ = two_layer_sequence(6, width=192, height=128, camera_speed=0.02, object_speed=0.15)
+    state = Flow2D().prepare([frames[2], frames[4]])
+    inside = cv2.erode(frames[4].object_id.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    assert (np.abs(state.data.flow_back[inside, 0]) > 1.0).mean() > 0.8
+    assert "confidence" in state.stages_ms

@@ -40,9 +40,9 @@ from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFiel
 from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
 from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.static.model import RenderConfig, SceneBox
-from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, run_config_from_file,
-                                   run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
-                                   view_list)
+from models.fields.trainer import (DEVICES, RunConfig, apply_loss_weights, check_run, json_safe, resolve_device,
+                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
+                                   validate_run_config, view_list)
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
@@ -242,7 +242,7 @@ DYNAMIC = DynamicKind()
 
 
 def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | Path, progress: bool = True, *,
-                  extras_fn=None) -> Path:
+                  extras_fn=None, device: str = "auto") -> Path:
     """Train a dynamic field on time-stamped ``views`` and write the run into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -252,11 +252,13 @@ def train_dynamic(views: TimedViews, config: DynamicTrainConfig, out_dir: str | 
         out_dir: the run directory (created; an existing run there with the same config is resumed).
         progress: show a tqdm bar.
         extras_fn: optional ``(model, batch, outputs, step) -> dict`` feeding ``LossInputs.extras``.
+        device: ``cpu``, ``cuda`` or ``auto`` (``cuda`` when torch sees a GPU); the same seed draws the same
+            rays and samples on either (``models.fields.trainer.train_run``).
 
     Raises:
-        InputError: bad views or config, or ``out_dir`` holding a run with a different config.
+        InputError: bad views, config or device, or ``out_dir`` holding a run with a different config.
     """
-    return train_run(DYNAMIC, views, config, out_dir, progress, extras_fn=extras_fn)
+    return train_run(DYNAMIC, views, config, out_dir, progress, extras_fn=extras_fn, device=device)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -393,6 +395,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--device", default="auto", metavar="|".join(DEVICES),
+                        help="where to train: cpu, cuda, or auto (cuda when torch sees a GPU; default)")
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="JSON with any DynamicTrainConfig fields; command-line options override it")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
@@ -401,6 +405,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
+        device = resolve_device(args.device)
         config = apply_loss_weights(config_from_args(DynamicTrainConfig, args,
                                                      run_config_from_file(DynamicTrainConfig, args.config)), args.loss)
         if args.prior_names is not None:
@@ -420,14 +425,15 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
         config = dataclasses.replace(config, downscale=record["downscale"])
         kind = config.field.kind + ("+flow" if config.priors.flow.enabled else "")
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
-        run = train_dynamic(train, config, out)
+        run = train_dynamic(train, config, out, device=str(device))
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")
         scores = evaluate_dynamic(run, test, with_flip=not args.no_flip, context_views=train)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     scores = json_safe({"run": str(out), "dataset": dataset, "train_views": len(train), "test_views": len(test),
-                          "image_size": [train.height, train.width], "steps": config.steps, **scores})
+                          "image_size": [train.height, train.width], "steps": config.steps, "device": device.type,
+                          **scores})
     text = json.dumps(scores, indent=2)
     (out / "scores.json").write_text(text + "\n")
     print(text)

@@ -31,9 +31,9 @@ from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_priors,
                                         with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.trainer import (RunConfig, apply_loss_weights, check_run, json_safe, rank_correlation,
-                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
-                                   validate_run_config, view_list)
+from models.fields.trainer import (DEVICES, RunConfig, apply_loss_weights, check_run, json_safe, rank_correlation,
+                                   resolve_device, run_config_from_file, run_eval_command, run_train_seconds,
+                                   score_views, train_run, validate_run_config, view_list)
 
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
@@ -129,7 +129,7 @@ STATIC = StaticKind()
 
 
 def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, progress: bool = True, *,
-                extras_fn=None) -> Path:
+                extras_fn=None, device: str = "auto") -> Path:
     """Train a static field on ``views`` and write the run into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -139,11 +139,13 @@ def train_field(views: Views, config: FieldTrainConfig, out_dir: str | Path, pro
         progress: show a tqdm bar.
         extras_fn: optional ``(model, batch, outputs, step) -> dict`` feeding ``LossInputs.extras`` beside
             what the enabled priors of ``config.priors`` put there (``models/fields/priors/config.py``).
+        device: ``cpu``, ``cuda`` or ``auto`` (``cuda`` when torch sees a GPU); the same seed draws the same
+            rays and samples on either (``models.fields.trainer.train_run``).
 
     Raises:
-        InputError: bad views or config, or ``out_dir`` holding a run with a different config.
+        InputError: bad views, config or device, or ``out_dir`` holding a run with a different config.
     """
-    return train_run(STATIC, views, config, out_dir, progress, extras_fn=extras_fn)
+    return train_run(STATIC, views, config, out_dir, progress, extras_fn=extras_fn, device=device)
 
 
 def load_model(run_dir: str | Path) -> StaticFieldModel:
@@ -201,6 +203,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, out_help: str, *, out_req
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    parser.add_argument("--device", default="auto", metavar="|".join(DEVICES),
+                        help="where to train: cpu, cuda, or auto (cuda when torch sees a GPU; default)")
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="JSON with any FieldTrainConfig fields (nested dicts for render/field/priors); "
                              "command-line options override it")
@@ -279,18 +283,20 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
     args = parse_run_command(parser, argv)
     try:
+        device = resolve_device(args.device)
         config, train, test, record = run_inputs(args)
         config = choose_priors(config, len(train), train.scene_type, args.prior_names)
         print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
-        run = train_field(train, config, out)
+        run = train_field(train, config, out, device=str(device))
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")
         scores = evaluate_field(run, test, with_flip=not args.no_flip)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     scores = json_safe({"run": str(out), "train_views": record["train_names"], "test_views": record["test_names"],
-                        "image_size": [train.height, train.width], "steps": config.steps, **scores})
+                        "image_size": [train.height, train.width], "steps": config.steps, "device": device.type,
+                        **scores})
     text = json.dumps(scores, indent=2)
     (out / "scores.json").write_text(text + "\n")
     print(text)

@@ -43,12 +43,30 @@ from engine.eval.metrics import flip_map, psnr, ssim_map
 from models.fields.components.sampling import camera_rays
 from models.fields.losses import LossTerm, RayBatch, assemble_loss, check_loss_terms
 
-__all__ = ["LR_SCHEDULES", "RunConfig", "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
+__all__ = ["LR_SCHEDULES", "DEVICES", "resolve_device", "rays_to", "RunConfig",
+           "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
            "check_run", "all_rays", "take_rays", "open_run_dir", "restore_training_state", "open_log", "run_config_to_dict",
            "run_config_from_dict", "run_config_from_file", "apply_loss_weights", "view_list", "rank_correlation",
            "run_train_seconds", "score_views", "json_safe", "write_renders", "run_eval_command"]
 
 LR_SCHEDULES = ("cosine", "exponential", "constant")
+
+#: What ``--device`` takes: ``auto`` is ``cuda`` when torch sees a GPU, else ``cpu``.
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of a ``--device`` value (:data:`DEVICES`); InputError for ``cuda`` where torch sees
+    no GPU (a CPU-only build, or no GPU visible) and for any other name."""
+    if name not in DEVICES:
+        raise InputError(f"must be one of {', '.join(DEVICES)}, got {name!r}", field="device")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
+        raise InputError(f"cuda: torch {torch.__version__} ({build}) sees no GPU; use --device cpu or auto",
+                         field="device")
+    return torch.device(name)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -167,6 +185,12 @@ def all_rays(views, scene) -> RayBatch:
                     pixel=pixel)
 
 
+def rays_to(rays: RayBatch, device: torch.device) -> RayBatch:
+    """The rays on ``device``."""
+    return RayBatch(**{f.name: (None if getattr(rays, f.name) is None else getattr(rays, f.name).to(device))
+                       for f in dataclasses.fields(RayBatch)})
+
+
 def take_rays(rays: RayBatch, idx: torch.Tensor) -> RayBatch:
     """The rays at ``idx``."""
     return RayBatch(**{f.name: (None if getattr(rays, f.name) is None else getattr(rays, f.name)[idx])
@@ -283,7 +307,7 @@ class FieldKind(Protocol):
 
 
 def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: bool = True, *,
-              extras_fn=None) -> Path:
+              extras_fn=None, device: str = "auto") -> Path:
     """Train the field ``kind`` builds on ``views`` and write the run into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -294,19 +318,27 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
         progress: show a tqdm bar.
         extras_fn: optional ``(model, batch, outputs, step) -> dict`` feeding ``LossInputs.extras`` beside
             what the enabled priors put there.
+        device: ``cpu``, ``cuda`` or ``auto`` (:func:`resolve_device`). Model, priors' modules and every
+            train ray live there; every random draw comes from one CPU generator seeded by ``config.seed`` and
+            is moved there, so a device changes only float rounding, never what is drawn.
 
     Raises:
-        InputError: bad views or config, or ``out_dir`` holding a run with a different config.
+        InputError: bad views, config or device, or ``out_dir`` holding a run with a different config.
     """
+    device = resolve_device(device)
     views, config, terms = kind.prepare(views, config)
     out = Path(out_dir)
     ckpt_file = open_run_dir(out, config)
     state = torch.load(ckpt_file, map_location="cpu", weights_only=True) if ckpt_file.is_file() else None
     model = kind.new_model(views, config) if state is None else kind.model_from_state(state, config)
-    rays = all_rays(views, model.scene)
+    rays = rays_to(all_rays(views, model.scene), device)
     inputs = kind.ray_inputs(views, model)
+    inputs = None if inputs is None else inputs.to(device)
     priors = kind.build_priors(views, config, model, out / "priors")
     trained_priors = priors if isinstance(priors, torch.nn.Module) else None
+    model.to(device)
+    if trained_priors is not None:
+        trained_priors.to(device)
     params = kind.param_groups(model)
     if trained_priors is not None and any(True for _ in trained_priors.parameters()):
         params.append({"params": list(trained_priors.parameters()), "name": "priors"})
@@ -349,7 +381,7 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
                 occupied = model.update_occupancy(generator)
                 if trained_priors is not None:
                     trained_priors.update_occupancy(generator)
-            idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator)
+            idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator).to(device)
             batch = take_rays(rays, idx)
             outputs = kind.render(model, batch, None if inputs is None else inputs[idx], generator)
             extras = kind.prior_extras(priors, model, batch, outputs, step, generator) if priors is not None else {}

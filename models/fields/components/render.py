@@ -37,7 +37,7 @@ from engine.core.errors import InputError
 from models.fields.components.sampling import camera_rays
 
 __all__ = ["OPACITY_EPS", "RayOutputs", "volume_weights", "composite", "composite_samples", "render_image",
-           "stack_outputs"]
+           "stack_outputs", "module_device"]
 
 #: Opacity below which a ray has "no surface": its normalised depth is +inf.
 from engine.fields.render import OPACITY_EPS  # noqa: E402  (shared with the engine)
@@ -138,6 +138,19 @@ def composite_samples(sigma: Tensor, colors: Tensor, lengths: Tensor, t: Tensor,
     return RayOutputs(color, depth, expected, opacity, weights, trans, t)
 
 
+def module_device(module) -> torch.device:
+    """The device of a module's first parameter (or buffer); for a wrapper that is no module (a dynamic
+    field's time slice), that of the ``model`` it wraps; the CPU otherwise."""
+    if isinstance(module, torch.nn.Module):
+        for tensor in module.parameters():
+            return tensor.device
+        for tensor in module.buffers():
+            return tensor.device
+        return torch.device("cpu")
+    inner = getattr(module, "model", None)
+    return module_device(inner) if inner is not None else torch.device("cpu")
+
+
 @torch.no_grad()
 def render_image(model, intrinsics, world_to_camera, height: int, width: int, near: float, far: float, *,
                  chunk: int = 8192) -> dict[str, np.ndarray]:
@@ -153,10 +166,11 @@ def render_image(model, intrinsics, world_to_camera, height: int, width: int, ne
         ``color`` (H, W, 3) float32 linear RGB, ``depth`` (H, W) float32 planar (+inf: no surface),
         ``opacity`` (H, W) float32, ``seconds`` (wall time of the rendering, excluding ray generation).
     """
-    origins, directions = camera_rays(intrinsics, world_to_camera, height, width)
+    device = module_device(model)
+    origins, directions = (x.to(device) for x in camera_rays(intrinsics, world_to_camera, height, width))
     n = origins.shape[0]
-    near_t = torch.full((n,), float(near))
-    far_t = torch.full((n,), float(far))
+    near_t = torch.full((n,), float(near), device=device)
+    far_t = torch.full((n,), float(far), device=device)
     colors, depths, opacities = [], [], []
     start = time.perf_counter()
     for i in range(0, n, chunk):
@@ -165,9 +179,9 @@ def render_image(model, intrinsics, world_to_camera, height: int, width: int, ne
         depths.append(out.depth)
         opacities.append(out.opacity)
     seconds = time.perf_counter() - start
-    return {"color": torch.cat(colors).reshape(height, width, 3).float().numpy(),
-            "depth": torch.cat(depths).reshape(height, width).float().numpy(),
-            "opacity": torch.cat(opacities).reshape(height, width).float().numpy(),
+    return {"color": torch.cat(colors).reshape(height, width, 3).float().cpu().numpy(),
+            "depth": torch.cat(depths).reshape(height, width).float().cpu().numpy(),
+            "opacity": torch.cat(opacities).reshape(height, width).float().cpu().numpy(),
             "seconds": np.float64(seconds)}
 
 

@@ -471,12 +471,12 @@ class DynamicFieldModel(StaticFieldModel):
         """Re-evaluate the (time-agnostic) occupancy grid; returns the occupied fraction (1 without grid)."""
         if self.occupancy is None:
             return 1.0
-        taus = torch.rand(self.occupancy_times, generator=generator) * 2.0 - 1.0
+        taus = torch.rand(self.occupancy_times, generator=generator) * 2.0 - 1.0  # drawn on the generator's device
         if self.time_range[1] <= self.time_range[0]:
             taus = torch.zeros(1)
 
         def density(coords: Tensor) -> Tensor:
-            return torch.stack([self.field.density(coords, torch.full(coords.shape[:-1], float(t)))
+            return torch.stack([self.field.density(coords, coords.new_full(coords.shape[:-1], float(t)))
                                 for t in taus]).amax(dim=0)
 
         return self.occupancy.update(density, self.occupancy_threshold(), decay=self.render_config.occupancy_decay,
@@ -562,11 +562,13 @@ class AtTime:
         self.flow_mass = np.zeros(n, np.float64)
 
     def render_rays(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> DynamicRayOutputs:
-        out = self.model.render_rays(origins, directions, near, far, torch.full((origins.shape[0],), self.time))
+        out = self.model.render_rays(origins, directions, near, far,
+                                     torch.full((origins.shape[0],), self.time, device=origins.device))
         if self.bins is not None:
             self.evaluated += int(out.evaluated.sum())
             self.outside += int(out.canonical_outside.sum())
-            mags = out.flow[out.evaluated].norm(dim=-1).double().numpy()
+            mags = out.flow[out.evaluated].norm(dim=-1).double().cpu().numpy()
+            weights = out.weights[out.evaluated].double().cpu().numpy()
             self.flow_counts += np.histogram(mags, bins=self.bins)[0]
-            self.flow_mass += np.histogram(mags, bins=self.bins, weights=out.weights[out.evaluated].double().numpy())[0]
+            self.flow_mass += np.histogram(mags, bins=self.bins, weights=weights)[0]
         return out

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from engine.core.colorspace import display_encode
 from engine.geometry import project
+from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
 
 __all__ = ["SparseDepthPrior", "SparseDepthPoints", "projection_matrix", "triangulate_dlt", "reprojection_errors",
@@ -342,12 +343,14 @@ class SparseDepthState:
         (empty without points)."""
         if len(self.points) == 0:
             return {}
-        idx = torch.randint(len(self.points), (self.prior.rays,), generator=generator)
-        near = torch.full((len(idx),), float(model.scene.near))
-        far = torch.full((len(idx),), float(model.scene.far))
-        outputs = model.render_rays(self.origins[idx], self.directions[idx], near, far, jitter=True,
-                                    generator=generator)
-        return {"sift_depth": {"outputs": outputs, "depth": self.depth[idx], "scale": scene_depth_scale(model),
+        idx = torch.randint(len(self.points), (self.prior.rays,), generator=generator)  # on the generator's device
+        device = module_device(model)
+        near = torch.full((len(idx),), float(model.scene.near), device=device)
+        far = torch.full((len(idx),), float(model.scene.far), device=device)
+        outputs = model.render_rays(self.origins[idx].to(device), self.directions[idx].to(device), near, far,
+                                    jitter=True, generator=generator)
+        return {"sift_depth": {"outputs": outputs, "depth": self.depth[idx].to(device),
+                               "scale": scene_depth_scale(model),
                                "disparity": not model.bounded}}
 
 

@@ -49,6 +49,7 @@ from torch import Tensor
 from engine.core.errors import InputError
 from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
+from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
 from models.fields.priors.depth import keypoint_rays, sift_features
 
@@ -364,13 +365,14 @@ class SparseFlowState:
         (empty without matches)."""
         if len(self.matches) == 0:
             return {}
-        idx = torch.randint(len(self.matches), (self.prior.rays,), generator=generator)
-        near = torch.full((len(idx),), float(model.scene.near))
-        far = torch.full((len(idx),), float(model.scene.far))
-        out_a = model.render_rays(self.origins_a[idx], self.directions_a[idx], near, far, self.times_a[idx],
-                                  jitter=True, generator=generator)
-        out_b = model.render_rays(self.origins_b[idx], self.directions_b[idx], near, far, self.times_b[idx],
-                                  jitter=True, generator=generator)
+        idx = torch.randint(len(self.matches), (self.prior.rays,), generator=generator)  # on the generator's device
+        device = module_device(model)
+        near = torch.full((len(idx),), float(model.scene.near), device=device)
+        far = torch.full((len(idx),), float(model.scene.far), device=device)
+        out_a = model.render_rays(self.origins_a[idx].to(device), self.directions_a[idx].to(device), near, far,
+                                  self.times_a[idx].to(device), jitter=True, generator=generator)
+        out_b = model.render_rays(self.origins_b[idx].to(device), self.directions_b[idx].to(device), near, far,
+                                  self.times_b[idx].to(device), jitter=True, generator=generator)
         return {"sparse_flow": {"a": out_a, "b": out_b}}
 
 

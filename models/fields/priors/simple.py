@@ -182,17 +182,19 @@ class AugmentedState(nn.Module):
         mask_main = mask_aug = torch.zeros_like(batch.near, dtype=torch.bool)
         if len(self.cameras) > 1 and batch.pixel is not None and batch.view is not None:
             with torch.no_grad():
-                view = batch.view.numpy()
-                pixel = np.stack([batch.pixel.numpy() % self.width, batch.pixel.numpy() // self.width], axis=-1)
+                view = batch.view.cpu().numpy()
+                pixel_index = batch.pixel.cpu().numpy()
+                pixel = np.stack([pixel_index % self.width, pixel_index // self.width], axis=-1)
                 target = self.nearest[view]
-                solid = ((outputs.opacity >= self.prior.min_opacity) & (aug.opacity >= self.prior.min_opacity)).numpy()
-                z_m = np.where(solid, outputs.depth.numpy(), np.inf)
-                z_a = np.where(solid, aug.depth.numpy(), np.inf)
+                solid = ((outputs.opacity >= self.prior.min_opacity)
+                         & (aug.opacity >= self.prior.min_opacity)).cpu().numpy()
+                z_m = np.where(solid, outputs.depth.cpu().numpy(), np.inf)
+                z_a = np.where(solid, aug.depth.cpu().numpy(), np.inf)
                 size = self.prior.patch_size
                 e_m = patch_reprojection_error(self.images, self.cameras, view, pixel, z_m, target, size)
                 e_a = patch_reprojection_error(self.images, self.cameras, view, pixel, z_a, target, size)
-                mask_aug, mask_main = reliable_depth_masks(torch.from_numpy(e_m), torch.from_numpy(e_a),
-                                                           self.prior.error_threshold)
+                mask_aug, mask_main = (m.to(batch.near.device) for m in reliable_depth_masks(
+                    torch.from_numpy(e_m), torch.from_numpy(e_a), self.prior.error_threshold))
         return {"augmented": {"outputs": aug, "mask_main": mask_main, "mask_aug": mask_aug,
                               "scale": scene_depth_scale(main), "intervals": self.prior.mass_intervals,
                               "disparity": not main.bounded}}

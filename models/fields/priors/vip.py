@@ -170,10 +170,12 @@ class VisibilityState(nn.Module):
         if n < 2 or batch.pixel is None or batch.view is None:
             return {}
         r = min(self.prior.rays, batch.view.shape[0])
-        view, pixel = batch.view[:r], batch.pixel[:r]
+        device = batch.origins.device
+        view, pixel = batch.view[:r].cpu(), batch.pixel[:r].cpu()  # the maps stay in host memory
         other = (view + 1 + torch.randint(n - 1, (r,), generator=generator)) % n
         w = self.maps.shape[-1]
-        tau = self.maps[view, other, pixel // w, pixel % w].float()
+        tau = self.maps[view, other, pixel // w, pixel % w].float().to(device)
+        centres = self.centres[other].to(device)
         t = outputs.t[:r]
         points = batch.origins[:r, None, :] + t[..., None] * batch.directions[:r, None, :]
         coords = model.contract(points)
@@ -186,7 +188,7 @@ class VisibilityState(nn.Module):
         if idx[0].numel() > 0:
             _, h = model.field.get_density(coords[idx])
             primary_dir = torch.nn.functional.normalize(batch.directions[:r], dim=-1)[idx[0]]
-            secondary_dir = torch.nn.functional.normalize(points[idx] - self.centres[other][idx[0]], dim=-1)
+            secondary_dir = torch.nn.functional.normalize(points[idx] - centres[idx[0]], dim=-1)
             trans_hat = trans_hat.index_put(idx, self.head(h, primary_dir))
             trans_hat_secondary = trans_hat_secondary.index_put(idx, self.head(h, secondary_dir))
         # Eq. 3.7 with T_hat'; the background (weight 1 - opacity, at infinity) counts as visible

@@ -370,3 +370,24 @@ def test_cuda_training_draws_what_the_cpu_draws(tmp_path):
     cpu = evaluate_field(train_field(train, tiny_config(100), tmp_path / "cpu", progress=False, device="cpu"), test)
     gpu = evaluate_field(train_field(train, tiny_config(100), tmp_path / "gpu", progress=False, device="cuda"), test)
     assert abs(cpu["psnr"] - gpu["psnr"]) < 0.5, (cpu["psnr"], gpu["psnr"])
+
+
+def test_device_cpu_trains_what_the_api_trains(tmp_path, capsys):
+    """'--device cpu' on the command line and train_field(device='cpu') give the same checkpoint, bit for bit
+    (the trainer before --device gave the same too: docs/results/2026-11-25-field-device.md)."""
+    write_blender(tmp_path / "scene", sphere_views([0, 40, 80]), "train")
+    write_blender(tmp_path / "scene", sphere_views([20]), "test")
+    options = ["--steps", "12", "--rays-per-batch", "128", "--field.resolutions", "8,16", "--render.num-samples", "16",
+               "--occupancy-warmup", "4", "--occupancy-every", "4", "--priors", ""]
+    assert main(["--data", str(tmp_path / "scene"), "--out", str(tmp_path / "cli"), "--device", "cpu", "--no-flip",
+                 *options]) == 0
+    assert json.loads((tmp_path / "cli" / "scores.json").read_text())["device"] == "cpu"
+    saved = FieldTrainConfig.from_dict(json.loads((tmp_path / "cli" / "config.json").read_text()))
+    from models.fields.data.select import load_run_views
+
+    train, _ = load_run_views(tmp_path / "cli")
+    api = train_field(train, saved, tmp_path / "api", progress=False, device="cpu")
+    a = torch.load(tmp_path / "cli" / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(api / "checkpoint.pt", weights_only=True)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    capsys.readouterr()

@@ -40,7 +40,8 @@ from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
-__all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance", "DISPLAY_LEVELS", "example_points", "quantize_planes", "report_export", "main",
+__all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance", "DISPLAY_LEVELS",
+           "example_points", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.

@@ -260,7 +260,8 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
         priors = with_priors(config.priors, names)
         return dataclasses.replace(config, priors=priors, priors_choice=f"explicit: --priors '{','.join(names)}'")
     if config.priors.enabled():
-        return dataclasses.replace(config, priors_choice=f"explicit: the config enables {','.join(config.priors.enabled())}")
+        enabled = ",".join(config.priors.enabled())
+        return dataclasses.replace(config, priors_choice=f"explicit: the config enables {enabled}")
     names, reason = auto_priors(num_views, scene_type)
     return dataclasses.replace(config, priors=with_priors(config.priors, names), priors_choice=f"auto: {reason}")
 

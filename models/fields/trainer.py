@@ -102,13 +102,14 @@ class RunConfig:
 
 
 def validate_run_config(config, positive_ints: tuple[str, ...]) -> None:
-    """The checks every run config shares: ``positive_ints`` (``steps`` and ``downscale`` may be 0), learning rate and its
-    schedule, samples per ray, then the field's and the priors' own ``validate``; InputError naming the first
+    """The checks every run config shares: ``positive_ints`` (``steps`` and ``downscale`` may be 0), learning
+    rate and its schedule, samples per ray, then the field's and the priors' own ``validate``; InputError naming the first
     bad option."""
     for name in positive_ints:
         value = getattr(config, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name in ("steps", "downscale") else 1):
-            raise InputError(f"must be a positive integer, got {value!r}", field=name)
+        lowest = 0 if name in ("steps", "downscale") else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < lowest:
+            raise InputError(f"must be an integer >= {lowest}, got {value!r}", field=name)
     if not (config.lr > 0 and math.isfinite(config.lr)):
         raise InputError(f"must be a positive number, got {config.lr!r}", field="lr")
     if config.lr_schedule not in LR_SCHEDULES:

@@ -154,4 +154,4 @@ def confident_motion(luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, m
                          field="flow")
     still = cv2.blur(cv2.absdiff(luma_n, target).astype(np.float32), (window, window), borderType=cv2.BORDER_REFLECT)
     moved = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow[..., :2], dtype=np.float32), window)
-    return moved + np.float32(margin) < still
+    return moved < still - np.float32(margin)

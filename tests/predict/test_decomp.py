@@ -9,7 +9,9 @@ from engine.eval.metrics import score_frame
 from engine.predict import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompTrueMotion, FlowNetwork, GateConfig,
                             Reproject, Target, decomp_config, dis_block, dis_flow, dis_target, initial_flow, luma8,
                             make_predictor, split_methods, warp_error)
+from engine.predict import classic as classic_module
 from engine.predict.decomp import predictor as decomp_module
+from engine.predict.dis import confident_motion
 from engine.predict.decomp.gate import motion_boxes, seen_before
 from engine.predict.decomp.predictor import full_box, whole_frame_initial_flow
 from engine.predict.decomp.upsample import upsample_blocks, upsample_flow
@@ -272,10 +274,13 @@ def test_initial_flow_is_flow2ds_dis_on_the_whole_frame_and_kept_outside_the_box
     dis = dis_flow(luma8(color_n), dis_target(color_n, color_w, acc > 0, depth_w))  # holes: reproject's fill
     initial = whole_frame_initial_flow(older, newest, "medium")
     np.testing.assert_allclose(initial.flow, dis, atol=1e-5)
-    # ... which is flow2d's DIS flow (the same camera warp and hole fill; frames here leave no hole whose row
-    # and column are both empty, the one place the two fills' fallbacks differ)
+    # ... which is flow2d's DIS flow where flow2d's confidence check keeps it, and 0 elsewhere (the same camera
+    # warp and hole fill; frames here leave no hole whose row and column are both empty, the one place the two
+    # fills' fallbacks differ)
     flow2d = make_predictor("flow2d").prepare([older, newest]).data.flow_back
-    np.testing.assert_allclose(initial.flow, flow2d, atol=1e-5)
+    kept = confident_motion(initial.luma_n, initial.target, initial.flow)
+    assert kept.any() and not kept.all()
+    np.testing.assert_allclose(flow2d, np.where(kept[..., None], initial.flow, 0.0), atol=1e-5)
     # frame n's own colour in the holes (initial_flow's target, the network's training data) gives another flow
     own = initial_flow(color_n, color_w, acc > 0)
     assert (acc <= 0).any() and np.abs(own - dis).max() > 0.01
@@ -284,7 +289,8 @@ def test_initial_flow_is_flow2ds_dis_on_the_whole_frame_and_kept_outside_the_box
     for b in state.data.boxes:
         outside[b[0] * f:b[1] * f, b[2] * f:b[3] * f] = False
     assert outside.any()
-    np.testing.assert_allclose(flow[:2, 0][:, outside], np.moveaxis(dis, -1, 0)[:, outside], atol=1e-5)
+    confident = np.moveaxis(np.where(kept[..., None], dis, 0.0), -1, 0)  # outside the boxes: flow2d's flow
+    np.testing.assert_allclose(flow[:2, 0][:, outside], confident[:, outside], atol=1e-5)
     assert not flow[2].any()
     # and the network changes that flow inside the boxes
     assert np.abs(flow[:2, 0, y0:y1, x0:x1] - np.moveaxis(dis, -1, 0)[:, y0:y1, x0:x1]).max() > 0.01
@@ -308,6 +314,8 @@ def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
 def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(network, monkeypatch):
     frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12, square_half=0.25)
     pair = [frames[2], frames[4]]
+    # the refine check alone: the final confidence check (tests/predict/test_confidence.py) keeps every pixel
+    monkeypatch.setattr(decomp_module, "confident_motion", lambda luma, target, flow: np.ones(luma.shape, bool))
 
     def flow_with_margin(margin):
         monkeypatch.setattr(decomp_module, "REFINE_MARGIN", margin)
@@ -429,20 +437,28 @@ def test_network_on_empty_mpis_and_odd_sizes_returns_finite_zeros(network):
         assert flow.shape == (3, z, h, w) and (flow == 0).all()
 
 
-def test_object_leaving_the_frame_and_motion_beyond_search_range(network):
+def test_object_leaving_the_frame_and_motion_beyond_search_range(network, monkeypatch):
     # the square moves 40 px per frame (the coarsest level's search range is far smaller) and has left the
     # view by frame 3; the camera stands still
     frames, _ = two_layer_sequence(6, width=96, height=64, camera_speed=0.0, object_speed=0.9)
     assert frames[1].moving.any() and not (frames[3].moving.any() or frames[4].moving.any())
     pred = DecompPredictor(DecompConfig(), network)
     flow2d = make_predictor("flow2d")
+    unchecked = make_predictor("flow2d")  # DIS's flow as it comes, without the confidence check
+
+    def error(predictor, n, truth):
+        return np.abs(predictor.predict([frames[n - 1], frames[n]], _target(truth)).color - truth.color).mean()
+
     for n in (1, 3):  # moving too far to match; leaving between n-k and n
         truth = frames[n + 1]
         out = pred.predict([frames[n - 1], frames[n]], _target(truth))
         assert np.isfinite(out.color).all() and out.color.shape == truth.color.shape
-        error = np.abs(out.color - truth.color).mean()
-        dis_error = np.abs(flow2d.predict([frames[n - 1], frames[n]], _target(truth)).color - truth.color).mean()
-        assert error <= dis_error + 1e-3, (n, error, dis_error)  # no worse than the DIS flow it refines
+        checked = (np.abs(out.color - truth.color).mean(), error(flow2d, n, truth))
+        with monkeypatch.context() as patch:
+            patch.setattr(classic_module, "confident_motion", lambda luma, target, flow: np.ones(luma.shape, bool))
+            raw = error(unchecked, n, truth)
+        # neither is worse than the unchecked DIS flow (decomp refines it; the checks only remove motion)
+        assert max(checked) <= raw + 1e-3, (n, checked, raw)
     # gone from both frames: nothing moves, so the next frame is frame n itself, to the bit
     later = Target(frames[5].camera, frames[5].time + (frames[5].time - frames[4].time), 6)
     out = pred.predict([frames[4], frames[5]], later)

@@ -7,13 +7,13 @@ Modules: ``camera`` (unproject, project, reproject), ``mpi`` (build, downsample,
 (forward warp), ``holefill``, ``kernels`` (numba), ``glsplat`` (moderngl), ``reference`` (numpy oracles).
 """
 from engine.geometry.camera import (MAX_PIXEL_COORD, TINY_DEPTH, pixel_centers, project, relative_transform, reproject,
-                                    unproject)
+                                    seen_before, unproject)
 from engine.geometry.mpi import (Mpi, build_mpi, composite, disocclusion_mask, downsample_factor, downsample_flow,
                                  downsample_frame, plane_depths, plane_index, visibility)
 from engine.geometry.splat import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP,
                                    forward_warp_frame, forward_warp_mpi)
 
 __all__ = ["MAX_PIXEL_COORD", "TINY_DEPTH", "pixel_centers", "project", "relative_transform", "reproject",
-           "unproject", "Mpi", "build_mpi", "composite", "disocclusion_mask", "downsample_factor", "downsample_flow",
+           "seen_before", "unproject", "Mpi", "build_mpi", "composite", "disocclusion_mask", "downsample_factor", "downsample_flow",
            "downsample_frame", "plane_depths", "plane_index", "visibility", "COVERAGE_THRESHOLD",
            "DEFAULT_SHARPNESS", "MIN_LOG_WEIGHT", "SUBPIXEL_SNAP", "forward_warp_frame", "forward_warp_mpi"]

@@ -201,3 +201,18 @@ def reproject(depth: np.ndarray, K_src: np.ndarray, T_src: np.ndarray, K_dst: np
             d = d + flow[:, 2]
     uo, vo, z, valid = reproject_points(u, v, d, matrix)
     return np.stack([uo, vo], axis=-1).reshape(h, w, 2), z.reshape(h, w), valid.reshape(h, w)
+
+
+def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: np.ndarray, T_prev: np.ndarray,
+                size_prev: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: pixels of frame n whose surface, were it static, lay inside frame n-k's view (reprojected
+    into camera n-k in front of it and inside its (h, w) = ``size_prev`` image; sky by the rotation alone).
+
+    Elsewhere frame n-k never saw the surface (content entering at the border as the camera turns), so the
+    camera-compensated frame n-k (whatever the warp put there: a farther surface, or nothing) says nothing
+    about object motion: the motion gate ignores these pixels and the flow predictors give them none. ``depth_n`` (H, W) planar depth,
+    +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5: inside is [0, w) x [0, h)).
+    """
+    uv, _, valid = reproject(depth_n, K_n, T_n, K_prev, T_prev)
+    h, w = size_prev
+    return valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)

@@ -7,10 +7,11 @@ from typing import Sequence
 
 import numpy as np
 
+from engine import geometry
 from engine.core.frames import SceneObject
 from engine.predict.base import (Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow,
                                  warp_and_fill)
-from engine.predict.dis import confident_motion, dis_calc, dis_estimator, luma8
+from engine.predict.dis import dis_calc, dis_estimator, luma8, trusted_motion
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle"]
 
@@ -47,8 +48,9 @@ class Flow2D(Predictor):
     Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); OpenCV's DIS optical
     flow estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma; the
     flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
-    forward-warped by that 2D flow plus the target camera's motion. Where the flow does not explain frame n
-    better than no object motion (``engine.predict.dis.confident_motion``), it is 0: the camera-only warp.
+    forward-warped by that 2D flow plus the target camera's motion. The flow is 0 (the camera-only warp)
+    where frame n-k did not see the surface and where a motion under a pixel does not explain frame n better
+    than none (``engine.predict.dis.trusted_motion``).
     """
 
     name = "flow2d"
@@ -63,8 +65,11 @@ class Flow2D(Predictor):
         luma_n, luma_w = luma8(newest.color), luma8(warped)
         with timer("flow"):
             flow = dis_calc(self._dis, luma_n, luma_w)
-        with timer("confidence"):
-            flow[~confident_motion(luma_n, luma_w, flow)] = 0.0
+        with timer("trust"):
+            src, dst = older.camera, newest.camera
+            seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
+                                        src.world_to_camera, older.depth.shape)
+            flow[~trusted_motion(luma_n, luma_w, flow, seen)] = 0.0
         return Flow2DState(flow)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:

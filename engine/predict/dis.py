@@ -17,18 +17,23 @@ from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.holefill import fill_holes
 
-__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "dis_estimator", "dis_calc", "dis_block",
-           "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion"]
+__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
+           "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
+           "trusted_motion"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
 DIS_MIN_SIDE = 32
 
-#: ``confident_motion`` keeps an estimated object motion only where it explains frame n better than no object
-#: motion (the camera-only warp) by more than this many 8-bit levels, averaged over ``CONFIDENCE_WINDOW``^2
-#: pixels (docs/results/2026-11-25-fast-motion.md: chosen on the training scenes' preset, then held out).
+#: ``confident_motion``: an estimated object motion explains frame n better than no object motion (the
+#: camera-only warp) where its photometric error is lower by more than this many 8-bit levels, averaged over
+#: ``CONFIDENCE_WINDOW``^2 pixels
 CONFIDENCE_MARGIN = 1.0
 CONFIDENCE_WINDOW = 9
+#: ``trusted_motion``: estimated object motion under this many pixels must be confident to be kept (what DIS
+#: finds in noise and view-dependent colour is this small; larger motion is kept as estimated). Chosen on
+#: validation sequences, not the benchmark's: docs/results/2026-11-25-fast-motion.md
+SMALL_MOTION = 1.0
 
 
 def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
@@ -155,3 +160,25 @@ def confident_motion(luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, m
     still = cv2.blur(cv2.absdiff(luma_n, target).astype(np.float32), (window, window), borderType=cv2.BORDER_REFLECT)
     moved = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow[..., :2], dtype=np.float32), window)
     return moved < still - np.float32(margin)
+
+
+def trusted_motion(luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, seen: np.ndarray,
+                   small: float = SMALL_MOTION) -> np.ndarray:
+    """(H, W) bool: where a predictor keeps an estimated object motion u(n -> n-k) (``flow`` (H, W, >= 2)
+    pixels), elsewhere it uses none (the camera-only warp):
+
+    - only where frame n-k saw the surface (``seen``, ``engine.geometry.seen_before``): content entering at
+      the border as the camera turns has no past to be matched with, whatever DIS returns there;
+    - motion under ``small`` pixels only where it explains frame n better than none (``confident_motion``):
+      DIS's sub-pixel answers to noise, aliasing and view-dependent colour are not object motion.
+
+    Measured on validation sequences, gentle to extreme (docs/results/2026-11-25-fast-motion.md): either
+    rule alone or a confidence test on all motion cost more than they gave; these two gain everywhere.
+    """
+    if seen.shape != luma_n.shape:
+        raise InputError(f"seen mask of shape {seen.shape} for lumas of shape {luma_n.shape}", field="seen")
+    small_motion = np.hypot(flow[..., 0], flow[..., 1]) < small
+    keep = seen.copy()
+    if small_motion.any():
+        keep &= ~small_motion | confident_motion(luma_n, target, flow)
+    return keep

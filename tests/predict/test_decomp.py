@@ -11,8 +11,9 @@ from engine.predict import (DEFAULT_MODEL, DecompConfig, DecompPredictor, Decomp
                             make_predictor, split_methods, warp_error)
 from engine.predict import classic as classic_module
 from engine.predict.decomp import predictor as decomp_module
-from engine.predict.dis import confident_motion
-from engine.predict.decomp.gate import motion_boxes, seen_before
+from engine.predict.dis import trusted_motion
+from engine.geometry import seen_before
+from engine.predict.decomp.gate import motion_boxes
 from engine.predict.decomp.predictor import full_box, whole_frame_initial_flow
 from engine.predict.decomp.upsample import upsample_blocks, upsample_flow
 from tests.synthetic import rigid, two_layer_sequence
@@ -273,14 +274,13 @@ def test_initial_flow_is_flow2ds_dis_on_the_whole_frame_and_kept_outside_the_box
     color_n = newest.color
     dis = dis_flow(luma8(color_n), dis_target(color_n, color_w, acc > 0, depth_w))  # holes: reproject's fill
     initial = whole_frame_initial_flow(older, newest, "medium")
-    np.testing.assert_allclose(initial.flow, dis, atol=1e-5)
-    # ... which is flow2d's DIS flow where flow2d's confidence check keeps it, and 0 elsewhere (the same camera
-    # warp and hole fill; frames here leave no hole whose row and column are both empty, the one place the two
-    # fills' fallbacks differ)
-    flow2d = make_predictor("flow2d").prepare([older, newest]).data.flow_back
-    kept = confident_motion(initial.luma_n, initial.target, initial.flow)
+    # ... kept where trusted_motion trusts it, which is flow2d's flow (the same camera warp and hole fill; frames
+    # here leave no hole whose row and column are both empty, the one place the two fills' fallbacks differ)
+    kept = trusted_motion(initial.luma_n, initial.target, dis, initial.seen)
     assert kept.any() and not kept.all()
-    np.testing.assert_allclose(flow2d, np.where(kept[..., None], initial.flow, 0.0), atol=1e-5)
+    np.testing.assert_allclose(initial.flow, np.where(kept[..., None], dis, 0.0), atol=1e-5)
+    flow2d = make_predictor("flow2d").prepare([older, newest]).data.flow_back
+    np.testing.assert_allclose(initial.flow, flow2d, atol=1e-5)
     # frame n's own colour in the holes (initial_flow's target, the network's training data) gives another flow
     own = initial_flow(color_n, color_w, acc > 0)
     assert (acc <= 0).any() and np.abs(own - dis).max() > 0.01
@@ -289,11 +289,10 @@ def test_initial_flow_is_flow2ds_dis_on_the_whole_frame_and_kept_outside_the_box
     for b in state.data.boxes:
         outside[b[0] * f:b[1] * f, b[2] * f:b[3] * f] = False
     assert outside.any()
-    confident = np.moveaxis(np.where(kept[..., None], dis, 0.0), -1, 0)  # outside the boxes: flow2d's flow
-    np.testing.assert_allclose(flow[:2, 0][:, outside], confident[:, outside], atol=1e-5)
+    np.testing.assert_allclose(flow[:2, 0][:, outside], np.moveaxis(initial.flow, -1, 0)[:, outside], atol=1e-5)
     assert not flow[2].any()
     # and the network changes that flow inside the boxes
-    assert np.abs(flow[:2, 0, y0:y1, x0:x1] - np.moveaxis(dis, -1, 0)[:, y0:y1, x0:x1]).max() > 0.01
+    assert np.abs(flow[:2, 0, y0:y1, x0:x1] - np.moveaxis(initial.flow, -1, 0)[:, y0:y1, x0:x1]).max() > 0.01
 
 
 def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
@@ -314,8 +313,6 @@ def test_warp_error_is_lowest_for_the_true_shift_and_honours_the_offset():
 def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(network, monkeypatch):
     frames, _ = two_layer_sequence(7, width=192, height=128, camera_speed=0.02, object_speed=0.12, square_half=0.25)
     pair = [frames[2], frames[4]]
-    # the refine check alone: the final confidence check (tests/predict/test_confidence.py) keeps every pixel
-    monkeypatch.setattr(decomp_module, "confident_motion", lambda luma, target, flow: np.ones(luma.shape, bool))
 
     def flow_with_margin(margin):
         monkeypatch.setattr(decomp_module, "REFINE_MARGIN", margin)
@@ -444,7 +441,7 @@ def test_object_leaving_the_frame_and_motion_beyond_search_range(network, monkey
     assert frames[1].moving.any() and not (frames[3].moving.any() or frames[4].moving.any())
     pred = DecompPredictor(DecompConfig(), network)
     flow2d = make_predictor("flow2d")
-    unchecked = make_predictor("flow2d")  # DIS's flow as it comes, without the confidence check
+    unchecked = make_predictor("flow2d")  # DIS's flow as it comes, without trusted_motion
 
     def error(predictor, n, truth):
         return np.abs(predictor.predict([frames[n - 1], frames[n]], _target(truth)).color - truth.color).mean()
@@ -455,9 +452,9 @@ def test_object_leaving_the_frame_and_motion_beyond_search_range(network, monkey
         assert np.isfinite(out.color).all() and out.color.shape == truth.color.shape
         checked = (np.abs(out.color - truth.color).mean(), error(flow2d, n, truth))
         with monkeypatch.context() as patch:
-            patch.setattr(classic_module, "confident_motion", lambda luma, target, flow: np.ones(luma.shape, bool))
+            patch.setattr(classic_module, "trusted_motion", lambda luma, target, flow, seen: np.ones(luma.shape, bool))
             raw = error(unchecked, n, truth)
-        # neither is worse than the unchecked DIS flow (decomp refines it; the checks only remove motion)
+        # neither is worse than DIS's flow as it comes (decomp refines flow2d's; trusted_motion only removes motion)
         assert max(checked) <= raw + 1e-3, (n, checked, raw)
     # gone from both frames: nothing moves, so the next frame is frame n itself, to the bit
     later = Target(frames[5].camera, frames[5].time + (frames[5].time - frames[4].time), 6)

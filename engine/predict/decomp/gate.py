@@ -3,7 +3,7 @@ frame n, so the flow network must run (and nowhere, in a static view).
 
 Frame n-k, a one-plane MPI at the working resolution, is forward-warped into frame n's view; pixels whose
 encoded colour or inverse depth still changed (``motion_residual``), among those frame n-k saw
-(``seen_before``), mark tiles as moving; connected moving tiles, grown by a margin of context, become the
+(``geometry.seen_before``), mark tiles as moving; connected moving tiles, grown by a margin of context, become the
 boxes the network sees (``motion_boxes``). Conventions: ``engine.geometry`` (OpenCV cameras, pixel centres
 at +0.5, planar depth with +inf sky, MPIs (C, Z, H, W)); boxes are (y0, y1, x0, x1), end exclusive.
 """
@@ -20,7 +20,7 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import Mpi
 
-__all__ = ["GateConfig", "Box", "encode_color", "motion_residual", "seen_before", "motion_boxes", "gate_boxes"]
+__all__ = ["GateConfig", "Box", "encode_color", "motion_residual", "motion_boxes", "gate_boxes"]
 
 #: A box (y0, y1, x0, x1) of pixels, end exclusive.
 Box = tuple[int, int, int, int]
@@ -90,20 +90,6 @@ def motion_residual(mpi_n: Mpi, mpi_prev_warped: Mpi, color_threshold: float, de
     return cv2.erode(changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
 
 
-def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: np.ndarray, T_prev: np.ndarray,
-                size_prev: tuple[int, int]) -> np.ndarray:
-    """(H, W) bool: pixels of frame n whose surface, were it static, lay inside frame n-k's view (reprojected
-    into camera n-k in front of it and inside its (h, w) = ``size_prev`` image; sky by the rotation alone).
-
-    Elsewhere frame n-k never saw the surface, so the camera-compensated frame n-k (whatever the warp put
-    there: a farther surface, or nothing) says nothing about object motion. ``depth_n`` (H, W) planar depth,
-    +inf sky; cameras as ``geometry.reproject`` takes them (pixel centres at +0.5: inside is [0, w) x [0, h)).
-    """
-    uv, _, valid = geometry.reproject(depth_n, K_n, T_n, K_prev, T_prev)
-    h, w = size_prev
-    return valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
-
-
 def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: int, stride: int,
                  full_frame_fraction: float, min_tiles: int = 1) -> list[Box]:
     """Boxes (y0, y1, x0, x1) the network must see: moving tiles, grown by ``margin``, snapped to ``stride``.
@@ -153,6 +139,6 @@ def gate_boxes(config: GateConfig, low_n: tuple, low_p: tuple, t_n: np.ndarray, 
     g_w, _ = geometry.forward_warp_mpi(g_p, low_p[2], t_p, low_n[2], t_n)
     changed = motion_residual(g_n, g_w, config.color_threshold, config.depth_threshold, config.erode)
     if config.unseen and changed.any():
-        changed &= seen_before(low_n[1], low_n[2], t_n, low_p[2], t_p, low_p[1].shape)
+        changed &= geometry.seen_before(low_n[1], low_n[2], t_n, low_p[2], t_p, low_p[1].shape)
     return motion_boxes(changed, config.tile, config.tile_fraction, config.margin, stride,
                         config.full_frame_fraction, config.min_tiles)

@@ -45,7 +45,7 @@ from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import upsample_flow
-from engine.predict.dis import confident_motion, dis_flow, dis_target, luma8, warp_error
+from engine.predict.dis import dis_flow, dis_target, luma8, trusted_motion, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
            "crop_mpi", "whole_frame_initial_flow", "REFINE_MARGIN"]
@@ -94,11 +94,13 @@ class DecompConfig:
 class InitialFlow:
     """The full-resolution initial flow of frame n and what scores flows against it: ``flow`` (H, W, 2)
     u(n -> n-k) pixels (DIS), ``target`` (H, W) uint8 luma of the camera-compensated frame n-k DIS matched
-    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n."""
+    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n, ``seen`` (H, W) bool where frame n-k saw the
+    surface (``geometry.seen_before``)."""
 
     flow: np.ndarray
     target: np.ndarray
     luma_n: np.ndarray
+    seen: np.ndarray
 
 
 @dataclass
@@ -163,8 +165,8 @@ def network_input(low_n: tuple, low_p: tuple, t_n: np.ndarray, t_p: np.ndarray, 
 
 def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str) -> InitialFlow:
     """DIS flow u(n -> n-k) of the whole frame at full resolution: frame n-k's one-plane MPI forward-warped
-    into frame n's view, its holes filled as ``reproject`` fills them (the flow then equals ``flow2d``'s),
-    DIS from frame n's luma to that target."""
+    into frame n's view, its holes filled as ``reproject`` fills them, DIS from frame n's luma to that target,
+    kept where ``dis.trusted_motion`` trusts it (so the flow equals ``flow2d``'s)."""
     h, w = newest.depth.shape
     src, dst = older.camera, newest.camera
     mpi_p = geometry.build_mpi(older.color, older.depth, 1)
@@ -174,7 +176,11 @@ def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str) -> Initia
     color_w, depth_w, acc = geometry.composite(moved)
     luma_n = luma8(newest.color)
     target = dis_target(newest.color, color_w, acc > 0, depth_w)
-    return InitialFlow(dis_flow(luma_n, target, preset), target, luma_n)
+    seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera,
+                                older.depth.shape)
+    flow = dis_flow(luma_n, target, preset)
+    flow[~trusted_motion(luma_n, target, flow, seen)] = 0.0
+    return InitialFlow(flow, target, luma_n, seen)
 
 
 def box_flow(network: FlowNetwork, box: Box, factor: int, low_size: tuple[int, int], m_n: Mpi,
@@ -277,10 +283,8 @@ class DecompPredictor(Predictor):
                 flow[:, :, fy0:fy1, fx0:fx1] = part
             if not np.isfinite(flow).all():
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
-            if initial is not None:  # the camera-only warp wherever the motion does not explain frame n better
-                with timer("confidence"):
-                    keep = confident_motion(initial.luma_n, initial.target, np.moveaxis(flow[:2, 0], 0, -1))
-                flow[:, 0, ~keep] = 0.0
+            if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
+                flow[:, 0, ~initial.seen] = 0.0
         with timer("mpi"):
             mpi = geometry.build_mpi(newest.color, newest.depth, 1)
         return DecompState(boxes=boxes, factor=factor, mpi=mpi, flow=flow, plane_depths=planes,

@@ -1,5 +1,6 @@
-"""The confidence check of estimated object motion: no estimate may make a frame worse than the camera-only
-warp (``engine.predict.dis.confident_motion``, used by ``flow2d`` and ``decomp``)."""
+"""Which estimated object motion a predictor keeps (``engine.predict.dis.trusted_motion``, used by ``flow2d``
+and ``decomp``): none where frame n-k did not see the surface, and motion under a pixel only where it explains
+frame n better than none (``confident_motion``)."""
 import cv2
 import numpy as np
 import pytest
@@ -7,7 +8,8 @@ import pytest
 from engine.core.errors import InputError
 from engine.eval.metrics import score_frame
 from engine.predict import Flow2D, Reproject, Target, make_predictor
-from engine.predict.dis import confident_motion
+from engine import geometry
+from engine.predict.dis import SMALL_MOTION, confident_motion, trusted_motion
 from tests.synthetic import two_layer_sequence
 
 
@@ -86,4 +88,31 @@ def test_flow2d_keeps_motion_it_can_see():
     state = Flow2D().prepare([frames[2], frames[4]])
     inside = cv2.erode(frames[4].object_id.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     assert (np.abs(state.data.flow_back[inside, 0]) > 1.0).mean() > 0.8
-    assert "confidence" in state.stages_ms
+    assert "trust" in state.stages_ms
+
+
+def test_small_motion_must_explain_frame_n_and_larger_motion_is_kept():
+    luma = _textured(3)
+    seen = np.ones(luma.shape, bool)
+    half = np.full(luma.shape + (2,), 0.5 * SMALL_MOTION / np.sqrt(2), np.float32)
+    assert not trusted_motion(luma, luma, half, seen).any()  # nothing moved: sub-pixel motion is dropped
+    shifted = cv2.warpAffine(luma, np.float32([[1, 0, 0.6], [0, 1, 0]]), luma.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    true = np.zeros(luma.shape + (2,), np.float32)
+    true[..., 0] = 0.6
+    assert trusted_motion(luma, shifted, true, seen)[16:-16, 16:-16].mean() > 0.95  # ... unless it explains it
+    large = np.full(luma.shape + (2,), 3.0 * SMALL_MOTION, np.float32)
+    assert trusted_motion(luma, luma, large, seen).all()  # larger motion is kept as estimated
+    seen[:, :20] = False
+    assert not trusted_motion(luma, luma, large, seen)[:, :20].any()
+    with pytest.raises(InputError, match="seen"):
+        trusted_motion(luma, luma, large, seen[:, 1:])
+
+
+def test_content_entering_at_the_border_gets_no_object_motion():
+    frames, _ = two_layer_sequence(6, width=160, height=96, camera_speed=0.3, object_speed=0.1)
+    older, newest = frames[2], frames[4]
+    state = Flow2D().prepare([older, newest])
+    seen = geometry.seen_before(newest.depth, newest.camera.intrinsics, newest.camera.world_to_camera,
+                                older.camera.intrinsics, older.camera.world_to_camera, older.depth.shape)
+    assert (~seen).sum() > 10 * newest.depth.shape[0]  # columns entering as the camera moves
+    assert not state.data.flow_back[~seen].any()

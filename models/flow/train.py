@@ -5,8 +5,12 @@ Training pairs come from ``engine.scenegen``: each scene seed is rendered once i
 stream seeded by ``(seed, step)``, ``batch_size`` items ``(scene, k, n, crop)``: frames n and n-k are
 turned into ``m_n`` and ``m^w_{n-k}`` at full size (``models.flow.network.mpi_pair``: MPIs with
 ``models.geometry``, camera motion cancelled by ``forward_warp_mpi``), then cropped. The loss is
-``models.flow.losses.flow_loss`` (Eq. 6.12); ground-truth flow is never used for training, only by
-``endpoint_error`` for reporting.
+``models.flow.losses.flow_loss`` (Eq. 6.12), weighted by ``unsupervised_weight``. With
+``supervised_weight`` > 0 a supervised term is added: the L1 error of the network's surface flow against
+frame n's true object motion u(n -> n-k), computed from the scene's object transforms (``true_back_flow``):
+pretraining on exact motion (``unsupervised_weight`` 0), then the thesis' losses as fine-tuning from that
+checkpoint (``init_from``). ``scene_preset`` renders the scenes with a motion preset of
+``engine.scenegen.presets`` (e.g. ``fast``: the speeds of path-traced game footage).
 
 Outputs in ``out_dir``: ``config.json`` (the ``TrainFlowConfig``), ``checkpoint.pt`` (model, optimiser,
 step; written every ``checkpoint_every`` steps and at the end), ``metrics.jsonl`` (one line per logged
@@ -46,14 +50,17 @@ from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
 from engine.io.rgbd import read_sequence
 from engine.predict.dis import initial_flow
-from engine.scenegen import SceneConfig, generate_sequence
+from engine.predict.base import true_object_flow
+from engine.scenegen import generate_sequence
+from engine.scenegen.presets import PRESETS, preset_config
 from models.flow.losses import FlowLossConfig, flow_loss
 from models.flow.network import Flow3D, Flow3DConfig, encode_color, extrapolate, mpi_pair, surface_flow
 from models.geometry import Mpi, composite
 from models.trainer_cli import trainer_config, trainer_main, trainer_parser
 
 __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_items", "make_batch",
-           "prepare_data", "config_from_dict", "open_sequences", "StepBatches"]
+           "prepare_data", "config_from_dict", "open_sequences", "StepBatches", "scene_folder", "true_back_flow",
+           "supervised_loss"]
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -83,6 +90,17 @@ class TrainFlowConfig:
     scene_width: int = option(960, "rendered scene width")
     scene_height: int = option(540, "rendered scene height")
     scene_frames: int = option(12, "frames rendered per scene (the thesis' sequences have 12)")
+    scene_preset: str = option("gentle", "motion preset of the training scenes (engine.scenegen.presets: gentle, "
+                                         "medium, fast, extreme); other than gentle, scenes are cached as "
+                                         "<preset>_<seed>")
+    supervised_weight: float = option(0.0, "weight of the supervised term: mean |du, dv| error of the network's "
+                                           "surface flow against frame n's true object motion u(n -> n-k) (from "
+                                           "the scene's object transforms), in working-resolution pixels; 0: the "
+                                           "thesis' unsupervised training only")
+    unsupervised_weight: float = option(1.0, "weight of the unsupervised loss (Eq. 6.8-6.12); 0 with a "
+                                             "supervised_weight > 0: supervised pretraining")
+    init_from: str = option("", "checkpoint.pt whose network weights start the run (e.g. supervised pretraining "
+                                "before unsupervised fine-tuning); the optimiser starts afresh")
     crop_candidates: int = option(4, "random crop positions drawn per frame pair; the crops_per_pair with the "
                                      "largest camera-compensated colour residual (m_n vs m^w_{n-k}) are trained on")
     crops_per_pair: int = option(2, "crops taken from each frame pair (building a pair costs more than a "
@@ -114,6 +132,10 @@ class TrainFlowConfig:
             (self.threads >= 1 and self.checkpoint_every >= 1 and self.log_every >= 1,
              "threads, checkpoint_every and log_every must be >= 1"),
             (self.workers >= 0, "workers must be >= 0"),
+            (self.supervised_weight >= 0 and self.unsupervised_weight >= 0
+             and self.supervised_weight + self.unsupervised_weight > 0,
+             "supervised_weight and unsupervised_weight must be >= 0, not both 0"),
+            (self.scene_preset in PRESETS, f"scene_preset must be one of {', '.join(PRESETS)}"),
         ]
         for ok, problem in checks:
             if not ok:
@@ -132,20 +154,25 @@ def config_from_dict(data: dict) -> TrainFlowConfig:
 def prepare_data(config: TrainFlowConfig, *, progress: bool = False) -> list[Path]:
     """Render every scene seed that is not cached yet; returns the rgbd-seq folders, one per seed."""
     return render_scenes(config.data_dir, config.scene_seeds, config.scene_width, config.scene_height,
-                         config.scene_frames, progress=progress)
+                         config.scene_frames, progress=progress, preset=config.scene_preset)
+
+
+def scene_folder(data_dir: str | Path, seed: int, preset: str = "gentle") -> Path:
+    """``<data_dir>/scene_<seed>`` (gentle, the generator's defaults) or ``<data_dir>/<preset>_<seed>``."""
+    return Path(data_dir) / (f"scene_{seed:06d}" if preset == "gentle" else f"{preset}_{seed:06d}")
 
 
 def render_scenes(data_dir: str | Path, seeds, width: int, height: int, frames: int, *,
-                  progress: bool = False) -> list[Path]:
-    """``<data_dir>/scene_<seed>`` rgbd-seq folders from ``engine.scenegen``, rendering those not cached yet
-    (written to a ``.tmp`` folder, then renamed: an interrupted render is never taken for a finished one)."""
+                  progress: bool = False, preset: str = "gentle") -> list[Path]:
+    """``scene_folder`` rgbd-seq folders from ``engine.scenegen`` (motion ``preset``), rendering those not
+    cached yet (written to a ``.tmp`` folder, then renamed: an interrupted render is never taken for a
+    finished one)."""
 
-    root = Path(data_dir)
     paths = []
     for seed in seeds:
-        path = root / f"scene_{seed:06d}"
+        path = scene_folder(data_dir, seed, preset)
         if not (path / "sequence.json").exists():
-            scene = SceneConfig(seed=seed, width=width, height=height, num_frames=frames)
+            scene = preset_config(preset, seed=seed, width=width, height=height, num_frames=frames)
             generate_sequence(scene, path.with_name(path.name + ".tmp"), progress=progress)
             path.with_name(path.name + ".tmp").rename(path)
         paths.append(path)
@@ -222,10 +249,23 @@ def dis_initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
     return torch.from_numpy(flow).permute(2, 0, 1)[None]
 
 
+def true_back_flow(sequence, n: int, k: int, factor: int) -> np.ndarray:
+    """Frame n's true object motion u(n -> n-k) (``engine.predict.base.true_object_flow``, (du, dv) only),
+    block-meaned to the downsampled grid, in downsampled pixels (h // factor, w // factor, 2); zeros for a
+    sequence without moving objects."""
+    frame = sequence[n]
+    objects = {o.id: o for o in sequence.objects}
+    if frame.object_id is None or not objects:
+        return np.zeros((frame.depth.shape[0] // factor, frame.depth.shape[1] // factor, 2), np.float32)
+    return downsample_flow(np.ascontiguousarray(true_object_flow(frame, objects, n - k)[..., :2]), factor)
+
+
 def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
-               cache: Optional[dict] = None) -> tuple[Mpi, Mpi, Tensor, Optional[Tensor]]:
-    """Crops of ``(m_n, m^w_{n-k})`` for ``items``, the ground-truth object flow of frame n (B, c, c, 2) and,
-    for networks that refine one (``Flow3DConfig.initial_flow``), the initial flow (B, 2, c, c), else None.
+               cache: Optional[dict] = None) -> tuple[Mpi, Mpi, Tensor, Optional[Tensor], Optional[Tensor]]:
+    """Crops of ``(m_n, m^w_{n-k})`` for ``items``, the ground-truth object flow of frame n (B, c, c, 2),
+    for networks that refine one (``Flow3DConfig.initial_flow``) the initial flow (B, 2, c, c), else None,
+    and with ``supervised_weight`` > 0 the supervised target u(n -> n-k) (B, c, c, 2, ``true_back_flow``),
+    else None.
 
     An item with ``crops`` candidates yields ``crops_per_pair`` crops (``choose_crops``, recorded in the
     item as ``picked``); an item with ``y``, ``x`` yields that one crop.
@@ -236,13 +276,16 @@ def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
     object flow (frame n -> n+1, block mean, in downsampled pixels) is only for evaluation (zeros when the
     sequence has none).
     """
-    firsts, seconds, flows, inits = [], [], [], []
+    firsts, seconds, flows, inits, targets = [], [], [], [], []
     for item in items:
         tensors_n, flow_n = _low_res_frame(config, sequences, item["scene"], item["n"], cache)
         tensors_p, _ = _low_res_frame(config, sequences, item["scene"], item["n"] - item["k"], cache)
         with torch.no_grad():
             m_n, m_p = mpi_pair(*tensors_n, *tensors_p, config.model.num_planes)
         init = dis_initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
+        back = None
+        if config.supervised_weight > 0:
+            back = true_back_flow(sequences[item["scene"]], item["n"], item["k"], config.downsample)
         c = config.crop
         if "crops" in item:
             item["picked"] = choose_crops(_residual(m_n, m_p), item["crops"], c, config.crops_per_pair)
@@ -252,11 +295,23 @@ def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
             flows.append(torch.from_numpy(np.ascontiguousarray(flow_n[y:y + c, x:x + c])))
             if init is not None:
                 inits.append(init[..., y:y + c, x:x + c])
+            if back is not None:
+                targets.append(torch.from_numpy(np.ascontiguousarray(back[y:y + c, x:x + c])))
 
     def stack(mpis: list[Mpi]) -> Mpi:
         return Mpi(*(torch.cat(parts, dim=0) for parts in zip(*mpis)))
 
-    return stack(firsts), stack(seconds), torch.stack(flows), (torch.cat(inits) if inits else None)
+    return (stack(firsts), stack(seconds), torch.stack(flows), (torch.cat(inits) if inits else None),
+            (torch.stack(targets) if targets else None))
+
+
+def supervised_loss(flow: Tensor, mpi_n: Mpi, target: Tensor) -> Tensor:
+    """Per-item mean |(du, dv) - target| (L1 over both components) of the network's surface flow (B, 3, Z, H, W)
+    against the true u(n -> n-k) (B, H, W, 2) over the pixels frame n covers, (B,)."""
+    pred = surface_flow(flow, mpi_n)[..., :2]
+    covered = mpi_n.alpha.sum(dim=2)[:, 0].clamp_max(1.0)  # (B, H, W): 1 where frame n has a surface
+    error = (pred - target).abs().sum(dim=-1) * covered
+    return error.sum(dim=(1, 2)) / covered.sum(dim=(1, 2)).clamp_min(1.0)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -307,7 +362,8 @@ def _moving_epe(flow: Tensor, mpi_n: Mpi, gt_flow: Tensor, ks: list[int]) -> tup
 def open_sequences(config: TrainFlowConfig) -> dict:
     """Scene seed -> ``engine.io.rgbd.RgbdSequence`` of the rendered training scenes (``prepare_data``)."""
 
-    return {seed: read_sequence(Path(config.data_dir) / f"scene_{seed:06d}") for seed in config.scene_seeds}
+    return {seed: read_sequence(scene_folder(config.data_dir, seed, config.scene_preset))
+            for seed in config.scene_seeds}
 
 
 class StepBatches(torch.utils.data.Dataset):
@@ -423,6 +479,12 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     start = 0
     if resume and ckpt_path.exists():
         start = restore_checkpoint(ckpt_path, model, optimizer, config.model)
+    elif config.init_from:
+        source = load_model(config.init_from)
+        if source.config != model.config:
+            raise InputError(f"holds a network of config {source.config}, this run trains {model.config}",
+                             file=config.init_from, field="init_from")
+        model.load_state_dict(source.state_dict())
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model)
@@ -441,12 +503,16 @@ def _train(config: TrainFlowConfig, progress: bool, resume: bool, rank: int, wor
     try:
         for step in range(start, config.steps):
             t0 = time.perf_counter()
-            items, (mpi_n, mpi_p, gt_flow, init) = next(loader)
+            items, (mpi_n, mpi_p, gt_flow, init, target) = next(loader)
             mine = items[rank::world]
             t1 = time.perf_counter()
             on_device = [Mpi(*(t.to(device) for t in mpi)) for mpi in (mpi_n, mpi_p)]
             flow = net(*on_device, None if init is None else init.to(device))
             loss, terms = flow_loss(*on_device, flow, config.loss)
+            loss = loss * config.unsupervised_weight
+            if target is not None:
+                terms["supervised"] = supervised_loss(flow, on_device[0], target.to(device))
+                loss = loss + config.supervised_weight * terms["supervised"]
             optimizer.zero_grad(set_to_none=True)
             loss.mean().backward()
             optimizer.step()

@@ -21,11 +21,14 @@ import torch
 from torch import nn
 
 from engine.core.errors import InputError
+from engine.predict.base import true_object_flow
 from engine.predict.decomp.network import FlowNetwork
 from export.flow import INPUT_NAMES, FlowGraph, check_parity, example_inputs, export_flow, with_planes
 from models.flow.network import (Flow3D, Flow3DConfig, PartialConv3d, backward_warp, flow_from_output,
                                  masked_correlation, set_direct_conv3d)
-from models.flow.train import TrainFlowConfig, config_from_dict, load_model, prepare_data, sample_items, train
+from models.flow.train import (TrainFlowConfig, config_from_dict, load_model, make_batch, open_sequences, prepare_data,
+                               sample_items, supervised_loss, train, true_back_flow)
+from models.geometry import Mpi
 
 ROOT = Path(__file__).resolve().parents[2]
 TOLERANCE = 1e-4
@@ -246,3 +249,50 @@ def test_with_planes_rebuilds_the_same_weights_for_another_plane_count():
         with_planes(Flow3D(Flow3DConfig(mode="2d", num_planes=1)), 4)
     with pytest.raises(InputError, match=">= 1"):
         with_planes(model, 0)
+
+
+def test_supervised_target_is_the_true_motion_back_to_frame_n_minus_k(data_dir):
+    config = tiny_config(data_dir.parent, supervised_weight=1.0)
+    sequences = open_sequences(config)
+    seq = sequences[1]
+    objects = {o.id: o for o in seq.objects}
+    assert any(o.moving for o in seq.objects)
+    back = true_back_flow(seq, 3, 2, 2)
+    full = true_object_flow(seq[3], objects, 1)[..., :2]
+    np.testing.assert_allclose(back, full.reshape(24, 2, 32, 2, 2).mean(axis=(1, 3)) / 2, atol=1e-5)
+    *_, target = make_batch(config, [{"scene": 1, "k": 2, "n": 3, "y": 4, "x": 8}], sequences)
+    np.testing.assert_allclose(target[0].numpy(), true_back_flow(seq, 3, 2, 1)[4:36, 8:40], atol=1e-6)
+    *_, none = make_batch(tiny_config(data_dir.parent), [{"scene": 1, "k": 2, "n": 3}], sequences)
+    assert none is None  # unsupervised runs do not compute it
+
+
+def test_supervised_loss_is_zero_for_the_true_flow_and_l1_otherwise():
+    mpi = Mpi(torch.rand(2, 3, 2, 8, 8), torch.ones(2, 1, 2, 8, 8), torch.zeros(2, 1, 2, 8, 8), torch.ones(2, 2))
+    mpi.alpha[:, :, 0] = 1.0  # every pixel on plane 0
+    mpi.alpha[1, :, 0, :, 4:] = 0.0  # item 1 covers half its pixels
+    target = torch.randn(2, 8, 8, 2)
+    flow = torch.zeros(2, 3, 2, 8, 8)
+    flow[:, :2, 0] = target.permute(0, 3, 1, 2)
+    torch.testing.assert_close(supervised_loss(flow, mpi, target), torch.zeros(2))
+    shifted = flow.clone()
+    shifted[:, 0, 0] += 0.5
+    torch.testing.assert_close(supervised_loss(shifted, mpi, target), torch.full((2,), 0.5))
+
+
+def test_supervised_run_trains_and_starts_from_a_checkpoint(tmp_path, data_dir):
+    first = train(tiny_config(run_dir(tmp_path, data_dir, "sup"), supervised_weight=1.0, unsupervised_weight=0.0),
+                  progress=False)
+    lines = [json.loads(line) for line in (tmp_path / "sup" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["supervised"]) and r["loss"] == pytest.approx(r["supervised"]) for r in lines)
+    out = run_dir(tmp_path, data_dir, "tuned")
+    tuned = train(tiny_config(out, steps=1, init_from=str(first), lr=1e-12), progress=False)
+    a, b = (torch.load(p, weights_only=False)["model"] for p in (first, tuned))
+    for name, value in a.items():  # a step at lr 1e-12 leaves the weights it started from
+        torch.testing.assert_close(b[name], value, atol=1e-6, rtol=1e-5)
+    other = dataclasses.replace(TINY_NET, search_range=TINY_NET.search_range + 1)
+    with pytest.raises(InputError, match="init_from"):
+        train(tiny_config(run_dir(tmp_path, data_dir, "bad"), init_from=str(first), model=other), progress=False)
+    with pytest.raises(InputError):
+        tiny_config(tmp_path, supervised_weight=0.0, unsupervised_weight=0.0)
+    with pytest.raises(InputError):
+        tiny_config(tmp_path, scene_preset="fastest")

@@ -1,0 +1,206 @@
+"""Ablation of what ``flow2d`` does with DIS's flow before extrapolating it: which estimated object motion to
+keep, and whether matching changed regions whole reaches motion DIS misses.
+
+``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4] [--json FILE]``
+
+Runs on VALIDATION sequences, apart from the benchmark's held-out ones (``tools/bench_motion.py``), so the
+choice it informs is not tuned on the sets it is reported on: ``gentle`` seeds 1005, 1006 (generator
+defaults); ``fast``: the first 2 seeds from 7201 of the ``fast`` preset moving a median 10-35 px a frame;
+``extreme``: the first seed from 7301 of the ``extreme`` preset moving a median 20-80 px a frame.
+
+Variants (each is ``flow2d`` with another rule between DIS and the extrapolation):
+
+- ``dis``: DIS's flow as it comes;
+- ``confidence``: motion kept only where it explains frame n better than none (``dis.confident_motion``,
+  margin ``--margin``) at every pixel;
+- ``seen``: none where frame n-k did not see the surface (``geometry.seen_before``);
+- ``trusted``: ``seen`` and motion under 1 px only where confident: ``dis.trusted_motion``;
+- ``gated``: ``trusted``, and none outside the boxes of ``decomp``'s motion gate (tiles where the
+  camera-compensated frame n-k differs from frame n in colour or depth, grown by its margin);
+- ``regions``: each changed region of frame n matched whole against the camera-compensated frame n-k
+  (masked template matching within 15 % of the width on 2 x 2 block means), DIS around the region's shift
+  where that explains the region better than plain DIS by more than 1 level a pixel, then ``trusted``.
+
+Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
+moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from engine import geometry
+from engine.eval.protocol import evaluate_sequence, json_safe, summarize
+from engine.io.rgbd import read_sequence
+from engine.predict import registry
+from engine.predict.base import Target, warp_and_fill
+from engine.predict.classic import Flow2D, Flow2DState
+from engine.predict.decomp.gate import GateConfig, gate_boxes
+from engine.predict.decomp.predictor import full_box
+from engine.predict.dis import confident_motion, dis_calc, luma8, trusted_motion, warp_error
+from tools.heldout import render_set, speed_set
+
+#: a rule: (estimator, luma_n, target, seen, gate) -> flow u(n -> n-k) (H, W, 2); gate: (H, W) bool, inside
+#: the boxes of decomp's motion gate (engine.predict.decomp.gate) at full resolution
+Rule = Callable[[object, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area: int,
+                  threshold: float = 10.0, scale: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(piecewise-constant flow (H, W, 2), region labels (H, W)): each connected region where frame n's luma
+    differs from the target's (5 x 5 mean > ``threshold``) takes the shift within +-``radius`` px at which it
+    best matches the target as one masked template (squared differences, on ``scale`` x ``scale`` means)."""
+    h, w = luma_n.shape
+    flow = np.zeros((h, w, 2), np.float32)
+    if min(h, w) < 2 * scale:
+        return flow, np.zeros((h, w), np.int32)
+    changed = cv2.blur(cv2.absdiff(luma_n, target).astype(np.float32), (5, 5)) > threshold
+    changed = cv2.morphologyEx(changed.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(changed, connectivity=8)
+    small_n = cv2.resize(luma_n, (w // scale, h // scale), interpolation=cv2.INTER_AREA).astype(np.float32)
+    small_t = cv2.resize(target, (w // scale, h // scale), interpolation=cv2.INTER_AREA).astype(np.float32)
+    small_labels = labels[scale // 2::scale, scale // 2::scale][:h // scale, :w // scale]
+    sh, sw = small_n.shape
+    r = max(1, radius // scale)
+    for i in range(1, count):
+        if stats[i, cv2.CC_STAT_AREA] < min_area:
+            labels[labels == i] = 0
+            continue
+        x, y, bw, bh = (int(v) // scale for v in stats[i, :4])
+        bw, bh = min(max(bw, 1), sw - x), min(max(bh, 1), sh - y)
+        region = (small_labels[y:y + bh, x:x + bw] == i).astype(np.float32)
+        if region.sum() < 4:
+            continue
+        x0, y0, x1, y1 = max(0, x - r), max(0, y - r), min(sw, x + bw + r), min(sh, y + bh + r)
+        scores = cv2.matchTemplate(small_t[y0:y1, x0:x1], small_n[y:y + bh, x:x + bw], cv2.TM_SQDIFF, mask=region)
+        best = cv2.minMaxLoc(scores)[2]
+        flow[labels == i] = (scale * (x0 + best[0] - x), scale * (y0 + best[1] - y))
+    return flow, labels
+
+
+def regions_rule(estimator, luma_n, target, seen, gate) -> np.ndarray:
+    flow = dis_calc(estimator, luma_n, target)
+    h, w = luma_n.shape
+    shifts, labels = region_shifts(luma_n, target, max(2, round(0.15 * w)), max(4, round(64 * (w / 640) ** 2)))
+    if shifts.any():
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        moved = cv2.remap(target, gx + shifts[..., 0], gy + shifts[..., 1], cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+        shifted = shifts + dis_calc(estimator, luma_n, moved)
+        index, count = labels.ravel(), int(labels.max()) + 1
+        pixels = np.bincount(index, minlength=count)
+        plain = np.bincount(index, warp_error(luma_n, target, (0, 0), flow).ravel(), minlength=count)
+        other = np.bincount(index, warp_error(luma_n, target, (0, 0), shifted).ravel(), minlength=count)
+        better = other < plain - pixels
+        better[0] = False
+        take = better[labels]
+        flow[take] = shifted[take]
+    flow[~trusted_motion(luma_n, target, flow, seen)] = 0.0
+    return flow
+
+
+def rules(margin: float) -> dict[str, Rule]:
+    def dis(e, ln, t, seen, gate):
+        return dis_calc(e, ln, t)
+
+    def confidence(e, ln, t, seen, gate):
+        flow = dis_calc(e, ln, t)
+        flow[~confident_motion(ln, t, flow, margin)] = 0.0
+        return flow
+
+    def seen_only(e, ln, t, seen, gate):
+        flow = dis_calc(e, ln, t)
+        flow[~seen] = 0.0
+        return flow
+
+    def trusted(e, ln, t, seen, gate):
+        flow = dis_calc(e, ln, t)
+        flow[~trusted_motion(ln, t, flow, seen)] = 0.0
+        return flow
+
+    def gated(e, ln, t, seen, gate):
+        flow = trusted(e, ln, t, seen, gate)
+        flow[~gate] = 0.0
+        return flow
+
+    return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
+            "regions": regions_rule}
+
+
+class RuleFlow2D(Flow2D):
+    """``flow2d`` with another rule between DIS and the extrapolation."""
+
+    def __init__(self, rule: Rule) -> None:
+        super().__init__()
+        self.rule = rule
+
+    def _prepare(self, state, timer):
+        older, newest = state.history[-2], state.history[-1]
+        warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
+        src, dst = older.camera, newest.camera
+        seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
+                                    src.world_to_camera, older.depth.shape)
+        factor = geometry.downsample_factor(newest.depth.shape[1], 480)
+        low_n = geometry.downsample_frame(newest.color, newest.depth, dst.intrinsics, factor)
+        low_p = geometry.downsample_frame(older.color, older.depth, src.intrinsics, factor)
+        gate = np.zeros(newest.depth.shape, bool)
+        for box in gate_boxes(GateConfig(), low_n, low_p, dst.world_to_camera, src.world_to_camera, 1):
+            y0, y1, x0, x1 = full_box(box, factor, low_n[1].shape, gate.shape)
+            gate[y0:y1, x0:x1] = True
+        with timer("flow"):
+            return Flow2DState(self.rule(self._dis, luma8(newest.color), luma8(warped), seen, gate))
+
+
+def validation_sets(out: Path) -> dict[str, list[Path]]:
+    size = (640, 360, 16)
+    return {"gentle": [render_set(out, f"seed{s}", {"seed": s}, *size) for s in (1005, 1006)],
+            "fast": [p for _, p in speed_set(out, "valfast", "fast", 7201, 2, (10.0, 35.0), *size)],
+            "extreme": [p for _, p in speed_set(out, "valextreme", "extreme", 7301, 1, (20.0, 80.0), *size)]}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("out/validation"))
+    parser.add_argument("--variants", default="dis,confidence,seen,trusted,regions")
+    parser.add_argument("--margin", type=float, default=1.0)
+    parser.add_argument("--k", default="2,4")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    variants = args.variants.split(",")
+    available = rules(args.margin)
+    for v in variants:
+        if v not in available:
+            parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
+        registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule)
+    rows = []
+    for set_name, paths in validation_sets(args.out).items():
+        sequences = [read_sequence(p) for p in paths]
+        for k in (int(v) for v in args.k.split(",")):
+            results = []
+            for seq in sequences:
+                results += evaluate_sequence(seq, ["reproject"] + [f"flow2d:{v}" for v in variants], k,
+                                             with_flip=False)
+            summary = summarize(results)
+            base = summary[f"reproject/k={k}"]
+            for v in variants:
+                row = summary[f"flow2d:{v}/k={k}"]
+                rows.append({"set": set_name, "k": k, "variant": v, "psnr": row["psnr"],
+                             "psnr_moving": row["psnr_moving"], "epe_moving": row["epe_moving"],
+                             "reproject_psnr": base["psnr"], "reproject_psnr_moving": base["psnr_moving"]})
+                print(f"{set_name:8s} k={k} {v:11s} PSNR {row['psnr']:.2f}  moving {row['psnr_moving']:.2f}  "
+                      f"EPE {row['epe_moving']:.2f}   (reproject {base['psnr']:.2f} / {base['psnr_moving']:.2f})",
+                      flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(json_safe({"sets": {s: [p.name for p in ps] for s, ps in
+                                                             validation_sets(args.out).items()},
+                                                   "margin": args.margin, "rows": rows}), indent=1))
+
+
+if __name__ == "__main__":
+    main()

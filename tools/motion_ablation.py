@@ -14,12 +14,13 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
 - ``confidence``: motion kept only where it explains frame n better than none (``dis.confident_motion``,
   margin ``--margin``) at every pixel;
 - ``seen``: none where frame n-k did not see the surface (``geometry.seen_before``);
-- ``trusted``: ``seen`` and motion under 1 px only where confident: ``dis.trusted_motion``;
+- ``trusted``: ``seen`` and motion under ``--small`` px (1) only where confident: ``dis.trusted_motion``;
 - ``gated``: ``trusted``, and none outside the boxes of ``decomp``'s motion gate (tiles where the
   camera-compensated frame n-k differs from frame n in colour or depth, grown by its margin);
 - ``regions``: each changed region of frame n matched whole against the camera-compensated frame n-k
   (masked template matching within 15 % of the width on 2 x 2 block means), DIS around the region's shift
-  where that explains the region better than plain DIS by more than 1 level a pixel, then ``trusted``.
+  where that explains the region better than plain DIS by more than 1 level a pixel, then ``trusted``;
+- ``regions_failed``: the same, only in regions where plain DIS's mean error exceeds 8 levels.
 
 Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
 moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
@@ -42,7 +43,7 @@ from engine.predict.base import Target, warp_and_fill
 from engine.predict.classic import Flow2D, Flow2DState
 from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
-from engine.predict.dis import confident_motion, dis_calc, luma8, trusted_motion, warp_error
+from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
 from tools.heldout import render_set, speed_set
 
 #: a rule: (estimator, luma_n, target, seen, gate) -> flow u(n -> n-k) (H, W, 2); gate: (H, W) bool, inside
@@ -83,7 +84,9 @@ def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area:
     return flow, labels
 
 
-def regions_rule(estimator, luma_n, target, seen, gate) -> np.ndarray:
+def regions_rule(estimator, luma_n, target, seen, gate, failed: float = 0.0) -> np.ndarray:
+    """Region matching where it explains a region better than plain DIS; with ``failed`` > 0 only in regions
+    where plain DIS's mean photometric error exceeds ``failed`` levels (DIS lost the motion there)."""
     flow = dis_calc(estimator, luma_n, target)
     h, w = luma_n.shape
     shifts, labels = region_shifts(luma_n, target, max(2, round(0.15 * w)), max(4, round(64 * (w / 640) ** 2)))
@@ -96,7 +99,7 @@ def regions_rule(estimator, luma_n, target, seen, gate) -> np.ndarray:
         pixels = np.bincount(index, minlength=count)
         plain = np.bincount(index, warp_error(luma_n, target, (0, 0), flow).ravel(), minlength=count)
         other = np.bincount(index, warp_error(luma_n, target, (0, 0), shifted).ravel(), minlength=count)
-        better = other < plain - pixels
+        better = (other < plain - pixels) & (plain > failed * pixels)
         better[0] = False
         take = better[labels]
         flow[take] = shifted[take]
@@ -104,7 +107,7 @@ def regions_rule(estimator, luma_n, target, seen, gate) -> np.ndarray:
     return flow
 
 
-def rules(margin: float) -> dict[str, Rule]:
+def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
     def dis(e, ln, t, seen, gate):
         return dis_calc(e, ln, t)
 
@@ -120,7 +123,7 @@ def rules(margin: float) -> dict[str, Rule]:
 
     def trusted(e, ln, t, seen, gate):
         flow = dis_calc(e, ln, t)
-        flow[~trusted_motion(ln, t, flow, seen)] = 0.0
+        flow[~trusted_motion(ln, t, flow, seen, small)] = 0.0
         return flow
 
     def gated(e, ln, t, seen, gate):
@@ -128,8 +131,11 @@ def rules(margin: float) -> dict[str, Rule]:
         flow[~gate] = 0.0
         return flow
 
+    def regions_where_dis_failed(e, ln, t, seen, gate):
+        return regions_rule(e, ln, t, seen, gate, failed=8.0)
+
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
-            "regions": regions_rule}
+            "regions": regions_rule, "regions_failed": regions_where_dis_failed}
 
 
 class RuleFlow2D(Flow2D):
@@ -167,12 +173,14 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/validation"))
     parser.add_argument("--variants", default="dis,confidence,seen,trusted,regions")
-    parser.add_argument("--margin", type=float, default=1.0)
+    parser.add_argument("--margin", type=float, default=1.0, help="margin of the 'confidence' variant (levels)")
+    parser.add_argument("--small", type=float, default=SMALL_MOTION,
+                        help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
-    available = rules(args.margin)
+    available = rules(args.margin, args.small)
     for v in variants:
         if v not in available:
             parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
@@ -199,7 +207,8 @@ def main(argv=None) -> None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe({"sets": {s: [p.name for p in ps] for s, ps in
                                                              validation_sets(args.out).items()},
-                                                   "margin": args.margin, "rows": rows}), indent=1))
+                                                   "margin": args.margin, "small": args.small, "rows": rows}),
+                                        indent=1))
 
 
 if __name__ == "__main__":

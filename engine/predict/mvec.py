@@ -111,7 +111,7 @@ class Mvec(Predictor):
         older, newest = state.history[-2], state.history[-1]
         if newest.motion_vectors is None:
             raise InputError("method 'mvec' needs the renderer's motion vectors of the newest frame (rgbd-seq "
-                             "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'decomp' or 'auto'",
+                             "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'flow2d' or 'auto'",
                              frame=newest.index, field="motion_vectors")
         self._previous = self._last
         with timer("vectors"):

@@ -5,7 +5,8 @@ A name may carry options in brackets: ``decomp`` and ``decomp2d`` take ``DecompC
 true object motion instead of the estimated one (``DecompTrueMotion``, the bound of thesis Table 6.3);
 ``flow2d`` its DIS preset, ``flow2d[preset=fast]``; ``mvec`` its ``MvecConfig``, ``mvec[undilate=true]``.
 ``auto`` is not a predictor but a choice made where frames arrive (``resolve_auto``): ``mvec`` for frames
-that carry the renderer's motion vectors, ``decomp`` for frames that do not.
+that carry the renderer's motion vectors, ``flow2d`` for frames that do not (``decomp`` scores as ``flow2d``
+to 0.05 dB on every held-out set at 2-2.5x its time: docs/results/2026-11-25-fast-motion.md).
 """
 from __future__ import annotations
 
@@ -76,15 +77,15 @@ def make_decomp(weights: str = "flow3d.onnx", options: str = "", objects: Sequen
     return predictor
 
 
-#: The method name that picks ``mvec`` when motion vectors come and ``decomp`` otherwise.
+#: The method name that picks ``mvec`` when motion vectors come and ``flow2d`` otherwise.
 AUTO = "auto"
 
 
 def resolve_auto(name: str, has_motion_vectors: bool) -> str:
-    """``name``, or for ``auto`` the method it stands for: ``mvec`` with motion vectors, else ``decomp``."""
+    """``name``, or for ``auto`` the method it stands for: ``mvec`` with motion vectors, else ``flow2d``."""
     if name.strip() != AUTO:
         return name
-    return "mvec" if has_motion_vectors else "decomp"
+    return "mvec" if has_motion_vectors else "flow2d"
 
 
 #: Registry of method names -> factory(objects) for the CLI and the evaluation.
@@ -125,7 +126,7 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
     base, _, rest = name.partition("[")
     if base == AUTO:
         raise InputError("method 'auto' is chosen per stream: resolve it with resolve_auto (mvec with motion "
-                         "vectors, decomp without)", field="methods")
+                         "vectors, flow2d without)", field="methods")
     if base not in METHODS:
         raise InputError(f"unknown method '{name}', expected one of {', '.join(METHODS)}, or auto",
                          field="methods")

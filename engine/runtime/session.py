@@ -47,7 +47,7 @@ frame, after ``reset()``, a camera cut, time going backwards) enters the history
 would point into a frame the predictor does not have (``stats["motion_vectors"]["dropped"]``).
 
 ``method="auto"`` picks, per submitted frame, ``mvec`` (the renderer's motion vectors) when the frame
-enters the history with motion vectors and ``decomp`` when it does not (``engine.predict.resolve_auto``);
+enters the history with motion vectors and ``flow2d`` when it does not (``engine.predict.resolve_auto``);
 the choice can change at any submit (both keep the same two-frame history), and
 ``SessionPrediction.method`` says which one predicted.
 
@@ -163,7 +163,7 @@ class SessionConfig:
     color_out: str = option("linear", f"encoding of predicted colour: {', '.join(COLOR_SPACES)}")
     method: str = option("reproject", "predictor (engine.predict), options in brackets, e.g. "
                                       "decomp[gate.enabled=false]; auto: mvec for frames with motion vectors, "
-                                      "decomp for frames without")
+                                      "flow2d for frames without")
     cut_translation: float = option(0.5, "camera cut when the camera centre moves more than this times the "
                                           "median scene depth")
     cut_rotation_deg: float = option(45.0, "camera cut when the camera turns by more than this many degrees")
@@ -208,7 +208,7 @@ class SessionConfig:
             raise InputError("'oracle' needs ground-truth object motion, which a game session does not have",
                              field="method")
         if self.method.partition("[")[0].strip() == AUTO and self.method.strip() != AUTO:
-            raise InputError(f"'auto' takes no options (it picks mvec or decomp per frame), got {self.method!r}",
+            raise InputError(f"'auto' takes no options (it picks mvec or flow2d per frame), got {self.method!r}",
                              field="method")
         for name, allowed in (("motion_units", MOTION_UNITS), ("motion_direction", MOTION_DIRECTIONS),
                               ("motion_missing", MOTION_MISSING)):

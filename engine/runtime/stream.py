@@ -55,7 +55,7 @@ class PredictionLoop:
     def submit(self, frame: Frame, *, restart: bool = False, predictor: Optional[Predictor] = None) -> Prepared:
         """Add a rendered frame (after the previous one in time) and prepare the predictions that follow it;
         ``restart``: forget the earlier frames first (a camera cut); ``predictor``: the method from this frame
-        on (the session's ``auto`` switches between ``mvec`` and ``decomp``; the kept frames stay). If the
+        on (the session's ``auto`` switches between ``mvec`` and ``flow2d``; the kept frames stay). If the
         predictor refuses the frames, the history stays as it was."""
         if predictor is not None:
             self.predictor = predictor

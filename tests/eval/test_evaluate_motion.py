@@ -54,4 +54,4 @@ def test_mvec_on_a_sequence_without_vectors_or_objects_names_it(tmp_path: Path) 
     with pytest.raises(InputError) as err:
         evaluate_sequence(seq, ["mvec"], 2, with_flip=False)
     assert err.value.field.startswith("motion") and "seq" in str(err.value)
-    assert evaluate_sequence(seq, ["auto"], 2, with_flip=False, max_groups=1)[0].method == "auto"  # decomp here
+    assert evaluate_sequence(seq, ["auto"], 2, with_flip=False, max_groups=1)[0].method == "auto"  # flow2d here

@@ -62,7 +62,7 @@ def test_without_vectors_it_says_so_and_auto_picks_by_their_presence():
     with pytest.raises(InputError) as err:
         Mvec().predict(frames[:2], _target(frames[2]))
     assert err.value.field == "motion_vectors" and err.value.frame == 1
-    assert resolve_auto("auto", True) == "mvec" and resolve_auto("auto", False) == "decomp"
+    assert resolve_auto("auto", True) == "mvec" and resolve_auto("auto", False) == "flow2d"
     assert resolve_auto("flow2d", True) == "flow2d"
     with pytest.raises(InputError):
         make_predictor("auto")

@@ -751,7 +751,7 @@ def _vectors(shape, seed, dtype=np.float32):
     # object motion only with a valid mask (Streamline cameraMotionIncluded = false), full resolution
     (motion_config(motion_units="pixels", motion_includes_camera=False, motion_scale=(40.0, 30.0)),
      MotionPlane(0, 0, 2, "float32")),
-    # auto: mvec for the frames with vectors, decomp for the one without
+    # auto: mvec for the frames with vectors, flow2d for the one without
     (motion_config(method="auto", motion_units="ndc", motion_missing="camera"), MotionPlane(16, 12, 3, "float32")),
 ])
 def test_motion_vectors_arrive_converted_as_in_an_in_process_session(server, cfg, plane):
@@ -781,7 +781,7 @@ def test_motion_vectors_arrive_converted_as_in_an_in_process_session(server, cfg
                 np.testing.assert_array_equal(remote.holes, expected.holes)
                 assert (remote.method, remote.fallback) == (expected.method, expected.fallback)
                 methods.append(remote.method if remote.fallback is None else remote.fallback)
-        assert methods == ["history", "mvec", "decomp" if cfg.method == "auto" else "mvec", "mvec"]
+        assert methods == ["history", "mvec", "flow2d" if cfg.method == "auto" else "mvec", "mvec"]
         kept = 2 if cfg.method == "auto" else 3
         assert local.stats["motion_vectors"] == {"kept": kept, "dropped": 1}  # frame 0: nothing to point into
         client.bye()

@@ -739,7 +739,7 @@ def test_a_camera_cut_with_motion_vectors_resets_and_drops_them_no_smearing():
     assert session.stats["motion_vectors"] == {"kept": 1, "dropped": 4}
 
 
-def test_auto_picks_mvec_with_vectors_and_decomp_without_per_submit():
+def test_auto_picks_mvec_with_vectors_and_flow2d_without_per_submit():
     session = make_session(method="auto")
     depth = frame_arrays()[1]
     step = np.tile(np.array([1.0, 0.0], np.float32), (24, 32, 1))  # the camera's motion, at half resolution
@@ -750,7 +750,7 @@ def test_auto_picks_mvec_with_vectors_and_decomp_without_per_submit():
         out = session.predict(pose(x=CAMERA_STEP * (i + 0.5)), K, (i + 0.5) / 30)
         assert np.all(np.isfinite(out.color))
         methods.append(out.method if out.fallback is None else out.fallback)
-    assert methods == ["history", "mvec", "decomp", "mvec", "mvec"]
+    assert methods == ["history", "mvec", "flow2d", "mvec", "mvec"]
     with pytest.raises(InputError, match="'auto' takes no options"):
         SessionConfig(method="auto[x=1]")
 

@@ -21,16 +21,12 @@ oracle gap the method recovers. Scores are ``interleave eval``'s (sRGB, DeCOMPne
 """
 from __future__ import annotations
 
-import argparse
-import json
-import math
-import statistics
 from pathlib import Path
 
-from engine.eval.protocol import evaluate_sequence, json_safe, summarize
+from engine.eval.protocol import evaluate_sequence
 from engine.io.rgbd import read_sequence
-from engine.predict import split_methods
-from tools.heldout import gap, motion_speed, render_set, speed_set
+from tools.heldout import (bench_parser, cell, median_times, parse_common, render_set, report_speed, set_rows,
+                           speed_set, write_json)
 
 #: set name -> (preset, first seed, median speed range in px per frame at 640 px width); None: fixed seeds
 SETS = {
@@ -53,29 +49,12 @@ def set_sequences(out: Path, name: str, count: int, width: int, height: int, fra
     return speed_set(out, name, preset, first, count, speeds, width, height, frames)
 
 
-def cell(v, digits: int = 2) -> str:
-    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("out/bench_motion"))
-    parser.add_argument("--size", default="640x360")
-    parser.add_argument("--frames", type=int, default=16)
-    parser.add_argument("--k", default="2,4")
-    parser.add_argument("--methods", default="repeat,reproject,flow2d,decomp,oracle")
-    parser.add_argument("--sets", default=",".join(SETS))
+    parser = bench_parser(__doc__, "out/bench_motion", "2,4", "repeat,reproject,flow2d,decomp,oracle", list(SETS))
     parser.add_argument("--count", type=int, default=3, help="sequences per set")
     parser.add_argument("--flip", action="store_true", help="also score FLIP (slower)")
-    parser.add_argument("--max-groups", type=int, default=None)
-    parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
-    ks = [int(v) for v in args.k.split(",")]
-    methods = split_methods(args.methods)
-    for needed in ("oracle", "reproject"):
-        if needed not in methods:
-            methods.insert(0, needed)
+    width, height, ks, methods = parse_common(args)
     rows, speeds, members = [], {}, {}
     for set_name in args.sets.split(","):
         if set_name not in SETS:
@@ -84,25 +63,11 @@ def main(argv=None) -> None:
         members[set_name] = []
         for seq_name, folder in set_sequences(args.out, set_name, args.count, width, height, args.frames):
             seq = read_sequence(folder)
-            speeds[seq_name] = motion_speed(seq)
+            report_speed(set_name, seq_name, seq, speeds)
             members[set_name].append(seq_name)
-            print(f"{set_name}/{seq_name}: moving pixels move a median {speeds[seq_name][0]:.1f} px/frame "
-                  f"(90th percentile {speeds[seq_name][1]:.1f})", flush=True)
             for k in ks:
                 results += evaluate_sequence(seq, methods, k, with_flip=args.flip, max_groups=args.max_groups)
-        summary = summarize(results)
-        for k in ks:
-            base, bound = summary[f"reproject/k={k}"], summary[f"oracle/k={k}"]
-            for method in methods:
-                row = summary.get(f"{method}/k={k}")
-                if row is None:
-                    continue
-                by_sequence = {r.sequence: {"psnr": r.psnr, "psnr_moving": r.psnr_moving, "epe_moving": r.epe_moving}
-                               for r in results if r.method == method and r.k == k}
-                rows.append({"set": set_name, "k": k, "method": method, **{c: row.get(c) for c, _ in COLUMNS},
-                             "gap_whole": gap(row["psnr"], base["psnr"], bound["psnr"]),
-                             "gap_moving": gap(row["psnr_moving"], base["psnr_moving"], bound["psnr_moving"]),
-                             "sequences": by_sequence})
+        rows += set_rows(set_name, results, methods, ks, tuple(c for c, _ in COLUMNS))
     head = ["set", "k", "method", "PSNR", "SSIM", "FLIP", "PSNR mov", "SSIM mov", "FLIP mov", "EPE mov (px)",
             "ms/frame", "x reproject", "gap whole", "gap moving"]
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
@@ -110,13 +75,9 @@ def main(argv=None) -> None:
         values = [cell(r[c], d) for c, d in COLUMNS]
         print(f"| {r['set']} | {r['k']} | {r['method']} | " + " | ".join(values)
               + f" | {cell(100 * r['gap_whole'], 0)}% | {cell(100 * r['gap_moving'], 0)}% |")
-    print("\nmedian ms per frame over all sets and k: " + ", ".join(
-        f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods
-        if any(r["method"] == m for r in rows)))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe({"size": [width, height], "frames": args.frames, "k": ks,
-                                                   "sets": members, "speeds": speeds, "rows": rows}), indent=1))
+    print("\n" + median_times(rows, methods))
+    write_json(args.json, {"size": [width, height], "frames": args.frames, "k": ks, "sets": members,
+                           "speeds": speeds, "rows": rows})
 
 
 if __name__ == "__main__":

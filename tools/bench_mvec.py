@@ -28,18 +28,13 @@ rotating order, repeated ``--repeats`` times; medians per predicted frame and th
 """
 from __future__ import annotations
 
-import argparse
-import json
-import math
 import statistics
 import time
-from pathlib import Path
 
-
-from engine.eval.protocol import evaluate_sequence, evaluation_pairs, json_safe, rendered_history, summarize
+from engine.eval.protocol import evaluate_sequence, evaluation_pairs, rendered_history
 from engine.io.rgbd import read_sequence
-from engine.predict import Target, make_predictor, split_methods
-from tools.heldout import gap, motion_speed, render_set
+from engine.predict import Target, make_predictor
+from tools.heldout import bench_parser, cell, median_times, parse_common, render_set, report_speed, set_rows, write_json
 
 #: set name -> [(sequence name, SceneConfig overrides)]
 SETS = {
@@ -76,52 +71,22 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("out/bench_mvec"))
-    parser.add_argument("--size", default="640x360")
-    parser.add_argument("--frames", type=int, default=16)
-    parser.add_argument("--k", default="2,3,4")
-    parser.add_argument("--methods", default="reproject,decomp,mvec,oracle")
-    parser.add_argument("--sets", default=",".join(SETS))
-    parser.add_argument("--max-groups", type=int, default=None)
+    parser = bench_parser(__doc__, "out/bench_mvec", "2,3,4", "reproject,decomp,mvec,oracle", list(SETS))
     parser.add_argument("--timing-size", default=None, help="e.g. 960x540: add the fair timing at that size")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
-    ks = [int(v) for v in args.k.split(",")]
-    methods = split_methods(args.methods)
-    for needed in ("oracle", "reproject"):
-        if needed not in methods:
-            methods.insert(0, needed)
+    width, height, ks, methods = parse_common(args)
     rows, speeds = [], {}
     for set_name in args.sets.split(","):
         results = []
         for seq_name, overrides in SETS[set_name]:
             seq = read_sequence(render_set(args.out, seq_name, overrides, width, height, args.frames))
-            speeds[seq_name] = motion_speed(seq)
-            print(f"{set_name}/{seq_name}: moving pixels move a median {speeds[seq_name][0]:.1f} px/frame "
-                  f"(90th percentile {speeds[seq_name][1]:.1f})", flush=True)
+            report_speed(set_name, seq_name, seq, speeds)
             run = [m for m in methods if m != "oracle" or seq.objects]  # no objects: the bound is reproject
             for k in ks:
                 results += evaluate_sequence(seq, run, k, with_flip=False, max_groups=args.max_groups)
-        summary = summarize(results)
-        for k in ks:
-            base = summary[f"reproject/k={k}"]
-            bound = summary.get(f"oracle/k={k}", base)
-            for method in methods:
-                row = summary.get(f"{method}/k={k}")
-                if row is None:
-                    continue
-                rows.append({"set": set_name, "k": k, "method": method, "psnr": row["psnr"],
-                             "psnr_moving": row["psnr_moving"], "epe_moving": row["epe_moving"],
-                             "ms_per_frame": row["ms_per_frame"], "time_vs_reproject": row["time_vs_reproject"],
-                             "gap_whole": gap(row["psnr"], base["psnr"], bound["psnr"]),
-                             "gap_moving": gap(row["psnr_moving"], base["psnr_moving"], bound["psnr_moving"]),
-                             "records": [r.__dict__ for r in results if r.method == method and r.k == k]})
-
-    def cell(v, d=2):
-        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{d}f}"
+        rows += set_rows(set_name, results, methods, ks,
+                         ("psnr", "psnr_moving", "epe_moving", "ms_per_frame", "time_vs_reproject"))
 
     print("\n| set | k | method | PSNR | PSNR moving | EPE moving (px) | ms/frame | x reproject | gap whole | "
           "gap moving |\n|---|---|---|---|---|---|---|---|---|---|")
@@ -141,13 +106,9 @@ def main(argv=None) -> None:
                 timing.append({"sequence": seq_name, "size": [tw, th], "k": k, "ms": ms})
                 print(f"  {seq_name} k={k}: " + ", ".join(f"{m} {v:.1f} (x{v / ms['reproject']:.2f})"
                                                         for m, v in ms.items()))
-    print("\nmedian ms per frame over all sets and k: " + ", ".join(
-        f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods
-        if any(r["method"] == m for r in rows)))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe({"size": [width, height], "frames": args.frames, "k": ks,
-                                               "speeds": speeds, "rows": rows, "timing": timing}), indent=1))
+    print("\n" + median_times(rows, methods))
+    write_json(args.json, {"size": [width, height], "frames": args.frames, "k": ks, "speeds": speeds, "rows": rows,
+                           "timing": timing})
 
 
 if __name__ == "__main__":

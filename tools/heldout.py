@@ -7,17 +7,22 @@ width), so a set is as fast as the content it stands for whatever each seed happ
 """
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import shutil
+import statistics
 from pathlib import Path
 
 import numpy as np
 
+from engine.eval.protocol import json_safe, summarize
 from engine.io.rgbd import read_sequence
 from engine.scenegen import generate_sequence
 from engine.scenegen.presets import preset_config
 
-__all__ = ["render_set", "motion_speed", "gap", "speed_set"]
+__all__ = ["render_set", "motion_speed", "gap", "speed_set", "report_speed", "set_rows", "cell", "median_times",
+           "write_json", "bench_parser", "parse_common"]
 
 
 def render_set(out: Path, name: str, overrides: dict, width: int, height: int, frames: int,
@@ -73,3 +78,77 @@ def speed_set(out: Path, name: str, preset: str, first_seed: int, count: int, sp
             return chosen
     raise RuntimeError(f"only {len(chosen)} of {max_tries} seeds of preset '{preset}' move a median within "
                        f"{speed_range} px per frame")
+
+
+def report_speed(set_name: str, seq_name: str, sequence, speeds: dict) -> None:
+    """Measure a sequence's ``motion_speed`` into ``speeds[seq_name]`` and print it."""
+    speeds[seq_name] = motion_speed(sequence)
+    print(f"{set_name}/{seq_name}: moving pixels move a median {speeds[seq_name][0]:.1f} px/frame "
+          f"(90th percentile {speeds[seq_name][1]:.1f})", flush=True)
+
+
+def set_rows(set_name: str, results: list, methods: list[str], ks: list[int], columns: tuple[str, ...]) -> list[dict]:
+    """One row per (k, method) of a set's evaluation ``results``: ``columns`` of the summary (means over the
+    set's sequences), the share of the reproject -> oracle gap recovered (whole frame, moving pixels; the
+    bound is ``reproject`` where ``oracle`` did not run) and the per-sequence ``records``."""
+    summary = summarize(results)
+    rows = []
+    for k in ks:
+        base = summary[f"reproject/k={k}"]
+        bound = summary.get(f"oracle/k={k}", base)
+        for method in methods:
+            row = summary.get(f"{method}/k={k}")
+            if row is None:
+                continue
+            rows.append({"set": set_name, "k": k, "method": method, **{c: row.get(c) for c in columns},
+                         "gap_whole": gap(row["psnr"], base["psnr"], bound["psnr"]),
+                         "gap_moving": gap(row["psnr_moving"], base["psnr_moving"], bound["psnr_moving"]),
+                         "records": [r.__dict__ for r in results if r.method == method and r.k == k]})
+    return rows
+
+
+def cell(value, digits: int = 2) -> str:
+    """A table cell: ``-`` for None or NaN."""
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+
+def median_times(rows: list[dict], methods: list[str]) -> str:
+    """The line of each method's median ms per frame over all rows."""
+    return "median ms per frame over all sets and k: " + ", ".join(
+        f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods
+        if any(r["method"] == m for r in rows))
+
+
+def write_json(path, doc: dict) -> None:
+    """``doc`` as indented JSON at ``path`` (NaN as null; folders made), nothing when ``path`` is None."""
+    if path is None:
+        return
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(json_safe(doc), indent=1))
+
+
+def bench_parser(doc: str, out: str, k: str, methods: str, sets: list[str]) -> argparse.ArgumentParser:
+    """The options the held-out benchmarks share, with their defaults: --out, --size, --frames, --k,
+    --methods, --sets, --max-groups, --json."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path(out))
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--frames", type=int, default=16)
+    parser.add_argument("--k", default=k)
+    parser.add_argument("--methods", default=methods)
+    parser.add_argument("--sets", default=",".join(sets))
+    parser.add_argument("--max-groups", type=int, default=None)
+    parser.add_argument("--json", type=Path, default=None)
+    return parser
+
+
+def parse_common(args) -> tuple[int, int, list[int], list[str]]:
+    """(width, height, ks, methods with reproject and oracle) of ``bench_parser``'s options."""
+    from engine.predict import split_methods
+
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    methods = split_methods(args.methods)
+    for needed in ("oracle", "reproject"):
+        if needed not in methods:
+            methods.insert(0, needed)
+    return width, height, [int(v) for v in args.k.split(",")], methods

@@ -20,7 +20,9 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
 - ``regions``: each changed region of frame n matched whole against the camera-compensated frame n-k
   (masked template matching within 15 % of the width on 2 x 2 block means), DIS around the region's shift
   where that explains the region better than plain DIS by more than 1 level a pixel, then ``trusted``;
-- ``regions_failed``: the same, only in regions where plain DIS's mean error exceeds 8 levels.
+- ``regions_failed``: the same, only in regions where plain DIS's mean error exceeds 8 levels;
+- ``revealed``: ``trusted``, and none where frame n sees at least 1.43x farther than the camera-compensated
+  frame n-k did (surface an object uncovered; a smaller jump can be an object moving away).
 
 Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
 moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
@@ -46,9 +48,12 @@ from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
 from tools.heldout import render_set, speed_set
 
-#: a rule: (estimator, luma_n, target, seen, gate) -> flow u(n -> n-k) (H, W, 2); gate: (H, W) bool, inside
-#: the boxes of decomp's motion gate (engine.predict.decomp.gate) at full resolution
-Rule = Callable[[object, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+#: a rule: (estimator, luma_n, target, seen, context) -> flow u(n -> n-k) (H, W, 2); context: dict with
+#: "gate" (H, W) bool, inside the boxes of decomp's motion gate (engine.predict.decomp.gate) at full
+#: resolution, and "revealed" (H, W) bool, where frame n sees at least 1 / (1 - REVEAL_DROP) times farther
+#: than the camera-compensated frame n-k (outside the warp's holes)
+Rule = Callable[[object, np.ndarray, np.ndarray, np.ndarray, dict], np.ndarray]
+REVEAL_DROP = 0.3
 
 
 def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area: int,
@@ -84,7 +89,7 @@ def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area:
     return flow, labels
 
 
-def regions_rule(estimator, luma_n, target, seen, gate, failed: float = 0.0) -> np.ndarray:
+def regions_rule(estimator, luma_n, target, seen, context, failed: float = 0.0) -> np.ndarray:
     """Region matching where it explains a region better than plain DIS; with ``failed`` > 0 only in regions
     where plain DIS's mean photometric error exceeds ``failed`` levels (DIS lost the motion there)."""
     flow = dis_calc(estimator, luma_n, target)
@@ -108,34 +113,39 @@ def regions_rule(estimator, luma_n, target, seen, gate, failed: float = 0.0) -> 
 
 
 def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
-    def dis(e, ln, t, seen, gate):
+    def dis(e, ln, t, seen, context):
         return dis_calc(e, ln, t)
 
-    def confidence(e, ln, t, seen, gate):
+    def confidence(e, ln, t, seen, context):
         flow = dis_calc(e, ln, t)
         flow[~confident_motion(ln, t, flow, margin)] = 0.0
         return flow
 
-    def seen_only(e, ln, t, seen, gate):
+    def seen_only(e, ln, t, seen, context):
         flow = dis_calc(e, ln, t)
         flow[~seen] = 0.0
         return flow
 
-    def trusted(e, ln, t, seen, gate):
+    def trusted(e, ln, t, seen, context):
         flow = dis_calc(e, ln, t)
         flow[~trusted_motion(ln, t, flow, seen, small)] = 0.0
         return flow
 
-    def gated(e, ln, t, seen, gate):
-        flow = trusted(e, ln, t, seen, gate)
-        flow[~gate] = 0.0
+    def gated(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        flow[~context["gate"]] = 0.0
         return flow
 
-    def regions_where_dis_failed(e, ln, t, seen, gate):
-        return regions_rule(e, ln, t, seen, gate, failed=8.0)
+    def revealed(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        flow[context["revealed"]] = 0.0
+        return flow
+
+    def regions_where_dis_failed(e, ln, t, seen, context):
+        return regions_rule(e, ln, t, seen, context, failed=8.0)
 
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
-            "regions": regions_rule, "regions_failed": regions_where_dis_failed}
+            "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed}
 
 
 class RuleFlow2D(Flow2D):
@@ -158,8 +168,13 @@ class RuleFlow2D(Flow2D):
         for box in gate_boxes(GateConfig(), low_n, low_p, dst.world_to_camera, src.world_to_camera, 1):
             y0, y1, x0, x1 = full_box(box, factor, low_n[1].shape, gate.shape)
             gate[y0:y1, x0:x1] = True
+        _, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics, src.world_to_camera,
+                                                        dst.intrinsics, dst.world_to_camera)
+        inv_n = np.where(np.isfinite(newest.depth), 1.0 / newest.depth, 0.0)
+        inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
+        context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w)}
         with timer("flow"):
-            return Flow2DState(self.rule(self._dis, luma8(newest.color), luma8(warped), seen, gate))
+            return Flow2DState(self.rule(self._dis, luma8(newest.color), luma8(warped), seen, context))
 
 
 def validation_sets(out: Path) -> dict[str, list[Path]]:

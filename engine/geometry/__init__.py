@@ -14,6 +14,7 @@ from engine.geometry.splat import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LO
                                    forward_warp_frame, forward_warp_mpi)
 
 __all__ = ["MAX_PIXEL_COORD", "TINY_DEPTH", "pixel_centers", "project", "relative_transform", "reproject",
-           "seen_before", "unproject", "Mpi", "build_mpi", "composite", "disocclusion_mask", "downsample_factor", "downsample_flow",
+           "seen_before", "unproject", "Mpi", "build_mpi", "composite", "disocclusion_mask", "downsample_factor",
+           "downsample_flow",
            "downsample_frame", "plane_depths", "plane_index", "visibility", "COVERAGE_THRESHOLD",
            "DEFAULT_SHARPNESS", "MIN_LOG_WEIGHT", "SUBPIXEL_SNAP", "forward_warp_frame", "forward_warp_mpi"]

@@ -210,8 +210,9 @@ def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: n
 
     Elsewhere frame n-k never saw the surface (content entering at the border as the camera turns), so the
     camera-compensated frame n-k (whatever the warp put there: a farther surface, or nothing) says nothing
-    about object motion: the motion gate ignores these pixels and the flow predictors give them none. ``depth_n`` (H, W) planar depth,
-    +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5: inside is [0, w) x [0, h)).
+    about object motion: the motion gate ignores these pixels and the flow predictors give them none.
+    ``depth_n`` (H, W) planar depth, +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5:
+    inside is [0, w) x [0, h)).
     """
     uv, _, valid = reproject(depth_n, K_n, T_n, K_prev, T_prev)
     h, w = size_prev

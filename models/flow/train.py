@@ -49,8 +49,8 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import downsample_flow, downsample_frame
 from engine.io.rgbd import read_sequence
-from engine.predict.dis import initial_flow
 from engine.predict.base import true_object_flow
+from engine.predict.dis import initial_flow
 from engine.scenegen import generate_sequence
 from engine.scenegen.presets import PRESETS, preset_config
 from models.flow.losses import FlowLossConfig, flow_loss

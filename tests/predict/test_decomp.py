@@ -6,16 +6,17 @@ from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame
 from engine.eval.metrics import score_frame
-from engine.predict import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompTrueMotion, FlowNetwork, GateConfig,
-                            Reproject, Target, decomp_config, dis_block, dis_flow, dis_target, initial_flow, luma8,
-                            make_predictor, split_methods, warp_error)
-from engine.predict import classic as classic_module
-from engine.predict.decomp import predictor as decomp_module
-from engine.predict.dis import trusted_motion
 from engine.geometry import seen_before
+from engine.predict import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompTrueMotion, FlowNetwork, GateConfig,
+                            Reproject, Target)
+from engine.predict import classic as classic_module
+from engine.predict import (decomp_config, dis_block, dis_flow, dis_target, initial_flow, luma8, make_predictor,
+                            split_methods, warp_error)
+from engine.predict.decomp import predictor as decomp_module
 from engine.predict.decomp.gate import motion_boxes
 from engine.predict.decomp.predictor import full_box, whole_frame_initial_flow
 from engine.predict.decomp.upsample import upsample_blocks, upsample_flow
+from engine.predict.dis import trusted_motion
 from tests.synthetic import rigid, two_layer_sequence
 
 

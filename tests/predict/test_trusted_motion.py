@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
+from engine import geometry
 from engine.core.errors import InputError
 from engine.eval.metrics import score_frame
 from engine.predict import Flow2D, Reproject, Target, make_predictor
-from engine import geometry
 from engine.predict.dis import SMALL_MOTION, confident_motion, trusted_motion
 from tests.synthetic import two_layer_sequence
 
@@ -96,7 +96,8 @@ def test_small_motion_must_explain_frame_n_and_larger_motion_is_kept():
     seen = np.ones(luma.shape, bool)
     half = np.full(luma.shape + (2,), 0.5 * SMALL_MOTION / np.sqrt(2), np.float32)
     assert not trusted_motion(luma, luma, half, seen).any()  # nothing moved: sub-pixel motion is dropped
-    shifted = cv2.warpAffine(luma, np.float32([[1, 0, 0.6], [0, 1, 0]]), luma.shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    shifted = cv2.warpAffine(luma, np.float32([[1, 0, 0.6], [0, 1, 0]]), luma.shape[::-1],
+                             borderMode=cv2.BORDER_REFLECT)
     true = np.zeros(luma.shape + (2,), np.float32)
     true[..., 0] = 0.6
     assert trusted_motion(luma, shifted, true, seen)[16:-16, 16:-16].mean() > 0.95  # ... unless it explains it

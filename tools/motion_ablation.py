@@ -22,7 +22,9 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
   where that explains the region better than plain DIS by more than 1 level a pixel, then ``trusted``;
 - ``regions_failed``: the same, only in regions where plain DIS's mean error exceeds 8 levels;
 - ``revealed``: ``trusted``, and none where frame n sees at least 1.43x farther than the camera-compensated
-  frame n-k did (surface an object uncovered; a smaller jump can be an object moving away).
+  frame n-k did (surface an object uncovered; a smaller jump can be an object moving away);
+- ``regions_arrived``: ``regions``, matching only regions of which at least 30 % is nearer in frame n than in
+  the camera-compensated frame n-k (an object arrived there), not surface an object uncovered.
 
 Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
 moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
@@ -57,7 +59,8 @@ REVEAL_DROP = 0.3
 
 
 def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area: int,
-                  threshold: float = 10.0, scale: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                  threshold: float = 10.0, scale: int = 2, arrived: np.ndarray | None = None,
+                  arrived_share: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
     """(piecewise-constant flow (H, W, 2), region labels (H, W)): each connected region where frame n's luma
     differs from the target's (5 x 5 mean > ``threshold``) takes the shift within +-``radius`` px at which it
     best matches the target as one masked template (squared differences, on ``scale`` x ``scale`` means)."""
@@ -73,8 +76,12 @@ def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area:
     small_labels = labels[scale // 2::scale, scale // 2::scale][:h // scale, :w // scale]
     sh, sw = small_n.shape
     r = max(1, radius // scale)
+    share = None
+    if arrived is not None:  # the share of each region's pixels where frame n sees nearer than frame n-k did
+        share = np.bincount(labels.ravel(), arrived.ravel(), minlength=count) / np.maximum(
+            np.bincount(labels.ravel(), minlength=count), 1)
     for i in range(1, count):
-        if stats[i, cv2.CC_STAT_AREA] < min_area:
+        if stats[i, cv2.CC_STAT_AREA] < min_area or (share is not None and share[i] < arrived_share):
             labels[labels == i] = 0
             continue
         x, y, bw, bh = (int(v) // scale for v in stats[i, :4])
@@ -89,12 +96,13 @@ def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area:
     return flow, labels
 
 
-def regions_rule(estimator, luma_n, target, seen, context, failed: float = 0.0) -> np.ndarray:
+def regions_rule(estimator, luma_n, target, seen, context, failed: float = 0.0, arrived: bool = False) -> np.ndarray:
     """Region matching where it explains a region better than plain DIS; with ``failed`` > 0 only in regions
     where plain DIS's mean photometric error exceeds ``failed`` levels (DIS lost the motion there)."""
     flow = dis_calc(estimator, luma_n, target)
     h, w = luma_n.shape
-    shifts, labels = region_shifts(luma_n, target, max(2, round(0.15 * w)), max(4, round(64 * (w / 640) ** 2)))
+    shifts, labels = region_shifts(luma_n, target, max(2, round(0.15 * w)), max(4, round(64 * (w / 640) ** 2)),
+                                   arrived=context["arrived"] if arrived else None)
     if shifts.any():
         gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
         moved = cv2.remap(target, gx + shifts[..., 0], gy + shifts[..., 1], cv2.INTER_LINEAR,
@@ -144,8 +152,12 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
     def regions_where_dis_failed(e, ln, t, seen, context):
         return regions_rule(e, ln, t, seen, context, failed=8.0)
 
+    def regions_arrived(e, ln, t, seen, context):
+        return regions_rule(e, ln, t, seen, context, arrived=True)
+
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
-            "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed}
+            "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed,
+            "regions_arrived": regions_arrived}
 
 
 class RuleFlow2D(Flow2D):
@@ -172,7 +184,8 @@ class RuleFlow2D(Flow2D):
                                                         dst.intrinsics, dst.world_to_camera)
         inv_n = np.where(np.isfinite(newest.depth), 1.0 / newest.depth, 0.0)
         inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
-        context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w)}
+        context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
+                   "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64)}
         with timer("flow"):
             return Flow2DState(self.rule(self._dis, luma8(newest.color), luma8(warped), seen, context))
 

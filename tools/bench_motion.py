@@ -25,8 +25,8 @@ from pathlib import Path
 
 from engine.eval.protocol import evaluate_sequence
 from engine.io.rgbd import read_sequence
-from tools.heldout import (bench_parser, cell, median_times, parse_common, render_set, report_speed, set_rows,
-                           speed_set, write_json)
+from tools.heldout import (bench_parser, median_times, parse_common, render_set, report_speed, set_rows, speed_set,
+                           table_lines, write_json)
 
 #: set name -> (preset, first seed, median speed range in px per frame at 640 px width); None: fixed seeds
 SETS = {
@@ -71,10 +71,7 @@ def main(argv=None) -> None:
     head = ["set", "k", "method", "PSNR", "SSIM", "FLIP", "PSNR mov", "SSIM mov", "FLIP mov", "EPE mov (px)",
             "ms/frame", "x reproject", "gap whole", "gap moving"]
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
-    for r in rows:
-        values = [cell(r[c], d) for c, d in COLUMNS]
-        print(f"| {r['set']} | {r['k']} | {r['method']} | " + " | ".join(values)
-              + f" | {cell(100 * r['gap_whole'], 0)}% | {cell(100 * r['gap_moving'], 0)}% |")
+    print("\n".join(table_lines(rows, COLUMNS)))
     print("\n" + median_times(rows, methods))
     write_json(args.json, {"size": [width, height], "frames": args.frames, "k": ks, "sets": members,
                            "speeds": speeds, "rows": rows})

@@ -34,7 +34,8 @@ import time
 from engine.eval.protocol import evaluate_sequence, evaluation_pairs, rendered_history
 from engine.io.rgbd import read_sequence
 from engine.predict import Target, make_predictor
-from tools.heldout import bench_parser, cell, median_times, parse_common, render_set, report_speed, set_rows, write_json
+from tools.heldout import (bench_parser, median_times, parse_common, render_set, report_speed, set_rows, table_lines,
+                           write_json)
 
 #: set name -> [(sequence name, SceneConfig overrides)]
 SETS = {
@@ -45,6 +46,10 @@ SETS = {
     "glide": [(f"glide{s}", dict(seed=s, object_travel=3.0, object_speed=2.5, camera_speed=2.0)) for s in (3302, 3303)],
     "camera": [("camera1004", dict(seed=1004, num_objects=(0, 0), fps=10.0, camera_speed=3.0))],
 }
+
+
+#: table columns (summary name, digits)
+COLUMNS = (("psnr", 2), ("psnr_moving", 2), ("epe_moving", 2), ("ms_per_frame", 1), ("time_vs_reproject", 2))
 
 
 def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str, float]:
@@ -85,15 +90,11 @@ def main(argv=None) -> None:
             run = [m for m in methods if m != "oracle" or seq.objects]  # no objects: the bound is reproject
             for k in ks:
                 results += evaluate_sequence(seq, run, k, with_flip=False, max_groups=args.max_groups)
-        rows += set_rows(set_name, results, methods, ks,
-                         ("psnr", "psnr_moving", "epe_moving", "ms_per_frame", "time_vs_reproject"))
+        rows += set_rows(set_name, results, methods, ks, tuple(name for name, _ in COLUMNS))
 
     print("\n| set | k | method | PSNR | PSNR moving | EPE moving (px) | ms/frame | x reproject | gap whole | "
           "gap moving |\n|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['set']} | {r['k']} | {r['method']} | {cell(r['psnr'])} | {cell(r['psnr_moving'])} | "
-              f"{cell(r['epe_moving'])} | {cell(r['ms_per_frame'], 1)} | {cell(r['time_vs_reproject'])} | "
-              f"{cell(100 * r['gap_whole'], 0)}% | {cell(100 * r['gap_moving'], 0)}% |")
+    print("\n".join(table_lines(rows, COLUMNS)))
     timing = []
     if args.timing_size:
         tw, th = (int(v) for v in args.timing_size.lower().split("x"))

@@ -13,7 +13,6 @@ this is the estimate alone.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
@@ -21,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from engine.eval.protocol import json_safe
 from engine.io.rgbd import read_sequence
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
 from engine.predict.dis import luma8
+from tools.heldout import write_json
 
 MEDIUM, FAST = cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, cv2.DISOPTICAL_FLOW_PRESET_FAST
 
@@ -97,10 +96,7 @@ def main(argv=None) -> None:
                "within_3px": float(np.mean(s["within_3px"])), "ms": float(statistics.median(s["ms"]))}
         rows.append(row)
         print(f"| {name} | {row['median_epe']:.2f} | {100 * row['within_3px']:.0f} % | {row['ms']:.1f} |")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe({"sequences": [p.name for p in args.sequences], "k": args.k,
-                                                   "rows": rows}), indent=1))
+    write_json(args.json, {"sequences": [p.name for p in args.sequences], "k": args.k, "rows": rows})
 
 
 if __name__ == "__main__":

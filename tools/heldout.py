@@ -9,19 +9,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shutil
 import statistics
 from pathlib import Path
 
 import numpy as np
 
-from engine.eval.protocol import json_safe, summarize
+from engine.eval.protocol import json_safe, score_cell, summarize
 from engine.io.rgbd import read_sequence
 from engine.scenegen import generate_sequence
 from engine.scenegen.presets import preset_config
 
-__all__ = ["render_set", "motion_speed", "gap", "speed_set", "report_speed", "set_rows", "cell", "median_times",
+__all__ = ["render_set", "motion_speed", "gap", "speed_set", "report_speed", "set_rows", "table_lines", "median_times",
            "write_json", "bench_parser", "parse_common"]
 
 
@@ -107,9 +106,14 @@ def set_rows(set_name: str, results: list, methods: list[str], ks: list[int], co
     return rows
 
 
-def cell(value, digits: int = 2) -> str:
-    """A table cell: ``-`` for None or NaN."""
-    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+def table_lines(rows: list[dict], columns: tuple[tuple[str, int], ...]) -> list[str]:
+    """Markdown rows of ``set_rows``' rows: set, k, method, the (name, digits) ``columns`` and the two gaps."""
+    lines = []
+    for r in rows:
+        values = [score_cell(r[name], digits) for name, digits in columns]
+        lines.append(f"| {r['set']} | {r['k']} | {r['method']} | " + " | ".join(values)
+                     + f" | {score_cell(100 * r['gap_whole'], 0)}% | {score_cell(100 * r['gap_moving'], 0)}% |")
+    return lines
 
 
 def median_times(rows: list[dict], methods: list[str]) -> str:

@@ -32,7 +32,6 @@ moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Callable
 
@@ -40,15 +39,15 @@ import cv2
 import numpy as np
 
 from engine import geometry
-from engine.eval.protocol import evaluate_sequence, json_safe, summarize
+from engine.eval.protocol import evaluate_sequence, summarize
+from engine.geometry.holefill import fill_holes
 from engine.io.rgbd import read_sequence
 from engine.predict import registry
-from engine.predict.base import Target, warp_and_fill
 from engine.predict.classic import Flow2D, Flow2DState
 from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
-from tools.heldout import render_set, speed_set
+from tools.heldout import render_set, speed_set, write_json
 
 #: a rule: (estimator, luma_n, target, seen, context) -> flow u(n -> n-k) (H, W, 2); context: dict with
 #: "gate" (H, W) bool, inside the boxes of decomp's motion gate (engine.predict.decomp.gate) at full
@@ -169,8 +168,11 @@ class RuleFlow2D(Flow2D):
 
     def _prepare(self, state, timer):
         older, newest = state.history[-2], state.history[-1]
-        warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
         src, dst = older.camera, newest.camera
+        # frame n-k in frame n's view, holes filled: what warp_and_fill gives, with the warp's depth kept
+        color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
+                                                              src.world_to_camera, dst.intrinsics, dst.world_to_camera)
+        warped, _ = fill_holes(color_w, depth_w, holes, older.color)
         seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                     src.world_to_camera, older.depth.shape)
         factor = geometry.downsample_factor(newest.depth.shape[1], 480)
@@ -180,8 +182,6 @@ class RuleFlow2D(Flow2D):
         for box in gate_boxes(GateConfig(), low_n, low_p, dst.world_to_camera, src.world_to_camera, 1):
             y0, y1, x0, x1 = full_box(box, factor, low_n[1].shape, gate.shape)
             gate[y0:y1, x0:x1] = True
-        _, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics, src.world_to_camera,
-                                                        dst.intrinsics, dst.world_to_camera)
         inv_n = np.where(np.isfinite(newest.depth), 1.0 / newest.depth, 0.0)
         inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
@@ -213,8 +213,8 @@ def main(argv=None) -> None:
         if v not in available:
             parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
         registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule)
-    rows = []
-    for set_name, paths in validation_sets(args.out).items():
+    rows, sets = [], validation_sets(args.out)
+    for set_name, paths in sets.items():
         sequences = [read_sequence(p) for p in paths]
         for k in (int(v) for v in args.k.split(",")):
             results = []
@@ -231,12 +231,8 @@ def main(argv=None) -> None:
                 print(f"{set_name:8s} k={k} {v:11s} PSNR {row['psnr']:.2f}  moving {row['psnr_moving']:.2f}  "
                       f"EPE {row['epe_moving']:.2f}   (reproject {base['psnr']:.2f} / {base['psnr_moving']:.2f})",
                       flush=True)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe({"sets": {s: [p.name for p in ps] for s, ps in
-                                                             validation_sets(args.out).items()},
-                                                   "margin": args.margin, "small": args.small, "rows": rows}),
-                                        indent=1))
+    write_json(args.json, {"sets": {s: [p.name for p in ps] for s, ps in sets.items()}, "margin": args.margin,
+                           "small": args.small, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -87,7 +87,7 @@ def side_by_side(truth: np.ndarray, shown: np.ndarray, predicted: bool, index: i
 
 def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, width: int = 640,
              height: int = 360, methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp", "mvec", "oracle"),
-             progress: bool = True) -> dict:
+             progress: bool = True, backend: str = "auto") -> dict:
     """Render the built-in scene into ``out_dir/scene``, evaluate ``methods``, write video and reports.
 
     Returns the evaluation summary; prints the table.
@@ -98,16 +98,17 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
     scene_dir = generate_sequence(SceneConfig(width=width, height=height, num_frames=frames, seed=seed),
                                   out_dir / "scene", progress=progress)
     return report_sequence(read_sequence(scene_dir), out_dir, k=k, methods=methods, progress=progress,
-                           command=f"interleave demo --k {k} --seed {seed}")
+                           command=f"interleave demo --k {k} --seed {seed} --backend {backend}", backend=backend)
 
 
 def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], progress: bool = True,
-                    command: str = "interleave demo", extra: Optional[dict] = None, note: str = "") -> dict:
+                    command: str = "interleave demo", extra: Optional[dict] = None, note: str = "",
+                    backend: str = "auto") -> dict:
     """Evaluate ``methods`` on a loaded sequence and write the demo's outputs into ``out_dir``: ``table.md``
     (with ``note`` under it), ``results.json`` (with ``extra``), ``speed_vs_error.png``, ``side_by_side.mp4``
     (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table."""
 
-    results = evaluate_sequence(sequence, list(methods), k, progress=progress)
+    results = evaluate_sequence(sequence, list(methods), k, progress=progress, backend=backend)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
     if note:
         table += "\n\n" + note
@@ -118,7 +119,7 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
 
     candidates = [r for r in results if r.method != "oracle"] or list(results)
     best = max(candidates, key=lambda r: r.psnr).method
-    predictor = make_predictor(best, sequence.objects)
+    predictor = make_predictor(best, sequence.objects, backend=backend)
     writer = cv2.VideoWriter(str(out_dir / "side_by_side.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
                              float(sequence.fps), (3 * sequence.width, sequence.height))
     stills = 0
@@ -188,7 +189,7 @@ def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] =
 def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 48, width: Optional[int] = 640,
                    height: Optional[int] = 360, fps: float = 30.0,
                    methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp"), quantized: bool = False,
-                   orbit_degrees: float = 90.0, progress: bool = True) -> dict:
+                   orbit_degrees: float = 90.0, progress: bool = True, backend: str = "auto") -> dict:
     """The frame-upsampling demo with a trained field as the renderer.
 
     The field (``engine.fields.gl.GlFieldRenderer``) renders colour and planar depth along
@@ -221,4 +222,5 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                        "kind": assets.scene["kind"], "render_ms_per_frame": render_ms, "width": width,
                        "height": height, "quantized": quantized}}
     return report_sequence(read_sequence(seq_dir), out_dir, k=k, methods=methods, progress=progress,
-                           command=f"interleave demo --field {field_dir} --k {k}", extra=extra, note=note)
+                           command=f"interleave demo --field {field_dir} --k {k} --backend {backend}", extra=extra,
+                           note=note, backend=backend)

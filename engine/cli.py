@@ -19,16 +19,20 @@ from typing import Optional, Sequence
 
 from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError, InterleaveError
+from engine.geometry.backends import BACKEND_CHOICES
 
 METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproject (camera-only depth "
                "reprojection, background hole fill), flow2d (camera warp + OpenCV DIS optical flow, linear "
                "extrapolation), decomp (DeCOMPnet: 3D object flow on MPIs, ONNX network), decomp2d (its 2D "
                "ablation network), mvec (the renderer's motion vectors, motion.X/Y, extrapolated in 3D; "
                "mvec[undilate=true] for dilated vectors), auto (mvec where a sequence has motion vectors, else "
-               "decomp), oracle (true object motion; needs object_id and objects). decomp and "
+               "flow2d), oracle (true object motion; needs object_id and objects). decomp and "
                "decomp2d take options in brackets, e.g. decomp[gate.enabled=false,flow_width=240] "
                "(engine/predict/decomp/predictor.py); a name "
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
+
+BACKEND_HELP = ("where the warps run: cpu (numpy + numba), gl (OpenGL 4.5 compute, frames kept on the GPU; "
+                "decomp stays on the CPU) or auto (gl on a hardware GPU, else cpu) (default: auto)")
 
 #: The torch-side entry points that ``train`` and ``export`` dispatch to: each module's ``main(argv, prog)``.
 #: Imported only when asked for, so every other command runs without torch.
@@ -69,6 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--width", type=int, default=640, help="frame width in pixels (default: 640)")
     demo.add_argument("--height", type=int, default=360, help="frame height in pixels (default: 360)")
     demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,mvec,oracle", help=METHOD_HELP)
+    demo.add_argument("--backend", choices=BACKEND_CHOICES, default="auto", help=BACKEND_HELP)
     demo.add_argument("--field", type=Path, default=None, metavar="RUN_OR_EXPORT_DIR",
                       help="render a trained radiance field (the folder 'interleave export field' wrote, or its run "
                            "folder) with the GL field renderer along a camera path through its scene instead of the "
@@ -84,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("sequences", nargs="+", type=Path, metavar="SEQ_DIR", help="rgbd-seq folders")
     ev.add_argument("--k", type=_int_list, default=[2], help="upsampling factor(s), comma-separated (default: 2)")
     ev.add_argument("--methods", default="repeat,reproject,flow2d,decomp,mvec,oracle", help=METHOD_HELP)
+    ev.add_argument("--backend", choices=BACKEND_CHOICES, default="auto", help=BACKEND_HELP)
     ev.add_argument("--json", type=Path, default=None, help="write records and summary to this JSON file")
     ev.add_argument("--plot", type=Path, default=None, help="write the time-against-error plot to this PNG")
     ev.add_argument("--no-flip", action="store_true", help="skip FLIP (about 0.4 s per 960x540 frame)")
@@ -161,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--models", type=Path, default=None,
                     help="folder of the networks decomp sessions use (flow3d.onnx, flow2d.onnx, infill.onnx; "
                          "default: the committed engine/weights); clients cannot name files")
+    sv.add_argument("--backend", choices=BACKEND_CHOICES, default="auto", help=BACKEND_HELP)
     from engine.runtime.server import ServerLimits
 
     add_options(sv, ServerLimits)
@@ -202,12 +209,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             from demos.upsample import run_field_demo
 
             run_field_demo(args.field, args.out, k=args.k, frames=args.frames, width=args.width, height=args.height,
-                           methods=_methods(args.methods))
+                           methods=_methods(args.methods), backend=args.backend)
         elif args.command == "demo":
             from demos.upsample import run_demo
 
             run_demo(args.out, k=args.k, seed=args.seed, frames=args.frames, width=args.width, height=args.height,
-                     methods=_methods(args.methods))
+                     methods=_methods(args.methods), backend=args.backend)
         elif args.command == "eval":
             return _run_eval(args)
         elif args.command == "render-scene":
@@ -245,7 +252,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif args.command == "serve":
             from engine.runtime.server import ServerLimits, parse_address, serve
 
-            serve(parse_address(args.listen), config_from_args(ServerLimits, args), args.models)
+            serve(parse_address(args.listen), config_from_args(ServerLimits, args), args.models, backend=args.backend)
     except InterleaveError as exc:
         print(f"interleave {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -301,7 +308,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     for sequence in sequences:
         for k in args.k:
             results.extend(evaluate_sequence(sequence, methods, k, with_flip=not args.no_flip,
-                                             max_groups=args.max_groups, progress=True))
+                                             max_groups=args.max_groups, progress=True, backend=args.backend))
     if bounds is None:
         print(markdown_table(results))
     else:

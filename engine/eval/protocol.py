@@ -56,6 +56,11 @@ class MethodResult(Scores):
     #: PSNR (dB) over the cropped hole pixels, mean over the frames that have some (NaN: none had any;
     #: +inf: every hole pixel exact, as in ``+true_holes`` rows)
     psnr_holes: float = float("nan")
+    #: where the method's warps ran (``cpu`` or ``gl``: engine.geometry.backends)
+    backend: str = "cpu"
+    #: median GPU milliseconds per predicted frame of each stage the ``gl`` backend timed (``prepare:`` stages
+    #: divided by the k-1 frames they serve, as in ``stages_ms``); empty on ``cpu``
+    gpu_ms: dict[str, float] = field(default_factory=dict)
 
 
 def _mean(values: Iterable[float]) -> float:
@@ -145,11 +150,13 @@ def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, t
 
 
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
-                      max_groups: Optional[int] = None, progress: bool = False) -> list[MethodResult]:
+                      max_groups: Optional[int] = None, progress: bool = False,
+                      backend: str = "auto") -> list[MethodResult]:
     """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
 
     ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence). Methods
     that differ only by the ``TRUE_HOLES`` suffix share one predictor, its predictions and its times.
+    ``backend`` is where the methods' warps run (``engine.predict.use_backend``).
     """
 
     groups = evaluation_pairs(len(sequence), k)
@@ -164,7 +171,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     predictors = {}
     for name in dict.fromkeys(sources.values()):
         try:
-            predictors[name] = make_predictor(name, sequence.objects)
+            predictors[name] = make_predictor(name, sequence.objects, backend=backend)
         except InputError as exc:  # name the sequence (e.g. motion=truth on a sequence without objects)
             if exc.file is not None:
                 raise
@@ -180,6 +187,7 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
     scores: dict[str, list] = {m: [] for m in methods}
     times: dict[str, list[float]] = {p: [] for p in predictors}
     stages: dict[str, list[dict[str, float]]] = {p: [] for p in predictors}
+    gpu: dict[str, list[dict[str, float]]] = {p: [] for p in predictors}
     epes: dict[str, list[float]] = {p: [] for p in predictors}
     with tqdm(total=len(groups) * (k - 1) * len(methods), desc=f"{Path(str(sequence.path)).name} k={k}",
               disable=not progress, unit="frame") as bar:  # closed (its line ended) on an error too
@@ -204,6 +212,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
                         per_frame[f"prepare:{s}"] = v / (k - 1)
                     times[name].append(render_ms + prep_ms / (k - 1))
                     stages[name].append(per_frame)
+                    gpu[name].append({**pred.gpu_ms,
+                                      **{f"prepare:{s}": v / (k - 1) for s, v in state.gpu_ms.items()}})
                     for method in (m for m in methods if sources[m] == name):
                         color = pred.color
                         if split_scoring(method)[1]:
@@ -229,7 +239,9 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
             stages_ms={s: float(statistics.median(d.get(s, 0.0) for d in stages[source])) for s in stage_names},
             per_step=per_step, epe_moving=_mean(epes[source]),
             hole_fraction=_mean(h[0] for _, _, h in scores[name]),
-            psnr_holes=_mean(h[1] for _, _, h in scores[name])))
+            psnr_holes=_mean(h[1] for _, _, h in scores[name]), backend=predictors[source].backend,
+            gpu_ms={s: float(statistics.median(d.get(s, 0.0) for d in gpu[source]))
+                    for s in sorted({s for d in gpu[source] for s in d})}))
     return results
 
 
@@ -299,18 +311,23 @@ def markdown_table(results: Sequence[MethodResult]) -> str:
 
 
 def stage_table(results: Sequence[MethodResult]) -> str:
-    """Median milliseconds per predicted frame of each stage, per (method, k), medians over sequences.
+    """Median milliseconds per predicted frame of each stage, per (method, k), medians over sequences: wall
+    time, then (for methods on the ``gl`` backend) ``gpu total``, the GPU time its GL timer queries measured.
 
     ``prepare:`` stages run once per rendered frame and are shown divided by the k-1 frames they serve.
     """
     keys = list(dict.fromkeys((r.method, r.k) for r in results))
     stages = sorted({s for r in results for s in r.stages_ms})
-    lines = ["| method | k | " + " | ".join(stages) + " | total |", "|---|---|" + "---|" * (len(stages) + 1)]
+    gpu = any(r.gpu_ms for r in results)
+    head = ["method", "k", "backend"] + stages + ["total"] + (["gpu total"] if gpu else [])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method, k in keys:
         rows = [r for r in results if r.method == method and r.k == k]
         cells = [f"{statistics.median(r.stages_ms.get(s, 0.0) for r in rows):.1f}" for s in stages]
-        total = statistics.median(r.ms_per_frame for r in rows)
-        lines.append(f"| {method} | {k} | " + " | ".join(cells) + f" | {total:.1f} |")
+        cells.append(f"{statistics.median(r.ms_per_frame for r in rows):.1f}")
+        if gpu:
+            cells.append(f"{statistics.median(sum(r.gpu_ms.values()) for r in rows):.2f}" if rows[0].gpu_ms else "-")
+        lines.append(f"| {method} | {k} | {rows[0].backend} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -4,7 +4,8 @@
 uses); ``tests/geometry`` checks these against it. Conventions: ``engine/core/frames.py`` (OpenCV axes,
 pixel centres at +0.5, planar depth with +inf sky, linear RGB); design note: ``docs/geometry.md``.
 Modules: ``camera`` (unproject, project, reproject), ``mpi`` (build, downsample, composite), ``splat``
-(forward warp), ``holefill``, ``kernels`` (numba), ``glsplat`` (moderngl), ``reference`` (numpy oracles).
+(forward warp), ``holefill``, ``kernels`` (numba), ``reference`` (numpy oracles); ``backends.gl`` runs the
+warp and the hole fill as OpenGL compute passes, held to these.
 """
 from engine.geometry.camera import (MAX_PIXEL_COORD, TINY_DEPTH, pixel_centers, project, relative_transform, reproject,
                                     seen_before, unproject)

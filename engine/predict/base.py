@@ -26,7 +26,7 @@ from engine.core.frames import Camera, Frame, rigid_inverse
 from engine.geometry.holefill import fill_holes
 
 __all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
-           "true_object_flow"]
+           "true_object_flow", "ResidentFrame", "CpuFrames"]
 
 
 @dataclass(frozen=True)
@@ -40,11 +40,13 @@ class Target:
 
 @dataclass
 class Prediction:
-    """A predicted frame: colour (H, W, 3) linear RGB, the holes the method had to fill, stage timings."""
+    """A predicted frame: colour (H, W, 3) linear RGB, the holes the method had to fill, stage timings (wall
+    milliseconds; ``gpu_ms``: GPU milliseconds of the stages the ``gl`` backend timed with GL queries)."""
 
     color: np.ndarray
     holes: np.ndarray
     stages_ms: dict[str, float] = field(default_factory=dict)
+    gpu_ms: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -56,14 +58,17 @@ class PreparedState:
     history: Sequence[Frame]
     data: Any = None
     stages_ms: dict[str, float] = field(default_factory=dict)
+    gpu_ms: dict[str, float] = field(default_factory=dict)
 
 
 class Timer:
     """Collects wall-clock milliseconds of named stages: ``with timer("stage"): ...`` adds the block's time
-    to ``into["stage"]`` (a stage entered several times accumulates)."""
+    to ``into["stage"]`` (a stage entered several times accumulates). ``gpu`` collects GPU milliseconds,
+    written by the ``gl`` backend."""
 
-    def __init__(self, into: Optional[dict[str, float]] = None) -> None:
+    def __init__(self, into: Optional[dict[str, float]] = None, gpu: Optional[dict[str, float]] = None) -> None:
         self.into = {} if into is None else into
+        self.gpu = {} if gpu is None else gpu
 
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
@@ -82,6 +87,14 @@ class Predictor:
     history_needed = 1
     #: rendered frames the method uses when they exist (0: ``history_needed``); the loop keeps this many
     history_wanted = 0
+    #: the backends the method runs on (``engine.geometry.backends``); ``frames`` is where its warps run
+    backends: tuple[str, ...] = ("cpu",)
+    frames: "CpuFrames"
+
+    @property
+    def backend(self) -> str:
+        """The backend this predictor runs on (``cpu`` or ``gl``)."""
+        return self.frames.name
 
     def prepare(self, history: Sequence[Frame]) -> PreparedState:
         if len(history) < self.history_needed:
@@ -96,19 +109,21 @@ class Predictor:
             raise InputError(f"frames must be in time order: frame {history[-2].index} at t={history[-2].time} "
                              f"is not before frame {newest.index} at t={newest.time}", field="history")
         state = PreparedState(history=history)
-        state.data = self._prepare(state, Timer(state.stages_ms))
+        state.data = self._prepare(state, Timer(state.stages_ms, state.gpu_ms))
         return state
 
     def render(self, state: PreparedState, target: Target) -> Prediction:
         stages: dict[str, float] = {}
-        color, holes = self._render(state, target, Timer(stages))
-        return Prediction(color=color, holes=holes, stages_ms=stages)
+        gpu: dict[str, float] = {}
+        color, holes = self._render(state, target, Timer(stages, gpu))
+        return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu)
 
     def predict(self, history: Sequence[Frame], target: Target) -> Prediction:
         """Prepare and render in one call (stage timings include the preparation)."""
         state = self.prepare(history)
         out = self.render(state, target)
         out.stages_ms = {**state.stages_ms, **out.stages_ms}
+        out.gpu_ms = {**state.gpu_ms, **out.gpu_ms}
         return out
 
     def _prepare(self, state: PreparedState, timer: Timer) -> Any:
@@ -117,6 +132,33 @@ class Predictor:
 
     def _render(self, state: PreparedState, target: Target, timer: Timer) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
+
+
+@dataclass(eq=False)
+class ResidentFrame:
+    """A rendered frame where its backend computes: ``image`` is its GPU copy on ``gl`` (None on ``cpu``)."""
+
+    frame: Frame
+    image: Any = None
+
+
+class CpuFrames:
+    """The CPU backend: numpy + numba (``engine.geometry``), the oracle of ``GlFrames``."""
+
+    name = "cpu"
+
+    def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
+        return ResidentFrame(frame)
+
+    def resident_flow(self, flow: np.ndarray, timer: Timer) -> np.ndarray:
+        return flow
+
+    def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
+                      flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow`` (stages ``warp``, ``fill``)."""
+        if flow is not None and flow_scale != 1.0:
+            flow = flow_scale * flow
+        return warp_and_fill(source.frame, target, timer, flow)
 
 
 def warp_and_fill(frame: Frame, target: Target, timer: Timer,
@@ -170,3 +212,6 @@ def true_object_flow(frame: Frame, objects: dict, target_index: int) -> np.ndarr
         d = np.where(valid[:, None], np.concatenate([uv - pix, (z - frame.depth[mask])[:, None]], axis=1), 0.0)
         flow[mask] = d
     return flow
+
+
+Predictor.frames = CpuFrames()  # the default backend of every predictor (stateless, shared)

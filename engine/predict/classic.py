@@ -3,14 +3,14 @@ and ``oracle`` (true object motion, the upper bound). Conventions: ``engine/pred
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from engine import geometry
 from engine.core.frames import SceneObject
-from engine.predict.base import (Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow,
-                                 warp_and_fill)
+from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
+                                 true_object_flow)
 from engine.predict.dis import dis_calc, dis_estimator, luma8, trusted_motion
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle"]
@@ -30,16 +30,23 @@ class Reproject(Predictor):
     """Camera-only depth reprojection of the last frame (timewarp), with the background-biased hole fill."""
 
     name = "reproject"
+    backends = ("cpu", "gl")
+
+    def _prepare(self, state: PreparedState, timer: Timer) -> ResidentFrame:
+        return self.frames.resident(state.history[-1], timer)
 
     def _render(self, state, target, timer):
-        return warp_and_fill(state.history[-1], target, timer)
+        return self.frames.warp_and_fill(state.data, target, timer)
 
 
 @dataclass
 class Flow2DState:
-    """``flow2d``'s per-frame state: ``flow_back`` (H, W, 2), the estimated u(n -> n-k) in pixels."""
+    """``flow2d``'s per-frame state: ``flow_back`` (H, W, 2), the estimated u(n -> n-k) in pixels; ``frame``
+    and ``flow`` are frame n and that flow where the backend computes (on ``gl``: uploaded once)."""
 
     flow_back: np.ndarray
+    frame: ResidentFrame
+    flow: Any
 
 
 class Flow2D(Predictor):
@@ -55,13 +62,15 @@ class Flow2D(Predictor):
 
     name = "flow2d"
     history_needed = 2
+    backends = ("cpu", "gl")
 
     def __init__(self, preset: str = "medium") -> None:
         self._dis = dis_estimator(preset)
 
     def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:
         older, newest = state.history[-2], state.history[-1]
-        warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), timer)
+        warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer),
+                                              Target(newest.camera, newest.time, newest.index), timer)
         luma_n, luma_w = luma8(newest.color), luma8(warped)
         with timer("flow"):
             flow = dis_calc(self._dis, luma_n, luma_w)
@@ -70,15 +79,15 @@ class Flow2D(Predictor):
             seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                         src.world_to_camera, older.depth.shape)
             flow[~trusted_motion(luma_n, luma_w, flow, seen)] = 0.0
-        return Flow2DState(flow)
+        return Flow2DState(flow, self.frames.resident(newest, timer), self.frames.resident_flow(flow, timer))
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""
         return state.data.flow_back
 
     def _render(self, state, target, timer):
-        flow = -extrapolation_factor(state, target) * state.data.flow_back
-        return warp_and_fill(state.history[-1], target, timer, flow)
+        return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.flow,
+                                         -extrapolation_factor(state, target))
 
 
 class Oracle(Predictor):
@@ -89,12 +98,15 @@ class Oracle(Predictor):
     """
 
     name = "oracle"
+    backends = ("cpu", "gl")
 
     def __init__(self, objects: Sequence[SceneObject]) -> None:
         self.objects = {o.id: o for o in objects}
 
+    def _prepare(self, state: PreparedState, timer: Timer) -> ResidentFrame:
+        return self.frames.resident(state.history[-1], timer)
+
     def _render(self, state, target, timer):
-        frame = state.history[-1]
         with timer("motion"):
-            flow = true_object_flow(frame, self.objects, target.index)
-        return warp_and_fill(frame, target, timer, flow)
+            flow = true_object_flow(state.history[-1], self.objects, target.index)
+        return self.frames.warp_and_fill(state.data, target, timer, flow)

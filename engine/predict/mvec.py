@@ -34,7 +34,7 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
-from engine.predict.base import Predictor, PreparedState, Timer, extrapolation_factor, warp_and_fill
+from engine.predict.base import Predictor, PreparedState, ResidentFrame, Timer, extrapolation_factor
 
 __all__ = ["MvecConfig", "MvecState", "Mvec"]
 
@@ -72,6 +72,7 @@ class MvecState:
     velocity: np.ndarray
     moving: np.ndarray
     acceleration: Optional[np.ndarray] = None
+    frame: Optional[ResidentFrame] = None
 
 
 class Mvec(Predictor):
@@ -79,6 +80,7 @@ class Mvec(Predictor):
 
     name = "mvec"
     history_needed = 2
+    backends = ("cpu", "gl")
     history_wanted = 3  # frame n-2k, when there, gives the change of velocity
 
     def __init__(self, config: Optional[MvecConfig] = None) -> None:
@@ -119,7 +121,7 @@ class Mvec(Predictor):
         with timer("velocity"):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
-        state_data = MvecState(velocity, moving)
+        state_data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
         if self.config.acceleration and moving.size and len(state.history) >= 3:
             with timer("acceleration"):
                 state_data.acceleration = self._acceleration(state.history[-3:], vectors, state_data)
@@ -150,7 +152,7 @@ class Mvec(Predictor):
     def _render(self, state, target, timer):
         newest = state.history[-1]
         if not state.data.moving.size:
-            return warp_and_fill(newest, target, timer)
+            return self.frames.warp_and_fill(state.data.frame, target, timer)
         with timer("motion"):
             # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch)
             buffer = self._flow.get(newest.depth.shape)
@@ -160,7 +162,7 @@ class Mvec(Predictor):
                                      extrapolation_factor(state, target), state.data.moving,
                                      state.data.acceleration, out=buffer)
         try:
-            return warp_and_fill(newest, target, timer, flow)
+            return self.frames.warp_and_fill(state.data.frame, target, timer, flow)
         finally:
             flow.reshape(-1, 3)[state.data.moving] = 0.0  # zero again for the next render
 

@@ -10,19 +10,22 @@ to 0.05 dB on every held-out set at 2-2.5x its time: docs/results/2026-11-25-fas
 """
 from __future__ import annotations
 
+import threading
 from typing import Callable, Sequence
 
 from engine.core.config import config_from_text
 from engine.core.errors import InputError
 from engine.core.frames import SceneObject
-from engine.predict.base import Predictor
+from engine.geometry.backends import resolve_backend
+from engine.predict.backend import GlFrames
+from engine.predict.base import CpuFrames, Predictor
 from engine.predict.classic import Flow2D, Oracle, Repeat, Reproject
 from engine.predict.decomp.network import DEFAULT_MODEL
 from engine.predict.decomp.predictor import DecompConfig, DecompPredictor, DecompTrueMotion
 from engine.predict.mvec import Mvec, MvecConfig
 
 __all__ = ["AUTO", "resolve_auto", "METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp",
-           "split_methods", "make_predictor",
+           "split_methods", "make_predictor", "use_backend",
            "option_parts", "method_parts", "method_with"]
 
 #: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.
@@ -116,13 +119,35 @@ def split_methods(text: str) -> list[str]:
     return [m for m in out if m]
 
 
-def make_predictor(name: str, objects: Sequence[SceneObject] = ()) -> Predictor:
+def make_predictor(name: str, objects: Sequence[SceneObject] = (), backend: str = "auto") -> Predictor:
     """Build a predictor by name (see ``METHODS``); unknown names raise InputError listing the known ones.
 
     ``decomp`` and ``decomp2d`` take options of ``engine.predict.decomp.predictor.DecompConfig`` and
     ``motion=truth`` in brackets, e.g. ``decomp[flow_width=240,gate.tile=16]``; ``flow2d`` its DIS preset,
-    ``flow2d[preset=fast]``.
+    ``flow2d[preset=fast]``. ``backend`` (``auto``, ``cpu``, ``gl``: :func:`use_backend`) is where its warps run.
     """
+    return use_backend(_make_predictor(name, objects), backend)
+
+
+_GL_FRAMES: list = []
+_GL_LOCK = threading.Lock()
+
+
+def use_backend(predictor: Predictor, backend: str = "auto") -> Predictor:
+    """Run ``predictor``'s warps on ``backend`` (``engine.geometry.backends.resolve_backend``: ``auto`` is
+    ``gl`` on a hardware GL context, else ``cpu``); a method without GL passes (``predictor.backends``: decomp,
+    decomp2d, repeat) stays on ``cpu``. The ``gl`` predictors of a process share one ``GlFrames``."""
+    if resolve_backend(backend) == "gl" and "gl" in predictor.backends:
+        with _GL_LOCK:
+            if not _GL_FRAMES:
+                _GL_FRAMES.append(GlFrames())
+        predictor.frames = _GL_FRAMES[0]
+    else:
+        predictor.frames = CpuFrames()
+    return predictor
+
+
+def _make_predictor(name: str, objects: Sequence[SceneObject]) -> Predictor:
     base, _, rest = name.partition("[")
     if base == AUTO:
         raise InputError("method 'auto' is chosen per stream: resolve it with resolve_auto (mvec with motion "

@@ -38,6 +38,7 @@ import numpy as np
 
 from engine.core.config import option, parse_value
 from engine.core.errors import InputError, InterleaveError
+from engine.geometry.backends import resolve_backend
 from engine.predict.registry import DECOMP_WEIGHTS, make_predictor, method_parts, method_with
 from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, MotionPlane, Status
@@ -384,7 +385,8 @@ class _Connection:
         if plane is not None:
             config.motion_conventions()  # an engine without defaults (OpenGL) must state them now
         models = self.server.models
-        session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)))
+        session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)),
+                          backend=self.server.backend)
         self._replace_segment(_Segment(config, channels, width, height, plane))
         self.session = session
         self.column_major = bool(flags & wire.FLAG_COLUMN_MAJOR)
@@ -491,9 +493,10 @@ class Server:
     """
 
     def __init__(self, address: Address, limits: ServerLimits = ServerLimits(),
-                 models: Optional[Path] = None) -> None:
+                 models: Optional[Path] = None, backend: str = "auto") -> None:
         self.limits = limits
         self.models = None if models is None else check_models_dir(models)
+        self.backend = resolve_backend(backend)  # before listening: 'gl' without a GL context fails here
         if isinstance(address, tuple):
             host, port = address
             if host not in ("127.0.0.1", "localhost"):
@@ -640,11 +643,12 @@ def _announce(text: str) -> None:
 
 
 def serve(address: Address, limits: ServerLimits = ServerLimits(), models: Optional[Path] = None, *,
-          announce: Callable[[str], None] = _announce) -> None:
+          announce: Callable[[str], None] = _announce, backend: str = "auto") -> None:
     """Run a server until SIGINT or SIGTERM; prints ``listening on <address>`` once it accepts connections.
-    ``models``: the folder of the DeCOMPnet networks its sessions use (default: ``engine/weights``)."""
+    ``models``: the folder of the DeCOMPnet networks its sessions use (default: ``engine/weights``);
+    ``backend``: where its sessions' warps run (``engine.geometry.backends.resolve_backend``)."""
     try:
-        server = Server(address, limits, models)
+        server = Server(address, limits, models, backend)
     except OSError as exc:
         raise InterleaveError(f"cannot listen on {format_address(address)}: {exc}") from None
     previous = {sig: signal.signal(sig, lambda *_: server.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -112,7 +112,8 @@ from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
                                 validate_pose)
-from engine.predict import Predictor, Repeat, Target, make_predictor
+from engine.geometry.backends import resolve_backend
+from engine.predict import Predictor, Repeat, Target, make_predictor, use_backend
 from engine.predict.registry import AUTO, resolve_auto
 from engine.runtime.motion import ENGINE_MOTION, MOTION_MISSING, MotionConventions, engine_vectors, with_camera_motion
 from engine.runtime.stream import PredictionLoop
@@ -419,12 +420,18 @@ class Session:
         make_method: how a method name becomes a predictor (default :func:`engine.predict.make_predictor`;
             the server passes one that adds its own network files). ``"auto"`` makes both of its methods
             here, so a bad name fails now, not at a later submit.
+        backend: where the predictors' warps run: ``auto`` (``gl`` on a hardware OpenGL context, else
+            ``cpu``), ``cpu`` or ``gl`` (``engine.predict.use_backend``; decomp stays on the CPU).
     """
 
     def __init__(self, config: Optional[SessionConfig] = None, *,
-                 make_method: Optional[Callable[[str], Predictor]] = None) -> None:
+                 make_method: Optional[Callable[[str], Predictor]] = None, backend: str = "auto") -> None:
         self.config = config or SessionConfig()
-        make = make_predictor if make_method is None else make_method
+        chosen = resolve_backend(backend)
+
+        def make(name: str) -> Predictor:
+            return use_backend((make_predictor if make_method is None else make_method)(name), chosen)
+
         if self.config.method.strip() == AUTO:
             # predictor for frames with (True) and without (False) motion vectors
             self._auto: Optional[dict[bool, Predictor]] = {

@@ -52,6 +52,23 @@ def test_eval_writes_json_and_plot(tmp_path, capsys):
     assert "| seq | 2 | reproject |" in printed and "reproject beats repeat (PSNR) on 1 of 1" in printed
 
 
+def test_eval_on_the_gl_backend_reports_gpu_time(tmp_path, capsys):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    frames, objects = two_layer_sequence(7, width=80, height=60, camera_speed=0.1, object_speed=0.03)
+    path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)
+    out_json = tmp_path / "r.json"
+    assert main(["eval", str(path), "--methods", "reproject,decomp", "--backend", "gl", "--no-flip",
+                 "--json", str(out_json)]) == 0
+    records = {r["method"]: r for r in json.loads(out_json.read_text())["records"]}
+    assert records["reproject"]["backend"] == "gl" and records["decomp"]["backend"] == "cpu"
+    assert {"warp", "fill", "readback"} <= set(records["reproject"]["gpu_ms"]) and not records["decomp"]["gpu_ms"]
+    printed = capsys.readouterr().out
+    assert "| backend |" in printed and "gpu total" in printed
+
+
 def test_render_scene_and_demo_end_to_end(tmp_path):
     assert main(["render-scene", str(tmp_path / "scene"), "--width", "64", "--height", "48", "--num-frames", "5",
                  "--seed", "3", "--supersample", "1"]) == 0

@@ -406,6 +406,37 @@ def test_two_threads_submit_and_predict_concurrently():
     assert session.stats["submitted"] == 41 and session.stats["predicted"] == 80
 
 
+@pytest.mark.parametrize("method", ["reproject", "flow2d"])
+def test_the_gl_backend_predicts_what_the_cpu_backend_predicts_from_two_threads(method):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    sessions = {b: Session(SessionConfig(width=W, height=H, method=method), backend=b) for b in ("cpu", "gl")}
+    color, depth = frame_arrays()
+    outs, errors = {}, []
+
+    def run(backend):  # the GL work of a session on any thread runs on the context's own thread
+        try:
+            session = sessions[backend]
+            for i in range(3):
+                session.submit(frame_arrays(i)[0], depth, pose(x=0.02 * i), K, i / 30)
+            outs[backend] = session.predict(pose(x=0.05), K, 2.5 / 30)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(b,)) for b in sessions]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert not errors and outs["gl"].method == method
+    close = np.abs(outs["gl"].color - outs["cpu"].color) <= 1e-3 * np.maximum(1.0, np.abs(outs["cpu"].color))
+    assert close.all(axis=-1).mean() >= 0.995
+    with pytest.raises(InputError):
+        Session(SessionConfig(width=W, height=H), backend="metal")
+
+
 def test_zero_copy_where_layouts_match():
     color, depth = frame_arrays()
     session = make_session()

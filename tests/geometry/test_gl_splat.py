@@ -1,4 +1,5 @@
-"""GL compute-shader MPI forward splat (engine/geometry/glsplat.py) against its oracle, engine.geometry.forward_warp_mpi.
+"""The GL backend's MPI forward splat (engine/geometry/backends/gl/splat.py) against its oracle,
+engine.geometry.forward_warp_mpi.
 
 Tolerances: alpha identical on >= 99.9 % of the pixels; where both are covered, colour within 1e-3 of
 max(1, value) and depth within 1e-4 relative (sky: both +inf) on >= 99.5 % of them; no NaN anywhere.
@@ -10,16 +11,27 @@ import pytest
 
 from engine import geometry as ng
 from engine.core.errors import InputError
-from engine.geometry import glsplat
+from engine.geometry.backends import gl as glb
 from tests.random_scenes import moving_cameras, pose, random_scene
 
-if not glsplat.available():
+if not glb.available():
     pytest.skip("no EGL context with compute shaders", allow_module_level=True)
+
+
+def SPLATTER() -> glb.GlSplatter:
+    """One splatter for the module (its buffers grow to the largest test)."""
+    global _SPLATTER
+    if _SPLATTER is None:
+        _SPLATTER = glb.GlSplatter()
+    return _SPLATTER
+
+
+_SPLATTER = None
 
 
 def warp_both(mpi, k_src, t_src, k_dst, t_dst, flow=None, **kwargs):
     ref = ng.forward_warp_mpi(mpi, k_src, t_src, k_dst, t_dst, flow, **kwargs)
-    gl = glsplat.shared_splatter().forward_warp_mpi(mpi, k_src, t_src, k_dst, t_dst, flow, **kwargs)
+    gl = SPLATTER().forward_warp_mpi(mpi, k_src, t_src, k_dst, t_dst, flow, **kwargs)
     return ref, gl
 
 
@@ -151,7 +163,7 @@ def test_validation_matches_reference():
     h, w = 8, 12
     mpi = ng.build_mpi(np.zeros((h, w, 3), np.float32), np.ones((h, w), np.float32), 2)
     k, t_src, t_dst = moving_cameras(np.random.default_rng(1), h, w)
-    splatter = glsplat.shared_splatter()
+    splatter = SPLATTER()
     for kwargs in ({"out_size": (0, 3)}, {"sharpness": -1.0}):
         with pytest.raises(InputError):
             splatter.forward_warp_mpi(mpi, k, t_src, k, t_dst, **kwargs)

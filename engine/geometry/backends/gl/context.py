@@ -1,0 +1,208 @@
+"""The GL backend's context: one headless OpenGL 4.5 context, compute programs loaded from shader files with
+``#define`` variants, grow-only GPU buffers and per-stage GPU timer queries.
+
+Shaders live one pass per file in ``shaders/`` (``*.comp``); ``#include "name.glsl"`` lines are replaced by
+that file's text (once per program). A program is compiled once per (file, defines) and cached. The context
+is created on, and every GL call runs on, the context's own thread (``GlContext.call``): callers on any
+thread (a server's workers) share one context safely, one call at a time.
+"""
+from __future__ import annotations
+
+import re
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Optional
+
+__all__ = ["SHADERS", "LOCAL_SIZE", "shader_source", "GlContext", "is_software_renderer", "shared_context", "available"]
+
+#: Folder of the compute shaders (one file per pass).
+SHADERS = Path(__file__).with_name("shaders")
+#: Invocations per workgroup of the one-dimensional passes (``LOCAL_SIZE`` is defined in every program).
+LOCAL_SIZE = 256
+#: Largest workgroup count along x of one dispatch (the GL minimum of GL_MAX_COMPUTE_WORK_GROUP_COUNT).
+MAX_GROUPS_X = 65535
+_INCLUDE = re.compile(r'^\s*#include\s+"([\w.]+)"\s*$', re.MULTILINE)
+
+
+def shader_source(name: str, defines: Optional[Mapping[str, object]] = None) -> str:
+    """The full GLSL text of pass ``name`` (``shaders/<name>.comp``): version, extensions, ``LOCAL_SIZE`` and
+    ``defines`` (``{"FRAME": 1}`` -> ``#define FRAME 1``; a value of None defines the bare name), then the
+    file with its ``#include`` lines expanded."""
+    seen: set[str] = set()
+
+    def expand(text: str) -> str:
+        def one(match: re.Match) -> str:
+            include = match.group(1)
+            if include in seen:
+                return ""
+            seen.add(include)
+            return expand((SHADERS / include).read_text())
+        return _INCLUDE.sub(one, text)
+
+    lines = ["#version 450", "#extension GL_ARB_gpu_shader_int64 : require", f"#define LOCAL_SIZE {LOCAL_SIZE}"]
+    for key, value in sorted((defines or {}).items()):
+        lines.append(f"#define {key}" if value is None else f"#define {key} {value}")
+    return "\n".join(lines) + "\n" + expand((SHADERS / f"{name}.comp").read_text())
+
+
+def is_software_renderer(renderer: str) -> bool:
+    """True for Mesa's CPU rasterisers (llvmpipe, softpipe, swrast): a GL context that runs on the CPU."""
+    name = renderer.lower()
+    return any(s in name for s in ("llvmpipe", "softpipe", "swrast", "software"))
+
+
+class GlContext:
+    """A headless EGL context with the backend's programs, buffers and timers.
+
+    >>> gl = GlContext()                                   # doctest: +SKIP
+    >>> program = gl.program("splat_key", {"FRAME": 1})    # doctest: +SKIP
+    >>> with gl.gpu_stage("warp"): gl.dispatch(program, n) # doctest: +SKIP
+    """
+
+    def __init__(self) -> None:
+        self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="interleave-gl")
+        try:
+            self._thread.submit(self._create).result()
+        except BaseException:
+            self._thread.shutdown(wait=False)
+            raise
+        self._programs: dict = {}
+        self._queries: list = []
+        self._open: list[tuple[str, object]] = []
+        self._timing = False
+
+    def _create(self) -> None:
+        import moderngl
+
+        self._ident = threading.get_ident()
+        self.ctx = moderngl.create_standalone_context(backend="egl")
+        if self.ctx.version_code < 450 or "GL_ARB_gpu_shader_int64" not in self.ctx.extensions:
+            version = self.ctx.info.get("GL_VERSION", "?")
+            self.ctx.release()
+            raise RuntimeError(f"the GL backend needs OpenGL 4.5 with GL_ARB_gpu_shader_int64, the context has "
+                               f"{version}")
+        self.renderer = str(self.ctx.info.get("GL_RENDERER", ""))
+        self.software = is_software_renderer(self.renderer)
+
+    def call(self, fn: Callable[..., Any], *args, **kwargs) -> Any:
+        """Run ``fn(*args, **kwargs)`` on the context's thread (where the context is current, made so once
+        when it was created: nothing else runs GL there); returns its result (exceptions propagate)."""
+        if threading.get_ident() == self._ident:
+            return fn(*args, **kwargs)
+        return self._thread.submit(fn, *args, **kwargs).result()
+
+    def program(self, name: str, defines: Optional[Mapping[str, object]] = None):
+        """The compiled compute program of pass ``name`` with ``defines`` (cached)."""
+        key = (name, tuple(sorted((defines or {}).items())))
+        program = self._programs.get(key)
+        if program is None:
+            program = self._programs[key] = self.ctx.compute_shader(shader_source(name, defines))
+        return program
+
+    def buffer(self, pool: dict, key: str, nbytes: int):
+        """A grow-only buffer of at least ``nbytes`` kept in ``pool[key]`` (contents undefined after growth)."""
+        nbytes = max(int(nbytes), 16)
+        buf = pool.get(key)
+        if buf is None or buf.size < nbytes:
+            if buf is not None:
+                buf.release()
+            buf = pool[key] = self.ctx.buffer(reserve=nbytes)
+        return buf
+
+    def dispatch(self, program, count: int, uniforms: Optional[Mapping[str, object]] = None) -> None:
+        """Run ``program`` over ``count`` invocations (1D, ``LOCAL_SIZE`` a group; groups beyond
+        ``MAX_GROUPS_X`` go to y: passes index with ``invocation()``), then a storage barrier."""
+        for name, value in (uniforms or {}).items():
+            try:
+                program[name].value = value
+            except KeyError:  # optimised out of this variant
+                pass
+        groups = max(1, -(-int(count) // LOCAL_SIZE))
+        gx = min(groups, MAX_GROUPS_X)
+        program.run(gx, -(-groups // gx), 1)
+        self.ctx.memory_barrier()
+
+    @contextmanager
+    def timing(self, enabled: bool = True) -> Iterator[dict[str, float]]:
+        """Collect GPU milliseconds of the ``gpu_stage`` blocks run inside into the yielded dict (filled when
+        the block ends: reading a query waits for the GPU)."""
+        into: dict[str, float] = {}
+        self._timing, self._open = enabled, []
+        try:
+            yield into
+        finally:
+            self._timing = False
+            for name, query in self._open:
+                into[name] = into.get(name, 0.0) + query.elapsed * 1e-6
+                self._queries.append(query)
+            self._open = []
+
+    @contextmanager
+    def gpu_stage(self, name: str) -> Iterator[None]:
+        """Time the GL commands of the block with a GL_TIME_ELAPSED query (only inside ``timing``; blocks do
+        not nest: GL allows one elapsed-time query at a time)."""
+        if not self._timing:
+            yield
+            return
+        query = self._queries.pop() if self._queries else self.ctx.query(time=True)
+        with query:
+            yield
+        self._open.append((name, query))
+
+    def dispatch_groups(self, program, groups: int, uniforms: Optional[Mapping[str, object]] = None) -> None:
+        """Run ``program`` as ``groups`` workgroups (one per row, column, ...: passes index them with
+        ``gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x``), then a storage barrier."""
+        for name, value in (uniforms or {}).items():
+            try:
+                program[name].value = value
+            except KeyError:
+                pass
+        groups = max(1, int(groups))
+        gx = min(groups, MAX_GROUPS_X)
+        program.run(gx, -(-groups // gx), 1)
+        self.ctx.memory_barrier()
+
+    def release(self) -> None:
+        """Free the programs, queries and the context, and stop its thread."""
+        def free():
+            for program in self._programs.values():
+                program.release()
+            self._programs.clear()
+            for query in self._queries:
+                query.release()
+            self._queries.clear()
+        self.call(free)
+        self._thread.submit(self.ctx.release).result()
+        self._thread.shutdown()
+
+
+_SHARED: Optional[GlContext] = None
+_FAILED: Optional[str] = None
+_SHARED_LOCK = threading.Lock()
+
+
+def shared_context() -> GlContext:
+    """The process-wide ``GlContext``, created on first use; raises RuntimeError (with the first failure's
+    reason, remembered) when no EGL context with OpenGL 4.5 compute and 64-bit integers can be made."""
+    global _SHARED, _FAILED
+    with _SHARED_LOCK:
+        if _SHARED is None:
+            if _FAILED is not None:
+                raise RuntimeError(_FAILED)
+            try:
+                _SHARED = GlContext()
+            except Exception as exc:  # no moderngl, no EGL, no GL 4.5 / int64
+                _FAILED = f"no OpenGL 4.5 compute context: {type(exc).__name__}: {exc}"
+                raise RuntimeError(_FAILED) from None
+        return _SHARED
+
+
+def available() -> bool:
+    """True when ``shared_context()`` can be made (on this machine at all: llvmpipe counts)."""
+    try:
+        shared_context()
+        return True
+    except RuntimeError:
+        return False

@@ -1,0 +1,157 @@
+"""A frame warped and hole-filled on the GPU: ``engine.predict.base.warp_and_fill``'s geometry (one-plane
+forward splat, composite, background-biased hole fill) with the frame kept in GPU buffers.
+
+A rendered frame is uploaded once (``GlFrameWarper.upload``: colour (H, W, 3) and depth (H, W), float32) and
+warped to any number of target cameras; an object flow is uploaded once too (``upload_flow``: (H, W, 2|3),
+scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upload). Each warp runs the
+``FRAME`` variants of the four splat passes, then the hole fill (``fill_rows``, ``fill_links``,
+``fill_apply``), and reads back the filled colour and a packed hole mask, once. Conventions: those of
+``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
+Oracle: ``engine.predict.base.warp_and_fill`` on the CPU (``tests/geometry/test_gl_frame.py``).
+"""
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from engine.core.checks import checked_array, checked_matrix, checked_sharpness
+from engine.core.errors import InputError
+from engine.geometry.backends.gl.context import GlContext, shared_context
+from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
+from engine.geometry.camera import checked_flow, reprojection_matrix
+from engine.geometry.splat import DEFAULT_SHARPNESS
+
+__all__ = ["GlImage", "GlFlow", "GlFrameWarper"]
+
+
+def _release_later(gl: GlContext, buffers: list) -> None:
+    """Free ``buffers`` on the GL thread (from a finalizer: any thread, possibly at interpreter exit)."""
+    def free():
+        for buf in buffers:
+            buf.release()
+    try:
+        gl.call(free)
+    except Exception:  # the context or its thread is gone: the driver frees everything with it
+        pass
+
+
+@dataclass(eq=False)
+class GlImage:
+    """A frame resident on the GPU: colour (H, W, 3) and depth (H, W) float32 buffers (freed with the object)."""
+
+    shape: tuple[int, int]
+    color: object
+    depth: object
+    gl: GlContext = field(repr=False)
+
+    def __post_init__(self) -> None:
+        weakref.finalize(self, _release_later, self.gl, [self.color, self.depth])
+
+
+@dataclass(eq=False)
+class GlFlow:
+    """An object flow resident on the GPU: (H, W, channels) float32, channels 2 (du, dv) or 3 (du, dv, dz)."""
+
+    shape: tuple[int, int]
+    channels: int
+    buffer: object
+    gl: GlContext = field(repr=False)
+
+    def __post_init__(self) -> None:
+        weakref.finalize(self, _release_later, self.gl, [self.buffer])
+
+
+class GlFrameWarper:
+    """Uploads frames and flows, and warps + fills them on a ``GlContext`` (the shared one by default).
+
+    >>> warper = GlFrameWarper()                                             # doctest: +SKIP
+    >>> image = warper.upload(frame.color, frame.depth)                      # doctest: +SKIP
+    >>> color, holes = warper.warp_and_fill(image, K, T_src, K, T_dst)       # doctest: +SKIP
+    """
+
+    def __init__(self, gl: Optional[GlContext] = None) -> None:
+        self.gl = shared_context() if gl is None else gl
+        self._pool: dict = {}
+
+    def upload(self, color: np.ndarray, depth: np.ndarray) -> GlImage:
+        """Upload a frame: colour (H, W, 3) linear RGB and planar depth (H, W) (+inf sky)."""
+        sizes: dict = {}
+        depth = np.ascontiguousarray(checked_array(depth, "depth", ("H", "W"), sizes))
+        color = np.ascontiguousarray(checked_array(color, "color", ("H", "W", 3), sizes))
+        return self.gl.call(lambda: GlImage(depth.shape, self.gl.ctx.buffer(color), self.gl.ctx.buffer(depth),
+                                            self.gl))
+
+    def upload_flow(self, flow: np.ndarray) -> GlFlow:
+        """Upload an object flow (H, W, 2) (du, dv) pixels or (H, W, 3) (du, dv, dz), in the frame's view."""
+        flow = np.ascontiguousarray(checked_flow(flow, {}))
+        return self.gl.call(lambda: GlFlow(flow.shape[:2], flow.shape[2], self.gl.ctx.buffer(flow), self.gl))
+
+    def warp_and_fill(self, image: GlImage, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray,
+                      T_dst: np.ndarray, flow: Optional[GlFlow] = None, flow_scale: float = 1.0,
+                      sharpness: float = DEFAULT_SHARPNESS,
+                      gpu_ms: Optional[dict] = None) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-warp ``image`` to the destination camera (its points moved by ``flow_scale * flow``), fill
+        the holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface).
+        With ``gpu_ms``, the GPU milliseconds of the stages ``warp`` and ``fill`` are added to it."""
+        if not isinstance(image, GlImage):
+            raise InputError(f"must be a GlImage from GlFrameWarper.upload, got {type(image).__name__}", field="image")
+        if flow is not None and (not isinstance(flow, GlFlow) or flow.shape != image.shape):
+            got = flow.shape if isinstance(flow, GlFlow) else type(flow).__name__
+            raise InputError(f"must be a GlFlow of the frame's size {image.shape}, got {got}", field="flow")
+        scale = float(flow_scale)
+        if not np.isfinite(scale):
+            raise InputError(f"must be finite, got {flow_scale!r}", field="flow_scale")
+        matrix = reprojection_matrix(checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
+                                     checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4))
+        return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms)
+
+    def _warp_and_fill(self, image: GlImage, matrix, flow: Optional[GlFlow], scale: float, sharpness: float,
+                       gpu_ms: Optional[dict]):
+        gl, pool = self.gl, self._pool
+        h, w = image.shape
+        n = h * w
+        words = -(-n // 32)
+        with gl.timing(gpu_ms is not None) as times:
+            image.color.bind_to_storage_buffer(0)
+            image.depth.bind_to_storage_buffer(1)
+            if flow is not None:
+                flow.buffer.bind_to_storage_buffer(3)
+            else:
+                gl.buffer(pool, "no_flow", 16).bind_to_storage_buffer(3)
+            for key, binding, nbytes in (("alpha", 2, 16), ("mids", 4, 16), ("index", 9, 16),
+                                         ("warped", 8, 16 * n), ("holes", 10, 4 * n), ("rowsrc", 11, 4 * n),
+                                         ("rowinfo", 12, 4 * h), ("links", 13, 8 * h), ("filled", 14, 12 * n),
+                                         ("mask", 15, 4 * words)):
+                gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
+            defines = {"FRAME": 1, "FLOW_CHANNELS": 3 if flow is None else flow.channels}
+            uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, flow is not None, scale)
+            uniforms.update(num_points=n, use_index=0)
+            with gl.gpu_stage("warp"):
+                run_splat(gl, pool, defines, uniforms, n, n)
+            with gl.gpu_stage("fill"):
+                pool["mask"].clear(size=4 * words)
+                sizes = {"size": (h, w)}
+                gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
+                gl.dispatch_groups(gl.program("fill_links"), 1, sizes)
+                gl.dispatch(gl.program("fill_apply"), n, sizes)
+            color = np.empty((h, w, 3), np.float32)
+            mask = np.empty(words, np.uint32)
+            with gl.gpu_stage("readback"):
+                pool["filled"].read_into(color, size=color.nbytes)
+                pool["mask"].read_into(mask, size=mask.nbytes)
+        if gpu_ms is not None:
+            for key, value in times.items():
+                gpu_ms[key] = gpu_ms.get(key, 0.0) + value
+        holes = np.unpackbits(mask.view(np.uint8), bitorder="little")[:n].reshape(h, w).astype(bool)
+        return color, holes
+
+    def release(self) -> None:
+        """Free this warper's work buffers (uploaded images and flows free themselves)."""
+        def free():
+            for buf in self._pool.values():
+                buf.release()
+            self._pool.clear()
+        self.gl.call(free)

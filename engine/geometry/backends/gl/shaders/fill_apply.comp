@@ -1,0 +1,49 @@
+// Hole fill pass 3, per pixel: the filled colour (H, W, 3) and the packed hole mask (bit o % 32 of word
+// o / 32). A hole copies its row source; in a row without a known pixel, the farther (ties: the upper) of
+// the nearest rows above / below that have one, resolved to that pixel's own source; with neither, the
+// fallback colour (the frame that was warped).
+#include "fill_common.glsl"
+
+layout(std430, binding = 14) writeonly buffer FilledBuf { float filled_[]; };  // (H, W, 3)
+layout(std430, binding = 15) buffer MaskBuf { uint mask_[]; };                 // ceil(H W / 32)
+
+uint invocation() {
+    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+}
+
+// depth of pixel (r, x) after the row fill (rows with a known pixel only)
+float row_filled_depth(int r, int x) {
+    int o = r * size.y + x;
+    return hole_[o] != 0u ? warped_[r * size.y + rowsrc_[o]].w : warped_[o].w;
+}
+
+void main() {
+    uint i = invocation();
+    int h = size.x, w = size.y;
+    if (i >= uint(h * w)) return;
+    int o = int(i);
+    int y = o / w, x = o % w;
+    vec3 rgb;
+    if (hole_[o] == 0u) {
+        rgb = warped_[o].rgb;
+    } else {
+        atomicOr(mask_[o >> 5], 1u << uint(o & 31));
+        int src = -1;
+        if (rowsrc_[o] >= 0) {
+            src = y * w + rowsrc_[o];
+        } else {
+            int up = links_[2 * y], down = links_[2 * y + 1];
+            if (up >= 0 || down >= 0) {
+                float depth_up = up >= 0 ? row_filled_depth(up, x) : -INF;
+                float depth_down = down >= 0 ? row_filled_depth(down, x) : -INF;
+                int r = depth_down > depth_up ? down : up;
+                int t = r * w + x;
+                src = hole_[t] != 0u ? r * w + rowsrc_[t] : t;
+            }
+        }
+        rgb = src >= 0 ? warped_[src].rgb : vec3(color_[3 * o], color_[3 * o + 1], color_[3 * o + 2]);
+    }
+    filled_[3 * o] = rgb.r;
+    filled_[3 * o + 1] = rgb.g;
+    filled_[3 * o + 2] = rgb.b;
+}

@@ -1,0 +1,161 @@
+// The forward splat's buffers, uniforms and per-point geometry (shared by the splat_* passes).
+// Variants: FRAME (one-plane frame warp: colour (H, W, 3) and flow (H, W, FLOW_CHANNELS) interleaved,
+// alpha = 1 everywhere, no index list) or, without it, an MPI: colour (3, Z, H, W), depth / alpha (Z, H, W),
+// flow (3, Z, H, W), the points of a multi-plane MPI listed in index_.
+layout(local_size_x = LOCAL_SIZE) in;
+
+layout(std430, binding = 0) readonly buffer ColorBuf { float color_[]; };
+layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };
+layout(std430, binding = 2) readonly buffer AlphaBuf { float alpha_[]; };
+layout(std430, binding = 3) readonly buffer FlowBuf { float flow_[]; };
+layout(std430, binding = 4) readonly buffer MidBuf { float mids_[]; };      // (Z - 1,) inverse-depth midpoints
+layout(std430, binding = 5) buffer RangeBuf { uint range_[]; };             // ordered bits of (lo, hi)
+layout(std430, binding = 6) buffer KeyBuf { uint key_[]; };                 // (Z, HP, WP) ordered bits of t_max
+layout(std430, binding = 7) buffer AccBuf { uint acc_[]; };                 // (Z, HP, WP, 12) fixed-point sums
+layout(std430, binding = 9) readonly buffer IndexBuf { uint index_[]; };    // flat indices of alpha != 0
+
+uniform ivec3 src_size;     // Z, H, W
+uniform ivec2 dst_size;     // HO, WO
+uniform vec4 row0;          // rows of the 3x4 reprojection matrix K_dst T_dst T_src^-1 [K_src^-1 0; 0 1]
+uniform vec4 row1;
+uniform vec4 row2;
+uniform int has_flow;
+uniform float flow_scale;   // the object flow is multiplied by this (FRAME; 1 for an MPI)
+uniform int num_points;     // points to process: index_[0 .. num_points) when use_index, else all
+uniform int use_index;
+uniform float sharpness;
+uniform float snap;
+uniform float snap_scale;
+uniform float max_coord_inv;
+uniform float tiny_depth;
+uniform float min_log_weight;
+uniform double coverage_threshold;
+
+#ifndef FLOW_CHANNELS
+#define FLOW_CHANNELS 3
+#endif
+
+const float INF = uintBitsToFloat(0x7f800000u);
+
+uint invocation() {
+    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+}
+
+// order-preserving float <-> uint (0 is below every encoded value: "empty")
+uint order_bits(float f) {
+    uint u = floatBitsToUint(f);
+    return (u & 0x80000000u) != 0u ? ~u : (u | 0x80000000u);
+}
+float order_float(uint u) {
+    return uintBitsToFloat((u & 0x80000000u) != 0u ? (u & 0x7fffffffu) : ~u);
+}
+
+float log1p_(float z) {
+    float u = 1.0 + z;
+    return u == 1.0 ? z : log(u) * (z / (u - 1.0));
+}
+
+vec3 point_color(uint i) {
+#ifdef FRAME
+    return vec3(color_[3u * i], color_[3u * i + 1u], color_[3u * i + 2u]);
+#else
+    uint n = uint(src_size.x * src_size.y * src_size.z);
+    return vec3(color_[i], color_[n + i], color_[2u * n + i]);
+#endif
+}
+
+vec3 point_flow(uint i) {
+#ifdef FRAME
+    uint c = uint(FLOW_CHANNELS);
+    vec3 f = vec3(flow_[c * i], flow_[c * i + 1u], FLOW_CHANNELS == 3 ? flow_[c * i + 2u] : 0.0);
+    return flow_scale * f;
+#else
+    uint n = uint(src_size.x * src_size.y * src_size.z);
+    return vec3(flow_[i], flow_[n + i], flow_[2u * n + i]);
+#endif
+}
+
+struct Point {
+    int base;      // top-left tap in the flat padded volume
+    float fx;      // snapped bilinear fraction of the right tap
+    float fy;      // ... of the bottom tap
+    float a;       // alpha (0 for points that are dropped)
+    float z;       // destination depth (+inf: sky)
+};
+
+// the reference's pass 1 (reprojection, bilinear taps, destination plane), float32 throughout
+bool project_point(inout uint i, out Point p) {
+    uint hw = uint(src_size.y * src_size.z);
+    if (i >= uint(num_points)) return false;
+#ifdef FRAME
+    float alpha = 1.0;
+#else
+    if (use_index != 0) i = index_[i];
+    float alpha = alpha_[i];
+    if (alpha == 0.0) return false;
+#endif
+    uint pix = i % hw;
+    float u = float(pix % uint(src_size.z)) + 0.5;
+    float v = float(pix / uint(src_size.z)) + 0.5;
+    float d = depth_[i];
+    if (has_flow != 0) {
+        vec3 f = point_flow(i);
+        u = u + f.x;
+        v = v + f.y;
+        d = d + f.z;
+    }
+    bool sky = isinf(d);
+    float s = sky ? 1.0 : d;
+    float w = sky ? 0.0 : 1.0;
+    precise float x = u * s;
+    precise float y = v * s;
+    precise float hu = row0.x * x + row0.y * y + row0.z * s + row0.w * w;
+    precise float hv = row1.x * x + row1.y * y + row1.z * s + row1.w * w;
+    precise float hz = row2.x * x + row2.y * y + row2.z * s + row2.w * w;
+    precise float bound = (abs(hu) + abs(hv)) * max_coord_inv + tiny_depth;
+    bool valid = hz > bound;
+    if (!valid) return false;
+    precise float uo = hu / hz;
+    precise float vo = hv / hz;
+    float z = sky ? INF : hz;
+    int ho = dst_size.x, wo = dst_size.y;
+    precise float xc = clamp(uo - 0.5, -2.0, float(wo + 1));
+    precise float yc = clamp(vo - 0.5, -2.0, float(ho + 1));
+    float left = floor(xc);
+    float top = floor(yc);
+    precise float fx = clamp((xc - left - snap) * snap_scale, 0.0, 1.0);
+    precise float fy = clamp((yc - top - snap) * snap_scale, 0.0, 1.0);
+    int x0 = int(left) + 1;
+    int y0 = int(top) + 1;
+    if (x0 < 0 || x0 > wo || y0 < 0 || y0 > ho) return false;
+    int plane = 0;
+#ifndef FRAME
+    float inv = 1.0 / z;
+    for (int k = 0; k < src_size.x - 1; ++k) {
+        plane += inv <= mids_[k] ? 1 : 0;
+    }
+#endif
+    p.base = (plane * (ho + 2) + y0) * (wo + 2) + x0;
+    p.fx = fx;
+    p.fy = fy;
+    p.a = alpha;
+    p.z = z;
+    return true;
+}
+
+// clipped soft z-buffer log-weight of a finite point (the reference's _soft_zbuffer_weight, in log)
+float log_zbuffer(float z) {
+    uint lo_bits = range_[0];
+    float lz = log1p_(z);
+    if (lo_bits != 0xffffffffu) lz -= order_float(lo_bits);
+    float hi = max(order_float(range_[1]), 1e-30);
+    return clamp(lz * (-sharpness / hi), min_log_weight, 0.0);
+}
+
+void tap_geometry(Point p, int k, out int tap, out float cover) {
+    float wx = (k & 1) != 0 ? p.fx : 1.0 - p.fx;
+    float wy = (k & 2) != 0 ? p.fy : 1.0 - p.fy;
+    int wp = dst_size.y + 2;
+    tap = p.base + ((k & 1) != 0 ? 1 : 0) + ((k & 2) != 0 ? wp : 0);
+    cover = wx * wy * p.a;
+}

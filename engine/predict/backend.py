@@ -1,0 +1,52 @@
+"""Where a predictor's warp runs: the frame backends behind ``Predictor.frames``.
+
+A predictor hands its frames to its backend once per rendered frame (``resident``: on ``gl`` the colour and
+depth are uploaded to GPU buffers then) and, for every predicted frame, asks it to forward-warp and hole-fill
+one of them to the target camera, optionally moved by an object flow times a scale (``warp_and_fill``).
+``engine.predict.base.CpuFrames`` is ``warp_and_fill`` (numpy + numba); ``GlFrames`` runs the same passes as
+OpenGL compute (``engine.geometry.backends.gl.GlFrameWarper``) and reads back only the predicted frame. A flow
+made resident (``resident_flow``: uploaded once) is scaled on the GPU, so ``flow2d`` extrapolates to every
+in-between frame without a new upload. ``gl`` adds the GPU milliseconds of its stages (GL timer queries) to
+``timer.gpu``. Conventions: ``engine/predict/base.py``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from engine.core.frames import Frame
+from engine.predict.base import ResidentFrame, Target, Timer
+
+__all__ = ["GlFrames"]
+
+
+class GlFrames:
+    """The GL backend: frames and flows in GPU buffers, the warp and the fill as compute passes. Wall stages:
+    ``upload`` (a frame or flow sent to the GPU) and ``warp`` (the dispatches, the hole fill and the readback of
+    the predicted frame); GPU stages (``timer.gpu``): ``warp``, ``fill``, ``readback``."""
+
+    name = "gl"
+
+    def __init__(self, warper=None) -> None:
+        from engine.geometry.backends.gl import GlFrameWarper
+
+        self.warper = GlFrameWarper() if warper is None else warper
+
+    def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
+        with timer("upload"):
+            return ResidentFrame(frame, self.warper.upload(frame.color, frame.depth))
+
+    def resident_flow(self, flow: np.ndarray, timer: Timer):
+        with timer("upload"):
+            return self.warper.upload_flow(flow)
+
+    def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
+                      flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """``CpuFrames.warp_and_fill`` on the GPU; a numpy ``flow`` is uploaded for this call."""
+        if source.image is None:
+            source = self.resident(source.frame, timer)
+        if isinstance(flow, np.ndarray):
+            flow = self.resident_flow(flow, timer)
+        src, dst = source.frame.camera, target.camera
+        with timer("warp"):
+            return self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
+                                             dst.world_to_camera, flow, flow_scale, gpu_ms=timer.gpu)

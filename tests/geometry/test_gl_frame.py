@@ -1,0 +1,142 @@
+"""The GL backend's frame warp + hole fill (engine/geometry/backends/gl/frame.py) against its oracle, the CPU
+``forward_warp_frame`` + ``fill_holes`` (what ``engine.predict.base.warp_and_fill`` runs).
+
+Tolerances (those of the splat's parity test, tests/geometry/test_gl_splat.py): the holes identical on
+>= 99.9 % of the pixels and the colour within 1e-3 of max(1, value) on >= 99.5 %; no NaN. The hole fill
+copies pixels, so where the warps agree the fills agree exactly. Cases: sky, depths 1e-3..1e5, points
+behind the camera, rows and columns longer than a workgroup, rows with no surface (filled along columns),
+frames that are all hole, 1x1 frames, object flow of 2 and 3 channels scaled on the GPU.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine import geometry
+from engine.core.errors import InputError
+from engine.geometry.backends import gl as glb
+from engine.geometry.holefill import fill_holes
+from tests.random_scenes import extreme_scene, intrinsics, moving_cameras, pose, random_scene
+
+if not glb.available():
+    pytest.skip("no EGL context with compute shaders", allow_module_level=True)
+
+_WARPER: list = []
+
+
+def warper() -> glb.GlFrameWarper:
+    if not _WARPER:
+        _WARPER.append(glb.GlFrameWarper())
+    return _WARPER[0]
+
+
+def cpu_warp_and_fill(color, depth, k, t_src, t_dst, flow=None):
+    warped, warped_depth, holes = geometry.forward_warp_frame(color, depth, k, t_src, k, t_dst, flow)
+    filled, _ = fill_holes(warped, warped_depth, holes, color)
+    return filled, holes
+
+
+def assert_parity(color, depth, k, t_src, t_dst, flow=None, scale=1.0) -> np.ndarray:
+    """Warp on both backends, check the tolerances; returns the CPU holes."""
+    ref_color, ref_holes = cpu_warp_and_fill(color, depth, k, t_src, t_dst, None if flow is None else scale * flow)
+    gl = warper()
+    image = gl.upload(color, depth)
+    gl_flow = None if flow is None else gl.upload_flow(flow)
+    gpu_ms: dict = {}
+    out, holes = gl.warp_and_fill(image, k, t_src, k, t_dst, gl_flow, scale, gpu_ms=gpu_ms)
+    assert out.shape == color.shape and out.dtype == np.float32 and holes.shape == depth.shape
+    assert holes.dtype == bool and np.isfinite(out).all()
+    assert set(gpu_ms) == {"warp", "fill", "readback"} and all(v >= 0 for v in gpu_ms.values())
+    assert np.mean(holes == ref_holes) >= 0.999
+    ok = (np.abs(out - ref_color) <= 1e-3 * np.maximum(1.0, np.abs(ref_color))).all(axis=-1)
+    assert np.mean(ok) >= 0.995
+    return ref_holes
+
+
+@pytest.mark.parametrize("size", [(12, 16), (48, 300), (300, 40), (1, 1), (1, 7), (7, 1)])
+@pytest.mark.parametrize("flow_channels", [0, 2, 3])
+def test_random_frames(size, flow_channels):
+    h, w = size
+    rng = np.random.default_rng(h * 1000 + w * 10 + flow_channels)
+    if min(h, w) >= 4:
+        color, depth = random_scene(rng, h, w, sky=0.2)
+    else:
+        color = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+        depth = rng.uniform(1, 5, (h, w)).astype(np.float32)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.05, shift=0.2)
+    flow = rng.normal(0, 2.0, (h, w, flow_channels)).astype(np.float32) if flow_channels else None
+    if flow is not None and flow_channels == 3:
+        flow[..., 2] *= 0.05
+    assert_parity(color, depth, k, t_src, t_dst, flow, scale=-1.5 if flow is not None else 1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_extreme_depths_and_poses(seed):
+    color, depth, k, poses = extreme_scene(seed)
+    for t_dst in poses:  # behind the camera, far off screen, far ahead
+        assert_parity(color, depth, k, np.eye(4), t_dst)
+
+
+def test_rows_without_a_surface_are_filled_along_columns():
+    rng = np.random.default_rng(3)
+    h, w = 280, 64  # taller than a workgroup: the links scan runs over several chunks
+    color, depth = random_scene(rng, h, w, sky=0.0, near=2.0, far=4.0)
+    k = intrinsics(h, w)
+    t_dst = pose(translation=(0.0, 1.5, 0.0))  # the camera moves down: whole rows at the bottom see nothing
+    holes = assert_parity(color, depth, k, np.eye(4), t_dst)
+    assert holes.all(axis=1).any() and not holes.all()
+
+
+def test_all_hole_frame_takes_the_fallback():
+    rng = np.random.default_rng(4)
+    h, w = 20, 30
+    color, depth = random_scene(rng, h, w, sky=0.0)
+    k = intrinsics(h, w)
+    t_dst = pose((0.0, np.pi, 0.0))  # facing away: nothing lands
+    holes = assert_parity(color, depth, k, np.eye(4), t_dst)
+    assert holes.all()
+    out, _ = warper().warp_and_fill(warper().upload(color, depth), k, np.eye(4), k, t_dst)
+    np.testing.assert_array_equal(out, color)
+
+
+def test_all_sky_frame_moves_with_rotation_only():
+    rng = np.random.default_rng(5)
+    h, w = 24, 40
+    color = rng.uniform(0, 4, (h, w, 3)).astype(np.float32)
+    depth = np.full((h, w), np.inf, np.float32)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    assert_parity(color, depth, k, t_src, t_dst)
+
+
+def test_one_upload_serves_many_targets():
+    rng = np.random.default_rng(6)
+    h, w = 40, 60
+    color, depth = random_scene(rng, h, w)
+    k, t_src, _ = moving_cameras(rng, h, w)
+    gl = warper()
+    image = gl.upload(color, depth)
+    for step in range(3):
+        t_dst = pose((0.0, 0.02 * step, 0.0), (0.05 * step, 0.0, 0.0)) @ t_src
+        out, holes = gl.warp_and_fill(image, k, t_src, k, t_dst)
+        ref, ref_holes = cpu_warp_and_fill(color, depth, k, t_src, t_dst)
+        assert np.mean(holes == ref_holes) >= 0.999 and np.mean(np.abs(out - ref).max(-1) < 1e-3) >= 0.995
+
+
+def test_bad_inputs_are_refused():
+    gl = warper()
+    k = intrinsics(8, 12)
+    image = gl.upload(np.zeros((8, 12, 3), np.float32), np.ones((8, 12), np.float32))
+    with pytest.raises(InputError) as err:
+        gl.upload(np.zeros((8, 12, 3), np.float32), np.ones((8, 13), np.float32))
+    assert err.value.field == "color"
+    with pytest.raises(InputError):
+        gl.upload_flow(np.zeros((8, 12, 4), np.float32))
+    other = gl.upload_flow(np.zeros((8, 11, 2), np.float32))
+    with pytest.raises(InputError) as err:
+        gl.warp_and_fill(image, k, np.eye(4), k, np.eye(4), other)
+    assert err.value.field == "flow"
+    with pytest.raises(InputError) as err:
+        gl.warp_and_fill(image, k, np.eye(4), k, np.eye(4), flow_scale=float("nan"))
+    assert err.value.field == "flow_scale"
+    with pytest.raises(InputError):
+        gl.warp_and_fill(np.zeros((8, 12)), k, np.eye(4), k, np.eye(4))

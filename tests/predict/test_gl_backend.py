@@ -1,0 +1,71 @@
+"""Predictors on the GL backend against the same predictors on the CPU (their oracle), and the choice of
+backend (``make_predictor(..., backend=)``, ``engine.geometry.backends.resolve_backend``).
+
+Tolerance: the predicted colour within 1e-3 of max(1, value) on >= 99.5 % of the pixels and the holes equal
+on >= 99.9 % (the GL splat's sums are exact fixed point where the CPU's are float64:
+tests/geometry/test_gl_frame.py).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from engine.core.errors import InputError
+from engine.core.frames import rigid_inverse
+from engine.geometry import backends
+from engine.geometry.backends import gl as glb
+from engine.geometry.motion import rigid_motion_vectors
+from engine.predict import Target, make_predictor
+from tests.synthetic import two_layer_sequence
+
+if not glb.available():
+    pytest.skip("no EGL context with compute shaders", allow_module_level=True)
+
+
+def _target(frame):
+    return Target(frame.camera, frame.time, frame.index)
+
+
+def _with_vectors(frames, objects, older: int, newest: int):
+    frame = frames[newest]
+    motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest]) for o in objects}
+    vectors = rigid_motion_vectors(frame.depth, frame.camera, frames[older].camera, frame.object_id, motions)
+    return dataclasses.replace(frame, motion_vectors=vectors)
+
+
+def _close(a, b) -> float:
+    return float(np.mean((np.abs(a - b) <= 1e-3 * np.maximum(1.0, np.abs(a))).all(axis=-1)))
+
+
+@pytest.mark.parametrize("method", ["reproject", "flow2d", "mvec", "oracle"])
+def test_gl_predicts_what_the_cpu_predicts(method):
+    frames, objects = two_layer_sequence(8, width=160, height=96, camera_speed=0.03, object_speed=0.12)
+    history = [frames[2], _with_vectors(frames, objects, 2, 4)]
+    cpu = make_predictor(method, objects, backend="cpu")
+    gl = make_predictor(method, objects, backend="gl")
+    assert (cpu.backend, gl.backend) == ("cpu", "gl")
+    cpu_state, gl_state = cpu.prepare(history), gl.prepare(history)
+    for truth in (frames[5], frames[6], frames[7]):  # one preparation, several predicted frames
+        a, b = cpu.render(cpu_state, _target(truth)), gl.render(gl_state, _target(truth))
+        assert np.isfinite(b.color).all() and b.color.dtype == np.float32
+        assert _close(a.color, b.color) >= 0.995 and np.mean(a.holes == b.holes) >= 0.999
+        assert {"warp", "fill", "readback"} <= set(b.gpu_ms) and not a.gpu_ms
+    assert "upload" in gl_state.stages_ms  # frame n went to the GPU once, in the preparation
+
+
+def test_methods_without_gl_passes_stay_on_the_cpu():
+    for name in ("repeat", "decomp"):
+        assert make_predictor(name, backend="gl").backend == "cpu"
+
+
+def test_backend_choice():
+    runs, hardware, renderer = backends.gl_renderer()
+    assert runs and renderer
+    assert backends.resolve_backend("cpu") == "cpu" and backends.resolve_backend("gl") == "gl"
+    assert backends.resolve_backend("auto") == ("gl" if hardware else "cpu")
+    assert make_predictor("reproject").backend == backends.resolve_backend("auto")
+    with pytest.raises(InputError) as err:
+        make_predictor("reproject", backend="vulkan")
+    assert err.value.field == "backend"

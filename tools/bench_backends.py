@@ -1,0 +1,120 @@
+"""Benchmark of the two backends side by side: ``cpu`` (numpy + numba) and ``gl`` (OpenGL compute, frames kept
+on the GPU), per frame size and method.
+
+``python -m tools.bench_backends [--sizes 640x360,960x540,1920x1080,3840x2160] [--methods reproject,mvec,flow2d]
+[--k 2] [--frames 6] [--repeats 3] [--out out/bench_backends] [--json FILE]``
+
+Renders (once, cached under ``--out``) the fast held-out scene (preset ``fast``, seed 7003: objects moving a
+median 12 px a frame at 640x360) at each size. For every rendered frame n with history, each method on each
+backend prepares once and predicts the k-1 frames after n, on histories held in memory (with the motion vectors
+``mvec`` needs), methods and backends in rotating order, ``--repeats`` passes. Per (size, method, backend) it
+prints the median wall ms per predicted frame (preparation divided by k-1, uploads and the readback
+included), the GPU ms the GL timer queries measured (``-`` on a software renderer such as Mesa llvmpipe,
+whose queries do not time a GPU), the ratio to ``reproject`` on the CPU in the same run, the PSNR against the
+truth, and the parity of ``gl`` with ``cpu``: the largest colour difference and the share of pixels within
+1e-3 of max(1, value) (the tests' tolerance).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from engine.eval.metrics import score_frame
+from engine.eval.protocol import evaluation_pairs, rendered_history
+from engine.geometry.backends import gl_renderer
+from engine.io.rgbd import read_sequence
+from engine.predict import Target, make_predictor
+from tools.heldout import render_set, write_json
+
+SCENE = ("fast7003", dict(seed=7003), "fast")
+BACKENDS = ("cpu", "gl")
+
+
+def parse_sizes(text: str) -> list[tuple[int, int]]:
+    return [tuple(int(v) for v in part.lower().split("x")) for part in text.split(",") if part.strip()]
+
+
+def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]:
+    """Rows (method, backend, wall ms, GPU ms, PSNR, parity) of one sequence (see the module docstring)."""
+    predictors = {(m, b): make_predictor(m, sequence.objects, backend=b) for m in methods for b in BACKENDS}
+    cases = []
+    for older, newest, targets in evaluation_pairs(len(sequence), k):
+        history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
+        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets],
+                      [sequence[t] for t in targets]))
+    keys = list(predictors)
+    wall: dict = {key: [] for key in keys}
+    gpu: dict = {key: [] for key in keys}
+    outputs: dict = {}
+    for r in range(repeats):
+        for c, (history, targets, _) in enumerate(cases):
+            shift = (r + c) % len(keys)
+            for key in keys[shift:] + keys[:shift]:
+                predictor = predictors[key]
+                frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
+                start = time.perf_counter()
+                state = predictor.prepare(frames)
+                preds = [predictor.render(state, target) for target in targets]
+                wall[key].append(1e3 * (time.perf_counter() - start) / len(targets))
+                gpu[key].append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds))
+                                / len(targets))
+                if r == 0:
+                    outputs[key, c] = [p.color for p in preds]
+    rows = []
+    for method, backend in keys:
+        scores, worst, within = [], 0.0, []
+        for c, (_, _, truths) in enumerate(cases):
+            for i, truth in enumerate(truths):
+                color = outputs[(method, backend), c][i]
+                scores.append(score_frame(truth.color, color, truth.moving, with_flip=False))
+                ref = outputs[(method, "cpu"), c][i]
+                diff = np.abs(color - ref)
+                worst = max(worst, float(diff.max()))
+                within.append(float(np.mean((diff <= 1e-3 * np.maximum(1.0, np.abs(ref))).all(axis=-1))))
+        rows.append({"method": method, "backend": predictors[method, backend].backend,
+                     "wall_ms": float(statistics.median(wall[method, backend])),
+                     "gpu_ms": float(statistics.median(gpu[method, backend])),
+                     "psnr": float(np.mean([s.psnr for s in scores])),
+                     "psnr_moving": float(np.nanmean([s.psnr_moving for s in scores])),
+                     "parity_max_diff": worst, "parity_within": float(np.mean(within))})
+    return rows
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="640x360,960x540,1920x1080,3840x2160")
+    parser.add_argument("--methods", default="reproject,mvec,flow2d")
+    parser.add_argument("--k", type=int, default=2)
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="out/bench_backends")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    runs, hardware, renderer = gl_renderer()
+    if not runs:
+        raise SystemExit(f"bench_backends: the gl backend cannot run here: {renderer}")
+    print(f"GL renderer: {renderer} ({'hardware' if hardware else 'software: GPU ms are not measured'})")
+    methods = [m for m in args.methods.split(",") if m]
+    doc = {"renderer": renderer, "hardware": hardware, "k": args.k, "frames": args.frames, "repeats": args.repeats,
+           "scene": SCENE[0], "sizes": []}
+    print("\n| size | method | backend | wall ms | GPU ms | x cpu reproject | PSNR | PSNR moving | parity max diff | "
+          "parity within 1e-3 |\n|---|---|---|---|---|---|---|---|---|---|")
+    for width, height in parse_sizes(args.sizes):
+        name, overrides, preset = SCENE
+        sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))
+        rows = bench_size(sequence, methods, args.k, args.repeats)
+        base = next((r["wall_ms"] for r in rows if r["method"] == "reproject" and r["backend"] == "cpu"), float("nan"))
+        for r in rows:
+            gpu = f"{r['gpu_ms']:.2f}" if hardware and r["backend"] == "gl" else "-"
+            print(f"| {width}x{height} | {r['method']} | {r['backend']} | {r['wall_ms']:.1f} | {gpu} | "
+                  f"{r['wall_ms'] / base:.2f} | {r['psnr']:.2f} | {r['psnr_moving']:.2f} | "
+                  f"{r['parity_max_diff']:.2e} | {100 * r['parity_within']:.2f} % |", flush=True)
+        doc["sizes"].append({"size": [width, height], "rows": rows})
+    write_json(args.json, doc)
+
+
+if __name__ == "__main__":
+    main()

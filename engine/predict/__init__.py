@@ -2,8 +2,9 @@
 the renderer's motion vectors (``mvec``), DeCOMPnet (``decomp``) and the registry of method names
 (``registry``, where ``decomp[k=v]`` is parsed).
 
-Modules import downhill only: ``base``, ``dis``, ``onnx`` <- ``backend`` (where warps run: cpu, gl) <- ``classic``, ``mvec``, ``decomp`` <- ``registry`` <- this
-face, which re-exports the public names (``from engine.predict import make_predictor, Target``).
+Modules import downhill only: ``base`` (with the CPU backend), ``dis``, ``onnx`` <- ``classic``, ``mvec``,
+``decomp``, ``backend`` (the GL backend) <- ``registry`` (which sets a predictor's backend) <- this face, which
+re-exports the public names (``from engine.predict import make_predictor, Target``).
 """
 from engine.predict.backend import GlFrames
 from engine.predict.base import (CpuFrames, Prediction, Predictor, PreparedState, ResidentFrame, Target, Timer,

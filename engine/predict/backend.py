@@ -14,39 +14,47 @@ from __future__ import annotations
 import numpy as np
 
 from engine.core.frames import Frame
-from engine.predict.base import ResidentFrame, Target, Timer
+from engine.geometry.backends.gl.frame import GlFrameWarper, GlMotion
+from engine.predict.base import PointMotion, ResidentFrame, Target, Timer
 
 __all__ = ["GlFrames"]
 
 
 class GlFrames:
     """The GL backend: frames and flows in GPU buffers, the warp and the fill as compute passes. Wall stages:
-    ``upload`` (a frame or flow sent to the GPU) and ``warp`` (the dispatches, the hole fill and the readback of
-    the predicted frame); GPU stages (``timer.gpu``): ``warp``, ``fill``, ``readback``."""
+    ``upload`` (a frame, flow or motion sent to the GPU) and ``warp`` (the dispatches, the hole fill and the
+    readback of the predicted frame); GPU stages (``timer.gpu``): ``motion`` (extrapolating a ``PointMotion``),
+    ``warp``, ``fill``, ``readback``."""
 
     name = "gl"
 
     def __init__(self, warper=None) -> None:
-        from engine.geometry.backends.gl import GlFrameWarper
-
         self.warper = GlFrameWarper() if warper is None else warper
 
     def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
         with timer("upload"):
             return ResidentFrame(frame, self.warper.upload(frame.color, frame.depth))
 
-    def resident_flow(self, flow: np.ndarray, timer: Timer):
+    def resident_flow(self, flow, timer: Timer):
+        """A flow (H, W, 2|3) uploaded as a ``GlFlow``, or a ``PointMotion`` as a ``GlMotion`` (its moving
+        pixels only)."""
         with timer("upload"):
+            if isinstance(flow, PointMotion):
+                return self.warper.upload_motion(flow.velocity.shape[:2], flow.moving,
+                                                 flow.velocity.reshape(-1, 3)[flow.moving], flow.acceleration)
             return self.warper.upload_flow(flow)
 
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
                       flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """``CpuFrames.warp_and_fill`` on the GPU; a numpy ``flow`` is uploaded for this call."""
+        """``CpuFrames.warp_and_fill`` on the GPU; a numpy ``flow`` or a ``PointMotion`` is uploaded for this
+        call, a resident one (``resident_flow``) is not."""
         if source.image is None:
             source = self.resident(source.frame, timer)
-        if isinstance(flow, np.ndarray):
+        if isinstance(flow, (np.ndarray, PointMotion)):
             flow = self.resident_flow(flow, timer)
+        motion = flow if isinstance(flow, GlMotion) else None
         src, dst = source.frame.camera, target.camera
         with timer("warp"):
             return self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
-                                             dst.world_to_camera, flow, flow_scale, gpu_ms=timer.gpu)
+                                             dst.world_to_camera, None if motion else flow, flow_scale,
+                                             gpu_ms=timer.gpu, motion=motion)

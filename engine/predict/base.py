@@ -13,6 +13,7 @@ Conventions are those of ``engine/core/frames.py`` (OpenCV cameras, planar depth
 """
 from __future__ import annotations
 
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -24,9 +25,10 @@ from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, rigid_inverse
 from engine.geometry.holefill import fill_holes
+from engine.geometry.motion import extrapolated_flow
 
 __all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
-           "true_object_flow", "ResidentFrame", "CpuFrames"]
+           "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames"]
 
 
 @dataclass(frozen=True)
@@ -142,23 +144,55 @@ class ResidentFrame:
     image: Any = None
 
 
+@dataclass(eq=False)
+class PointMotion:
+    """The 3D motion of a frame's moving pixels (``mvec``'s estimate), which a backend extrapolates s frame
+    intervals ahead into an object flow (``engine.geometry.motion.extrapolated_flow``): ``velocity`` (H, W, 3)
+    scene units per interval in the frame's camera axes (0 where nothing moves), ``moving`` (M,) the flat
+    indices of the pixels with a velocity, ``acceleration`` (M, 3) their change of velocity per interval, or
+    None (constant velocity)."""
+
+    velocity: np.ndarray
+    moving: np.ndarray
+    acceleration: Optional[np.ndarray] = None
+
+
 class CpuFrames:
-    """The CPU backend: numpy + numba (``engine.geometry``), the oracle of ``GlFrames``."""
+    """The CPU backend: numpy + numba (``engine.geometry``), the oracle of ``engine.predict.backend.GlFrames``."""
 
     name = "cpu"
+
+    def __init__(self) -> None:
+        self._local = threading.local()
 
     def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
         return ResidentFrame(frame)
 
-    def resident_flow(self, flow: np.ndarray, timer: Timer) -> np.ndarray:
+    def resident_flow(self, flow, timer: Timer):
+        """A flow (H, W, 2|3) or a ``PointMotion`` where this backend computes (here: as it is)."""
         return flow
 
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
                       flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow`` (stages ``warp``, ``fill``)."""
-        if flow is not None and flow_scale != 1.0:
-            flow = flow_scale * flow
-        return warp_and_fill(source.frame, target, timer, flow)
+        """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow``, or for a ``PointMotion`` by
+        its motion extrapolated ``flow_scale`` intervals ahead (stage ``motion``); stages ``warp``, ``fill``."""
+        if not isinstance(flow, PointMotion):
+            if flow is not None and flow_scale != 1.0:
+                flow = flow_scale * flow
+            return warp_and_fill(source.frame, target, timer, flow)
+        frame = source.frame
+        with timer("motion"):
+            # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch)
+            buffers = self._local.__dict__.setdefault("flow", {})
+            buffer = buffers.get(frame.depth.shape)
+            if buffer is None:
+                buffer = buffers[frame.depth.shape] = np.zeros(frame.depth.shape + (3,), np.float32)
+            moved = extrapolated_flow(frame.depth, flow.velocity, frame.camera.intrinsics, flow_scale, flow.moving,
+                                      flow.acceleration, out=buffer)
+        try:
+            return warp_and_fill(frame, target, timer, moved)
+        finally:
+            moved.reshape(-1, 3)[flow.moving] = 0.0  # zero again for the next render
 
 
 def warp_and_fill(frame: Frame, target: Target, timer: Timer,

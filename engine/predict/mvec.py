@@ -15,7 +15,8 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
    (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
-   by that 3D flow to the target camera and hole-filled exactly like ``reproject`` (``warp_and_fill``).
+   by that 3D flow to the target camera and hole-filled exactly like ``reproject`` (the backend's
+   ``warp_and_fill`` of the ``PointMotion``: on ``gl`` the motion is uploaded once and extrapolated on the GPU).
    Where nothing moves the result is ``reproject``'s, bit for bit.
 
 Vectors of frame n must point to frame n-k, the previous rendered frame (what an engine that renders every
@@ -24,9 +25,8 @@ k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame 
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -34,7 +34,8 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
-from engine.predict.base import Predictor, PreparedState, ResidentFrame, Timer, extrapolation_factor
+from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
+                                 extrapolation_factor)
 
 __all__ = ["MvecConfig", "MvecState", "Mvec"]
 
@@ -73,6 +74,8 @@ class MvecState:
     moving: np.ndarray
     acceleration: Optional[np.ndarray] = None
     frame: Optional[ResidentFrame] = None
+    #: the motion where the backend computes (``PointMotion``; on ``gl`` uploaded once, extrapolated there)
+    motion: Any = None
 
 
 class Mvec(Predictor):
@@ -89,7 +92,6 @@ class Mvec(Predictor):
         # preparation reuses it as frame n-k's (a stream prepares every rendered frame in turn)
         self._last: tuple[tuple, np.ndarray] = ((), np.zeros((0, 0, 3), np.float32))
         self._previous = self._last
-        self._local = threading.local()
 
     @staticmethod
     def _key(newest, older) -> tuple:
@@ -125,6 +127,9 @@ class Mvec(Predictor):
         if self.config.acceleration and moving.size and len(state.history) >= 3:
             with timer("acceleration"):
                 state_data.acceleration = self._acceleration(state.history[-3:], vectors, state_data)
+        if moving.size:
+            state_data.motion = self.frames.resident_flow(PointMotion(velocity, moving, state_data.acceleration),
+                                                          timer)
         return state_data
 
     def _acceleration(self, frames, vectors: np.ndarray, data: MvecState) -> Optional[np.ndarray]:
@@ -150,23 +155,7 @@ class Mvec(Predictor):
                                  state.data.moving)[..., :2]
 
     def _render(self, state, target, timer):
-        newest = state.history[-1]
-        if not state.data.moving.size:
+        if state.data.motion is None:  # nothing moves: reproject's warp
             return self.frames.warp_and_fill(state.data.frame, target, timer)
-        with timer("motion"):
-            # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch)
-            buffer = self._flow.get(newest.depth.shape)
-            if buffer is None:
-                buffer = self._flow[newest.depth.shape] = np.zeros(newest.depth.shape + (3,), np.float32)
-            flow = extrapolated_flow(newest.depth, state.data.velocity, newest.camera.intrinsics,
-                                     extrapolation_factor(state, target), state.data.moving,
-                                     state.data.acceleration, out=buffer)
-        try:
-            return self.frames.warp_and_fill(state.data.frame, target, timer, flow)
-        finally:
-            flow.reshape(-1, 3)[state.data.moving] = 0.0  # zero again for the next render
-
-    @property
-    def _flow(self) -> dict:
-        local = self._local.__dict__
-        return local.setdefault("flow", {})
+        return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion,
+                                         extrapolation_factor(state, target))

@@ -140,3 +140,33 @@ def test_bad_inputs_are_refused():
     assert err.value.field == "flow_scale"
     with pytest.raises(InputError):
         gl.warp_and_fill(np.zeros((8, 12)), k, np.eye(4), k, np.eye(4))
+
+
+@pytest.mark.parametrize("with_acceleration", [False, True])
+def test_motion_extrapolated_on_the_gpu_matches_the_cpu(with_acceleration):
+    from engine.geometry.motion import extrapolated_flow
+
+    rng = np.random.default_rng(7 + with_acceleration)
+    h, w = 48, 64
+    color, depth = random_scene(rng, h, w, sky=0.1, near=1.0, far=6.0)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.03, shift=0.1)
+    velocity = np.zeros((h, w, 3), np.float32)
+    velocity[10:30, 20:40] = rng.normal(0, 0.05, (20, 20, 3))
+    velocity[12, 22] = (0.0, 0.0, -50.0)  # reaches the camera plane: NaN flow, dropped by the splat
+    moving = np.flatnonzero(np.any(velocity != 0, axis=-1))
+    accel = rng.normal(0, 0.01, (moving.size, 3)).astype(np.float32) if with_acceleration else None
+    step = 0.5
+    flow = extrapolated_flow(depth, velocity, k, step, moving, accel)
+    assert np.isnan(flow[12, 22]).all()
+    ref_color, ref_holes = cpu_warp_and_fill(color, depth, k, t_src, t_dst, flow)
+    gl = warper()
+    motion = gl.upload_motion((h, w), moving, velocity.reshape(-1, 3)[moving], accel)
+    gpu_ms: dict = {}
+    out, holes = gl.warp_and_fill(gl.upload(color, depth), k, t_src, k, t_dst, flow_scale=step, motion=motion,
+                                  gpu_ms=gpu_ms)
+    assert "motion" in gpu_ms and np.isfinite(out).all()
+    assert np.mean(holes == ref_holes) >= 0.999
+    assert np.mean((np.abs(out - ref_color) <= 1e-3 * np.maximum(1.0, np.abs(ref_color))).all(-1)) >= 0.995
+    with pytest.raises(InputError) as err:
+        gl.upload_motion((h, w), np.array([h * w]), np.zeros((1, 3), np.float32))
+    assert err.value.field == "moving"

@@ -52,7 +52,11 @@ def test_gl_predicts_what_the_cpu_predicts(method):
         assert np.isfinite(b.color).all() and b.color.dtype == np.float32
         assert _close(a.color, b.color) >= 0.995 and np.mean(a.holes == b.holes) >= 0.999
         assert {"warp", "fill", "readback"} <= set(b.gpu_ms) and not a.gpu_ms
-    assert "upload" in gl_state.stages_ms  # frame n went to the GPU once, in the preparation
+        if method != "oracle":  # the frame, flow or motion went to the GPU once, in the preparation
+            assert "upload" not in b.stages_ms
+        if method == "mvec":  # the motion is extrapolated on the GPU
+            assert "motion" in b.gpu_ms and "motion" in a.stages_ms
+    assert "upload" in gl_state.stages_ms
 
 
 def test_methods_without_gl_passes_stay_on_the_cpu():

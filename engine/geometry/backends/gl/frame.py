@@ -3,7 +3,9 @@ forward splat, composite, background-biased hole fill) with the frame kept in GP
 
 A rendered frame is uploaded once (``GlFrameWarper.upload``: colour (H, W, 3) and depth (H, W), float32) and
 warped to any number of target cameras; an object flow is uploaded once too (``upload_flow``: (H, W, 2|3),
-scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upload). Each warp runs the
+scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upload), or a 3D motion
+(``upload_motion``: the moving pixels' velocity and change of velocity, as ``mvec`` estimates them) that each
+warp extrapolates s frame intervals ahead on the GPU (``motion_extrapolate``). Each warp runs the
 ``FRAME`` variants of the four splat passes, then the hole fill (``fill_rows``, ``fill_links``,
 ``fill_apply``), and reads back the filled colour and a packed hole mask, once. Conventions: those of
 ``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
@@ -24,7 +26,7 @@ from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
 from engine.geometry.camera import checked_flow, reprojection_matrix
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
-__all__ = ["GlImage", "GlFlow", "GlFrameWarper"]
+__all__ = ["GlImage", "GlFlow", "GlMotion", "GlFrameWarper"]
 
 
 def _release_later(gl: GlContext, buffers: list) -> None:
@@ -64,6 +66,22 @@ class GlFlow:
         weakref.finalize(self, _release_later, self.gl, [self.buffer])
 
 
+@dataclass(eq=False)
+class GlMotion:
+    """The 3D motion of a frame's moving pixels resident on the GPU (``engine.geometry.motion.extrapolated_flow``'s
+    inputs): ``count`` flat pixel indices, their velocity (count, 3) and, with ``has_acceleration``, their change
+    of velocity (count, 3), scene units per frame interval in the frame's camera axes."""
+
+    shape: tuple[int, int]
+    count: int
+    has_acceleration: bool
+    buffers: list = field(repr=False)
+    gl: GlContext = field(repr=False)
+
+    def __post_init__(self) -> None:
+        weakref.finalize(self, _release_later, self.gl, list(self.buffers))
+
+
 class GlFrameWarper:
     """Uploads frames and flows, and warps + fills them on a ``GlContext`` (the shared one by default).
 
@@ -89,45 +107,96 @@ class GlFrameWarper:
         flow = np.ascontiguousarray(checked_flow(flow, {}))
         return self.gl.call(lambda: GlFlow(flow.shape[:2], flow.shape[2], self.gl.ctx.buffer(flow), self.gl))
 
+    def upload_motion(self, shape: tuple[int, int], moving: np.ndarray, velocity: np.ndarray,
+                      acceleration: Optional[np.ndarray] = None) -> GlMotion:
+        """Upload the motion of a (H, W) = ``shape`` frame's moving pixels: ``moving`` (M,) flat indices,
+        ``velocity`` (M, 3) and optional ``acceleration`` (M, 3) (see ``GlMotion``)."""
+        h, w = (int(v) for v in shape)
+        moving = np.asarray(moving)
+        if moving.ndim != 1 or (moving.size and (moving.min() < 0 or moving.max() >= h * w)):
+            raise InputError(f"must be flat pixel indices in [0, {h * w}), got shape {moving.shape}", field="moving")
+        sizes = {"M": moving.size}
+        velocity = np.ascontiguousarray(checked_array(velocity, "velocity", ("M", 3), sizes))
+        arrays = [moving.astype(np.uint32), velocity]
+        if acceleration is not None:
+            arrays.append(np.ascontiguousarray(checked_array(acceleration, "acceleration", ("M", 3), sizes)))
+
+        def make():
+            buffers = [self.gl.ctx.buffer(a if a.size else np.zeros(4, np.float32)) for a in arrays]
+            return GlMotion((h, w), moving.size, acceleration is not None, buffers, self.gl)
+        return self.gl.call(make)
+
     def warp_and_fill(self, image: GlImage, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray,
                       T_dst: np.ndarray, flow: Optional[GlFlow] = None, flow_scale: float = 1.0,
-                      sharpness: float = DEFAULT_SHARPNESS,
-                      gpu_ms: Optional[dict] = None) -> tuple[np.ndarray, np.ndarray]:
-        """Forward-warp ``image`` to the destination camera (its points moved by ``flow_scale * flow``), fill
-        the holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface).
-        With ``gpu_ms``, the GPU milliseconds of the stages ``warp`` and ``fill`` are added to it."""
+                      sharpness: float = DEFAULT_SHARPNESS, gpu_ms: Optional[dict] = None,
+                      motion: Optional[GlMotion] = None) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-warp ``image`` to the destination camera, its points moved by ``flow_scale * flow`` or by
+        ``motion`` extrapolated ``flow_scale`` frame intervals ahead (``K_src`` projects it), and fill the
+        holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface). With
+        ``gpu_ms``, the GPU milliseconds of the stages (``motion``,) ``warp``, ``fill``, ``readback`` are added
+        to it."""
         if not isinstance(image, GlImage):
             raise InputError(f"must be a GlImage from GlFrameWarper.upload, got {type(image).__name__}", field="image")
         if flow is not None and (not isinstance(flow, GlFlow) or flow.shape != image.shape):
             got = flow.shape if isinstance(flow, GlFlow) else type(flow).__name__
             raise InputError(f"must be a GlFlow of the frame's size {image.shape}, got {got}", field="flow")
+        if motion is not None and (not isinstance(motion, GlMotion) or motion.shape != image.shape
+                                   or flow is not None):
+            got = motion.shape if isinstance(motion, GlMotion) else type(motion).__name__
+            raise InputError(f"must be a GlMotion of the frame's size {image.shape}, without a flow, got {got}",
+                             field="motion")
         scale = float(flow_scale)
         if not np.isfinite(scale):
             raise InputError(f"must be finite, got {flow_scale!r}", field="flow_scale")
         matrix = reprojection_matrix(checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
                                      checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4))
-        return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms)
+        k_src = checked_matrix(K_src, "K_src", 3)
+        return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms,
+                            motion, k_src)
+
+    def _extrapolate(self, image: GlImage, motion: GlMotion, step: float, k: np.ndarray) -> None:
+        """Pass ``motion_extrapolate``: the flow (H, W, 3) of ``motion`` ``step`` intervals ahead into the pool's
+        ``motion_flow`` buffer, bound to 3."""
+        gl, (h, w) = self.gl, image.shape
+        flow = gl.buffer(self._pool, "motion_flow", 12 * h * w)
+        flow.clear(size=12 * h * w)
+        flow.bind_to_storage_buffer(3)
+        image.depth.bind_to_storage_buffer(1)
+        # velocity stands in at 18 without an acceleration (the pass does not read it then)
+        for binding, buf in zip((16, 17, 18), motion.buffers + motion.buffers[1:2]):
+            buf.bind_to_storage_buffer(binding)
+        k_inv = np.linalg.inv(k)
+        gl.dispatch(gl.program("motion_extrapolate"), motion.count, {
+            "num_moving": motion.count, "width": w, "has_acceleration": int(motion.has_acceleration),
+            "step": float(step), "k_row0": tuple(float(v) for v in k[0]), "k_row1": (float(k[1, 1]), float(k[1, 2])),
+            "kinv_row0": tuple(float(v) for v in k_inv[0]), "kinv_row1": (float(k_inv[1, 1]), float(k_inv[1, 2]))})
 
     def _warp_and_fill(self, image: GlImage, matrix, flow: Optional[GlFlow], scale: float, sharpness: float,
-                       gpu_ms: Optional[dict]):
+                       gpu_ms: Optional[dict], motion: Optional[GlMotion] = None, k_src: Optional[np.ndarray] = None):
         gl, pool = self.gl, self._pool
         h, w = image.shape
         n = h * w
         words = -(-n // 32)
         with gl.timing(gpu_ms is not None) as times:
-            image.color.bind_to_storage_buffer(0)
-            image.depth.bind_to_storage_buffer(1)
-            if flow is not None:
+            channels = 3 if flow is None else flow.channels
+            if motion is not None:
+                with gl.gpu_stage("motion"):
+                    self._extrapolate(image, motion, scale, k_src)
+                scale = 1.0
+            elif flow is not None:
                 flow.buffer.bind_to_storage_buffer(3)
             else:
                 gl.buffer(pool, "no_flow", 16).bind_to_storage_buffer(3)
+            image.color.bind_to_storage_buffer(0)
+            image.depth.bind_to_storage_buffer(1)
             for key, binding, nbytes in (("alpha", 2, 16), ("mids", 4, 16), ("index", 9, 16),
                                          ("warped", 8, 16 * n), ("holes", 10, 4 * n), ("rowsrc", 11, 4 * n),
                                          ("rowinfo", 12, 4 * h), ("links", 13, 8 * h), ("filled", 14, 12 * n),
                                          ("mask", 15, 4 * words)):
                 gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-            defines = {"FRAME": 1, "FLOW_CHANNELS": 3 if flow is None else flow.channels}
-            uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, flow is not None, scale)
+            defines = {"FRAME": 1, "FLOW_CHANNELS": channels}
+            uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, flow is not None or motion is not None,
+                                      scale)
             uniforms.update(num_points=n, use_index=0)
             with gl.gpu_stage("warp"):
                 run_splat(gl, pool, defines, uniforms, n, n)

@@ -73,3 +73,4 @@ def test_backend_choice():
     with pytest.raises(InputError) as err:
         make_predictor("reproject", backend="vulkan")
     assert err.value.field == "backend"
+

@@ -1,6 +1,8 @@
 // Hole fill pass 1, one workgroup per row: per hole pixel, the column of the farther (larger depth; ties:
 // the left one) of its nearest known pixels to the left and right (-1 for known pixels and rows without a
 // known pixel): engine.geometry.kernels.row_sources. rowinfo_[row] = 1 when the row has a known pixel.
+// Each invocation walks its own run of ceil(W / LOCAL_SIZE) columns; one scan over the runs' summaries in
+// shared memory per direction carries the nearest known pixel across runs (two scans a row, not two a chunk).
 #include "fill_common.glsl"
 
 void main() {
@@ -9,34 +11,48 @@ void main() {
     int h = size.x, w = size.y;
     if (row >= h) return;  // uniform across the workgroup
     int base = row * w;
-    int carry = -1;
-    for (int start = 0; start < w; start += LOCAL_SIZE) {  // nearest known to the left (inclusive)
-        int x = start + int(lid);
-        scan_[lid] = (x < w && hole_[base + x] == 0u) ? x : -1;
-        barrier();
-        scan_max_forward(lid);
-        if (x < w) rowsrc_[base + x] = max(carry, scan_[lid]);
-        carry = max(carry, scan_[LOCAL_SIZE - 1]);
-        barrier();
+    int run = (w + LOCAL_SIZE - 1) / LOCAL_SIZE;
+    int x0 = min(int(lid) * run, w), x1 = min(x0 + run, w);
+
+    // to the left: the last known pixel of each run, scanned by max; the run before gives the carry in
+    int last = -1;
+    for (int x = x0; x < x1; ++x) {
+        if (hole_[base + x] == 0u) last = x;
     }
-    if (lid == 0u) rowinfo_[row] = carry >= 0 ? 1 : 0;
-    int after = w;
-    for (int start = ((w - 1) / LOCAL_SIZE) * LOCAL_SIZE; start >= 0; start -= LOCAL_SIZE) {  // to the right
-        int x = start + int(lid);
-        bool hole = x < w && hole_[base + x] != 0u;
-        scan_[lid] = (x < w && !hole) ? x : w;
-        barrier();
-        scan_min_backward(lid, w);
-        int right = min(after, scan_[lid]);
-        after = min(after, scan_[0]);
-        barrier();
-        if (x < w && !hole) rowsrc_[base + x] = -1;
-        if (hole) {
-            int left = rowsrc_[base + x];
-            if (right == w) right = -1;
-            float depth_left = left >= 0 ? warped_[base + left].w : -INF;
-            float depth_right = right >= 0 ? warped_[base + right].w : -INF;
-            rowsrc_[base + x] = depth_right > depth_left ? right : left;
+    scan_[lid] = last;
+    barrier();
+    scan_max_forward(lid);
+    int left = lid > 0u ? scan_[lid - 1u] : -1;
+    bool any_known = scan_[LOCAL_SIZE - 1] >= 0;
+    barrier();
+    if (lid == 0u) rowinfo_[row] = any_known ? 1 : 0;
+    for (int x = x0; x < x1; ++x) {  // hole pixels keep their left neighbour until the right walk
+        if (hole_[base + x] == 0u) {
+            left = x;
+        } else {
+            rowsrc_[base + x] = left;
         }
+    }
+
+    // to the right: the first known pixel of each run, scanned by min from the end
+    int first = w;
+    for (int x = x1 - 1; x >= x0; --x) {
+        if (hole_[base + x] == 0u) first = x;
+    }
+    scan_[lid] = first;
+    barrier();
+    scan_min_backward(lid, w);
+    int right = lid + 1u < uint(LOCAL_SIZE) ? scan_[lid + 1u] : w;
+    for (int x = x1 - 1; x >= x0; --x) {
+        if (hole_[base + x] == 0u) {
+            right = x;
+            rowsrc_[base + x] = -1;
+            continue;
+        }
+        int l = rowsrc_[base + x];
+        int r = right == w ? -1 : right;
+        float depth_left = l >= 0 ? warped_[base + l].w : -INF;
+        float depth_right = r >= 0 ? warped_[base + r].w : -INF;
+        rowsrc_[base + x] = depth_right > depth_left ? r : l;
     }
 }

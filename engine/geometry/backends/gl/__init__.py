@@ -6,7 +6,9 @@ splat, ``GlSplatter``), ``frame`` (a frame uploaded once, warped and hole-filled
 llvmpipe.
 """
 from engine.geometry.backends.gl.context import GlContext, available, shared_context
+from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow
 from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlImage
 from engine.geometry.backends.gl.splat import GlSplatter
 
-__all__ = ["GlContext", "available", "shared_context", "GlFlow", "GlFrameWarper", "GlImage", "GlSplatter"]
+__all__ = ["GlContext", "available", "shared_context", "GlFlow", "GlFrameWarper", "GlImage", "GlSplatter",
+           "GlFlowConfig", "GlOpticalFlow"]

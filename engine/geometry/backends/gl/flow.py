@@ -1,0 +1,267 @@
+"""Dense optical flow on the GPU: a pyramidal DIS-style estimator (Kroeger et al. 2016, "Fast optical flow
+using dense inverse search") as OpenGL compute passes, for ``flow2d`` on the GL backend.
+
+Convention (that of ``engine.predict.dis.dis_calc``): the flow from ``first`` to ``second`` is (H, W, 2)
+float32 pixels (du, dv), x right, y down, pixel centres at +0.5: pixel (y, x) of ``first`` shows what
+``second`` shows at (x + 0.5 + du, y + 0.5 + dv). Both images are read as DIS reads them: linear RGB
+display-encoded to 8 bits, then OpenCV's 8-bit luma (``engine.predict.dis.luma8``; pass ``flow_luma``
+computes it on the GPU from the colour buffer, bit-exact).
+
+Passes (``shaders/flow_*.comp``, one per pass): ``flow_luma`` (8-bit luma, level 0), ``flow_downsample``
+(2 x 2 block means, the pyramid), then per level from the coarsest: ``flow_upsample`` (the coarser level's
+flow, bilinear, doubled), ``flow_patch`` (inverse search per patch, ``GlFlowConfig.sweeps`` times, later sweeps
+starting from the best of the neighbours' flows), ``flow_densify`` (patch flows averaged per pixel, weighted by
+their photometric error); finally ``flow_upsample`` to the full size. Unlike OpenCV's DIS there is no
+variational refinement and spatial propagation is parallel, not sequential; any size from 1 x 1 works (a
+level smaller than a patch is read with clamped borders). Oracle: none bit-exact; ``tools/bench_gl_flow.py``
+measures the end-point error against OpenCV DIS medium and against the true motion.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Optional, Union
+
+import numpy as np
+
+from engine.core.checks import checked_array
+from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
+from engine.core.errors import InputError
+from engine.geometry.backends.gl.context import GlContext, shared_context
+from engine.geometry.backends.gl.frame import GlFlow, GlImage
+
+__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels"]
+
+
+@dataclass(frozen=True)
+class GlFlowConfig:
+    """Parameters of ``GlOpticalFlow`` (defaults chosen on validation sequences: docs/results/2026-11-25-gl-flow.md)."""
+
+    patch_size: int = 8
+    """Side of a patch, pixels of its pyramid level."""
+    patch_stride: int = 4
+    """Distance between neighbouring patches' origins, pixels (1 .. patch_size)."""
+    finest_level: int = 1
+    """Finest pyramid level searched (0: full resolution; level l is 2^l times smaller per axis); the flow
+    there is upsampled bilinearly to the full size."""
+    iterations: int = 16
+    """Gauss-Newton iterations of the inverse search per patch and sweep."""
+    sweeps: int = 2
+    """Inverse searches per level; each after the first starts from the best of its patch's and the 4
+    neighbouring patches' previous flows."""
+
+    def __post_init__(self) -> None:
+        for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
+                          ("sweeps", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < low:
+                raise InputError(f"must be an integer >= {low}, got {value!r}", field=name)
+        if self.patch_stride > self.patch_size:
+            raise InputError(f"must be <= patch_size {self.patch_size}, got {self.patch_stride}",
+                             field="patch_stride")
+
+
+def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[tuple[int, int]], int, int]:
+    """(sizes of levels 0 .. coarsest, coarsest level, finest level searched) for an image of ``shape`` (H, W).
+
+    Level l + 1 is ceil(level l / 2) per axis. The coarsest level is DIS's choice,
+    round(log2(max(H, W) / (4 patch))) capped at floor(log2(min(H, W) / patch)) and at least 0; the finest
+    searched is ``config.finest_level`` capped at the coarsest."""
+    h, w = shape
+    p = config.patch_size
+    coarsest = min(int(math.log2(max(h, w) / (4.0 * p)) + 0.5) if max(h, w) >= 4 * p else 0,
+                   int(math.floor(math.log2(min(h, w) / p))) if min(h, w) >= p else 0)
+    coarsest = max(coarsest, 0)
+    sizes = [(h, w)]
+    for _ in range(coarsest):
+        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
+    return sizes, coarsest, min(config.finest_level, coarsest)
+
+
+@lru_cache(maxsize=1)
+def _encode_table() -> np.ndarray:
+    """(buckets + 1, 2) float32 (step, level) of ``encode8_table``, as pass ``flow_luma`` reads it."""
+    level, step = encode8_table()
+    return np.ascontiguousarray(np.stack([step, level.astype(np.float32)], axis=-1), dtype=np.float32)
+
+
+class GlOpticalFlow:
+    """Dense optical flow between two images on a ``GlContext`` (the shared one by default).
+
+    >>> flow = GlOpticalFlow()                                     # doctest: +SKIP
+    >>> u = flow.estimate(color_n, warped_n_minus_k)               # doctest: +SKIP  (H, W, 2) u(n -> n-k)
+    """
+
+    def __init__(self, gl: Optional[GlContext] = None, config: GlFlowConfig = GlFlowConfig()) -> None:
+        if not isinstance(config, GlFlowConfig):
+            raise InputError(f"must be a GlFlowConfig, got {type(config).__name__}", field="config")
+        self.gl = shared_context() if gl is None else gl
+        self.config = config
+        self._pool: dict = {}
+
+    def estimate(self, first: Union[np.ndarray, GlImage], second: Union[np.ndarray, GlImage], *,
+                 gpu_ms: Optional[dict] = None, as_gl: bool = False) -> Union[np.ndarray, GlFlow]:
+        """Flow from ``first`` to ``second``: (H, W, 2) float32 pixels, or with ``as_gl`` a ``GlFlow`` (channels
+        2) that ``GlFrameWarper.warp_and_fill`` takes. Each image is (H, W, 3) float32 linear RGB or a
+        ``GlImage`` (its colour buffer is read, nothing uploaded). With ``gpu_ms``, the GPU milliseconds of the
+        stages ``luma``, ``pyramid``, ``search`` and ``readback`` are added to it."""
+        sizes: dict = {}
+        buffers, owned = [], []
+        for name, image in (("first", first), ("second", second)):
+            if isinstance(image, GlImage):
+                if image.gl is not self.gl:
+                    raise InputError("is a GlImage of another GL context", field=name)
+                h, w = image.shape
+                for dim, n in (("H", h), ("W", w)):
+                    if sizes.setdefault(dim, n) != n:
+                        raise InputError(f"has {dim} = {n}, expected {dim} = {sizes[dim]} (GlImage of shape "
+                                         f"{image.shape})", field=name)
+                buffers.append(image.color)
+            else:
+                color = np.ascontiguousarray(checked_array(image, name, ("H", "W", 3), sizes))
+                buffers.append(color)
+        shape = (sizes["H"], sizes["W"])
+
+        def run():
+            gpu = []
+            for buf in buffers:
+                if isinstance(buf, np.ndarray):
+                    owned.append(self.gl.ctx.buffer(buf))
+                    gpu.append(owned[-1])
+                else:
+                    gpu.append(buf)
+            try:
+                return self._estimate(gpu[0], gpu[1], shape, gpu_ms, as_gl)
+            finally:
+                for buf in owned:
+                    buf.release()
+        return self.gl.call(run)
+
+    def luma(self, image: Union[np.ndarray, GlImage]) -> np.ndarray:
+        """(H, W) uint8 luma of ``image`` ((H, W, 3) float32 linear RGB or a ``GlImage``) as pass ``flow_luma``
+        computes it on the GPU: equal to ``engine.predict.dis.luma8``."""
+        if isinstance(image, GlImage):
+            if image.gl is not self.gl:
+                raise InputError("is a GlImage of another GL context", field="image")
+            shape, color = image.shape, None
+        else:
+            color = np.ascontiguousarray(checked_array(image, "image", ("H", "W", 3), {}))
+            shape = color.shape[:2]
+
+        n = shape[0] * shape[1]
+        values = np.empty(n, np.float32)
+
+        def run():
+            buf = image.color if color is None else self.gl.ctx.buffer(color)
+            try:
+                self._luma(buf, self.gl.buffer(self._pool, "first", 4 * n), n).read_into(values, size=values.nbytes)
+            finally:
+                if color is not None:
+                    buf.release()
+        self.gl.call(run)
+        return values.reshape(shape).astype(np.uint8)
+
+    def _luma(self, color, luma, n: int):
+        """Run pass ``flow_luma``: ``n`` pixels of the colour buffer -> level 0 of the pyramid buffer ``luma``."""
+        table = self._pool.get("table")
+        if table is None:
+            table = self._pool["table"] = self.gl.ctx.buffer(_encode_table())
+        table.bind_to_storage_buffer(2)
+        color.bind_to_storage_buffer(0)
+        luma.bind_to_storage_buffer(1)
+        self.gl.dispatch(self.gl.program("flow_luma", {"BUCKETS": ENCODE8_BUCKETS}), n, {"count": n})
+        return luma
+
+    def estimate_buffers(self, first_buffer, second_buffer, shape: tuple[int, int], *,
+                         gpu_ms: Optional[dict] = None, as_gl: bool = False) -> Union[np.ndarray, GlFlow]:
+        """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32
+        linear RGB each (e.g. ``GlFrameWarper``'s filled frame, pool key "filled"), ``shape`` = (H, W)."""
+        try:
+            h, w = (int(n) for n in shape)
+        except (TypeError, ValueError):
+            raise InputError(f"must be (height, width), got {shape!r}", field="shape") from None
+        if h < 1 or w < 1:
+            raise InputError(f"must be positive, got {shape!r}", field="shape")
+        for name, buf in (("first_buffer", first_buffer), ("second_buffer", second_buffer)):
+            if getattr(buf, "size", -1) < 12 * h * w:
+                raise InputError(f"must hold (H, W, 3) float32 = {12 * h * w} bytes for shape {(h, w)}, got "
+                                 f"{getattr(buf, 'size', type(buf).__name__)}", field=name)
+        return self.gl.call(self._estimate, first_buffer, second_buffer, (h, w), gpu_ms, as_gl)
+
+    def _estimate(self, first_buffer, second_buffer, shape: tuple[int, int], gpu_ms: Optional[dict], as_gl: bool):
+        gl, pool, config = self.gl, self._pool, self.config
+        h, w = shape
+        n = h * w
+        sizes, coarsest, finest = pyramid_levels(shape, config)
+        offsets = np.cumsum([0] + [a * b for a, b in sizes]).tolist()
+        defines = {"PATCH": config.patch_size}
+        with gl.timing(gpu_ms is not None) as times:
+            pyramids = [gl.buffer(pool, key, 4 * offsets[-1]) for key in ("first", "second")]
+            with gl.gpu_stage("luma"):
+                for color, pyramid in zip((first_buffer, second_buffer), pyramids):
+                    self._luma(color, pyramid, n)
+            with gl.gpu_stage("pyramid"):
+                down = gl.program("flow_downsample")
+                for pyramid in pyramids:
+                    pyramid.bind_to_storage_buffer(1)
+                    for level in range(coarsest):
+                        gl.dispatch(down, sizes[level + 1][0] * sizes[level + 1][1],
+                                    {"src_size": sizes[level], "dst_size": sizes[level + 1],
+                                     "src_offset": offsets[level], "dst_offset": offsets[level + 1]})
+            largest = max(a * b for a, b in sizes[finest:])
+            init, dense = (gl.buffer(pool, key, 8 * largest) for key in ("init", "dense"))
+            patch_flows = [gl.buffer(pool, key, 8 * largest) for key in ("patches", "patches_prev")]
+            out = gl.ctx.buffer(reserve=8 * n) if as_gl else gl.buffer(pool, "out", 8 * n)
+            with gl.gpu_stage("search"):
+                pyramids[0].bind_to_storage_buffer(1)
+                pyramids[1].bind_to_storage_buffer(3)
+                up = gl.program("flow_upsample")
+                for level in range(coarsest, finest - 1, -1):
+                    lh, lw = sizes[level]
+                    if level == coarsest:
+                        init.clear(size=8 * lh * lw)
+                    else:
+                        dense.bind_to_storage_buffer(6)
+                        init.bind_to_storage_buffer(7)
+                        gl.dispatch(up, lh * lw, {"src_size": sizes[level + 1], "dst_size": (lh, lw), "scale": 2.0})
+                    self._search_level(sizes[level], offsets[level], defines, init, dense, patch_flows)
+                dense.bind_to_storage_buffer(6)
+                out.bind_to_storage_buffer(7)
+                gl.dispatch(up, n, {"src_size": sizes[finest], "dst_size": (h, w), "scale": float(2 ** finest)})
+            if as_gl:
+                result = GlFlow((h, w), 2, out, gl)
+            else:
+                result = np.empty((h, w, 2), np.float32)
+                with gl.gpu_stage("readback"):
+                    out.read_into(result, size=result.nbytes)
+        if gpu_ms is not None:
+            for key, value in times.items():
+                gpu_ms[key] = gpu_ms.get(key, 0.0) + value
+        return result
+
+    def _search_level(self, size: tuple[int, int], offset: int, defines: dict, init, dense, patch_flows) -> None:
+        """Inverse search (``sweeps`` times) and densification of one level: ``init`` (H_l, W_l, 2) -> ``dense``."""
+        gl, config = self.gl, self.config
+        p, s = config.patch_size, config.patch_stride
+        rows, cols = ((m - p + s - 1) // s + 1 if m > p else 1 for m in size)
+        uniforms = {"size": size, "offset": offset, "stride": s, "iterations": config.iterations}
+        init.bind_to_storage_buffer(4)
+        current, previous = patch_flows
+        for sweep in range(config.sweeps):
+            current.bind_to_storage_buffer(5)
+            previous.bind_to_storage_buffer(8)
+            program = gl.program("flow_patch", {**defines, **({"PROPAGATE": 1} if sweep else {})})
+            gl.dispatch(program, rows * cols, uniforms)
+            current, previous = previous, current
+        previous.bind_to_storage_buffer(5)
+        dense.bind_to_storage_buffer(6)
+        gl.dispatch(gl.program("flow_densify", defines), size[0] * size[1], uniforms)
+
+    def release(self) -> None:
+        """Free this estimator's work buffers."""
+        def free():
+            for buf in self._pool.values():
+                buf.release()
+            self._pool.clear()
+        self.gl.call(free)

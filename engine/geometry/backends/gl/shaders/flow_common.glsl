@@ -1,0 +1,47 @@
+// The optical flow's shared declarations (engine/geometry/backends/gl/flow.py): the two luma pyramids, each
+// level of (H_l, W_l) floats (8-bit levels 0..255) stored row-major at its offset in one buffer; reads clamp
+// to the level's border. Pixel (y, x) has its centre at (x + 0.5, y + 0.5); a flow u at it points to
+// (x + 0.5 + u.x, y + 0.5 + u.y) in the second image, sampled bilinearly at index coordinates (x + u.x, y + u.y).
+// Patches: PATCH x PATCH pixels, origins j * stride along each axis, the last one moved back to end at the
+// border (origin 0 when the level is smaller than a patch: its reads clamp).
+layout(local_size_x = LOCAL_SIZE) in;
+
+layout(std430, binding = 1) readonly buffer FirstBuf { float first_[]; };    // pyramid of the first image
+layout(std430, binding = 3) readonly buffer SecondBuf { float second_[]; };  // pyramid of the second image
+
+uniform ivec2 size;   // H, W of the level
+uniform int offset;   // of the level in both pyramid buffers
+uniform int stride;   // patch stride, pixels
+
+uint invocation() {
+    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+}
+
+float first_at(int y, int x) {
+    return first_[offset + clamp(y, 0, size.x - 1) * size.y + clamp(x, 0, size.y - 1)];
+}
+
+float second_at(int y, int x) {
+    return second_[offset + clamp(y, 0, size.x - 1) * size.y + clamp(x, 0, size.y - 1)];
+}
+
+// the second image at index coordinates p = (x, y), bilinear, clamped to the border
+float second_bilinear(vec2 p) {
+    p = clamp(p, vec2(0.0), vec2(float(size.y - 1), float(size.x - 1)));
+    vec2 f = floor(p);
+    vec2 t = p - f;
+    int x = int(f.x), y = int(f.y);
+    float top = mix(second_at(y, x), second_at(y, x + 1), t.x);
+    float bottom = mix(second_at(y + 1, x), second_at(y + 1, x + 1), t.x);
+    return mix(top, bottom, t.y);
+}
+
+// patches along an axis of n pixels
+int patch_count(int n) {
+    return n <= PATCH ? 1 : (n - PATCH + stride - 1) / stride + 1;
+}
+
+// first pixel of patch j along an axis of n pixels
+int patch_origin(int j, int n) {
+    return max(0, min(j * stride, n - PATCH));
+}

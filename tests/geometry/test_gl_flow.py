@@ -1,0 +1,160 @@
+"""The GL backend's optical flow (engine/geometry/backends/gl/flow.py) on Mesa llvmpipe.
+
+No bit-exact oracle exists for the flow itself (it is not OpenCV's DIS), so it is held to what a flow must do,
+with stated tolerances: the luma pass equals ``luma8`` exactly; known translations (0.5, 3 and 12 px) of a
+multi-scale texture recovered in the interior (median error <= 0.1 px, 95th percentile <= 0.25 px); on the
+analytic two-layer scene, prepared as ``flow2d`` prepares it, the median end-point error over the moving
+square at most 1.5 times OpenCV DIS medium's on the same inputs; zero flow on a constant image; finite flows
+of the right shape on 1 x 1, 1 x N, N x 1 and 7 x 5 images; ``GlImage`` and raw-buffer inputs giving the
+numpy inputs' result; bad inputs raising InputError naming the field.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from engine.core.errors import InputError
+from engine.geometry.backends import gl as glb
+from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
+from engine.predict.dis import dis_calc, dis_estimator, luma8
+from tests.synthetic import two_layer_sequence
+
+if not glb.available():
+    pytest.skip("no EGL context with compute shaders", allow_module_level=True)
+
+from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow, pyramid_levels  # noqa: E402
+
+_FLOW: list = []
+
+
+def estimator() -> GlOpticalFlow:
+    if not _FLOW:
+        _FLOW.append(GlOpticalFlow())
+    return _FLOW[0]
+
+
+def texture(h: int, w: int, seed: int) -> np.ndarray:
+    """(h, w, 3) linear RGB: smooth random noise at three scales (32, 12, 4 px cells)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((h, w, 3), np.float32)
+    for cell, amp in ((32, 0.5), (12, 0.3), (4, 0.2)):
+        noise = rng.uniform(-1, 1, (h // cell + 3, w // cell + 3, 3)).astype(np.float32)
+        out += amp * cv2.resize(noise, (w + 3 * cell, h + 3 * cell), interpolation=cv2.INTER_CUBIC)[:h, :w]
+    return (0.3 + 0.25 * out).clip(0.0, 1.0)
+
+
+def shifted_pair(h: int, w: int, shift, margin: int = 24, seed: int = 3):
+    """(a, b): b shows a's content moved by ``shift`` (dx, dy) px, so the flow a -> b is ``shift`` everywhere."""
+    base = texture(h + 2 * margin, w + 2 * margin, seed)
+    matrix = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    moved = cv2.warpAffine(base, matrix, (base.shape[1], base.shape[0]), flags=cv2.INTER_LINEAR)
+    return base[margin:margin + h, margin:margin + w].copy(), moved[margin:margin + h, margin:margin + w].copy()
+
+
+def test_luma_equals_luma8():
+    rng = np.random.default_rng(0)
+    color = rng.uniform(-0.2, 1.3, (37, 53, 3)).astype(np.float32)
+    color[0, 0, 0], color[1, 1, 1], color[2, 2, 2] = np.nan, np.inf, 0.0031308
+    color[3] = np.linspace(0.0, 1.0, 53 * 3, dtype=np.float32).reshape(53, 3)
+    np.testing.assert_array_equal(estimator().luma(color), luma8(color))
+
+
+@pytest.mark.parametrize("t", [0.5, 3.0, 12.0])
+def test_translation_recovered(t):
+    h, w, margin = 96, 160, 24
+    shift = np.array([t, -0.5 * t])
+    a, b = shifted_pair(h, w, shift, margin)
+    flow = estimator().estimate(a, b)
+    assert flow.shape == (h, w, 2) and flow.dtype == np.float32 and np.isfinite(flow).all()
+    error = np.linalg.norm(flow - shift, axis=-1)[margin:-margin, margin:-margin]
+    assert np.median(error) <= 0.1
+    assert np.percentile(error, 95) <= 0.25
+
+
+def test_two_layer_scene_against_dis():
+    frames, objects = two_layer_sequence(num_frames=3, width=160, height=96)
+    older, newest = frames[0], frames[2]
+    truth = true_object_flow(newest, {o.id: o for o in objects}, 0)[..., :2]
+    moving = np.linalg.norm(truth, axis=-1) > 0.5
+    assert moving.sum() > 1000
+    warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), Timer())
+    flow = estimator().estimate(newest.color, warped)
+    reference = dis_calc(dis_estimator("medium"), luma8(newest.color), luma8(warped))
+    gl_epe = np.median(np.linalg.norm(flow - truth, axis=-1)[moving])
+    dis_epe = np.median(np.linalg.norm(reference - truth, axis=-1)[moving])
+    assert gl_epe <= 1.5 * dis_epe, (gl_epe, dis_epe)
+    assert gl_epe < 0.2 * np.median(np.linalg.norm(truth, axis=-1)[moving])  # far better than no motion
+
+
+def test_constant_image_has_zero_flow():
+    color = np.full((40, 56, 3), 0.3, np.float32)
+    flow = estimator().estimate(color, color)
+    np.testing.assert_array_equal(flow, np.zeros((40, 56, 2), np.float32))
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 23), (23, 1), (7, 5), (33, 9)])
+def test_small_images(size):
+    rng = np.random.default_rng(size[0] * 100 + size[1])
+    a = rng.uniform(0, 1, (*size, 3)).astype(np.float32)
+    b = np.roll(a, 1, axis=1)
+    flow = estimator().estimate(a, b)
+    assert flow.shape == (*size, 2) and flow.dtype == np.float32 and np.isfinite(flow).all()
+    config = GlFlowConfig()  # a sweep moves a patch at most a patch from its start: the flow is bounded
+    assert np.abs(flow).max() <= config.sweeps * config.patch_size * 2 ** (pyramid_levels(size, config)[1] + 1)
+
+
+def test_gpu_inputs_give_the_numpy_result():
+    a, b = shifted_pair(48, 64, (2.5, 1.0))
+    flow = estimator().estimate(a, b)
+    warper = glb.GlFrameWarper()
+    depth = np.ones((48, 64), np.float32)
+    image_a, image_b = warper.upload(a, depth), warper.upload(b, depth)
+    np.testing.assert_array_equal(estimator().estimate(image_a, image_b), flow)
+    np.testing.assert_array_equal(estimator().estimate(image_a, b), flow)
+    np.testing.assert_array_equal(estimator().estimate_buffers(image_a.color, image_b.color, (48, 64)), flow)
+    gpu_ms: dict = {}
+    on_gpu = estimator().estimate(image_a, image_b, as_gl=True, gpu_ms=gpu_ms)
+    assert isinstance(on_gpu, glb.GlFlow) and on_gpu.shape == (48, 64) and on_gpu.channels == 2
+    assert {"luma", "pyramid", "search"} <= set(gpu_ms) and all(v >= 0 for v in gpu_ms.values())
+    np.testing.assert_array_equal(np.frombuffer(warper.gl.call(on_gpu.buffer.read), np.float32).reshape(48, 64, 2),
+                                  flow)
+    # the warper moves points by the resident flow exactly as by the same flow uploaded
+    k = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    pose = np.eye(4)
+    by_resident = warper.warp_and_fill(image_a, k, pose, k, pose, on_gpu, -1.0)
+    by_upload = warper.warp_and_fill(image_a, k, pose, k, pose, warper.upload_flow(flow), -1.0)
+    np.testing.assert_array_equal(by_resident[0], by_upload[0])
+
+
+def test_bad_inputs_name_the_field():
+    gl_flow = estimator()
+    a = np.zeros((8, 9, 3), np.float32)
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate(a, np.zeros((8, 10, 3), np.float32))
+    assert err.value.field == "second"
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate(np.zeros((8, 9, 4), np.float32), a)
+    assert err.value.field == "first"
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate(a, np.zeros((8, 9, 3), np.uint8))
+    assert err.value.field == "second"
+    image = glb.GlFrameWarper().upload(np.zeros((8, 10, 3), np.float32), np.ones((8, 10), np.float32))
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate(a, image)
+    assert err.value.field == "second"
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate_buffers(image.color, image.color, (9, 10))
+    assert err.value.field == "first_buffer"
+    with pytest.raises(InputError) as err:
+        gl_flow.estimate_buffers(image.color, image.color, (0, 10))
+    assert err.value.field == "shape"
+    with pytest.raises(InputError) as err:
+        gl_flow.luma(np.zeros((8, 9), np.float32))
+    assert err.value.field == "image"
+    with pytest.raises(InputError) as err:
+        GlFlowConfig(patch_stride=9)
+    assert err.value.field == "patch_stride"
+    with pytest.raises(InputError) as err:
+        GlFlowConfig(sweeps=0)
+    assert err.value.field == "sweeps"

@@ -5,7 +5,8 @@ on rgbd-seq sequences; ``eval --bounds`` the performance bounds of thesis Table 
 scores a trained radiance field), ``render-scene`` (write a
 procedural dynamic scene as rgbd-seq), ``render-rig`` (the same scene seen by a rig of fixed cameras, as
 rgbd-rig), ``import`` (convert Blender, MPI-Sintel or DeCOMPnet/VEED layouts to rgbd-seq), ``train`` /
-``export`` (``flow`` network, static ``field``; need torch) and ``serve`` (prediction sessions for game
+``export`` (``flow`` network, static ``field``; need torch), ``play`` (a live window, or a video, of a renderer
+drawing every k-th frame and Interleave generating the rest) and ``serve`` (prediction sessions for game
 engines over a local socket). Bad input ends with one line naming the problem and exit status 2, never a
 traceback.
 """
@@ -156,6 +157,17 @@ def build_parser() -> argparse.ArgumentParser:
         sp = sub.add_parser(command, help=help_text, description=description)
         sp.add_argument("what", choices=list(TORCH_COMMANDS[command]), help=f"what to {command}")
         sp.add_argument("options", nargs=argparse.REMAINDER, help=f"options of that {command}er (see its --help)")
+    from demos.play import PlayConfig
+
+    pl = sub.add_parser("play", help="a live window where the renderer draws every k-th frame and Interleave "
+                                     "generates the rest (headless: a video)",
+                        description="The built-in scene (or an exported field, --field) renders every k-th frame and "
+                                    "the predictor generates the others, with an overlay of rendered and generated "
+                                    "fps and per-stage ms. Keys: M method, K k, S split view (truth | generated | "
+                                    "error), Q or Esc quit. --record OUT.mp4 records headless; without a display "
+                                    "(or pyglet) it says so in one line and records to out/play/play.mp4. Prints a "
+                                    "one-line summary (docs/play.md).")
+    add_options(pl, PlayConfig)
     sv = sub.add_parser("serve", help="serve prediction sessions to game engines over a local socket",
                         description="Binary protocol over a Unix socket or TCP on 127.0.0.1, frames in shared memory "
                                     "(docs/server.md, engine/runtime/include/interleave_protocol.h). Runs until SIGINT or "
@@ -215,6 +227,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
             run_demo(args.out, k=args.k, seed=args.seed, frames=args.frames, width=args.width, height=args.height,
                      methods=_methods(args.methods), backend=args.backend)
+        elif args.command == "play":
+            from demos.play import PlayConfig, play
+
+            print(play(config_from_args(PlayConfig, args)).line())
         elif args.command == "eval":
             return _run_eval(args)
         elif args.command == "render-scene":

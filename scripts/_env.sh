@@ -29,4 +29,13 @@ if ! .venv/bin/python -c "import moderngl; moderngl.create_standalone_context(ba
         exit 1
     fi
 fi
+# The tests of `interleave play` open its window under Xvfb (a virtual X server; GLX through Mesa).
+if [ "$extra" = test ] && ! command -v Xvfb >/dev/null; then
+    if command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+        echo "installing Debian packages for the window tests (xvfb libglx-mesa0 libgl1-mesa-dri)" >&2
+        apt-get update -qq && apt-get install -y -qq xvfb libglx-mesa0 libgl1-mesa-dri >/dev/null
+    else
+        echo "Xvfb is missing: the window tests of 'interleave play' will be skipped (Debian: apt-get install xvfb)" >&2
+    fi
+fi
 export PATH="$root/.venv/bin:$PATH"

@@ -11,7 +11,7 @@ from engine.io.rgbd import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
 
 
-@pytest.mark.parametrize("command", ["demo", "eval", "render-scene", "import"])
+@pytest.mark.parametrize("command", ["demo", "eval", "render-scene", "import", "play"])
 def test_every_option_has_help(command, capsys):
     with pytest.raises(SystemExit) as exc:
         main([command, "--help"])

@@ -1,0 +1,693 @@
+"""`interleave play`: a renderer draws every k-th frame, Interleave generates the rest, live or recorded.
+
+The player core (:class:`Player`) needs no window. Each display tick it either has the renderer draw the
+frame (every k-th tick: the built-in procedural scene through ``engine.scenegen.SceneRenderer``, or an
+exported radiance field through ``engine.fields.gl.GlFieldRenderer``) and submits it to the one predictor
+loop (``engine.runtime.stream.PredictionLoop``), or it generates the frame from what the loop prepared, for
+the tick's camera and time. It measures the renderer's and the predictor's wall time per frame, keeps the
+predictor's per-stage wall and GPU milliseconds (``Prediction.stages_ms`` and ``gpu_ms``), and composes
+the displayed image: the frame, or the split view truth | generated | error (the truth of a generated tick
+is the renderer's own frame at that pose, drawn only in split view), with an overlay of the numbers.
+
+Conventions: frames are linear RGB (``engine.core.frames``); composed images are 8-bit sRGB-encoded RGB
+(``engine.core.colorspace.display_encode``), rows top to bottom, shape (height, panels * width, 3). The
+error panel is the mean absolute difference of the encoded images over the channels, times 4, in the
+``magma`` colour map. Rendered fps is 1000 / the renderer's median wall ms per frame (draw and read-back),
+generated fps 1000 / the predictor's median wall ms per generated frame (``PredictionLoop.predict``; the
+per-rendered-frame ``prepare`` is shown apart), shown fps the ticks per wall second of the whole loop
+(split view's truth renders included). Medians run over the last :data:`WINDOW` samples.
+
+Three ways to run it: :func:`iter_frames` (composed frames, no window: tests, scripts), :func:`record`
+(a video, ``cv2.VideoWriter`` with ``mp4v``) and :func:`run_window` (a pyglet window; keys M, K, S, Q/Esc).
+:func:`play` is what the command runs: the window when a display can be opened, else a recording.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import queue
+import statistics
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Literal, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from engine.core.colorspace import display_encode
+from engine.core.config import option
+from engine.core.errors import InputError, InterleaveError
+from engine.core.frames import Frame, rigid_inverse
+from engine.geometry.motion import camera_motion_vectors, rigid_motion_vectors
+from engine.predict import Prediction, Predictor, Target, make_predictor, resolve_auto
+from engine.runtime.stream import PredictionLoop
+
+__all__ = ["PlayConfig", "PlaySummary", "Player", "SceneSource", "FieldSource", "make_source", "iter_frames",
+           "record", "run_window", "play", "compose", "METHOD_CYCLE", "K_CYCLE", "DEFAULT_RECORDING",
+           "DEFAULT_FRAMES"]
+
+#: The methods key M cycles through (the configured method joins them when it is not one of them).
+METHOD_CYCLE = ("reproject", "flow2d", "mvec", "decomp")
+#: The values of k key K cycles through (the configured k joins them when it is not one of them).
+K_CYCLE = (2, 3, 4)
+#: Samples the overlay's medians run over.
+WINDOW = 30
+#: Where ``play`` records when no window can be opened and no ``record`` path was given.
+DEFAULT_RECORDING = Path("out/play/play.mp4")
+#: Ticks a recording takes when ``frames`` is 0.
+DEFAULT_FRAMES = 240
+#: Scale of the error panel: |truth - generated| (sRGB-encoded, 0..1) times this, clipped to 1.
+ERROR_GAIN = 4.0
+
+_PRESETS = Literal["gentle", "medium", "fast", "extreme"]
+_BACKENDS = Literal["auto", "cpu", "gl"]
+
+
+@dataclass(frozen=True)
+class PlayConfig:
+    """What ``interleave play`` shows and where it goes; every field is a command-line option."""
+
+    seed: int = option(7, "seed of the built-in procedural scene")
+    preset: _PRESETS = option("gentle", "motion preset of the built-in scene: gentle, medium, fast or extreme "
+                                        "(engine/scenegen/presets.py)")
+    field: Optional[str] = option(None, "an exported radiance field (the folder 'interleave export field' wrote, "
+                                        "or its run folder) to render instead of the built-in scene, along a camera "
+                                        "path through its scene")
+    width: int = option(640, "frame width in pixels")
+    height: int = option(360, "frame height in pixels")
+    supersample: int = option(1, "colour supersampling of the built-in scene per axis (1..4; the demo uses 2)")
+    loop: int = option(240, "frames of the scene (or of the field's camera path) before it starts over")
+    k: int = option(2, "one rendered frame every k ticks; the k - 1 in between are generated")
+    method: str = option("auto", "the predictor: auto (mvec where the renderer gives motion vectors, which both "
+                                 "sources do, else flow2d), or a method name as in 'interleave eval --methods'")
+    backend: _BACKENDS = option("auto", "where the predictor's warps run: cpu, gl, or auto (gl on a hardware GPU)")
+    split: bool = option(False, "start in the split view truth | generated | error")
+    fps: float = option(30.0, "display rate: the window's pace and the video's frame rate (each tick shows the "
+                              "next frame of the scene, whose own clock is its preset's)")
+    frames: int = option(0, f"ticks to play, then stop (0: the window runs until closed, a recording takes "
+                            f"{DEFAULT_FRAMES})")
+    record: Optional[str] = option(None, "record headless to this video file (mp4v) instead of opening a window")
+    screenshot: Optional[str] = option(None, "window mode: save the window's last frame, read back from its "
+                                             "framebuffer, to this PNG when it closes")
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.width >= 16 and self.height >= 16, "width and height must be >= 16"),
+            (1 <= self.supersample <= 4, "supersample must be 1..4"),
+            (self.loop >= 2, "loop must be >= 2"),
+            (self.k >= 1, "k must be >= 1"),
+            (np.isfinite(self.fps) and self.fps > 0, "fps must be > 0"),
+            (self.frames >= 0, "frames must be >= 0"),
+        ]
+        for ok, problem in checks:
+            if not ok:
+                raise InputError(problem, field="PlayConfig")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Sources: the renderer that draws a tick's frame
+
+
+class SceneSource:
+    """The built-in procedural scene (``engine.scenegen``): frames ``0 .. loop - 1`` on the preset's clock, again
+    and again.
+
+    A tick ``t`` shows scene frame ``t % loop``; a wrap is a camera cut (:meth:`cut`). A rendered frame's
+    motion vectors point to the previous rendered frame (what a renderer drawing every k-th frame writes),
+    exact from the frame's depth, ids and the objects' rigid motion (``rigid_motion_vectors``).
+    """
+
+    has_motion_vectors = True
+
+    def __init__(self, config: PlayConfig) -> None:
+        from engine.scenegen import SceneRenderer, make_scene
+        from engine.scenegen.presets import preset_config
+
+        self.scene = make_scene(preset_config(config.preset, seed=config.seed, width=config.width,
+                                              height=config.height, num_frames=config.loop,
+                                              supersample=config.supersample))
+        self.objects = self.scene.scene_objects()
+        self.length = config.loop
+        self.name = f"scene {config.preset} seed {config.seed}"
+        self.renderer = SceneRenderer(self.scene)
+
+    def cut(self, tick: int) -> bool:
+        """Whether ``tick`` starts the scene again (the first tick and every wrap)."""
+        return tick % self.length == 0
+
+    def frame(self, tick: int, previous: Optional[int]) -> Frame:
+        """The rendered frame of ``tick``; its motion vectors point to tick ``previous`` (None: one frame back)."""
+        index = tick % self.length
+        frame = self.renderer.render_frame(index)
+        if previous is not None and previous != tick - 1:
+            before = previous % self.length
+            now, then = self.scene.object_transforms(index), self.scene.object_transforms(before)
+            motions = {o.id: then[i] @ rigid_inverse(now[i]) for i, o in enumerate(self.scene.objects)}
+            frame.motion_vectors = rigid_motion_vectors(frame.depth, frame.camera, self.scene.camera_at(before),
+                                                        frame.object_id, motions)
+        return frame
+
+    def target(self, tick: int) -> Target:
+        """The camera and time of ``tick`` (what a game knows before drawing it)."""
+        index = tick % self.length
+        return Target(self.scene.camera_at(index), self.scene.time(index), index)
+
+    def truth(self, tick: int) -> np.ndarray:
+        """The renderer's colour of ``tick`` (linear RGB): the truth a generated frame is compared with."""
+        return self.renderer.render_frame(tick % self.length).color
+
+    def release(self) -> None:
+        self.renderer.release()
+
+
+class FieldSource:
+    """An exported static radiance field rendered by ``engine.fields.gl.GlFieldRenderer`` along
+    ``field_camera_path`` (``loop`` cameras, walked forth and back so that the loop has no jump).
+
+    Time is ``tick / fps``; only the first tick is a cut. A static field's motion vectors are the camera's
+    alone (``camera_motion_vectors`` from the rendered depth), pointing to the previous rendered frame.
+    The path uses the field's own scene description (the training cameras would need torch).
+    """
+
+    has_motion_vectors = True
+    objects: Sequence = ()
+
+    def __init__(self, config: PlayConfig) -> None:
+        from demos.upsample import resolve_field_dir
+        from engine.fields.camera_path import field_camera_path
+        from engine.fields.gl import GlFieldRenderer
+        from engine.fields.render import load_field
+
+        export, _ = resolve_field_dir(Path(config.field))
+        assets = load_field(export)  # a dynamic field's export is refused here, with its format named
+        cameras, width, height = field_camera_path(assets, None, config.loop, config.width, config.height)
+        self.cameras = cameras + cameras[-2:0:-1]
+        self.length = len(self.cameras)
+        self.fps = config.fps
+        self.name = f"field {export}"
+        self.renderer = GlFieldRenderer(assets, width, height)
+
+    def cut(self, tick: int) -> bool:
+        return tick == 0
+
+    def _render(self, tick: int) -> dict:
+        cam = self.cameras[tick % self.length]
+        return self.renderer.render(cam.intrinsics, cam.world_to_camera)
+
+    def frame(self, tick: int, previous: Optional[int]) -> Frame:
+        cam = self.cameras[tick % self.length]
+        out = self._render(tick)
+        before = self.cameras[(tick - 1 if previous is None else previous) % self.length]
+        return Frame(index=tick, time=tick / self.fps, color=out["color"], depth=out["depth"], camera=cam,
+                     object_id=np.zeros(out["depth"].shape, np.int32),
+                     motion_vectors=camera_motion_vectors(out["depth"], cam, before))
+
+    def target(self, tick: int) -> Target:
+        return Target(self.cameras[tick % self.length], tick / self.fps, tick)
+
+    def truth(self, tick: int) -> np.ndarray:
+        return self._render(tick)["color"]
+
+    def release(self) -> None:
+        self.renderer.release()
+
+
+def make_source(config: PlayConfig):
+    """The renderer of ``config``: :class:`FieldSource` when ``config.field`` is set, else :class:`SceneSource`."""
+    return FieldSource(config) if config.field else SceneSource(config)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Composition: the displayed image
+
+
+def _text(image: np.ndarray, text: str, origin: tuple[int, int], scale: float) -> None:
+    """White text with a black shadow (cv2.putText), drawn into ``image`` in place. The shadow is the same text
+    moved, not a thicker stroke: Hershey glyphs advance by their stroke width, so a thicker copy runs longer."""
+    thick = max(1, int(round(1.5 * scale)))
+    for dx, dy in ((1, 1), (-1, -1), (1, -1), (-1, 1)):
+        cv2.putText(image, text, (origin[0] + dx, origin[1] + dy), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick,
+                    cv2.LINE_AA)
+    cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
+
+
+def _font_scale(height: int) -> float:
+    return float(np.clip(height / 600.0, 0.3, 0.8))
+
+
+def _panel_label(image: np.ndarray, text: str) -> None:
+    scale = _font_scale(image.shape[0])
+    _text(image, text, (6, image.shape[0] - 8), scale)
+
+
+def _overlay(image: np.ndarray, lines: Sequence[str]) -> None:
+    """``lines`` at the top left of ``image`` over a darkened box (in place)."""
+    scale = _font_scale(image.shape[0])
+    step = int(round(30 * scale)) + 4
+    sizes = [cv2.getTextSize(s, cv2.FONT_HERSHEY_SIMPLEX, scale, max(1, int(round(1.5 * scale))))[0] for s in lines]
+    box_w = min(image.shape[1], max(w for w, _ in sizes) + 12)
+    box_h = min(image.shape[0], step * len(lines) + 8)
+    image[:box_h, :box_w] = (image[:box_h, :box_w] * 0.45).astype(np.uint8)
+    for i, line in enumerate(lines):
+        _text(image, line, (6, step * (i + 1)), scale)
+
+
+def _encode8(linear: np.ndarray) -> np.ndarray:
+    return (np.clip(display_encode(linear), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def compose(shown: np.ndarray, lines: Sequence[str] = (), *, truth: Optional[np.ndarray] = None,
+            labels: Sequence[str] = ("truth", "generated", "error")) -> np.ndarray:
+    """The displayed image, (H, W, 3) uint8 RGB, or (H, 3 W, 3) as truth | shown | error when ``truth`` is
+    given; ``lines`` overlaid at the top left, ``labels`` at the bottom of the panels of the split view.
+
+    ``shown`` and ``truth`` are (H, W, 3) linear RGB; the error is ``ERROR_GAIN`` * mean |encoded difference|
+    in the magma colour map, and its label gets the PSNR of the encoded images."""
+    image = _encode8(shown)
+    if truth is not None:
+        t8 = _encode8(truth)
+        diff = np.abs(t8.astype(np.float32) - image.astype(np.float32)).mean(axis=2) / 255.0
+        err = cv2.applyColorMap((np.clip(ERROR_GAIN * diff, 0.0, 1.0) * 255.0).astype(np.uint8), cv2.COLORMAP_MAGMA)
+        err = cv2.cvtColor(err, cv2.COLOR_BGR2RGB)
+        mse = float(((t8.astype(np.float32) - image.astype(np.float32)) ** 2).mean()) / 255.0 ** 2
+        psnr = "inf" if mse == 0 else f"{10 * np.log10(1.0 / mse):.1f}"
+        panels = [t8, image, err]
+        texts = [labels[0], labels[1], f"{labels[2]} x{ERROR_GAIN:g}, PSNR {psnr} dB"]
+        for panel, text in zip(panels, texts):
+            _panel_label(panel, text)
+        image = np.concatenate(panels, axis=1)
+    image = np.ascontiguousarray(image)
+    if lines:
+        _overlay(image, lines)
+    return image
+
+
+# ----------------------------------------------------------------------------------------------------
+# The player core
+
+
+def _median(values) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def _fps(ms: float) -> float:
+    return 1000.0 / ms if ms > 0 else float("nan")
+
+
+def _stage_text(stages: dict[str, deque]) -> str:
+    return " ".join(f"{name} {_median(v):.1f}" for name, v in stages.items() if v) or "-"
+
+
+@dataclass
+class PlaySummary:
+    """What a run showed: ticks, how many the renderer drew, and medians over the whole run (wall ms)."""
+
+    frames: int
+    rendered: int
+    generated: int
+    method: str
+    backend: str
+    k: int
+    render_ms: float
+    generate_ms: float
+    shown_fps: float
+    size: tuple[int, int]
+    path: Optional[str] = None
+
+    @property
+    def rendered_fps(self) -> float:
+        """1000 / the renderer's median ms per frame."""
+        return _fps(self.render_ms)
+
+    @property
+    def generated_fps(self) -> float:
+        """1000 / the predictor's median ms per generated frame."""
+        return _fps(self.generate_ms)
+
+    def line(self) -> str:
+        """The one-line summary the command prints."""
+        where = f" to {self.path}" if self.path else ""
+        return (f"played {self.frames} frames ({self.size[0]}x{self.size[1]}){where}: {self.rendered} rendered at "
+                f"{self.rendered_fps:.1f} fps, {self.generated} generated at {self.generated_fps:.1f} fps, shown at "
+                f"{self.shown_fps:.1f} fps; method {self.method}, backend {self.backend}, k {self.k}")
+
+
+class Player:
+    """The player without a window: :meth:`tick` draws or generates the next frame and composes it.
+
+    Args:
+        config: what to play (``config.method`` ``auto`` resolves with the source's motion vectors).
+        source: the renderer (default :func:`make_source`); the player releases it in :meth:`close`.
+
+    Keys (:meth:`press`): ``m`` the next method of :data:`METHOD_CYCLE`, ``k`` the next k of :data:`K_CYCLE`
+    (from the next tick: a frame is rendered once k ticks have passed since the last), ``s`` split view on or
+    off, ``q`` (or ``escape``) quit (:attr:`quit` turns True).
+    """
+
+    def __init__(self, config: PlayConfig, source=None) -> None:
+        self.config = config
+        self.source = make_source(config) if source is None else source
+        try:
+            method = resolve_auto(config.method, self.source.has_motion_vectors)
+            self.methods = list(METHOD_CYCLE) if method in METHOD_CYCLE else [method, *METHOD_CYCLE]
+            self.ks = sorted(set(K_CYCLE) | {config.k})
+            self._predictors: dict[str, Predictor] = {}
+            self.method = method
+            self.loop = PredictionLoop(self._predictor(method))
+        except Exception:
+            self.source.release()
+            raise
+        self.k = config.k
+        self.split = config.split
+        self.quit = False
+        self.tick_index = 0
+        self.keys_hint = False
+        self._last_render: Optional[int] = None
+        self._rendered: deque[Frame] = deque(maxlen=2)
+        self._render_ms: deque[float] = deque(maxlen=WINDOW)
+        self._prepare_ms: deque[float] = deque(maxlen=WINDOW)
+        self._generate_ms: deque[float] = deque(maxlen=WINDOW)
+        self._ticks: deque[float] = deque(maxlen=WINDOW + 1)
+        self._stages: dict[str, deque] = {}
+        self._gpu: dict[str, deque] = {}
+        self._all_render: list[float] = []
+        self._all_generate: dict[str, list[float]] = {}
+        self.rendered = 0
+        self.generated = 0
+        self._start: Optional[float] = None
+        #: the last tick's frame (linear RGB), its truth (split view only, else None), whether it was rendered
+        self.last_color: Optional[np.ndarray] = None
+        self.last_truth: Optional[np.ndarray] = None
+        self.last_rendered = False
+
+    # -------------------------------------------------------------------------------------- controls
+    def _predictor(self, name: str) -> Predictor:
+        if name not in self._predictors:
+            self._predictors[name] = make_predictor(name, self.source.objects, backend=self.config.backend)
+        return self._predictors[name]
+
+    @property
+    def backend(self) -> str:
+        """Where the current predictor's warps run (``cpu`` or ``gl``)."""
+        return self.loop.predictor.backend
+
+    def set_method(self, name: str) -> None:
+        """Switch the predictor now; what the new one needs is prepared from the kept rendered frames."""
+        self.loop.predictor = self._predictor(name)
+        self.method = name
+        self._stages.clear()
+        self._gpu.clear()
+        self._generate_ms.clear()
+        if self._rendered:
+            self.loop.load(list(self._rendered))
+
+    def press(self, key: str) -> None:
+        """Handle a key by name: ``m``, ``k``, ``s``, ``q`` / ``escape`` (others are ignored)."""
+        key = key.lower()
+        if key == "m":
+            self.set_method(self.methods[(self.methods.index(self.method) + 1) % len(self.methods)])
+        elif key == "k":
+            self.k = self.ks[(self.ks.index(self.k) + 1) % len(self.ks)] if self.k in self.ks else self.ks[0]
+        elif key == "s":
+            self.split = not self.split
+        elif key in ("q", "escape"):
+            self.quit = True
+
+    # -------------------------------------------------------------------------------------- ticks
+    def _render(self, tick: int) -> Frame:
+        cut = self.source.cut(tick)
+        start = time.perf_counter()
+        frame = self.source.frame(tick, None if cut else self._last_render)
+        self._render_ms.append(1e3 * (time.perf_counter() - start))
+        self._all_render.append(self._render_ms[-1])
+        if cut:
+            self._rendered.clear()
+        self._rendered.append(frame)
+        start = time.perf_counter()
+        self.loop.submit(frame, restart=cut)
+        self._prepare_ms.append(1e3 * (time.perf_counter() - start))
+        self._last_render = tick
+        self.rendered += 1
+        return frame
+
+    def _generate(self, tick: int) -> Prediction:
+        start = time.perf_counter()
+        pred = self.loop.predict(self.source.target(tick))
+        self._generate_ms.append(1e3 * (time.perf_counter() - start))
+        self._all_generate.setdefault(self.method, []).append(self._generate_ms[-1])
+        for into, values in ((self._stages, pred.stages_ms), (self._gpu, pred.gpu_ms)):
+            for name, ms in values.items():
+                into.setdefault(name, deque(maxlen=WINDOW)).append(ms)
+        self.generated += 1
+        return pred
+
+    def tick(self) -> np.ndarray:
+        """Draw or generate the next tick's frame and return the composed image (see :func:`compose`)."""
+        tick = self.tick_index
+        now = time.perf_counter()
+        if self._start is None:
+            self._start = now
+        renders = (self.source.cut(tick) or self._last_render is None or tick - self._last_render >= self.k)
+        if renders:
+            frame = self._render(tick)
+            color, truth = frame.color, (frame.color if self.split else None)
+            labels = ("truth", "rendered", "error")
+        else:
+            color = self._generate(tick).color
+            truth = self.source.truth(tick) if self.split else None
+            labels = ("truth (rendered for comparison)", f"generated: {self.method}", "error")
+        self.last_color, self.last_truth, self.last_rendered = color, truth, renders
+        image = compose(color, self.overlay_lines(renders), truth=truth, labels=labels)
+        self._ticks.append(time.perf_counter())
+        self.tick_index += 1
+        return image
+
+    def overlay_lines(self, rendered: bool) -> list[str]:
+        """The overlay: method and backend, k, fps, per-stage wall and GPU ms, what this tick was."""
+        render_ms, gen_ms = _median(self._render_ms), _median(self._generate_ms)
+        shown = (len(self._ticks) - 1) / (self._ticks[-1] - self._ticks[0]) if len(self._ticks) > 1 else float("nan")
+        fallback = self.loop.prepared.fallback if self.loop.prepared is not None else None
+        method = self.method + (f" (reproject until {self.loop.predictor.history_needed} rendered)"
+                                if fallback else "")
+        lines = [f"{method} on {self.backend}, k={self.k}: tick {self.tick_index} "
+                 f"{'rendered' if rendered else 'generated'}",
+                 f"rendered {_fps(render_ms):.1f} fps ({render_ms:.1f} ms)  generated {_fps(gen_ms):.1f} fps "
+                 f"({gen_ms:.1f} ms)  shown {shown:.1f} fps",
+                 f"stage ms: {_stage_text(self._stages)}  prepare {_median(self._prepare_ms):.1f}",
+                 f"gpu ms: {_stage_text(self._gpu) if self._gpu else '- (' + self.backend + ' backend)'}"]
+        if self.keys_hint:
+            lines.append("keys: M method  K k  S split  Q quit")
+        return lines
+
+    def summary(self, path: Optional[str] = None) -> PlaySummary:
+        """Medians over the whole run so far (generated: of the current method)."""
+        elapsed = (self._ticks[-1] - self._start) if self._ticks and self._start is not None else 0.0
+        width = self.config.width * (3 if self.split else 1)
+        return PlaySummary(frames=self.tick_index, rendered=self.rendered, generated=self.generated,
+                           method=self.method, backend=self.backend, k=self.k, render_ms=_median(self._all_render),
+                           generate_ms=_median(self._all_generate.get(self.method, [])),
+                           shown_fps=self.tick_index / elapsed if elapsed > 0 else float("nan"),
+                           size=(width, self.config.height), path=path)
+
+    def close(self) -> None:
+        """Release the renderer (safe to call twice)."""
+        if self.source is not None:
+            self.source.release()
+            self.source = None
+
+    def __enter__(self) -> "Player":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def iter_frames(config: PlayConfig, count: int, keys: Optional[dict[int, str]] = None) -> Iterator[np.ndarray]:
+    """``count`` composed frames of ``config``, no window; ``keys`` maps a tick to a key pressed before it."""
+    with Player(config) as player:
+        for tick in range(count):
+            if keys and tick in keys:
+                player.press(keys[tick])
+            yield player.tick()
+
+
+# ----------------------------------------------------------------------------------------------------
+# Headless recording and the window
+
+
+def record(config: PlayConfig, path: Optional[str] = None) -> PlaySummary:
+    """Play ``config.frames`` ticks (0: :data:`DEFAULT_FRAMES`) headless into the video ``path`` (default
+    ``config.record``; mp4v at ``config.fps``) and return the summary."""
+    path = Path(path or config.record or DEFAULT_RECORDING)
+    if path.is_dir():
+        raise InputError("is a folder, not a video file", file=path, field="record")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    count = config.frames or DEFAULT_FRAMES
+    writer = None
+    with Player(config) as player:
+        try:
+            for _ in range(count):
+                image = player.tick()
+                if writer is None:
+                    size = (image.shape[1], image.shape[0])
+                    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(config.fps), size)
+                    if not writer.isOpened():
+                        raise InputError("cannot be written as an mp4v video", file=path, field="record")
+                writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        finally:
+            if writer is not None:
+                writer.release()
+        return player.summary(str(path))
+
+
+def _no_display_reason() -> Optional[str]:
+    """Why no window can be opened here, or None when a display may exist."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return "no display (DISPLAY is not set)"
+    try:
+        import pyglet  # noqa: F401
+    except ImportError:
+        return "pyglet is not installed (pip install -e '.[play]')"
+    return None
+
+
+class _Worker(threading.Thread):
+    """Runs the :class:`Player` on its own thread: the renderers' EGL contexts stay current there and never
+    meet the window's GL context. Composed frames go out through ``frames`` (at most two ahead), keys come in
+    through ``keys``."""
+
+    def __init__(self, config: PlayConfig) -> None:
+        super().__init__(daemon=True, name="interleave-play")
+        self.config = config
+        self.frames: queue.Queue = queue.Queue(maxsize=2)
+        self.keys: queue.Queue = queue.Queue()
+        self.stop = threading.Event()
+        self.error: Optional[BaseException] = None
+        self.summary: Optional[PlaySummary] = None
+
+    def run(self) -> None:
+        try:
+            with Player(self.config) as player:
+                player.keys_hint = True
+                limit = self.config.frames or None
+                while not self.stop.is_set() and not player.quit and player.tick_index != limit:
+                    while not self.keys.empty():
+                        player.press(self.keys.get())
+                    if player.quit:
+                        break
+                    image = player.tick()
+                    while not self.stop.is_set():
+                        try:
+                            self.frames.put(image, timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                self.summary = player.summary()
+        except BaseException as exc:  # handed to the window's thread, which raises it
+            self.error = exc
+        finally:
+            self.stop.set()
+
+
+def run_window(config: PlayConfig, keys: Optional[dict[int, str]] = None) -> PlaySummary:
+    """Show ``config`` in a pyglet window at ``config.fps`` until it is closed (Q, Esc, the close button) or
+    ``config.frames`` ticks were shown; save ``config.screenshot`` (the last frame read back from the window's
+    framebuffer) on the way out. ``keys`` maps a count of frames shown to a key (``M``, ``K``, ``S``, ``Q``,
+    ``ESCAPE``) sent through the window's key handler after that frame, as if typed. The player runs up to
+    two frames ahead of the window, so a key shows from two or three frames later.
+    Raises InterleaveError when the window cannot be opened."""
+    try:
+        import pyglet
+        from pyglet.window import key
+    except ImportError as exc:
+        raise InterleaveError("the window needs pyglet: pip install -e '.[play]'") from exc
+    width = config.width * (3 if config.split else 1)
+    try:
+        window = pyglet.window.Window(width, config.height, caption="interleave play", vsync=False)
+    except Exception as exc:  # NoSuchDisplayException, no GL config, ...: one line for the caller
+        raise InterleaveError(f"cannot open a window: {exc}") from exc
+    worker = _Worker(config)
+    names = {key.M: "m", key.K: "k", key.S: "s", key.Q: "q", key.ESCAPE: "escape"}
+
+    @window.event
+    def on_key_press(symbol, modifiers):  # noqa: ARG001 (pyglet's signature)
+        if symbol in names:
+            worker.keys.put(names[symbol])
+        return pyglet.event.EVENT_HANDLED  # Esc closes through the player, after its last frame
+
+    worker.start()
+    shown, last, first, latest = 0, None, None, None
+    period = 1.0 / config.fps
+    try:
+        while not window.has_exit and not (worker.stop.is_set() and worker.frames.empty()):
+            start = time.perf_counter()
+            window.dispatch_events()
+            try:
+                image = worker.frames.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            height, width = image.shape[:2]
+            if (window.width, window.height) != (width, height):
+                window.set_size(width, height)
+            window.switch_to()
+            window.clear()
+            flipped = np.ascontiguousarray(image[::-1])  # GL rows run bottom to top
+            pyglet.image.ImageData(width, height, "RGB", flipped.tobytes(), pitch=3 * width).blit(0, 0)
+            shown += 1
+            latest = time.perf_counter()
+            first = latest if first is None else first
+            if config.screenshot:  # read before the flip: the back buffer holds what is about to show
+                last = _read_window(pyglet, width, height)
+            window.flip()
+            if keys and shown in keys:
+                window.dispatch_event("on_key_press", getattr(key, keys[shown].upper()), 0)
+            if config.frames and shown >= config.frames:
+                break
+            time.sleep(max(0.0, period - (time.perf_counter() - start)))
+    finally:
+        worker.stop.set()
+        worker.join(timeout=30)
+        window.close()
+    if worker.error is not None:
+        raise worker.error
+    if config.screenshot:
+        if last is None:
+            raise InterleaveError("the window showed no frame to save")
+        Path(config.screenshot).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(config.screenshot), cv2.cvtColor(last, cv2.COLOR_RGB2BGR))
+    summary = worker.summary
+    if summary is None:
+        raise InterleaveError("the player stopped before its first frame")
+    elapsed = latest - first if first is not None else 0.0  # the window's own rate, first to last frame shown
+    return dataclasses.replace(summary, frames=shown,
+                               shown_fps=(shown - 1) / elapsed if shown > 1 and elapsed > 0 else float("nan"))
+
+
+def _read_window(pyglet, width: int, height: int) -> np.ndarray:
+    """(H, W, 3) uint8 RGB, rows top to bottom, of the window's colour buffer."""
+    buffer = pyglet.image.get_buffer_manager().get_color_buffer().get_image_data()
+    data = np.frombuffer(buffer.get_data("RGB", 3 * buffer.width), np.uint8)
+    return np.ascontiguousarray(data.reshape(buffer.height, buffer.width, 3)[::-1][:height, :width])
+
+
+def play(config: PlayConfig, *, err=sys.stderr) -> PlaySummary:
+    """What ``interleave play`` runs. With ``config.record`` it records headless. Otherwise it opens the
+    window; when no window can be opened (no DISPLAY, no pyglet, pyglet fails), it says why in one line on
+    ``err`` and records to :data:`DEFAULT_RECORDING` instead."""
+    if config.record:
+        return record(config)
+    reason = _no_display_reason()
+    if reason is None:
+        try:
+            return run_window(config)
+        except InterleaveError as exc:
+            if not str(exc).startswith("cannot open a window"):
+                raise
+            reason = str(exc)
+    print(f"interleave play: {reason}: recording {config.frames or DEFAULT_FRAMES} frames to {DEFAULT_RECORDING} "
+          f"instead", file=err)
+    return record(config, str(DEFAULT_RECORDING))

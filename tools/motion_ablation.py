@@ -43,7 +43,7 @@ from engine.eval.protocol import evaluate_sequence, summarize
 from engine.geometry.holefill import fill_holes
 from engine.io.rgbd import read_sequence
 from engine.predict import registry
-from engine.predict.classic import Flow2D, Flow2DState
+from engine.predict.classic import Flow2D
 from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
@@ -187,7 +187,8 @@ class RuleFlow2D(Flow2D):
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
                    "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64)}
         with timer("flow"):
-            return Flow2DState(self.rule(self._dis, luma8(newest.color), luma8(warped), seen, context))
+            flow = self.rule(self._dis, luma8(newest.color), luma8(warped), seen, context)
+        return self.state_of(newest, flow, timer)
 
 
 def validation_sets(out: Path) -> dict[str, list[Path]]:

@@ -79,7 +79,12 @@ class Flow2D(Predictor):
             seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                         src.world_to_camera, older.depth.shape)
             flow[~trusted_motion(luma_n, luma_w, flow, seen)] = 0.0
-        return Flow2DState(flow, self.frames.resident(newest, timer), self.frames.resident_flow(flow, timer))
+        return self.state_of(newest, flow, timer)
+
+    def state_of(self, newest, flow_back: np.ndarray, timer: Timer) -> Flow2DState:
+        """The state of frame ``newest`` with its estimated u(n -> n-k) ``flow_back``, made resident on the
+        backend."""
+        return Flow2DState(flow_back, self.frames.resident(newest, timer), self.frames.resident_flow(flow_back, timer))
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""

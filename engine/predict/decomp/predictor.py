@@ -19,9 +19,11 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
 
 Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
 the frame times); frame n at full resolution, one plane whose pixels carry their own plane's flow, moves by
-it and by the camera (``splat``: forward bilinear splat, ``geometry.forward_warp_mpi``), is composited, and
-disocclusions are filled the way ``reproject`` fills them (``engine.geometry.holefill``), or with
-``fill=infill`` by the infilling network (``engine.predict.decomp.infill``, thesis Sec. 6.3.4).
+it and by the camera (forward bilinear splat) and disocclusions are filled the way ``reproject`` fills them:
+the backend's ``warp_and_fill`` (stages ``warp``, ``fill``; on ``gl`` frame n and its flow are uploaded once
+in ``prepare`` and the render runs on the GPU). With ``fill=infill`` the splat (``splat``,
+``geometry.forward_warp_mpi``) and ``composite`` run on the CPU and the infilling network
+(``engine.predict.decomp.infill``, thesis Sec. 6.3.4) fills the holes.
 ``DecompTrueMotion`` replaces the predicted object motion by the true one (the bound of thesis Table 6.3).
 
 Conventions are ``engine.geometry``'s: OpenCV cameras, pixel centres at +0.5, planar depth (+inf sky),
@@ -30,7 +32,7 @@ MPI arrays (C, Z, H, W) with planes near (0) to far (Z - 1). No torch: the netwo
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -40,7 +42,8 @@ from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.geometry.holefill import fill_holes
-from engine.predict.base import Predictor, PreparedState, Target, Timer, extrapolation_factor, true_object_flow
+from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
+                                 true_object_flow)
 from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
@@ -108,19 +111,23 @@ class DecompState:
     """``decomp``'s per-frame state (``PreparedState.data``) after ``prepare``.
 
     ``boxes``: working-resolution boxes the network ran on; ``factor``: the downsampling; ``mpi``: the
-    full-resolution one-plane MPI of frame n; ``flow``: its u(n -> n-k), (3, 1, H, W), or None when the gate
-    found no motion; ``plane_depths``: the network's planes (frame n's, at the working resolution);
-    ``network_fraction``: the share of the frame the network saw; ``infill_planes``: frame n's planes at the
-    infilling network's Z, made on first use when it has other planes than the flow network.
+    full-resolution one-plane MPI of frame n (made for ``fill=infill`` only, None otherwise); ``flow``: frame
+    n's u(n -> n-k), (3, 1, H, W), or None when the gate found no motion; ``plane_depths``: the network's
+    planes (frame n's, at the working resolution); ``network_fraction``: the share of the frame the network
+    saw; ``infill_planes``: frame n's planes at the infilling network's Z, made on first use when it has other
+    planes than the flow network; ``frame`` and ``motion``: frame n and its flow (H, W, 3) where the backend
+    computes (on ``gl``: uploaded once).
     """
 
     boxes: list[Box]
     factor: int
-    mpi: Mpi
+    mpi: Optional[Mpi]
     flow: Optional[np.ndarray]
     plane_depths: np.ndarray
     network_fraction: float
     infill_planes: Optional[np.ndarray] = None
+    frame: Optional[ResidentFrame] = None
+    motion: Any = None
 
 
 def full_box(box: Box, factor: int, low_size: tuple[int, int], size: tuple[int, int]) -> Box:
@@ -237,6 +244,7 @@ class DecompPredictor(Predictor):
 
     name = "decomp"
     history_needed = 2
+    backends = ("cpu", "gl")  # the render with the simple fill; the preparation and fill=infill stay on the CPU
 
     def __init__(self, config: DecompConfig = DecompConfig(), network: Optional[FlowNetwork] = None,
                  objects: Sequence[SceneObject] = (), infill: Optional[InfillNetwork] = None) -> None:
@@ -249,6 +257,7 @@ class DecompPredictor(Predictor):
         if config.fill == "infill":
             self.infill = infill if infill is not None else InfillNetwork(config.infill_model or DEFAULT_INFILL_MODEL,
                                                                            config.threads)
+            self.backends = ("cpu",)  # the infilling network's render (splat, composite, network) runs on the CPU
 
     def _prepare(self, state: PreparedState, timer: Timer) -> DecompState:
         cfg, net = self.config, self.network
@@ -285,21 +294,39 @@ class DecompPredictor(Predictor):
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
             if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
                 flow[:, 0, ~initial.seen] = 0.0
-        with timer("mpi"):
-            mpi = geometry.build_mpi(newest.color, newest.depth, 1)
-        return DecompState(boxes=boxes, factor=factor, mpi=mpi, flow=flow, plane_depths=planes,
+        data = DecompState(boxes=boxes, factor=factor, mpi=None, flow=flow, plane_depths=planes,
                            network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes)
                            / float(low_size[0] * low_size[1]))
+        self._resident(state, data, timer)
+        return data
 
-    def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> Optional[np.ndarray]:
-        """(3, 1, H, W) object motion u(n -> target) of the MPI's points, None for none."""
-        flow = state.data.flow
-        return None if flow is None else flow * np.float32(-extrapolation_factor(state, target))
+    def _resident(self, state: PreparedState, data: DecompState, timer: Timer) -> None:
+        """Frame n and its flow where the backend computes (the simple fill), or frame n's one-plane MPI (the
+        infilling network's path)."""
+        newest = state.history[-1]
+        flow = None if data.flow is None else np.ascontiguousarray(np.moveaxis(data.flow[:, 0], 0, -1))
+        if self.infill is not None:
+            with timer("mpi"):
+                data.mpi = geometry.build_mpi(newest.color, newest.depth, 1)
+            data.motion = flow
+            return
+        data.frame = self.frames.resident(newest, timer)
+        if flow is not None:
+            data.motion = self.frames.resident_flow(flow, timer)
+
+    def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> tuple[Any, float]:
+        """(flow, scale): the object motion u(n -> target) of frame n's pixels is scale * flow (flow: (H, W, 3)
+        or the backend's resident copy; None for none)."""
+        return state.data.motion, -extrapolation_factor(state, target)
 
     def _render(self, state: PreparedState, target: Target, timer: Timer) -> tuple[np.ndarray, np.ndarray]:
         data: DecompState = state.data
+        if self.infill is None:
+            flow, scale = self._object_motion(state, target, timer)
+            return self.frames.warp_and_fill(data.frame, target, timer, flow, scale)
         newest = state.history[-1]
-        motion = self._object_motion(state, target, timer)
+        flow, scale = self._object_motion(state, target, timer)
+        motion = None if flow is None else np.moveaxis(flow * np.float32(scale), -1, 0)[:, None]
         src, dst = newest.camera, target.camera
         with timer("splat"):
             warped, _ = geometry.forward_warp_mpi(data.mpi, src.intrinsics, src.world_to_camera, dst.intrinsics,
@@ -323,11 +350,10 @@ class DecompPredictor(Predictor):
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """Per-pixel u(n -> n-k) of frame n's visible surface, (H, W, 2) pixels (0 where no motion was found)."""
-        mpi, flow = state.data.mpi, state.data.flow
-        if flow is None:
-            return np.zeros(mpi.alpha.shape[1:] + (2,), dtype=np.float32)
-        weight = mpi.alpha * geometry.visibility(mpi)
-        return np.moveaxis((flow[:2] * weight[None]).sum(axis=1), 0, -1)
+        flow = state.data.flow
+        if flow is None:  # frame n's one-plane MPI covers every pixel: the flow is its plane's
+            return np.zeros(state.history[-1].depth.shape + (2,), dtype=np.float32)
+        return np.moveaxis(flow[:2, 0], 0, -1).copy()
 
 
 class DecompTrueMotion(DecompPredictor):
@@ -345,12 +371,11 @@ class DecompTrueMotion(DecompPredictor):
 
     def _prepare(self, state: PreparedState, timer: Timer) -> DecompState:
         newest = state.history[-1]
-        with timer("mpi"):
-            mpi = geometry.build_mpi(newest.color, newest.depth, 1)
-        return DecompState(boxes=[], factor=1, mpi=mpi, flow=None, network_fraction=0.0,
+        data = DecompState(boxes=[], factor=1, mpi=None, flow=None, network_fraction=0.0,
                            plane_depths=geometry.plane_depths(newest.depth, self.network.num_planes))
+        self._resident(state, data, timer)
+        return data
 
-    def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> np.ndarray:
+    def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> tuple[Any, float]:
         with timer("motion"):
-            truth = true_object_flow(state.history[-1], self.objects, target.index)  # (H, W, 3)
-        return np.moveaxis(truth, -1, 0)[:, None] * state.data.mpi.alpha[None]
+            return true_object_flow(state.history[-1], self.objects, target.index), 1.0  # (H, W, 3)

@@ -304,7 +304,8 @@ def _stage_text(stages: dict[str, deque]) -> str:
 
 @dataclass
 class PlaySummary:
-    """What a run showed: ticks, how many the renderer drew, and medians over the whole run (wall ms)."""
+    """What a run showed: ticks, how many the renderer drew, and medians over the whole run (wall ms): the
+    renderer's per frame, the predictor's per generated frame and its ``prepare`` per rendered frame."""
 
     frames: int
     rendered: int
@@ -314,6 +315,7 @@ class PlaySummary:
     k: int
     render_ms: float
     generate_ms: float
+    prepare_ms: float
     shown_fps: float
     size: tuple[int, int]
     path: Optional[str] = None
@@ -332,8 +334,9 @@ class PlaySummary:
         """The one-line summary the command prints."""
         where = f" to {self.path}" if self.path else ""
         return (f"played {self.frames} frames ({self.size[0]}x{self.size[1]}){where}: {self.rendered} rendered at "
-                f"{self.rendered_fps:.1f} fps, {self.generated} generated at {self.generated_fps:.1f} fps, shown at "
-                f"{self.shown_fps:.1f} fps; method {self.method}, backend {self.backend}, k {self.k}")
+                f"{self.rendered_fps:.1f} fps, {self.generated} generated at {self.generated_fps:.1f} fps (prepare "
+                f"{self.prepare_ms:.1f} ms per rendered frame), shown at {self.shown_fps:.1f} fps; method "
+                f"{self.method}, backend {self.backend}, k {self.k}")
 
 
 class Player:
@@ -376,6 +379,7 @@ class Player:
         self._gpu: dict[str, deque] = {}
         self._all_render: list[float] = []
         self._all_generate: dict[str, list[float]] = {}
+        self._all_prepare: dict[str, list[float]] = {}
         self.rendered = 0
         self.generated = 0
         self._start: Optional[float] = None
@@ -430,6 +434,7 @@ class Player:
         start = time.perf_counter()
         self.loop.submit(frame, restart=cut)
         self._prepare_ms.append(1e3 * (time.perf_counter() - start))
+        self._all_prepare.setdefault(self.method, []).append(self._prepare_ms[-1])
         self._last_render = tick
         self.rendered += 1
         return frame
@@ -484,12 +489,13 @@ class Player:
         return lines
 
     def summary(self, path: Optional[str] = None) -> PlaySummary:
-        """Medians over the whole run so far (generated: of the current method)."""
+        """Medians over the whole run so far (generated and prepare: of the current method)."""
         elapsed = (self._ticks[-1] - self._start) if self._ticks and self._start is not None else 0.0
         width = self.config.width * (3 if self.split else 1)
         return PlaySummary(frames=self.tick_index, rendered=self.rendered, generated=self.generated,
                            method=self.method, backend=self.backend, k=self.k, render_ms=_median(self._all_render),
                            generate_ms=_median(self._all_generate.get(self.method, [])),
+                           prepare_ms=_median(self._all_prepare.get(self.method, [])),
                            shown_fps=self.tick_index / elapsed if elapsed > 0 else float("nan"),
                            size=(width, self.config.height), path=path)
 
@@ -566,7 +572,7 @@ class _Worker(threading.Thread):
         self.frames: queue.Queue = queue.Queue(maxsize=2)
         self.keys: queue.Queue = queue.Queue()
         self.stop = threading.Event()
-        self.error: Optional[BaseException] = None
+        self.error: Optional[Exception] = None
         self.summary: Optional[PlaySummary] = None
 
     def run(self) -> None:
@@ -587,7 +593,7 @@ class _Worker(threading.Thread):
                         except queue.Full:
                             continue
                 self.summary = player.summary()
-        except BaseException as exc:  # handed to the window's thread, which raises it
+        except Exception as exc:  # handed to the window's thread, which raises it
             self.error = exc
         finally:
             self.stop.set()
@@ -602,11 +608,12 @@ def run_window(config: PlayConfig, keys: Optional[dict[int, str]] = None) -> Pla
     Raises InterleaveError when the window cannot be opened."""
     try:
         import pyglet
-        from pyglet.window import key
     except ImportError as exc:
         raise InterleaveError("the window needs pyglet: pip install -e '.[play]'") from exc
     width = config.width * (3 if config.split else 1)
     try:
+        from pyglet.window import key  # the import already opens the display (pyglet's shadow window)
+
         window = pyglet.window.Window(width, config.height, caption="interleave play", vsync=False)
     except Exception as exc:  # NoSuchDisplayException, no GL config, ...: one line for the caller
         raise InterleaveError(f"cannot open a window: {exc}") from exc
@@ -614,7 +621,7 @@ def run_window(config: PlayConfig, keys: Optional[dict[int, str]] = None) -> Pla
     names = {key.M: "m", key.K: "k", key.S: "s", key.Q: "q", key.ESCAPE: "escape"}
 
     @window.event
-    def on_key_press(symbol, modifiers):  # noqa: ARG001 (pyglet's signature)
+    def on_key_press(symbol, modifiers):  # pyglet's signature
         if symbol in names:
             worker.keys.put(names[symbol])
         return pyglet.event.EVENT_HANDLED  # Esc closes through the player, after its last frame

@@ -35,7 +35,7 @@ if [ "$extra" = test ] && ! command -v Xvfb >/dev/null; then
         echo "installing Debian packages for the window tests (xvfb libglx-mesa0 libgl1-mesa-dri)" >&2
         apt-get update -qq && apt-get install -y -qq xvfb libglx-mesa0 libgl1-mesa-dri >/dev/null
     else
-        echo "Xvfb is missing: the window tests of 'interleave play' will be skipped (Debian: apt-get install xvfb)" >&2
+        echo "no Xvfb: the window tests of 'interleave play' are skipped (Debian: apt-get install xvfb)" >&2
     fi
 fi
 export PATH="$root/.venv/bin:$PATH"

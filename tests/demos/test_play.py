@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import io
 import os
+import select
 import shutil
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from demos.play import (DEFAULT_RECORDING, METHOD_CYCLE, PlayConfig, Player, compose, iter_frames, play, record)
+from demos.play import DEFAULT_RECORDING, METHOD_CYCLE, PlayConfig, Player, compose, iter_frames, play, record
 from engine.cli import main
 from engine.core.errors import InputError
 
@@ -162,6 +164,19 @@ def test_without_a_display_it_records_instead(tmp_path, monkeypatch):
     assert summary.path == str(DEFAULT_RECORDING) and (tmp_path / DEFAULT_RECORDING).stat().st_size > 0
 
 
+def test_when_the_window_cannot_open_it_records_instead(tmp_path):
+    """A DISPLAY nothing listens on: pyglet fails, the command says why in one line and records."""
+    env = {**os.environ, "DISPLAY": ":31999", "PYTHONPATH": str(ROOT)}
+    run = subprocess.run([sys.executable, "-m", "engine.cli", "play", "--width", "96", "--height", "64", "--loop",
+                          "24", "--backend", "cpu", "--frames", "2"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr.startswith("interleave play: ") and len(run.stderr.strip().splitlines()) == 1
+    assert "recording 2 frames to out/play/play.mp4 instead" in run.stderr and "Traceback" not in run.stderr
+    assert run.stdout.startswith("played 2 frames (96x64) to out/play/play.mp4")
+    assert (tmp_path / DEFAULT_RECORDING).stat().st_size > 0
+
+
 def test_bad_config_is_an_input_error():
     with pytest.raises(InputError, match="loop"):
         PlayConfig(loop=1)
@@ -169,7 +184,8 @@ def test_bad_config_is_an_input_error():
 
 @pytest.fixture
 def xvfb_display():
-    """A fresh Xvfb server on a display number it picks itself (-displayfd); its DISPLAY string."""
+    """A fresh Xvfb server on a display number it picks itself (-displayfd); its DISPLAY string. The pipe stays
+    open while the server runs: Xvfb writes the number and its newline apart and dies if the pipe is closed."""
     if shutil.which("Xvfb") is None:
         pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb; scripts/_env.sh installs it as root)")
     pytest.importorskip("pyglet", reason="the window needs pyglet (pip install -e '.[play]')")
@@ -178,14 +194,20 @@ def xvfb_display():
                               pass_fds=(write,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     os.close(write)
     try:
-        with os.fdopen(read) as pipe:
-            number = pipe.readline().strip()
-        if not number:
-            pytest.skip("Xvfb did not start")
-        yield f":{number}"
+        data, deadline = b"", time.monotonic() + 20.0
+        while not data.endswith(b"\n") and time.monotonic() < deadline:  # written once it accepts clients
+            ready, _, _ = select.select([read], [], [], max(0.0, deadline - time.monotonic()))
+            chunk = os.read(read, 64) if ready else b""
+            if not chunk:
+                break
+            data += chunk
+        if not data.endswith(b"\n"):
+            pytest.skip("Xvfb did not start within 20 s")
+        yield f":{data.decode().strip()}"
     finally:
         server.terminate()
         server.wait(timeout=10)
+        os.close(read)
 
 
 def test_window_under_xvfb_shows_the_frames(tmp_path, xvfb_display):

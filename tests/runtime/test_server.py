@@ -48,9 +48,9 @@ W, H = 64, 48
 K = np.array([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]])
 
 
-def start_server(listen: str, log: Path) -> tuple[subprocess.Popen, str]:
+def start_server(listen: str, log: Path, *options: str) -> tuple[subprocess.Popen, str]:
     """Start `interleave serve` in its own process; returns it and the address it announced."""
-    proc = subprocess.Popen([sys.executable, "-m", "engine.cli", "serve", "--listen", listen], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-m", "engine.cli", "serve", "--listen", listen, *options], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=log.open("w"), text=True)
     line = proc.stdout.readline()
     if "listening on" not in line:
@@ -307,6 +307,32 @@ def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, ch
                                                                           expected.frame)
         client.bye()
     assert wait_until(lambda: not segment_exists(layout.shm_name))
+
+
+def test_a_gl_server_predicts_what_an_in_process_gl_session_predicts(tmp_path):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    proc, address = start_server(f"unix:{tmp_path / 'gl.sock'}", tmp_path / "server.log", "--backend", "gl")
+    try:
+        cfg = config(method="flow2d")
+        local = Session(cfg, backend="gl")
+        with Client(address) as client:
+            client.hello(cfg)
+            for i in range(5):
+                color, depth = frame_arrays(i)
+                if i % 2 == 0:
+                    assert client.submit(color, depth, pose(0.01 * i), K, i / 60) == local.submit(
+                        color, depth, pose(0.01 * i), K, i / 60)
+                else:  # the GL splat's sums are exact fixed point: runs agree bit for bit
+                    remote, expected = client.predict(pose(0.01 * i), K, i / 60), local.predict(pose(0.01 * i), K,
+                                                                                               i / 60)
+                    np.testing.assert_array_equal(remote.color, expected.color)
+                    np.testing.assert_array_equal(remote.holes, expected.holes)
+            client.bye()
+    finally:
+        assert stop_server(proc) == 0
 
 
 def test_pipelined_requests_are_answered_in_order_with_their_ids(server):

@@ -9,6 +9,8 @@ frames that are all hole, 1x1 frames, object flow of 2 and 3 channels scaled on 
 """
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 
@@ -170,3 +172,30 @@ def test_motion_extrapolated_on_the_gpu_matches_the_cpu(with_acceleration):
     with pytest.raises(InputError) as err:
         gl.upload_motion((h, w), np.array([h * w]), np.zeros((1, 3), np.float32))
     assert err.value.field == "moving"
+
+
+def test_frames_adopted_from_the_context_and_predictions_left_on_the_gpu():
+    from engine.geometry.backends.gl.frame import GlPrediction
+
+    rng = np.random.default_rng(8)
+    h, w = 30, 50
+    color, depth = random_scene(rng, h, w)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    gl = warper()
+    ctx = gl.gl.ctx
+    # a renderer on the shared context wrote these buffers: the warper uses them without a copy
+    color_buf, depth_buf = gl.gl.call(lambda: (ctx.buffer(color.tobytes()), ctx.buffer(depth.tobytes())))
+    image = gl.adopt(color_buf, depth_buf, (h, w))
+    out = gl.warp_and_fill(image, k, t_src, k, t_dst, readback=False)
+    assert isinstance(out, GlPrediction)
+    gl.warp_and_fill(image, k, t_src, k, np.eye(4))  # the next warp does not overwrite what was handed out
+    got_color, got_holes = out.read()
+    ref_color, ref_holes = gl.warp_and_fill(gl.upload(color, depth), k, t_src, k, t_dst)
+    np.testing.assert_array_equal(got_color, ref_color)
+    np.testing.assert_array_equal(got_holes, ref_holes)
+    del image, out
+    gc.collect()  # adopted buffers stay the caller's: still readable after the image is gone
+    np.testing.assert_array_equal(gl.gl.call(lambda: np.frombuffer(color_buf.read(), np.float32)), color.ravel())
+    with pytest.raises(InputError) as err:
+        gl.adopt(color_buf, depth_buf, (h, w + 1))
+    assert err.value.field == "color"

@@ -1,13 +1,15 @@
 """A frame warped and hole-filled on the GPU: ``engine.predict.base.warp_and_fill``'s geometry (one-plane
 forward splat, composite, background-biased hole fill) with the frame kept in GPU buffers.
 
-A rendered frame is uploaded once (``GlFrameWarper.upload``: colour (H, W, 3) and depth (H, W), float32) and
-warped to any number of target cameras; an object flow is uploaded once too (``upload_flow``: (H, W, 2|3),
+A rendered frame is uploaded once (``GlFrameWarper.upload``: colour (H, W, 3) and depth (H, W), float32), or
+adopted without a copy from buffers a renderer on the same context wrote (``adopt``), and warped to any
+number of target cameras; an object flow is uploaded once too (``upload_flow``: (H, W, 2|3),
 scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upload), or a 3D motion
 (``upload_motion``: the moving pixels' velocity and change of velocity, as ``mvec`` estimates them) that each
 warp extrapolates s frame intervals ahead on the GPU (``motion_extrapolate``). Each warp runs the
 ``FRAME`` variants of the four splat passes, then the hole fill (``fill_rows``, ``fill_links``,
-``fill_apply``), and reads back the filled colour and a packed hole mask, once. Conventions: those of
+``fill_apply``), and reads back the filled colour and a packed hole mask, once, or hands them out as GPU
+buffers (``readback=False``: ``GlPrediction``). Conventions: those of
 ``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
 Oracle: ``engine.predict.base.warp_and_fill`` on the CPU (``tests/geometry/test_gl_frame.py``).
 """
@@ -26,7 +28,7 @@ from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
 from engine.geometry.camera import checked_flow, reprojection_matrix
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
-__all__ = ["GlImage", "GlFlow", "GlMotion", "GlFrameWarper"]
+__all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "unpack_holes"]
 
 
 def _release_later(gl: GlContext, buffers: list) -> None:
@@ -42,15 +44,50 @@ def _release_later(gl: GlContext, buffers: list) -> None:
 
 @dataclass(eq=False)
 class GlImage:
-    """A frame resident on the GPU: colour (H, W, 3) and depth (H, W) float32 buffers (freed with the object)."""
+    """A frame resident on the GPU: colour (H, W, 3) and depth (H, W) float32 buffers (rows top to bottom),
+    freed with the object unless they were adopted (``GlFrameWarper.adopt``: the caller owns them)."""
 
     shape: tuple[int, int]
     color: object
     depth: object
     gl: GlContext = field(repr=False)
+    owned: bool = True
 
     def __post_init__(self) -> None:
-        weakref.finalize(self, _release_later, self.gl, [self.color, self.depth])
+        if self.owned:
+            weakref.finalize(self, _release_later, self.gl, [self.color, self.depth])
+
+
+@dataclass(eq=False)
+class GlPrediction:
+    """A predicted frame left on the GPU (``warp_and_fill(..., readback=False)``): ``color`` (H, W, 3) float32
+    and ``holes``, a packed mask (bit i % 32 of word i // 32 set where pixel i = y W + x is a hole); buffers of
+    the shared context, freed with the object. ``read()`` brings both to the host."""
+
+    shape: tuple[int, int]
+    color: object
+    holes: object
+    gl: GlContext = field(repr=False)
+
+    def __post_init__(self) -> None:
+        weakref.finalize(self, _release_later, self.gl, [self.color, self.holes])
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        """(colour (H, W, 3) float32, holes (H, W) bool) on the host."""
+        h, w = self.shape
+        color, mask = np.empty((h, w, 3), np.float32), np.empty(-(-h * w // 32), np.uint32)
+
+        def read():
+            self.color.read_into(color, size=color.nbytes)
+            self.holes.read_into(mask, size=mask.nbytes)
+        self.gl.call(read)
+        return color, unpack_holes(mask, self.shape)
+
+
+def unpack_holes(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool of a packed hole mask (see ``GlPrediction``)."""
+    h, w = shape
+    return np.unpackbits(mask.view(np.uint8), bitorder="little")[:h * w].reshape(h, w).astype(bool)
 
 
 @dataclass(eq=False)
@@ -102,6 +139,19 @@ class GlFrameWarper:
         return self.gl.call(lambda: GlImage(depth.shape, self.gl.ctx.buffer(color), self.gl.ctx.buffer(depth),
                                             self.gl))
 
+    def adopt(self, color, depth, shape: tuple[int, int]) -> GlImage:
+        """A frame already on the GPU, without a copy: ``color`` (H, W, 3) and ``depth`` (H, W) float32
+        moderngl buffers of the shared context (a renderer that runs on it through ``GlContext.call``, e.g.
+        with ``Framebuffer.read_into(buffer)``), rows top to bottom, planar depth, +inf sky. The caller keeps
+        owning them and must not change them while predictions use the image."""
+        h, w = (int(v) for v in shape)
+        if h < 1 or w < 1:
+            raise InputError(f"must be positive, got {shape!r}", field="shape")
+        for name, buf, nbytes in (("color", color, 12 * h * w), ("depth", depth, 4 * h * w)):
+            if getattr(buf, "size", -1) < nbytes or getattr(buf, "ctx", None) is not self.gl.ctx:
+                raise InputError(f"must be a buffer of this context of at least {nbytes} bytes", field=name)
+        return GlImage((h, w), color, depth, self.gl, owned=False)
+
     def upload_flow(self, flow: np.ndarray) -> GlFlow:
         """Upload an object flow (H, W, 2) (du, dv) pixels or (H, W, 3) (du, dv, dz), in the frame's view."""
         flow = np.ascontiguousarray(checked_flow(flow, {}))
@@ -129,12 +179,12 @@ class GlFrameWarper:
     def warp_and_fill(self, image: GlImage, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray,
                       T_dst: np.ndarray, flow: Optional[GlFlow] = None, flow_scale: float = 1.0,
                       sharpness: float = DEFAULT_SHARPNESS, gpu_ms: Optional[dict] = None,
-                      motion: Optional[GlMotion] = None) -> tuple[np.ndarray, np.ndarray]:
+                      motion: Optional[GlMotion] = None, readback: bool = True):
         """Forward-warp ``image`` to the destination camera, its points moved by ``flow_scale * flow`` or by
         ``motion`` extrapolated ``flow_scale`` frame intervals ahead (``K_src`` projects it), and fill the
-        holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface). With
-        ``gpu_ms``, the GPU milliseconds of the stages (``motion``,) ``warp``, ``fill``, ``readback`` are added
-        to it."""
+        holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface), or with
+        ``readback=False`` a ``GlPrediction`` that stays on the GPU (a GPU-side copy). With ``gpu_ms``, the GPU
+        milliseconds of the stages (``motion``,) ``warp``, ``fill``, ``readback`` are added to it."""
         if not isinstance(image, GlImage):
             raise InputError(f"must be a GlImage from GlFrameWarper.upload, got {type(image).__name__}", field="image")
         if flow is not None and (not isinstance(flow, GlFlow) or flow.shape != image.shape):
@@ -152,7 +202,7 @@ class GlFrameWarper:
                                      checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4))
         k_src = checked_matrix(K_src, "K_src", 3)
         return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms,
-                            motion, k_src)
+                            motion, k_src, readback)
 
     def _extrapolate(self, image: GlImage, motion: GlMotion, step: float, k: np.ndarray) -> None:
         """Pass ``motion_extrapolate``: the flow (H, W, 3) of ``motion`` ``step`` intervals ahead into the pool's
@@ -172,7 +222,8 @@ class GlFrameWarper:
             "kinv_row0": tuple(float(v) for v in k_inv[0]), "kinv_row1": (float(k_inv[1, 1]), float(k_inv[1, 2]))})
 
     def _warp_and_fill(self, image: GlImage, matrix, flow: Optional[GlFlow], scale: float, sharpness: float,
-                       gpu_ms: Optional[dict], motion: Optional[GlMotion] = None, k_src: Optional[np.ndarray] = None):
+                       gpu_ms: Optional[dict], motion: Optional[GlMotion] = None, k_src: Optional[np.ndarray] = None,
+                       readback: bool = True):
         gl, pool = self.gl, self._pool
         h, w = image.shape
         n = h * w
@@ -206,16 +257,20 @@ class GlFrameWarper:
                 gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
                 gl.dispatch_groups(gl.program("fill_links"), 1, sizes)
                 gl.dispatch(gl.program("fill_apply"), n, sizes)
-            color = np.empty((h, w, 3), np.float32)
-            mask = np.empty(words, np.uint32)
-            with gl.gpu_stage("readback"):
-                pool["filled"].read_into(color, size=color.nbytes)
-                pool["mask"].read_into(mask, size=mask.nbytes)
+            if readback:
+                color = np.empty((h, w, 3), np.float32)
+                mask = np.empty(words, np.uint32)
+                with gl.gpu_stage("readback"):
+                    pool["filled"].read_into(color, size=color.nbytes)
+                    pool["mask"].read_into(mask, size=mask.nbytes)
+            else:  # copies on the GPU: the work buffers are the next warp's
+                out = GlPrediction((h, w), gl.ctx.buffer(reserve=12 * n), gl.ctx.buffer(reserve=4 * words), gl)
+                gl.ctx.copy_buffer(out.color, pool["filled"], 12 * n)
+                gl.ctx.copy_buffer(out.holes, pool["mask"], 4 * words)
         if gpu_ms is not None:
             for key, value in times.items():
                 gpu_ms[key] = gpu_ms.get(key, 0.0) + value
-        holes = np.unpackbits(mask.view(np.uint8), bitorder="little")[:n].reshape(h, w).astype(bool)
-        return color, holes
+        return (color, unpack_holes(mask, (h, w))) if readback else out
 
     def release(self) -> None:
         """Free this warper's work buffers (uploaded images and flows free themselves)."""

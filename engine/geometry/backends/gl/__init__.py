@@ -7,8 +7,8 @@ llvmpipe.
 """
 from engine.geometry.backends.gl.context import GlContext, available, shared_context
 from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow
-from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlImage
+from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlImage, GlMotion, GlPrediction
 from engine.geometry.backends.gl.splat import GlSplatter
 
-__all__ = ["GlContext", "available", "shared_context", "GlFlow", "GlFrameWarper", "GlImage", "GlSplatter",
-           "GlFlowConfig", "GlOpticalFlow"]
+__all__ = ["GlContext", "available", "shared_context", "GlFlow", "GlFrameWarper", "GlImage", "GlMotion",
+           "GlPrediction", "GlSplatter", "GlFlowConfig", "GlOpticalFlow"]

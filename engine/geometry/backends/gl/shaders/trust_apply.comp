@@ -1,0 +1,62 @@
+// Trust pass 3, per pixel of frame n (engine.predict.dis.trusted_motion): keep the flow u(n -> n-k) only
+// where frame n-k saw the surface (engine.geometry.seen_before: the pixel reprojected with frame n's depth
+// into camera n-k lands in front of it and inside its (h, w) image) and, for motion under ``small`` pixels,
+// where it explains frame n better than none: the WINDOW x WINDOW mean of moved_ below that of still_ by more
+// than ``margin`` levels. Elsewhere the flow is set to 0, in place.
+layout(local_size_x = LOCAL_SIZE) in;
+
+layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };    // (H, W) frame n, +inf sky
+layout(std430, binding = 22) buffer FlowBuf { vec2 flow_[]; };               // (H, W)
+layout(std430, binding = 25) readonly buffer RowsBuf { dvec2 rows_[]; };      // (H, W) row sums
+
+uniform ivec2 size;       // H, W
+uniform ivec2 prev_size;  // h, w of frame n-k
+uniform vec4 row0;        // the reprojection matrix K_prev T_prev T_n^-1 [K_n^-1 0; 0 1], float32 rows
+uniform vec4 row1;
+uniform vec4 row2;
+uniform float max_coord_inv;
+uniform float tiny_depth;
+uniform float small;
+uniform float margin;
+
+int reflect_index(int i, int n) {
+    if (n == 1) return 0;
+    while (i < 0 || i >= n) i = i < 0 ? -i - 1 : 2 * n - i - 1;
+    return i;
+}
+
+bool seen(int x, int y, float d) {
+    float u = float(x) + 0.5, v = float(y) + 0.5;
+    bool sky = isinf(d);
+    float s = sky ? 1.0 : d;
+    float wh = sky ? 0.0 : 1.0;
+    precise float px = u * s;
+    precise float py = v * s;
+    precise float hu = row0.x * px + row0.y * py + row0.z * s + row0.w * wh;
+    precise float hv = row1.x * px + row1.y * py + row1.z * s + row1.w * wh;
+    precise float hz = row2.x * px + row2.y * py + row2.z * s + row2.w * wh;
+    precise float bound = (abs(hu) + abs(hv)) * max_coord_inv + tiny_depth;
+    if (!(hz > bound)) return false;
+    precise float uo = hu / hz;
+    precise float vo = hv / hz;
+    return uo >= 0.0 && uo < float(prev_size.y) && vo >= 0.0 && vo < float(prev_size.x);
+}
+
+void main() {
+    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    int h = size.x, w = size.y;
+    if (i >= uint(h * w)) return;
+    int y = int(i) / w, x = int(i) % w;
+    vec2 f = flow_[i];
+    bool keep = seen(x, y, depth_[i]);
+    if (keep && length(vec2(f)) < small) {  // hypot
+        dvec2 sum = dvec2(0.0);
+        for (int d = -WINDOW / 2; d <= WINDOW / 2; ++d) {
+            sum += rows_[reflect_index(y + d, h) * w + x];
+        }
+        float still = float(sum.x * (1.0LF / double(WINDOW * WINDOW)));
+        float moved = float(sum.y * (1.0LF / double(WINDOW * WINDOW)));
+        keep = moved < still - margin;
+    }
+    if (!keep) flow_[i] = vec2(0.0);
+}

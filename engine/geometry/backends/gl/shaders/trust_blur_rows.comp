@@ -1,0 +1,28 @@
+// Trust pass 2, per pixel: the sums over ``WINDOW`` pixels of its row (BORDER_REFLECT: ...cba|abc...) of both
+// error images, in double (cv2.blur of float32 sums in double), into rows_ (H, W, 2).
+layout(local_size_x = LOCAL_SIZE) in;
+
+layout(std430, binding = 23) readonly buffer StillBuf { float still_[]; };
+layout(std430, binding = 24) readonly buffer MovedBuf { float moved_[]; };
+layout(std430, binding = 25) writeonly buffer RowsBuf { dvec2 rows_[]; };
+
+uniform ivec2 size;  // H, W
+
+int reflect_index(int i, int n) {  // BORDER_REFLECT (edge pixel repeated), for any n >= 1
+    if (n == 1) return 0;
+    while (i < 0 || i >= n) i = i < 0 ? -i - 1 : 2 * n - i - 1;
+    return i;
+}
+
+void main() {
+    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    int h = size.x, w = size.y;
+    if (i >= uint(h * w)) return;
+    int y = int(i) / w, x = int(i) % w;
+    dvec2 sum = dvec2(0.0);
+    for (int d = -WINDOW / 2; d <= WINDOW / 2; ++d) {
+        int o = y * w + reflect_index(x + d, w);
+        sum += dvec2(double(still_[o]), double(moved_[o]));
+    }
+    rows_[i] = sum;
+}

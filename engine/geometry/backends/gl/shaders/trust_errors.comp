@@ -1,0 +1,45 @@
+// Trust pass 1, per pixel of frame n: the photometric errors engine.predict.dis.confident_motion averages:
+// still_ = |luma_n - target| (no object motion), moved_ = |luma_n - target sampled at the pixel moved by the
+// flow u(n -> n-k)| (OpenCV 5's remap, INTER_LINEAR, float maps: float32 bilinear weights of the exact
+// fraction, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
+layout(local_size_x = LOCAL_SIZE) in;
+
+layout(std430, binding = 20) readonly buffer LumaNBuf { float luma_n_[]; };   // (H, W) 8-bit levels
+layout(std430, binding = 21) readonly buffer TargetBuf { float target_[]; };  // (H, W) 8-bit levels
+layout(std430, binding = 22) readonly buffer FlowBuf { vec2 flow_[]; };       // (H, W) u(n -> n-k) pixels
+layout(std430, binding = 23) writeonly buffer StillBuf { float still_[]; };   // (H, W)
+layout(std430, binding = 24) writeonly buffer MovedBuf { float moved_[]; };   // (H, W)
+
+uniform ivec2 size;  // H, W
+
+float tap(int x, int y) {
+    return (x >= 0 && x < size.y && y >= 0 && y < size.x) ? target_[y * size.y + x] : -1.0;
+}
+
+void main() {
+    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    int h = size.x, w = size.y;
+    if (i >= uint(h * w)) return;
+    int y = int(i) / w, x = int(i) % w;
+    float luma = luma_n_[i];
+    still_[i] = abs(luma - target_[i]);
+    vec2 f = flow_[i];
+    precise float px = float(x) + f.x;
+    precise float py = float(y) + f.y;
+    float fx = floor(px), fy = floor(py);
+    int sx = int(fx), sy = int(fy);
+    precise float ax = px - fx;
+    precise float ay = py - fy;
+    precise float w0 = (1.0 - ay) * (1.0 - ax);
+    precise float w1 = (1.0 - ay) * ax;
+    precise float w2 = ay * (1.0 - ax);
+    precise float w3 = ay * ax;
+    float sampled;
+    if (sx >= w || sx + 1 < 0 || sy >= h || sy + 1 < 0) {
+        sampled = -1.0;
+    } else {
+        precise float s = tap(sx, sy) * w0 + tap(sx + 1, sy) * w1 + tap(sx, sy + 1) * w2 + tap(sx + 1, sy + 1) * w3;
+        sampled = s;
+    }
+    moved_[i] = sampled < 0.0 ? 255.0 : abs(luma - sampled);
+}

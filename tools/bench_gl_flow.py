@@ -49,12 +49,15 @@ def set_sequences(out: Path, name: str, validation: bool, width: int, height: in
 
 
 def parse_config(text: str) -> GlFlowConfig:
-    """``GlFlowConfig`` with the fields of ``"name=value,name=value"`` changed (integers)."""
-    fields = {}
+    """``GlFlowConfig`` with the fields of ``"name=value,name=value"`` changed (each of its default's type)."""
+    default, fields = GlFlowConfig(), {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
-        fields[name.strip()] = int(value)
-    return replace(GlFlowConfig(), **fields)
+        name = name.strip()
+        if not hasattr(default, name):
+            raise SystemExit(f"GlFlowConfig has no field '{name}'")
+        fields[name] = type(getattr(default, name))(value)
+    return replace(default, **fields)
 
 
 def config_name(config: GlFlowConfig) -> str:
@@ -126,7 +129,7 @@ def main(argv=None) -> None:
                     s["epe_vs_dis_all"].append(median_epe(flow, reference))
         for name, s in scores.items():
             row = {"set": set_name, "k": args.k, "estimate": name, "pairs": len(s["epe"]),
-                   "median_epe": float(np.mean(s["epe"]))}
+                   "median_epe": float(np.mean(s["epe"])), "median_epe_per_pair": s["epe"]}
             if "epe_vs_dis" in s:
                 row["epe_vs_dis_moving"] = float(np.mean(s["epe_vs_dis"]))
                 row["epe_vs_dis_all"] = float(np.mean(s["epe_vs_dis_all"]))

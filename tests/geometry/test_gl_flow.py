@@ -72,6 +72,17 @@ def test_translation_recovered(t):
     assert np.percentile(error, 95) <= 0.25
 
 
+@pytest.mark.parametrize("config", [GlFlowConfig(sweeps=1, refine_iterations=0), GlFlowConfig(finest_level=0),
+                                    GlFlowConfig(patch_size=6, patch_stride=6, iterations=4)])
+def test_other_configs(config):
+    """Variants of the passes (no propagation and no refinement, full-resolution search, patches that do not
+    overlap with few iterations) still recover a 3 px translation (median within 0.1 px)."""
+    a, b = shifted_pair(64, 96, (3.0, -1.5))
+    flow = GlOpticalFlow(config=config).estimate(a, b)
+    assert np.isfinite(flow).all()
+    assert np.median(np.linalg.norm(flow - (3.0, -1.5), axis=-1)[24:-24, 24:-24]) <= 0.1
+
+
 def test_two_layer_scene_against_dis():
     frames, objects = two_layer_sequence(num_frames=3, width=160, height=96)
     older, newest = frames[0], frames[2]

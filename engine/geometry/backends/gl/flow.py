@@ -8,13 +8,16 @@ display-encoded to 8 bits, then OpenCV's 8-bit luma (``engine.predict.dis.luma8`
 computes it on the GPU from the colour buffer, bit-exact).
 
 Passes (``shaders/flow_*.comp``, one per pass): ``flow_luma`` (8-bit luma, level 0), ``flow_downsample``
-(2 x 2 block means, the pyramid), then per level from the coarsest: ``flow_upsample`` (the coarser level's
-flow, bilinear, doubled), ``flow_patch`` (inverse search per patch, ``GlFlowConfig.sweeps`` times, later sweeps
-starting from the best of the neighbours' flows), ``flow_densify`` (patch flows averaged per pixel, weighted by
-their photometric error); finally ``flow_upsample`` to the full size. Unlike OpenCV's DIS there is no
-variational refinement and spatial propagation is parallel, not sequential; any size from 1 x 1 works (a
-level smaller than a patch is read with clamped borders). Oracle: none bit-exact; ``tools/bench_gl_flow.py``
-measures the end-point error against OpenCV DIS medium and against the true motion.
+(2 x 2 block means, the pyramid: level l + 1 is ceil(level l / 2) a side, x_l + 0.5 = 2 (x_{l+1} + 0.5)),
+then per level from the coarsest to ``finest_level``: ``flow_upsample`` (the coarser level's flow, bilinear,
+doubled), ``flow_patch`` (inverse search per patch, ``GlFlowConfig.sweeps`` times, later sweeps starting from
+the best of the patch's and its 4 neighbours' flows: a parallel stand-in for DIS's sequential spatial
+propagation), ``flow_densify`` (patch flows averaged per pixel, weighted by their photometric error), and
+DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then per fixed-point iteration
+``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
+``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
+clamped borders: no padding as ``dis_calc`` needs). No oracle is bit-exact (this is not OpenCV's code):
+``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and the true motion.
 """
 from __future__ import annotations
 
@@ -36,27 +39,46 @@ __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels"]
 
 @dataclass(frozen=True)
 class GlFlowConfig:
-    """Parameters of ``GlOpticalFlow`` (defaults chosen on validation sequences: docs/results/2026-11-25-gl-flow.md)."""
+    """Parameters of ``GlOpticalFlow``. Defaults: DIS medium's patch, stride, finest level and refinement;
+    iterations and sweeps chosen on validation sequences (docs/results/2026-11-25-gl-flow.md)."""
 
     patch_size: int = 8
     """Side of a patch, pixels of its pyramid level."""
-    patch_stride: int = 4
+    patch_stride: int = 3
     """Distance between neighbouring patches' origins, pixels (1 .. patch_size)."""
     finest_level: int = 1
     """Finest pyramid level searched (0: full resolution; level l is 2^l times smaller per axis); the flow
     there is upsampled bilinearly to the full size."""
     iterations: int = 16
     """Gauss-Newton iterations of the inverse search per patch and sweep."""
-    sweeps: int = 2
+    sweeps: int = 4
     """Inverse searches per level; each after the first starts from the best of its patch's and the 4
     neighbouring patches' previous flows."""
+    refine_iterations: int = 5
+    """Fixed-point iterations of the variational refinement per level (0: none)."""
+    sor_iterations: int = 5
+    """Red-black SOR iterations per fixed-point iteration."""
+    alpha: float = 20.0
+    """Refinement: weight of the smoothness term (DIS's default)."""
+    delta: float = 5.0
+    """Refinement: weight of the colour constancy term (DIS's default)."""
+    gamma: float = 10.0
+    """Refinement: weight of the gradient constancy term (DIS's default)."""
+    omega: float = 1.6
+    """Refinement: SOR relaxation factor (0 < omega < 2)."""
 
     def __post_init__(self) -> None:
         for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
-                          ("sweeps", 1)):
+                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0)):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < low:
                 raise InputError(f"must be an integer >= {low}, got {value!r}", field=name)
+        for name in ("alpha", "delta", "gamma", "omega"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.floating, np.integer)) or not 0.0 <= value < math.inf:
+                raise InputError(f"must be a finite number >= 0, got {value!r}", field=name)
+        if not 0.0 < self.omega < 2.0:
+            raise InputError(f"must be in (0, 2), got {self.omega!r}", field="omega")
         if self.patch_stride > self.patch_size:
             raise InputError(f"must be <= patch_size {self.patch_size}, got {self.patch_stride}",
                              field="patch_stride")
@@ -256,7 +278,29 @@ class GlOpticalFlow:
             current, previous = previous, current
         previous.bind_to_storage_buffer(5)
         dense.bind_to_storage_buffer(6)
-        gl.dispatch(gl.program("flow_densify", defines), size[0] * size[1], uniforms)
+        n = size[0] * size[1]
+        gl.dispatch(gl.program("flow_densify", defines), n, uniforms)
+        if config.refine_iterations:
+            self._refine(size, offset, defines)
+
+    def _refine(self, size: tuple[int, int], offset: int, defines: dict) -> None:
+        """Variational refinement of the level's dense flow (bound at 6) in place."""
+        gl, config, pool = self.gl, self.config, self._pool
+        n = size[0] * size[1]
+        for key, binding, nbytes in (("increment", 9, 8 * n), ("average", 10, 8 * n), ("derivs", 11, 32 * n),
+                                     ("system", 12, 32 * n)):
+            gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
+        uniforms = {"size": size, "offset": offset, "alpha": float(config.alpha), "delta": float(config.delta),
+                    "gamma": float(config.gamma), "omega": float(config.omega)}
+        gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
+        gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
+        system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
+        for _ in range(config.refine_iterations):
+            gl.dispatch(system, n, uniforms)
+            for _ in range(config.sor_iterations):
+                for parity in (0, 1):
+                    gl.dispatch(sor, n, {**uniforms, "parity": parity})
+        gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
 
     def release(self) -> None:
         """Free this estimator's work buffers."""

@@ -1,11 +1,11 @@
 // Flow pass 3, per patch of a pyramid level: DIS inverse search (Kroeger et al. 2016), the patch of the first
 // image matched in the second by inverse-compositional Lucas-Kanade with mean normalisation. The template's
-// gradients (central differences, centred on their patch means) give a fixed 2 x 2 Hessian; each iteration
-// samples the second image at x + u, takes the mean-normalised difference e and steps u -= H^-1 sum(g e).
-// The start is the best (lowest mean-normalised SSD) of the level's initial dense flow at the patch centre
-// and, with PROPAGATE, the previous sweep's flows of the patch and its 4 neighbours (a parallel stand-in for
-// DIS's sequential spatial propagation). The result is the iterate of lowest SSD, the start if the search
-// went more than a patch away from it.
+// gradients (central differences, centred on their patch means) give a fixed 2 x 2 Hessian (+ EPS I); each
+// iteration samples the second image at x + u (bilinear), takes the mean-normalised difference e and steps
+// u -= H^-1 sum(g e). The first sweep starts from the level's initial dense flow at the patch centre; with
+// PROPAGATE (later sweeps) from the lowest mean-normalised SSD of the patch's own and its 4 neighbours'
+// previous flows (a parallel stand-in for DIS's sequential spatial propagation). The result is the last
+// iterate, or the start where that has a higher SSD or lies more than a patch away.
 #include "flow_common.glsl"
 
 layout(std430, binding = 4) readonly buffer InitBuf { vec2 init_[]; };     // (H, W) initial dense flow
@@ -79,11 +79,14 @@ void main() {
     mat2 inverse_h = mat2(hyy, -hxy, -hxy, hxx) / det;
 
     vec2 step;
+#ifndef PROPAGATE
     vec2 start = init_at(vec2(float(ox), float(oy)) + 0.5 * float(PATCH - 1));
     float best = cost(oy, ox, start, step);
-#ifdef PROPAGATE
-    ivec2 around[5] = ivec2[5](ivec2(0, 0), ivec2(-1, 0), ivec2(1, 0), ivec2(0, -1), ivec2(0, 1));
-    for (int c = 0; c < 5; ++c) {
+#else
+    vec2 start = prev_[i];
+    float best = cost(oy, ox, start, step);
+    ivec2 around[4] = ivec2[4](ivec2(-1, 0), ivec2(1, 0), ivec2(0, -1), ivec2(0, 1));
+    for (int c = 0; c < 4; ++c) {
         ivec2 q = ivec2(px, py) + around[c];
         if (q.x < 0 || q.y < 0 || q.x >= cols || q.y >= rows) continue;
         vec2 candidate = prev_[q.y * cols + q.x];
@@ -96,15 +99,14 @@ void main() {
         }
     }
 #endif
-    vec2 u = start, best_u = start;
+    float start_ssd = best;
+    vec2 u = start;
+    float ssd = best;
     for (int it = 0; it < iterations; ++it) {
         u -= inverse_h * step;
-        float ssd = cost(oy, ox, u, step);
-        if (ssd < best) {
-            best = ssd;
-            best_u = u;
-        }
+        ssd = cost(oy, ox, u, step);
     }
-    if (any(isnan(best_u)) || any(isinf(best_u)) || distance(best_u, start) > float(PATCH)) best_u = start;
+    vec2 best_u = u;
+    if (!(ssd <= start_ssd) || any(isnan(u)) || any(isinf(u)) || distance(u, start) > float(PATCH)) best_u = start;
     patch_[i] = best_u;
 }

@@ -143,8 +143,9 @@ def main(argv=None) -> None:
         cells = [f"{r[c]:.2f}" if c in r else "-" for c in ("median_epe", "epe_vs_dis_moving", "epe_vs_dis_all")]
         ms = f"{r['ms']:.1f}" if "ms" in r else "-"
         print(f"| {r['set']} | {r['k']} | {r['estimate']} | {r['pairs']} | " + " | ".join(cells) + f" | {ms} |")
-    write_json(args.json, {"size": [width, height], "frames": args.frames, "k": args.k, "validation": args.validation,
-                           "sets": members, "speeds": speeds, "rows": rows})
+    renderer = next(iter(estimators.values())).gl.renderer if estimators else None
+    write_json(args.json, {"renderer": renderer, "size": [width, height], "frames": args.frames, "k": args.k,
+                           "validation": args.validation, "sets": members, "speeds": speeds, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -7,9 +7,12 @@ object_flow) is computed in closed form, so predictors and the evaluation can be
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from engine.core.frames import Camera, Frame, SceneObject
+from engine.core.frames import Camera, Frame, SceneObject, rigid_inverse
+from engine.geometry.motion import rigid_motion_vectors
 
 BACKGROUND_Z = 6.0
 SQUARE_Z = 3.0
@@ -77,3 +80,11 @@ def rigid(axis, angle: float, t) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = rotation(axis, angle), t
     return m
+
+
+def with_vectors(frames: list[Frame], objects: list[SceneObject], older: int, newest: int) -> Frame:
+    """Frame ``newest`` carrying the exact vectors an engine rendering ``older`` then ``newest`` writes."""
+    frame = frames[newest]
+    motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest]) for o in objects}
+    vectors = rigid_motion_vectors(frame.depth, frame.camera, frames[older].camera, frame.object_id, motions)
+    return dataclasses.replace(frame, motion_vectors=vectors)

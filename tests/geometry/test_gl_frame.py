@@ -199,3 +199,28 @@ def test_frames_adopted_from_the_context_and_predictions_left_on_the_gpu():
     with pytest.raises(InputError) as err:
         gl.adopt(color_buf, depth_buf, (h, w + 1))
     assert err.value.field == "color"
+
+
+def test_a_frame_collected_while_a_thread_pool_submits_does_not_deadlock():
+    # A garbage-collection finalizer can run inside any ThreadPoolExecutor.submit (e.g. the CPU kernels'),
+    # which holds concurrent.futures' global lock: freeing GPU buffers there must not wait on the GL thread.
+    import concurrent.futures.thread as cft
+    import threading
+
+    gl = warper()
+    image = gl.upload(np.zeros((4, 5, 3), np.float32), np.ones((4, 5), np.float32))
+    done = threading.Event()
+
+    def collect_under_the_lock():
+        nonlocal image
+        with cft._global_shutdown_lock:
+            del image
+            gc.collect()
+        done.set()
+
+    worker = threading.Thread(target=collect_under_the_lock, daemon=True)
+    worker.start()
+    assert done.wait(10.0), "the finalizer waited on the GL thread while the pool lock was held"
+    assert len(gl.gl._garbage) >= 2  # queued, not freed: no GL call has run since
+    kept = gl.upload(np.zeros((2, 2, 3), np.float32), np.ones((2, 2), np.float32))  # the next call frees them
+    assert not gl.gl._garbage and kept.shape == (2, 2)

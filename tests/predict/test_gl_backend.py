@@ -7,18 +7,15 @@ tests/geometry/test_gl_frame.py).
 """
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
 
 from engine.core.errors import InputError
-from engine.core.frames import rigid_inverse
 from engine.geometry import backends
 from engine.geometry.backends import gl as glb
-from engine.geometry.motion import rigid_motion_vectors
 from engine.predict import Target, make_predictor
-from tests.synthetic import two_layer_sequence
+from tests.synthetic import two_layer_sequence, with_vectors
 
 if not glb.available():
     pytest.skip("no EGL context with compute shaders", allow_module_level=True)
@@ -28,13 +25,6 @@ def _target(frame):
     return Target(frame.camera, frame.time, frame.index)
 
 
-def _with_vectors(frames, objects, older: int, newest: int):
-    frame = frames[newest]
-    motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest]) for o in objects}
-    vectors = rigid_motion_vectors(frame.depth, frame.camera, frames[older].camera, frame.object_id, motions)
-    return dataclasses.replace(frame, motion_vectors=vectors)
-
-
 def _close(a, b) -> float:
     return float(np.mean((np.abs(a - b) <= 1e-3 * np.maximum(1.0, np.abs(a))).all(axis=-1)))
 
@@ -42,7 +32,7 @@ def _close(a, b) -> float:
 @pytest.mark.parametrize("method", ["reproject", "flow2d", "mvec", "oracle", "decomp", "decomp[motion=truth]"])
 def test_gl_predicts_what_the_cpu_predicts(method):
     frames, objects = two_layer_sequence(8, width=160, height=96, camera_speed=0.03, object_speed=0.12)
-    history = [frames[2], _with_vectors(frames, objects, 2, 4)]
+    history = [frames[2], with_vectors(frames, objects, 2, 4)]
     cpu = make_predictor(method, objects, backend="cpu")
     gl = make_predictor(method, objects, backend="gl")
     assert (cpu.backend, gl.backend) == ("cpu", "gl")

@@ -7,23 +7,14 @@ import numpy as np
 import pytest
 
 from engine.core.errors import InputError
-from engine.core.frames import rigid_inverse
-from engine.geometry.motion import extrapolated_flow, rigid_motion_vectors
+from engine.geometry.motion import extrapolated_flow
 from engine.predict import Mvec, MvecConfig, Oracle, Reproject, Target, make_predictor, resolve_auto, true_object_flow
 from engine.runtime.stream import PredictionLoop
-from tests.synthetic import two_layer_sequence
+from tests.synthetic import two_layer_sequence, with_vectors
 
 
 def _target(frame):
     return Target(frame.camera, frame.time, frame.index)
-
-
-def _with_vectors(frames, objects, older: int, newest: int):
-    """Frame ``newest`` carrying the exact vectors an engine rendering ``older`` then ``newest`` writes."""
-    frame = frames[newest]
-    motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest]) for o in objects}
-    vectors = rigid_motion_vectors(frame.depth, frame.camera, frames[older].camera, frame.object_id, motions)
-    return dataclasses.replace(frame, motion_vectors=vectors)
 
 
 def _interior(a, margin=4):
@@ -33,7 +24,7 @@ def _interior(a, margin=4):
 @pytest.mark.parametrize("k", [2, 4])
 def test_constant_velocity_motion_is_predicted_like_the_oracle(k):
     frames, objects = two_layer_sequence(2 * k + 1, width=96, height=64, camera_speed=0.04, object_speed=0.1)
-    history = [frames[0], _with_vectors(frames, objects, 0, k)]
+    history = [frames[0], with_vectors(frames, objects, 0, k)]
     mvec, oracle = Mvec(), Oracle(objects)
     state = mvec.prepare(history)
     for step in range(1, k):
@@ -50,7 +41,7 @@ def test_constant_velocity_motion_is_predicted_like_the_oracle(k):
 
 def test_a_static_scene_gives_reprojection_bit_for_bit():
     frames, objects = two_layer_sequence(5, camera_speed=0.1, object_speed=0.0)
-    history = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
     target = _target(frames[3])
     out = Mvec().predict(history, target)
     np.testing.assert_array_equal(out.color, Reproject().predict(history, target).color)
@@ -72,7 +63,7 @@ def test_without_vectors_it_says_so_and_auto_picks_by_their_presence():
 
 
 def _hard(frames, objects, edit):
-    history = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
     vectors = history[1].motion_vectors.copy()
     edit(vectors, history[1])
     history[1] = dataclasses.replace(history[1], motion_vectors=vectors)
@@ -104,7 +95,7 @@ def test_hard_vectors_never_crash_and_stay_finite(case):
 
 def test_sky_pixels_ignore_their_vectors():
     frames, objects = two_layer_sequence(5, width=64, height=48, camera_speed=0.03, object_speed=0.1)
-    history = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
     depth = history[1].depth.copy()
     depth[:8] = np.inf
     vectors = history[1].motion_vectors.copy()
@@ -116,7 +107,7 @@ def test_sky_pixels_ignore_their_vectors():
 
 def test_half_resolution_vectors_predict_nearly_as_well():
     frames, objects = two_layer_sequence(5, width=96, height=64, camera_speed=0.04, object_speed=0.1)
-    full = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    full = [frames[0], with_vectors(frames, objects, 0, 2)]
     half = [full[0], dataclasses.replace(full[1], motion_vectors=full[1].motion_vectors[1::2, 1::2])]
     target = _target(frames[3])
     a, b = Mvec().predict(full, target), Mvec().predict(half, target)
@@ -125,7 +116,7 @@ def test_half_resolution_vectors_predict_nearly_as_well():
 
 def test_disocclusion_behind_a_fast_object_is_filled_with_background_not_smeared():
     frames, objects = two_layer_sequence(5, width=96, height=64, camera_speed=0.0, object_speed=0.3)
-    history = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
     truth = frames[3]
     out = Mvec().predict(history, _target(truth))
     revealed = history[1].moving & ~truth.moving  # the square left these pixels: background shows there now
@@ -140,7 +131,7 @@ def test_an_object_reversing_direction_follows_the_newest_vectors():
     frames, objects = two_layer_sequence(5, width=96, height=64, camera_speed=0.0, object_speed=0.1)
     # the square went right from frame 0 to 2; an engine whose object then turns back writes vectors that
     # say it came from the right: mvec must extrapolate that newest motion (to the left), not the old one
-    history = [frames[0], _with_vectors(frames, objects, 0, 2)]
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
     turned = history[1].motion_vectors.copy()
     turned[history[1].moving, 0] *= -1.0
     history[1] = dataclasses.replace(history[1], motion_vectors=turned)
@@ -151,11 +142,11 @@ def test_an_object_reversing_direction_follows_the_newest_vectors():
 def test_after_a_restart_the_loop_falls_back_to_reprojection_until_two_frames():
     frames, objects = two_layer_sequence(5, camera_speed=0.02, object_speed=0.1)
     loop = PredictionLoop(Mvec())
-    loop.submit(_with_vectors(frames, objects, 0, 1))
+    loop.submit(with_vectors(frames, objects, 0, 1))
     assert loop.prepared.fallback == "history"  # its vectors point into a frame the loop never saw
-    loop.submit(_with_vectors(frames, objects, 1, 2))
+    loop.submit(with_vectors(frames, objects, 1, 2))
     assert loop.prepared.fallback is None
-    loop.submit(_with_vectors(frames, objects, 2, 3), restart=True)  # a camera cut
+    loop.submit(with_vectors(frames, objects, 2, 3), restart=True)  # a camera cut
     assert loop.prepared.fallback == "history"
 
 
@@ -164,7 +155,7 @@ def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames(
     # (k = 2: frames 2, 4, 6 rendered, frame 7 predicted)
     frames, objects = two_layer_sequence(10, width=96, height=64, camera_speed=0.02,
                                          object_path=lambda i: 0.004 * i * i)
-    history = [frames[2], _with_vectors(frames, objects, 2, 4), _with_vectors(frames, objects, 4, 6)]
+    history = [frames[2], with_vectors(frames, objects, 2, 4), with_vectors(frames, objects, 4, 6)]
     truth = frames[7]
     moving = history[-1].moving
     flow = true_object_flow(history[-1], {o.id: o for o in objects}, truth.index)[..., :2]
@@ -191,6 +182,6 @@ def test_a_bounce_keeps_constant_velocity():
     # the square reverses between the two intervals: the change of velocity is not small, so it is ignored
     frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.0,
                                          object_path=lambda i: 0.1 * (i if i <= 4 else 8 - i))
-    history = [frames[2], _with_vectors(frames, objects, 2, 4), _with_vectors(frames, objects, 4, 6)]
+    history = [frames[2], with_vectors(frames, objects, 2, 4), with_vectors(frames, objects, 4, 6)]
     state = Mvec().prepare(history)
     assert state.data.moving.size > 0 and not np.abs(state.data.acceleration).any()

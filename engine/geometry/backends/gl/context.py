@@ -8,6 +8,7 @@ thread (a server's workers) share one context safely, one call at a time.
 """
 from __future__ import annotations
 
+import collections
 import re
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -69,6 +70,7 @@ class GlContext:
             self._thread.shutdown(wait=False)
             raise
         self._programs: dict = {}
+        self._garbage: collections.deque = collections.deque()  # GL objects to free on the GL thread
         self._queries: list = []
         self._open: list[tuple[str, object]] = []
         self._timing = False
@@ -90,8 +92,26 @@ class GlContext:
         """Run ``fn(*args, **kwargs)`` on the context's thread (where the context is current, made so once
         when it was created: nothing else runs GL there); returns its result (exceptions propagate)."""
         if threading.get_ident() == self._ident:
+            self._collect()
             return fn(*args, **kwargs)
-        return self._thread.submit(fn, *args, **kwargs).result()
+        return self._thread.submit(self._collected, fn, *args, **kwargs).result()
+
+    def discard(self, objects) -> None:
+        """Free GL ``objects`` (buffers, ...) later, on the GL thread, before its next call: safe from any thread
+        and from a garbage-collection finalizer, which may run while another thread pool holds the lock that
+        submitting work takes (so a finalizer must not wait on the GL thread)."""
+        self._garbage.extend(objects)
+
+    def _collect(self) -> None:
+        while self._garbage:
+            try:
+                self._garbage.popleft().release()
+            except IndexError:
+                break
+
+    def _collected(self, fn, *args, **kwargs):
+        self._collect()
+        return fn(*args, **kwargs)
 
     def program(self, name: str, defines: Optional[Mapping[str, object]] = None):
         """The compiled compute program of pass ``name`` with ``defines`` (cached)."""
@@ -164,9 +184,18 @@ class GlContext:
         program.run(gx, -(-groups // gx), 1)
         self.ctx.memory_barrier()
 
+    def release_pool(self, pool: dict) -> None:
+        """Free the buffers of a ``buffer`` pool (from any thread) and empty it."""
+        def free():
+            for buf in pool.values():
+                buf.release()
+            pool.clear()
+        self.call(free)
+
     def release(self) -> None:
         """Free the programs, queries and the context, and stop its thread."""
         def free():
+            self._collect()
             for program in self._programs.values():
                 program.release()
             self._programs.clear()

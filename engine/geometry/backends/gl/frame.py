@@ -32,14 +32,8 @@ __all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "un
 
 
 def _release_later(gl: GlContext, buffers: list) -> None:
-    """Free ``buffers`` on the GL thread (from a finalizer: any thread, possibly at interpreter exit)."""
-    def free():
-        for buf in buffers:
-            buf.release()
-    try:
-        gl.call(free)
-    except Exception:  # the context or its thread is gone: the driver frees everything with it
-        pass
+    """Free ``buffers`` on the GL thread before its next call (a finalizer runs on any thread, at any point)."""
+    gl.discard(buffers)
 
 
 @dataclass(eq=False)
@@ -274,8 +268,4 @@ class GlFrameWarper:
 
     def release(self) -> None:
         """Free this warper's work buffers (uploaded images and flows free themselves)."""
-        def free():
-            for buf in self._pool.values():
-                buf.release()
-            self._pool.clear()
-        self.gl.call(free)
+        self.gl.release_pool(self._pool)

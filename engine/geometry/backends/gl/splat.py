@@ -132,8 +132,4 @@ class GlSplatter:
 
     def release(self) -> None:
         """Free this splatter's GPU buffers (the context stays)."""
-        def free():
-            for buf in self._pool.values():
-                buf.release()
-            self._pool.clear()
-        self.gl.call(free)
+        self.gl.release_pool(self._pool)

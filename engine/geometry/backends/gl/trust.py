@@ -87,8 +87,5 @@ class GlTrust:
         return out
 
     def release(self) -> None:
-        def free():
-            for buf in self._pool.values():
-                buf.release()
-            self._pool.clear()
-        self.gl.call(free)
+        """Free the work buffers."""
+        self.gl.release_pool(self._pool)

@@ -16,14 +16,13 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.geometry.backends import gl as glb
+from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow, pyramid_levels
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from tests.synthetic import two_layer_sequence
 
 if not glb.available():
     pytest.skip("no EGL context with compute shaders", allow_module_level=True)
-
-from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow, pyramid_levels  # noqa: E402
 
 _FLOW: list = []
 
@@ -169,3 +168,26 @@ def test_bad_inputs_name_the_field():
     with pytest.raises(InputError) as err:
         GlFlowConfig(sweeps=0)
     assert err.value.field == "sweeps"
+
+
+def test_release_frees_the_work_buffers_and_estimates_again():
+    gl_flow = GlOpticalFlow()
+    a, b = shifted_pair(40, 56, (1.0, 0.5))
+    first = gl_flow.estimate(a, b)
+    gl_flow.release()
+    assert not gl_flow._pool
+    np.testing.assert_array_equal(gl_flow.estimate(a, b), first)
+    gl_flow.release()
+
+
+def test_warped_frame_read_from_the_warpers_buffer():
+    """The integration path: frame n-k warped by ``GlFrameWarper`` is read from its work buffer (pool key
+    "filled"), no readback, and gives the flow of the same colours passed as numpy."""
+    a, b = shifted_pair(48, 64, (2.0, -1.0))
+    warper = glb.GlFrameWarper()
+    k, pose = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), np.eye(4)
+    image_b = warper.upload(b, np.full((48, 64), 2.0, np.float32))
+    filled, _ = warper.warp_and_fill(image_b, k, pose, k, pose)
+    image_a = warper.upload(a, np.ones((48, 64), np.float32))  # kept: its buffers live as long as it does
+    on_gpu = estimator().estimate_buffers(image_a.color, warper._pool["filled"], (48, 64))
+    np.testing.assert_array_equal(on_gpu, estimator().estimate(a, filled))

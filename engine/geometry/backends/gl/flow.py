@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Optional, Union
 
 import numpy as np
 
@@ -93,7 +92,7 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     h, w = shape
     p = config.patch_size
     coarsest = min(int(math.log2(max(h, w) / (4.0 * p)) + 0.5) if max(h, w) >= 4 * p else 0,
-                   int(math.floor(math.log2(min(h, w) / p))) if min(h, w) >= p else 0)
+                   math.floor(math.log2(min(h, w) / p)) if min(h, w) >= p else 0)
     coarsest = max(coarsest, 0)
     sizes = [(h, w)]
     for _ in range(coarsest):
@@ -115,15 +114,15 @@ class GlOpticalFlow:
     >>> u = flow.estimate(color_n, warped_n_minus_k)               # doctest: +SKIP  (H, W, 2) u(n -> n-k)
     """
 
-    def __init__(self, gl: Optional[GlContext] = None, config: GlFlowConfig = GlFlowConfig()) -> None:
+    def __init__(self, gl: GlContext | None = None, config: GlFlowConfig = GlFlowConfig()) -> None:
         if not isinstance(config, GlFlowConfig):
             raise InputError(f"must be a GlFlowConfig, got {type(config).__name__}", field="config")
         self.gl = shared_context() if gl is None else gl
         self.config = config
         self._pool: dict = {}
 
-    def estimate(self, first: Union[np.ndarray, GlImage], second: Union[np.ndarray, GlImage], *,
-                 gpu_ms: Optional[dict] = None, as_gl: bool = False) -> Union[np.ndarray, GlFlow]:
+    def estimate(self, first: np.ndarray | GlImage, second: np.ndarray | GlImage, *,
+                 gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
         """Flow from ``first`` to ``second``: (H, W, 2) float32 pixels, or with ``as_gl`` a ``GlFlow`` (channels
         2) that ``GlFrameWarper.warp_and_fill`` takes. Each image is (H, W, 3) float32 linear RGB or a
         ``GlImage`` (its colour buffer is read, nothing uploaded). With ``gpu_ms``, the GPU milliseconds of the
@@ -160,7 +159,7 @@ class GlOpticalFlow:
                     buf.release()
         return self.gl.call(run)
 
-    def luma(self, image: Union[np.ndarray, GlImage]) -> np.ndarray:
+    def luma(self, image: np.ndarray | GlImage) -> np.ndarray:
         """(H, W) uint8 luma of ``image`` ((H, W, 3) float32 linear RGB or a ``GlImage``) as pass ``flow_luma``
         computes it on the GPU: equal to ``engine.predict.dis.luma8``."""
         if isinstance(image, GlImage):
@@ -196,9 +195,10 @@ class GlOpticalFlow:
         return luma
 
     def estimate_buffers(self, first_buffer, second_buffer, shape: tuple[int, int], *,
-                         gpu_ms: Optional[dict] = None, as_gl: bool = False) -> Union[np.ndarray, GlFlow]:
+                         gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
         """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32
-        linear RGB each (e.g. ``GlFrameWarper``'s filled frame, pool key "filled"), ``shape`` = (H, W)."""
+        linear RGB each (e.g. ``GlFrameWarper``'s filled frame, pool key "filled"), ``shape`` = (H, W). A
+        ``GlImage``'s buffer lives as long as the ``GlImage``: keep it referenced until this returns."""
         try:
             h, w = (int(n) for n in shape)
         except (TypeError, ValueError):
@@ -211,7 +211,7 @@ class GlOpticalFlow:
                                  f"{getattr(buf, 'size', type(buf).__name__)}", field=name)
         return self.gl.call(self._estimate, first_buffer, second_buffer, (h, w), gpu_ms, as_gl)
 
-    def _estimate(self, first_buffer, second_buffer, shape: tuple[int, int], gpu_ms: Optional[dict], as_gl: bool):
+    def _estimate(self, first_buffer, second_buffer, shape: tuple[int, int], gpu_ms: dict | None, as_gl: bool):
         gl, pool, config = self.gl, self._pool, self.config
         h, w = shape
         n = h * w
@@ -304,8 +304,4 @@ class GlOpticalFlow:
 
     def release(self) -> None:
         """Free this estimator's work buffers."""
-        def free():
-            for buf in self._pool.values():
-                buf.release()
-            self._pool.clear()
-        self.gl.call(free)
+        self.gl.release_pool(self._pool)

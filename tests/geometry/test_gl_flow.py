@@ -191,3 +191,14 @@ def test_warped_frame_read_from_the_warpers_buffer():
     image_a = warper.upload(a, np.ones((48, 64), np.float32))  # kept: its buffers live as long as it does
     on_gpu = estimator().estimate_buffers(image_a.color, warper._pool["filled"], (48, 64))
     np.testing.assert_array_equal(on_gpu, estimator().estimate(a, filled))
+
+
+def test_non_finite_colours_give_a_finite_flow():
+    """NaN and +-inf colours read as luma8 reads them (NaN and -inf as 0, +inf as 255): the flow stays finite."""
+    a, b = shifted_pair(40, 56, (1.5, 0.0))
+    a[5:9, 5:30] = np.nan
+    b[20:25, 10:40] = np.inf
+    b[30:, :8] = -np.inf
+    flow = estimator().estimate(a, b)
+    assert np.isfinite(flow).all()
+    np.testing.assert_array_equal(estimator().luma(b), luma8(b))

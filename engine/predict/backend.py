@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from engine.core.frames import Frame
-from engine.geometry.backends.gl.frame import GlFrameWarper, GlMotion
+from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlMotion
+from engine.geometry.camera import reprojection_matrix
 from engine.predict.base import PointMotion, ResidentFrame, Target, Timer
 
 __all__ = ["GlFrames"]
@@ -58,3 +59,32 @@ class GlFrames:
             return self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
                                              dst.world_to_camera, None if motion else flow, flow_scale,
                                              gpu_ms=timer.gpu, motion=motion)
+
+    def estimate_flow_back(self, older: ResidentFrame, newest: ResidentFrame, estimator, trust, timer: Timer) -> GlFlow:
+        """``flow2d``'s preparation on the GPU, nothing read back: frame n-k warped into frame n's view and
+        filled (stage ``warp``), the flow u(n -> n-k) from frame n to it by ``estimator`` (a
+        ``engine.geometry.backends.gl.GlOpticalFlow``; stage ``flow``), its untrusted motion zeroed by ``trust``
+        (a ``GlTrust``; stage ``trust``). Returns the flow (H, W, 2) on the GPU."""
+        if older.image is None:
+            older = self.resident(older.frame, timer)
+        if newest.image is None:
+            newest = self.resident(newest.frame, timer)
+        src, dst = older.frame.camera, newest.frame.camera
+        with timer("warp"):
+            warped = self.warper.warp_and_fill(older.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
+                                               dst.world_to_camera, gpu_ms=timer.gpu, readback=False)
+        with timer("flow"):
+            flow = estimator.estimate_buffers(newest.image.color, warped.color, newest.image.shape, gpu_ms=timer.gpu,
+                                              as_gl=True)
+        matrix = reprojection_matrix(dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera)
+        gl = self.warper.gl
+
+        def apply():
+            with gl.timing() as times, gl.gpu_stage("trust"):
+                trust.apply_buffers(*estimator.lumas(), flow.buffer, newest.image.depth, newest.image.shape, matrix,
+                                    older.frame.depth.shape)
+            return times
+        with timer("trust"):
+            for key, value in gl.call(apply).items():
+                timer.gpu[key] = timer.gpu.get(key, 0.0) + value
+        return flow

@@ -3,17 +3,24 @@ and ``oracle`` (true object motion, the upper bound). Conventions: ``engine/pred
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
 from engine import geometry
+from engine.core.errors import InputError
 from engine.core.frames import SceneObject
+from engine.geometry.backends.gl import GlOpticalFlow
+from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
-from engine.predict.dis import dis_calc, dis_estimator, luma8, trusted_motion
+from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
+                                trusted_motion)
 
-__all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle"]
+__all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle", "ESTIMATORS"]
+
+#: ``flow2d``'s optical-flow estimators: OpenCV DIS on the CPU, or the GPU's (``engine.geometry.backends.gl.flow``)
+ESTIMATORS = ("dis", "gl")
 
 
 class Repeat(Predictor):
@@ -41,10 +48,11 @@ class Reproject(Predictor):
 
 @dataclass
 class Flow2DState:
-    """``flow2d``'s per-frame state: ``flow_back`` (H, W, 2), the estimated u(n -> n-k) in pixels; ``frame``
-    and ``flow`` are frame n and that flow where the backend computes (on ``gl``: uploaded once)."""
+    """``flow2d``'s per-frame state: ``flow_back`` (H, W, 2), the estimated u(n -> n-k) in pixels (None when it
+    was estimated on the GPU and stays there); ``frame`` and ``flow`` are frame n and that flow where the
+    backend computes (on ``gl``: uploaded once, or made there)."""
 
-    flow_back: np.ndarray
+    flow_back: Optional[np.ndarray]
     frame: ResidentFrame
     flow: Any
 
@@ -52,8 +60,11 @@ class Flow2DState:
 class Flow2D(Predictor):
     """2D optical-flow extrapolation in the spirit of spacewarp.
 
-    Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); OpenCV's DIS optical
-    flow estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma; the
+    Frame n-k is warped into frame n's view (camera motion cancelled, holes filled); an optical flow
+    estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma (``estimator``:
+    ``dis``, OpenCV's DIS with a ``preset``, or ``gl``, the pyramidal DIS-style flow of
+    ``engine.geometry.backends.gl.flow`` on the GPU: on the ``gl`` backend the whole preparation, trust rules
+    included, then runs there without a readback; docs/results/2026-11-25-gl-flow.md); the
     flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
     forward-warped by that 2D flow plus the target camera's motion. The flow is 0 (the camera-only warp)
     where frame n-k did not see the surface and where a motion under a pixel does not explain frame n better
@@ -64,16 +75,34 @@ class Flow2D(Predictor):
     history_needed = 2
     backends = ("cpu", "gl")
 
-    def __init__(self, preset: str = "medium") -> None:
+    def __init__(self, preset: str = "medium", estimator: str = "dis") -> None:
+        if estimator not in ESTIMATORS:
+            raise InputError(f"must be one of {', '.join(ESTIMATORS)}, got {estimator!r}", field="estimator")
+        self.estimator = estimator
         self._dis = dis_estimator(preset)
+        self._gl: Optional[tuple] = None
+
+    def _gl_estimators(self) -> tuple:
+        """(GlOpticalFlow, GlTrust) of this predictor, made on first use."""
+        if self._gl is None:
+            self._gl = (GlOpticalFlow(), GlTrust(SMALL_MOTION, CONFIDENCE_MARGIN, CONFIDENCE_WINDOW))
+        return self._gl
 
     def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:
         older, newest = state.history[-2], state.history[-1]
+        if self.estimator == "gl" and self.frames.name == "gl":  # every stage on the GPU, nothing read back
+            frame = self.frames.resident(newest, timer)
+            flow = self.frames.estimate_flow_back(self.frames.resident(older, timer), frame, *self._gl_estimators(),
+                                                  timer)
+            return Flow2DState(None, frame, flow)
         warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer),
                                               Target(newest.camera, newest.time, newest.index), timer)
         luma_n, luma_w = luma8(newest.color), luma8(warped)
         with timer("flow"):
-            flow = dis_calc(self._dis, luma_n, luma_w)
+            if self.estimator == "gl":
+                flow = self._gl_estimators()[0].estimate(newest.color, warped)
+            else:
+                flow = dis_calc(self._dis, luma_n, luma_w)
         with timer("trust"):
             src, dst = older.camera, newest.camera
             seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
@@ -87,8 +116,9 @@ class Flow2D(Predictor):
         return Flow2DState(flow_back, self.frames.resident(newest, timer), self.frames.resident_flow(flow_back, timer))
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
-        """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels."""
-        return state.data.flow_back
+        """The estimated u(n -> n-k) of frame n, (H, W, 2) pixels (read back when it was made on the GPU)."""
+        data = state.data
+        return data.flow.read() if data.flow_back is None else data.flow_back
 
     def _render(self, state, target, timer):
         return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.flow,

@@ -64,3 +64,24 @@ def test_backend_choice():
         make_predictor("reproject", backend="vulkan")
     assert err.value.field == "backend"
 
+
+
+def test_flow2d_with_the_gpu_estimator_prepares_on_the_gpu_what_the_cpu_path_prepares():
+    frames, objects = two_layer_sequence(8, width=160, height=96, camera_speed=0.03, object_speed=0.12)
+    history = [frames[2], frames[4]]
+    cpu = make_predictor("flow2d[estimator=gl]", objects, backend="cpu")  # CPU warp and trust, GPU flow
+    gl = make_predictor("flow2d[estimator=gl]", objects, backend="gl")    # everything on the GPU
+    cpu_state, gl_state = cpu.prepare(history), gl.prepare(history)
+    assert gl_state.data.flow_back is None  # the flow stayed on the GPU
+    assert {"warp", "flow", "trust"} <= set(gl_state.stages_ms) and {"search", "trust"} <= set(gl_state.gpu_ms)
+    a, b = cpu.object_flow(cpu_state), gl.object_flow(gl_state)
+    assert b.shape == a.shape and np.isfinite(b).all()
+    assert np.mean(np.abs(a - b).max(axis=-1) < 0.05) >= 0.99  # the same lumas but for a rare 8-bit rounding
+    moving = frames[4].moving
+    assert np.abs(b[moving, 0]).mean() > 1.0  # the square's motion was found and kept
+    for truth in (frames[5], frames[6]):
+        x, y = cpu.render(cpu_state, _target(truth)), gl.render(gl_state, _target(truth))
+        assert _close(x.color, y.color) >= 0.99 and "upload" not in y.stages_ms
+    with pytest.raises(InputError) as err:
+        make_predictor("flow2d[estimator=raft]")
+    assert err.value.field == "estimator"

@@ -194,6 +194,11 @@ class GlOpticalFlow:
         self.gl.dispatch(self.gl.program("flow_luma", {"BUCKETS": ENCODE8_BUCKETS}), n, {"count": n})
         return luma
 
+    def lumas(self) -> tuple:
+        """The 8-bit lumas of the last estimate's two images, (H, W) float buffers (level 0 of its pyramids),
+        valid until the next estimate; GL thread only (``engine.geometry.backends.gl.trust`` reads them)."""
+        return self._pool["first"], self._pool["second"]
+
     def estimate_buffers(self, first_buffer, second_buffer, shape: tuple[int, int], *,
                          gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
         """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32

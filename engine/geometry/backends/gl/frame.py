@@ -96,6 +96,12 @@ class GlFlow:
     def __post_init__(self) -> None:
         weakref.finalize(self, _release_later, self.gl, [self.buffer])
 
+    def read(self) -> np.ndarray:
+        """The flow on the host, (H, W, channels) float32."""
+        out = np.empty(self.shape + (self.channels,), np.float32)
+        self.gl.call(lambda: self.buffer.read_into(out, size=out.nbytes))
+        return out
+
 
 @dataclass(eq=False)
 class GlMotion:

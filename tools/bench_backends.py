@@ -2,7 +2,8 @@
 on the GPU), per frame size and method.
 
 ``python -m tools.bench_backends [--sizes 640x360,960x540,1920x1080,3840x2160] [--methods reproject,mvec,flow2d]
-[--k 2] [--frames 6] [--repeats 3] [--out out/bench_backends] [--json FILE]``
+[--k 2] [--frames 6] [--repeats 3] [--out out/bench_backends] [--json FILE]`` (methods: any names
+``make_predictor`` takes, e.g. ``flow2d[estimator=gl]``, ``decomp``)
 
 Renders (once, cached under ``--out``) the fast held-out scene (preset ``fast``, seed 7003: objects moving a
 median 12 px a frame at 640x360) at each size. For every rendered frame n with history, each method on each
@@ -26,7 +27,7 @@ from engine.eval.metrics import score_frame
 from engine.eval.protocol import evaluation_pairs, rendered_history
 from engine.geometry.backends import gl_renderer
 from engine.io.rgbd import read_sequence
-from engine.predict import Target, make_predictor
+from engine.predict import Target, make_predictor, split_methods
 from tools.heldout import render_set, write_json
 
 SCENE = ("fast7003", dict(seed=7003), "fast")
@@ -86,7 +87,7 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="640x360,960x540,1920x1080,3840x2160")
-    parser.add_argument("--methods", default="reproject,mvec,flow2d")
+    parser.add_argument("--methods", default="reproject,mvec,flow2d,flow2d[estimator=gl],decomp")
     parser.add_argument("--k", type=int, default=2)
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--repeats", type=int, default=3)
@@ -97,7 +98,7 @@ def main(argv=None) -> None:
     if not runs:
         raise SystemExit(f"bench_backends: the gl backend cannot run here: {renderer}")
     print(f"GL renderer: {renderer} ({'hardware' if hardware else 'software: GPU ms are not measured'})")
-    methods = [m for m in args.methods.split(",") if m]
+    methods = split_methods(args.methods)
     doc = {"renderer": renderer, "hardware": hardware, "k": args.k, "frames": args.frames, "repeats": args.repeats,
            "scene": SCENE[0], "sizes": []}
     print("\n| size | method | backend | wall ms | GPU ms | x cpu reproject | PSNR | PSNR moving | parity max diff | "

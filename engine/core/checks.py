@@ -64,14 +64,17 @@ def checked_sharpness(sharpness) -> float:
     return s
 
 
+def checked_size(size, name: str = "size") -> tuple[int, int]:
+    """``(height, width)`` of an image; InputError (naming ``name``) unless two positive ints."""
+    try:
+        h, w = (int(n) for n in size)
+    except (TypeError, ValueError):
+        raise InputError(f"must be (height, width), got {size!r}", field=name) from None
+    if h < 1 or w < 1:
+        raise InputError(f"must be positive, got {size!r}", field=name)
+    return h, w
+
+
 def checked_out_size(out_size, default):
     """``(height, width)`` of an output image, ``default`` when None; InputError unless two positive ints."""
-    if out_size is None:
-        return default
-    try:
-        h, w = (int(n) for n in out_size)
-    except (TypeError, ValueError):
-        raise InputError(f"must be (height, width), got {out_size!r}", field="out_size") from None
-    if h < 1 or w < 1:
-        raise InputError(f"must be positive, got {out_size!r}", field="out_size")
-    return h, w
+    return default if out_size is None else checked_size(out_size, "out_size")

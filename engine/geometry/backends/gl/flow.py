@@ -27,7 +27,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from engine.core.checks import checked_array
+from engine.core.checks import checked_array, checked_size
 from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
@@ -204,12 +204,7 @@ class GlOpticalFlow:
         """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32
         linear RGB each (e.g. ``GlFrameWarper``'s filled frame, pool key "filled"), ``shape`` = (H, W). A
         ``GlImage``'s buffer lives as long as the ``GlImage``: keep it referenced until this returns."""
-        try:
-            h, w = (int(n) for n in shape)
-        except (TypeError, ValueError):
-            raise InputError(f"must be (height, width), got {shape!r}", field="shape") from None
-        if h < 1 or w < 1:
-            raise InputError(f"must be positive, got {shape!r}", field="shape")
+        h, w = checked_size(shape, "shape")
         for name, buf in (("first_buffer", first_buffer), ("second_buffer", second_buffer)):
             if getattr(buf, "size", -1) < 12 * h * w:
                 raise InputError(f"must hold (H, W, 3) float32 = {12 * h * w} bytes for shape {(h, w)}, got "

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from engine.core.checks import checked_array, checked_matrix, checked_sharpness
+from engine.core.checks import checked_array, checked_matrix, checked_sharpness, checked_size
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
@@ -144,9 +144,7 @@ class GlFrameWarper:
         moderngl buffers of the shared context (a renderer that runs on it through ``GlContext.call``, e.g.
         with ``Framebuffer.read_into(buffer)``), rows top to bottom, planar depth, +inf sky. The caller keeps
         owning them and must not change them while predictions use the image."""
-        h, w = (int(v) for v in shape)
-        if h < 1 or w < 1:
-            raise InputError(f"must be positive, got {shape!r}", field="shape")
+        h, w = checked_size(shape, "shape")
         for name, buf, nbytes in (("color", color, 12 * h * w), ("depth", depth, 4 * h * w)):
             if getattr(buf, "size", -1) < nbytes or getattr(buf, "ctx", None) is not self.gl.ctx:
                 raise InputError(f"must be a buffer of this context of at least {nbytes} bytes", field=name)

@@ -41,8 +41,8 @@ import numpy as np
 from engine.core.colorspace import display_encode
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
-from engine.core.frames import Frame, rigid_inverse
-from engine.geometry.motion import camera_motion_vectors, rigid_motion_vectors
+from engine.core.frames import Frame
+from engine.geometry.motion import camera_motion_vectors
 from engine.predict import Prediction, Predictor, Target, make_predictor, resolve_auto
 from engine.runtime.stream import PredictionLoop
 
@@ -144,11 +144,8 @@ class SceneSource:
         index = tick % self.length
         frame = self.renderer.render_frame(index)
         if previous is not None and previous != tick - 1:
-            before = previous % self.length
-            now, then = self.scene.object_transforms(index), self.scene.object_transforms(before)
-            motions = {o.id: then[i] @ rigid_inverse(now[i]) for i, o in enumerate(self.scene.objects)}
-            frame.motion_vectors = rigid_motion_vectors(frame.depth, frame.camera, self.scene.camera_at(before),
-                                                        frame.object_id, motions)
+            frame.motion_vectors = self.renderer.motion_vectors(index, frame.depth, frame.object_id, frame.camera,
+                                                                previous % self.length)
         return frame
 
     def target(self, tick: int) -> Target:
@@ -170,21 +167,23 @@ class FieldSource:
 
     Time is ``tick / fps``; only the first tick is a cut. A static field's motion vectors are the camera's
     alone (``camera_motion_vectors`` from the rendered depth), pointing to the previous rendered frame.
-    The path uses the field's own scene description (the training cameras would need torch).
+    The path goes through the run's training cameras where torch can read them, else through the field's own
+    scene description (as the field demo's).
     """
 
     has_motion_vectors = True
     objects: Sequence = ()
 
     def __init__(self, config: PlayConfig) -> None:
-        from demos.upsample import resolve_field_dir
+        from demos.upsample import resolve_field_dir, train_cameras
         from engine.fields.camera_path import field_camera_path
         from engine.fields.gl import GlFieldRenderer
         from engine.fields.render import load_field
 
-        export, _ = resolve_field_dir(Path(config.field))
+        export, run = resolve_field_dir(Path(config.field))
         assets = load_field(export)  # a dynamic field's export is refused here, with its format named
-        cameras, width, height = field_camera_path(assets, None, config.loop, config.width, config.height)
+        cameras, width, height = field_camera_path(assets, train_cameras(run), config.loop, config.width,
+                                                   config.height)
         self.cameras = cameras + cameras[-2:0:-1]
         self.length = len(self.cameras)
         self.fps = config.fps

@@ -156,7 +156,7 @@ def resolve_field_dir(path: Path) -> tuple[Path, Optional[Path]]:
     return export, run
 
 
-def _train_cameras(run: Optional[Path]):
+def train_cameras(run: Optional[Path]):
     """The run's training cameras and image size (needs torch and the run's scene folder), else None."""
     if run is None:
         return None
@@ -207,7 +207,7 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
 
         raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
     assets = load_field(export)
-    cameras, width, height = field_camera_path(assets, _train_cameras(run), frames, width, height,
+    cameras, width, height = field_camera_path(assets, train_cameras(run), frames, width, height,
                                                orbit_degrees=orbit_degrees)
     timings: list[float] = []
     with GlFieldRenderer(assets, width, height, quantized=quantized) as renderer:

@@ -21,7 +21,7 @@ and rows are flipped on readback (GL images are bottom-up).
 from __future__ import annotations
 
 import math
-from typing import Iterator
+from typing import Iterator, Optional
 
 import numpy as np
 from tqdm import tqdm
@@ -341,16 +341,19 @@ class SceneRenderer:
                      flow=np.ascontiguousarray(flow[..., :2]), object_flow=np.ascontiguousarray(flow[..., 2:]),
                      motion_vectors=self.motion_vectors(index, depth, object_id, camera))
 
-    def motion_vectors(self, index: int, depth: np.ndarray, object_id: np.ndarray, camera: Camera) -> np.ndarray:
+    def motion_vectors(self, index: int, depth: np.ndarray, object_id: np.ndarray, camera: Camera,
+                       previous: Optional[int] = None) -> np.ndarray:
         """What an engine writes as motion vectors: exact current -> previous vectors of frame ``index``
-        (rigid objects + camera, from the truth pass's depth and ids at pixel centres). Frame 0 points to
+        (rigid objects + camera, from the truth pass's depth and ids at pixel centres) to frame ``previous``
+        (default ``index - 1``: a renderer drawing every k-th frame points to ``index - k``). Frame 0 points to
         frame -1 of the paths (defined for all times)."""
         scene = self.scene
+        previous = index - 1 if previous is None else int(previous)
         motions = {}
         if scene.objects:
-            now, before = scene.object_transforms(index), scene.object_transforms(index - 1)
+            now, before = scene.object_transforms(index), scene.object_transforms(previous)
             motions = {o.id: before[i] @ rigid_inverse(now[i]) for i, o in enumerate(scene.objects)}
-        return rigid_motion_vectors(depth, camera, scene.camera_at(index - 1), object_id, motions)
+        return rigid_motion_vectors(depth, camera, scene.camera_at(previous), object_id, motions)
 
     # -------------------------------------------------------------------------------------- clean-up
     def release(self) -> None:

@@ -1,7 +1,7 @@
 """Ablation of what ``flow2d`` does with DIS's flow before extrapolating it: which estimated object motion to
 keep, and whether matching changed regions whole reaches motion DIS misses.
 
-``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4] [--json FILE]``
+``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4] [--estimator dis|gl] [--json FILE]``
 
 Runs on VALIDATION sequences, apart from the benchmark's held-out ones (``tools/bench_motion.py``), so the
 choice it informs is not tuned on the sets it is reported on: ``gentle`` seeds 1005, 1006 (generator
@@ -159,11 +159,25 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
             "regions_arrived": regions_arrived}
 
 
-class RuleFlow2D(Flow2D):
-    """``flow2d`` with another rule between DIS and the extrapolation."""
+class Precomputed:
+    """A stand-in for the DIS object whose ``calc`` returns a flow already estimated (by the GPU's estimator):
+    the rules then apply to that flow (not to ``regions``, which runs DIS on parts of the frame)."""
 
-    def __init__(self, rule: Rule) -> None:
-        super().__init__()
+    def __init__(self, flow: np.ndarray) -> None:
+        self.flow = flow
+
+    def calc(self, luma_a, luma_b, _):
+        if luma_a.shape != self.flow.shape[:2]:
+            raise ValueError("the precomputed flow serves the whole frame only")
+        return self.flow.copy()
+
+
+class RuleFlow2D(Flow2D):
+    """``flow2d`` with another rule between its optical flow (``estimator``: DIS, or the GPU's) and the
+    extrapolation."""
+
+    def __init__(self, rule: Rule, estimator: str = "dis") -> None:
+        super().__init__(estimator=estimator)
         self.rule = rule
 
     def _prepare(self, state, timer):
@@ -187,7 +201,10 @@ class RuleFlow2D(Flow2D):
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
                    "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64)}
         with timer("flow"):
-            flow = self.rule(self._dis, luma8(newest.color), luma8(warped), seen, context)
+            estimator = self._dis
+            if self.estimator == "gl":
+                estimator = Precomputed(self._gl_estimators()[0].estimate(newest.color, warped))
+            flow = self.rule(estimator, luma8(newest.color), luma8(warped), seen, context)
         return self.state_of(newest, flow, timer)
 
 
@@ -206,6 +223,8 @@ def main(argv=None) -> None:
     parser.add_argument("--small", type=float, default=SMALL_MOTION,
                         help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")
+    parser.add_argument("--estimator", choices=("dis", "gl"), default="dis",
+                        help="the optical flow the rules apply to: OpenCV DIS or the GPU's (not with regions*)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -213,7 +232,9 @@ def main(argv=None) -> None:
     for v in variants:
         if v not in available:
             parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
-        registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule)
+        if args.estimator == "gl" and v.startswith("regions"):
+            parser.error(f"variant '{v}' runs DIS on parts of the frame: not with --estimator gl")
+        registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule, args.estimator)
     rows, sets = [], validation_sets(args.out)
     for set_name, paths in sets.items():
         sequences = [read_sequence(p) for p in paths]
@@ -233,6 +254,7 @@ def main(argv=None) -> None:
                       f"EPE {row['epe_moving']:.2f}   (reproject {base['psnr']:.2f} / {base['psnr_moving']:.2f})",
                       flush=True)
     write_json(args.json, {"sets": {s: [p.name for p in ps] for s, ps in sets.items()}, "margin": args.margin,
+                           "estimator": args.estimator,
                            "small": args.small, "rows": rows})
 
 

@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from engine.predict import Flow2D
 from tests.synthetic import two_layer_sequence
@@ -19,6 +20,20 @@ def test_ablation_rules_reproduce_what_flow2d_ships_and_what_it_replaced():
         kept = (flows[name] != 0).any(axis=-1)
         np.testing.assert_array_equal(flows[name][kept], flows["dis"][kept])
     assert np.isfinite(flows["regions"]).all()
+
+
+def test_ablation_rules_apply_to_the_gpu_flow_as_flow2d_with_it_does():
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    frames, _ = two_layer_sequence(6, width=160, height=96, camera_speed=0.3, object_speed=0.1)
+    history = [frames[2], frames[4]]
+    trusted = motion_ablation.RuleFlow2D(motion_ablation.rules(margin=1.0)["trusted"], "gl").prepare(history)
+    shipped = Flow2D(estimator="gl").prepare(history)
+    np.testing.assert_array_equal(trusted.data.flow_back, shipped.data.flow_back)
+    with pytest.raises(ValueError):
+        motion_ablation.Precomputed(np.zeros((4, 4, 2), np.float32)).calc(np.zeros((2, 2)), np.zeros((2, 2)), None)
 
 
 def test_flow_reach_prints_each_variant_and_writes_json(tmp_path, capsys):

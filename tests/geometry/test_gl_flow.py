@@ -180,16 +180,17 @@ def test_release_frees_the_work_buffers_and_estimates_again():
     gl_flow.release()
 
 
-def test_warped_frame_read_from_the_warpers_buffer():
-    """The integration path: frame n-k warped by ``GlFrameWarper`` is read from its work buffer (pool key
-    "filled"), no readback, and gives the flow of the same colours passed as numpy."""
+def test_warped_frame_read_from_the_gpu():
+    """The integration path: frame n-k warped by ``GlFrameWarper`` and left on the GPU (``readback=False``) is
+    read from there and gives the flow of the same colours passed as numpy."""
     a, b = shifted_pair(48, 64, (2.0, -1.0))
     warper = glb.GlFrameWarper()
     k, pose = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), np.eye(4)
     image_b = warper.upload(b, np.full((48, 64), 2.0, np.float32))
-    filled, _ = warper.warp_and_fill(image_b, k, pose, k, pose)
+    warped = warper.warp_and_fill(image_b, k, pose, k, pose, readback=False)
+    filled, _ = warped.read()
     image_a = warper.upload(a, np.ones((48, 64), np.float32))  # kept: its buffers live as long as it does
-    on_gpu = estimator().estimate_buffers(image_a.color, warper._pool["filled"], (48, 64))
+    on_gpu = estimator().estimate_buffers(image_a.color, warped.color, (48, 64))
     np.testing.assert_array_equal(on_gpu, estimator().estimate(a, filled))
 
 

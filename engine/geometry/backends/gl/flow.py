@@ -202,8 +202,8 @@ class GlOpticalFlow:
     def estimate_buffers(self, first_buffer, second_buffer, shape: tuple[int, int], *,
                          gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
         """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32
-        linear RGB each (e.g. ``GlFrameWarper``'s filled frame, pool key "filled"), ``shape`` = (H, W). A
-        ``GlImage``'s buffer lives as long as the ``GlImage``: keep it referenced until this returns."""
+        linear RGB each (e.g. the colour of a ``GlPrediction``: a frame warped and left on the GPU), ``shape`` =
+        (H, W). A ``GlImage``'s buffer lives as long as the ``GlImage``: keep it referenced until this returns."""
         h, w = checked_size(shape, "shape")
         for name, buf in (("first_buffer", first_buffer), ("second_buffer", second_buffer)):
             if getattr(buf, "size", -1) < 12 * h * w:

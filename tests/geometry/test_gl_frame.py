@@ -224,3 +224,30 @@ def test_a_frame_collected_while_a_thread_pool_submits_does_not_deadlock():
     assert len(gl.gl._garbage) >= 2  # queued, not freed: no GL call has run since
     kept = gl.upload(np.zeros((2, 2, 3), np.float32), np.ones((2, 2), np.float32))  # the next call frees them
     assert not gl.gl._garbage and kept.shape == (2, 2)
+
+
+def test_a_forked_child_is_told_the_context_stayed_in_the_parent():
+    import multiprocessing
+
+    from engine.geometry import backends
+    from engine.geometry.backends.gl.context import shared_context
+
+    parent = shared_context()
+
+    def child(queue):
+        answers = []
+        for attempt in (lambda: parent.call(lambda: None), shared_context):
+            try:
+                attempt()
+                answers.append("answered")
+            except RuntimeError as exc:
+                answers.append("refused" if "process" in str(exc) else str(exc))
+        answers.append(backends.resolve_backend("auto"))  # no GL here: the CPU
+        queue.put(answers)
+
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=child, args=(queue,))
+    proc.start()
+    proc.join(30)
+    assert proc.exitcode == 0 and queue.get(timeout=5) == ["refused", "refused", "cpu"]

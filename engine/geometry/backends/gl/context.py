@@ -9,6 +9,7 @@ thread (a server's workers) share one context safely, one call at a time.
 from __future__ import annotations
 
 import collections
+import os
 import re
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -63,6 +64,7 @@ class GlContext:
     """
 
     def __init__(self) -> None:
+        self._pid = os.getpid()
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="interleave-gl")
         try:
             self._thread.submit(self._create).result()
@@ -91,6 +93,8 @@ class GlContext:
     def call(self, fn: Callable[..., Any], *args, **kwargs) -> Any:
         """Run ``fn(*args, **kwargs)`` on the context's thread (where the context is current, made so once
         when it was created: nothing else runs GL there); returns its result (exceptions propagate)."""
+        if os.getpid() != self._pid:  # a forked child: the context and its thread stayed in the parent
+            raise RuntimeError("this GL context belongs to process %d; make a new one in this process" % self._pid)
         if threading.get_ident() == self._ident:
             self._collect()
             return fn(*args, **kwargs)
@@ -214,9 +218,14 @@ _SHARED_LOCK = threading.Lock()
 
 def shared_context() -> GlContext:
     """The process-wide ``GlContext``, created on first use; raises RuntimeError (with the first failure's
-    reason, remembered) when no EGL context with OpenGL 4.5 compute and 64-bit integers can be made."""
+    reason, remembered) when no EGL context with OpenGL 4.5 compute and 64-bit integers can be made, and in a
+    child forked after the context was made (a GL context and its thread do not cross a fork, and a new one made
+    there can hang in the driver: start workers with the 'spawn' method)."""
     global _SHARED, _FAILED
     with _SHARED_LOCK:
+        if _SHARED is not None and _SHARED._pid != os.getpid():
+            raise RuntimeError(f"the GL context was made in process {_SHARED._pid}, before this process forked "
+                               f"from it; use the 'spawn' start method for workers that use the GL backend")
         if _SHARED is None:
             if _FAILED is not None:
                 raise RuntimeError(_FAILED)

@@ -203,3 +203,55 @@ def test_non_finite_colours_give_a_finite_flow():
     flow = estimator().estimate(a, b)
     assert np.isfinite(flow).all()
     np.testing.assert_array_equal(estimator().luma(b), luma8(b))
+
+
+def _run_pass(name: str, inputs: dict, outputs: dict, count: int, uniforms: dict) -> dict:
+    """Run pass ``name`` on host arrays bound at the given bindings; returns the output bindings' arrays."""
+    gl = glb.shared_context()
+
+    def run():
+        buffers = {b: gl.ctx.buffer(np.ascontiguousarray(a)) for b, a in inputs.items()}
+        buffers.update({b: gl.ctx.buffer(reserve=a.nbytes) for b, a in outputs.items()})
+        try:
+            for binding, buf in buffers.items():
+                buf.bind_to_storage_buffer(binding)
+            gl.dispatch(gl.program(name), count, uniforms)
+            return {b: np.frombuffer(buffers[b].read(), a.dtype).reshape(a.shape) for b, a in outputs.items()}
+        finally:
+            for buf in buffers.values():
+                buf.release()
+    return gl.call(run)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (5, 7), (16, 9), (33, 64)])
+def test_downsample_pass_matches_its_reference(size):
+    from engine.geometry.backends.gl.reference import downsample_reference
+
+    image = np.random.default_rng(size[0] * size[1]).uniform(0, 255, size).astype(np.float32)
+    expected = downsample_reference(image)
+    h, w = expected.shape
+    pyramid = np.concatenate([image.ravel(), np.zeros(h * w, np.float32)])  # level 0, then level 1
+    gl = glb.shared_context()
+
+    def run():
+        buf = gl.ctx.buffer(pyramid)
+        try:
+            buf.bind_to_storage_buffer(1)
+            gl.dispatch(gl.program("flow_downsample"), h * w, {"src_size": size, "dst_size": (h, w),
+                                                               "src_offset": 0, "dst_offset": image.size})
+            return np.frombuffer(buf.read(), np.float32)[image.size:].reshape(h, w)
+        finally:
+            buf.release()
+    np.testing.assert_allclose(gl.call(run), expected, rtol=1e-6)  # the same sums, up to the order of rounding
+
+
+@pytest.mark.parametrize("coarse, fine, scale", [((3, 4), (6, 8), 2.0), ((5, 5), (9, 10), 2.0), ((2, 3), (8, 12), 4.0),
+                                                 ((1, 1), (3, 2), 2.0)])
+def test_upsample_pass_matches_its_reference(coarse, fine, scale):
+    from engine.geometry.backends.gl.reference import upsample_flow_reference
+
+    flow = np.random.default_rng(fine[0] + fine[1]).normal(0, 3, coarse + (2,)).astype(np.float32)
+    flow[0, 0] = np.nan  # a non-finite sample: the result there (and next to it) is 0
+    out = _run_pass("flow_upsample", {6: flow}, {7: np.zeros(fine + (2,), np.float32)}, fine[0] * fine[1],
+                    {"src_size": coarse, "dst_size": fine, "scale": scale})[7]
+    np.testing.assert_allclose(out, upsample_flow_reference(flow, fine, scale), rtol=1e-5, atol=1e-5)

@@ -16,8 +16,10 @@ propagation), ``flow_densify`` (patch flows averaged per pixel, weighted by thei
 DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then per fixed-point iteration
 ``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
 ``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
-clamped borders: no padding as ``dis_calc`` needs). No oracle is bit-exact (this is not OpenCV's code):
-``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and the true motion.
+clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
+``reference.py`` for ``flow_downsample`` and ``flow_upsample``; none for the search and the refinement (this
+is not OpenCV's code): ``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and
+the true motion.
 """
 from __future__ import annotations
 

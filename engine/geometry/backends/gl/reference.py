@@ -1,0 +1,40 @@
+"""numpy oracles of GL passes that have no other CPU twin, imported by tests only (the warp, the hole fill,
+the trust rules and the luma have theirs in ``engine.geometry`` and ``engine.predict.dis``).
+
+Conventions: images (H, W) float32, flows (H, W, 2) float32 pixels (x right, y down), pixel centres at +0.5.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["downsample_reference", "upsample_flow_reference"]
+
+
+def downsample_reference(image: np.ndarray) -> np.ndarray:
+    """Pass ``flow_downsample``: (ceil(H / 2), ceil(W / 2)) means of 2 x 2 blocks, the last row / column
+    repeated past an odd border, in float32 (the GPU may round the sum in another order)."""
+    h, w = image.shape
+    padded = np.pad(image.astype(np.float32), ((0, h % 2), (0, w % 2)), mode="edge")
+    a, b = padded[0::2, 0::2], padded[0::2, 1::2]
+    c, d = padded[1::2, 0::2], padded[1::2, 1::2]
+    return np.float32(0.25) * (((a + b) + c) + d)
+
+
+def upsample_flow_reference(flow: np.ndarray, size: tuple[int, int], scale: float) -> np.ndarray:
+    """Pass ``flow_upsample``: a coarse flow (Hc, Wc, 2), ``scale`` times smaller per axis than ``size``
+    (x_fine + 0.5 = scale (x_coarse + 0.5)), sampled bilinearly with clamped borders and times ``scale``;
+    non-finite results become 0. float64 inside (the GPU's float32 differs by rounding)."""
+    hc, wc = flow.shape[:2]
+    h, w = size
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    px = np.clip((xs + 0.5) / scale - 0.5, 0, wc - 1)
+    py = np.clip((ys + 0.5) / scale - 0.5, 0, hc - 1)
+    x0, y0 = np.floor(px).astype(int), np.floor(py).astype(int)
+    tx, ty = (px - x0)[..., None], (py - y0)[..., None]
+    x1, y1 = np.minimum(x0 + 1, wc - 1), np.minimum(y0 + 1, hc - 1)
+    f = flow.astype(np.float64)
+    top = f[y0, x0] * (1 - tx) + f[y0, x1] * tx
+    bottom = f[y1, x0] * (1 - tx) + f[y1, x1] * tx
+    out = (top * (1 - ty) + bottom * ty) * scale
+    out[~np.isfinite(out).all(axis=-1)] = 0.0
+    return out.astype(np.float32)

@@ -255,3 +255,30 @@ def test_upsample_pass_matches_its_reference(coarse, fine, scale):
     out = _run_pass("flow_upsample", {6: flow}, {7: np.zeros(fine + (2,), np.float32)}, fine[0] * fine[1],
                     {"src_size": coarse, "dst_size": fine, "scale": scale})[7]
     np.testing.assert_allclose(out, upsample_flow_reference(flow, fine, scale), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("size, patch, stride", [((20, 27), 8, 3), ((6, 5), 8, 3), ((16, 16), 4, 4)])
+def test_densify_pass_matches_its_reference(size, patch, stride):
+    from engine.geometry.backends.gl.reference import densify_reference, patch_origins
+
+    rng = np.random.default_rng(size[0] * 31 + patch)
+    first = rng.uniform(0, 255, size).astype(np.float32)
+    second = rng.uniform(0, 255, size).astype(np.float32)
+    rows, cols = (patch_origins(n, patch, stride).size for n in size)
+    patch_flows = rng.normal(0, 2, (rows, cols, 2)).astype(np.float32)
+    gl = glb.shared_context()
+
+    def run():
+        buffers = [gl.ctx.buffer(a) for a in (first, second, patch_flows)]
+        out = gl.ctx.buffer(reserve=8 * first.size)
+        try:
+            for binding, buf in zip((1, 3, 5, 6), (*buffers, out)):
+                buf.bind_to_storage_buffer(binding)
+            gl.dispatch(gl.program("flow_densify", {"PATCH": patch}), first.size,
+                        {"size": size, "offset": 0, "stride": stride})
+            return np.frombuffer(out.read(), np.float32).reshape(size + (2,))
+        finally:
+            for buf in (*buffers, out):
+                buf.release()
+    np.testing.assert_allclose(gl.call(run), densify_reference(first, second, patch_flows, patch, stride),
+                               rtol=1e-4, atol=1e-4)

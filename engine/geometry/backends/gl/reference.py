@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["downsample_reference", "upsample_flow_reference"]
+__all__ = ["downsample_reference", "upsample_flow_reference", "patch_origins", "densify_reference"]
 
 
 def downsample_reference(image: np.ndarray) -> np.ndarray:
@@ -37,4 +37,46 @@ def upsample_flow_reference(flow: np.ndarray, size: tuple[int, int], scale: floa
     bottom = f[y1, x0] * (1 - tx) + f[y1, x1] * tx
     out = (top * (1 - ty) + bottom * ty) * scale
     out[~np.isfinite(out).all(axis=-1)] = 0.0
+    return out.astype(np.float32)
+
+
+def patch_origins(n: int, patch: int, stride: int) -> np.ndarray:
+    """First pixels of the patches along an axis of ``n`` pixels (``flow_common.glsl``): ``j * stride``, the
+    last moved back to end at the border; one patch at 0 when ``n`` <= ``patch``."""
+    count = 1 if n <= patch else (n - patch + stride - 1) // stride + 1
+    return np.maximum(0, np.minimum(np.arange(count) * stride, n - patch))
+
+
+def _bilinear_clamped(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    h, w = image.shape
+    x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    tx, ty = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    top = image[y0, x0] * (1 - tx) + image[y0, x1] * tx
+    return (top * (1 - ty) + (image[y1, x0] * (1 - tx) + image[y1, x1] * tx) * ty)
+
+
+def densify_reference(first: np.ndarray, second: np.ndarray, patch_flows: np.ndarray, patch: int,
+                      stride: int) -> np.ndarray:
+    """Pass ``flow_densify``: per pixel of a level (H, W), the average of the flows of the patches covering it
+    (``patch_flows`` (rows, columns, 2), origins ``patch_origins``), each weighted by 1 / max(1, |second at
+    the pixel moved by it (bilinear, clamped) - first at the pixel|) (8-bit levels); 0 where no patch covers
+    it. float64 inside."""
+    h, w = first.shape
+    rows, cols = patch_origins(h, patch, stride), patch_origins(w, patch, stride)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    total, weight = np.zeros((h, w, 2)), np.zeros((h, w))
+    f1, f2 = first.astype(np.float64), second.astype(np.float64)
+    for i, oy in enumerate(rows):
+        for j, ox in enumerate(cols):
+            y0, y1, x0, x1 = oy, min(oy + patch, h), ox, min(ox + patch, w)
+            u = patch_flows[i, j].astype(np.float64)
+            sample = _bilinear_clamped(f2, xs[y0:y1, x0:x1] + u[0], ys[y0:y1, x0:x1] + u[1])
+            wgt = 1.0 / np.maximum(1.0, np.abs(sample - f1[y0:y1, x0:x1]))
+            total[y0:y1, x0:x1] += wgt[..., None] * u
+            weight[y0:y1, x0:x1] += wgt
+    out = np.zeros((h, w, 2))
+    covered = weight > 0
+    out[covered] = total[covered] / weight[covered][:, None]
     return out.astype(np.float32)

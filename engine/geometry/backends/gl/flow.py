@@ -18,9 +18,8 @@ DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then
 ``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
 clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
 ``reference.py`` for ``flow_downsample``, ``flow_upsample`` and ``flow_densify``; none for the search and the
-refinement (this
-is not OpenCV's code): ``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and
-the true motion.
+refinement (this is not OpenCV's code): ``tools/bench_gl_flow.py`` measures the end-point error against
+OpenCV DIS medium and the true motion.
 """
 from __future__ import annotations
 

@@ -282,3 +282,47 @@ def test_densify_pass_matches_its_reference(size, patch, stride):
                 buf.release()
     np.testing.assert_allclose(gl.call(run), densify_reference(first, second, patch_flows, patch, stride),
                                rtol=1e-4, atol=1e-4)
+
+
+def cv2_blur(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(image, (0, 0), 1.5)
+
+
+@pytest.mark.parametrize("propagate", [False, True])
+def test_patch_search_pass_matches_its_reference(propagate):
+    from engine.geometry.backends.gl.reference import patch_origins, patch_search_reference
+
+    size, patch, stride, iterations = (24, 30), 8, 3, 6
+    rng = np.random.default_rng(5 + propagate)
+    base = cv2_blur(rng.uniform(0, 255, (size[0] + 8, size[1] + 8)).astype(np.float32))
+    first, second = base[4:-4, 4:-4].copy(), base[3:-5, 6:-2].copy()  # first(y, x) = second(y + 1, x - 2)
+    rows, cols = (patch_origins(n, patch, stride).size for n in size)
+    if propagate:
+        start = rng.normal(0, 1.5, (rows, cols, 2)).astype(np.float32)
+    else:
+        start = rng.normal(0, 0.5, size + (2,)).astype(np.float32)
+    gl = glb.shared_context()
+
+    def run():
+        buffers = {1: first, 3: second, 4: start if not propagate else np.zeros(2, np.float32),
+                   8: start if propagate else np.zeros(2, np.float32)}
+        bound = {b: gl.ctx.buffer(np.ascontiguousarray(a)) for b, a in buffers.items()}
+        bound[5] = gl.ctx.buffer(reserve=8 * rows * cols)
+        try:
+            for binding, buf in bound.items():
+                buf.bind_to_storage_buffer(binding)
+            defines = {"PATCH": patch, **({"PROPAGATE": 1} if propagate else {})}
+            gl.dispatch(gl.program("flow_patch", defines), rows * cols,
+                        {"size": size, "offset": 0, "stride": stride, "iterations": iterations})
+            return np.frombuffer(bound[5].read(), np.float32).reshape(rows, cols, 2)
+        finally:
+            for buf in bound.values():
+                buf.release()
+    got = gl.call(run)
+    expected = patch_search_reference(first, second, start, patch, stride, iterations, propagate)
+    close = np.abs(got - expected).max(axis=-1) < 1e-2  # float32 Gauss-Newton against float64
+    assert close.mean() >= 0.95, close.mean()
+    assert np.abs(np.median(expected.reshape(-1, 2), axis=0) - (-2.0, 1.0)).max() < 0.25  # the search works
+

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["downsample_reference", "upsample_flow_reference", "patch_origins", "densify_reference"]
+__all__ = ["downsample_reference", "upsample_flow_reference", "patch_origins", "densify_reference",
+           "patch_search_reference"]
+
+#: ``flow_patch``'s Tikhonov term of the Hessian (levels^2)
+PATCH_EPS = 1e-2
 
 
 def downsample_reference(image: np.ndarray) -> np.ndarray:
@@ -79,4 +83,59 @@ def densify_reference(first: np.ndarray, second: np.ndarray, patch_flows: np.nda
     out = np.zeros((h, w, 2))
     covered = weight > 0
     out[covered] = total[covered] / weight[covered][:, None]
+    return out.astype(np.float32)
+
+
+def patch_search_reference(first: np.ndarray, second: np.ndarray, start: np.ndarray, patch: int, stride: int,
+                           iterations: int, propagate: bool) -> np.ndarray:
+    """Pass ``flow_patch`` (one sweep of DIS's inverse search on a level (H, W)): per patch, inverse-
+    compositional Lucas-Kanade with mean normalisation from a start flow, the result (rows, columns, 2).
+
+    Without ``propagate`` ``start`` is the level's dense initial flow (H, W, 2), read bilinearly (clamped) at the
+    patch centre; with it, the previous sweep's patch flows (rows, columns, 2), and a patch starts from the one
+    of its own and its 4 neighbours' with the lowest mean-normalised SSD. The template gradients are central
+    differences (borders clamped) centred on their means; the Hessian gets ``PATCH_EPS`` on its diagonal; each
+    iteration steps u -= H^-1 sum(g e). A patch keeps the start where the last iterate has a higher SSD, is not
+    finite or lies more than a patch away. float64 inside."""
+    h, w = first.shape
+    rows, cols = patch_origins(h, patch, stride), patch_origins(w, patch, stride)
+    f1, f2 = first.astype(np.float64), second.astype(np.float64)
+    clamp = lambda a, n: np.clip(a, 0, n - 1)  # noqa: E731
+    out = np.zeros((rows.size, cols.size, 2))
+    k = np.arange(patch * patch)
+    for i, oy in enumerate(rows):
+        for j, ox in enumerate(cols):
+            ys, xs = oy + k // patch, ox + k % patch
+            tmpl = f1[clamp(ys, h), clamp(xs, w)]
+            gx = 0.5 * (f1[clamp(ys, h), clamp(xs + 1, w)] - f1[clamp(ys, h), clamp(xs - 1, w)])
+            gy = 0.5 * (f1[clamp(ys + 1, h), clamp(xs, w)] - f1[clamp(ys - 1, h), clamp(xs, w)])
+            gx, gy = gx - gx.mean(), gy - gy.mean()
+            hxx, hxy, hyy = PATCH_EPS + (gx * gx).sum(), (gx * gy).sum(), PATCH_EPS + (gy * gy).sum()
+            inverse = np.array([[hyy, -hxy], [-hxy, hxx]]) / (hxx * hyy - hxy * hxy)
+
+            def cost(u):
+                e = _bilinear_clamped(f2, xs + u[0], ys + u[1]) - tmpl
+                d = e - e.mean()
+                return (d * d).sum(), np.array([(gx * d).sum(), (gy * d).sum()])
+
+            if not propagate:
+                centre = 0.5 * (patch - 1)
+                begin = np.array([_bilinear_clamped(start[..., c].astype(np.float64), np.array(ox + centre),
+                                                    np.array(oy + centre)) for c in range(2)], dtype=np.float64)
+                best, step = cost(begin)
+            else:
+                begin = start[i, j].astype(np.float64)
+                best, step = cost(begin)
+                for di, dj in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+                    if 0 <= i + di < rows.size and 0 <= j + dj < cols.size:
+                        candidate = start[i + di, j + dj].astype(np.float64)
+                        ssd, s = cost(candidate)
+                        if ssd < best:
+                            best, begin, step = ssd, candidate, s
+            u, ssd = begin.copy(), best
+            for _ in range(iterations):
+                u = u - inverse @ step
+                ssd, step = cost(u)
+            keep = ssd <= best and np.isfinite(u).all() and np.hypot(*(u - begin)) <= patch
+            out[i, j] = u if keep else begin
     return out.astype(np.float32)

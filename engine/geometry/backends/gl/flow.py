@@ -17,8 +17,8 @@ DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then
 ``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
 ``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
 clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
-``reference.py`` for ``flow_downsample``, ``flow_upsample``, ``flow_densify`` and ``flow_patch``; none for
-the refinement. This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against
+``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``, ``flow_densify``,
+``flow_refine_*``). This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against
 OpenCV DIS medium and the true motion.
 """
 from __future__ import annotations

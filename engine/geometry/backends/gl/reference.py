@@ -1,4 +1,4 @@
-"""numpy oracles of GL passes that have no other CPU twin, imported by tests only (the warp, the hole fill,
+"""numpy oracles of the optical flow's GL passes (``flow.py``), imported by tests only (the warp, the hole fill,
 the trust rules and the luma have theirs in ``engine.geometry`` and ``engine.predict.dis``).
 
 Conventions: images (H, W) float32, flows (H, W, 2) float32 pixels (x right, y down), pixel centres at +0.5.
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["downsample_reference", "upsample_flow_reference", "patch_origins", "densify_reference",
-           "patch_search_reference"]
+           "patch_search_reference", "refine_reference"]
 
 #: ``flow_patch``'s Tikhonov term of the Hessian (levels^2)
 PATCH_EPS = 1e-2
@@ -139,3 +139,71 @@ def patch_search_reference(first: np.ndarray, second: np.ndarray, start: np.ndar
             keep = ssd <= best and np.isfinite(u).all() and np.hypot(*(u - begin)) <= patch
             out[i, j] = u if keep else begin
     return out.astype(np.float32)
+
+
+def refine_reference(first: np.ndarray, second: np.ndarray, flow: np.ndarray, alpha: float, delta: float,
+                     gamma: float, omega: float, iterations: int, sor_iterations: int) -> np.ndarray:
+    """Passes ``flow_refine_*`` (DIS's variational refinement of a level's flow (H, W, 2), OpenCV's
+    VariationalRefinement): the increment du minimising delta Psi(E_I) + gamma Psi(E_G) + alpha Psi(E_S),
+    linearised at the second image warped by the flow (bilinear, clamped), derivatives I(x + 1) - I(x - 1)
+    with replicated borders, robust weights lagged over ``iterations`` fixed-point iterations of
+    ``sor_iterations`` red-black SOR sweeps (pixels with (x + y) even first); returns flow + du (a non-finite
+    du is dropped). float64 inside."""
+    h, w = first.shape
+    zeta2, eps2 = 0.1 * 0.1, 0.001 * 0.001
+    u = flow.astype(np.float64)
+    ys, xs = np.mgrid[0:h, 0:w]
+    warped = _bilinear_clamped(second.astype(np.float64), xs + u[..., 0], ys + u[..., 1])
+    f1 = first.astype(np.float64)
+    mean, iz = 0.5 * (f1 + warped), warped - f1
+
+    def dx(a):
+        p = np.pad(a, ((0, 0), (1, 1)), mode="edge")
+        return p[:, 2:] - p[:, :-2]
+
+    def dy(a):
+        p = np.pad(a, ((1, 1), (0, 0)), mode="edge")
+        return p[2:] - p[:-2]
+
+    ix, iy = dx(mean), dy(mean)
+    ixx, ixy, iyy, ixz, iyz = dx(ix), dy(ix), dy(iy), dx(iz), dy(iz)
+    du = np.zeros((h, w, 2))
+    right = lambda a: np.concatenate([a[:, 1:], a[:, -1:]], axis=1)  # noqa: E731  (replicated border)
+    down = lambda a: np.concatenate([a[1:], a[-1:]], axis=0)  # noqa: E731
+    for _ in range(iterations):
+        norm = ix * ix + iy * iy + zeta2
+        residual = iz + ix * du[..., 0] + iy * du[..., 1]
+        wd = (0.5 * delta / np.sqrt(residual * residual / norm + eps2)) / norm
+        a11, a12, a22 = wd * ix * ix + zeta2, wd * ix * iy, wd * iy * iy + zeta2
+        b1, b2 = -wd * iz * ix, -wd * iz * iy
+        nx, ny = ixx * ixx + ixy * ixy + zeta2, iyy * iyy + ixy * ixy + zeta2
+        rx, ry = ixz + ixx * du[..., 0] + ixy * du[..., 1], iyz + ixy * du[..., 0] + iyy * du[..., 1]
+        wg = 0.5 * gamma / np.sqrt(rx * rx / nx + ry * ry / ny + eps2)
+        a11 = a11 + wg * (ixx * ixx / nx + ixy * ixy / ny)
+        a12 = a12 + wg * (ixx * ixy / nx + ixy * iyy / ny)
+        a22 = a22 + wg * (ixy * ixy / nx + iyy * iyy / ny)
+        b1 = b1 - wg * (ixx * ixz / nx + ixy * iyz / ny)
+        b2 = b2 - wg * (ixy * ixz / nx + iyy * iyz / ny)
+        total = u + du
+        gx, gy = right(total) - total, down(total) - total
+        ws = 0.5 * alpha / np.sqrt((gx * gx).sum(-1) + (gy * gy).sum(-1) + eps2)
+        for _ in range(sor_iterations):
+            for parity in (0, 1):
+                pull, weight = np.zeros((h, w, 2)), np.zeros((h, w))
+                total = u + du
+                # right, left, down, up neighbours inside the level; an edge's weight is its left / upper pixel's
+                for sy, sx, edge in ((0, 1, ws), (0, -1, None), (1, 0, ws), (-1, 0, None)):
+                    valid = np.zeros((h, w), bool)
+                    valid[max(0, -sy):h - max(0, sy), max(0, -sx):w - max(0, sx)] = True
+                    nb = np.roll(total, (-sy, -sx), axis=(0, 1))
+                    wgt = edge if edge is not None else np.roll(ws, (-sy, -sx), axis=(0, 1))
+                    wgt = np.where(valid, wgt, 0.0)
+                    pull += wgt[..., None] * (nb - u) * valid[..., None]
+                    weight += wgt
+                mine = ((xs + ys) & 1) == parity
+                new_x = (1 - omega) * du[..., 0] + omega * (b1 + pull[..., 0] - a12 * du[..., 1]) / (a11 + weight)
+                new_y = (1 - omega) * du[..., 1] + omega * (b2 + pull[..., 1] - a12 * new_x) / (a22 + weight)
+                du[..., 0] = np.where(mine, new_x, du[..., 0])
+                du[..., 1] = np.where(mine, new_y, du[..., 1])
+    finite = np.isfinite(du).all(axis=-1)
+    return np.where(finite[..., None], u + du, u).astype(np.float32)

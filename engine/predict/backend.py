@@ -80,11 +80,9 @@ class GlFrames:
         gl = self.warper.gl
 
         def apply():
-            with gl.timing() as times, gl.gpu_stage("trust"):
+            with gl.timing(timer.gpu), gl.gpu_stage("trust"):
                 trust.apply_buffers(*estimator.lumas(), flow.buffer, newest.image.depth, newest.image.shape, matrix,
                                     older.frame.depth.shape)
-            return times
         with timer("trust"):
-            for key, value in gl.call(apply).items():
-                timer.gpu[key] = timer.gpu.get(key, 0.0) + value
+            gl.call(apply)
         return flow

@@ -321,11 +321,10 @@ class DecompPredictor(Predictor):
 
     def _render(self, state: PreparedState, target: Target, timer: Timer) -> tuple[np.ndarray, np.ndarray]:
         data: DecompState = state.data
+        flow, scale = self._object_motion(state, target, timer)
         if self.infill is None:
-            flow, scale = self._object_motion(state, target, timer)
             return self.frames.warp_and_fill(data.frame, target, timer, flow, scale)
         newest = state.history[-1]
-        flow, scale = self._object_motion(state, target, timer)
         motion = None if flow is None else np.moveaxis(flow * np.float32(scale), -1, 0)[:, None]
         src, dst = newest.camera, target.camera
         with timer("splat"):

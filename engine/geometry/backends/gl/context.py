@@ -138,24 +138,15 @@ class GlContext:
     def dispatch(self, program, count: int, uniforms: Optional[Mapping[str, object]] = None) -> None:
         """Run ``program`` over ``count`` invocations (1D, ``LOCAL_SIZE`` a group; groups beyond
         ``MAX_GROUPS_X`` go to y: passes index with ``invocation()``), then a storage barrier."""
-        for name, value in (uniforms or {}).items():
-            try:
-                program[name].value = value
-            except KeyError:  # optimised out of this variant
-                pass
-        groups = max(1, -(-int(count) // LOCAL_SIZE))
-        gx = min(groups, MAX_GROUPS_X)
-        program.run(gx, -(-groups // gx), 1)
-        self.ctx.memory_barrier()
+        self.dispatch_groups(program, -(-int(count) // LOCAL_SIZE), uniforms)
 
     @contextmanager
-    def timing(self, enabled: bool = True) -> Iterator[dict[str, float]]:
-        """Collect GPU milliseconds of the ``gpu_stage`` blocks run inside into the yielded dict (filled when
-        the block ends: reading a query waits for the GPU)."""
-        into: dict[str, float] = {}
-        self._timing, self._open = enabled, []
+    def timing(self, into: Optional[dict[str, float]]) -> Iterator[None]:
+        """Add the GPU milliseconds of the ``gpu_stage`` blocks run inside to ``into`` (when the block ends:
+        reading a query waits for the GPU); None times nothing."""
+        self._timing, self._open = into is not None, []
         try:
-            yield into
+            yield
         finally:
             self._timing = False
             for name, query in self._open:

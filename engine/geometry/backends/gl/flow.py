@@ -220,7 +220,7 @@ class GlOpticalFlow:
         sizes, coarsest, finest = pyramid_levels(shape, config)
         offsets = np.cumsum([0] + [a * b for a, b in sizes]).tolist()
         defines = {"PATCH": config.patch_size}
-        with gl.timing(gpu_ms is not None) as times:
+        with gl.timing(gpu_ms):
             pyramids = [gl.buffer(pool, key, 4 * offsets[-1]) for key in ("first", "second")]
             with gl.gpu_stage("luma"):
                 for color, pyramid in zip((first_buffer, second_buffer), pyramids):
@@ -259,9 +259,6 @@ class GlOpticalFlow:
                 result = np.empty((h, w, 2), np.float32)
                 with gl.gpu_stage("readback"):
                     out.read_into(result, size=result.nbytes)
-        if gpu_ms is not None:
-            for key, value in times.items():
-                gpu_ms[key] = gpu_ms.get(key, 0.0) + value
         return result
 
     def _search_level(self, size: tuple[int, int], offset: int, defines: dict, init, dense, patch_flows) -> None:

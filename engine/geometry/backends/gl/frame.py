@@ -196,9 +196,9 @@ class GlFrameWarper:
         scale = float(flow_scale)
         if not np.isfinite(scale):
             raise InputError(f"must be finite, got {flow_scale!r}", field="flow_scale")
-        matrix = reprojection_matrix(checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
-                                     checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4))
         k_src = checked_matrix(K_src, "K_src", 3)
+        matrix = reprojection_matrix(k_src, checked_matrix(T_src, "T_src", 4), checked_matrix(K_dst, "K_dst", 3),
+                                     checked_matrix(T_dst, "T_dst", 4))
         return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms,
                             motion, k_src, readback)
 
@@ -226,7 +226,7 @@ class GlFrameWarper:
         h, w = image.shape
         n = h * w
         words = -(-n // 32)
-        with gl.timing(gpu_ms is not None) as times:
+        with gl.timing(gpu_ms):
             channels = 3 if flow is None else flow.channels
             if motion is not None:
                 with gl.gpu_stage("motion"):
@@ -265,9 +265,6 @@ class GlFrameWarper:
                 out = GlPrediction((h, w), gl.ctx.buffer(reserve=12 * n), gl.ctx.buffer(reserve=4 * words), gl)
                 gl.ctx.copy_buffer(out.color, pool["filled"], 12 * n)
                 gl.ctx.copy_buffer(out.holes, pool["mask"], 4 * words)
-        if gpu_ms is not None:
-            for key, value in times.items():
-                gpu_ms[key] = gpu_ms.get(key, 0.0) + value
         return (color, unpack_holes(mask, (h, w))) if readback else out
 
     def release(self) -> None:

@@ -33,7 +33,7 @@ from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, reprojection_mat
 from engine.geometry.mpi import Mpi, checked_mpi
 from engine.geometry.splat import COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP
 
-__all__ = ["ACC_WORDS", "SPLAT_PASSES", "splat_uniforms", "run_splat", "GlSplatter"]
+__all__ = ["ACC_WORDS", "SPLAT_PASSES", "reprojection_uniforms", "splat_uniforms", "run_splat", "GlSplatter"]
 
 #: 32-bit words of fixed-point accumulators per bin: (low, high) of coverage, weight, w r, w g, w b, w z.
 ACC_WORDS = 12
@@ -41,18 +41,25 @@ ACC_WORDS = 12
 SPLAT_PASSES = ("splat_range", "splat_key", "splat_accumulate")
 
 
+def reprojection_uniforms(matrix: np.ndarray) -> dict:
+    """The uniforms of ``shaders/reproject.glsl``: the float32 rows of the 3x4 reprojection ``matrix`` and the
+    validity constants of ``engine.geometry.camera``."""
+    rows = matrix.astype(np.float32)
+    return {"row0": tuple(float(c) for c in rows[0]), "row1": tuple(float(c) for c in rows[1]),
+            "row2": tuple(float(c) for c in rows[2]), "max_coord_inv": float(np.float32(1.0 / MAX_PIXEL_COORD)),
+            "tiny_depth": float(np.float32(TINY_DEPTH))}
+
+
 def splat_uniforms(matrix: np.ndarray, src_size: tuple[int, int, int], dst_size: tuple[int, int],
                    sharpness: float, has_flow: bool, flow_scale: float = 1.0) -> dict:
-    """The splat passes' uniforms: the float32 rows of the 3x4 reprojection ``matrix``, sizes (Z, H, W) and
-    (HO, WO), the soft z-buffer and snapping constants of ``engine.geometry.splat``."""
-    rows = matrix.astype(np.float32)
+    """The splat passes' uniforms: ``reprojection_uniforms``, sizes (Z, H, W) and (HO, WO), the soft z-buffer
+    and snapping constants of ``engine.geometry.splat``."""
     return {
+        **reprojection_uniforms(matrix),
         "src_size": tuple(int(s) for s in src_size), "dst_size": tuple(int(s) for s in dst_size),
-        "row0": tuple(float(c) for c in rows[0]), "row1": tuple(float(c) for c in rows[1]),
-        "row2": tuple(float(c) for c in rows[2]), "has_flow": int(has_flow), "flow_scale": float(flow_scale),
+        "has_flow": int(has_flow), "flow_scale": float(flow_scale),
         "sharpness": float(np.float32(sharpness)), "snap": float(np.float32(SUBPIXEL_SNAP)),
         "snap_scale": float(np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP))),
-        "max_coord_inv": float(np.float32(1.0 / MAX_PIXEL_COORD)), "tiny_depth": float(np.float32(TINY_DEPTH)),
         "min_log_weight": float(MIN_LOG_WEIGHT), "coverage_threshold": float(COVERAGE_THRESHOLD),
     }
 

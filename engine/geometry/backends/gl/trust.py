@@ -19,7 +19,8 @@ import numpy as np
 from engine.core.checks import checked_array, checked_matrix
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
-from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, reprojection_matrix
+from engine.geometry.backends.gl.splat import reprojection_uniforms
+from engine.geometry.camera import reprojection_matrix
 
 __all__ = ["GlTrust"]
 
@@ -50,14 +51,11 @@ class GlTrust:
         for key, binding, nbytes in (("still", 23, 4 * n), ("moved", 24, 4 * n), ("rows", 25, 16 * n)):
             gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
         defines = {"WINDOW": self.window}
-        rows = matrix.astype(np.float32)
         gl.dispatch(gl.program("trust_errors"), n, {"size": (h, w)})
         gl.dispatch(gl.program("trust_blur_rows", defines), n, {"size": (h, w)})
         gl.dispatch(gl.program("trust_apply", defines), n, {
-            "size": (h, w), "prev_size": tuple(int(s) for s in prev_size),
-            "row0": tuple(float(c) for c in rows[0]), "row1": tuple(float(c) for c in rows[1]),
-            "row2": tuple(float(c) for c in rows[2]), "max_coord_inv": float(np.float32(1.0 / MAX_PIXEL_COORD)),
-            "tiny_depth": float(np.float32(TINY_DEPTH)), "small": self.small, "margin": self.margin})
+            **reprojection_uniforms(matrix), "size": (h, w), "prev_size": tuple(int(s) for s in prev_size),
+            "small": self.small, "margin": self.margin})
 
     def trusted(self, luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, depth_n: np.ndarray,
                 K_n: np.ndarray, T_n: np.ndarray, K_prev: np.ndarray, T_prev: np.ndarray,

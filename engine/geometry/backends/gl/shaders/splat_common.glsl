@@ -16,9 +16,6 @@ layout(std430, binding = 9) readonly buffer IndexBuf { uint index_[]; };    // f
 
 uniform ivec3 src_size;     // Z, H, W
 uniform ivec2 dst_size;     // HO, WO
-uniform vec4 row0;          // rows of the 3x4 reprojection matrix K_dst T_dst T_src^-1 [K_src^-1 0; 0 1]
-uniform vec4 row1;
-uniform vec4 row2;
 uniform int has_flow;
 uniform float flow_scale;   // the object flow is multiplied by this (FRAME; 1 for an MPI)
 uniform int num_points;     // points to process: index_[0 .. num_points) when use_index, else all
@@ -26,10 +23,10 @@ uniform int use_index;
 uniform float sharpness;
 uniform float snap;
 uniform float snap_scale;
-uniform float max_coord_inv;
-uniform float tiny_depth;
 uniform float min_log_weight;
 uniform double coverage_threshold;
+
+#include "reproject.glsl"
 
 #ifndef FLOW_CHANNELS
 #define FLOW_CHANNELS 3
@@ -104,20 +101,9 @@ bool project_point(inout uint i, out Point p) {
         v = v + f.y;
         d = d + f.z;
     }
-    bool sky = isinf(d);
-    float s = sky ? 1.0 : d;
-    float w = sky ? 0.0 : 1.0;
-    precise float x = u * s;
-    precise float y = v * s;
-    precise float hu = row0.x * x + row0.y * y + row0.z * s + row0.w * w;
-    precise float hv = row1.x * x + row1.y * y + row1.z * s + row1.w * w;
-    precise float hz = row2.x * x + row2.y * y + row2.z * s + row2.w * w;
-    precise float bound = (abs(hu) + abs(hv)) * max_coord_inv + tiny_depth;
-    bool valid = hz > bound;
-    if (!valid) return false;
-    precise float uo = hu / hz;
-    precise float vo = hv / hz;
-    float z = sky ? INF : hz;
+    float uo, vo, hz;
+    if (!reproject_point(u, v, d, uo, vo, hz)) return false;
+    float z = isinf(d) ? INF : hz;
     int ho = dst_size.x, wo = dst_size.y;
     precise float xc = clamp(uo - 0.5, -2.0, float(wo + 1));
     precise float yc = clamp(vo - 0.5, -2.0, float(ho + 1));

@@ -4,6 +4,7 @@
 // where it explains frame n better than none: the WINDOW x WINDOW mean of moved_ below that of still_ by more
 // than ``margin`` levels. Elsewhere the flow is set to 0, in place.
 layout(local_size_x = LOCAL_SIZE) in;
+#include "reproject.glsl"
 
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };    // (H, W) frame n, +inf sky
 layout(std430, binding = 22) buffer FlowBuf { vec2 flow_[]; };               // (H, W)
@@ -11,11 +12,6 @@ layout(std430, binding = 25) readonly buffer RowsBuf { dvec2 rows_[]; };      //
 
 uniform ivec2 size;       // H, W
 uniform ivec2 prev_size;  // h, w of frame n-k
-uniform vec4 row0;        // the reprojection matrix K_prev T_prev T_n^-1 [K_n^-1 0; 0 1], float32 rows
-uniform vec4 row1;
-uniform vec4 row2;
-uniform float max_coord_inv;
-uniform float tiny_depth;
 uniform float small;
 uniform float margin;
 
@@ -25,20 +21,11 @@ int reflect_index(int i, int n) {
     return i;
 }
 
+// frame n's pixel (x, y) reprojected into frame n-k (the matrix K_prev T_prev T_n^-1 [K_n^-1 0; 0 1]) lands
+// in front of camera n-k and inside its image
 bool seen(int x, int y, float d) {
-    float u = float(x) + 0.5, v = float(y) + 0.5;
-    bool sky = isinf(d);
-    float s = sky ? 1.0 : d;
-    float wh = sky ? 0.0 : 1.0;
-    precise float px = u * s;
-    precise float py = v * s;
-    precise float hu = row0.x * px + row0.y * py + row0.z * s + row0.w * wh;
-    precise float hv = row1.x * px + row1.y * py + row1.z * s + row1.w * wh;
-    precise float hz = row2.x * px + row2.y * py + row2.z * s + row2.w * wh;
-    precise float bound = (abs(hu) + abs(hv)) * max_coord_inv + tiny_depth;
-    if (!(hz > bound)) return false;
-    precise float uo = hu / hz;
-    precise float vo = hv / hz;
+    float uo, vo, hz;
+    if (!reproject_point(float(x) + 0.5, float(y) + 0.5, d, uo, vo, hz)) return false;
     return uo >= 0.0 && uo < float(prev_size.y) && vo >= 0.0 && vo < float(prev_size.x);
 }
 

@@ -25,13 +25,20 @@ SHADERS = Path(__file__).with_name("shaders")
 LOCAL_SIZE = 256
 #: Largest workgroup count along x of one dispatch (the GL minimum of GL_MAX_COMPUTE_WORK_GROUP_COUNT).
 MAX_GROUPS_X = 65535
+#: What every pass starts with: its 1D workgroup and ``invocation()``, the flat index of an invocation of
+#: ``GlContext.dispatch`` (which spreads groups beyond ``MAX_GROUPS_X`` over y).
+_PRELUDE = """layout(local_size_x = LOCAL_SIZE) in;
+uint invocation() {
+    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+}
+"""
 _INCLUDE = re.compile(r'^\s*#include\s+"([\w.]+)"\s*$', re.MULTILINE)
 
 
 def shader_source(name: str, defines: Optional[Mapping[str, object]] = None) -> str:
     """The full GLSL text of pass ``name`` (``shaders/<name>.comp``): version, extensions, ``LOCAL_SIZE`` and
-    ``defines`` (``{"FRAME": 1}`` -> ``#define FRAME 1``; a value of None defines the bare name), then the
-    file with its ``#include`` lines expanded."""
+    ``defines`` (``{"FRAME": 1}`` -> ``#define FRAME 1``; a value of None defines the bare name), the prelude
+    (workgroup size, ``invocation()``), then the file with its ``#include`` lines expanded."""
     seen: set[str] = set()
 
     def expand(text: str) -> str:
@@ -46,7 +53,7 @@ def shader_source(name: str, defines: Optional[Mapping[str, object]] = None) -> 
     lines = ["#version 450", "#extension GL_ARB_gpu_shader_int64 : require", f"#define LOCAL_SIZE {LOCAL_SIZE}"]
     for key, value in sorted((defines or {}).items()):
         lines.append(f"#define {key}" if value is None else f"#define {key} {value}")
-    return "\n".join(lines) + "\n" + expand((SHADERS / f"{name}.comp").read_text())
+    return "\n".join(lines) + "\n" + _PRELUDE + expand((SHADERS / f"{name}.comp").read_text())
 
 
 def is_software_renderer(renderer: str) -> bool:

@@ -7,10 +7,6 @@
 layout(std430, binding = 14) writeonly buffer FilledBuf { float filled_[]; };  // (H, W, 3)
 layout(std430, binding = 15) buffer MaskBuf { uint mask_[]; };                 // ceil(H W / 32)
 
-uint invocation() {
-    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-}
-
 // depth of pixel (r, x) after the row fill (rows with a known pixel only)
 float row_filled_depth(int r, int x) {
     int o = r * size.y + x;

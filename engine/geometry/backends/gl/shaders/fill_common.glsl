@@ -1,6 +1,5 @@
 // The hole fill's buffers (engine/geometry/holefill.py on the GPU): the warped frame and its holes in,
 // per-pixel row sources, per-row flags and links, the filled colour and the packed hole mask out.
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 0) readonly buffer ColorBuf { float color_[]; };   // (H, W, 3) fallback colour
 layout(std430, binding = 8) readonly buffer WarpedBuf { vec4 warped_[]; };  // (H, W) (r, g, b, depth)

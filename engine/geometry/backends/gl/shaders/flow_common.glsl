@@ -4,7 +4,6 @@
 // (x + 0.5 + u.x, y + 0.5 + u.y) in the second image, sampled bilinearly at index coordinates (x + u.x, y + u.y).
 // Patches: PATCH x PATCH pixels, origins j * stride along each axis, the last one moved back to end at the
 // border (origin 0 when the level is smaller than a patch: its reads clamp).
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 1) readonly buffer FirstBuf { float first_[]; };    // pyramid of the first image
 layout(std430, binding = 3) readonly buffer SecondBuf { float second_[]; };  // pyramid of the second image
@@ -12,10 +11,6 @@ layout(std430, binding = 3) readonly buffer SecondBuf { float second_[]; };  // 
 uniform ivec2 size;   // H, W of the level
 uniform int offset;   // of the level in both pyramid buffers
 uniform int stride;   // patch stride, pixels
-
-uint invocation() {
-    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-}
 
 float first_at(int y, int x) {
     return first_[offset + clamp(y, 0, size.x - 1) * size.y + clamp(x, 0, size.y - 1)];

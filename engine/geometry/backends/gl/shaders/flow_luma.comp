@@ -2,17 +2,12 @@
 // each channel display-encoded to 8 bits with engine.core.colorspace.encode8_table (clip to [0, 1], sRGB,
 // round; NaN -> 0), then OpenCV 5's fixed-point RGB -> grey, (19596 R + 38470 G + 7470 B + 2^15) >> 16
 // (equal to cv2.cvtColor for all 2^24 colours, measured; the test holds this pass to luma8).
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 0) readonly buffer ColorBuf { float color_[]; };  // (H, W, 3) linear RGB
 layout(std430, binding = 1) writeonly buffer LumaBuf { float luma_[]; };   // (H, W) level 0 of a pyramid
 layout(std430, binding = 2) readonly buffer TableBuf { vec2 table_[]; };   // per bucket (step, level)
 
 uniform int count;  // H * W
-
-uint invocation() {
-    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-}
 
 uint encode8(float c) {
     if (!(c > 0.0)) return uint(table_[0].y);

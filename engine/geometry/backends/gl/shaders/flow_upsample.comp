@@ -1,7 +1,6 @@
 // Flow pass 5, per pixel of a finer level: the flow of a coarser level (scale times smaller per axis, the
 // pyramid's block mapping x_fine + 0.5 = scale (x_coarse + 0.5)) sampled bilinearly, clamped to its border,
 // and multiplied by scale (pixels of the finer level). Non-finite values become 0.
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 6) readonly buffer SrcBuf { vec2 src_[]; };   // (Hc, Wc) coarse flow
 layout(std430, binding = 7) writeonly buffer DstBuf { vec2 dst_[]; };  // (Hf, Wf) fine flow
@@ -9,10 +8,6 @@ layout(std430, binding = 7) writeonly buffer DstBuf { vec2 dst_[]; };  // (Hf, W
 uniform ivec2 src_size;  // Hc, Wc
 uniform ivec2 dst_size;  // Hf, Wf
 uniform float scale;
-
-uint invocation() {
-    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-}
 
 vec2 src_at(int y, int x) {
     return src_[clamp(y, 0, src_size.x - 1) * src_size.y + clamp(x, 0, src_size.y - 1)];

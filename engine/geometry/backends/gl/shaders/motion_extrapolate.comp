@@ -2,7 +2,6 @@
 // P' = P + s V + s (s + 1) / 2 A in the frame's camera axes, flow = (project(P') - pixel centre, z' - z), NaN
 // where P' reaches the camera plane (the splat drops it). float64 as the CPU kernel. Pixels not listed keep
 // the zero the flow buffer was cleared to.
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };       // (H, W)
 layout(std430, binding = 3) writeonly buffer FlowBuf { float flow_[]; };        // (H, W, 3)
@@ -20,7 +19,7 @@ uniform dvec3 kinv_row0;
 uniform dvec2 kinv_row1;   // (kinv11, kinv12)
 
 void main() {
-    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    uint i = invocation();
     if (i >= uint(num_moving)) return;
     uint pix = moving_[i];
     int y = int(pix) / width, x = int(pix) % width;

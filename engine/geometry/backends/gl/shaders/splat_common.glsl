@@ -2,7 +2,6 @@
 // Variants: FRAME (one-plane frame warp: colour (H, W, 3) and flow (H, W, FLOW_CHANNELS) interleaved,
 // alpha = 1 everywhere, no index list) or, without it, an MPI: colour (3, Z, H, W), depth / alpha (Z, H, W),
 // flow (3, Z, H, W), the points of a multi-plane MPI listed in index_.
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 0) readonly buffer ColorBuf { float color_[]; };
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };
@@ -33,10 +32,6 @@ uniform double coverage_threshold;
 #endif
 
 const float INF = uintBitsToFloat(0x7f800000u);
-
-uint invocation() {
-    return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-}
 
 // order-preserving float <-> uint (0 is below every encoded value: "empty")
 uint order_bits(float f) {

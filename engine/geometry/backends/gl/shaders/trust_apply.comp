@@ -3,23 +3,16 @@
 // into camera n-k lands in front of it and inside its (h, w) image) and, for motion under ``small`` pixels,
 // where it explains frame n better than none: the WINDOW x WINDOW mean of moved_ below that of still_ by more
 // than ``margin`` levels. Elsewhere the flow is set to 0, in place.
-layout(local_size_x = LOCAL_SIZE) in;
 #include "reproject.glsl"
 
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };    // (H, W) frame n, +inf sky
 layout(std430, binding = 22) buffer FlowBuf { vec2 flow_[]; };               // (H, W)
 layout(std430, binding = 25) readonly buffer RowsBuf { dvec2 rows_[]; };      // (H, W) row sums
 
-uniform ivec2 size;       // H, W
+#include "trust_common.glsl"
 uniform ivec2 prev_size;  // h, w of frame n-k
 uniform float small;
 uniform float margin;
-
-int reflect_index(int i, int n) {
-    if (n == 1) return 0;
-    while (i < 0 || i >= n) i = i < 0 ? -i - 1 : 2 * n - i - 1;
-    return i;
-}
 
 // frame n's pixel (x, y) reprojected into frame n-k (the matrix K_prev T_prev T_n^-1 [K_n^-1 0; 0 1]) lands
 // in front of camera n-k and inside its image
@@ -30,7 +23,7 @@ bool seen(int x, int y, float d) {
 }
 
 void main() {
-    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    uint i = invocation();
     int h = size.x, w = size.y;
     if (i >= uint(h * w)) return;
     int y = int(i) / w, x = int(i) % w;

@@ -1,21 +1,14 @@
 // Trust pass 2, per pixel: the sums over ``WINDOW`` pixels of its row (BORDER_REFLECT: ...cba|abc...) of both
 // error images, in double (cv2.blur of float32 sums in double), into rows_ (H, W, 2).
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 23) readonly buffer StillBuf { float still_[]; };
 layout(std430, binding = 24) readonly buffer MovedBuf { float moved_[]; };
 layout(std430, binding = 25) writeonly buffer RowsBuf { dvec2 rows_[]; };
 
-uniform ivec2 size;  // H, W
-
-int reflect_index(int i, int n) {  // BORDER_REFLECT (edge pixel repeated), for any n >= 1
-    if (n == 1) return 0;
-    while (i < 0 || i >= n) i = i < 0 ? -i - 1 : 2 * n - i - 1;
-    return i;
-}
+#include "trust_common.glsl"
 
 void main() {
-    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    uint i = invocation();
     int h = size.x, w = size.y;
     if (i >= uint(h * w)) return;
     int y = int(i) / w, x = int(i) % w;

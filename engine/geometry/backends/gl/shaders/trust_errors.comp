@@ -2,7 +2,6 @@
 // still_ = |luma_n - target| (no object motion), moved_ = |luma_n - target sampled at the pixel moved by the
 // flow u(n -> n-k)| (OpenCV 5's remap, INTER_LINEAR, float maps: float32 bilinear weights of the exact
 // fraction, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
-layout(local_size_x = LOCAL_SIZE) in;
 
 layout(std430, binding = 20) readonly buffer LumaNBuf { float luma_n_[]; };   // (H, W) 8-bit levels
 layout(std430, binding = 21) readonly buffer TargetBuf { float target_[]; };  // (H, W) 8-bit levels
@@ -17,7 +16,7 @@ float tap(int x, int y) {
 }
 
 void main() {
-    uint i = gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+    uint i = invocation();
     int h = size.x, w = size.y;
     if (i >= uint(h * w)) return;
     int y = int(i) / w, x = int(i) % w;

@@ -19,16 +19,14 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import numpy as np
 
 from engine.eval.metrics import score_frame
-from engine.eval.protocol import evaluation_pairs, rendered_history
 from engine.geometry.backends import gl_renderer
 from engine.io.rgbd import read_sequence
-from engine.predict import Target, make_predictor, split_methods
-from tools.heldout import render_set, write_json
+from engine.predict import make_predictor, split_methods
+from tools.heldout import render_set, timing_cases, warm_runs, write_json
 
 SCENE = ("fast7003", dict(seed=7003), "fast")
 BACKENDS = ("cpu", "gl")
@@ -41,29 +39,16 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
 def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]:
     """Rows (method, backend, wall ms, GPU ms, PSNR, parity) of one sequence (see the module docstring)."""
     predictors = {(m, b): make_predictor(m, sequence.objects, backend=b) for m in methods for b in BACKENDS}
-    cases = []
-    for older, newest, targets in evaluation_pairs(len(sequence), k):
-        history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
-        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets],
-                      [sequence[t] for t in targets]))
+    cases = timing_cases(sequence, k)
     keys = list(predictors)
     wall: dict = {key: [] for key in keys}
     gpu: dict = {key: [] for key in keys}
     outputs: dict = {}
-    for r in range(repeats):
-        for c, (history, targets, _) in enumerate(cases):
-            shift = (r + c) % len(keys)
-            for key in keys[shift:] + keys[:shift]:
-                predictor = predictors[key]
-                frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
-                start = time.perf_counter()
-                state = predictor.prepare(frames)
-                preds = [predictor.render(state, target) for target in targets]
-                wall[key].append(1e3 * (time.perf_counter() - start) / len(targets))
-                gpu[key].append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds))
-                                / len(targets))
-                if r == 0:
-                    outputs[key, c] = [p.color for p in preds]
+    for r, c, key, state, preds, ms in warm_runs(predictors, cases, repeats):
+        wall[key].append(ms)
+        gpu[key].append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds)) / len(preds))
+        if r == 0:
+            outputs[key, c] = [p.color for p in preds]
     rows = []
     for method, backend in keys:
         scores, worst, within = [], 0.0, []

@@ -29,13 +29,12 @@ rotating order, repeated ``--repeats`` times; medians per predicted frame and th
 from __future__ import annotations
 
 import statistics
-import time
 
-from engine.eval.protocol import evaluate_sequence, evaluation_pairs, rendered_history
+from engine.eval.protocol import evaluate_sequence
 from engine.io.rgbd import read_sequence
-from engine.predict import Target, make_predictor
+from engine.predict import make_predictor
 from tools.heldout import (bench_parser, median_times, parse_common, render_set, report_speed, set_rows, table_lines,
-                           write_json)
+                           timing_cases, warm_runs, write_json)
 
 #: set name -> [(sequence name, SceneConfig overrides)]
 SETS = {
@@ -56,22 +55,9 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
     """Median ms per predicted frame of each method: prepare once + render the k-1 frames, on histories held
     in memory (with the vectors ``mvec`` needs), methods in rotating order, ``repeats`` passes."""
     predictors = {m: make_predictor(m, sequence.objects) for m in methods}
-    cases = []
-    for older, newest, targets in evaluation_pairs(len(sequence), k):
-        history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
-        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets]))
     times: dict[str, list[float]] = {m: [] for m in methods}
-    for r in range(repeats):
-        for c, (history, targets) in enumerate(cases):
-            order = methods[(r + c) % len(methods):] + methods[:(r + c) % len(methods)]
-            for m in order:
-                predictor = predictors[m]
-                frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
-                start = time.perf_counter()
-                state = predictor.prepare(frames)
-                for target in targets:
-                    predictor.render(state, target)
-                times[m].append(1e3 * (time.perf_counter() - start) / len(targets))
+    for _, _, method, _, _, ms in warm_runs(predictors, timing_cases(sequence, k), repeats):
+        times[method].append(ms)
     return {m: float(statistics.median(v)) for m, v in times.items()}
 
 

@@ -11,12 +11,15 @@ import argparse
 import json
 import shutil
 import statistics
+import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
-from engine.eval.protocol import json_safe, score_cell, summarize
+from engine.eval.protocol import evaluation_pairs, json_safe, rendered_history, score_cell, summarize
 from engine.io.rgbd import read_sequence
+from engine.predict import Target
 from engine.scenegen import generate_sequence
 from engine.scenegen.presets import preset_config
 
@@ -121,6 +124,36 @@ def median_times(rows: list[dict], methods: list[str]) -> str:
     return "median ms per frame over all sets and k: " + ", ".join(
         f"{m} {statistics.median(r['ms_per_frame'] for r in rows if r['method'] == m):.1f}" for m in methods
         if any(r["method"] == m for r in rows))
+
+
+def timing_cases(sequence, k: int) -> list[tuple[list, list, list]]:
+    """``(history, targets, truths)`` of every evaluation pair (n-k, n) of ``sequence`` at ``k``, held in memory:
+    the rendered frames a predictor is given (three, with the motion vectors ``mvec`` reads), the targets
+    n+1 .. n+k-1 and their frames."""
+    cases = []
+    for older, newest, targets in evaluation_pairs(len(sequence), k):
+        history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
+        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets],
+                      [sequence[t] for t in targets]))
+    return cases
+
+
+def warm_runs(predictors: dict, cases: list, repeats: int) -> Iterator[tuple]:
+    """Time ``predictors`` (key -> Predictor) on ``cases`` (``timing_cases``), warm: ``repeats`` passes, the
+    predictors in rotating order per case so none always runs first. Yields ``(repeat, case, key, state,
+    predictions, ms)`` per run: one prepare and the renders of the case's targets, ``ms`` the wall time per
+    predicted frame."""
+    keys = list(predictors)
+    for r in range(repeats):
+        for c, (history, targets, _) in enumerate(cases):
+            shift = (r + c) % len(keys)
+            for key in keys[shift:] + keys[:shift]:
+                predictor = predictors[key]
+                frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
+                start = time.perf_counter()
+                state = predictor.prepare(frames)
+                predictions = [predictor.render(state, target) for target in targets]
+                yield r, c, key, state, predictions, 1e3 * (time.perf_counter() - start) / len(targets)
 
 
 def write_json(path, doc: dict) -> None:

@@ -23,7 +23,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, ClassVar, Optional
 
 import numpy as np
 import torch
@@ -32,8 +32,8 @@ from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
 from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import render_image
-from models.fields.data.select import (DYNAMIC_DATASETS, detect_dynamic_dataset, load_dynamic_run_views,
-                                       select_dynamic_views)
+from models.fields.data.select import (DYNAMIC_DATASETS, DYNAMIC_TEST_SPLITS, detect_dynamic_dataset,
+                                       load_dynamic_run_views, select_dynamic_views)
 from models.fields.data.timed import TimedViews, border_crossings, check_timed_views
 from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFieldModel, auto_time_resolution,
                                          time_smoothness)
@@ -47,7 +47,7 @@ from models.fields.trainer import (DEVICES, RunConfig, apply_loss_weights, check
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
            "select_dynamic_views", "load_dynamic_run_views", "detect_dynamic_dataset", "main", "eval_main",
-           "FLOW_BINS"]
+           "FLOW_BINS", "choose_dynamic_priors"]
 
 #: Loss terms that act on a motion field; the K-Planes baseline has none and skips them.
 MOTION_TERMS = frozenset({"motion_tv", "flow_l1", "sparse_flow"})
@@ -114,17 +114,23 @@ class DynamicTrainConfig(RunConfig):
     log_every: int = field(default=50, metadata={"help": "steps between log.jsonl lines"})
     priors: DynamicPriorsConfig = field(default_factory=DynamicPriorsConfig, metadata={
         "help": "sparse flow prior (Eq. 5.7); see models/fields/priors/flow.py"})
+    priors_choice: str = field(default="", metadata={
+        "help": "why the flow prior is on or off, as 'interleave train dynamic' chose it ('auto: ...' from the "
+                "field's kind, or 'explicit: ...'); a record, not an input"})
     render: RenderConfig = field(default_factory=RenderConfig, metadata={"help": "sampling and rendering"})
     # keep last: from here on the class body's name `field` is this attribute, not dataclasses.field
     field: DynamicFieldConfig = field(default_factory=DynamicFieldConfig, metadata={"help": "the dynamic field"})
+
+    #: Fields that record how the run was set up rather than define it (a resumed run may differ in them).
+    RECORDS: ClassVar[tuple[str, ...]] = ("priors_choice",)
 
     def validate(self) -> "DynamicTrainConfig":
         """Raise InputError naming the first bad option; returns self."""
         validate_run_config(self, ("steps", "rays_per_batch", "downscale", "occupancy_every", "occupancy_times",
                                    "checkpoint_every", "log_every"))
         if self.field.kind != "derf" and self.priors.enabled():
-            raise InputError(f"the sparse flow prior needs a motion field (field.kind derf), got {self.field.kind!r}",
-                             field="priors.flow.enabled")
+            raise InputError(f"the sparse flow prior needs a motion field: add --field.kind derf (got "
+                             f"{self.field.kind!r})", field="priors.flow.enabled")
         return self
 
     def loss_terms(self) -> tuple[LossTerm, ...]:
@@ -135,6 +141,28 @@ class DynamicTrainConfig(RunConfig):
         if self.field.kind != "derf":
             terms = [t for t in terms if t.name not in MOTION_TERMS]
         return tuple(terms)
+
+
+def choose_dynamic_priors(config: DynamicTrainConfig, explicit: Optional[str] = None) -> DynamicTrainConfig:
+    """``config`` with the flow prior of a command line and ``priors_choice`` saying why: ``explicit`` (the
+    ``--priors`` text, ``''`` for none) wins, then a config that switches the prior on; otherwise it is on for
+    a ``derf`` field (with it DeRF moves its objects and scores highest on the rigs and lego,
+    docs/results/2026-11-25-dynamic-default.md) and off for ``kplanes``, which has no motion field for it."""
+    if explicit is not None:
+        names = [n.strip() for n in explicit.split(",") if n.strip()]
+        unknown = sorted(set(names) - {"flow"})
+        if unknown:
+            raise InputError(f"unknown prior(s) {unknown}; choose from ['flow']", field="priors")
+        choice = f"explicit: --priors '{','.join(names)}'"
+        on = "flow" in names
+    elif config.priors.enabled():
+        return dataclasses.replace(config, priors_choice="explicit: the config enables flow")
+    elif config.field.kind == "derf":
+        choice, on = "auto: the sparse flow prior is what makes a DeRF field move its objects", True
+    else:
+        choice, on = f"auto: a {config.field.kind} field has no motion field for the flow prior", False
+    flow = dataclasses.replace(config.priors.flow, enabled=on)
+    return dataclasses.replace(config, priors=dataclasses.replace(config.priors, flow=flow), priors_choice=choice)
 
 
 def _resolved(config: DynamicTrainConfig, views: TimedViews) -> DynamicTrainConfig:
@@ -390,8 +418,11 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--frames", default=None, metavar="LIST", help="rig: frame positions to use (default: all)")
     parser.add_argument("--test-every", type=int, default=1, help="evaluate every k-th held-out view")
     parser.add_argument("--max-test-views", type=int, default=0, help="evaluate at most this many held-out views")
+    parser.add_argument("--test-split", choices=list(DYNAMIC_TEST_SPLITS), default="test",
+                        help="D-NeRF: the split held out and scored (its val split poses the shovel as in training)")
     parser.add_argument("--priors", dest="prior_names", default=None, metavar="NAMES",
-                        help="comma-separated priors to switch on: flow (sparse flow, Eq. 5.7), '' for none")
+                        help="comma-separated priors to switch on: flow (sparse flow, Eq. 5.7), '' for none (default: "
+                             "flow for a derf field, none for kplanes; printed and saved as priors_choice)")
     parser.add_argument("--loss", action="append", default=[], metavar="NAME=WEIGHT",
                         help="set a loss term's weight (0 switches it off); repeatable")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
@@ -400,7 +431,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="JSON with any DynamicTrainConfig fields; command-line options override it")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
-    add_options(parser, DynamicTrainConfig)
+    add_options(parser, DynamicTrainConfig, skip=("priors_choice",))
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -408,20 +439,15 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
         device = resolve_device(args.device)
         config = apply_loss_weights(config_from_args(DynamicTrainConfig, args,
                                                      run_config_from_file(DynamicTrainConfig, args.config)), args.loss)
-        if args.prior_names is not None:
-            names = [n.strip() for n in args.prior_names.split(",") if n.strip()]
-            unknown = sorted(set(names) - {"flow"})
-            if unknown:
-                raise InputError(f"unknown prior(s) {unknown}; choose from ['flow']", field="priors")
-            config = dataclasses.replace(config, priors=dataclasses.replace(
-                config.priors, flow=dataclasses.replace(config.priors.flow, enabled="flow" in names)))
+        config = choose_dynamic_priors(config, args.prior_names)
+        print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         dataset = args.dataset or detect_dynamic_dataset(args.data)
         frames = view_list(args.frames, "frames")
         train, test, record = select_dynamic_views(
             dataset, args.data, config.downscale, cameras=args.cameras,
             train_cameras=view_list(args.train_cameras, "train_cameras"),
             test_cameras=view_list(args.test_cameras, "test_cameras"), frames=frames,
-            test_every=args.test_every, max_test_views=args.max_test_views)
+            test_every=args.test_every, max_test_views=args.max_test_views, test_split=args.test_split)
         config = dataclasses.replace(config, downscale=record["downscale"])
         kind = config.field.kind + ("+flow" if config.priors.flow.enabled else "")
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
@@ -441,7 +467,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
 
 
 def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval dynamic") -> int:
-    """``interleave eval dynamic RUN_DIR [--json OUT.json]``: render the run's held-out views and score them."""
+    """``interleave eval dynamic RUN_DIR [--json OUT.json] [--split test|val]``: render the run's held-out views
+    (or, for D-NeRF, another split's) and score them."""
     return run_eval_command(
         argv, prog, "Render a trained dynamic field's held-out views at their times and print PSNR, SSIM, FLIP, "
                     "depth MAE, train and render time, model size and the motion diagnostics.",
@@ -449,7 +476,8 @@ def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval dyn
         lambda run, test, train, with_flip, images: evaluate_dynamic(run, test, with_flip=with_flip,
                                                                      return_images=images, context_views=train),
         lambda run, train, test: {"run": str(run), "train_views": len(train), "test_views": len(test),
-                                  "image_size": [test.height, test.width]})
+                                  "image_size": [test.height, test.width]},
+        splits=DYNAMIC_TEST_SPLITS)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -533,10 +533,13 @@ def write_renders(folder: Path, views, images: list[dict]) -> None:
 
 
 def run_eval_command(argv: Optional[list[str]], prog: str, description: str, made_by: str,
-                     load_views: Callable, evaluate: Callable, header: Callable) -> int:
+                     load_views: Callable, evaluate: Callable, header: Callable,
+                     splits: Optional[tuple[str, ...]] = None) -> int:
     """``interleave eval field|dynamic RUN_DIR [--json OUT.json]``: render a run's held-out views and score them.
 
-    ``load_views(run) -> (train, test)``; ``evaluate(run, test, train, with_flip, return_images) -> scores``;
+    ``load_views(run) -> (train, test)``, or with ``splits`` (the command then takes ``--split``)
+    ``load_views(run, split) -> (train, test)`` (``split`` None: the run's own);
+    ``evaluate(run, test, train, with_flip, return_images) -> scores``;
     ``header(run, train, test) -> dict`` (the keys printed before the scores)."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("run", type=Path, help=f"run directory written by '{made_by}'")
@@ -545,11 +548,14 @@ def run_eval_command(argv: Optional[list[str]], prog: str, description: str, mad
     parser.add_argument("--images", type=Path, default=None,
                         help="write each held-out render (PNG, display-encoded) beside its truth into this folder")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    if splits:
+        parser.add_argument("--split", choices=list(splits), default=None,
+                            help="score this split's views instead of the run's held-out ones")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        train, test = load_views(args.run)
+        train, test = load_views(args.run, args.split) if splits else load_views(args.run)
         scores = evaluate(args.run, test, train, not args.no_flip, args.images is not None)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

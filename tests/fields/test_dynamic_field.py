@@ -17,6 +17,7 @@ import torch
 from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
+from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
                                          sample_hex_planes, time_smoothness)
@@ -72,7 +73,8 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
                       camera_names=[f"cam{c}" for c in range(len(azimuths))])
 
 
-TINY = DynamicFieldConfig(canonical=FieldConfig(resolutions=(8, 16), feature_dim=4, density_hidden=16,
+TINY = DynamicFieldConfig(kind="derf",
+                          canonical=FieldConfig(resolutions=(8, 16), feature_dim=4, density_hidden=16,
                                                 geo_feature_dim=7, color_hidden=16),
                           motion=MotionConfig(resolutions=(8,), feature_dim=4, hidden=16))
 
@@ -260,6 +262,11 @@ def test_rig_video_loader_returns_every_frame_of_every_camera(tmp_path):
     assert load_rig_video(rig, frames=[2], downscale=2).images.shape == (4, 12, 16, 3)
     with pytest.raises(InputError, match="both train and test"):
         split_by_camera(video, ["cam2"], ["cam2"])
+    with pytest.raises(InputError, match="holds out cameras, not a split") as err:
+        select_dynamic_views("rig", rig, 1, test_split="val")
+    assert err.value.field == "test_split"
+    with pytest.raises(InputError, match="must be one of"):
+        select_dynamic_views("dnerf", rig, 1, test_split="train")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -500,6 +507,7 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
 
     _write_dnerf(tmp_path / "scene", _monocular([0, 25, 50, 75, 100, 125], [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]), "train")
     _write_dnerf(tmp_path / "scene", _monocular([12, 60, 110], [0.1, 0.5, 1.2]), "test")  # 1.2: outside
+    _write_dnerf(tmp_path / "scene", _monocular([40, 70, 90], [0.3, 0.45, 0.7]), "val")
     run = tmp_path / "run"
     with pytest.warns(UserWarning, match="outside the trained time range"):
         code = main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(run), "--steps", "8",
@@ -510,11 +518,19 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     scores = json.loads((run / "scores.json").read_text())
     assert scores["dataset"] == "dnerf" and scores["test_views"] == 2 and scores["image_size"] == [20, 20]
     assert json.loads((run / "data.json").read_text())["dropped_test_views"] == ["r_2"]
+    saved = json.loads((run / "config.json").read_text())  # the default: SF-DeRF, and why
+    assert saved["field"]["kind"] == "derf" and saved["priors"]["flow"]["enabled"]
+    assert saved["priors_choice"].startswith("auto:")
     assert scores["canonical_limit"]["border_crossings"]["skipped_cameras"]  # monocular: not testable
     capsys.readouterr()
     assert main(["eval", "dynamic", str(run), "--json", str(tmp_path / "s.json"), "--no-flip"]) == 0
     again = json.loads((tmp_path / "s.json").read_text())
     assert again["psnr"] == pytest.approx(scores["psnr"], abs=1e-6) and again["model_bytes"] == scores["model_bytes"]
+    # the val split scored instead of the run's test split: other views, the same model
+    assert main(["eval", "dynamic", str(run), "--split", "val", "--json", str(tmp_path / "v.json"), "--no-flip"]) == 0
+    val = json.loads((tmp_path / "v.json").read_text())
+    assert val["test_views"] == 3 and val["psnr"] != pytest.approx(scores["psnr"], abs=1e-6)
+    assert val["model_bytes"] == scores["model_bytes"]
     assert main(["export", "dynamic", str(run), "--out", str(tmp_path / "export")]) == 0
     manifest = json.loads((tmp_path / "export" / "dynamic.json").read_text())
     assert manifest["kind"] == "derf" and manifest["time"]["range"] == [0.0, 1.0]
@@ -535,6 +551,29 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     assert main(["eval", "dynamic", str(tmp_path / "missing")]) == 2
     assert main(["train", "dynamic", "--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")]) == 2
     assert "error" in capsys.readouterr().err
+    # a kplanes field has no motion field for the flow prior: one line saying what to change
+    assert main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(tmp_path / "r3"),
+                 "--field.kind", "kplanes", "--priors", "flow", "--steps", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--field.kind derf" in err[-1] and "priors.flow.enabled" in err[-1] and err[-1].startswith("error")
+
+
+def test_the_flow_prior_is_chosen_by_the_fields_kind_unless_asked():
+    from models.fields.train_dynamic import choose_dynamic_priors
+
+    base = DynamicTrainConfig()
+    derf = choose_dynamic_priors(base)
+    assert derf.priors.flow.enabled and derf.priors_choice.startswith("auto:")
+    kplanes = choose_dynamic_priors(dataclasses.replace(base, field=replace(base.field, kind="kplanes")))
+    assert not kplanes.priors.flow.enabled and "no motion field" in kplanes.priors_choice
+    kplanes.validate()  # the automatic choice never contradicts the kind
+    off = choose_dynamic_priors(base, "")
+    assert not off.priors.flow.enabled and off.priors_choice == "explicit: --priors ''"
+    on = dataclasses.replace(base, priors=replace(base.priors, flow=replace(base.priors.flow, enabled=True)))
+    assert choose_dynamic_priors(on).priors_choice == "explicit: the config enables flow"
+    with pytest.raises(InputError, match="unknown prior") as err:
+        choose_dynamic_priors(base, "flow,depth")
+    assert err.value.field == "priors"
 
 
 def test_dense_dis_matches_recover_a_known_shift_and_reject_occlusions():

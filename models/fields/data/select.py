@@ -20,7 +20,7 @@ from engine.io.llff import choose_image_folder
 from models.fields.data.timed import TimedViews, load_dnerf, load_rig_video, split_by_camera
 from models.fields.data.views import Views, load_llff, load_nerf_synthetic, load_rig, split_indices
 
-__all__ = ["DATASETS", "detect_dataset", "select_views", "load_run_views", "DYNAMIC_DATASETS",
+__all__ = ["DATASETS", "detect_dataset", "select_views", "load_run_views", "DYNAMIC_DATASETS", "DYNAMIC_TEST_SPLITS",
            "detect_dynamic_dataset", "select_dynamic_views", "load_dynamic_run_views", "read_data_record"]
 
 
@@ -144,6 +144,8 @@ def load_run_views(run_dir: str | Path) -> tuple[Views, Views]:
 
 
 DYNAMIC_DATASETS = ("rig", "dnerf")
+#: the D-NeRF splits a dynamic run can hold out (a rig holds out cameras: 'test' only)
+DYNAMIC_TEST_SPLITS = ("test", "val")
 
 
 def detect_dynamic_dataset(path: str | Path) -> str:
@@ -186,16 +188,16 @@ def _camera_names(pool: TimedViews, spec, name: str) -> list[str]:
 
 def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cameras: Optional[int] = None,
                          train_cameras: Optional[list] = None, test_cameras: Optional[list] = None,
-                         frames: Optional[list[int]] = None, test_every: int = 1, max_test_views: int = 0
-                         ) -> tuple[TimedViews, TimedViews, dict[str, Any]]:
+                         frames: Optional[list[int]] = None, test_every: int = 1, max_test_views: int = 0,
+                         test_split: str = "test") -> tuple[TimedViews, TimedViews, dict[str, Any]]:
     """Load a dynamic scene and split it into (train, test) views; the third item is ``data.json``'s record.
 
     rgbd-rig: every frame (or ``frames``) of the train cameras trains, the test cameras' frames are held out;
     the default split is the rig's, ``cameras`` picks that many train cameras spread over the non-test ones,
     ``train_cameras`` / ``test_cameras`` name them (names or positions). D-NeRF: the train split trains, the
-    test split's frames whose times lie in the trained range are held out (the others are dropped with a
-    warning: the field cannot extrapolate in time). ``test_every`` keeps every k-th test view,
-    ``max_test_views`` at most that many.
+    ``test_split``'s frames ('test' or 'val') whose times lie in the trained range are held out (the others
+    are dropped with a warning: the field cannot extrapolate in time). ``test_every`` keeps every k-th test
+    view, ``max_test_views`` at most that many.
     """
     if dataset not in DYNAMIC_DATASETS:
         raise InputError(f"must be one of {DYNAMIC_DATASETS}, got {dataset!r}", field="dataset")
@@ -205,6 +207,10 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
     downscale = int(downscale) or 1
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 1:
         raise InputError(f"must be a positive integer, got {test_every!r}", field="test_every")
+    if test_split not in DYNAMIC_TEST_SPLITS:
+        raise InputError(f"must be one of {DYNAMIC_TEST_SPLITS}, got {test_split!r}", field="test_split")
+    if dataset == "rig" and test_split != "test":
+        raise InputError("an rgbd-rig holds out cameras, not a split: test_split must be 'test'", field="test_split")
     dropped: list[str] = []
     if dataset == "rig":
         pool = load_rig_video(scene, downscale=downscale, frames=frames)
@@ -230,7 +236,7 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
         if cameras is not None or train_cameras is not None or test_cameras is not None:
             raise InputError("D-NeRF is monocular: it takes no camera choice", field="cameras")
         train = load_dnerf(scene, "train", downscale=downscale)
-        test = load_dnerf(scene, "test", downscale=downscale, bounds=train.bounds)
+        test = load_dnerf(scene, test_split, downscale=downscale, bounds=train.bounds)
         lo, hi = train.time_range
         inside = [i for i in range(len(test)) if lo <= test.times[i] <= hi]
         dropped = [test.names[i] for i in range(len(test)) if i not in inside]
@@ -247,13 +253,14 @@ def select_dynamic_views(dataset: str, scene: str | Path, downscale: int, *, cam
         raise InputError("no test view selected", field="test_cameras")
     record = {"dataset": dataset, "scene": str(Path(scene).resolve()), "downscale": int(downscale), **record_cams,
               "frames": None if frames is None else [int(f) for f in frames], "test_every": int(test_every),
-              "max_test_views": int(max_test_views), "train_views": len(train), "test_names": list(test.names),
-              "dropped_test_views": dropped}
+              "max_test_views": int(max_test_views), "test_split": test_split, "train_views": len(train),
+              "test_names": list(test.names), "dropped_test_views": dropped}
     return train, test, record
 
 
-def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]:
-    """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``."""
+def load_dynamic_run_views(run_dir: str | Path, split: Optional[str] = None) -> tuple[TimedViews, TimedViews]:
+    """The (train, test) views a dynamic run was trained and is evaluated on, from its ``data.json``; ``split``
+    ('test' or 'val', D-NeRF) replaces the held-out split the run recorded."""
     rec = read_data_record(run_dir, "interleave train dynamic")
     with warnings.catch_warnings():  # the warnings were given when the run was made
         warnings.simplefilter("ignore")
@@ -261,5 +268,6 @@ def load_dynamic_run_views(run_dir: str | Path) -> tuple[TimedViews, TimedViews]
         train, test, _ = select_dynamic_views(
             rec["dataset"], rec["scene"], rec["downscale"], train_cameras=rec["train_cameras"] if is_rig else None,
             test_cameras=rec["test_cameras"] if is_rig else None, frames=rec.get("frames"),
-            test_every=rec.get("test_every", 1), max_test_views=rec.get("max_test_views", 0))
+            test_every=rec.get("test_every", 1), max_test_views=rec.get("max_test_views", 0),
+            test_split=split or rec.get("test_split", "test"))
     return train, test

@@ -206,8 +206,9 @@ class DynamicFieldConfig:
     """Which dynamic field, and its size."""
 
     kind: str = field(default="derf", metadata={
-        "help": "derf (canonical tri-plane field + hex-plane motion field) or kplanes (4D hex-plane field, "
-                "no motion model)"})
+        "help": "derf (canonical tri-plane field + hex-plane motion field; with the sparse flow prior, which "
+                "'interleave train dynamic' switches on for it, the best on the rigs and lego: "
+                "docs/results/2026-11-25-dynamic-default.md) or kplanes (4D hex-plane field, no motion model)"})
     canonical: FieldConfig = field(default_factory=FieldConfig, metadata={
         "help": "the canonical field (derf) or the 4D field's planes and MLPs (kplanes)"})
     motion: MotionConfig = field(default_factory=MotionConfig, metadata={"help": "the motion field (derf only)"})

@@ -1,0 +1,246 @@
+"""Path-traced validation sequences for the motion benchmarks: a Cycles render of fast, spinning objects behind
+thin poles, a yawing camera and Monte Carlo noise, imported as an rgbd-seq with the exact object motion.
+
+A check the rasterizer of ``engine.scenegen`` cannot give: global illumination, soft shadows, anti-aliased
+edges and a path tracer's noise (``--samples``, no denoiser), with Cycles' own Depth, Vector and Object Index
+passes. Two steps, two interpreters (bpy is NOT a project dependency; install it in a throwaway venv)::
+
+    python3.11 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install bpy==5.0.1
+    /tmp/bpyenv/bin/python tools/cycles_scene.py render /tmp/cyc/s1 --seed 1        # Blender side
+    .venv/bin/python -m tools.cycles_scene import /tmp/cyc/s1 out/cycles/s1          # project side
+
+``render OUT`` builds the scene of ``--seed`` (Blender world, z up): a textured ground and back wall, a row of
+thin static poles between the camera and the objects, ``--objects`` textured primitives (object index 1, 2,
+...) on smooth paths (each axis a sinusoid) whose peak screen speed is ``--speed`` px per frame at the given
+width and which spin 5-15 degrees a frame about a random axis, and a camera that yaws back and forth (peak
+``--yaw`` degrees a frame) while it slides sideways. Keys at every integer frame 0 .. frames + 1 (the Vector
+pass evaluates the scene at frame - 1 and frame + 1). It renders frames 1 .. frames into multilayer EXRs
+``OUT/render/NNNN.exr`` and writes ``OUT/cameras.json`` (the importer's camera JSON) and ``OUT/objects.json``
+(every object's ``matrix_world`` at every keyed frame and its object index).
+
+``import OUT SEQ`` reads them with :func:`engine.io.importers.frames_from_blender` (colour, planar depth,
+cameras, the renderer's motion vectors), adds the Object Index pass as ``object_id`` and ``moving`` (the
+pixels of the moving objects), and writes the rgbd-seq ``SEQ`` with the objects' per-frame transforms, so
+``interleave eval`` and the benchmarks score it like a generated sequence (``oracle``, moving pixels,
+end-point error).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import random
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+LENS_MM, SENSOR_MM = 35.0, 36.0
+CAMERA_DISTANCE = 8.0  # the objects' paths are centred this far in front of the camera
+
+
+def _material(bpy, name: str, color, scale: float, noise_scale: float):
+    """Principled BSDF whose base colour is a checker of a coloured noise and ``color`` in object coordinates
+    (the texture moves with the object)."""
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    bsdf = nodes["Principled BSDF"]
+    coords = nodes.new("ShaderNodeTexCoord")
+    checker = nodes.new("ShaderNodeTexChecker")
+    noise = nodes.new("ShaderNodeTexNoise")
+    checker.inputs["Scale"].default_value = scale
+    checker.inputs["Color2"].default_value = (*color, 1.0)
+    noise.inputs["Scale"].default_value = noise_scale
+    links.new(coords.outputs["Object"], checker.inputs["Vector"])
+    links.new(coords.outputs["Object"], noise.inputs["Vector"])
+    links.new(noise.outputs["Color"], checker.inputs["Color1"])
+    links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+    bsdf.inputs["Roughness"].default_value = 0.6
+    return mat
+
+
+def render(out: Path, seed: int, frames: int, width: int, height: int, samples: int, objects: int, speed: float,
+           yaw: float) -> None:
+    """Build the scene of ``seed`` in bpy, render frames 1..frames, write cameras.json and objects.json."""
+    import bpy  # noqa: PLC0415 (only in Blender's Python)
+    from mathutils import Euler, Matrix, Vector  # noqa: PLC0415
+
+    rng = random.Random(seed)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.use_denoising = False
+    scene.cycles.seed = seed
+    scene.render.use_motion_blur = False  # Cycles writes the Vector pass only without motion blur
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.render.fps, scene.render.fps_base = 24, 1.0
+    scene.frame_start, scene.frame_end = 1, frames
+    layer = scene.view_layers[0]
+    layer.use_pass_combined = True
+    layer.use_pass_z = True
+    layer.use_pass_vector = True
+    layer.use_pass_object_index = True
+    settings = scene.render.image_settings
+    if hasattr(settings, "media_type"):  # Blender >= 5.0 picks the media type first
+        settings.media_type = "MULTI_LAYER_IMAGE"
+    settings.file_format = "OPEN_EXR_MULTILAYER"
+    settings.color_depth = "32"
+    settings.exr_codec = "ZIP"
+
+    world = bpy.data.worlds.new("World")
+    world.color = (0.35, 0.42, 0.55)
+    scene.world = world
+    sun_heading = math.radians(rng.uniform(0, 90))
+    bpy.ops.object.light_add(type="SUN", rotation=(math.radians(50), math.radians(10), sun_heading))
+    bpy.context.active_object.data.energy = 3.0
+
+    def add(kind: str, pass_index: int, material, **kw):
+        getattr(bpy.ops.mesh, f"primitive_{kind}_add")(**kw)
+        obj = bpy.context.active_object
+        obj.pass_index = pass_index
+        obj.data.materials.append(material)
+        return obj
+
+    ground = _material(bpy, "ground", (0.25, 0.22, 0.2), 0.6, 3.0)
+    add("plane", 0, ground, size=80.0, location=(0.0, CAMERA_DISTANCE, 0.0))
+    wall = _material(bpy, "wall", (0.5, 0.45, 0.4), 0.8, 6.0)
+    add("plane", 0, wall, size=60.0, location=(0.0, CAMERA_DISTANCE + 9.0, 10.0), rotation=(math.radians(90), 0, 0))
+    pole = _material(bpy, "pole", (0.1, 0.1, 0.12), 20.0, 30.0)
+    for i in range(7):  # thin static structures the objects pass behind
+        add("cylinder", 0, pole, radius=0.035, depth=4.0,
+            location=(-4.5 + 1.5 * i + rng.uniform(-0.3, 0.3), CAMERA_DISTANCE - 3.0 + rng.uniform(-0.5, 0.5), 2.0))
+
+    px_per_unit = width * LENS_MM / SENSOR_MM / CAMERA_DISTANCE  # screen px per world unit at the paths' centre
+    kinds = ["cube", "uv_sphere", "torus", "cylinder", "ico_sphere", "cone"]
+    movers = []
+    for i in range(objects):
+        kind = kinds[i % len(kinds)]
+        size = rng.uniform(0.5, 1.1)
+        color = (rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9))
+        mat = _material(bpy, f"object{i + 1}", color, rng.uniform(2.0, 5.0), rng.uniform(4.0, 12.0))
+        extra = {"major_radius": size, "minor_radius": size * 0.35} if kind == "torus" else (
+            {"radius": size} if kind in ("uv_sphere", "ico_sphere", "cylinder", "cone") else {"size": 1.6 * size})
+        obj = add(kind, i + 1, mat, **extra)
+        peak = rng.uniform(0.5, 1.0) * speed / px_per_unit  # world units a frame at the fastest
+        amplitude = [rng.uniform(2.0, 3.5), rng.uniform(0.5, 2.0), rng.uniform(0.2, 0.6)]
+        omega = peak / amplitude[0]
+        phases = [rng.uniform(0, 2 * math.pi) for _ in range(3)]
+        rates = [omega, omega * rng.uniform(0.5, 1.2), omega * rng.uniform(0.8, 1.5)]
+        centre = [rng.uniform(-1.5, 1.5), CAMERA_DISTANCE + rng.uniform(-1.5, 1.5), size + 0.3 + amplitude[2]]
+        axis = Vector((rng.gauss(0, 1), rng.gauss(0, 1), rng.gauss(0, 1))).normalized()
+        spin = math.radians(rng.uniform(5.0, 15.0)) * rng.choice((-1, 1))
+        start = Euler((rng.uniform(0, 6.3), rng.uniform(0, 6.3), rng.uniform(0, 6.3))).to_matrix()
+        movers.append((obj, centre, amplitude, rates, phases, axis, spin, start))
+
+    camera_data = bpy.data.cameras.new("Camera")
+    camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
+    camera = bpy.data.objects.new("Camera", camera_data)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    yaw_rate = rng.uniform(0.07, 0.12)  # rad of the yaw oscillation per frame
+    yaw_amplitude = math.radians(yaw) / yaw_rate  # peak yaw rate ``yaw`` degrees a frame
+    yaw_phase = rng.uniform(0, 2 * math.pi)
+    record = {"seed": seed, "objects": {}}
+    for f in range(0, frames + 2):
+        for obj, centre, amplitude, rates, phases, axis, spin, start in movers:
+            location = Vector([c + a * math.sin(r * f + p) for c, a, r, p in zip(centre, amplitude, rates, phases)])
+            rotation = Matrix.Rotation(spin * f, 3, axis) @ start
+            obj.matrix_world = Matrix.Translation(location) @ rotation.to_4x4()
+            obj.keyframe_insert("location", frame=f)
+            obj.keyframe_insert("rotation_euler", frame=f)
+        camera.location = (0.6 * math.sin(0.05 * f), 0.0, 1.7)
+        camera.rotation_euler = (math.radians(84.0), 0.0, yaw_amplitude * math.sin(yaw_rate * f + yaw_phase))
+        camera.keyframe_insert("location", frame=f)
+        camera.keyframe_insert("rotation_euler", frame=f)
+    for f in range(0, frames + 2):
+        scene.frame_set(f)
+        for obj, *_ in movers:
+            entry = record["objects"].setdefault(obj.name, {"pass_index": obj.pass_index, "world_from_object": {}})
+            entry["world_from_object"][str(f)] = [list(r) for r in obj.matrix_world]
+
+    render_dir = out / "render"
+    render_dir.mkdir(parents=True, exist_ok=True)
+    cameras = {"fps": 24.0, "frames": []}
+    for f in range(1, frames + 1):
+        scene.frame_set(f)
+        name = f"{f:04d}.exr"
+        scene.render.filepath = str(render_dir / name)
+        bpy.ops.render.render(write_still=True)
+        cameras["frames"].append({"frame": f, "file": f"render/{name}",
+                                  "camera_to_world": [list(r) for r in camera.matrix_world],
+                                  "lens_mm": camera_data.lens, "sensor_width_mm": camera_data.sensor_width})
+    (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
+    (out / "objects.json").write_text(json.dumps(record, indent=1))
+    print(f"rendered {frames} frames of {width}x{height} into {out}")
+
+
+def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
+    """Import a ``render`` output as the rgbd-seq ``seq`` with object ids, moving masks and the objects'
+    per-frame transforms (frame index i of the sequence is Blender frame i + 1)."""
+    import dataclasses  # noqa: PLC0415
+
+    import numpy as np  # noqa: PLC0415
+
+    from engine.core.frames import SceneObject  # noqa: PLC0415
+    from engine.io.exr import read_exr  # noqa: PLC0415
+    from engine.io.importers import frames_from_blender  # noqa: PLC0415
+    from engine.io.rgbd import write_sequence  # noqa: PLC0415
+    from engine.predict.base import true_object_flow  # noqa: PLC0415
+
+    out = Path(out)
+    meta = json.loads((out / "cameras.json").read_text())
+    record = json.loads((out / "objects.json").read_text())
+    imported = frames_from_blender(out / "cameras.json", layer=layer)
+    numbers = [entry["frame"] for entry in meta["frames"]]
+    objects, ahead = [], {}  # ahead: id -> the object keyed one frame further (the last frame's next)
+    for name, entry in record["objects"].items():
+        keyed = [np.asarray(entry["world_from_object"][str(n)], dtype=np.float64) for n in numbers + [numbers[-1] + 1]]
+        objects.append(SceneObject(int(entry["pass_index"]), name, True, np.stack(keyed[:-1])))
+        ahead[objects[-1].id] = SceneObject(objects[-1].id, name, True, np.stack(keyed))
+    moving_ids = np.array([o.id for o in objects])
+
+    def frames():
+        for i, (entry, frame) in enumerate(zip(meta["frames"], imported.frames)):
+            channels = read_exr(out / entry["file"], all_parts=True)
+            index = next(f"{layer}.{p}.X" for p in ("Object Index", "IndexOB") if f"{layer}.{p}.X" in channels)
+            ids = np.rint(channels[index]).astype(np.int32)
+            ids[~np.isfinite(frame.depth)] = 0
+            frame = dataclasses.replace(frame, index=i, object_id=ids, moving=np.isin(ids, moving_ids))
+            # screen motion to the next frame from object motion alone (the generator's object_flow)
+            object_flow = true_object_flow(frame, ahead, i + 1)[..., :2]
+            yield dataclasses.replace(frame, object_flow=np.ascontiguousarray(object_flow, dtype=np.float32))
+
+    return write_sequence(seq, frames(), fps=imported.fps, objects=objects)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render", help="render the scene (run with bpy's Python)")
+    r.add_argument("out", type=Path)
+    r.add_argument("--seed", type=int, default=1)
+    r.add_argument("--frames", type=int, default=16)
+    r.add_argument("--width", type=int, default=640)
+    r.add_argument("--height", type=int, default=360)
+    r.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
+    r.add_argument("--objects", type=int, default=4)
+    r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")
+    r.add_argument("--yaw", type=float, default=2.5, help="peak camera yaw, degrees a frame")
+    i = sub.add_parser("import", help="import a render as an rgbd-seq (run with the project's Python)")
+    i.add_argument("out", type=Path)
+    i.add_argument("seq", type=Path)
+    args = parser.parse_args(argv)
+    if args.command == "render":
+        render(args.out, args.seed, args.frames, args.width, args.height, args.samples, args.objects, args.speed,
+               args.yaw)
+        return 0
+    print(f"wrote {import_sequence(args.out, args.seq)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -62,15 +62,10 @@ def _at(start: Sequence[float], step: Sequence[float], f: float) -> tuple[float,
 
 # ------------------------------------------------------------------------------------------------ render
 
-def render(out: Path, frames: int, width: int, height: int, samples: int, motion: float = 1.0) -> None:
-    """Build the scene in bpy, render frames 1..frames, write cameras.json and truth.json.
-
-    ``motion`` scales every per-frame step (cube, camera move, pan, tilt).
-    """
-    import bpy  # noqa: PLC0415 (only in Blender's Python)
-    from bpy_extras.object_utils import world_to_camera_view  # noqa: PLC0415
-    from mathutils import Vector  # noqa: PLC0415
-
+def cycles_scene(bpy, width: int, height: int, frames: int, samples: int):
+    """An empty bpy scene set up for the importer: Cycles on the CPU, ``samples`` a pixel without adaptive
+    sampling or denoiser, no motion blur (Cycles writes the Vector pass only without it), 24 fps, frames
+    1..``frames``, the Combined, Depth, Vector and Object Index passes into 32-bit multilayer EXRs."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
@@ -78,7 +73,7 @@ def render(out: Path, frames: int, width: int, height: int, samples: int, motion
     scene.cycles.samples = samples
     scene.cycles.use_adaptive_sampling = False
     scene.cycles.use_denoising = False
-    scene.render.use_motion_blur = False  # Cycles writes the Vector pass only without motion blur
+    scene.render.use_motion_blur = False
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.fps, scene.render.fps_base = 24, 1.0
@@ -94,6 +89,19 @@ def render(out: Path, frames: int, width: int, height: int, samples: int, motion
     settings.file_format = "OPEN_EXR_MULTILAYER"
     settings.color_depth = "32"
     settings.exr_codec = "ZIP"
+    return scene
+
+
+def render(out: Path, frames: int, width: int, height: int, samples: int, motion: float = 1.0) -> None:
+    """Build the scene in bpy, render frames 1..frames, write cameras.json and truth.json.
+
+    ``motion`` scales every per-frame step (cube, camera move, pan, tilt).
+    """
+    import bpy  # noqa: PLC0415 (only in Blender's Python)
+    from bpy_extras.object_utils import world_to_camera_view  # noqa: PLC0415
+    from mathutils import Vector  # noqa: PLC0415
+
+    scene = cycles_scene(bpy, width, height, frames, samples)
 
     world = bpy.data.worlds.new("World")
     world.color = (0.4, 0.5, 0.7)

@@ -34,7 +34,10 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-LENS_MM, SENSOR_MM = 35.0, 36.0
+if __package__ in (None, ""):  # run as a script by bpy's Python: make ``tools`` importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tools.blender_vector_check import LENS_MM, SENSOR_MM, cycles_scene  # noqa: E402
+
 CAMERA_DISTANCE = 8.0  # the objects' paths are centred this far in front of the camera
 
 
@@ -66,30 +69,8 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     from mathutils import Euler, Matrix, Vector  # noqa: PLC0415
 
     rng = random.Random(seed)
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.use_adaptive_sampling = False
-    scene.cycles.use_denoising = False
+    scene = cycles_scene(bpy, width, height, frames, samples)
     scene.cycles.seed = seed
-    scene.render.use_motion_blur = False  # Cycles writes the Vector pass only without motion blur
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
-    scene.render.fps, scene.render.fps_base = 24, 1.0
-    scene.frame_start, scene.frame_end = 1, frames
-    layer = scene.view_layers[0]
-    layer.use_pass_combined = True
-    layer.use_pass_z = True
-    layer.use_pass_vector = True
-    layer.use_pass_object_index = True
-    settings = scene.render.image_settings
-    if hasattr(settings, "media_type"):  # Blender >= 5.0 picks the media type first
-        settings.media_type = "MULTI_LAYER_IMAGE"
-    settings.file_format = "OPEN_EXR_MULTILAYER"
-    settings.color_depth = "32"
-    settings.exr_codec = "ZIP"
 
     world = bpy.data.worlds.new("World")
     world.color = (0.35, 0.42, 0.55)

@@ -147,13 +147,7 @@ def render(out: Path, frames: int, width: int, height: int, samples: int, motion
     cube_points += [Vector((x * half, y * half, half)) for x in (-0.4, 0.4) for y in (-0.4, 0.4)]
     ground_points = [Vector((x, y, 0.0)) for x in (-2.0, 0.0, 2.5) for y in (-3.5, -1.5)]
     for f in range(1, frames + 1):
-        scene.frame_set(f)
-        name = f"{f:04d}.exr"
-        scene.render.filepath = str(render_dir / name)
-        bpy.ops.render.render(write_still=True)
-        cameras["frames"].append({"frame": f, "file": f"render/{name}",
-                                  "camera_to_world": [list(r) for r in camera.matrix_world],
-                                  "lens_mm": camera_data.lens, "sensor_width_mm": camera_data.sensor_width})
+        cameras["frames"].append(render_frame(bpy, scene, camera, render_dir, f))
         now_cube = cube.matrix_world.copy()
         now = [pixel(now_cube @ p) for p in cube_points] + [pixel(p) for p in ground_points]
         scene.frame_set(f - 1)
@@ -276,15 +270,32 @@ def compare(out: Path, layer: str = "ViewLayer") -> dict:
             "lines": lines}
 
 
+def render_frame(bpy, scene, camera, render_dir: Path, f: int) -> dict:
+    """Render frame ``f`` of ``scene`` into ``render_dir/NNNN.exr``; returns its entry of the importer's camera
+    JSON (``camera``'s pose and lens at that frame)."""
+    scene.frame_set(f)
+    name = f"{f:04d}.exr"
+    scene.render.filepath = str(render_dir / name)
+    bpy.ops.render.render(write_still=True)
+    return {"frame": f, "file": f"{render_dir.name}/{name}", "camera_to_world": [list(r) for r in camera.matrix_world],
+            "lens_mm": camera.data.lens, "sensor_width_mm": camera.data.sensor_width}
+
+
+def render_parser(sub, *, frames: int, width: int, height: int) -> argparse.ArgumentParser:
+    """The ``render OUT`` sub-command of a Blender tool with its size, length and sample-count options."""
+    r = sub.add_parser("render", help="render the scene (run with bpy's Python)")
+    r.add_argument("out", type=Path)
+    r.add_argument("--frames", type=int, default=frames)
+    r.add_argument("--width", type=int, default=width)
+    r.add_argument("--height", type=int, default=height)
+    r.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
+    return r
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="render the scene (run with bpy's Python)")
-    r.add_argument("out", type=Path)
-    r.add_argument("--frames", type=int, default=3)
-    r.add_argument("--width", type=int, default=64)
-    r.add_argument("--height", type=int, default=48)
-    r.add_argument("--samples", type=int, default=16)
+    r = render_parser(sub, frames=3, width=64, height=48)
     r.add_argument("--motion", type=float, default=1.0, help="scale of every per-frame step")
     c = sub.add_parser("check", help="import the render and compare (run with the project's Python)")
     c.add_argument("out", type=Path)

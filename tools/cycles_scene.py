@@ -36,7 +36,7 @@ from typing import Optional, Sequence
 
 if __package__ in (None, ""):  # run as a script by bpy's Python: make ``tools`` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tools.blender_vector_check import LENS_MM, SENSOR_MM, cycles_scene  # noqa: E402
+from tools.blender_vector_check import LENS_MM, SENSOR_MM, cycles_scene, render_frame, render_parser  # noqa: E402
 
 CAMERA_DISTANCE = 8.0  # the objects' paths are centred this far in front of the camera
 
@@ -147,13 +147,7 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     render_dir.mkdir(parents=True, exist_ok=True)
     cameras = {"fps": 24.0, "frames": []}
     for f in range(1, frames + 1):
-        scene.frame_set(f)
-        name = f"{f:04d}.exr"
-        scene.render.filepath = str(render_dir / name)
-        bpy.ops.render.render(write_still=True)
-        cameras["frames"].append({"frame": f, "file": f"render/{name}",
-                                  "camera_to_world": [list(r) for r in camera.matrix_world],
-                                  "lens_mm": camera_data.lens, "sensor_width_mm": camera_data.sensor_width})
+        cameras["frames"].append(render_frame(bpy, scene, camera, render_dir, f))
     (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (out / "objects.json").write_text(json.dumps(record, indent=1))
     print(f"rendered {frames} frames of {width}x{height} into {out}")
@@ -201,13 +195,8 @@ def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="render the scene (run with bpy's Python)")
-    r.add_argument("out", type=Path)
+    r = render_parser(sub, frames=16, width=640, height=360)
     r.add_argument("--seed", type=int, default=1)
-    r.add_argument("--frames", type=int, default=16)
-    r.add_argument("--width", type=int, default=640)
-    r.add_argument("--height", type=int, default=360)
-    r.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
     r.add_argument("--objects", type=int, default=4)
     r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")
     r.add_argument("--yaw", type=float, default=2.5, help="peak camera yaw, degrees a frame")

@@ -24,7 +24,16 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
 - ``revealed``: ``trusted``, and none where frame n sees at least 1.43x farther than the camera-compensated
   frame n-k did (surface an object uncovered; a smaller jump can be an object moving away);
 - ``regions_arrived``: ``regions``, matching only regions of which at least 30 % is nearer in frame n than in
-  the camera-compensated frame n-k (an object arrived there), not surface an object uncovered.
+  the camera-compensated frame n-k (an object arrived there), not surface an object uncovered;
+- ``not_worse``: ``trusted``, and none where the motion explains frame n worse than none by more than
+  ``--margin`` levels (9 x 9 means): the converse of ``confidence``, which keeps ties;
+- ``region_check``: ``trusted``, then each connected region of motion of at least 1 px kept whole only where
+  its summed photometric error drops by more than ``--margin`` levels a pixel against no motion;
+- ``blurred``: ``trusted`` with DIS run on lumas blurred by a Gaussian of sigma ``--margin`` px (noise);
+- ``rigid_ids``: ``trusted``, then the flow of each object of frame n's ``object_id`` channel (as a renderer's
+  Object Index pass would give it, the static scene included) replaced by the rigid motion that best
+  explains it (RANSAC over 3-point fits of DIS's 3D correspondences, inliers within 1.5 px; no motion when
+  that explains at least 90 % as many), where that motion explains at least half of the object's samples.
 
 Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
 moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
@@ -128,6 +137,31 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
         flow[~confident_motion(ln, t, flow, margin)] = 0.0
         return flow
 
+    def not_worse(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        still = cv2.blur(cv2.absdiff(ln, t).astype(np.float32), (9, 9), borderType=cv2.BORDER_REFLECT)
+        flow[warp_error(ln, t, (0, 0), flow, 9) > still + np.float32(margin)] = 0.0
+        return flow
+
+    def region_check(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        count, labels = cv2.connectedComponents((np.hypot(flow[..., 0], flow[..., 1]) >= 1.0).astype(np.uint8))
+        if count > 1:
+            gain = cv2.absdiff(ln, t).astype(np.float64) - warp_error(ln, t, (0, 0), flow, 1)
+            drop = (np.bincount(labels.ravel(), gain.ravel(), count)
+                    <= margin * np.bincount(labels.ravel(), minlength=count))
+            drop[0] = False
+            flow[drop[labels]] = 0.0
+        return flow
+
+    def blurred(e, ln, t, seen, context):
+        flow = dis_calc(e, *(cv2.GaussianBlur(x, (0, 0), float(margin)) for x in (ln, t)))
+        flow[~trusted_motion(ln, t, flow, seen, small)] = 0.0
+        return flow
+
+    def rigid_ids(e, ln, t, seen, context):
+        return rigid_object_flow(trusted(e, ln, t, seen, context), context)
+
     def seen_only(e, ln, t, seen, context):
         flow = dis_calc(e, ln, t)
         flow[~seen] = 0.0
@@ -155,8 +189,75 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
         return regions_rule(e, ln, t, seen, context, arrived=True)
 
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
+            "not_worse": not_worse, "region_check": region_check, "blurred": blurred, "rigid_ids": rigid_ids,
             "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed,
             "regions_arrived": regions_arrived}
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rigid 4x4 M minimising |M a - b| over points a, b (N, 3)."""
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rotation, cb - rotation @ ca
+    return m
+
+
+def rigid_object_flow(flow: np.ndarray, context: dict, tolerance: float = 1.5, samples: int = 1500,
+                      tries: int = 200) -> np.ndarray:
+    """``rigid_ids``' rule (module docstring): ``context`` holds frame n (``newest``) and the depth of the
+    camera-compensated frame n-k (``depth_w``, +inf in its holes)."""
+    newest, depth_w = context["newest"], context["depth_w"]
+    rng = np.random.default_rng(0)
+    h, w = newest.depth.shape
+    k = newest.camera.intrinsics
+    points = geometry.unproject(newest.depth, k).astype(np.float64)[..., :3]
+    pixels = geometry.pixel_centers(h, w).astype(np.float64)
+    out = flow.copy()
+
+    def moved_pixels(m: np.ndarray, p: np.ndarray) -> np.ndarray:
+        back = p @ np.linalg.inv(m)[:3, :3].T + np.linalg.inv(m)[:3, 3]
+        uvw = back @ k.T
+        return uvw[:, :2] / np.maximum(uvw[:, 2:3], 1e-9)
+
+    for oid in np.unique(newest.object_id):
+        ys, xs = np.nonzero((newest.object_id == oid) & np.isfinite(newest.depth))
+        if len(ys) < 20:
+            continue
+        pick = rng.choice(len(ys), min(len(ys), samples), replace=False)
+        sy, sx = ys[pick], xs[pick]
+        u = flow[sy, sx].astype(np.float64)
+        target = pixels[sy, sx] + u
+        qx = np.clip(np.round(sx + u[:, 0]).astype(int), 0, w - 1)
+        qy = np.clip(np.round(sy + u[:, 1]).astype(int), 0, h - 1)
+        z = depth_w[qy, qx]
+        ok = np.isfinite(z)
+        if ok.sum() < 6:
+            continue
+        q = target[ok]
+        before = np.concatenate([q, np.ones((len(q), 1))], 1) @ np.linalg.inv(k).T * z[ok, None]
+        now = points[sy[ok], sx[ok]]
+
+        def inliers(m):
+            return np.linalg.norm(moved_pixels(m, now) - q, axis=1) < tolerance
+
+        still = inliers(np.eye(4))
+        best, best_in = np.eye(4), still
+        for _ in range(tries):
+            pick3 = rng.choice(len(q), 3, replace=False)
+            m = _kabsch(before[pick3], now[pick3])
+            found = inliers(m)
+            if found.sum() > best_in.sum():
+                best, best_in = m, found
+        if best_in.sum() >= 3:
+            best = _kabsch(before[best_in], now[best_in])
+            best_in = inliers(best)
+        if still.sum() >= 0.9 * best_in.sum():
+            best, best_in = np.eye(4), still
+        if best_in.mean() >= 0.5:
+            out[ys, xs] = (moved_pixels(best, points[ys, xs]) - pixels[ys, xs]).astype(np.float32)
+    return out
 
 
 class Precomputed:
@@ -199,7 +300,8 @@ class RuleFlow2D(Flow2D):
         inv_n = np.where(np.isfinite(newest.depth), 1.0 / newest.depth, 0.0)
         inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
-                   "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64)}
+                   "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64),
+                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w)}
         with timer("flow"):
             estimator = self._dis
             if self.estimator == "gl":
@@ -219,7 +321,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/validation"))
     parser.add_argument("--variants", default="dis,confidence,seen,trusted,regions")
-    parser.add_argument("--margin", type=float, default=1.0, help="margin of the 'confidence' variant (levels)")
+    parser.add_argument("--margin", type=float, default=1.0,
+                        help="margin of 'confidence', 'not_worse' and 'region_check' (levels); sigma of 'blurred'")
     parser.add_argument("--small", type=float, default=SMALL_MOTION,
                         help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")

@@ -1,5 +1,6 @@
-"""Path-traced validation sequences for the motion benchmarks: a Cycles render of fast, spinning objects behind
-thin poles, a yawing camera and Monte Carlo noise, imported as an rgbd-seq with the exact object motion.
+"""Path-traced validation data: Cycles renders of fast, spinning objects behind thin poles, a yawing camera and
+Monte Carlo noise, imported as an rgbd-seq with the exact object motion; and static forward-facing captures of
+the same scenes in LLFF's layout.
 
 A check the rasterizer of ``engine.scenegen`` cannot give: global illumination, soft shadows, anti-aliased
 edges and a path tracer's noise (``--samples``, no denoiser), with Cycles' own Depth, Vector and Object Index
@@ -18,11 +19,16 @@ pass evaluates the scene at frame - 1 and frame + 1). It renders frames 1 .. fra
 ``OUT/render/NNNN.exr`` and writes ``OUT/cameras.json`` (the importer's camera JSON) and ``OUT/objects.json``
 (every object's ``matrix_world`` at every keyed frame and its object index).
 
-``import OUT SEQ`` reads them with :func:`engine.io.importers.frames_from_blender` (colour, planar depth,
-cameras, the renderer's motion vectors), adds the Object Index pass as ``object_id`` and ``moving`` (the
-pixels of the moving objects), and writes the rgbd-seq ``SEQ`` with the objects' per-frame transforms, so
-``interleave eval`` and the benchmarks score it like a generated sequence (``oracle``, moving pixels,
-end-point error).
+``capture OUT`` renders the same scene frozen at frame 0 (nothing moves) from ``--views`` cameras on a
+forward-facing grid (``--baseline`` world units apart, parallel axes), and ``llff OUT ROOT --factor N`` writes
+those views as an LLFF capture as one ships (``images_N/`` and ``poses_bounds.npy``, no ``images/``): a
+photo-like capture for the radiance fields and for ``interleave demo --field``.
+
+``import OUT SEQ`` reads a ``render`` output with :func:`engine.io.importers.frames_from_blender` (colour,
+planar depth, cameras, the renderer's motion vectors), adds the Object Index pass as ``object_id`` and
+``moving`` (the pixels of the moving objects), and writes the rgbd-seq ``SEQ`` with the objects' per-frame
+transforms, so ``interleave eval`` and the benchmarks score it like a generated sequence (``oracle``, moving
+pixels, end-point error).
 """
 from __future__ import annotations
 
@@ -62,15 +68,11 @@ def _material(bpy, name: str, color, scale: float, noise_scale: float):
     return mat
 
 
-def render(out: Path, seed: int, frames: int, width: int, height: int, samples: int, objects: int, speed: float,
-           yaw: float) -> None:
-    """Build the scene of ``seed`` in bpy, render frames 1..frames, write cameras.json and objects.json."""
-    import bpy  # noqa: PLC0415 (only in Blender's Python)
-    from mathutils import Euler, Matrix, Vector  # noqa: PLC0415
-
-    rng = random.Random(seed)
-    scene = cycles_scene(bpy, width, height, frames, samples)
-    scene.cycles.seed = seed
+def _content(bpy, scene, rng: random.Random, width: int, objects: int, speed: float) -> list:
+    """The scene's world, sun, ground, wall, poles and ``objects`` textured primitives (object index 1, 2, ...),
+    drawn from ``rng``; returns each object with its path (centre, amplitudes, rates, phases) and spin (axis,
+    radians a frame, starting orientation), whose peak screen speed is ``speed`` px a frame at ``width``."""
+    from mathutils import Euler, Vector  # noqa: PLC0415
 
     world = bpy.data.worlds.new("World")
     world.color = (0.35, 0.42, 0.55)
@@ -117,6 +119,20 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
         start = Euler((rng.uniform(0, 6.3), rng.uniform(0, 6.3), rng.uniform(0, 6.3))).to_matrix()
         movers.append((obj, centre, amplitude, rates, phases, axis, spin, start))
 
+    return movers
+
+
+def render(out: Path, seed: int, frames: int, width: int, height: int, samples: int, objects: int, speed: float,
+           yaw: float) -> None:
+    """Build the scene of ``seed`` in bpy, render frames 1..frames, write cameras.json and objects.json."""
+    import bpy  # noqa: PLC0415 (only in Blender's Python)
+
+    rng = random.Random(seed)
+    scene = cycles_scene(bpy, width, height, frames, samples)
+    scene.cycles.seed = seed
+
+    movers = _content(bpy, scene, rng, width, objects, speed)
+
     camera_data = bpy.data.cameras.new("Camera")
     camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
     camera = bpy.data.objects.new("Camera", camera_data)
@@ -127,10 +143,9 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     yaw_phase = rng.uniform(0, 2 * math.pi)
     record = {"seed": seed, "objects": {}}
     for f in range(0, frames + 2):
-        for obj, centre, amplitude, rates, phases, axis, spin, start in movers:
-            location = Vector([c + a * math.sin(r * f + p) for c, a, r, p in zip(centre, amplitude, rates, phases)])
-            rotation = Matrix.Rotation(spin * f, 3, axis) @ start
-            obj.matrix_world = Matrix.Translation(location) @ rotation.to_4x4()
+        for mover in movers:
+            obj = mover[0]
+            obj.matrix_world = _pose(mover, f)
             obj.keyframe_insert("location", frame=f)
             obj.keyframe_insert("rotation_euler", frame=f)
         camera.location = (0.6 * math.sin(0.05 * f), 0.0, 1.7)
@@ -151,6 +166,63 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (out / "objects.json").write_text(json.dumps(record, indent=1))
     print(f"rendered {frames} frames of {width}x{height} into {out}")
+
+
+def _pose(mover, f: int):
+    """World-from-object matrix of a ``_content`` object at frame ``f``."""
+    from mathutils import Matrix, Vector  # noqa: PLC0415
+
+    obj, centre, amplitude, rates, phases, axis, spin, start = mover
+    location = Vector([c + a * math.sin(r * f + p) for c, a, r, p in zip(centre, amplitude, rates, phases)])
+    return Matrix.Translation(location) @ (Matrix.Rotation(spin * f, 3, axis) @ start).to_4x4()
+
+
+def capture(out: Path, seed: int, views: int, width: int, height: int, samples: int, objects: int,
+            baseline: float) -> None:
+    """Render the scene of ``seed``, frozen at frame 0, from ``views`` forward-facing cameras on a grid
+    (``baseline`` world units between neighbours, parallel optical axes, as a hand-held LLFF capture);
+    writes OUT/render/NNNN.exr and OUT/cameras.json (one entry a view)."""
+    import bpy  # noqa: PLC0415 (only in Blender's Python)
+
+    rng = random.Random(seed)
+    scene = cycles_scene(bpy, width, height, views, samples)
+    scene.cycles.seed = seed
+    for mover in _content(bpy, scene, rng, width, objects, 0.0):
+        mover[0].matrix_world = _pose(mover, 0)
+    camera_data = bpy.data.cameras.new("Camera")
+    camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
+    camera = bpy.data.objects.new("Camera", camera_data)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    camera.rotation_euler = (math.radians(84.0), 0.0, 0.0)
+    columns = math.ceil(math.sqrt(views * 4 / 3))
+    render_dir = out / "render"
+    render_dir.mkdir(parents=True, exist_ok=True)
+    cameras = {"fps": 24.0, "frames": []}
+    for i in range(views):
+        row, column = divmod(i, columns)
+        camera.location = ((column - (columns - 1) / 2) * baseline + rng.uniform(-0.2, 0.2) * baseline, 0.0,
+                           1.7 + (row - (views // columns - 1) / 2) * baseline)
+        cameras["frames"].append(render_frame(bpy, scene, camera, render_dir, i + 1))
+    (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
+    print(f"rendered {views} views of {width}x{height} into {out}")
+
+
+def write_capture(out: Path, root: Path, factor: int, layer: str = "ViewLayer") -> Path:
+    """A ``capture`` output as an LLFF capture ``root`` (``images_<factor>/`` and ``poses_bounds.npy``; the
+    bounds are each view's 0.5th and 99.5th depth percentiles, widened by 10 %)."""
+    import numpy as np  # noqa: PLC0415
+
+    from engine.io.importers import frames_from_blender  # noqa: PLC0415
+    from engine.io.llff import write_llff  # noqa: PLC0415
+
+    frames = list(frames_from_blender(Path(out) / "cameras.json", layer=layer).frames)
+    bounds = []
+    for frame in frames:
+        finite = frame.depth[np.isfinite(frame.depth)]
+        bounds.append([0.9 * np.percentile(finite, 0.5), 1.1 * np.percentile(finite, 99.5)])
+    return write_llff(root, np.stack([f.color for f in frames]), [f.camera for f in frames], np.array(bounds),
+                      factors=(factor,))
 
 
 def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
@@ -200,6 +272,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     r.add_argument("--objects", type=int, default=4)
     r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")
     r.add_argument("--yaw", type=float, default=2.5, help="peak camera yaw, degrees a frame")
+    c = sub.add_parser("capture", help="render a static forward-facing capture (run with bpy's Python)")
+    c.add_argument("out", type=Path)
+    c.add_argument("--seed", type=int, default=1)
+    c.add_argument("--views", type=int, default=20)
+    c.add_argument("--width", type=int, default=1008)
+    c.add_argument("--height", type=int, default=756)
+    c.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
+    c.add_argument("--objects", type=int, default=4)
+    c.add_argument("--baseline", type=float, default=0.25, help="world units between neighbouring cameras")
+    w = sub.add_parser("llff", help="write a capture as an LLFF capture (run with the project's Python)")
+    w.add_argument("out", type=Path)
+    w.add_argument("root", type=Path)
+    w.add_argument("--factor", type=int, default=2, help="write images_<factor>/ (area-averaged)")
     i = sub.add_parser("import", help="import a render as an rgbd-seq (run with the project's Python)")
     i.add_argument("out", type=Path)
     i.add_argument("seq", type=Path)
@@ -207,6 +292,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command == "render":
         render(args.out, args.seed, args.frames, args.width, args.height, args.samples, args.objects, args.speed,
                args.yaw)
+        return 0
+    if args.command == "capture":
+        capture(args.out, args.seed, args.views, args.width, args.height, args.samples, args.objects, args.baseline)
+        return 0
+    if args.command == "llff":
+        print(f"wrote {write_capture(args.out, args.root, args.factor)}")
         return 0
     print(f"wrote {import_sequence(args.out, args.seq)}")
     return 0

@@ -61,3 +61,30 @@ def test_object_transforms_reproduce_the_cycles_vector_pass(sequence):
         assert not truth[~frame.moving].any() and np.linalg.norm(truth[moving], axis=-1).min() > 0.0
         checked += int(moving.sum())
     assert checked > 50  # the objects do move across pixels the check covers
+
+
+CAPTURE = Path(__file__).resolve().parents[1] / "io" / "data" / "cycles_capture"
+
+
+def test_a_static_capture_is_written_as_llff_ships_it(tmp_path):
+    """``tools.cycles_scene llff`` on a committed 3-view Cycles capture (48x36): images_2/ and poses_bounds.npy
+    that engine.io.llff reads back to the rendered cameras (intrinsics halved) with bounds around every view's
+    depth."""
+    from engine.io.importers import frames_from_blender
+    from engine.io.llff import read_llff
+    from tools.cycles_scene import write_capture
+
+    root = write_capture(CAPTURE, tmp_path / "llff", factor=2)
+    assert sorted(p.name for p in root.iterdir()) == ["images_2", "poses_bounds.npy"]
+    capture = read_llff(root)
+    frames = list(frames_from_blender(CAPTURE / "cameras.json").frames)
+    assert capture.images.shape == (3, 18, 24, 3) and capture.factor == 2
+    for camera, frame, (near, far) in zip(capture.cameras, frames, capture.near_far):
+        np.testing.assert_allclose(camera.world_to_camera, frame.camera.world_to_camera, atol=1e-6)
+        np.testing.assert_allclose(camera.intrinsics[:2], frame.camera.intrinsics[:2] / 2, rtol=1e-6)
+        depth = frame.depth[np.isfinite(frame.depth)]
+        assert near < np.percentile(depth, 1) and far > np.percentile(depth, 99)
+    # the views differ only by the camera: parallel axes, positions on a grid
+    rotations = np.stack([f.camera.world_to_camera[:3, :3] for f in frames])
+    np.testing.assert_allclose(rotations, rotations[:1].repeat(3, 0), atol=1e-6)
+    assert np.ptp(np.stack([f.camera.camera_to_world[:3, 3] for f in frames]), axis=0).max() > 0.1

@@ -29,6 +29,10 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
   ``--margin`` levels (9 x 9 means): the converse of ``confidence``, which keeps ties;
 - ``region_check``: ``trusted``, then each connected region of motion of at least 1 px kept whole only where
   its summed photometric error drops by more than ``--margin`` levels a pixel against no motion;
+- ``depth_evidence``: ``trusted``, then each connected region of motion of at least 1 px dropped unless at
+  least ``--margin`` of its pixels lie within 2 px of a pixel whose inverse depth differs from the
+  camera-compensated frame n-k's by more than ``DEPTH_CHANGE`` (a moving object changes depth at its
+  silhouette);
 - ``blurred``: ``trusted`` with DIS run on lumas blurred by a Gaussian of sigma ``--margin`` px (noise);
 - ``rigid_ids``: ``trusted``, then the flow of each object of frame n's ``object_id`` channel (as a renderer's
   Object Index pass would give it, the static scene included) replaced by the rigid motion that best
@@ -64,6 +68,8 @@ from tools.heldout import render_set, speed_set, write_json
 #: than the camera-compensated frame n-k (outside the warp's holes)
 Rule = Callable[[object, np.ndarray, np.ndarray, np.ndarray, dict], np.ndarray]
 REVEAL_DROP = 0.3
+#: ``depth_evidence``: frame n's inverse depth differs from the camera-compensated frame n-k's by this share
+DEPTH_CHANGE = 0.05
 
 
 def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area: int,
@@ -159,6 +165,17 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
         flow[~trusted_motion(ln, t, flow, seen, small)] = 0.0
         return flow
 
+    def depth_evidence(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        count, labels = cv2.connectedComponents((np.hypot(flow[..., 0], flow[..., 1]) >= 1.0).astype(np.uint8))
+        if count > 1:
+            changed = cv2.dilate(context["depth_change"].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+            support = np.bincount(labels.ravel(), changed.ravel(), count)
+            drop = support < max(1.0, margin)
+            drop[0] = False
+            flow[drop[labels]] = 0.0
+        return flow
+
     def rigid_ids(e, ln, t, seen, context):
         return rigid_object_flow(trusted(e, ln, t, seen, context), context)
 
@@ -189,7 +206,8 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
         return regions_rule(e, ln, t, seen, context, arrived=True)
 
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
-            "not_worse": not_worse, "region_check": region_check, "blurred": blurred, "rigid_ids": rigid_ids,
+            "not_worse": not_worse, "region_check": region_check, "depth_evidence": depth_evidence,
+            "blurred": blurred, "rigid_ids": rigid_ids,
             "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed,
             "regions_arrived": regions_arrived}
 
@@ -301,7 +319,8 @@ class RuleFlow2D(Flow2D):
         inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
                    "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64),
-                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w)}
+                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w),
+                   "depth_change": ~holes & (np.abs(inv_n - inv_w) > DEPTH_CHANGE * np.maximum(inv_n, inv_w))}
         with timer("flow"):
             estimator = self._dis
             if self.estimator == "gl":
@@ -322,7 +341,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/validation"))
     parser.add_argument("--variants", default="dis,confidence,seen,trusted,regions")
     parser.add_argument("--margin", type=float, default=1.0,
-                        help="margin of 'confidence', 'not_worse' and 'region_check' (levels); sigma of 'blurred'")
+                        help="margin of 'confidence', 'not_worse' and 'region_check' (levels); sigma of 'blurred'; "
+                             "pixels of support of 'depth_evidence'")
     parser.add_argument("--small", type=float, default=SMALL_MOTION,
                         help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")

@@ -49,11 +49,12 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
         gpu[key].append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds)) / len(preds))
         if r == 0:
             outputs[key, c] = [p.color for p in preds]
+    truths = [[sequence[t.index] for t in targets] for _, targets in cases]  # read once, scored per method
     rows = []
     for method, backend in keys:
         scores, worst, within = [], 0.0, []
-        for c, (_, _, truths) in enumerate(cases):
-            for i, truth in enumerate(truths):
+        for c, frames in enumerate(truths):
+            for i, truth in enumerate(frames):
                 color = outputs[(method, backend), c][i]
                 scores.append(score_frame(truth.color, color, truth.moving, with_flip=False))
                 ref = outputs[(method, "cpu"), c][i]

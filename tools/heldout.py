@@ -126,15 +126,14 @@ def median_times(rows: list[dict], methods: list[str]) -> str:
         if any(r["method"] == m for r in rows))
 
 
-def timing_cases(sequence, k: int) -> list[tuple[list, list, list]]:
-    """``(history, targets, truths)`` of every evaluation pair (n-k, n) of ``sequence`` at ``k``, held in memory:
-    the rendered frames a predictor is given (three, with the motion vectors ``mvec`` reads), the targets
-    n+1 .. n+k-1 and their frames."""
+def timing_cases(sequence, k: int) -> list[tuple[list, list]]:
+    """``(history, targets)`` of every evaluation pair (n-k, n) of ``sequence`` at ``k``, held in memory: the
+    rendered frames a predictor is given (three, with the motion vectors ``mvec`` reads) and the targets
+    n+1 .. n+k-1 (``Target.index``: their frames in the sequence)."""
     cases = []
     for older, newest, targets in evaluation_pairs(len(sequence), k):
         history = rendered_history(sequence, older, newest, with_vectors=True, three=True)
-        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets],
-                      [sequence[t] for t in targets]))
+        cases.append((history, [Target(sequence.cameras[t], float(sequence.times[t]), t) for t in targets]))
     return cases
 
 
@@ -145,7 +144,7 @@ def warm_runs(predictors: dict, cases: list, repeats: int) -> Iterator[tuple]:
     predicted frame."""
     keys = list(predictors)
     for r in range(repeats):
-        for c, (history, targets, _) in enumerate(cases):
+        for c, (history, targets) in enumerate(cases):
             shift = (r + c) % len(keys)
             for key in keys[shift:] + keys[:shift]:
                 predictor = predictors[key]

@@ -61,6 +61,7 @@ from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
 from tools.heldout import render_set, speed_set, write_json
+from tools.mvec_extrapolation import rigid_fit
 
 #: a rule: (estimator, luma_n, target, seen, context) -> flow u(n -> n-k) (H, W, 2); context: dict with
 #: "gate" (H, W) bool, inside the boxes of decomp's motion gate (engine.predict.decomp.gate) at full
@@ -151,14 +152,9 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
 
     def region_check(e, ln, t, seen, context):
         flow = trusted(e, ln, t, seen, context)
-        count, labels = cv2.connectedComponents((np.hypot(flow[..., 0], flow[..., 1]) >= 1.0).astype(np.uint8))
-        if count > 1:
-            gain = cv2.absdiff(ln, t).astype(np.float64) - warp_error(ln, t, (0, 0), flow, 1)
-            drop = (np.bincount(labels.ravel(), gain.ravel(), count)
-                    <= margin * np.bincount(labels.ravel(), minlength=count))
-            drop[0] = False
-            flow[drop[labels]] = 0.0
-        return flow
+        gain = cv2.absdiff(ln, t).astype(np.float64) - warp_error(ln, t, (0, 0), flow, 1)
+        return drop_regions(flow, lambda labels, count: np.bincount(labels.ravel(), gain.ravel(), count)
+                            <= margin * np.bincount(labels.ravel(), minlength=count))
 
     def blurred(e, ln, t, seen, context):
         flow = dis_calc(e, *(cv2.GaussianBlur(x, (0, 0), float(margin)) for x in (ln, t)))
@@ -167,14 +163,9 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
 
     def depth_evidence(e, ln, t, seen, context):
         flow = trusted(e, ln, t, seen, context)
-        count, labels = cv2.connectedComponents((np.hypot(flow[..., 0], flow[..., 1]) >= 1.0).astype(np.uint8))
-        if count > 1:
-            changed = cv2.dilate(context["depth_change"].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-            support = np.bincount(labels.ravel(), changed.ravel(), count)
-            drop = support < max(1.0, margin)
-            drop[0] = False
-            flow[drop[labels]] = 0.0
-        return flow
+        changed = cv2.dilate(context["depth_change"].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        return drop_regions(flow, lambda labels, count: np.bincount(labels.ravel(), changed.ravel(), count)
+                            < max(1.0, margin))
 
     def rigid_ids(e, ln, t, seen, context):
         return rigid_object_flow(trusted(e, ln, t, seen, context), context)
@@ -212,13 +203,22 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
             "regions_arrived": regions_arrived}
 
 
-def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The rigid 4x4 M minimising |M a - b| over points a, b (N, 3)."""
-    ca, cb = a.mean(0), b.mean(0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    rotation = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+def drop_regions(flow: np.ndarray, drop: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:
+    """``flow`` with the connected regions of motion of at least 1 px that ``drop(labels, count)`` ((count,)
+    bool per label, label 0 the still pixels, which stay) selects set to no motion; modifies ``flow``."""
+    count, labels = cv2.connectedComponents((np.hypot(flow[..., 0], flow[..., 1]) >= 1.0).astype(np.uint8))
+    if count > 1:
+        dropped = drop(labels, count)
+        dropped[0] = False
+        flow[dropped[labels]] = 0.0
+    return flow
+
+
+def _rigid(before: np.ndarray, now: np.ndarray) -> np.ndarray:
+    """``tools.mvec_extrapolation.rigid_fit`` as one 4x4 matrix M with now ~ M before."""
+    rotation, c_before, c_now = rigid_fit(before, now)
     m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rotation, cb - rotation @ ca
+    m[:3, :3], m[:3, 3] = rotation, c_now - rotation @ c_before
     return m
 
 
@@ -235,7 +235,8 @@ def rigid_object_flow(flow: np.ndarray, context: dict, tolerance: float = 1.5, s
     out = flow.copy()
 
     def moved_pixels(m: np.ndarray, p: np.ndarray) -> np.ndarray:
-        back = p @ np.linalg.inv(m)[:3, :3].T + np.linalg.inv(m)[:3, 3]
+        inverse = np.linalg.inv(m)
+        back = p @ inverse[:3, :3].T + inverse[:3, 3]
         uvw = back @ k.T
         return uvw[:, :2] / np.maximum(uvw[:, 2:3], 1e-9)
 
@@ -264,12 +265,12 @@ def rigid_object_flow(flow: np.ndarray, context: dict, tolerance: float = 1.5, s
         best, best_in = np.eye(4), still
         for _ in range(tries):
             pick3 = rng.choice(len(q), 3, replace=False)
-            m = _kabsch(before[pick3], now[pick3])
+            m = _rigid(before[pick3], now[pick3])
             found = inliers(m)
             if found.sum() > best_in.sum():
                 best, best_in = m, found
         if best_in.sum() >= 3:
-            best = _kabsch(before[best_in], now[best_in])
+            best = _rigid(before[best_in], now[best_in])
             best_in = inliers(best)
         if still.sum() >= 0.9 * best_in.sum():
             best, best_in = np.eye(4), still

@@ -113,11 +113,7 @@ def render(out: Path, frames: int, width: int, height: int, samples: int, motion
     cube = bpy.context.active_object
     cube.pass_index = 1
     bpy.ops.object.light_add(type="SUN", rotation=(0.6, 0.2, 0.4))
-    camera_data = bpy.data.cameras.new("Camera")
-    camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
-    camera = bpy.data.objects.new("Camera", camera_data)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
+    camera = add_camera(bpy, scene)
     # Keys at every integer frame from 0 (the previous frame of frame 1) to frames + 1 (the next of the
     # last): the Vector pass evaluates the scene at frame - 1 and frame + 1, whatever the interpolation.
     for f in range(0, frames + 2):
@@ -268,6 +264,16 @@ def compare(out: Path, layer: str = "ViewLayer") -> dict:
             "points_max": max(point_errors, default=0.0), "points_count": len(point_errors),
             "background_not_nan": not_nan, "background_count": int(len(raw)), "raw_background": raw,
             "lines": lines}
+
+
+def add_camera(bpy, scene):
+    """The scene's camera: a LENS_MM lens on a SENSOR_MM-wide sensor (fit: auto), linked and active."""
+    data = bpy.data.cameras.new("Camera")
+    data.lens, data.sensor_width, data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
+    camera = bpy.data.objects.new("Camera", data)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    return camera
 
 
 def render_frame(bpy, scene, camera, render_dir: Path, f: int) -> dict:

@@ -42,7 +42,7 @@ from typing import Optional, Sequence
 
 if __package__ in (None, ""):  # run as a script by bpy's Python: make ``tools`` importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tools.blender_vector_check import LENS_MM, SENSOR_MM, cycles_scene, render_frame, render_parser  # noqa: E402
+from tools import blender_vector_check as blender  # noqa: E402
 
 CAMERA_DISTANCE = 8.0  # the objects' paths are centred this far in front of the camera
 
@@ -97,7 +97,8 @@ def _content(bpy, scene, rng: random.Random, width: int, objects: int, speed: fl
         add("cylinder", 0, pole, radius=0.035, depth=4.0,
             location=(-4.5 + 1.5 * i + rng.uniform(-0.3, 0.3), CAMERA_DISTANCE - 3.0 + rng.uniform(-0.5, 0.5), 2.0))
 
-    px_per_unit = width * LENS_MM / SENSOR_MM / CAMERA_DISTANCE  # screen px per world unit at the paths' centre
+    # screen px per world unit at the paths' centre
+    px_per_unit = width * blender.LENS_MM / blender.SENSOR_MM / CAMERA_DISTANCE
     kinds = ["cube", "uv_sphere", "torus", "cylinder", "ico_sphere", "cone"]
     movers = []
     for i in range(objects):
@@ -128,16 +129,12 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     import bpy  # noqa: PLC0415 (only in Blender's Python)
 
     rng = random.Random(seed)
-    scene = cycles_scene(bpy, width, height, frames, samples)
+    scene = blender.cycles_scene(bpy, width, height, frames, samples)
     scene.cycles.seed = seed
 
     movers = _content(bpy, scene, rng, width, objects, speed)
 
-    camera_data = bpy.data.cameras.new("Camera")
-    camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
-    camera = bpy.data.objects.new("Camera", camera_data)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
+    camera = blender.add_camera(bpy, scene)
     yaw_rate = rng.uniform(0.07, 0.12)  # rad of the yaw oscillation per frame
     yaw_amplitude = math.radians(yaw) / yaw_rate  # peak yaw rate ``yaw`` degrees a frame
     yaw_phase = rng.uniform(0, 2 * math.pi)
@@ -162,7 +159,7 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     render_dir.mkdir(parents=True, exist_ok=True)
     cameras = {"fps": 24.0, "frames": []}
     for f in range(1, frames + 1):
-        cameras["frames"].append(render_frame(bpy, scene, camera, render_dir, f))
+        cameras["frames"].append(blender.render_frame(bpy, scene, camera, render_dir, f))
     (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (out / "objects.json").write_text(json.dumps(record, indent=1))
     print(f"rendered {frames} frames of {width}x{height} into {out}")
@@ -185,15 +182,11 @@ def capture(out: Path, seed: int, views: int, width: int, height: int, samples: 
     import bpy  # noqa: PLC0415 (only in Blender's Python)
 
     rng = random.Random(seed)
-    scene = cycles_scene(bpy, width, height, views, samples)
+    scene = blender.cycles_scene(bpy, width, height, views, samples)
     scene.cycles.seed = seed
     for mover in _content(bpy, scene, rng, width, objects, 0.0):
         mover[0].matrix_world = _pose(mover, 0)
-    camera_data = bpy.data.cameras.new("Camera")
-    camera_data.lens, camera_data.sensor_width, camera_data.sensor_fit = LENS_MM, SENSOR_MM, "AUTO"
-    camera = bpy.data.objects.new("Camera", camera_data)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
+    camera = blender.add_camera(bpy, scene)
     camera.rotation_euler = (math.radians(84.0), 0.0, 0.0)
     columns = math.ceil(math.sqrt(views * 4 / 3))
     render_dir = out / "render"
@@ -203,7 +196,7 @@ def capture(out: Path, seed: int, views: int, width: int, height: int, samples: 
         row, column = divmod(i, columns)
         camera.location = ((column - (columns - 1) / 2) * baseline + rng.uniform(-0.2, 0.2) * baseline, 0.0,
                            1.7 + (row - (views // columns - 1) / 2) * baseline)
-        cameras["frames"].append(render_frame(bpy, scene, camera, render_dir, i + 1))
+        cameras["frames"].append(blender.render_frame(bpy, scene, camera, render_dir, i + 1))
     (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
     print(f"rendered {views} views of {width}x{height} into {out}")
 
@@ -267,7 +260,7 @@ def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    r = render_parser(sub, frames=16, width=640, height=360)
+    r = blender.render_parser(sub, frames=16, width=640, height=360)
     r.add_argument("--seed", type=int, default=1)
     r.add_argument("--objects", type=int, default=4)
     r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")

@@ -175,7 +175,7 @@ def _make_predictor(name: str, objects: Sequence[SceneObject]) -> Predictor:
         return Flow2D(**options)
     if base not in DECOMP_WEIGHTS or not rest.endswith("]"):
         raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.predict.decomp.predictor."
-                         f"DecompConfig), mvec (MvecConfig) and flow2d (preset=...) take options, as "
+                         f"DecompConfig), mvec (MvecConfig) and flow2d (preset=..., estimator=...) take options, as "
                          f"decomp[key=value,...]",
                          field="methods")
     return make_decomp(DECOMP_WEIGHTS[base], rest[:-1], objects)

@@ -38,10 +38,10 @@ BACKEND_HELP = ("where the warps run: cpu (numpy + numba), gl (OpenGL 4.5 comput
 #: The torch-side entry points that ``train`` and ``export`` dispatch to: each module's ``main(argv, prog)``.
 #: Imported only when asked for, so every other command runs without torch.
 TORCH_COMMANDS = {
-    "train": {"flow": "models.flow.train", "infill": "models.infill.train", "field": "models.fields.train_static",
-              "dynamic": "models.fields.train_dynamic"},
-    "export": {"flow": "export.flow", "infill": "export.infill", "field": "export.field",
-               "dynamic": "export.dynamic"},
+    "train": {"flow": "models.flow.train", "corrflow": "models.flow.corrflow_train", "infill": "models.infill.train",
+              "field": "models.fields.train_static", "dynamic": "models.fields.train_dynamic"},
+    "export": {"flow": "export.flow", "corrflow": "export.corrflow", "infill": "export.infill",
+               "field": "export.field", "dynamic": "export.dynamic"},
 }
 
 
@@ -143,13 +143,15 @@ def build_parser() -> argparse.ArgumentParser:
                                                                  "instead of stopping with an error")
     descriptions = {
         "train": ("train a network (needs the 'train' extra: torch)",
-                  "'interleave train flow --config configs/flow3d.json' trains the 3D flow network; 'interleave "
+                  "'interleave train flow --config configs/flow3d.json' trains the 3D flow network; 'interleave train "
+                  "corrflow' the correlation flow network of flow2d[estimator=corr]; 'interleave "
                   "train infill' the disocclusion infilling network; 'interleave train field --scene DIR --views 3' "
                   "a static radiance field; 'interleave train dynamic --scene DIR' a dynamic one (rgbd-rig video or "
                   "D-NeRF); 'interleave train flow|field|dynamic --help' lists every option."),
         "export": ("export a trained network to ONNX (needs the 'train' extra: torch)",
                    "'interleave export flow CHECKPOINT OUT.onnx' writes the flow network's ONNX graph and checks it "
-                   "against torch ('export infill CHECKPOINT OUT.onnx': the infilling network's); 'interleave export "
+                   "against torch ('export infill CHECKPOINT OUT.onnx': the infilling network's, 'export corrflow "
+                   "CHECKPOINT OUT.onnx' the correlation flow network's); 'interleave export "
                    "field RUN_DIR' a trained field's ONNX query and renderer assets ('export dynamic RUN_DIR': a "
                    "dynamic field's (p, t, d) query); '... --help' for options."),
     }

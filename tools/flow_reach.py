@@ -1,11 +1,13 @@
 """How far OpenCV DIS reaches: the end-point error of the object motion it estimates between two rendered
 frames, for DIS presets and parameters, on fast held-out sequences.
 
-``python -m tools.flow_reach SEQ_DIR... [--k 2] [--json FILE]``
+``python -m tools.flow_reach SEQ_DIR... [--k 2] [--network ONNX] [--json FILE]``
 
 For every pair (n-k, n) with moving pixels, frame n-k is warped into frame n's view (camera motion
 cancelled, holes filled as ``reproject`` fills them, what ``flow2d`` matches against) and each variant
-estimates u(n -> n-k) on 8-bit luma. Scored against the true u(n -> n-k) of frame n (from the object
+estimates u(n -> n-k) on 8-bit luma; the correlation network (``engine.predict.corrflow``, the committed one
+unless ``--network`` names another) reads both colour images: alone, and as DIS medium's initial flow
+(``flow2d[estimator=corr]``). Scored against the true u(n -> n-k) of frame n (from the object
 transforms) over the pixels that move more than 0.5 px: the median end-point error of each pair (means
 over pairs) and the share of moving pixels within 3 px, with the median ms per pair. No extrapolation:
 this is the estimate alone.
@@ -22,7 +24,8 @@ import numpy as np
 
 from engine.io.rgbd import read_sequence
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
-from engine.predict.dis import luma8
+from engine.predict.corrflow import CorrFlowNetwork
+from engine.predict.dis import dis_calc, dis_estimator, luma8
 from tools.heldout import write_json
 
 MEDIUM, FAST = cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, cv2.DISOPTICAL_FLOW_PRESET_FAST
@@ -60,13 +63,24 @@ VARIANTS = {
 }
 
 
+def network_variants(network: CorrFlowNetwork) -> dict:
+    """name -> f(color_n, warped, luma_n, luma_w) -> u(n -> n-k): the network alone and DIS started from it."""
+    medium = dis_estimator("medium")
+    return {"correlation network alone": lambda c, w, ln, lw: network.estimate(c, w),
+            "medium from the network (flow2d[estimator=corr])":
+                lambda c, w, ln, lw: dis_calc(medium, ln, lw, network.estimate(c, w))}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequences", nargs="+", type=Path)
     parser.add_argument("--k", type=int, default=2)
+    parser.add_argument("--network", type=Path, default=None, help="a correlation flow ONNX (default: committed)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    scores = {name: {"median_epe": [], "within_3px": [], "ms": []} for name in ["zero motion", *VARIANTS]}
+    networks = network_variants(CorrFlowNetwork(args.network))
+    scores = {name: {"median_epe": [], "within_3px": [], "ms": []}
+              for name in ["zero motion", *VARIANTS, *networks]}
     for path in args.sequences:
         seq = read_sequence(path)
         objects = {o.id: o for o in seq.objects}
@@ -84,6 +98,10 @@ def main(argv=None) -> None:
                 start = time.perf_counter()
                 flow = estimator.calc(luma_n, luma_w, None)
                 estimates[name] = (flow, 1e3 * (time.perf_counter() - start))
+            for name, estimate in networks.items():
+                start = time.perf_counter()
+                flow = estimate(newest.color, warped, luma_n, luma_w)
+                estimates[name] = (flow, 1e3 * (time.perf_counter() - start))
             for name, (flow, ms) in estimates.items():
                 error = np.linalg.norm(flow - truth, axis=-1)[moving]
                 scores[name]["median_epe"].append(float(np.median(error)))
@@ -96,7 +114,8 @@ def main(argv=None) -> None:
                "within_3px": float(np.mean(s["within_3px"])), "ms": float(statistics.median(s["ms"]))}
         rows.append(row)
         print(f"| {name} | {row['median_epe']:.2f} | {100 * row['within_3px']:.0f} % | {row['ms']:.1f} |")
-    write_json(args.json, {"sequences": [p.name for p in args.sequences], "k": args.k, "rows": rows})
+    write_json(args.json, {"sequences": [p.name for p in args.sequences], "k": args.k,
+                           "network": str(args.network or "committed"), "rows": rows})
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Ablation of what ``flow2d`` does with DIS's flow before extrapolating it: which estimated object motion to
 keep, and whether matching changed regions whole reaches motion DIS misses.
 
-``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4] [--estimator dis|gl] [--json FILE]``
+``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4]
+[--estimator dis|gl|corr|corr_alone] [--json FILE]``
 
 Runs on VALIDATION sequences, apart from the benchmark's held-out ones (``tools/bench_motion.py``), so the
 choice it informs is not tuned on the sets it is reported on: ``gentle`` seeds 1005, 1006 (generator
@@ -39,6 +40,9 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
   explains it (RANSAC over 3-point fits of DIS's 3D correspondences, inliers within 1.5 px; no motion when
   that explains at least 90 % as many), where that motion explains at least half of the object's samples.
 
+``--estimator`` picks the optical flow the rules apply to: OpenCV DIS, the GPU's, DIS started from the
+correlation network's estimate (``flow2d[estimator=corr]``) or the network's estimate alone (``corr_alone``).
+
 Prints per (set, k, variant) PSNR over the whole frame and over moving pixels and the end-point error over
 moving pixels, beside ``reproject``'s; scores are ``interleave eval``'s.
 """
@@ -57,6 +61,7 @@ from engine.geometry.holefill import fill_holes
 from engine.io.rgbd import read_sequence
 from engine.predict import registry
 from engine.predict.classic import Flow2D
+from engine.predict.corrflow import CorrFlowNetwork
 from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
@@ -297,8 +302,10 @@ class RuleFlow2D(Flow2D):
     extrapolation."""
 
     def __init__(self, rule: Rule, estimator: str = "dis") -> None:
-        super().__init__(estimator=estimator)
+        super().__init__(estimator="dis" if estimator.startswith("corr") else estimator)
+        self.estimator = estimator
         self.rule = rule
+        self._network = CorrFlowNetwork() if estimator.startswith("corr") else None
 
     def _prepare(self, state, timer):
         older, newest = state.history[-2], state.history[-1]
@@ -326,6 +333,11 @@ class RuleFlow2D(Flow2D):
             estimator = self._dis
             if self.estimator == "gl":
                 estimator = Precomputed(self._gl_estimators()[0].estimate(newest.color, warped))
+            elif self.estimator == "corr_alone":
+                estimator = Precomputed(self._network.estimate(newest.color, warped))
+            elif self.estimator == "corr":
+                estimator = Precomputed(dis_calc(self._dis, luma8(newest.color), luma8(warped),
+                                                 self._network.estimate(newest.color, warped)))
             flow = self.rule(estimator, luma8(newest.color), luma8(warped), seen, context)
         return self.state_of(newest, flow, timer)
 
@@ -347,8 +359,9 @@ def main(argv=None) -> None:
     parser.add_argument("--small", type=float, default=SMALL_MOTION,
                         help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")
-    parser.add_argument("--estimator", choices=("dis", "gl"), default="dis",
-                        help="the optical flow the rules apply to: OpenCV DIS or the GPU's (not with regions*)")
+    parser.add_argument("--estimator", choices=("dis", "gl", "corr", "corr_alone"), default="dis",
+                        help="the optical flow the rules apply to: OpenCV DIS, the GPU's, DIS from the correlation "
+                             "network, the network alone (not with regions*)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -356,8 +369,8 @@ def main(argv=None) -> None:
     for v in variants:
         if v not in available:
             parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
-        if args.estimator == "gl" and v.startswith("regions"):
-            parser.error(f"variant '{v}' runs DIS on parts of the frame: not with --estimator gl")
+        if args.estimator != "dis" and v.startswith("regions"):
+            parser.error(f"variant '{v}' runs DIS on parts of the frame: not with --estimator {args.estimator}")
         registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule, args.estimator)
     rows, sets = [], validation_sets(args.out)
     for set_name, paths in sets.items():

@@ -14,13 +14,15 @@ from engine.geometry.backends.gl import GlOpticalFlow
 from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
+from engine.predict.corrflow import CorrFlowNetwork
 from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
                                 trusted_motion)
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle", "ESTIMATORS"]
 
-#: ``flow2d``'s optical-flow estimators: OpenCV DIS on the CPU, or the GPU's (``engine.geometry.backends.gl.flow``)
-ESTIMATORS = ("dis", "gl")
+#: ``flow2d``'s optical-flow estimators: OpenCV DIS on the CPU, the GPU's (``engine.geometry.backends.gl.flow``),
+#: or DIS started from the correlation network's estimate (``engine.predict.corrflow``)
+ESTIMATORS = ("dis", "gl", "corr")
 
 
 class Repeat(Predictor):
@@ -81,6 +83,7 @@ class Flow2D(Predictor):
         self.estimator = estimator
         self._dis = dis_estimator(preset)
         self._gl: Optional[tuple] = None
+        self._corr: Optional[CorrFlowNetwork] = CorrFlowNetwork() if estimator == "corr" else None
 
     def _gl_estimators(self) -> tuple:
         """(GlOpticalFlow, GlTrust) of this predictor, made on first use."""
@@ -101,6 +104,8 @@ class Flow2D(Predictor):
         with timer("flow"):
             if self.estimator == "gl":
                 flow = self._gl_estimators()[0].estimate(newest.color, warped)
+            elif self._corr is not None:
+                flow = dis_calc(self._dis, luma_n, luma_w, self._corr.estimate(newest.color, warped))
             else:
                 flow = dis_calc(self._dis, luma_n, luma_w)
         with timer("trust"):

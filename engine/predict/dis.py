@@ -12,6 +12,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from engine.core.checks import checked_array
 from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
 from engine.core.errors import InputError
 from engine.geometry import kernels
@@ -49,18 +50,23 @@ def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
     return estimator
 
 
-def dis_calc(estimator, luma_a: np.ndarray, luma_b: np.ndarray) -> np.ndarray:
+def dis_calc(estimator, luma_a: np.ndarray, luma_b: np.ndarray, initial: Optional[np.ndarray] = None) -> np.ndarray:
     """``estimator.calc(luma_a, luma_b)``, (H, W, 2) float32 flow from a to b, for any size: images with a
     side under ``DIS_MIN_SIDE`` are padded by repeating their edge pixels (no motion there) and the flow is
-    cropped back. Same-size uint8 (H, W) images."""
+    cropped back. Same-size uint8 (H, W) images; ``initial`` (H, W, 2) float32, optional: the flow DIS
+    starts from (OpenCV uses a same-size float32 flow passed to ``calc`` as its coarsest scale's estimate)."""
     h, w = luma_a.shape
     if luma_b.shape != (h, w):
         raise InputError(f"DIS images of shapes {luma_a.shape} and {luma_b.shape}: expected the same", field="luma")
+    if initial is not None:
+        initial = np.array(checked_array(initial, "initial", ("H", "W", 2), {"H": h, "W": w}), dtype=np.float32)
     pad_h, pad_w = max(0, DIS_MIN_SIDE - h), max(0, DIS_MIN_SIDE - w)
     if not (pad_h or pad_w):
-        return estimator.calc(luma_a, luma_b, None)
+        return estimator.calc(luma_a, luma_b, initial)
     a, b = (cv2.copyMakeBorder(x, 0, pad_h, 0, pad_w, cv2.BORDER_REPLICATE) for x in (luma_a, luma_b))
-    return np.ascontiguousarray(estimator.calc(a, b, None)[:h, :w])
+    if initial is not None:
+        initial = cv2.copyMakeBorder(initial, 0, pad_h, 0, pad_w, cv2.BORDER_CONSTANT, value=0)
+    return np.ascontiguousarray(estimator.calc(a, b, initial)[:h, :w])
 
 
 def dis_block(preset: str = "medium") -> int:

@@ -7,3 +7,5 @@ WEIGHTS_DIR = Path(__file__).resolve().parent
 FLOW3D = WEIGHTS_DIR / "flow3d.onnx"
 FLOW2D = WEIGHTS_DIR / "flow2d.onnx"
 INFILL = WEIGHTS_DIR / "infill.onnx"
+#: The all-pairs-correlation 2D flow network (``models.flow.corrflow``): ``flow2d[estimator=corr]``.
+CORRFLOW = WEIGHTS_DIR / "corrflow.onnx"

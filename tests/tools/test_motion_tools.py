@@ -44,6 +44,8 @@ def test_flow_reach_prints_each_variant_and_writes_json(tmp_path, capsys):
     flow_reach.main([str(path), "--k", "2", "--json", str(tmp_path / "reach.json")])
     printed = capsys.readouterr().out
     rows = json.loads((tmp_path / "reach.json").read_text())["rows"]
-    assert [r["estimate"] for r in rows] == ["zero motion", *flow_reach.VARIANTS]
+    assert [r["estimate"] for r in rows][:len(flow_reach.VARIANTS) + 1] == ["zero motion", *flow_reach.VARIANTS]
+    assert [r["estimate"] for r in rows][-2:] == ["correlation network alone",
+                                                  "medium from the network (flow2d[estimator=corr])"]
     assert all(r["pairs"] == rows[0]["pairs"] > 0 for r in rows)
     assert "| medium |" in printed

@@ -1,0 +1,116 @@
+"""Export ``models.flow.corrflow.CorrFlow`` to ONNX for the engine's ``flow2d[estimator=corr]``.
+
+``python -m export.corrflow CHECKPOINT OUT.onnx`` writes the graph (opset 20, dynamo exporter; dynamic
+height and width, multiples of 8) with inputs ``image_a``, ``image_b`` (1, 3, H, W) display-encoded sRGB in
+[0, 1] and output ``flow`` (1, 2, H, W) pixels a -> b, the last iteration's estimate, and stores the network
+config and its working width under the metadata key ``interleave.corrflow``; then checks onnxruntime
+against torch on a random pair.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import sys
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from models.flow.corrflow import CorrFlow, CorrFlowConfig
+
+__all__ = ["METADATA_KEY", "load_checkpoint", "export_corrflow", "check_parity", "main"]
+
+METADATA_KEY = "interleave.corrflow"
+OPSET = 20
+
+
+class _LastFlow(nn.Module):
+    def __init__(self, model: CorrFlow) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, image_a: Tensor, image_b: Tensor) -> Tensor:
+        return self.model(image_a, image_b)[-1]
+
+
+def load_checkpoint(path: Union[str, Path]) -> tuple[CorrFlow, dict]:
+    """(the network in eval mode, the training config dict) of a ``models.flow.corrflow_train`` checkpoint."""
+    state = torch.load(str(path), map_location="cpu", weights_only=False)
+    model = CorrFlow(CorrFlowConfig.from_dict(state["config"]["model"]))
+    model.load_state_dict(state["model"])
+    return model.eval(), state["config"]
+
+
+def export_corrflow(model: CorrFlow, path: Union[str, Path], working_width: int,
+                    example_size: tuple[int, int] = (96, 160)) -> Path:
+    """Write ``model`` to ``path`` (dynamic H, W as multiples of 8) with its metadata; returns ``path``."""
+    import onnx
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    h, w = example_size
+    inputs = (torch.rand(1, 3, h, w), torch.rand(1, 3, h, w))
+    rows = torch.export.Dim("rows", min=2, max=1024)
+    cols = torch.export.Dim("cols", min=2, max=1024)
+    image = {2: 8 * rows, 3: 8 * cols}
+    with torch.no_grad():
+        program = torch.onnx.export(_LastFlow(model).eval(), inputs, dynamo=True, opset_version=OPSET,
+                                    input_names=["image_a", "image_b"], output_names=["flow"],
+                                    dynamic_shapes={"image_a": image, "image_b": image}, verbose=False)
+    program.save(str(out))
+    proto = onnx.load(str(out))
+    for node in proto.graph.node:  # the exporter's per-node stack traces
+        node.doc_string = ""
+        del node.metadata_props[:]
+    del proto.metadata_props[:]
+    entry = proto.metadata_props.add()
+    entry.key = METADATA_KEY
+    entry.value = json.dumps({"model": model.config.to_dict(), "working_width": int(working_width)})
+    onnx.save(proto, str(out))
+    return out
+
+
+def check_parity(path: Union[str, Path], model: CorrFlow, size: tuple[int, int] = (144, 256), seed: int = 0) -> float:
+    """Max abs difference (pixels) between onnxruntime and torch on a random smooth pair of ``size``."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    h, w = size
+    base = rng.random((1, 3, h // 8, w // 8)).astype(np.float32)
+    a = torch.nn.functional.interpolate(torch.from_numpy(base), size=(h, w), mode="bilinear", align_corners=False)
+    b = torch.roll(a, shifts=(3, 11), dims=(2, 3))
+    with torch.no_grad():
+        expected = model(a, b)[-1].numpy()
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"image_a": a.numpy(), "image_b": b.numpy()})[0]
+    return float(np.max(np.abs(got - expected)))
+
+
+def main(argv: Optional[list[str]] = None, prog: str = "python -m export.corrflow") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--tolerance", type=float, default=1e-2,
+                        help="largest onnxruntime - torch difference accepted, in pixels of flow")
+    args = parser.parse_args(argv)
+    try:
+        model, config = load_checkpoint(args.checkpoint)
+    except (OSError, KeyError, RuntimeError, pickle.UnpicklingError) as exc:
+        print(f"{prog}: error: {args.checkpoint}: not a correlation flow checkpoint ({type(exc).__name__})",
+              file=sys.stderr)
+        return 2
+    export_corrflow(model, args.out, int(config["net_width"]))
+    diff = check_parity(args.out, model)
+    print(f"wrote {args.out}; onnxruntime differs from torch by at most {diff:.2e} px")
+    if diff > args.tolerance:
+        print(f"{prog}: error: {args.out}: onnxruntime differs from torch by {diff:.2e} > {args.tolerance:.0e} px",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,269 @@
+"""Supervised training of ``models.flow.corrflow.CorrFlow`` on the scene generator's exact object motion.
+
+``interleave train corrflow [--steps 4000] [--seed 0] [--out runs/corrflow]`` (or ``python -m
+models.flow.corrflow_train``) renders the training scenes not cached yet (``TrainCorrFlowConfig.scenes``:
+preset, first seed, count; 960 x 540, 12 frames, into ``runs/flow_data`` as ``models.flow.train`` does),
+builds the training pairs once, then trains. A pair is, for a scene, a k of ``ks`` and a frame n >= k:
+frame n and frame n-k warped into frame n's view with its holes filled (what ``flow2d`` matches:
+``engine.predict.base.warp_and_fill``), both display-encoded to 8 bits, and the true u(n -> n-k)
+(``engine.predict.base.true_object_flow``), all resized to the working width (flow area-averaged and
+scaled). Training is a function of the seed only (pairs, crops, flips and gains drawn from ``numpy``
+generators seeded per step).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+import torch
+
+from engine.core.errors import InputError
+from engine.io.rgbd import read_sequence
+from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
+from engine.predict.corrflow import working_size
+from engine.predict.dis import encode8
+from models.flow.corrflow import CorrFlow, CorrFlowConfig
+
+__all__ = ["TRAIN_SCENES", "build_pairs", "prepare_pairs", "TrainCorrFlowConfig", "train", "main"]
+
+
+def build_pairs(scene: Path, out: Path, ks=(1, 2, 4), net_width: int = 512) -> Path:
+    """The pairs of one scene folder as ``out/<scene>.npz`` (``a``, ``b``: (P, h, w, 3) uint8; ``flow``:
+    (P, h, w, 2) float16 working-resolution pixels; ``k``, ``n``: (P,)), written once."""
+    path = out / f"{scene.name}.npz"
+    if path.exists():
+        return path
+    seq = read_sequence(scene)
+    objects = {o.id: o for o in seq.objects}
+    h0, w0 = seq[0].depth.shape
+    w, h = working_size(w0, h0, net_width)
+    a, b, flows, kk, nn_ = [], [], [], [], []
+    for k in ks:
+        for n in range(k, len(seq)):
+            older, newest = seq[n - k], seq[n]
+            warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), Timer())
+            truth = true_object_flow(newest, objects, n - k)[..., :2] if objects else np.zeros((h0, w0, 2), np.float32)
+            truth = np.where(np.abs(truth) < 4 * MAX_TRUTH, truth, np.nan).astype(np.float32)
+            truth = cv2.resize(np.ascontiguousarray(truth), (w, h), interpolation=cv2.INTER_AREA)
+            truth *= np.array([w / w0, h / h0], np.float32)
+            a.append(cv2.resize(encode8(newest.color), (w, h), interpolation=cv2.INTER_AREA))
+            b.append(cv2.resize(encode8(warped), (w, h), interpolation=cv2.INTER_AREA))
+            flows.append(truth.astype(np.float16))
+            kk.append(k)
+            nn_.append(n)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, a=np.stack(a), b=np.stack(b), flow=np.stack(flows), k=np.array(kk), n=np.array(nn_))
+    tmp.rename(path)
+    return path
+
+
+#: (preset, first seed, count) of the training scenes: seeds 5000-5039, apart from every evaluation seed
+TRAIN_SCENES = (("fast", 5000, 16), ("extreme", 5016, 8), ("medium", 5024, 8), ("gentle", 5032, 8))
+
+
+@dataclass
+class TrainCorrFlowConfig:
+    """``net_width``: the working width of the pairs (the engine resizes frames to it); ``ks``: frame
+    distances of the pairs; ``crop_candidates``: random crops drawn per sample, the one with the most moving
+    pixels kept."""
+
+    data_dir: str = "runs/flow_data"
+    pairs: str = "runs/corrflow/pairs"
+    out_dir: str = "runs/corrflow"
+    scenes: tuple = TRAIN_SCENES
+    net_width: int = 512
+    ks: tuple = (1, 2, 4)
+    seed: int = 0
+    steps: int = 4000
+    batch_size: int = 4
+    crop: tuple = (224, 320)
+    crop_candidates: int = 4
+    lr: float = 2e-4
+    weight_decay: float = 1e-5
+    gamma: float = 0.8
+    threads: int = 2
+    log_every: int = 25
+    checkpoint_every: int = 250
+    model: CorrFlowConfig = field(default_factory=CorrFlowConfig)
+    #: a folder of further rgbd-seq folders with object ids and transforms (e.g. imported Cycles renders,
+    #: ``tools/cycles_scene.py``), their pairs cached in ``<extra_data>/pairs``, drawn for a sample with
+    #: probability ``extra_share``
+    extra_data: str = ""
+    extra_share: float = 0.0
+    #: a checkpoint whose model weights start the run (fine-tuning); "" starts from a seeded initialisation
+    init_from: str = ""
+
+
+def prepare_pairs(config: TrainCorrFlowConfig, progress: bool = True) -> Path:
+    """Render the scenes of ``config.scenes`` not cached yet and build their pairs; returns the pairs folder."""
+    from models.flow.train import render_scenes  # noqa: PLC0415 (the renderer is only needed here)
+
+    for preset, first, count in config.scenes:
+        for scene in render_scenes(config.data_dir, range(first, first + count), 960, 540, 12, preset=preset):
+            t0 = time.time()
+            build_pairs(scene, Path(config.pairs), config.ks, config.net_width)
+            if progress:
+                print(f"pairs of {scene.name}: {time.time() - t0:.1f} s", flush=True)
+    if config.extra_data:
+        extra = Path(config.extra_data)
+        scenes = sorted(p for p in extra.iterdir() if (p / "sequence.json").exists()) if extra.is_dir() else []
+        if not scenes:
+            raise InputError("holds no rgbd-seq folders", file=extra, field="extra_data")
+        for scene in scenes:
+            build_pairs(scene, extra / "pairs", config.ks, config.net_width)
+    return Path(config.pairs)
+
+
+def _load_pairs(folder: Path) -> dict:
+    files = sorted(folder.glob("*.npz"))
+    if not files:
+        raise InputError("holds no pair files (.npz)", file=folder, field="pairs")
+    parts = [np.load(f) for f in files]
+    return {key: np.concatenate([p[key] for p in parts]) for key in ("a", "b", "flow", "k")}
+
+
+def _batch(sets: list, rng: np.random.Generator, config: TrainCorrFlowConfig) -> tuple[torch.Tensor, ...]:
+    """A batch from ``sets`` ([main pairs] or [main, extra]): a sample is from the extra set with probability
+    ``config.extra_share`` (no draw without one, so a run without extra data draws as before it existed)."""
+    ch, cw = config.crop
+    a, b, f = [], [], []
+    for _ in range(config.batch_size):
+        data = sets[1] if len(sets) > 1 and rng.random() < config.extra_share else sets[0]
+        total, h, w = data["a"].shape[:3]
+        i = int(rng.integers(total))
+        corners = [(int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1)))
+                   for _ in range(config.crop_candidates)]
+        motion = np.linalg.norm(np.nan_to_num(data["flow"][i].astype(np.float32)), axis=-1) > 0.5
+        y, x = max(corners, key=lambda c: int(motion[c[0]:c[0] + ch, c[1]:c[1] + cw].sum()))
+        ia = data["a"][i, y:y + ch, x:x + cw].astype(np.float32) / 255
+        ib = data["b"][i, y:y + ch, x:x + cw].astype(np.float32) / 255
+        fl = data["flow"][i, y:y + ch, x:x + cw].astype(np.float32)
+        if rng.random() < 0.5:
+            ia, ib, fl = ia[:, ::-1], ib[:, ::-1], fl[:, ::-1] * np.array([-1, 1], np.float32)
+        if rng.random() < 0.5:
+            ia, ib, fl = ia[::-1], ib[::-1], fl[::-1] * np.array([1, -1], np.float32)
+        gain = rng.uniform(0.8, 1.2, size=3).astype(np.float32)
+        ia, ib = np.clip(ia * gain, 0, 1), np.clip(ib * gain, 0, 1)
+        a.append(ia.transpose(2, 0, 1))
+        b.append(ib.transpose(2, 0, 1))
+        f.append(fl.transpose(2, 0, 1))
+    return tuple(torch.from_numpy(np.ascontiguousarray(np.stack(x))) for x in (a, b, f))
+
+
+#: truth larger than this (working-resolution pixels) is not supervised: points near the camera plane of
+#: frame n-k project to huge (or, in float16, infinite) displacements
+MAX_TRUTH = 400.0
+
+
+def valid_truth(target: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) bool: where the (B, 2, H, W) truth is finite and within ``MAX_TRUTH``."""
+    return (torch.isfinite(target) & (target.abs() < MAX_TRUTH)).all(dim=1, keepdim=True)
+
+
+def sequence_loss(flows: list, target: torch.Tensor, gamma: float) -> torch.Tensor:
+    """RAFT's loss, balanced: every iteration's L1 distance to ``target`` (mean over the two components),
+    averaged over the valid static pixels and over the valid moving ones (truth over 0.5 px) separately and
+    the two means averaged (a set without pixels left out), weighted gamma^(N-1-i). Moving pixels are a
+    tenth of a frame: unbalanced, predicting no motion is the easy minimum."""
+    valid = valid_truth(target)
+    target = torch.where(valid, target, torch.zeros_like(target))
+    moving = valid & (target.norm(dim=1, keepdim=True) > 0.5)
+    groups = [g for g in (valid & ~moving, moving) if bool(g.any())]
+    weight = sum(g / g.sum() for g in groups) / max(1, len(groups))
+    n = len(flows)
+    return sum(gamma ** (n - 1 - i) * ((flow - target).abs().mean(dim=1, keepdim=True) * weight).sum()
+               for i, flow in enumerate(flows))
+
+
+def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
+    torch.manual_seed(config.seed)
+    torch.set_num_threads(config.threads)
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = [_load_pairs(Path(config.pairs))]
+    if config.extra_data and config.extra_share > 0:
+        sets.append(_load_pairs(Path(config.extra_data) / "pairs"))
+    model = CorrFlow(config.model)
+    if config.init_from:
+        model.load_state_dict(torch.load(config.init_from, map_location="cpu", weights_only=False)["model"])
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, config.lr, total_steps=config.steps + 100, pct_start=0.05,
+                                                anneal_strategy="linear", cycle_momentum=False)
+    start, ckpt = 0, out / "checkpoint.pt"
+    if resume and ckpt.exists():
+        state = torch.load(ckpt, weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        start = state["step"]
+    cfg = asdict(config)
+    cfg["model"] = config.model.to_dict()
+    (out / "config.json").write_text(json.dumps(cfg, indent=2))
+    log = open(out / "metrics.jsonl", "a")
+    t0 = time.time()
+    for step in range(start, config.steps):
+        rng = np.random.default_rng([config.seed, step])
+        a, b, target = _batch(sets, rng, config)
+        flows = model(a, b)
+        loss = sequence_loss(flows, target, config.gamma)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        if (step + 1) % config.log_every == 0:
+            with torch.no_grad():
+                valid = valid_truth(target)[:, 0]
+                target = torch.where(valid[:, None], target, torch.zeros_like(target))
+                epe = (flows[-1] - target).norm(dim=1)[valid]
+                moving = target.norm(dim=1)[valid] > 0.5
+                row = {"step": step + 1, "loss": float(loss), "epe": float(epe.mean()),
+                       "epe_moving": float(epe[moving].mean()) if moving.any() else None,
+                       "lr": sched.get_last_lr()[0], "s": round(time.time() - t0, 1)}
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            print(row, flush=True)
+        if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps:
+            torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                        "step": step + 1, "config": cfg}, ckpt)
+    return ckpt
+
+
+def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflow_train") -> int:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default="runs/flow_data", help="where the rendered training scenes are cached")
+    parser.add_argument("--pairs", default="runs/corrflow/pairs", help="where the training pairs are cached")
+    parser.add_argument("--out", default="runs/corrflow", help="checkpoint, config.json and metrics.jsonl")
+    parser.add_argument("--steps", type=int, default=4000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
+    parser.add_argument("--pairs-only", action="store_true", help="render the scenes and build the pairs, no training")
+    parser.add_argument("--lr", type=float, default=TrainCorrFlowConfig.lr)
+    parser.add_argument("--init-from", default="", help="a checkpoint whose model weights start the run")
+    parser.add_argument("--extra-data", default="",
+                        help="a folder of rgbd-seq folders (with object ids and transforms) to train on too")
+    parser.add_argument("--extra-share", type=float, default=0.0, help="share of samples from --extra-data")
+    args = parser.parse_args(argv)
+    config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
+                                 seed=args.seed, lr=args.lr, init_from=args.init_from, extra_data=args.extra_data,
+                                 extra_share=args.extra_share)
+    try:
+        prepare_pairs(config)
+        if not args.pairs_only:
+            print(f"wrote {train(config, resume=args.resume)}")
+    except InputError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""The correlation flow network (``models.flow.corrflow``): its lookup against direct dot products, its
+reach, the training pairs and loss, and the ONNX export against torch."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from engine.predict.corrflow import working_size
+from models.flow.corrflow import CorrFlow, CorrFlowConfig
+from models.flow.corrflow_train import (MAX_TRUTH, TrainCorrFlowConfig, build_pairs, prepare_pairs, sequence_loss, train,
+                                        valid_truth)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence_dir(tmp_path_factory):
+    from engine.scenegen import SceneConfig, generate_sequence
+
+    return generate_sequence(SceneConfig(seed=7005, width=96, height=64, num_frames=4, supersample=1, fps=10.0,
+                                         object_speed=2.0), tmp_path_factory.mktemp("corr") / "seq", progress=False)
+SMALL = CorrFlowConfig(encoder_channels=(8, 8, 16), feature_channels=8, context_channels=8, hidden_channels=8,
+                       iterations=2)
+
+
+def test_lookup_level0_is_the_dot_product_at_the_offset():
+    torch.manual_seed(0)
+    model = CorrFlow(SMALL)
+    fa, fb = torch.randn(1, 8, 6, 10), torch.randn(1, 8, 6, 10)
+    pyramid = model.correlation_pyramid(fa, fb)
+    ys, xs = torch.meshgrid(torch.arange(6.0), torch.arange(10.0), indexing="ij")
+    shift = torch.tensor([2.0, -1.0])  # every cell looks 2 cells right and 1 up in b
+    coords = torch.stack([xs + shift[0], ys + shift[1]])[None]
+    taps = model.lookup(pyramid, coords)
+    r = SMALL.radius
+    side = 2 * r + 1
+    assert taps.shape == (1, SMALL.levels * side * side, 6, 10)
+    for y, x in [(3, 4), (1, 0), (5, 7)]:
+        for dy, dx in [(0, 0), (1, -2), (-1, 3)]:
+            by, bx = y - 1 + dy, x + 2 + dx
+            channel = (dy + r) * side + (dx + r)
+            inside = 0 <= by < 6 and 0 <= bx < 10
+            expected = float((fa[0, :, y, x] * fb[0, :, by, bx]).sum() / 8 ** 0.5) if inside else 0.0
+            assert float(taps[0, channel, y, x]) == pytest.approx(expected, abs=1e-5)
+
+
+def test_coarsest_level_reaches_radius_times_64_pixels():
+    model = CorrFlow(SMALL)
+    fa, fb = torch.randn(1, 8, 16, 16), torch.randn(1, 8, 16, 16)
+    pyramid = model.correlation_pyramid(fa, fb)
+    assert [p.shape[-1] for p in pyramid] == [16, 8, 4, 2]
+    assert [p.shape[-1] for p in model.correlation_pyramid(fa[..., :1, :5], fb[..., :1, :5])] == [5, 3, 2, 1]
+    # a lookup centred on cell 0 at level 3 spans +-radius cells of 8 level-0 cells = radius * 64 pixels
+    assert SMALL.radius * 2 ** (SMALL.levels - 1) * 8 == 192
+
+
+def test_forward_shapes_and_flow_units():
+    model = CorrFlow(SMALL).eval()
+    a, b = torch.rand(2, 3, 64, 96), torch.rand(2, 3, 64, 96)
+    with torch.no_grad():
+        flows = model(a, b)
+    assert len(flows) == SMALL.iterations and all(f.shape == (2, 2, 64, 96) for f in flows)
+
+
+def test_working_size():
+    assert working_size(960, 540, 512) == (512, 288)
+    assert working_size(1920, 1080, 512) == (512, 288)
+    assert working_size(4000, 3000, 512) == (512, 384)
+    assert working_size(1, 1, 512) == (512, 512)
+    assert working_size(300, 200, 512) == (512, 344)  # scaled up too; multiples of 8
+    assert working_size(8, 1000, 512) == (8, 512)  # the longer side
+
+
+def test_loss_ignores_invalid_truth():
+    target = torch.zeros(1, 2, 4, 4)
+    target[0, 0, 0, 0] = float("inf")
+    target[0, 1, 1, 1] = 2 * MAX_TRUTH
+    assert int(valid_truth(target).sum()) == 14
+    flow = torch.ones(1, 2, 4, 4)
+    assert float(sequence_loss([flow], target, 0.8)) == pytest.approx(1.0)
+    moving = target.clone()
+    moving[0, 0, 2:, :] = 4.0  # 8 moving pixels off by (3, 1), 6 valid static ones off by (1, 1)
+    assert float(sequence_loss([flow], moving, 0.8)) == pytest.approx(((3 + 1) / 2 + 1) / 2)
+    assert float(sequence_loss([flow, 0 * flow], target, 0.5)) == pytest.approx(0.5)
+
+
+def test_pairs_and_a_training_run(tmp_path, tiny_sequence_dir):
+    path = build_pairs(tiny_sequence_dir, tmp_path / "pairs", ks=(1, 2), net_width=64)
+    data = np.load(path)
+    n = len(data["k"])
+    assert data["a"].shape[0] == data["b"].shape[0] == data["flow"].shape[0] == n > 0
+    assert data["a"].dtype == np.uint8 and data["flow"].shape[-1] == 2
+    assert sorted(set(data["k"].tolist())) == [1, 2]
+    w, h = data["a"].shape[2], data["a"].shape[1]
+    config = TrainCorrFlowConfig(pairs=str(tmp_path / "pairs"), out_dir=str(tmp_path / "run"), steps=3,
+                                 batch_size=1, crop=(min(h, 32), min(w, 48)), threads=1, log_every=1,
+                                 model=SMALL)
+    checkpoint = train(config)
+    state = torch.load(checkpoint, weights_only=False)
+    assert state["step"] == 3
+    assert (tmp_path / "run" / "metrics.jsonl").read_text().count("\n") == 3
+
+
+def test_fine_tuning_with_extra_data(tmp_path, tiny_sequence_dir):
+    common = dict(pairs=str(tmp_path / "pairs"), steps=2, batch_size=2, crop=(32, 48), threads=1, model=SMALL,
+                  scenes=(), ks=(1,), net_width=64)
+    build_pairs(tiny_sequence_dir, tmp_path / "pairs", ks=(1,), net_width=64)
+    first = train(TrainCorrFlowConfig(out_dir=str(tmp_path / "a"), **common))
+    extra = TrainCorrFlowConfig(out_dir=str(tmp_path / "b"), extra_data=str(tiny_sequence_dir.parent), extra_share=0.5,
+                                init_from=str(first), lr=0.0, **common)
+    prepare_pairs(extra, progress=False)
+    assert (tiny_sequence_dir.parent / "pairs" / f"{tiny_sequence_dir.name}.npz").is_file()
+    state = torch.load(train(extra), weights_only=False)
+    assert state["step"] == 2 and state["config"]["init_from"] == str(first)
+    start = torch.load(first, weights_only=False)["model"]
+    assert all(torch.equal(start[k], v) for k, v in state["model"].items())  # lr 0: the weights it started from

@@ -24,7 +24,7 @@ import numpy as np
 
 from engine.io.rgbd import read_sequence
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
-from engine.predict.corrflow import CorrFlowNetwork
+from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from tools.heldout import write_json
 
@@ -68,7 +68,7 @@ def network_variants(network: CorrFlowNetwork) -> dict:
     medium = dis_estimator("medium")
     return {"correlation network alone": lambda c, w, ln, lw: network.estimate(c, w),
             "medium from the network (flow2d[estimator=corr])":
-                lambda c, w, ln, lw: dis_calc(medium, ln, lw, network.estimate(c, w))}
+                lambda c, w, ln, lw: dis_calc(medium, ln, lw, dis_start(network.estimate(c, w)))}
 
 
 def main(argv=None) -> None:

@@ -61,7 +61,7 @@ from engine.geometry.holefill import fill_holes
 from engine.io.rgbd import read_sequence
 from engine.predict import registry
 from engine.predict.classic import Flow2D
-from engine.predict.corrflow import CorrFlowNetwork
+from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.decomp.gate import GateConfig, gate_boxes
 from engine.predict.decomp.predictor import full_box
 from engine.predict.dis import SMALL_MOTION, confident_motion, dis_calc, luma8, trusted_motion, warp_error
@@ -337,7 +337,7 @@ class RuleFlow2D(Flow2D):
                 estimator = Precomputed(self._network.estimate(newest.color, warped))
             elif self.estimator == "corr":
                 estimator = Precomputed(dis_calc(self._dis, luma8(newest.color), luma8(warped),
-                                                 self._network.estimate(newest.color, warped)))
+                                                 dis_start(self._network.estimate(newest.color, warped))))
             flow = self.rule(estimator, luma8(newest.color), luma8(warped), seen, context)
         return self.state_of(newest, flow, timer)
 

@@ -14,7 +14,7 @@ from engine.geometry.backends.gl import GlOpticalFlow
 from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
-from engine.predict.corrflow import CorrFlowNetwork
+from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
                                 trusted_motion)
 
@@ -105,7 +105,7 @@ class Flow2D(Predictor):
             if self.estimator == "gl":
                 flow = self._gl_estimators()[0].estimate(newest.color, warped)
             elif self._corr is not None:
-                flow = dis_calc(self._dis, luma_n, luma_w, self._corr.estimate(newest.color, warped))
+                flow = dis_calc(self._dis, luma_n, luma_w, dis_start(self._corr.estimate(newest.color, warped)))
             else:
                 flow = dis_calc(self._dis, luma_n, luma_w)
         with timer("trust"):

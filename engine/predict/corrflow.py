@@ -17,10 +17,21 @@ from engine.predict.dis import encode8
 from engine.predict.onnx import open_network
 from engine.weights import CORRFLOW
 
-__all__ = ["METADATA_KEY", "working_size", "CorrFlowNetwork"]
+__all__ = ["METADATA_KEY", "MIN_MOTION", "working_size", "dis_start", "CorrFlowNetwork"]
 
 #: ONNX metadata key of the exported network (``export.corrflow``): its config and working width.
 METADATA_KEY = "interleave.corrflow"
+#: ``dis_start``: the network's motion under this many pixels of the frame is not given to DIS as its start
+#: (DIS finds small motion itself, finer than the network's 1/8-resolution estimate). Chosen on the
+#: validation sequences: docs/results/2026-11-25-corrflow.md
+MIN_MOTION = 8.0
+
+
+def dis_start(flow: np.ndarray, min_motion: Optional[float] = None) -> np.ndarray:
+    """The network's estimate (H, W, 2) as DIS's initial flow: 0 where it moves under ``min_motion`` px
+    (default ``MIN_MOTION``); a new array."""
+    limit = MIN_MOTION if min_motion is None else float(min_motion)
+    return np.where((np.einsum("hwc,hwc->hw", flow, flow) < limit * limit)[..., None], np.float32(0), flow)
 
 
 def working_size(width: int, height: int, net_width: int) -> tuple[int, int]:

@@ -8,8 +8,8 @@ import torch
 
 from engine.predict.corrflow import working_size
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
-from models.flow.corrflow_train import (MAX_TRUTH, TrainCorrFlowConfig, build_pairs, prepare_pairs, sequence_loss, train,
-                                        valid_truth)
+from models.flow.corrflow_train import (MAX_TRUTH, TrainCorrFlowConfig, build_pairs, prepare_pairs, sequence_loss,
+                                        train, valid_truth)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -13,7 +13,7 @@ import pytest
 from engine.core.errors import InputError
 from engine.predict.base import Target, Timer, warp_and_fill
 from engine.predict.classic import Flow2D
-from engine.predict.corrflow import CorrFlowNetwork
+from engine.predict.corrflow import MIN_MOTION, CorrFlowNetwork, dis_start
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from engine.predict.registry import make_predictor
 from engine.weights import CORRFLOW
@@ -57,6 +57,19 @@ def test_dis_initial_flow_on_images_smaller_than_dis_takes():
     assert flow.shape == (12, 20, 2) and np.isfinite(flow).all()
     with pytest.raises(InputError, match="initial"):
         dis_calc(dis_estimator("medium"), a, a, np.zeros((12, 21, 2), np.float32))
+
+
+def test_dis_start_keeps_only_motion_the_network_is_needed_for():
+    flow = np.zeros((2, 3, 2), np.float32)
+    flow[0, 0] = (3.0, 2.0)  # 3.6 px: DIS finds it alone
+    flow[1, 2] = (0.0, -4.0)  # at the limit: kept
+    flow[0, 1] = (30.0, 1.0)
+    start = dis_start(flow, 4.0)
+    np.testing.assert_array_equal(start[0, 0], 0)
+    np.testing.assert_array_equal(start[1, 2], (0.0, -4.0))
+    np.testing.assert_array_equal(start[0, 1], (30.0, 1.0))
+    assert flow[0, 0, 0] == 3.0 and start.dtype == np.float32
+    np.testing.assert_array_equal(dis_start(flow), dis_start(flow, MIN_MOTION))
 
 
 def test_missing_network_is_an_error_naming_the_file(tmp_path):

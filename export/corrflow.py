@@ -95,6 +95,10 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.corrflo
     parser.add_argument("out", type=Path)
     parser.add_argument("--tolerance", type=float, default=1e-2,
                         help="largest onnxruntime - torch difference accepted, in pixels of flow")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="update iterations of the graph (default: the training config's; fewer is faster)")
+    parser.add_argument("--working-width", type=int, default=None,
+                        help="longer side the engine resizes frames to (default: the training pairs' width)")
     args = parser.parse_args(argv)
     try:
         model, config = load_checkpoint(args.checkpoint)
@@ -102,7 +106,16 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.corrflo
         print(f"{prog}: error: {args.checkpoint}: not a correlation flow checkpoint ({type(exc).__name__})",
               file=sys.stderr)
         return 2
-    export_corrflow(model, args.out, int(config["net_width"]))
+    if args.iterations is not None:
+        if args.iterations < 1:
+            print(f"{prog}: error: --iterations must be >= 1, got {args.iterations}", file=sys.stderr)
+            return 2
+        model.config.iterations = args.iterations
+    width = int(config["net_width"]) if args.working_width is None else args.working_width
+    if width < 8:
+        print(f"{prog}: error: --working-width must be >= 8, got {width}", file=sys.stderr)
+        return 2
+    export_corrflow(model, args.out, width)
     diff = check_parity(args.out, model)
     print(f"wrote {args.out}; onnxruntime differs from torch by at most {diff:.2e} px")
     if diff > args.tolerance:

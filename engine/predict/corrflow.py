@@ -53,6 +53,7 @@ class CorrFlowNetwork:
                                           "correlation flow network not found (export one with python -m "
                                           "export.corrflow)")
         self.working_width = int(info["working_width"])
+        self.iterations = int(info["model"]["iterations"])  # update iterations the graph runs
 
     def estimate(self, color_n: np.ndarray, warped: np.ndarray) -> np.ndarray:
         color_n = checked_array(color_n, "color_n", ("H", "W", 3), {})

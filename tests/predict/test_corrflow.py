@@ -92,7 +92,8 @@ def test_committed_network_matches_its_checkpoint(network):
     a = cv2.resize(rng.random((18, 32, 3)).astype(np.float32), (256, 144))
     b = np.roll(a, (2, 9), axis=(0, 1))
     with torch.no_grad():
-        expected = model(*(torch.from_numpy(x).permute(2, 0, 1)[None] for x in (a, b)))[-1][0].numpy()
+        images = [torch.from_numpy(x).permute(2, 0, 1)[None] for x in (a, b)]
+        expected = model(*images, iterations=network.iterations)[-1][0].numpy()
     got = network.session.run(None, {"image_a": a.transpose(2, 0, 1)[None], "image_b": b.transpose(2, 0, 1)[None]})
     np.testing.assert_allclose(got[0][0], expected, atol=1e-3)
 
@@ -149,3 +150,20 @@ def test_flow2d_corr_through_the_registry():
     with pytest.raises(InputError, match="corr"):
         make_predictor("flow2d[estimator=raft]")
     assert CORRFLOW.is_file()
+
+
+def test_export_variants_and_a_bad_checkpoint(tmp_path, capsys):
+    pytest.importorskip("torch")
+    import onnx
+
+    from export.corrflow import main
+
+    out = tmp_path / "fewer.onnx"
+    assert main([str(CHECKPOINT), str(out), "--iterations", "2", "--working-width", "384"]) == 0
+    network = CorrFlowNetwork(out, threads=1)
+    assert network.working_width == 384 and network.iterations == 2
+    meta = {p.key: p.value for p in onnx.load(str(out)).metadata_props}
+    assert '"iterations": 2' in meta["interleave.corrflow"]
+    assert main([str(tmp_path / "missing.pt"), str(tmp_path / "x.onnx")]) == 2
+    assert "missing.pt" in capsys.readouterr().err
+    assert main([str(CHECKPOINT), str(out), "--iterations", "0"]) == 2

@@ -9,7 +9,6 @@ against torch on a random pair.
 from __future__ import annotations
 
 import argparse
-import json
 import pickle
 import sys
 from pathlib import Path
@@ -19,12 +18,12 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from engine.core.config import config_from_dict
+from engine.predict.corrflow import METADATA_KEY
+from export.flow import OPSET, write_metadata
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
 
-__all__ = ["METADATA_KEY", "load_checkpoint", "export_corrflow", "check_parity", "main"]
-
-METADATA_KEY = "interleave.corrflow"
-OPSET = 20
+__all__ = ["load_checkpoint", "export_corrflow", "check_parity", "main"]
 
 
 class _LastFlow(nn.Module):
@@ -39,7 +38,7 @@ class _LastFlow(nn.Module):
 def load_checkpoint(path: Union[str, Path]) -> tuple[CorrFlow, dict]:
     """(the network in eval mode, the training config dict) of a ``models.flow.corrflow_train`` checkpoint."""
     state = torch.load(str(path), map_location="cpu", weights_only=False)
-    model = CorrFlow(CorrFlowConfig.from_dict(state["config"]["model"]))
+    model = CorrFlow(config_from_dict(CorrFlowConfig, state["config"]["model"]))
     model.load_state_dict(state["model"])
     return model.eval(), state["config"]
 
@@ -47,8 +46,6 @@ def load_checkpoint(path: Union[str, Path]) -> tuple[CorrFlow, dict]:
 def export_corrflow(model: CorrFlow, path: Union[str, Path], working_width: int,
                     example_size: tuple[int, int] = (96, 160)) -> Path:
     """Write ``model`` to ``path`` (dynamic H, W as multiples of 8) with its metadata; returns ``path``."""
-    import onnx
-
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     h, w = example_size
@@ -61,15 +58,7 @@ def export_corrflow(model: CorrFlow, path: Union[str, Path], working_width: int,
                                     input_names=["image_a", "image_b"], output_names=["flow"],
                                     dynamic_shapes={"image_a": image, "image_b": image}, verbose=False)
     program.save(str(out))
-    proto = onnx.load(str(out))
-    for node in proto.graph.node:  # the exporter's per-node stack traces
-        node.doc_string = ""
-        del node.metadata_props[:]
-    del proto.metadata_props[:]
-    entry = proto.metadata_props.add()
-    entry.key = METADATA_KEY
-    entry.value = json.dumps({"model": model.config.to_dict(), "working_width": int(working_width)})
-    onnx.save(proto, str(out))
+    write_metadata(out, model, working_width, key=METADATA_KEY)
     return out
 
 

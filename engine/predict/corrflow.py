@@ -17,7 +17,7 @@ from engine.predict.dis import encode8
 from engine.predict.onnx import open_network
 from engine.weights import CORRFLOW
 
-__all__ = ["METADATA_KEY", "MIN_MOTION", "working_size", "dis_start", "CorrFlowNetwork"]
+__all__ = ["METADATA_KEY", "MIN_MOTION", "working_size", "network_image", "dis_start", "CorrFlowNetwork"]
 
 #: ONNX metadata key of the exported network (``export.corrflow``): its config and working width.
 METADATA_KEY = "interleave.corrflow"
@@ -42,9 +42,17 @@ def working_size(width: int, height: int, net_width: int) -> tuple[int, int]:
     return max(8, int(round(width * scale / 8)) * 8), max(8, int(round(height * scale / 8)) * 8)
 
 
+def network_image(color: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(h, w, 3) uint8: (H, W, 3) linear RGB display-encoded to 8 bits and resized to ``size`` = (w, h), by
+    area means down, bilinearly up. What the network reads (training pairs are made with it too)."""
+    w, h = size
+    interpolation = cv2.INTER_AREA if w <= color.shape[1] else cv2.INTER_LINEAR
+    return cv2.resize(encode8(color), (w, h), interpolation=interpolation)
+
+
 class CorrFlowNetwork:
     """``estimate(color_n, warped)`` -> u(n -> n-k) (H, W, 2) of the full frame: both (H, W, 3) linear RGB
-    images encoded to 8 bits, resized to ``working_size`` (area means down, bilinear up), the network's last
+    images as ``network_image`` at ``working_size``, the network's last
     estimate bilinearly resized back and scaled to full-frame pixels."""
 
     def __init__(self, path: Optional[str | Path] = None, threads: int = 2) -> None:
@@ -60,8 +68,7 @@ class CorrFlowNetwork:
         h0, w0 = color_n.shape[:2]
         warped = checked_array(warped, "warped", ("H", "W", 3), {"H": h0, "W": w0})
         w, h = working_size(w0, h0, self.working_width)
-        interpolation = cv2.INTER_AREA if w <= w0 else cv2.INTER_LINEAR
-        images = [cv2.resize(encode8(x), (w, h), interpolation=interpolation) for x in (color_n, warped)]
+        images = [network_image(x, (w, h)) for x in (color_n, warped)]
         inputs = {name: (x.astype(np.float32) / 255).transpose(2, 0, 1)[None]
                   for name, x in zip(("image_a", "image_b"), images)}
         flow = self.session.run(None, inputs)[0][0].transpose(1, 2, 0)

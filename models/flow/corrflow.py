@@ -12,7 +12,7 @@ other image, minus that centre).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -26,23 +26,13 @@ class CorrFlowConfig:
     """Widths of the encoder stages (1/2, 1/4, 1/8), feature and context channels, GRU hidden size,
     correlation pyramid levels and lookup radius (in cells of each level), update iterations."""
 
-    encoder_channels: tuple = (16, 32, 64)
+    encoder_channels: tuple[int, ...] = (16, 32, 64)
     feature_channels: int = 64
     context_channels: int = 32
     hidden_channels: int = 48
     levels: int = 4
     radius: int = 3
     iterations: int = 4
-
-    def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "CorrFlowConfig":
-        data = dict(data)
-        if "encoder_channels" in data:
-            data["encoder_channels"] = tuple(data["encoder_channels"])
-        return cls(**data)
 
 
 class _Residual(nn.Module):

@@ -16,7 +16,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -27,11 +27,16 @@ import torch
 from engine.core.errors import InputError
 from engine.io.rgbd import read_sequence
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
-from engine.predict.corrflow import working_size
-from engine.predict.dis import encode8
+from engine.core.config import config_to_dict
+from engine.predict.corrflow import network_image, working_size
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
 
 __all__ = ["TRAIN_SCENES", "build_pairs", "prepare_pairs", "TrainCorrFlowConfig", "train", "main"]
+
+
+#: truth larger than this (working-resolution pixels) is not supervised: points near the camera plane of
+#: frame n-k project to huge (or, in float16, infinite) displacements
+MAX_TRUTH = 400.0
 
 
 def build_pairs(scene: Path, out: Path, ks=(1, 2, 4), net_width: int = 512) -> Path:
@@ -53,8 +58,8 @@ def build_pairs(scene: Path, out: Path, ks=(1, 2, 4), net_width: int = 512) -> P
             truth = np.where(np.abs(truth) < 4 * MAX_TRUTH, truth, np.nan).astype(np.float32)
             truth = cv2.resize(np.ascontiguousarray(truth), (w, h), interpolation=cv2.INTER_AREA)
             truth *= np.array([w / w0, h / h0], np.float32)
-            a.append(cv2.resize(encode8(newest.color), (w, h), interpolation=cv2.INTER_AREA))
-            b.append(cv2.resize(encode8(warped), (w, h), interpolation=cv2.INTER_AREA))
+            a.append(network_image(newest.color, (w, h)))
+            b.append(network_image(warped, (w, h)))
             flows.append(truth.astype(np.float16))
             kk.append(k)
             nn_.append(n)
@@ -127,7 +132,7 @@ def _load_pairs(folder: Path) -> dict:
     if not files:
         raise InputError("holds no pair files (.npz)", file=folder, field="pairs")
     parts = [np.load(f) for f in files]
-    return {key: np.concatenate([p[key] for p in parts]) for key in ("a", "b", "flow", "k")}
+    return {key: np.concatenate([p[key] for p in parts]) for key in ("a", "b", "flow")}
 
 
 def _batch(sets: list, rng: np.random.Generator, config: TrainCorrFlowConfig) -> tuple[torch.Tensor, ...]:
@@ -156,11 +161,6 @@ def _batch(sets: list, rng: np.random.Generator, config: TrainCorrFlowConfig) ->
         b.append(ib.transpose(2, 0, 1))
         f.append(fl.transpose(2, 0, 1))
     return tuple(torch.from_numpy(np.ascontiguousarray(np.stack(x))) for x in (a, b, f))
-
-
-#: truth larger than this (working-resolution pixels) is not supervised: points near the camera plane of
-#: frame n-k project to huge (or, in float16, infinite) displacements
-MAX_TRUTH = 400.0
 
 
 def valid_truth(target: torch.Tensor) -> torch.Tensor:
@@ -204,8 +204,7 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         start = state["step"]
-    cfg = asdict(config)
-    cfg["model"] = config.model.to_dict()
+    cfg = config_to_dict(config)
     (out / "config.json").write_text(json.dumps(cfg, indent=2))
     log = open(out / "metrics.jsonl", "a")
     t0 = time.time()

@@ -140,11 +140,12 @@ def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, t
     frame but the first gets motion vectors to the frame before it in this list, as a renderer drawing only
     these frames writes them (``history_motion_vectors``)."""
     history = [sequence[older], sequence[newest]]
+    first = 2 * older - newest
     if with_vectors:
         history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1])
-        first = 2 * older - newest
-        if three and first >= 0:
-            history.insert(0, sequence[first])
+    if three and first >= 0:
+        history.insert(0, sequence[first])
+        if with_vectors:
             history[1].motion_vectors = history_motion_vectors(sequence, first, older, history[1])
     return history
 

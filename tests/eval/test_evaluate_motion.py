@@ -9,7 +9,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
-from engine.eval.protocol import evaluate_sequence, history_motion_vectors
+from engine.eval.protocol import evaluate_sequence, history_motion_vectors, rendered_history
 from engine.geometry.motion import rigid_motion_vectors
 from engine.io.rgbd import read_sequence, write_sequence
 from tests.synthetic import two_layer_sequence
@@ -55,3 +55,12 @@ def test_mvec_on_a_sequence_without_vectors_or_objects_names_it(tmp_path: Path) 
         evaluate_sequence(seq, ["mvec"], 2, with_flip=False)
     assert err.value.field.startswith("motion") and "seq" in str(err.value)
     assert evaluate_sequence(seq, ["auto"], 2, with_flip=False, max_groups=1)[0].method == "auto"  # flow2d here
+
+
+def test_rendered_history_gives_frame_n_minus_2k_with_or_without_vectors(tmp_path: Path) -> None:
+    seq = _sequence(tmp_path, vectors=False, objects=False)
+    assert [f.index for f in rendered_history(seq, 4, 6, with_vectors=False, three=True)] == [2, 4, 6]
+    assert [f.index for f in rendered_history(seq, 4, 6, with_vectors=False, three=False)] == [4, 6]
+    assert [f.index for f in rendered_history(seq, 1, 3, with_vectors=False, three=True)] == [1, 3]  # no frame -1
+    with_vectors = rendered_history(_sequence(tmp_path, "v"), 4, 6, with_vectors=True, three=True)
+    assert [f.index for f in with_vectors] == [2, 4, 6] and with_vectors[1].motion_vectors is not None

@@ -13,7 +13,7 @@ import numpy as np
 
 from engine.core.checks import checked_array, checked_matrix
 from engine.core.errors import InputError
-from engine.core.frames import Camera
+from engine.core.frames import MAX_MOTION_DIAGONALS, Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
@@ -69,7 +69,9 @@ def rigid_motion_vectors(depth: np.ndarray, camera: Camera, previous: Camera,
 
     Returns:
         float32 vectors in pixels (x right, y down) from each pixel centre to where its surface point was;
-        NaN where that point is behind (or on) the earlier camera's plane.
+        NaN where that point is behind (or on) the earlier camera's plane, or so close to that plane that it
+        projects more than ``MAX_MOTION_DIAGONALS`` frame diagonals away (no screen position: the rgbd-seq
+        format refuses such vectors as a unit error; an object brushing past the camera makes them).
     """
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
@@ -95,6 +97,8 @@ def rigid_motion_vectors(depth: np.ndarray, camera: Camera, previous: Camera,
     for mask, transform in groups:
         if mask.any():
             out[mask] = _vectors_of(rays[mask], d[mask], camera, previous, transform, u[mask], v[mask])
+    with np.errstate(invalid="ignore"):
+        out[np.abs(out).max(axis=1) > MAX_MOTION_DIAGONALS * np.hypot(h, w)] = np.nan
     return out.reshape(h, w, 2).astype(np.float32)
 
 

@@ -57,6 +57,22 @@ def test_a_point_behind_the_previous_camera_has_no_vector():
     assert np.isnan(vectors).all()
 
 
+def test_a_point_at_the_previous_cameras_plane_has_no_vector():
+    # an object brushing past the camera: in the previous frame a point lay 1e-7 in front of its plane, 2 units
+    # to the side, which projects 8e8 px away: no screen position (and the rgbd-seq format refuses such vectors)
+    depth = np.full((H, W), 5.0, np.float32)
+    ids = np.zeros((H, W), np.int32)
+    ids[:, :8] = 1
+    cam = _camera()
+    motion = np.eye(4)
+    motion[:3, 3] = [2.0, 0.0, 1e-7 - 5.0]  # every point of the object was at z = 1e-7 (x about 2 units off)
+    vectors = rigid_motion_vectors(depth, cam, cam, ids, {1: motion})
+    assert np.isnan(vectors[:, :8]).all()
+    np.testing.assert_allclose(vectors[:, 8:], 0.0, atol=1e-6)  # the static rest keeps its vectors
+    motion[2, 3] = 0.5 - 5.0  # at z = 0.5 it is a long vector, not a missing one
+    assert np.isfinite(rigid_motion_vectors(depth, cam, cam, ids, {1: motion})).all()
+
+
 def test_composing_two_steps_equals_the_direct_vectors_on_a_plane():
     depth = np.full((H, W), 4.0, np.float32)
     a, b, c = _camera(t=(0.0, 0.0, 0.0)), _camera(t=(-0.1, 0.0, 0.0)), _camera(t=(-0.25, 0.0, 0.0))

@@ -1,10 +1,11 @@
 """Export ``models.flow.corrflow.CorrFlow`` to ONNX for the engine's ``flow2d[estimator=corr]``.
 
 ``python -m export.corrflow CHECKPOINT OUT.onnx`` writes the graph (opset 20, dynamo exporter; dynamic
-height and width, multiples of 8) with inputs ``image_a``, ``image_b`` (1, 3, H, W) display-encoded sRGB in
-[0, 1] and output ``flow`` (1, 2, H, W) pixels a -> b, the last iteration's estimate, and stores the network
-config and its working width under the metadata key ``interleave.corrflow``; then checks onnxruntime
-against torch on a random pair.
+height and width, multiples of 8) with inputs ``image_a``, ``image_b`` (1, C, H, W) display-encoded sRGB in
+[0, 1] (C = 3), plus the depth code for an RGB-D network (C = 4, ``CorrFlowConfig.depth``), and output
+``flow`` (1, 2, H, W) pixels a -> b, the last iteration's estimate, and stores the network config and its
+working width under the metadata key ``interleave.corrflow``; then checks onnxruntime against torch on a
+random pair.
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ class _LastFlow(nn.Module):
         self.model = model
 
     def forward(self, image_a: Tensor, image_b: Tensor) -> Tensor:
-        return self.model(image_a, image_b)[-1]
+        return self.model(image_a, image_b, every_iteration=False)[-1]
 
 
 def load_checkpoint(path: Union[str, Path]) -> tuple[CorrFlow, dict]:
@@ -49,7 +50,8 @@ def export_corrflow(model: CorrFlow, path: Union[str, Path], working_width: int,
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     h, w = example_size
-    inputs = (torch.rand(1, 3, h, w), torch.rand(1, 3, h, w))
+    c = model.config.in_channels
+    inputs = (torch.rand(1, c, h, w), torch.rand(1, c, h, w))
     rows = torch.export.Dim("rows", min=2, max=1024)
     cols = torch.export.Dim("cols", min=2, max=1024)
     image = {2: 8 * rows, 3: 8 * cols}
@@ -68,7 +70,7 @@ def check_parity(path: Union[str, Path], model: CorrFlow, size: tuple[int, int] 
 
     rng = np.random.default_rng(seed)
     h, w = size
-    base = rng.random((1, 3, h // 8, w // 8)).astype(np.float32)
+    base = rng.random((1, model.config.in_channels, h // 8, w // 8)).astype(np.float32)
     a = torch.nn.functional.interpolate(torch.from_numpy(base), size=(h, w), mode="bilinear", align_corners=False)
     b = torch.roll(a, shifts=(3, 11), dims=(2, 3))
     with torch.no_grad():

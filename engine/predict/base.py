@@ -28,7 +28,7 @@ from engine.geometry.holefill import fill_holes
 from engine.geometry.motion import extrapolated_flow
 
 __all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
-           "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames"]
+           "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
 
 
 @dataclass(frozen=True)
@@ -199,14 +199,23 @@ def warp_and_fill(frame: Frame, target: Target, timer: Timer,
                   flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and
     fill the holes (``engine.geometry.holefill``); stages ``warp`` and ``fill``. Returns (colour, holes)."""
+    color, _, holes = warp_fill_depth(frame, target, timer, flow)
+    return color, holes
+
+
+def warp_fill_depth(frame: Frame, target: Target, timer: Timer,
+                    flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``warp_and_fill`` that also returns the warped planar depth (H, W), filled as the colour is (+inf where
+    nothing was left to fill from): (colour, depth, holes). For frame n-k and frame n's camera this is the
+    camera-compensated frame n-k that the flow estimators match frame n against."""
     src, dst = frame.camera, target.camera
     with timer("warp"):
         color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera,
                                                           flow)
     with timer("fill"):
-        color, _ = fill_holes(color, depth, holes, frame.color)
-    return color, holes
+        color, depth = fill_holes(color, depth, holes, frame.color)
+    return color, depth, holes
 
 
 def extrapolation_factor(state: PreparedState, target: Target) -> float:

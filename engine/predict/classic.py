@@ -13,7 +13,7 @@ from engine.core.frames import SceneObject
 from engine.geometry.backends.gl import GlOpticalFlow
 from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
-                                 true_object_flow)
+                                 true_object_flow, warp_fill_depth)
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
                                 trusted_motion)
@@ -66,7 +66,9 @@ class Flow2D(Predictor):
     estimates the remaining (object) motion from frame n to the warped n-k on 8-bit sRGB luma (``estimator``:
     ``dis``, OpenCV's DIS with a ``preset``, or ``gl``, the pyramidal DIS-style flow of
     ``engine.geometry.backends.gl.flow`` on the GPU: on the ``gl`` backend the whole preparation, trust rules
-    included, then runs there without a readback; docs/results/2026-11-25-gl-flow.md); the
+    included, then runs there without a readback; docs/results/2026-11-25-gl-flow.md; or ``corr``, DIS started
+    from the correlation network's estimate, ``engine.predict.corrflow``: the committed network or ``network``,
+    an exported one, which reads both frames' depths too when it was trained on RGB-D); the
     flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
     forward-warped by that 2D flow plus the target camera's motion. The flow is 0 (the camera-only warp)
     where frame n-k did not see the surface and where a motion under a pixel does not explain frame n better
@@ -77,13 +79,17 @@ class Flow2D(Predictor):
     history_needed = 2
     backends = ("cpu", "gl")
 
-    def __init__(self, preset: str = "medium", estimator: str = "dis") -> None:
+    def __init__(self, preset: str = "medium", estimator: str = "dis", network: str = "") -> None:
         if estimator not in ESTIMATORS:
             raise InputError(f"must be one of {', '.join(ESTIMATORS)}, got {estimator!r}", field="estimator")
+        if network and estimator != "corr":
+            raise InputError(f"a network is read by estimator=corr only, got estimator={estimator}", field="network")
         self.estimator = estimator
         self._dis = dis_estimator(preset)
         self._gl: Optional[tuple] = None
-        self._corr: Optional[CorrFlowNetwork] = CorrFlowNetwork() if estimator == "corr" else None
+        self._corr: Optional[CorrFlowNetwork] = None
+        if estimator == "corr":
+            self._corr = CorrFlowNetwork(network or None)
 
     def _gl_estimators(self) -> tuple:
         """(GlOpticalFlow, GlTrust) of this predictor, made on first use."""
@@ -98,14 +104,19 @@ class Flow2D(Predictor):
             flow = self.frames.estimate_flow_back(self.frames.resident(older, timer), frame, *self._gl_estimators(),
                                                   timer)
             return Flow2DState(None, frame, flow)
-        warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer),
-                                              Target(newest.camera, newest.time, newest.index), timer)
+        target = Target(newest.camera, newest.time, newest.index)
+        depth_w = None
+        if self._corr is not None and self._corr.depth:  # an RGB-D network also reads the warp's depth
+            warped, depth_w, _ = warp_fill_depth(older, target, timer)
+        else:
+            warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer), target, timer)
         luma_n, luma_w = luma8(newest.color), luma8(warped)
         with timer("flow"):
             if self.estimator == "gl":
                 flow = self._gl_estimators()[0].estimate(newest.color, warped)
             elif self._corr is not None:
-                flow = dis_calc(self._dis, luma_n, luma_w, dis_start(self._corr.estimate(newest.color, warped)))
+                start = self._corr.estimate(newest.color, warped, newest.depth, depth_w)
+                flow = dis_calc(self._dis, luma_n, luma_w, dis_start(start))
             else:
                 flow = dis_calc(self._dis, luma_n, luma_w)
         with timer("trust"):

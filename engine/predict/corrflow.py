@@ -2,7 +2,9 @@
 frame n and the camera-compensated frame n-k, at the network's working width, for ``flow2d[estimator=corr]``.
 
 Flows are (H, W, 2) float32 pixels of the full frame, u(n -> n-k) (du, dv), pixel centres at +0.5; colours
-are linear RGB, display-encoded to 8 bits (``engine.predict.dis.encode8``) before the network reads them.
+are linear RGB, display-encoded to 8 bits (``engine.predict.dis.encode8``) before the network reads them. A
+network trained on RGB-D (its config's ``depth``) also reads both frames' planar depths (+inf for sky) as
+``depth_code``s against frame n's median depth: scale-free, 8 bits like the colours.
 """
 from __future__ import annotations
 
@@ -13,11 +15,13 @@ import cv2
 import numpy as np
 
 from engine.core.checks import checked_array
+from engine.core.errors import InputError
 from engine.predict.dis import encode8
 from engine.predict.onnx import open_network
 from engine.weights import CORRFLOW
 
-__all__ = ["METADATA_KEY", "MIN_MOTION", "working_size", "network_image", "dis_start", "CorrFlowNetwork"]
+__all__ = ["METADATA_KEY", "MIN_MOTION", "DEPTH_SPAN", "working_size", "network_image", "depth_reference",
+           "depth_code", "network_depth", "dis_start", "CorrFlowNetwork"]
 
 #: ONNX metadata key of the exported network (``export.corrflow``): its config and working width.
 METADATA_KEY = "interleave.corrflow"
@@ -25,6 +29,9 @@ METADATA_KEY = "interleave.corrflow"
 #: (DIS finds small motion itself, finer than the network's 1/8-resolution estimate). Chosen on the
 #: validation sequences: docs/results/2026-11-25-corrflow.md
 MIN_MOTION = 8.0
+#: ``depth_code``: natural-log depth units either side of the reference depth that the code spans (a factor of
+#: e^3 = 20 nearer or farther; beyond, the code saturates)
+DEPTH_SPAN = 3.0
 
 
 def dis_start(flow: np.ndarray, min_motion: Optional[float] = None) -> np.ndarray:
@@ -50,9 +57,35 @@ def network_image(color: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(encode8(color), (w, h), interpolation=interpolation)
 
 
+def depth_reference(depth: np.ndarray) -> float:
+    """The depth the codes of a pair are relative to: the median finite, positive depth of frame n (sampled
+    every 4th row and column), 1 when there is none (all sky)."""
+    sample = depth[::4, ::4]
+    sample = sample[np.isfinite(sample) & (sample > 0)]
+    return float(np.median(sample)) if sample.size else 1.0
+
+
+def depth_code(depth: np.ndarray, reference: float) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: 0.5 + ln(depth / reference) / (2 ``DEPTH_SPAN``), clipped; sky (+inf) is 1.
+    Scale-free (a scene scaled with its reference codes alike) and uniform in log depth."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        code = 0.5 + np.log(np.maximum(depth, 1e-30) / reference) / (2.0 * DEPTH_SPAN)
+    return np.clip(np.where(np.isnan(code), 1.0, code), 0.0, 1.0).astype(np.float32)
+
+
+def network_depth(depth: np.ndarray, reference: float, size: tuple[int, int]) -> np.ndarray:
+    """(h, w) uint8: ``depth_code`` of (H, W) planar depth resized to ``size`` = (w, h) as ``network_image``
+    resizes colour (area means down, bilinear up)."""
+    w, h = size
+    interpolation = cv2.INTER_AREA if w <= depth.shape[1] else cv2.INTER_LINEAR
+    code = cv2.resize(depth_code(depth, reference), (w, h), interpolation=interpolation)
+    return np.rint(np.clip(code, 0.0, 1.0) * 255).astype(np.uint8)
+
+
 class CorrFlowNetwork:
-    """``estimate(color_n, warped)`` -> u(n -> n-k) (H, W, 2) of the full frame: both (H, W, 3) linear RGB
-    images as ``network_image`` at ``working_size``, the network's last
+    """``estimate(color_n, warped, depth_n, depth_w)`` -> u(n -> n-k) (H, W, 2) of the full frame: both
+    (H, W, 3) linear RGB images as ``network_image`` at ``working_size`` (and, for a network with ``depth``,
+    both (H, W) planar depths as ``network_depth`` against ``depth_reference(depth_n)``), the network's last
     estimate bilinearly resized back and scaled to full-frame pixels."""
 
     def __init__(self, path: Optional[str | Path] = None, threads: int = 2) -> None:
@@ -62,13 +95,24 @@ class CorrFlowNetwork:
                                           "export.corrflow)")
         self.working_width = int(info["working_width"])
         self.iterations = int(info["model"]["iterations"])  # update iterations the graph runs
+        self.depth = bool(info["model"].get("depth", False))  # the network reads RGB-D
 
-    def estimate(self, color_n: np.ndarray, warped: np.ndarray) -> np.ndarray:
-        color_n = checked_array(color_n, "color_n", ("H", "W", 3), {})
+    def estimate(self, color_n: np.ndarray, warped: np.ndarray, depth_n: Optional[np.ndarray] = None,
+                 depth_w: Optional[np.ndarray] = None) -> np.ndarray:
+        sizes: dict = {}
+        color_n = checked_array(color_n, "color_n", ("H", "W", 3), sizes)
         h0, w0 = color_n.shape[:2]
-        warped = checked_array(warped, "warped", ("H", "W", 3), {"H": h0, "W": w0})
+        warped = checked_array(warped, "warped", ("H", "W", 3), sizes)
         w, h = working_size(w0, h0, self.working_width)
         images = [network_image(x, (w, h)) for x in (color_n, warped)]
+        if self.depth:
+            if depth_n is None or depth_w is None:
+                raise InputError(f"the network {self.path.name} reads RGB-D: give both frames' depths",
+                                 file=self.path, field="depth")
+            depth_n = checked_array(depth_n, "depth_n", ("H", "W"), sizes)
+            depth_w = checked_array(depth_w, "depth_w", ("H", "W"), sizes)
+            reference = depth_reference(depth_n)
+            images = [np.dstack([x, network_depth(d, reference, (w, h))]) for x, d in zip(images, (depth_n, depth_w))]
         inputs = {name: (x.astype(np.float32) / 255).transpose(2, 0, 1)[None]
                   for name, x in zip(("image_a", "image_b"), images)}
         flow = self.session.run(None, inputs)[0][0].transpose(1, 2, 0)

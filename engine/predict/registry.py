@@ -3,7 +3,8 @@
 A name may carry options in brackets: ``decomp`` and ``decomp2d`` take ``DecompConfig``'s (through
 ``engine.core.config.config_from_text``: ``decomp[flow_width=240,gate.tile=16]``) and ``motion=truth``, the
 true object motion instead of the estimated one (``DecompTrueMotion``, the bound of thesis Table 6.3);
-``flow2d`` its DIS preset and its flow estimator, ``flow2d[preset=fast]``, ``flow2d[estimator=gl]``; ``mvec`` its
+``flow2d`` its DIS preset, its flow estimator and the correlation network of ``estimator=corr``,
+``flow2d[preset=fast]``, ``flow2d[estimator=gl]``, ``flow2d[estimator=corr,network=my.onnx]``; ``mvec`` its
 ``MvecConfig``, ``mvec[undilate=true]``.
 ``auto`` is not a predictor but a choice made where frames arrive (``resolve_auto``): ``mvec`` for frames
 that carry the renderer's motion vectors, ``flow2d`` for frames that do not (``decomp`` scores as ``flow2d``
@@ -125,7 +126,8 @@ def make_predictor(name: str, objects: Sequence[SceneObject] = (), backend: str 
 
     ``decomp`` and ``decomp2d`` take options of ``engine.predict.decomp.predictor.DecompConfig`` and
     ``motion=truth`` in brackets, e.g. ``decomp[flow_width=240,gate.tile=16]``; ``flow2d`` its DIS preset,
-    ``flow2d[preset=fast]``, its estimator ``flow2d[estimator=gl]`` (the GPU's optical flow). ``backend``
+    ``flow2d[preset=fast]``, its estimator ``flow2d[estimator=gl]`` (the GPU's optical flow) and, for
+    ``estimator=corr``, the correlation network ``flow2d[estimator=corr,network=PATH.onnx]``. ``backend``
     (``auto``, ``cpu``, ``gl``: :func:`use_backend`) is where its warps run.
     """
     return use_backend(_make_predictor(name, objects), backend)
@@ -168,14 +170,16 @@ def _make_predictor(name: str, objects: Sequence[SceneObject]) -> Predictor:
         options = {}
         for part in option_parts(rest[:-1]):
             key, _, value = part.partition("=")
-            if key.strip() not in ("preset", "estimator"):
-                raise InputError(f"method '{name}': flow2d takes preset (ultrafast, fast, medium) and estimator "
-                                 f"(dis, gl)", field="methods")
+            if key.strip() not in ("preset", "estimator", "network"):
+                raise InputError(f"method '{name}': flow2d takes preset (ultrafast, fast, medium), estimator "
+                                 f"(dis, gl, corr) and network (an exported correlation flow network, with "
+                                 f"estimator=corr)", field="methods")
             options[key.strip()] = value.strip()
         return Flow2D(**options)
     if base not in DECOMP_WEIGHTS or not rest.endswith("]"):
         raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.predict.decomp.predictor."
-                         f"DecompConfig), mvec (MvecConfig) and flow2d (preset=..., estimator=...) take options, as "
+                         f"DecompConfig), mvec (MvecConfig) and flow2d (preset=..., estimator=..., network=...) take "
+                         f"options, as "
                          f"decomp[key=value,...]",
                          field="methods")
     return make_decomp(DECOMP_WEIGHTS[base], rest[:-1], objects)

@@ -6,7 +6,10 @@ correlation of every 1/8-resolution feature of frame n with every one of the oth
 4-level pyramid, is looked up around the current estimate by a recurrent update, so a lookup of radius
 ``radius`` at level 3 reaches ``radius * 64`` pixels of the working resolution.
 
-Conventions: images (B, 3, H, W) display-encoded sRGB in [0, 1], H and W multiples of 8; flow (B, 2, H, W)
+Conventions: images (B, 3, H, W) display-encoded sRGB in [0, 1], or (B, 4, H, W) with the depth code of
+``engine.predict.corrflow.depth_code`` as a fourth channel (``CorrFlowConfig.depth``: RGB-D frames, frame n's
+depth and the camera-compensated frame n-k's, both coded against frame n's median depth), H and W multiples
+of 8; flow (B, 2, H, W)
 in pixels of the input, (du, dv), pixel centres at +0.5 (a pixel's flow is where its centre lies in the
 other image, minus that centre).
 """
@@ -24,7 +27,9 @@ __all__ = ["CorrFlowConfig", "CorrFlow"]
 @dataclass
 class CorrFlowConfig:
     """Widths of the encoder stages (1/2, 1/4, 1/8), feature and context channels, GRU hidden size,
-    correlation pyramid levels and lookup radius (in cells of each level), update iterations."""
+    correlation pyramid levels and lookup radius (in cells of each level), update iterations; ``depth``: the
+    images carry a fourth channel, the depth code; ``convex_upsampling``: a learned upsampling of the 1/8
+    estimate."""
 
     encoder_channels: tuple[int, ...] = (16, 32, 64)
     feature_channels: int = 64
@@ -33,6 +38,15 @@ class CorrFlowConfig:
     levels: int = 4
     radius: int = 3
     iterations: int = 4
+    depth: bool = False
+    #: RAFT's convex upsampling: each pixel's flow a learned convex combination of the 3 x 3 cells around its
+    #: own (sharp at motion boundaries), instead of the bilinear x8 of the 1/8 estimate
+    convex_upsampling: bool = False
+
+    @property
+    def in_channels(self) -> int:
+        """Channels of each input image: sRGB, plus the depth code with ``depth``."""
+        return 4 if self.depth else 3
 
 
 class _Residual(nn.Module):
@@ -52,9 +66,9 @@ class _Encoder(nn.Module):
     """Three stride-2 stages to 1/8 resolution, instance-normalised; the 1/4 and 1/8 stages are followed by
     a residual block."""
 
-    def __init__(self, widths: tuple) -> None:
+    def __init__(self, widths: tuple, in_channels: int = 3) -> None:
         super().__init__()
-        layers, c_in = [], 3
+        layers, c_in = [], in_channels
         for i, c in enumerate(widths):
             layers += [nn.Conv2d(c_in, c, 5 if i == 0 else 3, stride=2, padding=2 if i == 0 else 1),
                        nn.InstanceNorm2d(c), nn.ReLU(inplace=True)] + ([_Residual(c)] if i else [])
@@ -92,15 +106,32 @@ class _Update(nn.Module):
 
 class CorrFlow(nn.Module):
     """``forward(image_a, image_b)`` -> list of (B, 2, H, W) flows a -> b in input pixels, one per iteration
-    (the last is the estimate; training supervises all). Images (B, 3, H, W) in [0, 1], H, W multiples of 8."""
+    (the last is the estimate; training supervises all; ``every_iteration=False``: the last only, as the
+    engine runs it). Images (B, ``config.in_channels``, H, W) in [0, 1],
+    H, W multiples of 8."""
 
     def __init__(self, config: CorrFlowConfig = CorrFlowConfig()) -> None:
         super().__init__()
         self.config = config
-        self.encoder = _Encoder(config.encoder_channels)
+        self.encoder = _Encoder(config.encoder_channels, config.in_channels)
         self.features = nn.Conv2d(config.encoder_channels[-1], config.feature_channels, 1)
         self.context = nn.Conv2d(config.encoder_channels[-1], config.hidden_channels + config.context_channels, 1)
         self.update = _Update(config)
+        if config.convex_upsampling:
+            self.mask = nn.Sequential(nn.Conv2d(config.hidden_channels, 64, 3, padding=1), nn.ReLU(inplace=True),
+                                      nn.Conv2d(64, 9 * 64, 1))
+
+    @staticmethod
+    def convex_upsample(flow: Tensor, mask: Tensor) -> Tensor:
+        """(B, 2, 8h, 8w) pixels from ``flow`` (B, 2, h, w) in 1/8 cells: each of a cell's 8 x 8 pixels a convex
+        combination (softmax of ``mask`` (B, 9 * 64, h, w) over the 9 taps) of the 3 x 3 cells around it
+        (edge cells replicated)."""
+        b, _, h, w = flow.shape
+        weights = torch.softmax(mask.reshape(b, 1, 9, 8, 8, h, w), dim=2)
+        padded = F.pad(8.0 * flow, (1, 1, 1, 1), mode="replicate")
+        taps = torch.stack([padded[:, :, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)], dim=2)
+        up = (weights * taps.reshape(b, 2, 9, 1, 1, h, w)).sum(dim=2)  # (B, 2, 8 (rows), 8 (cols), h, w)
+        return up.permute(0, 1, 4, 2, 5, 3).reshape(b, 2, 8 * h, 8 * w)
 
     def correlation_pyramid(self, fa: Tensor, fb: Tensor) -> list[Tensor]:
         """Levels of (B * h * w, 1, h_l, w_l): every cell of a against all of b, average-pooled by 2 per level."""
@@ -131,7 +162,8 @@ class CorrFlow(nn.Module):
             out.append(sampled.reshape(b, h, w, -1).permute(0, 3, 1, 2))
         return torch.cat(out, dim=1)
 
-    def forward(self, image_a: Tensor, image_b: Tensor, iterations: int | None = None) -> list[Tensor]:
+    def forward(self, image_a: Tensor, image_b: Tensor, iterations: int | None = None,
+                every_iteration: bool = True) -> list[Tensor]:
         b, _, height, width = image_a.shape
         trunk = self.encoder(torch.cat([image_a, image_b], dim=0) * 2 - 1)
         both = self.features(trunk)
@@ -145,8 +177,14 @@ class CorrFlow(nn.Module):
         base = torch.stack([xs, ys])[None].expand(b, 2, h, w)
         flow = torch.zeros_like(base)  # in 1/8 cells
         flows = []
-        for _ in range(iterations or self.config.iterations):
+        count = iterations or self.config.iterations
+        for i in range(count):
             hidden, delta = self.update(hidden, context, self.lookup(pyramid, base + flow), flow)
             flow = flow + delta
-            flows.append(8.0 * F.interpolate(flow, size=(height, width), mode="bilinear", align_corners=False))
+            if not every_iteration and i < count - 1:
+                continue
+            if self.config.convex_upsampling:
+                flows.append(self.convex_upsample(flow, 0.25 * self.mask(hidden)))
+            else:
+                flows.append(8.0 * F.interpolate(flow, size=(height, width), mode="bilinear", align_corners=False))
         return flows

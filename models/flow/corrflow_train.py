@@ -5,9 +5,10 @@ models.flow.corrflow_train``) renders the training scenes not cached yet (``Trai
 preset, first seed, count; 960 x 540, 12 frames, into ``runs/flow_data`` as ``models.flow.train`` does),
 builds the training pairs once, then trains. A pair is, for a scene, a k of ``ks`` and a frame n >= k:
 frame n and frame n-k warped into frame n's view with its holes filled (what ``flow2d`` matches:
-``engine.predict.base.warp_and_fill``), both display-encoded to 8 bits, and the true u(n -> n-k)
-(``engine.predict.base.true_object_flow``), all resized to the working width (flow area-averaged and
-scaled). Training is a function of the seed only (pairs, crops, flips and gains drawn from ``numpy``
+``engine.predict.base.warp_and_fill``), both display-encoded to 8 bits, their depths as 8-bit depth codes
+(``engine.predict.corrflow.network_depth``; read by a network with ``model.depth``), and the true
+u(n -> n-k) (``engine.predict.base.true_object_flow``), all resized to the working width (flow
+area-averaged and scaled). Training is a function of the seed only (pairs, crops, flips and gains drawn from ``numpy``
 generators seeded per step).
 """
 from __future__ import annotations
@@ -26,12 +27,13 @@ import torch
 
 from engine.core.errors import InputError
 from engine.io.rgbd import read_sequence
-from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
 from engine.core.config import config_to_dict
-from engine.predict.corrflow import network_image, working_size
+from engine.predict.base import Target, Timer, true_object_flow, warp_fill_depth
+from engine.predict.corrflow import depth_reference, network_depth, network_image, working_size
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
 
-__all__ = ["TRAIN_SCENES", "build_pairs", "prepare_pairs", "TrainCorrFlowConfig", "train", "main"]
+__all__ = ["TRAIN_SCENES", "PAIR_KEYS", "build_pairs", "extra_pairs", "prepare_pairs", "TrainCorrFlowConfig",
+           "load_start_weights", "train", "main"]
 
 
 #: truth larger than this (working-resolution pixels) is not supervised: points near the camera plane of
@@ -39,33 +41,45 @@ __all__ = ["TRAIN_SCENES", "build_pairs", "prepare_pairs", "TrainCorrFlowConfig"
 MAX_TRUTH = 400.0
 
 
+#: arrays of a pair file; a file without one of them (an older cache) is built again
+PAIR_KEYS = ("a", "b", "da", "db", "flow", "k", "n")
+
+
 def build_pairs(scene: Path, out: Path, ks=(1, 2, 4), net_width: int = 512) -> Path:
-    """The pairs of one scene folder as ``out/<scene>.npz`` (``a``, ``b``: (P, h, w, 3) uint8; ``flow``:
-    (P, h, w, 2) float16 working-resolution pixels; ``k``, ``n``: (P,)), written once."""
+    """The pairs of one scene folder as ``out/<scene>.npz`` (``a``, ``b``: (P, h, w, 3) uint8 colours of frame
+    n and of the camera-compensated frame n-k; ``da``, ``db``: (P, h, w) uint8 their depth codes against
+    frame n's median depth; ``flow``: (P, h, w, 2) float16 working-resolution pixels; ``k``, ``n``: (P,)),
+    written once."""
     path = out / f"{scene.name}.npz"
     if path.exists():
-        return path
+        with np.load(path) as existing:
+            if set(PAIR_KEYS) <= set(existing.files):
+                return path
     seq = read_sequence(scene)
     objects = {o.id: o for o in seq.objects}
     h0, w0 = seq[0].depth.shape
     w, h = working_size(w0, h0, net_width)
-    a, b, flows, kk, nn_ = [], [], [], [], []
+    a, b, da, db, flows, kk, nn_ = [], [], [], [], [], [], []
     for k in ks:
         for n in range(k, len(seq)):
             older, newest = seq[n - k], seq[n]
-            warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), Timer())
+            warped, depth_w, _ = warp_fill_depth(older, Target(newest.camera, newest.time, newest.index), Timer())
+            reference = depth_reference(newest.depth)
             truth = true_object_flow(newest, objects, n - k)[..., :2] if objects else np.zeros((h0, w0, 2), np.float32)
             truth = np.where(np.abs(truth) < 4 * MAX_TRUTH, truth, np.nan).astype(np.float32)
             truth = cv2.resize(np.ascontiguousarray(truth), (w, h), interpolation=cv2.INTER_AREA)
             truth *= np.array([w / w0, h / h0], np.float32)
             a.append(network_image(newest.color, (w, h)))
             b.append(network_image(warped, (w, h)))
+            da.append(network_depth(newest.depth, reference, (w, h)))
+            db.append(network_depth(depth_w, reference, (w, h)))
             flows.append(truth.astype(np.float16))
             kk.append(k)
             nn_.append(n)
     out.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, a=np.stack(a), b=np.stack(b), flow=np.stack(flows), k=np.array(kk), n=np.array(nn_))
+    np.savez(tmp, a=np.stack(a), b=np.stack(b), da=np.stack(da), db=np.stack(db), flow=np.stack(flows),
+             k=np.array(kk), n=np.array(nn_))
     tmp.rename(path)
     return path
 
@@ -99,12 +113,19 @@ class TrainCorrFlowConfig:
     checkpoint_every: int = 250
     model: CorrFlowConfig = field(default_factory=CorrFlowConfig)
     #: a folder of further rgbd-seq folders with object ids and transforms (e.g. imported Cycles renders,
-    #: ``tools/cycles_scene.py``), their pairs cached in ``<extra_data>/pairs``, drawn for a sample with
+    #: ``tools/cycles_scene.py``), their pairs cached in ``extra_pairs(config)``, drawn for a sample with
     #: probability ``extra_share``
     extra_data: str = ""
     extra_share: float = 0.0
     #: a checkpoint whose model weights start the run (fine-tuning); "" starts from a seeded initialisation
     init_from: str = ""
+
+
+def extra_pairs(config: TrainCorrFlowConfig) -> Path:
+    """Where the pairs of ``config.extra_data`` are cached: ``<extra_data>/pairs`` at the default working width,
+    ``<extra_data>/pairs_w<net_width>`` at another."""
+    name = "pairs" if config.net_width == TrainCorrFlowConfig.net_width else f"pairs_w{config.net_width}"
+    return Path(config.extra_data) / name
 
 
 def prepare_pairs(config: TrainCorrFlowConfig, progress: bool = True) -> Path:
@@ -123,7 +144,7 @@ def prepare_pairs(config: TrainCorrFlowConfig, progress: bool = True) -> Path:
         if not scenes:
             raise InputError("holds no rgbd-seq folders", file=extra, field="extra_data")
         for scene in scenes:
-            build_pairs(scene, extra / "pairs", config.ks, config.net_width)
+            build_pairs(scene, extra_pairs(config), config.ks, config.net_width)
     return Path(config.pairs)
 
 
@@ -132,7 +153,7 @@ def _load_pairs(folder: Path) -> dict:
     if not files:
         raise InputError("holds no pair files (.npz)", file=folder, field="pairs")
     parts = [np.load(f) for f in files]
-    return {key: np.concatenate([p[key] for p in parts]) for key in ("a", "b", "flow")}
+    return {key: np.concatenate([p[key] for p in parts]) for key in ("a", "b", "da", "db", "flow")}
 
 
 def _batch(sets: list, rng: np.random.Generator, config: TrainCorrFlowConfig) -> tuple[torch.Tensor, ...]:
@@ -150,12 +171,16 @@ def _batch(sets: list, rng: np.random.Generator, config: TrainCorrFlowConfig) ->
         y, x = max(corners, key=lambda c: int(motion[c[0]:c[0] + ch, c[1]:c[1] + cw].sum()))
         ia = data["a"][i, y:y + ch, x:x + cw].astype(np.float32) / 255
         ib = data["b"][i, y:y + ch, x:x + cw].astype(np.float32) / 255
+        if config.model.depth:  # the depth codes as a fourth channel (flipped with the colours, no gain)
+            ia = np.dstack([ia, data["da"][i, y:y + ch, x:x + cw].astype(np.float32) / 255])
+            ib = np.dstack([ib, data["db"][i, y:y + ch, x:x + cw].astype(np.float32) / 255])
         fl = data["flow"][i, y:y + ch, x:x + cw].astype(np.float32)
         if rng.random() < 0.5:
             ia, ib, fl = ia[:, ::-1], ib[:, ::-1], fl[:, ::-1] * np.array([-1, 1], np.float32)
         if rng.random() < 0.5:
             ia, ib, fl = ia[::-1], ib[::-1], fl[::-1] * np.array([1, -1], np.float32)
-        gain = rng.uniform(0.8, 1.2, size=3).astype(np.float32)
+        gain = np.ones(ia.shape[-1], np.float32)
+        gain[:3] = rng.uniform(0.8, 1.2, size=3)
         ia, ib = np.clip(ia * gain, 0, 1), np.clip(ib * gain, 0, 1)
         a.append(ia.transpose(2, 0, 1))
         b.append(ib.transpose(2, 0, 1))
@@ -183,6 +208,26 @@ def sequence_loss(flows: list, target: torch.Tensor, gamma: float) -> torch.Tens
                for i, flow in enumerate(flows))
 
 
+def load_start_weights(model: CorrFlow, checkpoint: Path) -> None:
+    """``model``'s weights from ``checkpoint`` (fine-tuning). An RGB checkpoint starts an RGB-D model too: the
+    first convolution's depth-channel weights start at 0, so the model starts as the RGB network; a model with
+    convex upsampling starts its mask head from its seeded initialisation when the checkpoint has none."""
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["model"]
+    first = "encoder.trunk.0.weight"
+    want = model.state_dict()[first].shape
+    if state[first].shape != want:
+        if state[first].shape[0] != want[0] or state[first].shape[1] > want[1]:
+            raise InputError(f"its first convolution is {tuple(state[first].shape)}, the model's {tuple(want)}",
+                             file=checkpoint, field="init_from")
+        grown = torch.zeros(want, dtype=state[first].dtype)
+        grown[:, :state[first].shape[1]] = state[first]
+        state = {**state, first: grown}
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if unexpected or any(not key.startswith("mask.") for key in missing):
+        raise InputError(f"does not fit the model: missing {missing}, unexpected {unexpected}", file=checkpoint,
+                         field="init_from")
+
+
 def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     torch.manual_seed(config.seed)
     torch.set_num_threads(config.threads)
@@ -190,10 +235,10 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     sets = [_load_pairs(Path(config.pairs))]
     if config.extra_data and config.extra_share > 0:
-        sets.append(_load_pairs(Path(config.extra_data) / "pairs"))
+        sets.append(_load_pairs(extra_pairs(config)))
     model = CorrFlow(config.model)
     if config.init_from:
-        model.load_state_dict(torch.load(config.init_from, map_location="cpu", weights_only=False)["model"])
+        load_start_weights(model, Path(config.init_from))
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, config.lr, total_steps=config.steps + 100, pct_start=0.05,
                                                 anneal_strategy="linear", cycle_momentum=False)
@@ -250,10 +295,20 @@ def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflo
     parser.add_argument("--extra-data", default="",
                         help="a folder of rgbd-seq folders (with object ids and transforms) to train on too")
     parser.add_argument("--extra-share", type=float, default=0.0, help="share of samples from --extra-data")
+    parser.add_argument("--threads", type=int, default=TrainCorrFlowConfig.threads, help="torch threads")
+    parser.add_argument("--net-width", type=int, default=TrainCorrFlowConfig.net_width,
+                        help="working width of the pairs (and of the exported network)")
+    parser.add_argument("--crop", default="x".join(str(v) for v in TrainCorrFlowConfig.crop),
+                        help="training crop HxW at the working resolution")
+    parser.add_argument("--depth", action="store_true",
+                        help="an RGB-D network: both images carry their depth code as a fourth channel")
+    parser.add_argument("--convex", action="store_true", help="RAFT's learned convex upsampling of the estimate")
     args = parser.parse_args(argv)
     config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
                                  seed=args.seed, lr=args.lr, init_from=args.init_from, extra_data=args.extra_data,
-                                 extra_share=args.extra_share)
+                                 extra_share=args.extra_share, threads=args.threads, net_width=args.net_width,
+                                 crop=tuple(int(v) for v in args.crop.lower().split("x")),
+                                 model=CorrFlowConfig(depth=args.depth, convex_upsampling=args.convex))
     try:
         prepare_pairs(config)
         if not args.pairs_only:

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from engine.predict.corrflow import working_size
+from engine.core.config import config_to_dict
+from engine.core.errors import InputError
+from engine.predict.corrflow import DEPTH_SPAN, depth_code, depth_reference, network_depth, working_size
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
-from models.flow.corrflow_train import (MAX_TRUTH, TrainCorrFlowConfig, build_pairs, prepare_pairs, sequence_loss,
-                                        train, valid_truth)
+from models.flow.corrflow_train import (MAX_TRUTH, PAIR_KEYS, TrainCorrFlowConfig, build_pairs, extra_pairs,
+                                        load_start_weights, prepare_pairs, sequence_loss, train, valid_truth)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -61,6 +63,9 @@ def test_forward_shapes_and_flow_units():
     with torch.no_grad():
         flows = model(a, b)
     assert len(flows) == SMALL.iterations and all(f.shape == (2, 2, 64, 96) for f in flows)
+    with torch.no_grad():
+        last = model(a, b, every_iteration=False)
+    assert len(last) == 1 and torch.equal(last[0], flows[-1])  # what the exported graph computes
 
 
 def test_working_size():
@@ -110,8 +115,89 @@ def test_fine_tuning_with_extra_data(tmp_path, tiny_sequence_dir):
     extra = TrainCorrFlowConfig(out_dir=str(tmp_path / "b"), extra_data=str(tiny_sequence_dir.parent), extra_share=0.5,
                                 init_from=str(first), lr=0.0, **common)
     prepare_pairs(extra, progress=False)
-    assert (tiny_sequence_dir.parent / "pairs" / f"{tiny_sequence_dir.name}.npz").is_file()
+    # the extra pairs are cached per working width (64 here: pairs_w64; the default 512: pairs)
+    assert extra_pairs(extra) == tiny_sequence_dir.parent / "pairs_w64"
+    assert (extra_pairs(extra) / f"{tiny_sequence_dir.name}.npz").is_file()
     state = torch.load(train(extra), weights_only=False)
     assert state["step"] == 2 and state["config"]["init_from"] == str(first)
     start = torch.load(first, weights_only=False)["model"]
     assert all(torch.equal(start[k], v) for k, v in state["model"].items())  # lr 0: the weights it started from
+
+
+def test_depth_code_is_scale_free_log_depth_with_sky_far():
+    depth = np.array([[1.0, 2.0, np.inf], [0.5, 1e-6, 1e6]], np.float32)
+    code = depth_code(depth, 1.0)
+    assert code[0, 0] == pytest.approx(0.5)
+    assert code[0, 1] == pytest.approx(0.5 + np.log(2.0) / (2 * DEPTH_SPAN))
+    assert code[1, 0] == pytest.approx(0.5 - np.log(2.0) / (2 * DEPTH_SPAN))
+    assert code[0, 2] == 1.0 and code[1, 1] == 0.0 and code[1, 2] == 1.0  # sky far, beyond the span clipped
+    np.testing.assert_allclose(depth_code(7.0 * depth, 7.0), code, atol=1e-6)  # scale-free
+    assert depth_reference(depth) == pytest.approx(1.0)
+    assert depth_reference(np.full((4, 4), np.inf, np.float32)) == 1.0  # all sky
+    small = network_depth(np.full((16, 24), 2.0, np.float32), 2.0, (8, 8))
+    assert small.shape == (8, 8) and small.dtype == np.uint8 and (small == 128).all()
+
+
+def test_rgbd_pairs_and_fine_tuning_from_an_rgb_checkpoint(tmp_path, tiny_sequence_dir):
+    path = build_pairs(tiny_sequence_dir, tmp_path / "pairs", ks=(1,), net_width=64)
+    data = np.load(path)
+    assert set(PAIR_KEYS) <= set(data.files)
+    assert data["da"].shape == data["a"].shape[:3] and data["da"].dtype == np.uint8
+    # frame n's codes are against its own median depth: about half of its pixels code at or under 0.5
+    assert 0.3 < float((data["da"] <= 128).mean()) < 0.8
+    common = dict(pairs=str(tmp_path / "pairs"), steps=1, batch_size=1, crop=(32, 48), threads=1, scenes=(),
+                  ks=(1,), net_width=64)
+    rgb = train(TrainCorrFlowConfig(out_dir=str(tmp_path / "rgb"), model=SMALL, **common))
+    rgbd_config = CorrFlowConfig(**{**config_to_dict(SMALL), "depth": True})
+    rgbd = TrainCorrFlowConfig(out_dir=str(tmp_path / "rgbd"), model=rgbd_config, init_from=str(rgb), lr=0.0,
+                               **common)
+    rgbd_checkpoint = train(rgbd)
+    state = torch.load(rgbd_checkpoint, weights_only=False)
+    start = torch.load(rgb, weights_only=False)["model"]
+    first = "encoder.trunk.0.weight"
+    assert state["model"][first].shape[1] == 4
+    assert torch.equal(state["model"][first][:, :3], start[first]) and not state["model"][first][:, 3].any()
+    # started from the RGB network with a zero depth channel: the same flow whatever the depth says
+    model = CorrFlow(rgbd_config).eval()
+    model.load_state_dict(state["model"])
+    rgb_model = CorrFlow(SMALL).eval()
+    rgb_model.load_state_dict(start)
+    a, b = torch.rand(1, 4, 32, 48), torch.rand(1, 4, 32, 48)
+    with torch.no_grad():
+        torch.testing.assert_close(model(a, b)[-1], rgb_model(a[:, :3], b[:, :3])[-1])
+    with pytest.raises(InputError, match="first convolution"):
+        load_start_weights(CorrFlow(SMALL), rgbd_checkpoint)
+
+
+def test_old_pair_files_are_built_again(tmp_path, tiny_sequence_dir):
+    out = tmp_path / "pairs"
+    out.mkdir()
+    stale = out / f"{tiny_sequence_dir.name}.npz"
+    np.savez(stale, a=np.zeros((1, 8, 8, 3), np.uint8))  # a cache from before the depth codes
+    build_pairs(tiny_sequence_dir, out, ks=(1,), net_width=64)
+    assert set(PAIR_KEYS) <= set(np.load(stale).files)
+
+
+def test_convex_upsampling_combines_the_3x3_cells_around_each_pixel():
+    flow = torch.arange(24.0).reshape(1, 2, 3, 4)
+    mask = torch.full((1, 9 * 64, 3, 4), -1e4)
+    mask[:, 4 * 64:5 * 64] = 0.0  # all weight on the centre tap: nearest-cell upsampling
+    up = CorrFlow.convex_upsample(flow, mask)
+    torch.testing.assert_close(up, 8 * flow.repeat_interleave(8, 2).repeat_interleave(8, 3))
+    mask = torch.full((1, 9 * 64, 3, 4), -1e4)
+    mask[:, 5 * 64:6 * 64] = 0.0  # the right neighbour (dx = +1): the last column replicates its own cell
+    up = CorrFlow.convex_upsample(flow, mask)
+    torch.testing.assert_close(up[0, :, 5, 2], 8 * flow[0, :, 0, 1])
+    torch.testing.assert_close(up[0, :, 5, 31], 8 * flow[0, :, 0, 3])
+    uniform = CorrFlow.convex_upsample(torch.full((1, 2, 3, 4), 1.5), torch.randn(1, 9 * 64, 3, 4))
+    torch.testing.assert_close(uniform, torch.full((1, 2, 24, 32), 12.0))  # convex: a constant flow stays
+
+
+def test_rgbd_convex_network_exports_with_parity(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from export.corrflow import check_parity, export_corrflow
+
+    torch.manual_seed(3)
+    model = CorrFlow(CorrFlowConfig(**{**config_to_dict(SMALL), "depth": True, "convex_upsampling": True})).eval()
+    path = export_corrflow(model, tmp_path / "rgbd.onnx", working_width=64, example_size=(32, 48))
+    assert check_parity(path, model, size=(48, 64)) < 1e-3

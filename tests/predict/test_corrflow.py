@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
+from engine import geometry
 from engine.core.errors import InputError
+from engine.geometry.holefill import fill_holes
 from engine.predict.base import Target, Timer, warp_and_fill
 from engine.predict.classic import Flow2D
 from engine.predict.corrflow import MIN_MOTION, CorrFlowNetwork, dis_start
@@ -167,3 +169,63 @@ def test_export_variants_and_a_bad_checkpoint(tmp_path, capsys):
     assert main([str(tmp_path / "missing.pt"), str(tmp_path / "x.onnx")]) == 2
     assert "missing.pt" in capsys.readouterr().err
     assert main([str(CHECKPOINT), str(out), "--iterations", "0"]) == 2
+
+
+@pytest.fixture(scope="module")
+def rgbd_network(tmp_path_factory):
+    """A small untrained RGB-D network exported to ONNX (the engine's handling of depth, not its quality)."""
+    torch = pytest.importorskip("torch")
+    from export.corrflow import export_corrflow
+    from models.flow.corrflow import CorrFlow, CorrFlowConfig
+
+    torch.manual_seed(0)
+    model = CorrFlow(CorrFlowConfig(encoder_channels=(8, 8, 16), feature_channels=8, context_channels=8,
+                                    hidden_channels=8, iterations=2, depth=True)).eval()
+    return export_corrflow(model, tmp_path_factory.mktemp("rgbd") / "rgbd.onnx", working_width=64,
+                           example_size=(32, 48))
+
+
+def test_an_rgbd_network_reads_both_depths(rgbd_network):
+    network = CorrFlowNetwork(rgbd_network, threads=1)
+    assert network.depth
+    rng = np.random.default_rng(4)
+    color = rng.random((36, 64, 3)).astype(np.float32)
+    near, far = np.full((36, 64), 2.0, np.float32), np.full((36, 64), 2.0, np.float32)
+    far[10:20, 20:40] = np.inf  # a patch of sky in the camera-compensated frame n-k
+    with pytest.raises(InputError, match="RGB-D"):
+        network.estimate(color, color)
+    with pytest.raises(InputError, match="depth_w"):
+        network.estimate(color, color, near, far[:, :10])
+    flow = network.estimate(color, color, near, far)
+    assert flow.shape == (36, 64, 2) and np.isfinite(flow).all()
+    assert not np.array_equal(flow, network.estimate(color, color, near, near))  # the depth is read
+
+
+def test_flow2d_gives_an_rgbd_network_the_warped_depth(rgbd_network, far_moving_pair, monkeypatch):
+    older, newest, _, _ = far_moving_pair
+    predictor = Flow2D(estimator="corr")
+    predictor._corr = CorrFlowNetwork(rgbd_network, threads=1)
+    seen = {}
+    estimate = predictor._corr.estimate
+
+    def spy(color_n, warped, depth_n=None, depth_w=None):
+        seen["depths"] = (depth_n, depth_w)
+        return estimate(color_n, warped, depth_n, depth_w)
+    monkeypatch.setattr(predictor._corr, "estimate", spy)
+    predictor.prepare([older, newest])
+    depth_n, depth_w = seen["depths"]
+    assert depth_n is newest.depth
+    src, dst = older.camera, newest.camera
+    color_w, warped_depth, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
+                                                               src.world_to_camera, dst.intrinsics, dst.world_to_camera)
+    np.testing.assert_array_equal(depth_w, fill_holes(color_w, warped_depth, holes, older.color)[1])
+
+
+def test_flow2d_takes_another_network(rgbd_network, tmp_path):
+    predictor = make_predictor(f"flow2d[estimator=corr,network={rgbd_network}]")
+    assert predictor._corr.path == rgbd_network and predictor._corr.depth
+    with pytest.raises(InputError, match="estimator=corr"):
+        make_predictor(f"flow2d[network={rgbd_network}]")
+    with pytest.raises(InputError) as err:
+        make_predictor(f"flow2d[estimator=corr,network={tmp_path / 'none.onnx'}]")
+    assert "none.onnx" in str(err.value)

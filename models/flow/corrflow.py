@@ -28,8 +28,7 @@ __all__ = ["CorrFlowConfig", "CorrFlow"]
 class CorrFlowConfig:
     """Widths of the encoder stages (1/2, 1/4, 1/8), feature and context channels, GRU hidden size,
     correlation pyramid levels and lookup radius (in cells of each level), update iterations; ``depth``: the
-    images carry a fourth channel, the depth code; ``convex_upsampling``: a learned upsampling of the 1/8
-    estimate."""
+    images carry a fourth channel, the depth code."""
 
     encoder_channels: tuple[int, ...] = (16, 32, 64)
     feature_channels: int = 64
@@ -39,9 +38,6 @@ class CorrFlowConfig:
     radius: int = 3
     iterations: int = 4
     depth: bool = False
-    #: RAFT's convex upsampling: each pixel's flow a learned convex combination of the 3 x 3 cells around its
-    #: own (sharp at motion boundaries), instead of the bilinear x8 of the 1/8 estimate
-    convex_upsampling: bool = False
 
     @property
     def in_channels(self) -> int:
@@ -117,21 +113,6 @@ class CorrFlow(nn.Module):
         self.features = nn.Conv2d(config.encoder_channels[-1], config.feature_channels, 1)
         self.context = nn.Conv2d(config.encoder_channels[-1], config.hidden_channels + config.context_channels, 1)
         self.update = _Update(config)
-        if config.convex_upsampling:
-            self.mask = nn.Sequential(nn.Conv2d(config.hidden_channels, 64, 3, padding=1), nn.ReLU(inplace=True),
-                                      nn.Conv2d(64, 9 * 64, 1))
-
-    @staticmethod
-    def convex_upsample(flow: Tensor, mask: Tensor) -> Tensor:
-        """(B, 2, 8h, 8w) pixels from ``flow`` (B, 2, h, w) in 1/8 cells: each of a cell's 8 x 8 pixels a convex
-        combination (softmax of ``mask`` (B, 9 * 64, h, w) over the 9 taps) of the 3 x 3 cells around it
-        (edge cells replicated)."""
-        b, _, h, w = flow.shape
-        weights = torch.softmax(mask.reshape(b, 1, 9, 8, 8, h, w), dim=2)
-        padded = F.pad(8.0 * flow, (1, 1, 1, 1), mode="replicate")
-        taps = torch.stack([padded[:, :, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)], dim=2)
-        up = (weights * taps.reshape(b, 2, 9, 1, 1, h, w)).sum(dim=2)  # (B, 2, 8 (rows), 8 (cols), h, w)
-        return up.permute(0, 1, 4, 2, 5, 3).reshape(b, 2, 8 * h, 8 * w)
 
     def correlation_pyramid(self, fa: Tensor, fb: Tensor) -> list[Tensor]:
         """Levels of (B * h * w, 1, h_l, w_l): every cell of a against all of b, average-pooled by 2 per level."""
@@ -181,10 +162,6 @@ class CorrFlow(nn.Module):
         for i in range(count):
             hidden, delta = self.update(hidden, context, self.lookup(pyramid, base + flow), flow)
             flow = flow + delta
-            if not every_iteration and i < count - 1:
-                continue
-            if self.config.convex_upsampling:
-                flows.append(self.convex_upsample(flow, 0.25 * self.mask(hidden)))
-            else:
+            if every_iteration or i == count - 1:
                 flows.append(8.0 * F.interpolate(flow, size=(height, width), mode="bilinear", align_corners=False))
         return flows

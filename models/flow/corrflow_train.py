@@ -210,8 +210,7 @@ def sequence_loss(flows: list, target: torch.Tensor, gamma: float) -> torch.Tens
 
 def load_start_weights(model: CorrFlow, checkpoint: Path) -> None:
     """``model``'s weights from ``checkpoint`` (fine-tuning). An RGB checkpoint starts an RGB-D model too: the
-    first convolution's depth-channel weights start at 0, so the model starts as the RGB network; a model with
-    convex upsampling starts its mask head from its seeded initialisation when the checkpoint has none."""
+    first convolution's depth-channel weights start at 0, so the model starts as the RGB network."""
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)["model"]
     first = "encoder.trunk.0.weight"
     want = model.state_dict()[first].shape
@@ -222,10 +221,11 @@ def load_start_weights(model: CorrFlow, checkpoint: Path) -> None:
         grown = torch.zeros(want, dtype=state[first].dtype)
         grown[:, :state[first].shape[1]] = state[first]
         state = {**state, first: grown}
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    if unexpected or any(not key.startswith("mask.") for key in missing):
-        raise InputError(f"does not fit the model: missing {missing}, unexpected {unexpected}", file=checkpoint,
-                         field="init_from")
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as exc:
+        raise InputError(f"does not fit the model ({str(exc).splitlines()[0]})", file=checkpoint,
+                         field="init_from") from None
 
 
 def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
@@ -302,13 +302,12 @@ def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflo
                         help="training crop HxW at the working resolution")
     parser.add_argument("--depth", action="store_true",
                         help="an RGB-D network: both images carry their depth code as a fourth channel")
-    parser.add_argument("--convex", action="store_true", help="RAFT's learned convex upsampling of the estimate")
     args = parser.parse_args(argv)
     config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
                                  seed=args.seed, lr=args.lr, init_from=args.init_from, extra_data=args.extra_data,
                                  extra_share=args.extra_share, threads=args.threads, net_width=args.net_width,
                                  crop=tuple(int(v) for v in args.crop.lower().split("x")),
-                                 model=CorrFlowConfig(depth=args.depth, convex_upsampling=args.convex))
+                                 model=CorrFlowConfig(depth=args.depth))
     try:
         prepare_pairs(config)
         if not args.pairs_only:

@@ -178,26 +178,11 @@ def test_old_pair_files_are_built_again(tmp_path, tiny_sequence_dir):
     assert set(PAIR_KEYS) <= set(np.load(stale).files)
 
 
-def test_convex_upsampling_combines_the_3x3_cells_around_each_pixel():
-    flow = torch.arange(24.0).reshape(1, 2, 3, 4)
-    mask = torch.full((1, 9 * 64, 3, 4), -1e4)
-    mask[:, 4 * 64:5 * 64] = 0.0  # all weight on the centre tap: nearest-cell upsampling
-    up = CorrFlow.convex_upsample(flow, mask)
-    torch.testing.assert_close(up, 8 * flow.repeat_interleave(8, 2).repeat_interleave(8, 3))
-    mask = torch.full((1, 9 * 64, 3, 4), -1e4)
-    mask[:, 5 * 64:6 * 64] = 0.0  # the right neighbour (dx = +1): the last column replicates its own cell
-    up = CorrFlow.convex_upsample(flow, mask)
-    torch.testing.assert_close(up[0, :, 5, 2], 8 * flow[0, :, 0, 1])
-    torch.testing.assert_close(up[0, :, 5, 31], 8 * flow[0, :, 0, 3])
-    uniform = CorrFlow.convex_upsample(torch.full((1, 2, 3, 4), 1.5), torch.randn(1, 9 * 64, 3, 4))
-    torch.testing.assert_close(uniform, torch.full((1, 2, 24, 32), 12.0))  # convex: a constant flow stays
-
-
-def test_rgbd_convex_network_exports_with_parity(tmp_path):
+def test_rgbd_network_exports_with_parity(tmp_path):
     pytest.importorskip("onnxruntime")
     from export.corrflow import check_parity, export_corrflow
 
     torch.manual_seed(3)
-    model = CorrFlow(CorrFlowConfig(**{**config_to_dict(SMALL), "depth": True, "convex_upsampling": True})).eval()
+    model = CorrFlow(CorrFlowConfig(**{**config_to_dict(SMALL), "depth": True})).eval()
     path = export_corrflow(model, tmp_path / "rgbd.onnx", working_width=64, example_size=(32, 48))
     assert check_parity(path, model, size=(48, 64)) < 1e-3

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from engine.io.rgbd import read_sequence
-from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
+from engine.predict.base import Target, Timer, true_object_flow, warp_fill_depth
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from tools.heldout import write_json
@@ -64,11 +64,16 @@ VARIANTS = {
 
 
 def network_variants(network: CorrFlowNetwork) -> dict:
-    """name -> f(color_n, warped, luma_n, luma_w) -> u(n -> n-k): the network alone and DIS started from it."""
+    """name -> f(newest, warped, depth_w, luma_n, luma_w) -> u(n -> n-k): the network alone and DIS started
+    from it (``newest``: frame n; ``warped``, ``depth_w``: the camera-compensated frame n-k's colour and
+    depth, the depth read by an RGB-D network only)."""
     medium = dis_estimator("medium")
-    return {"correlation network alone": lambda c, w, ln, lw: network.estimate(c, w),
+
+    def alone(f, w, dw, ln, lw):
+        return network.estimate(f.color, w, f.depth, dw)
+    return {"correlation network alone": alone,
             "medium from the network (flow2d[estimator=corr])":
-                lambda c, w, ln, lw: dis_calc(medium, ln, lw, dis_start(network.estimate(c, w)))}
+                lambda f, w, dw, ln, lw: dis_calc(medium, ln, lw, dis_start(alone(f, w, dw, ln, lw)))}
 
 
 def main(argv=None) -> None:
@@ -90,7 +95,7 @@ def main(argv=None) -> None:
             moving = np.linalg.norm(truth, axis=-1) > 0.5
             if moving.sum() < 50:
                 continue
-            warped, _ = warp_and_fill(older, Target(newest.camera, newest.time, newest.index), Timer())
+            warped, depth_w, _ = warp_fill_depth(older, Target(newest.camera, newest.time, newest.index), Timer())
             luma_n, luma_w = luma8(newest.color), luma8(warped)
             estimates = {"zero motion": (np.zeros_like(truth), 0.0)}
             for name, make in VARIANTS.items():
@@ -100,7 +105,7 @@ def main(argv=None) -> None:
                 estimates[name] = (flow, 1e3 * (time.perf_counter() - start))
             for name, estimate in networks.items():
                 start = time.perf_counter()
-                flow = estimate(newest.color, warped, luma_n, luma_w)
+                flow = estimate(newest, warped, depth_w, luma_n, luma_w)
                 estimates[name] = (flow, 1e3 * (time.perf_counter() - start))
             for name, (flow, ms) in estimates.items():
                 error = np.linalg.norm(flow - truth, axis=-1)[moving]

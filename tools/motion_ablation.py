@@ -2,7 +2,7 @@
 keep, and whether matching changed regions whole reaches motion DIS misses.
 
 ``python -m tools.motion_ablation [--out out/validation] [--variants ...] [--k 2,4]
-[--estimator dis|gl|corr|corr_alone] [--json FILE]``
+[--estimator dis|gl|corr|corr_alone] [--wide] [--json FILE]``
 
 Runs on VALIDATION sequences, apart from the benchmark's held-out ones (``tools/bench_motion.py``), so the
 choice it informs is not tuned on the sets it is reported on: ``gentle`` seeds 1005, 1006 (generator
@@ -35,6 +35,14 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
   camera-compensated frame n-k's by more than ``DEPTH_CHANGE`` (a moving object changes depth at its
   silhouette);
 - ``blurred``: ``trusted`` with DIS run on lumas blurred by a Gaussian of sigma ``--margin`` px (noise);
+- ``depth_static``: ``trusted``, and where frame n's depth equals the camera-compensated frame n-k's
+  (``STATIC_DEPTH``; both sky) motion only where it is confident (margin ``--margin``): a static surface
+  at its place;
+- ``behind_edge``: ``trusted``, and on pixels with a surface nearer by ``BEHIND_STEP`` within
+  ``BEHIND_RADIUS`` px (the background side of a silhouette, where DIS spreads an object's motion) motion
+  only where it is confident (margin ``--margin``);
+- ``network_veto`` (``--estimator corr`` only): ``trusted``, and no motion where the correlation network's
+  own estimate moves under ``--margin`` px;
 - ``rigid_ids``: ``trusted``, then the flow of each object of frame n's ``object_id`` channel (as a renderer's
   Object Index pass would give it, the static scene included) replaced by the rigid motion that best
   explains it (RANSAC over 3-point fits of DIS's 3D correspondences, inliers within 1.5 px; no motion when
@@ -76,6 +84,10 @@ Rule = Callable[[object, np.ndarray, np.ndarray, np.ndarray, dict], np.ndarray]
 REVEAL_DROP = 0.3
 #: ``depth_evidence``: frame n's inverse depth differs from the camera-compensated frame n-k's by this share
 DEPTH_CHANGE = 0.05
+#: ``depth_static``: frame n's depth within this log ratio of the camera-compensated frame n-k's (or both sky)
+STATIC_DEPTH = 0.01
+#: ``behind_edge``: a pixel with a surface nearer by this share within this many px (640 px frames)
+BEHIND_STEP, BEHIND_RADIUS = 0.1, 32
 
 
 def region_shifts(luma_n: np.ndarray, target: np.ndarray, radius: int, min_area: int,
@@ -201,11 +213,38 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
     def regions_arrived(e, ln, t, seen, context):
         return regions_rule(e, ln, t, seen, context, arrived=True)
 
+    def depth_static(e, ln, t, seen, context):
+        flow = dis_calc(e, ln, t)
+        keep = trusted_motion(ln, t, flow, seen, small)
+        depth_n, depth_w = context["newest"].depth, context["depth_w"]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            agree = (np.isinf(depth_n) & np.isinf(depth_w)) | (np.abs(np.log(depth_n / depth_w)) < STATIC_DEPTH)
+        flow[~(keep & (~agree | confident_motion(ln, t, flow, margin)))] = 0.0
+        return flow
+
+    def behind_edge(e, ln, t, seen, context):
+        flow = dis_calc(e, ln, t)
+        keep = trusted_motion(ln, t, flow, seen, small)
+        depth = np.where(np.isfinite(context["newest"].depth), context["newest"].depth, np.float32(3e38))
+        side = 2 * BEHIND_RADIUS + 1
+        behind = cv2.erode(depth.astype(np.float32), np.ones((side, side), np.uint8)) < (1 - BEHIND_STEP) * depth
+        flow[~(keep & (~behind | confident_motion(ln, t, flow, margin)))] = 0.0
+        return flow
+
+    def network_veto(e, ln, t, seen, context):
+        if "network" not in context:
+            raise ValueError("network_veto needs --estimator corr")
+        flow = trusted(e, ln, t, seen, context)
+        network = context["network"]
+        flow[np.hypot(network[..., 0], network[..., 1]) < margin] = 0.0
+        return flow
+
     return {"dis": dis, "confidence": confidence, "seen": seen_only, "trusted": trusted, "gated": gated,
             "not_worse": not_worse, "region_check": region_check, "depth_evidence": depth_evidence,
             "blurred": blurred, "rigid_ids": rigid_ids,
             "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed,
-            "regions_arrived": regions_arrived}
+            "regions_arrived": regions_arrived, "depth_static": depth_static, "behind_edge": behind_edge,
+            "network_veto": network_veto}
 
 
 def drop_regions(flow: np.ndarray, drop: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:
@@ -313,7 +352,7 @@ class RuleFlow2D(Flow2D):
         # frame n-k in frame n's view, holes filled: what warp_and_fill gives, with the warp's depth kept
         color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
                                                               src.world_to_camera, dst.intrinsics, dst.world_to_camera)
-        warped, _ = fill_holes(color_w, depth_w, holes, older.color)
+        warped, depth_filled = fill_holes(color_w, depth_w, holes, older.color)
         seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                     src.world_to_camera, older.depth.shape)
         factor = geometry.downsample_factor(newest.depth.shape[1], 480)
@@ -334,19 +373,23 @@ class RuleFlow2D(Flow2D):
             if self.estimator == "gl":
                 estimator = Precomputed(self._gl_estimators()[0].estimate(newest.color, warped))
             elif self.estimator == "corr_alone":
-                estimator = Precomputed(self._network.estimate(newest.color, warped))
+                estimator = Precomputed(self._network.estimate(newest.color, warped, newest.depth, depth_filled))
             elif self.estimator == "corr":
+                context["network"] = self._network.estimate(newest.color, warped, newest.depth, depth_filled)
                 estimator = Precomputed(dis_calc(self._dis, luma8(newest.color), luma8(warped),
-                                                 dis_start(self._network.estimate(newest.color, warped))))
+                                                 dis_start(context["network"])))
             flow = self.rule(estimator, luma8(newest.color), luma8(warped), seen, context)
         return self.state_of(newest, flow, timer)
 
 
-def validation_sets(out: Path) -> dict[str, list[Path]]:
-    size = (640, 360, 16)
-    return {"gentle": [render_set(out, f"seed{s}", {"seed": s}, *size) for s in (1005, 1006)],
-            "fast": [p for _, p in speed_set(out, "valfast", "fast", 7201, 2, (10.0, 35.0), *size)],
-            "extreme": [p for _, p in speed_set(out, "valextreme", "extreme", 7301, 1, (20.0, 80.0), *size)]}
+def validation_sets(out: Path, wide: bool = False) -> dict[str, list[Path]]:
+    """The validation sequences (module docstring), rendered on first use; ``wide``: twice as many (gentle
+    seeds 1005-1008, the first 4 ``fast`` and 2 ``extreme`` seeds of the same rules), for choices the small
+    set cannot tell apart."""
+    size, more = (640, 360, 16), 2 if wide else 1
+    return {"gentle": [render_set(out, f"seed{s}", {"seed": s}, *size) for s in range(1005, 1005 + 2 * more)],
+            "fast": [p for _, p in speed_set(out, "valfast", "fast", 7201, 2 * more, (10.0, 35.0), *size)],
+            "extreme": [p for _, p in speed_set(out, "valextreme", "extreme", 7301, more, (20.0, 80.0), *size)]}
 
 
 def main(argv=None) -> None:
@@ -362,6 +405,7 @@ def main(argv=None) -> None:
     parser.add_argument("--estimator", choices=("dis", "gl", "corr", "corr_alone"), default="dis",
                         help="the optical flow the rules apply to: OpenCV DIS, the GPU's, DIS from the correlation "
                              "network, the network alone (not with regions*)")
+    parser.add_argument("--wide", action="store_true", help="the wider validation set (twice the sequences)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     variants = args.variants.split(",")
@@ -371,8 +415,10 @@ def main(argv=None) -> None:
             parser.error(f"unknown variant '{v}', expected some of {', '.join(available)}")
         if args.estimator != "dis" and v.startswith("regions"):
             parser.error(f"variant '{v}' runs DIS on parts of the frame: not with --estimator {args.estimator}")
+        if v == "network_veto" and args.estimator != "corr":
+            parser.error("variant 'network_veto' reads the correlation network's estimate: --estimator corr")
         registry.METHODS[f"flow2d:{v}"] = lambda objects, rule=available[v]: RuleFlow2D(rule, args.estimator)
-    rows, sets = [], validation_sets(args.out)
+    rows, sets = [], validation_sets(args.out, args.wide)
     for set_name, paths in sets.items():
         sequences = [read_sequence(p) for p in paths]
         for k in (int(v) for v in args.k.split(",")):

@@ -6,8 +6,8 @@ frames, for DIS presets and parameters, on fast held-out sequences.
 For every pair (n-k, n) with moving pixels, frame n-k is warped into frame n's view (camera motion
 cancelled, holes filled as ``reproject`` fills them, what ``flow2d`` matches against) and each variant
 estimates u(n -> n-k) on 8-bit luma; the correlation network (``engine.predict.corrflow``, the committed one
-unless ``--network`` names another) reads both colour images: alone, and as DIS medium's initial flow
-(``flow2d[estimator=corr]``). Scored against the true u(n -> n-k) of frame n (from the object
+unless ``--network`` names another) reads both colour images (and both depths, an RGB-D network): alone,
+and as DIS medium's initial flow (``flow2d[estimator=corr]``). Scored against the true u(n -> n-k) of frame n (from the object
 transforms) over the pixels that move more than 0.5 px: the median end-point error of each pair (means
 over pairs) and the share of moving pixels within 3 px, with the median ms per pair. No extrapolation:
 this is the estimate alone.

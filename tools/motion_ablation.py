@@ -41,6 +41,10 @@ Variants (each is ``flow2d`` with another rule between DIS and the extrapolation
 - ``behind_edge``: ``trusted``, and on pixels with a surface nearer by ``BEHIND_STEP`` within
   ``BEHIND_RADIUS`` px (the background side of a silhouette, where DIS spreads an object's motion) motion
   only where it is confident (margin ``--margin``);
+- ``depth_consistent``: ``trusted``, and no motion where no motion is depth-consistent (frame n's log depth
+  within ``--margin`` of the camera-compensated frame n-k's at the same pixel) and the motion is not (frame
+  n-k's depth where the motion points differs by ``--margin`` more): a static surface beside a moving
+  object, onto which DIS spread the object's motion;
 - ``network_veto`` (``--estimator corr`` only): ``trusted``, and no motion where the correlation network's
   own estimate moves under ``--margin`` px;
 - ``rigid_ids``: ``trusted``, then the flow of each object of frame n's ``object_id`` channel (as a renderer's
@@ -231,6 +235,18 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
         flow[~(keep & (~behind | confident_motion(ln, t, flow, margin)))] = 0.0
         return flow
 
+    def depth_consistent(e, ln, t, seen, context):
+        flow = trusted(e, ln, t, seen, context)
+        log_n, log_w = (np.log(np.clip(np.nan_to_num(d, posinf=1e30), 1e-30, 1e30)).astype(np.float32)
+                        for d in (context["newest"].depth, context["depth_filled"]))
+        h, w = log_n.shape
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        moved = cv2.remap(log_w, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_NEAREST,
+                          borderMode=cv2.BORDER_REPLICATE)
+        still, along = np.abs(log_n - log_w), np.abs(log_n - moved)
+        flow[(still < margin) & (along > still + np.float32(margin))] = 0.0
+        return flow
+
     def network_veto(e, ln, t, seen, context):
         if "network" not in context:
             raise ValueError("network_veto needs --estimator corr")
@@ -244,7 +260,7 @@ def rules(margin: float, small: float = SMALL_MOTION) -> dict[str, Rule]:
             "blurred": blurred, "rigid_ids": rigid_ids,
             "regions": regions_rule, "regions_failed": regions_where_dis_failed, "revealed": revealed,
             "regions_arrived": regions_arrived, "depth_static": depth_static, "behind_edge": behind_edge,
-            "network_veto": network_veto}
+            "network_veto": network_veto, "depth_consistent": depth_consistent}
 
 
 def drop_regions(flow: np.ndarray, drop: Callable[[np.ndarray, int], np.ndarray]) -> np.ndarray:
@@ -366,7 +382,7 @@ class RuleFlow2D(Flow2D):
         inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
                    "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64),
-                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w),
+                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w), "depth_filled": depth_filled,
                    "depth_change": ~holes & (np.abs(inv_n - inv_w) > DEPTH_CHANGE * np.maximum(inv_n, inv_w))}
         with timer("flow"):
             estimator = self._dis
@@ -398,7 +414,7 @@ def main(argv=None) -> None:
     parser.add_argument("--variants", default="dis,confidence,seen,trusted,regions")
     parser.add_argument("--margin", type=float, default=1.0,
                         help="margin of 'confidence', 'not_worse' and 'region_check' (levels); sigma of 'blurred'; "
-                             "pixels of support of 'depth_evidence'")
+                             "pixels of support of 'depth_evidence'; log-depth margin of 'depth_consistent'")
     parser.add_argument("--small", type=float, default=SMALL_MOTION,
                         help="motion under this many px must be confident in 'trusted' and 'gated'")
     parser.add_argument("--k", default="2,4")

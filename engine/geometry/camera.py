@@ -1,4 +1,5 @@
-"""Pixels, cameras and points: unproject, project and reproject (thesis Eq. 6.2), numpy.
+"""Pixels, cameras and points: unproject, project and reproject (thesis Eq. 6.2), numpy (``seen_before``:
+its numba kernel).
 
 Conventions (``engine/core/frames.py``): OpenCV camera axes (x right, y down, z forward), rigid
 ``world_to_camera`` 4x4, pinhole ``intrinsics`` 3x3 with last row [0, 0, 1]; pixel (u, v) has its centre at
@@ -16,6 +17,7 @@ import numpy as np
 from engine.core.checks import checked_array, checked_matrix
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
+from engine.geometry import kernels
 
 #: A projected point is valid (in front of the camera) when z > (|z u| + |z v|) / MAX_PIXEL_COORD +
 #: TINY_DEPTH: relative to its own scale, and so that |u| + |v| < 1e7 px; other points get uv = 0, z = 0.
@@ -212,8 +214,14 @@ def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: n
     camera-compensated frame n-k (whatever the warp put there: a farther surface, or nothing) says nothing
     about object motion: the motion gate ignores these pixels and the flow predictors give them none.
     ``depth_n`` (H, W) planar depth, +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5:
-    inside is [0, w) x [0, h)).
+    inside is [0, w) x [0, h)). Compiled (``kernels.seen_pixels``); the numpy oracle is
+    ``reference.seen_before_reference``.
     """
-    uv, _, valid = reproject(depth_n, K_n, T_n, K_prev, T_prev)
-    h, w = size_prev
-    return valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+    depth = checked_array(depth_n, "depth_n", ("H", "W"), None)
+    matrix = reprojection_matrix(checked_matrix(K_n, "K_n", 3), checked_matrix(T_n, "T_n", 4),
+                                 checked_matrix(K_prev, "K_prev", 3), checked_matrix(T_prev, "T_prev", 4))
+    h, w = (int(n) for n in size_prev)
+    out = np.empty(depth.shape, dtype=np.bool_)
+    kernels.seen_pixels(np.ascontiguousarray(depth), matrix.astype(np.float32), np.float32(1.0 / MAX_PIXEL_COORD),
+                        np.float32(TINY_DEPTH), h, w, out)
+    return out

@@ -12,6 +12,7 @@
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
 - ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
+- ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
 - ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.upsample.upsample_flow`` (to 1e-5: OpenCV's
   resize, the reference, may round its bilinear sums differently).
 
@@ -306,6 +307,37 @@ def row_sources(depth, holes, out):
             depth_left = depth[y, left] if left >= 0 else -np.inf
             depth_right = depth[y, after] if after >= 0 else -np.inf
             out[y, x] = after if depth_right > depth_left else left
+
+
+@njit(cache=True, nogil=True)
+def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, out):
+    """``out`` (H, W) bool: each pixel of ``depth`` (H, W) reprojected by the float32 4x4 ``m`` (pixel points
+    to the other view's pixel points, ``camera.reprojection_matrix``) lands in front of that camera and inside
+    its [0, ``w_prev``) x [0, ``h_prev``) image (``camera.seen_before``; the arithmetic of ``project_points``)."""
+    h, w = depth.shape
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
+    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+    m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
+    x_max, y_max = _F32(w_prev), _F32(h_prev)
+    for y in range(h):
+        v = _F32(y) + half
+        for x in range(w):
+            u = _F32(x) + half
+            d = depth[y, x]
+            if math.isinf(d):  # homogeneous pixel point (d u, d v, d, 1); sky (+inf) -> (u, v, 1, 0)
+                px, py, pz, pw = u, v, one, zero
+            else:
+                px, py, pz, pw = u * d, v * d, d, one
+            hu = m00 * px + m01 * py + m02 * pz + m03 * pw
+            hv = m10 * px + m11 * py + m12 * pz + m13 * pw
+            hz = m20 * px + m21 * py + m22 * pz + m23 * pw
+            inside = False
+            if hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny:
+                uo = hu / hz
+                vo = hv / hz
+                inside = zero <= uo < x_max and zero <= vo < y_max
+            out[y, x] = inside
 
 
 @njit(cache=True, nogil=True)

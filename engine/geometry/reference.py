@@ -4,7 +4,8 @@ Each computes what its fast twin computes, in plain numpy: ``build_mpi_reference
 ``scene_velocity_reference``, ``velocity_change_reference`` and ``extrapolated_flow_reference`` (``motion``),
 ``composite_reference`` (``mpi.composite``), ``forward_warp_mpi_reference``
 (``splat.forward_warp_mpi_unchecked``, same arguments), ``row_sources_reference``
-(``holefill.fill_sources``' row search). The kernels reproduce them bit for bit (compositing to 1e-6).
+(``holefill.fill_sources``' row search), ``seen_before_reference`` (``camera.seen_before``). The kernels
+reproduce them bit for bit (compositing to 1e-6).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from engine.geometry.camera import pixel_grid, reproject_points, reprojection_matrix
+from engine.geometry.camera import pixel_grid, reproject, reproject_points, reprojection_matrix
 from engine.geometry.holefill import nearest_known
 from engine.geometry.mpi import Mpi, nearest_plane, plane_depths, plane_index, visibility
 from engine.geometry.splat import (COVERAGE_THRESHOLD, MIN_LOG_WEIGHT, SCRATCH, SKY_ONLY_WEIGHT, SKY_WEIGHT,
@@ -281,3 +282,9 @@ def extrapolated_flow_reference(depth, velocity, moving, acceleration, k, k_inv,
     flow[~ok] = np.nan
     out[idx] = flow
     return out.reshape(h, w, 3)
+
+
+def seen_before_reference(depth_n: np.ndarray, K_n, T_n, K_prev, T_prev, size_prev: tuple[int, int]) -> np.ndarray:
+    uv, _, valid = reproject(depth_n, K_n, T_n, K_prev, T_prev)
+    h, w = size_prev
+    return valid & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)

@@ -233,3 +233,25 @@ def test_thread_benchmark_runs_every_setting_and_restores_the_environment(tmp_pa
     assert all(ms > 0 for ms in result["median_ms"].values())
     assert "decomp, onnxruntime spinning" in capsys.readouterr().out
     assert kernels.THREADS_ENV not in os.environ and "INTERLEAVE_ORT_SPIN" not in os.environ
+
+
+def test_seen_before_kernel_equals_reference_on_random_and_extreme_scenes():
+    rng = np.random.default_rng(11)
+    for trial in range(30):
+        h, w = (int(v) for v in rng.integers(3, 40, 2))
+        depth = random_scene(rng, h, w)[1]
+        k, t_n, t_prev = moving_cameras(rng, h, w, angle=0.3, shift=1.0)
+        size_prev = (h, w) if trial % 2 else tuple(int(v) for v in rng.integers(1, 40, 2))
+        args = (depth, k, t_n, k, t_prev, size_prev)
+        np.testing.assert_array_equal(ng.seen_before(*args), reference.seen_before_reference(*args))
+    for seed in range(4):
+        _, depth, k, poses = extreme_scene(seed)  # sky, 1e-3..1e5, behind the camera, far off screen
+        for t_prev in poses:
+            args = (depth, k, np.eye(4), k, t_prev, depth.shape)
+            np.testing.assert_array_equal(ng.seen_before(*args), reference.seen_before_reference(*args))
+    k_n = np.array([[4.0, 0.0, 3.0], [0.0, 4.0, 2.0], [0.0, 0.0, 1.0]])
+    k_prev = k_n + [[0.0, 0.0, 0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]  # pixel centre x + 0.5 lands on x + 1
+    seen = ng.seen_before(np.full((4, 6), 2.0, np.float32), k_n, np.eye(4), k_prev, np.eye(4), (4, 6))
+    assert seen[:, :5].all() and not seen[:, 5].any()  # the last column lands on u = 6 = w: outside, [0, w)
+    one = np.array([[np.inf]], np.float32)  # a 1x1 all-sky frame
+    assert ng.seen_before(one, np.eye(3), np.eye(4), np.eye(3), np.eye(4), (1, 1)).shape == (1, 1)

@@ -77,6 +77,8 @@ def cases(h: int, w: int) -> list[tuple[str, callable, callable, callable]]:
         ("composite Z=4", lambda: g.composite(mpi4), lambda: reference.composite_reference(mpi4), same),
         ("hole-fill row sources", lambda: (holefill.row_sources(warped_depth, holes),),
          lambda: (reference.row_sources_reference(warped_depth, holes),), same),
+        ("seen_before", lambda: (g.seen_before(depth, k, t_dst, k, eye, (h, w)),),
+         lambda: (reference.seen_before_reference(depth, k, t_dst, k, eye, (h, w)),), same),
         ("8-bit display encoding", lambda: (__import__("engine.predict.dis").predict.dis.encode8(color * 1.5),),
          lambda: (encode8_reference(color * 1.5),), same),
     ]

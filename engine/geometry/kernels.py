@@ -128,6 +128,14 @@ def _plane_of(inv_depth, half_inv):
 
 
 @njit(cache=True, nogil=True)
+def _pixel_point(u, v, d):
+    """Homogeneous pixel point (d u, d v, d, 1) of pixel (u, v) at depth d; sky (+inf) -> (u, v, 1, 0)."""
+    if math.isinf(d):
+        return u, v, _F32(1.0), _F32(0.0)
+    return u * d, v * d, d, _F32(1.0)
+
+
+@njit(cache=True, nogil=True)
 def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
                    tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
     """Pass 1: per source point (Z * H * W, plane-major) of rows [``row_start``, ``row_stop``) its top-left
@@ -164,11 +172,7 @@ def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale
                     u += flow[0, z_index, y, x]
                     v += flow[1, z_index, y, x]
                     d += flow[2, z_index, y, x]
-                # homogeneous pixel point (d u, d v, d, 1); sky (+inf) -> (u, v, 1, 0)
-                if math.isinf(d):
-                    px, py, pz, pw = u, v, one, zero
-                else:
-                    px, py, pz, pw = u * d, v * d, d, one
+                px, py, pz, pw = _pixel_point(u, v, d)
                 hu = m00 * px + m01 * py + m02 * pz + m03 * pw
                 hv = m10 * px + m11 * py + m12 * pz + m13 * pw
                 hz = m20 * px + m21 * py + m22 * pz + m23 * pw
@@ -315,7 +319,7 @@ def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, out):
     to the other view's pixel points, ``camera.reprojection_matrix``) lands in front of that camera and inside
     its [0, ``w_prev``) x [0, ``h_prev``) image (``camera.seen_before``; the arithmetic of ``project_points``)."""
     h, w = depth.shape
-    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
+    half, zero = _F32(0.5), _F32(0.0)
     m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
     m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
     m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
@@ -325,10 +329,7 @@ def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, out):
         for x in range(w):
             u = _F32(x) + half
             d = depth[y, x]
-            if math.isinf(d):  # homogeneous pixel point (d u, d v, d, 1); sky (+inf) -> (u, v, 1, 0)
-                px, py, pz, pw = u, v, one, zero
-            else:
-                px, py, pz, pw = u * d, v * d, d, one
+            px, py, pz, pw = _pixel_point(u, v, d)
             hu = m00 * px + m01 * py + m02 * pz + m03 * pw
             hv = m10 * px + m11 * py + m12 * pz + m13 * pw
             hz = m20 * px + m21 * py + m22 * pz + m23 * pw

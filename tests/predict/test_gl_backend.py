@@ -29,7 +29,8 @@ def _close(a, b) -> float:
     return float(np.mean((np.abs(a - b) <= 1e-3 * np.maximum(1.0, np.abs(a))).all(axis=-1)))
 
 
-@pytest.mark.parametrize("method", ["reproject", "flow2d", "mvec", "oracle", "decomp", "decomp[motion=truth]"])
+@pytest.mark.parametrize("method", ["reproject", "flow2d", "flow2d[estimator=corr]", "mvec", "oracle", "decomp",
+                                    "decomp[motion=truth]"])
 def test_gl_predicts_what_the_cpu_predicts(method):
     frames, objects = two_layer_sequence(8, width=160, height=96, camera_speed=0.03, object_speed=0.12)
     history = [frames[2], with_vectors(frames, objects, 2, 4)]

@@ -120,6 +120,19 @@ class TrainCorrFlowConfig:
     #: a checkpoint whose model weights start the run (fine-tuning); "" starts from a seeded initialisation
     init_from: str = ""
 
+    def __post_init__(self) -> None:
+        crop = tuple(self.crop)
+        checks = [
+            (self.net_width >= 8, f"net_width must be >= 8, got {self.net_width}"),
+            (len(crop) == 2 and all(isinstance(v, int) and v >= 8 and v % 8 == 0 for v in crop),
+             f"crop must be two positive multiples of 8 (height, width), got {self.crop}"),
+            (self.threads >= 1, f"threads must be >= 1, got {self.threads}"),
+            (0.0 <= self.extra_share <= 1.0, f"extra_share must be in [0, 1], got {self.extra_share}"),
+        ]
+        for ok, problem in checks:
+            if not ok:
+                raise InputError(problem, field="TrainCorrFlowConfig")
+
 
 def extra_pairs(config: TrainCorrFlowConfig) -> Path:
     """Where the pairs of ``config.extra_data`` are cached: ``<extra_data>/pairs`` at the default working width,
@@ -233,9 +246,12 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     torch.set_num_threads(config.threads)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sets = [_load_pairs(Path(config.pairs))]
-    if config.extra_data and config.extra_share > 0:
-        sets.append(_load_pairs(extra_pairs(config)))
+    folders = [Path(config.pairs)] + ([extra_pairs(config)] if config.extra_data and config.extra_share > 0 else [])
+    sets = [_load_pairs(folder) for folder in folders]
+    for folder, data in zip(folders, sets):
+        if any(c > side for c, side in zip(config.crop, data["a"].shape[1:3])):
+            raise InputError(f"pairs of {data['a'].shape[1]} x {data['a'].shape[2]} px are smaller than the crop "
+                             f"{config.crop[0]} x {config.crop[1]}", file=folder, field="crop")
     model = CorrFlow(config.model)
     if config.init_from:
         load_start_weights(model, Path(config.init_from))
@@ -281,6 +297,15 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     return ckpt
 
 
+def _crop_size(text: str) -> tuple[int, int]:
+    """``--crop``: "HxW" -> (H, W)."""
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW in pixels, e.g. 224x320, got {text!r}") from None
+    return h, w
+
+
 def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflow_train") -> int:
     parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default="runs/flow_data", help="where the rendered training scenes are cached")
@@ -298,17 +323,16 @@ def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflo
     parser.add_argument("--threads", type=int, default=TrainCorrFlowConfig.threads, help="torch threads")
     parser.add_argument("--net-width", type=int, default=TrainCorrFlowConfig.net_width,
                         help="working width of the pairs (and of the exported network)")
-    parser.add_argument("--crop", default="x".join(str(v) for v in TrainCorrFlowConfig.crop),
-                        help="training crop HxW at the working resolution")
+    parser.add_argument("--crop", type=_crop_size, default=TrainCorrFlowConfig.crop,
+                        help="training crop HxW at the working resolution (default: %(default)s)")
     parser.add_argument("--depth", action="store_true",
                         help="an RGB-D network: both images carry their depth code as a fourth channel")
     args = parser.parse_args(argv)
-    config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
-                                 seed=args.seed, lr=args.lr, init_from=args.init_from, extra_data=args.extra_data,
-                                 extra_share=args.extra_share, threads=args.threads, net_width=args.net_width,
-                                 crop=tuple(int(v) for v in args.crop.lower().split("x")),
-                                 model=CorrFlowConfig(depth=args.depth))
     try:
+        config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
+                                     seed=args.seed, lr=args.lr, init_from=args.init_from,
+                                     extra_data=args.extra_data, extra_share=args.extra_share, threads=args.threads,
+                                     net_width=args.net_width, crop=args.crop, model=CorrFlowConfig(depth=args.depth))
         prepare_pairs(config)
         if not args.pairs_only:
             print(f"wrote {train(config, resume=args.resume)}")

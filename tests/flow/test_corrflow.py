@@ -186,3 +186,30 @@ def test_rgbd_network_exports_with_parity(tmp_path):
     model = CorrFlow(CorrFlowConfig(**{**config_to_dict(SMALL), "depth": True})).eval()
     path = export_corrflow(model, tmp_path / "rgbd.onnx", working_width=64, example_size=(32, 48))
     assert check_parity(path, model, size=(48, 64)) < 1e-3
+
+
+@pytest.mark.parametrize("args, problem", [(["--crop", "224by320"], "expected HxW"),
+                                           (["--crop", "0x320"], "multiples of 8"),
+                                           (["--crop", "220x320"], "multiples of 8"),
+                                           (["--net-width", "0"], "net_width must be >= 8"),
+                                           (["--threads", "0"], "threads must be >= 1")])
+def test_bad_training_options_are_one_line_errors(tmp_path, capsys, args, problem):
+    from models.flow.corrflow_train import main
+
+    try:  # argparse's own errors exit, the config's return the status
+        status = main(args + ["--pairs", str(tmp_path / "pairs"), "--out", str(tmp_path / "run")])
+    except SystemExit as exc:
+        status = exc.code
+    assert status == 2
+    err = capsys.readouterr().err.strip()  # argparse prints its usage before the error line
+    assert problem in err.splitlines()[-1] and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_crop_larger_than_the_pairs_names_the_pairs_folder(tmp_path, tiny_sequence_dir):
+    build_pairs(tiny_sequence_dir, tmp_path / "pairs", ks=(1,), net_width=64)
+    config = TrainCorrFlowConfig(pairs=str(tmp_path / "pairs"), out_dir=str(tmp_path / "run"), steps=1,
+                                 net_width=64, crop=(64, 64), model=SMALL)
+    with pytest.raises(InputError, match="smaller than the crop") as err:
+        train(config)
+    assert err.value.field == "crop"

@@ -49,12 +49,16 @@ def working_size(width: int, height: int, net_width: int) -> tuple[int, int]:
     return max(8, int(round(width * scale / 8)) * 8), max(8, int(round(height * scale / 8)) * 8)
 
 
+def _to_working_size(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` (H, W[, C]) resized to ``size`` = (w, h): by area means down, bilinearly up."""
+    interpolation = cv2.INTER_AREA if size[0] <= image.shape[1] else cv2.INTER_LINEAR
+    return cv2.resize(image, size, interpolation=interpolation)
+
+
 def network_image(color: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(h, w, 3) uint8: (H, W, 3) linear RGB display-encoded to 8 bits and resized to ``size`` = (w, h), by
     area means down, bilinearly up. What the network reads (training pairs are made with it too)."""
-    w, h = size
-    interpolation = cv2.INTER_AREA if w <= color.shape[1] else cv2.INTER_LINEAR
-    return cv2.resize(encode8(color), (w, h), interpolation=interpolation)
+    return _to_working_size(encode8(color), tuple(size))
 
 
 def depth_reference(depth: np.ndarray) -> float:
@@ -76,9 +80,7 @@ def depth_code(depth: np.ndarray, reference: float) -> np.ndarray:
 def network_depth(depth: np.ndarray, reference: float, size: tuple[int, int]) -> np.ndarray:
     """(h, w) uint8: ``depth_code`` of (H, W) planar depth resized to ``size`` = (w, h) as ``network_image``
     resizes colour (area means down, bilinear up)."""
-    w, h = size
-    interpolation = cv2.INTER_AREA if w <= depth.shape[1] else cv2.INTER_LINEAR
-    code = cv2.resize(depth_code(depth, reference), (w, h), interpolation=interpolation)
+    code = _to_working_size(depth_code(depth, reference), tuple(size))
     return np.rint(np.clip(code, 0.0, 1.0) * 255).astype(np.uint8)
 
 

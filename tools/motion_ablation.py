@@ -69,9 +69,9 @@ import numpy as np
 
 from engine import geometry
 from engine.eval.protocol import evaluate_sequence, summarize
-from engine.geometry.holefill import fill_holes
 from engine.io.rgbd import read_sequence
 from engine.predict import registry
+from engine.predict.base import Target, Timer, warp_fill_depth
 from engine.predict.classic import Flow2D
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.decomp.gate import GateConfig, gate_boxes
@@ -365,10 +365,9 @@ class RuleFlow2D(Flow2D):
     def _prepare(self, state, timer):
         older, newest = state.history[-2], state.history[-1]
         src, dst = older.camera, newest.camera
-        # frame n-k in frame n's view, holes filled: what warp_and_fill gives, with the warp's depth kept
-        color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
-                                                              src.world_to_camera, dst.intrinsics, dst.world_to_camera)
-        warped, depth_filled = fill_holes(color_w, depth_w, holes, older.color)
+        # frame n-k in frame n's view, holes filled (outside the holes the depth is the warp's)
+        warped, depth_filled, holes = warp_fill_depth(older, Target(newest.camera, newest.time, newest.index),
+                                                      Timer())
         seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                     src.world_to_camera, older.depth.shape)
         factor = geometry.downsample_factor(newest.depth.shape[1], 480)
@@ -379,10 +378,10 @@ class RuleFlow2D(Flow2D):
             y0, y1, x0, x1 = full_box(box, factor, low_n[1].shape, gate.shape)
             gate[y0:y1, x0:x1] = True
         inv_n = np.where(np.isfinite(newest.depth), 1.0 / newest.depth, 0.0)
-        inv_w = np.where(np.isfinite(depth_w), 1.0 / np.maximum(depth_w, 1e-30), 0.0)
+        inv_w = np.where(np.isfinite(depth_filled), 1.0 / np.maximum(depth_filled, 1e-30), 0.0)
         context = {"gate": gate, "revealed": ~holes & (inv_n < (1.0 - REVEAL_DROP) * inv_w),
                    "arrived": (~holes & (inv_n > 1.05 * inv_w)).astype(np.float64),
-                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_w), "depth_filled": depth_filled,
+                   "newest": newest, "depth_w": np.where(holes, np.inf, depth_filled), "depth_filled": depth_filled,
                    "depth_change": ~holes & (np.abs(inv_n - inv_w) > DEPTH_CHANGE * np.maximum(inv_n, inv_w))}
         with timer("flow"):
             estimator = self._dis

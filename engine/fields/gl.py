@@ -91,6 +91,9 @@ _UBO_LIMIT = 65536
 _TILE = 8
 
 _AVAILABLE: Optional[bool] = None
+#: the OpenGL version the field renderers ask EGL for (compute shaders); without it moderngl asks for 3.3, which
+#: NVIDIA's driver gives exactly
+REQUIRED_GL = 430
 
 
 def available() -> bool:
@@ -100,7 +103,7 @@ def available() -> bool:
         try:
             import moderngl
 
-            ctx = moderngl.create_standalone_context(backend="egl")
+            ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
             try:
                 _AVAILABLE = ctx.version_code >= 430 and "GL_ARB_gpu_shader_fp64" in ctx.extensions
             finally:
@@ -653,7 +656,7 @@ class GlFieldRenderer:
         import moderngl
 
         self._lock = threading.Lock()
-        self.ctx = moderngl.create_standalone_context(backend="egl")
+        self.ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
         self._textures, self._buffers = [], []
         with self.ctx:
             start = time.perf_counter()

@@ -169,3 +169,22 @@ def test_validation_matches_reference():
             splatter.forward_warp_mpi(mpi, k, t_src, k, t_dst, **kwargs)
     with pytest.raises(InputError):
         splatter.forward_warp_mpi(mpi, k, t_src, k, t_dst, np.zeros((3, 1, h, w), np.float32))
+
+
+def test_clear_words_sets_exactly_the_words_asked():
+    """GlContext.clear_words (the splat's clear of its keys and sums) writes the value into the first words and
+    leaves the rest; a byte count below one word writes nothing."""
+    gl = glb.shared_context()
+    data = np.arange(1000, dtype=np.uint32) + 7
+
+    def run(nbytes, value):
+        buf = gl.ctx.buffer(data.tobytes())
+        gl.clear_words(buf, nbytes, value)
+        out = np.frombuffer(buf.read(), np.uint32).copy()
+        buf.release()
+        return out
+
+    out = gl.call(run, 4 * 777, 0xFFFFFFFF)
+    assert (out[:777] == 0xFFFFFFFF).all() and (out[777:] == data[777:]).all()
+    assert (gl.call(run, 4 * 1000, 0) == 0).all()
+    assert (gl.call(run, 3, 5) == data).all()

@@ -25,12 +25,19 @@ SHADERS = Path(__file__).with_name("shaders")
 LOCAL_SIZE = 256
 #: Largest workgroup count along x of one dispatch (the GL minimum of GL_MAX_COMPUTE_WORK_GROUP_COUNT).
 MAX_GROUPS_X = 65535
+#: The storage binding ``GlContext.clear_words`` binds its buffer to (no pass reads it).
+CLEAR_BINDING = 31
 #: What every pass starts with: its 1D workgroup and ``invocation()``, the flat index of an invocation of
 #: ``GlContext.dispatch`` (which spreads groups beyond ``MAX_GROUPS_X`` over y).
 _PRELUDE = """layout(local_size_x = LOCAL_SIZE) in;
 uint invocation() {
     return gl_GlobalInvocationID.x + gl_GlobalInvocationID.y * gl_NumWorkGroups.x * gl_WorkGroupSize.x;
 }
+// NaN and "not finite" read from the bits: NVIDIA's compiler folds !(x > y) into x <= y, so NaN took the
+// wrong branch there (measured on an H200); every NaN test of the passes goes through these
+bool nan_bits(float x) { return (floatBitsToUint(x) & 0x7fffffffu) > 0x7f800000u; }
+bool nonfinite_bits(float x) { return (floatBitsToUint(x) & 0x7f800000u) == 0x7f800000u; }
+bool nonfinite_bits(vec2 v) { return nonfinite_bits(v.x) || nonfinite_bits(v.y); }
 """
 _INCLUDE = re.compile(r'^\s*#include\s+"([\w.]+)"\s*$', re.MULTILINE)
 
@@ -38,7 +45,7 @@ _INCLUDE = re.compile(r'^\s*#include\s+"([\w.]+)"\s*$', re.MULTILINE)
 def shader_source(name: str, defines: Optional[Mapping[str, object]] = None) -> str:
     """The full GLSL text of pass ``name`` (``shaders/<name>.comp``): version, extensions, ``LOCAL_SIZE`` and
     ``defines`` (``{"FRAME": 1}`` -> ``#define FRAME 1``; a value of None defines the bare name), the prelude
-    (workgroup size, ``invocation()``), then the file with its ``#include`` lines expanded."""
+    (workgroup size, ``invocation()``, the NaN tests ``nan_bits`` and ``nonfinite_bits``), then the file with its ``#include`` lines expanded."""
     seen: set[str] = set()
 
     def expand(text: str) -> str:
@@ -88,7 +95,9 @@ class GlContext:
         import moderngl
 
         self._ident = threading.get_ident()
-        self.ctx = moderngl.create_standalone_context(backend="egl")
+        # ask for 4.5: without ``require`` moderngl asks EGL for 3.3, which NVIDIA's driver gives exactly (Mesa
+        # gives its highest)
+        self.ctx = moderngl.create_standalone_context(backend="egl", require=450)
         if self.ctx.version_code < 450 or "GL_ARB_gpu_shader_int64" not in self.ctx.extensions:
             version = self.ctx.info.get("GL_VERSION", "?")
             self.ctx.release()
@@ -142,6 +151,18 @@ class GlContext:
             buf = pool[key] = self.ctx.buffer(reserve=nbytes)
         return buf
 
+    def clear_words(self, buffer, nbytes: int, value: int = 0) -> None:
+        """Set the first ``nbytes`` (a multiple of 4) of ``buffer`` to the 32-bit ``value`` with a compute pass,
+        then a storage barrier. moderngl's ``Buffer.clear`` maps the buffer and writes it from the CPU, which
+        on a GPU waits for the work in flight and sends every byte over the bus (measured on an H200: most of
+        the splat's GPU time). GL thread only."""
+        count = int(nbytes) // 4
+        if count <= 0:
+            return
+        buffer.bind_to_storage_buffer(CLEAR_BINDING)
+        self.dispatch(self.program("clear_words", {"CLEAR_BINDING": CLEAR_BINDING}), count,
+                      {"count": count, "value": int(value) & 0xFFFFFFFF})
+
     def dispatch(self, program, count: int, uniforms: Optional[Mapping[str, object]] = None) -> None:
         """Run ``program`` over ``count`` invocations (1D, ``LOCAL_SIZE`` a group; groups beyond
         ``MAX_GROUPS_X`` go to y: passes index with ``invocation()``), then a storage barrier."""
@@ -177,10 +198,9 @@ class GlContext:
         """Run ``program`` as ``groups`` workgroups (one per row, column, ...: passes index them with
         ``gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x``), then a storage barrier."""
         for name, value in (uniforms or {}).items():
-            try:
-                program[name].value = value
-            except KeyError:
-                pass
+            member = program.get(name, None)  # a pass declares only the uniforms it reads
+            if member is not None:
+                member.value = value
         groups = max(1, int(groups))
         gx = min(groups, MAX_GROUPS_X)
         program.run(gx, -(-groups // gx), 1)

@@ -244,7 +244,7 @@ class GlOpticalFlow:
                 for level in range(coarsest, finest - 1, -1):
                     lh, lw = sizes[level]
                     if level == coarsest:
-                        init.clear(size=8 * lh * lw)
+                        gl.clear_words(init, 8 * lh * lw)
                     else:
                         dense.bind_to_storage_buffer(6)
                         init.bind_to_storage_buffer(7)

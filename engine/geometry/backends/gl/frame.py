@@ -207,7 +207,7 @@ class GlFrameWarper:
         ``motion_flow`` buffer, bound to 3."""
         gl, (h, w) = self.gl, image.shape
         flow = gl.buffer(self._pool, "motion_flow", 12 * h * w)
-        flow.clear(size=12 * h * w)
+        gl.clear_words(flow, 12 * h * w)
         flow.bind_to_storage_buffer(3)
         image.depth.bind_to_storage_buffer(1)
         # velocity stands in at 18 without an acceleration (the pass does not read it then)
@@ -250,7 +250,7 @@ class GlFrameWarper:
             with gl.gpu_stage("warp"):
                 run_splat(gl, pool, defines, uniforms, n, n)
             with gl.gpu_stage("fill"):
-                pool["mask"].clear(size=4 * words)
+                gl.clear_words(pool["mask"], 4 * words)
                 sizes = {"size": (h, w)}
                 gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
                 gl.dispatch_groups(gl.program("fill_links"), 1, sizes)

@@ -74,10 +74,10 @@ def run_splat(gl: GlContext, pool: dict, defines: dict, uniforms: dict, count: i
     gl.buffer(pool, "range", 8).write(np.array([0xFFFFFFFF, 0], dtype=np.uint32))
     pool["range"].bind_to_storage_buffer(5)
     keys = gl.buffer(pool, "keys", 4 * bins)
-    keys.clear(size=4 * bins)
+    gl.clear_words(keys, 4 * bins)
     keys.bind_to_storage_buffer(6)
     sums = gl.buffer(pool, "sums", 4 * ACC_WORDS * bins)
-    sums.clear(size=4 * ACC_WORDS * bins)
+    gl.clear_words(sums, 4 * ACC_WORDS * bins)
     sums.bind_to_storage_buffer(7)
     for name in SPLAT_PASSES:
         gl.dispatch(gl.program(name, defines), count, uniforms)

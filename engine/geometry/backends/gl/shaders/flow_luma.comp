@@ -10,7 +10,7 @@ layout(std430, binding = 2) readonly buffer TableBuf { vec2 table_[]; };   // pe
 uniform int count;  // H * W
 
 uint encode8(float c) {
-    if (!(c > 0.0)) return uint(table_[0].y);
+    if (nan_bits(c) || c <= 0.0) return uint(table_[0].y);
     c = min(c, 1.0);
     vec2 bucket = table_[int(c * float(BUCKETS))];
     return uint(bucket.y) + (c >= bucket.x ? 1u : 0u);

@@ -107,6 +107,6 @@ void main() {
         ssd = cost(oy, ox, u, step);
     }
     vec2 best_u = u;
-    if (!(ssd <= start_ssd) || any(isnan(u)) || any(isinf(u)) || distance(u, start) > float(PATCH)) best_u = start;
+    if (nan_bits(ssd) || nan_bits(start_ssd) || ssd > start_ssd || nonfinite_bits(u) || distance(u, start) > float(PATCH)) best_u = start;
     patch_[i] = best_u;
 }

@@ -5,5 +5,5 @@ void main() {
     uint i = invocation();
     if (i >= uint(size.x * size.y)) return;
     vec2 du = inc_[i];
-    if (!(any(isnan(du)) || any(isinf(du)))) dense_[i] += du;
+    if (!nonfinite_bits(du)) dense_[i] += du;
 }

@@ -24,5 +24,5 @@ void main() {
     int sx = int(f.x), sy = int(f.y);
     vec2 u = mix(mix(src_at(sy, sx), src_at(sy, sx + 1), t.x), mix(src_at(sy + 1, sx), src_at(sy + 1, sx + 1), t.x),
                  t.y) * scale;
-    dst_[i] = any(isnan(u)) || any(isinf(u)) ? vec2(0.0) : u;
+    dst_[i] = nonfinite_bits(u) ? vec2(0.0) : u;
 }

@@ -1,19 +1,19 @@
-"""Benchmark of the two backends side by side: ``cpu`` (numpy + numba) and ``gl`` (OpenGL compute, frames kept
-on the GPU), per frame size and method.
+"""Benchmark of the two backends side by side: ``cpu`` (numpy + numba) and ``gl`` (OpenGL compute, frames kept on the
+GPU), per frame size and method.
 
 ``python -m tools.bench_backends [--sizes 640x360,960x540,1920x1080,3840x2160] [--methods reproject,mvec,flow2d]
 [--k 2] [--frames 6] [--repeats 3] [--out out/bench_backends] [--json FILE]`` (methods: any names
 ``make_predictor`` takes, e.g. ``flow2d[estimator=gl]``, ``decomp``)
 
-Renders (once, cached under ``--out``) the fast held-out scene (preset ``fast``, seed 7003: objects moving a
-median 12 px a frame at 640x360) at each size. For every rendered frame n with history, each method on each
-backend prepares once and predicts the k-1 frames after n, on histories held in memory (with the motion vectors
-``mvec`` needs), methods and backends in rotating order, ``--repeats`` passes. Per (size, method, backend) it
-prints the median wall ms per predicted frame (preparation divided by k-1, uploads and the readback
-included), the GPU ms the GL timer queries measured (``-`` on a software renderer such as Mesa llvmpipe,
-whose queries do not time a GPU), the ratio to ``reproject`` on the CPU in the same run, the PSNR against the
-truth, and the parity of ``gl`` with ``cpu``: the largest colour difference and the share of pixels within
-1e-3 of max(1, value) (the tests' tolerance).
+Renders (once, cached under ``--out``) the fast held-out scene (preset ``fast``, seed 7003: objects moving a median
+12 px a frame at 640x360) at each size. For every rendered frame n with history, each method on each backend
+prepares once and predicts the k-1 frames after n, on histories held in memory (with the motion vectors ``mvec``
+needs), methods and backends in rotating order, ``--repeats`` passes. Per (size, method, backend) it prints the
+median wall ms per predicted frame (preparation divided by k-1, uploads and the readback included), the GPU ms the
+GL timer queries measured (``-`` on a software renderer such as Mesa llvmpipe, whose queries do not time a GPU; on
+a GPU a second table splits it by stage), the ratio to ``reproject`` on the CPU in the same run, the PSNR against
+the truth, and the parity of ``gl`` with ``cpu``: the largest colour difference and the share of pixels within 1e-3
+of max(1, value) (the tests' tolerance).
 """
 from __future__ import annotations
 
@@ -36,6 +36,12 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
     return [tuple(int(v) for v in part.lower().split("x")) for part in text.split(",") if part.strip()]
 
 
+def stage_medians(runs: list[dict]) -> dict:
+    """Per stage name, the median GPU ms over ``runs`` (a stage missing from a run counts 0)."""
+    names = sorted({name for run in runs for name in run})
+    return {name: float(statistics.median(run.get(name, 0.0) for run in runs)) for name in names}
+
+
 def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]:
     """Rows (method, backend, wall ms, GPU ms, PSNR, parity) of one sequence (see the module docstring)."""
     predictors = {(m, b): make_predictor(m, sequence.objects, backend=b) for m in methods for b in BACKENDS}
@@ -43,10 +49,16 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
     keys = list(predictors)
     wall: dict = {key: [] for key in keys}
     gpu: dict = {key: [] for key in keys}
+    stages: dict = {key: [] for key in keys}
     outputs: dict = {}
     for r, c, key, state, preds, ms in warm_runs(predictors, cases, repeats):
         wall[key].append(ms)
-        gpu[key].append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds)) / len(preds))
+        per_stage: dict = {}
+        for part in [state.gpu_ms] + [p.gpu_ms for p in preds]:
+            for name, value in part.items():
+                per_stage[name] = per_stage.get(name, 0.0) + value / len(preds)
+        stages[key].append(per_stage)
+        gpu[key].append(sum(per_stage.values()))
         if r == 0:
             outputs[key, c] = [p.color for p in preds]
     truths = [[sequence[t.index] for t in targets] for _, targets in cases]  # read once, scored per method
@@ -64,6 +76,7 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
         rows.append({"method": method, "backend": predictors[method, backend].backend,
                      "wall_ms": float(statistics.median(wall[method, backend])),
                      "gpu_ms": float(statistics.median(gpu[method, backend])),
+                     "gpu_stage_ms": stage_medians(stages[method, backend]),
                      "psnr": float(np.mean([s.psnr for s in scores])),
                      "psnr_moving": float(np.nanmean([s.psnr_moving for s in scores])),
                      "parity_max_diff": worst, "parity_within": float(np.mean(within))})
@@ -89,6 +102,7 @@ def main(argv=None) -> None:
            "scene": SCENE[0], "sizes": []}
     print("\n| size | method | backend | wall ms | GPU ms | x cpu reproject | PSNR | PSNR moving | parity max diff | "
           "parity within 1e-3 |\n|---|---|---|---|---|---|---|---|---|---|")
+    stage_lines = []
     for width, height in parse_sizes(args.sizes):
         name, overrides, preset = SCENE
         sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))
@@ -99,7 +113,13 @@ def main(argv=None) -> None:
             print(f"| {width}x{height} | {r['method']} | {r['backend']} | {r['wall_ms']:.1f} | {gpu} | "
                   f"{r['wall_ms'] / base:.2f} | {r['psnr']:.2f} | {r['psnr_moving']:.2f} | "
                   f"{r['parity_max_diff']:.2e} | {100 * r['parity_within']:.2f} % |", flush=True)
+            if hardware and r["backend"] == "gl":
+                stage_lines.append(f"| {width}x{height} | {r['method']} | " + ", ".join(
+                    f"{n} {v:.3f}" for n, v in r["gpu_stage_ms"].items()) + " |")
         doc["sizes"].append({"size": [width, height], "rows": rows})
+    if stage_lines:
+        print("\nGPU ms per predicted frame by stage (GL timer queries, medians):\n\n| size | method | stages |\n"
+              "|---|---|---|\n" + "\n".join(stage_lines))
     write_json(args.json, doc)
 
 

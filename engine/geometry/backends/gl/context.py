@@ -45,7 +45,8 @@ _INCLUDE = re.compile(r'^\s*#include\s+"([\w.]+)"\s*$', re.MULTILINE)
 def shader_source(name: str, defines: Optional[Mapping[str, object]] = None) -> str:
     """The full GLSL text of pass ``name`` (``shaders/<name>.comp``): version, extensions, ``LOCAL_SIZE`` and
     ``defines`` (``{"FRAME": 1}`` -> ``#define FRAME 1``; a value of None defines the bare name), the prelude
-    (workgroup size, ``invocation()``, the NaN tests ``nan_bits`` and ``nonfinite_bits``), then the file with its ``#include`` lines expanded."""
+    (workgroup size, ``invocation()``, the NaN tests ``nan_bits`` and ``nonfinite_bits``), then the file with
+    its ``#include`` lines expanded."""
     seen: set[str] = set()
 
     def expand(text: str) -> str:

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The GPU checks in one go, for a machine with a hardware OpenGL 4.3 context (EGL) and torch with CUDA:
+#   bash scripts/bench_gpu.sh OUT_DIR          (PYTHON=... picks the interpreter, default python3;
+#                                               ONLY="gl_tests backends" runs just the steps named)
+# 1. the GL passes' tests against their CPU references, on the GPU's driver;
+# 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage;
+# 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
+# 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
+#    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080.
+# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (7 files).
+set -uo pipefail
+out="${1:?usage: bash scripts/bench_gpu.sh OUT_DIR}"
+py="${PYTHON:-python3}"
+work="${TMPDIR:-/tmp}/interleave_bench_gpu"
+mkdir -p "$out" "$work"
+log="$out/run.log"
+step() {  # step NAME SECONDS COMMAND...
+    local name=$1 limit=$2
+    shift 2
+    if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then return; fi
+    echo "== $name: $* ($(date +%T))" | tee -a "$log"
+    timeout "$limit" "$@" >>"$log" 2>&1
+    echo "== $name: exit $? ($(date +%T))" | tee -a "$log"
+}
+{ nvidia-smi -L; "$py" --version; } >>"$log" 2>&1
+step gl_context 30 "$py" -c "from engine.geometry.backends import gl_renderer; print(gl_renderer())"
+step gl_tests 120 "$py" -m pytest -q -p no:cacheprovider tests/geometry/test_gl_flow.py tests/geometry/test_gl_frame.py \
+    tests/geometry/test_gl_splat.py tests/geometry/test_gl_trust.py tests/predict/test_gl_backend.py tests/fields/test_glfield.py
+step backends 180 "$py" -m tools.bench_backends --sizes 640x360,960x540,1920x1080 --repeats 2 \
+    --methods "reproject,mvec,flow2d,flow2d[estimator=gl],flow2d[estimator=corr],decomp" \
+    --out "$work/scenes" --json "$out/backends.json"
+step backends_4k 90 "$py" -m tools.bench_backends --sizes 3840x2160 --repeats 2 \
+    --methods "reproject,mvec,flow2d[estimator=gl],decomp" --out "$work/scenes" --json "$out/backends_4k.json"
+step networks 60 "$py" -m tools.bench_torch_networks --json "$out/networks.json"
+step field_capture 30 "$py" -m engine.cli render-rig "$work/rig" --seed 7 --width 504 --height 378 --static \
+    --num-cameras 8 --test-cameras 2 --baseline 0.25
+step field_train 150 "$py" -m engine.cli train field --scene "$work/rig" --train-views cam1,cam3,cam6 \
+    --test-views cam2,cam5 --device cuda --out "$work/field"
+cp "$work/field/scores.json" "$out/field_scores.json" 2>/dev/null
+step field_export 60 "$py" -m engine.cli export field "$work/field"
+step field_render 60 "$py" -m tools.bench_fields static "$work/field/export" --run "$work/field" --sizes 512x512 \
+    --skip numpy,onnx --json "$out/field_render.json"
+step field_render_hd 60 "$py" -m tools.bench_fields static "$work/field/export" --run "$work/field" \
+    --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_hd.json"

@@ -1,0 +1,48 @@
+"""``tools.bench_backends`` (cpu and gl side by side) and ``tools.bench_torch_networks`` (the networks in torch)."""
+import json
+
+import pytest
+import torch
+
+from tools import bench_backends, bench_torch_networks
+
+
+def test_bench_backends_rows_parity_and_stage_split(tmp_path):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    out = tmp_path / "bench.json"
+    bench_backends.main(["--sizes", "96x64", "--frames", "4", "--repeats", "1", "--methods", "reproject,mvec",
+                         "--out", str(tmp_path / "scenes"), "--json", str(out)])
+    doc = json.loads(out.read_text())
+    rows = doc["sizes"][0]["rows"]
+    assert doc["sizes"][0]["size"] == [96, 64]
+    assert {(r["method"], r["backend"]) for r in rows} == {(m, b) for m in ("reproject", "mvec") for b in ("cpu", "gl")}
+    for r in rows:
+        assert r["wall_ms"] > 0 and r["parity_within"] == 1.0 and r["parity_max_diff"] < 1e-4
+        if r["backend"] == "gl":  # the GPU time split by stage
+            assert {"warp", "fill", "readback"} <= set(r["gpu_stage_ms"])
+        else:
+            assert r["gpu_stage_ms"] == {} and r["gpu_ms"] == 0
+
+
+def test_bench_torch_networks_on_the_cpu(tmp_path):
+    out = tmp_path / "nets.json"
+    bench_torch_networks.main(["--devices", "cpu", "--repeats", "1", "--json", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["network"] for r in rows] == ["corrflow", "flow3d", "infill"]
+    assert all(r["device"] == "cpu" and r["ms"] > 0 and r["max_diff_from_cpu"] == 0 for r in rows)
+    module, inputs, (h, w) = bench_torch_networks.networks()["corrflow"]
+    assert (h, w) == (216, 384) and inputs[0].shape[-2:] == (h, w)
+    ms, result = bench_torch_networks.time_calls(module, inputs, "cpu", 1)
+    with torch.no_grad():
+        torch.testing.assert_close(result, module(*inputs))
+    assert result.shape == (1, 2, h, w)
+
+
+def test_bench_torch_networks_refuses_cuda_without_a_gpu():
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is here")
+    with pytest.raises(SystemExit, match="no CUDA device"):
+        bench_torch_networks.main(["--devices", "cuda"])

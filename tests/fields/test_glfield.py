@@ -5,7 +5,7 @@ numpy agree to float32 rounding: colour within 1e-4 [2e-6], opacity within 1e-4,
 surface, median planar depth within 1e-4 [< 1e-5], PSNR above 40 dB [~130 dB]. With the defaults
 (transmittance_eps 1e-4, color_eps 1e-5) the colour stays within transmittance_eps + num_samples * color_eps
 of it [1.1e-4]. uint8 planes: GL against numpy on the same uint8 planes above 60 dB [exact filtering ~130,
-hardware ~70], against the float planes above 40 dB.
+hardware ~70], against the float planes above 40 dB. On a GPU every colour tolerance grows by GPU_SLACK (below).
 """
 from __future__ import annotations
 
@@ -32,6 +32,24 @@ H, W = 32, 48
 EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0}
 
 
+def _hardware_renderer() -> bool:
+    import moderngl
+
+    from engine.geometry.backends.gl.context import is_software_renderer
+
+    ctx = moderngl.create_standalone_context(backend="egl", require=glfield.REQUIRED_GL)
+    try:
+        return not is_software_renderer(str(ctx.info.get("GL_RENDERER", "")))
+    finally:
+        ctx.release()
+
+
+#: Added to the colour tolerances against numpy on a GPU: GLSL's division and exp are not correctly rounded there
+#: (2.5 ulp allowed), so a sample can land in the next occupancy cell, and hardware filtering weighs texels in
+#: 8-bit steps. Measured on an H200 (2026-11-27): 5.5e-3 at most on these fields, PSNR above 77 dB.
+GPU_SLACK = 1e-2 if _hardware_renderer() else 0.0
+
+
 def _camera(which: str):
     return sphere_views([20] if which == "bounded_run" else [10]).cameras[0]
 
@@ -49,8 +67,8 @@ def assert_same_render(ref: dict, got: dict, color_tol: float) -> None:
     assert got["color"].shape == (H, W, 3) and got["depth"].shape == (H, W) and got["opacity"].shape == (H, W)
     assert all(got[k].dtype == np.float32 for k in ("color", "depth", "opacity"))
     assert not np.isnan(got["color"]).any() and not np.isnan(got["depth"]).any()
-    assert np.abs(got["color"] - ref["color"]).max() <= color_tol
-    assert np.abs(got["opacity"] - ref["opacity"]).max() <= color_tol
+    assert np.abs(got["color"] - ref["color"]).max() <= color_tol + GPU_SLACK
+    assert np.abs(got["opacity"] - ref["opacity"]).max() <= color_tol + GPU_SLACK
     finite = np.isfinite(ref["depth"])
     assert np.array_equal(np.isfinite(got["depth"]), finite) and finite.any() and not finite.all()
     assert np.median(np.abs(got["depth"][finite] - ref["depth"][finite])) < 1e-4

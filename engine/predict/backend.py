@@ -60,6 +60,19 @@ class GlFrames:
                                              dst.world_to_camera, None if motion else flow, flow_scale,
                                              gpu_ms=timer.gpu, motion=motion)
 
+    def warp_fill_depth(self, source: ResidentFrame, target: Target,
+                        timer: Timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``CpuFrames.warp_fill_depth`` on the GPU: the filled depth comes from the same fill pass and is read
+        back beside the colour. Returns (colour, depth, holes)."""
+        if source.image is None:
+            source = self.resident(source.frame, timer)
+        src, dst = source.frame.camera, target.camera
+        with timer("warp"):
+            color, holes, depth = self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera,
+                                                            dst.intrinsics, dst.world_to_camera, gpu_ms=timer.gpu,
+                                                            with_depth=True)
+        return color, depth, holes
+
     def estimate_flow_back(self, older: ResidentFrame, newest: ResidentFrame, estimator, trust, timer: Timer) -> GlFlow:
         """``flow2d``'s preparation on the GPU, nothing read back: frame n-k warped into frame n's view and
         filled (stage ``warp``), the flow u(n -> n-k) from frame n to it by ``estimator`` (a

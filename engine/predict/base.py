@@ -172,6 +172,11 @@ class CpuFrames:
         """A flow (H, W, 2|3) or a ``PointMotion`` where this backend computes (here: as it is)."""
         return flow
 
+    def warp_fill_depth(self, source: ResidentFrame, target: Target,
+                        timer: Timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``warp_fill_depth`` of ``source.frame`` (no object motion): (colour, depth, holes)."""
+        return warp_fill_depth(source.frame, target, timer)
+
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
                       flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow``, or for a ``PointMotion`` by

@@ -13,7 +13,7 @@ from engine.core.frames import SceneObject
 from engine.geometry.backends.gl import GlOpticalFlow
 from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
-                                 true_object_flow, warp_fill_depth)
+                                 true_object_flow)
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
 from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
                                 trusted_motion)
@@ -107,7 +107,7 @@ class Flow2D(Predictor):
         target = Target(newest.camera, newest.time, newest.index)
         depth_w = None
         if self._corr is not None and self._corr.depth:  # an RGB-D network also reads the warp's depth
-            warped, depth_w, _ = warp_fill_depth(older, target, timer)
+            warped, depth_w, _ = self.frames.warp_fill_depth(self.frames.resident(older, timer), target, timer)
         else:
             warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer), target, timer)
         luma_n, luma_w = luma8(newest.color), luma8(warped)

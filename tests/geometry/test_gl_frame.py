@@ -251,3 +251,33 @@ def test_a_forked_child_is_told_the_context_stayed_in_the_parent():
     proc.start()
     proc.join(30)
     assert proc.exitcode == 0 and queue.get(timeout=5) == ["refused", "refused", "cpu"]
+
+
+@pytest.mark.parametrize("case", ["random", "rows_without_surface", "all_holes"])
+def test_filled_depth_matches_the_cpu(case):
+    """warp_and_fill(with_depth=True): the same colour and holes as without, and the filled depth of
+    engine.predict.base.warp_fill_depth (the warp's depth, a hole's source depth, +inf with no source)."""
+    rng = np.random.default_rng(11)
+    h, w = (280, 64) if case == "rows_without_surface" else (40, 56)
+    color, depth = random_scene(rng, h, w, sky=0.0 if case != "random" else 0.2, near=2.0, far=4.0)
+    k = intrinsics(h, w)
+    t_dst = {"random": moving_cameras(rng, h, w, angle=0.05, shift=0.2)[2],
+             "rows_without_surface": pose(translation=(0.0, 1.5, 0.0)),
+             "all_holes": pose((0.0, np.pi, 0.0))}[case]
+    warped, warped_depth, ref_holes = geometry.forward_warp_frame(color, depth, k, np.eye(4), k, t_dst)
+    _, ref_depth = fill_holes(warped, warped_depth, ref_holes, color)
+    gl = warper()
+    image = gl.upload(color, depth)
+    plain, plain_holes = gl.warp_and_fill(image, k, np.eye(4), k, t_dst)
+    out, holes, filled = gl.warp_and_fill(image, k, np.eye(4), k, t_dst, with_depth=True)
+    np.testing.assert_array_equal(out, plain)
+    np.testing.assert_array_equal(holes, plain_holes)
+    assert filled.shape == (h, w) and filled.dtype == np.float32 and not np.isnan(filled).any()
+    both_inf = np.isinf(filled) & np.isinf(ref_depth)
+    finite = np.isfinite(filled) & np.isfinite(ref_depth)
+    same = both_inf | (finite & (np.abs(np.where(finite, filled - ref_depth, 0.0)) <= 1e-5 * np.abs(ref_depth)))
+    assert np.mean(same) >= 0.995
+    if case == "all_holes":
+        assert holes.all() and np.isinf(filled).all()
+    with pytest.raises(InputError, match="with_depth"):
+        gl.warp_and_fill(image, k, np.eye(4), k, t_dst, readback=False, with_depth=True)

@@ -48,6 +48,8 @@ def test_gl_predicts_what_the_cpu_predicts(method):
         if method == "mvec":  # the motion is extrapolated on the GPU
             assert "motion" in b.gpu_ms and "motion" in a.stages_ms
     assert "upload" in gl_state.stages_ms
+    if method == "flow2d[estimator=corr]":  # the RGB-D network's frame n-k (colour and depth) warped on the GPU
+        assert "warp" in gl_state.gpu_ms and "warp" not in cpu_state.gpu_ms
 
 
 def test_methods_without_gl_passes_stay_on_the_cpu():

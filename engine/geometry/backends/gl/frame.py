@@ -177,11 +177,13 @@ class GlFrameWarper:
     def warp_and_fill(self, image: GlImage, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray,
                       T_dst: np.ndarray, flow: Optional[GlFlow] = None, flow_scale: float = 1.0,
                       sharpness: float = DEFAULT_SHARPNESS, gpu_ms: Optional[dict] = None,
-                      motion: Optional[GlMotion] = None, readback: bool = True):
+                      motion: Optional[GlMotion] = None, readback: bool = True, with_depth: bool = False):
         """Forward-warp ``image`` to the destination camera, its points moved by ``flow_scale * flow`` or by
         ``motion`` extrapolated ``flow_scale`` frame intervals ahead (``K_src`` projects it), and fill the
         holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface), or with
-        ``readback=False`` a ``GlPrediction`` that stays on the GPU (a GPU-side copy). With ``gpu_ms``, the GPU
+        ``readback=False`` a ``GlPrediction`` that stays on the GPU (a GPU-side copy). ``with_depth`` (read
+        back only) adds the filled planar depth (H, W) float32 as ``engine.predict.base.warp_fill_depth``'s
+        (+inf where nothing was left to fill from): (colour, holes, depth). With ``gpu_ms``, the GPU
         milliseconds of the stages (``motion``,) ``warp``, ``fill``, ``readback`` are added to it."""
         if not isinstance(image, GlImage):
             raise InputError(f"must be a GlImage from GlFrameWarper.upload, got {type(image).__name__}", field="image")
@@ -196,11 +198,13 @@ class GlFrameWarper:
         scale = float(flow_scale)
         if not np.isfinite(scale):
             raise InputError(f"must be finite, got {flow_scale!r}", field="flow_scale")
+        if with_depth and not readback:
+            raise InputError("the depth is read back only: with_depth needs readback=True", field="with_depth")
         k_src = checked_matrix(K_src, "K_src", 3)
         matrix = reprojection_matrix(k_src, checked_matrix(T_src, "T_src", 4), checked_matrix(K_dst, "K_dst", 3),
                                      checked_matrix(T_dst, "T_dst", 4))
         return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms,
-                            motion, k_src, readback)
+                            motion, k_src, readback, with_depth)
 
     def _extrapolate(self, image: GlImage, motion: GlMotion, step: float, k: np.ndarray) -> None:
         """Pass ``motion_extrapolate``: the flow (H, W, 3) of ``motion`` ``step`` intervals ahead into the pool's
@@ -221,7 +225,7 @@ class GlFrameWarper:
 
     def _warp_and_fill(self, image: GlImage, matrix, flow: Optional[GlFlow], scale: float, sharpness: float,
                        gpu_ms: Optional[dict], motion: Optional[GlMotion] = None, k_src: Optional[np.ndarray] = None,
-                       readback: bool = True):
+                       readback: bool = True, with_depth: bool = False):
         gl, pool = self.gl, self._pool
         h, w = image.shape
         n = h * w
@@ -254,18 +258,25 @@ class GlFrameWarper:
                 sizes = {"size": (h, w)}
                 gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
                 gl.dispatch_groups(gl.program("fill_links"), 1, sizes)
-                gl.dispatch(gl.program("fill_apply"), n, sizes)
+                if with_depth:
+                    gl.buffer(pool, "filled_depth", 4 * n).bind_to_storage_buffer(19)
+                gl.dispatch(gl.program("fill_apply", {"WITH_DEPTH": None} if with_depth else None), n, sizes)
             if readback:
                 color = np.empty((h, w, 3), np.float32)
                 mask = np.empty(words, np.uint32)
                 with gl.gpu_stage("readback"):
                     pool["filled"].read_into(color, size=color.nbytes)
                     pool["mask"].read_into(mask, size=mask.nbytes)
+                    if with_depth:
+                        depth = np.empty((h, w), np.float32)
+                        pool["filled_depth"].read_into(depth, size=depth.nbytes)
             else:  # copies on the GPU: the work buffers are the next warp's
                 out = GlPrediction((h, w), gl.ctx.buffer(reserve=12 * n), gl.ctx.buffer(reserve=4 * words), gl)
                 gl.ctx.copy_buffer(out.color, pool["filled"], 12 * n)
                 gl.ctx.copy_buffer(out.holes, pool["mask"], 4 * words)
-        return (color, unpack_holes(mask, (h, w))) if readback else out
+        if not readback:
+            return out
+        return (color, unpack_holes(mask, (h, w)), depth) if with_depth else (color, unpack_holes(mask, (h, w)))
 
     def release(self) -> None:
         """Free this warper's work buffers (uploaded images and flows free themselves)."""

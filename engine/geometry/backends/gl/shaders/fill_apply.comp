@@ -1,11 +1,15 @@
 // Hole fill pass 3, per pixel: the filled colour (H, W, 3) and the packed hole mask (bit o % 32 of word
 // o / 32). A hole copies its row source; in a row without a known pixel, the farther (ties: the upper) of
 // the nearest rows above / below that have one, resolved to that pixel's own source; with neither, the
-// fallback colour (the frame that was warped).
+// fallback colour (the frame that was warped). Variant WITH_DEPTH: also the filled planar depth (H, W),
+// copied from the same source (+inf with none), as engine.geometry.holefill.fill_holes.
 #include "fill_common.glsl"
 
 layout(std430, binding = 14) writeonly buffer FilledBuf { float filled_[]; };  // (H, W, 3)
 layout(std430, binding = 15) buffer MaskBuf { uint mask_[]; };                 // ceil(H W / 32)
+#ifdef WITH_DEPTH
+layout(std430, binding = 19) writeonly buffer FilledDepthBuf { float filled_depth_[]; };  // (H, W)
+#endif
 
 // depth of pixel (r, x) after the row fill (rows with a known pixel only)
 float row_filled_depth(int r, int x) {
@@ -20,8 +24,10 @@ void main() {
     int o = int(i);
     int y = o / w, x = o % w;
     vec3 rgb;
+    float z;
     if (hole_[o] == 0u) {
         rgb = warped_[o].rgb;
+        z = warped_[o].w;
     } else {
         atomicOr(mask_[o >> 5], 1u << uint(o & 31));
         int src = -1;
@@ -38,8 +44,12 @@ void main() {
             }
         }
         rgb = src >= 0 ? warped_[src].rgb : vec3(color_[3 * o], color_[3 * o + 1], color_[3 * o + 2]);
+        z = src >= 0 ? warped_[src].w : INF;
     }
     filled_[3 * o] = rgb.r;
     filled_[3 * o + 1] = rgb.g;
     filled_[3 * o + 2] = rgb.b;
+#ifdef WITH_DEPTH
+    filled_depth_[o] = z;
+#endif
 }

@@ -618,13 +618,18 @@ class GlFieldRenderer:
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
             latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
 
+        context: ``None`` (default): a context of its own. A ``engine.geometry.backends.gl.GlContext`` (e.g.
+            ``shared_context()``): render on the frame backend's context, so that ``render_to_buffer`` hands
+            a frame to ``GlFrameWarper.from_rgbd`` without a readback.
+
     Raises:
         InputError: bad size or option, assets the shader cannot map (plane resolution below 2).
     """
 
     def __init__(self, assets: Union[FieldAssets, str, Path], width: int, height: int, *, quantized: bool = False,
                  filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
-                 color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline") -> None:
+                 color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline",
+                 context=None) -> None:
         if not isinstance(assets, FieldAssets):
             assets = load_field(assets)
         check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
@@ -647,42 +652,59 @@ class GlFieldRenderer:
             assets, planes, ranges, filtering=filtering, color_mode=color_mode,
             params_kind="const" if weights == "inline" else "ubo")
         self._setup(packed, [(f"planes{spec['scale']}", texture_layers(plane, spec["groups"]))
-                             for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4")
+                             for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4", context)
 
-    def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str) -> None:
-        """Create the context, compile ``self.source`` and upload the parameters, the occupancy grid and the
-        plane textures: ``(sampler name, (layers, H, W, 4) array)``, bound to units 0, 1, ... in that order
-        (``dtype`` ``f4``: RGBA32F; ``f1``: normalised RGBA8)."""
+    def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str, context=None) -> None:
+        """Create the context (or take ``context``'s), compile ``self.source`` and upload the parameters, the
+        occupancy grid and the plane textures: ``(sampler name, (layers, H, W, 4) array)``, bound to units 0,
+        1, ... in that order (``dtype`` ``f4``: RGBA32F; ``f1``: normalised RGBA8)."""
         import moderngl
 
         self._lock = threading.Lock()
-        self.ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
+        self._gl = context
+        if context is None:
+            self.ctx = moderngl.create_standalone_context(backend="egl", require=REQUIRED_GL)
+        else:
+            if not hasattr(context, "call") or not hasattr(context, "ctx"):
+                raise InputError(f"must be a GlContext, got {type(context).__name__}", field="context")
+            self.ctx = context.ctx
         self._textures, self._buffers = [], []
-        with self.ctx:
-            start = time.perf_counter()
-            self.program = self.ctx.compute_shader(self.source)
-            self.compile_seconds = time.perf_counter() - start
-            for unit, (name, layers) in enumerate(textures):
-                tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
-                                             dtype=dtype)
-                linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
-                tex.filter = (linear, linear)
-                tex.repeat_x = tex.repeat_y = False
-                tex.use(location=unit)
-                self._set(name, unit)
-                self._textures.append(tex)
-            self._params = self.ctx.buffer(packed.tobytes())
-            occ = self.assets.occupancy
-            bits = np.zeros(1, np.uint32)
-            if occ is not None:
-                flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
-                bits = np.packbits(np.pad(flat, (0, (-flat.size) % 32)), bitorder="little").view(np.uint32)
-            self._occ = self.ctx.buffer(bits.tobytes())
-            n = self.width * self.height
-            self._rgbd = self.ctx.buffer(reserve=16 * n)
-            self._opacity = self.ctx.buffer(reserve=4 * n)
-            self._buffers += [self._params, self._occ, self._rgbd, self._opacity]
-            self._set_static_uniforms()
+        self._run(lambda: self._build(packed, textures, dtype))
+
+    def _run(self, fn):
+        """``fn()`` with this renderer's context current: on the shared context's thread, or under the lock."""
+        if self._gl is not None:
+            return self._gl.call(fn)
+        with self._lock, self.ctx:  # make this context current (another module's GL context may be)
+            return fn()
+
+    def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
+        import moderngl
+
+        start = time.perf_counter()
+        self.program = self.ctx.compute_shader(self.source)
+        self.compile_seconds = time.perf_counter() - start
+        for unit, (name, layers) in enumerate(textures):
+            tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
+                                         dtype=dtype)
+            linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
+            tex.filter = (linear, linear)
+            tex.repeat_x = tex.repeat_y = False
+            tex.use(location=unit)
+            self._set(name, unit)
+            self._textures.append(tex)
+        self._params = self.ctx.buffer(packed.tobytes())
+        occ = self.assets.occupancy
+        bits = np.zeros(1, np.uint32)
+        if occ is not None:
+            flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
+            bits = np.packbits(np.pad(flat, (0, (-flat.size) % 32)), bitorder="little").view(np.uint32)
+        self._occ = self.ctx.buffer(bits.tobytes())
+        n = self.width * self.height
+        self._rgbd = self.ctx.buffer(reserve=16 * n)
+        self._opacity = self.ctx.buffer(reserve=4 * n)
+        self._buffers += [self._params, self._occ, self._rgbd, self._opacity]
+        self._set_static_uniforms()
 
     def _set(self, name: str, value) -> None:
         try:
@@ -727,12 +749,43 @@ class GlFieldRenderer:
         Raises:
             InputError: intrinsics not a finite pinhole K with positive focal lengths; pose not rigid.
         """
+        dispatch = self._dispatcher(intrinsics, world_to_camera)
+
+        def run():
+            start = time.perf_counter()
+            dispatch()
+            n = self.width * self.height
+            rgbd = np.frombuffer(self._rgbd.read(size=16 * n), np.float32).reshape(self.height, self.width, 4)
+            opacity = np.frombuffer(self._opacity.read(size=4 * n), np.float32).reshape(self.height, self.width)
+            return rgbd, opacity, time.perf_counter() - start
+
+        rgbd, opacity, seconds = self._run(run)
+        return {"color": rgbd[..., :3].copy(), "depth": rgbd[..., 3].copy(), "opacity": opacity.copy(),
+                "seconds": seconds}
+
+    def render_to_buffer(self, intrinsics, world_to_camera):
+        """``render`` with nothing read back, on a renderer made with ``context``: returns this renderer's
+        buffer of (H, W, 4) float32 (r, g, b linear, planar depth with +inf where the opacity is below
+        ``OPACITY_EPS``) per pixel, rows top to bottom, valid until the next render. The frame backend takes
+        it as a frame with ``GlFrameWarper.from_rgbd(buffer, (H, W))`` (a GPU-side copy).
+
+        Raises:
+            InputError: a renderer with a context of its own; bad intrinsics or pose.
+        """
+        if self._gl is None:
+            raise InputError("renders to a buffer only on a shared context: make the renderer with context=",
+                             field="context")
+        self._run(self._dispatcher(intrinsics, world_to_camera))
+        return self._rgbd
+
+    def _dispatcher(self, intrinsics, world_to_camera):
+        """The checked camera's dispatch, to run with the context current (``_run``)."""
         k = validate_intrinsics(intrinsics)
         pose = validate_pose(world_to_camera)
         rot = pose[:3, :3]
         origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
-        with self._lock, self.ctx:  # make this context current (another module's GL context may be)
-            start = time.perf_counter()
+
+        def dispatch() -> None:
             self._set("k_vals", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
             self._set("k_cy", float(k[1, 2]))
             self._set("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
@@ -741,12 +794,7 @@ class GlFieldRenderer:
             gx, gy = -(-self.width // _TILE), -(-self.height // _TILE)
             self.program.run(gx, gy, 1)
             self.ctx.memory_barrier()
-            n = self.width * self.height
-            rgbd = np.frombuffer(self._rgbd.read(size=16 * n), np.float32).reshape(self.height, self.width, 4)
-            opacity = np.frombuffer(self._opacity.read(size=4 * n), np.float32).reshape(self.height, self.width)
-            seconds = time.perf_counter() - start
-        return {"color": rgbd[..., :3].copy(), "depth": rgbd[..., 3].copy(), "opacity": opacity.copy(),
-                "seconds": seconds}
+        return dispatch
 
     def _bind(self) -> None:
         for spec_unit, tex in enumerate(self._textures):
@@ -760,13 +808,16 @@ class GlFieldRenderer:
         self._opacity.bind_to_storage_buffer(3)
 
     def release(self) -> None:
-        """Free the GL objects and the context (the renderer is unusable afterwards)."""
+        """Free the GL objects and the context unless it is a shared one (the renderer is unusable afterwards)."""
         if self.ctx is None:
             return
-        with self.ctx:
+
+        def free() -> None:
             for obj in self._textures + self._buffers + [self.program]:
                 obj.release()
-        self.ctx.release()
+        self._run(free)
+        if self._gl is None:
+            self.ctx.release()
         self.ctx = None
 
     def __enter__(self) -> "GlFieldRenderer":

@@ -231,3 +231,34 @@ def test_field_benchmark_scores_every_renderer_against_torch(bounded_run, tmp_pa
     assert all(r["reference"] == "torch" and r["size"] == "24x16" for r in records)
     assert min(r["psnr"] for r in records if r["renderer"] in ("gl float", "numpy")) > 60.0
     assert "| 24x16 | gl float |" in bench_table(records)
+
+
+def test_a_renderer_on_the_shared_context_hands_frames_to_the_warper_without_a_readback(bounded_run):
+    """GlFieldRenderer(context=shared_context()): the same render as on a context of its own, and
+    render_to_buffer + GlFrameWarper.from_rgbd warp exactly as the read-back frame uploaded again."""
+    from engine.geometry.backends import gl as glb
+
+    _, out, _ = bounded_run
+    cam, other = sphere_views([20, 35]).cameras
+    gl = glb.shared_context()
+    warper = glb.GlFrameWarper(gl)
+    with glfield.GlFieldRenderer(out, W, H) as own:
+        ref = own.render(cam.intrinsics, cam.world_to_camera)
+        with pytest.raises(InputError, match="context"):
+            own.render_to_buffer(cam.intrinsics, cam.world_to_camera)
+    with glfield.GlFieldRenderer(out, W, H, context=gl) as shared:
+        got = shared.render(cam.intrinsics, cam.world_to_camera)
+        image = warper.from_rgbd(shared.render_to_buffer(cam.intrinsics, cam.world_to_camera), (H, W))
+        shared.render_to_buffer(other.intrinsics, other.world_to_camera)  # the image keeps its own copy
+        with pytest.raises(InputError, match="rgbd"):
+            warper.from_rgbd(shared.render_to_buffer(cam.intrinsics, cam.world_to_camera), (H + 1, W))
+    for key in ("color", "depth", "opacity"):
+        np.testing.assert_array_equal(got[key], ref[key])
+    args = (cam.intrinsics, cam.world_to_camera, other.intrinsics, other.world_to_camera)
+    color, holes = warper.warp_and_fill(image, *args)
+    ref_color, ref_holes = warper.warp_and_fill(warper.upload(ref["color"], ref["depth"]), *args)
+    np.testing.assert_array_equal(color, ref_color)
+    np.testing.assert_array_equal(holes, ref_holes)
+    assert not holes.all() and gl.ctx is not None  # the shared context outlives the renderer
+    with pytest.raises(InputError, match="context"):
+        glfield.GlFieldRenderer(out, W, H, context="not a context")

@@ -150,6 +150,24 @@ class GlFrameWarper:
                 raise InputError(f"must be a buffer of this context of at least {nbytes} bytes", field=name)
         return GlImage((h, w), color, depth, self.gl, owned=False)
 
+    def from_rgbd(self, rgbd, shape: tuple[int, int]) -> GlImage:
+        """A frame from a buffer of the shared context holding (H, W, 4) float32 (r, g, b linear, planar depth
+        with +inf sky) per pixel, rows top to bottom: what ``engine.fields.gl.GlFieldRenderer.render_to_buffer``
+        leaves. Split on the GPU (pass ``frame_from_rgbd``) into a colour and a depth buffer that the returned
+        image owns, so the source may be overwritten at once; nothing crosses the bus."""
+        h, w = checked_size(shape, "shape")
+        n = h * w
+        if getattr(rgbd, "size", -1) < 16 * n or getattr(rgbd, "ctx", None) is not self.gl.ctx:
+            raise InputError(f"must be a buffer of this context of at least {16 * n} bytes", field="rgbd")
+
+        def split() -> GlImage:
+            color, depth = self.gl.ctx.buffer(reserve=12 * n), self.gl.ctx.buffer(reserve=4 * n)
+            for binding, buf in enumerate((rgbd, color, depth)):
+                buf.bind_to_storage_buffer(binding)
+            self.gl.dispatch(self.gl.program("frame_from_rgbd"), n, {"count": n})
+            return GlImage((h, w), color, depth, self.gl)
+        return self.gl.call(split)
+
     def upload_flow(self, flow: np.ndarray) -> GlFlow:
         """Upload an object flow (H, W, 2) (du, dv) pixels or (H, W, 3) (du, dv, dz), in the frame's view."""
         flow = np.ascontiguousarray(checked_flow(flow, {}))

@@ -281,3 +281,30 @@ def test_filled_depth_matches_the_cpu(case):
         assert holes.all() and np.isinf(filled).all()
     with pytest.raises(InputError, match="with_depth"):
         gl.warp_and_fill(image, k, np.eye(4), k, t_dst, readback=False, with_depth=True)
+
+
+def test_dropped_frame_buffers_are_reused_at_their_size_within_the_cap():
+    """GlContext.new_buffer: a dropped frame's buffers serve the next frame of the same size (same GL object,
+    the new contents), other sizes get new buffers, and no more than recycle_bytes are kept."""
+    gl = warper().gl
+    rng = np.random.default_rng(5)
+    color, depth = random_scene(rng, 24, 32, sky=0.1)
+    image = warper().upload(color, depth)
+    names = {image.color.glo, image.depth.glo}
+    del image
+    gc.collect()
+    second = warper().upload(color[::-1].copy(), depth[::-1].copy())
+    assert {second.color.glo, second.depth.glo} == names
+    got = gl.call(lambda: np.frombuffer(second.color.read(), np.float32).reshape(color.shape))
+    np.testing.assert_array_equal(got, color[::-1])
+    other = warper().upload(color[:, :16].copy(), depth[:, :16].copy())
+    assert not {other.color.glo, other.depth.glo} & names
+    saved = gl.recycle_bytes
+    try:
+        gl.recycle_bytes = 0  # nothing kept: dropped buffers are freed
+        del other
+        gc.collect()
+        gl.call(lambda: None)
+        assert not gl._free.get(12 * 24 * 16) and not gl._free.get(4 * 24 * 16)
+    finally:
+        gl.recycle_bytes = saved

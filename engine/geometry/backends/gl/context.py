@@ -27,6 +27,10 @@ LOCAL_SIZE = 256
 MAX_GROUPS_X = 65535
 #: The storage binding ``GlContext.clear_words`` binds its buffer to (no pass reads it).
 CLEAR_BINDING = 31
+#: Most bytes of dropped per-frame buffers a context keeps for reuse (``GlContext.new_buffer``): frames,
+#: flows and predictions are made and dropped every rendered frame at the same few sizes, and a reused
+#: buffer spares the driver an allocation and the GPU the first touch of new memory.
+RECYCLE_BYTES = 512 << 20
 #: What every pass starts with: its 1D workgroup and ``invocation()``, the flat index of an invocation of
 #: ``GlContext.dispatch`` (which spreads groups beyond ``MAX_GROUPS_X`` over y).
 _PRELUDE = """layout(local_size_x = LOCAL_SIZE) in;
@@ -88,6 +92,8 @@ class GlContext:
             raise
         self._programs: dict = {}
         self._garbage: collections.deque = collections.deque()  # GL objects to free on the GL thread
+        self._free: dict[int, list] = {}  # size in bytes -> dropped buffers kept for reuse
+        self.recycle_bytes = RECYCLE_BYTES
         self._queries: list = []
         self._open: list[tuple[str, object]] = []
         self._timing = False
@@ -120,15 +126,39 @@ class GlContext:
     def discard(self, objects) -> None:
         """Free GL ``objects`` (buffers, ...) later, on the GL thread, before its next call: safe from any thread
         and from a garbage-collection finalizer, which may run while another thread pool holds the lock that
-        submitting work takes (so a finalizer must not wait on the GL thread)."""
+        submitting work takes (so a finalizer must not wait on the GL thread). Buffers are kept for
+        ``new_buffer`` up to ``recycle_bytes`` in all."""
         self._garbage.extend(objects)
 
     def _collect(self) -> None:
+        """Free the discarded objects; buffers go to the reuse lists while they hold under ``recycle_bytes``."""
+        kept = sum(size * len(bufs) for size, bufs in self._free.items())
         while self._garbage:
             try:
-                self._garbage.popleft().release()
+                obj = self._garbage.popleft()
             except IndexError:
                 break
+            size = getattr(obj, "size", None)
+            if type(obj).__name__ == "Buffer" and size is not None and kept + size <= self.recycle_bytes:
+                self._free.setdefault(size, []).append(obj)
+                kept += size
+            else:
+                obj.release()
+
+    def new_buffer(self, nbytes: int = 0, data=None):
+        """A buffer of exactly ``nbytes`` (contents undefined), or holding ``data`` (bytes-like, e.g. a
+        contiguous array): a dropped one of that size when one was kept (see ``discard``), else a new one.
+        GL thread only."""
+        if data is not None:
+            data = memoryview(data).cast("B")
+            nbytes = data.nbytes
+        kept = self._free.get(int(nbytes))
+        if kept:
+            buf = kept.pop()
+            if data is not None:
+                buf.write(data)
+            return buf
+        return self.ctx.buffer(data) if data is not None else self.ctx.buffer(reserve=int(nbytes))
 
     def _collected(self, fn, *args, **kwargs):
         self._collect()
@@ -219,6 +249,10 @@ class GlContext:
         """Free the programs, queries and the context, and stop its thread."""
         def free():
             self._collect()
+            for buffers in self._free.values():
+                for buf in buffers:
+                    buf.release()
+            self._free.clear()
             for program in self._programs.values():
                 program.release()
             self._programs.clear()

@@ -150,15 +150,14 @@ class GlOpticalFlow:
             gpu = []
             for buf in buffers:
                 if isinstance(buf, np.ndarray):
-                    owned.append(self.gl.ctx.buffer(buf))
+                    owned.append(self.gl.new_buffer(data=buf))
                     gpu.append(owned[-1])
                 else:
                     gpu.append(buf)
             try:
                 return self._estimate(gpu[0], gpu[1], shape, gpu_ms, as_gl)
             finally:
-                for buf in owned:
-                    buf.release()
+                self.gl.discard(owned)
         return self.gl.call(run)
 
     def luma(self, image: np.ndarray | GlImage) -> np.ndarray:
@@ -176,12 +175,12 @@ class GlOpticalFlow:
         values = np.empty(n, np.float32)
 
         def run():
-            buf = image.color if color is None else self.gl.ctx.buffer(color)
+            buf = image.color if color is None else self.gl.new_buffer(data=color)
             try:
                 self._luma(buf, self.gl.buffer(self._pool, "first", 4 * n), n).read_into(values, size=values.nbytes)
             finally:
                 if color is not None:
-                    buf.release()
+                    self.gl.discard([buf])
         self.gl.call(run)
         return values.reshape(shape).astype(np.uint8)
 
@@ -236,7 +235,7 @@ class GlOpticalFlow:
             largest = max(a * b for a, b in sizes[finest:])
             init, dense = (gl.buffer(pool, key, 8 * largest) for key in ("init", "dense"))
             patch_flows = [gl.buffer(pool, key, 8 * largest) for key in ("patches", "patches_prev")]
-            out = gl.ctx.buffer(reserve=8 * n) if as_gl else gl.buffer(pool, "out", 8 * n)
+            out = gl.new_buffer(8 * n) if as_gl else gl.buffer(pool, "out", 8 * n)
             with gl.gpu_stage("search"):
                 pyramids[0].bind_to_storage_buffer(1)
                 pyramids[1].bind_to_storage_buffer(3)

@@ -136,8 +136,8 @@ class GlFrameWarper:
         sizes: dict = {}
         depth = np.ascontiguousarray(checked_array(depth, "depth", ("H", "W"), sizes))
         color = np.ascontiguousarray(checked_array(color, "color", ("H", "W", 3), sizes))
-        return self.gl.call(lambda: GlImage(depth.shape, self.gl.ctx.buffer(color), self.gl.ctx.buffer(depth),
-                                            self.gl))
+        return self.gl.call(lambda: GlImage(depth.shape, self.gl.new_buffer(data=color),
+                                            self.gl.new_buffer(data=depth), self.gl))
 
     def adopt(self, color, depth, shape: tuple[int, int]) -> GlImage:
         """A frame already on the GPU, without a copy: ``color`` (H, W, 3) and ``depth`` (H, W) float32
@@ -161,7 +161,7 @@ class GlFrameWarper:
             raise InputError(f"must be a buffer of this context of at least {16 * n} bytes", field="rgbd")
 
         def split() -> GlImage:
-            color, depth = self.gl.ctx.buffer(reserve=12 * n), self.gl.ctx.buffer(reserve=4 * n)
+            color, depth = self.gl.new_buffer(12 * n), self.gl.new_buffer(4 * n)
             for binding, buf in enumerate((rgbd, color, depth)):
                 buf.bind_to_storage_buffer(binding)
             self.gl.dispatch(self.gl.program("frame_from_rgbd"), n, {"count": n})
@@ -171,7 +171,7 @@ class GlFrameWarper:
     def upload_flow(self, flow: np.ndarray) -> GlFlow:
         """Upload an object flow (H, W, 2) (du, dv) pixels or (H, W, 3) (du, dv, dz), in the frame's view."""
         flow = np.ascontiguousarray(checked_flow(flow, {}))
-        return self.gl.call(lambda: GlFlow(flow.shape[:2], flow.shape[2], self.gl.ctx.buffer(flow), self.gl))
+        return self.gl.call(lambda: GlFlow(flow.shape[:2], flow.shape[2], self.gl.new_buffer(data=flow), self.gl))
 
     def upload_motion(self, shape: tuple[int, int], moving: np.ndarray, velocity: np.ndarray,
                       acceleration: Optional[np.ndarray] = None) -> GlMotion:
@@ -188,7 +188,7 @@ class GlFrameWarper:
             arrays.append(np.ascontiguousarray(checked_array(acceleration, "acceleration", ("M", 3), sizes)))
 
         def make():
-            buffers = [self.gl.ctx.buffer(a if a.size else np.zeros(4, np.float32)) for a in arrays]
+            buffers = [self.gl.new_buffer(data=a if a.size else np.zeros(4, np.float32)) for a in arrays]
             return GlMotion((h, w), moving.size, acceleration is not None, buffers, self.gl)
         return self.gl.call(make)
 
@@ -289,7 +289,7 @@ class GlFrameWarper:
                         depth = np.empty((h, w), np.float32)
                         pool["filled_depth"].read_into(depth, size=depth.nbytes)
             else:  # copies on the GPU: the work buffers are the next warp's
-                out = GlPrediction((h, w), gl.ctx.buffer(reserve=12 * n), gl.ctx.buffer(reserve=4 * words), gl)
+                out = GlPrediction((h, w), gl.new_buffer(12 * n), gl.new_buffer(4 * words), gl)
                 gl.ctx.copy_buffer(out.color, pool["filled"], 12 * n)
                 gl.ctx.copy_buffer(out.holes, pool["mask"], 4 * words)
         if not readback:

@@ -73,14 +73,12 @@ class GlTrust:
         out = np.empty_like(flow)
 
         def run():
-            ctx = self.gl.ctx
-            buffers = [ctx.buffer(a) for a in (*lumas, flow, depth)]
+            buffers = [self.gl.new_buffer(data=a) for a in (*lumas, flow, depth)]
             try:
                 self.apply_buffers(*buffers, depth.shape, matrix, prev_size)
                 buffers[2].read_into(out)
             finally:
-                for buf in buffers:
-                    buf.release()
+                self.gl.discard(buffers)
         self.gl.call(run)
         return out
 

@@ -617,7 +617,6 @@ class GlFieldRenderer:
             (0: every sample with a non-zero weight is coloured).
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
             latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
-
         context: ``None`` (default): a context of its own. A ``engine.geometry.backends.gl.GlContext`` (e.g.
             ``shared_context()``): render on the frame backend's context, so that ``render_to_buffer`` hands
             a frame to ``GlFrameWarper.from_rgbd`` without a readback.

@@ -188,3 +188,4 @@ def test_clear_words_sets_exactly_the_words_asked():
     assert (out[:777] == 0xFFFFFFFF).all() and (out[777:] == data[777:]).all()
     assert (gl.call(run, 4 * 1000, 0) == 0).all()
     assert (gl.call(run, 3, 5) == data).all()
+

@@ -132,14 +132,16 @@ class GlContext:
 
     def _collect(self) -> None:
         """Free the discarded objects; buffers go to the reuse lists while they hold under ``recycle_bytes``."""
+        import moderngl
+
         kept = sum(size * len(bufs) for size, bufs in self._free.items())
         while self._garbage:
             try:
                 obj = self._garbage.popleft()
             except IndexError:
                 break
-            size = getattr(obj, "size", None)
-            if type(obj).__name__ == "Buffer" and size is not None and kept + size <= self.recycle_bytes:
+            size = obj.size if isinstance(obj, moderngl.Buffer) else None
+            if size is not None and kept + size <= self.recycle_bytes:
                 self._free.setdefault(size, []).append(obj)
                 kept += size
             else:

@@ -1,10 +1,11 @@
-"""``tools.bench_backends`` (cpu and gl side by side) and ``tools.bench_torch_networks`` (the networks in torch)."""
+"""``tools.bench_backends`` (cpu and gl side by side), ``tools.profile_gl_passes`` (GPU time per pass) and
+``tools.bench_torch_networks`` (the networks in torch)."""
 import json
 
 import pytest
 import torch
 
-from tools import bench_backends, bench_torch_networks
+from tools import bench_backends, bench_torch_networks, profile_gl_passes
 
 
 def test_bench_backends_rows_parity_and_stage_split(tmp_path):
@@ -25,6 +26,35 @@ def test_bench_backends_rows_parity_and_stage_split(tmp_path):
             assert {"warp", "fill", "readback"} <= set(r["gpu_stage_ms"])
         else:
             assert r["gpu_stage_ms"] == {} and r["gpu_ms"] == 0
+
+
+def test_profile_counts_every_pass_of_a_frame(tmp_path):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    out = tmp_path / "profile.json"
+    profile_gl_passes.main(["--size", "96x64", "--frames", "4", "--repeats", "2", "--methods", "reproject,mvec",
+                            "--out", str(tmp_path / "scenes"), "--json", str(out)])
+    doc = json.loads(out.read_text())
+    passes = doc["methods"]["reproject"]["passes"]
+    # per predicted frame: the splat's four passes, the fill's three, and its clears (keys, sums, mask)
+    for name in ("splat_range", "splat_key", "splat_accumulate", "splat_resolve", "fill_rows", "fill_links",
+                 "fill_apply"):
+        assert passes[name][0] == 1.0 and passes[name][1] >= 0.0
+    assert passes["clear_words"][0] == 3.0
+    assert "motion_extrapolate" in doc["methods"]["mvec"]["passes"]
+    # stage timing works again afterwards (pass timing turned the stage queries off only while it ran)
+    gl = glb.shared_context()
+    stages: dict = {}
+    pool: dict = {}
+
+    def staged():
+        with gl.timing(stages), gl.gpu_stage("probe"):
+            gl.clear_words(gl.buffer(pool, "probe", 64), 64)
+    gl.call(staged)
+    gl.release_pool(pool)
+    assert "probe" in stages
 
 
 def test_bench_torch_networks_on_the_cpu(tmp_path):

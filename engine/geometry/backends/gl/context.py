@@ -93,6 +93,8 @@ class GlContext:
         self._programs: dict = {}
         self._garbage: collections.deque = collections.deque()  # GL objects to free on the GL thread
         self._free: dict[int, list] = {}  # size in bytes -> dropped buffers kept for reuse
+        self._pass_names: dict[int, str] = {}  # id(program) -> its pass name (``pass_timing``)
+        self._pass_queries: Optional[list] = None
         self.recycle_bytes = RECYCLE_BYTES
         self._queries: list = []
         self._open: list[tuple[str, object]] = []
@@ -172,6 +174,7 @@ class GlContext:
         program = self._programs.get(key)
         if program is None:
             program = self._programs[key] = self.ctx.compute_shader(shader_source(name, defines))
+            self._pass_names[id(program)] = name
         return program
 
     def buffer(self, pool: dict, key: str, nbytes: int):
@@ -216,10 +219,28 @@ class GlContext:
             self._open = []
 
     @contextmanager
+    def pass_timing(self, into: dict) -> Iterator[None]:
+        """Profile: time every dispatch run inside (on any thread, through ``call``) with a query of its own and
+        add ``into[pass name] = (dispatches, GPU ms)``. Stage queries (``gpu_stage``) are off meanwhile, as GL
+        times one query at a time; a query per dispatch adds waits of its own, so use this to see where the GPU
+        time goes, not as the time of a frame. Not from the GL thread."""
+        self._pass_queries = []
+        try:
+            yield
+        finally:
+            def read() -> None:
+                for name, query in self._pass_queries:
+                    calls, ms = into.get(name, (0, 0.0))
+                    into[name] = (calls + 1, ms + query.elapsed * 1e-6)
+                    self._queries.append(query)
+                self._pass_queries = None
+            self.call(read)
+
+    @contextmanager
     def gpu_stage(self, name: str) -> Iterator[None]:
-        """Time the GL commands of the block with a GL_TIME_ELAPSED query (only inside ``timing``; blocks do
-        not nest: GL allows one elapsed-time query at a time)."""
-        if not self._timing:
+        """Time the GL commands of the block with a GL_TIME_ELAPSED query (only inside ``timing``, and not while
+        ``pass_timing`` runs; blocks do not nest: GL allows one elapsed-time query at a time)."""
+        if not self._timing or self._pass_queries is not None:
             yield
             return
         query = self._queries.pop() if self._queries else self.ctx.query(time=True)
@@ -236,7 +257,13 @@ class GlContext:
                 member.value = value
         groups = max(1, int(groups))
         gx = min(groups, MAX_GROUPS_X)
-        program.run(gx, -(-groups // gx), 1)
+        if self._pass_queries is None:
+            program.run(gx, -(-groups // gx), 1)
+        else:
+            query = self._queries.pop() if self._queries else self.ctx.query(time=True)
+            with query:
+                program.run(gx, -(-groups // gx), 1)
+            self._pass_queries.append((self._pass_names.get(id(program), "?"), query))
         self.ctx.memory_barrier()
 
     def release_pool(self, pool: dict) -> None:

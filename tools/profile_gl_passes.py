@@ -1,0 +1,89 @@
+"""Where the GL backend's GPU time goes, pass by pass: every compute dispatch timed with its own GL timer
+query (``GlContext.pass_timing``).
+
+``python -m tools.profile_gl_passes [--size 1920x1080] [--methods reproject,mvec,flow2d[estimator=gl]] [--k 2]
+[--frames 6] [--repeats 2] [--out out/bench_backends] [--json FILE]``
+
+The scene is ``tools.bench_backends``' (the fast held-out scene, rendered once and cached under ``--out``).
+Each method runs on the ``gl`` backend, once to warm up, then ``--repeats`` passes over the rendered frames
+with history, under ``pass_timing``. Per method and pass, it prints the dispatches and the GPU ms per predicted
+frame. It also prints the stage total per predicted frame from the GL stage queries (``gpu_ms``), from the same
+number of passes without per-pass queries. The stage total minus the sum of the passes is the GPU time spent
+outside dispatches: clears, copies, readbacks, and waits between commands. A query per dispatch adds waits of
+its own, so the pass times show shares, not a frame's time. On a software renderer (Mesa llvmpipe) the
+queries do not time a GPU and the tool says so.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+
+from engine.geometry.backends import gl_renderer
+from engine.geometry.backends.gl import shared_context
+from engine.io.rgbd import read_sequence
+from engine.predict import make_predictor, split_methods
+from tools.bench_backends import SCENE, parse_sizes
+from tools.heldout import render_set, timing_cases, write_json
+
+
+def profile_method(sequence, method: str, k: int, repeats: int) -> dict:
+    """``{"passes": {name: (dispatches, GPU ms) per predicted frame}, "stage_gpu_ms": median per predicted
+    frame, "predicted": frames}`` of one method on the ``gl`` backend."""
+    predictor = make_predictor(method, sequence.objects, backend="gl")
+    cases = timing_cases(sequence, k)
+
+    def run_all() -> tuple[int, list[float]]:
+        frames, totals = 0, []
+        for history, targets in cases:
+            state = predictor.prepare(history[-max(predictor.history_needed, predictor.history_wanted, 1):])
+            preds = [predictor.render(state, target) for target in targets]
+            frames += len(preds)
+            totals.append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds)) / len(preds))
+        return frames, totals
+
+    run_all()  # warm-up: programs compiled, buffers grown
+    totals: list[float] = []
+    for _ in range(repeats):
+        totals += run_all()[1]
+    passes: dict = {}
+    predicted = 0
+    with shared_context().pass_timing(passes):
+        for _ in range(repeats):
+            predicted += run_all()[0]
+    per_frame = {name: (calls / predicted, ms / predicted) for name, (calls, ms) in sorted(passes.items())}
+    return {"passes": per_frame, "stage_gpu_ms": float(statistics.median(totals)), "predicted": predicted}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--size", default="1920x1080")
+    parser.add_argument("--methods", default="reproject,mvec,flow2d[estimator=gl]")
+    parser.add_argument("--k", type=int, default=2)
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--out", default="out/bench_backends")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    runs, hardware, renderer = gl_renderer()
+    if not runs:
+        raise SystemExit(f"profile_gl_passes: the gl backend cannot run here: {renderer}")
+    (width, height), = parse_sizes(args.size)
+    print(f"GL renderer: {renderer} ({'hardware' if hardware else 'software: the queries do not time a GPU'})")
+    name, overrides, preset = SCENE
+    sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))
+    doc = {"renderer": renderer, "hardware": hardware, "size": [width, height], "k": args.k, "methods": {}}
+    for method in split_methods(args.methods):
+        result = profile_method(sequence, method, args.k, args.repeats)
+        doc["methods"][method] = result
+        total = sum(ms for _, ms in result["passes"].values())
+        print(f"\n{method} at {width}x{height}, k = {args.k}: GPU ms per predicted frame "
+              f"(stage queries: {result['stage_gpu_ms']:.3f}; sum of the passes: {total:.3f})\n")
+        print("| pass | dispatches | GPU ms | share of the passes |\n|---|---|---|---|")
+        for pass_name, (calls, ms) in sorted(result["passes"].items(), key=lambda kv: -kv[1][1]):
+            share = ms / total if total > 0 else float("nan")
+            print(f"| {pass_name} | {calls:.1f} | {ms:.3f} | {100 * share:.1f} % |")
+    write_json(args.json, doc)
+
+
+if __name__ == "__main__":
+    main()

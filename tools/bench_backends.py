@@ -83,20 +83,33 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
     return rows
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", default="640x360,960x540,1920x1080,3840x2160")
-    parser.add_argument("--methods", default="reproject,mvec,flow2d,flow2d[estimator=gl],decomp")
+def gl_tool_parser(doc: str, methods: str, repeats: int) -> argparse.ArgumentParser:
+    """The options the GL tools share: --methods, --k, --frames, --repeats, --out (the scene cache), --json."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--methods", default=methods)
     parser.add_argument("--k", type=int, default=2)
     parser.add_argument("--frames", type=int, default=6)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=repeats)
     parser.add_argument("--out", default="out/bench_backends")
     parser.add_argument("--json", default=None)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def gl_or_exit(prog: str) -> tuple[bool, str]:
+    """(on a hardware GPU, the GL renderer's name), printed; exits naming ``prog`` where the gl backend cannot
+    run."""
     runs, hardware, renderer = gl_renderer()
     if not runs:
-        raise SystemExit(f"bench_backends: the gl backend cannot run here: {renderer}")
+        raise SystemExit(f"{prog}: the gl backend cannot run here: {renderer}")
     print(f"GL renderer: {renderer} ({'hardware' if hardware else 'software: GPU ms are not measured'})")
+    return hardware, renderer
+
+
+def main(argv=None) -> None:
+    parser = gl_tool_parser(__doc__, "reproject,mvec,flow2d,flow2d[estimator=gl],decomp", 3)
+    parser.add_argument("--sizes", default="640x360,960x540,1920x1080,3840x2160")
+    args = parser.parse_args(argv)
+    hardware, renderer = gl_or_exit("bench_backends")
     methods = split_methods(args.methods)
     doc = {"renderer": renderer, "hardware": hardware, "k": args.k, "frames": args.frames, "repeats": args.repeats,
            "scene": SCENE[0], "sizes": []}

@@ -15,14 +15,12 @@ queries do not time a GPU and the tool says so.
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 
-from engine.geometry.backends import gl_renderer
 from engine.geometry.backends.gl import shared_context
 from engine.io.rgbd import read_sequence
 from engine.predict import make_predictor, split_methods
-from tools.bench_backends import SCENE, parse_sizes
+from tools.bench_backends import SCENE, gl_or_exit, gl_tool_parser, parse_sizes
 from tools.heldout import render_set, timing_cases, write_json
 
 
@@ -55,20 +53,11 @@ def profile_method(sequence, method: str, k: int, repeats: int) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = gl_tool_parser(__doc__, "reproject,mvec,flow2d[estimator=gl]", 2)
     parser.add_argument("--size", default="1920x1080")
-    parser.add_argument("--methods", default="reproject,mvec,flow2d[estimator=gl]")
-    parser.add_argument("--k", type=int, default=2)
-    parser.add_argument("--frames", type=int, default=6)
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--out", default="out/bench_backends")
-    parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
-    runs, hardware, renderer = gl_renderer()
-    if not runs:
-        raise SystemExit(f"profile_gl_passes: the gl backend cannot run here: {renderer}")
     (width, height), = parse_sizes(args.size)
-    print(f"GL renderer: {renderer} ({'hardware' if hardware else 'software: the queries do not time a GPU'})")
+    hardware, renderer = gl_or_exit("profile_gl_passes")
     name, overrides, preset = SCENE
     sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))
     doc = {"renderer": renderer, "hardware": hardware, "size": [width, height], "k": args.k, "methods": {}}

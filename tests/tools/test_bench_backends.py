@@ -8,15 +8,20 @@ import torch
 from tools import bench_backends, bench_torch_networks, profile_gl_passes
 
 
-def test_bench_backends_rows_parity_and_stage_split(tmp_path):
+def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str) -> dict:
+    """A GL tool's ``main`` on the 96x64 scene (reproject and mvec, 4 frames): its JSON (skips without GL)."""
     from engine.geometry.backends import gl as glb
 
     if not glb.available():
         pytest.skip("no EGL context with compute shaders")
-    out = tmp_path / "bench.json"
-    bench_backends.main(["--sizes", "96x64", "--frames", "4", "--repeats", "1", "--methods", "reproject,mvec",
-                         "--out", str(tmp_path / "scenes"), "--json", str(out)])
-    doc = json.loads(out.read_text())
+    out = tmp_path / "out.json"
+    main([size_flag, "96x64", "--frames", "4", "--repeats", repeats, "--methods", "reproject,mvec",
+          "--out", str(tmp_path / "scenes"), "--json", str(out)])
+    return json.loads(out.read_text())
+
+
+def test_bench_backends_rows_parity_and_stage_split(tmp_path):
+    doc = _run_gl_tool(bench_backends.main, tmp_path, "--sizes", "1")
     rows = doc["sizes"][0]["rows"]
     assert doc["sizes"][0]["size"] == [96, 64]
     assert {(r["method"], r["backend"]) for r in rows} == {(m, b) for m in ("reproject", "mvec") for b in ("cpu", "gl")}
@@ -31,12 +36,7 @@ def test_bench_backends_rows_parity_and_stage_split(tmp_path):
 def test_profile_counts_every_pass_of_a_frame(tmp_path):
     from engine.geometry.backends import gl as glb
 
-    if not glb.available():
-        pytest.skip("no EGL context with compute shaders")
-    out = tmp_path / "profile.json"
-    profile_gl_passes.main(["--size", "96x64", "--frames", "4", "--repeats", "2", "--methods", "reproject,mvec",
-                            "--out", str(tmp_path / "scenes"), "--json", str(out)])
-    doc = json.loads(out.read_text())
+    doc = _run_gl_tool(profile_gl_passes.main, tmp_path, "--size", "2")
     passes = doc["methods"]["reproject"]["passes"]
     # per predicted frame: the splat's four passes, the fill's three, and its clears (keys, sums, mask)
     for name in ("splat_range", "splat_key", "splat_accumulate", "splat_resolve", "fill_rows", "fill_links",

@@ -33,7 +33,16 @@ BACKENDS = ("cpu", "gl")
 
 
 def parse_sizes(text: str) -> list[tuple[int, int]]:
-    return [tuple(int(v) for v in part.lower().split("x")) for part in text.split(",") if part.strip()]
+    """``"640x360,1920x1080"`` -> [(640, 360), (1920, 1080)]; anything else exits with a one-line error."""
+    sizes = []
+    for part in (p.strip().lower() for p in text.split(",") if p.strip()):
+        values = part.split("x")
+        if len(values) != 2 or not all(v.isdigit() and int(v) > 0 for v in values):
+            raise SystemExit(f"error: size {part!r}: expected WIDTHxHEIGHT, positive integers (e.g. 1920x1080)")
+        sizes.append((int(values[0]), int(values[1])))
+    if not sizes:
+        raise SystemExit("error: no size given (e.g. 1920x1080)")
+    return sizes
 
 
 def stage_medians(runs: list[dict]) -> dict:

@@ -56,7 +56,10 @@ def main(argv=None) -> None:
     parser = gl_tool_parser(__doc__, "reproject,mvec,flow2d[estimator=gl]", 2)
     parser.add_argument("--size", default="1920x1080")
     args = parser.parse_args(argv)
-    (width, height), = parse_sizes(args.size)
+    sizes = parse_sizes(args.size)
+    if len(sizes) != 1:
+        raise SystemExit(f"error: --size takes one WIDTHxHEIGHT, got {args.size!r}")
+    (width, height), = sizes
     hardware, renderer = gl_or_exit("profile_gl_passes")
     name, overrides, preset = SCENE
     sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))

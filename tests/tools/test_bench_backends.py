@@ -57,6 +57,13 @@ def test_profile_counts_every_pass_of_a_frame(tmp_path):
     assert "probe" in stages
 
 
+@pytest.mark.parametrize("text", ["", "640", "640x", "0x360", "axb", "640x360x2"])
+def test_bad_sizes_are_one_line_errors(text):
+    with pytest.raises(SystemExit, match="error: "):
+        bench_backends.parse_sizes(text)
+    assert bench_backends.parse_sizes(" 640x360, 1920X1080 ") == [(640, 360), (1920, 1080)]
+
+
 def test_bench_torch_networks_on_the_cpu(tmp_path):
     out = tmp_path / "nets.json"
     bench_torch_networks.main(["--devices", "cpu", "--repeats", "1", "--json", str(out)])

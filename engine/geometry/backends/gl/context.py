@@ -133,7 +133,10 @@ class GlContext:
         self._garbage.extend(objects)
 
     def _collect(self) -> None:
-        """Free the discarded objects; buffers go to the reuse lists while they hold under ``recycle_bytes``."""
+        """Free the discarded objects; buffers go to the reuse lists while they hold under ``recycle_bytes``.
+        Runs before every call on the GL thread: with nothing discarded it returns at once."""
+        if not self._garbage:
+            return
         import moderngl
 
         kept = sum(size * len(bufs) for size, bufs in self._free.items())

@@ -145,10 +145,14 @@ class GlFrameWarper:
         with ``Framebuffer.read_into(buffer)``), rows top to bottom, planar depth, +inf sky. The caller keeps
         owning them and must not change them while predictions use the image."""
         h, w = checked_size(shape, "shape")
-        for name, buf, nbytes in (("color", color, 12 * h * w), ("depth", depth, 4 * h * w)):
-            if getattr(buf, "size", -1) < nbytes or getattr(buf, "ctx", None) is not self.gl.ctx:
-                raise InputError(f"must be a buffer of this context of at least {nbytes} bytes", field=name)
+        self._check_buffer(color, 12 * h * w, "color")
+        self._check_buffer(depth, 4 * h * w, "depth")
         return GlImage((h, w), color, depth, self.gl, owned=False)
+
+    def _check_buffer(self, buf, nbytes: int, field: str) -> None:
+        """InputError naming ``field`` unless ``buf`` is a buffer of this context of at least ``nbytes``."""
+        if getattr(buf, "size", -1) < nbytes or getattr(buf, "ctx", None) is not self.gl.ctx:
+            raise InputError(f"must be a buffer of this context of at least {nbytes} bytes", field=field)
 
     def from_rgbd(self, rgbd, shape: tuple[int, int]) -> GlImage:
         """A frame from a buffer of the shared context holding (H, W, 4) float32 (r, g, b linear, planar depth
@@ -157,8 +161,7 @@ class GlFrameWarper:
         image owns, so the source may be overwritten at once; nothing crosses the bus."""
         h, w = checked_size(shape, "shape")
         n = h * w
-        if getattr(rgbd, "size", -1) < 16 * n or getattr(rgbd, "ctx", None) is not self.gl.ctx:
-            raise InputError(f"must be a buffer of this context of at least {16 * n} bytes", field="rgbd")
+        self._check_buffer(rgbd, 16 * n, "rgbd")
 
         def split() -> GlImage:
             color, depth = self.gl.new_buffer(12 * n), self.gl.new_buffer(4 * n)

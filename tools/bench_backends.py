@@ -45,6 +45,15 @@ def parse_sizes(text: str) -> list[tuple[int, int]]:
     return sizes
 
 
+def gpu_stages(state, predictions: list) -> dict[str, float]:
+    """GPU ms per stage of one preparation (``state``) and its renders, per predicted frame."""
+    per_stage: dict = {}
+    for part in [state.gpu_ms] + [p.gpu_ms for p in predictions]:
+        for name, value in part.items():
+            per_stage[name] = per_stage.get(name, 0.0) + value / len(predictions)
+    return per_stage
+
+
 def stage_medians(runs: list[dict]) -> dict:
     """Per stage name, the median GPU ms over ``runs`` (a stage missing from a run counts 0)."""
     names = sorted({name for run in runs for name in run})
@@ -62,10 +71,7 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
     outputs: dict = {}
     for r, c, key, state, preds, ms in warm_runs(predictors, cases, repeats):
         wall[key].append(ms)
-        per_stage: dict = {}
-        for part in [state.gpu_ms] + [p.gpu_ms for p in preds]:
-            for name, value in part.items():
-                per_stage[name] = per_stage.get(name, 0.0) + value / len(preds)
+        per_stage = gpu_stages(state, preds)
         stages[key].append(per_stage)
         gpu[key].append(sum(per_stage.values()))
         if r == 0:

@@ -20,34 +20,21 @@ import statistics
 from engine.geometry.backends.gl import shared_context
 from engine.io.rgbd import read_sequence
 from engine.predict import make_predictor, split_methods
-from tools.bench_backends import SCENE, gl_or_exit, gl_tool_parser, parse_sizes
-from tools.heldout import render_set, timing_cases, write_json
+from tools.bench_backends import SCENE, gl_or_exit, gl_tool_parser, gpu_stages, parse_sizes
+from tools.heldout import render_set, timing_cases, warm_runs, write_json
 
 
 def profile_method(sequence, method: str, k: int, repeats: int) -> dict:
     """``{"passes": {name: (dispatches, GPU ms) per predicted frame}, "stage_gpu_ms": median per predicted
     frame, "predicted": frames}`` of one method on the ``gl`` backend."""
-    predictor = make_predictor(method, sequence.objects, backend="gl")
+    predictors = {method: make_predictor(method, sequence.objects, backend="gl")}
     cases = timing_cases(sequence, k)
-
-    def run_all() -> tuple[int, list[float]]:
-        frames, totals = 0, []
-        for history, targets in cases:
-            state = predictor.prepare(history[-max(predictor.history_needed, predictor.history_wanted, 1):])
-            preds = [predictor.render(state, target) for target in targets]
-            frames += len(preds)
-            totals.append((sum(state.gpu_ms.values()) + sum(sum(p.gpu_ms.values()) for p in preds)) / len(preds))
-        return frames, totals
-
-    run_all()  # warm-up: programs compiled, buffers grown
-    totals: list[float] = []
-    for _ in range(repeats):
-        totals += run_all()[1]
+    for _ in warm_runs(predictors, cases, 1):  # warm-up: programs compiled, buffers grown
+        pass
+    totals = [sum(gpu_stages(state, preds).values()) for *_, state, preds, _ in warm_runs(predictors, cases, repeats)]
     passes: dict = {}
-    predicted = 0
     with shared_context().pass_timing(passes):
-        for _ in range(repeats):
-            predicted += run_all()[0]
+        predicted = sum(len(preds) for *_, preds, _ in warm_runs(predictors, cases, repeats))
     per_frame = {name: (calls / predicted, ms / predicted) for name, (calls, ms) in sorted(passes.items())}
     return {"passes": per_frame, "stage_gpu_ms": float(statistics.median(totals)), "predicted": predicted}
 

@@ -6,7 +6,9 @@ static field: ``engine.fields.gl``) and ``python -m tools.bench_fields dynamic E
 [--view 0] [--time T]`` (an exported dynamic field: ``engine.fields.gldynamic``) print ms per frame, fps,
 CPU ms and the PSNR / colour / depth differences of every renderer against the torch render (the numpy
 one without torch) on one camera: a held-out view of the run, else (static) the first camera of the demo
-path (``engine.fields.camera_path``). ``--json FILE`` also writes the records.
+path (``engine.fields.camera_path``). ``--json FILE`` also writes the records. The static bench also counts the field evaluations per pixel of
+the default GL renderer and prints their multiply-add rate (GMAC/s in the MLPs), the figure to set against a
+device's FP32 peak.
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from engine.fields.camera_path import field_camera_path, scale_intrinsics
 from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.gldynamic import GlDynamicRenderer
-from engine.fields.render import load_field, render_field
+from engine.fields.render import evaluation_macs, load_field, render_field
 
 __all__ = ["run_static_bench", "run_dynamic_bench", "bench_records", "bench_table", "report_bench", "main"]
 
@@ -75,13 +77,15 @@ def bench_records(outs: dict, width: int, height: int) -> list[dict]:
 def bench_table(records: list[dict]) -> str:
     """Markdown table of benchmark records."""
     lines = ["| size | renderer | ms / frame | fps | CPU ms / frame | PSNR vs reference (dB) | max abs colour "
-             "| median abs depth | depth inf agree |", "|---|---|---|---|---|---|---|---|---|"]
+             "| median abs depth | depth inf agree | evaluations / px | GMAC/s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         value = "ref." if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
+        evals = f"{r['evaluations_per_pixel']:.2f}" if "evaluations_per_pixel" in r else "-"
+        rate = f"{r['gmac_per_s']:.1f}" if "gmac_per_s" in r else "-"
         lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {r['cpu_ms']:.0f} "
                      f"| {value} ({r['reference']}) "
                      f"| {r['max_abs_color']:.1e} | {r['depth_median_abs']:.1e} "
-                     f"| {100 * r['depth_finite_agree']:.2f}% |")
+                     f"| {100 * r['depth_finite_agree']:.2f}% | {evals} | {rate} |")
     return "\n".join(lines)
 
 
@@ -169,10 +173,26 @@ def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optiona
         outs = _size_outs(width, height, k, w2c, (), assets=assets, torch_render=torch_render,
                           gl_renderer=GlFieldRenderer, variants=STATIC_GL_VARIANTS, reference=render_field, skip=skip,
                           repeat=repeat)
-        records.extend(bench_records(outs, width, height))
+        size_records = bench_records(outs, width, height)
+        if "gl" not in skip:
+            _add_arithmetic(size_records, assets, k, w2c, width, height)
+        records.extend(size_records)
     for r in records:
         r["camera"] = where
     return records
+
+
+def _add_arithmetic(records: list[dict], assets, k, w2c, width: int, height: int) -> None:
+    """Field evaluations per pixel (counted by the GL renderer at its defaults) and what they cost: GMAC a
+    frame in the MLPs (``evaluation_macs``) and, at the default renderer's time, GMAC/s (to set against the
+    device's FP32 multiply-add peak), added to the default GL record."""
+    with GlFieldRenderer(assets, width, height, count_evaluations=True) as r:
+        evaluations = r.render(k, w2c)["evaluations"]
+    gmac = float(evaluations.sum(dtype=np.float64)) * evaluation_macs(assets) / 1e9
+    for rec in records:
+        if rec["renderer"] == STATIC_GL_VARIANTS[0][0]:
+            rec.update(evaluations_per_pixel=float(evaluations.mean()), macs_per_evaluation=evaluation_macs(assets),
+                       gmac_per_frame=gmac, gmac_per_s=gmac / (rec["ms"] / 1e3))
 
 
 def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,

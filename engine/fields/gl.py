@@ -77,13 +77,11 @@ import numpy as np
 from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_AXES, SH_C0, SH_C1, SH_C2, SH_C3,
-                                  FieldAssets, load_field)
+                                  TRANSMITTANCE_EPS, FieldAssets, load_field)
 
 __all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
            "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options"]
 
-#: Default early-termination threshold: a ray stops once its transmittance is below this.
-TRANSMITTANCE_EPS = 1e-4
 #: Default weight below which a sample's colour MLP is not evaluated (the background colour stands in).
 COLOR_EPS = 1e-5
 #: Largest uniform-buffer size used for the weights (bytes); bigger MLPs go to a storage buffer.
@@ -215,6 +213,7 @@ layout(local_size_x = 64) in;
 layout(std430, binding = 1) readonly buffer OccBuf { uint occ_bits[]; };
 layout(std430, binding = 2) writeonly buffer RgbdBuf { vec4 out_rgbd[]; };
 layout(std430, binding = 3) writeonly buffer OpacityBuf { float out_opacity[]; };
+%(count_decl)s
 %(samplers)s
 
 uniform ivec2 size;             // W, H
@@ -286,6 +285,7 @@ void main() {
     // llvmpipe executes a branch for all the lanes of a SIMD group, so a loop over the kept samples costs
     // (max kept in the group) evaluations where a loop over all samples with a skip would cost N.
     bool done = false;
+    uint evaluated = 0u;
     for (int base = 0; base < N && !done; base += 32) {
         uint kept = 0u;
         for (int j = 0; j < 32 && base + j < N; ++j) {
@@ -296,6 +296,7 @@ void main() {
         while (kept != 0u) {
             int j = findLSB(kept);
             kept &= kept - 1u;
+            ++evaluated;
             int i = base + j;
 %(locate)s
 %(features)s
@@ -325,14 +326,15 @@ void main() {
     float depth = acc >= %(opacity_eps)r ? dsum / max(acc, %(opacity_eps)r) : INF;
     out_rgbd[o] = vec4(col, depth);
     out_opacity[o] = acc;
+%(count_write)s
 }
 """
 
 
 def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
               filtering: str, color_mode: str, params_kind: str, extra_encoding: Sequence[str] = (),
-              sample_code: Optional[Callable[["ShaderParams"], tuple[list[str], list[str], list[str]]]] = None
-              ) -> tuple[str, np.ndarray, list[dict], str]:
+              sample_code: Optional[Callable[["ShaderParams"], tuple[list[str], list[str], list[str]]]] = None,
+              count_evaluations: bool = False) -> tuple[str, np.ndarray, list[dict], str]:
     """GLSL source, the packed parameter array, the plane-texture specs and where the weights live
     (``const``: literals in the source, ``ubo`` or ``ssbo``) of one field.
 
@@ -342,7 +344,8 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
     uniforms), code run per evaluated sample before the plane lookup, which may move the contracted point
     ``c`` (a motion field: ``c = clamp(c + flow, -1, 1)``), and code run after it, which may change the
     features ``f<scale>_<group>`` (vec4s of channels 4 group .. 4 group + 3; K-Planes' time planes), its
-    weights added to ``params``."""
+    weights added to ``params``. ``count_evaluations`` writes each pixel's number of evaluated samples to a
+    uint buffer at binding 4 (``out_count``)."""
     spec = assets.manifest["field"]
     render = assets.manifest["render"]
     params = ShaderParams()
@@ -547,6 +550,9 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
         "density_bias": float(spec["density_bias"]), "max_log": float(spec["max_log_density"]),
         "latent": latent, "color_sample": color_sample, "color_final": color_final,
         "opacity_eps": float(OPACITY_EPS),
+        "count_decl": ("layout(std430, binding = 4) writeonly buffer CountBuf { uint out_count[]; };"
+                       if count_evaluations else ""),
+        "count_write": "    out_count[o] = evaluated;" if count_evaluations else "",
     }
     if kind == "const":  # the weights as literals in the code (float32 round-trips through 9 digits)
         source = re.sub(r"P\[(\d+)\]", lambda m: "vec4(%s)" % ", ".join("%.9g" % v for v in packed[int(m.group(1))]),
@@ -617,6 +623,9 @@ class GlFieldRenderer:
             (0: every sample with a non-zero weight is coloured).
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
             latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
+        count_evaluations: also count the field evaluations of every pixel (``render`` returns them as
+            ``evaluations``; what :func:`engine.fields.render.evaluated_samples` counts on the reference): a
+            profiling aid, one more buffer written.
         context: ``None`` (default): a context of its own. A ``engine.geometry.backends.gl.GlContext`` (e.g.
             ``shared_context()``): render on the frame backend's context, so that ``render_to_buffer`` hands
             a frame to ``GlFrameWarper.from_rgbd`` without a readback.
@@ -625,10 +634,12 @@ class GlFieldRenderer:
         InputError: bad size or option, assets the shader cannot map (plane resolution below 2).
     """
 
+    count_evaluations = False
+
     def __init__(self, assets: Union[FieldAssets, str, Path], width: int, height: int, *, quantized: bool = False,
                  filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
                  color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline",
-                 context=None) -> None:
+                 count_evaluations: bool = False, context=None) -> None:
         if not isinstance(assets, FieldAssets):
             assets = load_field(assets)
         check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
@@ -643,13 +654,14 @@ class GlFieldRenderer:
         self.color_mode = color_mode
         self.transmittance_eps = float(transmittance_eps)
         self.color_eps = float(color_eps)
+        self.count_evaluations = bool(count_evaluations)
         if quantized:
             planes, ranges = _uint8_planes(assets)
         else:
             planes, ranges = assets.planes, None
         self.source, packed, tex_specs, self.params_kind = generate_shader(
             assets, planes, ranges, filtering=filtering, color_mode=color_mode,
-            params_kind="const" if weights == "inline" else "ubo")
+            params_kind="const" if weights == "inline" else "ubo", count_evaluations=self.count_evaluations)
         self._setup(packed, [(f"planes{spec['scale']}", texture_layers(plane, spec["groups"]))
                              for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4", context)
 
@@ -703,6 +715,10 @@ class GlFieldRenderer:
         self._rgbd = self.ctx.buffer(reserve=16 * n)
         self._opacity = self.ctx.buffer(reserve=4 * n)
         self._buffers += [self._params, self._occ, self._rgbd, self._opacity]
+        self._count = None
+        if self.count_evaluations:
+            self._count = self.ctx.buffer(reserve=4 * n)
+            self._buffers.append(self._count)
         self._set_static_uniforms()
 
     def _set(self, name: str, value) -> None:
@@ -743,7 +759,7 @@ class GlFieldRenderer:
         Returns:
             ``color`` (H, W, 3) float32 linear RGB, ``depth`` (H, W) float32 planar (+inf where the opacity
             is below ``OPACITY_EPS``), ``opacity`` (H, W) float32, ``seconds`` (wall time of the dispatch
-            and read-back).
+            and read-back); with ``count_evaluations``, ``evaluations`` (H, W) uint32.
 
         Raises:
             InputError: intrinsics not a finite pinhole K with positive focal lengths; pose not rigid.
@@ -756,11 +772,18 @@ class GlFieldRenderer:
             n = self.width * self.height
             rgbd = np.frombuffer(self._rgbd.read(size=16 * n), np.float32).reshape(self.height, self.width, 4)
             opacity = np.frombuffer(self._opacity.read(size=4 * n), np.float32).reshape(self.height, self.width)
-            return rgbd, opacity, time.perf_counter() - start
+            seconds = time.perf_counter() - start
+            count = None
+            if self._count is not None:
+                count = np.frombuffer(self._count.read(size=4 * n), np.uint32).reshape(self.height, self.width)
+            return rgbd, opacity, seconds, count
 
-        rgbd, opacity, seconds = self._run(run)
-        return {"color": rgbd[..., :3].copy(), "depth": rgbd[..., 3].copy(), "opacity": opacity.copy(),
-                "seconds": seconds}
+        rgbd, opacity, seconds, count = self._run(run)
+        out = {"color": rgbd[..., :3].copy(), "depth": rgbd[..., 3].copy(), "opacity": opacity.copy(),
+               "seconds": seconds}
+        if count is not None:
+            out["evaluations"] = count.copy()
+        return out
 
     def render_to_buffer(self, intrinsics, world_to_camera):
         """``render`` with nothing read back, on a renderer made with ``context``: returns this renderer's
@@ -805,6 +828,8 @@ class GlFieldRenderer:
         self._occ.bind_to_storage_buffer(1)
         self._rgbd.bind_to_storage_buffer(2)
         self._opacity.bind_to_storage_buffer(3)
+        if self._count is not None:
+            self._count.bind_to_storage_buffer(4)
 
     def release(self) -> None:
         """Free the GL objects and the context unless it is a shared one (the renderer is unusable afterwards)."""

@@ -32,7 +32,7 @@ from engine.core.frames import validate_intrinsics, validate_pose
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
            "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field", "composite_np",
-           "render_field"]
+           "optical_depth", "evaluated_samples", "evaluation_macs", "render_field", "TRANSMITTANCE_EPS"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -42,6 +42,9 @@ OPACITY_EPS = 1e-3
 FAR_AT_INFINITY = 1e10
 #: Smallest near bound used in inverse-depth sampling.
 MIN_NEAR = 1e-6
+#: The real-time renderers' early ray termination: a ray stops once its transmittance is below this (the
+#: reference composites every sample; ``evaluated_samples`` counts what such a renderer evaluates).
+TRANSMITTANCE_EPS = 1e-4
 
 # Real spherical-harmonics constants, bands 0-3 (shared with models.fields.components.encodings.sh_encoding).
 SH_C0 = 0.28209479177387814
@@ -344,7 +347,7 @@ def composite_np(sigma: np.ndarray, rgb: np.ndarray, t: np.ndarray, lengths: np.
         colour (R, 3), planar depth (R,) (``sum w t / sum w``; +inf where the opacity is below
         :data:`OPACITY_EPS`), opacity (R,).
     """
-    tau = np.where((sigma == 0) | (lengths == 0), np.float32(0.0), sigma * lengths)  # 0 * inf counts as 0
+    tau = optical_depth(sigma, lengths)
     excl = np.concatenate([np.zeros_like(tau[:, :1]), np.cumsum(tau, axis=-1)[:, :-1]], axis=-1)
     trans = np.exp(-excl)
     weights = trans * -np.expm1(-tau)
@@ -353,6 +356,33 @@ def composite_np(sigma: np.ndarray, rgb: np.ndarray, t: np.ndarray, lengths: np.
     color = (weights[..., None] * rgb).sum(1) + (1.0 - acc)[:, None] * background
     depth = np.where(acc >= OPACITY_EPS, expected / np.maximum(acc, OPACITY_EPS), np.inf)
     return color, depth, acc
+
+
+def optical_depth(sigma: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(R, N) optical depth of each interval: density (per scene unit) times length, 0 where either is 0
+    (``0 * inf`` counts as an empty interval)."""
+    return np.where((sigma == 0) | (lengths == 0), np.float32(0.0), sigma * lengths)
+
+
+def evaluated_samples(keep: np.ndarray, tau: np.ndarray, transmittance_eps: float = TRANSMITTANCE_EPS) -> np.ndarray:
+    """(R,) int32: how many samples of each ray a renderer with early ray termination evaluates: the kept
+    ones (``keep`` (R, N): inside the cube, occupied, non-empty) up to and including the first after which
+    the transmittance ``exp(-sum tau)`` is below ``transmittance_eps`` (0: never stops). ``tau`` (R, N):
+    ``optical_depth`` of every sample, 0 where not kept."""
+    stopped = np.exp(-np.cumsum(tau, axis=-1, dtype=np.float32)) < np.float32(transmittance_eps)
+    before = np.zeros_like(stopped)
+    before[:, 1:] = np.logical_or.accumulate(stopped, axis=-1)[:, :-1]
+    return (keep & ~before).sum(axis=-1).astype(np.int32)
+
+
+def evaluation_macs(assets) -> int:
+    """Multiply-adds of one field evaluation in the MLPs of ``assets`` (density and colour layers): the columns
+    of the first colour layer that read the view direction (or other per-pixel inputs) are left out, since a
+    renderer applies them once per pixel. Texture fetches are not counted."""
+    density, color = list(assets.density_layers), list(assets.color_layers)
+    latent = int(density[-1][0].shape[0]) - 1  # the last density layer: raw density and the latent
+    per_pixel = int(color[0][0].shape[1]) - latent
+    return sum(int(w.size) for w, _ in density + color) - per_pixel * int(color[0][0].shape[0])
 
 
 def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, width: int, *,
@@ -367,7 +397,9 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
         near, far: planar-depth bounds of every ray (default: the scene's).
 
     Returns:
-        ``color``, ``depth``, ``opacity`` and ``seconds`` (wall time, ray generation included).
+        ``color``, ``depth``, ``opacity``, ``evaluations`` (H, W) int32 (``evaluated_samples`` at
+        ``TRANSMITTANCE_EPS``: what the GL renderer evaluates per pixel) and ``seconds`` (wall time, ray
+        generation included).
     """
     if query not in ("numpy", "onnx"):
         raise InputError(f"must be numpy or onnx, got {query!r}", field="query")
@@ -391,7 +423,7 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             colour (M, 3))`` at the kept samples (inside the cube, in occupied cells).
 
     Returns:
-        ``color``, ``depth``, ``opacity``, ``seconds``, as :func:`render_field`.
+        ``color``, ``depth``, ``opacity``, ``evaluations``, ``seconds``, as :func:`render_field`.
     """
     if int(height) < 1 or int(width) < 1:
         raise InputError(f"must be >= 1, got {height}x{width}", field="size")
@@ -409,6 +441,7 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
     color = np.empty((count, 3), np.float32)
     depth = np.empty(count, np.float32)
     opacity = np.empty(count, np.float32)
+    evaluations = np.empty(count, np.int32)
     for s in range(0, count, chunk):
         d = dirs[s:s + chunk]
         r = d.shape[0]
@@ -432,6 +465,8 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             sigma[rows, cols], rgb[rows, cols] = evaluate(points[rows, cols], coords[rows, cols], unit[s + rows])
         lengths = deltas * np.linalg.norm(d, axis=-1, keepdims=True)  # t is camera z; density is per unit length
         color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)
+        evaluations[s:s + r] = evaluated_samples(keep, optical_depth(sigma, lengths))
     seconds = time.perf_counter() - start
     return {"color": color.reshape(height, width, 3), "depth": depth.reshape(height, width),
-            "opacity": opacity.reshape(height, width), "seconds": seconds}
+            "opacity": opacity.reshape(height, width), "evaluations": evaluations.reshape(height, width),
+            "seconds": seconds}

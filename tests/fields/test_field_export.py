@@ -11,7 +11,8 @@ import torch
 
 from engine.cli import main as cli_main
 from engine.core.errors import InputError
-from engine.fields.render import contract_np, load_field, query_field, render_field, sh_encoding_np
+from engine.fields.render import (contract_np, evaluated_samples, evaluation_macs, load_field, optical_depth,
+                                  query_field, render_field, sh_encoding_np)
 from export.field import FieldQueryGraph, check_parity, example_points, export_field, quantize_planes
 from models.fields.components.encodings import sh_encoding
 from models.fields.components.render import render_image
@@ -100,6 +101,33 @@ def test_numpy_query_matches_the_field_at_contracted_points(bounded_run):
     got_sigma, got_rgb = query_field(load_field(out), coords[inside].numpy(), dirs[inside].numpy())
     np.testing.assert_allclose(got_sigma, sigma.numpy(), rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(got_rgb, rgb.numpy(), atol=1e-5)
+
+
+def test_evaluated_samples_stop_after_the_sample_that_makes_the_ray_opaque():
+    keep = np.array([[True, True, True, True, True],      # opaque at sample 2: samples 0-2 evaluated
+                     [False, True, False, True, True],    # skipped samples are not evaluated, nor counted
+                     [True, True, True, True, True],      # never opaque: all 5
+                     [False, False, False, False, False]])  # misses everything
+    sigma = np.array([[0.1, 0.1, 50.0, 1.0, 1.0], [0.0, 20.0, 0.0, 1.0, 1.0], [0.1] * 5, [0.0] * 5], np.float32)
+    lengths = np.full((4, 5), 0.5, np.float32)
+    lengths[2, 4] = np.inf  # the last interval to infinity with a density: opaque only after the last sample
+    tau = np.where(keep, optical_depth(sigma, lengths), 0.0).astype(np.float32)
+    assert evaluated_samples(keep, tau, 1e-4).tolist() == [3, 1, 5, 0]
+    assert evaluated_samples(keep, tau, 0.0).tolist() == [5, 3, 5, 0]  # 0: never stops
+    # the threshold is on the transmittance after a sample: exp(-(0.05 + 0.05 + 25)) < 1e-4 < exp(-0.1)
+    assert evaluated_samples(keep[:1], tau[:1], float(np.exp(-0.1)) * 0.999).tolist() == [3]
+    assert optical_depth(np.array([[0.0, 2.0]], np.float32), np.array([[np.inf, 0.0]], np.float32)).tolist() == [[0, 0]]
+
+
+def test_evaluation_macs_leave_out_the_per_pixel_columns(bounded_run):
+    _, out, _ = bounded_run
+    assets = load_field(out)
+    (w0, _), (w1, _) = assets.density_layers[0], assets.density_layers[-1]
+    c0, c_last = assets.color_layers[0][0], assets.color_layers[-1][0]
+    latent = w1.shape[0] - 1
+    expected = w0.size + w1.size + c0.shape[0] * latent + c_last.size
+    assert len(assets.density_layers) == 2 and len(assets.color_layers) == 2
+    assert evaluation_macs(assets) == expected < expected + c0.shape[0] * (c0.shape[1] - latent)
 
 
 def test_sh_encoding_numpy_matches_torch():

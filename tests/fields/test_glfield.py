@@ -130,6 +130,28 @@ def test_early_termination_and_colour_skip_are_bounded(bounded_run):
         np.testing.assert_allclose(skipped["opacity"], full["opacity"], atol=1e-6)  # weights still count
 
 
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+def test_counted_evaluations_are_those_of_the_reference(which, request):
+    """The profiling count (``count_evaluations``) is the reference's ``evaluated_samples``, and counting
+    changes nothing in the frame."""
+    _, out, _ = request.getfixturevalue(which)
+    cam = _camera(which)
+    assets = load_field(out)
+    ref = render_field(assets, cam.intrinsics, cam.world_to_camera, H, W)
+    counted = _gl(out, cam, count_evaluations=True)
+    plain = _gl(out, cam)
+    assert "evaluations" not in plain and counted["evaluations"].dtype == np.uint32
+    for key in ("color", "depth", "opacity"):
+        assert np.array_equal(counted[key], plain[key])
+    same = counted["evaluations"].astype(np.int64) == ref["evaluations"]
+    # on a GPU a sample within rounding of a cell boundary or of the termination threshold may count differently
+    assert np.mean(same) >= (0.98 if GPU_SLACK else 1.0)
+    assert 0 < ref["evaluations"].max() <= assets.manifest["render"]["num_samples"]
+    assert (ref["evaluations"] == 0).any()  # rays missing the box (or leaving the NDC frustum) evaluate nothing
+    exhaustive = _gl(out, cam, count_evaluations=True, transmittance_eps=0.0)["evaluations"]
+    assert (exhaustive >= counted["evaluations"]).all()
+
+
 def test_renders_are_repeatable_and_the_renderer_reusable(bounded_run):
     _, out, _ = bounded_run
     views = sphere_views([20, 50])
@@ -231,6 +253,9 @@ def test_field_benchmark_scores_every_renderer_against_torch(bounded_run, tmp_pa
     assert all(r["reference"] == "torch" and r["size"] == "24x16" for r in records)
     assert min(r["psnr"] for r in records if r["renderer"] in ("gl float", "numpy")) > 60.0
     assert "| 24x16 | gl float |" in bench_table(records)
+    gl = next(r for r in records if r["renderer"] == "gl float")  # its arithmetic: evaluations and GMAC/s
+    assert 0 < gl["evaluations_per_pixel"] <= 64 and gl["macs_per_evaluation"] > 0
+    assert gl["gmac_per_s"] == pytest.approx(gl["gmac_per_frame"] / (gl["ms"] / 1e3))
 
 
 def test_a_renderer_on_the_shared_context_hands_frames_to_the_warper_without_a_readback(bounded_run):

@@ -87,6 +87,9 @@ COLOR_EPS = 1e-5
 #: Largest uniform-buffer size used for the weights (bytes); bigger MLPs go to a storage buffer.
 _UBO_LIMIT = 65536
 _TILE = 8
+#: Tiles per shader invocation on a software renderer (llvmpipe): measured in
+#: docs/results/2026-11-27-field-render-cost.md; hardware renderers get 1.
+SOFTWARE_TILES = 8
 
 _AVAILABLE: Optional[bool] = None
 #: the OpenGL version the field renderers ask EGL for (compute shaders); without it moderngl asks for 3.3, which
@@ -251,11 +254,10 @@ float one_minus_exp(float x) {  // 1 - exp(-x) = -expm1(-x), accurate for small 
     return x < 1e-3 ? x * (1.0 - x * (0.5 - x * (1.0 / 6.0))) : 1.0 - exp(-x);
 }
 
-void main() {
+void shade(ivec2 tile) {
     // 8x8 tiles whose SIMD groups of 8 invocations are 4x2 pixel blocks (coherent rays: fewer idle lanes)
     uint lid = gl_LocalInvocationIndex, chunk = lid >> 3u, lane = lid & 7u;
-    ivec2 pix = ivec2(gl_WorkGroupID.xy) * 8
-              + ivec2((chunk & 1u) * 4u + (lane & 3u), (chunk >> 1u) * 2u + (lane >> 2u));
+    ivec2 pix = tile * 8 + ivec2((chunk & 1u) * 4u + (lane & 3u), (chunk >> 1u) * 2u + (lane >> 2u));
     if (pix.x >= size.x || pix.y >= size.y) return;
     int o = pix.y * size.x + pix.x;
 
@@ -327,6 +329,13 @@ void main() {
     out_rgbd[o] = vec4(col, depth);
     out_opacity[o] = acc;
 %(count_write)s
+}
+
+void main() {
+    // TILES (defined at compile time) tiles stacked along y per invocation: on llvmpipe every call of the
+    // shader pays a prologue that grows with the MLP code (constants set up before the march), so shading
+    // several pixels per call amortises it; a GPU gets 1
+    for (int r = 0; r < TILES; ++r) shade(ivec2(gl_WorkGroupID.x, int(gl_WorkGroupID.y) * TILES + r));
 }
 """
 
@@ -592,6 +601,14 @@ def texture_layers(plane: np.ndarray, groups: int) -> np.ndarray:
     return np.ascontiguousarray(padded.reshape(three, groups, 4, h, w).transpose(0, 1, 3, 4, 2).reshape(-1, h, w, 4))
 
 
+def _check_tiles(tiles) -> Optional[int]:
+    if tiles is None:
+        return None
+    if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or not 1 <= tiles <= 64:
+        raise InputError(f"must be None or an integer in [1, 64], got {tiles!r}", field="tiles_per_invocation")
+    return int(tiles)
+
+
 def check_options(width, height, *, filtering: str, color_mode: str, weights: str, transmittance_eps: float,
                    color_eps: float) -> None:
     """InputError naming the first bad renderer option."""
@@ -623,6 +640,9 @@ class GlFieldRenderer:
             (0: every sample with a non-zero weight is coloured).
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
             latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
+        tiles_per_invocation: 8x8 pixel tiles each shader invocation shades, stacked along y (``None``:
+            ``SOFTWARE_TILES`` on llvmpipe, where it amortises a per-call prologue, 1 on a GPU). The frame is
+            the same for any value.
         count_evaluations: also count the field evaluations of every pixel (``render`` returns them as
             ``evaluations``; what :func:`engine.fields.render.evaluated_samples` counts on the reference): a
             profiling aid, one more buffer written.
@@ -635,11 +655,13 @@ class GlFieldRenderer:
     """
 
     count_evaluations = False
+    tiles_per_invocation: Optional[int] = None
 
     def __init__(self, assets: Union[FieldAssets, str, Path], width: int, height: int, *, quantized: bool = False,
                  filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
                  color_eps: float = COLOR_EPS, color_mode: str = "per-sample", weights: str = "inline",
-                 count_evaluations: bool = False, context=None) -> None:
+                 tiles_per_invocation: Optional[int] = None, count_evaluations: bool = False,
+                 context=None) -> None:
         if not isinstance(assets, FieldAssets):
             assets = load_field(assets)
         check_options(width, height, filtering=filtering, color_mode=color_mode, weights=weights,
@@ -655,6 +677,7 @@ class GlFieldRenderer:
         self.transmittance_eps = float(transmittance_eps)
         self.color_eps = float(color_eps)
         self.count_evaluations = bool(count_evaluations)
+        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
         if quantized:
             planes, ranges = _uint8_planes(assets)
         else:
@@ -692,8 +715,15 @@ class GlFieldRenderer:
     def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
         import moderngl
 
+        if self.tiles_per_invocation is None:
+            from engine.geometry.backends.gl.context import is_software_renderer
+
+            software = is_software_renderer(str(self.ctx.info.get("GL_RENDERER", "")))
+            self.tiles_per_invocation = SOFTWARE_TILES if software else 1
+        version, rest = self.source.split("\n", 1) if self.source.startswith("#version") else \
+            self.source.lstrip("\n").split("\n", 1)
         start = time.perf_counter()
-        self.program = self.ctx.compute_shader(self.source)
+        self.program = self.ctx.compute_shader(f"{version}\n#define TILES {self.tiles_per_invocation}\n{rest}")
         self.compile_seconds = time.perf_counter() - start
         for unit, (name, layers) in enumerate(textures):
             tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
@@ -813,7 +843,7 @@ class GlFieldRenderer:
             self._set("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
             self._set("origin", tuple(float(x) for x in origin))
             self._bind()
-            gx, gy = -(-self.width // _TILE), -(-self.height // _TILE)
+            gx, gy = -(-self.width // _TILE), -(-(-(-self.height // _TILE)) // self.tiles_per_invocation)
             self.program.run(gx, gy, 1)
             self.ctx.memory_barrier()
         return dispatch

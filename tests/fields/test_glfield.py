@@ -152,6 +152,24 @@ def test_counted_evaluations_are_those_of_the_reference(which, request):
     assert (exhaustive >= counted["evaluations"]).all()
 
 
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+def test_tiles_per_invocation_do_not_change_the_frame(which, request):
+    """Several tiles per shader invocation (llvmpipe's default) shade every pixel exactly as one does, also when
+    the tile rows do not divide by it (H = 32: 4 tile rows; 3 per invocation leaves 2 tiles past the edge)."""
+    _, out, _ = request.getfixturevalue(which)
+    cam = _camera(which)
+    one = _gl(out, cam, tiles_per_invocation=1, count_evaluations=True)
+    for tiles in (3, 8):
+        many = _gl(out, cam, tiles_per_invocation=tiles, count_evaluations=True)
+        for key in ("color", "depth", "opacity", "evaluations"):
+            assert np.array_equal(many[key], one[key]), (tiles, key)
+    with glfield.GlFieldRenderer(out, W, H) as renderer:  # the default follows the renderer
+        assert renderer.tiles_per_invocation == (1 if GPU_SLACK else glfield.SOFTWARE_TILES)
+    for bad in (0, 65, 2.5, True):
+        with pytest.raises(InputError, match="tiles_per_invocation"):
+            glfield.GlFieldRenderer(out, W, H, tiles_per_invocation=bad)
+
+
 def test_renders_are_repeatable_and_the_renderer_reusable(bounded_run):
     _, out, _ = bounded_run
     views = sphere_views([20, 50])

@@ -138,7 +138,9 @@ STATIC_GL_VARIANTS = [("gl float", {}), ("gl float, exact filtering", {"filterin
                       ("gl uint8", {"quantized": True}),
                       ("gl float, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0}),
                       ("gl float, weights in a UBO", {"weights": "buffer"}),
-                      ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"})]
+                      ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"}),
+                      ("gl float, 1 tile per invocation", {"tiles_per_invocation": 1}),
+                      ("gl float, 8 tiles per invocation", {"tiles_per_invocation": 8})]
 DYNAMIC_GL_VARIANTS = [("gl", {}), ("gl, exact filtering", {"filtering": "exact"}),
                        ("gl, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0})]
 

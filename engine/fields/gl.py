@@ -1,4 +1,4 @@
-"""Real-time rendering of an exported static radiance field: one OpenGL compute-shader invocation per pixel.
+"""Real-time rendering of an exported static radiance field: OpenGL compute shaders, one ray per pixel.
 
 ``GlFieldRenderer(assets, width, height).render(K, world_to_camera)`` renders what
 :func:`engine.fields.render.render_field` (the numpy reference, its test oracle) renders: colour (H, W, 3)
@@ -720,8 +720,7 @@ class GlFieldRenderer:
 
             software = is_software_renderer(str(self.ctx.info.get("GL_RENDERER", "")))
             self.tiles_per_invocation = SOFTWARE_TILES if software else 1
-        version, rest = self.source.split("\n", 1) if self.source.startswith("#version") else \
-            self.source.lstrip("\n").split("\n", 1)
+        version, rest = self.source.lstrip("\n").split("\n", 1)  # the #version line must stay first
         start = time.perf_counter()
         self.program = self.ctx.compute_shader(f"{version}\n#define TILES {self.tiles_per_invocation}\n{rest}")
         self.compile_seconds = time.perf_counter() - start
@@ -843,7 +842,8 @@ class GlFieldRenderer:
             self._set("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
             self._set("origin", tuple(float(x) for x in origin))
             self._bind()
-            gx, gy = -(-self.width // _TILE), -(-(-(-self.height // _TILE)) // self.tiles_per_invocation)
+            tile_rows = -(-self.height // _TILE)
+            gx, gy = -(-self.width // _TILE), -(-tile_rows // self.tiles_per_invocation)
             self.program.run(gx, gy, 1)
             self.ctx.memory_barrier()
         return dispatch

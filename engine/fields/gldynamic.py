@@ -183,7 +183,8 @@ class GlDynamicRenderer(GlFieldRenderer):
             InputError: time outside the trained range (the message names both), bad intrinsics or pose.
         """
         tau = normalize_time(time, self.assets.time_range)
-        with self._lock, self.ctx:
+
+        def set_time() -> None:
             self._set("tau", float(tau))
             if self.assets.has_motion:
                 enc = time_encoding_np(np.array([tau], np.float32), self._time_frequencies)[0]
@@ -191,4 +192,5 @@ class GlDynamicRenderer(GlFieldRenderer):
                     self.program["time_enc"].write(np.ascontiguousarray(enc, np.float32).tobytes())
                 except KeyError:  # optimised out: the colour MLP ignores time
                     pass
+        self._run(set_time)
         return super().render(intrinsics, world_to_camera)

@@ -246,10 +246,14 @@ class GlContext:
         if not self._timing or self._pass_queries is not None:
             yield
             return
-        query = self._queries.pop() if self._queries else self.ctx.query(time=True)
+        query = self._take_query()
         with query:
             yield
         self._open.append((name, query))
+
+    def _take_query(self):
+        """A GL_TIME_ELAPSED query: a finished one back from ``timing`` / ``pass_timing``, else a new one."""
+        return self._queries.pop() if self._queries else self.ctx.query(time=True)
 
     def dispatch_groups(self, program, groups: int, uniforms: Optional[Mapping[str, object]] = None) -> None:
         """Run ``program`` as ``groups`` workgroups (one per row, column, ...: passes index them with
@@ -263,7 +267,7 @@ class GlContext:
         if self._pass_queries is None:
             program.run(gx, -(-groups // gx), 1)
         else:
-            query = self._queries.pop() if self._queries else self.ctx.query(time=True)
+            query = self._take_query()
             with query:
                 program.run(gx, -(-groups // gx), 1)
             self._pass_queries.append((self._pass_names.get(id(program), "?"), query))

@@ -214,7 +214,7 @@ def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: n
     camera-compensated frame n-k (whatever the warp put there: a farther surface, or nothing) says nothing
     about object motion: the motion gate ignores these pixels and the flow predictors give them none.
     ``depth_n`` (H, W) planar depth, +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5:
-    inside is [0, w) x [0, h)). Compiled (``kernels.seen_pixels``); the numpy oracle is
+    inside is [0, w) x [0, h)). Compiled (``kernels.seen_pixels``, rows split over the kernel threads); the numpy oracle is
     ``reference.seen_before_reference``.
     """
     depth = checked_array(depth_n, "depth_n", ("H", "W"), None)
@@ -222,6 +222,8 @@ def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: n
                                  checked_matrix(K_prev, "K_prev", 3), checked_matrix(T_prev, "T_prev", 4))
     h, w = (int(n) for n in size_prev)
     out = np.empty(depth.shape, dtype=np.bool_)
-    kernels.seen_pixels(np.ascontiguousarray(depth), matrix.astype(np.float32), np.float32(1.0 / MAX_PIXEL_COORD),
-                        np.float32(TINY_DEPTH), h, w, out)
+    depth, matrix = np.ascontiguousarray(depth), matrix.astype(np.float32)
+    kernels.run_ranges(lambda r0, r1: kernels.seen_pixels(depth[r0:r1], matrix, np.float32(1.0 / MAX_PIXEL_COORD),
+                                                          np.float32(TINY_DEPTH), h, w, r0, out[r0:r1]),
+                       kernels.split_rows(*depth.shape))
     return out

@@ -80,6 +80,17 @@ def split_ranges(count: int, min_size: int, parts: int = 0) -> list[tuple[int, i
     return list(zip(edges[:-1], edges[1:]))
 
 
+#: Smallest share of a split image kernel per thread, in pixels (smaller images run on one thread: a hand-off
+#: costs ~0.1 ms)
+MIN_PIXELS_PER_THREAD = 1 << 16
+
+
+def split_rows(height: int, width: int) -> list[tuple[int, int]]:
+    """``split_ranges`` of an image's rows for a per-pixel kernel: at least ``MIN_PIXELS_PER_THREAD`` pixels
+    a thread."""
+    return split_ranges(height, -(-MIN_PIXELS_PER_THREAD // max(1, width)))
+
+
 def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) -> list:
     """[fn(start, stop) for each range], the first on the calling thread and the others on a shared pool
     (the kernels release the GIL, so they run in parallel); results in range order."""
@@ -314,10 +325,11 @@ def row_sources(depth, holes, out):
 
 
 @njit(cache=True, nogil=True)
-def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, out):
-    """``out`` (H, W) bool: each pixel of ``depth`` (H, W) reprojected by the float32 4x4 ``m`` (pixel points
-    to the other view's pixel points, ``camera.reprojection_matrix``) lands in front of that camera and inside
-    its [0, ``w_prev``) x [0, ``h_prev``) image (``camera.seen_before``; the arithmetic of ``project_points``)."""
+def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, row0, out):
+    """``out`` (h, W) bool: each pixel of ``depth`` (h, W), rows ``row0`` .. ``row0 + h - 1`` of a frame, reprojected
+    by the float32 4x4 ``m`` (pixel points to the other view's pixel points, ``camera.reprojection_matrix``)
+    lands in front of that camera and inside its [0, ``w_prev``) x [0, ``h_prev``) image
+    (``camera.seen_before``; the arithmetic of ``project_points``)."""
     h, w = depth.shape
     half, zero = _F32(0.5), _F32(0.0)
     m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
@@ -325,7 +337,7 @@ def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, out):
     m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
     x_max, y_max = _F32(w_prev), _F32(h_prev)
     for y in range(h):
-        v = _F32(y) + half
+        v = _F32(y + row0) + half
         for x in range(w):
             u = _F32(x) + half
             d = depth[y, x]

@@ -15,8 +15,8 @@ from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
-from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator, luma8,
-                                trusted_motion)
+from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator,
+                                drop_untrusted, luma8)
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle", "ESTIMATORS"]
 
@@ -123,7 +123,7 @@ class Flow2D(Predictor):
             src, dst = older.camera, newest.camera
             seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                         src.world_to_camera, older.depth.shape)
-            flow[~trusted_motion(luma_n, luma_w, flow, seen)] = 0.0
+            drop_untrusted(flow, luma_n, luma_w, seen)
         return self.state_of(newest, flow, timer)
 
     def state_of(self, newest, flow_back: np.ndarray, timer: Timer) -> Flow2DState:

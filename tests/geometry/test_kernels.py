@@ -255,3 +255,22 @@ def test_seen_before_kernel_equals_reference_on_random_and_extreme_scenes():
     assert seen[:, :5].all() and not seen[:, 5].any()  # the last column lands on u = 6 = w: outside, [0, w)
     one = np.array([[np.inf]], np.float32)  # a 1x1 all-sky frame
     assert ng.seen_before(one, np.eye(3), np.eye(4), np.eye(3), np.eye(4), (1, 1)).shape == (1, 1)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_image_kernels_split_over_rows_equal_their_references(monkeypatch, threads):
+    """``seen_before`` and ``encode8`` cut an image's rows over the kernel threads (``kernels.split_rows``); each
+    row's pixels are computed alone, so any split gives the reference's result exactly."""
+    from engine.geometry import kernels
+
+    monkeypatch.setenv("INTERLEAVE_KERNEL_THREADS", str(threads))
+    monkeypatch.setattr(kernels, "MIN_PIXELS_PER_THREAD", 64)
+    rng = np.random.default_rng(threads)
+    h, w = 37, 53
+    color, depth = random_scene(rng, h, w, sky=0.2)
+    k, t_prev, t_n = moving_cameras(rng, h, w, angle=0.2, shift=0.5)
+    assert len(kernels.split_rows(h, w)) == min(threads, h * w // 64)
+    np.testing.assert_array_equal(ng.seen_before(depth, k, t_n, k, t_prev, (h - 5, w + 3)),
+                                  reference.seen_before_reference(depth, k, t_n, k, t_prev, (h - 5, w + 3)))
+    values = rng.uniform(-0.1, 1.2, (h, w, 3)).astype(np.float32)
+    np.testing.assert_array_equal(encode8(values), encode8_reference(values))

@@ -117,3 +117,19 @@ def test_content_entering_at_the_border_gets_no_object_motion():
                                 older.camera.intrinsics, older.camera.world_to_camera, older.depth.shape)
     assert (~seen).sum() > 10 * newest.depth.shape[0]  # columns entering as the camera moves
     assert not state.data.flow_back[~seen].any()
+
+
+def test_drop_untrusted_zeroes_exactly_what_trusted_motion_does_not_keep():
+    from engine.predict.dis import drop_untrusted
+
+    rng = np.random.default_rng(5)
+    luma_n, target = _textured(5), _textured(6)
+    flow = rng.normal(0, 1.5, luma_n.shape + (2,)).astype(np.float32)
+    flow[:20] *= 10.0  # large motion: kept wherever seen
+    seen = rng.uniform(size=luma_n.shape) > 0.2
+    expected = flow.copy()
+    expected[~trusted_motion(luma_n, target, flow, seen)] = 0.0
+    out = drop_untrusted(flow, luma_n, target, seen)
+    assert out is flow
+    np.testing.assert_array_equal(out, expected)
+    assert 0 < (out == 0).all(-1).mean() < 1

@@ -48,7 +48,7 @@ from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import upsample_flow
-from engine.predict.dis import dis_flow, dis_target, luma8, trusted_motion, warp_error
+from engine.predict.dis import dis_flow, dis_target, drop_untrusted, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
            "crop_mpi", "whole_frame_initial_flow", "REFINE_MARGIN"]
@@ -186,7 +186,7 @@ def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str) -> Initia
     seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera,
                                 older.depth.shape)
     flow = dis_flow(luma_n, target, preset)
-    flow[~trusted_motion(luma_n, target, flow, seen)] = 0.0
+    drop_untrusted(flow, luma_n, target, seen)
     return InitialFlow(flow, target, luma_n, seen)
 
 

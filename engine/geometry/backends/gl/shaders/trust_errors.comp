@@ -1,7 +1,7 @@
 // Trust pass 1, per pixel of frame n: the photometric errors engine.predict.dis.confident_motion averages:
 // still_ = |luma_n - target| (no object motion), moved_ = |luma_n - target sampled at the pixel moved by the
-// flow u(n -> n-k)| (OpenCV 5's remap, INTER_LINEAR, float maps: float32 bilinear weights of the exact
-// fraction, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
+// flow u(n -> n-k)| (OpenCV 5's remap, INTER_LINEAR, float maps: the exact fraction, linear along x then y
+// by fused multiply-adds, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
 
 layout(std430, binding = 20) readonly buffer LumaNBuf { float luma_n_[]; };   // (H, W) 8-bit levels
 layout(std430, binding = 21) readonly buffer TargetBuf { float target_[]; };  // (H, W) 8-bit levels
@@ -29,15 +29,14 @@ void main() {
     int sx = int(fx), sy = int(fy);
     precise float ax = px - fx;
     precise float ay = py - fy;
-    precise float w0 = (1.0 - ay) * (1.0 - ax);
-    precise float w1 = (1.0 - ay) * ax;
-    precise float w2 = ay * (1.0 - ax);
-    precise float w3 = ay * ax;
     float sampled;
     if (sx >= w || sx + 1 < 0 || sy >= h || sy + 1 < 0) {
         sampled = -1.0;
-    } else {
-        precise float s = tap(sx, sy) * w0 + tap(sx + 1, sy) * w1 + tap(sx, sy + 1) * w2 + tap(sx + 1, sy + 1) * w3;
+    } else {  // along x then y with fused multiply-adds, as OpenCV 5 (and engine.geometry.kernels.photometric_errors)
+        float t00 = tap(sx, sy), t01 = tap(sx + 1, sy), t10 = tap(sx, sy + 1), t11 = tap(sx + 1, sy + 1);
+        precise float top = fma(t01 - t00, ax, t00);
+        precise float bottom = fma(t11 - t10, ax, t10);
+        precise float s = fma(bottom - top, ay, top);
         sampled = s;
     }
     moved_[i] = sampled < 0.0 ? 255.0 : abs(luma - sampled);

@@ -13,6 +13,7 @@
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
 - ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
 - ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
+- ``zero_untrusted``: ``engine.predict.dis.drop_untrusted`` (reference: ``trusted_motion``'s mask).
 - ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.upsample.upsample_flow`` (to 1e-5: OpenCV's
   resize, the reference, may round its bilinear sums differently).
 
@@ -351,6 +352,21 @@ def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, row0, out):
                 vo = hv / hz
                 inside = zero <= uo < x_max and zero <= vo < y_max
             out[y, x] = inside
+
+
+@njit(cache=True, nogil=True)
+def zero_untrusted(flow, seen, confident, small, row_start, row_stop):
+    """Rows ``row_start`` .. ``row_stop`` - 1 of ``flow`` (H, W, 2) float32 set to 0 where the trust rules of
+    ``engine.predict.dis.trusted_motion`` drop the motion: not ``seen`` (H, W) bool, or a magnitude under
+    ``small`` pixels that is not ``confident`` (H, W) bool. The magnitude is float32 ``hypot`` (the float64 root
+    of the float64 sum of squares, rounded once: numpy's ``np.hypot`` on float32, to the bit)."""
+    for y in range(row_start, row_stop):
+        for x in range(flow.shape[1]):
+            u, v = np.float64(flow[y, x, 0]), np.float64(flow[y, x, 1])
+            magnitude = _F32(math.sqrt(u * u + v * v))
+            if not seen[y, x] or (magnitude < small and not confident[y, x]):
+                flow[y, x, 0] = _F32(0.0)
+                flow[y, x, 1] = _F32(0.0)
 
 
 @njit(cache=True, nogil=True)

@@ -193,9 +193,19 @@ def trusted_motion(luma_n: np.ndarray, target: np.ndarray, flow: np.ndarray, see
     return keep
 
 
-def drop_untrusted(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """Zero, in place, the motion of the finite estimate ``flow`` (H, W, 2) float32 that ``trusted_motion``
-    does not keep, and return it. (A multiply by the mask: ~3x cheaper than a boolean-mask assignment at
-    960x540, the same result for a finite flow, which DIS always returns.)"""
-    keep = trusted_motion(luma_n, target, flow, seen)
-    return np.multiply(flow, keep[..., None], out=flow)
+def drop_untrusted(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, seen: np.ndarray,
+                   small: float = SMALL_MOTION) -> np.ndarray:
+    """Zero, in place, the motion of ``flow`` (H, W, 2) float32 (C-contiguous, as DIS returns it) that
+    ``trusted_motion`` does not keep, and return it: ``flow[~trusted_motion(...)] = 0`` (the test oracle) in
+    one compiled pass over the rows (``kernels.zero_untrusted``), ~3x cheaper at 960x540."""
+    h, w = luma_n.shape
+    if seen.shape != (h, w):
+        raise InputError(f"seen mask of shape {seen.shape} for lumas of shape {luma_n.shape}", field="seen")
+    if flow.shape != (h, w, 2) or flow.dtype != np.float32 or not flow.flags.c_contiguous:
+        raise InputError(f"expected a C-contiguous float32 flow of shape {(h, w, 2)}, got {flow.dtype} {flow.shape}",
+                         field="flow")
+    confident = confident_motion(luma_n, target, flow)
+    seen = np.ascontiguousarray(seen, dtype=np.bool_)
+    kernels.run_ranges(lambda r0, r1: kernels.zero_untrusted(flow, seen, confident, np.float32(small), r0, r1),
+                       kernels.split_rows(h, w))
+    return flow

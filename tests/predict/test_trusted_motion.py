@@ -119,13 +119,23 @@ def test_content_entering_at_the_border_gets_no_object_motion():
     assert not state.data.flow_back[~seen].any()
 
 
-def test_drop_untrusted_zeroes_exactly_what_trusted_motion_does_not_keep():
+@pytest.mark.parametrize("threads", [1, 2])
+def test_drop_untrusted_zeroes_exactly_what_trusted_motion_does_not_keep(monkeypatch, threads):
+    """The compiled zeroing (rows split over threads) against its oracle ``flow[~trusted_motion(...)] = 0``,
+    with magnitudes at the small-motion threshold to the last bit, NaN motion, and unseen pixels."""
+    from engine.geometry import kernels
     from engine.predict.dis import drop_untrusted
 
+    monkeypatch.setenv("INTERLEAVE_KERNEL_THREADS", str(threads))
+    monkeypatch.setattr(kernels, "MIN_PIXELS_PER_THREAD", 256)
     rng = np.random.default_rng(5)
     luma_n, target = _textured(5), _textured(6)
     flow = rng.normal(0, 1.5, luma_n.shape + (2,)).astype(np.float32)
     flow[:20] *= 10.0  # large motion: kept wherever seen
+    angle = rng.uniform(0, 2 * np.pi, (10, luma_n.shape[1]))
+    radius = np.float32(SMALL_MOTION) * (1 + rng.normal(0, 1e-7, angle.shape))  # within an ulp or two of the threshold
+    flow[30:40, :, 0], flow[30:40, :, 1] = radius * np.cos(angle), radius * np.sin(angle)
+    flow[45, :10] = np.nan
     seen = rng.uniform(size=luma_n.shape) > 0.2
     expected = flow.copy()
     expected[~trusted_motion(luma_n, target, flow, seen)] = 0.0
@@ -133,3 +143,7 @@ def test_drop_untrusted_zeroes_exactly_what_trusted_motion_does_not_keep():
     assert out is flow
     np.testing.assert_array_equal(out, expected)
     assert 0 < (out == 0).all(-1).mean() < 1
+    with pytest.raises(InputError, match="flow"):
+        drop_untrusted(flow.astype(np.float64), luma_n, target, seen)
+    with pytest.raises(InputError, match="seen"):
+        drop_untrusted(flow, luma_n, target, seen[:-1])

@@ -214,8 +214,8 @@ def seen_before(depth_n: np.ndarray, K_n: np.ndarray, T_n: np.ndarray, K_prev: n
     camera-compensated frame n-k (whatever the warp put there: a farther surface, or nothing) says nothing
     about object motion: the motion gate ignores these pixels and the flow predictors give them none.
     ``depth_n`` (H, W) planar depth, +inf sky; cameras as ``reproject`` takes them (pixel centres at +0.5:
-    inside is [0, w) x [0, h)). Compiled (``kernels.seen_pixels``, rows split over the kernel threads); the numpy oracle is
-    ``reference.seen_before_reference``.
+    inside is [0, w) x [0, h)). Compiled (``kernels.seen_pixels``, rows split over the kernel threads); the
+    numpy oracle is ``reference.seen_before_reference``.
     """
     depth = checked_array(depth_n, "depth_n", ("H", "W"), None)
     matrix = reprojection_matrix(checked_matrix(K_n, "K_n", 3), checked_matrix(T_n, "T_n", 4),

@@ -13,7 +13,8 @@
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
 - ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
 - ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
-- ``zero_untrusted``: ``engine.predict.dis.drop_untrusted`` (reference: ``trusted_motion``'s mask).
+- ``zero_untrusted``: ``engine.predict.dis.drop_untrusted`` (reference: ``trusted_motion``'s mask; tested in
+  ``tests/predict/test_trusted_motion.py``).
 - ``upsample_planes``: the full-resolution sampling of ``engine.predict.decomp.upsample.upsample_flow`` (to 1e-5: OpenCV's
   resize, the reference, may round its bilinear sums differently).
 
@@ -327,8 +328,8 @@ def row_sources(depth, holes, out):
 
 @njit(cache=True, nogil=True)
 def seen_pixels(depth, m, max_coord_inv, tiny, h_prev, w_prev, row0, out):
-    """``out`` (h, W) bool: each pixel of ``depth`` (h, W), rows ``row0`` .. ``row0 + h - 1`` of a frame, reprojected
-    by the float32 4x4 ``m`` (pixel points to the other view's pixel points, ``camera.reprojection_matrix``)
+    """``out`` (h, W) bool: each pixel of ``depth`` (h, W), rows ``row0`` .. ``row0 + h - 1`` of a frame,
+    reprojected by the float32 4x4 ``m`` (pixel points to the other view's pixel points, ``camera.reprojection_matrix``)
     lands in front of that camera and inside its [0, ``w_prev``) x [0, ``h_prev``) image
     (``camera.seen_before``; the arithmetic of ``project_points``)."""
     h, w = depth.shape

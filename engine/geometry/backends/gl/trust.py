@@ -4,10 +4,10 @@ u(n -> n-k) is kept only where frame n-k saw the surface (``engine.geometry.seen
 levels (``window``^2 means of ``warp_error``); elsewhere it is zeroed,
 in the flow's GPU buffer. The thresholds are ``engine.predict.dis``'s, passed in by the caller.
 
-Passes: ``trust_errors`` (per pixel: the error of no motion and of the flow, sampled as OpenCV 5's remap
-samples: ``engine.geometry.kernels.photometric_errors``), ``trust_blur_rows`` and ``trust_apply`` (the window means, BORDER_REFLECT, sums in double as
-``cv2.blur``; the reprojection test; the decision). Inputs are 8-bit lumas as float buffers (H, W) (pass
-``flow_luma`` makes them), the flow (H, W, 2) float32 and frame n's depth (H, W). Oracle: ``trusted_motion``
+Passes: ``trust_errors`` (per pixel: the error of no motion and of the flow, sampled as OpenCV 5's
+``remap`` samples, fused multiply-adds included), ``trust_blur_rows`` and ``trust_apply`` (the window means,
+BORDER_REFLECT, sums in double as ``cv2.blur``; the reprojection test; the decision). Inputs are 8-bit lumas
+as float buffers (H, W) (pass ``flow_luma`` makes them), the flow (H, W, 2) float32 and frame n's depth (H, W). Oracle: ``trusted_motion``
 and ``seen_before`` on the CPU (``tests/geometry/test_gl_trust.py``).
 """
 from __future__ import annotations

@@ -1,7 +1,8 @@
 // Trust pass 1, per pixel of frame n: the photometric errors engine.predict.dis.confident_motion averages:
 // still_ = |luma_n - target| (no object motion), moved_ = |luma_n - target sampled at the pixel moved by the
 // flow u(n -> n-k)| (OpenCV 5's remap, INTER_LINEAR, float maps: the exact fraction, linear along x then y
-// by fused multiply-adds, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
+// by fused multiply-adds, taps outside the image read -1; a sample below 0 costs 255). Positions are pixel
+// indices (x, y) + (du, dv), as engine.predict.dis.warp_error samples.
 
 layout(std430, binding = 20) readonly buffer LumaNBuf { float luma_n_[]; };   // (H, W) 8-bit levels
 layout(std430, binding = 21) readonly buffer TargetBuf { float target_[]; };  // (H, W) 8-bit levels
@@ -32,7 +33,8 @@ void main() {
     float sampled;
     if (sx >= w || sx + 1 < 0 || sy >= h || sy + 1 < 0) {
         sampled = -1.0;
-    } else {  // along x then y with fused multiply-adds, as OpenCV 5 (and engine.geometry.kernels.photometric_errors)
+    } else {  // along x then y by fused multiply-adds: OpenCV 5's float32 result to the bit
+              // (docs/results/2026-11-27-flow2d-prep-cost-remap.py)
         float t00 = tap(sx, sy), t01 = tap(sx + 1, sy), t10 = tap(sx, sy + 1), t11 = tap(sx + 1, sy + 1);
         precise float top = fma(t01 - t00, ax, t00);
         precise float bottom = fma(t11 - t10, ax, t10);

@@ -38,10 +38,10 @@ from typing import Iterator, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
-from engine.core.colorspace import display_encode
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame
+from engine.geometry import encoding
 from engine.geometry.motion import camera_motion_vectors
 from engine.predict import Prediction, Predictor, Target, make_predictor, resolve_auto
 from engine.runtime.stream import PredictionLoop
@@ -256,7 +256,7 @@ def _overlay(image: np.ndarray, lines: Sequence[str]) -> None:
 
 
 def _encode8(linear: np.ndarray) -> np.ndarray:
-    return (np.clip(display_encode(linear), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return encoding.encode8(linear)
 
 
 def compose(shown: np.ndarray, lines: Sequence[str] = (), *, truth: Optional[np.ndarray] = None,

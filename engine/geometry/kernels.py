@@ -2,6 +2,9 @@
 
 - ``encode8``: 8-bit display encoding of linear RGB (``engine.core.colorspace.encode8_reference``), by the
   exact per-bucket table of ``engine.core.colorspace.encode8_table``.
+- ``srgb_encode``, ``srgb_decode``, ``lookup``: ``display_encode``, ``srgb_to_linear`` and the 8-bit decoding table
+  of ``engine.core.colorspace`` (to one float32 ulp: numpy's SIMD ``power`` and libm's ``pow`` may round
+  differently), for whole frames (``engine.geometry.encoding``).
 - ``project_points``, ``splat_points``, ``normalize``: ``engine.geometry._forward_warp_mpi``, the forward
   splat, in one pass per stage. The numpy body in ``engine/geometry/ops.py`` (``_forward_warp_mpi_reference``)
   is the test oracle of these kernels and states the semantics: every point with alpha > 0 moves by its
@@ -40,6 +43,8 @@ import numpy as np
 from numba import njit
 
 _F32 = np.float32
+#: ``engine.core.colorspace.SRGB_LINEAR_SLOPE`` (numba reads module constants at compile time)
+SRGB_SLOPE = 12.92
 
 #: Environment variable that sets how many threads the split kernels use (default: the CPUs this process
 #: may run on, at most 8; 1: everything on the calling thread).
@@ -128,6 +133,54 @@ def encode8(linear, level, step, buckets, out):
                     c = _F32(1.0)
                 b = int(c * _F32(buckets))
                 out[y, x, ch] = level[b] + 1 if c >= step[b] else level[b]
+
+
+@njit(cache=True, nogil=True)
+def srgb_encode(linear, out):
+    """``out`` (H, W, C) float32 = ``engine.core.colorspace.display_encode(linear)`` of ``linear`` (H, W, C)
+    float32: clipped to [0, 1], then ``12.92 c`` (c <= 0.0031308) or ``1.055 c^(1/2.4) - 0.055`` in float64,
+    rounded to float32; NaN stays NaN."""
+    h, w, channels = linear.shape
+    for y in range(h):
+        for x in range(w):
+            for ch in range(channels):
+                v = linear[y, x, ch]
+                if v != v:
+                    out[y, x, ch] = _F32(np.nan)
+                    continue
+                c = np.float64(min(max(v, _F32(0.0)), _F32(1.0)))
+                if c <= 0.0031308:
+                    out[y, x, ch] = _F32(c * SRGB_SLOPE)
+                else:
+                    out[y, x, ch] = _F32(1.055 * c ** (1.0 / 2.4) - 0.055)
+
+
+@njit(cache=True, nogil=True)
+def srgb_decode(encoded, out):
+    """``out`` (H, W, C) float32 = ``engine.core.colorspace.srgb_to_linear(encoded)`` of ``encoded`` (H, W, C)
+    float32: ``c / 12.92`` (c <= 0.04045) or ``((c + 0.055) / 1.055)^2.4`` in float64, rounded to float32; NaN
+    stays NaN."""
+    h, w, channels = encoded.shape
+    for y in range(h):
+        for x in range(w):
+            for ch in range(channels):
+                c = np.float64(encoded[y, x, ch])
+                if c != c:
+                    out[y, x, ch] = _F32(np.nan)
+                elif c <= 0.04045:
+                    out[y, x, ch] = _F32(c / SRGB_SLOPE)
+                else:
+                    out[y, x, ch] = _F32(((c + 0.055) / 1.055) ** 2.4)
+
+
+@njit(cache=True, nogil=True)
+def lookup(codes, table, out):
+    """``out`` (H, W, C) = ``table[codes]`` for uint8 ``codes`` (H, W, C) and a (256,) ``table``."""
+    h, w, channels = codes.shape
+    for y in range(h):
+        for x in range(w):
+            for ch in range(channels):
+                out[y, x, ch] = table[codes[y, x, ch]]
 
 
 @njit(cache=True, nogil=True)

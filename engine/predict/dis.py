@@ -6,16 +6,15 @@ Pixel centres at +0.5; colours are linear RGB, display-encoded to 8 bits before 
 """
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Optional
 
 import cv2
 import numpy as np
 
 from engine.core.checks import checked_array
-from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
 from engine.core.errors import InputError
 from engine.geometry import kernels
+from engine.geometry.encoding import encode8
 from engine.geometry.holefill import fill_holes
 
 __all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
@@ -79,22 +78,6 @@ def dis_block(preset: str = "medium") -> int:
 def luma8(color: np.ndarray) -> np.ndarray:
     """(H, W) uint8 luma of display-encoded linear RGB (H, W, 3): what DIS optical flow reads."""
     return cv2.cvtColor(encode8(color), cv2.COLOR_RGB2GRAY)
-
-
-def encode8(color: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 display encoding of linear RGB (H, W, 3), equal to ``colorspace.encode8_reference``
-    (compiled: ``engine.geometry.kernels.encode8``, rows split over the kernel threads)."""
-    level, step = _encode8_table()
-    color = np.ascontiguousarray(color, dtype=np.float32)
-    out = np.empty(color.shape, dtype=np.uint8)
-    kernels.run_ranges(lambda r0, r1: kernels.encode8(color[r0:r1], level, step, ENCODE8_BUCKETS, out[r0:r1]),
-                       kernels.split_rows(*color.shape[:2]))
-    return out
-
-
-@lru_cache(maxsize=1)
-def _encode8_table() -> tuple[np.ndarray, np.ndarray]:
-    return encode8_table()
 
 
 def dis_flow(luma_n: np.ndarray, target: np.ndarray, preset: str = "medium",

@@ -107,11 +107,11 @@ import numpy as np
 
 from engine import conventions
 from engine.conventions import MOTION_DIRECTIONS, MOTION_UNITS
-from engine.core.colorspace import display_encode, srgb_to_linear
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
                                 validate_pose)
+from engine.geometry import encoding
 from engine.geometry.backends import resolve_backend
 from engine.predict import Predictor, Repeat, Target, make_predictor, use_backend
 from engine.predict.registry import AUTO, resolve_auto
@@ -138,7 +138,6 @@ FALLBACK_REASONS = ("history", "camera_cut")
 #: Every ``_CUT_STRIDE``-th pixel in each direction estimates the median scene depth of a frame.
 _CUT_STRIDE = 4
 
-_SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float64) / 255.0)  # (256,) float32 lookup table
 
 
 class NotReadyError(InterleaveError):
@@ -374,16 +373,16 @@ def _decode_color(color: np.ndarray, space: str, where: dict) -> np.ndarray:
     if space == "srgb8":
         if color.dtype != np.uint8:
             raise InputError(f"must be uint8 for color_in 'srgb8', got dtype {color.dtype}", **where)
-        return _SRGB8_TO_LINEAR[color]
+        return encoding.decode8(color)
     linear = validate_color(color, frame=where["frame"], field_name=where["field"])
-    return linear if space == "linear" else srgb_to_linear(linear)
+    return linear if space == "linear" else encoding.srgb_to_linear(linear)
 
 
 def _encode_color(linear: np.ndarray, space: str) -> np.ndarray:
+    """The predicted frame in the session's ``color_out`` encoding (compiled: ``engine.geometry.encoding``)."""
     if space == "linear":
         return linear
-    encoded = display_encode(linear)
-    return encoded if space == "srgb" else (encoded * 255.0 + 0.5).astype(np.uint8)
+    return encoding.display_encode(linear) if space == "srgb" else encoding.encode8(linear)
 
 
 def _scene_depth(depth: np.ndarray) -> float:

@@ -1,0 +1,80 @@
+"""Colour encodings of whole frames, compiled: what ``engine.core.colorspace`` computes in numpy (its
+functions are the oracles), for the per-frame paths (``engine.runtime.session``'s pixels in and out, the 8-bit
+lumas the flow estimators read). Frames are (H, W, C) arrays, rows split over the kernel threads
+(``engine.geometry.kernels.split_rows``).
+
+- ``encode8``: linear -> 8-bit display encoding, equal to ``colorspace.encode8_reference``.
+- ``display_encode``: linear -> sRGB-encoded float32 in [0, 1], ``colorspace.display_encode`` to one float32 ulp.
+- ``srgb_to_linear``: sRGB-encoded float -> linear float32, ``colorspace.srgb_to_linear`` to one float32 ulp.
+- ``decode8``: 8-bit sRGB -> linear float32 through ``colorspace``'s table, exactly.
+
+(One ulp: numpy may evaluate ``power`` with SIMD code that rounds differently from libm's ``pow``.)
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table, srgb_to_linear as srgb_to_linear_reference
+from engine.geometry import kernels
+
+__all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8"]
+
+
+def _frame(array: np.ndarray, dtype) -> np.ndarray:
+    a = np.ascontiguousarray(array, dtype=dtype)
+    return a if a.ndim == 3 else a.reshape(a.shape + (1,) * (3 - a.ndim))
+
+
+def _rows(kernel, source: np.ndarray, out: np.ndarray, *args) -> None:
+    kernels.run_ranges(lambda r0, r1: kernel(source[r0:r1], *args, out[r0:r1]),
+                       kernels.split_rows(source.shape[0], source.shape[1] * source.shape[2]))
+
+
+@lru_cache(maxsize=1)
+def _encode8_table() -> tuple[np.ndarray, np.ndarray]:
+    return encode8_table()
+
+
+@lru_cache(maxsize=1)
+def _decode8_table() -> np.ndarray:
+    return srgb_to_linear_reference(np.arange(256, dtype=np.float64) / 255.0)
+
+
+def encode8(color: np.ndarray) -> np.ndarray:
+    """(H, W[, C]) uint8 display encoding of linear ``color`` (float), equal to ``colorspace.encode8_reference``
+    (``kernels.encode8``, by the exact per-bucket table of ``colorspace.encode8_table``); NaN -> 0."""
+    color = np.asarray(color)
+    frame = _frame(color, np.float32)
+    out = np.empty(frame.shape, dtype=np.uint8)
+    level, step = _encode8_table()
+    _rows(kernels.encode8, frame, out, level, step, ENCODE8_BUCKETS)
+    return out.reshape(color.shape)
+
+
+def display_encode(linear: np.ndarray) -> np.ndarray:
+    """(H, W[, C]) float32: ``colorspace.display_encode`` (clipped to [0, 1], sRGB-encoded) of ``linear``."""
+    linear = np.asarray(linear)
+    frame = _frame(linear, np.float32)
+    out = np.empty(frame.shape, dtype=np.float32)
+    _rows(kernels.srgb_encode, frame, out)
+    return out.reshape(linear.shape)
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """(H, W[, C]) float32: ``colorspace.srgb_to_linear`` (the sRGB EOTF, unclipped) of float ``encoded``."""
+    encoded = np.asarray(encoded)
+    frame = _frame(encoded, np.float32)
+    out = np.empty(frame.shape, dtype=np.float32)
+    _rows(kernels.srgb_decode, frame, out)
+    return out.reshape(encoded.shape)
+
+
+def decode8(codes: np.ndarray) -> np.ndarray:
+    """(H, W[, C]) float32 linear light of 8-bit sRGB ``codes`` (uint8): ``srgb_to_linear(codes / 255)``."""
+    codes = np.asarray(codes)
+    frame = _frame(codes, np.uint8)
+    out = np.empty(frame.shape, dtype=np.float32)
+    _rows(kernels.lookup, frame, out, _decode8_table())
+    return out.reshape(codes.shape)

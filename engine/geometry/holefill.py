@@ -74,7 +74,28 @@ def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
         fallback: (H, W, 3) colour used where neither rows nor columns hold a known pixel.
     Returns:
         (color, depth) filled copies; the inputs are not modified.
+
+    Compiled (``kernels.fill_rows``, rows over the kernel threads) when every hole finds a source on its row,
+    the usual case; otherwise, and as the oracle, ``fill_holes_reference``.
     """
+    h, w = holes.shape
+    color_c = np.ascontiguousarray(color, dtype=np.float32)
+    depth_c = np.ascontiguousarray(depth, dtype=np.float32)
+    if color.dtype == np.float32 and depth.dtype == np.float32 and color_c.shape == (h, w, color_c.shape[-1]) \
+            and depth_c.shape == (h, w):
+        out_color, out_depth = np.empty_like(color_c), np.empty_like(depth_c)
+        holes_c = np.ascontiguousarray(holes, dtype=np.bool_)
+        unfilled = kernels.run_ranges(lambda r0, r1: kernels.fill_rows(color_c, depth_c, holes_c, r0, r1, out_color,
+                                                                       out_depth), kernels.split_rows(h, w))
+        if sum(unfilled) == 0:
+            return out_color, out_depth
+    return fill_holes_reference(color, depth, holes, fallback)
+
+
+def fill_holes_reference(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
+                         fallback: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """``fill_holes`` in numpy (rows by ``row_sources``, then columns, then the fallback): its oracle, and its
+    path for frames where some hole finds no source on its row."""
     color = color.copy()
     depth = depth.copy()
     if not holes.any():

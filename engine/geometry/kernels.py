@@ -14,7 +14,8 @@
   alpha times the soft z-buffer weight; sums accumulate in float64. The numpy version needs ~30 array
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
-- ``row_sources``: the row scan of the simple hole fill (``engine.geometry.holefill``).
+- ``row_sources``, ``fill_rows``: the row scan of the simple hole fill (``engine.geometry.holefill``), the
+  second also copying the sources (oracle: the fill's numpy path, ``holefill.fill_holes_reference``).
 - ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
 - ``zero_untrusted``: ``engine.predict.dis.drop_untrusted`` (reference: ``trusted_motion``'s mask; tested in
   ``tests/predict/test_trusted_motion.py``).
@@ -377,6 +378,43 @@ def row_sources(depth, holes, out):
             depth_left = depth[y, left] if left >= 0 else -np.inf
             depth_right = depth[y, after] if after >= 0 else -np.inf
             out[y, x] = after if depth_right > depth_left else left
+
+
+@njit(cache=True, nogil=True)
+def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth):
+    """Rows ``row_start`` .. ``row_stop`` - 1 of the row pass of ``engine.geometry.holefill.fill_holes``: each hole
+    pixel of ``holes`` (H, W) copies ``color`` (H, W, C) and ``depth`` (H, W) from the column ``row_sources``
+    picks (the farther of its nearest known left / right pixels; ties: the left one), each known pixel copies
+    itself, into ``out_color`` / ``out_depth``. Returns how many hole pixels found no source (a row without a
+    known pixel, or a NaN depth beside it): the caller then runs the full fill (columns, fallback)."""
+    w = holes.shape[1]
+    channels = color.shape[2]
+    left_of = np.empty(w, np.int64)
+    unfilled = 0
+    for y in range(row_start, row_stop):
+        last = -1
+        for x in range(w):
+            if holes[y, x]:
+                left_of[x] = last
+            else:
+                last = x
+        after = -1
+        for x in range(w - 1, -1, -1):
+            source = x
+            if holes[y, x]:
+                left = left_of[x]
+                depth_left = depth[y, left] if left >= 0 else -np.inf
+                depth_right = depth[y, after] if after >= 0 else -np.inf
+                source = after if depth_right > depth_left else left
+                if source < 0:
+                    unfilled += 1
+                    continue
+            else:
+                after = x
+            out_depth[y, x] = depth[y, source]
+            for ch in range(channels):
+                out_color[y, x, ch] = color[y, source, ch]
+    return unfilled
 
 
 @njit(cache=True, nogil=True)

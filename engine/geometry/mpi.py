@@ -103,13 +103,16 @@ def plane_index(depth: np.ndarray, planes: np.ndarray) -> np.ndarray:
 
 
 def _build_mpi(color: np.ndarray, depth: np.ndarray, num_planes: int, planes: Optional[np.ndarray] = None) -> Mpi:
-    """Unvalidated ``build_mpi``: ``engine.geometry.kernels.one_hot_mpi`` (its oracle: ``build_mpi_reference``)."""
+    """Unvalidated ``build_mpi``: ``engine.geometry.kernels.one_hot_mpi``, rows over the kernel threads (its
+    oracle: ``build_mpi_reference``)."""
     h, w = depth.shape
     planes = _plane_depths(depth, num_planes) if planes is None else planes
     mpi_color = np.empty((3, num_planes, h, w), dtype=np.float32)
     mpi_depth, alpha = (np.empty((num_planes, h, w), dtype=np.float32) for _ in range(2))
-    kernels.one_hot_mpi(np.ascontiguousarray(color), np.ascontiguousarray(depth), plane_bounds(planes), mpi_color,
-                        mpi_depth, alpha)
+    color, depth, bounds = np.ascontiguousarray(color), np.ascontiguousarray(depth), plane_bounds(planes)
+    kernels.run_ranges(lambda r0, r1: kernels.one_hot_mpi(color[r0:r1], depth[r0:r1], bounds, mpi_color[:, :, r0:r1],
+                                                          mpi_depth[:, r0:r1], alpha[:, r0:r1]),
+                       kernels.split_rows(h, w * num_planes))
     return Mpi(mpi_color, mpi_depth, alpha, planes)
 
 
@@ -221,11 +224,14 @@ def _visibility(alpha: np.ndarray) -> np.ndarray:
 
 
 def _composite(mpi: Mpi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unvalidated ``composite``: ``engine.geometry.kernels.composite`` (its oracle: ``composite_reference``)."""
+    """Unvalidated ``composite``: ``engine.geometry.kernels.composite``, rows over the kernel threads (its oracle:
+    ``composite_reference``)."""
     h, w = mpi.alpha.shape[1:]
     color, depth, acc = np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
-    kernels.composite(np.ascontiguousarray(mpi.color), np.ascontiguousarray(mpi.depth),
-                      np.ascontiguousarray(mpi.alpha), color, depth, acc)
+    m_color, m_depth, m_alpha = (np.ascontiguousarray(a) for a in (mpi.color, mpi.depth, mpi.alpha))
+    kernels.run_ranges(lambda r0, r1: kernels.composite(m_color[:, :, r0:r1], m_depth[:, r0:r1], m_alpha[:, r0:r1],
+                                                        color[r0:r1], depth[r0:r1], acc[r0:r1]),
+                       kernels.split_rows(h, w * mpi.alpha.shape[0]))
     return color, depth, acc
 
 

@@ -125,8 +125,13 @@ def test_warp_kernel_hard_cases_equal_the_reference():
     assert not fast[0].alpha.any()
 
 
+@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("num_planes", [1, 3, 6])
-def test_one_hot_mpi_kernel_equals_reference(num_planes):
+def test_one_hot_mpi_kernel_equals_reference(monkeypatch, num_planes, threads):
+    from engine.geometry import kernels
+
+    monkeypatch.setenv("INTERLEAVE_KERNEL_THREADS", str(threads))
+    monkeypatch.setattr(kernels, "MIN_PIXELS_PER_THREAD", 32)  # rows split over the threads
     rng = np.random.default_rng(3)
     color, depth = random_scene(rng, 19, 27, sky=0.3)
     for planes in (None, ng.plane_depths(depth[::2, ::2], num_planes)):
@@ -139,8 +144,13 @@ def test_one_hot_mpi_kernel_equals_reference(num_planes):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("num_planes", [1, 2, 5])
-def test_composite_kernel_equals_reference_with_soft_alpha_sky_and_holes(num_planes):
+def test_composite_kernel_equals_reference_with_soft_alpha_sky_and_holes(monkeypatch, num_planes, threads):
+    from engine.geometry import kernels
+
+    monkeypatch.setenv("INTERLEAVE_KERNEL_THREADS", str(threads))
+    monkeypatch.setattr(kernels, "MIN_PIXELS_PER_THREAD", 32)  # rows split over the threads
     rng = np.random.default_rng(4)
     color, depth = random_scene(rng, 17, 21, sky=0.3)
     mpi = ng.build_mpi(color, depth, num_planes)

@@ -22,14 +22,16 @@ from engine.geometry import kernels
 __all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8"]
 
 
-def _frame(array: np.ndarray, dtype) -> np.ndarray:
-    a = np.ascontiguousarray(array, dtype=dtype)
-    return a if a.ndim == 3 else a.reshape(a.shape + (1,) * (3 - a.ndim))
-
-
-def _rows(kernel, source: np.ndarray, out: np.ndarray, *args) -> None:
-    kernels.run_ranges(lambda r0, r1: kernel(source[r0:r1], *args, out[r0:r1]),
-                       kernels.split_rows(source.shape[0], source.shape[1] * source.shape[2]))
+def _convert(kernel, array: np.ndarray, in_dtype, out_dtype, *args) -> np.ndarray:
+    """``kernel(frame rows, *args, out rows)`` over the rows of ``array`` (H, W[, C]) as a contiguous (H, W, C)
+    frame of ``in_dtype``, split over the kernel threads; the output has ``array``'s shape."""
+    array = np.asarray(array)
+    frame = np.ascontiguousarray(array, dtype=in_dtype)
+    frame = frame.reshape(frame.shape + (1,) * (3 - frame.ndim))
+    out = np.empty(frame.shape, dtype=out_dtype)
+    kernels.run_ranges(lambda r0, r1: kernel(frame[r0:r1], *args, out[r0:r1]),
+                       kernels.split_rows(frame.shape[0], frame.shape[1] * frame.shape[2]))
+    return out.reshape(array.shape)
 
 
 @lru_cache(maxsize=1)
@@ -45,36 +47,20 @@ def _decode8_table() -> np.ndarray:
 def encode8(color: np.ndarray) -> np.ndarray:
     """(H, W[, C]) uint8 display encoding of linear ``color`` (float), equal to ``colorspace.encode8_reference``
     (``kernels.encode8``, by the exact per-bucket table of ``colorspace.encode8_table``); NaN -> 0."""
-    color = np.asarray(color)
-    frame = _frame(color, np.float32)
-    out = np.empty(frame.shape, dtype=np.uint8)
     level, step = _encode8_table()
-    _rows(kernels.encode8, frame, out, level, step, ENCODE8_BUCKETS)
-    return out.reshape(color.shape)
+    return _convert(kernels.encode8, color, np.float32, np.uint8, level, step, ENCODE8_BUCKETS)
 
 
 def display_encode(linear: np.ndarray) -> np.ndarray:
     """(H, W[, C]) float32: ``colorspace.display_encode`` (clipped to [0, 1], sRGB-encoded) of ``linear``."""
-    linear = np.asarray(linear)
-    frame = _frame(linear, np.float32)
-    out = np.empty(frame.shape, dtype=np.float32)
-    _rows(kernels.srgb_encode, frame, out)
-    return out.reshape(linear.shape)
+    return _convert(kernels.srgb_encode, linear, np.float32, np.float32)
 
 
 def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     """(H, W[, C]) float32: ``colorspace.srgb_to_linear`` (the sRGB EOTF, unclipped) of float ``encoded``."""
-    encoded = np.asarray(encoded)
-    frame = _frame(encoded, np.float32)
-    out = np.empty(frame.shape, dtype=np.float32)
-    _rows(kernels.srgb_decode, frame, out)
-    return out.reshape(encoded.shape)
+    return _convert(kernels.srgb_decode, encoded, np.float32, np.float32)
 
 
 def decode8(codes: np.ndarray) -> np.ndarray:
     """(H, W[, C]) float32 linear light of 8-bit sRGB ``codes`` (uint8): ``srgb_to_linear(codes / 255)``."""
-    codes = np.asarray(codes)
-    frame = _frame(codes, np.uint8)
-    out = np.empty(frame.shape, dtype=np.float32)
-    _rows(kernels.lookup, frame, out, _decode8_table())
-    return out.reshape(codes.shape)
+    return _convert(kernels.lookup, codes, np.uint8, np.float32, _decode8_table())

@@ -79,10 +79,9 @@ def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
     the usual case; otherwise, and as the oracle, ``fill_holes_reference``.
     """
     h, w = holes.shape
-    color_c = np.ascontiguousarray(color, dtype=np.float32)
-    depth_c = np.ascontiguousarray(depth, dtype=np.float32)
-    if color.dtype == np.float32 and depth.dtype == np.float32 and color_c.shape == (h, w, color_c.shape[-1]) \
-            and depth_c.shape == (h, w):
+    if color.dtype == np.float32 and depth.dtype == np.float32 and color.ndim == 3 and color.shape[:2] == (h, w) \
+            and depth.shape == (h, w):
+        color_c, depth_c = np.ascontiguousarray(color), np.ascontiguousarray(depth)
         out_color, out_depth = np.empty_like(color_c), np.empty_like(depth_c)
         holes_c = np.ascontiguousarray(holes, dtype=np.bool_)
         unfilled = kernels.run_ranges(lambda r0, r1: kernels.fill_rows(color_c, depth_c, holes_c, r0, r1, out_color,

@@ -139,7 +139,6 @@ FALLBACK_REASONS = ("history", "camera_cut")
 _CUT_STRIDE = 4
 
 
-
 class NotReadyError(InterleaveError):
     """``predict`` was called before any frame was submitted (or right after ``reset``)."""
 

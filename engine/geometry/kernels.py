@@ -43,9 +43,9 @@ from typing import Callable
 import numpy as np
 from numba import njit
 
+from engine.core.colorspace import SRGB_LINEAR_SLOPE
+
 _F32 = np.float32
-#: ``engine.core.colorspace.SRGB_LINEAR_SLOPE`` (numba reads module constants at compile time)
-SRGB_SLOPE = 12.92
 
 #: Environment variable that sets how many threads the split kernels use (default: the CPUs this process
 #: may run on, at most 8; 1: everything on the calling thread).
@@ -151,7 +151,7 @@ def srgb_encode(linear, out):
                     continue
                 c = np.float64(min(max(v, _F32(0.0)), _F32(1.0)))
                 if c <= 0.0031308:
-                    out[y, x, ch] = _F32(c * SRGB_SLOPE)
+                    out[y, x, ch] = _F32(c * SRGB_LINEAR_SLOPE)
                 else:
                     out[y, x, ch] = _F32(1.055 * c ** (1.0 / 2.4) - 0.055)
 
@@ -169,7 +169,7 @@ def srgb_decode(encoded, out):
                 if c != c:
                     out[y, x, ch] = _F32(np.nan)
                 elif c <= 0.04045:
-                    out[y, x, ch] = _F32(c / SRGB_SLOPE)
+                    out[y, x, ch] = _F32(c / SRGB_LINEAR_SLOPE)
                 else:
                     out[y, x, ch] = _F32(((c + 0.055) / 1.055) ** 2.4)
 
@@ -355,6 +355,15 @@ def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_star
                 out_cov[z, y, x] = cov
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _farther_side(depth, y, left, right):
+    """The column a hole on row ``y`` copies: of its nearest known pixels ``left`` and ``right`` (-1: none), the
+    one with the larger ``depth`` (ties and NaN: the left one); -1 when neither exists."""
+    depth_left = depth[y, left] if left >= 0 else -np.inf
+    depth_right = depth[y, right] if right >= 0 else -np.inf
+    return right if depth_right > depth_left else left
+
+
 @njit(cache=True, nogil=True)
 def row_sources(depth, holes, out):
     """``engine.geometry.holefill._row_sources_reference`` compiled: ``out`` (H, W) int64 = per hole pixel the column
@@ -374,10 +383,7 @@ def row_sources(depth, holes, out):
             if not holes[y, x]:
                 after = x
                 continue
-            left = out[y, x]
-            depth_left = depth[y, left] if left >= 0 else -np.inf
-            depth_right = depth[y, after] if after >= 0 else -np.inf
-            out[y, x] = after if depth_right > depth_left else left
+            out[y, x] = _farther_side(depth, y, out[y, x], after)
 
 
 @njit(cache=True, nogil=True)
@@ -402,10 +408,7 @@ def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth):
         for x in range(w - 1, -1, -1):
             source = x
             if holes[y, x]:
-                left = left_of[x]
-                depth_left = depth[y, left] if left >= 0 else -np.inf
-                depth_right = depth[y, after] if after >= 0 else -np.inf
-                source = after if depth_right > depth_left else left
+                source = _farther_side(depth, y, left_of[x], after)
                 if source < 0:
                     unfilled += 1
                     continue

@@ -13,7 +13,7 @@ from engine.geometry import encoding, kernels
 def _values(rng) -> np.ndarray:
     special = [np.nan, np.inf, -np.inf, -0.0, 0.0, 1.0, -1e-30, 1e-30, 0.0031308, 0.04045, 0.5, 2.0]
     edges = [np.nextafter(np.float32(v), np.float32(d)) for v in (0.0031308, 0.04045, 1.0) for d in (0, 2)]
-    values = np.concatenate([rng.uniform(-0.2, 1.3, 30000), np.linspace(0.0, 1.0, 20011), special, edges])
+    values = np.concatenate([special, edges, rng.uniform(-0.2, 1.3, 30000), np.linspace(0.0, 1.0, 20011)])  # hard first
     return values.astype(np.float32)
 
 

@@ -2,8 +2,8 @@
 GPU), per frame size and method.
 
 ``python -m tools.bench_backends [--sizes 640x360,960x540,1920x1080,3840x2160] [--methods reproject,mvec,flow2d]
-[--k 2] [--frames 6] [--repeats 3] [--out out/bench_backends] [--json FILE]`` (methods: any names
-``make_predictor`` takes, e.g. ``flow2d[estimator=gl]``, ``decomp``)
+[--k 2] [--frames 6] [--repeats 3] [--encoding linear|srgb8] [--out out/bench_backends] [--json FILE]``
+(methods: any names ``make_predictor`` takes, e.g. ``flow2d[estimator=gl]``, ``decomp``)
 
 Renders (once, cached under ``--out``) the fast held-out scene (preset ``fast``, seed 7003: objects moving a median
 12 px a frame at 640x360) at each size. For every rendered frame n with history, each method on each backend
@@ -13,7 +13,10 @@ median wall ms per predicted frame (preparation divided by k-1, uploads and the 
 GL timer queries measured (``-`` on a software renderer such as Mesa llvmpipe, whose queries do not time a GPU; on
 a GPU a second table splits it by stage), the ratio to ``reproject`` on the CPU in the same run, the PSNR against
 the truth, and the parity of ``gl`` with ``cpu``: the largest colour difference and the share of pixels within 1e-3
-of max(1, value) (the tests' tolerance).
+of max(1, value) (the tests' tolerance). ``--encoding srgb8`` asks for 8-bit display codes, as a ``Session`` with
+``color_out="srgb8"`` does (``gl`` encodes on the GPU and reads back a quarter of the bytes; ``cpu`` encodes on the
+host, inside the timing); PSNR is then of the decoded codes, parity the largest code difference and the share of
+pixels whose codes are equal.
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ import numpy as np
 from engine.eval.metrics import score_frame
 from engine.geometry.backends import gl_renderer
 from engine.io.rgbd import read_sequence
+from engine.geometry.encoding import FRAME_ENCODINGS, decode8
 from engine.predict import make_predictor, split_methods
 from tools.heldout import render_set, timing_cases, warm_runs, write_json
 
@@ -60,7 +64,7 @@ def stage_medians(runs: list[dict]) -> dict:
     return {name: float(statistics.median(run.get(name, 0.0) for run in runs)) for name in names}
 
 
-def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]:
+def bench_size(sequence, methods: list[str], k: int, repeats: int, encoding: str = "linear") -> list[dict]:
     """Rows (method, backend, wall ms, GPU ms, PSNR, parity) of one sequence (see the module docstring)."""
     predictors = {(m, b): make_predictor(m, sequence.objects, backend=b) for m in methods for b in BACKENDS}
     cases = timing_cases(sequence, k)
@@ -69,7 +73,7 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
     gpu: dict = {key: [] for key in keys}
     stages: dict = {key: [] for key in keys}
     outputs: dict = {}
-    for r, c, key, state, preds, ms in warm_runs(predictors, cases, repeats):
+    for r, c, key, state, preds, ms in warm_runs(predictors, cases, repeats, encoding):
         wall[key].append(ms)
         per_stage = gpu_stages(state, preds)
         stages[key].append(per_stage)
@@ -82,12 +86,15 @@ def bench_size(sequence, methods: list[str], k: int, repeats: int) -> list[dict]
         scores, worst, within = [], 0.0, []
         for c, frames in enumerate(truths):
             for i, truth in enumerate(frames):
-                color = outputs[(method, backend), c][i]
-                scores.append(score_frame(truth.color, color, truth.moving, with_flip=False))
-                ref = outputs[(method, "cpu"), c][i]
-                diff = np.abs(color - ref)
+                color, ref = outputs[(method, backend), c][i], outputs[(method, "cpu"), c][i]
+                if encoding == "srgb8":  # scored decoded; parity in codes: equal codes
+                    scores.append(score_frame(truth.color, decode8(color), truth.moving, with_flip=False))
+                    diff, tolerance = np.abs(color.astype(np.int16) - ref), 0
+                else:
+                    scores.append(score_frame(truth.color, color, truth.moving, with_flip=False))
+                    diff, tolerance = np.abs(color - ref), 1e-3 * np.maximum(1.0, np.abs(ref))
                 worst = max(worst, float(diff.max()))
-                within.append(float(np.mean((diff <= 1e-3 * np.maximum(1.0, np.abs(ref))).all(axis=-1))))
+                within.append(float(np.mean((diff <= tolerance).all(axis=-1))))
         rows.append({"method": method, "backend": predictors[method, backend].backend,
                      "wall_ms": float(statistics.median(wall[method, backend])),
                      "gpu_ms": float(statistics.median(gpu[method, backend])),
@@ -123,10 +130,11 @@ def gl_or_exit(prog: str) -> tuple[bool, str]:
 def main(argv=None) -> None:
     parser = gl_tool_parser(__doc__, "reproject,mvec,flow2d,flow2d[estimator=gl],decomp", 3)
     parser.add_argument("--sizes", default="640x360,960x540,1920x1080,3840x2160")
+    parser.add_argument("--encoding", choices=FRAME_ENCODINGS, default="linear")
     args = parser.parse_args(argv)
     hardware, renderer = gl_or_exit("bench_backends")
     methods = split_methods(args.methods)
-    doc = {"renderer": renderer, "hardware": hardware, "k": args.k, "frames": args.frames, "repeats": args.repeats,
+    doc = {"renderer": renderer, "hardware": hardware, "encoding": args.encoding, "k": args.k, "frames": args.frames, "repeats": args.repeats,
            "scene": SCENE[0], "sizes": []}
     print("\n| size | method | backend | wall ms | GPU ms | x cpu reproject | PSNR | PSNR moving | parity max diff | "
           "parity within 1e-3 |\n|---|---|---|---|---|---|---|---|---|---|")
@@ -134,7 +142,7 @@ def main(argv=None) -> None:
     for width, height in parse_sizes(args.sizes):
         name, overrides, preset = SCENE
         sequence = read_sequence(render_set(args.out, name, overrides, width, height, args.frames, preset))
-        rows = bench_size(sequence, methods, args.k, args.repeats)
+        rows = bench_size(sequence, methods, args.k, args.repeats, args.encoding)
         base = next((r["wall_ms"] for r in rows if r["method"] == "reproject" and r["backend"] == "cpu"), float("nan"))
         for r in rows:
             gpu = f"{r['gpu_ms']:.2f}" if hardware and r["backend"] == "gl" else "-"

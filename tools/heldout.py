@@ -12,6 +12,7 @@ import json
 import shutil
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from engine.eval.protocol import evaluation_pairs, json_safe, rendered_history, score_cell, summarize
 from engine.io.rgbd import read_sequence
+from engine.geometry.encoding import encode8
 from engine.predict import Target
 from engine.scenegen import generate_sequence
 from engine.scenegen.presets import preset_config
@@ -137,14 +139,17 @@ def timing_cases(sequence, k: int) -> list[tuple[list, list]]:
     return cases
 
 
-def warm_runs(predictors: dict, cases: list, repeats: int) -> Iterator[tuple]:
+def warm_runs(predictors: dict, cases: list, repeats: int, encoding: str = "linear") -> Iterator[tuple]:
     """Time ``predictors`` (key -> Predictor) on ``cases`` (``timing_cases``), warm: ``repeats`` passes, the
     predictors in rotating order per case so none always runs first. Yields ``(repeat, case, key, state,
     predictions, ms)`` per run: one prepare and the renders of the case's targets, ``ms`` the wall time per
-    predicted frame."""
+    predicted frame. ``encoding="srgb8"`` asks each target for 8-bit codes, as a ``Session`` with
+    ``color_out="srgb8"`` does: a prediction that comes back linear is encoded on the host inside the timing
+    (``encoding.encode8``), so every prediction yielded holds codes."""
     keys = list(predictors)
     for r in range(repeats):
         for c, (history, targets) in enumerate(cases):
+            targets = [replace(target, encoding=encoding) for target in targets]
             shift = (r + c) % len(keys)
             for key in keys[shift:] + keys[:shift]:
                 predictor = predictors[key]
@@ -152,6 +157,9 @@ def warm_runs(predictors: dict, cases: list, repeats: int) -> Iterator[tuple]:
                 start = time.perf_counter()
                 state = predictor.prepare(frames)
                 predictions = [predictor.render(state, target) for target in targets]
+                for p in predictions:
+                    if p.encoding != encoding:
+                        p.color, p.encoding = encode8(p.color), encoding
                 yield r, c, key, state, predictions, 1e3 * (time.perf_counter() - start) / len(targets)
 
 

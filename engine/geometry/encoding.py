@@ -19,7 +19,11 @@ import numpy as np
 from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table, srgb_to_linear as srgb_to_linear_reference
 from engine.geometry import kernels
 
-__all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8"]
+__all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8", "encode8_lookup", "FRAME_ENCODINGS"]
+
+#: The encodings a predicted frame can be handed out in: ``linear`` float32 light, or ``srgb8`` (H, W, 3)
+#: uint8 display codes (``encode8``), which the ``gl`` backend makes on the GPU (``engine.predict.Target``).
+FRAME_ENCODINGS = ("linear", "srgb8")
 
 
 def _convert(kernel, array: np.ndarray, in_dtype, out_dtype, *args) -> np.ndarray:
@@ -35,7 +39,9 @@ def _convert(kernel, array: np.ndarray, in_dtype, out_dtype, *args) -> np.ndarra
 
 
 @lru_cache(maxsize=1)
-def _encode8_table() -> tuple[np.ndarray, np.ndarray]:
+def encode8_lookup() -> tuple[np.ndarray, np.ndarray]:
+    """``colorspace.encode8_table()`` (level uint8, step float32; ``ENCODE8_BUCKETS`` + 1 entries), computed
+    once: the table ``encode8`` reads, and the GL backend's ``encode8`` pass."""
     return encode8_table()
 
 
@@ -47,7 +53,7 @@ def _decode8_table() -> np.ndarray:
 def encode8(color: np.ndarray) -> np.ndarray:
     """(H, W[, C]) uint8 display encoding of linear ``color`` (float), equal to ``colorspace.encode8_reference``
     (``kernels.encode8``, by the exact per-bucket table of ``colorspace.encode8_table``); NaN -> 0."""
-    level, step = _encode8_table()
+    level, step = encode8_lookup()
     return _convert(kernels.encode8, color, np.float32, np.uint8, level, step, ENCODE8_BUCKETS)
 
 

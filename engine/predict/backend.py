@@ -25,7 +25,7 @@ class GlFrames:
     """The GL backend: frames and flows in GPU buffers, the warp and the fill as compute passes. Wall stages:
     ``upload`` (a frame, flow or motion sent to the GPU) and ``warp`` (the dispatches, the hole fill and the
     readback of the predicted frame); GPU stages (``timer.gpu``): ``motion`` (extrapolating a ``PointMotion``),
-    ``warp``, ``fill``, ``readback``."""
+    ``warp``, ``fill``, ``encode`` (a ``srgb8`` target), ``readback``."""
 
     name = "gl"
 
@@ -48,7 +48,8 @@ class GlFrames:
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
                       flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """``CpuFrames.warp_and_fill`` on the GPU; a numpy ``flow`` or a ``PointMotion`` is uploaded for this
-        call, a resident one (``resident_flow``) is not."""
+        call, a resident one (``resident_flow``) is not. The colour comes back in ``target.encoding``
+        (``srgb8``: encoded on the GPU, GPU stage ``encode``)."""
         if source.image is None:
             source = self.resident(source.frame, timer)
         if isinstance(flow, (np.ndarray, PointMotion)):
@@ -58,7 +59,7 @@ class GlFrames:
         with timer("warp"):
             return self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
                                              dst.world_to_camera, None if motion else flow, flow_scale,
-                                             gpu_ms=timer.gpu, motion=motion)
+                                             gpu_ms=timer.gpu, motion=motion, encoding=target.encoding)
 
     def warp_fill_depth(self, source: ResidentFrame, target: Target,
                         timer: Timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

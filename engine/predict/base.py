@@ -24,6 +24,7 @@ import numpy as np
 from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, rigid_inverse
+from engine.geometry.encoding import FRAME_ENCODINGS
 from engine.geometry.holefill import fill_holes
 from engine.geometry.motion import extrapolated_flow
 
@@ -33,22 +34,33 @@ __all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_
 
 @dataclass(frozen=True)
 class Target:
-    """The frame to predict: its camera, its time in seconds, and its index in the stream."""
+    """The frame to predict: its camera, its time in seconds, its index in the stream, and the colour encoding
+    the caller will use (``engine.geometry.encoding.FRAME_ENCODINGS``). A backend that can encode where the frame is (``gl``: on the GPU, so
+    a quarter of the bytes is read back) returns that encoding; the others return linear colour, and the
+    caller encodes it: ``Prediction.encoding`` says which one came back."""
 
     camera: Camera
     time: float
     index: int = -1
+    encoding: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.encoding not in FRAME_ENCODINGS:
+            raise InputError(f"must be one of {', '.join(FRAME_ENCODINGS)}, got {self.encoding!r}",
+                             field="encoding")
 
 
 @dataclass
 class Prediction:
-    """A predicted frame: colour (H, W, 3) linear RGB, the holes the method had to fill, stage timings (wall
+    """A predicted frame: colour (H, W, 3) in ``encoding`` (linear RGB float32, or the ``srgb8`` uint8 codes a
+    ``Target`` asked for and the backend made), the holes the method had to fill, stage timings (wall
     milliseconds; ``gpu_ms``: GPU milliseconds of the stages the ``gl`` backend timed with GL queries)."""
 
     color: np.ndarray
     holes: np.ndarray
     stages_ms: dict[str, float] = field(default_factory=dict)
     gpu_ms: dict[str, float] = field(default_factory=dict)
+    encoding: str = "linear"
 
 
 @dataclass
@@ -118,7 +130,8 @@ class Predictor:
         stages: dict[str, float] = {}
         gpu: dict[str, float] = {}
         color, holes = self._render(state, target, Timer(stages, gpu))
-        return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu)
+        return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu,
+                          encoding="srgb8" if color.dtype == np.uint8 else "linear")
 
     def predict(self, history: Sequence[Frame], target: Target) -> Prediction:
         """Prepare and render in one call (stage timings include the preparation)."""

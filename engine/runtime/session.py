@@ -603,14 +603,15 @@ class Session:
                 raise InputError(f"the session was reset to (H, W) = {self._size} during this predict",
                                  frame=label, field="size")
             newest = history.frames[-1]
-            target = Target(camera, float(time), label)
+            # srgb8 is encoded where the frame is (on gl: on the GPU, a quarter of the bytes read back)
+            target = Target(camera, float(time), label, "srgb8" if self.config.color_out == "srgb8" else "linear")
             if _cut(newest.camera, camera, self._scene_depth, self.config):
                 predictor, fallback = self._repeat, "camera_cut"
             else:
                 predictor, fallback = history.predictor, history.fallback
             out = predictor.render(history.state, target)
             self._predictions += 1
-        color = _encode_color(out.color, self.config.color_out)
+        color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
         holes = out.holes
         if self.config.flip_rows:
             color, holes = color[::-1], holes[::-1]

@@ -308,3 +308,53 @@ def test_dropped_frame_buffers_are_reused_at_their_size_within_the_cap():
         assert not gl._free.get(12 * 24 * 16) and not gl._free.get(4 * 24 * 16)
     finally:
         gl.recycle_bytes = saved
+
+
+def test_srgb8_encoded_on_the_gpu_equals_the_cpu_codes_at_every_step():
+    """Pass ``encode8`` (GlFrameWarper.encode8): bit for bit ``encoding.encode8`` on the table's every step and
+    its float32 neighbours, NaN, +-inf, negatives, values above 1 and denormals, for pixel counts whose code
+    bytes do not fill the last 32-bit word."""
+    from engine.core.colorspace import encode8_table
+    from engine.geometry.encoding import encode8
+
+    gl = warper()
+    _, step = encode8_table()
+    steps = step[np.isfinite(step)]
+    rng = np.random.default_rng(12)
+    hard = np.array([np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 1.0, 1e-45, -1e-45, 1e30, 0.0031308], np.float32)
+    values = np.concatenate([hard, steps, np.nextafter(steps, np.float32(0)), np.nextafter(steps, np.float32(2)),
+                             rng.uniform(-0.5, 1.5, 3000), rng.uniform(0, 1e-3, 300)]).astype(np.float32)
+    for n in (1, 2, 3, 5, values.size // 3):  # 3 n codes: 3, 6, 9, 15 bytes and the whole sample
+        color = np.resize(values, 3 * n).reshape(1, n, 3)
+        buffer = gl.gl.call(lambda: gl.gl.new_buffer(data=color))
+        codes = gl.encode8(buffer, (1, n))
+        assert codes.dtype == np.uint8 and codes.shape == (1, n, 3)
+        np.testing.assert_array_equal(codes, encode8(color))
+        gl.gl.discard([buffer])
+
+
+def test_warp_read_back_as_srgb8_is_the_encoded_float_warp():
+    """warp_and_fill(encoding="srgb8"): the codes of the float colour the same warp reads back, the same
+    holes, an ``encode`` GPU stage; bad encodings and a GPU-resident srgb8 prediction are refused."""
+    from engine.geometry.encoding import encode8
+
+    gl = warper()
+    rng = np.random.default_rng(13)
+    color, depth = random_scene(rng, 41, 67)
+    k, t_src, t_dst = moving_cameras(rng, 41, 67)
+    color = (color * 1.4 - 0.2).astype(np.float32)  # values outside [0, 1] clip
+    image = gl.upload(color, depth)
+    linear, holes = gl.warp_and_fill(image, k, t_src, k, t_dst)
+    gpu_ms: dict = {}
+    codes, codes_holes = gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb8", gpu_ms=gpu_ms)
+    assert codes.dtype == np.uint8 and codes.shape == color.shape
+    np.testing.assert_array_equal(codes, encode8(linear))
+    np.testing.assert_array_equal(codes_holes, holes)
+    assert set(gpu_ms) == {"warp", "fill", "encode", "readback"}
+    codes_d, _, depth_d = gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb8", with_depth=True)
+    np.testing.assert_array_equal(codes_d, codes)
+    assert depth_d.dtype == np.float32 and depth_d.shape == depth.shape
+    with pytest.raises(InputError, match="encoding"):
+        gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb")
+    with pytest.raises(InputError, match="encoding"):
+        gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb8", readback=False)

@@ -437,6 +437,38 @@ def test_the_gl_backend_predicts_what_the_cpu_backend_predicts_from_two_threads(
         Session(SessionConfig(width=W, height=H), backend="metal")
 
 
+@pytest.mark.parametrize("method", ["reproject", "mvec", "flow2d"])
+def test_srgb8_out_on_the_gl_backend_is_encoded_on_the_gpu_as_the_cpu_encodes(method, monkeypatch):
+    """color_out="srgb8" on gl: the predicted frame comes back as codes from the GPU (the host encodes
+    nothing), equal to encode8 of the same session's linear prediction; rows flipped; a camera cut
+    (``repeat``, no GL pass) is encoded on the host."""
+    from engine.geometry.backends import gl as glb
+    from engine.geometry.encoding import encode8
+    from engine.runtime import session as session_module
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    host_encodes = []
+    monkeypatch.setattr(session_module, "_encode_color", lambda c, s: host_encodes.append(s) or encode8(c))
+    depth = frame_arrays()[1]
+    outs = {}
+    for space in ("linear", "srgb8"):
+        session = Session(SessionConfig(width=W, height=H, method=method, color_out=space, flip_rows=True),
+                          backend="gl")
+        for i in range(3):
+            vectors = np.zeros((H, W, 2), np.float32) if method == "mvec" else None
+            session.submit(frame_arrays(i)[0] * 1.2, depth, pose(x=0.02 * i), K, i / 30, motion_vectors=vectors)
+        outs[space] = session.predict(pose(x=0.05), K, 2.5 / 30)
+        assert not host_encodes
+        outs[space, "cut"] = session.predict(pose(x=0.05, yaw_deg=90.0), K, 2.5 / 30)
+    assert host_encodes == ["srgb8"]  # the camera cut's
+    assert outs["srgb8"].color.dtype == np.uint8 and outs["srgb8"].color.shape == (H, W, 3)
+    np.testing.assert_array_equal(outs["srgb8"].color, encode8(outs["linear"].color))
+    np.testing.assert_array_equal(outs["srgb8"].holes, outs["linear"].holes)
+    assert outs["srgb8", "cut"].fallback == "camera_cut" and outs["srgb8", "cut"].color.dtype == np.uint8
+    np.testing.assert_array_equal(outs["srgb8", "cut"].color, encode8(outs["linear", "cut"].color))
+
+
 def test_zero_copy_where_layouts_match():
     color, depth = frame_arrays()
     session = make_session()

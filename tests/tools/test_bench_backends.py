@@ -8,7 +8,7 @@ import torch
 from tools import bench_backends, bench_torch_networks, profile_gl_passes
 
 
-def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str) -> dict:
+def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str, *extra: str) -> dict:
     """A GL tool's ``main`` on the 96x64 scene (reproject and mvec, 4 frames): its JSON (skips without GL)."""
     from engine.geometry.backends import gl as glb
 
@@ -16,7 +16,7 @@ def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str) -> dict:
         pytest.skip("no EGL context with compute shaders")
     out = tmp_path / "out.json"
     main([size_flag, "96x64", "--frames", "4", "--repeats", repeats, "--methods", "reproject,mvec",
-          "--out", str(tmp_path / "scenes"), "--json", str(out)])
+          "--out", str(tmp_path / "scenes"), "--json", str(out), *extra])
     return json.loads(out.read_text())
 
 
@@ -31,6 +31,17 @@ def test_bench_backends_rows_parity_and_stage_split(tmp_path):
             assert {"warp", "fill", "readback"} <= set(r["gpu_stage_ms"])
         else:
             assert r["gpu_stage_ms"] == {} and r["gpu_ms"] == 0
+
+
+def test_bench_backends_srgb8_encodes_on_the_gpu_and_scores_the_decoded_codes(tmp_path):
+    linear = _run_gl_tool(bench_backends.main, tmp_path, "--sizes", "1")["sizes"][0]["rows"]
+    doc = _run_gl_tool(bench_backends.main, tmp_path, "--sizes", "1", "--encoding", "srgb8")
+    assert doc["encoding"] == "srgb8"
+    for r, plain in zip(doc["sizes"][0]["rows"], linear):
+        assert (r["method"], r["backend"]) == (plain["method"], plain["backend"])
+        assert r["parity_max_diff"] <= 1 and r["parity_within"] >= 0.999  # codes of colours within 1e-4
+        assert abs(r["psnr"] - plain["psnr"]) < 0.05  # 8-bit quantisation only
+        assert ("encode" in r["gpu_stage_ms"]) == (r["backend"] == "gl")
 
 
 def test_profile_counts_every_pass_of_a_frame(tmp_path):

@@ -8,8 +8,9 @@ scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upl
 (``upload_motion``: the moving pixels' velocity and change of velocity, as ``mvec`` estimates them) that each
 warp extrapolates s frame intervals ahead on the GPU (``motion_extrapolate``). Each warp runs the
 ``FRAME`` variants of the four splat passes, then the hole fill (``fill_rows``, ``fill_links``,
-``fill_apply``), and reads back the filled colour and a packed hole mask, once, or hands them out as GPU
-buffers (``readback=False``: ``GlPrediction``). Conventions: those of
+``fill_apply``), and reads back the filled colour (float32, or 8-bit sRGB codes encoded on the GPU: pass
+``encode8``) and a packed hole mask, once, or hands them out as GPU buffers (``readback=False``:
+``GlPrediction``). Conventions: those of
 ``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
 Oracle: ``engine.predict.base.warp_and_fill`` on the CPU (``tests/geometry/test_gl_frame.py``).
 """
@@ -25,7 +26,9 @@ from engine.core.checks import checked_array, checked_matrix, checked_sharpness,
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
+from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.geometry.camera import checked_flow, reprojection_matrix
+from engine.geometry.encoding import FRAME_ENCODINGS, encode8_lookup
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
 __all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "unpack_holes"]
@@ -198,14 +201,17 @@ class GlFrameWarper:
     def warp_and_fill(self, image: GlImage, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray,
                       T_dst: np.ndarray, flow: Optional[GlFlow] = None, flow_scale: float = 1.0,
                       sharpness: float = DEFAULT_SHARPNESS, gpu_ms: Optional[dict] = None,
-                      motion: Optional[GlMotion] = None, readback: bool = True, with_depth: bool = False):
+                      motion: Optional[GlMotion] = None, readback: bool = True, with_depth: bool = False,
+                      encoding: str = "linear"):
         """Forward-warp ``image`` to the destination camera, its points moved by ``flow_scale * flow`` or by
         ``motion`` extrapolated ``flow_scale`` frame intervals ahead (``K_src`` projects it), and fill the
         holes; returns (colour (H, W, 3) float32, holes (H, W) bool: where the warp left no surface), or with
         ``readback=False`` a ``GlPrediction`` that stays on the GPU (a GPU-side copy). ``with_depth`` (read
         back only) adds the filled planar depth (H, W) float32 as ``engine.predict.base.warp_fill_depth``'s
-        (+inf where nothing was left to fill from): (colour, holes, depth). With ``gpu_ms``, the GPU
-        milliseconds of the stages (``motion``,) ``warp``, ``fill``, ``readback`` are added to it."""
+        (+inf where nothing was left to fill from): (colour, holes, depth). ``encoding="srgb8"`` (read back
+        only) encodes the colour on the GPU (pass ``encode8``) and reads back (H, W, 3) uint8 codes, equal to
+        ``engine.geometry.encoding.encode8`` of the float colour: a quarter of the bytes. With ``gpu_ms``, the
+        GPU milliseconds of the stages (``motion``,) ``warp``, ``fill``, (``encode``,) ``readback`` are added."""
         if not isinstance(image, GlImage):
             raise InputError(f"must be a GlImage from GlFrameWarper.upload, got {type(image).__name__}", field="image")
         if flow is not None and (not isinstance(flow, GlFlow) or flow.shape != image.shape):
@@ -221,11 +227,16 @@ class GlFrameWarper:
             raise InputError(f"must be finite, got {flow_scale!r}", field="flow_scale")
         if with_depth and not readback:
             raise InputError("the depth is read back only: with_depth needs readback=True", field="with_depth")
+        if encoding not in FRAME_ENCODINGS:
+            raise InputError(f"must be one of {', '.join(FRAME_ENCODINGS)}, got {encoding!r}", field="encoding")
+        if encoding != "linear" and not readback:
+            raise InputError(f"a prediction left on the GPU is linear: encoding {encoding!r} needs readback=True",
+                             field="encoding")
         k_src = checked_matrix(K_src, "K_src", 3)
         matrix = reprojection_matrix(k_src, checked_matrix(T_src, "T_src", 4), checked_matrix(K_dst, "K_dst", 3),
                                      checked_matrix(T_dst, "T_dst", 4))
         return self.gl.call(self._warp_and_fill, image, matrix, flow, scale, checked_sharpness(sharpness), gpu_ms,
-                            motion, k_src, readback, with_depth)
+                            motion, k_src, readback, with_depth, encoding)
 
     def _extrapolate(self, image: GlImage, motion: GlMotion, step: float, k: np.ndarray) -> None:
         """Pass ``motion_extrapolate``: the flow (H, W, 3) of ``motion`` ``step`` intervals ahead into the pool's
@@ -246,7 +257,7 @@ class GlFrameWarper:
 
     def _warp_and_fill(self, image: GlImage, matrix, flow: Optional[GlFlow], scale: float, sharpness: float,
                        gpu_ms: Optional[dict], motion: Optional[GlMotion] = None, k_src: Optional[np.ndarray] = None,
-                       readback: bool = True, with_depth: bool = False):
+                       readback: bool = True, with_depth: bool = False, encoding: str = "linear"):
         gl, pool = self.gl, self._pool
         h, w = image.shape
         n = h * w
@@ -283,10 +294,15 @@ class GlFrameWarper:
                     gl.buffer(pool, "filled_depth", 4 * n).bind_to_storage_buffer(19)
                 gl.dispatch(gl.program("fill_apply", {"WITH_DEPTH": None} if with_depth else None), n, sizes)
             if readback:
-                color = np.empty((h, w, 3), np.float32)
+                if encoding == "srgb8":
+                    with gl.gpu_stage("encode"):
+                        source = self._encode8(pool["filled"], n)
+                    color = np.empty((h, w, 3), np.uint8)
+                else:
+                    color, source = np.empty((h, w, 3), np.float32), pool["filled"]
                 mask = np.empty(words, np.uint32)
                 with gl.gpu_stage("readback"):
-                    pool["filled"].read_into(color, size=color.nbytes)
+                    source.read_into(color, size=color.nbytes)
                     pool["mask"].read_into(mask, size=mask.nbytes)
                     if with_depth:
                         depth = np.empty((h, w), np.float32)
@@ -298,6 +314,36 @@ class GlFrameWarper:
         if not readback:
             return out
         return (color, unpack_holes(mask, (h, w)), depth) if with_depth else (color, unpack_holes(mask, (h, w)))
+
+    def encode8(self, color, shape: tuple[int, int]) -> np.ndarray:
+        """The (H, W, 3) uint8 8-bit sRGB codes (``engine.geometry.encoding.encode8``'s, bit for bit) of a
+        (H, W, 3) float32 linear colour buffer of this context (e.g. a ``GlPrediction``'s), encoded on the GPU;
+        only the codes are read back."""
+        h, w = checked_size(shape, "shape")
+        self._check_buffer(color, 12 * h * w, "color")
+        out = np.empty((h, w, 3), np.uint8)
+
+        def run():
+            self._encode8(color, h * w).read_into(out, size=out.nbytes)
+        self.gl.call(run)
+        return out
+
+    def _encode8(self, color, n: int):
+        """Pass ``encode8``: the float colour of ``n`` pixels in buffer ``color`` as packed 8-bit sRGB codes in
+        the pool's ``codes`` buffer, which it returns (the table is uploaded on first use, kept in the pool)."""
+        gl, pool = self.gl, self._pool
+        table = pool.get("encode8_table")
+        if table is None:
+            level, step = encode8_lookup()
+            rows = np.stack([level.astype(np.uint32), step.astype(np.float32).view(np.uint32)], axis=1)
+            table = pool["encode8_table"] = gl.ctx.buffer(np.ascontiguousarray(rows))
+        count = 3 * n
+        codes = gl.buffer(pool, "codes", 4 * -(-count // 4))
+        color.bind_to_storage_buffer(0)
+        table.bind_to_storage_buffer(1)
+        codes.bind_to_storage_buffer(2)
+        gl.dispatch(gl.program("encode8"), -(-count // 4), {"count": count, "buckets": float(ENCODE8_BUCKETS)})
+        return codes
 
     def release(self) -> None:
         """Free this warper's work buffers (uploaded images and flows free themselves)."""

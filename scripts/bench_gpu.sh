@@ -4,7 +4,7 @@
 #                                               ONLY="gl_tests backends" runs just the steps named)
 # 1. the GL passes' tests against their CPU references, on the GPU's driver;
 # 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage (and at
-#    1920x1080 with 8-bit sRGB output);
+#    1920x1080 with 8-bit sRGB frames in and out);
 #    tools.profile_gl_passes: GPU ms per compute pass at 1920x1080;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
@@ -35,7 +35,8 @@ step backends 180 "$py" -m tools.bench_backends --sizes 640x360,960x540,1920x108
 # at 4K the CPU side of decomp (and of every method on the cpu backend) takes seconds a frame: one pass
 step backends_4k 150 "$py" -m tools.bench_backends --sizes 3840x2160 --repeats 1 --frames 4 \
     --methods "reproject,mvec,flow2d[estimator=gl]" --out "$work/scenes" --json "$out/backends_4k.json"
-# a Session's color_out="srgb8": gl encodes on the GPU and reads back 3 bytes a pixel instead of 12
+# 8-bit frames in and out (a Session's color_in/color_out="srgb8"): gl uploads the codes and decodes them on
+# the GPU, encodes the prediction there and reads back 3 bytes a pixel instead of 12
 step backends_srgb8 120 "$py" -m tools.bench_backends --sizes 1920x1080 --repeats 2 --methods "reproject,mvec" \
     --encoding srgb8 --out "$work/scenes" --json "$out/backends_srgb8.json"
 step passes 120 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl]" \

@@ -13,22 +13,24 @@ median wall ms per predicted frame (preparation divided by k-1, uploads and the 
 GL timer queries measured (``-`` on a software renderer such as Mesa llvmpipe, whose queries do not time a GPU; on
 a GPU a second table splits it by stage), the ratio to ``reproject`` on the CPU in the same run, the PSNR against
 the truth, and the parity of ``gl`` with ``cpu``: the largest colour difference and the share of pixels within 1e-3
-of max(1, value) (the tests' tolerance). ``--encoding srgb8`` asks for 8-bit display codes, as a ``Session`` with
-``color_out="srgb8"`` does (``gl`` encodes on the GPU and reads back a quarter of the bytes; ``cpu`` encodes on the
-host, inside the timing); PSNR is then of the decoded codes, parity the largest code difference and the share of
-pixels whose codes are equal.
+of max(1, value) (the tests' tolerance). ``--encoding srgb8`` runs 8-bit frames in and out, as a ``Session`` with
+``color_in="srgb8", color_out="srgb8"`` does: the rendered frames are their 8-bit codes (``gl`` uploads the codes and
+decodes them on the GPU), and the predictions 8-bit display codes (``gl`` encodes on the GPU and reads back a quarter
+of the float bytes; ``cpu`` encodes on the host, inside the timing); PSNR is then of the decoded codes, parity the
+largest code difference and the share of pixels whose codes are equal.
 """
 from __future__ import annotations
 
 import argparse
 import statistics
+from dataclasses import replace
 
 import numpy as np
 
 from engine.eval.metrics import score_frame
 from engine.geometry.backends import gl_renderer
 from engine.io.rgbd import read_sequence
-from engine.geometry.encoding import FRAME_ENCODINGS, decode8
+from engine.geometry.encoding import FRAME_ENCODINGS, decode8, encode8
 from engine.predict import make_predictor, split_methods
 from tools.heldout import render_set, timing_cases, warm_runs, write_json
 
@@ -64,10 +66,18 @@ def stage_medians(runs: list[dict]) -> dict:
     return {name: float(statistics.median(run.get(name, 0.0) for run in runs)) for name in names}
 
 
+def eight_bit(frame):
+    """``frame`` as it arrives in 8-bit sRGB: its codes, and the colour decoded from them (``Frame.color_codes``)."""
+    codes = encode8(frame.color)
+    return replace(frame, color=decode8(codes), color_codes=codes)
+
+
 def bench_size(sequence, methods: list[str], k: int, repeats: int, encoding: str = "linear") -> list[dict]:
     """Rows (method, backend, wall ms, GPU ms, PSNR, parity) of one sequence (see the module docstring)."""
     predictors = {(m, b): make_predictor(m, sequence.objects, backend=b) for m in methods for b in BACKENDS}
     cases = timing_cases(sequence, k)
+    if encoding == "srgb8":  # frames come as 8-bit codes too, as a Session's with color_in="srgb8" on gl
+        cases = [([eight_bit(f) for f in history], targets) for history, targets in cases]
     keys = list(predictors)
     wall: dict = {key: [] for key in keys}
     gpu: dict = {key: [] for key in keys}

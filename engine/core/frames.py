@@ -64,6 +64,10 @@ class Frame:
             pixels without a vector (sky, particles). ``(h, w)`` may be smaller than ``(H, W)`` (vectors
             rendered at a lower resolution); the vector of output pixel (x, y) sits at
             ``((x + 0.5) w / W - 0.5, (y + 0.5) h / H - 0.5)`` in the small grid.
+        color_codes: (H, W, 3|4) uint8 or None: the 8-bit sRGB codes ``color`` was decoded from
+            (``engine.geometry.encoding.decode8``; alpha ignored), kept where the frame came so and the ``gl``
+            backend runs: it uploads them (a third or a quarter of the float colour's bytes) and decodes on
+            the GPU. They must decode to ``color``; ``with_color`` drops them.
     """
 
     index: int
@@ -76,6 +80,7 @@ class Frame:
     flow: Optional[np.ndarray] = None
     object_flow: Optional[np.ndarray] = None
     motion_vectors: Optional[np.ndarray] = None
+    color_codes: Optional[np.ndarray] = field(default=None, repr=False)
 
     @property
     def height(self) -> int:
@@ -86,8 +91,8 @@ class Frame:
         return int(self.depth.shape[1])
 
     def with_color(self, color: np.ndarray) -> "Frame":
-        """A copy of this frame with another colour image (the arrays are shared, not copied)."""
-        return replace(self, color=color)
+        """A copy of this frame with another colour image (the arrays are shared, not copied; no codes)."""
+        return replace(self, color=color, color_codes=None)
 
 
 @dataclass

@@ -19,7 +19,8 @@ import numpy as np
 from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table, srgb_to_linear as srgb_to_linear_reference
 from engine.geometry import kernels
 
-__all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8", "encode8_lookup", "FRAME_ENCODINGS"]
+__all__ = ["encode8", "display_encode", "srgb_to_linear", "decode8", "encode8_lookup", "decode8_lookup",
+           "FRAME_ENCODINGS"]
 
 #: The encodings a predicted frame can be handed out in: ``linear`` float32 light, or ``srgb8`` (H, W, 3)
 #: uint8 display codes (``encode8``), which the ``gl`` backend makes on the GPU (``engine.predict.Target``).
@@ -46,7 +47,9 @@ def encode8_lookup() -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=1)
-def _decode8_table() -> np.ndarray:
+def decode8_lookup() -> np.ndarray:
+    """(256,) float32 linear light of each 8-bit sRGB code, computed once: the table ``decode8`` reads, and the
+    GL backend's ``frame_from_codes`` pass."""
     return srgb_to_linear_reference(np.arange(256, dtype=np.float64) / 255.0)
 
 
@@ -69,4 +72,4 @@ def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
 
 def decode8(codes: np.ndarray) -> np.ndarray:
     """(H, W[, C]) float32 linear light of 8-bit sRGB ``codes`` (uint8): ``srgb_to_linear(codes / 255)``."""
-    return _convert(kernels.lookup, codes, np.uint8, np.float32, _decode8_table())
+    return _convert(kernels.lookup, codes, np.uint8, np.float32, decode8_lookup())

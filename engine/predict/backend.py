@@ -33,7 +33,11 @@ class GlFrames:
         self.warper = GlFrameWarper() if warper is None else warper
 
     def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
+        """The frame uploaded: its 8-bit codes decoded on the GPU where it has them (``Frame.color_codes``),
+        else its float colour."""
         with timer("upload"):
+            if frame.color_codes is not None:
+                return ResidentFrame(frame, self.warper.upload_codes(frame.color_codes, frame.depth))
             return ResidentFrame(frame, self.warper.upload(frame.color, frame.depth))
 
     def resident_flow(self, flow, timer: Timer):

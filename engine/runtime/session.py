@@ -82,9 +82,10 @@ arrives during a ``submit`` waits for it and then sees the new frame.
 Zero-copy: ``submit`` keeps references to the caller's arrays, without copying, when nothing has to
 change: colour ``float32`` (H, W, 3) or (H, W, 4) with ``color_in="linear"``, and depth ``float32``
 (H, W) with ``depth_convention="linear"``, ``far=inf`` and a unit scale of 1 (the alpha channel is
-dropped and ``flip_rows`` applied as views, also without a copy). The session holds them until they
-leave the history (at the next submit, or the one after for two-frame methods): do not write into a
-submitted array before that, or pass ``copy=True``. Every other input (motion vectors always) is
+dropped and ``flip_rows`` applied as views, also without a copy), and, on the ``gl`` backend, 8-bit colour
+with ``color_in="srgb8"`` (its codes are uploaded as they are and decoded on the GPU). The session holds
+them until they leave the history (at the next submit, or the one after for two-frame methods): do not
+write into a submitted array before that, or pass ``copy=True``. Every other input (motion vectors always) is
 converted into a new array. Returned arrays are always new.
 
 Example:
@@ -426,6 +427,8 @@ class Session:
                  make_method: Optional[Callable[[str], Predictor]] = None, backend: str = "auto") -> None:
         self.config = config or SessionConfig()
         chosen = resolve_backend(backend)
+        # 8-bit frames keep their codes for the gl backend, which uploads them and decodes on the GPU
+        self._keep_codes = chosen == "gl" and self.config.color_in == "srgb8"
 
         def make(name: str) -> Predictor:
             return use_backend((make_predictor if make_method is None else make_method)(name), chosen)
@@ -506,9 +509,13 @@ class Session:
                                  field="size")
             linear = _decode_color(rgb, self.config.color_in, where)
             planar = self._decode_depth(depth_in, label)
+            codes = None
+            if self._keep_codes:  # all channels (uploaded as they are; the GPU skips alpha), rows as rgb's
+                codes = np.asarray(color)[::-1] if self.config.flip_rows else np.asarray(color)
             if copy:
                 linear = linear.copy() if np.may_share_memory(linear, color) else linear
                 planar = planar.copy() if np.may_share_memory(planar, depth) else planar
+                codes = None if codes is None else codes.copy()
             camera = engine_camera(self.config, view, projection, size[1], size[0])
             self._check_planes(projection)
             vectors, motion = None, None
@@ -540,7 +547,7 @@ class Session:
                 except InputError as exc:
                     raise _located(exc, label, time, "submitted frame") from None
             new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera,
-                        motion_vectors=kept)
+                        motion_vectors=kept, color_codes=codes)
             predictor = None if self._auto is None else self._auto[kept is not None]
             try:  # a predictor that refuses the frames (mvec without vectors) leaves the history as it was
                 frames = self._loop.submit(new, restart=reset is not None, predictor=predictor).frames

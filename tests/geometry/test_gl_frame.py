@@ -358,3 +358,36 @@ def test_warp_read_back_as_srgb8_is_the_encoded_float_warp():
         gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb")
     with pytest.raises(InputError, match="encoding"):
         gl.warp_and_fill(image, k, t_src, k, t_dst, encoding="srgb8", readback=False)
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+@pytest.mark.parametrize("size", [(1, 1), (1, 3), (16, 16), (9, 31)])
+def test_codes_uploaded_and_decoded_on_the_gpu_are_the_cpu_decoding(size, channels):
+    """upload_codes: every code 0..255 decodes as ``encoding.decode8`` does, bit for bit, byte counts that do not
+    fill the last 32-bit word included; the image warps as the float upload of the decoded colour does."""
+    from engine.geometry.encoding import decode8
+
+    rng = np.random.default_rng(14)
+    h, w = size
+    codes = rng.integers(0, 256, (h, w, channels), dtype=np.uint8)
+    codes.flat[:min(codes.size, 256)] = np.arange(min(codes.size, 256))
+    depth = rng.uniform(1.0, 9.0, (h, w)).astype(np.float32)
+    depth[0, 0] = np.inf  # sky
+    gl = warper()
+    image = gl.upload_codes(codes, depth)
+    got = gl.gl.call(lambda: np.frombuffer(image.color.read(), np.float32)[:3 * h * w].reshape(h, w, 3).copy())
+    np.testing.assert_array_equal(got, decode8(codes[..., :3]))
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    for a, b in zip(gl.warp_and_fill(image, k, t_src, k, t_dst),
+                    gl.warp_and_fill(gl.upload(decode8(codes[..., :3]), depth), k, t_src, k, t_dst)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_bad_codes_are_refused():
+    gl = warper()
+    depth = np.ones((4, 5), np.float32)
+    for codes, field in ((np.zeros((4, 5, 3), np.float32), "codes"), (np.zeros((4, 5, 2), np.uint8), "codes"),
+                         (np.zeros((4, 6, 3), np.uint8), "codes"), (np.zeros((4, 5), np.uint8), "codes")):
+        with pytest.raises(InputError) as err:
+            gl.upload_codes(codes, depth)
+        assert err.value.field == field

@@ -469,6 +469,51 @@ def test_srgb8_out_on_the_gl_backend_is_encoded_on_the_gpu_as_the_cpu_encodes(me
     np.testing.assert_array_equal(outs["srgb8", "cut"].color, encode8(outs["linear", "cut"].color))
 
 
+@pytest.mark.parametrize("method", ["reproject", "mvec", "flow2d"])
+def test_srgb8_in_on_the_gl_backend_uploads_the_codes_and_predicts_as_from_floats(method, monkeypatch):
+    """color_in="srgb8" on gl: every frame crosses the bus as its codes (RGBA, rows flipped: as given) and is
+    decoded on the GPU; predictions equal, bit for bit, those of a session given decode8 of the codes as
+    linear floats. With copy=True the caller may overwrite its buffer at once."""
+    from engine.geometry.backends import gl as glb
+    from engine.geometry.encoding import decode8
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    uploads = {"codes": 0, "floats": 0}
+    upload, upload_codes = glb.GlFrameWarper.upload, glb.GlFrameWarper.upload_codes
+
+    def count(kind, fn):
+        def wrapped(*args, **kwargs):
+            uploads[kind] += 1
+            return fn(*args, **kwargs)
+        return wrapped
+    monkeypatch.setattr(glb.GlFrameWarper, "upload", count("floats", upload))
+    monkeypatch.setattr(glb.GlFrameWarper, "upload_codes", count("codes", upload_codes))
+    rng = np.random.default_rng(21)
+    frames = [rng.integers(0, 256, (H, W, 4), dtype=np.uint8) for _ in range(3)]
+    depth = frame_arrays()[1]
+    sessions = {name: Session(SessionConfig(width=W, height=H, method=method, color_in=space, flip_rows=True),
+                              backend="gl") for name, space in (("srgb8", "srgb8"), ("linear", "linear"),
+                                                                ("copied", "srgb8"))}
+    outs = {}
+    for space, session in sessions.items():
+        buffer = np.empty_like(frames[0])
+        for i, codes in enumerate(frames):
+            vectors = np.zeros((H, W, 2), np.float32) if method == "mvec" else None
+            given = decode8(codes[..., :3]) if space == "linear" else codes
+            if space == "copied":  # one buffer the caller reuses, overwritten right after each submit
+                buffer[:] = codes
+                session.submit(buffer, depth, pose(x=0.02 * i), K, i / 30, motion_vectors=vectors, copy=True)
+                buffer[:] = 0
+            else:
+                session.submit(given, depth, pose(x=0.02 * i), K, i / 30, motion_vectors=vectors)
+        outs[space] = session.predict(pose(x=0.05), K, 2.5 / 30)
+    np.testing.assert_array_equal(outs["srgb8"].color, outs["linear"].color)
+    np.testing.assert_array_equal(outs["srgb8"].holes, outs["linear"].holes)
+    np.testing.assert_array_equal(outs["copied"].color, outs["linear"].color)
+    assert uploads["floats"] >= 1 and uploads["codes"] == 2 * uploads["floats"]  # floats: the linear session's
+
+
 def test_zero_copy_where_layouts_match():
     color, depth = frame_arrays()
     session = make_session()

@@ -28,7 +28,7 @@ from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
 from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.geometry.camera import checked_flow, reprojection_matrix
-from engine.geometry.encoding import FRAME_ENCODINGS, encode8_lookup
+from engine.geometry.encoding import FRAME_ENCODINGS, decode8_lookup, encode8_lookup
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
 __all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "unpack_holes"]
@@ -141,6 +141,35 @@ class GlFrameWarper:
         color = np.ascontiguousarray(checked_array(color, "color", ("H", "W", 3), sizes))
         return self.gl.call(lambda: GlImage(depth.shape, self.gl.new_buffer(data=color),
                                             self.gl.new_buffer(data=depth), self.gl))
+
+    def upload_codes(self, codes: np.ndarray, depth: np.ndarray) -> GlImage:
+        """Upload a frame whose colour came as 8-bit sRGB: ``codes`` (H, W, 3|4) uint8 (alpha ignored) cross the
+        bus as they are (a quarter or a third of the float colour's bytes) and are decoded on the GPU (pass
+        ``frame_from_codes``) to what ``upload(encoding.decode8(codes[..., :3]), depth)`` holds, bit for bit."""
+        sizes: dict = {}
+        depth = np.ascontiguousarray(checked_array(depth, "depth", ("H", "W"), sizes))
+        codes = np.asarray(codes)
+        if codes.dtype != np.uint8:
+            raise InputError(f"must be uint8 sRGB codes, got dtype {codes.dtype}", field="codes")
+        codes = np.ascontiguousarray(checked_array(codes, "codes", ("H", "W", "C"), sizes, np.uint8, floating=False))
+        channels = codes.shape[2]
+        if channels not in (3, 4):
+            raise InputError(f"must have 3 or 4 channels, got {channels}", field="codes")
+        n = depth.size
+
+        def decode() -> GlImage:
+            gl = self.gl
+            table = self._pool.get("decode8_table")
+            if table is None:
+                table = self._pool["decode8_table"] = gl.ctx.buffer(decode8_lookup())
+            raw = gl.buffer(self._pool, "codes_in", 4 * -(-codes.nbytes // 4))
+            raw.write(codes)
+            color = gl.new_buffer(12 * n)
+            for binding, buf in enumerate((raw, table, color)):
+                buf.bind_to_storage_buffer(binding)
+            gl.dispatch(gl.program("frame_from_codes"), n, {"count": n, "channels": channels})
+            return GlImage(depth.shape, color, gl.new_buffer(data=depth), gl)
+        return self.gl.call(decode)
 
     def adopt(self, color, depth, shape: tuple[int, int]) -> GlImage:
         """A frame already on the GPU, without a copy: ``color`` (H, W, 3) and ``depth`` (H, W) float32

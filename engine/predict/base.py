@@ -35,9 +35,9 @@ __all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_
 @dataclass(frozen=True)
 class Target:
     """The frame to predict: its camera, its time in seconds, its index in the stream, and the colour encoding
-    the caller will use (``engine.geometry.encoding.FRAME_ENCODINGS``). A backend that can encode where the frame is (``gl``: on the GPU, so
-    a quarter of the bytes is read back) returns that encoding; the others return linear colour, and the
-    caller encodes it: ``Prediction.encoding`` says which one came back."""
+    the caller will use (``engine.geometry.encoding.FRAME_ENCODINGS``). A backend that can encode where the
+    frame is (``gl``: on the GPU, so a quarter of the bytes is read back) returns that encoding; the others
+    return linear colour, and the caller encodes it: ``Prediction.encoding`` says which one came back."""
 
     camera: Camera
     time: float

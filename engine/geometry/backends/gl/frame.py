@@ -23,10 +23,10 @@ from typing import Optional
 import numpy as np
 
 from engine.core.checks import checked_array, checked_matrix, checked_sharpness, checked_size
+from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
-from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.geometry.camera import checked_flow, reprojection_matrix
 from engine.geometry.encoding import FRAME_ENCODINGS, decode8_lookup, encode8_lookup
 from engine.geometry.splat import DEFAULT_SHARPNESS

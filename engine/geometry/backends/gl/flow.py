@@ -25,15 +25,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
 from engine.core.checks import checked_array, checked_size
-from engine.core.colorspace import ENCODE8_BUCKETS, encode8_table
+from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
-from engine.geometry.backends.gl.frame import GlFlow, GlImage
+from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
 __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels"]
 
@@ -100,13 +99,6 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     for _ in range(coarsest):
         sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
     return sizes, coarsest, min(config.finest_level, coarsest)
-
-
-@lru_cache(maxsize=1)
-def _encode_table() -> np.ndarray:
-    """(buckets + 1, 2) float32 (step, level) of ``encode8_table``, as pass ``flow_luma`` reads it."""
-    level, step = encode8_table()
-    return np.ascontiguousarray(np.stack([step, level.astype(np.float32)], axis=-1), dtype=np.float32)
 
 
 class GlOpticalFlow:
@@ -188,7 +180,7 @@ class GlOpticalFlow:
         """Run pass ``flow_luma``: ``n`` pixels of the colour buffer -> level 0 of the pyramid buffer ``luma``."""
         table = self._pool.get("table")
         if table is None:
-            table = self._pool["table"] = self.gl.ctx.buffer(_encode_table())
+            table = self._pool["table"] = self.gl.ctx.buffer(encode8_table_rows())
         table.bind_to_storage_buffer(2)
         color.bind_to_storage_buffer(0)
         luma.bind_to_storage_buffer(1)

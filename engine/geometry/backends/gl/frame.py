@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Optional
 
 import numpy as np
@@ -31,7 +32,15 @@ from engine.geometry.camera import checked_flow, reprojection_matrix
 from engine.geometry.encoding import FRAME_ENCODINGS, decode8_lookup, encode8_lookup
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
-__all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "unpack_holes"]
+__all__ = ["GlImage", "GlFlow", "GlMotion", "GlPrediction", "GlFrameWarper", "unpack_holes", "encode8_table_rows"]
+
+
+@lru_cache(maxsize=1)
+def encode8_table_rows() -> np.ndarray:
+    """(``ENCODE8_BUCKETS`` + 1, 2) float32 rows (step, level) of ``colorspace.encode8_table``: the table the
+    GLSL ``encode8`` (``shaders/encode8_common.glsl``) reads (levels 0..255 are exact in float32)."""
+    level, step = encode8_lookup()
+    return np.ascontiguousarray(np.stack([step, level.astype(np.float32)], axis=-1), dtype=np.float32)
 
 
 def _release_later(gl: GlContext, buffers: list) -> None:
@@ -363,15 +372,13 @@ class GlFrameWarper:
         gl, pool = self.gl, self._pool
         table = pool.get("encode8_table")
         if table is None:
-            level, step = encode8_lookup()
-            rows = np.stack([level.astype(np.uint32), step.astype(np.float32).view(np.uint32)], axis=1)
-            table = pool["encode8_table"] = gl.ctx.buffer(np.ascontiguousarray(rows))
+            table = pool["encode8_table"] = gl.ctx.buffer(encode8_table_rows())
         count = 3 * n
         codes = gl.buffer(pool, "codes", 4 * -(-count // 4))
         color.bind_to_storage_buffer(0)
         table.bind_to_storage_buffer(1)
         codes.bind_to_storage_buffer(2)
-        gl.dispatch(gl.program("encode8"), -(-count // 4), {"count": count, "buckets": float(ENCODE8_BUCKETS)})
+        gl.dispatch(gl.program("encode8", {"BUCKETS": ENCODE8_BUCKETS}), -(-count // 4), {"count": count})
         return codes
 
     def release(self) -> None:

@@ -22,8 +22,8 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.eval.metrics import flip_map
-from engine.eval.protocol import (evaluate_sequence, history_motion_vectors, markdown_table, plot, stage_table,
-                                  summarize, write_json)
+from engine.eval.protocol import (evaluate_sequence, evaluation_pairs, history_motion_vectors, make_predictors,
+                                  markdown_table, plot, stage_table, summarize, write_json)
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
@@ -31,7 +31,7 @@ from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
 from engine.predict import Predictor, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
-from engine.scenegen import SceneConfig, generate_sequence
+from engine.scenegen import SceneConfig, generate_sequence, make_scene
 
 
 @dataclass
@@ -93,12 +93,21 @@ def run_demo(out_dir: Path, *, k: int = 2, seed: int = 7, frames: int = 48, widt
     Returns the evaluation summary; prints the table.
     """
 
+    config = SceneConfig(width=width, height=height, num_frames=frames, seed=seed)
+    check_before_rendering(frames, k, methods, make_scene(config).scene_objects(), backend)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    scene_dir = generate_sequence(SceneConfig(width=width, height=height, num_frames=frames, seed=seed),
-                                  out_dir / "scene", progress=progress)
+    scene_dir = generate_sequence(config, out_dir / "scene", progress=progress)
     return report_sequence(read_sequence(scene_dir), out_dir, k=k, methods=methods, progress=progress,
                            command=f"interleave demo --k {k} --seed {seed} --backend {backend}", backend=backend)
+
+
+def check_before_rendering(frames: int, k: int, methods: Sequence[str], objects: Sequence, backend: str) -> None:
+    """InputError for a k, a frame count or a method the evaluation would refuse, raised before the seconds
+    of rendering that precede it (the rendered frames carry motion vectors)."""
+    if not evaluation_pairs(frames, k):
+        raise InputError(f"{frames} frames are too few for k = {k} (needs at least {2 * k})", field="frames")
+    make_predictors(methods, objects, has_vectors=True, backend=backend)
 
 
 def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], progress: bool = True,
@@ -200,12 +209,12 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
     """
 
     export, run = resolve_field_dir(field_dir)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     methods = [m for m in methods if m != "oracle"]
     if not methods:
-
         raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
+    check_before_rendering(frames, k, methods, (), backend)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     assets = load_field(export)
     cameras, width, height = field_camera_path(assets, train_cameras(run), frames, width, height,
                                                orbit_degrees=orbit_degrees)

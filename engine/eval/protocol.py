@@ -150,6 +150,23 @@ def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, t
     return history
 
 
+def make_predictors(methods: Sequence[str], objects: Sequence, *, has_vectors: bool, backend: str = "auto",
+                    file=None) -> dict:
+    """The predictor of each distinct method of ``methods`` (``auto`` resolved for a sequence with or without
+    motion vectors, the ``TRUE_HOLES`` suffix dropped), keyed by its resolved name, built for a sequence with
+    scene ``objects``: a bad name or option is an InputError naming ``file``. Cheap (tenths of a second), so
+    commands that render a sequence first call it before they render."""
+    predictors = {}
+    for name in dict.fromkeys(resolve_auto(split_scoring(m)[0], has_vectors) for m in methods):
+        try:
+            predictors[name] = make_predictor(name, objects, backend=backend)
+        except InputError as exc:  # name the sequence (e.g. motion=truth on a sequence without objects)
+            if exc.file is not None:
+                raise
+            raise InputError(f"method '{name}': {exc.problem}", file=file, field=exc.field) from exc
+    return predictors
+
+
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
                       max_groups: Optional[int] = None, progress: bool = False,
                       backend: str = "auto") -> list[MethodResult]:
@@ -169,14 +186,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
         groups = [groups[i] for i in sorted(set(pick.tolist()))]
     has_vectors = sequence.has_channel("motion_vectors")
     sources = {m: resolve_auto(split_scoring(m)[0], has_vectors) for m in methods}
-    predictors = {}
-    for name in dict.fromkeys(sources.values()):
-        try:
-            predictors[name] = make_predictor(name, sequence.objects, backend=backend)
-        except InputError as exc:  # name the sequence (e.g. motion=truth on a sequence without objects)
-            if exc.file is not None:
-                raise
-            raise InputError(f"method '{name}': {exc.problem}", file=sequence.path, field=exc.field) from exc
+    predictors = make_predictors(methods, sequence.objects, has_vectors=has_vectors, backend=backend,
+                                 file=sequence.path)
     if "oracle" in predictors and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
     with_vectors = any(isinstance(p, Mvec) for p in predictors.values())

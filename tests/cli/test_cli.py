@@ -79,6 +79,16 @@ def test_render_scene_and_demo_end_to_end(tmp_path):
         assert (tmp_path / "demo" / name).stat().st_size > 0
 
 
+@pytest.mark.parametrize("args, field", [(["--k", "1"], "k"), (["--frames", "3"], "frames"),
+                                         (["--methods", "reproject,bogus"], "methods"),
+                                         (["--methods", "decomp[bogus=1]"], "decomp")])
+def test_demo_refuses_bad_settings_before_it_renders(tmp_path, capsys, args, field):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--width", "96", "--height", "64", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"field '{field}'" in err[0]
+    assert not (tmp_path / "demo").exists()  # nothing rendered, nothing written
+
+
 def test_eval_bounds_prints_the_four_rows_and_writes_json(tmp_path, capsys):
     frames, objects = two_layer_sequence(9, width=80, height=60, camera_speed=0.1, object_speed=0.08)
     path = write_sequence(tmp_path / "seq", frames, fps=30.0, objects=objects)

@@ -45,6 +45,7 @@ from typing import Literal, Optional, Sequence
 import numpy as np
 
 from engine.conventions.values import frame_size, near_far, positive
+from engine.core.checks import numeric_array
 from engine.core.errors import InputError
 from engine.core.frames import RIGID_TOLERANCE, rigid_inverse, validate_intrinsics, validate_pose
 
@@ -85,10 +86,7 @@ _ZERO_TOLERANCE = 1e-6  # relative size under which a projection entry counts as
 # --------------------------------------------------------------------------------------------
 
 def _matrix(value: object, shape: tuple[int, ...], field: str) -> np.ndarray:
-    try:
-        m = np.array(value, dtype=np.float64)  # a copy: callers' arrays are never touched
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"is not a numeric array ({exc})", field=field) from None
+    m = numeric_array(value, copy=True, field=field)  # a copy: callers' arrays are never touched
     if m.shape != shape:
         raise InputError(f"must have shape {shape}, got {m.shape}", field=field)
     if not np.all(np.isfinite(m)):

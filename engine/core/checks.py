@@ -9,6 +9,16 @@ import numpy as np
 from engine.core.errors import InputError
 
 
+def numeric_array(value, *, copy: bool = False, file=None, frame: Optional[int] = None,
+                  field: Optional[str] = None) -> np.ndarray:
+    """``value`` (any array-like) as a float64 array (a copy with ``copy``); InputError naming ``file``,
+    ``frame`` and ``field`` when it is not numeric (strings, ragged lists, dicts, None)."""
+    try:
+        return (np.array if copy else np.asarray)(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"is not a numeric array ({exc})", file=file, frame=frame, field=field) from None
+
+
 def check_shape(value, name: str, dims: Sequence, sizes: Optional[dict] = None, *, floating: bool = True):
     """Check that ``value`` (numpy array or torch tensor) has shape ``dims``; raise InputError naming it.
 

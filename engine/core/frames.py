@@ -18,6 +18,7 @@ from typing import Optional
 
 import numpy as np
 
+from engine.core.checks import numeric_array
 from engine.core.errors import InputError
 
 #: Largest deviation of R^T R from the identity, and of det(R) from 1, accepted as "rigid".
@@ -118,10 +119,7 @@ def rigid_inverse(transform: np.ndarray) -> np.ndarray:
 
 def _finite_matrix(value: object, n: int, where: dict) -> np.ndarray:
     """``value`` as an (n, n) float64 matrix of finite numbers; InputError naming ``where`` otherwise."""
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"is not a numeric matrix ({exc})", **where) from None
+    m = numeric_array(value, **where)
     if m.shape != (n, n):
         raise InputError(f"must have shape ({n}, {n}), got {m.shape}", **where)
     if not np.all(np.isfinite(m)):

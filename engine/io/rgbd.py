@@ -31,6 +31,7 @@ from typing import Any, Iterable, Iterator, Mapping
 import numpy as np
 from tqdm import tqdm
 
+from engine.core.checks import numeric_array
 from engine.core.colorspace import linear_to_srgb, srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, SceneObject, validate_frame, validate_intrinsics, validate_pose
@@ -100,10 +101,7 @@ def _parse_objects(raw: Any, indices: list[int] | None, file: Path | None) -> li
         if not isinstance(moving, bool):
             raise InputError(f"must be true or false, got {moving!r}", file=file, field=f"{where}.moving")
         transforms = require(entry, "world_from_object", file, name=f"{where}.world_from_object")
-        try:
-            transforms = np.asarray(transforms, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"is not a numeric array ({exc})", file=file, field=f"{where}.world_from_object") from None
+        transforms = numeric_array(transforms, file=file, field=f"{where}.world_from_object")
         n = len(transforms) if indices is None else len(indices)
         if transforms.shape != (n, 4, 4):
             raise InputError(f"must have shape ({n}, 4, 4) (one transform per frame), got {transforms.shape}",

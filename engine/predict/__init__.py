@@ -7,8 +7,8 @@ Modules import downhill only: ``base`` (with the CPU backend), ``dis``, ``onnx``
 re-exports the public names (``from engine.predict import make_predictor, Target``).
 """
 from engine.predict.backend import GlFrames
-from engine.predict.base import (CpuFrames, Prediction, Predictor, PreparedState, ResidentFrame, Target, Timer,
-                                 extrapolation_factor, true_object_flow, warp_and_fill)
+from engine.predict.base import (MAX_EXTRAPOLATION, CpuFrames, Prediction, Predictor, PreparedState, ResidentFrame,
+                                 Target, Timer, extrapolation_factor, true_object_flow, warp_and_fill)
 from engine.predict.classic import Flow2D, Flow2DState, Oracle, Repeat, Reproject
 from engine.predict.decomp import (DEFAULT_MODEL, DecompConfig, DecompPredictor, DecompState, DecompTrueMotion,
                                    FlowNetwork, GateConfig, InfillNetwork, encode_color)
@@ -18,7 +18,7 @@ from engine.predict.mvec import Mvec, MvecConfig, MvecState
 from engine.predict.registry import (AUTO, METHODS, decomp_config, make_predictor, method_parts, method_with,
                                      option_parts, resolve_auto, split_methods, use_backend)
 
-__all__ = ["Prediction", "PreparedState", "Predictor", "Target", "Timer", "extrapolation_factor",
+__all__ = ["MAX_EXTRAPOLATION", "Prediction", "PreparedState", "Predictor", "Target", "Timer", "extrapolation_factor",
            "true_object_flow", "warp_and_fill", "Flow2D", "Flow2DState", "Oracle", "Repeat", "Reproject",
            "DEFAULT_MODEL", "DecompConfig", "DecompPredictor", "DecompState", "DecompTrueMotion", "FlowNetwork",
            "GateConfig", "InfillNetwork", "encode_color", "DIS_MIN_SIDE", "dis_block", "dis_calc", "dis_estimator",

@@ -28,7 +28,7 @@ from engine.geometry.encoding import FRAME_ENCODINGS
 from engine.geometry.holefill import fill_holes
 from engine.geometry.motion import extrapolated_flow
 
-__all__ = ["Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
+__all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
            "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
 
 
@@ -236,10 +236,21 @@ def warp_fill_depth(frame: Frame, target: Target, timer: Timer,
     return color, depth, holes
 
 
+#: The farthest a target may lie from frame n, in steps n-k -> n (``extrapolation_factor``): a renderer late by
+#: a few steps is served; beyond this the extrapolated motion carries every point far out of view (and
+#: overflows float32 long before 1e38), so the request is refused rather than answered with a wrong frame.
+MAX_EXTRAPOLATION = 64.0
+
+
 def extrapolation_factor(state: PreparedState, target: Target) -> float:
-    """k'/k of thesis Eq. 6.13 from the frame times: how far past frame n the target lies, per step n-k -> n."""
+    """k'/k of thesis Eq. 6.13 from the frame times: how far past frame n the target lies, per step n-k -> n.
+    InputError (field ``time``) beyond ``MAX_EXTRAPOLATION`` steps either way."""
     older, newest = state.history[-2], state.history[-1]
-    return (target.time - newest.time) / (newest.time - older.time)
+    factor = (target.time - newest.time) / (newest.time - older.time)
+    if not abs(factor) <= MAX_EXTRAPOLATION:  # also NaN
+        raise InputError(f"lies {factor:.3g} steps of the rendered frames (t = {older.time!r} -> {newest.time!r}) "
+                         f"from the newest frame; at most {MAX_EXTRAPOLATION:g} are predicted", field="time")
+    return factor
 
 
 def true_object_flow(frame: Frame, objects: dict, target_index: int) -> np.ndarray:

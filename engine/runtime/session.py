@@ -108,6 +108,7 @@ import numpy as np
 
 from engine import conventions
 from engine.conventions import MOTION_DIRECTIONS, MOTION_UNITS
+from engine.core.checks import numeric_array
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
@@ -296,8 +297,10 @@ class SessionPrediction:
 
 def _unreal_hfov(projection: object, width: int, height: int) -> float:
     """Full horizontal FOV (degrees) from a scalar or from Unreal's projection FMatrix (row vectors)."""
-    p = np.asarray(projection, dtype=np.float64)
+    p = numeric_array(projection, field="projection")
     if p.ndim == 0:
+        if not math.isfinite(float(p)):  # None reads as NaN; the range is from_unreal's to check
+            raise InputError(f"must be a horizontal FOV in degrees, got {projection!r}", field="projection")
         return float(p)
     if p.shape != (4, 4) or not np.all(np.isfinite(p)):
         raise InputError(f"must be a horizontal FOV in degrees or a finite 4x4 FMatrix, got shape {p.shape}",
@@ -329,7 +332,7 @@ def engine_camera(config: SessionConfig, view: object, projection: object,
     scale = config.unit_scale
     engine = config.engine
     if engine == "opencv":
-        k = np.asarray(projection, dtype=np.float64)
+        k = numeric_array(projection, field="projection")
         if k.shape == (4, 4):
             k = k[:3, :3]
         pose = validate_pose(view, field_name="view").copy()
@@ -347,7 +350,7 @@ def engine_camera(config: SessionConfig, view: object, projection: object,
                                          projection=projection, ndc_y_down=config.ndc_y_down,
                                          meters_per_unit=scale)
     else:  # unreal
-        v = np.asarray(view, dtype=np.float64)
+        v = numeric_array(view, field="view")
         hfov = _unreal_hfov(projection, w, h)
         if v.shape == (6,):
             k, pose = conventions.from_unreal(w, h, location=v[:3], rotation=v[3:], horizontal_fov_deg=hfov,
@@ -591,7 +594,8 @@ class Session:
         """Predict the frame seen from ``view``/``projection`` at ``time`` (seconds).
 
         Raises NotReadyError before the first submit (and after ``reset``), InputError (naming the frame
-        and time) for a bad pose. ``frame`` is the caller's number for the predicted frame, for errors.
+        and time) for a bad pose, or for a time more than ``engine.predict.MAX_EXTRAPOLATION`` steps of the
+        rendered frames from the newest one where the method extrapolates motion. ``frame`` is the caller's number for the predicted frame, for errors.
         """
         with self._lock:
             size = self._size
@@ -616,7 +620,10 @@ class Session:
                 predictor, fallback = self._repeat, "camera_cut"
             else:
                 predictor, fallback = history.predictor, history.fallback
-            out = predictor.render(history.state, target)
+            try:
+                out = predictor.render(history.state, target)
+            except InputError as exc:  # a time too far from the rendered frames
+                raise _located(exc, label, time, "predicted frame") from None
             self._predictions += 1
         color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
         holes = out.holes

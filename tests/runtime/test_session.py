@@ -358,6 +358,41 @@ def test_errors_name_the_session_counter_by_default_and_catch_bad_poses():
             frame_arrays()[0], np.zeros((H, W), np.uint16), pose(), K, 0.0)
 
 
+@pytest.mark.parametrize("engine", ["opencv", "unreal"])
+@pytest.mark.parametrize("value", ["p", None, {"a": 1}, [[1.0, 2.0], [3.0]], b"xx"])
+def test_non_numeric_poses_are_input_errors(engine, value):
+    from engine.runtime.session import engine_camera
+
+    config = SessionConfig(engine=engine, width=W, height=H)
+    good_view, good_projection = (np.zeros(6), 90.0) if engine == "unreal" else (pose(), K)
+    for view, projection, field in ((value, good_projection, "view"), (good_view, value, "projection")):
+        with pytest.raises(InputError) as err:
+            engine_camera(config, view, projection)
+        assert err.value.field == ("pose" if engine == "unreal" and view is None else field)  # unreal: no pose given
+
+
+@pytest.mark.parametrize("method", ["flow2d", "mvec"])
+def test_a_time_beyond_the_extrapolation_limit_is_refused_not_answered(method):
+    """A target MAX_EXTRAPOLATION steps of the rendered frames from the newest (or a time so far that the motion
+    would overflow) is an InputError naming the frame and the time; at the limit and for reproject it is served."""
+    from engine.predict.base import MAX_EXTRAPOLATION
+
+    session = make_session(method=method)
+    depth = frame_arrays()[1]
+    vectors = np.full((H, W, 2), 0.5, np.float32) if method == "mvec" else None
+    for i in range(3):
+        session.submit(frame_arrays(i)[0], depth, pose(x=0.02 * i), K, 0.1 * i, motion_vectors=vectors)
+    step = 0.1  # frames 1 -> 2
+    assert session.predict(pose(), K, 0.2 + MAX_EXTRAPOLATION * step * 0.999).color.shape == (H, W, 3)
+    for time in (0.2 + MAX_EXTRAPOLATION * step * 1.01, 0.2 - MAX_EXTRAPOLATION * step * 1.01, 1e300, -1e300):
+        with pytest.raises(InputError, match=r"^frame 7, field 'time':.* steps") as err:
+            session.predict(pose(), K, time, frame=7)
+        assert "predicted frame at time" in str(err.value)
+    plain = make_session(method="reproject")
+    plain.submit(*frame_arrays(), pose(), K, 0.0)
+    assert plain.predict(pose(), K, 1e300).color.shape == (H, W, 3)  # no motion to extrapolate
+
+
 def test_reversed_z_zero_is_sky_and_nan_buffer_is_rejected():
     session = make_session(depth_convention="reversed", near=0.1, far=100.0)
     color, planar = frame_arrays(depth=4.0)

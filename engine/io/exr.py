@@ -10,9 +10,15 @@ dtype('float32')
 """
 from __future__ import annotations
 
+import io
+import os
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
+from typing import Iterator, Mapping
 
 import numpy as np
 import OpenEXR
@@ -51,12 +57,52 @@ def _reason(exc: Exception) -> str:
     return text
 
 
+class _Captured:
+    """What the C library wrote to the process's stdout and stderr inside ``_library_messages``."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    def last_line(self) -> str:
+        lines = [line.strip() for line in self.text.splitlines() if line.strip()]
+        return lines[-1] if lines else ""
+
+
+_OUTPUT_LOCK = threading.Lock()
+
+
+@contextmanager
+def _library_messages() -> Iterator[_Captured]:
+    """Capture what OpenEXR's C++ code prints to file descriptors 1 and 2 while reading (a damaged file prints
+    dozens of lines, and a warning on stdout, before the one-line error that reports it; the last line goes
+    into that error). The descriptors are swapped for the whole process, so another thread's output in those
+    milliseconds is captured too; the lock keeps two readers from swapping them at once."""
+    captured = _Captured()
+    printed = io.StringIO()  # the binding's own warnings go through Python's sys.stdout
+    with _OUTPUT_LOCK, tempfile.TemporaryFile() as sink:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        saved = [os.dup(fd) for fd in (1, 2)]
+        for fd in (1, 2):
+            os.dup2(sink.fileno(), fd)
+        try:
+            with redirect_stdout(printed), redirect_stderr(printed):
+                yield captured
+        finally:
+            for fd, old in zip((1, 2), saved):
+                os.dup2(old, fd)
+                os.close(old)
+            sink.seek(0)
+            captured.text = printed.getvalue() + sink.read().decode("utf-8", "replace")  # the library's last
+
+
 def read_exr_info(path: str | Path) -> ExrInfo:
     """Read only the header of an EXR: size (from the data window) and channel names."""
     path = Path(path)
     _check_exr(path)
     try:
-        header = OpenEXR.File(str(path), header_only=True).header()
+        with _library_messages():
+            header = OpenEXR.File(str(path), header_only=True).header()
     except (RuntimeError, ValueError, OSError) as exc:
         raise InputError(f"cannot read EXR header: {_reason(exc)}", file=path) from None
     lo, hi = header["dataWindow"]
@@ -75,11 +121,16 @@ def read_exr(path: str | Path, *, all_parts: bool = False) -> dict[str, np.ndarr
     path = Path(path)
     _check_exr(path)
     try:
-        exr = OpenEXR.File(str(path), separate_channels=True)
+        with _library_messages() as messages:
+            exr = OpenEXR.File(str(path), separate_channels=True)
         parts = [[(name, ch.pixels) for name, ch in part.channels.items()]
                  for part in (exr.parts if all_parts else exr.parts[:1])]
     except (RuntimeError, ValueError, OSError) as exc:
         raise InputError(f"cannot read EXR pixels: {_reason(exc)}", file=path) from None
+    if not parts:  # the pixels could not be read: OpenEXR printed why and kept no part
+        said = messages.last_line()
+        raise InputError("cannot read EXR pixels: the file is truncated or damaged"
+                         + (f" (OpenEXR: {said})" if said else ""), file=path)
     out: dict[str, np.ndarray] = {}
     for k, part in enumerate(parts):
         for name, pixels in part:

@@ -390,6 +390,24 @@ def test_unreadable_exr_names_the_file(seq_dir: Path, damage: str) -> None:
     assert_names(exc.value, file="frames/000002.exr", field=None, frame=None)
 
 
+@pytest.mark.parametrize("keep", [40, 0.5, 0.9, -1])
+def test_a_cut_exr_is_one_quiet_error_saying_so(tmp_path: Path, capfd, keep) -> None:
+    """A file cut in its header or in its pixels (the header intact: OpenEXR then keeps no part and prints dozens
+    of lines) is an InputError that says it is truncated, not that channels are missing, and nothing else is
+    printed."""
+    rng = np.random.default_rng(3)
+    z = rng.uniform(1, 5, (64, 48)).astype(np.float32)  # random: the compressed pixels are long
+    write_exr(tmp_path / "a.exr", {"R": z, "G": z, "B": z, "Z": z}, half={"R", "G", "B"})
+    data = (tmp_path / "a.exr").read_bytes()
+    cut = keep if isinstance(keep, int) and keep > 0 else int(len(data) * keep) if keep > 0 else len(data) - 16
+    (tmp_path / "a.exr").write_bytes(data[:cut])
+    capfd.readouterr()
+    with pytest.raises(InputError, match="truncated") as exc:
+        read_exr(tmp_path / "a.exr")
+    assert exc.value.file.endswith("a.exr") and "\n" not in str(exc.value)
+    assert capfd.readouterr() == ("", "")
+
+
 def test_exr_helpers(tmp_path: Path) -> None:
     z = np.arange(12, dtype=np.float32).reshape(3, 4)
     write_exr(tmp_path / "a.exr", {"Z": z, "R": z}, half={"R"})

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, decode_plane,
+from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, decode_plane, load_occupancy,
                                   direction_encoding_np, load_mlp, march_field, mlp_np, read_asset_files)
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
@@ -156,8 +156,7 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
         if name not in manifest["field"]["mlps"]:
             raise InputError(f"lists no MLP {name!r}", file=meta_file)
         mlps[name] = load_mlp(manifest["field"]["mlps"][name], get, name, npz_file)
-    occ = manifest.get("occupancy")
-    occupancy = get(occ["array"], "occupancy").astype(bool) if occ else None
+    occupancy = load_occupancy(manifest, get, npz_file)
     return DynamicAssets(manifest, planes, mlps, occupancy, root / manifest["onnx"]["file"])
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -28,9 +29,12 @@ import numpy as np
 
 from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
+from engine.fields.encoding import SH_C0, SH_C1, SH_C2, SH_C3, direction_encoding_np, sh_encoding_np
+from engine.fields.manifest import check_scene, check_static_layout
 
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
+           "load_occupancy",
            "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field", "composite_np",
            "optical_depth", "evaluated_samples", "evaluation_macs", "render_field", "TRANSMITTANCE_EPS"]
 
@@ -45,13 +49,6 @@ MIN_NEAR = 1e-6
 #: The real-time renderers' early ray termination: a ray stops once its transmittance is below this (the
 #: reference composites every sample; ``evaluated_samples`` counts what such a renderer evaluates).
 TRANSMITTANCE_EPS = 1e-4
-
-# Real spherical-harmonics constants, bands 0-3 (shared with models.fields.components.encodings.sh_encoding).
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, 1.0925484305920792, 0.31539156525252005, 1.0925484305920792, 0.5462742152960396)
-SH_C3 = (0.5900435899266435, 2.890611442640554, 0.4570457994644658, 0.3731763325901154, 0.4570457994644658,
-         1.445305721320277, 0.5900435899266435)
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 
@@ -126,12 +123,21 @@ def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, comman
     for f in (meta_file, npz_file):
         if not f.is_file():
             raise InputError(f"file does not exist (write it with '{command}')", file=f)
-    manifest = json.loads(meta_file.read_text())
+    try:
+        manifest = json.loads(meta_file.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"is not valid JSON ({exc})", file=meta_file) from None
+    if not isinstance(manifest, dict):
+        raise InputError(f"must hold a JSON object, got {type(manifest).__name__}", file=meta_file)
     if manifest.get("format") != fmt or manifest.get("version") != version:
         raise InputError(f"is not {fmt} version {version} (format {manifest.get('format')!r}, "
                          f"version {manifest.get('version')!r})", file=meta_file)
-    with np.load(npz_file) as data:
-        arrays = {k: data[k] for k in data.files}
+    check_scene(manifest, meta_file)
+    try:
+        with np.load(npz_file) as data:  # no pickled objects (numpy's default)
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise InputError(f"is not a readable .npz ({exc})", file=npz_file) from None
     return root, manifest, arrays
 
 
@@ -141,7 +147,13 @@ def array_getter(arrays: dict[str, np.ndarray], npz_file: Path, meta_name: str) 
     def get(name: str, where: str) -> np.ndarray:
         if name not in arrays:
             raise InputError(f"lacks array {name!r} named by {meta_name} ({where})", file=npz_file)
-        return arrays[name]
+        array = arrays[name]
+        if array.dtype.kind not in "biuf":
+            raise InputError(f"array {name!r} has dtype {array.dtype}, not a number", file=npz_file)
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise InputError(f"array {name!r} has {int(np.count_nonzero(~np.isfinite(array)))} non-finite values",
+                             file=npz_file)
+        return array
 
     return get
 
@@ -177,6 +189,7 @@ def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
     """
     root, manifest, arrays = read_asset_files(path, "field", ASSET_FORMAT, ASSET_VERSION,
                                               "interleave export field RUN_DIR")
+    check_static_layout(manifest, root / "field.json")
     npz_file = root / "field.npz"
     get = array_getter(arrays, npz_file, "field.json")
     planes = []
@@ -187,10 +200,21 @@ def load_field(path: str | Path, *, quantized: bool = False) -> FieldAssets:
                              f"(3, {p['channels']}, {p['resolution']}, {p['resolution']})", file=npz_file)
         planes.append(plane)
     layers = {name: load_mlp(specs, get, name, npz_file) for name, specs in manifest["field"]["mlps"].items()}
-    occ = manifest.get("occupancy")
-    occupancy = get(occ["array"], "occupancy").astype(bool) if occ else None
+    occupancy = load_occupancy(manifest, get, npz_file)
     return FieldAssets(manifest, planes, layers["density"], layers["color"], occupancy,
                        root / manifest["onnx"]["file"])
+
+
+def load_occupancy(manifest: dict, get: Callable[[str, str], np.ndarray], npz_file: Path) -> Optional[np.ndarray]:
+    """The (R, R, R) bool occupancy grid the manifest names, or None."""
+    occ = manifest.get("occupancy")
+    if not occ:
+        return None
+    grid = get(occ["array"], "occupancy").astype(bool)
+    if grid.ndim != 3 or len(set(grid.shape)) != 1:
+        raise InputError(f"occupancy {occ['array']!r} has shape {grid.shape}, expected a cube (R, R, R)",
+                         file=npz_file)
+    return grid
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -210,32 +234,6 @@ def camera_rays_np(intrinsics: np.ndarray, world_to_camera: np.ndarray, height: 
     cam = np.stack([x, y, np.ones_like(x)], axis=-1).reshape(-1, 3)
     rot = t[:3, :3]
     return -rot.T @ t[:3, 3], cam @ rot  # R^T d for row vectors
-
-
-def sh_encoding_np(d: np.ndarray, bands: int) -> np.ndarray:
-    """Real spherical harmonics of unit directions (..., 3) -> (..., bands ** 2), bands 1-4."""
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    out = [np.full_like(x, SH_C0)]
-    if bands > 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if bands > 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [SH_C2[0] * x * y, -SH_C2[1] * y * z, SH_C2[2] * (3 * zz - 1), -SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
-    if bands > 3:
-        out += [-SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, -SH_C3[2] * y * (5 * zz - 1),
-                SH_C3[3] * z * (5 * zz - 3), -SH_C3[4] * x * (5 * zz - 1), SH_C3[5] * z * (xx - yy),
-                -SH_C3[6] * x * (xx - 3 * yy)]
-    return np.stack(out, axis=-1)
-
-
-def direction_encoding_np(d: np.ndarray, kind: str, degree: int) -> np.ndarray:
-    """The field's view-direction encoding: ``sh``, ``fourier`` ([d, sin(2^k d), cos(2^k d)]) or ``none``."""
-    if kind == "sh":
-        return sh_encoding_np(d, degree)
-    if kind == "fourier":
-        scaled = (d[..., None, :] * (2.0 ** np.arange(degree, dtype=d.dtype))[:, None]).reshape(*d.shape[:-1], -1)
-        return np.concatenate([d, np.sin(scaled), np.cos(scaled)], axis=-1)
-    return d[..., :0]
 
 
 def contract_np(scene: dict, points: np.ndarray, ndc_margin: float) -> np.ndarray:

@@ -183,6 +183,67 @@ def test_load_field_rejects_bad_assets(bounded_run, tmp_path):
         load_field(bad)
 
 
+def _set(path: str, value):
+    """A mutation of a manifest: ``path`` like "scene.near" or "field.mlps.color.1.out" set to ``value``."""
+    def apply(manifest: dict) -> None:
+        *parents, last = path.split(".")
+        node = manifest
+        for key in parents:
+            node = node[int(key)] if isinstance(node, list) else node[key]
+        node[int(last) if isinstance(node, list) else last] = value
+    return apply
+
+
+@pytest.mark.parametrize("change, field", [
+    (_set("scene.kind", "spherical"), "scene.kind"), (_set("scene.near", -1.0), "scene.near"),
+    (_set("scene.near", "2"), "scene.near"), (_set("scene.far", 1.0), "scene.far"),
+    (_set("scene.box_min", [float("nan")] * 3), "scene.box_min"), (_set("scene.box_max", [0.0, 0.0]), "scene.box_max"),
+    (_set("background", [1.0, 1.0]), "background"), (_set("render.num_samples", 0), "render.num_samples"),
+    (_set("render.num_samples", 10 ** 9), "render.num_samples"), (_set("render.spacing", "log"), "render.spacing"),
+    (_set("render", None), "render"), (_set("onnx.file", "../../field.onnx"), "onnx.file"),
+    (_set("field.planes", []), "field.planes"), (_set("field.planes.0.channels", 0), "field.planes[0].channels"),
+    (_set("field.planes.0.float", 3), "field.planes[0].float"),
+    (_set("field.plane_axes", [[0, 0], [0, 2], [1, 2]]), "field.plane_axes"),
+    (_set("field.direction_degree", 9), "field.direction_degree"),
+    (_set("field.mlps.density.0.in", 7), "field.mlps.density[0].in"),
+    (_set("field.mlps.color.1.out", 4), "field.mlps.color[1].out"),
+    (_set("field.max_log_density", float("inf")), "field.max_log_density"),
+])
+def test_a_bad_manifest_value_is_named_before_anything_renders(bounded_run, tmp_path, change, field):
+    """Every value the renderers read is checked when the field is loaded: the error names field.json and the
+    key path (it used to surface as a KeyError, a broadcast error or a NaN frame)."""
+    _, out, manifest = bounded_run
+    manifest = json.loads(json.dumps(manifest))
+    change(manifest)
+    (tmp_path / "field.npz").write_bytes((out / "field.npz").read_bytes())
+    (tmp_path / "field.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError) as err:
+        load_field(tmp_path)
+    assert err.value.field == field and err.value.file.endswith("field.json")
+
+
+def test_bad_asset_files_and_arrays_are_named(bounded_run, tmp_path):
+    _, out, manifest = bounded_run
+    (tmp_path / "field.json").write_text("{not json")
+    (tmp_path / "field.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not valid JSON"):
+        load_field(tmp_path)
+    (tmp_path / "field.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="not a readable .npz") as err:
+        load_field(tmp_path)
+    assert err.value.file.endswith("field.npz")
+    with np.load(out / "field.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["density_w0"] = arrays["density_w0"].copy()
+    arrays["density_w0"][0, 0] = np.nan  # a NaN weight used to render a frame of NaN
+    np.savez(tmp_path / "field.npz", **arrays)
+    with pytest.raises(InputError, match="'density_w0' has 1 non-finite"):
+        load_field(tmp_path)
+    (tmp_path / "field.json").write_text("[]")
+    with pytest.raises(InputError, match="JSON object"):
+        load_field(tmp_path)
+
+
 def test_render_field_rejects_bad_cameras(bounded_run):
     _, out, _ = bounded_run
     assets = load_field(out)

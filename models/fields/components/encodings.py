@@ -121,10 +121,10 @@ class TriPlaneEncoding(nn.Module):
 
 # Real spherical-harmonic constants (the usual graphics basis, Sloan's "Stupid SH tricks" ordering), shared
 # with the engine's torch-free renderer.
-from engine.fields.render import SH_C0 as _C0  # noqa: E402
-from engine.fields.render import SH_C1 as _C1
-from engine.fields.render import SH_C2 as _C2
-from engine.fields.render import SH_C3 as _C3
+from engine.fields.encoding import SH_C0 as _C0  # noqa: E402
+from engine.fields.encoding import SH_C1 as _C1
+from engine.fields.encoding import SH_C2 as _C2
+from engine.fields.encoding import SH_C3 as _C3
 
 
 def sh_encoding(directions: Tensor, bands: int) -> Tensor:

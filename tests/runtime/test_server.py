@@ -309,19 +309,23 @@ def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, ch
     assert wait_until(lambda: not segment_exists(layout.shm_name))
 
 
-def test_a_gl_server_predicts_what_an_in_process_gl_session_predicts(tmp_path):
+@pytest.mark.parametrize("encoding", ["linear", "srgb8"])
+def test_a_gl_server_predicts_what_an_in_process_gl_session_predicts(tmp_path, encoding):
+    """Also with 8-bit frames in and out, which the gl backend uploads and reads back as codes."""
     from engine.geometry.backends import gl as glb
 
     if not glb.available():
         pytest.skip("no EGL context with compute shaders")
     proc, address = start_server(f"unix:{tmp_path / 'gl.sock'}", tmp_path / "server.log", "--backend", "gl")
     try:
-        cfg = config(method="flow2d")
+        cfg = config(method="flow2d", color_in=encoding, color_out=encoding)
         local = Session(cfg, backend="gl")
         with Client(address) as client:
             client.hello(cfg)
             for i in range(5):
                 color, depth = frame_arrays(i)
+                if encoding == "srgb8":
+                    color = (color * 255).astype(np.uint8)
                 if i % 2 == 0:
                     assert client.submit(color, depth, pose(0.01 * i), K, i / 60) == local.submit(
                         color, depth, pose(0.01 * i), K, i / 60)

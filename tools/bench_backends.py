@@ -144,8 +144,8 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     hardware, renderer = gl_or_exit("bench_backends")
     methods = split_methods(args.methods)
-    doc = {"renderer": renderer, "hardware": hardware, "encoding": args.encoding, "k": args.k, "frames": args.frames, "repeats": args.repeats,
-           "scene": SCENE[0], "sizes": []}
+    doc = {"renderer": renderer, "hardware": hardware, "encoding": args.encoding, "k": args.k, "frames": args.frames,
+           "repeats": args.repeats, "scene": SCENE[0], "sizes": []}
     print("\n| size | method | backend | wall ms | GPU ms | x cpu reproject | PSNR | PSNR moving | parity max diff | "
           "parity within 1e-3 |\n|---|---|---|---|---|---|---|---|---|---|")
     stage_lines = []

@@ -32,8 +32,9 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, decode_plane, load_occupancy,
-                                  direction_encoding_np, load_mlp, march_field, mlp_np, read_asset_files)
+from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, decode_plane,
+                                  direction_encoding_np, load_mlp, load_occupancy, march_field, mlp_np,
+                                  read_asset_files)
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",

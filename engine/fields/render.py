@@ -34,9 +34,8 @@ from engine.fields.manifest import check_scene, check_static_layout
 
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
-           "load_occupancy",
-           "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field", "composite_np",
-           "optical_depth", "evaluated_samples", "evaluation_macs", "render_field", "TRANSMITTANCE_EPS"]
+           "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field",
+           "composite_np", "optical_depth", "evaluated_samples", "evaluation_macs", "render_field", "TRANSMITTANCE_EPS"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1

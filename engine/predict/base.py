@@ -28,8 +28,8 @@ from engine.geometry.encoding import FRAME_ENCODINGS
 from engine.geometry.holefill import fill_holes
 from engine.geometry.motion import extrapolated_flow
 
-__all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill", "extrapolation_factor",
-           "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
+__all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill",
+           "extrapolation_factor", "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
 
 
 @dataclass(frozen=True)

@@ -595,7 +595,8 @@ class Session:
 
         Raises NotReadyError before the first submit (and after ``reset``), InputError (naming the frame
         and time) for a bad pose, or for a time more than ``engine.predict.MAX_EXTRAPOLATION`` steps of the
-        rendered frames from the newest one where the method extrapolates motion. ``frame`` is the caller's number for the predicted frame, for errors.
+        rendered frames from the newest one where the method extrapolates motion. ``frame`` is the caller's
+        number for the predicted frame, for errors.
         """
         with self._lock:
             size = self._size

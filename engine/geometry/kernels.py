@@ -13,7 +13,8 @@
   neighbouring pixels (a volume padded by one pixel, then cropped) with inverse bilinear weights times
   alpha times the soft z-buffer weight; sums accumulate in float64. The numpy version needs ~30 array
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
-- ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``.
+- ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``; ``normalize_frame``: the
+  last warp pass and the composite of a one-plane warp in one (``forward_warp_frame``).
 - ``row_sources``, ``fill_rows``: the row scan of the simple hole fill (``engine.geometry.holefill``), the
   second also copying the sources (oracle: the fill's numpy path, ``holefill.fill_holes_reference``).
 - ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
@@ -353,6 +354,43 @@ def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_star
                 out_depth[z, y, x] = np.inf if covered and wsum < sky_only_weight else d * inv_w
                 out_alpha[z, y, x] = 1.0 if covered else 0.0
                 out_cov[z, y, x] = cov
+
+
+@njit(cache=True, nogil=True)
+def normalize_frame(sums, ho, wo, coverage_threshold, sky_only_weight, row_start, row_stop, out_color, out_depth,
+                    out_holes):
+    """``normalize`` and ``composite`` of a one-plane warp in one pass, for output rows [``row_start``,
+    ``row_stop``): colour (ho, wo, 3), depth (ho, wo) (+inf where only sky landed or nothing is covered) and
+    holes (ho, wo) (not covered), bit for bit the composite of ``normalize``'s one-plane MPI: a covered pixel's
+    float32 colour plus +0 (the "over" sum starts at +0: -0 becomes +0) and its depth; 0 and +inf elsewhere."""
+    wp = wo + 2
+    parts = sums.shape[0]
+    zero = _F32(0.0)
+    for y in range(row_start, row_stop):
+        for x in range(wo):
+            t = (y + 1) * wp + x + 1
+            cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], \
+                sums[0, t, 5]
+            for p in range(1, parts):
+                cov += sums[p, t, 0]
+                wsum += sums[p, t, 1]
+                r += sums[p, t, 2]
+                g += sums[p, t, 3]
+                b += sums[p, t, 4]
+                d += sums[p, t, 5]
+            if not cov > coverage_threshold:
+                out_color[y, x, 0] = zero
+                out_color[y, x, 1] = zero
+                out_color[y, x, 2] = zero
+                out_depth[y, x] = np.inf
+                out_holes[y, x] = True
+                continue
+            inv_w = 1.0 / wsum if wsum > 0.0 else 0.0
+            out_color[y, x, 0] = zero + _F32(r * inv_w)
+            out_color[y, x, 1] = zero + _F32(g * inv_w)
+            out_color[y, x, 2] = zero + _F32(b * inv_w)
+            out_depth[y, x] = np.inf if wsum < sky_only_weight else _F32(d * inv_w)
+            out_holes[y, x] = False
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -15,7 +15,7 @@ import numpy as np
 from engine.core.checks import checked_array, checked_matrix, checked_out_size, checked_sharpness
 from engine.geometry import kernels
 from engine.geometry.camera import MAX_PIXEL_COORD, TINY_DEPTH, checked_flow, reprojection_matrix
-from engine.geometry.mpi import Mpi, build_mpi, checked_mpi, composite, plane_bounds
+from engine.geometry.mpi import Mpi, checked_mpi, plane_bounds
 
 #: A warped MPI pixel is covered (alpha = 1) when its summed bilinear splat weight exceeds this.
 COVERAGE_THRESHOLD = 1e-3
@@ -59,20 +59,18 @@ MIN_POINTS_PER_THREAD = 1 << 16
 MIN_ROWS_PER_THREAD = 8
 
 
-def forward_warp_mpi_unchecked(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
-    """Unvalidated body of ``forward_warp_mpi`` (inputs already float32 / float64 arrays): the compiled
-    kernels of ``engine.geometry.kernels``, held to ``forward_warp_mpi_reference`` by the tests."""
-    color, depth, alpha, planes = mpi
+def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
+    """Passes 1 and 2 of the warp (``project_points``, ``splat_points``) for points with colour ``flat_color``
+    (3, Z * H * W) (any strides), ``depth`` and ``alpha`` (Z, H, W): the per-thread padded sum volumes
+    (P, Z * (ho + 2) * (wo + 2), 6) that ``normalize`` or ``normalize_frame`` turn into the result."""
     num_z, h, w = alpha.shape
     ho, wo = out_size
     n = num_z * h * w
-    half_inv = plane_bounds(planes)
     flow = np.zeros((3, 1, 1, 1), np.float32) if object_flow is None else np.ascontiguousarray(object_flow)
     matrix = np.ascontiguousarray(reprojection_matrix(k_src, t_src, k_dst, t_dst).astype(np.float32))
     base = SCRATCH.get("base", n, np.intp)
     fx, fy, z, a = (SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
     log_z = SCRATCH.get("log_z", n)
-    depth, alpha, color = (np.ascontiguousarray(v) for v in (depth, alpha, color))
     constants = (np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
                  np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH))
     # each pass split over threads (engine.geometry.kernels.run_ranges): pass 1 by source rows, pass 2 by points into
@@ -85,16 +83,45 @@ def forward_warp_mpi_unchecked(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow
     hp, wp = ho + 2, wo + 2
     ranges = kernels.split_ranges(n, MIN_POINTS_PER_THREAD)
     sums = SCRATCH.get("sums", len(ranges) * 6 * num_z * hp * wp).reshape(len(ranges), -1, 6)  # six sums a pixel
-    flat_color = color.reshape(3, -1)
     kernels.run_ranges(lambda p0, p1: kernels.splat_points(
         flat_color, base, fx, fy, z, a, log_z, lo, hi, float(sharpness), wp, MIN_LOG_WEIGHT, SKY_WEIGHT, p0, p1,
         sums[ranges.index((p0, p1))]), ranges)
+    return sums
+
+
+def forward_warp_mpi_unchecked(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
+    """Unvalidated body of ``forward_warp_mpi`` (inputs already float32 / float64 arrays): the compiled
+    kernels of ``engine.geometry.kernels``, held to ``forward_warp_mpi_reference`` by the tests."""
+    color, depth, alpha, planes = mpi
+    num_z = alpha.shape[0]
+    ho, wo = out_size
+    depth, alpha, color = (np.ascontiguousarray(v) for v in (depth, alpha, color))
+    sums = _splat_sums(color.reshape(3, -1), depth, alpha, plane_bounds(planes), k_src, t_src, k_dst, t_dst,
+                       object_flow, out_size, sharpness)
     out_color = np.empty((3, num_z, ho, wo), dtype=np.float32)
     out_depth, out_alpha, cov = (np.empty((num_z, ho, wo), dtype=np.float32) for _ in range(3))
     kernels.run_ranges(lambda r0, r1: kernels.normalize(
         sums, num_z, ho, wo, COVERAGE_THRESHOLD, SKY_ONLY_WEIGHT, r0, r1, out_color, out_depth, out_alpha, cov),
         kernels.split_ranges(ho, MIN_ROWS_PER_THREAD))
     return Mpi(out_color, out_depth, out_alpha, planes), cov
+
+
+def _warp_frame_unchecked(color, depth, k_src, t_src, k_dst, t_dst, object_flow, sharpness):
+    """``forward_warp_frame``'s body: the one-plane MPI warp + composite without the MPI's layout. The frame is
+    that MPI already (every pixel on its one plane, alpha 1), read in place (colour (H, W, 3) as (3, H * W) with
+    strides), and ``normalize_frame`` writes the composite straight into frame layout: bit for bit the MPI path
+    (tested), without its two transposing copies."""
+    h, w = depth.shape
+    ones = np.broadcast_to(np.float32(1.0), (1, h, w))
+    sums = _splat_sums(color.reshape(-1, 3).T, depth[None], ones, np.zeros(0, np.float32), k_src, t_src, k_dst,
+                       t_dst, object_flow, (h, w), sharpness)
+    out_color = np.empty((h, w, 3), dtype=np.float32)
+    out_depth = np.empty((h, w), dtype=np.float32)
+    holes = np.empty((h, w), dtype=bool)
+    kernels.run_ranges(lambda r0, r1: kernels.normalize_frame(
+        sums, h, w, COVERAGE_THRESHOLD, SKY_ONLY_WEIGHT, r0, r1, out_color, out_depth, holes),
+        kernels.split_ranges(h, MIN_ROWS_PER_THREAD))
+    return out_color, out_depth, holes
 
 
 def forward_warp_mpi(mpi: Mpi, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.ndarray, T_dst: np.ndarray,
@@ -135,7 +162,8 @@ def forward_warp_mpi(mpi: Mpi, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.n
 def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, T_src: np.ndarray,
                        K_dst: np.ndarray, T_dst: np.ndarray, flow: Optional[np.ndarray] = None,
                        sharpness: float = DEFAULT_SHARPNESS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Forward-warp an RGB-D frame: a one-plane ``build_mpi`` + ``forward_warp_mpi`` + ``composite``.
+    """Forward-warp an RGB-D frame: a one-plane ``build_mpi`` + ``forward_warp_mpi`` + ``composite`` (computed
+    without building the MPI: the same bits).
 
     Args:
         color: (H, W, 3) linear RGB; depth: (H, W) planar, +inf for sky.
@@ -157,9 +185,7 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
             (3, 1) + depth.shape)
         object_flow[:flow.shape[2], 0] = np.moveaxis(flow, -1, 0)
         object_flow[flow.shape[2]:] = 0.0
-    mpi = build_mpi(color, depth, 1)
-    warped, _ = forward_warp_mpi_unchecked(mpi, checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
-                                  checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,
-                                  depth.shape, checked_sharpness(sharpness))
-    out_color, out_depth, _ = composite(warped)
-    return out_color, out_depth, warped.alpha[0] <= 0
+    return _warp_frame_unchecked(np.ascontiguousarray(color), np.ascontiguousarray(depth),
+                                 checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
+                                 checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,
+                                 checked_sharpness(sharpness))

@@ -85,6 +85,48 @@ def test_warp_split_over_threads_matches_the_reference(monkeypatch, threads):
         assert np.isfinite(fast.color).all() and np.isfinite(cov).all()
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_frame_warp_is_the_one_plane_mpi_warp_and_composite_bit_for_bit(monkeypatch, threads):
+    """``forward_warp_frame`` reads the frame in place and composites in ``normalize_frame``; the MPI path
+    (``build_mpi(., 1)`` + ``forward_warp_mpi`` + ``composite``) is its oracle, equal bit for bit with the same
+    thread split: colours with -0 and negative values, sky, flows of 2 and 3 channels, points behind the camera
+    and off screen, depths 1e-3..1e5, 1x1 and one-row frames."""
+    from engine.geometry import kernels
+    monkeypatch.setenv(kernels.THREADS_ENV, str(threads))
+    monkeypatch.setattr(splat, "MIN_POINTS_PER_THREAD", 64)
+    monkeypatch.setattr(splat, "MIN_ROWS_PER_THREAD", 2)
+    rng = np.random.default_rng(31)
+
+    def both(color, depth, k, t_src, t_dst, flow=None):
+        fast = ng.forward_warp_frame(color, depth, k, t_src, k, t_dst, flow)
+        object_flow = None
+        if flow is not None:
+            object_flow = np.zeros((3, 1) + depth.shape, np.float32)
+            object_flow[:flow.shape[2], 0] = np.moveaxis(flow, -1, 0)
+        warped, _ = ng.forward_warp_mpi(ng.build_mpi(color, depth, 1), k, t_src, k, t_dst, object_flow)
+        ref_color, ref_depth, _ = ng.composite(warped)
+        for a, b in zip(fast, (ref_color, ref_depth, ng.disocclusion_mask(warped))):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+            assert (np.signbit(a) == np.signbit(b)).all()  # -0 and +0 told apart
+
+    h, w = 23, 31
+    color, depth = random_scene(rng, h, w, sky=0.2)
+    color[::3] -= 0.5  # negative colours; and -0 where a weighted sum is exactly zero
+    color[1, :, :] = -0.0
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.2, shift=0.5)
+    both(color, depth, k, t_src, t_dst)
+    both(color, depth, k, t_src, t_dst, rng.normal(0, 3, (h, w, 2)).astype(np.float32))
+    both(color, depth, k, t_src, t_dst, (rng.normal(0, 1, (h, w, 3)) * [1, 1, 0.05]).astype(np.float32))
+    color, depth, k, poses = extreme_scene(7)
+    for t_dst in poses + [np.eye(4)]:
+        both(color, depth, k, np.eye(4), t_dst)
+    for hh, ww in ((1, 1), (1, 9)):
+        c, d = rng.uniform(-1, 1, (hh, ww, 3)).astype(np.float32), np.full((hh, ww), 2.0, np.float32)
+        kk = np.array([[5.0, 0, ww / 2], [0, 5.0, hh / 2], [0, 0, 1]])
+        both(c, d, kk, np.eye(4), pose((0.05, 0, 0)))
+
+
 def test_split_ranges_and_thread_setting(monkeypatch):
     from engine.geometry import kernels
     monkeypatch.setenv(kernels.THREADS_ENV, "4")

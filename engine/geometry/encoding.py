@@ -28,10 +28,11 @@ FRAME_ENCODINGS = ("linear", "srgb8")
 
 
 def _convert(kernel, array: np.ndarray, in_dtype, out_dtype, *args) -> np.ndarray:
-    """``kernel(frame rows, *args, out rows)`` over the rows of ``array`` (H, W[, C]) as a contiguous (H, W, C)
-    frame of ``in_dtype``, split over the kernel threads; the output has ``array``'s shape."""
+    """``kernel(frame rows, *args, out rows)`` over the rows of ``array`` (H, W[, C]) as a (H, W, C) frame of
+    ``in_dtype``, split over the kernel threads; the output has ``array``'s shape. A view of ``in_dtype`` (the
+    RGB of an RGBA buffer, flipped rows) is read in place: copying it first cost more than the conversion."""
     array = np.asarray(array)
-    frame = np.ascontiguousarray(array, dtype=in_dtype)
+    frame = array if array.dtype == in_dtype else array.astype(in_dtype)
     frame = frame.reshape(frame.shape + (1,) * (3 - frame.ndim))
     out = np.empty(frame.shape, dtype=out_dtype)
     kernels.run_ranges(lambda r0, r1: kernel(frame[r0:r1], *args, out[r0:r1]),

@@ -54,3 +54,17 @@ def test_shapes_dtypes_and_views_are_kept():
     assert encoding.encode8(view).shape == view.shape and encoding.encode8(view).dtype == np.uint8
     assert encoding.decode8(np.zeros((3, 5), np.uint8)).shape == (3, 5)
     assert encoding.display_encode(np.zeros((0, 4, 3), np.float32)).shape == (0, 4, 3)
+
+
+def test_views_are_read_in_place_with_the_same_result():
+    """The RGB of an RGBA buffer and flipped rows (views with strides) convert as their contiguous copies do."""
+    rng = np.random.default_rng(17)
+    codes = rng.integers(0, 256, (13, 21, 4), dtype=np.uint8)
+    floats = rng.uniform(-0.2, 1.3, (13, 21, 4)).astype(np.float32)
+    for view in (codes[..., :3], codes[::-1, :, :3], codes[:, ::2, 1:]):
+        np.testing.assert_array_equal(encoding.decode8(view), encoding.decode8(np.ascontiguousarray(view)))
+    for view in (floats[..., :3], floats[::-1, :, :3]):
+        contiguous = np.ascontiguousarray(view)
+        np.testing.assert_array_equal(encoding.srgb_to_linear(view), encoding.srgb_to_linear(contiguous))
+        np.testing.assert_array_equal(encoding.display_encode(view), encoding.display_encode(contiguous))
+        np.testing.assert_array_equal(encoding.encode8(view), encoding.encode8(contiguous))

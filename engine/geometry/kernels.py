@@ -325,6 +325,21 @@ def splat_points(flat_color, base, fx, fy, zs, a, log_z1, lo, hi, sharpness, row
             sums[t, 5] += weight * zval
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _bin_sums(sums, t):
+    """The six splat sums (coverage, weight, weight x (r, g, b, z)) of padded bin ``t``, the threads' parts
+    ``sums`` (P, N, 6) added in part order."""
+    cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], sums[0, t, 5]
+    for p in range(1, sums.shape[0]):
+        cov += sums[p, t, 0]
+        wsum += sums[p, t, 1]
+        r += sums[p, t, 2]
+        g += sums[p, t, 3]
+        b += sums[p, t, 4]
+        d += sums[p, t, 5]
+    return cov, wsum, r, g, b, d
+
+
 @njit(cache=True, nogil=True)
 def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_start, row_stop, out_color, out_depth,
               out_alpha, out_cov):
@@ -332,20 +347,11 @@ def normalize(sums, num_z, ho, wo, coverage_threshold, sky_only_weight, row_star
     the weight, for output rows [``row_start``, ``row_stop``): colour, depth (+inf where only sky landed),
     alpha (coverage > threshold) and coverage, each (.., Z, ho, wo) float32; 0 where not covered."""
     hp, wp = ho + 2, wo + 2
-    parts = sums.shape[0]
     for z in range(num_z):
         for y in range(row_start, row_stop):
             for x in range(wo):
                 t = (z * hp + y + 1) * wp + x + 1
-                cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], \
-                    sums[0, t, 5]
-                for p in range(1, parts):
-                    cov += sums[p, t, 0]
-                    wsum += sums[p, t, 1]
-                    r += sums[p, t, 2]
-                    g += sums[p, t, 3]
-                    b += sums[p, t, 4]
-                    d += sums[p, t, 5]
+                cov, wsum, r, g, b, d = _bin_sums(sums, t)
                 covered = cov > coverage_threshold
                 inv_w = 1.0 / wsum if covered and wsum > 0.0 else 0.0
                 out_color[0, z, y, x] = r * inv_w
@@ -364,20 +370,11 @@ def normalize_frame(sums, ho, wo, coverage_threshold, sky_only_weight, row_start
     holes (ho, wo) (not covered), bit for bit the composite of ``normalize``'s one-plane MPI: a covered pixel's
     float32 colour plus +0 (the "over" sum starts at +0: -0 becomes +0) and its depth; 0 and +inf elsewhere."""
     wp = wo + 2
-    parts = sums.shape[0]
     zero = _F32(0.0)
     for y in range(row_start, row_stop):
         for x in range(wo):
             t = (y + 1) * wp + x + 1
-            cov, wsum, r, g, b, d = sums[0, t, 0], sums[0, t, 1], sums[0, t, 2], sums[0, t, 3], sums[0, t, 4], \
-                sums[0, t, 5]
-            for p in range(1, parts):
-                cov += sums[p, t, 0]
-                wsum += sums[p, t, 1]
-                r += sums[p, t, 2]
-                g += sums[p, t, 3]
-                b += sums[p, t, 4]
-                d += sums[p, t, 5]
+            cov, wsum, r, g, b, d = _bin_sums(sums, t)
             if not cov > coverage_threshold:
                 out_color[y, x, 0] = zero
                 out_color[y, x, 1] = zero

@@ -174,15 +174,11 @@ def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str) -> Initia
     """DIS flow u(n -> n-k) of the whole frame at full resolution: frame n-k's one-plane MPI forward-warped
     into frame n's view, its holes filled as ``reproject`` fills them, DIS from frame n's luma to that target,
     kept where ``dis.trusted_motion`` trusts it (so the flow equals ``flow2d``'s)."""
-    h, w = newest.depth.shape
     src, dst = older.camera, newest.camera
-    mpi_p = geometry.build_mpi(older.color, older.depth, 1)
-    moved, _ = geometry.forward_warp_mpi(mpi_p, src.intrinsics, src.world_to_camera,
-                                         np.array(dst.intrinsics, dtype=np.float64), dst.world_to_camera,
-                                         out_size=(h, w))
-    color_w, depth_w, acc = geometry.composite(moved)
+    color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
+                                                          src.world_to_camera, dst.intrinsics, dst.world_to_camera)
     luma_n = luma8(newest.color)
-    target = dis_target(newest.color, color_w, acc > 0, depth_w)
+    target = dis_target(newest.color, color_w, ~holes, depth_w)
     seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera,
                                 older.depth.shape)
     flow = dis_flow(luma_n, target, preset)

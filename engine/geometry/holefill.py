@@ -75,19 +75,26 @@ def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
     Returns:
         (color, depth) filled copies; the inputs are not modified.
 
-    Compiled (``kernels.fill_rows``, rows over the kernel threads) when every hole finds a source on its row,
-    the usual case; otherwise, and as the oracle, ``fill_holes_reference``.
+    Compiled: ``kernels.fill_rows`` (rows over the kernel threads), then, for holes no row source reaches (rows
+    without a known pixel), ``kernels.fill_columns`` (columns over the threads). ``fill_holes_reference`` is
+    the oracle, and the path for inputs of other dtypes or shapes.
     """
     h, w = holes.shape
     if color.dtype == np.float32 and depth.dtype == np.float32 and color.ndim == 3 and color.shape[:2] == (h, w) \
-            and depth.shape == (h, w):
+            and depth.shape == (h, w) and (fallback is None or np.shape(fallback) == color.shape):
         color_c, depth_c = np.ascontiguousarray(color), np.ascontiguousarray(depth)
         out_color, out_depth = np.empty_like(color_c), np.empty_like(depth_c)
         holes_c = np.ascontiguousarray(holes, dtype=np.bool_)
+        remaining = np.zeros((h, w), np.bool_)  # untouched zero pages unless a row finds no source
         unfilled = kernels.run_ranges(lambda r0, r1: kernels.fill_rows(color_c, depth_c, holes_c, r0, r1, out_color,
-                                                                       out_depth), kernels.split_rows(h, w))
-        if sum(unfilled) == 0:
-            return out_color, out_depth
+                                                                       out_depth, remaining), kernels.split_rows(h, w))
+        if sum(unfilled):
+            rows = np.flatnonzero(remaining.any(axis=1))
+            back = out_color if fallback is None else np.ascontiguousarray(fallback, dtype=np.float32)
+            kernels.run_ranges(lambda c0, c1: kernels.fill_columns(out_color, out_depth, remaining, rows, c0, c1, back,
+                                                                   fallback is not None),
+                               kernels.split_rows(w, max(1, len(rows))))
+        return out_color, out_depth
     return fill_holes_reference(color, depth, holes, fallback)
 
 

@@ -15,8 +15,9 @@
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``; ``normalize_frame``: the
   last warp pass and the composite of a one-plane warp in one (``forward_warp_frame``).
-- ``row_sources``, ``fill_rows``: the row scan of the simple hole fill (``engine.geometry.holefill``), the
-  second also copying the sources (oracle: the fill's numpy path, ``holefill.fill_holes_reference``).
+- ``row_sources``, ``fill_rows``, ``fill_columns``: the row scan of the simple hole fill
+  (``engine.geometry.holefill``), the second also copying the sources, and its column pass for holes no row
+  source reaches (oracle: the fill's numpy path, ``holefill.fill_holes_reference``).
 - ``seen_pixels``: ``engine.geometry.camera.seen_before`` (reference: ``seen_before_reference``).
 - ``zero_untrusted``: ``engine.predict.dis.drop_untrusted`` (reference: ``trusted_motion``'s mask; tested in
   ``tests/predict/test_trusted_motion.py``).
@@ -422,12 +423,13 @@ def row_sources(depth, holes, out):
 
 
 @njit(cache=True, nogil=True)
-def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth):
+def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth, out_unfilled):
     """Rows ``row_start`` .. ``row_stop`` - 1 of the row pass of ``engine.geometry.holefill.fill_holes``: each hole
     pixel of ``holes`` (H, W) copies ``color`` (H, W, C) and ``depth`` (H, W) from the column ``row_sources``
     picks (the farther of its nearest known left / right pixels; ties: the left one), each known pixel copies
-    itself, into ``out_color`` / ``out_depth``. Returns how many hole pixels found no source (a row without a
-    known pixel, or a NaN depth beside it): the caller then runs the full fill (columns, fallback)."""
+    itself, into ``out_color`` / ``out_depth``. A hole that finds no source (a row without a known pixel, or a
+    NaN depth beside it) is left for ``fill_columns`` and set in ``out_unfilled`` (H, W) (only such pixels are
+    written: the caller passes zeros). Returns how many there were."""
     w = holes.shape[1]
     channels = color.shape[2]
     left_of = np.empty(w, np.int64)
@@ -446,6 +448,7 @@ def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth):
                 source = _farther_side(depth, y, left_of[x], after)
                 if source < 0:
                     unfilled += 1
+                    out_unfilled[y, x] = True
                     continue
             else:
                 after = x
@@ -453,6 +456,52 @@ def fill_rows(color, depth, holes, row_start, row_stop, out_color, out_depth):
             for ch in range(channels):
                 out_color[y, x, ch] = color[y, source, ch]
     return unfilled
+
+
+@njit(cache=True, nogil=True)
+def fill_columns(color, depth, remaining, rows, col_start, col_stop, fallback, has_fallback):
+    """The column pass of ``engine.geometry.holefill.fill_holes`` for columns [``col_start``, ``col_stop``), in
+    place on the row-filled ``color`` (H, W, C) / ``depth`` (H, W) that ``fill_rows`` wrote: each ``remaining``
+    pixel (a hole its row could not fill; ``rows``: the sorted rows holding one) copies the farther (larger
+    depth; ties and NaN: the upper one) of its nearest pixels above and below that are not remaining
+    (``_farther_side`` along the column); where neither exists, ``fallback`` (H, W, C) (0 without
+    ``has_fallback``) and depth +inf. Only the remaining rows are visited (a row next to them that holds no
+    remaining pixel is the nearest one there); only remaining pixels are written and only others read, so
+    column ranges are independent (threads may share the arrays)."""
+    h = remaining.shape[0]
+    n = rows.shape[0]
+    width = col_stop - col_start
+    channels = color.shape[2]
+    above = np.empty((n, width), np.int64)
+    near = np.empty(width, np.int64)
+    for i in range(n):  # top down: the nearest row above that is not remaining, per column
+        y = rows[i]
+        clean_above = i == 0 or rows[i - 1] != y - 1
+        for j in range(width):
+            if clean_above or not remaining[y - 1, col_start + j]:
+                near[j] = y - 1
+            above[i, j] = near[j]
+    for i in range(n - 1, -1, -1):  # bottom up: the nearest below, the choice and the copies
+        y = rows[i]
+        clean_below = i == n - 1 or rows[i + 1] != y + 1
+        for j in range(width):
+            x = col_start + j
+            if clean_below or not remaining[y + 1, x]:
+                near[j] = y + 1 if y + 1 < h else -1
+            if not remaining[y, x]:
+                continue
+            up, down = above[i, j], near[j]
+            depth_up = depth[up, x] if up >= 0 else -np.inf
+            depth_down = depth[down, x] if down >= 0 else -np.inf
+            source = down if depth_down > depth_up else up
+            if source < 0:
+                for ch in range(channels):
+                    color[y, x, ch] = fallback[y, x, ch] if has_fallback else _F32(0.0)
+                depth[y, x] = np.inf
+                continue
+            depth[y, x] = depth[source, x]
+            for ch in range(channels):
+                color[y, x, ch] = color[source, x, ch]
 
 
 @njit(cache=True, nogil=True)

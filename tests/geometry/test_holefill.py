@@ -86,3 +86,29 @@ def test_compiled_fill_equals_the_numpy_fill(monkeypatch, threads, seed):
     fill_holes(color, depth, holes, fallback)
     np.testing.assert_array_equal(color, color_in)  # inputs untouched
     np.testing.assert_array_equal(depth, depth_in)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_compiled_column_pass_equals_the_numpy_fill_on_bands_of_empty_rows(monkeypatch, threads):
+    """Rows with no known pixel, in bands at the top, the bottom and inside, beside rows with holes, NaN
+    depths and sky, with and without a fallback, a frame that is all hole, columns split over threads."""
+    from engine.geometry import kernels
+    from engine.geometry.holefill import fill_holes_reference
+
+    monkeypatch.setenv("INTERLEAVE_KERNEL_THREADS", str(threads))
+    monkeypatch.setattr(kernels, "MIN_PIXELS_PER_THREAD", 16)
+    rng = np.random.default_rng(40 + threads)
+    h, w = 37, 53
+    color = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    depth = rng.uniform(1, 10, (h, w)).astype(np.float32)
+    depth[rng.uniform(size=(h, w)) < 0.1] = np.inf
+    depth[rng.uniform(size=(h, w)) < 0.03] = np.nan
+    holes = rng.uniform(size=(h, w)) < 0.3
+    for band in (slice(0, 3), slice(10, 11), slice(15, 21), slice(34, 37)):
+        holes[band] = True
+    fallback = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    for case_holes in (holes, np.ones((h, w), bool)):
+        for back in (fallback, None):
+            fast = fill_holes(color, depth, case_holes, back)
+            for a, b in zip(fast, fill_holes_reference(color, depth, case_holes, back)):
+                np.testing.assert_array_equal(a, b)

@@ -159,7 +159,7 @@ def warm_runs(predictors: dict, cases: list, repeats: int, encoding: str = "line
                 predictions = [predictor.render(state, target) for target in targets]
                 for p in predictions:
                     if p.encoding != encoding:
-                        p.color, p.encoding = encode8(p.color), encoding
+                        p.color = encode8(p.color)
                 yield r, c, key, state, predictions, 1e3 * (time.perf_counter() - start) / len(targets)
 
 

@@ -101,7 +101,7 @@ def fill_holes(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
 def fill_holes_reference(color: np.ndarray, depth: np.ndarray, holes: np.ndarray,
                          fallback: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """``fill_holes`` in numpy (rows by ``row_sources``, then columns, then the fallback): its oracle, and its
-    path for frames where some hole finds no source on its row."""
+    path for colour and depth that are not float32 frames of the holes' size."""
     color = color.copy()
     depth = depth.copy()
     if not holes.any():

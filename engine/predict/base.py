@@ -60,7 +60,11 @@ class Prediction:
     holes: np.ndarray
     stages_ms: dict[str, float] = field(default_factory=dict)
     gpu_ms: dict[str, float] = field(default_factory=dict)
-    encoding: str = "linear"
+
+    @property
+    def encoding(self) -> str:
+        """``srgb8`` for uint8 codes, else ``linear`` (the colour's dtype says which)."""
+        return "srgb8" if self.color.dtype == np.uint8 else "linear"
 
 
 @dataclass
@@ -130,8 +134,7 @@ class Predictor:
         stages: dict[str, float] = {}
         gpu: dict[str, float] = {}
         color, holes = self._render(state, target, Timer(stages, gpu))
-        return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu,
-                          encoding="srgb8" if color.dtype == np.uint8 else "linear")
+        return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu)
 
     def predict(self, history: Sequence[Frame], target: Target) -> Prediction:
         """Prepare and render in one call (stage timings include the preparation)."""

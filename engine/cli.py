@@ -33,7 +33,8 @@ METHOD_HELP = ("comma-separated predictors: repeat (last rendered frame), reproj
                "ending in +true_holes is scored with the true pixels in its holes (perfect infilling)")
 
 BACKEND_HELP = ("where the warps run: cpu (numpy + numba), gl (OpenGL 4.5 compute, frames kept on the GPU; "
-                "decomp stays on the CPU) or auto (gl on a hardware GPU, else cpu) (default: auto)")
+                "decomp prepares on the CPU but for decomp[estimator=gl]'s initial flow) or auto (gl on a hardware "
+                "GPU, else cpu) (default: auto)")
 
 #: The torch-side entry points that ``train`` and ``export`` dispatch to: each module's ``main(argv, prog)``.
 #: Imported only when asked for, so every other command runs without torch.

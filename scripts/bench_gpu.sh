@@ -30,7 +30,7 @@ step gl_tests 120 "$py" -m pytest -q -p no:cacheprovider tests/geometry/test_gl_
     tests/geometry/test_gl_splat.py tests/geometry/test_gl_trust.py tests/predict/test_gl_backend.py tests/fields/test_glfield.py \
     tests/fields/test_dynrender.py tests/runtime/test_session.py tests/runtime/test_server.py
 step backends 180 "$py" -m tools.bench_backends --sizes 640x360,960x540,1920x1080 --repeats 2 \
-    --methods "reproject,mvec,flow2d,flow2d[estimator=gl],flow2d[estimator=corr],decomp" \
+    --methods "reproject,mvec,flow2d,flow2d[estimator=gl],flow2d[estimator=corr],decomp,decomp[estimator=gl]" \
     --out "$work/scenes" --json "$out/backends.json"
 # at 4K the CPU side of decomp (and of every method on the cpu backend) takes seconds a frame: one pass
 step backends_4k 150 "$py" -m tools.bench_backends --sizes 3840x2160 --repeats 1 --frames 4 \

@@ -14,11 +14,20 @@ from __future__ import annotations
 import numpy as np
 
 from engine.core.frames import Frame
+from engine.geometry.backends.gl.flow import GlOpticalFlow
 from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlMotion
+from engine.geometry.backends.gl.trust import GlTrust
 from engine.geometry.camera import reprojection_matrix
 from engine.predict.base import PointMotion, ResidentFrame, Target, Timer
+from engine.predict.dis import CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION
 
-__all__ = ["GlFrames"]
+__all__ = ["GlFrames", "gl_flow_estimators"]
+
+
+def gl_flow_estimators() -> tuple[GlOpticalFlow, GlTrust]:
+    """The GPU's optical flow and its trust passes with ``flow2d``'s rules (``engine.predict.dis.trusted_motion``)
+    on the shared context: what ``GlFrames.estimate_flow_back`` takes."""
+    return GlOpticalFlow(), GlTrust(SMALL_MOTION, CONFIDENCE_MARGIN, CONFIDENCE_WINDOW)
 
 
 class GlFrames:

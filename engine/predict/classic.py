@@ -10,13 +10,11 @@ import numpy as np
 from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import SceneObject
-from engine.geometry.backends.gl import GlOpticalFlow
-from engine.geometry.backends.gl.trust import GlTrust
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
+from engine.predict.backend import gl_flow_estimators
 from engine.predict.corrflow import CorrFlowNetwork, dis_start
-from engine.predict.dis import (CONFIDENCE_MARGIN, CONFIDENCE_WINDOW, SMALL_MOTION, dis_calc, dis_estimator,
-                                drop_untrusted, luma8)
+from engine.predict.dis import dis_calc, dis_estimator, drop_untrusted, luma8
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle", "ESTIMATORS"]
 
@@ -94,7 +92,7 @@ class Flow2D(Predictor):
     def _gl_estimators(self) -> tuple:
         """(GlOpticalFlow, GlTrust) of this predictor, made on first use."""
         if self._gl is None:
-            self._gl = (GlOpticalFlow(), GlTrust(SMALL_MOTION, CONFIDENCE_MARGIN, CONFIDENCE_WINDOW))
+            self._gl = gl_flow_estimators()
         return self._gl
 
     def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:

@@ -423,7 +423,8 @@ class Session:
             the server passes one that adds its own network files). ``"auto"`` makes both of its methods
             here, so a bad name fails now, not at a later submit.
         backend: where the predictors' warps run: ``auto`` (``gl`` on a hardware OpenGL context, else
-            ``cpu``), ``cpu`` or ``gl`` (``engine.predict.use_backend``; decomp stays on the CPU).
+            ``cpu``), ``cpu`` or ``gl`` (``engine.predict.use_backend``; ``decomp``'s preparation runs on the
+            CPU but for ``decomp[estimator=gl]``'s initial flow).
     """
 
     def __init__(self, config: Optional[SessionConfig] = None, *,

@@ -524,6 +524,9 @@ def test_method_options_parse_and_reject_bad_ones():
         make_predictor("decomp[motion=truth]")
     with pytest.raises(InputError, match="motion must be 'predicted' or 'truth'"):
         make_predictor("decomp[motion=guess]")
+    assert decomp_config("estimator=gl").estimator == "gl" and decomp_config("").estimator == "dis"
+    with pytest.raises(InputError, match="estimator must be 'dis' or 'gl'"):
+        make_predictor("decomp[estimator=raft]")
 
 
 def test_committed_networks_and_dz(network):

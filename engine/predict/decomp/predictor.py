@@ -9,9 +9,11 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
    (measured costs, static scene included: ``docs/flow3d.md``);
 3. ``mpi`` / ``camera_warp``: for the boxes, both frames become one-hot MPIs on frame n's planes and the
    MPI of n-k is warped into frame n's view (into the boxes' bounding box only): the network's input;
-4. ``initial_flow``: OpenCV DIS gives the 2D flow the network refines, at full resolution on the whole
-   frame (frame n-k warped into frame n's view, holes filled as ``reproject`` fills them: the flow of
-   ``flow2d``), kept outside the boxes too;
+4. ``initial_flow``: the 2D flow the network refines, at full resolution on the whole frame (frame n-k warped
+   into frame n's view, holes filled as ``reproject`` fills them: the flow of ``flow2d``), kept outside the
+   boxes too: OpenCV DIS, or with ``estimator=gl`` the GPU's flow (``flow2d[estimator=gl]``'s; on the ``gl``
+   backend frame n-k's warp, the flow and its trust rules run there and the flow and both lumas are read
+   back for the network and the refinement check, and the flow stays there for the render);
 5. ``flow`` / ``upsample`` / ``refine_check``: per box, the ONNX flow network (``FlowNetwork``) refines
    the initial flow on the MPI points (its (du, dv) only: dz is not used), the residual is upsampled to
    full resolution per plane (``upsample_flow``) and added to the initial flow, and each pixel keeps the
@@ -42,13 +44,14 @@ from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.geometry.holefill import fill_holes
+from engine.predict.backend import gl_flow_estimators
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
 from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import upsample_flow
-from engine.predict.dis import dis_flow, dis_target, drop_untrusted, luma8, warp_error
+from engine.predict.dis import dis_flow, drop_untrusted, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
            "crop_mpi", "whole_frame_initial_flow", "REFINE_MARGIN"]
@@ -67,6 +70,9 @@ class DecompConfig:
                                 "from the ONNX metadata); frames are block-downsampled by ceil(W / flow_width)")
     gate: GateConfig = option(GateConfig(), "the motion gate (engine.predict.decomp.gate)")
     threads: int = option(2, "onnxruntime intra-op threads")
+    estimator: str = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU) or 'gl' (the "
+                                   "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow "
+                                   "runs on the GPU; measured scores: docs/flow3d.md)")
     dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
                                  "engine.geometry.holefill) or 'infill' (the infilling network, "
@@ -85,6 +91,7 @@ class DecompConfig:
             (self.flow_width >= 0, "flow_width must be >= 0"),
             (self.threads >= 1, "threads must be >= 1"),
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
+            (self.estimator in ("dis", "gl"), f"estimator must be 'dis' or 'gl', got {self.estimator!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
         ]
@@ -138,6 +145,19 @@ def full_box(box: Box, factor: int, low_size: tuple[int, int], size: tuple[int, 
             x0 * factor, size[1] if x1 == low_size[1] else x1 * factor)
 
 
+def row_bands(boxes: Sequence[Box], factor: int, low_size: tuple[int, int],
+              size: tuple[int, int]) -> list[tuple[int, int]]:
+    """The full-resolution rows (y0, y1) the working-resolution ``boxes`` cover (``full_box``), overlapping
+    bands merged, top to bottom."""
+    bands: list[list[int]] = []
+    for y0, y1, _, _ in sorted(full_box(b, factor, low_size, size) for b in boxes):
+        if bands and y0 <= bands[-1][1]:
+            bands[-1][1] = max(bands[-1][1], y1)
+        else:
+            bands.append([y0, y1])
+    return [(a, b) for a, b in bands]
+
+
 def crop_mpi(mpi: Mpi, box: Box) -> Mpi:
     """The part (y0, y1, x0, x1) of an MPI (views, not copies)."""
     y0, y1, x0, x1 = box
@@ -170,20 +190,39 @@ def network_input(low_n: tuple, low_p: tuple, t_n: np.ndarray, t_p: np.ndarray, 
     return m_n, warped, (by0, bx0)
 
 
-def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str) -> InitialFlow:
-    """DIS flow u(n -> n-k) of the whole frame at full resolution: frame n-k's one-plane MPI forward-warped
-    into frame n's view, its holes filled as ``reproject`` fills them, DIS from frame n's luma to that target,
-    kept where ``dis.trusted_motion`` trusts it (so the flow equals ``flow2d``'s)."""
+def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str, gl_flow: Any = None) -> InitialFlow:
+    """Flow u(n -> n-k) of the whole frame at full resolution: frame n-k forward-warped into frame n's view, its
+    holes filled as ``reproject`` fills them, the flow from frame n to that target (DIS with ``preset``, or
+    ``gl_flow.estimate``: a ``GlOpticalFlow``), kept where ``dis.trusted_motion`` trusts it (so the flow equals
+    ``flow2d``'s with that estimator)."""
     src, dst = older.camera, newest.camera
     color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera)
     luma_n = luma8(newest.color)
-    target = dis_target(newest.color, color_w, ~holes, depth_w)
+    filled = fill_holes(color_w, depth_w, holes, newest.color)[0]
+    target = luma8(filled)  # engine.predict.dis.dis_target
     seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera,
                                 older.depth.shape)
-    flow = dis_flow(luma_n, target, preset)
+    flow = dis_flow(luma_n, target, preset) if gl_flow is None else gl_flow.estimate(newest.color, filled)
     drop_untrusted(flow, luma_n, target, seen)
     return InitialFlow(flow, target, luma_n, seen)
+
+
+def resident_initial_flow(frames: Any, older: ResidentFrame, newest: ResidentFrame, estimators: tuple,
+                          timer: Timer) -> tuple[InitialFlow, Any]:
+    """``whole_frame_initial_flow`` with the GPU's estimator on the ``gl`` backend (``frames``: its ``GlFrames``;
+    ``estimators``: ``gl_flow_estimators()``): frame n-k's warp, the flow and its trust rules run on the GPU
+    (``GlFrames.estimate_flow_back``) and the flow and both lumas are read back. Returns the initial flow and
+    the flow still on the GPU (a ``GlFlow``). Stage ``initial_flow`` (wall); the GPU stages of the estimate
+    (``warp``, ``luma``, ``pyramid``, ``search``, ``trust``) go to ``timer.gpu``."""
+    dst, src = newest.frame.camera, older.frame.camera
+    with timer("initial_flow"):
+        gpu_flow = frames.estimate_flow_back(older, newest, *estimators, Timer(gpu=timer.gpu))
+        flow = gpu_flow.read()
+        luma_n, target = estimators[0].read_lumas()
+        seen = geometry.seen_before(newest.frame.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
+                                    src.world_to_camera, older.frame.depth.shape)
+    return InitialFlow(flow, target, luma_n, seen), gpu_flow
 
 
 def box_flow(network: FlowNetwork, box: Box, factor: int, low_size: tuple[int, int], m_n: Mpi,
@@ -240,7 +279,7 @@ class DecompPredictor(Predictor):
 
     name = "decomp"
     history_needed = 2
-    backends = ("cpu", "gl")  # the render with the simple fill; the preparation and fill=infill stay on the CPU
+    backends = ("cpu", "gl")  # the render with the simple fill and estimator=gl's initial flow; fill=infill: CPU
 
     def __init__(self, config: DecompConfig = DecompConfig(), network: Optional[FlowNetwork] = None,
                  objects: Sequence[SceneObject] = (), infill: Optional[InfillNetwork] = None) -> None:
@@ -249,6 +288,7 @@ class DecompPredictor(Predictor):
         self.config = config
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
+        self._gl: Optional[tuple] = None
         self.infill = None
         if config.fill == "infill":
             self.infill = infill if infill is not None else InfillNetwork(config.infill_model or DEFAULT_INFILL_MODEL,
@@ -271,7 +311,7 @@ class DecompPredictor(Predictor):
         else:
             boxes = [(0, low_size[0], 0, low_size[1])]
         planes = geometry.plane_depths(low_n[1], net.num_planes)  # the network's planes: frame n's, low resolution
-        flow = None
+        flow, on_gpu = None, None
         if boxes:
             m_n, warped, corner = network_input(low_n, low_p, t_n, t_p, planes, boxes, timer)
             with timer("mpi"):
@@ -279,8 +319,7 @@ class DecompPredictor(Predictor):
             flow = np.zeros((3, 1) + size, dtype=np.float32)
             initial = None
             if net.needs_initial_flow:
-                with timer("initial_flow"):
-                    initial = whole_frame_initial_flow(older, newest, cfg.dis_preset)
+                initial, on_gpu = self._initial_flow(state, timer)
                 flow[:2, 0] = np.moveaxis(initial.flow, -1, 0)  # outside the boxes; they overwrite their part
             for box in boxes:  # everything here costs in proportion to the boxes' area
                 (fy0, fy1, fx0, fx1), part = box_flow(net, box, factor, low_size, m_n, (warped, corner),
@@ -293,12 +332,30 @@ class DecompPredictor(Predictor):
         data = DecompState(boxes=boxes, factor=factor, mpi=None, flow=flow, plane_depths=planes,
                            network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes)
                            / float(low_size[0] * low_size[1]))
-        self._resident(state, data, timer)
+        self._resident(state, data, timer, on_gpu)
         return data
 
-    def _resident(self, state: PreparedState, data: DecompState, timer: Timer) -> None:
+    def _initial_flow(self, state: PreparedState, timer: Timer) -> tuple[InitialFlow, Optional[tuple]]:
+        """The whole frame's initial flow by the configured estimator, and, on ``gl`` with the GPU's estimator,
+        (frame n, the flow) as they are on the GPU (else None)."""
+        older, newest = state.history[-2], state.history[-1]
+        if self.config.estimator == "dis":
+            with timer("initial_flow"):
+                return whole_frame_initial_flow(older, newest, self.config.dis_preset), None
+        if self._gl is None:
+            self._gl = gl_flow_estimators()
+        if self.frames.name != "gl":  # the CPU's warp and trust rules around the GPU's flow
+            with timer("initial_flow"):
+                return whole_frame_initial_flow(older, newest, self.config.dis_preset, self._gl[0]), None
+        frame_n = self.frames.resident(newest, timer)
+        initial, gpu_flow = resident_initial_flow(self.frames, self.frames.resident(older, timer), frame_n,
+                                                  self._gl, timer)
+        return initial, (frame_n, gpu_flow)
+
+    def _resident(self, state: PreparedState, data: DecompState, timer: Timer, on_gpu: Optional[tuple] = None) -> None:
         """Frame n and its flow where the backend computes (the simple fill), or frame n's one-plane MPI (the
-        infilling network's path)."""
+        infilling network's path). ``on_gpu``: (frame n, its initial flow) already on the GPU
+        (``_initial_flow``): only the rows of the network's boxes are written into that flow."""
         newest = state.history[-1]
         flow = None if data.flow is None else np.ascontiguousarray(np.moveaxis(data.flow[:, 0], 0, -1))
         if self.infill is not None:
@@ -306,9 +363,15 @@ class DecompPredictor(Predictor):
                 data.mpi = geometry.build_mpi(newest.color, newest.depth, 1)
             data.motion = flow
             return
-        data.frame = self.frames.resident(newest, timer)
-        if flow is not None:
-            data.motion = self.frames.resident_flow(flow, timer)
+        if on_gpu is None:
+            data.frame = self.frames.resident(newest, timer)
+            if flow is not None:
+                data.motion = self.frames.resident_flow(flow, timer)
+            return
+        data.frame, data.motion = on_gpu
+        with timer("upload"):
+            for y0, y1 in row_bands(data.boxes, data.factor, data.flow.shape[2:], newest.depth.shape):
+                data.motion.write_rows(flow[y0:y1, :, :2], y0)
 
     def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> tuple[Any, float]:
         """(flow, scale): the object motion u(n -> target) of frame n's pixels is scale * flow (flow: (H, W, 3)

@@ -6,10 +6,12 @@
 # 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage (and at
 #    1920x1080 with 8-bit sRGB frames in and out);
 #    tools.profile_gl_passes: GPU ms per compute pass at 1920x1080;
+#    tools.profile_gl_flow: the GPU's flow alone, its two inverse searches, back to back and with idle gaps;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080.
-# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (9 files).
+# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (10 files) and
+# the GPU's clocks during the run (clocks.csv).
 set -uo pipefail
 out="${1:?usage: bash scripts/bench_gpu.sh OUT_DIR}"
 py="${PYTHON:-python3}"
@@ -25,6 +27,12 @@ step() {  # step NAME SECONDS COMMAND...
     echo "== $name: exit $? ($(date +%T))" | tee -a "$log"
 }
 { nvidia-smi -L; "$py" --version; } >>"$log" 2>&1
+# the GPU's clocks every 100 ms while the steps run: a GPU left idle between frames drops to low clocks,
+# which a timer query then counts (a candidate for the GL flow's 74 ms on the H200 against 15 ms alone)
+nvidia-smi --query-gpu=timestamp,clocks.sm,clocks.mem,power.draw,utilization.gpu --format=csv -lms 100 \
+    >"$out/clocks.csv" 2>/dev/null &
+clocks=$!
+trap 'kill $clocks 2>/dev/null' EXIT
 step gl_context 30 "$py" -c "from engine.geometry.backends import gl_renderer; print(gl_renderer())"
 step gl_tests 120 "$py" -m pytest -q -p no:cacheprovider tests/geometry/test_gl_flow.py tests/geometry/test_gl_frame.py \
     tests/geometry/test_gl_splat.py tests/geometry/test_gl_trust.py tests/predict/test_gl_backend.py tests/fields/test_glfield.py \
@@ -41,6 +49,12 @@ step backends_srgb8 120 "$py" -m tools.bench_backends --sizes 1920x1080 --repeat
     --encoding srgb8 --out "$work/scenes" --json "$out/backends_srgb8.json"
 step passes 120 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl]" \
     --out "$work/scenes" --json "$out/passes.json"
+# the GPU's flow alone, its two inverse searches (one invocation a patch, or a patch over 64 with shared-memory
+# sums), back to back and then with 50 ms of idle GPU before each estimate
+step flow_search 120 "$py" -m tools.profile_gl_flow --sizes 960x540,1920x1080 --repeats 5 \
+    --out "$work/scenes" --json "$out/flow_search.json"
+step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes 1920x1080 --repeats 3 --idle 0.05 \
+    --out "$work/scenes" --json "$out/flow_search_idle.json"
 step networks 60 "$py" -m tools.bench_torch_networks --json "$out/networks.json"
 step field_capture 30 "$py" -m engine.cli render-rig "$work/rig" --seed 7 --width 504 --height 378 --static \
     --num-cameras 8 --test-cameras 2 --baseline 0.25

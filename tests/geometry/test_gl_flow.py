@@ -16,7 +16,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.geometry.backends import gl as glb
-from engine.geometry.backends.gl.flow import GlFlowConfig, GlOpticalFlow, pyramid_levels
+from engine.geometry.backends.gl.flow import PATCH_LANES, GlFlowConfig, GlOpticalFlow, pyramid_levels
 from engine.predict.base import Target, Timer, true_object_flow, warp_and_fill
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from tests.synthetic import two_layer_sequence
@@ -91,10 +91,13 @@ def test_translation_recovered(t):
 
 
 @pytest.mark.parametrize("config", [GlFlowConfig(sweeps=1, refine_iterations=0), GlFlowConfig(finest_level=0),
-                                    GlFlowConfig(patch_size=6, patch_stride=6, iterations=4)])
+                                    GlFlowConfig(patch_size=6, patch_stride=6, iterations=4),
+                                    GlFlowConfig(search="group"),
+                                    GlFlowConfig(search="group", patch_size=12, patch_stride=4, iterations=4)])
 def test_other_configs(config):
     """Variants of the passes (no propagation and no refinement, full-resolution search, patches that do not
-    overlap with few iterations) still recover a 3 px translation (median within 0.1 px)."""
+    overlap with few iterations, the cooperative search with 64 and with 144 pixels a patch: 3 a lane) still
+    recover a 3 px translation (median within 0.1 px)."""
     a, b = shifted_pair(64, 96, (3.0, -1.5))
     flow = GlOpticalFlow(config=config).estimate(a, b)
     assert np.isfinite(flow).all()
@@ -131,6 +134,20 @@ def test_small_images(size):
     assert flow.shape == (*size, 2) and flow.dtype == np.float32 and np.isfinite(flow).all()
     config = GlFlowConfig()  # a sweep moves a patch at most a patch from its start: the flow is bounded
     assert np.abs(flow).max() <= config.sweeps * config.patch_size * 2 ** (pyramid_levels(size, config)[1] + 1)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (7, 5), (33, 9), (40, 56)])
+def test_cooperative_search_finds_what_one_invocation_a_patch_finds(size):
+    """``search=group`` is ``thread``'s search with its sums in another order: on a shifted pair every pixel's
+    flow agrees within 0.01 px but for the odd near-tie (a patch's start and its last iterate, or two
+    candidates, of almost equal cost); degenerate sizes (a level smaller than a patch, a last workgroup of
+    stand-in patches) stay finite. ``auto`` is ``thread`` on a software renderer."""
+    a, b = shifted_pair(*size, (1.5, -0.75), margin=8, seed=11)
+    thread = GlOpticalFlow(config=GlFlowConfig(search="thread")).estimate(a, b)
+    group = GlOpticalFlow(config=GlFlowConfig(search="group")).estimate(a, b)
+    assert np.isfinite(group).all()
+    assert np.mean(np.abs(group - thread).max(axis=-1) < 1e-2) >= 0.98
+    assert GlOpticalFlow().search == ("thread" if glb.shared_context().software else "group")
 
 
 def test_gpu_inputs_give_the_numpy_result():
@@ -187,6 +204,9 @@ def test_bad_inputs_name_the_field():
     with pytest.raises(InputError) as err:
         GlFlowConfig(sweeps=0)
     assert err.value.field == "sweeps"
+    with pytest.raises(InputError) as err:
+        GlFlowConfig(search="warp")
+    assert err.value.field == "search"
 
 
 def test_release_frees_the_work_buffers_and_estimates_again():
@@ -309,8 +329,9 @@ def cv2_blur(image: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(image, (0, 0), 1.5)
 
 
+@pytest.mark.parametrize("search", ["thread", "group"])
 @pytest.mark.parametrize("propagate", [False, True])
-def test_patch_search_pass_matches_its_reference(propagate):
+def test_patch_search_pass_matches_its_reference(propagate, search):
     from engine.geometry.backends.gl.reference import patch_origins, patch_search_reference
 
     size, patch, stride, iterations = (24, 30), 8, 3, 6
@@ -333,7 +354,10 @@ def test_patch_search_pass_matches_its_reference(propagate):
             for binding, buf in bound.items():
                 buf.bind_to_storage_buffer(binding)
             defines = {"PATCH": patch, **({"PROPAGATE": 1} if propagate else {})}
-            gl.dispatch(gl.program("flow_patch", defines), rows * cols,
+            name, lanes = "flow_patch", 1
+            if search == "group":  # a patch over PATCH_LANES invocations (4 patches a workgroup, the last partly)
+                name, lanes, defines = "flow_patch_group", PATCH_LANES, {**defines, "LANES": PATCH_LANES}
+            gl.dispatch(gl.program(name, defines), rows * cols * lanes,
                         {"size": size, "offset": 0, "stride": stride, "iterations": iterations})
             return np.frombuffer(bound[5].read(), np.float32).reshape(rows, cols, 2)
         finally:

@@ -1,11 +1,11 @@
-"""``tools.bench_backends`` (cpu and gl side by side), ``tools.profile_gl_passes`` (GPU time per pass) and
-``tools.bench_torch_networks`` (the networks in torch)."""
+"""``tools.bench_backends`` (cpu and gl side by side), ``tools.profile_gl_passes`` (GPU time per pass),
+``tools.profile_gl_flow`` (the GPU's flow alone) and ``tools.bench_torch_networks`` (the networks in torch)."""
 import json
 
 import pytest
 import torch
 
-from tools import bench_backends, bench_torch_networks, profile_gl_passes
+from tools import bench_backends, bench_torch_networks, profile_gl_flow, profile_gl_passes
 
 
 def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str, *extra: str) -> dict:
@@ -66,6 +66,28 @@ def test_profile_counts_every_pass_of_a_frame(tmp_path):
     gl.call(staged)
     gl.release_pool(pool)
     assert "probe" in stages
+
+
+def test_profile_gl_flow_times_both_searches_and_compares_their_flows(tmp_path):
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    out = tmp_path / "flow.json"
+    profile_gl_flow.main(["--sizes", "96x64", "--frames", "4", "--repeats", "1", "--out", str(tmp_path / "scenes"),
+                          "--json", str(out)])
+    doc = json.loads(out.read_text())
+    rows = {r["search"]: r for r in doc["rows"]}
+    assert set(rows) == {"thread", "group"} and all(r["pairs"] == 1 and r["wall_ms"] > 0 for r in rows.values())
+    assert rows["thread"]["diff_px"]["max"] == 0.0  # the first search against itself
+    assert rows["group"]["diff_px"]["median"] < 1e-2  # the same search, sums in another order
+    if doc["hardware"]:
+        assert {"luma", "pyramid", "search", "readback"} <= set(rows["group"]["gpu_ms"])
+    else:
+        assert rows["group"]["gpu_ms"] is None
+    for bad in (["--searches", "auto"], ["--searches", "warp"], ["--k", "0"], ["--idle", "-1"]):
+        with pytest.raises(SystemExit, match="error"):
+            profile_gl_flow.main(bad)
 
 
 @pytest.mark.parametrize("text", ["", "640", "640x", "0x360", "axb", "640x360x2"])

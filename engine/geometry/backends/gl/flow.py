@@ -34,7 +34,14 @@ from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
-__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels"]
+__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "PATCH_LANES", "SEARCHES"]
+
+#: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
+PATCH_LANES = 64
+#: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
+#: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,
+#: ``group`` on a hardware GPU and ``thread`` on a software renderer.
+SEARCHES = ("auto", "thread", "group")
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,8 @@ class GlFlowConfig:
     """Refinement: weight of the gradient constancy term (DIS's default)."""
     omega: float = 1.6
     """Refinement: SOR relaxation factor (0 < omega < 2)."""
+    search: str = "auto"
+    """How the inverse search runs (``SEARCHES``): the same search, its sums in another order."""
 
     def __post_init__(self) -> None:
         for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
@@ -79,6 +88,8 @@ class GlFlowConfig:
                 raise InputError(f"must be a finite number >= 0, got {value!r}", field=name)
         if not 0.0 < self.omega < 2.0:
             raise InputError(f"must be in (0, 2), got {self.omega!r}", field="omega")
+        if self.search not in SEARCHES:
+            raise InputError(f"must be one of {', '.join(SEARCHES)}, got {self.search!r}", field="search")
         if self.patch_stride > self.patch_size:
             raise InputError(f"must be <= patch_size {self.patch_size}, got {self.patch_stride}",
                              field="patch_stride")
@@ -113,6 +124,8 @@ class GlOpticalFlow:
             raise InputError(f"must be a GlFlowConfig, got {type(config).__name__}", field="config")
         self.gl = shared_context() if gl is None else gl
         self.config = config
+        #: the inverse search this estimator runs: ``thread`` or ``group`` (``GlFlowConfig.search``)
+        self.search = config.search if config.search != "auto" else ("thread" if self.gl.software else "group")
         self._pool: dict = {}
         self._last_shape: tuple[int, int] | None = None  # of the estimate whose lumas the pool holds
 
@@ -277,11 +290,14 @@ class GlOpticalFlow:
         uniforms = {"size": size, "offset": offset, "stride": s, "iterations": config.iterations}
         init.bind_to_storage_buffer(4)
         current, previous = patch_flows
+        name, lanes, extra = "flow_patch", 1, {}
+        if self.search == "group":
+            name, lanes, extra = "flow_patch_group", PATCH_LANES, {"LANES": PATCH_LANES}
         for sweep in range(config.sweeps):
             current.bind_to_storage_buffer(5)
             previous.bind_to_storage_buffer(8)
-            program = gl.program("flow_patch", {**defines, **({"PROPAGATE": 1} if sweep else {})})
-            gl.dispatch(program, rows * cols, uniforms)
+            program = gl.program(name, {**defines, **extra, **({"PROPAGATE": 1} if sweep else {})})
+            gl.dispatch(program, rows * cols * lanes, uniforms)
             current, previous = previous, current
         previous.bind_to_storage_buffer(5)
         dense.bind_to_storage_buffer(6)

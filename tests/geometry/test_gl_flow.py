@@ -59,25 +59,6 @@ def test_luma_equals_luma8():
     np.testing.assert_array_equal(estimator().luma(color), luma8(color))
 
 
-def test_read_lumas_gives_the_last_estimates_lumas():
-    gl_flow = GlOpticalFlow()
-    with pytest.raises(InputError) as err:
-        gl_flow.read_lumas()
-    assert err.value.field == "lumas"
-    for h, w in ((37, 53), (8, 9)):  # a smaller estimate after a larger one reads its own size
-        a, b = shifted_pair(h, w, (1.0, 0.5))
-        a[0, 0] = np.nan
-        gl_flow.estimate(a, b)
-        first, second = gl_flow.read_lumas()
-        assert first.dtype == np.uint8 and first.shape == (h, w)
-        np.testing.assert_array_equal(first, luma8(a))
-        np.testing.assert_array_equal(second, luma8(b))
-    gl_flow.luma(a)  # overwrites the first luma: nothing left to read
-    with pytest.raises(InputError):
-        gl_flow.read_lumas()
-    gl_flow.release()
-
-
 @pytest.mark.parametrize("t", [0.5, 3.0, 12.0])
 def test_translation_recovered(t):
     h, w, margin = 96, 160, 24

@@ -17,7 +17,9 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
 5. ``flow`` / ``upsample`` / ``refine_check``: per box, the ONNX flow network (``FlowNetwork``) refines
    the initial flow on the MPI points (its (du, dv) only: dz is not used), the residual is upsampled to
    full resolution per plane (``upsample_flow``) and added to the initial flow, and each pixel keeps the
-   refined flow only where it explains frame n better than the initial flow by more than one 8-bit level.
+   refined flow only where it explains frame n better than the initial flow by more than one 8-bit level
+   (``box_residual``, then ``refine_box``; with ``estimator=gl`` on the ``gl`` backend the upsampling and the
+   check run on the GPU, stage ``refine``: ``GlFlowRefine``, into the flow kept there).
 
 Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
 the frame times); frame n at full resolution, one plane whose pixels carry their own plane's flow, moves by
@@ -43,6 +45,8 @@ from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
+from engine.geometry.backends.gl.frame import GlFlow
+from engine.geometry.backends.gl.refine import GlFlowRefine, refine_codes
 from engine.geometry.holefill import fill_holes
 from engine.predict.backend import gl_flow_estimators
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
@@ -50,15 +54,18 @@ from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target
 from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
-from engine.predict.decomp.upsample import upsample_flow
+from engine.predict.decomp.upsample import spread_plane, upsample_flow
 from engine.predict.dis import dis_flow, drop_untrusted, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
-           "crop_mpi", "whole_frame_initial_flow", "REFINE_MARGIN"]
+           "crop_mpi", "whole_frame_initial_flow", "resident_initial_flow", "box_residual", "refine_box",
+           "REFINE_MARGIN", "REFINE_WINDOW"]
 
 #: The refinement check keeps the refined flow only where its photometric error is lower than the initial
 #: flow's by more than this many 8-bit levels (ties and near-ties keep DIS; chosen on training scenes).
 REFINE_MARGIN = 1.0
+#: The side of the window (pixels) over which the refinement check averages ``warp_error``.
+REFINE_WINDOW = 9
 
 
 @dataclass(frozen=True)
@@ -103,13 +110,13 @@ class DecompConfig:
 @dataclass
 class InitialFlow:
     """The full-resolution initial flow of frame n and what scores flows against it: ``flow`` (H, W, 2)
-    u(n -> n-k) pixels (DIS), ``target`` (H, W) uint8 luma of the camera-compensated frame n-k DIS matched
-    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n, ``seen`` (H, W) bool where frame n-k saw the
-    surface (``geometry.seen_before``)."""
+    u(n -> n-k) pixels, ``target`` (H, W) uint8 luma of the camera-compensated frame n-k the flow matched
+    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n (both None where they stayed on the GPU:
+    ``resident_initial_flow``), ``seen`` (H, W) bool where frame n-k saw the surface (``geometry.seen_before``)."""
 
     flow: np.ndarray
-    target: np.ndarray
-    luma_n: np.ndarray
+    target: Optional[np.ndarray]
+    luma_n: Optional[np.ndarray]
     seen: np.ndarray
 
 
@@ -143,19 +150,6 @@ def full_box(box: Box, factor: int, low_size: tuple[int, int], size: tuple[int, 
     y0, y1, x0, x1 = box
     return (y0 * factor, size[0] if y1 == low_size[0] else y1 * factor,
             x0 * factor, size[1] if x1 == low_size[1] else x1 * factor)
-
-
-def row_bands(boxes: Sequence[Box], factor: int, low_size: tuple[int, int],
-              size: tuple[int, int]) -> list[tuple[int, int]]:
-    """The full-resolution rows (y0, y1) the working-resolution ``boxes`` cover (``full_box``), overlapping
-    bands merged, top to bottom."""
-    bands: list[list[int]] = []
-    for y0, y1, _, _ in sorted(full_box(b, factor, low_size, size) for b in boxes):
-        if bands and y0 <= bands[-1][1]:
-            bands[-1][1] = max(bands[-1][1], y1)
-        else:
-            bands.append([y0, y1])
-    return [(a, b) for a, b in bands]
 
 
 def crop_mpi(mpi: Mpi, box: Box) -> Mpi:
@@ -212,63 +206,74 @@ def resident_initial_flow(frames: Any, older: ResidentFrame, newest: ResidentFra
                           timer: Timer) -> tuple[InitialFlow, Any]:
     """``whole_frame_initial_flow`` with the GPU's estimator on the ``gl`` backend (``frames``: its ``GlFrames``;
     ``estimators``: ``gl_flow_estimators()``): frame n-k's warp, the flow and its trust rules run on the GPU
-    (``GlFrames.estimate_flow_back``) and the flow and both lumas are read back. Returns the initial flow and
-    the flow still on the GPU (a ``GlFlow``). Stage ``initial_flow`` (wall); the GPU stages of the estimate
-    (``warp``, ``luma``, ``pyramid``, ``search``, ``trust``) go to ``timer.gpu``."""
+    (``GlFrames.estimate_flow_back``) and the flow is read back for the network's input; the lumas the
+    refinement check compares stay on the GPU (``estimators[0].lumas``; ``target`` and ``luma_n`` are None).
+    Returns the initial flow and the flow still on the GPU (a ``GlFlow``). Stage ``initial_flow`` (wall); the
+    GPU stages of the estimate (``warp``, ``luma``, ``pyramid``, ``search``, ``trust``) go to ``timer.gpu``."""
     dst, src = newest.frame.camera, older.frame.camera
     with timer("initial_flow"):
         gpu_flow = frames.estimate_flow_back(older, newest, *estimators, Timer(gpu=timer.gpu))
         flow = gpu_flow.read()
-        luma_n, target = estimators[0].read_lumas()
         seen = geometry.seen_before(newest.frame.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                     src.world_to_camera, older.frame.depth.shape)
-    return InitialFlow(flow, target, luma_n, seen), gpu_flow
+    return InitialFlow(flow, None, None, seen), gpu_flow
 
 
-def box_flow(network: FlowNetwork, box: Box, factor: int, low_size: tuple[int, int], m_n: Mpi,
-             warped: tuple[Mpi, tuple[int, int]], plane_index: np.ndarray, initial: Optional[InitialFlow],
-             timer: Timer) -> tuple[Box, np.ndarray]:
-    """Stages ``flow``, ``upsample`` and ``refine_check`` of one gate box: the full-resolution box (y0, y1,
-    x0, x1) and its flow (3, 1, h, w), each pixel its own plane's (the sum over a one-hot MPI's planes).
+def box_residual(network: FlowNetwork, box: Box, factor: int, low_size: tuple[int, int], m_n: Mpi,
+                 warped: tuple[Mpi, tuple[int, int]], size: tuple[int, int], initial: Optional[InitialFlow],
+                 timer: Timer) -> tuple[Box, np.ndarray, np.ndarray]:
+    """Stage ``flow`` of one gate box: the full-resolution box (y0, y1, x0, x1), the network's flow on the box
+    (3, Z, h, w) at the working resolution and the box's alpha (Z, h, w). With an initial flow only the
+    network's residual is kept: the initial flow is added back at full detail (``refine_box``).
 
     ``low_size``: (h, w) of the working resolution; ``warped``: the camera-compensated m_{n-k} on a part of
-    the working-resolution frame and that part's corner (y, x); ``plane_index`` (H, W): frame n's plane of
-    every full-resolution pixel; ``initial``: the whole-frame initial flow, None for a network that refines
-    none. The network's dz is not used (0): the committed network's plane offsets cost 0.9 dB.
+    the working-resolution frame and that part's corner (y, x); ``size``: (H, W) of frame n; ``initial``: the
+    whole-frame initial flow, None for a network that refines none. The network's dz is not used (0): the
+    committed network's plane offsets cost 0.9 dB.
     """
     y0, y1, x0, x1 = box
     oy, ox = warped[1]
     warped_box = crop_mpi(warped[0], (y0 - oy, y1 - oy, x0 - ox, x1 - ox))
-    fy0, fy1, fx0, fx1 = full = full_box(box, factor, low_size, plane_index.shape)
-    index = plane_index[fy0:fy1, fx0:fx1]
-    full_alpha = (index[None] == np.arange(network.num_planes)[:, None, None]).astype(np.float32)
+    fy0, fy1, fx0, fx1 = full = full_box(box, factor, low_size, size)
     m_box = crop_mpi(m_n, box)
-    full_init = init = None
-    if initial is not None:
-        full_init = initial.flow[fy0:fy1, fx0:fx1]
-        init = geometry.downsample_flow(full_init, factor)  # the box's rows past the last block drop out
+    init = None
+    if initial is not None:  # the box's rows past the last block drop out
+        init = geometry.downsample_flow(initial.flow[fy0:fy1, fx0:fx1], factor)
     with timer("flow"):
         low_flow = network(m_box, warped_box, init)
     low_flow[2] = 0.0
-    if full_init is not None:  # keep the network's residual only, the initial flow at full detail
+    if init is not None:  # keep the network's residual only
         low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
+    return full, low_flow, m_box.alpha
+
+
+def refine_box(full: Box, low_flow: np.ndarray, alpha: np.ndarray, factor: int, plane_index: np.ndarray,
+               initial: Optional[InitialFlow], timer: Timer) -> np.ndarray:
+    """Stages ``upsample`` and ``refine_check`` of one gate box on the CPU (``GlFlowRefine`` on the GPU): its
+    flow (3, 1, h, w), each pixel its own plane's (the sum over a one-hot MPI's planes). The network's
+    ``low_flow`` (3, Z, h_low, w_low) with its ``alpha`` (``box_residual``) is upsampled per plane onto the
+    pixels of that plane (``plane_index`` (H, W): frame n's plane of every pixel) and added to the initial
+    flow; each pixel keeps the sum only where it explains frame n better than the initial flow alone by more
+    than ``REFINE_MARGIN`` levels (``warp_error``)."""
+    fy0, fy1, fx0, fx1 = full
+    index = plane_index[fy0:fy1, fx0:fx1]
+    full_alpha = (index[None] == np.arange(alpha.shape[0])[:, None, None]).astype(np.float32)
     with timer("upsample"):
-        part = upsample_flow(low_flow, m_box.alpha, factor, full_alpha)
-    if full_init is None:
-        return full, part.sum(axis=1, keepdims=True)
+        part = upsample_flow(low_flow, alpha, factor, full_alpha)
+    if initial is None:
+        return part.sum(axis=1, keepdims=True)
+    full_init = initial.flow[fy0:fy1, fx0:fx1]
     dis_part = np.moveaxis(full_init, -1, 0)[:, None] * full_alpha[None]
     part[:2] += dis_part
     part = part.sum(axis=1, keepdims=True)  # one-hot: summing over planes gives each pixel its own plane's flow
     dis_part = dis_part.sum(axis=1, keepdims=True)
-    # each pixel keeps the refined flow only where it matches frame n-k better than the initial flow (by more
-    # than REFINE_MARGIN levels)
     luma_n, offset = initial.luma_n[fy0:fy1, fx0:fx1], (fy0, fx0)
     refined = np.moveaxis(part[:2].sum(axis=1), 0, -1)  # (h, w, 2): each pixel's own plane's flow
     with timer("refine_check"):
-        keep = (warp_error(luma_n, initial.target, offset, refined) + np.float32(REFINE_MARGIN)
-                < warp_error(luma_n, initial.target, offset, full_init))
+        keep = (warp_error(luma_n, initial.target, offset, refined, REFINE_WINDOW) + np.float32(REFINE_MARGIN)
+                < warp_error(luma_n, initial.target, offset, full_init, REFINE_WINDOW))
     part[:2] = np.where(keep, part[:2], dis_part)
-    return full, part
+    return part
 
 
 class DecompPredictor(Predictor):
@@ -288,7 +293,8 @@ class DecompPredictor(Predictor):
         self.config = config
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
-        self._gl: Optional[tuple] = None
+        self._gl: Optional[tuple] = None  # (GlOpticalFlow, GlTrust) of estimator=gl
+        self._refine: Optional[GlFlowRefine] = None
         self.infill = None
         if config.fill == "infill":
             self.infill = infill if infill is not None else InfillNetwork(config.infill_model or DEFAULT_INFILL_MODEL,
@@ -316,19 +322,26 @@ class DecompPredictor(Predictor):
             m_n, warped, corner = network_input(low_n, low_p, t_n, t_p, planes, boxes, timer)
             with timer("mpi"):
                 plane_index = geometry.plane_index(newest.depth, planes)
-            flow = np.zeros((3, 1) + size, dtype=np.float32)
             initial = None
             if net.needs_initial_flow:
                 initial, on_gpu = self._initial_flow(state, timer)
-                flow[:2, 0] = np.moveaxis(initial.flow, -1, 0)  # outside the boxes; they overwrite their part
-            for box in boxes:  # everything here costs in proportion to the boxes' area
-                (fy0, fy1, fx0, fx1), part = box_flow(net, box, factor, low_size, m_n, (warped, corner),
-                                                      plane_index, initial, timer)
-                flow[:, :, fy0:fy1, fx0:fx1] = part
-            if not np.isfinite(flow).all():
+            # everything from here on costs in proportion to the boxes' area
+            residuals = [box_residual(net, box, factor, low_size, m_n, (warped, corner), size, initial, timer)
+                         for box in boxes]
+            if not all(np.isfinite(r[1]).all() for r in residuals):
                 raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
-            if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
-                flow[:, 0, ~initial.seen] = 0.0
+            if on_gpu is not None:
+                self._refine_on_gpu(residuals, factor, plane_index, initial.seen, on_gpu[1], timer)
+            else:
+                flow = np.zeros((3, 1) + size, dtype=np.float32)
+                if initial is not None:  # outside the boxes; they overwrite their part
+                    flow[:2, 0] = np.moveaxis(initial.flow, -1, 0)
+                for full, low_flow, alpha in residuals:
+                    fy0, fy1, fx0, fx1 = full
+                    flow[:, :, fy0:fy1, fx0:fx1] = refine_box(full, low_flow, alpha, factor, plane_index, initial,
+                                                              timer)
+                if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
+                    flow[:, 0, ~initial.seen] = 0.0
         data = DecompState(boxes=boxes, factor=factor, mpi=None, flow=flow, plane_depths=planes,
                            network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes)
                            / float(low_size[0] * low_size[1]))
@@ -352,10 +365,25 @@ class DecompPredictor(Predictor):
                                                   self._gl, timer)
         return initial, (frame_n, gpu_flow)
 
+    def _refine_on_gpu(self, residuals: list, factor: int, plane_index: np.ndarray, seen: np.ndarray, flow: Any,
+                       timer: Timer) -> None:
+        """``refine_box`` of every box on the GPU (``GlFlowRefine``, stage ``refine``), into ``flow``, the
+        initial flow made there (a ``GlFlow``). Overlapping boxes each start from a copy of the initial flow,
+        as on the CPU."""
+        if self._refine is None:
+            self._refine = GlFlowRefine(REFINE_MARGIN, REFINE_WINDOW)
+        initial = flow if len(residuals) == 1 else flow.copy()
+        for full, low_flow, alpha in residuals:
+            fy0, fy1, fx0, fx1 = full
+            with timer("refine"):
+                packed = np.stack([spread_plane(low_flow[:, z], alpha[z]) for z in range(alpha.shape[0])])
+                codes = refine_codes(plane_index[fy0:fy1, fx0:fx1], seen[fy0:fy1, fx0:fx1])
+                self._refine.apply(flow, initial, self._gl[0].lumas, full, packed, factor, codes, gpu_ms=timer.gpu)
+
     def _resident(self, state: PreparedState, data: DecompState, timer: Timer, on_gpu: Optional[tuple] = None) -> None:
         """Frame n and its flow where the backend computes (the simple fill), or frame n's one-plane MPI (the
-        infilling network's path). ``on_gpu``: (frame n, its initial flow) already on the GPU
-        (``_initial_flow``): only the rows of the network's boxes are written into that flow."""
+        infilling network's path). ``on_gpu``: (frame n, its flow) already on the GPU (``_initial_flow``,
+        refined there by ``_refine_on_gpu``)."""
         newest = state.history[-1]
         flow = None if data.flow is None else np.ascontiguousarray(np.moveaxis(data.flow[:, 0], 0, -1))
         if self.infill is not None:
@@ -369,9 +397,6 @@ class DecompPredictor(Predictor):
                 data.motion = self.frames.resident_flow(flow, timer)
             return
         data.frame, data.motion = on_gpu
-        with timer("upload"):
-            for y0, y1 in row_bands(data.boxes, data.factor, data.flow.shape[2:], newest.depth.shape):
-                data.motion.write_rows(flow[y0:y1, :, :2], y0)
 
     def _object_motion(self, state: PreparedState, target: Target, timer: Timer) -> tuple[Any, float]:
         """(flow, scale): the object motion u(n -> target) of frame n's pixels is scale * flow (flow: (H, W, 3)
@@ -409,6 +434,8 @@ class DecompPredictor(Predictor):
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """Per-pixel u(n -> n-k) of frame n's visible surface, (H, W, 2) pixels (0 where no motion was found)."""
         flow = state.data.flow
+        if flow is None and isinstance(state.data.motion, GlFlow):  # made on the GPU and kept there
+            return state.data.motion.read()
         if flow is None:  # frame n's one-plane MPI covers every pixel: the flow is its plane's
             return np.zeros(state.history[-1].depth.shape + (2,), dtype=np.float32)
         return np.moveaxis(flow[:2, 0], 0, -1).copy()

@@ -127,7 +127,6 @@ class GlOpticalFlow:
         #: the inverse search this estimator runs: ``thread`` or ``group`` (``GlFlowConfig.search``)
         self.search = config.search if config.search != "auto" else ("thread" if self.gl.software else "group")
         self._pool: dict = {}
-        self._last_shape: tuple[int, int] | None = None  # of the estimate whose lumas the pool holds
 
     def estimate(self, first: np.ndarray | GlImage, second: np.ndarray | GlImage, *,
                  gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
@@ -179,7 +178,6 @@ class GlOpticalFlow:
 
         n = shape[0] * shape[1]
         values = np.empty(n, np.float32)
-        self._last_shape = None  # the pool's first luma is this image's now
 
         def run():
             buf = image.color if color is None else self.gl.new_buffer(data=color)
@@ -207,20 +205,6 @@ class GlOpticalFlow:
         valid until the next estimate; GL thread only (``engine.geometry.backends.gl.trust`` reads them)."""
         return self._pool["first"], self._pool["second"]
 
-    def read_lumas(self) -> tuple[np.ndarray, np.ndarray]:
-        """The 8-bit lumas of the last estimate's two images read back, (H, W) uint8 each (what ``luma`` gives
-        for either image: ``engine.predict.dis.luma8``)."""
-        if self._last_shape is None:
-            raise InputError("no estimate was made on this estimator since its last luma or release", field="lumas")
-        h, w = self._last_shape
-        values = np.empty((2, h, w), np.float32)
-
-        def run():
-            for out, key in zip(values, ("first", "second")):
-                self._pool[key].read_into(out, size=out.nbytes)
-        self.gl.call(run)
-        return values[0].astype(np.uint8), values[1].astype(np.uint8)
-
     def estimate_buffers(self, first_buffer, second_buffer, shape: tuple[int, int], *,
                          gpu_ms: dict | None = None, as_gl: bool = False) -> np.ndarray | GlFlow:
         """``estimate`` on colour already on the GPU: moderngl buffers of this context holding (H, W, 3) float32
@@ -236,7 +220,6 @@ class GlOpticalFlow:
     def _estimate(self, first_buffer, second_buffer, shape: tuple[int, int], gpu_ms: dict | None, as_gl: bool):
         gl, pool, config = self.gl, self._pool, self.config
         h, w = shape
-        self._last_shape = (h, w)
         n = h * w
         sizes, coarsest, finest = pyramid_levels(shape, config)
         offsets = np.cumsum([0] + [a * b for a, b in sizes]).tolist()
@@ -327,5 +310,4 @@ class GlOpticalFlow:
 
     def release(self) -> None:
         """Free this estimator's work buffers."""
-        self._last_shape = None
         self.gl.release_pool(self._pool)

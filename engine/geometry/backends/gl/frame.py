@@ -114,14 +114,13 @@ class GlFlow:
         self.gl.call(lambda: self.buffer.read_into(out, size=out.nbytes))
         return out
 
-    def write_rows(self, rows: np.ndarray, y0: int) -> None:
-        """Overwrite rows ``y0 .. y0 + h`` with ``rows`` (h, W, channels) float32: an upload of a band only."""
-        h, w = self.shape
-        band = checked_array(rows, "rows", ("h", w, self.channels), {}, dtype=np.float32)
-        if not 0 <= y0 <= h - band.shape[0]:
-            raise InputError(f"rows {y0}..{y0 + band.shape[0]} lie outside the flow's {h} rows", field="y0")
-        data = np.ascontiguousarray(band)
-        self.gl.call(lambda: self.buffer.write(data, offset=4 * self.channels * w * y0))
+    def copy(self) -> "GlFlow":
+        """A copy on the GPU (nothing crosses the bus)."""
+        def run() -> GlFlow:
+            buf = self.gl.new_buffer(self.buffer.size)
+            self.gl.ctx.copy_buffer(buf, self.buffer)
+            return GlFlow(self.shape, self.channels, buf, self.gl)
+        return self.gl.call(run)
 
 
 @dataclass(eq=False)

@@ -12,8 +12,8 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
 4. ``initial_flow``: the 2D flow the network refines, at full resolution on the whole frame (frame n-k warped
    into frame n's view, holes filled as ``reproject`` fills them: the flow of ``flow2d``), kept outside the
    boxes too: OpenCV DIS, or with ``estimator=gl`` the GPU's flow (``flow2d[estimator=gl]``'s; on the ``gl``
-   backend frame n-k's warp, the flow and its trust rules run there and the flow and both lumas are read
-   back for the network and the refinement check, and the flow stays there for the render);
+   backend frame n-k's warp, the flow and its trust rules run there, only each box's block-averaged flow is
+   read back for the network, and the flow stays there for the render: ``_boxes_on_gpu``);
 5. ``flow`` / ``upsample`` / ``refine_check``: per box, the ONNX flow network (``FlowNetwork``) refines
    the initial flow on the MPI points (its (du, dv) only: dz is not used), the residual is upsampled to
    full resolution per plane (``upsample_flow``) and added to the initial flow, and each pixel keeps the
@@ -46,8 +46,10 @@ from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.geometry.backends.gl.frame import GlFlow
-from engine.geometry.backends.gl.refine import GlFlowRefine, refine_codes
+from engine.geometry.backends.gl.refine import GlFlowRefine
+from engine.geometry.camera import reprojection_matrix
 from engine.geometry.holefill import fill_holes
+from engine.geometry.mpi import plane_bounds
 from engine.predict.backend import gl_flow_estimators
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
@@ -58,7 +60,7 @@ from engine.predict.decomp.upsample import spread_plane, upsample_flow
 from engine.predict.dis import dis_flow, drop_untrusted, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
-           "crop_mpi", "whole_frame_initial_flow", "resident_initial_flow", "box_residual", "refine_box",
+           "crop_mpi", "whole_frame_initial_flow", "box_residual", "refine_box",
            "REFINE_MARGIN", "REFINE_WINDOW"]
 
 #: The refinement check keeps the refined flow only where its photometric error is lower than the initial
@@ -202,49 +204,25 @@ def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str, gl_flow: 
     return InitialFlow(flow, target, luma_n, seen)
 
 
-def resident_initial_flow(frames: Any, older: ResidentFrame, newest: ResidentFrame, estimators: tuple,
-                          timer: Timer) -> tuple[InitialFlow, Any]:
-    """``whole_frame_initial_flow`` with the GPU's estimator on the ``gl`` backend (``frames``: its ``GlFrames``;
-    ``estimators``: ``gl_flow_estimators()``): frame n-k's warp, the flow and its trust rules run on the GPU
-    (``GlFrames.estimate_flow_back``) and the flow is read back for the network's input; the lumas the
-    refinement check compares stay on the GPU (``estimators[0].lumas``; ``target`` and ``luma_n`` are None).
-    Returns the initial flow and the flow still on the GPU (a ``GlFlow``). Stage ``initial_flow`` (wall); the
-    GPU stages of the estimate (``warp``, ``luma``, ``pyramid``, ``search``, ``trust``) go to ``timer.gpu``."""
-    dst, src = newest.frame.camera, older.frame.camera
-    with timer("initial_flow"):
-        gpu_flow = frames.estimate_flow_back(older, newest, *estimators, Timer(gpu=timer.gpu))
-        flow = gpu_flow.read()
-        seen = geometry.seen_before(newest.frame.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
-                                    src.world_to_camera, older.frame.depth.shape)
-    return InitialFlow(flow, None, None, seen), gpu_flow
-
-
-def box_residual(network: FlowNetwork, box: Box, factor: int, low_size: tuple[int, int], m_n: Mpi,
-                 warped: tuple[Mpi, tuple[int, int]], size: tuple[int, int], initial: Optional[InitialFlow],
-                 timer: Timer) -> tuple[Box, np.ndarray, np.ndarray]:
-    """Stage ``flow`` of one gate box: the full-resolution box (y0, y1, x0, x1), the network's flow on the box
-    (3, Z, h, w) at the working resolution and the box's alpha (Z, h, w). With an initial flow only the
-    network's residual is kept: the initial flow is added back at full detail (``refine_box``).
-
-    ``low_size``: (h, w) of the working resolution; ``warped``: the camera-compensated m_{n-k} on a part of
-    the working-resolution frame and that part's corner (y, x); ``size``: (H, W) of frame n; ``initial``: the
-    whole-frame initial flow, None for a network that refines none. The network's dz is not used (0): the
-    committed network's plane offsets cost 0.9 dB.
+def box_residual(network: FlowNetwork, box: Box, m_n: Mpi, warped: tuple[Mpi, tuple[int, int]],
+                 init: Optional[np.ndarray], timer: Timer) -> tuple[np.ndarray, np.ndarray]:
+    """Stage ``flow`` of one gate box (working-resolution pixels): the network's flow on the box (3, Z, h, w)
+    and the box's alpha (Z, h, w). ``warped``: the camera-compensated m_{n-k} on a part of the working-resolution
+    frame and that part's corner (y, x); ``init``: the initial flow block-averaged onto the box (h, w, 2)
+    (``geometry.downsample_flow`` of its full-resolution box), None for a network that refines none. With an
+    initial flow only the network's residual is kept: the initial flow is added back at full detail
+    (``refine_box``). The network's dz is not used (0): the committed network's plane offsets cost 0.9 dB.
     """
     y0, y1, x0, x1 = box
     oy, ox = warped[1]
     warped_box = crop_mpi(warped[0], (y0 - oy, y1 - oy, x0 - ox, x1 - ox))
-    fy0, fy1, fx0, fx1 = full = full_box(box, factor, low_size, size)
     m_box = crop_mpi(m_n, box)
-    init = None
-    if initial is not None:  # the box's rows past the last block drop out
-        init = geometry.downsample_flow(initial.flow[fy0:fy1, fx0:fx1], factor)
     with timer("flow"):
         low_flow = network(m_box, warped_box, init)
     low_flow[2] = 0.0
     if init is not None:  # keep the network's residual only
         low_flow[:2] -= np.moveaxis(init, -1, 0)[:, None] * m_box.alpha[None]
-    return full, low_flow, m_box.alpha
+    return low_flow, m_box.alpha
 
 
 def refine_box(full: Box, low_flow: np.ndarray, alpha: np.ndarray, factor: int, plane_index: np.ndarray,
@@ -320,70 +298,93 @@ class DecompPredictor(Predictor):
         flow, on_gpu = None, None
         if boxes:
             m_n, warped, corner = network_input(low_n, low_p, t_n, t_p, planes, boxes, timer)
-            with timer("mpi"):
-                plane_index = geometry.plane_index(newest.depth, planes)
-            initial = None
-            if net.needs_initial_flow:
-                initial, on_gpu = self._initial_flow(state, timer)
-            # everything from here on costs in proportion to the boxes' area
-            residuals = [box_residual(net, box, factor, low_size, m_n, (warped, corner), size, initial, timer)
-                         for box in boxes]
-            if not all(np.isfinite(r[1]).all() for r in residuals):
-                raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
-            if on_gpu is not None:
-                self._refine_on_gpu(residuals, factor, plane_index, initial.seen, on_gpu[1], timer)
+            fulls = [full_box(box, factor, low_size, size) for box in boxes]
+            net_input = (net, m_n, (warped, corner))
+            if net.needs_initial_flow and cfg.estimator == "gl" and self.frames.name == "gl":
+                on_gpu = self._boxes_on_gpu(state, boxes, fulls, factor, planes, net_input, timer)
             else:
-                flow = np.zeros((3, 1) + size, dtype=np.float32)
-                if initial is not None:  # outside the boxes; they overwrite their part
-                    flow[:2, 0] = np.moveaxis(initial.flow, -1, 0)
-                for full, low_flow, alpha in residuals:
-                    fy0, fy1, fx0, fx1 = full
-                    flow[:, :, fy0:fy1, fx0:fx1] = refine_box(full, low_flow, alpha, factor, plane_index, initial,
-                                                              timer)
-                if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
-                    flow[:, 0, ~initial.seen] = 0.0
+                flow = self._boxes_on_cpu(state, boxes, fulls, factor, planes, net_input, timer)
         data = DecompState(boxes=boxes, factor=factor, mpi=None, flow=flow, plane_depths=planes,
                            network_fraction=sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes)
                            / float(low_size[0] * low_size[1]))
         self._resident(state, data, timer, on_gpu)
         return data
 
-    def _initial_flow(self, state: PreparedState, timer: Timer) -> tuple[InitialFlow, Optional[tuple]]:
-        """The whole frame's initial flow by the configured estimator, and, on ``gl`` with the GPU's estimator,
-        (frame n, the flow) as they are on the GPU (else None)."""
+    def _boxes_on_cpu(self, state: PreparedState, boxes: list, fulls: list, factor: int, planes: np.ndarray,
+                      net_input: tuple, timer: Timer) -> np.ndarray:
+        """The flow (3, 1, H, W) of frame n on the CPU: the initial flow (DIS, or the GPU's estimator between
+        the CPU's warp and trust rules), the network on every box, ``refine_box``, and no motion where frame
+        n-k did not see the surface."""
         older, newest = state.history[-2], state.history[-1]
-        if self.config.estimator == "dis":
+        net = net_input[0]
+        with timer("mpi"):
+            plane_index = geometry.plane_index(newest.depth, planes)
+        initial = None
+        if net.needs_initial_flow:
+            gl_flow = None
+            if self.config.estimator == "gl":
+                gl_flow = self._gl_estimators()[0]
             with timer("initial_flow"):
-                return whole_frame_initial_flow(older, newest, self.config.dis_preset), None
-        if self._gl is None:
-            self._gl = gl_flow_estimators()
-        if self.frames.name != "gl":  # the CPU's warp and trust rules around the GPU's flow
-            with timer("initial_flow"):
-                return whole_frame_initial_flow(older, newest, self.config.dis_preset, self._gl[0]), None
-        frame_n = self.frames.resident(newest, timer)
-        initial, gpu_flow = resident_initial_flow(self.frames, self.frames.resident(older, timer), frame_n,
-                                                  self._gl, timer)
-        return initial, (frame_n, gpu_flow)
+                initial = whole_frame_initial_flow(older, newest, self.config.dis_preset, gl_flow)
+        residuals = []
+        for box, (fy0, fy1, fx0, fx1) in zip(boxes, fulls):  # from here on, costs follow the boxes' area
+            init = None if initial is None else geometry.downsample_flow(initial.flow[fy0:fy1, fx0:fx1], factor)
+            residuals.append(box_residual(net, box, net_input[1], net_input[2], init, timer))
+        self._check_finite(residuals, newest)
+        flow = np.zeros((3, 1) + newest.depth.shape, dtype=np.float32)
+        if initial is not None:  # outside the boxes; they overwrite their part
+            flow[:2, 0] = np.moveaxis(initial.flow, -1, 0)
+        for full, (low_flow, alpha) in zip(fulls, residuals):
+            fy0, fy1, fx0, fx1 = full
+            flow[:, :, fy0:fy1, fx0:fx1] = refine_box(full, low_flow, alpha, factor, plane_index, initial, timer)
+        if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
+            flow[:, 0, ~initial.seen] = 0.0
+        return flow
 
-    def _refine_on_gpu(self, residuals: list, factor: int, plane_index: np.ndarray, seen: np.ndarray, flow: Any,
-                       timer: Timer) -> None:
-        """``refine_box`` of every box on the GPU (``GlFlowRefine``, stage ``refine``), into ``flow``, the
-        initial flow made there (a ``GlFlow``). Overlapping boxes each start from a copy of the initial flow,
-        as on the CPU."""
+    def _boxes_on_gpu(self, state: PreparedState, boxes: list, fulls: list, factor: int, planes: np.ndarray,
+                      net_input: tuple, timer: Timer) -> tuple:
+        """``_boxes_on_cpu`` with the GPU's estimator on the ``gl`` backend: frame n-k's warp, the flow and its
+        trust rules run on the GPU (``GlFrames.estimate_flow_back``, stage ``initial_flow``); only each box's
+        block-averaged initial flow comes back, for the network; the refinement check runs there too
+        (``GlFlowRefine``, stage ``refine``; overlapping boxes each start from a copy of the initial flow, as
+        on the CPU). Returns (frame n, its flow) as they are on the GPU."""
+        older, newest = state.history[-2], state.history[-1]
+        estimator, trust = self._gl_estimators()
         if self._refine is None:
             self._refine = GlFlowRefine(REFINE_MARGIN, REFINE_WINDOW)
-        initial = flow if len(residuals) == 1 else flow.copy()
-        for full, low_flow, alpha in residuals:
-            fy0, fy1, fx0, fx1 = full
+        frame_n = self.frames.resident(newest, timer)
+        frame_p = self.frames.resident(older, timer)
+        with timer("initial_flow"):
+            flow = self.frames.estimate_flow_back(frame_p, frame_n, estimator, trust, Timer(gpu=timer.gpu))
+            initial = flow if len(boxes) == 1 else flow.copy()
+            inits = [self._refine.initial_low(initial, full, factor) for full in fulls]
+        residuals = [box_residual(net_input[0], box, net_input[1], net_input[2], init, timer)
+                     for box, init in zip(boxes, inits)]
+        self._check_finite(residuals, newest)
+        src, dst = older.camera, newest.camera
+        matrix = reprojection_matrix(dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera)
+        bounds = plane_bounds(planes)
+        for full, (low_flow, alpha) in zip(fulls, residuals):
             with timer("refine"):
                 packed = np.stack([spread_plane(low_flow[:, z], alpha[z]) for z in range(alpha.shape[0])])
-                codes = refine_codes(plane_index[fy0:fy1, fx0:fx1], seen[fy0:fy1, fx0:fx1])
-                self._refine.apply(flow, initial, self._gl[0].lumas, full, packed, factor, codes, gpu_ms=timer.gpu)
+                self._refine.apply(flow, initial, estimator.lumas, frame_n.image, matrix, older.depth.shape, bounds,
+                                   full, packed, factor, gpu_ms=timer.gpu)
+        return frame_n, flow
+
+    @staticmethod
+    def _check_finite(residuals: list, newest: Frame) -> None:
+        if not all(np.isfinite(low_flow).all() for low_flow, _ in residuals):
+            raise InterleaveError(f"the flow network returned non-finite values for frame {newest.index}")
+
+    def _gl_estimators(self) -> tuple:
+        """(GlOpticalFlow, GlTrust) of ``estimator=gl``, made on first use."""
+        if self._gl is None:
+            self._gl = gl_flow_estimators()
+        return self._gl
 
     def _resident(self, state: PreparedState, data: DecompState, timer: Timer, on_gpu: Optional[tuple] = None) -> None:
         """Frame n and its flow where the backend computes (the simple fill), or frame n's one-plane MPI (the
-        infilling network's path). ``on_gpu``: (frame n, its flow) already on the GPU (``_initial_flow``,
-        refined there by ``_refine_on_gpu``)."""
+        infilling network's path). ``on_gpu``: (frame n, its flow) already on the GPU (``_boxes_on_gpu``)."""
         newest = state.history[-1]
         flow = None if data.flow is None else np.ascontiguousarray(np.moveaxis(data.flow[:, 0], 0, -1))
         if self.infill is not None:

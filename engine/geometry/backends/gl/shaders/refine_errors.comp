@@ -1,5 +1,6 @@
-// Refinement pass 1 (decomp's refinement check), per pixel of a box of frame n (``size`` its (h, w), ``origin``
-// its corner): the network's residual flow of the pixel's own plane upsampled as
+// Refinement pass 2 (decomp's refinement check), per pixel of a box of frame n (``size`` its (h, w), ``origin``
+// its corner): the pixel's plane (engine.geometry.plane_index: the plane nearest in inverse depth, from frame
+// n's depth and the bounds between planes), the network's residual flow of that plane upsampled as
 // engine.geometry.kernels.upsample_planes does it (OpenCV's bilinear resize taps, alpha-normalised, (du, dv)
 // times the block factor), added to the initial flow, and the photometric errors of both flows
 // (engine.predict.dis.warp_error before its window mean; remap_common.glsl).
@@ -13,7 +14,8 @@ layout(std430, binding = 26) writeonly buffer RefinedBuf { vec2 refined_[]; };  
 // (Z, h_low, w_low) alpha-weighted (du, dv, dz) and alpha of the network's residual, spread into empty
 // neighbours (engine.predict.decomp.upsample.spread_plane)
 layout(std430, binding = 27) readonly buffer PackedBuf { vec4 packed_[]; };
-layout(std430, binding = 28) readonly buffer CodeBuf { uint code_[]; };  // (h, w) bytes: plane, +128 where seen
+layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };   // (H, W) frame n, +inf sky
+layout(std430, binding = 28) readonly buffer BoundBuf { float bounds_[]; };  // Z - 1 (engine.geometry.plane_bounds)
 struct Tap { int first; int second; float weight; float unused; };
 layout(std430, binding = 29) readonly buffer TapBuf { Tap taps_[]; };    // h row taps, then w column taps
 
@@ -25,7 +27,14 @@ uniform float factor;    // the block factor: (du, dv) scale
 
 #include "remap_common.glsl"
 
-uint code_at(uint i) { return (code_[i >> 2] >> (8u * (i & 3u))) & 0xFFu; }
+uniform int num_bounds;  // Z - 1
+
+int plane_of(float d) {  // float32's 1 / d rounded as numpy rounds it; sky (+inf) -> 0 -> the farthest plane
+    float inv = d > 0.0 ? float(1.0LF / double(d)) : uintBitsToFloat(0x7f800000u);
+    int z = 0;
+    for (int j = 0; j < num_bounds; ++j) z += inv <= bounds_[j] ? 1 : 0;
+    return z;
+}
 
 vec4 packed_at(int z, int y, int x) { return packed_[(z * low_size.x + y) * low_size.y + x]; }
 
@@ -34,7 +43,9 @@ void main() {
     int h = size.x, w = size.y;
     if (i >= uint(h * w)) return;
     int y = int(i) / w, x = int(i) % w;
-    int z = int(code_at(i) & 127u);
+    int gx = origin.y + x, gy = origin.x + y;
+    uint g = uint(gy * frame.y + gx);
+    int z = plane_of(depth_[g]);
     Tap ty = taps_[y], tx = taps_[h + x];
     float u = tx.weight, v = ty.weight;
     precise vec4 s = (packed_at(z, ty.first, tx.first) * (1.0 - u) + packed_at(z, ty.first, tx.second) * u) * (1.0 - v)
@@ -43,8 +54,6 @@ void main() {
     if (s.w > 1e-6) {  // the quotient rounded as numpy rounds it (GLSL's float division may be 2.5 ulp off)
         residual = vec2(float(double(s.x) / double(s.w)), float(double(s.y) / double(s.w))) * factor;
     }
-    int gx = origin.y + x, gy = origin.x + y;
-    uint g = uint(gy * frame.y + gx);
     vec2 init = init_[g];
     precise vec2 refined = residual + init;
     refined_[i] = refined;

@@ -81,7 +81,7 @@ class DecompConfig:
     threads: int = option(2, "onnxruntime intra-op threads")
     estimator: str = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU) or 'gl' (the "
                                    "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow "
-                                   "runs on the GPU; measured scores: docs/flow3d.md)")
+                                   "runs on the GPU; measured scores: docs/gpu.md)")
     dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
     fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
                                  "engine.geometry.holefill) or 'infill' (the infilling network, "
@@ -113,12 +113,12 @@ class DecompConfig:
 class InitialFlow:
     """The full-resolution initial flow of frame n and what scores flows against it: ``flow`` (H, W, 2)
     u(n -> n-k) pixels, ``target`` (H, W) uint8 luma of the camera-compensated frame n-k the flow matched
-    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n (both None where they stayed on the GPU:
-    ``resident_initial_flow``), ``seen`` (H, W) bool where frame n-k saw the surface (``geometry.seen_before``)."""
+    (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n, ``seen`` (H, W) bool where frame n-k saw the
+    surface (``geometry.seen_before``). On the CPU path; ``_boxes_on_gpu`` keeps all of it on the GPU."""
 
     flow: np.ndarray
-    target: Optional[np.ndarray]
-    luma_n: Optional[np.ndarray]
+    target: np.ndarray
+    luma_n: np.ndarray
     seen: np.ndarray
 
 
@@ -128,11 +128,12 @@ class DecompState:
 
     ``boxes``: working-resolution boxes the network ran on; ``factor``: the downsampling; ``mpi``: the
     full-resolution one-plane MPI of frame n (made for ``fill=infill`` only, None otherwise); ``flow``: frame
-    n's u(n -> n-k), (3, 1, H, W), or None when the gate found no motion; ``plane_depths``: the network's
-    planes (frame n's, at the working resolution); ``network_fraction``: the share of the frame the network
-    saw; ``infill_planes``: frame n's planes at the infilling network's Z, made on first use when it has other
-    planes than the flow network; ``frame`` and ``motion``: frame n and its flow (H, W, 3) where the backend
-    computes (on ``gl``: uploaded once).
+    n's u(n -> n-k), (3, 1, H, W), or None when the gate found no motion or the flow was made on the GPU and
+    stays there (``motion``); ``plane_depths``: the network's planes (frame n's, at the working resolution);
+    ``network_fraction``: the share of the frame the network saw; ``infill_planes``: frame n's planes at the
+    infilling network's Z, made on first use when it has other planes than the flow network; ``frame`` and
+    ``motion``: frame n and its flow (H, W, 3) where the backend computes (on ``gl``: uploaded once, or a
+    2-channel ``GlFlow`` made there by ``estimator=gl``).
     """
 
     boxes: list[Box]

@@ -47,7 +47,7 @@ step backends_4k 150 "$py" -m tools.bench_backends --sizes 3840x2160 --repeats 1
 # the GPU, encodes the prediction there and reads back 3 bytes a pixel instead of 12
 step backends_srgb8 120 "$py" -m tools.bench_backends --sizes 1920x1080 --repeats 2 --methods "reproject,mvec" \
     --encoding srgb8 --out "$work/scenes" --json "$out/backends_srgb8.json"
-step passes 120 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl]" \
+step passes 150 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl],decomp[estimator=gl]" \
     --out "$work/scenes" --json "$out/passes.json"
 # the GPU's flow alone, its two inverse searches (one invocation a patch, or a patch over 64 with shared-memory
 # sums), back to back and then with 50 ms of idle GPU before each estimate

@@ -114,3 +114,20 @@ def test_decomp_with_the_gpu_estimator_prepares_on_the_gpu_what_the_cpu_path_pre
     with pytest.raises(InputError) as err:
         make_predictor("decomp[estimator=raft]")
     assert "estimator" in str(err.value)
+
+
+@pytest.mark.parametrize("size", [(65, 97, 40), (5, 7, 0), (3, 200, 0)])
+def test_decomp_with_the_gpu_estimator_on_odd_and_tiny_frames(size):
+    """A size that is no multiple of the working-resolution block (blocks of 3: the box takes the rows and
+    columns past the last block), frames of a few pixels and a frame 3 px high, the gate off (one box: the
+    whole frame): the GPU's boxes give the CPU path's flow and a finite frame."""
+    h, w, flow_width = size
+    frames, objects = two_layer_sequence(4, width=w, height=h, camera_speed=0.02, object_speed=0.15)
+    name = f"decomp[estimator=gl,gate.enabled=false,flow_width={flow_width}]"
+    cpu, gl = make_predictor(name, objects, backend="cpu"), make_predictor(name, objects, backend="gl")
+    cpu_state, gl_state = cpu.prepare([frames[1], frames[3]]), gl.prepare([frames[1], frames[3]])
+    a, b = cpu.object_flow(cpu_state), gl.object_flow(gl_state)
+    assert b.shape == (h, w, 2) and np.isfinite(b).all()
+    assert np.mean(np.abs(a - b).max(axis=-1) < 0.05) >= 0.95
+    out = gl.render(gl_state, _target(frames[3]))
+    assert out.color.shape == (h, w, 3) and np.isfinite(out.color).all()

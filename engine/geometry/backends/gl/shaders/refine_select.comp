@@ -1,29 +1,20 @@
 // Refinement pass 4 (decomp's refinement check), per pixel of the box: the WINDOW x WINDOW means of both
 // errors (column sums of trust_blur_rows' row sums, BORDER_REFLECT within the box, in double as cv2.blur); the
 // pixel keeps the refined flow where its mean error plus ``margin`` is below the initial flow's, else the
-// initial flow, and no motion where frame n-k did not see the surface (engine.geometry.seen_before, as
-// trust_apply tests it), written into the flow (which may be the
-// initial flow's buffer: a pixel reads its own initial flow before it writes).
+// initial flow, and no motion where frame n-k did not see the surface (seen_common.glsl), written into the
+// flow (which may be the initial flow's buffer: a pixel reads its own initial flow before it writes).
 
 layout(std430, binding = 22) buffer FlowBuf { vec2 flow_[]; };                 // (H, W) written in the box
 layout(std430, binding = 30) readonly buffer InitBuf { vec2 init_[]; };        // (H, W) initial flow (may alias)
 layout(std430, binding = 25) readonly buffer RowsBuf { dvec2 rows_[]; };       // (h, w) row sums
 layout(std430, binding = 26) readonly buffer RefinedBuf { vec2 refined_[]; };  // (h, w)
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };     // (H, W) frame n, +inf sky
-#include "reproject.glsl"
 
 #include "trust_common.glsl"
+#include "seen_common.glsl"
 uniform ivec2 frame;      // H, W of frame n
 uniform ivec2 origin;     // (y0, x0) of the box
-uniform ivec2 prev_size;  // h, w of frame n-k
 uniform float margin;
-
-// frame n's pixel (x, y) reprojected into frame n-k lands in front of camera n-k and inside its image
-bool seen(int x, int y, float d) {
-    float uo, vo, hz;
-    if (!reproject_point(float(x) + 0.5, float(y) + 0.5, d, uo, vo, hz)) return false;
-    return uo >= 0.0 && uo < float(prev_size.y) && vo >= 0.0 && vo < float(prev_size.x);
-}
 
 void main() {
     uint i = invocation();

@@ -3,24 +3,14 @@
 // into camera n-k lands in front of it and inside its (h, w) image) and, for motion under ``small`` pixels,
 // where it explains frame n better than none: the WINDOW x WINDOW mean of moved_ below that of still_ by more
 // than ``margin`` levels. Elsewhere the flow is set to 0, in place.
-#include "reproject.glsl"
-
 layout(std430, binding = 1) readonly buffer DepthBuf { float depth_[]; };    // (H, W) frame n, +inf sky
 layout(std430, binding = 22) buffer FlowBuf { vec2 flow_[]; };               // (H, W)
 layout(std430, binding = 25) readonly buffer RowsBuf { dvec2 rows_[]; };      // (H, W) row sums
 
 #include "trust_common.glsl"
-uniform ivec2 prev_size;  // h, w of frame n-k
+#include "seen_common.glsl"
 uniform float small;
 uniform float margin;
-
-// frame n's pixel (x, y) reprojected into frame n-k (the matrix K_prev T_prev T_n^-1 [K_n^-1 0; 0 1]) lands
-// in front of camera n-k and inside its image
-bool seen(int x, int y, float d) {
-    float uo, vo, hz;
-    if (!reproject_point(float(x) + 0.5, float(y) + 0.5, d, uo, vo, hz)) return false;
-    return uo >= 0.0 && uo < float(prev_size.y) && vo >= 0.0 && vo < float(prev_size.x);
-}
 
 void main() {
     uint i = invocation();

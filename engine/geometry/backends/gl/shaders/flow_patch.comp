@@ -6,16 +6,8 @@
 // PROPAGATE (later sweeps) from the lowest mean-normalised SSD of the patch's own and its 4 neighbours'
 // previous flows (a parallel stand-in for DIS's sequential spatial propagation). The result is the last
 // iterate, or the start where that has a higher SSD or lies more than a patch away.
-#include "flow_common.glsl"
+#include "flow_patch_common.glsl"
 
-layout(std430, binding = 4) readonly buffer InitBuf { vec2 init_[]; };     // (H, W) initial dense flow
-layout(std430, binding = 5) writeonly buffer PatchBuf { vec2 patch_[]; };  // (rows, columns) patch flows
-layout(std430, binding = 8) readonly buffer PrevBuf { vec2 prev_[]; };     // previous sweep's patch flows
-
-uniform int iterations;
-
-const int N = PATCH * PATCH;
-const float EPS = 1e-2;  // Tikhonov term of the Hessian (levels^2): flat or 1-pixel patches stay put
 float tmpl[N];
 float gx[N];
 float gy[N];
@@ -38,16 +30,6 @@ float cost(int oy, int ox, vec2 u, out vec2 step) {
         step += vec2(gx[k], gy[k]) * d;
     }
     return ssd;
-}
-
-vec2 init_at(vec2 p) {
-    p = clamp(p, vec2(0.0), vec2(float(size.y - 1), float(size.x - 1)));
-    ivec2 f = ivec2(floor(p));
-    vec2 t = p - vec2(f);
-    ivec2 g = min(f + 1, ivec2(size.y - 1, size.x - 1));
-    vec2 top = mix(init_[f.y * size.y + f.x], init_[f.y * size.y + g.x], t.x);
-    vec2 bottom = mix(init_[g.y * size.y + f.x], init_[g.y * size.y + g.x], t.x);
-    return mix(top, bottom, t.y);
 }
 
 void main() {

@@ -7,18 +7,10 @@
 // sample and two reductions per invocation, over LANES times as many invocations.
 // All control flow around a reduction is uniform in the workgroup (barriers): neighbours outside the grid
 // and patches past the last are evaluated on a stand-in and their results dropped.
-#include "flow_common.glsl"
+#include "flow_patch_common.glsl"
 
-layout(std430, binding = 4) readonly buffer InitBuf { vec2 init_[]; };     // (H, W) initial dense flow
-layout(std430, binding = 5) writeonly buffer PatchBuf { vec2 patch_[]; };  // (rows, columns) patch flows
-layout(std430, binding = 8) readonly buffer PrevBuf { vec2 prev_[]; };     // previous sweep's patch flows
-
-uniform int iterations;
-
-const int N = PATCH * PATCH;
 // LANES (defined by flow.py: PATCH_LANES): invocations per patch, a power of two dividing LOCAL_SIZE
 const int PER_LANE = (N + LANES - 1) / LANES;    // pixels per invocation
-const float EPS = 1e-2;  // Tikhonov term of the Hessian (levels^2): flat or 1-pixel patches stay put
 
 // Two halves used in turn: a reduction reads its total from one half while the next writes the other, so
 // no barrier is needed after the read (and a compiler that sinks that read past a barrier, as llvmpipe's
@@ -68,16 +60,6 @@ float cost(int oy, int ox, vec2 u, out vec2 step, uint lane, uint base, float tm
     vec3 total = patch_sum(vec4(acc, 0.0), lane, base).xyz;
     step = total.yz;
     return total.x;
-}
-
-vec2 init_at(vec2 p) {
-    p = clamp(p, vec2(0.0), vec2(float(size.y - 1), float(size.x - 1)));
-    ivec2 f = ivec2(floor(p));
-    vec2 t = p - vec2(f);
-    ivec2 g = min(f + 1, ivec2(size.y - 1, size.x - 1));
-    vec2 top = mix(init_[f.y * size.y + f.x], init_[f.y * size.y + g.x], t.x);
-    vec2 bottom = mix(init_[g.y * size.y + f.x], init_[g.y * size.y + g.x], t.x);
-    return mix(top, bottom, t.y);
 }
 
 void main() {

@@ -36,8 +36,8 @@ trap 'kill $clocks 2>/dev/null' EXIT
 step gl_context 30 "$py" -c "from engine.geometry.backends import gl_renderer; print(gl_renderer())"
 step gl_tests 120 "$py" -m pytest -q -p no:cacheprovider tests/geometry/test_gl_flow.py tests/geometry/test_gl_frame.py \
     tests/geometry/test_gl_splat.py tests/geometry/test_gl_trust.py tests/predict/test_gl_backend.py \
-    tests/predict/test_gl_refine.py tests/tools/test_bench_backends.py tests/fields/test_glfield.py \
-    tests/fields/test_dynrender.py tests/runtime/test_session.py tests/runtime/test_server.py
+    tests/predict/test_gl_refine.py tests/predict/test_gl_gate.py tests/tools/test_bench_backends.py \
+    tests/fields/test_glfield.py tests/fields/test_dynrender.py tests/runtime/test_session.py tests/runtime/test_server.py
 step backends 180 "$py" -m tools.bench_backends --sizes 640x360,960x540,1920x1080 --repeats 2 \
     --methods "reproject,mvec,flow2d,flow2d[estimator=gl],flow2d[estimator=corr],decomp,decomp[estimator=gl]" \
     --out "$work/scenes" --json "$out/backends.json"

@@ -20,7 +20,8 @@ from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry import Mpi
 
-__all__ = ["GateConfig", "Box", "encode_color", "motion_residual", "motion_boxes", "gate_boxes"]
+__all__ = ["GateConfig", "Box", "encode_color", "motion_residual", "tile_counts", "boxes_from_counts", "motion_boxes",
+           "gate_boxes"]
 
 #: A box (y0, y1, x0, x1) of pixels, end exclusive.
 Box = tuple[int, int, int, int]
@@ -90,21 +91,29 @@ def motion_residual(mpi_n: Mpi, mpi_prev_warped: Mpi, color_threshold: float, de
     return cv2.erode(changed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
 
 
-def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: int, stride: int,
-                 full_frame_fraction: float, min_tiles: int = 1) -> list[Box]:
-    """Boxes (y0, y1, x0, x1) the network must see: moving tiles, grown by ``margin``, snapped to ``stride``.
-
-    A tile moves when more than ``tile_fraction`` of its pixels changed; groups of fewer than ``min_tiles``
-    connected moving tiles are dropped. Connected groups of moving tiles
-    (after growing by the margin) give one box each; when the boxes cover more than ``full_frame_fraction``
-    of the frame the whole frame is returned instead (one network call is then cheaper than many).
-    Returns [] when nothing moved.
-    """
+def tile_counts(changed: np.ndarray, tile: int) -> np.ndarray:
+    """(ceil(h / tile), ceil(w / tile)) int64: the changed pixels of each ``tile`` x ``tile`` tile of a (h, w)
+    bool mask (the last row and column of tiles may be partial)."""
     h, w = changed.shape
     th, tw = math.ceil(h / tile), math.ceil(w / tile)
-    padded = np.zeros((th * tile, tw * tile), dtype=np.float32)
+    padded = np.zeros((th * tile, tw * tile), dtype=np.int64)
     padded[:h, :w] = changed
-    moving = padded.reshape(th, tile, tw, tile).mean(axis=(1, 3)) > tile_fraction
+    return padded.reshape(th, tile, tw, tile).sum(axis=(1, 3))
+
+
+def boxes_from_counts(counts: np.ndarray, size: tuple[int, int], tile: int, tile_fraction: float, margin: int,
+                      stride: int, full_frame_fraction: float, min_tiles: int = 1) -> list[Box]:
+    """Boxes (y0, y1, x0, x1) the network must see, from the changed pixels per tile (``tile_counts``, or the
+    GPU's ``GlGate``) of a (h, w) = ``size`` frame: moving tiles, grown by ``margin``, snapped to ``stride``.
+
+    A tile moves when more than ``tile_fraction`` of its tile x tile pixels changed (a partial tile counts
+    the pixels outside the frame as unchanged); groups of fewer than ``min_tiles`` connected moving tiles are
+    dropped. Connected groups of moving tiles (after growing by the margin) give one box each; when the boxes
+    cover more than ``full_frame_fraction`` of the frame the whole frame is returned instead (one network call
+    is then cheaper than many). Returns [] when nothing moved.
+    """
+    h, w = size
+    moving = np.asarray(counts).astype(np.float32) / np.float32(tile * tile) > tile_fraction
     if min_tiles > 1 and moving.any():  # drop isolated groups of moving tiles (resampling noise, not objects)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(moving.astype(np.uint8), connectivity=8)
         moving = (stats[:, cv2.CC_STAT_AREA] >= min_tiles)[labels] & moving
@@ -123,6 +132,13 @@ def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: i
     if sum((b[1] - b[0]) * (b[3] - b[2]) for b in boxes) > full_frame_fraction * h * w:
         return [(0, h, 0, w)]
     return boxes
+
+
+def motion_boxes(changed: np.ndarray, tile: int, tile_fraction: float, margin: int, stride: int,
+                 full_frame_fraction: float, min_tiles: int = 1) -> list[Box]:
+    """``boxes_from_counts`` of a (h, w) bool mask of changed pixels (``tile_counts``)."""
+    return boxes_from_counts(tile_counts(changed, tile), changed.shape, tile, tile_fraction, margin, stride,
+                             full_frame_fraction, min_tiles)
 
 
 def gate_boxes(config: GateConfig, low_n: tuple, low_p: tuple, t_n: np.ndarray, t_p: np.ndarray,

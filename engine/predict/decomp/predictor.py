@@ -46,6 +46,7 @@ from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import Frame, SceneObject
 from engine.geometry import Mpi
 from engine.geometry.backends.gl.frame import GlFlow
+from engine.geometry.backends.gl.gate import GlGate
 from engine.geometry.backends.gl.refine import GlFlowRefine
 from engine.geometry.camera import reprojection_matrix
 from engine.geometry.holefill import fill_holes
@@ -53,7 +54,7 @@ from engine.geometry.mpi import plane_bounds
 from engine.predict.backend import gl_flow_estimators
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
-from engine.predict.decomp.gate import Box, GateConfig, gate_boxes
+from engine.predict.decomp.gate import Box, GateConfig, boxes_from_counts, gate_boxes
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import spread_plane, upsample_flow
@@ -129,7 +130,8 @@ class DecompState:
     ``boxes``: working-resolution boxes the network ran on; ``factor``: the downsampling; ``mpi``: the
     full-resolution one-plane MPI of frame n (made for ``fill=infill`` only, None otherwise); ``flow``: frame
     n's u(n -> n-k), (3, 1, H, W), or None when the gate found no motion or the flow was made on the GPU and
-    stays there (``motion``); ``plane_depths``: the network's planes (frame n's, at the working resolution);
+    stays there (``motion``); ``plane_depths``: the network's planes (frame n's, at the working resolution;
+    None where the GPU's gate found no motion: frame n was not downsampled on the CPU);
     ``network_fraction``: the share of the frame the network saw; ``infill_planes``: frame n's planes at the
     infilling network's Z, made on first use when it has other planes than the flow network; ``frame`` and
     ``motion``: frame n and its flow (H, W, 3) where the backend computes (on ``gl``: uploaded once, or a
@@ -140,7 +142,7 @@ class DecompState:
     factor: int
     mpi: Optional[Mpi]
     flow: Optional[np.ndarray]
-    plane_depths: np.ndarray
+    plane_depths: Optional[np.ndarray]
     network_fraction: float
     infill_planes: Optional[np.ndarray] = None
     frame: Optional[ResidentFrame] = None
@@ -274,6 +276,7 @@ class DecompPredictor(Predictor):
         self.objects = {o.id: o for o in objects}
         self._gl: Optional[tuple] = None  # (GlOpticalFlow, GlTrust) of estimator=gl
         self._refine: Optional[GlFlowRefine] = None
+        self._gate: Optional[GlGate] = None
         self.infill = None
         if config.fill == "infill":
             self.infill = infill if infill is not None else InfillNetwork(config.infill_model or DEFAULT_INFILL_MODEL,
@@ -286,22 +289,26 @@ class DecompPredictor(Predictor):
         size = newest.depth.shape
         factor = geometry.downsample_factor(size[1], cfg.flow_width or net.working_width)
         factor = min(factor, *size)
-        with timer("downsample"):
-            low_n, low_p = downsample(newest, factor), downsample(older, factor)
         t_p, t_n = older.camera.world_to_camera, newest.camera.world_to_camera
-        low_size = low_n[1].shape
-        if cfg.gate.enabled:
+        low_size = (size[0] // factor, size[1] // factor)  # downsample_frame's
+        boxes = None  # the gate's boxes: on the GPU first where frames are there
+        if cfg.gate.enabled and self._on_gpu():
+            boxes = self._gate_on_gpu(older, newest, factor, low_size, timer)
+        if boxes is None or boxes:  # for the CPU's gate or the network (not where the GPU's gate found no motion)
+            with timer("downsample"):
+                low_n, low_p = downsample(newest, factor), downsample(older, factor)
+        if boxes is None and cfg.gate.enabled:
             with timer("gate"):
                 boxes = gate_boxes(cfg.gate, low_n, low_p, t_n, t_p, net.stride)
-        else:
+        elif boxes is None:
             boxes = [(0, low_size[0], 0, low_size[1])]
-        planes = geometry.plane_depths(low_n[1], net.num_planes)  # the network's planes: frame n's, low resolution
-        flow, on_gpu = None, None
+        planes, flow, on_gpu = None, None, None
         if boxes:
+            planes = geometry.plane_depths(low_n[1], net.num_planes)  # the network's planes: frame n's, low resolution
             m_n, warped, corner = network_input(low_n, low_p, t_n, t_p, planes, boxes, timer)
             fulls = [full_box(box, factor, low_size, size) for box in boxes]
             net_input = (net, m_n, (warped, corner))
-            if net.needs_initial_flow and cfg.estimator == "gl" and self.frames.name == "gl":
+            if net.needs_initial_flow and cfg.estimator == "gl" and self._on_gpu():
                 on_gpu = self._boxes_on_gpu(state, boxes, fulls, factor, planes, net_input, timer)
             else:
                 flow = self._boxes_on_cpu(state, boxes, fulls, factor, planes, net_input, timer)
@@ -310,6 +317,25 @@ class DecompPredictor(Predictor):
                            / float(low_size[0] * low_size[1]))
         self._resident(state, data, timer, on_gpu)
         return data
+
+    def _on_gpu(self) -> bool:
+        """Whether frames n and n-k are on the GPU for the preparation (the ``gl`` backend, the simple fill)."""
+        return self.frames.name == "gl" and self.infill is None
+
+    def _gate_on_gpu(self, older: Frame, newest: Frame, factor: int, low_size: tuple[int, int],
+                     timer: Timer) -> list[Box]:
+        """``gate_boxes`` with the changed pixels counted per tile on the GPU (``GlGate``, stage ``gate``): only
+        the counts come back; the boxes are made from them as from the CPU's (``boxes_from_counts``)."""
+        gate = self.config.gate
+        if self._gate is None:
+            self._gate = GlGate(gate.color_threshold, gate.depth_threshold, gate.erode, gate.unseen, gate.tile)
+        frame_p, frame_n = self.frames.resident(older, timer), self.frames.resident(newest, timer)
+        with timer("gate"):
+            counts = self._gate.tile_counts(frame_n.image, frame_p.image, newest.camera.intrinsics,
+                                            newest.camera.world_to_camera, older.camera.intrinsics,
+                                            older.camera.world_to_camera, factor, gpu_ms=timer.gpu)
+            return boxes_from_counts(counts, low_size, gate.tile, gate.tile_fraction, gate.margin,
+                                     self.network.stride, gate.full_frame_fraction, gate.min_tiles)
 
     def _boxes_on_cpu(self, state: PreparedState, boxes: list, fulls: list, factor: int, planes: np.ndarray,
                       net_input: tuple, timer: Timer) -> np.ndarray:
@@ -353,8 +379,7 @@ class DecompPredictor(Predictor):
         estimator, trust = self._gl_estimators()
         if self._refine is None:
             self._refine = GlFlowRefine(REFINE_MARGIN, REFINE_WINDOW)
-        frame_n = self.frames.resident(newest, timer)
-        frame_p = self.frames.resident(older, timer)
+        frame_p, frame_n = self.frames.resident(older, timer), self.frames.resident(newest, timer)
         with timer("initial_flow"):
             flow = self.frames.estimate_flow_back(frame_p, frame_n, estimator, trust, Timer(gpu=timer.gpu))
             initial = flow if len(boxes) == 1 else flow.copy()

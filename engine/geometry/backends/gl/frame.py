@@ -309,28 +309,18 @@ class GlFrameWarper:
         n = h * w
         words = -(-n // 32)
         with gl.timing(gpu_ms):
-            channels = 3 if flow is None else flow.channels
+            moved = None
             if motion is not None:
                 with gl.gpu_stage("motion"):
                     self._extrapolate(image, motion, scale, k_src)
-                scale = 1.0
+                moved, scale = (pool["motion_flow"], 3), 1.0
             elif flow is not None:
-                flow.buffer.bind_to_storage_buffer(3)
-            else:
-                gl.buffer(pool, "no_flow", 16).bind_to_storage_buffer(3)
-            image.color.bind_to_storage_buffer(0)
-            image.depth.bind_to_storage_buffer(1)
-            for key, binding, nbytes in (("alpha", 2, 16), ("mids", 4, 16), ("index", 9, 16),
-                                         ("warped", 8, 16 * n), ("holes", 10, 4 * n), ("rowsrc", 11, 4 * n),
-                                         ("rowinfo", 12, 4 * h), ("links", 13, 8 * h), ("filled", 14, 12 * n),
-                                         ("mask", 15, 4 * words)):
-                gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-            defines = {"FRAME": 1, "FLOW_CHANNELS": channels}
-            uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, flow is not None or motion is not None,
-                                      scale)
-            uniforms.update(num_points=n, use_index=0)
+                moved = (flow.buffer, flow.channels)
             with gl.gpu_stage("warp"):
-                run_splat(gl, pool, defines, uniforms, n, n)
+                self.splat(image, matrix, sharpness, moved, scale)
+            for key, binding, nbytes in (("rowsrc", 11, 4 * n), ("rowinfo", 12, 4 * h), ("links", 13, 8 * h),
+                                         ("filled", 14, 12 * n), ("mask", 15, 4 * words)):
+                gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
             with gl.gpu_stage("fill"):
                 gl.clear_words(pool["mask"], 4 * words)
                 sizes = {"size": (h, w)}
@@ -360,6 +350,31 @@ class GlFrameWarper:
         if not readback:
             return out
         return (color, unpack_holes(mask, (h, w)), depth) if with_depth else (color, unpack_holes(mask, (h, w)))
+
+    def splat(self, image: GlImage, matrix: np.ndarray, sharpness: float = DEFAULT_SHARPNESS,
+              moved: Optional[tuple] = None, flow_scale: float = 1.0) -> tuple:
+        """The forward splat of ``image`` (``engine.geometry.forward_warp_frame`` without the fill) through the
+        float64 reprojection ``matrix`` (``reprojection_matrix``) onto a destination of the image's size, its
+        points moved by ``flow_scale`` x ``moved`` = (a (H, W, channels) float32 buffer, channels) when given.
+        Returns this warper's ``warped`` ((H, W, 4): r, g, b, depth; 0, 0, 0, +inf on holes) and ``holes`` ((H, W)
+        uint 0 / 1) buffers, bound to 8 and 10, overwritten by its next warp. GL thread only."""
+        gl, pool = self.gl, self._pool
+        h, w = image.shape
+        n = h * w
+        if moved is None:
+            gl.buffer(pool, "no_flow", 16).bind_to_storage_buffer(3)
+        else:
+            moved[0].bind_to_storage_buffer(3)
+        image.color.bind_to_storage_buffer(0)
+        image.depth.bind_to_storage_buffer(1)
+        for key, binding, nbytes in (("alpha", 2, 16), ("mids", 4, 16), ("index", 9, 16), ("warped", 8, 16 * n),
+                                     ("holes", 10, 4 * n)):
+            gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
+        defines = {"FRAME": 1, "FLOW_CHANNELS": 3 if moved is None else moved[1]}
+        uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, moved is not None, flow_scale)
+        uniforms.update(num_points=n, use_index=0)
+        run_splat(gl, pool, defines, uniforms, n, n)
+        return pool["warped"], pool["holes"]
 
     def encode8(self, color, shape: tuple[int, int]) -> np.ndarray:
         """The (H, W, 3) uint8 8-bit sRGB codes (``engine.geometry.encoding.encode8``'s, bit for bit) of a

@@ -11,6 +11,8 @@ in-between frame without a new upload. ``gl`` adds the GPU milliseconds of its s
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from engine.core.frames import Frame
@@ -40,14 +42,25 @@ class GlFrames:
 
     def __init__(self, warper=None) -> None:
         self.warper = GlFrameWarper() if warper is None else warper
+        self._kept: list[ResidentFrame] = []  # the two frames asked for last (``resident``)
+        self._lock = threading.Lock()
 
     def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
         """The frame uploaded: its 8-bit codes decoded on the GPU where it has them (``Frame.color_codes``),
-        else its float colour."""
-        with timer("upload"):
-            if frame.color_codes is not None:
-                return ResidentFrame(frame, self.warper.upload_codes(frame.color_codes, frame.depth))
-            return ResidentFrame(frame, self.warper.upload(frame.color, frame.depth))
+        else its float colour. Uploaded once: the two frames asked for last are kept (by identity: a frame's
+        arrays must not change once it was handed over), so a method that asks for frame n-k before frame n
+        finds frame n of its last preparation there."""
+        with self._lock:
+            kept = next((r for r in self._kept if r.frame is frame), None)
+        if kept is None:
+            with timer("upload"):
+                if frame.color_codes is not None:
+                    kept = ResidentFrame(frame, self.warper.upload_codes(frame.color_codes, frame.depth))
+                else:
+                    kept = ResidentFrame(frame, self.warper.upload(frame.color, frame.depth))
+        with self._lock:
+            self._kept = [r for r in self._kept if r is not kept][-1:] + [kept]
+        return kept
 
     def resident_flow(self, flow, timer: Timer):
         """A flow (H, W, 2|3) uploaded as a ``GlFlow``, or a ``PointMotion`` as a ``GlMotion`` (its moving

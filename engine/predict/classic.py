@@ -98,9 +98,9 @@ class Flow2D(Predictor):
     def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:
         older, newest = state.history[-2], state.history[-1]
         if self.estimator == "gl" and self.frames.name == "gl":  # every stage on the GPU, nothing read back
+            previous = self.frames.resident(older, timer)  # n-k first: it is frame n of the last preparation
             frame = self.frames.resident(newest, timer)
-            flow = self.frames.estimate_flow_back(self.frames.resident(older, timer), frame, *self._gl_estimators(),
-                                                  timer)
+            flow = self.frames.estimate_flow_back(previous, frame, *self._gl_estimators(), timer)
             return Flow2DState(None, frame, flow)
         target = Target(newest.camera, newest.time, newest.index)
         depth_w = None

@@ -14,7 +14,8 @@ import pytest
 from engine.core.errors import InputError
 from engine.geometry import backends
 from engine.geometry.backends import gl as glb
-from engine.predict import Target, make_predictor
+from engine.predict import GlFrames, Target, make_predictor
+from engine.predict.base import Timer
 from tests.synthetic import two_layer_sequence, with_vectors
 
 if not glb.available():
@@ -50,6 +51,26 @@ def test_gl_predicts_what_the_cpu_predicts(method):
     assert "upload" in gl_state.stages_ms
     if method == "flow2d[estimator=corr]":  # the RGB-D network's frame n-k (colour and depth) warped on the GPU
         assert "warp" in gl_state.gpu_ms and "warp" not in cpu_state.gpu_ms
+
+
+def test_a_frame_is_uploaded_once():
+    """``GlFrames.resident`` keeps the two frames asked for last: frame n of one preparation is frame n-k of the
+    next, and ``flow2d`` on ``gl`` uploads one frame per rendered frame."""
+    frames, _ = two_layer_sequence(5, width=32, height=24)
+    backend = GlFrames()
+    timer = Timer()
+    first = backend.resident(frames[0], timer)
+    assert "upload" in timer.into and backend.resident(frames[0], Timer()) is first
+    backend.resident(frames[1], Timer())
+    backend.resident(frames[2], Timer())  # frames[0] was asked for least recently: dropped
+    again = Timer()
+    assert backend.resident(frames[0], again) is not first and "upload" in again.into
+    predictor = make_predictor("flow2d", backend="gl")
+    predictor.prepare([frames[1], frames[2]])
+    timer = Timer()
+    state = predictor.prepare([frames[2], frames[3]])
+    assert state.data.frame.frame is frames[3] and predictor.frames.resident(frames[2], timer).frame is frames[2]
+    assert "upload" not in timer.into
 
 
 def test_methods_without_gl_passes_stay_on_the_cpu():

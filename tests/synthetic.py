@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 
 from engine.core.frames import Camera, Frame, SceneObject, rigid_inverse
@@ -88,3 +89,20 @@ def with_vectors(frames: list[Frame], objects: list[SceneObject], older: int, ne
     motions = {o.id: o.world_from_object[older] @ rigid_inverse(o.world_from_object[newest]) for o in objects}
     vectors = rigid_motion_vectors(frame.depth, frame.camera, frames[older].camera, frame.object_id, motions)
     return dataclasses.replace(frame, motion_vectors=vectors)
+
+
+def smooth_noise(rng: np.random.Generator, shape: tuple, scale: float, cell: int = 6) -> np.ndarray:
+    """float32 noise of ``shape`` (H, W, ...) smooth over about ``cell`` pixels, standard deviation about
+    ``scale``: bicubic upsampling of a coarse normal grid."""
+    noise = rng.normal(0, 1, (shape[0] // cell + 3, shape[1] // cell + 3) + tuple(shape[2:])).astype(np.float32)
+    big = cv2.resize(noise, (shape[1] + 3 * cell, shape[0] + 3 * cell), interpolation=cv2.INTER_CUBIC)
+    return scale * big[:shape[0], :shape[1]]
+
+
+def turned_pose(tx: float, yaw: float) -> np.ndarray:
+    """World-to-camera (4, 4): a camera turned by ``yaw`` radians about y and moved by ``tx`` along x."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    t = np.eye(4)
+    t[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    t[0, 3] = tx
+    return t

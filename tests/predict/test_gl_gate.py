@@ -6,7 +6,6 @@ residual's arithmetic is numpy's; the GL splat may differ from the CPU's on rare
 they are equal)."""
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -19,24 +18,10 @@ from engine.predict import Target, make_predictor
 from engine.predict.base import Timer
 from engine.predict.decomp.gate import (GateConfig, boxes_from_counts, gate_boxes, motion_boxes, motion_residual,
                                         tile_counts)
-from tests.synthetic import two_layer_sequence
+from tests.synthetic import smooth_noise, turned_pose, two_layer_sequence
 
 if not glb.available():
     pytest.skip("no EGL context with compute shaders", allow_module_level=True)
-
-
-def smooth(rng, shape, scale, cell=8):
-    noise = rng.normal(0, 1, (shape[0] // cell + 3, shape[1] // cell + 3) + shape[2:]).astype(np.float32)
-    big = cv2.resize(noise, (shape[1] + 3 * cell, shape[0] + 3 * cell), interpolation=cv2.INTER_CUBIC)
-    return scale * big[:shape[0], :shape[1]]
-
-
-def pose(tx: float, yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    t = np.eye(4)
-    t[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-    t[0, 3] = tx
-    return t
 
 
 def frames(seed: int, size=(120, 208), move=True):
@@ -44,11 +29,11 @@ def frames(seed: int, size=(120, 208), move=True):
     band of frame n is new to it), and, with ``move``, a box that moved between them."""
     rng = np.random.default_rng(seed)
     h, w = size
-    color_p = np.clip(0.4 + smooth(rng, size + (3,), 0.3), 0, None).astype(np.float32)
-    depth_p = np.exp(1.2 + smooth(rng, size, 0.5, cell=14)).astype(np.float32)
+    color_p = np.clip(0.4 + smooth_noise(rng, size + (3,), 0.3), 0, None).astype(np.float32)
+    depth_p = np.exp(1.2 + smooth_noise(rng, size, 0.5, cell=14)).astype(np.float32)
     depth_p[:10, w // 3:2 * w // 3] = np.inf
     k = np.array([[0.8 * w, 0, w / 2], [0, 0.8 * w, h / 2], [0, 0, 1]])
-    t_p, t_n = pose(0.0, 0.0), pose(0.12, 0.06)
+    t_p, t_n = turned_pose(0.0, 0.0), turned_pose(0.12, 0.06)
     color_n, depth_n, holes = geometry.forward_warp_frame(color_p, depth_p, k, t_p, k, t_n)
     color_n = fill_holes(color_n, depth_n, holes, color_n)[0]
     depth_n = np.where(holes, depth_p.max(where=np.isfinite(depth_p), initial=1.0), depth_n).astype(np.float32)

@@ -6,7 +6,6 @@ and the reprojection are the CPU's arithmetic: on llvmpipe the flows are equal t
 0.1 % of pixels a hair apart for a GPU driver."""
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
@@ -19,23 +18,10 @@ from engine.geometry.mpi import plane_bounds
 from engine.predict.base import Timer
 from engine.predict.decomp.predictor import REFINE_MARGIN, REFINE_WINDOW, InitialFlow, full_box, refine_box
 from engine.predict.decomp.upsample import spread_plane
+from tests.synthetic import smooth_noise, turned_pose
 
 if not glb.available():
     pytest.skip("no EGL context with compute shaders", allow_module_level=True)
-
-
-def smooth(rng, shape, scale, cell=6):
-    noise = rng.normal(0, 1, (shape[0] // cell + 3, shape[1] // cell + 3) + shape[2:]).astype(np.float32)
-    big = cv2.resize(noise, (shape[1] + 3 * cell, shape[0] + 3 * cell), interpolation=cv2.INTER_CUBIC)
-    return scale * big[:shape[0], :shape[1]]
-
-
-def look_at_pose(tx: float, yaw: float) -> np.ndarray:
-    c, s_ = np.cos(yaw), np.sin(yaw)
-    t = np.eye(4)
-    t[:3, :3] = [[c, 0, s_], [0, 1, 0], [-s_, 0, c]]
-    t[0, 3] = tx
-    return t
 
 
 def inputs(seed: int, size=(70, 101), factor=3):
@@ -43,14 +29,14 @@ def inputs(seed: int, size=(70, 101), factor=3):
     both lumas, an initial flow (some of it pointing outside the frame), and the network's planes."""
     rng = np.random.default_rng(seed)
     h, w = size
-    luma_n = np.clip(128 + smooth(rng, size, 60), 0, 255).astype(np.uint8)
-    target = np.clip(luma_n.astype(np.float32) + smooth(rng, size, 12), 0, 255).astype(np.uint8)
-    flow = smooth(rng, size + (2,), 4.0)
+    luma_n = np.clip(128 + smooth_noise(rng, size, 60), 0, 255).astype(np.uint8)
+    target = np.clip(luma_n.astype(np.float32) + smooth_noise(rng, size, 12), 0, 255).astype(np.uint8)
+    flow = smooth_noise(rng, size + (2,), 4.0)
     flow[:3, :5] = -30.0  # samples outside the target: an error of 255
-    depth = np.exp(1.0 + smooth(rng, size, 0.6, cell=10)).astype(np.float32)
+    depth = np.exp(1.0 + smooth_noise(rng, size, 0.6, cell=10)).astype(np.float32)
     depth[:6, 40:70] = np.inf  # sky
     k = np.array([[60.0, 0, w / 2], [0, 60.0, h / 2], [0, 0, 1]])
-    t_n, t_p = look_at_pose(0.0, 0.0), look_at_pose(0.4, 0.12)
+    t_n, t_p = turned_pose(0.0, 0.0), turned_pose(0.4, 0.12)
     planes = geometry.plane_depths(depth[::factor, ::factor], 2)
     seen = geometry.seen_before(depth, k, t_n, k, t_p, size)
     assert 0.05 < (~seen).mean() < 0.6

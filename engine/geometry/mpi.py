@@ -156,6 +156,14 @@ def downsample_factor(width: int, working_width: int) -> int:
     return max(1, -(-int(width) // int(working_width)))
 
 
+def downsampled_intrinsics(intrinsics: np.ndarray, factor: int) -> np.ndarray:
+    """(3, 3) float64 intrinsics of a frame block-downsampled by ``factor`` (``downsample_frame``): pixel ``i`` spans
+    source pixels ``[f i, f (i + 1))``, so with pixel centres at +0.5 the x- and y-rows of K are divided by f."""
+    out = np.array(intrinsics, dtype=np.float64)
+    out[:2] /= int(factor)
+    return out
+
+
 def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
                      factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Block-downsample an RGB-D frame by an integer ``factor`` (the flow network's working resolution).
@@ -191,9 +199,8 @@ def downsample_frame(color: np.ndarray, depth: np.ndarray, intrinsics: np.ndarra
         for dx in range(f):
             if dy or dx:
                 np.minimum(out_depth, depth[dy:h * f:f, dx:w * f:f], out=out_depth)
-    out_k = np.array(k, dtype=np.float64)
-    out_k[:2] /= f
-    return out_color.astype(np.float32), np.ascontiguousarray(out_depth, dtype=np.float32), out_k
+    return (out_color.astype(np.float32), np.ascontiguousarray(out_depth, dtype=np.float32),
+            downsampled_intrinsics(k, f))
 
 
 def downsample_flow(flow: np.ndarray, factor: int) -> np.ndarray:

@@ -24,6 +24,7 @@ from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.frame import GlFrameWarper, GlImage
 from engine.geometry.backends.gl.splat import reprojection_uniforms
 from engine.geometry.camera import reprojection_matrix
+from engine.geometry.mpi import downsampled_intrinsics
 from engine.geometry.splat import DEFAULT_SHARPNESS
 
 __all__ = ["GlGate"]
@@ -62,10 +63,8 @@ class GlGate:
             raise InputError(f"must be between 1 and the frame's smaller side {min(big_h, big_w)}, got {factor}",
                              field="factor")
         low = (big_h // f, big_w // f)
-        k_n = checked_matrix(K_n, "K_n", 3).astype(np.float64)
-        k_p = checked_matrix(K_p, "K_p", 3).astype(np.float64)
-        k_n[:2] /= f  # downsample_frame's intrinsics: the x- and y-rows over f
-        k_p[:2] /= f
+        k_n = downsampled_intrinsics(checked_matrix(K_n, "K_n", 3), f)
+        k_p = downsampled_intrinsics(checked_matrix(K_p, "K_p", 3), f)
         t_n, t_p = checked_matrix(T_n, "T_n", 4), checked_matrix(T_p, "T_p", 4)
         warp = reprojection_matrix(k_p, t_p, k_n, t_n)  # frame n-k's pixels into frame n's view
         back = reprojection_matrix(k_n, t_n, k_p, t_p)  # frame n's pixels into frame n-k's (seen before)

@@ -21,7 +21,6 @@ around the cube; the command fails above ``--tolerance``.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Optional, Union
@@ -30,16 +29,15 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from export.field import OPSET, example_points, export_command, mlp_layers, quantize_planes, run_as_script, strip_debug
+from export.field import example_points, export_command, run_as_script, strip_debug
+from models.fields.assets import DYNAMIC_FORMAT, DYNAMIC_VERSION, OPSET, dynamic_assets
 from models.fields.dynamic.model import DynamicFieldModel
-from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.train_dynamic import load_dynamic_model
 
 __all__ = ["DynamicQueryGraph", "export_dynamic", "check_parity", "example_queries", "main", "ASSET_FORMAT",
            "ASSET_VERSION"]
 
-ASSET_FORMAT = "interleave-dynamic-field"
-ASSET_VERSION = 1
+ASSET_FORMAT, ASSET_VERSION = DYNAMIC_FORMAT, DYNAMIC_VERSION
 
 
 class DynamicQueryGraph(nn.Module):
@@ -93,24 +91,6 @@ def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, time
             "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
 
 
-def _planes(model) -> dict[str, list[Tensor]]:
-    """Every plane group by name (what the manifest lists)."""
-    field = model.field
-    if model.has_motion:
-        return {"canonical_spatial": field.canonical_field.spatial_planes(),
-                "motion_spatial": field.motion_field.spatial_planes(),
-                "motion_temporal": field.motion_field.temporal_planes()}
-    return {"spatial": field.encoding.spatial_planes(), "temporal": field.encoding.temporal_planes()}
-
-
-def _mlps(model) -> dict[str, nn.Module]:
-    field = model.field
-    if model.has_motion:
-        return {"density": field.canonical_field.density_mlp, "color": field.canonical_field.color_mlp,
-                "flow": field.motion_field.flow_mlp}
-    return {"density": field.density_mlp, "color": field.color_mlp}
-
-
 def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict:
     """Write ``dynamic.onnx``, ``dynamic.npz`` and ``dynamic.json`` for the run into ``out_dir``; returns the
     manifest (with the parity of onnxruntime against torch under ``parity``)."""
@@ -129,70 +109,11 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     program.save(str(onnx_path))
     strip_debug(onnx_path)
 
-    arrays: dict[str, np.ndarray] = {}
-    planes_meta: dict[str, list] = {}
-    for group, tensors in _planes(model).items():
-        planes_meta[group] = []
-        for i, plane in enumerate(tensors):
-            p = plane.detach().float().numpy()
-            codes, ranges = quantize_planes(p)
-            key = f"{group}_{i}"
-            arrays[key], arrays[f"{key}_u8"], arrays[f"{key}_range"] = p, codes, ranges
-            planes_meta[group].append({"scale": i, "shape": list(p.shape), "float": key, "uint8": f"{key}_u8",
-                                       "range": f"{key}_range"})
-    mlps = {}
-    for name, mlp in _mlps(model).items():
-        layers = []
-        for j, lin in enumerate(mlp_layers(mlp)):
-            arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()
-            arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
-            layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}", "in": int(lin.in_features),
-                           "out": int(lin.out_features)})
-        mlps[name] = layers
-    occupancy = None
-    if model.occupancy is not None and int(model.occupancy.updates) > 0:
-        arrays["occupancy"] = model.occupancy.occupied.numpy().astype(np.uint8)
-        occupancy = {"array": "occupancy", "resolution": int(model.occupancy.resolution),
-                     "occupied_fraction": float(model.occupancy.occupied.float().mean()),
-                     "time_agnostic": "max over trained times"}
-    np.savez_compressed(out / "dynamic.npz", **arrays)
-
-    cfg = model.config
-    rc = model.render_config
-    canonical_cfg = cfg.canonical
     limit = None
     if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "scores.json").is_file():
         limit = json.loads((Path(run_dir) / "scores.json").read_text()).get("canonical_limit")
-    t0, t1 = model.time_range
-    manifest = {
-        "format": ASSET_FORMAT, "version": ASSET_VERSION, "kind": cfg.kind,
-        "scene": model.scene.to_dict(), "background": [float(x) for x in model.background],
-        "render": {"num_samples": int(rc.num_samples), "spacing": "linear" if model.bounded else "disparity",
-                   "ndc_margin": float(rc.ndc_margin)},
-        "time": {"range": [t0, t1], "normalised": "tau = clamp(2 (t - t_min) / (t_max - t_min) - 1, -1, 1); 0 when "
-                                                  "t_max = t_min", "time_resolution": int(model.time_resolution)},
-        "field": {
-            "spatial_plane_axes": [[0, 1], [0, 2], [1, 2]],
-            "temporal_plane_axes": "xt, yt, zt: spatial coordinate along the width, tau along the height",
-            "feature_combine": "per scale, product over the group's planes (hex-planes: all six); scales "
-                               "concatenated",
-            "planes": planes_meta, "mlps": mlps, "density_bias": float(canonical_cfg.density_bias),
-            "max_log_density": MAX_LOG_DENSITY, "geo_feature_dim": int(canonical_cfg.geo_feature_dim),
-            "direction_encoding": canonical_cfg.direction_encoding,
-            "direction_degree": int(canonical_cfg.direction_degree),
-            **({"time_frequencies": int(cfg.time_frequencies),
-                "color_input": "[h, direction encoding, fourier(tau): tau, sin(2^k tau), cos(2^k tau)]",
-                "max_flow": float(cfg.motion.max_flow),  # the flow bound as a number (renderers read it)
-                "flow": f"{float(cfg.motion.max_flow)} * tanh(flow MLP(motion features)) in contracted units; "
-                        "canonical = contracted point + flow, clamped to [-1, 1] for the canonical lookup"}
-               if model.has_motion else {"color_input": "[h, direction encoding]"}),
-        },
-        "occupancy": occupancy,
-        "onnx": {"file": "dynamic.onnx", "inputs": ["points", "times", "directions"],
-                 "outputs": ["density", "color"], "opset": OPSET},
-        "canonical_limit": limit,
-        "field_config": dataclasses.asdict(cfg),
-    }
+    arrays, manifest = dynamic_assets(model, canonical_limit=limit)
+    np.savez_compressed(out / "dynamic.npz", **arrays)
     rp, rt, rd = example_queries(model, 8192, seed=1)
     manifest["parity"] = {"random_points": check_parity(onnx_path, model, rp, rt, rd)}
     (out / "dynamic.json").write_text(json.dumps(manifest, indent=2) + "\n")

@@ -20,7 +20,6 @@ scored by rendering a view with float and with uint8 planes (PSNR between the tw
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -36,7 +35,7 @@ from engine.eval.metrics import psnr
 from models.fields.components.render import render_image
 from models.fields.components.sampling import camera_rays, sample_intervals
 from models.fields.data.select import load_run_views
-from models.fields.static.field import MAX_LOG_DENSITY
+from models.fields.assets import OPSET, STATIC_FORMAT, STATIC_VERSION, mlp_layers, quantize_planes, static_assets
 from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
@@ -47,9 +46,7 @@ __all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance"
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
 DISPLAY_LEVELS = 255
 
-ASSET_FORMAT = "interleave-field"
-ASSET_VERSION = 1
-OPSET = 20
+ASSET_FORMAT, ASSET_VERSION = STATIC_FORMAT, STATIC_VERSION
 
 
 class FieldQueryGraph(nn.Module):
@@ -155,23 +152,6 @@ def parity_tolerance(levels: int = DISPLAY_LEVELS) -> float:
     return 1.0 / (2.0 * levels * SRGB_LINEAR_SLOPE)
 
 
-def quantize_planes(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3, C, R, R) float -> uint8 codes (3, C, R, R) and ranges (3, C, 2) [min, max] per plane and channel.
-
-    Decoding is ``min + code / 255 * (max - min)``; a constant channel has max == min and decodes exactly.
-    """
-    lo = plane.min(axis=(2, 3))
-    hi = plane.max(axis=(2, 3))
-    span = np.where(hi > lo, hi - lo, 1.0)
-    codes = np.rint((plane - lo[..., None, None]) / span[..., None, None] * 255.0).clip(0, 255).astype(np.uint8)
-    return codes, np.stack([lo, hi], axis=-1).astype(np.float32)
-
-
-def mlp_layers(mlp: nn.Module) -> list[nn.Linear]:
-    """The linear layers of an ``MLP`` (``models.fields.components.encodings``), input to output."""
-    return [m for m in mlp.net if isinstance(m, nn.Linear)]
-
-
 def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=None,
                  quantize_check: bool = True) -> dict:
     """Write ``field.onnx``, ``field.npz`` and ``field.json`` for the run into ``out_dir``; returns the manifest.
@@ -198,51 +178,8 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
     program.save(str(onnx_path))
     strip_debug(onnx_path)
 
-    cfg = model.field.config
-    arrays: dict[str, np.ndarray] = {}
-    planes_meta = []
-    for i, plane in enumerate(model.field.encoding.planes):
-        p = plane.detach().float().numpy()
-        codes, ranges = quantize_planes(p)
-        arrays[f"planes_{i}"] = p
-        arrays[f"planes_{i}_u8"] = codes
-        arrays[f"planes_{i}_range"] = ranges
-        planes_meta.append({"scale": i, "resolution": int(p.shape[-1]), "channels": int(p.shape[1]),
-                            "float": f"planes_{i}", "uint8": f"planes_{i}_u8", "range": f"planes_{i}_range"})
-    mlps = {}
-    for name, mlp in (("density", model.field.density_mlp), ("color", model.field.color_mlp)):
-        layers = []
-        for j, lin in enumerate(mlp_layers(mlp)):
-            arrays[f"{name}_w{j}"] = lin.weight.detach().float().numpy()  # (out, in): y = W x + b
-            arrays[f"{name}_b{j}"] = lin.bias.detach().float().numpy()
-            layers.append({"weight": f"{name}_w{j}", "bias": f"{name}_b{j}",
-                           "in": int(lin.in_features), "out": int(lin.out_features)})
-        mlps[name] = layers
-    occupancy = None
-    if model.occupancy is not None and int(model.occupancy.updates) > 0:
-        arrays["occupancy"] = model.occupancy.occupied.numpy().astype(np.uint8)
-        occupancy = {"array": "occupancy", "resolution": int(model.occupancy.resolution),
-                     "occupied_fraction": float(model.occupancy.occupied.float().mean())}
+    arrays, manifest = static_assets(model)
     np.savez_compressed(out / "field.npz", **arrays)
-
-    rc = model.render_config
-    manifest = {
-        "format": ASSET_FORMAT, "version": ASSET_VERSION,
-        "scene": model.scene.to_dict(),
-        "background": [float(x) for x in model.background],
-        "render": {"num_samples": int(rc.num_samples), "spacing": "linear" if model.bounded else "disparity",
-                   "ndc_margin": float(rc.ndc_margin)},
-        "field": {"plane_axes": [[0, 1], [0, 2], [1, 2]], "planes": planes_meta,
-                  "feature_combine": "product over planes, concatenated over scales",
-                  "density_bias": float(cfg.density_bias), "max_log_density": MAX_LOG_DENSITY,
-                  "geo_feature_dim": int(cfg.geo_feature_dim),
-                  "direction_encoding": cfg.direction_encoding, "direction_degree": int(cfg.direction_degree),
-                  "mlps": mlps},
-        "occupancy": occupancy,
-        "onnx": {"file": "field.onnx", "inputs": ["points", "directions"], "outputs": ["density", "color"],
-                 "opset": OPSET},
-        "field_config": dataclasses.asdict(cfg),
-    }
     rand_pts, rand_dirs = example_points(model, 8192, seed=1)
     parity = {"random_points": check_parity(onnx_path, model, rand_pts, rand_dirs)}
     camera = _first_test_camera(run_dir, views)

@@ -40,9 +40,10 @@ from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFiel
 from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
 from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.static.model import RenderConfig, SceneBox
-from models.fields.trainer import (DEVICES, RunConfig, apply_loss_weights, check_run, json_safe, resolve_device,
-                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
-                                   validate_run_config, view_list)
+from models.fields.trainer import (DEVICES, RunConfig, add_renderer_option, apply_loss_weights, check_run,
+                                   gl_view_renderer, json_safe, resolve_device, resolve_renderer, run_config_from_file,
+                                   run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
+                                   view_list)
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
@@ -334,9 +335,13 @@ def canonical_limit(per_time: list[dict], crossings: dict, *, outside_excess: fl
             "psnr_unflagged": float(np.mean(psnr_u)) if psnr_u else float("nan")}
 
 
+#: With ``--renderer gl`` the motion diagnostics come from a torch render this many times smaller per side.
+DIAGNOSTICS_STRIDE = 4
+
+
 def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedViews, *, chunk: int = 8192,
                      with_flip: bool = True, return_images: bool = False,
-                     context_views: Optional[TimedViews] = None) -> dict[str, Any]:
+                     context_views: Optional[TimedViews] = None, renderer: str = "torch") -> dict[str, Any]:
     """Render every view at its time and score it; the keys of ``models.fields.train_static.evaluate_field`` plus
     the model's size, per-time diagnostics, the flow histogram and the canonical-volume check.
 
@@ -347,6 +352,9 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     in ``FLOW_BINS``, by count and by rendering weight (the visible mass); ``flow_moving_fraction``: the share
     of the visible mass whose |flow| exceeds 0.01; ``canonical_limit``: :func:`canonical_limit`, with the
     border crossings found in ``views`` and ``context_views`` (e.g. the training views: they are not rendered).
+    ``renderer`` as ``evaluate_field``'s: with ``gl`` the images are the GL renderer's and the motion
+    diagnostics (which need the samples) come from a torch render of each view at 1/``DIAGNOSTICS_STRIDE`` of its
+    width and height (the same rays' statistics, subsampled).
 
     Raises:
         InputError: bad views, or a view whose time lies outside the model's trained range.
@@ -358,19 +366,28 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     outside, evaluated = [], []
     counts, mass = np.zeros(len(edges) - 1, np.int64), np.zeros(len(edges) - 1)
 
+    kind = resolve_renderer(renderer)
+    gl = gl_view_renderer(model, views) if kind == "gl" else None
+    stride = DIAGNOSTICS_STRIDE if gl is not None else 1
+
     def render_view(i: int, cam) -> dict:
         nonlocal counts, mass
         at = AtTime(model, float(views.times[i]), flow_bins=edges)
-        out = render_image(at, cam.intrinsics, cam.world_to_camera, views.height, views.width, model.scene.near,
-                           model.scene.far, chunk=chunk)
+        k = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(cam.intrinsics, np.float64)
+        out = render_image(at, k, cam.world_to_camera, max(1, views.height // stride),
+                           max(1, views.width // stride), model.scene.near, model.scene.far, chunk=chunk)
         outside.append(at.outside)
         evaluated.append(at.evaluated)
         counts += at.flow_counts
         mass += at.flow_mass
-        return out
+        return out if gl is None else gl.render(cam.intrinsics, cam.world_to_camera, float(views.times[i]))
 
-    scores, psnrs, images = score_views(model, views, render_view, with_flip=with_flip,
-                                        return_images=return_images)
+    try:
+        scores, psnrs, images = score_views(model, views, render_view, with_flip=with_flip,
+                                            return_images=return_images)
+    finally:
+        if gl is not None:
+            gl.release()
     per_time = []
     for t in np.unique(views.times):
         sel = np.flatnonzero(views.times == t)
@@ -382,6 +399,7 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
                           else float("nan")),
         **model_bytes(model),
         "kind": model.config.kind,
+        "renderer": kind,
         "flow_histogram": {"edges": [float(e) for e in edges], "samples": [int(c) for c in counts],
                            "visible_mass": [float(m) for m in mass]},
         "flow_moving_fraction": float(mass[3:].sum() / mass.sum()) if mass.sum() > 0 else 0.0,
@@ -431,6 +449,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="JSON with any DynamicTrainConfig fields; command-line options override it")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
+    add_renderer_option(parser)
     add_options(parser, DynamicTrainConfig, skip=("priors_choice",))
     args = parser.parse_args(argv)
     if args.threads:
@@ -453,7 +472,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
         run = train_dynamic(train, config, out, device=str(device))
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")
-        scores = evaluate_dynamic(run, test, with_flip=not args.no_flip, context_views=train)
+        scores = evaluate_dynamic(run, test, with_flip=not args.no_flip, context_views=train,
+                                  renderer=args.renderer)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -473,8 +493,8 @@ def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval dyn
         argv, prog, "Render a trained dynamic field's held-out views at their times and print PSNR, SSIM, FLIP, "
                     "depth MAE, train and render time, model size and the motion diagnostics.",
         "interleave train dynamic", load_dynamic_run_views,
-        lambda run, test, train, with_flip, images: evaluate_dynamic(run, test, with_flip=with_flip,
-                                                                     return_images=images, context_views=train),
+        lambda run, test, train, with_flip, images, renderer: evaluate_dynamic(
+            run, test, with_flip=with_flip, return_images=images, context_views=train, renderer=renderer),
         lambda run, train, test: {"run": str(run), "train_views": len(train), "test_views": len(test),
                                   "image_size": [test.height, test.width]},
         splits=DYNAMIC_TEST_SPLITS)

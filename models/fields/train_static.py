@@ -31,9 +31,10 @@ from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_priors,
                                         with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.trainer import (DEVICES, RunConfig, apply_loss_weights, check_run, json_safe, rank_correlation,
-                                   resolve_device, run_config_from_file, run_eval_command, run_train_seconds,
-                                   score_views, train_run, validate_run_config, view_list)
+from models.fields.trainer import (DEVICES, RunConfig, add_renderer_option, apply_loss_weights, check_run,
+                                   gl_view_renderer, json_safe, rank_correlation, resolve_device, resolve_renderer,
+                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
+                                   validate_run_config, view_list)
 
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
@@ -162,22 +163,34 @@ def load_model(run_dir: str | Path) -> StaticFieldModel:
 
 
 def evaluate_field(run_or_model: str | Path | StaticFieldModel, views: Views, *, chunk: int = 8192,
-                   with_flip: bool = True, return_images: bool = False) -> dict[str, Any]:
+                   with_flip: bool = True, return_images: bool = False, renderer: str = "torch") -> dict[str, Any]:
     """Render every view and score it against the truth: :func:`models.fields.trainer.score_views` (PSNR,
     SSIM, FLIP on display-encoded images over the whole frame, depth MAE and rank correlation, median render
-    time per view) plus ``train_seconds``, the run's training wall time (NaN for a bare model).
+    time per view) plus ``train_seconds``, the run's training wall time (NaN for a bare model), and
+    ``renderer``. ``renderer`` (:func:`models.fields.trainer.resolve_renderer`): ``torch`` renders with the
+    training code (the oracle), ``gl`` with the real-time GL renderer of the same field
+    (:func:`models.fields.trainer.gl_view_renderer`), ``auto`` with gl where a GL context can be made.
     ``return_images`` adds ``images``: the rendered colour and depth per view.
     """
     check_views(views)
+    kind = resolve_renderer(renderer)
     model = run_or_model if isinstance(run_or_model, StaticFieldModel) else load_model(run_or_model)
+    gl = gl_view_renderer(model, views) if kind == "gl" else None
 
     def render_view(i: int, cam) -> dict:
+        if gl is not None:
+            return gl.render(cam.intrinsics, cam.world_to_camera)
         return render_image(model, cam.intrinsics, cam.world_to_camera, views.height, views.width,
                             model.scene.near, model.scene.far, chunk=chunk)
 
-    scores, _, images = score_views(model, views, render_view, with_flip=with_flip, return_images=return_images)
+    try:
+        scores, _, images = score_views(model, views, render_view, with_flip=with_flip, return_images=return_images)
+    finally:
+        if gl is not None:
+            gl.release()
     scores["train_seconds"] = (run_train_seconds(run_or_model) if not isinstance(run_or_model, StaticFieldModel)
                                else float("nan"))
+    scores["renderer"] = kind
     if return_images:
         scores["images"] = images
     return scores
@@ -282,6 +295,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
                              "default: the ones that paid in the ablation for this few train views and this kind of "
                              "scene, e.g. depth with <= 3 forward-facing views; printed and saved as priors_choice)")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
+    add_renderer_option(parser)
     args = parse_run_command(parser, argv)
     try:
         device = resolve_device(args.device)
@@ -291,7 +305,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out, device=str(device))
         (out / "data.json").write_text(json.dumps(record, indent=2) + "\n")
-        scores = evaluate_field(run, test, with_flip=not args.no_flip)
+        scores = evaluate_field(run, test, with_flip=not args.no_flip, renderer=args.renderer)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -309,8 +323,8 @@ def eval_main(argv: Optional[list[str]] = None, prog: str = "interleave eval fie
     return run_eval_command(
         argv, prog, "Render a trained field's held-out views and print PSNR, SSIM, FLIP, depth MAE, train and "
                     "render time.", "interleave train field", load_run_views,
-        lambda run, test, train, with_flip, images: evaluate_field(run, test, with_flip=with_flip,
-                                                                   return_images=images),
+        lambda run, test, train, with_flip, images, renderer: evaluate_field(
+            run, test, with_flip=with_flip, return_images=images, renderer=renderer),
         lambda run, train, test: {"run": str(run), "train_views": list(train.names), "test_views": list(test.names),
                                   "image_size": [test.height, test.width]})
 

@@ -47,7 +47,8 @@ __all__ = ["LR_SCHEDULES", "DEVICES", "resolve_device", "rays_to", "RunConfig",
            "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
            "check_run", "all_rays", "take_rays", "open_run_dir", "restore_training_state", "open_log", "run_config_to_dict",
            "run_config_from_dict", "run_config_from_file", "apply_loss_weights", "view_list", "rank_correlation",
-           "run_train_seconds", "score_views", "json_safe", "write_renders", "run_eval_command"]
+           "run_train_seconds", "score_views", "json_safe", "write_renders", "run_eval_command", "RENDERERS",
+           "resolve_renderer", "add_renderer_option", "gl_view_renderer"]
 
 LR_SCHEDULES = ("cosine", "exponential", "constant")
 
@@ -67,6 +68,45 @@ def resolve_device(name: str) -> torch.device:
         raise InputError(f"cuda: torch {torch.__version__} ({build}) sees no GPU; use --device cpu or auto",
                          field="device")
     return torch.device(name)
+
+
+#: ``--renderer`` values of ``interleave eval field|dynamic``: who renders the held-out views.
+RENDERERS = ("auto", "torch", "gl")
+
+
+def resolve_renderer(name: str) -> str:
+    """``torch`` or ``gl`` for a ``--renderer`` value (:data:`RENDERERS`). ``auto`` is ``gl`` where a headless
+    GL context with compute shaders can be made (``engine.fields.gl.available``: a GPU, or Mesa's llvmpipe),
+    else ``torch``. InputError for ``gl`` without such a context and for any other name."""
+    if name not in RENDERERS:
+        raise InputError(f"must be one of {', '.join(RENDERERS)}, got {name!r}", field="renderer")
+    if name == "torch":
+        return name
+    from engine.fields.gl import available
+
+    if available():
+        return "gl"
+    if name == "gl":
+        raise InputError("gl: no headless OpenGL 4.3 context with compute shaders (EGL); use --renderer torch",
+                         field="renderer")
+    return "torch"
+
+
+def add_renderer_option(parser: argparse.ArgumentParser) -> None:
+    """``--renderer``: who renders the held-out views a command scores (:func:`resolve_renderer`)."""
+    parser.add_argument("--renderer", choices=list(RENDERERS), default="auto",
+                        help="who renders the held-out views: gl (the real-time renderer, exact filtering), torch "
+                             "(the training code, the oracle), auto (gl where a headless GL context exists)")
+
+
+def gl_view_renderer(model, views):
+    """The GL renderer (``models.fields.assets.gl_renderer``) of a torch field at the views' size, with
+    ``filtering="exact"`` (float32 bilinear interpolation in the shader, as torch's ``grid_sample``; a GPU's
+    texture unit would interpolate with 8-bit weights). Its frames differ from torch's by the real-time
+    renderer's early ray termination and skipped colour evaluations (bounded in ``engine.fields.gl``)."""
+    from models.fields.assets import gl_renderer
+
+    return gl_renderer(model, views.width, views.height, filtering="exact")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -539,7 +579,7 @@ def run_eval_command(argv: Optional[list[str]], prog: str, description: str, mad
 
     ``load_views(run) -> (train, test)``, or with ``splits`` (the command then takes ``--split``)
     ``load_views(run, split) -> (train, test)`` (``split`` None: the run's own);
-    ``evaluate(run, test, train, with_flip, return_images) -> scores``;
+    ``evaluate(run, test, train, with_flip, return_images, renderer) -> scores``;
     ``header(run, train, test) -> dict`` (the keys printed before the scores)."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("run", type=Path, help=f"run directory written by '{made_by}'")
@@ -548,6 +588,7 @@ def run_eval_command(argv: Optional[list[str]], prog: str, description: str, mad
     parser.add_argument("--images", type=Path, default=None,
                         help="write each held-out render (PNG, display-encoded) beside its truth into this folder")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    add_renderer_option(parser)
     if splits:
         parser.add_argument("--split", choices=list(splits), default=None,
                             help="score this split's views instead of the run's held-out ones")
@@ -556,7 +597,7 @@ def run_eval_command(argv: Optional[list[str]], prog: str, description: str, mad
         torch.set_num_threads(args.threads)
     try:
         train, test = load_views(args.run, args.split) if splits else load_views(args.run)
-        scores = evaluate(args.run, test, train, not args.no_flip, args.images is not None)
+        scores = evaluate(args.run, test, train, not args.no_flip, args.images is not None, args.renderer)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ Sections: Blender multilayer EXR, MPI-Sintel, DeCOMPnet/VEED.
 from __future__ import annotations
 
 import csv
+import functools
 import re
 import struct
 import warnings
@@ -114,9 +115,21 @@ def read_png_linear(path: Path) -> np.ndarray:
         raise InputError("cannot read image (missing, not a PNG, or corrupt)", file=path)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
+    rgb = image[..., 2::-1]  # BGR(A) -> RGB
+    if np.issubdtype(image.dtype, np.unsignedinteger):  # one decode per code: the float32 of decoding each pixel
+        return srgb_code_table(image.dtype)[rgb]
     scale = np.iinfo(image.dtype).max if np.issubdtype(image.dtype, np.integer) else 1.0
-    rgb = image[..., 2::-1].astype(np.float32) / scale  # BGR(A) -> RGB
-    return srgb_to_linear(rgb)
+    return srgb_to_linear(rgb.astype(np.float32) / scale)
+
+
+@functools.lru_cache(maxsize=None)
+def srgb_code_table(dtype) -> np.ndarray:
+    """``srgb_to_linear(code / max)`` (the division in float32) for every code of an unsigned integer dtype: what
+    :func:`read_png_linear` computes per pixel, looked up."""
+    top = np.iinfo(dtype).max
+    table = srgb_to_linear(np.arange(top + 1).astype(np.float32) / top)
+    table.flags.writeable = False
+    return table
 
 
 # --------------------------------------------------------------------------------------------------

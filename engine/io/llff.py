@@ -219,7 +219,7 @@ def read_llff(root: str | Path, downscale: Optional[int] = None) -> LlffCapture:
         images.append(rgb)
         cameras.append(Camera(validate_intrinsics(k, file=poses.file, frame=i, field_name="hwf"),
                               poses.world_to_camera[i]))
-    return LlffCapture(images=np.stack(images).astype(np.float32), cameras=cameras, near_far=poses.bounds,
+    return LlffCapture(images=np.stack(images).astype(np.float32, copy=False), cameras=cameras, near_far=poses.bounds,
                        names=[p.name for p in files], factor=factor)
 
 

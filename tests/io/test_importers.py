@@ -14,7 +14,7 @@ from engine.core.colorspace import srgb_to_linear
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
 from engine.io.importers import (SINTEL_TAG, frames_from_blender, frames_from_sintel, frames_from_veed, import_any,
-                                 read_cam, read_dpt, read_transformation_csv)
+                                 read_cam, read_dpt, read_png_linear, read_transformation_csv)
 from engine.io.rgbd import read_sequence
 from tests.synthetic import rigid, rotation
 
@@ -456,3 +456,20 @@ def test_import_any_veed_and_unknown_layout(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown layout 'colmap'") as exc:
         import_any(root, tmp_path / "x", "colmap")
     assert exc.value.field == "layout"
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_png_decoding_by_table_equals_decoding_each_pixel(tmp_path: Path, dtype) -> None:
+    """``read_png_linear`` looks each code up in a table: the float32 that decoding every pixel gives, to the bit."""
+    top = np.iinfo(dtype).max
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, top + 1, size=(7, 9, 3), dtype=dtype)
+    image[0, 0], image[0, 1] = 0, top
+    cv2.imwrite(str(tmp_path / "c.png"), image)
+    got = read_png_linear(tmp_path / "c.png")
+    assert got.dtype == np.float32 and got.shape == (7, 9, 3)
+    assert np.array_equal(got, srgb_to_linear(image[..., ::-1].astype(np.float32) / top))
+    gray = image[..., 0]
+    cv2.imwrite(str(tmp_path / "g.png"), gray)
+    assert np.array_equal(read_png_linear(tmp_path / "g.png"), np.repeat(
+        srgb_to_linear(gray.astype(np.float32) / top)[..., None], 3, axis=-1))

@@ -862,6 +862,33 @@ def test_object_only_vectors_at_low_resolution_sample_the_camera_at_their_own_ce
     np.testing.assert_allclose(vectors, q[..., :2] / q[..., 2:] - p, atol=1e-4)
 
 
+@pytest.mark.parametrize("ratio", [2, 3, 4])
+def test_object_only_vectors_at_low_resolution_take_the_depth_at_their_own_points(ratio):
+    """Issue 41, item 7: sample (i, j) of an (h, w) buffer is the point ((j + 0.5) W / w, (i + 0.5) H / h), a
+    pixel corner at even ratios; the camera motion added to it is that of the surface there. On a tilted plane
+    (inverse depth affine in the image: interpolating it between the nearest pixels is exact) the added
+    vectors are the exact camera motion at each sample point."""
+    h, w = H // ratio, W // ratio
+    session = make_session(method="reproject", motion_includes_camera=False)
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+
+    def plane(x, y):  # planar depth of a tilted wall: 1.5 m at the left edge, 6 m at the right
+        return 1.0 / (1 / 1.5 + (1 / 6 - 1 / 1.5) * x / W + 0.002 * y)
+
+    color = frame_arrays(0)[0]
+    session.submit(color, plane(u, v).astype(np.float32), pose(), K, 0.0)
+    session.submit(color, plane(u, v).astype(np.float32), pose(x=CAMERA_STEP), K, 1 / 30,
+                   motion_vectors=np.zeros((h, w, 2), np.float32))
+    vectors = session._loop.prepared.frames[-1].motion_vectors
+    p = sample_centres(h, w)
+    now, before = session.camera(pose(x=CAMERA_STEP), K), session.camera(pose(), K)
+    rays = np.concatenate([p, np.ones(p.shape[:2] + (1,))], axis=-1) @ np.linalg.inv(K).T
+    points = rays * plane(p[..., 0], p[..., 1])[..., None]  # camera B's points at the samples
+    b_to_a = before.world_to_camera @ now.camera_to_world
+    q = (points @ b_to_a[:3, :3].T + b_to_a[:3, 3]) @ K.T
+    np.testing.assert_allclose(vectors, q[..., :2] / q[..., 2:] - p, atol=1e-4)
+
+
 def test_missing_vectors_can_mean_static_geometry():
     """Unreal leaves static geometry out of its velocity buffer (the clear value): with motion_missing=
     "camera" (Unreal's default) those pixels, marked in motion_valid, get the camera's motion."""

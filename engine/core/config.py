@@ -39,7 +39,7 @@ from typing import Any, Iterable, Literal, Optional, Union
 from engine.core.errors import InputError
 
 __all__ = ["option", "add_options", "config_from_args", "config_from_dict", "config_from_file", "config_to_dict",
-           "config_from_text", "parse_value", "option_names"]
+           "config_from_text", "parse_value", "option_names", "option_kinds"]
 
 _TRUE, _FALSE = ("true", "1"), ("false", "0")
 
@@ -112,6 +112,8 @@ def parse_value(kind: Any, text: str, name: str = "value") -> Any:
             return tuple(a(p) for a, p in zip(args, parts))
         if kind in (int, float, str):
             return kind(raw)
+    except InputError:  # a Literal's own message (InputError is a ValueError)
+        raise
     except ValueError:
         what = "true or false" if kind is bool else f"a valid {getattr(kind, '__name__', kind)}"
         raise InputError(f"must be {what}, got {raw!r}", field=name) from None
@@ -137,6 +139,11 @@ def option_names(cls: type, prefix: str = "") -> list[str]:
         elif _text_kind(kind):
             out.append(prefix + f.name)
     return out
+
+
+def option_kinds(cls: type) -> dict[str, Any]:
+    """Each of :func:`option_names`' dotted names -> the type :func:`parse_value` reads it as."""
+    return {name: _field_kind(cls, name) for name in option_names(cls)}
 
 
 def add_options(parser: argparse.ArgumentParser, cls: type, *, prefix: str = "",

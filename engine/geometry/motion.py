@@ -17,7 +17,7 @@ from engine.core.frames import MAX_MOTION_DIAGONALS, Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
-           "sample_pixels", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
+           "sample_footprint", "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
            "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
@@ -139,21 +139,50 @@ def compose_motion_vectors(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     return (first.astype(np.float64) + step).astype(np.float32)
 
 
-def sample_pixels(small: int, big: int) -> np.ndarray:
-    """The full-resolution pixel (along one axis of ``big`` pixels) under the centre of each of ``small``
-    lower-resolution samples spanning the same frame: sample i is centred at (i + 0.5) big / small."""
-    return np.minimum(((np.arange(small) + 0.5) * big / small).astype(np.intp), big - 1)
+def sample_footprint(small: int, big: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along one axis of ``big`` full-resolution pixels spanned by ``small`` lower-resolution samples: for
+    each sample's point, the full-resolution pixels whose centres bracket it, (lo, hi) int arrays, and the
+    point's fraction of the way from lo's centre to hi's (float64).
+
+    Sample i is at the point (i + 0.5) big / small: the centre of its pixel in a frame rendered at the
+    lower resolution, where a GPU rendering at that resolution samples. At an odd integer ratio that point
+    is a full-resolution pixel centre: lo == hi, fraction 0. At an even ratio it is the boundary between
+    two pixels, both half a pixel away: hi == lo + 1, fraction 0.5 (neither is nearer: where they show
+    different surfaces, which one covers the point is not in the full-resolution depth).
+    """
+    numerator = (2 * np.arange(small, dtype=np.int64) + 1) * big - small  # 2 small (point - 0.5) >= 0
+    lo, rest = np.divmod(numerator, 2 * small)
+    return lo.astype(np.intp), (lo + (rest > 0)).astype(np.intp), rest / (2.0 * small)
+
+
+def sample_depths(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) float32 planar depth at the points of the samples of an (h, w) grid spanning the frame of
+    ``depth`` (H, W) (:func:`sample_footprint`): inverse depth interpolated bilinearly between the pixels
+    whose centres surround the point (one pixel where the point is its centre), exact for a plane, whose
+    inverse depth is affine in the image; +inf where they are all sky. Where they show different surfaces
+    the point's surface is unknown and the depth lies between them, as the camera motion it gives does."""
+    depth = checked_array(depth, "depth", ("H", "W"), {})
+    (r0, r1, fy), (c0, c1, fx) = sample_footprint(shape[0], depth.shape[0]), sample_footprint(shape[1], depth.shape[1])
+    inverse = 1.0 / depth.astype(np.float64)  # sky: 0
+    top = inverse[r0][:, c0] * (1.0 - fx) + inverse[r0][:, c1] * fx
+    bottom = inverse[r1][:, c0] * (1.0 - fx) + inverse[r1][:, c1] * fx
+    with np.errstate(divide="ignore"):
+        return (1.0 / (top * (1.0 - fy)[:, None] + bottom * fy[:, None])).astype(np.float32)
 
 
 def upsample_motion_vectors(vectors: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Motion vectors (h, w, 2) of a lower resolution at the frame's size (H, W) of ``depth``, float32.
 
+    The low-resolution grid spans the frame: sample (i, j) is the point ((j + 0.5) W / w, (i + 0.5) H / h)
+    of the full-resolution frame, between full-resolution pixels at even ratios (:func:`sample_footprint`).
     Depth-guided nearest neighbour (no blending across silhouettes, where a blend is a vector of neither
-    surface): each full-resolution pixel takes, of the 4 low-resolution samples around it, the one whose
-    surface depth (the full-resolution depth at the sample's centre) is closest to its own in log depth;
-    sky matches sky. Vectors are already in full-resolution pixels (``Frame.motion_vectors``). The
-    low-resolution grid spans the frame: sample (i, j) is centred at full-resolution ((j + 0.5) W / w,
-    (i + 0.5) H / h).
+    surface): each full-resolution pixel takes, of the 4 samples around it, the one whose surface matches
+    its own best in log depth, sky matching sky. A sample's surface is that of the full-resolution pixels
+    whose centres surround its point; the match is the mean distance from the pixel's log depth to the
+    nearest and the farthest of them, so a sample whose point lies between two surfaces (unknown: either
+    may cover it) ranks after a sample of the pixel's own surface and before one of another. At odd
+    integer ratios each point is a pixel centre: the sample's surface is that pixel's. Vectors are already in
+    full-resolution pixels (``Frame.motion_vectors``).
     """
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
@@ -164,29 +193,22 @@ def upsample_motion_vectors(vectors: np.ndarray, depth: np.ndarray) -> np.ndarra
         return vectors
     if h > big_h or w > big_w:
         raise InputError(f"are {w}x{h}, larger than the frame's {big_w}x{big_h}", field="motion_vectors")
-    log_d = np.log(np.where(np.isfinite(depth), depth, np.float32(1e30)).astype(np.float64))
-    # centres of the low-resolution samples in full-resolution pixels, and their surfaces' log depths
-    cy, cx = sample_pixels(h, big_h), sample_pixels(w, big_w)
-    small_log = log_d[cy[:, None], cx[None, :]]
-    # continuous position of each full-resolution pixel centre in the low-resolution grid
+    log_d = np.log(np.where(np.isfinite(depth), depth, np.float32(1e30))).astype(np.float32)
+    # the log depths of the full-resolution pixels nearest each sample's point: their nearest and farthest
+    (r0, r1, _), (c0, c1, _) = sample_footprint(h, big_h), sample_footprint(w, big_w)
+    around = np.stack([log_d.take(r, axis=0).take(c, axis=1) for r in (r0, r1) for c in (c0, c1)])
+    near, far = around.min(axis=0), around.max(axis=0)
+    # the 4 samples around each full-resolution pixel centre (its continuous position in the small grid)
     fy = (np.arange(big_h) + 0.5) * h / big_h - 0.5
     fx = (np.arange(big_w) + 0.5) * w / big_w - 0.5
     y0 = np.clip(np.floor(fy).astype(np.intp), 0, h - 1)
     x0 = np.clip(np.floor(fx).astype(np.intp), 0, w - 1)
     y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
-    best = np.full((big_h, big_w), np.inf)
-    pick_y = np.broadcast_to(y0[:, None], (big_h, big_w)).copy()
-    pick_x = np.broadcast_to(x0[None, :], (big_h, big_w)).copy()
-    for ys in (y0, y1):
-        for xs in (x0, x1):
-            cand_y = np.broadcast_to(ys[:, None], (big_h, big_w))
-            cand_x = np.broadcast_to(xs[None, :], (big_h, big_w))
-            off = np.abs(small_log[cand_y, cand_x] - log_d)
-            take = off < best
-            best = np.where(take, off, best)
-            pick_y = np.where(take, cand_y, pick_y)
-            pick_x = np.where(take, cand_x, pick_x)
-    return vectors[pick_y, pick_x]
+    off = np.stack([np.abs(near.take(ys, axis=0).take(xs, axis=1) - log_d)
+                    + np.abs(far.take(ys, axis=0).take(xs, axis=1) - log_d) for ys in (y0, y1) for xs in (x0, x1)])
+    best = np.argmin(off, axis=0)  # the first of equals, in the order (y0, x0), (y0, x1), (y1, x0), (y1, x1)
+    pick = np.where(best < 2, y0[:, None] * w, y1[:, None] * w) + np.where(best % 2 == 0, x0, x1)
+    return vectors.reshape(-1, 2)[pick]
 
 
 def undilate_motion_vectors(vectors: np.ndarray, depth: np.ndarray, depth_gap: float = 0.1) -> np.ndarray:

@@ -12,10 +12,14 @@ to 0.05 dB on every held-out set at 2-2.5x its time: docs/results/2026-11-25-fas
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
-from typing import Callable, Sequence
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Callable, Literal, Optional, Sequence
 
-from engine.core.config import config_from_text
+from engine.core.config import config_from_text, option, option_kinds
 from engine.core.errors import InputError
 from engine.core.frames import SceneObject
 from engine.geometry.backends import resolve_backend
@@ -28,7 +32,7 @@ from engine.predict.mvec import Mvec, MvecConfig
 
 __all__ = ["AUTO", "resolve_auto", "METHODS", "DECOMP_WEIGHTS", "MOTIONS", "decomp_config", "make_decomp",
            "split_methods", "make_predictor", "use_backend",
-           "option_parts", "method_parts", "method_with"]
+           "option_parts", "method_parts", "method_with", "Flow2DOptions", "method_options", "names_no_file"]
 
 #: Committed flow network (in ``engine/weights``) of each DeCOMPnet method name.
 DECOMP_WEIGHTS = {"decomp": "flow3d.onnx", "decomp2d": "flow2d.onnx"}
@@ -51,6 +55,41 @@ def method_parts(name: str) -> tuple[str, list[str]]:
 def method_with(base: str, parts: Sequence[str]) -> str:
     """The method name of ``base`` with option ``parts`` (the inverse of :func:`method_parts`)."""
     return f"{base}[{','.join(parts)}]" if parts else base
+
+
+@dataclass(frozen=True)
+class Flow2DOptions:
+    """Options of ``flow2d`` (``flow2d[preset=fast]``, ``flow2d[estimator=corr,network=my.onnx]``)."""
+
+    preset: Literal["ultrafast", "fast", "medium"] = option("medium", "OpenCV DIS preset")
+    estimator: Literal["dis", "gl", "corr"] = option("dis", "the optical flow: OpenCV DIS, the GPU's, or DIS "
+                                                             "started from the correlation network's estimate")
+    network: str = option("", "an exported correlation flow network (ONNX file) for estimator=corr (default: the "
+                              "committed engine/weights one)")
+
+
+def method_options(base: str) -> Optional[dict[str, Any]]:
+    """The bracket options of method ``base``, dotted name -> the type its value is read as, from the method's
+    config: ``DecompConfig``'s and ``motion`` for decomp and decomp2d, ``MvecConfig``'s for mvec,
+    ``Flow2DOptions``' for flow2d, none for the others; None for a name that is not a method."""
+    if base in DECOMP_WEIGHTS:
+        return {**option_kinds(DecompConfig), "motion": Literal[MOTIONS]}
+    configs = {"mvec": MvecConfig, "flow2d": Flow2DOptions}
+    if base in configs:
+        return option_kinds(configs[base])
+    return {} if base in METHODS else None
+
+
+def names_no_file(kind: Any) -> bool:
+    """Whether no value of an option of type ``kind`` can name a file: numbers, booleans, one of a
+    ``Literal``'s choices, tuples and ``Optional`` of those. Free text (``str``, or a type added later)
+    can, and is refused where files are not the caller's to name (``interleave serve``'s clients)."""
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if kind in (bool, int, float) or origin is Literal:
+        return True
+    if origin in (tuple, typing.Union, types.UnionType):
+        return bool(args) and all(a in (Ellipsis, type(None)) or names_no_file(a) for a in args)
+    return False
 
 
 def decomp_config(text: str, weights: str = "flow3d.onnx") -> DecompConfig:
@@ -167,15 +206,12 @@ def _make_predictor(name: str, objects: Sequence[SceneObject]) -> Predictor:
         except InputError as exc:
             raise InputError(f"method '{name}': {exc.problem}", field="methods") from None
     if base == "flow2d" and rest.endswith("]"):
-        options = {}
-        for part in option_parts(rest[:-1]):
-            key, _, value = part.partition("=")
-            if key.strip() not in ("preset", "estimator", "network"):
-                raise InputError(f"method '{name}': flow2d takes preset (ultrafast, fast, medium), estimator "
-                                 f"(dis, gl, corr) and network (an exported correlation flow network, with "
-                                 f"estimator=corr)", field="methods")
-            options[key.strip()] = value.strip()
-        return Flow2D(**options)
+        try:
+            options = config_from_text(Flow2DOptions, rest[:-1])
+        except InputError as exc:
+            field = exc.field if exc.field in option_kinds(Flow2DOptions) else "methods"
+            raise InputError(f"method '{name}': {exc.problem}", field=field) from None
+        return Flow2D(**dataclasses.asdict(options))
     if base not in DECOMP_WEIGHTS or not rest.endswith("]"):
         raise InputError(f"method '{name}': only decomp, decomp2d (options of engine.predict.decomp.predictor."
                          f"DecompConfig), mvec (MvecConfig) and flow2d (preset=..., estimator=..., network=...) take "

@@ -3,8 +3,9 @@
 The motion vectors a game hands ``Session.submit(..., motion_vectors=, motion_valid=)``: the engine's own buffer,
 (h, w, 2), or (h, w, 3) / (h, w, 4) of which only the first two channels (x, y) are read (the RG of an
 RGB(A) texture), float16/32/64, at the frame's resolution or lower (h <= H, w <= W: vectors rendered at a
-lower resolution, FSR/DLSS render resolution). Sample (i, j) of a lower-resolution buffer belongs to the
-full-resolution point ((j + 0.5) W / w, (i + 0.5) H / h). ``flip_rows`` reverses their rows as it does
+lower resolution, FSR/DLSS render resolution). Sample (i, j) of a lower-resolution buffer is the value at
+its pixel's centre, the full-resolution point ((j + 0.5) W / w, (i + 0.5) H / h), whose depth is read there
+(``engine.geometry.motion.sample_depths``; docs/motion-vectors.md, "Lower-resolution vectors"). ``flip_rows`` reverses their rows as it does
 colour's. The session converts them with :func:`engine.conventions.motion_vectors_to_previous` into
 ``Frame.motion_vectors`` (pixels of the full resolution, x right, y down, from each pixel centre to where
 its surface point was in the previous *submitted* frame): first ``motion_scale`` (x, y), then the units
@@ -68,7 +69,7 @@ import numpy as np
 from engine import conventions
 from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, Camera, validate_motion_vectors
-from engine.geometry.motion import camera_motion_vectors, sample_pixels
+from engine.geometry.motion import camera_motion_vectors, sample_depths
 
 __all__ = ["MOTION_MISSING", "ENGINE_MOTION", "MotionConventions", "motion_mask", "engine_vectors",
            "camera_vectors_at", "with_camera_motion"]
@@ -162,16 +163,16 @@ def engine_vectors(vectors: object, valid: object, motion: MotionConventions, si
 
 def camera_vectors_at(depth: np.ndarray, camera: Camera, previous: Camera, shape: tuple[int, int]) -> np.ndarray:
     """(h, w, 2) float64 full-resolution pixel vectors of camera motion alone (a static scene) at the samples
-    of an (h, w) vector buffer: sample (i, j) sits at full-resolution ((j + 0.5) W / w, (i + 0.5) H / h) and
-    takes the depth of the full-resolution pixel there. Exact for that depth: the cameras' intrinsics are
-    scaled by (w / W, h / H), which maps the sample centres onto the small grid's pixel centres."""
+    of an (h, w) vector buffer: sample (i, j) sits at full-resolution ((j + 0.5) W / w, (i + 0.5) H / h), with
+    the depth there (``engine.geometry.motion.sample_depths``: interpolated between the nearest pixels,
+    exact on a plane). Exact for that depth: the cameras' intrinsics are scaled by (w / W, h / H), which
+    maps the sample points onto the small grid's pixel centres."""
     big_h, big_w = depth.shape
     h, w = shape
     if (h, w) == (big_h, big_w):
         return camera_motion_vectors(depth, camera, previous).astype(np.float64)
-    rows, cols = sample_pixels(h, big_h), sample_pixels(w, big_w)
     shrink = np.diag([w / big_w, h / big_h, 1.0])
-    small = camera_motion_vectors(np.ascontiguousarray(depth[rows[:, None], cols[None, :]]),
+    small = camera_motion_vectors(sample_depths(depth, (h, w)),
                                   Camera(shrink @ camera.intrinsics, camera.world_to_camera),
                                   Camera(shrink @ previous.intrinsics, previous.world_to_camera))
     return small.astype(np.float64) * np.array([big_w / w, big_h / h])

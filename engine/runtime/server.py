@@ -39,7 +39,8 @@ import numpy as np
 from engine.core.config import option, parse_value
 from engine.core.errors import InputError, InterleaveError
 from engine.geometry.backends import resolve_backend
-from engine.predict.registry import DECOMP_WEIGHTS, make_predictor, method_parts, method_with
+from engine.predict.registry import (DECOMP_WEIGHTS, make_predictor, method_options, method_parts, method_with,
+                                     names_no_file)
 from engine.runtime import protocol as wire
 from engine.runtime.protocol import MessageType, MotionPlane, Status
 from engine.runtime.session import NotReadyError, Session, SessionConfig
@@ -48,8 +49,6 @@ Address = Union[str, Path, tuple]
 
 #: Where POSIX shared memory lives (``shm_open("/name")`` is this folder's ``name`` on Linux).
 SHM_DIR = Path("/dev/shm")
-#: ``decomp`` options that name files: the server's own configuration, never settable by a client.
-FILE_OPTIONS = ("model", "infill_model")
 
 
 @dataclass(frozen=True)
@@ -89,17 +88,36 @@ def check_models_dir(models: Path) -> Path:
 
 
 def check_remote_method(method: str, limits: ServerLimits) -> None:
-    """A method string as a client may send it: no option names a file (``model``, ``infill_model``) and
-    ``threads`` stays within ``limits.max_threads`` (read as the config reads it); the registry then checks
-    the rest."""
-    for part in method_parts(method)[1]:
+    """A method string as a client may send it, refused by allow-list: each bracket option must be one of the
+    method's options whose values name no file (``engine.predict.registry.names_no_file``: numbers,
+    booleans, a closed set of words; free text such as decomp's ``model`` or flow2d's ``network`` is the
+    server's own configuration, ``serve --models``), its value must parse, and ``threads`` stays within
+    ``limits.max_threads``. A name that is no method is the registry's to refuse (it names no file either)."""
+    base, parts = method_parts(method)
+    kinds = method_options(base)
+    if kinds is None:
+        return
+    allowed = [name for name, kind in kinds.items() if names_no_file(kind)]
+    for part in parts:
         key, _, value = (x.strip() for x in part.partition("="))
-        if key in FILE_OPTIONS:
-            raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' names a file: model files are the "
-                                                   "server's own configuration, not a client's")
-        if key == "threads" and parse_value(int, value, "threads") > limits.max_threads:
+        if key in kinds and not names_no_file(kinds[key]):
+            raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' of {base} names a file: files are the "
+                                                   "server's own configuration (serve --models), not a client's; "
+                                                   f"a client may give {_listing(allowed)}")
+        if key not in allowed:
+            raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' is not an option of {base}; a client "
+                                                   f"may give {_listing(allowed)}")
+        try:
+            parsed = parse_value(kinds[key], value, key)
+        except InputError as exc:
+            raise _ProtocolError(Status.BAD_INPUT, f"method option '{key}' of {base}: {exc.problem}") from None
+        if key == "threads" and parsed > limits.max_threads:
             raise _ProtocolError(Status.BAD_INPUT, f"method option threads={value} exceeds the server's limit "
                                                    f"{limits.max_threads} (serve --max-threads)")
+
+
+def _listing(options: list[str]) -> str:
+    return ", ".join(options) if options else "no options"
 
 
 class _ProtocolError(Exception):

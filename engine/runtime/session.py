@@ -67,7 +67,8 @@ Hard cases, and what the session does:
   naming the frame and both sizes; ``reset(width=..., height=...)`` changes the size (and clears the
   history). A wrong-size buffer is far more often a bug than a deliberate change.
 - **Bad values**: NaN or inf in colour, negative colour, NaN / out-of-range depth-buffer values,
-  non-rigid or non-finite poses, infinite motion vectors (NaN is "no vector"), vectors longer than
+  non-rigid or non-finite poses (each checked as the engine uses it: sRGB colour once decoded, where a
+  finite 2e16 is inf; translations and depths once scaled by ``meters_per_unit``), infinite motion vectors (NaN is "no vector"), vectors longer than
   ``engine.core.frames.MAX_MOTION_DIAGONALS`` frame diagonals once converted (wrong units or scale), a
   vector buffer of the wrong shape, dtype or channel count or larger than the frame are rejected with an
   ``InputError`` naming the frame (the caller's ``frame`` number, or the session's submit counter), the
@@ -336,7 +337,12 @@ def engine_camera(config: SessionConfig, view: object, projection: object,
         if k.shape == (4, 4):
             k = k[:3, :3]
         pose = validate_pose(view, field_name="view").copy()
-        pose[:3, 3] *= scale
+        translation = pose[:3, 3].copy()
+        with np.errstate(over="ignore"):
+            pose[:3, 3] = translation * scale
+        if not np.isfinite(pose[:3, 3]).all():  # validated as used, as the other engines' converters do
+            raise InputError(f"translation ({', '.join(f'{t:.6g}' for t in translation)}) times meters_per_unit "
+                             f"{scale:g} is not finite", field="view")
         return Camera(validate_intrinsics(k, field_name="projection"), pose)
     if engine == "opengl":
         k, pose = conventions.from_opengl(w, h, view=view, projection=projection, ndc_y_down=config.ndc_y_down,
@@ -378,7 +384,14 @@ def _decode_color(color: np.ndarray, space: str, where: dict) -> np.ndarray:
             raise InputError(f"must be uint8 for color_in 'srgb8', got dtype {color.dtype}", **where)
         return encoding.decode8(color)
     linear = validate_color(color, frame=where["frame"], field_name=where["field"])
-    return linear if space == "linear" else encoding.srgb_to_linear(linear)
+    if space == "linear":
+        return linear
+    decoded = encoding.srgb_to_linear(linear)  # float32: overflows to inf from about 1.2e16
+    bad = int(np.count_nonzero(~np.isfinite(decoded)))
+    if bad:
+        raise InputError(f"has {bad} values that are not finite once decoded from sRGB (largest "
+                         f"{float(linear.max()):.3g}; sRGB-encoded colour is about 0..1)", **where)
+    return decoded
 
 
 def _encode_color(linear: np.ndarray, space: str) -> np.ndarray:
@@ -586,9 +599,17 @@ class Session:
             return validate_depth(buffer, **where)  # no copy for float32
         far = None if math.isinf(cfg.far) else cfg.far
         planar = conventions.decode_depth_buffer(buffer, cfg.near, far, convention=cfg.depth_convention, **where)
-        if scale != 1.0:
+        if scale == 1.0:
+            return validate_depth(planar, **where)
+        surface = np.isfinite(planar)
+        with np.errstate(over="ignore"):
             planar *= scale
-        return validate_depth(planar, **where)
+            planar = validate_depth(planar, **where)  # float32
+        overflow = int(np.count_nonzero(surface & ~np.isfinite(planar)))
+        if overflow:  # a surface must not become sky
+            raise InputError(f"has {overflow} values that are not finite once scaled by meters_per_unit {scale:g}",
+                             frame=label, field="depth")
+        return planar
 
     def predict(self, view: object, projection: object, time: float, *,
                 frame: Optional[int] = None) -> SessionPrediction:

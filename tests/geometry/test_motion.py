@@ -8,8 +8,8 @@ from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
-                                    rigid_motion_vectors, scene_velocity, undilate_motion_vectors,
-                                    upsample_motion_vectors, velocity_change)
+                                    rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
+                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.geometry.reference import scene_velocity_reference
 from tests.synthetic import rigid
 
@@ -160,6 +160,42 @@ def test_low_resolution_vectors_take_the_sample_of_their_own_surface():
     np.testing.assert_array_equal(full[depth == 8.0], 0.0)
     with pytest.raises(InputError):
         upsample_motion_vectors(np.zeros((H * 2, W, 2), np.float32), depth)
+
+
+@pytest.mark.parametrize("small", [(16, 24), (8, 12), (32 // 3, 16), (5, 7), (1, 1)])
+def test_a_sample_is_the_point_at_its_pixel_centre_and_takes_the_depth_there(small):
+    """Sample (i, j) of an (h, w) grid spanning the frame is the point ((j + 0.5) W / w, (i + 0.5) H / h);
+    the pixels bracketing it and its depth there (inverse depth interpolated: exact on a plane)."""
+    h, w = small
+    px, py = (np.arange(w) + 0.5) * W / w, (np.arange(h) + 0.5) * H / h
+    for points, (lo, hi, frac) in ((px, sample_footprint(w, W)), (py, sample_footprint(h, H))):
+        np.testing.assert_allclose(lo + 0.5 + frac, points, atol=1e-12)  # lo's centre plus the fraction
+        np.testing.assert_array_equal(hi, np.where(frac > 0, lo + 1, lo))
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    inverse = lambda x, y: 0.15 + 0.01 * x + 0.004 * y  # noqa: E731 (a plane's inverse depth is affine)
+    x, y = np.meshgrid(px, py)
+    np.testing.assert_allclose(sample_depths((1.0 / inverse(u, v)).astype(np.float32), small), 1.0 / inverse(x, y),
+                               rtol=1e-5)
+    assert np.isposinf(sample_depths(np.full((H, W), np.inf, np.float32), small)).all()
+
+
+@pytest.mark.parametrize("ratio, edge", [(2, 21), (4, 22), (2, 20)])
+def test_a_sample_between_two_surfaces_is_not_given_to_either(ratio, edge):
+    """At even ratios a sample's point lies between two full-resolution pixels; where they show different
+    surfaces the sample's vector may be either's (here it holds neither: (99, 99)). Every pixel takes a
+    sample of its own surface instead (issue 41, item 7: the depth of the pixel below-right of the point
+    gave such samples to the far surface)."""
+    depth = np.full((H, W), 8.0, np.float32)
+    depth[:, :edge] = 2.0  # a near surface on the left
+    lo, hi, _ = sample_footprint(W // ratio, W)
+    near, far = depth[0, lo] == 2.0, depth[0, hi] == 2.0
+    small = np.zeros((H // ratio, W // ratio, 2), np.float32)
+    small[:, near & far] = (5.0, 0.0)
+    small[:, near != far] = (99.0, 99.0)
+    assert (near != far).any() == (edge % ratio == ratio // 2)  # the edge is under a sample's point
+    full = upsample_motion_vectors(small, depth)
+    np.testing.assert_array_equal(full[depth == 2.0], np.broadcast_to([5.0, 0.0], full[depth == 2.0].shape))
+    np.testing.assert_array_equal(full[depth == 8.0], 0.0)
 
 
 def test_undilation_removes_the_foreground_vector_from_background_pixels_only():

@@ -525,7 +525,7 @@ def test_method_options_parse_and_reject_bad_ones():
     with pytest.raises(InputError, match="motion must be 'predicted' or 'truth'"):
         make_predictor("decomp[motion=guess]")
     assert decomp_config("estimator=gl").estimator == "gl" and decomp_config("").estimator == "dis"
-    with pytest.raises(InputError, match="estimator must be 'dis' or 'gl'"):
+    with pytest.raises(InputError, match="estimator=raft': must be one of dis, gl"):
         make_predictor("decomp[estimator=raft]")
 
 

@@ -20,6 +20,7 @@ import pytest
 from engine.conventions import UNITY_FLIP, UNREAL_FLIP, encode_depth_buffer
 from engine.core.errors import InputError
 from engine.core.frames import rigid_inverse
+from engine.predict.registry import METHODS
 from engine.runtime.session import NotReadyError, Session, SessionConfig
 from tests.conventions.test_conventions import (UE_VIEW_SWAP, clip_to_window, gl_frustum, gl_look_at, gl_perspective,
                                                 homogeneous, reversed_zero_to_one, rot_x, rot_y, rot_z,
@@ -338,6 +339,79 @@ def test_bad_values_are_rejected_naming_the_frame(what, change, match):
     assert "time 0.25" in str(info.value)
     assert session.stats["submitted"] == 1  # rejected frames leave the history as it was
     np.testing.assert_array_equal(session.predict(pose(), K, 0.3).color.shape, (H, W, 3))
+
+
+#: Every method a session can run (oracle needs the true object motion), and auto.
+SESSION_METHODS = [m for m in METHODS if m != "oracle"] + ["auto"]
+
+
+def static_history(session, colors, depth):
+    """Submit ``colors`` from a static camera at 30 fps (mvec with zero vectors: nothing moves)."""
+    vectors = np.zeros((H, W, 2), np.float32) if session.config.method == "mvec" else None
+    for i, color in enumerate(colors):
+        session.submit(color, depth, pose(), K, i / 30, motion_vectors=vectors)
+
+
+@pytest.mark.parametrize("method", SESSION_METHODS)
+def test_srgb_colour_is_checked_decoded_and_a_refused_frame_leaves_the_history(method):
+    """Issue 41, item 3: sRGB-float colour is checked as the engine uses it, decoded to linear float32, where a
+    finite 2e16 becomes inf: a 10x10 patch of it is refused in one line naming the field, for every method;
+    the history keeps its frames, so the next prediction is the one before, and finite."""
+    session = make_session(method=method, color_in="srgb")
+    depth = frame_arrays()[1]
+    static_history(session, [frame_arrays(i)[0] for i in range(3)], depth)
+    before = session.predict(pose(x=0.02), K, 2.5 / 30)
+    bad = frame_arrays(3)[0]
+    bad[10:20, 20:30] = 2e16
+    with pytest.raises(InputError, match=r"frame 7, field 'color': has 300 values that are not finite once decoded "
+                                         r"from sRGB \(largest 2e\+16") as info:
+        session.submit(bad, depth, pose(), K, 3 / 30, frame=7)
+    assert "\n" not in str(info.value) and session.stats["submitted"] == 3
+    after = session.predict(pose(x=0.02), K, 2.5 / 30)
+    np.testing.assert_array_equal(after.color, before.color)
+    assert np.isfinite(after.color).all()
+
+
+@pytest.mark.parametrize("color_out", ["linear", "srgb"])
+@pytest.mark.parametrize("method", SESSION_METHODS)
+def test_the_largest_finite_linear_colour_predicts_finite_frames(method, color_out):
+    """Linear colour up to float32's largest finite value is used as it comes: every method's predictions of
+    a moving bright patch stay finite, in linear and in sRGB (clipped to 1) out."""
+    session = make_session(method=method, color_out=color_out)
+    depth = frame_arrays()[1]
+    colors = [frame_arrays(i)[0] for i in range(3)]
+    for i, color in enumerate(colors):
+        color[10:20, 10 + 2 * i:20 + 2 * i] = np.finfo(np.float32).max
+    static_history(session, colors, depth)
+    for time in (2.5 / 30, 3 / 30):
+        out = session.predict(pose(x=0.02), K, time)
+        assert np.isfinite(out.color).all()
+        assert out.color.max() > 1e38 if color_out == "linear" else out.color.max() == 1.0  # sRGB out is clipped
+        assert np.isfinite(session._loop.prepared.frames[-1].color).all()
+
+
+def test_a_pose_that_overflows_once_scaled_to_metres_is_refused():
+    """Issue 41, item 4: the opencv engine's translation is checked after scaling by meters_per_unit, as the
+    other engines' are: 1e10 x 1e300 is inf, refused at submit and predict naming the view; a finite depth
+    that the scale makes inf is refused too (it would have become sky)."""
+    session = make_session(meters_per_unit=1e300)
+    color = frame_arrays()[0]
+    sky = np.full((H, W), np.inf, np.float32)
+    far = pose()
+    far[0, 3] = 1e10
+    match = r"field 'view': translation \(1e\+10, 0, 0\) times meters_per_unit 1e\+300 is not finite"
+    with pytest.raises(InputError, match=match):
+        session.submit(color, sky, far, K, 0.0)
+    assert session.stats["submitted"] == 0
+    session.submit(color, sky, pose(), K, 0.0)
+    with pytest.raises(InputError, match=match):
+        session.predict(far, K, 1 / 60)
+    near = sky.copy()
+    near[0, :2] = 3.0
+    with pytest.raises(InputError, match=r"field 'depth': has 2 values that are not finite once scaled by "
+                                         r"meters_per_unit 1e\+300"):
+        session.submit(color, near, pose(), K, 1 / 30)
+    assert session.stats["submitted"] == 1
 
 
 def test_errors_name_the_session_counter_by_default_and_catch_bad_poses():
@@ -787,6 +861,33 @@ def test_object_only_vectors_at_low_resolution_sample_the_camera_at_their_own_ce
     rays = np.concatenate([p, np.ones(p.shape[:2] + (1,))], axis=-1) @ np.linalg.inv(K).T
     b_to_a = pose()[:3, :3] @ pose(yaw_deg=3.0)[:3, :3].T  # camera B axes -> camera A axes
     q = rays @ (K @ b_to_a).T
+    np.testing.assert_allclose(vectors, q[..., :2] / q[..., 2:] - p, atol=1e-4)
+
+
+@pytest.mark.parametrize("ratio", [2, 3, 4])
+def test_object_only_vectors_at_low_resolution_take_the_depth_at_their_own_points(ratio):
+    """Issue 41, item 7: sample (i, j) of an (h, w) buffer is the point ((j + 0.5) W / w, (i + 0.5) H / h), a
+    pixel corner at even ratios; the camera motion added to it is that of the surface there. On a tilted plane
+    (inverse depth affine in the image: interpolating it between the nearest pixels is exact) the added
+    vectors are the exact camera motion at each sample point."""
+    h, w = H // ratio, W // ratio
+    session = make_session(method="reproject", motion_includes_camera=False)
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+
+    def plane(x, y):  # planar depth of a tilted wall: 1.5 m at the left edge, 6 m at the right
+        return 1.0 / (1 / 1.5 + (1 / 6 - 1 / 1.5) * x / W + 0.002 * y)
+
+    color = frame_arrays(0)[0]
+    session.submit(color, plane(u, v).astype(np.float32), pose(), K, 0.0)
+    session.submit(color, plane(u, v).astype(np.float32), pose(x=CAMERA_STEP), K, 1 / 30,
+                   motion_vectors=np.zeros((h, w, 2), np.float32))
+    vectors = session._loop.prepared.frames[-1].motion_vectors
+    p = sample_centres(h, w)
+    now, before = session.camera(pose(x=CAMERA_STEP), K), session.camera(pose(), K)
+    rays = np.concatenate([p, np.ones(p.shape[:2] + (1,))], axis=-1) @ np.linalg.inv(K).T
+    points = rays * plane(p[..., 0], p[..., 1])[..., None]  # camera B's points at the samples
+    b_to_a = before.world_to_camera @ now.camera_to_world
+    q = (points @ b_to_a[:3, :3].T + b_to_a[:3, 3]) @ K.T
     np.testing.assert_allclose(vectors, q[..., :2] / q[..., 2:] - p, atol=1e-4)
 
 

@@ -36,7 +36,7 @@ MPI arrays (C, Z, H, W) with planes near (0) to far (Z - 1). No torch: the netwo
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Any, Literal, Optional, Sequence
 
 import numpy as np
 
@@ -80,11 +80,11 @@ class DecompConfig:
                                 "from the ONNX metadata); frames are block-downsampled by ceil(W / flow_width)")
     gate: GateConfig = option(GateConfig(), "the motion gate (engine.predict.decomp.gate)")
     threads: int = option(2, "onnxruntime intra-op threads")
-    estimator: str = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU) or 'gl' (the "
+    estimator: Literal["dis", "gl"] = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU) or 'gl' (the "
                                    "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow "
                                    "runs on the GPU; measured scores: docs/gpu.md)")
-    dis_preset: str = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
-    fill: str = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
+    dis_preset: Literal["ultrafast", "fast", "medium"] = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
+    fill: Literal["simple", "infill"] = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
                                  "engine.geometry.holefill) or 'infill' (the infilling network, "
                                  "engine.predict.decomp.infill: copies known pixels of the same MPI plane along "
                                  "predicted vectors; measured on held-out scenes: the same PSNR for about 240 ms "

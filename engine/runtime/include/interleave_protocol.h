@@ -45,8 +45,11 @@
  *                  conventions il_motion states; NaN = no vector; rows like the images (IL_FLAG_FLIP_ROWS)
  *   motion_valid : motion_height * motion_width uint8, non-zero where a pixel has a vector (read only when
  *                  il_submit_motion.flags has IL_SUBMIT_VALID)
- * The plane may be smaller than the frame (vectors rendered at a lower resolution): sample (i, j) belongs
- * to the frame point ((j + 0.5) * width / motion_width, (i + 0.5) * height / motion_height).
+ * The plane may be smaller than the frame (vectors rendered at a lower resolution): sample (i, j) is what a
+ * renderer at motion_width x motion_height writes at its pixel's centre, the frame point
+ * ((j + 0.5) * width / motion_width, (i + 0.5) * height / motion_height) in frame pixels whose centres are at
+ * +0.5 (at 2x: the corner of four frame pixels); the server reads the depth at that point (interpolated
+ * between the frame pixels around it) and gives the vector to the frame pixels of that point's surface.
  * Vectors point into the previously submitted frame: a SUBMIT whose history is reset (first frame, RESET,
  * camera cut, time going backwards) drops them.
  *

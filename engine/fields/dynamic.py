@@ -32,19 +32,27 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, decode_plane,
-                                  direction_encoding_np, load_mlp, load_occupancy, march_field, mlp_np,
-                                  read_asset_files)
+from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
+from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, camera_rays_np,
+                                  contract_np, decode_plane, direction_encoding_np, load_mlp, load_occupancy,
+                                  march_field, mlp_np, read_asset_files, uncontract_np)
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
-           "query_dynamic", "render_dynamic_field"]
+           "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
+           "earlier_points", "field_motion_vectors"]
 
 DYNAMIC_FORMAT = "interleave-dynamic-field"
 DYNAMIC_VERSION = 1
 #: A time may exceed the trained range by this fraction of the range (at least 1e-6 absolute) before it is
 #: refused; the same as ``models.fields.dynamic.model.TIME_TOLERANCE``.
 TIME_TOLERANCE = 1e-6
+
+#: Fixed-point iterations that invert the motion field (``earlier_points``): each multiplies the error by at most
+#: the flow's Lipschitz constant over the point's path (contraction where the flow varies slowly in space).
+MOTION_ITERATIONS = 8
+#: Largest residual |c' + flow(c', tau') - C| (contracted units) of an earlier point that counts as found.
+MOTION_TOLERANCE = 1e-3
 
 #: Plane groups and MLPs each kind of export holds.
 _GROUPS = {"derf": ("canonical_spatial", "motion_spatial", "motion_temporal"), "kplanes": ("spatial", "temporal")}
@@ -287,3 +295,91 @@ def render_dynamic_field(assets: DynamicAssets, intrinsics, world_to_camera, hei
                                                 "directions": directions})
 
     return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Motion vectors: where a rendered surface point was at an earlier time (the field's own correspondence)
+
+
+def earlier_points(assets: DynamicAssets, coords: np.ndarray, tau: float, tau_earlier: float, *,
+                   iterations: int = MOTION_ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+    """Contracted points (N, 3) at normalised time ``tau`` -> the contracted points at ``tau_earlier`` that the
+    motion field maps to the same canonical point (float32), and whether each was found (bool (N,)).
+
+    DeRF maps a point c at tau to the canonical point ``C = c + flow(c, tau)`` (thesis Eq. 5.3; the
+    correspondence the sparse flow prior trains, Eq. 5.7). The earlier point c' solves
+    ``c' + flow(c', tau_earlier) = C`` inside the cube; it is found by the fixed-point iteration
+    ``c'_{i+1} = C - flow(clamp(c'_i, -1, 1), tau_earlier)`` from ``c'_0 = c``: exact in one step where the flow
+    does not vary in space, converging where its spatial Lipschitz constant is below 1. A point is found when
+    the last iterate lies in the cube and solves the equation within ``MOTION_TOLERANCE`` (contracted units);
+    else (no earlier point in the field, or no convergence) it is not. A K-Planes export has no motion
+    model: its points do not move.
+    """
+    coords = np.asarray(coords, np.float32)
+    n = coords.shape[0]
+    if not assets.has_motion or n == 0:
+        return coords.copy(), np.ones(n, bool)
+    canonical, _ = deform_np(assets, coords, np.full(n, tau, np.float32))
+    earlier = coords.copy()
+    taus = np.full(n, tau_earlier, np.float32)
+    for _ in range(int(iterations)):
+        _, flow = deform_np(assets, np.clip(earlier, -1.0, 1.0), taus)
+        earlier = (canonical - flow).astype(np.float32)
+    _, flow = deform_np(assets, np.clip(earlier, -1.0, 1.0), taus)
+    found = (np.abs(earlier) <= 1.0).all(axis=1) & (np.abs(earlier + flow - canonical).max(axis=1) <= MOTION_TOLERANCE)
+    return earlier, found
+
+
+def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, depth: np.ndarray, time: float,
+                         earlier_world_to_camera, earlier_time: float, *, earlier_intrinsics=None,
+                         iterations: int = MOTION_ITERATIONS) -> np.ndarray:
+    """Engine-style motion vectors (H, W, 2) float32 of a dynamic field's frame: from each pixel centre to where
+    its surface point was in the frame seen by the earlier camera at ``earlier_time``, in pixels (x right,
+    y down), camera motion included (``docs/motion-vectors.md``).
+
+    The surface point is the pixel's ray at its rendered planar ``depth`` (+inf: the background, which moves
+    with the camera's rotation alone); inside the field's cube it moves by :func:`earlier_points`, outside
+    it is static. NaN where the motion field gives no earlier point (see :func:`earlier_points`), where the
+    earlier point is behind (or on) the earlier camera's plane, lies at infinity (a forward-facing scene's far
+    end) or projects more than ``MAX_MOTION_DIAGONALS`` frame diagonals away.
+    The numpy oracle of ``GlDynamicRenderer.motion_vectors``.
+
+    Raises:
+        InputError: bad intrinsics or poses, a depth that is not (H, W) positive (or +inf), times outside the
+            trained range.
+    """
+    k = validate_intrinsics(intrinsics)
+    pose = validate_pose(world_to_camera)
+    k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,
+                                                                      field_name="earlier_intrinsics")
+    prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera")
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.dtype.kind != "f" or np.isnan(depth).any() or (depth <= 0).any():
+        raise InputError(f"must be (H, W) planar depth > 0 (+inf for the background), got {depth.shape} "
+                         f"{depth.dtype}", field="depth")
+    tau, tau_prev = normalize_time(time, assets.time_range), normalize_time(earlier_time, assets.time_range)
+    h, w = depth.shape
+    origin, dirs = camera_rays_np(k, pose, h, w)
+    origin, dirs = origin.astype(np.float32), dirs.astype(np.float32)  # the renderer's float32 rays
+    d = depth.reshape(-1).astype(np.float32)
+    finite = np.isfinite(d)
+    points = np.where(finite[:, None], origin + np.where(finite, d, 0)[:, None] * dirs, dirs)
+    render = assets.manifest["render"]
+    coords = contract_np(assets.scene, points, render["ndc_margin"])
+    inside = finite & (np.abs(coords) <= 1.0).all(axis=-1)
+    moved, found = earlier_points(assets, coords[inside], tau, tau_prev, iterations=iterations)
+    points[inside] = np.where(found[:, None], uncontract_np(assets.scene, moved, render["ndc_margin"]), np.nan)
+    # finite points: world -> earlier camera; the background: directions, rotation only
+    q = points.astype(np.float64) @ prev[:3, :3].T + np.where(finite, 1.0, 0.0)[:, None] * prev[:3, 3]
+    z = q[:, 2]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(q).all(axis=1) & (z > 1e-9 * np.maximum(1.0, np.abs(q[:, :2]).max(axis=1)))
+    z = np.where(ok, z, 1.0)
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    x = k_prev[0, 0] * q[:, 0] / z + k_prev[0, 1] * q[:, 1] / z + k_prev[0, 2] - u.reshape(-1)
+    y = k_prev[1, 1] * q[:, 1] / z + k_prev[1, 2] - v.reshape(-1)
+    out = np.stack([x, y], axis=-1)
+    out[~ok] = np.nan
+    with np.errstate(invalid="ignore"):
+        out[np.abs(out).max(axis=1) > MAX_MOTION_DIAGONALS * np.hypot(h, w)] = np.nan
+    return out.reshape(h, w, 2).astype(np.float32)

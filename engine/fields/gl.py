@@ -563,10 +563,16 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
                        if count_evaluations else ""),
         "count_write": "    out_count[o] = evaluated;" if count_evaluations else "",
     }
-    if kind == "const":  # the weights as literals in the code (float32 round-trips through 9 digits)
-        source = re.sub(r"P\[(\d+)\]", lambda m: "vec4(%s)" % ", ".join("%.9g" % v for v in packed[int(m.group(1))]),
-                        source)
+    if kind == "const":
+        source = inline_params(source, packed)
     return source, packed, tex_specs, kind
+
+
+def inline_params(source: str, packed: np.ndarray) -> str:
+    """``source`` with every ``P[i]`` replaced by the literal ``vec4`` of row i of ``packed`` (the weights as
+    literals in the code; float32 round-trips through 9 significant digits)."""
+    return re.sub(r"P\[(\d+)\]", lambda m: "vec4(%s)" % ", ".join("%.9g" % v for v in packed[int(m.group(1))]),
+                  source)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -34,17 +34,21 @@ numpy and onnxruntime paths of :mod:`engine.fields.dynamic` and (when torch is i
 """
 from __future__ import annotations
 
+import time as time_module
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 
-from engine.fields.dynamic import DynamicAssets, load_dynamic_field, normalize_time, time_encoding_np
+from engine.core.errors import InputError
+from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
+from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, load_dynamic_field,
+                                   normalize_time, time_encoding_np)
 from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available, check_options,
-                              generate_shader, linear_code, mlp_hidden_code, pad_matrix, texture_layers)
+                              generate_shader, inline_params, linear_code, mlp_hidden_code, pad_matrix, texture_layers)
 from engine.fields.render import PLANE_AXES
 
-__all__ = ["GlDynamicRenderer", "available"]
+__all__ = ["GlDynamicRenderer", "available", "motion_shader"]
 
 
 def _groups(plane: np.ndarray) -> int:
@@ -87,12 +91,12 @@ def _time_plane_code(temporal: list[np.ndarray], filtering: str, prefix: str, sa
     return lines
 
 
-def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
-    """DeRF: declarations and the per-sample code that moves c to the canonical point (no code after)."""
+def _flow_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], str]:
+    """DeRF: sampler declarations, the code that evaluates the motion field at (c, tau) (hex-plane features,
+    flow MLP) and the GLSL expression of its flow, ``max_flow * tanh(.)`` (contracted units)."""
     spatial, temporal = assets.planes["motion_spatial"], assets.planes["motion_temporal"]
-    decls = ["uniform float tau;",
-             f"uniform float time_enc[{2 * int(assets.manifest['field']['time_frequencies']) + 1}];"]
-    lines = ["// motion field: hex-plane features at (c, tau), flow MLP, c -> canonical point"]
+    decls = []
+    lines = ["// motion field: hex-plane features at (c, tau), flow MLP"]
     feats, col_map, base = [], [], 0
     for s, plane in enumerate(spatial):
         decls += [f"uniform sampler2DArray motion_s{s};", f"uniform sampler2DArray motion_t{s};"]
@@ -112,9 +116,16 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     b_off = params.add(np.pad(b_last, (0, 4 - b_last.shape[0])))
     out, (fo,) = linear_code("fo", xs, out_off, 1, [f"P[{b_off}]"], False)
     lines += hidden + out
-    lines += ["vec3 fe = exp(-2.0 * abs(" + fo + ".xyz));  // tanh, without overflow",
-              f"c = clamp(c + {assets.max_flow!r} * sign({fo}.xyz) * ((1.0 - fe) / (1.0 + fe)), -1.0, 1.0);"]
-    return decls, lines, []
+    lines.append("vec3 fe = exp(-2.0 * abs(" + fo + ".xyz));  // tanh, without overflow")
+    return decls, lines, f"{assets.max_flow!r} * sign({fo}.xyz) * ((1.0 - fe) / (1.0 + fe))"
+
+
+def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
+    """DeRF: declarations and the per-sample code that moves c to the canonical point (no code after)."""
+    decls, lines, flow = _flow_code(assets, filtering, params)
+    decls = ["uniform float tau;",
+             f"uniform float time_enc[{2 * int(assets.manifest['field']['time_frequencies']) + 1}];"] + decls
+    return decls, lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"], []
 
 
 def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
@@ -123,6 +134,125 @@ def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -
     decls = ["uniform float tau;"] + [f"uniform sampler2DArray temporal{s};" for s in range(len(temporal))]
     after = [f"f{s}_{gi} *= kt{s}_{gi};" for s, plane in enumerate(temporal) for gi in range(_groups(plane))]
     return decls, _time_plane_code(temporal, filtering, "kt", "temporal"), after
+
+
+_MOTION_TEMPLATE = """
+#version 450
+layout(local_size_x = 8, local_size_y = 8) in;
+layout(std430, binding = 2) readonly buffer RgbdBuf { vec4 rgbd[]; };
+layout(std430, binding = 5) writeonly buffer MotionBuf { vec2 out_motion[]; };
+%(samplers)s
+
+uniform ivec2 size;             // W, H
+uniform dvec4 k_vals;           // this frame's K00 (fx), K01, K02 (cx), K11 (fy)
+uniform double k_cy;            // K12
+uniform dmat3 rot;              // this frame's world_to_camera rotation: rot[i][j] = R[i, j]
+uniform vec3 origin;            // this frame's camera centre, float32
+uniform mat3 prev_rot;          // the earlier camera: q = prev_rot p + prev_t
+uniform vec3 prev_t;
+uniform vec4 prev_k;            // the earlier K00, K01, K02, K11
+uniform float prev_k12;
+uniform float tau_now;
+uniform float tau_prev;
+uniform float max_vector;       // MAX_MOTION_DIAGONALS frame diagonals, px
+uniform vec3 box_center;
+uniform vec3 box_half;
+uniform mat3 ndc_rot;
+uniform vec3 ndc_t;
+uniform vec4 ndc_k;
+uniform float ndc_k12;
+uniform vec2 ndc_size;
+uniform float ndc_margin;
+uniform float scene_near;
+
+const float NAN = uintBitsToFloat(0x7fc00000u);
+
+vec3 motion_flow(vec3 c, float tau) {
+%(flow)s
+}
+
+vec3 contract(vec3 p) {
+%(contract)s
+}
+
+vec3 uncontract(vec3 c) {
+%(uncontract)s
+}
+
+void main() {
+    ivec2 pix = ivec2(gl_GlobalInvocationID.xy);
+    if (pix.x >= size.x || pix.y >= size.y) return;
+    int o = pix.y * size.x + pix.x;
+    // the renderer's ray through the pixel centre (camera z = 1), float64 then float32
+    double u = double(pix.x) + 0.5LF, v = double(pix.y) + 0.5LF;
+    double cy = (v - k_cy) / k_vals.w;
+    double cx = (u - k_vals.z - k_vals.y * (v - k_cy) / k_vals.w) / k_vals.x;
+    dvec3 cam = dvec3(cx, cy, 1.0LF);
+    vec3 d = vec3(cam.x * rot[0][0] + cam.y * rot[1][0] + cam.z * rot[2][0],
+                  cam.x * rot[0][1] + cam.y * rot[1][1] + cam.z * rot[2][1],
+                  cam.x * rot[0][2] + cam.y * rot[1][2] + cam.z * rot[2][2]);
+    float depth = rgbd[o].w;
+    vec3 q;
+    if (isinf(depth)) {
+        q = prev_rot * d;           // the background: a direction, rotation only
+    } else {
+        vec3 p = origin + depth * d;
+        vec3 c = contract(p);
+        if (all(lessThanEqual(abs(c), vec3(1.0)))) {
+            vec3 canonical = c + motion_flow(c, tau_now);
+            vec3 e = c;
+            for (int i = 0; i < ITERATIONS; ++i) e = canonical - motion_flow(clamp(e, -1.0, 1.0), tau_prev);
+            vec3 r = abs(e + motion_flow(clamp(e, -1.0, 1.0), tau_prev) - canonical);
+            bool found = all(lessThanEqual(abs(e), vec3(1.0))) && max(r.x, max(r.y, r.z)) <= TOLERANCE;
+            p = found ? uncontract(e) : vec3(NAN);
+        }
+        q = prev_rot * p + prev_t;
+    }
+    vec2 mv = vec2(NAN);
+    bool finite = !any(isnan(q)) && !any(isinf(q));
+    if (finite && q.z > 1e-9 * max(1.0, max(abs(q.x), abs(q.y)))) {
+        vec2 at = vec2(prev_k.x * q.x / q.z + prev_k.y * q.y / q.z + prev_k.z, prev_k.w * q.y / q.z + prev_k12);
+        mv = at - (vec2(pix) + 0.5);
+        if (max(abs(mv.x), abs(mv.y)) > max_vector) mv = vec2(NAN);
+    }
+    out_motion[o] = mv;
+}
+"""
+
+_BOX_CONTRACT = "    return (p - box_center) / box_half;"
+_BOX_UNCONTRACT = "    return c * box_half + box_center;"
+_NDC_CONTRACT = """    vec3 q = ndc_rot * p + ndc_t;
+    if (q.z <= 0.0) return vec3(-2.0);
+    float pu = (ndc_k.x * q.x + ndc_k.y * q.y) / q.z + ndc_k.z;
+    float pv = ndc_k.w * q.y / q.z + ndc_k12;
+    return vec3((2.0 * pu / ndc_size.x - 1.0) / (1.0 + ndc_margin),
+                (2.0 * pv / ndc_size.y - 1.0) / (1.0 + ndc_margin), 1.0 - 2.0 * scene_near / q.z);"""
+_NDC_UNCONTRACT = """    if (c.z >= 1.0) return vec3(NAN);   // at or beyond infinity
+    float z = 2.0 * scene_near / (1.0 - c.z);
+    float pu = (c.x * (1.0 + ndc_margin) + 1.0) * (ndc_size.x / 2.0);
+    float pv = (c.y * (1.0 + ndc_margin) + 1.0) * (ndc_size.y / 2.0);
+    float y = (pv - ndc_k12) * z / ndc_k.w;
+    float x = ((pu - ndc_k.z) * z - ndc_k.y * y) / ndc_k.x;
+    return transpose(ndc_rot) * (vec3(x, y, z) - ndc_t);"""
+
+
+def motion_shader(assets: DynamicAssets, filtering: str, iterations: int = MOTION_ITERATIONS) -> str:
+    """GLSL of the motion-vector pass of a DeRF export (:func:`engine.fields.dynamic.field_motion_vectors` on
+    the GPU): per pixel, the rendered depth's point, the motion field inverted at the earlier time, the
+    earlier camera's projection; the flow MLP's weights as literals."""
+    params = ShaderParams()
+    if assets.has_motion:
+        decls, lines, flow = _flow_code(assets, filtering, params)
+    else:  # K-Planes: no motion model, nothing moves
+        decls, lines, flow = [], [], "vec3(0.0)"
+    body = "\n".join("    " + line for line in lines + [f"return {flow};"])
+    bounded = assets.bounded
+    source = _MOTION_TEMPLATE % {
+        "samplers": "\n".join(decls), "flow": body,
+        "contract": _BOX_CONTRACT if bounded else _NDC_CONTRACT,
+        "uncontract": _BOX_UNCONTRACT if bounded else _NDC_UNCONTRACT}
+    source = source.replace("ITERATIONS", str(int(iterations))).replace("TOLERANCE", repr(float(MOTION_TOLERANCE)))
+    return inline_params(source, params.array())
 
 
 class GlDynamicRenderer(GlFieldRenderer):
@@ -169,20 +299,37 @@ class GlDynamicRenderer(GlFieldRenderer):
         textures = [(f"planes{s}", texture_layers(p, _groups(p))) for s, p in enumerate(assets.canonical_planes)]
         for prefix, planes in extra_planes:
             textures += [(f"{prefix}{s}", texture_layers(p, _groups(p))) for s, p in enumerate(planes)]
+        self._units = {name: unit for unit, (name, _) in enumerate(textures)}
+        self._motion_program = self._motion = None
         self._setup(packed, textures, "f4")
 
-    def render(self, intrinsics, world_to_camera, time: float) -> dict[str, np.ndarray]:
+    def render(self, intrinsics, world_to_camera, time: float, *, earlier_world_to_camera=None,
+               earlier_time: Optional[float] = None, earlier_intrinsics=None) -> dict[str, np.ndarray]:
         """Render the field at ``time`` (the data's units) from a camera (OpenCV axes, rigid world-to-camera,
-        pixel centres at +0.5).
+        pixel centres at +0.5); with ``earlier_world_to_camera`` and ``earlier_time`` also its motion vectors
+        to the frame that camera (with ``earlier_intrinsics``, default the same K) sees at that time.
 
         Returns:
             ``color`` (H, W, 3) float32 linear RGB, ``depth`` (H, W) float32 planar (+inf where the opacity
-            is below ``OPACITY_EPS``), ``opacity`` (H, W) float32, ``seconds`` (dispatch and read-back).
+            is below ``OPACITY_EPS``), ``opacity`` (H, W) float32, ``seconds`` (dispatches and read-backs);
+            with an earlier frame, ``motion_vectors`` (H, W, 2) float32: engine-style vectors (pixels, x right,
+            y down, camera motion included, NaN where there is none), what
+            :func:`engine.fields.dynamic.field_motion_vectors` computes from this render's depth (its test
+            oracle), a second pass over the rendered depth.
 
         Raises:
-            InputError: time outside the trained range (the message names both), bad intrinsics or pose.
+            InputError: a time outside the trained range (the message names both), bad intrinsics or pose, an
+                earlier camera without a time or the reverse.
         """
+        if (earlier_world_to_camera is None) != (earlier_time is None):
+            raise InputError("takes both earlier_world_to_camera and earlier_time, or neither",
+                             field="earlier_time")
         tau = normalize_time(time, self.assets.time_range)
+        motion = None
+        if earlier_time is not None:
+            motion = self._motion_dispatcher(intrinsics, world_to_camera, tau, earlier_world_to_camera,
+                                             normalize_time(earlier_time, self.assets.time_range),
+                                             earlier_intrinsics)
 
         def set_time() -> None:
             self._set("tau", float(tau))
@@ -193,4 +340,80 @@ class GlDynamicRenderer(GlFieldRenderer):
                 except KeyError:  # optimised out: the colour MLP ignores time
                     pass
         self._run(set_time)
-        return super().render(intrinsics, world_to_camera)
+        out = super().render(intrinsics, world_to_camera)
+        if motion is not None:
+            def run():
+                start = time_module.perf_counter()
+                motion()
+                n = self.width * self.height
+                return (np.frombuffer(self._motion.read(size=8 * n), np.float32).reshape(self.height, self.width, 2)
+                        .copy(), time_module.perf_counter() - start)
+            out["motion_vectors"], seconds = self._run(run)
+            out["seconds"] += seconds
+        return out
+
+    def _motion_dispatcher(self, intrinsics, world_to_camera, tau, earlier_world_to_camera, tau_prev,
+                           earlier_intrinsics):
+        """The checked motion pass (over the depth the next render writes), to run with the context current."""
+        k = validate_intrinsics(intrinsics)
+        pose = validate_pose(world_to_camera)
+        k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,
+                                                                          field_name="earlier_intrinsics")
+        prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera").astype(np.float32)
+        rot = pose[:3, :3]
+        origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
+        if self._motion_program is None:
+            self._run(self._build_motion_pass)
+        program = self._motion_program
+
+        def put(name: str, value) -> None:
+            try:
+                program[name].value = value
+            except KeyError:  # optimised out of this field's pass
+                pass
+
+        def dispatch() -> None:
+            put("k_vals", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
+            put("k_cy", float(k[1, 2]))
+            put("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
+            put("origin", tuple(float(x) for x in origin))
+            put("prev_rot", tuple(float(x) for x in prev[:3, :3].flatten(order="F")))  # column-major
+            put("prev_t", tuple(float(x) for x in prev[:3, 3]))
+            put("prev_k", (float(k_prev[0, 0]), float(k_prev[0, 1]), float(k_prev[0, 2]), float(k_prev[1, 1])))
+            put("prev_k12", float(k_prev[1, 2]))
+            put("tau_now", float(tau))
+            put("tau_prev", float(tau_prev))
+            for unit, tex in enumerate(self._textures):
+                tex.use(location=unit)
+            self._rgbd.bind_to_storage_buffer(2)
+            self._motion.bind_to_storage_buffer(5)
+            program.run(-(-self.width // 8), -(-self.height // 8), 1)
+            self.ctx.memory_barrier()
+        return dispatch
+
+    def _build_motion_pass(self) -> None:
+        """Compile the motion pass (on first use) and set what does not change between frames."""
+        self._motion_program = program = self.ctx.compute_shader(motion_shader(self.assets, self.filtering))
+        self._motion = self.ctx.buffer(reserve=8 * self.width * self.height)
+        self._buffers += [self._motion, program]  # released with the buffers
+        scene = self.assets.scene
+        values = {"size": (self.width, self.height), "scene_near": float(np.float32(scene["near"])),
+                  "max_vector": float(MAX_MOTION_DIAGONALS * np.hypot(self.height, self.width))}
+        if self.assets.bounded:
+            lo, hi = np.asarray(scene["box_min"], np.float32), np.asarray(scene["box_max"], np.float32)
+            values.update(box_center=tuple(map(float, (lo + hi) / np.float32(2))),
+                          box_half=tuple(map(float, (hi - lo) / np.float32(2))))
+        else:
+            k = np.asarray(scene["ndc_intrinsics"], np.float32)
+            t = np.asarray(scene["ndc_world_to_camera"], np.float32)
+            values.update(ndc_rot=tuple(float(x) for x in t[:3, :3].flatten(order="F")),
+                          ndc_t=tuple(float(x) for x in t[:3, 3]),
+                          ndc_k=(float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])),
+                          ndc_k12=float(k[1, 2]), ndc_size=tuple(float(x) for x in scene["ndc_size"]),
+                          ndc_margin=float(np.float32(self.assets.manifest["render"]["ndc_margin"])))
+        values.update({name: unit for name, unit in self._units.items() if name.startswith("motion_")})
+        for name, value in values.items():
+            try:
+                program[name].value = value
+            except KeyError:  # optimised out of this field's pass
+                pass

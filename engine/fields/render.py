@@ -34,8 +34,9 @@ from engine.fields.manifest import check_scene, check_static_layout
 
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
-           "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np", "query_field",
-           "composite_np", "optical_depth", "evaluated_samples", "evaluation_macs", "render_field", "TRANSMITTANCE_EPS"]
+           "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np",
+           "uncontract_np", "query_field", "composite_np", "optical_depth", "evaluated_samples", "evaluation_macs",
+           "render_field", "TRANSMITTANCE_EPS"]
 
 ASSET_FORMAT = "interleave-field"
 ASSET_VERSION = 1
@@ -253,6 +254,26 @@ def contract_np(scene: dict, points: np.ndarray, ndc_margin: float) -> np.ndarra
     out = np.stack([(2.0 * u / w - 1.0) / (1.0 + ndc_margin), (2.0 * v / h - 1.0) / (1.0 + ndc_margin),
                     1.0 - 2.0 * scene["near"] / zs], axis=-1)
     return np.where(ahead[..., None], out, np.float32(-2.0))
+
+
+def uncontract_np(scene: dict, coords: np.ndarray, ndc_margin: float) -> np.ndarray:
+    """The inverse of :func:`contract_np`: cube coordinates (..., 3) -> world points, float32. For a
+    forward-facing scene a coordinate with ``c_z >= 1`` lies at or beyond infinity: NaN."""
+    coords = np.asarray(coords, np.float32)
+    if scene["kind"] == "bounded-360":
+        lo, hi = np.asarray(scene["box_min"], np.float32), np.asarray(scene["box_max"], np.float32)
+        return coords * ((hi - lo) / 2) + (lo + hi) / 2
+    k = np.asarray(scene["ndc_intrinsics"], np.float32)
+    t = np.asarray(scene["ndc_world_to_camera"], np.float32)
+    w, h = scene["ndc_size"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(coords[..., 2] < 1.0, np.float32(2.0 * scene["near"]) / (1.0 - coords[..., 2]), np.nan)
+        u = (coords[..., 0] * (1.0 + ndc_margin) + 1.0) * (w / 2.0)
+        v = (coords[..., 1] * (1.0 + ndc_margin) + 1.0) * (h / 2.0)
+        y = (v - k[1, 2]) * z / k[1, 1]
+        x = ((u - k[0, 2]) * z - k[0, 1] * y) / k[0, 0]
+    cam = np.stack([x, y, z], axis=-1).astype(np.float32)
+    return ((cam - t[:3, 3]) @ t[:3, :3]).astype(np.float32)  # R^T (cam - t) for row vectors
 
 
 def bilinear_np(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

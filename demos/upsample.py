@@ -22,16 +22,21 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.eval.metrics import flip_map
-from engine.eval.protocol import (evaluate_sequence, evaluation_pairs, history_motion_vectors, make_predictors,
-                                  markdown_table, plot, stage_table, summarize, write_json)
+from engine.eval.protocol import (VectorSource, evaluate_sequence, evaluation_pairs, history_motion_vectors,
+                                  make_predictors, markdown_table, plot, stage_table, summarize, write_json)
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
+from engine.fields.dynamic import field_motion_vectors
 from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
 from engine.predict import Predictor, Target, make_predictor
 from engine.runtime.stream import PredictionLoop
 from engine.scenegen import SceneConfig, generate_sequence, make_scene
+
+
+#: A dynamic field's pixel is ``moving`` where its motion moves it more than this (px) to the next frame.
+MOVING_PX = 0.25
 
 
 @dataclass
@@ -44,20 +49,21 @@ class OutputFrame:
     truth: Frame
 
 
-def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor) -> Iterator[OutputFrame]:
+def upsample_stream(frames: Sequence[Frame], k: int, predictor: Predictor,
+                    vectors: Optional[VectorSource] = None) -> Iterator[OutputFrame]:
     """Show frames 0, k, 2k, ... as rendered and predict the others from the last rendered frames.
 
     Only each predicted tick's camera and time are read from the frames in between (what a game knows
     before rendering). Until two frames are rendered, a two-frame method falls back to `reproject`. The
     motion vectors of a rendered frame of a sequence are re-derived to point k frames back, to the previous
-    rendered frame (``engine.eval.protocol.history_motion_vectors``).
+    rendered frame (``engine.eval.protocol.history_motion_vectors``, from ``vectors`` when given).
     """
     loop = PredictionLoop(predictor)
     for position, frame in enumerate(frames):
         if frame.index % k == 0:
             if frame.motion_vectors is not None and isinstance(frames, RgbdSequence):
                 # a renderer drawing every k-th frame writes vectors to its previous rendered frame
-                frame.motion_vectors = (history_motion_vectors(frames, position - k, position, frame)
+                frame.motion_vectors = (history_motion_vectors(frames, position - k, position, frame, vectors)
                                         if position >= k else None)
             loop.submit(frame)
             yield OutputFrame(frame.index, frame.color, False, frame)
@@ -112,12 +118,13 @@ def check_before_rendering(frames: int, k: int, methods: Sequence[str], objects:
 
 def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], progress: bool = True,
                     command: str = "interleave demo", extra: Optional[dict] = None, note: str = "",
-                    backend: str = "auto") -> dict:
+                    backend: str = "auto", vectors: Optional[VectorSource] = None) -> dict:
     """Evaluate ``methods`` on a loaded sequence and write the demo's outputs into ``out_dir``: ``table.md``
     (with ``note`` under it), ``results.json`` (with ``extra``), ``speed_vs_error.png``, ``side_by_side.mp4``
-    (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table."""
+    (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table.
+    ``vectors``: the renderer's own motion vectors between rendered frames (``evaluate_sequence``)."""
 
-    results = evaluate_sequence(sequence, list(methods), k, progress=progress, backend=backend)
+    results = evaluate_sequence(sequence, list(methods), k, progress=progress, backend=backend, vectors=vectors)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
     if note:
         table += "\n\n" + note
@@ -132,7 +139,7 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
     writer = cv2.VideoWriter(str(out_dir / "side_by_side.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
                              float(sequence.fps), (3 * sequence.width, sequence.height))
     stills = 0
-    for shown in tqdm(upsample_stream(sequence, k, predictor), total=len(sequence), desc="video",
+    for shown in tqdm(upsample_stream(sequence, k, predictor, vectors), total=len(sequence), desc="video",
                       disable=not progress, unit="frame"):
         image = side_by_side(shown.truth.color, shown.color, shown.predicted, shown.index, best)
         writer.write(image)
@@ -150,27 +157,35 @@ def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], 
 
 
 def resolve_field_dir(path: Path) -> tuple[Path, Optional[Path]]:
-    """(export folder with ``field.json``, run folder or None) for an export folder or a run folder holding
-    ``export/``; the run folder is the export's parent when that holds ``data.json`` (the run's cameras)."""
+    """(export folder with ``field.json`` or ``dynamic.json``, run folder or None) for an export folder or a run
+    folder holding ``export/``; the run folder is the export's parent when that holds ``data.json`` (the run's
+    cameras)."""
 
     path = Path(path)
-    if (path / "field.json").is_file():
-        export = path
-    elif (path / "export" / "field.json").is_file():
-        export = path / "export"
+    for export in (path, path / "export"):
+        if (export / "field.json").is_file() or (export / "dynamic.json").is_file():
+            break
     else:
-        raise InputError("holds no field.json (nor export/field.json): export the trained field first with "
-                         f"'interleave export field {path}'", file=path)
+        raise InputError("holds no field.json or dynamic.json (nor export/...): export the trained field first with "
+                         f"'interleave export field|dynamic {path}'", file=path)
     run = export.parent if (export.parent / "data.json").is_file() else None
     return export, run
 
 
-def train_cameras(run: Optional[Path]):
+def is_dynamic_export(export: Path) -> bool:
+    """Whether an export folder of :func:`resolve_field_dir` holds a dynamic field."""
+    return (Path(export) / "dynamic.json").is_file()
+
+
+def train_cameras(run: Optional[Path], dynamic: bool = False):
     """The run's training cameras and image size (needs torch and the run's scene folder), else None."""
     if run is None:
         return None
     try:
-        from models.fields.train_static import load_run_views
+        if dynamic:
+            from models.fields.data.select import load_dynamic_run_views as load_run_views
+        else:
+            from models.fields.train_static import load_run_views
     except ImportError:  # no torch: the path is derived from the manifest alone
         return None
 
@@ -195,20 +210,51 @@ def render_field_frames(renderer, cameras, fps: float, timings: Optional[list] =
                     object_id=np.zeros(out["depth"].shape, np.int32), motion_vectors=vectors)
 
 
+def render_dynamic_frames(renderer, cameras, times: np.ndarray, fps: float,
+                          timings: Optional[list] = None) -> Iterator[Frame]:
+    """Frames of a dynamic field (``engine.fields.gldynamic.GlDynamicRenderer``) rendered along ``cameras`` at
+    ``times`` (the field's units): colour, depth, its own motion vectors to the previous frame (the motion
+    field inverted, ``field_motion_vectors``; the camera's alone on the first frame; the demo gives ``mvec``
+    the vectors between rendered frames from the field directly) and, as the truth the scores read, the
+    flow to the next frame (the same computation forward in time), its part from the
+    field's motion (``object_flow``: flow minus the camera's) and ``moving`` where that part exceeds
+    ``MOVING_PX``."""
+    for i, cam in enumerate(cameras):
+        before = cameras[max(i - 1, 0)]
+        out = renderer.render(cam.intrinsics, cam.world_to_camera, float(times[i]),
+                              earlier_world_to_camera=before.world_to_camera, earlier_time=float(times[max(i - 1, 0)]))
+        if timings is not None:
+            timings.append(out["seconds"])
+        after = cameras[min(i + 1, len(cameras) - 1)]
+        flow = field_motion_vectors(renderer.assets, cam.intrinsics, cam.world_to_camera, out["depth"],
+                                    float(times[i]), after.world_to_camera, float(times[min(i + 1, len(times) - 1)]))
+        object_flow = flow - camera_motion_vectors(out["depth"], cam, after)
+        moving = np.nan_to_num(np.abs(object_flow).max(axis=-1), nan=0.0) > MOVING_PX
+        yield Frame(index=i, time=i / fps, color=out["color"], depth=out["depth"], camera=cam,
+                    motion_vectors=out["motion_vectors"], flow=np.nan_to_num(flow),
+                    object_flow=np.nan_to_num(object_flow), moving=moving)
+
+
 def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 48, width: Optional[int] = 640,
                    height: Optional[int] = 360, fps: float = 30.0,
                    methods: Sequence[str] = ("repeat", "reproject", "flow2d", "decomp"), quantized: bool = False,
                    orbit_degrees: float = 90.0, progress: bool = True, backend: str = "auto") -> dict:
     """The frame-upsampling demo with a trained field as the renderer.
 
-    The field (``engine.fields.gl.GlFieldRenderer``) renders colour and planar depth along
-    :func:`field_camera_path` into ``out_dir/field`` (an rgbd-seq); every k-th frame is "rendered", the
-    predictors predict the others, and each prediction is scored against the field's own render at that
-    pose. Writes what :func:`run_demo` writes; the field's render time is in ``table.md`` and
-    ``results.json``. ``oracle`` is dropped from ``methods`` (a static field has no object motion).
+    The field (``engine.fields.gl.GlFieldRenderer``, or ``engine.fields.gldynamic.GlDynamicRenderer`` for a
+    dynamic export, at times spread evenly over its trained range) renders colour and planar depth along
+    :func:`field_camera_path` into ``out_dir/field`` (an rgbd-seq, with the field's own motion vectors);
+    every k-th frame is "rendered", the predictors predict the others, and each prediction is scored against
+    the field's own render at that pose and time. Writes what :func:`run_demo` writes; the field's render time
+    is in ``table.md`` and ``results.json``. ``oracle`` is dropped from ``methods`` (it needs rigid objects).
     """
 
     export, run = resolve_field_dir(field_dir)
+    if is_dynamic_export(export):
+        return _run_dynamic_field_demo(export, run, out_dir, k=k, frames=frames, width=width, height=height, fps=fps,
+                                       methods=methods, orbit_degrees=orbit_degrees, progress=progress,
+                                       backend=backend, command=f"interleave demo --field {field_dir} --k {k} "
+                                                                 f"--backend {backend}")
     methods = [m for m in methods if m != "oracle"]
     if not methods:
         raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
@@ -233,3 +279,47 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
     return report_sequence(read_sequence(seq_dir), out_dir, k=k, methods=methods, progress=progress,
                            command=f"interleave demo --field {field_dir} --k {k} --backend {backend}", extra=extra,
                            note=note, backend=backend)
+
+
+def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *, k: int, frames: int,
+                            width: Optional[int], height: Optional[int], fps: float, methods: Sequence[str],
+                            orbit_degrees: float, progress: bool, backend: str, command: str) -> dict:
+    """:func:`run_field_demo` for a dynamic export: the field's own vectors feed ``mvec``."""
+    from engine.fields.dynamic import load_dynamic_field
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    methods = [m for m in methods if m != "oracle"]
+    if not methods:
+        raise InputError("no method left to evaluate (oracle needs rigid objects)", field="methods")
+    check_before_rendering(frames, k, methods, (), backend)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    assets = load_dynamic_field(export)
+    cameras, width, height = field_camera_path(assets, train_cameras(run, dynamic=True), frames, width, height,
+                                               orbit_degrees=orbit_degrees)
+    t0, t1 = assets.time_range
+    times = t0 + (t1 - t0) * np.arange(frames) / max(frames - 1, 1)
+    timings: list[float] = []
+    with GlDynamicRenderer(assets, width, height) as renderer:
+        seq_dir = write_sequence(out_dir / "field", render_dynamic_frames(renderer, cameras, times, fps, timings),
+                                 fps=fps, progress=progress)
+        compile_s = renderer.compile_seconds
+    sequence = read_sequence(seq_dir)
+
+    def field_vectors(older: int, newest: int) -> np.ndarray:
+        """What the renderer writes when it draws only frames ``older`` and ``newest`` (the motion field)."""
+        frame = sequence[newest]
+        return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]))
+
+    render_ms = 1e3 * float(np.median(timings))
+    note = (f"Dynamic field renderer (engine.fields.gldynamic, {assets.kind}, {width}x{height}): {render_ms:.1f} ms "
+            f"per rendered frame with its motion vectors (median of {len(timings)}; shader compiled in "
+            f"{compile_s:.2f} s), times {t0:g}..{t1:g}. Truth for the predicted frames is the field's own render at "
+            "their pose and time; 'moving' pixels are those the field's motion moves by more than "
+            f"{MOVING_PX} px to the next frame.")
+    extra = {"field": {"export": str(export), "run": None if run is None else str(run), "kind": assets.kind,
+                       "scene": assets.scene["kind"], "render_ms_per_frame": render_ms, "width": width,
+                       "height": height, "time_range": [t0, t1]}}
+    return report_sequence(sequence, out_dir, k=k, methods=methods, progress=progress, command=command, extra=extra,
+                           note=note, backend=backend, vectors=field_vectors)

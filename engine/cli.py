@@ -77,10 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--methods", default="repeat,reproject,flow2d,decomp,mvec,oracle", help=METHOD_HELP)
     demo.add_argument("--backend", choices=BACKEND_CHOICES, default="auto", help=BACKEND_HELP)
     demo.add_argument("--field", type=Path, default=None, metavar="RUN_OR_EXPORT_DIR",
-                      help="render a trained radiance field (the folder 'interleave export field' wrote, or its run "
-                           "folder) with the GL field renderer along a camera path through its scene instead of the "
-                           "built-in scene; the truth of a predicted frame is the field's render at its pose "
-                           "(oracle is skipped)")
+                      help="render a trained radiance field (the folder 'interleave export field|dynamic' wrote, or "
+                           "its run folder) with the GL field renderer along a camera path through its scene instead "
+                           "of the built-in scene (a dynamic field over its trained times, with its own motion "
+                           "vectors for mvec); the truth of a predicted frame is the field's render at its pose and "
+                           "time (oracle is skipped)")
 
     ev = sub.add_parser("eval", help="score predictors on rgbd-seq sequences: PSNR, SSIM, FLIP, time per frame "
                                      "('interleave eval field RUN_DIR' scores a trained radiance field)",

@@ -20,7 +20,7 @@ import statistics
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterable, Optional, Sequence
+from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -102,7 +102,13 @@ def hole_scores(truth: np.ndarray, color: np.ndarray, holes: np.ndarray) -> tupl
     return float(mask.mean()), psnr(display_encode(truth[rows, cols]), display_encode(color[rows, cols]), mask)
 
 
-def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Frame] = None) -> np.ndarray:
+#: ``(older, newest) -> (H, W, 2)`` motion vectors of the frame at position ``newest`` to the frame at position
+#: ``older``, from a renderer that computes them between any two of its frames (a dynamic field's motion field).
+VectorSource = Callable[[int, int], np.ndarray]
+
+
+def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Frame] = None,
+                           source: Optional[VectorSource] = None) -> np.ndarray:
     """Motion vectors (H, W, 2) of the frame at position ``newest`` pointing to the frame at position ``older``
     (the previous RENDERED frame when only every k-th frame is rendered), from a sequence whose stored
     ``motion.X/Y`` point one frame back.
@@ -111,8 +117,11 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     sequence the transforms of every object it shows (none for a static scene); otherwise the stored vectors
     are chained frame by frame (``compose_motion_vectors``: exact where each intermediate frame sees the
     point, NaN where it does not).
-    ``frame`` is the loaded frame at ``newest`` (read again when not given).
+    ``frame`` is the loaded frame at ``newest`` (read again when not given). A ``source`` gives them directly
+    (as the renderer would have written them had it drawn only these frames).
     """
+    if source is not None:
+        return source(older, newest)
     frame = sequence[newest] if frame is None else frame
     if newest - older == 1 and frame.motion_vectors is not None:
         return frame.motion_vectors
@@ -134,19 +143,20 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     return vectors
 
 
-def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, three: bool) -> list[Frame]:
+def rendered_history(sequence, older: int, newest: int, *, with_vectors: bool, three: bool,
+                     vectors: Optional[VectorSource] = None) -> list[Frame]:
     """The rendered frames (oldest first) that predict after frame position ``newest``: frames ``older`` and
     ``newest``, and with ``three`` also ``2 older - newest`` where it exists. With ``with_vectors`` each
     frame but the first gets motion vectors to the frame before it in this list, as a renderer drawing only
-    these frames writes them (``history_motion_vectors``)."""
+    these frames writes them (``history_motion_vectors``, from ``vectors`` when given)."""
     history = [sequence[older], sequence[newest]]
     first = 2 * older - newest
     if with_vectors:
-        history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1])
+        history[1].motion_vectors = history_motion_vectors(sequence, older, newest, history[1], vectors)
     if three and first >= 0:
         history.insert(0, sequence[first])
         if with_vectors:
-            history[1].motion_vectors = history_motion_vectors(sequence, first, older, history[1])
+            history[1].motion_vectors = history_motion_vectors(sequence, first, older, history[1], vectors)
     return history
 
 
@@ -169,12 +179,14 @@ def make_predictors(methods: Sequence[str], objects: Sequence, *, has_vectors: b
 
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
                       max_groups: Optional[int] = None, progress: bool = False,
-                      backend: str = "auto") -> list[MethodResult]:
+                      backend: str = "auto", vectors: Optional[VectorSource] = None) -> list[MethodResult]:
     """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
 
     ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence). Methods
     that differ only by the ``TRUE_HOLES`` suffix share one predictor, its predictions and its times.
-    ``backend`` is where the methods' warps run (``engine.predict.use_backend``).
+    ``backend`` is where the methods' warps run (``engine.predict.use_backend``). ``vectors``: the motion
+    vectors of the rendered frames to the previous rendered ones, where the renderer gives them directly
+    (default: derived from the sequence, ``history_motion_vectors``).
     """
 
     groups = evaluation_pairs(len(sequence), k)
@@ -205,7 +217,8 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
               disable=not progress, unit="frame") as bar:  # closed (its line ended) on an error too
         for older_i, newest_i, target_is in groups:
             # the renderer's vectors of frame n point to the previous rendered frame, n-k (and n-k's to n-2k)
-            history = rendered_history(sequence, older_i, newest_i, with_vectors=with_vectors, three=wants_three)
+            history = rendered_history(sequence, older_i, newest_i, with_vectors=with_vectors, three=wants_three,
+                                       vectors=vectors)
             truths = [sequence[i] for i in target_is]
             for name, loop in loops.items():
                 start = time.perf_counter()

@@ -17,8 +17,8 @@ from engine.core.frames import MAX_MOTION_DIAGONALS, Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
-           "sample_footprint", "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+           "sample_smooth", "CHAIN_SPREAD_PX", "sample_footprint", "sample_depths", "upsample_motion_vectors",
+           "undilate_motion_vectors", "scene_velocity", "velocity_change", "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -119,15 +119,45 @@ def sample_nearest(field: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarra
     return out
 
 
+#: Chaining (``compose_motion_vectors``) interpolates the second step's vectors bilinearly where the four around
+#: the landing point agree within this many pixels (one surface, smooth motion), else takes the nearest one.
+CHAIN_SPREAD_PX = 0.5
+
+
+def sample_smooth(field: np.ndarray, u: np.ndarray, v: np.ndarray, spread: float = CHAIN_SPREAD_PX) -> np.ndarray:
+    """``field`` (H, W, C) at continuous pixel coordinates ``u, v`` (pixel centres at +0.5): bilinear between the
+    four pixel centres around the point (clamped at the border) where all four are finite and agree within
+    ``spread`` in every channel, else :func:`sample_nearest` (no blend across a silhouette); NaN outside the
+    frame or where ``u, v`` are NaN. float64."""
+    h, w = field.shape[:2]
+    nearest = sample_nearest(field, u, v)
+    ok = np.isfinite(nearest).all(axis=-1)
+    x = np.where(ok, u, 0.5) - 0.5
+    y = np.where(ok, v, 0.5) - 0.5
+    x0 = np.clip(np.floor(x), 0, w - 1).astype(np.intp)
+    y0 = np.clip(np.floor(y), 0, h - 1).astype(np.intp)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx = np.clip(x - x0, 0.0, 1.0)[..., None]
+    fy = np.clip(y - y0, 0.0, 1.0)[..., None]
+    corners = [field[y0, x0], field[y0, x1], field[y1, x0], field[y1, x1]]
+    stack = np.stack(corners).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        agree = ok & np.isfinite(stack).all(axis=(0, -1)) & \
+            ((stack.max(axis=0) - stack.min(axis=0)) <= spread).all(axis=-1)
+    blend = (stack[0] * (1 - fx) + stack[1] * fx) * (1 - fy) + (stack[2] * (1 - fx) + stack[3] * fx) * fy
+    return np.where(agree[..., None], blend, nearest)
+
+
 def compose_motion_vectors(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """Chain vectors over two steps: ``first`` (H, W, 2) points from frame c to frame b, ``second``
     (H, W, 2) from frame b to frame a; returns c -> a, float32.
 
-    ``second`` is read at the pixel of frame b that ``first`` lands in (nearest neighbour): exact where
-    that pixel shows the same surface point and its vector varies little within the pixel; NaN where
-    ``first`` is NaN or leaves the frame (frame b does not know where the point was before), or where
-    ``second`` is NaN there. For sequences with object transforms, ``rigid_motion_vectors`` between the
-    two frames is exact and preferable.
+    ``second`` is read where ``first`` lands in frame b (:func:`sample_smooth`: bilinear where the four
+    vectors around that point agree within ``CHAIN_SPREAD_PX``, so smooth motion such as a camera's chains
+    without the nearest pixel's half-pixel error; the nearest vector across a silhouette): exact where the
+    point shows the same surface; NaN where ``first`` is NaN or leaves the frame (frame b does not know where
+    the point was before), or where ``second`` is NaN there. For sequences with object transforms,
+    ``rigid_motion_vectors`` between the two frames is exact and preferable.
     """
     sizes: dict = {}
     first = checked_array(first, "first", ("H", "W", 2), sizes)
@@ -135,7 +165,7 @@ def compose_motion_vectors(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     h, w = first.shape[:2]
     u, v = _pixels(h, w)
     bu, bv = u + first[..., 0], v + first[..., 1]
-    step = sample_nearest(second, bu, bv)
+    step = sample_smooth(second, bu, bv)
     return (first.astype(np.float64) + step).astype(np.float32)
 
 

@@ -84,6 +84,34 @@ def test_composing_two_steps_equals_the_direct_vectors_on_a_plane():
     assert np.isnan(chained[~inside]).all()  # left the middle frame: unknown, not guessed
 
 
+def _plane_depth(camera: Camera, normal=(0.1, 0.05, 1.0), offset: float = 4.0) -> np.ndarray:
+    """Planar depth (H, W) of the world plane ``normal . X = offset`` seen by ``camera`` (ray casting)."""
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(camera.intrinsics).T @ camera.world_to_camera[:3, :3]
+    n = np.asarray(normal, np.float64)
+    return ((offset - n @ camera.position) / (rays @ n)).astype(np.float32)
+
+
+def test_composing_a_turning_camera_needs_no_half_pixel_of_error():
+    """Vectors that vary across the frame (a turn and a step towards a tilted plane): the nearest pixel's
+    vector is up to half a pixel of their gradient off (here 8.8e-3 px median, 0.033 max; 0.23 px median on
+    a dynamic field's orbit, which ``mvec`` read as motion); interpolating within one surface leaves the
+    curvature of the projection (here 1.6e-4 median, 0.017 max, at the border where it clamps)."""
+    a, b, c = _camera(0.0), _camera(0.04, (0.05, 0.0, 0.1)), _camera(0.09, (0.1, 0.02, 0.25))
+    direct = camera_motion_vectors(_plane_depth(c), c, a)
+    chained = compose_motion_vectors(camera_motion_vectors(_plane_depth(c), c, b),
+                                     camera_motion_vectors(_plane_depth(b), b, a))
+    inside = np.isfinite(chained[..., 0])
+    assert inside.mean() > 0.7
+    error = np.abs(chained[inside] - direct[inside]).max(axis=-1)
+    assert np.median(error) < 1e-3 and error.max() < 1 / 32  # mvec's test of a static surface
+    # across a silhouette (the four vectors around the landing point disagree) the nearest one, not a blend
+    step = np.zeros((H, W, 2), np.float32)
+    step[:, W // 2:] = 5.0
+    across = compose_motion_vectors(np.full((H, W, 2), 0.5, np.float32), step)
+    assert set(np.unique(across[:-1, W // 2 - 2:W // 2 + 1, 0]).tolist()) <= {0.5, 5.5}  # the last row leaves
+
+
 def _velocity_inputs(seed=0):
     rng = np.random.default_rng(seed)
     depth = _depth(seed)

@@ -255,12 +255,7 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                                        methods=methods, orbit_degrees=orbit_degrees, progress=progress,
                                        backend=backend, command=f"interleave demo --field {field_dir} --k {k} "
                                                                  f"--backend {backend}")
-    methods = [m for m in methods if m != "oracle"]
-    if not methods:
-        raise InputError("no method left to evaluate (oracle needs moving objects)", field="methods")
-    check_before_rendering(frames, k, methods, (), backend)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    methods, out_dir = _field_demo_start(methods, frames, k, backend, out_dir)
     assets = load_field(export)
     cameras, width, height = field_camera_path(assets, train_cameras(run), frames, width, height,
                                                orbit_degrees=orbit_degrees)
@@ -281,6 +276,19 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                            note=note, backend=backend)
 
 
+def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str, out_dir: Path
+                      ) -> tuple[list[str], Path]:
+    """A field demo's methods (``oracle`` dropped: it needs rigid objects), checked before anything renders, and
+    its output folder (created)."""
+    methods = [m for m in methods if m != "oracle"]
+    if not methods:
+        raise InputError("no method left to evaluate (oracle needs rigid objects)", field="methods")
+    check_before_rendering(frames, k, methods, (), backend)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return methods, out_dir
+
+
 def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *, k: int, frames: int,
                             width: Optional[int], height: Optional[int], fps: float, methods: Sequence[str],
                             orbit_degrees: float, progress: bool, backend: str, command: str) -> dict:
@@ -288,12 +296,7 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
     from engine.fields.dynamic import load_dynamic_field
     from engine.fields.gldynamic import GlDynamicRenderer
 
-    methods = [m for m in methods if m != "oracle"]
-    if not methods:
-        raise InputError("no method left to evaluate (oracle needs rigid objects)", field="methods")
-    check_before_rendering(frames, k, methods, (), backend)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    methods, out_dir = _field_demo_start(methods, frames, k, backend, out_dir)
     assets = load_dynamic_field(export)
     cameras, width, height = field_camera_path(assets, train_cameras(run, dynamic=True), frames, width, height,
                                                orbit_degrees=orbit_degrees)

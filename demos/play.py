@@ -425,11 +425,16 @@ class GlDisplay:
         self._vbo = ctx.buffer(np.array([[-1.0, -1.0], [3.0, -1.0], [-1.0, 3.0]], np.float32).tobytes())
         self._vao = ctx.vertex_array(self._program, [(self._vbo, "2f", "in_xy")])
 
-    def show(self, texture, lines: Sequence[str] = ()) -> None:
-        """Draw ``texture`` (a ``FrameTexture`` of format ``srgb8``) with ``lines`` overlaid at the top left."""
+    def show(self, texture, lines: Sequence[str] = (), gpu_ms: Optional[dict] = None) -> None:
+        """Draw ``texture`` (a ``FrameTexture`` of format ``srgb8``) with ``lines`` overlaid at the top left; with
+        ``gpu_ms``, the GPU milliseconds of stage ``present`` are added."""
         w, h = texture.size
         canvas = overlay_canvas(lines, h, w) if lines else None
-        self.gl.call(self._draw, texture.texture, (w, h), canvas)
+
+        def run() -> None:
+            with self.gl.timing(gpu_ms), self.gl.gpu_stage("present"):
+                self._draw(texture.texture, (w, h), canvas)
+        self.gl.call(run)
 
     def show_image(self, image: np.ndarray) -> None:
         """Draw a composed host image (H, W, 3) uint8, rows top to bottom (the split view), uploaded once."""
@@ -537,6 +542,8 @@ class PlaySummary:
     #: median GPU ms per stage over the run: the renderer's (``render``, ``readout``: live renderer) and the
     #: predictor's per generated frame (``motion``, ``warp``, ``fill``, ...)
     gpu_ms: dict = dataclasses.field(default_factory=dict)
+    #: the GL renderer the gl path ran on (``GL_RENDERER``; a software one such as llvmpipe times no GPU)
+    device: str = ""
 
     @property
     def rendered_fps(self) -> float:
@@ -754,18 +761,19 @@ class Player:
                      labels: Sequence[str]) -> None:
         """The gl path: the tick's frame as a texture (a live frame's colour or the prediction's GPU buffer stored
         into it on the GPU; a frame that came as host arrays uploaded once, by the frame backend), drawn."""
-        ring = self._ring
+        ring, gpu = self._ring, {}
         if frame is not None:
             image = live.image if live is not None else self._gl_frames.resident(frame, Timer()).image
-            texture = ring.write(image.color, image.shape, "srgb8")
+            texture = ring.write(image.color, image.shape, "srgb8", gpu)
         elif pred.resident is not None:
-            texture = ring.write(pred.resident.color, pred.resident.shape, "srgb8")
+            texture = ring.write(pred.resident.color, pred.resident.shape, "srgb8", gpu)
         else:  # a method that finished on the CPU (repeat, decomp's infill)
             texture = ring.upload(pred.color, "srgb8")
         self.last_texture = texture
         lines = self.overlay_lines(frame is not None)
         if not self.split:
-            self.display.show(texture, lines)
+            self.display.show(texture, lines, gpu)
+            self._record_gpu(gpu)
             return
         if frame is not None:
             color = frame.color if frame.color is not None else live.read_color()
@@ -815,7 +823,8 @@ class Player:
                            shown_fps=self.tick_index / elapsed if elapsed > 0 else float("nan"),
                            size=(width, self.config.height), path=path, renderer=renderer,
                            gpu_display=self.display is not None,
-                           gpu_ms={name: _median(v) for name, v in self._all_gpu.items()})
+                           gpu_ms={name: _median(v) for name, v in self._all_gpu.items()},
+                           device=self.display.gl.renderer if self.display is not None else "")
 
     def close(self) -> None:
         """Release the renderer, the textures and the display (safe to call twice)."""

@@ -105,16 +105,18 @@ class TextureRing:
         if self.holds(handle):
             self._serials[handle.serial % self.count] = -1
 
-    def write(self, color, shape: tuple[int, int], format: str = "rgba16f") -> FrameTexture:
+    def write(self, color, shape: tuple[int, int], format: str = "rgba16f",
+              gpu_ms: Optional[dict] = None) -> FrameTexture:
         """The colour buffer ``color`` ((H, W, 3) float32, rows top to bottom, a buffer of the ring's context:
-        ``GlPrediction.color``, ``GlImage.color``) stored into the ring's next texture, on the GPU."""
+        ``GlPrediction.color``, ``GlImage.color``) stored into the ring's next texture, on the GPU. With
+        ``gpu_ms``, the GPU milliseconds of stage ``texture`` are added."""
         if format not in TEXTURE_FORMATS:
             raise InputError(f"must be one of {', '.join(TEXTURE_FORMATS)}, got {format!r}", field="format")
         h, w = checked_size(shape, "shape")
         if getattr(color, "size", -1) < 12 * h * w or getattr(color, "ctx", None) is not self.gl.ctx:
             raise InputError(f"must be a colour buffer of the ring's context of at least {12 * h * w} bytes",
                              field="color")
-        return self.gl.call(self._write, color, h, w, format)
+        return self.gl.call(self._write, color, h, w, format, gpu_ms)
 
     def upload(self, color: np.ndarray, format: str = "rgba16f") -> FrameTexture:
         """A host colour (H, W, 3) float32 linear, rows top to bottom (a frame a method made on the CPU) uploaded
@@ -131,7 +133,7 @@ class TextureRing:
                 self.gl.discard([buffer])
         return self.gl.call(run)
 
-    def _write(self, color, h: int, w: int, format: str) -> FrameTexture:
+    def _write(self, color, h: int, w: int, format: str, gpu_ms: Optional[dict] = None) -> FrameTexture:
         gl = self.gl
         dtype, image_format, space = TEXTURE_FORMATS[format]
         serial = self._serial
@@ -151,7 +153,8 @@ class TextureRing:
             self._table.bind_to_storage_buffer(1)
             defines = {"SRGB8": None, "BUCKETS": ENCODE8_BUCKETS}
         texture.bind_to_image(0, read=False, write=True)
-        gl.dispatch(gl.program("color_to_texture", defines), h * w, {"size": (h, w)})
+        with gl.timing(gpu_ms), gl.gpu_stage("texture"):
+            gl.dispatch(gl.program("color_to_texture", defines), h * w, {"size": (h, w)})
         self._serials[slot] = serial
         self._serial += 1
         return FrameTexture(texture, int(texture.glo), (w, h), format, space, serial, gl, self)

@@ -622,6 +622,19 @@ class Session:
         rendered frames from the newest one where the method extrapolates motion. ``frame`` is the caller's
         number for the predicted frame, for errors.
         """
+        camera, label, size = self._predicted_camera(view, projection, time, frame)
+        out, predictor, fallback, newest = self._render_at(camera, time, label, size)
+        color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
+        holes = out.holes
+        if self.config.flip_rows:
+            color, holes = color[::-1], holes[::-1]
+        return SessionPrediction(color=color, holes=holes, method=predictor.name, fallback=fallback,
+                                 frame=newest.index, stages_ms=out.stages_ms)
+
+    def _predicted_camera(self, view: object, projection: object, time: float,
+                          frame: Optional[int]) -> tuple[Camera, int, tuple[int, int]]:
+        """The checked camera of a predicted frame, the frame's label for errors and the session's (H, W) now;
+        InputError naming the frame and time for a bad time or pose."""
         with self._lock:
             size = self._size
             label = self._predictions if frame is None else int(frame)
@@ -631,13 +644,7 @@ class Session:
             camera = engine_camera(self.config, view, projection, size[1], size[0])
         except InputError as exc:
             raise _located(exc, label, time, "predicted frame") from None
-        out, predictor, fallback, newest = self._render_at(camera, time, label, size)
-        color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
-        holes = out.holes
-        if self.config.flip_rows:
-            color, holes = color[::-1], holes[::-1]
-        return SessionPrediction(color=color, holes=holes, method=predictor.name, fallback=fallback,
-                                 frame=newest.index, stages_ms=out.stages_ms)
+        return camera, label, size
 
     def _render_at(self, camera: Camera, time: float, label: int, size: tuple[int, int],
                    resident: bool = False) -> tuple[Prediction, Predictor, Optional[str], Frame]:
@@ -686,15 +693,7 @@ class Session:
                              f"Session(..., backend='gl'), or call predict for host arrays)", field="backend")
         if format not in TEXTURE_FORMATS:
             raise InputError(f"must be one of {', '.join(TEXTURE_FORMATS)}, got {format!r}", field="format")
-        with self._lock:
-            size = self._size
-            label = self._predictions if frame is None else int(frame)
-        try:
-            if not isinstance(time, (int, float, np.floating, np.integer)) or not math.isfinite(time):
-                raise InputError(f"must be a finite number of seconds, got {time!r}", field="time")
-            camera = engine_camera(self.config, view, projection, size[1], size[0])
-        except InputError as exc:
-            raise _located(exc, label, time, "predicted frame") from None
+        camera, label, size = self._predicted_camera(view, projection, time, frame)
         out, predictor, fallback, newest = self._render_at(camera, time, label, size, resident=True)
         with self._lock:
             if self._textures is None:

@@ -62,25 +62,35 @@ float fbm2(vec2 x, int octaves) {
 """
 
 # ------------------------------------------------------------------ geometry, colour pass
+# the geometry's vertices, for the colour pass and the live pass: the point in camera(t) (``v_cam``) and where it
+# was in the previous frame's camera (``v_cam_prev``, the live pass's motion vectors; the colour pass does not
+# read it, so its program drops it)
 GEOMETRY_VS = """
 #version 330
 in vec3 in_pos;
 in vec3 in_nrm;
-uniform mat4 u_model;          // world_from_object at t
-uniform mat4 u_cam_from_obj;   // OpenCV camera(t) from object(t), composed in float64
-uniform mat4 u_proj;           // GL clip from OpenCV camera
+uniform mat4 u_model;              // world_from_object at t
+uniform mat4 u_cam_from_obj;       // OpenCV camera(t) from object(t), composed in float64
+uniform mat4 u_prev_cam_from_obj;  // camera(previous frame) from object(previous frame): where the point was
+uniform mat4 u_proj;
 out vec3 v_obj;
 out vec3 v_obj_nrm;
 out vec3 v_world;
 out vec3 v_nrm;
+out vec3 v_cam;
+out vec3 v_cam_prev;
 void main() {
     v_obj = in_pos;
     v_obj_nrm = in_nrm;
     v_world = (u_model * vec4(in_pos, 1.0)).xyz;
     v_nrm = mat3(u_model) * in_nrm;
-    gl_Position = u_proj * (u_cam_from_obj * vec4(in_pos, 1.0));
+    vec4 cam = u_cam_from_obj * vec4(in_pos, 1.0);
+    v_cam = cam.xyz;
+    v_cam_prev = (u_prev_cam_from_obj * vec4(in_pos, 1.0)).xyz;
+    gl_Position = u_proj * cam;
 }
 """
+
 
 SKY_FUNCTION = """
 uniform vec3 u_zenith, u_horizon, u_below, u_cloud_col;
@@ -346,32 +356,8 @@ void main() {}
 # ------------------------------------------------------------------ live pass: colour, depth and motion vectors
 # What a game's G-buffer pass writes, in one draw of the scene: the shaded colour, the planar depth and the
 # motion vector of each pixel, computed from the previous frame's object and camera transforms (the vertex is
-# moved by both frames' transforms and the fragment projects where its point was), as engines write them.
-LIVE_VS = """
-#version 330
-in vec3 in_pos;
-in vec3 in_nrm;
-uniform mat4 u_model;              // world_from_object at t
-uniform mat4 u_cam_from_obj;       // OpenCV camera(t) from object(t), composed in float64
-uniform mat4 u_prev_cam_from_obj;  // camera(previous frame) from object(previous frame): where the point was
-uniform mat4 u_proj;
-out vec3 v_obj;
-out vec3 v_obj_nrm;
-out vec3 v_world;
-out vec3 v_nrm;
-out vec3 v_cam;
-out vec3 v_cam_prev;
-void main() {
-    v_obj = in_pos;
-    v_obj_nrm = in_nrm;
-    v_world = (u_model * vec4(in_pos, 1.0)).xyz;
-    v_nrm = mat3(u_model) * in_nrm;
-    vec4 cam = u_cam_from_obj * vec4(in_pos, 1.0);
-    v_cam = cam.xyz;
-    v_cam_prev = (u_prev_cam_from_obj * vec4(in_pos, 1.0)).xyz;
-    gl_Position = u_proj * cam;
-}
-"""
+# moved by both frames' transforms in GEOMETRY_VS and the fragment projects where its point was), as engines
+# write them.
 
 MOTION_VECTOR = """
 uniform vec3 u_prev_k0;      // the previous camera's intrinsics, row 0 (fx, skew, cx) ...

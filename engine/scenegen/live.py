@@ -95,7 +95,7 @@ class LiveSceneRenderer(ScenePasses):
     >>> frame = live.frame()                                        # read back  # doctest: +SKIP
     """
 
-    SOURCES = {"live": (glsl.LIVE_VS, glsl.LIVE_FS), "shadow": (glsl.SHADOW_VS, glsl.SHADOW_FS),
+    SOURCES = {"live": (glsl.GEOMETRY_VS, glsl.LIVE_FS), "shadow": (glsl.SHADOW_VS, glsl.SHADOW_FS),
                "sky_live": (glsl.FULLSCREEN_VS, glsl.SKY_LIVE_FS)}
 
     def __init__(self, scene: Scene, gl: Optional[GlContext] = None) -> None:

@@ -106,8 +106,14 @@ class LiveSceneRenderer(ScenePasses):
         if cfg.render_noise > 0:
             raise InputError(f"the live renderer draws without Monte Carlo noise: render_noise must be 0, got "
                              f"{cfg.render_noise}", field="render_noise")
-        self.gl = shared_context() if gl is None else gl
         self._released = False
+        if gl is None:
+            try:
+                gl = shared_context()
+            except RuntimeError as exc:  # no EGL, no GL 4.5: one line, as for --backend gl
+                raise InputError(f"the live renderer draws on the GL backend's context, which cannot run here "
+                                 f"({exc}); use the ground-truth renderer", field="renderer") from None
+        self.gl = gl
         try:
             self.gl.call(super().__init__, scene, self.gl.ctx)
         except Exception:

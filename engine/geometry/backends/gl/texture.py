@@ -23,6 +23,7 @@ The contract (docs/gpu.md, "Frames handed out as textures"):
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -82,6 +83,11 @@ class FrameTexture:
 TEXTURE_DTYPES = {"rgba16f": np.float16, "rgba32f": np.float32, "srgb8": np.uint8}
 
 
+def _discard_ring(gl: GlContext, slots: list, table: list) -> None:
+    """Free a dropped ring's textures and table on the GL thread, before its next call."""
+    gl.discard([kept[0] for kept in slots if kept is not None] + list(table))
+
+
 class TextureRing:
     """``count`` textures on ``gl`` (the shared context by default) that frames are written into in turn
     (``write``; a handle stays valid for ``count`` - 1 later writes, module docstring). Thread-safe through the
@@ -95,7 +101,9 @@ class TextureRing:
         self._slots: list = [None] * self.count  # (texture, size, format) per slot
         self._serials = [-1] * self.count  # the serial each slot holds (-1: none)
         self._serial = 0
-        self._table = None
+        self._table: list = []  # the encode8 table's buffer, once made
+        # a ring dropped without release_all gives its textures back on the GL thread (as dropped buffers are)
+        weakref.finalize(self, _discard_ring, self.gl, self._slots, self._table)
 
     def holds(self, handle: FrameTexture) -> bool:
         slot = handle.serial % self.count
@@ -148,9 +156,9 @@ class TextureRing:
         color.bind_to_storage_buffer(0)
         defines: dict = {"IMAGE_FORMAT": image_format}
         if format == "srgb8":
-            if self._table is None:
-                self._table = gl.ctx.buffer(encode8_table_rows())
-            self._table.bind_to_storage_buffer(1)
+            if not self._table:
+                self._table.append(gl.ctx.buffer(encode8_table_rows()))
+            self._table[0].bind_to_storage_buffer(1)
             defines = {"SRGB8": None, "BUCKETS": ENCODE8_BUCKETS}
         texture.bind_to_image(0, read=False, write=True)
         with gl.timing(gpu_ms), gl.gpu_stage("texture"):
@@ -165,9 +173,9 @@ class TextureRing:
             for kept in self._slots:
                 if kept is not None:
                     kept[0].release()
-            if self._table is not None:
-                self._table.release()
-                self._table = None
+            for buffer in self._table:
+                buffer.release()
+            self._slots[:] = [None] * self.count
+            self._table.clear()
         self.gl.call(free)
-        self._slots = [None] * self.count
         self._serials = [-1] * self.count

@@ -17,9 +17,16 @@ generated fps 1000 / the predictor's median wall ms per generated frame (``Predi
 per-rendered-frame ``prepare`` is shown apart), shown fps the ticks per wall second of the whole loop
 (split view's truth renders included). Medians run over the last :data:`WINDOW` samples.
 
-Three ways to run it: :func:`iter_frames` (composed frames, no window: tests, scripts), :func:`record`
-(a video, ``cv2.VideoWriter`` with ``mp4v``) and :func:`run_window` (a pyglet window; keys M, K, S, Q/Esc).
-:func:`play` is what the command runs: the window when a display can be opened, else a recording.
+On the gl backend the player takes the gl path: the built-in scene is drawn by the live renderer
+(:class:`LiveSceneSource`, ``engine.scenegen.live``) on the frame backend's GL context, its frames reach the
+predictors without a copy, predictions stay on the GPU, and every shown frame is drawn from a texture into an
+offscreen display (:class:`GlDisplay`); nothing is read back per shown frame but for a recording, the window or
+the split view (docs/gpu.md, "The live loop on the GPU").
+
+Four ways to run it: :func:`iter_frames` (composed frames, no window: tests, scripts), :func:`record`
+(a video, ``cv2.VideoWriter`` with ``mp4v``), :func:`run_headless` (nothing shown: a benchmark) and
+:func:`run_window` (a pyglet window; keys M, K, S, Q/Esc). :func:`play` is what the command runs: the window when
+a display can be opened, else a recording.
 """
 from __future__ import annotations
 
@@ -48,9 +55,9 @@ from engine.predict import Prediction, Predictor, Target, make_predictor, resolv
 from engine.predict.base import Timer
 from engine.runtime.stream import PredictionLoop
 
-__all__ = ["PlayConfig", "PlaySummary", "Player", "SceneSource", "FieldSource", "make_source", "iter_frames",
-           "record", "run_window", "play", "compose", "METHOD_CYCLE", "K_CYCLE", "DEFAULT_RECORDING",
-           "DEFAULT_FRAMES"]
+__all__ = ["PlayConfig", "PlaySummary", "Player", "SceneSource", "LiveSceneSource", "FieldSource", "make_source",
+           "GlDisplay", "overlay_canvas", "iter_frames", "record", "run_headless", "run_window", "play", "compose",
+           "METHOD_CYCLE", "K_CYCLE", "GPU_COLOR_METHODS", "DEFAULT_RECORDING", "DEFAULT_FRAMES"]
 
 #: The methods key M cycles through (the configured method joins them when it is not one of them).
 METHOD_CYCLE = ("reproject", "flow2d", "mvec", "decomp")

@@ -17,13 +17,21 @@ generated fps 1000 / the predictor's median wall ms per generated frame (``Predi
 per-rendered-frame ``prepare`` is shown apart), shown fps the ticks per wall second of the whole loop
 (split view's truth renders included). Medians run over the last :data:`WINDOW` samples.
 
-Three ways to run it: :func:`iter_frames` (composed frames, no window: tests, scripts), :func:`record`
-(a video, ``cv2.VideoWriter`` with ``mp4v``) and :func:`run_window` (a pyglet window; keys M, K, S, Q/Esc).
-:func:`play` is what the command runs: the window when a display can be opened, else a recording.
+On the gl backend the player takes the gl path: the built-in scene is drawn by the live renderer
+(:class:`LiveSceneSource`, ``engine.scenegen.live``) on the frame backend's GL context, its frames reach the
+predictors without a copy, predictions stay on the GPU, and every shown frame is drawn from a texture into an
+offscreen display (:class:`GlDisplay`); nothing is read back per shown frame but for a recording, the window or
+the split view (docs/gpu.md, "The live loop on the GPU").
+
+Four ways to run it: :func:`iter_frames` (composed frames, no window: tests, scripts), :func:`record`
+(a video, ``cv2.VideoWriter`` with ``mp4v``), :func:`run_headless` (nothing shown: a benchmark) and
+:func:`run_window` (a pyglet window; keys M, K, S, Q/Esc). :func:`play` is what the command runs: the window when
+a display can be opened, else a recording.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import queue
 import statistics
@@ -44,11 +52,12 @@ from engine.core.frames import Frame
 from engine.geometry import encoding
 from engine.geometry.motion import camera_motion_vectors
 from engine.predict import Prediction, Predictor, Target, make_predictor, resolve_auto
+from engine.predict.base import Timer
 from engine.runtime.stream import PredictionLoop
 
-__all__ = ["PlayConfig", "PlaySummary", "Player", "SceneSource", "FieldSource", "make_source", "iter_frames",
-           "record", "run_window", "play", "compose", "METHOD_CYCLE", "K_CYCLE", "DEFAULT_RECORDING",
-           "DEFAULT_FRAMES"]
+__all__ = ["PlayConfig", "PlaySummary", "Player", "SceneSource", "LiveSceneSource", "FieldSource", "make_source",
+           "GlDisplay", "overlay_canvas", "iter_frames", "record", "run_headless", "run_window", "play", "compose",
+           "METHOD_CYCLE", "K_CYCLE", "GPU_COLOR_METHODS", "DEFAULT_RECORDING", "DEFAULT_FRAMES"]
 
 #: The methods key M cycles through (the configured method joins them when it is not one of them).
 METHOD_CYCLE = ("reproject", "flow2d", "mvec", "decomp")
@@ -65,6 +74,10 @@ ERROR_GAIN = 4.0
 
 _PRESETS = Literal["gentle", "medium", "fast", "extreme"]
 _BACKENDS = Literal["auto", "cpu", "gl"]
+_RENDERERS = Literal["auto", "live", "truth"]
+#: Methods whose preparation on the gl backend reads only depth and motion vectors on the host: a live frame's
+#: colour stays on the GPU for them (for the others it is read back once per rendered frame).
+GPU_COLOR_METHODS = ("reproject", "mvec")
 
 
 @dataclass(frozen=True)
@@ -93,6 +106,15 @@ class PlayConfig:
     record: Optional[str] = option(None, "record headless to this video file (mp4v) instead of opening a window")
     screenshot: Optional[str] = option(None, "window mode: save the window's last frame, read back from its "
                                              "framebuffer, to this PNG when it closes")
+    renderer: _RENDERERS = option("auto", "the built-in scene's renderer: live (colour, depth and motion vectors in "
+                                          "one GPU pass, frames left on the GPU; one sample a pixel, no Monte Carlo "
+                                          "noise), truth (the ground-truth renderer: supersampled colour, exact "
+                                          "vectors in float64 on the CPU, read back), or auto (live on the gl "
+                                          "backend with supersample 1, else truth)")
+    headless: bool = option(False, "play without a window or a recording, then print the summary (a benchmark: "
+                                   "on the gl backend the frames are drawn offscreen from textures and none is "
+                                   "read back)")
+    json: Optional[str] = option(None, "also write the summary, with the median GPU ms per stage, to this JSON file")
 
     def __post_init__(self) -> None:
         checks = [
@@ -102,6 +124,9 @@ class PlayConfig:
             (self.k >= 1, "k must be >= 1"),
             (np.isfinite(self.fps) and self.fps > 0, "fps must be > 0"),
             (self.frames >= 0, "frames must be >= 0"),
+            (not (self.headless and self.record), "headless plays without a recording: give --headless or --record"),
+            (not (self.field and self.renderer == "live"), "the live renderer draws the built-in scene, not a field "
+                                                           "(--renderer live with --field)"),
         ]
         for ok, problem in checks:
             if not ok:
@@ -113,8 +138,8 @@ class PlayConfig:
 
 
 class SceneSource:
-    """The built-in procedural scene (``engine.scenegen``): frames ``0 .. loop - 1`` on the preset's clock, again
-    and again.
+    """The built-in procedural scene (``engine.scenegen``) drawn by the ground-truth renderer: frames
+    ``0 .. loop - 1`` on the preset's clock, again and again.
 
     A tick ``t`` shows scene frame ``t % loop``; a wrap is a camera cut (:meth:`cut`). A rendered frame's
     motion vectors point to the previous rendered frame (what a renderer drawing every k-th frame writes),
@@ -122,6 +147,7 @@ class SceneSource:
     """
 
     has_motion_vectors = True
+    live = False  # frames come as host arrays
 
     def __init__(self, config: PlayConfig) -> None:
         from engine.scenegen import SceneRenderer, make_scene
@@ -172,6 +198,7 @@ class FieldSource:
     """
 
     has_motion_vectors = True
+    live = False
     objects: Sequence = ()
 
     def __init__(self, config: PlayConfig) -> None:
@@ -215,9 +242,56 @@ class FieldSource:
         self.renderer.release()
 
 
+class LiveSceneSource(SceneSource):
+    """The built-in scene drawn by the live renderer (``engine.scenegen.live.LiveSceneRenderer``) on the frame
+    backend's GL context: colour, depth and motion vectors to the previous rendered frame in one GPU pass.
+    ``render`` leaves the frame there (a ``LiveFrame``: the player hands its colour and depth to the gl predictors
+    without a copy and reads back only the depth and the vectors, for the preparation on the CPU). The preset's
+    Monte Carlo noise is left out (a rasteriser has none)."""
+
+    live = True
+
+    def __init__(self, config: PlayConfig) -> None:
+        from engine.scenegen import make_scene
+        from engine.scenegen.live import LiveSceneRenderer
+        from engine.scenegen.presets import preset_config
+
+        self.scene = make_scene(preset_config(config.preset, seed=config.seed, width=config.width,
+                                              height=config.height, num_frames=config.loop,
+                                              supersample=config.supersample, render_noise=0.0))
+        self.objects = self.scene.scene_objects()
+        self.length = config.loop
+        self.name = f"scene {config.preset} seed {config.seed} (live)"
+        self.renderer = LiveSceneRenderer(self.scene)
+
+    def render(self, tick: int, previous: Optional[int], gpu_ms: Optional[dict] = None):
+        """The ``LiveFrame`` of ``tick``, its vectors to tick ``previous`` (None: one frame back), on the GPU."""
+        index = tick % self.length
+        return self.renderer.render(index, None if previous is None else previous % self.length, gpu_ms=gpu_ms)
+
+    def frame(self, tick: int, previous: Optional[int]) -> Frame:
+        return self.render(tick, previous).frame()
+
+    def truth(self, tick: int) -> np.ndarray:
+        return self.renderer.render(tick % self.length).read_color()
+
+
+def _gl_display(config: PlayConfig) -> bool:
+    """Whether ``config`` plays on the gl path (frames drawn from GPU textures): its backend resolves to gl."""
+    from engine.geometry.backends import resolve_backend
+
+    return resolve_backend(config.backend) == "gl"
+
+
 def make_source(config: PlayConfig):
-    """The renderer of ``config``: :class:`FieldSource` when ``config.field`` is set, else :class:`SceneSource`."""
-    return FieldSource(config) if config.field else SceneSource(config)
+    """The renderer of ``config``: :class:`FieldSource` when ``config.field`` is set, else the built-in scene by
+    :class:`LiveSceneSource` (``renderer`` live, or auto on the gl backend with supersample 1) or
+    :class:`SceneSource`."""
+    if config.field:
+        return FieldSource(config)
+    live = config.renderer == "live" or (config.renderer == "auto" and config.supersample == 1
+                                         and _gl_display(config))
+    return LiveSceneSource(config) if live else SceneSource(config)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -243,16 +317,38 @@ def _panel_label(image: np.ndarray, text: str) -> None:
     _text(image, text, (6, image.shape[0] - 8), scale)
 
 
-def _overlay(image: np.ndarray, lines: Sequence[str]) -> None:
-    """``lines`` at the top left of ``image`` over a darkened box (in place)."""
-    scale = _font_scale(image.shape[0])
+def _overlay_box(lines: Sequence[str], height: int, width: int) -> tuple[float, int, int, int]:
+    """(font scale, line step, box width, box height) of the overlay of ``lines`` on a height x width image."""
+    scale = _font_scale(height)
     step = int(round(30 * scale)) + 4
     sizes = [cv2.getTextSize(s, cv2.FONT_HERSHEY_SIMPLEX, scale, max(1, int(round(1.5 * scale))))[0] for s in lines]
-    box_w = min(image.shape[1], max(w for w, _ in sizes) + 12)
-    box_h = min(image.shape[0], step * len(lines) + 8)
+    return scale, step, min(width, max(w for w, _ in sizes) + 12), min(height, step * len(lines) + 8)
+
+
+def _overlay(image: np.ndarray, lines: Sequence[str]) -> None:
+    """``lines`` at the top left of ``image`` over a darkened box (in place)."""
+    scale, step, box_w, box_h = _overlay_box(lines, *image.shape[:2])
     image[:box_h, :box_w] = (image[:box_h, :box_w] * 0.45).astype(np.uint8)
     for i, line in enumerate(lines):
         _text(image, line, (6, step * (i + 1)), scale)
+
+
+def overlay_canvas(lines: Sequence[str], height: int, width: int) -> np.ndarray:
+    """The overlay of ``lines`` on its own, (box height, box width, 4) uint8 RGBA (not premultiplied), rows top to
+    bottom: blended over a frame (``mix(frame, rgb, alpha)``) it gives what ``_overlay`` draws there (the box
+    darkened to 0.45, the text); the gl path blends it on the GPU (:class:`GlDisplay`)."""
+    scale, step, box_w, box_h = _overlay_box(lines, height, width)
+    # the text drawn over black and over white gives its coverage and colour (cv2's anti-aliasing does not
+    # blend an alpha channel): over black b = t c, over white w = t c + (1 - t) 255
+    over = [np.full((box_h, box_w, 3), v, np.uint8) for v in (0, 255)]
+    for canvas in over:
+        for i, line in enumerate(lines):
+            _text(canvas, line, (6, step * (i + 1)), scale)
+    black, white = (c.astype(np.float32) for c in over)
+    text = np.clip(1.0 - (white - black).max(axis=2, keepdims=True) / 255.0, 0.0, 1.0)
+    alpha = 1.0 - 0.45 * (1.0 - text)  # the darkened box under the text: the frame keeps 0.45 of itself there
+    rgb = black / alpha
+    return np.concatenate([rgb, 255.0 * alpha], axis=2).round().clip(0, 255).astype(np.uint8)
 
 
 def _encode8(linear: np.ndarray) -> np.ndarray:
@@ -283,6 +379,134 @@ def compose(shown: np.ndarray, lines: Sequence[str] = (), *, truth: Optional[np.
     if lines:
         _overlay(image, lines)
     return image
+
+
+# ----------------------------------------------------------------------------------------------------
+# The gl path's screen: frames drawn from GPU textures
+
+_DISPLAY_VS = """
+#version 330
+in vec2 in_xy;
+void main() { gl_Position = vec4(in_xy, 0.0, 1.0); }
+"""
+
+_DISPLAY_FS = """
+#version 330
+uniform sampler2D frame;     // display codes / 255 (a TextureRing's srgb8 texture), GL rows (row 0 at the bottom)
+uniform sampler2D overlay;   // the overlay's RGBA (overlay_canvas), rows top to bottom as drawn
+uniform ivec2 overlay_size;  // its (width, height); (0, 0): none
+uniform int height;
+out vec4 f_color;
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+    vec3 col = texelFetch(frame, p, 0).rgb;
+    ivec2 q = ivec2(p.x, height - 1 - p.y);
+    if (q.x < overlay_size.x && q.y < overlay_size.y) {
+        vec4 o = texelFetch(overlay, q, 0);
+        col = mix(col, o.rgb, o.a);
+    }
+    f_color = vec4(col, 1.0);
+}
+"""
+
+
+class GlDisplay:
+    """The gl path's screen: an offscreen RGBA8 framebuffer on the frame backend's GL context into which each
+    shown frame is drawn from its texture (a ``TextureRing`` texture of format ``srgb8``: the codes ``compose``
+    makes) with the overlay (:func:`overlay_canvas`, uploaded when it changes: a few hundred kB) blended over its
+    top left, then ``glFinish`` (what a swap waits for), so that the shown rate counts the GPU's work. Nothing is
+    read back but by :meth:`read` (a recording, the window, the split view's comparison on the host)."""
+
+    def __init__(self, gl=None) -> None:
+        from engine.geometry.backends.gl import shared_context
+
+        self.gl = shared_context() if gl is None else gl
+        self.size: Optional[tuple[int, int]] = None
+        self._fbo = self._target = self._overlay = self._host = None
+        self._overlay_key: Optional[tuple] = None
+        self.gl.call(self._build)
+
+    def _build(self) -> None:
+        ctx = self.gl.ctx
+        self._program = ctx.program(vertex_shader=_DISPLAY_VS, fragment_shader=_DISPLAY_FS)
+        self._vbo = ctx.buffer(np.array([[-1.0, -1.0], [3.0, -1.0], [-1.0, 3.0]], np.float32).tobytes())
+        self._vao = ctx.vertex_array(self._program, [(self._vbo, "2f", "in_xy")])
+
+    def show(self, texture, lines: Sequence[str] = (), gpu_ms: Optional[dict] = None) -> None:
+        """Draw ``texture`` (a ``FrameTexture`` of format ``srgb8``) with ``lines`` overlaid at the top left; with
+        ``gpu_ms``, the GPU milliseconds of stage ``present`` are added."""
+        w, h = texture.size
+        canvas = overlay_canvas(lines, h, w) if lines else None
+
+        def run() -> None:
+            with self.gl.timing(gpu_ms), self.gl.gpu_stage("present"):
+                self._draw(texture.texture, (w, h), canvas)
+        self.gl.call(run)
+
+    def show_image(self, image: np.ndarray) -> None:
+        """Draw a composed host image (H, W, 3) uint8, rows top to bottom (the split view), uploaded once."""
+        h, w = image.shape[:2]
+        data = np.ascontiguousarray(image[::-1])
+
+        def run() -> None:
+            if self._host is None or self._host.size != (w, h):
+                if self._host is not None:
+                    self._host.release()
+                self._host = self.gl.ctx.texture((w, h), 3)
+            self._host.write(data)
+            self._draw(self._host, (w, h), None)
+        self.gl.call(run)
+
+    def _draw(self, texture, size: tuple[int, int], canvas: Optional[np.ndarray]) -> None:
+        import moderngl
+
+        ctx = self.gl.ctx
+        w, h = size
+        if self.size != size:
+            for obj in (self._fbo, self._target):
+                if obj is not None:
+                    obj.release()
+            self._target = ctx.texture(size, 4)
+            self._fbo = ctx.framebuffer(color_attachments=[self._target])
+            self.size = size
+        self._fbo.use()
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE | moderngl.BLEND)
+        texture.use(location=0)
+        if canvas is not None:
+            key = (canvas.shape, canvas.tobytes())
+            if self._overlay is None or self._overlay.size != (canvas.shape[1], canvas.shape[0]):
+                if self._overlay is not None:
+                    self._overlay.release()
+                self._overlay = ctx.texture((canvas.shape[1], canvas.shape[0]), 4)
+                self._overlay_key = None
+            if key != self._overlay_key:
+                self._overlay.write(canvas)
+                self._overlay_key = key
+            self._overlay.use(location=1)
+        else:
+            texture.use(location=1)
+        self._program["frame"].value = 0
+        self._program["overlay"].value = 1
+        self._program["overlay_size"].value = (0, 0) if canvas is None else (canvas.shape[1], canvas.shape[0])
+        self._program["height"].value = h
+        self._vao.render(moderngl.TRIANGLES)
+        ctx.finish()
+
+    def read(self) -> np.ndarray:
+        """The last drawn image, (H, W, 3) uint8 RGB, rows top to bottom (a readback: the recording's)."""
+        if self.size is None:
+            raise InterleaveError("the display has shown no frame yet")
+        w, h = self.size
+        data = self.gl.call(lambda: self._fbo.read(components=3))
+        return np.ascontiguousarray(np.frombuffer(data, np.uint8).reshape(h, w, 3)[::-1])
+
+    def release(self) -> None:
+        def free() -> None:
+            for obj in (self._fbo, self._target, self._overlay, self._host, self._vao, self._vbo, self._program):
+                if obj is not None:
+                    obj.release()
+            self._fbo = self._target = self._overlay = self._host = None
+        self.gl.call(free)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -318,6 +542,15 @@ class PlaySummary:
     shown_fps: float
     size: tuple[int, int]
     path: Optional[str] = None
+    #: ``live`` or ``truth`` for the built-in scene, ``field`` for a field
+    renderer: str = ""
+    #: True where the frames were drawn from GPU textures (the gl path), False where composed on the host
+    gpu_display: bool = False
+    #: median GPU ms per stage over the run: the renderer's (``render``, ``readout``: live renderer) and the
+    #: predictor's per generated frame (``motion``, ``warp``, ``fill``, ...)
+    gpu_ms: dict = dataclasses.field(default_factory=dict)
+    #: the GL renderer the gl path ran on (``GL_RENDERER``; a software one such as llvmpipe times no GPU)
+    device: str = ""
 
     @property
     def rendered_fps(self) -> float:
@@ -335,7 +568,15 @@ class PlaySummary:
         return (f"played {self.frames} frames ({self.size[0]}x{self.size[1]}){where}: {self.rendered} rendered at "
                 f"{self.rendered_fps:.1f} fps, {self.generated} generated at {self.generated_fps:.1f} fps (prepare "
                 f"{self.prepare_ms:.1f} ms per rendered frame), shown at {self.shown_fps:.1f} fps; method "
-                f"{self.method}, backend {self.backend}, k {self.k}")
+                f"{self.method}, backend {self.backend}, k {self.k}"
+                + (f"; renderer {self.renderer}" if self.renderer else "")
+                + ("; frames drawn from GPU textures" if self.gpu_display else ""))
+
+    def to_json(self) -> dict:
+        """The summary as JSON-ready values, rates included."""
+        out = dataclasses.asdict(self)
+        out.update(rendered_fps=self.rendered_fps, generated_fps=self.generated_fps, size=list(self.size))
+        return out
 
 
 class Player:
@@ -353,15 +594,27 @@ class Player:
     def __init__(self, config: PlayConfig, source=None) -> None:
         self.config = config
         self.source = make_source(config) if source is None else source
+        #: the gl path (``_gl_display``): its screen and the ring of textures the shown frames are drawn from
+        self.display: Optional[GlDisplay] = None
+        self._ring = None
+        self._gl_frames = None  # the gl predictors' shared frame backend (GlFrames)
         try:
             method = resolve_auto(config.method, self.source.has_motion_vectors)
             self.methods = list(METHOD_CYCLE) if method in METHOD_CYCLE else [method, *METHOD_CYCLE]
             self.ks = sorted(set(K_CYCLE) | {config.k})
             self._predictors: dict[str, Predictor] = {}
             self.method = method
-            self.loop = PredictionLoop(self._predictor(method))
+            fallback = None
+            if _gl_display(config):
+                from engine.geometry.backends.gl.texture import TextureRing
+
+                fallback = make_predictor("reproject", backend="gl")  # until a two-frame method has two frames
+                self._gl_frames = fallback.frames
+                self.display = GlDisplay()
+                self._ring = TextureRing(self.display.gl)
+            self.loop = PredictionLoop(self._predictor(method), fallback)
         except Exception:
-            self.source.release()
+            self.close()
             raise
         self.k = config.k
         self.split = config.split
@@ -370,6 +623,7 @@ class Player:
         self.keys_hint = False
         self._last_render: Optional[int] = None
         self._rendered: deque[Frame] = deque(maxlen=2)
+        self._rendered_live: deque = deque(maxlen=2)  # their LiveFrames (live renderer), else None
         self._render_ms: deque[float] = deque(maxlen=WINDOW)
         self._prepare_ms: deque[float] = deque(maxlen=WINDOW)
         self._generate_ms: deque[float] = deque(maxlen=WINDOW)
@@ -379,6 +633,7 @@ class Player:
         self._all_render: list[float] = []
         self._all_generate: dict[str, list[float]] = {}
         self._all_prepare: dict[str, list[float]] = {}
+        self._all_gpu: dict[str, list[float]] = {}
         self.rendered = 0
         self.generated = 0
         self._start: Optional[float] = None
@@ -386,6 +641,9 @@ class Player:
         self.last_color: Optional[np.ndarray] = None
         self.last_truth: Optional[np.ndarray] = None
         self.last_rendered = False
+        #: the gl path: the texture the last tick was drawn from (a ``FrameTexture``)
+        self.last_texture = None
+        self._image: Optional[np.ndarray] = None
 
     # -------------------------------------------------------------------------------------- controls
     def _predictor(self, name: str) -> Predictor:
@@ -406,6 +664,10 @@ class Player:
         self._gpu.clear()
         self._generate_ms.clear()
         if self._rendered:
+            if self._needs_host_color():  # live frames whose colour stayed on the GPU: read back once
+                for frame, live in zip(self._rendered, self._rendered_live):
+                    if frame.color is None:
+                        frame.color = live.read_color()
             self.loop.load(list(self._rendered))
 
     def press(self, key: str) -> None:
@@ -421,54 +683,123 @@ class Player:
             self.quit = True
 
     # -------------------------------------------------------------------------------------- ticks
-    def _render(self, tick: int) -> Frame:
+    def _needs_host_color(self) -> bool:
+        """Whether the current method needs a rendered frame's colour on the host (its preparation reads it, or
+        it runs on the CPU); on the gl path ``reproject`` and ``mvec`` do not."""
+        predictor = self.loop.predictor
+        return not (self._gl_frames is not None and predictor.backend == "gl" and predictor.name in GPU_COLOR_METHODS)
+
+    def _record_gpu(self, values: dict) -> None:
+        for name, ms in values.items():
+            self._gpu.setdefault(name, deque(maxlen=WINDOW)).append(ms)
+            self._all_gpu.setdefault(name, []).append(ms)
+
+    def _render(self, tick: int) -> tuple[Frame, object]:
+        """Draw tick ``tick`` and submit it; (the frame, its ``LiveFrame`` on the GPU or None)."""
         cut = self.source.cut(tick)
+        previous = None if cut else self._last_render
         start = time.perf_counter()
-        frame = self.source.frame(tick, None if cut else self._last_render)
+        live, gpu = None, {}
+        if self.source.live:  # drawn on the GPU; depth and vectors (and colour where needed) read back
+            live = self.source.render(tick, previous, gpu_ms=gpu)
+            frame = live.frame(color=self._needs_host_color())
+        else:
+            frame = self.source.frame(tick, previous)
         self._render_ms.append(1e3 * (time.perf_counter() - start))
         self._all_render.append(self._render_ms[-1])
+        self._record_gpu(gpu)
         if cut:
             self._rendered.clear()
+            self._rendered_live.clear()
         self._rendered.append(frame)
+        self._rendered_live.append(live)
+        if live is not None and self._gl_frames is not None:
+            self._gl_frames.adopt(frame, live.image)  # the predictors find it there: no upload
         start = time.perf_counter()
         self.loop.submit(frame, restart=cut)
         self._prepare_ms.append(1e3 * (time.perf_counter() - start))
         self._all_prepare.setdefault(self.method, []).append(self._prepare_ms[-1])
         self._last_render = tick
         self.rendered += 1
-        return frame
+        return frame, live
 
     def _generate(self, tick: int) -> Prediction:
+        target = self.source.target(tick)
+        if self._gl_frames is not None:  # the gl path: the prediction stays on the GPU
+            target = dataclasses.replace(target, resident=True)
         start = time.perf_counter()
-        pred = self.loop.predict(self.source.target(tick))
+        pred = self.loop.predict(target)
         self._generate_ms.append(1e3 * (time.perf_counter() - start))
         self._all_generate.setdefault(self.method, []).append(self._generate_ms[-1])
-        for into, values in ((self._stages, pred.stages_ms), (self._gpu, pred.gpu_ms)):
-            for name, ms in values.items():
-                into.setdefault(name, deque(maxlen=WINDOW)).append(ms)
+        for name, ms in pred.stages_ms.items():
+            self._stages.setdefault(name, deque(maxlen=WINDOW)).append(ms)
+        self._record_gpu(pred.gpu_ms)
         self.generated += 1
         return pred
 
-    def tick(self) -> np.ndarray:
-        """Draw or generate the next tick's frame and return the composed image (see :func:`compose`)."""
+    def step(self) -> None:
+        """Draw or generate the next tick's frame and show it: composed on the host (:func:`compose`, kept for
+        :meth:`image`), or on the gl path drawn from its GPU texture into the :class:`GlDisplay` with nothing read
+        back (the split view compares on the host: it reads the frames back)."""
         tick = self.tick_index
         now = time.perf_counter()
         if self._start is None:
             self._start = now
         renders = (self.source.cut(tick) or self._last_render is None or tick - self._last_render >= self.k)
+        frame = live = pred = None
         if renders:
-            frame = self._render(tick)
-            color, truth = frame.color, (frame.color if self.split else None)
+            frame, live = self._render(tick)
             labels = ("truth", "rendered", "error")
         else:
-            color = self._generate(tick).color
-            truth = self.source.truth(tick) if self.split else None
+            pred = self._generate(tick)
             labels = ("truth (rendered for comparison)", f"generated: {self.method}", "error")
-        self.last_color, self.last_truth, self.last_rendered = color, truth, renders
-        image = compose(color, self.overlay_lines(renders), truth=truth, labels=labels)
+        self.last_rendered = renders
+        if self.display is None:
+            color = frame.color if renders else pred.color
+            truth = (color if renders else self.source.truth(tick)) if self.split else None
+            self.last_color, self.last_truth = color, truth
+            self._image = compose(color, self.overlay_lines(renders), truth=truth, labels=labels)
+        else:
+            self._show_on_gpu(tick, frame, live, pred, labels)
         self._ticks.append(time.perf_counter())
         self.tick_index += 1
-        return image
+
+    def _show_on_gpu(self, tick: int, frame: Optional[Frame], live, pred: Optional[Prediction],
+                     labels: Sequence[str]) -> None:
+        """The gl path: the tick's frame as a texture (a live frame's colour or the prediction's GPU buffer stored
+        into it on the GPU; a frame that came as host arrays uploaded once, by the frame backend), drawn."""
+        ring, gpu = self._ring, {}
+        if frame is not None:
+            image = live.image if live is not None else self._gl_frames.resident(frame, Timer()).image
+            texture = ring.write(image.color, image.shape, "srgb8", gpu)
+        elif pred.resident is not None:
+            texture = ring.write(pred.resident.color, pred.resident.shape, "srgb8", gpu)
+        else:  # a method that finished on the CPU (repeat, decomp's infill)
+            texture = ring.upload(pred.color, "srgb8")
+        self.last_texture = texture
+        lines = self.overlay_lines(frame is not None)
+        if not self.split:
+            self.display.show(texture, lines, gpu)
+            self._record_gpu(gpu)
+            return
+        if frame is not None:
+            color = frame.color if frame.color is not None else live.read_color()
+            truth = color
+        else:
+            color = pred.color if pred.resident is None else pred.resident.read()[0]
+            truth = self.source.truth(tick)
+        self.last_color, self.last_truth = color, truth
+        self.display.show_image(compose(color, lines, truth=truth, labels=labels))
+
+    def image(self) -> np.ndarray:
+        """The last tick's composed image (H, W, 3) uint8 RGB (see :func:`compose`); on the gl path read back from
+        the display (a recording's or the window's readback)."""
+        return self._image if self.display is None else self.display.read()
+
+    def tick(self) -> np.ndarray:
+        """Draw or generate the next tick's frame and return the composed image (:meth:`step`, :meth:`image`)."""
+        self.step()
+        return self.image()
 
     def overlay_lines(self, rendered: bool) -> list[str]:
         """The overlay: method and backend, k, fps, per-stage wall and GPU ms, what this tick was."""
@@ -491,15 +822,25 @@ class Player:
         """Medians over the whole run so far (generated and prepare: of the current method)."""
         elapsed = (self._ticks[-1] - self._start) if self._ticks and self._start is not None else 0.0
         width = self.config.width * (3 if self.split else 1)
+        renderer = "field" if isinstance(self.source, FieldSource) else ("live" if self.source.live else "truth")
         return PlaySummary(frames=self.tick_index, rendered=self.rendered, generated=self.generated,
                            method=self.method, backend=self.backend, k=self.k, render_ms=_median(self._all_render),
                            generate_ms=_median(self._all_generate.get(self.method, [])),
                            prepare_ms=_median(self._all_prepare.get(self.method, [])),
                            shown_fps=self.tick_index / elapsed if elapsed > 0 else float("nan"),
-                           size=(width, self.config.height), path=path)
+                           size=(width, self.config.height), path=path, renderer=renderer,
+                           gpu_display=self.display is not None,
+                           gpu_ms={name: _median(v) for name, v in self._all_gpu.items()},
+                           device=self.display.gl.renderer if self.display is not None else "")
 
     def close(self) -> None:
-        """Release the renderer (safe to call twice)."""
+        """Release the renderer, the textures and the display (safe to call twice)."""
+        if self._ring is not None:
+            self._ring.release_all()
+            self._ring = None
+        if self.display is not None:
+            self.display.release()
+            self.display = None
         if self.source is not None:
             self.source.release()
             self.source = None
@@ -547,6 +888,16 @@ def record(config: PlayConfig, path: Optional[str] = None) -> PlaySummary:
             if writer is not None:
                 writer.release()
         return player.summary(str(path))
+
+
+def run_headless(config: PlayConfig) -> PlaySummary:
+    """Play ``config.frames`` ticks (0: :data:`DEFAULT_FRAMES`) with no window and no recording and return the
+    summary: a benchmark of the loop as shown. On the gl path every frame is drawn from its texture into the
+    offscreen display and nothing is read back; elsewhere the frames are composed on the host."""
+    with Player(config) as player:
+        for _ in range(config.frames or DEFAULT_FRAMES):
+            player.step()
+        return player.summary()
 
 
 def _no_display_reason() -> Optional[str]:
@@ -681,9 +1032,21 @@ def _read_window(pyglet, width: int, height: int) -> np.ndarray:
 
 
 def play(config: PlayConfig, *, err=sys.stderr) -> PlaySummary:
-    """What ``interleave play`` runs. With ``config.record`` it records headless. Otherwise it opens the
-    window; when no window can be opened (no DISPLAY, no pyglet, pyglet fails), it says why in one line on
-    ``err`` and records to :data:`DEFAULT_RECORDING` instead."""
+    """What ``interleave play`` runs, then writes ``config.json`` (the summary) when given. With ``config.record``
+    it records headless, with ``config.headless`` it plays without showing anything (:func:`run_headless`).
+    Otherwise it opens the window; when no window can be opened (no DISPLAY, no pyglet, pyglet fails), it says
+    why in one line on ``err`` and records to :data:`DEFAULT_RECORDING` instead."""
+    summary = _play(config, err)
+    if config.json:
+        path = Path(config.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(summary.to_json(), indent=2) + "\n")
+    return summary
+
+
+def _play(config: PlayConfig, err) -> PlaySummary:
+    if config.headless:
+        return run_headless(config)
     if config.record:
         return record(config)
     reason = _no_display_reason()

@@ -2,6 +2,13 @@
 # The GPU checks in one go, for a machine with a hardware OpenGL 4.3 context (EGL) and torch with CUDA:
 #   bash scripts/bench_gpu.sh OUT_DIR          (PYTHON=... picks the interpreter, default python3;
 #                                               ONLY="gl_tests backends" runs just the steps named)
+#   SET=realtime bash scripts/bench_gpu.sh OUT_DIR   the real-time check alone, at most 5 minutes: the live loop's
+#       tests, cpu and gl side by side at RT_SIZES' first size, `interleave play --headless` on the gl path (live
+#       renderer, frames kept on the GPU and drawn from textures) for every RT_SIZES size at k = 2 and k = 4, and
+#       a table: GPU ms per stage, wall ms, rendered / generated / shown fps (realtime.json beside it).
+#       RT_SIZES (default "1920x1080 3840x2160") and RT_FRAMES (ticks per play run, default 120) make a small
+#       run on a software renderer, e.g. RT_SIZES=320x180 RT_FRAMES=12 (GPU ms are not timed there).
+# 0. the real-time steps (SET=realtime, above);
 # 1. the GL passes' tests against their CPU references, on the GPU's driver;
 # 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage (and at
 #    1920x1080 with 8-bit sRGB frames in and out);
@@ -18,6 +25,13 @@ py="${PYTHON:-python3}"
 work="${TMPDIR:-/tmp}/interleave_bench_gpu"
 mkdir -p "$out" "$work"
 log="$out/run.log"
+rt_sizes="${RT_SIZES:-1920x1080 3840x2160}"
+rt_frames="${RT_FRAMES:-120}"
+if [ "${SET:-}" = realtime ] && [ -z "${ONLY:-}" ]; then
+    ONLY="gl_context rt_tests rt_backends"
+    for size in $rt_sizes; do ONLY="$ONLY play_${size}_k2 play_${size}_k4"; done
+    ONLY="$ONLY rt_summary"
+fi
 step() {  # step NAME SECONDS COMMAND...
     local name=$1 limit=$2
     shift 2
@@ -26,7 +40,7 @@ step() {  # step NAME SECONDS COMMAND...
     timeout "$limit" "$@" >>"$log" 2>&1
     echo "== $name: exit $? ($(date +%T))" | tee -a "$log"
 }
-{ nvidia-smi -L; "$py" --version; } >>"$log" 2>&1
+{ nvidia-smi -L; "$py" --version; } >>"$log" 2>&1 || true
 # the GPU's clocks every 100 ms while the steps run: a GPU left idle between frames drops to low clocks,
 # which a timer query then counts (a candidate for the GL flow's 74 ms on the H200 against 15 ms alone)
 nvidia-smi --query-gpu=timestamp,clocks.sm,clocks.mem,power.draw,utilization.gpu --format=csv -lms 100 \
@@ -34,6 +48,52 @@ nvidia-smi --query-gpu=timestamp,clocks.sm,clocks.mem,power.draw,utilization.gpu
 clocks=$!
 trap 'kill $clocks 2>/dev/null' EXIT
 step gl_context 30 "$py" -c "from engine.geometry.backends import gl_renderer; print(gl_renderer())"
+# the real-time path: the live renderer, textures and play's gl path held to their references on this driver,
+# reproject and mvec with the float32 readback (cpu beside gl), then the live loop headless at each size
+step rt_tests 90 "$py" -m pytest -q -p no:cacheprovider tests/scenegen/test_live.py tests/predict/test_gl_texture.py \
+    tests/demos/test_play_gl.py
+rt_first="${rt_sizes%% *}"
+step rt_backends 90 "$py" -m tools.bench_backends --sizes "$rt_first" --repeats 1 --frames 4 \
+    --methods "reproject,mvec" --out "$work/scenes" --json "$out/rt_backends.json"
+for size in $rt_sizes; do
+    for k in 2 4; do
+        step "play_${size}_k${k}" 60 "$py" -m engine.cli play --headless --backend gl --method mvec --renderer live \
+            --width "${size%x*}" --height "${size#*x}" --k "$k" --frames "$rt_frames" --loop 240 \
+            --json "$out/play_${size}_k${k}.json"
+    done
+done
+step rt_summary 30 "$py" - "$out" $rt_sizes <<'PY'
+import json, sys
+from pathlib import Path
+out, sizes = Path(sys.argv[1]), sys.argv[2:]
+runs, lines = {}, [f"{'play (gl, live renderer, textures)':<36} {'rendered':>9} {'generated':>10} {'shown':>7} fps   "
+                   f"wall ms: render / generate / prepare   GPU ms per stage (median)"]
+for size in sizes:
+    for k in (2, 4):
+        path = out / f"play_{size}_k{k}.json"
+        if not path.exists():
+            lines.append(f"{size} k={k}: no result ({path.name} missing: see run.log)")
+            continue
+        s = runs[f"{size}_k{k}"] = json.loads(path.read_text())
+        software = any(name in s["device"].lower() for name in ("llvmpipe", "softpipe", "swrast", "software"))
+        gpu = " ".join(f"{n} {v:.2f}" for n, v in s["gpu_ms"].items()) or "-"
+        gpu = f"- (software renderer {s['device']!r}: no GPU timed)" if software else gpu
+        lines.append(f"{size} k={k} {s['method']:<22} {s['rendered_fps']:>9.1f} {s['generated_fps']:>10.1f} "
+                     f"{s['shown_fps']:>7.1f}       {s['render_ms']:.2f} / {s['generate_ms']:.2f} / "
+                     f"{s['prepare_ms']:.2f}   {gpu}")
+backends = out / "rt_backends.json"
+if backends.exists():
+    runs["backends_with_readback"] = json.loads(backends.read_text())
+lines.append("fps: 1000 / median wall ms (rendered: draw + depth and vectors read back; generated: the predictor's "
+             "render, left on the GPU); shown: ticks per second of the whole loop, glFinish each tick; the backends "
+             "with the float32 readback: rt_backends.json, run.log")
+(out / "realtime.json").write_text(json.dumps(runs, indent=2) + "\n")
+(out / "realtime.txt").write_text("\n".join(lines) + "\n")
+print("\n".join(lines))
+PY
+if [[ -z "${ONLY:-}" || " $ONLY " == *" rt_summary "* ]]; then  # the table on the terminal too
+    cat "$out/realtime.txt" 2>/dev/null
+fi
 step gl_tests 120 "$py" -m pytest -q -p no:cacheprovider tests/geometry/test_gl_flow.py tests/geometry/test_gl_frame.py \
     tests/geometry/test_gl_splat.py tests/geometry/test_gl_trust.py tests/predict/test_gl_backend.py \
     tests/predict/test_gl_refine.py tests/predict/test_gl_gate.py tests/tools/test_bench_backends.py \

@@ -15,6 +15,7 @@ import threading
 
 import numpy as np
 
+from engine.core.errors import InputError
 from engine.core.frames import Frame
 from engine.geometry.backends.gl.flow import GlOpticalFlow
 from engine.geometry.backends.gl.frame import GlFlow, GlFrameWarper, GlMotion
@@ -62,6 +63,19 @@ class GlFrames:
             self._kept = [r for r in self._kept if r is not kept][-1:] + [kept]
         return kept
 
+    def adopt(self, frame: Frame, image) -> ResidentFrame:
+        """Take ``frame`` as resident with ``image``, a ``GlImage`` of this backend's context that already holds
+        its colour and depth (a renderer on the shared context drew it: ``engine.scenegen.live``), so that
+        ``resident(frame)`` finds it instead of uploading. The frame's host ``color`` may then be None: the methods
+        whose preparation reads only depth and vectors on the host (``reproject``, ``mvec``) never touch it."""
+        if getattr(image, "gl", None) is not self.warper.gl or tuple(image.shape) != frame.depth.shape:
+            raise InputError(f"must be a GlImage of this backend's context and of the frame's size "
+                             f"{frame.depth.shape}", frame=frame.index, field="image")
+        kept = ResidentFrame(frame, image)
+        with self._lock:
+            self._kept = [r for r in self._kept if r.frame is not frame][-1:] + [kept]
+        return kept
+
     def resident_flow(self, flow, timer: Timer):
         """A flow (H, W, 2|3) uploaded as a ``GlFlow``, or a ``PointMotion`` as a ``GlMotion`` (its moving
         pixels only)."""
@@ -83,9 +97,11 @@ class GlFrames:
         motion = flow if isinstance(flow, GlMotion) else None
         src, dst = source.frame.camera, target.camera
         with timer("warp"):
-            return self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
-                                             dst.world_to_camera, None if motion else flow, flow_scale,
-                                             gpu_ms=timer.gpu, motion=motion, encoding=target.encoding)
+            out = self.warper.warp_and_fill(source.image, src.intrinsics, src.world_to_camera, dst.intrinsics,
+                                            dst.world_to_camera, None if motion else flow, flow_scale,
+                                            gpu_ms=timer.gpu, motion=motion, encoding=target.encoding,
+                                            readback=not target.resident)
+        return (out, None) if target.resident else out  # resident: a GlPrediction, nothing read back
 
     def warp_fill_depth(self, source: ResidentFrame, target: Target,
                         timer: Timer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -43,10 +43,16 @@ class Target:
     time: float
     index: int = -1
     encoding: str = "linear"
+    #: leave the predicted frame on the GPU: a backend that has it there (``gl``) returns it as
+    #: ``Prediction.resident`` (a ``GlPrediction``, linear) with no readback; the others return host arrays
+    resident: bool = False
 
     def __post_init__(self) -> None:
         if self.encoding not in FRAME_ENCODINGS:
             raise InputError(f"must be one of {', '.join(FRAME_ENCODINGS)}, got {self.encoding!r}",
+                             field="encoding")
+        if self.resident and self.encoding != "linear":
+            raise InputError(f"a frame left on the GPU is linear: encoding {self.encoding!r} needs resident=False",
                              field="encoding")
 
 
@@ -56,15 +62,18 @@ class Prediction:
     ``Target`` asked for and the backend made), the holes the method had to fill, stage timings (wall
     milliseconds; ``gpu_ms``: GPU milliseconds of the stages the ``gl`` backend timed with GL queries)."""
 
-    color: np.ndarray
-    holes: np.ndarray
+    color: Optional[np.ndarray]
+    holes: Optional[np.ndarray]
     stages_ms: dict[str, float] = field(default_factory=dict)
     gpu_ms: dict[str, float] = field(default_factory=dict)
+    #: the frame left on the GPU (``Target.resident`` on ``gl``: an ``engine.geometry.backends.gl.GlPrediction``,
+    #: colour and packed holes in buffers of the shared context); ``color`` and ``holes`` are None then
+    resident: Any = None
 
     @property
     def encoding(self) -> str:
-        """``srgb8`` for uint8 codes, else ``linear`` (the colour's dtype says which)."""
-        return "srgb8" if self.color.dtype == np.uint8 else "linear"
+        """``srgb8`` for uint8 codes, else ``linear`` (the colour's dtype says which; a resident frame is linear)."""
+        return "srgb8" if self.color is not None and self.color.dtype == np.uint8 else "linear"
 
 
 @dataclass
@@ -134,6 +143,8 @@ class Predictor:
         stages: dict[str, float] = {}
         gpu: dict[str, float] = {}
         color, holes = self._render(state, target, Timer(stages, gpu))
+        if target.resident and not isinstance(color, np.ndarray):  # the backend left it on the GPU
+            return Prediction(color=None, holes=None, stages_ms=stages, gpu_ms=gpu, resident=color)
         return Prediction(color=color, holes=holes, stages_ms=stages, gpu_ms=gpu)
 
     def predict(self, history: Sequence[Frame], target: Target) -> Prediction:

@@ -116,13 +116,13 @@ from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, va
                                 validate_pose)
 from engine.geometry import encoding
 from engine.geometry.backends import resolve_backend
-from engine.predict import Predictor, Repeat, Target, make_predictor, use_backend
+from engine.predict import Prediction, Predictor, Repeat, Target, make_predictor, use_backend
 from engine.predict.registry import AUTO, resolve_auto
 from engine.runtime.motion import ENGINE_MOTION, MOTION_MISSING, MotionConventions, engine_vectors, with_camera_motion
 from engine.runtime.stream import PredictionLoop
 
 __all__ = ["ENGINES", "COLOR_SPACES", "MOTION_MISSING", "ENGINE_MOTION", "SessionConfig", "MotionConventions",
-           "Session", "SubmitResult", "SessionPrediction", "NotReadyError", "engine_camera"]
+           "Session", "SubmitResult", "SessionPrediction", "SessionTexture", "NotReadyError", "engine_camera"]
 
 #: Engines whose view / projection ``Session`` understands (see the module docstring for each one's form).
 ENGINES = ("opencv", "opengl", "unity", "unreal", "godot")
@@ -292,6 +292,26 @@ class SessionPrediction:
     stages_ms: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass
+class SessionTexture:
+    """A predicted frame handed out as a texture (``Session.predict_texture``).
+
+    Attributes:
+        texture: an ``engine.geometry.backends.gl.texture.FrameTexture``: the texture (``texture.texture``, GL name
+            ``texture.glo``) of the session's GL context, its size, format and colour space, ``valid`` and
+            ``read()``; owned by the session, valid until two more texture predictions or ``release()``.
+        method, fallback, frame, stages_ms: as ``SessionPrediction``'s.
+        gpu_ms: GPU milliseconds of the predictor's stages (GL timer queries).
+    """
+
+    texture: object
+    method: str
+    fallback: Optional[str]
+    frame: int
+    stages_ms: dict[str, float] = field(default_factory=dict)
+    gpu_ms: dict[str, float] = field(default_factory=dict)
+
+
 # --------------------------------------------------------------------------------------------
 # Engine poses -> OpenCV cameras
 # --------------------------------------------------------------------------------------------
@@ -444,6 +464,9 @@ class Session:
                  make_method: Optional[Callable[[str], Predictor]] = None, backend: str = "auto") -> None:
         self.config = config or SessionConfig()
         chosen = resolve_backend(backend)
+        #: where the predictors' warps run (``cpu`` or ``gl``); ``predict_texture`` needs ``gl``
+        self.backend = chosen
+        self._textures = None  # the TextureRing of predict_texture, made on first use
         # 8-bit frames keep their codes for the gl backend, which uploads them and decodes on the GPU
         self._keep_codes = chosen == "gl" and self.config.color_in == "srgb8"
 
@@ -620,6 +643,19 @@ class Session:
         rendered frames from the newest one where the method extrapolates motion. ``frame`` is the caller's
         number for the predicted frame, for errors.
         """
+        camera, label, size = self._predicted_camera(view, projection, time, frame)
+        out, predictor, fallback, newest = self._render_at(camera, time, label, size)
+        color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
+        holes = out.holes
+        if self.config.flip_rows:
+            color, holes = color[::-1], holes[::-1]
+        return SessionPrediction(color=color, holes=holes, method=predictor.name, fallback=fallback,
+                                 frame=newest.index, stages_ms=out.stages_ms)
+
+    def _predicted_camera(self, view: object, projection: object, time: float,
+                          frame: Optional[int]) -> tuple[Camera, int, tuple[int, int]]:
+        """The checked camera of a predicted frame, the frame's label for errors and the session's (H, W) now;
+        InputError naming the frame and time for a bad time or pose."""
         with self._lock:
             size = self._size
             label = self._predictions if frame is None else int(frame)
@@ -629,6 +665,13 @@ class Session:
             camera = engine_camera(self.config, view, projection, size[1], size[0])
         except InputError as exc:
             raise _located(exc, label, time, "predicted frame") from None
+        return camera, label, size
+
+    def _render_at(self, camera: Camera, time: float, label: int, size: tuple[int, int],
+                   resident: bool = False) -> tuple[Prediction, Predictor, Optional[str], Frame]:
+        """Render the prediction for ``camera`` at ``time`` from the history, under the lock: (the predictor's
+        output, the predictor, the fallback reason, the newest rendered frame). ``resident``: ask the backend to
+        leave the frame on the GPU (``Target.resident``)."""
         with self._lock:
             history = self._loop.prepared
             if history is None:
@@ -638,7 +681,8 @@ class Session:
                                  frame=label, field="size")
             newest = history.frames[-1]
             # srgb8 is encoded where the frame is (on gl: on the GPU, a quarter of the bytes read back)
-            target = Target(camera, float(time), label, "srgb8" if self.config.color_out == "srgb8" else "linear")
+            encoding = "srgb8" if self.config.color_out == "srgb8" and not resident else "linear"
+            target = Target(camera, float(time), label, encoding, resident=resident)
             if _cut(newest.camera, camera, self._scene_depth, self.config):
                 predictor, fallback = self._repeat, "camera_cut"
             else:
@@ -648,12 +692,51 @@ class Session:
             except InputError as exc:  # a time too far from the rendered frames
                 raise _located(exc, label, time, "predicted frame") from None
             self._predictions += 1
-        color = out.color if out.encoding == self.config.color_out else _encode_color(out.color, self.config.color_out)
-        holes = out.holes
-        if self.config.flip_rows:
-            color, holes = color[::-1], holes[::-1]
-        return SessionPrediction(color=color, holes=holes, method=predictor.name, fallback=fallback,
-                                 frame=newest.index, stages_ms=out.stages_ms)
+        return out, predictor, fallback, newest
+
+    def predict_texture(self, view: object, projection: object, time: float, *, frame: Optional[int] = None,
+                        format: str = "rgba16f") -> "SessionTexture":
+        """``predict``, with the frame handed out as a texture of the session's GL context instead of host arrays
+        (nothing read back; docs/gpu.md, "Frames handed out as textures"). Needs the ``gl`` backend.
+
+        The session owns the texture (``engine.geometry.backends.gl.texture``): it stays valid until two more
+        texture predictions were made or ``release()``; ``format`` is ``rgba16f`` (linear, default),
+        ``rgba32f`` (linear) or ``srgb8`` (8-bit sRGB codes in an RGBA8 texture), whatever ``color_out`` says;
+        rows are GL's (texel row 0 at the bottom), whatever ``flip_rows`` says. A frame a method made on the CPU
+        (``repeat`` after a camera cut, methods without GL passes) is uploaded once.
+
+        Raises InputError (one line) on the ``cpu`` backend and for an unknown format; else as ``predict``.
+        """
+        from engine.geometry.backends.gl.texture import TEXTURE_FORMATS
+
+        if self.backend != "gl":
+            raise InputError(f"textures need the gl backend: this session runs on {self.backend} (make it with "
+                             f"Session(..., backend='gl'), or call predict for host arrays)", field="backend")
+        if format not in TEXTURE_FORMATS:
+            raise InputError(f"must be one of {', '.join(TEXTURE_FORMATS)}, got {format!r}", field="format")
+        camera, label, size = self._predicted_camera(view, projection, time, frame)
+        out, predictor, fallback, newest = self._render_at(camera, time, label, size, resident=True)
+        with self._lock:
+            if self._textures is None:
+                from engine.geometry.backends.gl import shared_context
+                from engine.geometry.backends.gl.texture import TextureRing
+
+                self._textures = TextureRing(shared_context())
+            ring = self._textures
+        if out.resident is not None:
+            texture = ring.write(out.resident.color, out.resident.shape, format)
+        else:
+            texture = ring.upload(out.color, format)
+        return SessionTexture(texture=texture, method=predictor.name, fallback=fallback, frame=newest.index,
+                              stages_ms=out.stages_ms, gpu_ms=out.gpu_ms)
+
+    def release_textures(self) -> None:
+        """Free the textures ``predict_texture`` handed out (every handle turns invalid; the next call makes new
+        ones)."""
+        with self._lock:
+            ring, self._textures = self._textures, None
+        if ring is not None:
+            ring.release_all()
 
     def reset(self, width: Optional[int] = None, height: Optional[int] = None) -> None:
         """Forget every rendered frame (camera cut, level load); optionally change the frame size.

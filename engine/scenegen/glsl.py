@@ -62,25 +62,35 @@ float fbm2(vec2 x, int octaves) {
 """
 
 # ------------------------------------------------------------------ geometry, colour pass
+# the geometry's vertices, for the colour pass and the live pass: the point in camera(t) (``v_cam``) and where it
+# was in the previous frame's camera (``v_cam_prev``, the live pass's motion vectors; the colour pass does not
+# read it, so its program drops it)
 GEOMETRY_VS = """
 #version 330
 in vec3 in_pos;
 in vec3 in_nrm;
-uniform mat4 u_model;          // world_from_object at t
-uniform mat4 u_cam_from_obj;   // OpenCV camera(t) from object(t), composed in float64
-uniform mat4 u_proj;           // GL clip from OpenCV camera
+uniform mat4 u_model;              // world_from_object at t
+uniform mat4 u_cam_from_obj;       // OpenCV camera(t) from object(t), composed in float64
+uniform mat4 u_prev_cam_from_obj;  // camera(previous frame) from object(previous frame): where the point was
+uniform mat4 u_proj;
 out vec3 v_obj;
 out vec3 v_obj_nrm;
 out vec3 v_world;
 out vec3 v_nrm;
+out vec3 v_cam;
+out vec3 v_cam_prev;
 void main() {
     v_obj = in_pos;
     v_obj_nrm = in_nrm;
     v_world = (u_model * vec4(in_pos, 1.0)).xyz;
     v_nrm = mat3(u_model) * in_nrm;
-    gl_Position = u_proj * (u_cam_from_obj * vec4(in_pos, 1.0));
+    vec4 cam = u_cam_from_obj * vec4(in_pos, 1.0);
+    v_cam = cam.xyz;
+    v_cam_prev = (u_prev_cam_from_obj * vec4(in_pos, 1.0)).xyz;
+    gl_Position = u_proj * cam;
 }
 """
+
 
 SKY_FUNCTION = """
 uniform vec3 u_zenith, u_horizon, u_below, u_cloud_col;
@@ -103,13 +113,13 @@ vec3 sky_color(vec3 d) {
 }
 """
 
-GEOMETRY_FS = """
-#version 330
+# the surface's shading, ``vec3 shade()``: what the colour pass (GEOMETRY_FS) and the live pass (LIVE_FS) both
+# write, from the same inputs, so that the two passes give the same colour
+SHADING = """
 in vec3 v_obj;
 in vec3 v_obj_nrm;
 in vec3 v_world;
 in vec3 v_nrm;
-out vec4 f_color;
 
 uniform int u_pattern;
 uniform vec3 u_col0, u_col1, u_col2;
@@ -195,7 +205,7 @@ float sun_shadow(vec3 world, vec3 n) {
     return 0.25 * sum;
 }
 
-void main() {
+vec3 shade() {
     vec3 n = normalize(v_nrm);
     if (!gl_FrontFacing) n = -n;
     vec3 base = albedo();
@@ -222,8 +232,15 @@ void main() {
         }
     }
     col = mix(u_fog_col, col, exp(-u_fog * dist));
-    f_color = vec4(max(col, vec3(0.0)), 1.0);
+    return max(col, vec3(0.0));
 }
+"""
+
+GEOMETRY_FS = """
+#version 330
+out vec4 f_color;
+""" + SHADING + """
+void main() { f_color = vec4(shade(), 1.0); }
 """
 
 # ------------------------------------------------------------------ full-screen passes
@@ -334,4 +351,56 @@ void main() { gl_Position = u_light_from_obj * vec4(in_pos, 1.0); }
 SHADOW_FS = """
 #version 330
 void main() {}
+"""
+
+# ------------------------------------------------------------------ live pass: colour, depth and motion vectors
+# What a game's G-buffer pass writes, in one draw of the scene: the shaded colour, the planar depth and the
+# motion vector of each pixel, computed from the previous frame's object and camera transforms (the vertex is
+# moved by both frames' transforms in GEOMETRY_VS and the fragment projects where its point was), as engines
+# write them.
+
+MOTION_VECTOR = """
+uniform vec3 u_prev_k0;      // the previous camera's intrinsics, row 0 (fx, skew, cx) ...
+uniform vec2 u_prev_k1;      // ... and row 1 (fy, cy)
+uniform float u_max_vector;  // pixels: a longer vector is no vector (engine.core.frames.MAX_MOTION_DIAGONALS)
+uniform float u_height;
+// (x, y, 1, 0): the vector in pixels (x right, y down) from this pixel's centre to where point q (in the previous
+// camera's axes) was seen; (0, 0, 0, 0) where it has none: q on or behind that camera's plane, or too far
+vec4 motion_vector(vec3 q) {
+    if (!(q.z > 1e-9 * max(1.0, max(abs(q.x), abs(q.y))))) return vec4(0.0);
+    vec2 here = vec2(gl_FragCoord.x, u_height - gl_FragCoord.y);
+    vec2 there = vec2(u_prev_k0.x * q.x / q.z + u_prev_k0.y * q.y / q.z + u_prev_k0.z, u_prev_k1.x * q.y / q.z + u_prev_k1.y);
+    vec2 mv = there - here;
+    if (max(abs(mv.x), abs(mv.y)) > u_max_vector) return vec4(0.0);
+    return vec4(mv, 1.0, 0.0);
+}
+"""
+
+LIVE_FS = """
+#version 330
+in vec3 v_cam;
+in vec3 v_cam_prev;
+layout(location = 0) out vec4 f_rgbd;    // linear colour, planar depth (0: no surface)
+layout(location = 1) out vec4 f_motion;  // see motion_vector
+""" + SHADING + MOTION_VECTOR + """
+void main() {
+    f_rgbd = vec4(shade(), v_cam.z);
+    f_motion = motion_vector(v_cam_prev);
+}
+"""
+
+SKY_LIVE_FS = """
+#version 330
+layout(location = 0) out vec4 f_rgbd;
+layout(location = 1) out vec4 f_motion;
+uniform mat3 u_world_from_pixel;   // world ray direction of image pixel (u, v, 1), v from the top
+uniform mat3 u_prev_from_pixel;    // the same ray in the previous camera's axes: only its rotation moves the sky
+uniform int u_sky_visible;
+""" + NOISE + SKY_FUNCTION + MOTION_VECTOR + """
+void main() {
+    vec3 uv = vec3(gl_FragCoord.x, u_height - gl_FragCoord.y, 1.0);
+    vec3 col = u_sky_visible != 0 ? max(sky_color(normalize(u_world_from_pixel * uv)), vec3(0.0)) : vec3(0.0);
+    f_rgbd = vec4(col, 0.0);
+    f_motion = motion_vector(u_prev_from_pixel * uv);
+}
 """

@@ -17,6 +17,10 @@ Per frame, with one GL context reused across frames:
 
 All render targets are float32. Camera space is OpenCV's; ``clip_from_camera`` maps it to GL clip space
 and rows are flipped on readback (GL images are bottom-up).
+
+This is the ground-truth mode (evaluation, training data). ``engine.scenegen.live.LiveSceneRenderer`` is the
+live mode, for the live loop: colour, depth and motion vectors in one pass, as a game draws them, left on the
+GPU; both build on ``ScenePasses`` (programs, vertex batches, shadow map, uniforms).
 """
 from __future__ import annotations
 
@@ -70,18 +74,23 @@ def _sun_matrix(direction: np.ndarray, half_extent: float, depth: float = 400.0)
     return m
 
 
+#: Vertex layout each scene program reads from a batch's buffer (position, normal; ``12x`` skips the normal).
+_LAYOUTS = {"color": ("3f 3f", "in_pos", "in_nrm"), "live": ("3f 3f", "in_pos", "in_nrm"),
+            "truth": ("3f 12x", "in_pos"), "shadow": ("3f 12x", "in_pos")}
+
+
 class _Batch:
-    """Geometry drawn with one material and one transform: vertex buffer and one VAO per program."""
+    """Geometry drawn with one material and one transform: vertex buffer and one VAO per scene program
+    (``vaos[name]``; ``shadow`` draws into the shadow map)."""
 
     def __init__(self, ctx, programs: dict, vertices: np.ndarray, material: int, obj: int, shadow: bool) -> None:
         self.material, self.obj, self.shadow = material, obj, shadow
         self.vbo = ctx.buffer(vertices.tobytes())
-        self.color = ctx.vertex_array(programs["color"], [(self.vbo, "3f 3f", "in_pos", "in_nrm")])
-        self.truth = ctx.vertex_array(programs["truth"], [(self.vbo, "3f 12x", "in_pos")])
-        self.depth = ctx.vertex_array(programs["shadow"], [(self.vbo, "3f 12x", "in_pos")])
+        self.vaos = {name: ctx.vertex_array(programs[name], [(self.vbo, *layout)])
+                     for name, layout in _LAYOUTS.items() if name in programs}
 
     def release(self) -> None:
-        for item in (self.color, self.truth, self.depth, self.vbo):
+        for item in (*self.vaos.values(), self.vbo):
             item.release()
 
 
@@ -90,26 +99,25 @@ def _mat(m: np.ndarray) -> bytes:
     return np.ascontiguousarray(np.asarray(m, np.float64).T, dtype=np.float32).tobytes()
 
 
-class SceneRenderer:
-    """Renders frames of one scene with one GL context; release it (or use ``with``) when done.
+class ScenePasses:
+    """The GL objects of one scene on a moderngl context current on the calling thread: the programs of
+    ``SOURCES``, one vertex batch per material and transform, the sun's shadow map, the uniforms that stay,
+    and the passes both renderers draw (the shadow map); a subclass adds its render targets (``_targets``)
+    and its frames. ``release_objects`` frees them (the context is the subclass's)."""
 
-    >>> with SceneRenderer(make_scene(SceneConfig(width=64, height=48, num_frames=2))) as r:  # doctest: +SKIP
-    ...     frame = r.render_frame(0)
-    """
+    #: (vertex, fragment) sources of the programs; the full-screen ones (``FULLSCREEN_VS``) are the passes that
+    #: draw the sky or a whole image
+    SOURCES: dict[str, tuple[str, str]] = {"shadow": (glsl.SHADOW_VS, glsl.SHADOW_FS)}
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, ctx) -> None:
         import moderngl
 
         self.scene = scene
-        cfg = scene.config
         self._moderngl = moderngl
-        self.ctx = ctx = moderngl.create_standalone_context(backend="egl")
+        self.ctx = ctx
         self._owned: list = []
-        try:
-            self._build(ctx, cfg)
-        except Exception:
-            self.release()
-            raise
+        self.batches: list[_Batch] = []
+        self._build(ctx, scene.config)
 
     # -------------------------------------------------------------------------------------- set-up
     def _program(self, vs: str, fs: str):
@@ -119,15 +127,7 @@ class SceneRenderer:
 
     def _build(self, ctx, cfg) -> None:
         scene = self.scene
-        w, h, s = cfg.width, cfg.height, cfg.supersample
-        self.programs = {
-            "color": self._program(glsl.GEOMETRY_VS, glsl.GEOMETRY_FS),
-            "truth": self._program(glsl.TRUTH_VS, glsl.TRUTH_FS),
-            "shadow": self._program(glsl.SHADOW_VS, glsl.SHADOW_FS),
-            "sky_color": self._program(glsl.FULLSCREEN_VS, glsl.SKY_COLOR_FS),
-            "sky_truth": self._program(glsl.FULLSCREEN_VS, glsl.SKY_TRUTH_FS),
-            "downsample": self._program(glsl.FULLSCREEN_VS, glsl.DOWNSAMPLE_FS),
-        }
+        self.programs = {name: self._program(vs, fs) for name, (vs, fs) in self.SOURCES.items()}
         self._names = {k: set(p) for k, p in self.programs.items()}
 
         # batches: static parts grouped by (material, casts shadow); object parts by (object, material)
@@ -147,41 +147,42 @@ class SceneRenderer:
         tri = np.array([[-1.0, -1.0], [3.0, -1.0], [-1.0, 3.0]], np.float32)
         self._fs_vbo = ctx.buffer(tri.tobytes())
         self._owned.append(self._fs_vbo)
-        self.fullscreen = {k: ctx.vertex_array(self.programs[k], [(self._fs_vbo, "2f", "in_xy")])
-                           for k in ("sky_color", "sky_truth", "downsample")}
+        self.fullscreen = {k: ctx.vertex_array(p, [(self._fs_vbo, "2f", "in_xy")])
+                           for k, p in self.programs.items() if self.SOURCES[k][0] is glsl.FULLSCREEN_VS}
         self._owned += list(self.fullscreen.values())
-
-        def texture(size, depth=False):
-            tex = ctx.depth_texture(size) if depth else ctx.texture(size, 4, dtype="f4")
-            self._owned.append(tex)
-            return tex
-
-        def framebuffer(colors, depth):
-            fbo = ctx.framebuffer(color_attachments=colors, depth_attachment=depth)
-            self._owned.append(fbo)
-            return fbo
-
-        self.color_ss = texture((w * s, h * s))
-        self.fbo_ss = framebuffer([self.color_ss], texture((w * s, h * s), depth=True))
-        self.color = texture((w, h))
-        self.fbo_color = framebuffer([self.color], None)
-        self.geometry, self.flow = texture((w, h)), texture((w, h))
-        self.fbo_truth = framebuffer([self.geometry, self.flow], texture((w, h), depth=True))
+        self._targets(cfg.width, cfg.height, cfg.supersample)
         self.shadow_map = None
         if cfg.shadows:
             size = cfg.shadow_map_size
-            self.shadow_map = texture((size, size), depth=True)
+            self.shadow_map = self._texture((size, size), depth=True)
             self.shadow_map.compare_func = "<="
             self.shadow_map.filter = (self._moderngl.LINEAR, self._moderngl.LINEAR)
-            self.fbo_shadow = framebuffer([], self.shadow_map)
+            self.fbo_shadow = self._framebuffer([], self.shadow_map)
             eyes = scene.camera.eye(np.arange(cfg.num_frames + 1) / cfg.fps)
             self._shadow_extent = float(np.clip(np.linalg.norm(eyes[:, :2], axis=1).max() + 10.0, 20.0, 60.0))
             self.sun_matrix = _sun_matrix(scene.lighting.sun_direction, self._shadow_extent)
         self._set_constants()
 
+    def _texture(self, size: tuple[int, int], depth: bool = False):
+        """A float32 RGBA (or depth) texture the renderer owns."""
+        tex = self.ctx.depth_texture(size) if depth else self.ctx.texture(size, 4, dtype="f4")
+        self._owned.append(tex)
+        return tex
+
+    def _framebuffer(self, colors: list, depth):
+        fbo = self.ctx.framebuffer(color_attachments=colors, depth_attachment=depth)
+        self._owned.append(fbo)
+        return fbo
+
+    def _targets(self, w: int, h: int, s: int) -> None:
+        """Make the render targets of frames (H, W) = (``h``, ``w``), colour supersampled ``s`` x."""
+
+    # -------------------------------------------------------------------------------------- uniforms
+
     def _set(self, program: str, name: str, value) -> None:
-        """Set a uniform if the compiled program kept it (unused uniforms are optimised away)."""
-        if name not in self._names[program]:
+        """Set a uniform if the program exists and its compiled form kept it (unused uniforms are optimised
+        away)."""
+        if name not in self._names.get(program, ()):
             return
         u = self.programs[program][name]
         if isinstance(value, np.ndarray):
@@ -193,53 +194,144 @@ class SceneRenderer:
             u.value = value
 
     def _set_constants(self) -> None:
-        scene, light, sky = self.scene, self.scene.lighting, self.scene.sky
-        for prog in ("color", "sky_color"):
-            self._set(prog, "u_sun_dir", light.sun_direction)
-            self._set(prog, "u_sun_col", light.sun_color)
-        self._set("color", "u_amb_sky", light.ambient_sky)
-        self._set("color", "u_amb_ground", light.ambient_ground)
+        for prog in ("color", "live"):
+            self._set_lighting(prog)
+        for prog in ("sky_color", "sky_live"):
+            self._set_sky(prog)
+        self._set("downsample", "u_factor", int(self.scene.config.supersample))
+        self._set("downsample", "u_image", 0)
+
+    def _set_lighting(self, prog: str) -> None:
+        """The lights, fog and shadow map of the shading (``glsl.SHADING``) of program ``prog``."""
+        light = self.scene.lighting
+        self._set(prog, "u_sun_dir", light.sun_direction)
+        self._set(prog, "u_sun_col", light.sun_color)
+        self._set(prog, "u_amb_sky", light.ambient_sky)
+        self._set(prog, "u_amb_ground", light.ambient_ground)
         lights = light.point_lights[:4]
-        self._set("color", "u_num_lights", len(lights))
+        self._set(prog, "u_num_lights", len(lights))
         pos, col = np.zeros((4, 3)), np.zeros((4, 3))
         for i, pl in enumerate(lights):
             pos[i], col[i] = pl.position, pl.color
-        self._set("color", "u_light_pos", pos.reshape(-1))
-        self._set("color", "u_light_col", col.reshape(-1))
-        self._set("color", "u_fog", float(light.fog_density))
-        self._set("color", "u_fog_col", light.fog_color)
-        self._set("color", "u_shadows", int(self.shadow_map is not None))
+        self._set(prog, "u_light_pos", pos.reshape(-1))
+        self._set(prog, "u_light_col", col.reshape(-1))
+        self._set(prog, "u_fog", float(light.fog_density))
+        self._set(prog, "u_fog_col", light.fog_color)
+        self._set(prog, "u_shadows", int(self.shadow_map is not None))
         if self.shadow_map is not None:
             bias = np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
-            self._set("color", "u_shadow_mat", bias @ self.sun_matrix)
-            self._set("color", "u_shadow_texel", 2.0 * self._shadow_extent / self.scene.config.shadow_map_size)
-            self._set("color", "u_shadow_map", 0)
+            self._set(prog, "u_shadow_mat", bias @ self.sun_matrix)
+            self._set(prog, "u_shadow_texel", 2.0 * self._shadow_extent / self.scene.config.shadow_map_size)
+            self._set(prog, "u_shadow_map", 0)
+
+    def _set_sky(self, prog: str) -> None:
+        """The sky's colours, clouds and sun (``glsl.SKY_FUNCTION``) of program ``prog``."""
+        light, sky = self.scene.lighting, self.scene.sky
+        self._set(prog, "u_sun_dir", light.sun_direction)
+        self._set(prog, "u_sun_col", light.sun_color)
         for name, value in (("u_zenith", sky.zenith), ("u_horizon", sky.horizon), ("u_below", sky.below),
                             ("u_cloud_col", sky.cloud_color)):
-            self._set("sky_color", name, np.asarray(value, np.float64))
-        self._set("sky_color", "u_coverage", float(sky.cloud_coverage))
-        self._set("sky_color", "u_cloud_scale", float(sky.cloud_scale))
-        self._set("sky_color", "u_sun_disk", float(sky.sun_disk))
-        self._set("sky_color", "u_sun_cos", float(math.cos(sky.sun_size)))
-        self._set("sky_color", "u_seed", int(sky.seed) & 0xFFFFFFFF)
-        self._set("downsample", "u_factor", int(scene.config.supersample))
-        self._set("downsample", "u_image", 0)
+            self._set(prog, name, np.asarray(value, np.float64))
+        self._set(prog, "u_coverage", float(sky.cloud_coverage))
+        self._set(prog, "u_cloud_scale", float(sky.cloud_scale))
+        self._set(prog, "u_sun_disk", float(sky.sun_disk))
+        self._set(prog, "u_sun_cos", float(math.cos(sky.sun_size)))
+        self._set(prog, "u_seed", int(sky.seed) & 0xFFFFFFFF)
 
-    def _set_material(self, index: int) -> None:
+    def _set_material(self, index: int, prog: str = "color") -> None:
         m = self.scene.materials[index]
-        self._set("color", "u_pattern", PATTERNS.index(m.pattern))
+        self._set(prog, "u_pattern", PATTERNS.index(m.pattern))
         for i in range(3):
-            self._set("color", f"u_col{i}", m.colors[i])
-        self._set("color", "u_scale", float(m.scale))
-        self._set("color", "u_detail", float(m.detail))
-        self._set("color", "u_macro", float(m.macro))
-        self._set("color", "u_specular", float(m.specular))
-        self._set("color", "u_shininess", float(m.shininess))
-        self._set("color", "u_tex_rot", m.rotation)
+            self._set(prog, f"u_col{i}", m.colors[i])
+        self._set(prog, "u_scale", float(m.scale))
+        self._set(prog, "u_detail", float(m.detail))
+        self._set(prog, "u_macro", float(m.macro))
+        self._set(prog, "u_specular", float(m.specular))
+        self._set(prog, "u_shininess", float(m.shininess))
+        self._set(prog, "u_tex_rot", m.rotation)
         c, s = math.cos(m.angle), math.sin(m.angle)
-        self._set("color", "u_tex_rot2", np.array([[c, -s], [s, c]]))
-        self._set("color", "u_tex_offset", m.offset)
-        self._set("color", "u_seed", int(m.seed) & 0xFFFFFFFF)
+        self._set(prog, "u_tex_rot2", np.array([[c, -s], [s, c]]))
+        self._set(prog, "u_tex_offset", m.offset)
+        self._set(prog, "u_seed", int(m.seed) & 0xFFFFFFFF)
+
+    # -------------------------------------------------------------------------------------- passes
+    def _check_index(self, index: int) -> None:
+        n = self.scene.config.num_frames
+        if not 0 <= index < n:
+            raise InputError(f"must be in [0, {n}), got {index}", field="index")
+
+    def _object_transforms(self, index: int) -> np.ndarray:
+        """(objects + 1, 4, 4) world_from_object of frame ``index`` (any integer: the paths are defined for all
+        times), slot 0 the static world's identity (``_slots``)."""
+        m = np.eye(4)[None].repeat(len(self.scene.objects) + 1, 0)
+        if self.scene.objects:
+            m[1:] = self.scene.object_transforms(index)
+        return m
+
+    def _slots(self) -> dict[int, int]:
+        """Object id -> its row in ``_object_transforms`` (0: the static world)."""
+        return {0: 0, **{o.id: i + 1 for i, o in enumerate(self.scene.objects)}}
+
+    def _shadow_pass(self, transforms: np.ndarray) -> None:
+        """The sun's shadow map of the shadow-casting batches at ``transforms`` (``_object_transforms``)."""
+        if self.shadow_map is None:
+            return
+        mgl, ctx, slot = self._moderngl, self.ctx, self._slots()
+        self.fbo_shadow.use()
+        self.fbo_shadow.clear(depth=1.0)
+        ctx.enable(mgl.DEPTH_TEST)
+        ctx.disable(mgl.CULL_FACE)
+        ctx.depth_func = "<"
+        ctx.polygon_offset = (2.0, 4.0)
+        for b in self.batches:
+            if b.shadow:
+                self._set("shadow", "u_light_from_obj", self.sun_matrix @ transforms[slot[b.obj]])
+                b.vaos["shadow"].render(mgl.TRIANGLES)
+        ctx.polygon_offset = (0.0, 0.0)
+
+    # -------------------------------------------------------------------------------------- clean-up
+    def release_objects(self) -> None:
+        """Free the scene's GL objects (safe to call twice; on the thread where the context is current)."""
+        for b in self.batches:
+            b.release()
+        self.batches = []
+        for item in reversed(self._owned):
+            item.release()
+        self._owned = []
+
+
+class SceneRenderer(ScenePasses):
+    """Renders frames of one scene with colour and exact ground truth (module docstring) on a GL context of its
+    own; release it (or use ``with``) when done. ``engine.scenegen.live.LiveSceneRenderer`` is the live mode:
+    colour, depth and motion vectors in one pass, left on the GPU.
+
+    >>> with SceneRenderer(make_scene(SceneConfig(width=64, height=48, num_frames=2))) as r:  # doctest: +SKIP
+    ...     frame = r.render_frame(0)
+    """
+
+    SOURCES = {"color": (glsl.GEOMETRY_VS, glsl.GEOMETRY_FS), "truth": (glsl.TRUTH_VS, glsl.TRUTH_FS),
+               "shadow": (glsl.SHADOW_VS, glsl.SHADOW_FS), "sky_color": (glsl.FULLSCREEN_VS, glsl.SKY_COLOR_FS),
+               "sky_truth": (glsl.FULLSCREEN_VS, glsl.SKY_TRUTH_FS),
+               "downsample": (glsl.FULLSCREEN_VS, glsl.DOWNSAMPLE_FS)}
+
+    def __init__(self, scene: Scene) -> None:
+        import moderngl
+
+        self.ctx = moderngl.create_standalone_context(backend="egl")
+        try:
+            super().__init__(scene, self.ctx)
+        except Exception:
+            self.release()
+            raise
+
+    def _targets(self, w: int, h: int, s: int) -> None:
+        """Colour at ``s`` x the size and its downsampled copy; the ground truth's two targets."""
+        self.color_ss = self._texture((w * s, h * s))
+        self.fbo_ss = self._framebuffer([self.color_ss], self._texture((w * s, h * s), depth=True))
+        self.color = self._texture((w, h))
+        self.fbo_color = self._framebuffer([self.color], None)
+        self.geometry, self.flow = self._texture((w, h)), self._texture((w, h))
+        self.fbo_truth = self._framebuffer([self.geometry, self.flow], self._texture((w, h), depth=True))
 
     # -------------------------------------------------------------------------------------- frames
     def render_frame(self, index: int, camera: int = 0) -> Frame:
@@ -247,30 +339,16 @@ class SceneRenderer:
         ``camera`` (a rig's camera number) only keys the colour noise of ``config.render_noise``, so that
         each camera of a rig gets its own."""
         mgl, ctx, scene, cfg = self._moderngl, self.ctx, self.scene, self.scene.config
-        if not 0 <= index < cfg.num_frames:
-            raise InputError(f"must be in [0, {cfg.num_frames}), got {index}", field="index")
+        self._check_index(index)
         w, h, s = cfg.width, cfg.height, cfg.supersample
         cam0, cam1 = scene.camera_at(index), scene.camera_at(index + 1)
         v0, v1 = cam0.world_to_camera, cam1.world_to_camera
-        m0, m1 = np.eye(4)[None].repeat(len(scene.objects) + 1, 0), np.eye(4)[None].repeat(len(scene.objects) + 1, 0)
-        if scene.objects:
-            m0[1:], m1[1:] = scene.object_transforms(index), scene.object_transforms(index + 1)
+        m0, m1 = self._object_transforms(index), self._object_transforms(index + 1)
         moves = np.concatenate([[False], scene.object_moves(index)]) if scene.objects else np.array([False])
-        slot = {0: 0, **{o.id: i + 1 for i, o in enumerate(scene.objects)}}
+        slot = self._slots()
 
         # 1. sun shadow map
-        if self.shadow_map is not None:
-            self.fbo_shadow.use()
-            self.fbo_shadow.clear(depth=1.0)
-            ctx.enable(mgl.DEPTH_TEST)
-            ctx.disable(mgl.CULL_FACE)
-            ctx.depth_func = "<"
-            ctx.polygon_offset = (2.0, 4.0)
-            for b in self.batches:
-                if b.shadow:
-                    self._set("shadow", "u_light_from_obj", self.sun_matrix @ m0[slot[b.obj]])
-                    b.depth.render(mgl.TRIANGLES)
-            ctx.polygon_offset = (0.0, 0.0)
+        self._shadow_pass(m0)
 
         # 2. colour, supersampled
         ctx.enable(mgl.DEPTH_TEST | mgl.CULL_FACE)
@@ -285,7 +363,7 @@ class SceneRenderer:
             self._set_material(b.material)
             self._set("color", "u_model", m0[slot[b.obj]])
             self._set("color", "u_cam_from_obj", v0 @ m0[slot[b.obj]])
-            b.color.render(mgl.TRIANGLES)
+            b.vaos["color"].render(mgl.TRIANGLES)
         ctx.depth_func = "<="
         if self.scene.sky.visible:
             k_inv = np.linalg.inv(_scaled(cam0.intrinsics, s))
@@ -315,7 +393,7 @@ class SceneRenderer:
             self._set("truth", "u_cam_from_obj1", v0 @ m1[i])
             self._set("truth", "u_id", float(b.obj))
             self._set("truth", "u_moving", float(moves[i]))
-            b.truth.render(mgl.TRIANGLES)
+            b.vaos["truth"].render(mgl.TRIANGLES)
         ctx.depth_func = "<="
         self._set("sky_truth", "u_k_inv", np.linalg.inv(k0))
         self._set("sky_truth", "u_rot", v1[:3, :3] @ v0[:3, :3].T)
@@ -358,12 +436,8 @@ class SceneRenderer:
     # -------------------------------------------------------------------------------------- clean-up
     def release(self) -> None:
         """Free every GL object and the context (safe to call twice)."""
-        for b in getattr(self, "batches", []):
-            b.release()
-        self.batches = []
-        for item in reversed(self._owned):
-            item.release()
-        self._owned = []
+        if getattr(self, "_owned", None) is not None:
+            self.release_objects()
         if self.ctx is not None:
             self.ctx.release()
             self.ctx = None

@@ -188,11 +188,14 @@ class SceneSource:
 
 
 class FieldSource:
-    """An exported static radiance field rendered by ``engine.fields.gl.GlFieldRenderer`` along
-    ``field_camera_path`` (``loop`` cameras, walked forth and back so that the loop has no jump).
+    """An exported radiance field rendered by ``engine.fields.gl.GlFieldRenderer`` (static) or
+    ``engine.fields.gldynamic.GlDynamicRenderer`` (dynamic) along ``field_camera_path`` (``loop`` cameras,
+    walked forth and back so that the loop has no jump; a dynamic field's times go forth and back over its
+    trained range with them).
 
-    Time is ``tick / fps``; only the first tick is a cut. A static field's motion vectors are the camera's
-    alone (``camera_motion_vectors`` from the rendered depth), pointing to the previous rendered frame.
+    Time is ``tick / fps``; only the first tick is a cut. The motion vectors point to the previous rendered
+    frame: a static field's are the camera's alone (``camera_motion_vectors`` from the rendered depth), a
+    dynamic field's its own (the motion field inverted, ``GlDynamicRenderer.render(..., earlier_...)``).
     The path goes through the run's training cameras where torch can read them, else through the field's own
     scene description (as the field demo's).
     """
@@ -202,35 +205,58 @@ class FieldSource:
     objects: Sequence = ()
 
     def __init__(self, config: PlayConfig) -> None:
-        from demos.upsample import resolve_field_dir, train_cameras
+        from demos.upsample import is_dynamic_export, resolve_field_dir, train_cameras
         from engine.fields.camera_path import field_camera_path
-        from engine.fields.gl import GlFieldRenderer
-        from engine.fields.render import load_field
 
         export, run = resolve_field_dir(Path(config.field))
-        assets = load_field(export)  # a dynamic field's export is refused here, with its format named
-        cameras, width, height = field_camera_path(assets, train_cameras(run), config.loop, config.width,
-                                                   config.height)
+        self.dynamic = is_dynamic_export(export)
+        if self.dynamic:
+            from engine.fields.dynamic import load_dynamic_field
+            from engine.fields.gldynamic import GlDynamicRenderer as Renderer
+
+            assets = load_dynamic_field(export)
+        else:
+            from engine.fields.gl import GlFieldRenderer as Renderer
+            from engine.fields.render import load_field
+
+            assets = load_field(export)
+        cameras, width, height = field_camera_path(assets, train_cameras(run, dynamic=self.dynamic), config.loop,
+                                                   config.width, config.height)
         self.cameras = cameras + cameras[-2:0:-1]
+        times = [0.0] * len(cameras)
+        if self.dynamic:
+            t0, t1 = assets.time_range
+            times = list(t0 + (t1 - t0) * np.arange(len(cameras)) / max(len(cameras) - 1, 1))
+        self.times = times + times[-2:0:-1]
         self.length = len(self.cameras)
         self.fps = config.fps
-        self.name = f"field {export}"
-        self.renderer = GlFieldRenderer(assets, width, height)
+        self.name = f"{'dynamic ' if self.dynamic else ''}field {export}"
+        self.renderer = Renderer(assets, width, height)
 
     def cut(self, tick: int) -> bool:
         return tick == 0
 
-    def _render(self, tick: int) -> dict:
+    def _render(self, tick: int, before: Optional[int] = None) -> dict:
         cam = self.cameras[tick % self.length]
-        return self.renderer.render(cam.intrinsics, cam.world_to_camera)
+        if not self.dynamic:
+            return self.renderer.render(cam.intrinsics, cam.world_to_camera)
+        time = self.times[tick % self.length]
+        if before is None:
+            return self.renderer.render(cam.intrinsics, cam.world_to_camera, time)
+        return self.renderer.render(cam.intrinsics, cam.world_to_camera, time,
+                                    earlier_world_to_camera=self.cameras[before % self.length].world_to_camera,
+                                    earlier_time=self.times[before % self.length])
 
     def frame(self, tick: int, previous: Optional[int]) -> Frame:
         cam = self.cameras[tick % self.length]
-        out = self._render(tick)
-        before = self.cameras[(tick - 1 if previous is None else previous) % self.length]
+        before = tick - 1 if previous is None else previous
+        out = self._render(tick, before)
+        if self.dynamic:
+            return Frame(index=tick, time=tick / self.fps, color=out["color"], depth=out["depth"], camera=cam,
+                         motion_vectors=out["motion_vectors"])
         return Frame(index=tick, time=tick / self.fps, color=out["color"], depth=out["depth"], camera=cam,
                      object_id=np.zeros(out["depth"].shape, np.int32),
-                     motion_vectors=camera_motion_vectors(out["depth"], cam, before))
+                     motion_vectors=camera_motion_vectors(out["depth"], cam, self.cameras[before % self.length]))
 
     def target(self, tick: int) -> Target:
         return Target(self.cameras[tick % self.length], tick / self.fps, tick)

@@ -175,3 +175,25 @@ def test_the_field_demo_feeds_a_dynamic_fields_own_vectors_to_mvec(tmp_path):
     assert "Dynamic field renderer" in (tmp_path / "demo" / "table.md").read_text()
     frame = read_sequence(tmp_path / "demo" / "field")[5]
     assert frame.motion_vectors is not None and frame.moving.mean() > 0.05
+
+
+@pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
+def test_play_on_a_dynamic_field_gives_mvec_the_fields_vectors(tmp_path):
+    from demos.play import FieldSource, PlayConfig, iter_frames
+
+    export = write_export(tmp_path / "export")
+    config = PlayConfig(field=str(export), width=48, height=32, k=2, method="mvec", loop=8, backend="cpu")
+    source = FieldSource(config)
+    try:
+        assert source.dynamic and source.times[0] == 0.0 and max(source.times) == 1.0 and len(source.times) == 14
+        frame = source.frame(4, 2)
+        assets = source.renderer.assets
+        want = field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                    source.times[4], source.cameras[2].world_to_camera, source.times[2])
+        assert np.array_equal(np.isnan(frame.motion_vectors), np.isnan(want))
+        np.testing.assert_allclose(frame.motion_vectors[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
+        assert np.nanmax(np.abs(want - camera_motion_vectors(frame.depth, frame.camera, source.cameras[2]))) > 0.5
+    finally:
+        source.release()
+    shown = list(iter_frames(config, 5))
+    assert len(shown) == 5 and all(image.shape[:2] == (32, 48) for image in shown)

@@ -218,10 +218,6 @@ def test_header_constants_match_python():
         assert {k[len(prefix):]: v for k, v in d.items() if k.startswith(prefix)} == {n: i for i, n in enumerate(names)}
     assert (d["FLAG_FLIP_ROWS"], d["FLAG_NDC_Y_DOWN"], d["FLAG_COLUMN_MAJOR"]) == (
         wire.FLAG_FLIP_ROWS, wire.FLAG_NDC_Y_DOWN, wire.FLAG_COLUMN_MAJOR)
-    for name, (layout, _) in C_STRUCTS.items():  # the header's own static asserts state the Python sizes
-        assert f"sizeof({name}) == {layout.size}" in HEADER_TEXT
-    for name, (first, second) in C_PAIRS.items():
-        assert f"sizeof({name}) == {C_STRUCTS[first][0].size + C_STRUCTS[second][0].size}" in HEADER_TEXT
     motion_codes = {"PIXELS": wire.MOTION_UNIT_CODES.index("pixels"), "UV": wire.MOTION_UNIT_CODES.index("uv"),
                     "NDC": wire.MOTION_UNIT_CODES.index("ndc"),
                     "PREVIOUS": wire.MOTION_DIRECTION_CODES.index("previous"),
@@ -233,6 +229,43 @@ def test_header_constants_match_python():
                     "F32": wire.MOTION_FORMATS.index("float32"), "F16": wire.MOTION_FORMATS.index("float16")}
     assert {k[7:]: v for k, v in d.items() if k.startswith("MOTION_")} == motion_codes
     assert (d["SUBMIT_VECTORS"], d["SUBMIT_VALID"]) == (wire.SUBMIT_VECTORS, wire.SUBMIT_VALID)
+
+
+def test_header_static_asserts_state_every_python_size_and_offset():
+    sizes = {name: int(size) for name, size in re.findall(r"IL_ASSERT_SIZE\((\w+), (\d+)\)", HEADER_TEXT)}
+    offsets = {(name, field): int(at) for name, field, at in
+               re.findall(r"IL_ASSERT_OFFSET\((\w+), (\w+), (\d+)\)", HEADER_TEXT)}
+    expected_offsets = {}
+    for name, (layout, fields) in C_STRUCTS.items():
+        assert sizes.pop(name) == layout.size, name
+        python, element = python_offsets(layout), 0
+        for field, count in fields:
+            expected_offsets[(name, field)] = python[element]
+            element += count
+    for name, (first, second) in C_PAIRS.items():
+        assert sizes.pop(name) == C_STRUCTS[first][0].size + C_STRUCTS[second][0].size, name
+    assert sizes == {}  # no struct asserted that Python does not have
+    assert offsets == expected_offsets  # every field of every struct, at Python's offset
+
+
+GCC = shutil.which("gcc")
+
+
+@pytest.mark.skipif(GCC is None, reason="no gcc")
+@pytest.mark.parametrize("std", ["c99", "c11"])
+def test_header_compiles_pedantic_and_its_asserts_refuse_a_wrong_layout(tmp_path, std):
+    """C99 (typedef-array asserts) and C11 (_Static_assert) compile the header without a warning, and in both a
+    size that differs from protocol.py is a compile error."""
+    flags = [GCC, f"-std={std}", "-pedantic", "-Wall", "-Wextra", "-Werror", "-fsyntax-only", "-x", "c"]
+    run = subprocess.run(flags + [str(INCLUDE / "interleave_protocol.h")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    wrong = tmp_path / "wrong.h"
+    text = HEADER_TEXT.replace(f"IL_ASSERT_OFFSET(il_hello, method, {python_offsets(wire.HELLO)[-1]})",
+                               f"IL_ASSERT_OFFSET(il_hello, method, {python_offsets(wire.HELLO)[-1] + 8})")
+    assert text != HEADER_TEXT
+    wrong.write_text(text)
+    run = subprocess.run(flags + [str(wrong)], capture_output=True, text=True)
+    assert run.returncode != 0 and "il_hello" in run.stderr
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")

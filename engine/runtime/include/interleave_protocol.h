@@ -261,34 +261,60 @@ typedef struct il_submit_with_motion { il_frame frame; il_submit_motion motion; 
 typedef struct il_reset_with_motion { il_reset reset; il_reset_motion motion; } il_reset_with_motion;
 typedef struct il_layout_with_motion { il_layout layout; il_motion_layout motion; } il_layout_with_motion;
 
+/* Every struct size and field offset, as engine/runtime/protocol.py packs them (tests/runtime/test_server.py
+ * checks this list against Python). C11 and C++11 use _Static_assert / static_assert; C99 (and C++98) get the
+ * same check as a file-scope typedef of an array whose size is -1 when the condition fails, so
+ * `gcc -std=c99 -pedantic -Wall -Wextra -Werror` compiles this header and still refuses a wrong layout. */
 #if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L
-#define IL_STATIC_ASSERT(cond, msg) _Static_assert(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) _Static_assert(cond, text)
 #elif defined(__cplusplus) && __cplusplus >= 201103L
-#define IL_STATIC_ASSERT(cond, msg) static_assert(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) static_assert(cond, text)
 #else
-#define IL_STATIC_ASSERT(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) typedef char il_static_assert_##name[(cond) ? 1 : -1]
 #endif
+#define IL_ASSERT_SIZE(type, size) IL_STATIC_ASSERT(type##_size, sizeof(type) == size, #type " is " #size " bytes")
+#define IL_ASSERT_OFFSET(type, field, offset) \
+    IL_STATIC_ASSERT(type##_##field, offsetof(type, field) == offset, #type "." #field " is at byte " #offset)
 
-IL_STATIC_ASSERT(sizeof(il_header) == 24, "il_header is 24 bytes");
-IL_STATIC_ASSERT(sizeof(il_hello) == 144, "il_hello is 144 bytes");
-IL_STATIC_ASSERT(offsetof(il_hello, near_plane) == 40, "il_hello.near_plane at 40");
-IL_STATIC_ASSERT(offsetof(il_hello, method) == 80, "il_hello.method at 80");
-IL_STATIC_ASSERT(sizeof(il_layout) == 112, "il_layout is 112 bytes");
-IL_STATIC_ASSERT(offsetof(il_layout, shm_size) == 64, "il_layout.shm_size at 64");
-IL_STATIC_ASSERT(sizeof(il_frame) == 272, "il_frame is 272 bytes");
-IL_STATIC_ASSERT(offsetof(il_frame, projection) == 144, "il_frame.projection at 144");
-IL_STATIC_ASSERT(sizeof(il_submit_reply) == 16, "il_submit_reply is 16 bytes");
-IL_STATIC_ASSERT(sizeof(il_predict_reply) == 56, "il_predict_reply is 56 bytes");
-IL_STATIC_ASSERT(offsetof(il_predict_reply, method) == 24, "il_predict_reply.method at 24");
-IL_STATIC_ASSERT(sizeof(il_reset) == 8, "il_reset is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_motion) == 56, "il_motion is 56 bytes");
-IL_STATIC_ASSERT(offsetof(il_motion, scale_x) == 40, "il_motion.scale_x at 40");
-IL_STATIC_ASSERT(sizeof(il_submit_motion) == 8, "il_submit_motion is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_reset_motion) == 8, "il_reset_motion is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_motion_layout) == 24, "il_motion_layout is 24 bytes");
-IL_STATIC_ASSERT(sizeof(il_hello_with_motion) == 200, "il_hello_with_motion is 200 bytes");
-IL_STATIC_ASSERT(sizeof(il_submit_with_motion) == 280, "il_submit_with_motion is 280 bytes");
-IL_STATIC_ASSERT(sizeof(il_reset_with_motion) == 16, "il_reset_with_motion is 16 bytes");
-IL_STATIC_ASSERT(sizeof(il_layout_with_motion) == 136, "il_layout_with_motion is 136 bytes");
+IL_ASSERT_SIZE(il_header, 24); IL_ASSERT_OFFSET(il_header, magic, 0); IL_ASSERT_OFFSET(il_header, version, 4);
+IL_ASSERT_OFFSET(il_header, type, 6); IL_ASSERT_OFFSET(il_header, request_id, 8);
+IL_ASSERT_OFFSET(il_header, status, 12); IL_ASSERT_OFFSET(il_header, payload_size, 16);
+IL_ASSERT_SIZE(il_hello, 144); IL_ASSERT_OFFSET(il_hello, engine, 0); IL_ASSERT_OFFSET(il_hello, depth_convention, 4);
+IL_ASSERT_OFFSET(il_hello, color_in, 8); IL_ASSERT_OFFSET(il_hello, color_out, 12);
+IL_ASSERT_OFFSET(il_hello, width, 16); IL_ASSERT_OFFSET(il_hello, height, 20);
+IL_ASSERT_OFFSET(il_hello, reserved0, 24); IL_ASSERT_OFFSET(il_hello, channels, 28);
+IL_ASSERT_OFFSET(il_hello, flags, 32); IL_ASSERT_OFFSET(il_hello, reserved, 36);
+IL_ASSERT_OFFSET(il_hello, near_plane, 40); IL_ASSERT_OFFSET(il_hello, far_plane, 48);
+IL_ASSERT_OFFSET(il_hello, meters_per_unit, 56); IL_ASSERT_OFFSET(il_hello, cut_translation, 64);
+IL_ASSERT_OFFSET(il_hello, cut_rotation_deg, 72); IL_ASSERT_OFFSET(il_hello, method, 80);
+IL_ASSERT_SIZE(il_layout, 112); IL_ASSERT_OFFSET(il_layout, shm_name, 0); IL_ASSERT_OFFSET(il_layout, shm_size, 64);
+IL_ASSERT_OFFSET(il_layout, color_in_offset, 72); IL_ASSERT_OFFSET(il_layout, depth_offset, 80);
+IL_ASSERT_OFFSET(il_layout, color_out_offset, 88); IL_ASSERT_OFFSET(il_layout, holes_offset, 96);
+IL_ASSERT_OFFSET(il_layout, width, 104); IL_ASSERT_OFFSET(il_layout, height, 108);
+IL_ASSERT_SIZE(il_frame, 272); IL_ASSERT_OFFSET(il_frame, frame_id, 0); IL_ASSERT_OFFSET(il_frame, time, 8);
+IL_ASSERT_OFFSET(il_frame, view, 16); IL_ASSERT_OFFSET(il_frame, projection, 144);
+IL_ASSERT_SIZE(il_submit_reply, 16); IL_ASSERT_OFFSET(il_submit_reply, frame, 0);
+IL_ASSERT_OFFSET(il_submit_reply, reset, 8); IL_ASSERT_OFFSET(il_submit_reply, history, 12);
+IL_ASSERT_SIZE(il_predict_reply, 56); IL_ASSERT_OFFSET(il_predict_reply, frame, 0);
+IL_ASSERT_OFFSET(il_predict_reply, fallback, 8); IL_ASSERT_OFFSET(il_predict_reply, holes, 12);
+IL_ASSERT_OFFSET(il_predict_reply, elapsed_ms, 16); IL_ASSERT_OFFSET(il_predict_reply, method, 24);
+IL_ASSERT_SIZE(il_reset, 8); IL_ASSERT_OFFSET(il_reset, width, 0); IL_ASSERT_OFFSET(il_reset, height, 4);
+IL_ASSERT_SIZE(il_motion, 56); IL_ASSERT_OFFSET(il_motion, units, 0); IL_ASSERT_OFFSET(il_motion, direction, 4);
+IL_ASSERT_OFFSET(il_motion, y_axis, 8); IL_ASSERT_OFFSET(il_motion, camera, 12);
+IL_ASSERT_OFFSET(il_motion, missing, 16); IL_ASSERT_OFFSET(il_motion, width, 20);
+IL_ASSERT_OFFSET(il_motion, height, 24); IL_ASSERT_OFFSET(il_motion, channels, 28);
+IL_ASSERT_OFFSET(il_motion, format, 32); IL_ASSERT_OFFSET(il_motion, reserved, 36);
+IL_ASSERT_OFFSET(il_motion, scale_x, 40); IL_ASSERT_OFFSET(il_motion, scale_y, 48);
+IL_ASSERT_SIZE(il_submit_motion, 8); IL_ASSERT_OFFSET(il_submit_motion, flags, 0);
+IL_ASSERT_OFFSET(il_submit_motion, reserved, 4);
+IL_ASSERT_SIZE(il_reset_motion, 8); IL_ASSERT_OFFSET(il_reset_motion, width, 0);
+IL_ASSERT_OFFSET(il_reset_motion, height, 4);
+IL_ASSERT_SIZE(il_motion_layout, 24); IL_ASSERT_OFFSET(il_motion_layout, motion_offset, 0);
+IL_ASSERT_OFFSET(il_motion_layout, motion_valid_offset, 8); IL_ASSERT_OFFSET(il_motion_layout, width, 16);
+IL_ASSERT_OFFSET(il_motion_layout, height, 20);
+IL_ASSERT_SIZE(il_hello_with_motion, 200);
+IL_ASSERT_SIZE(il_submit_with_motion, 280);
+IL_ASSERT_SIZE(il_reset_with_motion, 16);
+IL_ASSERT_SIZE(il_layout_with_motion, 136);
 
 #endif /* INTERLEAVE_PROTOCOL_H */

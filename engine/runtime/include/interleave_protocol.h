@@ -1,10 +1,12 @@
 /*
- * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 and 2.
+ * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 to 3.
  *
  * The Python side is engine/runtime/protocol.py; tests/runtime/test_server.py compiles this header and checks
  * that every constant, struct size and field offset below matches it. Prose: docs/server.md.
  *
- * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1). Every message, request or reply,
+ * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1; the server prints the address it
+ * listens on as "interleave serve: listening on unix:/path/to.sock" or "... listening on tcp:127.0.0.1:PORT",
+ * the port chosen when started with tcp:0). Every message, request or reply,
  * is one il_header followed by header.payload_size bytes. All integers and doubles are little-endian
  * (x86-64 and ARM64 hosts need no conversion); structs are packed by their natural alignment (no
  * padding is implied anywhere: the static asserts below hold on any C11 compiler).
@@ -25,13 +27,30 @@
  * A session opened without il_motion has no motion plane and gets il_layout alone, as in version 1.
  * A version-2 server answers version-1 clients unchanged; a version-1 server answers a version-2 request
  * with IL_BAD_VERSION (and closes), so a client may fall back to version 1 without motion vectors.
+ * Version 3 has version 2's messages and sizes; it changes how the segment is reached over a Unix socket
+ * (below). A version-2 server answers a version-3 request with IL_BAD_VERSION (and closes): reconnect with 2.
  * A reply has type = request type | IL_MSG_REPLY and echoes request_id. status != IL_OK replies carry
  * UTF-8 error text (not NUL-terminated) as payload. Replies come in request order; requests may be
  * pipelined. After IL_BAD_MAGIC, IL_BAD_VERSION, IL_TOO_LARGE or IL_TRUNCATED the server closes the
  * connection; after any other error the connection stays usable.
  *
- * Shared memory: il_layout.shm_name is a POSIX name for shm_open(name, O_RDWR, 0) + mmap(shm_size).
- * The server owns and unlinks it (on BYE, disconnect, a size change, or server shutdown). Images are
+ * Shared memory, two kinds, chosen by the HELLO (IL_VERSION_FD and later over a Unix socket, or not):
+ *   anonymous (version 3 over a Unix socket): a Linux memfd with no name anywhere, sealed against
+ *     shrinking and growing. il_layout.shm_name is "" and the reply that carries the il_layout (HELLO's, and
+ *     every RESET's) carries exactly one file descriptor as SCM_RIGHTS ancillary data, attached to the
+ *     reply's first byte: read replies with recvmsg() and a control buffer of CMSG_SPACE(sizeof(int)) or
+ *     more (read()/recv() would drop it), then mmap(NULL, shm_size, PROT_READ | PROT_WRITE, MAP_SHARED, fd,
+ *     0) and close(fd). Each such reply passes the descriptor again (a new one after a size change): unmap
+ *     the old mapping. Node.js has no SCM_RIGHTS in its net module: use a native addon (recvmsg) or TCP.
+ *   named (TCP; versions 1 and 2 on either socket): il_layout.shm_name is a POSIX name with a leading '/'
+ *     for shm_open(name, O_RDWR, 0) + mmap(shm_size); on Linux the segment "/x" is the file /dev/shm/x,
+ *     random, mode 0600, unlinked by the server (on BYE, disconnect, a size change, or server shutdown).
+ * What each guarantees: a named segment can be opened by any process of the server's user that learns or
+ * lists its name (ls /dev/shm). An anonymous one cannot be found by name: it reaches only the client the
+ * descriptor is sent to (and to whom that client hands it). Like every open file it remains reachable
+ * through /proc/PID/fd of the server or the client to whoever may inspect those processes: root, and
+ * processes of the same user (Linux lets a user read its own processes' /proc unless one made itself
+ * non-dumpable). Separate users are the boundary; the memfd removes the listing. Images are
  * row-major, row 0 at the top (bottom-up readbacks: set IL_FLAG_FLIP_ROWS), pixels interleaved:
  *   color_in  : height * width * channels, float32 (IL_COLOR_LINEAR, IL_COLOR_SRGB) or uint8 (IL_COLOR_SRGB8)
  *   depth     : height * width float32, in il_hello.depth_convention (IL_DEPTH_LINEAR: planar, engine units)
@@ -66,8 +85,9 @@
 #include <stdint.h>
 
 #define IL_MAGIC 0x4C544E49u /* "INTL" in memory */
-#define IL_VERSION 2     /* the newest version; a request's version is also its reply's */
+#define IL_VERSION 3     /* the newest version; a request's version is also its reply's */
 #define IL_VERSION_MIN 1 /* the oldest version still answered (and the version of replies to bad headers) */
+#define IL_VERSION_FD 3  /* from this version on, over a Unix socket, the segment is a memfd passed with the reply */
 #define IL_MAX_PAYLOAD 65536
 #define IL_MAX_SIDE 16384
 #define IL_ALIGNMENT 64
@@ -93,6 +113,8 @@
 #define IL_BAD_INPUT 8 /* NaN pixels, non-rigid pose, unknown method, ...: the text names the frame */
 #define IL_NOT_READY 9 /* PREDICT before any SUBMIT since HELLO / RESET */
 #define IL_INTERNAL 10
+#define IL_OVER_BUDGET 11 /* HELLO / RESET: the session would pass the server's memory budget (--max-memory)
+                             or the server is out of file descriptors; connection stays usable: retry later */
 
 /* il_hello.engine */
 #define IL_ENGINE_OPENCV 0
@@ -174,7 +196,7 @@ typedef struct il_hello {
     uint32_t color_out;        /* IL_COLOR_* of predicted colour */
     uint32_t width;            /* pixels, 1..IL_MAX_SIDE */
     uint32_t height;
-    uint32_t reserved0;        /* ignored (0); the server follows the times and poses of each PREDICT */
+    uint32_t reserved0;        /* ignored (0; was k): the server follows the times and poses of each PREDICT */
     uint32_t channels;         /* 3 (RGB) or 4 (RGBA; alpha ignored in, 1 out) */
     uint32_t flags;            /* IL_FLAG_* */
     uint32_t reserved;         /* 0 */
@@ -187,7 +209,7 @@ typedef struct il_hello {
 } il_hello;
 
 typedef struct il_layout {
-    char shm_name[64];         /* NUL-terminated POSIX shared-memory name (leading '/') */
+    char shm_name[64];         /* NUL-terminated POSIX name (leading '/'), or "" for the passed descriptor */
     uint64_t shm_size;         /* bytes to mmap */
     uint64_t color_in_offset;  /* byte offsets, multiples of IL_ALIGNMENT */
     uint64_t depth_offset;

@@ -53,8 +53,8 @@ HEADER = struct.Struct("<IHHIIQ")
 #: struct il_hello: engine, depth_convention, color_in, color_out, width, height, reserved0 (ignored; was k),
 #: channels, flags, reserved; near, far, meters_per_unit, cut_translation, cut_rotation_deg; method[64].
 HELLO = struct.Struct("<10I5d64s")
-#: struct il_layout: shm_name[64] (empty: the segment's descriptor came with the reply); shm_size, color_in_offset, depth_offset, color_out_offset,
-#: holes_offset; width, height.
+#: struct il_layout: shm_name[64] (empty: the segment's descriptor came with the reply); shm_size,
+#: color_in_offset, depth_offset, color_out_offset, holes_offset; width, height.
 LAYOUT = struct.Struct("<64s5Q2I")
 #: struct il_frame (SUBMIT and PREDICT): frame_id, time, view[16], projection[16].
 FRAME = struct.Struct("<Qd16d16d")

@@ -54,19 +54,6 @@ Address = Union[str, Path, tuple]
 SHM_DIR = Path("/dev/shm")
 #: ``decomp`` options that name files: the server's own configuration, never settable by a client.
 FILE_OPTIONS = ("model", "infill_model")
-#: File descriptors one connection holds: its socket, its segment, and the next segment while a RESET that
-#: changes the frame size replaces the first.
-FDS_PER_CONNECTION = 3
-#: Descriptors kept for the rest of the process, beyond those open when the server starts: network files
-#: and caches opened while a method loads, a GL context, the accept loop's spare descriptor, stderr.
-FD_HEADROOM = 32
-#: ``accept()`` errors that mean the process or the host is out of descriptors or buffers: the pending
-#: connection is refused and the accept loop backs off; every existing session keeps being served.
-ACCEPT_EXHAUSTED = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
-#: ``accept()`` errors of the listening socket itself (closed, not a socket): the loop cannot go on.
-ACCEPT_FATAL = (errno.EBADF, errno.EINVAL, errno.ENOTSOCK, errno.EOPNOTSUPP)
-#: Back-off of the accept loop after an exhaustion error: first and longest pause, seconds.
-ACCEPT_BACKOFF = (0.01, 0.5)
 
 
 @dataclass(frozen=True)
@@ -101,11 +88,11 @@ def host_memory() -> int:
 
 #: The server's resident memory per session and frame pixel, by method: what one more open session of that
 #: method adds once it has predicted (its history, the predictor's state and scratch arrays, the thread's
-#: allocator arena), measured at 1280x720 by ``python -m tools.bench_server_memory`` (the table and the
-#: command: docs/results/2026-11-28-server-memory.md). The shared-memory segment comes on top
-#: (``Layout.shm_size``). ``auto`` holds both of its predictors.
-METHOD_BYTES_PER_PIXEL = {"repeat": 0, "reproject": 0, "flow2d": 0, "mvec": 0, "decomp": 0, "decomp2d": 0}
-METHOD_BYTES_PER_PIXEL["auto"] = METHOD_BYTES_PER_PIXEL["mvec"] + METHOD_BYTES_PER_PIXEL["flow2d"]
+#: allocator arena), measured by ``python -m tools.bench_server_memory`` at 1280x720 and 1920x1080 (the
+#: larger of the two, rounded up; the tables and commands: docs/results/2026-11-28-server-memory.md). The
+#: shared-memory segment comes on top (``Layout.shm_size``: 29 to 54 bytes per pixel).
+METHOD_BYTES_PER_PIXEL = {"repeat": 37, "reproject": 168, "flow2d": 271, "mvec": 353, "auto": 347, "decomp": 214,
+                          "decomp2d": 207}
 
 
 def session_footprint(method: str, layout: wire.Layout) -> int:
@@ -135,37 +122,6 @@ def check_models_dir(models: Path) -> Path:
     if any(c in str(models) for c in ",[]="):
         raise InputError("must not contain ',', '[', ']' or '='", file=models, field="--models")
     return models
-
-
-def open_descriptors() -> int:
-    """File descriptors this process holds now (``/proc/self/fd``; 3, the standard streams, without /proc)."""
-    try:
-        return len(os.listdir("/proc/self/fd")) - 1  # listdir's own descriptor is in the listing
-    except OSError:
-        return 3
-
-
-def ensure_fd_limit(max_connections: int, log: Callable[[str], None]) -> int:
-    """Make room for ``max_connections`` connections in the open-file limit (``RLIMIT_NOFILE``); returns the
-    descriptors needed.
-
-    A connection holds :data:`FDS_PER_CONNECTION` descriptors, and the process keeps those open now plus
-    :data:`FD_HEADROOM`. A soft limit below that is raised towards the hard limit (``log`` says so); a hard
-    limit below it is an InputError naming ``--max-connections`` and the largest value that fits, so the
-    server never starts with a cap its descriptors cannot hold (it would refuse connections under it)."""
-    reserved = open_descriptors() + FD_HEADROOM
-    needed = reserved + max_connections * FDS_PER_CONNECTION
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or needed <= soft:
-        return needed
-    if hard != resource.RLIM_INFINITY and needed > hard:
-        fits = max((hard - reserved) // FDS_PER_CONNECTION, 0)
-        raise InputError(f"{max_connections} connections need {needed} file descriptors ({FDS_PER_CONNECTION} "
-                         f"each, {reserved} for the process) but the open-file limit is {hard} (ulimit -n): "
-                         f"give at most {fits}, or raise the limit", field="--max-connections")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
-    log(f"interleave serve: raised the open-file limit from {soft} to {needed} for {max_connections} connections")
-    return needed
 
 
 def check_remote_method(method: str, limits: ServerLimits) -> None:
@@ -223,19 +179,54 @@ def format_address(address: Address) -> str:
     return f"tcp:{address[0]}:{address[1]}" if isinstance(address, tuple) else f"unix:{address}"
 
 
-def _mib(size: int) -> str:
-    return f"{size / 2**20:.0f}"
+#: File descriptors one connection holds: its socket, its segment, and the next segment while a RESET that
+#: changes the frame size replaces the first.
+FDS_PER_CONNECTION = 3
+#: Descriptors kept for the rest of the process, beyond those open when the server starts: network files
+#: and caches opened while a method loads, a GL context, the accept loop's spare descriptor, stderr.
+FD_HEADROOM = 32
+#: ``accept()`` errors that mean the process or the host is out of descriptors or buffers: the pending
+#: connection is refused and the accept loop backs off; every existing session keeps being served.
+ACCEPT_EXHAUSTED = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+#: ``accept()`` errors of the listening socket itself (closed, not a socket): the loop cannot go on.
+ACCEPT_FATAL = (errno.EBADF, errno.EINVAL, errno.ENOTSOCK, errno.EOPNOTSUPP)
+#: Back-off of the accept loop after an exhaustion error: first and longest pause, seconds.
+ACCEPT_BACKOFF = (0.01, 0.5)
 
 
-def _wire_method(make: Callable[[str], object], name: str):
-    """``make(name)``, with a bad method's error naming the HELLO field ``method`` (the registry names the
-    command line's ``methods``)."""
+def open_descriptors() -> int:
+    """File descriptors this process holds now (``/proc/self/fd``; 3, the standard streams, without /proc)."""
     try:
-        return make(name)
-    except InputError as exc:
-        if exc.field != "methods":
-            raise
-        raise InputError(exc.problem, file=exc.file, frame=exc.frame, field="method") from None
+        return len(os.listdir("/proc/self/fd")) - 1  # listdir's own descriptor is in the listing
+    except OSError:
+        return 3
+
+
+def ensure_fd_limit(max_connections: int, log: Callable[[str], None]) -> int:
+    """Make room for ``max_connections`` connections in the open-file limit (``RLIMIT_NOFILE``); returns the
+    descriptors needed.
+
+    A connection holds :data:`FDS_PER_CONNECTION` descriptors, and the process keeps those open now plus
+    :data:`FD_HEADROOM`. A soft limit below that is raised towards the hard limit (``log`` says so); a hard
+    limit below it is an InputError naming ``--max-connections`` and the largest value that fits, so the
+    server never starts with a cap its descriptors cannot hold (it would refuse connections under it)."""
+    reserved = open_descriptors() + FD_HEADROOM
+    needed = reserved + max_connections * FDS_PER_CONNECTION
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or needed <= soft:
+        return needed
+    if hard != resource.RLIM_INFINITY and needed > hard:
+        fits = max((hard - reserved) // FDS_PER_CONNECTION, 0)
+        raise InputError(f"{max_connections} connections need {needed} file descriptors ({FDS_PER_CONNECTION} "
+                         f"each, {reserved} for the process) but the open-file limit is {hard} (ulimit -n): "
+                         f"give at most {fits}, or raise the limit", field="--max-connections")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+    log(f"interleave serve: raised the open-file limit from {soft} to {needed} for {max_connections} connections")
+    return needed
+
+
+def _mib(size: int) -> str:
+    return f"{size / 2**20:.1f}"
 
 
 def _log(text: str) -> None:
@@ -275,7 +266,8 @@ class _Segment:
             if exc.errno in (errno.EMFILE, errno.ENFILE):
                 raise _ProtocolError(Status.OVER_BUDGET, "the server is out of file descriptors for a shared-memory "
                                                          "segment; try again when other sessions have ended") from None
-            raise _ProtocolError(Status.INTERNAL, f"could not create a shared-memory segment ({exc.strerror})") from None
+            raise _ProtocolError(Status.INTERNAL,
+                                 f"could not create a shared-memory segment ({exc.strerror})") from None
         self.layout = wire.make_layout(name, width, height, channels, config.color_in, config.color_out, motion)
         try:
             os.ftruncate(self.fd, self.layout.shm_size)
@@ -436,16 +428,24 @@ class _Connection:
             self.close()
 
     def close(self) -> None:
+        self._end_session()
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    def _end_session(self) -> None:
+        """Free the session, its segment and its share of the memory budget."""
         self.session = None
         if self.segment is not None:
             self.segment.release()
             self.server._untrack(self.segment)
             self.segment = None
         self.server._reserve(self, 0)
-        try:
-            self.sock.close()
-        except OSError:
-            pass
+
+    def _bye(self, payload: bytes, version: int) -> bytes:
+        self._end_session()  # before the reply: a client that saw it may count on the freed budget
+        return b""
 
     # -- messages ---------------------------------------------------------------------------------
 
@@ -459,7 +459,7 @@ class _Connection:
             MessageType.PREDICT: ((wire.FRAME.size,), self._predict),
             MessageType.RESET: ((wire.RESET.size,) + ((wire.RESET.size + wire.RESET_MOTION.size,) if v2 else ()),
                                 self._reset),
-            MessageType.BYE: ((0,), lambda _, __: b""),
+            MessageType.BYE: ((0,), self._bye),
         }
         if type_ not in handlers:
             raise _ProtocolError(Status.UNKNOWN_TYPE, f"unknown message type {type_}; expected one of "
@@ -530,7 +530,7 @@ class _Connection:
         previous = self.server._reserve(self, session_footprint(config.method, layout))
         try:
             models = self.server.models
-            session = Session(config, make_method=lambda name: _wire_method(make_predictor, with_server_models(name, models)),
+            session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)),
                               backend=self.server.backend)
             self._replace_segment(_Segment(config, channels, width, height, plane, anonymous))
         except BaseException:

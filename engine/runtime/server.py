@@ -727,8 +727,9 @@ class Server:
 
     def serve_forever(self) -> None:
         """Accept connections until :meth:`stop`. An ``accept()`` that fails for want of descriptors or
-        buffers (:data:`ACCEPT_EXHAUSTED`) refuses the pending connection and backs off (10 ms doubling to
-        0.5 s) while the existing sessions go on; an aborted connection is skipped."""
+        buffers (:data:`ACCEPT_EXHAUSTED`) refuses the pending connection with the spare descriptor, and
+        backs off (10 ms doubling to 0.5 s) when even that fails, while the existing sessions go on; an
+        aborted connection is skipped."""
         backoff = 0.0
         try:
             while not self.stopping:
@@ -741,9 +742,8 @@ class Server:
                         if self.stopping:
                             break
                         raise
-                    if exc.errno in ACCEPT_EXHAUSTED:
+                    if exc.errno in ACCEPT_EXHAUSTED and not self._refuse_pending(exc):
                         backoff = min(max(2 * backoff, ACCEPT_BACKOFF[0]), ACCEPT_BACKOFF[1])
-                        self._refuse_pending(exc)
                         time.sleep(backoff)
                     continue  # ECONNABORTED, EPROTO, EPERM (a firewall), EINTR...: that peer only
                 backoff = 0.0
@@ -775,22 +775,26 @@ class Server:
                 self._connections.pop(conn, None)
             sock.close()
 
-    def _refuse_pending(self, exc: OSError) -> None:
+    def _refuse_pending(self, exc: OSError) -> bool:
         """Out of descriptors: free the spare one, accept the waiting connection and close it at once (its
-        client sees the connection closed instead of waiting in the backlog), then take the spare back."""
+        client sees the connection closed instead of waiting in the backlog), then take the spare back.
+        False if no connection could be taken even so (no spare, or the host itself is out)."""
         if not self._exhausted:
             self._exhausted = True
             self.log(f"interleave serve: cannot accept a connection ({exc.strerror}); refusing new connections "
                      f"until descriptors are free, serving the {len(self._connections)} open ones")
-        if self._spare is not None:
-            os.close(self._spare)
-            self._spare = None
+        if self._spare is None:
+            self._spare = _open_spare()
+            return False
+        os.close(self._spare)
         try:
             sock, _ = self._listener.accept()
             sock.close()
+            refused = True
         except OSError:
-            pass
+            refused = False
         self._spare = _open_spare()
+        return refused
 
     def _run_connection(self, conn: _Connection) -> None:
         try:

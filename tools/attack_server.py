@@ -11,7 +11,7 @@ end; the whole run takes well under 5 minutes. Exit status 0 when every attack r
    squeezed to no free descriptor refuses a burst of connections and keeps serving its open session.
 3. a 10x10 patch of 2e16 in sRGB-float colour (linear float32 overflows from ~1.2e16): refused, never an
    OK frame with non-finite pixels.
-4. an opencv pose whose translation times ``meters_per_unit`` is not finite (1e10 x 1e300): refused.
+4. an opencv pose whose translation times ``meters_per_unit`` is not finite (1e300 x 1e10): refused.
 5. another client's segment: a session over a Unix socket leaves nothing of itself in /dev/shm to list,
    open or overwrite; over TCP its named segment is mode 0600.
 6. memory: a HELLO over ``--max-memory`` gets OVER_BUDGET and the server stays up; 16 HELLOs of 4K ``mvec``
@@ -252,17 +252,18 @@ def attack_inf_srgb(server: Served) -> list[Outcome]:
 
 
 def attack_nonfinite_pose(server: Served) -> list[Outcome]:
-    """Item 4: an opencv translation that is finite until scaled by meters_per_unit."""
+    """Item 4: an opencv translation that is finite until scaled by meters_per_unit (the depth, 2 units, stays
+    finite in metres: only the pose overflows)."""
     view = pose()
-    view[0, 3] = 1e10
+    view[0, 3] = 1e300
 
     def run() -> None:
         with Client(server.address, timeout=TIMEOUT) as client:
-            client.hello(config(meters_per_unit=1e300))
+            client.hello(config(meters_per_unit=1e10))
             client.submit(*wall(), view, K, 0.0)
             client.predict(view, K, 0.05)
     status, text = status_of(run)
-    return [Outcome(4, "opencv translation 1e10 x meters_per_unit 1e300", "SUBMIT BAD_INPUT naming 'view'",
+    return [Outcome(4, "opencv translation 1e300 x meters_per_unit 1e10", "SUBMIT BAD_INPUT naming 'view'",
                     f"{status}: {text[:90]}" if text else status, status == "BAD_INPUT" and "'view'" in text)]
 
 

@@ -1,7 +1,8 @@
 """`interleave serve`: the frame-prediction session behind a local socket, for engines not written in Python.
 
 One connection = one :class:`~engine.runtime.session.Session`. The client sends HELLO (the session config), the
-server answers with a shared-memory segment's name and layout; then for each rendered frame the client
+server answers with a shared-memory segment and its layout (protocol version 3 over a Unix socket: an
+anonymous memfd whose descriptor comes with the reply; else a named segment); then for each rendered frame the client
 writes colour and depth into the segment and sends SUBMIT (pose, time), and for each frame in between it
 sends PREDICT (pose, time) and reads the predicted colour and hole mask from the segment. RESET clears
 the history (and may change the frame size, which moves to a new segment); BYE ends the session.
@@ -10,12 +11,17 @@ says whether the plane holds the frame's vectors (and their valid mask); version
 version 1, unchanged.
 Wire format: ``engine/runtime/protocol.py``, ``engine/runtime/include/interleave_protocol.h``, ``docs/server.md``.
 
+Resources: ``--max-connections`` is checked against the open-file limit at start; ``accept()`` errors refuse
+the waiting connection and never end the server; each HELLO reserves its estimated memory
+(:func:`session_footprint`) in ``--max-memory`` or gets OVER_BUDGET.
+
 Robustness: each connection runs in its own thread. A malformed message gets an error reply with a
 status code and text; if the byte stream is still in step (unknown type, wrong payload size, bad values)
 the connection stays open, otherwise (bad magic or version, oversized or truncated message) the
 connection is closed after the reply. Either way the server keeps serving. A client that disconnects,
 even mid-message, loses its session and its segment; stopping the server (SIGINT / SIGTERM or
-:meth:`Server.stop`) closes every connection and unlinks every segment and the socket file.
+:meth:`Server.stop`) closes every connection, closes (and unlinks, if named) every segment and removes the socket
+file.
 
 Requests on one connection are answered in order, each reply echoing the request's ``request_id``;
 a client may pipeline requests. Sockets listen on a Unix path or on 127.0.0.1 only.

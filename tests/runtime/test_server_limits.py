@@ -26,6 +26,7 @@ from engine.runtime.server import (FD_HEADROOM, FDS_PER_CONNECTION, METHOD_BYTES
 from engine.runtime.session import Session, SessionConfig
 from tests.runtime.test_server import (H, K, ROOT, SHM, W, assert_serves, config, frame_arrays, frame_payload, pose,
                                        server_segments, start_server, stop_server)
+from tests.runtime.test_server import server  # noqa: F401 - its module-scoped server fixture, one for this module
 
 pytestmark = pytest.mark.skipif(not SHM.is_dir() or not hasattr(socket, "AF_UNIX") or not hasattr(os, "memfd_create"),
                                 reason="needs /dev/shm, Unix sockets and memfd (Linux)")
@@ -122,11 +123,11 @@ def _raw_reply(sock: socket.socket) -> tuple[int, bytes, list[int]]:
     return status, data[wire.HEADER.size:], fds
 
 
-def test_over_a_unix_socket_no_segment_is_in_dev_shm_and_predictions_are_right(server_proc):
+def test_over_a_unix_socket_no_segment_is_in_dev_shm_and_predictions_are_right(server):
     """Issue 41, item 5: any process of the user could list /dev/shm, read another client's prediction and
     overwrite its colour. Version 3 over a Unix socket: the layout has no name, the descriptor of an anonymous
     memfd comes with the HELLO and RESET replies, and /dev/shm holds nothing of the server's."""
-    proc, address = server_proc
+    proc, address = server
     local = Session(config())
     with Client(address) as client:
         layout = client.hello(config())
@@ -144,8 +145,8 @@ def test_over_a_unix_socket_no_segment_is_in_dev_shm_and_predictions_are_right(s
         client.bye()
 
 
-def test_the_passed_descriptor_is_a_sealed_memfd_sent_with_the_layout_reply_only(server_proc):
-    _, address = server_proc
+def test_the_passed_descriptor_is_a_sealed_memfd_sent_with_the_layout_reply_only(server):
+    _, address = server
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     sock.settimeout(10)
     sock.connect(address.removeprefix("unix:"))
@@ -168,8 +169,8 @@ def test_the_passed_descriptor_is_a_sealed_memfd_sent_with_the_layout_reply_only
         sock.close()
 
 
-def test_over_tcp_and_in_version_2_the_segment_is_named(tmp_path, server_proc):
-    proc, address = server_proc
+def test_over_tcp_and_in_version_2_the_segment_is_named(tmp_path, server):
+    proc, address = server
     with Client(address, version=2) as client:
         layout = client.hello(config())
         assert not layout.anonymous and server_segments(proc.pid) == [layout.shm_name[1:]]
@@ -229,8 +230,8 @@ def test_the_default_budget_is_half_the_host_memory_and_footprints_follow_the_ta
 # Error text names the wire field (item 8)
 # --------------------------------------------------------------------------------------------
 
-def test_errors_name_the_wire_fields_method_and_view(server_proc):
-    _, address = server_proc
+def test_errors_name_the_wire_fields_method_and_view(server):
+    _, address = server
     with Client(address) as client, pytest.raises(ServerError, match="field 'method'") as info:
         client.hello(config(method="warp9"))
     assert "'methods'" not in info.value.text
@@ -242,11 +243,3 @@ def test_errors_name_the_wire_fields_method_and_view(server_proc):
         with pytest.raises(ServerError, match="field 'view'") as info:
             client.submit(frame_arrays()[0], np.full((H, W), 0.5, np.float32), scaled, projection, 0.0)
         assert "'matrix'" not in info.value.text
-
-
-@pytest.fixture(scope="module")
-def server_proc(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("limits")
-    proc, address = start_server(f"unix:{tmp / 'interleave.sock'}", tmp / "server.log")
-    yield proc, address
-    stop_server(proc)

@@ -243,3 +243,19 @@ def test_errors_name_the_wire_fields_method_and_view(server):
         with pytest.raises(ServerError, match="field 'view'") as info:
             client.submit(frame_arrays()[0], np.full((H, W), 0.5, np.float32), scaled, projection, 0.0)
         assert "'matrix'" not in info.value.text
+
+
+@pytest.mark.parametrize("engine, view", [
+    ("unity", np.diag([2.0, 1.0, 1.0, 1.0])),                                         # from_unity's 'matrix'
+    ("unreal", np.array([[1.0, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),  # from_unreal's 'transform'
+    ("unreal", np.array([0.0, 0.0, 0.0, np.nan, 0.0, 0.0])),                           # from_unreal's 'rotation'
+])
+def test_a_bad_view_is_named_view_whatever_the_converter_calls_it(engine, view):
+    from engine.core.errors import InputError
+    from engine.runtime.session import engine_camera
+
+    projection = 90.0 if engine == "unreal" else np.array([[1.3, 0, 0, 0], [0, 1.7, 0, 0], [0, 0, -1.0006, -0.6],
+                                                             [0, 0, -1, 0]])
+    with pytest.raises(InputError) as info:
+        engine_camera(SessionConfig(engine=engine, width=W, height=H), view, projection)
+    assert info.value.field == "view"

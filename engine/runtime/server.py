@@ -71,7 +71,8 @@ class ServerLimits:
     max_threads: int = option(4, "largest 'threads' option a client may give a method (decomp[threads=N])")
     idle_timeout: float = option(300.0, "seconds a connection may stay silent before it is closed (0: never)")
     max_memory: int = option(0, "bytes all sessions together may take, estimated per HELLO from the measured "
-                                "bytes per pixel of its method (docs/server.md); 0: half the host's memory")
+                                "bytes per pixel of its method (docs/server.md); 0: half the host's (or the "
+                                "container's) memory")
 
     def __post_init__(self) -> None:
         if min(self.max_connections, self.max_pixels, self.max_threads) < 1:
@@ -83,13 +84,26 @@ class ServerLimits:
                              field="max_memory")
 
     def memory_budget(self) -> int:
-        """Bytes all sessions may take: ``max_memory``, or half the host's physical memory when it is 0."""
+        """Bytes all sessions may take: ``max_memory``, or half of :func:`host_memory` when it is 0."""
         return self.max_memory or host_memory() // 2
 
 
-def host_memory() -> int:
-    """The host's physical memory in bytes (``sysconf``)."""
-    return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+#: Where a container's memory limit is (cgroup v2, then v1); ``max`` or a number above the host's means none.
+CGROUP_MEMORY_LIMITS = (Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
+
+
+def host_memory(cgroup_limits: tuple[Path, ...] = CGROUP_MEMORY_LIMITS) -> int:
+    """The memory this process may use, in bytes: the host's physical memory (``sysconf``), or the limit
+    of its cgroup (a container) when that is lower."""
+    total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    for path in cgroup_limits:
+        try:
+            text = path.read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            total = min(total, int(text))
+    return total
 
 
 #: The server's resident memory per session and frame pixel, by method: what one more open session of that

@@ -216,8 +216,13 @@ def test_a_hello_over_the_memory_budget_is_refused_and_one_under_it_accepted(tmp
         stop_server(proc)
 
 
-def test_the_default_budget_is_half_the_host_memory_and_footprints_follow_the_table():
+def test_the_default_budget_is_half_the_host_memory_and_footprints_follow_the_table(tmp_path):
     assert ServerLimits().memory_budget() == host_memory() // 2
+    physical = host_memory(())
+    (tmp_path / "v2").write_text("max\n")
+    (tmp_path / "v1").write_text(f"{physical // 4}\n")  # a container limited to a quarter of the host
+    assert host_memory((tmp_path / "missing", tmp_path / "v2")) == physical
+    assert host_memory((tmp_path / "v2", tmp_path / "v1")) == physical // 4
     assert ServerLimits(max_memory=123).memory_budget() == 123
     layout = wire.make_layout("", 1280, 720, 3, "linear", "linear")
     for method in ("reproject", "flow2d", "mvec", "decomp[gate.tile=16]", "auto"):

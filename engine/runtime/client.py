@@ -1,8 +1,10 @@
-"""Reference client of `interleave serve` (protocol version 1, ``engine/runtime/protocol.py``, ``docs/server.md``).
+"""Reference client of `interleave serve` (``engine/runtime/protocol.py``, ``docs/server.md``).
 
 It speaks the same bytes a C or C++ engine plugin would (``engine/runtime/include/interleave_protocol.h``):
 HELLO, then SUBMIT / PREDICT with the pixels in the server's shared-memory segment, RESET, BYE. It speaks
-protocol version 2 (``Client(..., version=1)`` speaks version 1, as clients from before motion vectors do);
+protocol version 3: over a Unix socket the segment is an anonymous memfd whose descriptor comes with the
+HELLO and RESET replies (SCM_RIGHTS), over TCP a named segment it opens by name. ``Client(..., version=2)``
+speaks version 2 (named segments) and ``version=1`` version 1, as clients from before motion vectors do;
 ``hello(..., motion=MotionPlane(...))`` opens a motion-vector plane, and ``submit(..., motion_vectors=)``
 writes each frame's vectors into it.
 
@@ -18,6 +20,9 @@ the round-trip time of PREDICT; ``--in-process`` also times the same calls on an
 from __future__ import annotations
 
 import argparse
+import array
+import mmap
+import os
 import socket
 import sys
 import time
@@ -59,13 +64,33 @@ class ClientPrediction:
 
 
 def _attach(name: str) -> shared_memory.SharedMemory:
-    """Open the server's segment without letting this process's resource tracker unlink it at exit."""
+    """Open the server's named segment without letting this process's resource tracker unlink it at exit."""
     try:
         return shared_memory.SharedMemory(name=name.lstrip("/"), track=False)  # Python >= 3.13
     except TypeError:
         shm = shared_memory.SharedMemory(name=name.lstrip("/"))
         resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
         return shm
+
+
+class _Mapped:
+    """An anonymous segment mapped from the descriptor the server passed (``buf`` and ``close`` like a
+    ``SharedMemory``); the descriptor is closed once mapped."""
+
+    def __init__(self, fd: int, size: int) -> None:
+        try:
+            self._mmap = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        finally:
+            os.close(fd)
+        self.buf = memoryview(self._mmap)
+
+    def close(self) -> None:
+        self.buf.release()
+        self._mmap.close()
+
+
+#: Room for the ancillary data of one received message: a few descriptors (the server sends one at most).
+_ANCILLARY = socket.CMSG_SPACE(4 * array.array("i").itemsize)
 
 
 class Client:
@@ -91,7 +116,9 @@ class Client:
         self.version = version
         self._next_id = 1
         self._frame = 0
-        self._shm: Optional[shared_memory.SharedMemory] = None
+        self._unix = self.sock.family == socket.AF_UNIX
+        self._fds: list[int] = []  # descriptors received with the reply being read (SCM_RIGHTS)
+        self._shm: Optional[shared_memory.SharedMemory | _Mapped] = None
         self.layout: Optional[Layout] = None
         self.config: Optional[SessionConfig] = None
         self.channels = 3
@@ -115,14 +142,31 @@ class Client:
         buf = bytearray(size)
         view, got = memoryview(buf), 0
         while got < size:
-            n = self.sock.recv_into(view[got:])
+            if self._unix:  # recvmsg: a descriptor the server passes arrives with the bytes it rides on
+                n, ancillary, flags, _ = self.sock.recvmsg_into([view[got:]], _ANCILLARY, socket.MSG_CMSG_CLOEXEC)
+                for level, kind, data in ancillary:
+                    if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+                        fds = array.array("i")
+                        fds.frombytes(data[:len(data) - len(data) % fds.itemsize])
+                        self._fds.extend(fds)
+                if flags & socket.MSG_CTRUNC:
+                    raise ConnectionError("the server passed more descriptors than a reply carries")
+            else:
+                n = self.sock.recv_into(view[got:])
             if n == 0:
                 raise ConnectionError(f"the server closed the connection ({got} of {size} bytes read)")
             got += n
         return bytes(buf)
 
+    def _take_fds(self) -> list[int]:
+        fds, self._fds = self._fds, []
+        return fds
+
     def read_reply(self) -> tuple[int, int, int, bytes]:
-        """(type, request_id, status, payload) of the next reply."""
+        """(type, request_id, status, payload) of the next reply; descriptors passed with it wait in
+        ``_take_fds()``."""
+        for fd in self._take_fds():  # left from an earlier reply nobody asked for: not ours to keep
+            os.close(fd)
         magic, version, type_, request_id, status, size = wire.HEADER.unpack(self._read_exact(wire.HEADER.size))
         if magic != wire.MAGIC or version not in wire.VERSIONS:
             raise ConnectionError(f"not an interleave server reply (magic 0x{magic:08x}, version {version})")
@@ -175,9 +219,20 @@ class Client:
         return layout
 
     def _map(self, layout: Layout) -> None:
-        if self._shm is None or self.layout is None or layout.shm_name != self.layout.shm_name:
+        fds = self._take_fds()
+        if layout.anonymous:  # version 3 over a Unix socket: the segment is the descriptor of this reply
+            if len(fds) != 1:
+                for fd in fds:
+                    os.close(fd)
+                raise ConnectionError(f"a layout without a segment name came with {len(fds)} descriptors, not 1")
             self._unmap()
-            self._shm = _attach(layout.shm_name)
+            self._shm = _Mapped(fds[0], layout.shm_size)
+        else:
+            for fd in fds:
+                os.close(fd)
+            if self._shm is None or self.layout is None or layout.shm_name != self.layout.shm_name:
+                self._unmap()
+                self._shm = _attach(layout.shm_name)
         self.layout = layout
         h, w, c = layout.height, layout.width, self.channels
 
@@ -275,6 +330,8 @@ class Client:
 
     def close(self) -> None:
         self._unmap()
+        for fd in self._take_fds():
+            os.close(fd)
         try:
             self.sock.close()
         except OSError:

@@ -1,9 +1,9 @@
-"""The wire format of `interleave serve` (protocol versions 1 and 2), in one place for server and client.
+"""The wire format of `interleave serve` (protocol versions 1 to 3), in one place for server and client.
 
 Every message, request or reply, is a fixed 24-byte little-endian header followed by ``payload_size``
-bytes. Pixels never travel over the socket: the server creates one POSIX shared-memory segment per
-session and says where in it the client writes colour, depth (and motion vectors) and reads the
-prediction (``LAYOUT``). ``docs/server.md`` describes the exchange; ``engine/runtime/include/interleave_protocol.h``
+bytes. Pixels never travel over the socket: the server creates one shared-memory segment per session and
+says where in it the client writes colour, depth (and motion vectors) and reads the prediction
+(``LAYOUT``). ``docs/server.md`` describes the exchange; ``engine/runtime/include/interleave_protocol.h``
 states the same layout for C and C++ clients, and ``tests/runtime/test_server.py`` checks the two agree.
 
 Versions: a request's header carries the version it is written in and its reply carries the same one, so
@@ -11,7 +11,11 @@ a version-1 client is answered exactly as before. Version 2 adds motion vectors,
 extension appended to a version-1 payload (the payload size says whether it is there): HELLO + ``MOTION``
 (the vectors' conventions and plane), SUBMIT + ``SUBMIT_MOTION`` (this frame's vectors are in the plane),
 RESET + ``RESET_MOTION`` (the plane's new size), and the layout reply + ``MOTION_LAYOUT`` (where the plane
-is) for a session that has one. Version 1 takes the version-1 sizes only.
+is) for a session that has one. Version 1 takes the version-1 sizes only. Version 3 has version 2's
+messages and changes one thing, over a Unix socket only: the segment is an anonymous ``memfd`` that no
+other process can look up by name; ``il_layout.shm_name`` is empty and the segment's file descriptor
+arrives as SCM_RIGHTS ancillary data with the reply that carries the layout (HELLO's and RESET's). Over
+TCP, and for versions 1 and 2, the segment is a named POSIX one (``/dev/shm/<name>``).
 
 Matrices are 16 float64 in row-major order (``M[row][col]`` at ``4 * row + col``) unless the session was
 opened with ``FLAG_COLUMN_MAJOR`` (GLM, Unity ``Matrix4x4``, Godot ``Projection`` memory order).
@@ -29,9 +33,11 @@ from engine.runtime.session import COLOR_SPACES, ENGINES, FALLBACK_REASONS, MOTI
 #: b"INTL" read as a little-endian uint32: the first four bytes of every message.
 MAGIC = 0x4C544E49
 #: The newest protocol version (what the reference client writes).
-VERSION = 2
+VERSION = 3
 #: Every version the server answers; a reply carries its request's version.
-VERSIONS = (1, 2)
+VERSIONS = (1, 2, 3)
+#: The first version whose layout replies over a Unix socket pass an anonymous segment's descriptor.
+VERSION_FD = 3
 #: The version of the server's replies to a request whose header it cannot trust (bad magic, bad version):
 #: the one every client reads.
 VERSION_MIN = 1
@@ -47,8 +53,8 @@ HEADER = struct.Struct("<IHHIIQ")
 #: struct il_hello: engine, depth_convention, color_in, color_out, width, height, reserved0 (ignored; was k),
 #: channels, flags, reserved; near, far, meters_per_unit, cut_translation, cut_rotation_deg; method[64].
 HELLO = struct.Struct("<10I5d64s")
-#: struct il_layout: shm_name[64]; shm_size, color_in_offset, depth_offset, color_out_offset,
-#: holes_offset; width, height.
+#: struct il_layout: shm_name[64] (empty: the segment's descriptor came with the reply); shm_size,
+#: color_in_offset, depth_offset, color_out_offset, holes_offset; width, height.
 LAYOUT = struct.Struct("<64s5Q2I")
 #: struct il_frame (SUBMIT and PREDICT): frame_id, time, view[16], projection[16].
 FRAME = struct.Struct("<Qd16d16d")
@@ -109,6 +115,8 @@ class Status(enum.IntEnum):
     BAD_INPUT = 8       # invalid values (NaN pixels, non-rigid pose, unknown method, ...): text names the frame
     NOT_READY = 9       # PREDICT before any SUBMIT since HELLO or RESET
     INTERNAL = 10       # unexpected server error; the connection stays usable
+    OVER_BUDGET = 11    # the session would pass the server's memory budget (serve --max-memory) or it is out
+                        # of file descriptors; nothing changed, the connection stays usable: retry smaller or later
 
 
 #: Statuses after which the server closes the connection (the byte stream cannot be trusted any more).
@@ -187,6 +195,11 @@ class Layout:
     @property
     def has_motion(self) -> bool:
         return self.motion_width > 0
+
+    @property
+    def anonymous(self) -> bool:
+        """The segment has no name: its descriptor came with the reply (version 3 over a Unix socket)."""
+        return not self.shm_name
 
     def pack(self, version: int = VERSION) -> bytes:
         """il_layout, followed by il_motion_layout for a session with a plane answered in version 2."""

@@ -1,7 +1,8 @@
 """`interleave serve`: the frame-prediction session behind a local socket, for engines not written in Python.
 
 One connection = one :class:`~engine.runtime.session.Session`. The client sends HELLO (the session config), the
-server answers with a shared-memory segment's name and layout; then for each rendered frame the client
+server answers with a shared-memory segment and its layout (protocol version 3 over a Unix socket: an
+anonymous memfd whose descriptor comes with the reply; else a named segment); then for each rendered frame the client
 writes colour and depth into the segment and sends SUBMIT (pose, time), and for each frame in between it
 sends PREDICT (pose, time) and reads the predicted colour and hole mask from the segment. RESET clears
 the history (and may change the frame size, which moves to a new segment); BYE ends the session.
@@ -10,24 +11,33 @@ says whether the plane holds the frame's vectors (and their valid mask); version
 version 1, unchanged.
 Wire format: ``engine/runtime/protocol.py``, ``engine/runtime/include/interleave_protocol.h``, ``docs/server.md``.
 
+Resources: ``--max-connections`` is checked against the open-file limit at start; ``accept()`` errors refuse
+the waiting connection and never end the server; each HELLO reserves its estimated memory
+(:func:`session_footprint`) in ``--max-memory`` or gets OVER_BUDGET.
+
 Robustness: each connection runs in its own thread. A malformed message gets an error reply with a
 status code and text; if the byte stream is still in step (unknown type, wrong payload size, bad values)
 the connection stays open, otherwise (bad magic or version, oversized or truncated message) the
 connection is closed after the reply. Either way the server keeps serving. A client that disconnects,
 even mid-message, loses its session and its segment; stopping the server (SIGINT / SIGTERM or
-:meth:`Server.stop`) closes every connection and unlinks every segment and the socket file.
+:meth:`Server.stop`) closes every connection, closes (and unlinks, if named) every segment and removes the socket
+file.
 
 Requests on one connection are answered in order, each reply echoing the request's ``request_id``;
 a client may pipeline requests. Sockets listen on a Unix path or on 127.0.0.1 only.
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import math
 import os
+import resource
 import secrets
 import signal
 import socket
 import stat
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -59,12 +69,58 @@ class ServerLimits:
     max_pixels: int = option(3840 * 2160, "largest frame (width x height) a session may ask for")
     max_threads: int = option(4, "largest 'threads' option a client may give a method (decomp[threads=N])")
     idle_timeout: float = option(300.0, "seconds a connection may stay silent before it is closed (0: never)")
+    max_memory: int = option(0, "bytes all sessions together may take, estimated per HELLO from the measured "
+                                "bytes per pixel of its method (docs/server.md); 0: half the host's (or the "
+                                "container's) memory")
 
     def __post_init__(self) -> None:
         if min(self.max_connections, self.max_pixels, self.max_threads) < 1:
             raise InputError("max_connections, max_pixels and max_threads must be >= 1", field="ServerLimits")
         if not (math.isfinite(self.idle_timeout) and self.idle_timeout >= 0):
             raise InputError(f"must be >= 0 seconds, got {self.idle_timeout}", field="idle_timeout")
+        if self.max_memory < 0:
+            raise InputError(f"must be >= 0 bytes (0: half the host's memory), got {self.max_memory}",
+                             field="max_memory")
+
+    def memory_budget(self) -> int:
+        """Bytes all sessions may take: ``max_memory``, or half of :func:`host_memory` when it is 0."""
+        return self.max_memory or host_memory() // 2
+
+
+#: Where a container's memory limit is (cgroup v2, then v1); ``max`` or a number above the host's means none.
+CGROUP_MEMORY_LIMITS = (Path("/sys/fs/cgroup/memory.max"), Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"))
+
+
+def host_memory(cgroup_limits: tuple[Path, ...] = CGROUP_MEMORY_LIMITS) -> int:
+    """The memory this process may use, in bytes: the host's physical memory (``sysconf``), or the limit
+    of its cgroup (a container) when that is lower."""
+    total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    for path in cgroup_limits:
+        try:
+            text = path.read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            total = min(total, int(text))
+    return total
+
+
+#: The server's resident memory per session and frame pixel, by method: what one more open session of that
+#: method adds once it has predicted (its history, the predictor's state and scratch arrays, the thread's
+#: allocator arena), measured by ``python -m tools.bench_server_memory`` at 1280x720 and 1920x1080 (the
+#: larger of the two, rounded up; the tables and commands: docs/results/2026-11-28-server-memory.md). The
+#: shared-memory segment comes on top (``Layout.shm_size``: 29 to 54 bytes per pixel).
+METHOD_BYTES_PER_PIXEL = {"repeat": 37, "reproject": 168, "flow2d": 271, "mvec": 353, "auto": 347, "decomp": 214,
+                          "decomp2d": 207}
+
+
+def session_footprint(method: str, layout: wire.Layout) -> int:
+    """Estimated bytes a session of ``method`` takes with that segment: the method's measured bytes per pixel
+    (:data:`METHOD_BYTES_PER_PIXEL`; the largest for a name not in it, which the registry then refuses)
+    times the frame's pixels, plus the segment."""
+    base = method_parts(method)[0].strip()
+    per_pixel = METHOD_BYTES_PER_PIXEL.get(base, max(METHOD_BYTES_PER_PIXEL.values()))
+    return per_pixel * layout.width * layout.height + layout.shm_size
 
 
 def with_server_models(method: str, models: Optional[Path]) -> str:
@@ -161,36 +217,121 @@ def format_address(address: Address) -> str:
     return f"tcp:{address[0]}:{address[1]}" if isinstance(address, tuple) else f"unix:{address}"
 
 
-class _Segment:
-    """A shared-memory segment owned by the server: created for a layout, unlinked on release.
+#: File descriptors one connection holds: its socket, its segment, and the next segment while a RESET that
+#: changes the frame size replaces the first.
+FDS_PER_CONNECTION = 3
+#: Descriptors kept for the rest of the process, beyond those open when the server starts: network files
+#: and caches opened while a method loads, a GL context, the accept loop's spare descriptor, stderr.
+FD_HEADROOM = 32
+#: ``accept()`` errors that mean the process or the host is out of descriptors or buffers: the pending
+#: connection is refused and the accept loop backs off; every existing session keeps being served.
+ACCEPT_EXHAUSTED = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+#: ``accept()`` errors of the listening socket itself (closed, not a socket): the loop cannot go on.
+ACCEPT_FATAL = (errno.EBADF, errno.EINVAL, errno.ENOTSOCK, errno.EOPNOTSUPP)
+#: Back-off of the accept loop after an exhaustion error: first and longest pause, seconds.
+ACCEPT_BACKOFF = (0.01, 0.5)
 
+
+def open_descriptors() -> int:
+    """File descriptors this process holds now (``/proc/self/fd``; 3, the standard streams, without /proc)."""
+    try:
+        return len(os.listdir("/proc/self/fd")) - 1  # listdir's own descriptor is in the listing
+    except OSError:
+        return 3
+
+
+def ensure_fd_limit(max_connections: int, log: Callable[[str], None]) -> int:
+    """Make room for ``max_connections`` connections in the open-file limit (``RLIMIT_NOFILE``); returns the
+    descriptors needed.
+
+    A connection holds :data:`FDS_PER_CONNECTION` descriptors, and the process keeps those open now plus
+    :data:`FD_HEADROOM`. A soft limit below that is raised towards the hard limit (``log`` says so); a hard
+    limit below it is an InputError naming ``--max-connections`` and the largest value that fits, so the
+    server never starts with a cap its descriptors cannot hold (it would refuse connections under it)."""
+    reserved = open_descriptors() + FD_HEADROOM
+    needed = reserved + max_connections * FDS_PER_CONNECTION
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or needed <= soft:
+        return needed
+    if hard != resource.RLIM_INFINITY and needed > hard:
+        fits = max((hard - reserved) // FDS_PER_CONNECTION, 0)
+        raise InputError(f"{max_connections} connections need {needed} file descriptors ({FDS_PER_CONNECTION} "
+                         f"each, {reserved} for the process) but the open-file limit is {hard} (ulimit -n): "
+                         f"give at most {fits}, or raise the limit", field="--max-connections")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+    log(f"interleave serve: raised the open-file limit from {soft} to {needed} for {max_connections} connections")
+    return needed
+
+
+def _mib(size: int) -> str:
+    return f"{size / 2**20:.1f}"
+
+
+def _log(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _open_spare() -> Optional[int]:
+    """A descriptor held in reserve (``/dev/null``); None if even that cannot be opened now."""
+    try:
+        return os.open(os.devnull, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return None
+
+
+class _Segment:
+    """A shared-memory segment owned by the server: created for a layout, closed (and unlinked) on release.
+
+    ``anonymous``: a ``memfd`` with no name anywhere (the client gets its descriptor with SCM_RIGHTS),
+    sealed against shrinking and growing; else a named POSIX segment ``/dev/shm/<name>``, random, created
+    exclusively, readable and writable by the server's user only.
     The client maps it; the server never does. It reads the submitted frame with ``pread`` and writes the
-    prediction with ``pwrite`` on the segment's file descriptor, so a client that shrinks the segment
+    prediction with ``pwrite`` on the segment's file descriptor, so a client that shrinks a named segment
     (``ftruncate``) gets a BAD_INPUT answer (a short read) instead of killing the server with SIGBUS.
-    The name is random and created exclusively, readable and writable by the server's user only.
     """
 
     def __init__(self, config: SessionConfig, channels: int, width: int, height: int,
-                 motion: Optional[MotionPlane] = None) -> None:
-        for _ in range(8):
-            name = f"interleave-{os.getpid()}-{secrets.token_hex(8)}"
-            try:
-                self.fd = os.open(SHM_DIR / name, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
-                break
-            except FileExistsError:  # a name someone created first: draw another
-                continue
-        else:
-            raise _ProtocolError(Status.INTERNAL, "could not create a shared-memory segment with a fresh name")
-        self.path = SHM_DIR / name
-        self.layout = wire.make_layout("/" + name, width, height, channels, config.color_in, config.color_out, motion)
+                 motion: Optional[MotionPlane] = None, anonymous: bool = False) -> None:
+        self.path: Optional[Path] = None
+        try:
+            if anonymous:
+                self.fd = os.memfd_create("interleave-segment", os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+                name = ""
+            else:
+                self.fd, name = self._create_named()
+                self.path = SHM_DIR / name[1:]
+        except OSError as exc:
+            if exc.errno in (errno.EMFILE, errno.ENFILE):
+                raise _ProtocolError(Status.OVER_BUDGET, "the server is out of file descriptors for a shared-memory "
+                                                         "segment; try again when other sessions have ended") from None
+            raise _ProtocolError(Status.INTERNAL,
+                                 f"could not create a shared-memory segment ({exc.strerror})") from None
+        self.layout = wire.make_layout(name, width, height, channels, config.color_in, config.color_out, motion)
         try:
             os.ftruncate(self.fd, self.layout.shm_size)
+            if anonymous:
+                fcntl.fcntl(self.fd, fcntl.F_ADD_SEALS, fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL)
         except OSError as exc:
             self.release()
             raise _ProtocolError(Status.INTERNAL, f"could not size the shared-memory segment ({exc.strerror})")
+        self.anonymous = anonymous
         self.channels = channels
         self.config = config
         self.motion = motion
+
+    @staticmethod
+    def _create_named() -> tuple[int, str]:
+        for _ in range(8):
+            name = f"interleave-{os.getpid()}-{secrets.token_hex(8)}"
+            try:
+                return os.open(SHM_DIR / name, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600), "/" + name
+            except FileExistsError:  # a name someone created first: draw another
+                continue
+        raise _ProtocolError(Status.INTERNAL, "could not create a shared-memory segment with a fresh name")
+
+    @property
+    def description(self) -> str:
+        return self.layout.shm_name or "(anonymous memfd)"
 
     def read(self, offset: int, shape: tuple, dtype) -> np.ndarray:
         """A private copy of the region at ``offset``; BAD_INPUT if the client shrank the segment."""
@@ -200,7 +341,7 @@ class _Segment:
         while done < out.nbytes:
             n = os.preadv(self.fd, [view[done:]], offset + done)
             if n <= 0:
-                raise _ProtocolError(Status.BAD_INPUT, f"the shared-memory segment {self.layout.shm_name} holds "
+                raise _ProtocolError(Status.BAD_INPUT, f"the shared-memory segment {self.description} holds "
                                                        f"{os.fstat(self.fd).st_size} bytes, fewer than its layout "
                                                        f"({self.layout.shm_size}): the client truncated it")
             done += n
@@ -218,10 +359,11 @@ class _Segment:
             os.close(self.fd)
         except OSError:
             pass
-        try:
-            os.unlink(self.path)
-        except FileNotFoundError:
-            pass
+        if self.path is not None:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
 
 
 class _Connection:
@@ -234,6 +376,8 @@ class _Connection:
         self.segment: Optional[_Segment] = None
         self.column_major = False
         self._header = bytearray(wire.HEADER.size)
+        #: the segment's descriptor goes with this request's reply (SCM_RIGHTS): a layout of an anonymous segment
+        self._reply_fd: Optional[int] = None
 
     # -- byte stream ------------------------------------------------------------------------------
 
@@ -247,8 +391,14 @@ class _Connection:
         return got
 
     def _send(self, type_: int, request_id: int, payload: bytes = b"", status: int = Status.OK,
-              version: int = wire.VERSION_MIN) -> None:
-        self.sock.sendall(wire.pack_header(type_, request_id, len(payload), status, version) + payload)
+              version: int = wire.VERSION_MIN, fd: Optional[int] = None) -> None:
+        data = wire.pack_header(type_, request_id, len(payload), status, version) + payload
+        if fd is None:
+            self.sock.sendall(data)
+            return
+        sent = socket.send_fds(self.sock, [data], [fd])  # the descriptor rides on the reply's first bytes
+        if sent < len(data):
+            self.sock.sendall(data[sent:])
 
     def _send_error(self, type_: int, request_id: int, status: Status, text: str,
                     version: int = wire.VERSION_MIN) -> None:
@@ -291,6 +441,7 @@ class _Connection:
                                      f"truncated message: {got} of {size} payload bytes before the stream ended",
                                      version)
                     return
+                self._reply_fd = None
                 try:
                     reply = self._handle(type_, bytes(payload), version)
                 except _ProtocolError as exc:
@@ -306,7 +457,7 @@ class _Connection:
                     self._send_error(reply_type, request_id, Status.INTERNAL, f"{type(exc).__name__}: {exc}",
                                      version)
                     continue
-                self._send(reply_type, request_id, reply, version=version)
+                self._send(reply_type, request_id, reply, version=version, fd=self._reply_fd)
                 if type_ == MessageType.BYE:
                     return
         except OSError:
@@ -315,15 +466,24 @@ class _Connection:
             self.close()
 
     def close(self) -> None:
+        self._end_session()
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    def _end_session(self) -> None:
+        """Free the session, its segment and its share of the memory budget."""
         self.session = None
         if self.segment is not None:
             self.segment.release()
             self.server._untrack(self.segment)
             self.segment = None
-        try:
-            self.sock.close()
-        except OSError:
-            pass
+        self.server._reserve(self, 0)
+
+    def _bye(self, payload: bytes, version: int) -> bytes:
+        self._end_session()  # before the reply: a client that saw it may count on the freed budget
+        return b""
 
     # -- messages ---------------------------------------------------------------------------------
 
@@ -337,7 +497,7 @@ class _Connection:
             MessageType.PREDICT: ((wire.FRAME.size,), self._predict),
             MessageType.RESET: ((wire.RESET.size,) + ((wire.RESET.size + wire.RESET_MOTION.size,) if v2 else ()),
                                 self._reset),
-            MessageType.BYE: ((0,), lambda _, __: b""),
+            MessageType.BYE: ((0,), self._bye),
         }
         if type_ not in handlers:
             raise _ProtocolError(Status.UNKNOWN_TYPE, f"unknown message type {type_}; expected one of "
@@ -402,12 +562,26 @@ class _Connection:
             cut_rotation_deg=cut_rotation if cut_rotation > 0 else SessionConfig.cut_rotation_deg, **motion_fields)
         if plane is not None:
             config.motion_conventions()  # an engine without defaults (OpenGL) must state them now
-        models = self.server.models
-        session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)),
-                          backend=self.server.backend)
-        self._replace_segment(_Segment(config, channels, width, height, plane))
+        # version 3 over a Unix socket: an anonymous segment, its descriptor passed with the reply
+        anonymous = version >= wire.VERSION_FD and self.sock.family == socket.AF_UNIX
+        layout = wire.make_layout("", width, height, channels, config.color_in, config.color_out, plane)
+        previous = self.server._reserve(self, session_footprint(config.method, layout))
+        try:
+            models = self.server.models
+            session = Session(config, make_method=lambda name: make_predictor(with_server_models(name, models)),
+                              backend=self.server.backend)
+            self._replace_segment(_Segment(config, channels, width, height, plane, anonymous))
+        except BaseException:
+            self.server._reserve(self, previous)
+            raise
         self.session = session
         self.column_major = bool(flags & wire.FLAG_COLUMN_MAJOR)
+        return self._layout_reply(version)
+
+    def _layout_reply(self, version: int) -> bytes:
+        """The segment's il_layout (+ il_motion_layout); an anonymous segment's descriptor goes with it."""
+        if self.segment.anonymous:
+            self._reply_fd = self.segment.fd
         return self.segment.layout.pack(version)
 
     def _check_size(self, width: int, height: int) -> None:
@@ -494,12 +668,19 @@ class _Connection:
                                                    f"{width}x{height}, or 0x0 for the frame's size (RESET takes "
                                                    "il_reset_motion in version 2)")
         if (width, height) != (session.width, session.height) or plane != self.segment.motion:
-            segment = _Segment(session.config, self.segment.channels, width, height, plane)
+            config, channels = session.config, self.segment.channels
+            layout = wire.make_layout("", width, height, channels, config.color_in, config.color_out, plane)
+            previous = self.server._reserve(self, session_footprint(config.method, layout))
+            try:
+                segment = _Segment(config, channels, width, height, plane, self.segment.anonymous)
+            except BaseException:
+                self.server._reserve(self, previous)
+                raise
             session.reset(width=width, height=height)
             self._replace_segment(segment)
         else:
             session.reset()
-        return self.segment.layout.pack(version)
+        return self._layout_reply(version)
 
 
 
@@ -511,10 +692,13 @@ class Server:
     """
 
     def __init__(self, address: Address, limits: ServerLimits = ServerLimits(),
-                 models: Optional[Path] = None, backend: str = "auto") -> None:
+                 models: Optional[Path] = None, backend: str = "auto",
+                 log: Callable[[str], None] = _log) -> None:
         self.limits = limits
+        self.log = log
         self.models = None if models is None else check_models_dir(models)
         self.backend = resolve_backend(backend)  # before listening: 'gl' without a GL context fails here
+        ensure_fd_limit(limits.max_connections, log)
         if isinstance(address, tuple):
             host, port = address
             if host not in ("127.0.0.1", "localhost"):
@@ -533,10 +717,37 @@ class Server:
             self._path = path
         self._listener.listen(16)
         self._listener.settimeout(0.1)
+        self._spare = _open_spare()  # closed for a moment to refuse a connection when descriptors run out
+        self._exhausted = False
         self.stopping = False
         self._lock = threading.Lock()
         self._connections: dict[_Connection, threading.Thread] = {}
         self._segments: set[_Segment] = set()
+        self.memory_budget = limits.memory_budget()
+        self._reserved: dict[_Connection, int] = {}
+
+    def _reserve(self, conn: "_Connection", size: int) -> int:
+        """Set the estimated bytes of ``conn``'s session to ``size`` (0: none); returns its previous amount.
+        OVER_BUDGET if the sessions together would pass the memory budget (``serve --max-memory``)."""
+        with self._lock:
+            previous = self._reserved.get(conn, 0)
+            others = sum(self._reserved.values()) - previous
+            if size > previous and others + size > self.memory_budget:
+                raise _ProtocolError(Status.OVER_BUDGET, f"this session needs about {_mib(size)} MiB and the open "
+                                                         f"sessions hold {_mib(others)} MiB of the server's memory "
+                                                         f"budget of {_mib(self.memory_budget)} MiB (serve "
+                                                         f"--max-memory): try a smaller frame or a lighter method, "
+                                                         f"or later")
+            if size:
+                self._reserved[conn] = size
+            else:
+                self._reserved.pop(conn, None)
+            return previous
+
+    def reserved_memory(self) -> int:
+        """Estimated bytes of the open sessions (:func:`session_footprint`)."""
+        with self._lock:
+            return sum(self._reserved.values())
 
     def _track(self, segment: _Segment) -> None:
         with self._lock:
@@ -547,37 +758,81 @@ class Server:
             self._segments.discard(segment)
 
     def segment_names(self) -> list[str]:
-        """Names of the shared-memory segments held now (POSIX names, leading slash)."""
+        """Names of the named shared-memory segments held now (POSIX names, leading slash); anonymous ones
+        have none."""
         with self._lock:
-            return sorted(s.layout.shm_name for s in self._segments)
+            return sorted(s.layout.shm_name for s in self._segments if not s.anonymous)
 
     def serve_forever(self) -> None:
+        """Accept connections until :meth:`stop`. An ``accept()`` that fails for want of descriptors or
+        buffers (:data:`ACCEPT_EXHAUSTED`) refuses the pending connection with the spare descriptor, and
+        backs off (10 ms doubling to 0.5 s) when even that fails, while the existing sessions go on; an
+        aborted connection is skipped."""
+        backoff = 0.0
         try:
             while not self.stopping:
                 try:
                     sock, _ = self._listener.accept()
                 except socket.timeout:
                     continue
-                except OSError:
-                    if self.stopping:
-                        break
-                    raise
-                with self._lock:
-                    full = len(self._connections) >= self.limits.max_connections
-                if full:  # over the limit: closed at once, before it can hold a thread
-                    sock.close()
-                    continue
-                sock.settimeout(self.limits.idle_timeout or None)  # a silent peer is dropped (socket.timeout)
-                if sock.family == socket.AF_INET:
-                    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                conn = _Connection(sock, self)
-                thread = threading.Thread(target=self._run_connection, args=(conn,), daemon=True,
-                                          name="interleave-connection")
-                with self._lock:
-                    self._connections[conn] = thread
-                thread.start()
+                except OSError as exc:
+                    if self.stopping or exc.errno in ACCEPT_FATAL:
+                        if self.stopping:
+                            break
+                        raise
+                    if exc.errno in ACCEPT_EXHAUSTED and not self._refuse_pending(exc):
+                        backoff = min(max(2 * backoff, ACCEPT_BACKOFF[0]), ACCEPT_BACKOFF[1])
+                        time.sleep(backoff)
+                    continue  # ECONNABORTED, EPROTO, EPERM (a firewall), EINTR...: that peer only
+                backoff = 0.0
+                if self._exhausted:
+                    self._exhausted = False
+                    self.log("interleave serve: accepting connections again")
+                self._start_connection(sock)
         finally:
             self._shutdown()
+
+    def _start_connection(self, sock: socket.socket) -> None:
+        with self._lock:
+            full = len(self._connections) >= self.limits.max_connections
+        if full:  # over the limit: closed at once, before it can hold a thread
+            sock.close()
+            return
+        sock.settimeout(self.limits.idle_timeout or None)  # a silent peer is dropped (socket.timeout)
+        if sock.family == socket.AF_INET:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn = _Connection(sock, self)
+        thread = threading.Thread(target=self._run_connection, args=(conn,), daemon=True,
+                                  name="interleave-connection")
+        with self._lock:
+            self._connections[conn] = thread
+        try:
+            thread.start()
+        except RuntimeError:  # no thread to be had: refused like a connection over the cap
+            with self._lock:
+                self._connections.pop(conn, None)
+            sock.close()
+
+    def _refuse_pending(self, exc: OSError) -> bool:
+        """Out of descriptors: free the spare one, accept the waiting connection and close it at once (its
+        client sees the connection closed instead of waiting in the backlog), then take the spare back.
+        False if no connection could be taken even so (no spare, or the host itself is out)."""
+        if not self._exhausted:
+            self._exhausted = True
+            self.log(f"interleave serve: cannot accept a connection ({exc.strerror}); refusing new connections "
+                     f"until descriptors are free, serving the {len(self._connections)} open ones")
+        if self._spare is None:
+            self._spare = _open_spare()
+            return False
+        os.close(self._spare)
+        try:
+            sock, _ = self._listener.accept()
+            sock.close()
+            refused = True
+        except OSError:
+            refused = False
+        self._spare = _open_spare()
+        return refused
 
     def _run_connection(self, conn: _Connection) -> None:
         try:
@@ -596,6 +851,9 @@ class Server:
             self._listener.close()
         except OSError:
             pass
+        if self._spare is not None:
+            os.close(self._spare)
+            self._spare = None
         with self._lock:
             connections = dict(self._connections)
         for conn in connections:

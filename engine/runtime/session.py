@@ -346,8 +346,24 @@ def engine_camera(config: SessionConfig, view: object, projection: object,
     """The OpenCV :class:`~engine.core.frames.Camera` of an engine pose, as a ``Session`` converts it.
 
     ``view`` and ``projection`` take the forms of the table in this module's docstring for
-    ``config.engine``; ``width``/``height`` default to the config's. Raises InputError for bad matrices.
+    ``config.engine``; ``width``/``height`` default to the config's. Raises InputError for bad matrices,
+    naming the session's field: ``view`` (whatever the converter calls it: Unity's ``matrix``, Unreal's
+    ``transform``, ``location``, ``rotation``) or ``projection``.
     """
+    try:
+        return _engine_camera(config, view, projection, width, height)
+    except InputError as exc:
+        if exc.field not in _VIEW_FIELDS:
+            raise
+        raise InputError(exc.problem, file=exc.file, frame=exc.frame, field="view") from None
+
+
+#: The names ``engine.conventions``' converters give the argument that is a session's ``view``.
+_VIEW_FIELDS = ("matrix", "transform", "location", "rotation")
+
+
+def _engine_camera(config: SessionConfig, view: object, projection: object, width: Optional[int],
+                   height: Optional[int]) -> Camera:
     w = config.width if width is None else width
     h = config.height if height is None else height
     scale = config.unit_scale
@@ -471,7 +487,13 @@ class Session:
         self._keep_codes = chosen == "gl" and self.config.color_in == "srgb8"
 
         def make(name: str) -> Predictor:
-            return use_backend((make_predictor if make_method is None else make_method)(name), chosen)
+            try:
+                predictor = (make_predictor if make_method is None else make_method)(name)
+            except InputError as exc:  # the registry names the command line's --methods
+                if exc.field != "methods":
+                    raise
+                raise InputError(exc.problem, file=exc.file, field="method") from None
+            return use_backend(predictor, chosen)
 
         if self.config.method.strip() == AUTO:
             # predictor for frames with (True) and without (False) motion vectors

@@ -82,7 +82,13 @@ def assert_serves(proc: subprocess.Popen, address: str) -> None:
 
 
 def segment_exists(name: str) -> bool:
+    assert name.startswith("/"), name  # a named segment's layout
     return (SHM / name.lstrip("/")).exists()
+
+
+def server_segments(pid: int) -> list[str]:
+    """The named segments of server ``pid`` in /dev/shm."""
+    return sorted(p.name for p in SHM.iterdir() if p.name.startswith(f"interleave-{pid}-"))
 
 
 def wait_until(condition, timeout=5.0) -> bool:
@@ -209,6 +215,7 @@ def test_header_constants_match_python():
     assert (d["MAGIC"], d["VERSION"], d["VERSION_MIN"], d["MAX_PAYLOAD"], d["MAX_SIDE"], d["ALIGNMENT"]) == (
         wire.MAGIC, wire.VERSION, wire.VERSION_MIN, wire.MAX_PAYLOAD, wire.MAX_SIDE, wire.ALIGNMENT)
     assert wire.VERSIONS == tuple(range(wire.VERSION_MIN, wire.VERSION + 1))
+    assert d["VERSION_FD"] == wire.VERSION_FD
     assert struct.pack("<I", wire.MAGIC) == b"INTL"
     assert {t.name: int(t) for t in MessageType} == {k[4:]: v for k, v in d.items() if k.startswith("MSG_")}
     assert {k: v for k, v in d.items() if k in Status.__members__} == {s.name: int(s) for s in Status}
@@ -218,10 +225,6 @@ def test_header_constants_match_python():
         assert {k[len(prefix):]: v for k, v in d.items() if k.startswith(prefix)} == {n: i for i, n in enumerate(names)}
     assert (d["FLAG_FLIP_ROWS"], d["FLAG_NDC_Y_DOWN"], d["FLAG_COLUMN_MAJOR"]) == (
         wire.FLAG_FLIP_ROWS, wire.FLAG_NDC_Y_DOWN, wire.FLAG_COLUMN_MAJOR)
-    for name, (layout, _) in C_STRUCTS.items():  # the header's own static asserts state the Python sizes
-        assert f"sizeof({name}) == {layout.size}" in HEADER_TEXT
-    for name, (first, second) in C_PAIRS.items():
-        assert f"sizeof({name}) == {C_STRUCTS[first][0].size + C_STRUCTS[second][0].size}" in HEADER_TEXT
     motion_codes = {"PIXELS": wire.MOTION_UNIT_CODES.index("pixels"), "UV": wire.MOTION_UNIT_CODES.index("uv"),
                     "NDC": wire.MOTION_UNIT_CODES.index("ndc"),
                     "PREVIOUS": wire.MOTION_DIRECTION_CODES.index("previous"),
@@ -233,6 +236,43 @@ def test_header_constants_match_python():
                     "F32": wire.MOTION_FORMATS.index("float32"), "F16": wire.MOTION_FORMATS.index("float16")}
     assert {k[7:]: v for k, v in d.items() if k.startswith("MOTION_")} == motion_codes
     assert (d["SUBMIT_VECTORS"], d["SUBMIT_VALID"]) == (wire.SUBMIT_VECTORS, wire.SUBMIT_VALID)
+
+
+def test_header_static_asserts_state_every_python_size_and_offset():
+    sizes = {name: int(size) for name, size in re.findall(r"IL_ASSERT_SIZE\((\w+), (\d+)\)", HEADER_TEXT)}
+    offsets = {(name, field): int(at) for name, field, at in
+               re.findall(r"IL_ASSERT_OFFSET\((\w+), (\w+), (\d+)\)", HEADER_TEXT)}
+    expected_offsets = {}
+    for name, (layout, fields) in C_STRUCTS.items():
+        assert sizes.pop(name) == layout.size, name
+        python, element = python_offsets(layout), 0
+        for field, count in fields:
+            expected_offsets[(name, field)] = python[element]
+            element += count
+    for name, (first, second) in C_PAIRS.items():
+        assert sizes.pop(name) == C_STRUCTS[first][0].size + C_STRUCTS[second][0].size, name
+    assert sizes == {}  # no struct asserted that Python does not have
+    assert offsets == expected_offsets  # every field of every struct, at Python's offset
+
+
+GCC = shutil.which("gcc")
+
+
+@pytest.mark.skipif(GCC is None, reason="no gcc")
+@pytest.mark.parametrize("std", ["c99", "c11"])
+def test_header_compiles_pedantic_and_its_asserts_refuse_a_wrong_layout(tmp_path, std):
+    """C99 (typedef-array asserts) and C11 (_Static_assert) compile the header without a warning, and in both a
+    size that differs from protocol.py is a compile error."""
+    flags = [GCC, f"-std={std}", "-pedantic", "-Wall", "-Wextra", "-Werror", "-fsyntax-only", "-x", "c"]
+    run = subprocess.run(flags + [str(INCLUDE / "interleave_protocol.h")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    wrong = tmp_path / "wrong.h"
+    text = HEADER_TEXT.replace(f"IL_ASSERT_OFFSET(il_hello, method, {python_offsets(wire.HELLO)[-1]})",
+                               f"IL_ASSERT_OFFSET(il_hello, method, {python_offsets(wire.HELLO)[-1] + 8})")
+    assert text != HEADER_TEXT
+    wrong.write_text(text)
+    run = subprocess.run(flags + [str(wrong)], capture_output=True, text=True)
+    assert run.returncode != 0 and "il_hello" in run.stderr
 
 
 @pytest.mark.skipif(CC is None, reason="no C compiler")
@@ -280,16 +320,19 @@ def test_c_example_client_talks_to_the_server(server, tmp_path):
 # --------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cfg, channels, column_major, version", [
-    (config(method="reproject"), 3, False, wire.VERSION),
+    (config(method="reproject"), 3, False, wire.VERSION),  # an anonymous segment (memfd passed with the reply)
     (config(method="flow2d", color_in="srgb8", color_out="srgb8", flip_rows=True), 4, True, wire.VERSION),
+    (config(method="flow2d"), 4, False, 2),  # version 2: a named segment
     (config(method="flow2d"), 4, False, 1),  # a client that speaks version 1
 ])
 def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, channels, column_major, version):
-    _, address = server
+    proc, address = server
     local = Session(cfg)
     with Client(address, version=version) as client:
         layout = client.hello(cfg, channels=channels, column_major=column_major)
-        assert segment_exists(layout.shm_name) and (layout.width, layout.height) == (W, H)
+        assert (layout.width, layout.height) == (W, H)
+        assert layout.anonymous == (version >= wire.VERSION_FD)
+        assert layout.anonymous or segment_exists(layout.shm_name)
         for i in range(7):
             color, depth = frame_arrays(i, channels=channels)
             if cfg.color_in == "srgb8":
@@ -306,7 +349,7 @@ def test_predictions_over_the_socket_equal_an_in_process_session(server, cfg, ch
                 assert (remote.method, remote.fallback, remote.frame) == (expected.method, expected.fallback,
                                                                           expected.frame)
         client.bye()
-    assert wait_until(lambda: not segment_exists(layout.shm_name))
+    assert layout.anonymous or wait_until(lambda: not segment_exists(layout.shm_name))
 
 
 @pytest.mark.parametrize("encoding", ["linear", "srgb8"])
@@ -361,7 +404,7 @@ def test_pipelined_requests_are_answered_in_order_with_their_ids(server):
 
 def test_reset_and_resolution_change(server):
     _, address = server
-    with Client(address) as client:
+    with Client(address, version=2) as client:  # named segments: the old one is unlinked
         first = client.hello(config())
         color, depth = frame_arrays()
         client.submit(color, depth, pose(), K, 0.0)
@@ -433,7 +476,7 @@ def test_malformed_messages_get_an_error_reply_and_the_server_keeps_serving(serv
 
 def test_a_client_vanishing_mid_frame_loses_its_session_and_segment(server):
     proc, address = server
-    client = Client(address)
+    client = Client(address, version=2)
     layout = client.hello(config())
     client.submit(*frame_arrays(), pose(), K, 0.0)
     client.send_raw(wire.pack_header(MessageType.SUBMIT, 2, wire.FRAME.size) + frame_payload(1, 0.1)[:100])
@@ -498,7 +541,7 @@ def test_reference_client_process_over_tcp_and_clean_shutdown(tmp_path):
 def test_shutdown_removes_the_socket_file_and_segments(tmp_path):
     path = tmp_path / "s.sock"
     proc, address = start_server(f"unix:{path}", tmp_path / "unix.log")
-    client = Client(address)
+    client = Client(address, version=2)
     name = client.hello(config()).shm_name
     assert path.exists() and segment_exists(name)
     assert stop_server(proc) == 0
@@ -539,7 +582,7 @@ def test_a_client_shrinking_its_segment_gets_an_error_not_a_dead_server(server):
     server with SIGBUS (every session lost). The server now reads the frame with pread: a short read is a
     BAD_INPUT answer, and the server keeps serving."""
     proc, address = server
-    with Client(address) as client:
+    with Client(address, version=2) as client:  # a named segment (an anonymous one is sealed: test_memfd_...)
         layout = client.hello(config())
         client.submit(*frame_arrays(), pose(), K, 0.0)
         client._unmap()  # the client's own mapping would fault on the pages cut off next
@@ -555,7 +598,7 @@ def test_segment_names_are_random_and_private(server):
     """Issue 20, D11: predictable names let another process pre-create the next one; they are now random,
     created exclusively and readable by the server's user only."""
     _, address = server
-    with Client(address) as a, Client(address) as b:
+    with Client(address, version=2) as a, Client(address, version=2) as b:
         names = [a.hello(config()).shm_name, b.hello(config()).shm_name]
         assert names[0] != names[1]
         for name in names:
@@ -819,7 +862,7 @@ def test_motion_vectors_arrive_converted_as_in_an_in_process_session(server, cfg
 
 def test_reset_can_resize_the_motion_plane(server):
     _, address = server
-    with Client(address) as client:
+    with Client(address, version=2) as client:
         first = client.hello(motion_config(), motion=MotionPlane(32, 24))
         color, depth = frame_arrays()
         client.submit(color, depth, pose(), K, 0.0, motion_vectors=np.zeros((24, 32, 2), np.float32))

@@ -6,12 +6,14 @@
  *   ./il_example /tmp/interleave.sock
  *
  * Opens an OpenCV-convention session (64x48 RGBA float, planar depth) with a half-resolution motion-vector
- * plane (protocol version 2), submits two frames of a fronto-parallel wall 2 m away while the camera moves
+ * plane (protocol version 3: the segment is an anonymous memfd whose descriptor arrives with the HELLO
+ * reply as SCM_RIGHTS ancillary data; a layout with a name is opened with shm_open instead), submits two frames of a fronto-parallel wall 2 m away while the camera moves
  * 1 cm to the right per frame (the second with its motion vectors), predicts the frame of the next step
  * and prints what came back. tests/runtime/test_server.py compiles and runs it. Error handling is minimal:
  * any failure exits with 1.
  */
 #define _POSIX_C_SOURCE 200809L
+#define _DEFAULT_SOURCE /* CMSG_SPACE */
 #include <fcntl.h>
 #include <math.h>
 #include <stdio.h>
@@ -27,6 +29,7 @@
 enum { WIDTH = 64, HEIGHT = 48, CHANNELS = 4, MV_WIDTH = 32, MV_HEIGHT = 24 };
 
 static int sock_fd = -1;
+static int passed_fd = -1; /* a descriptor that came with the last reply (SCM_RIGHTS), or -1 */
 static uint32_t next_id = 1;
 
 static void die(const char *what) {
@@ -44,11 +47,22 @@ static void write_all(const void *data, size_t size) {
     }
 }
 
+/* Reads with recvmsg, so that a descriptor the server passes (with a reply carrying an il_layout) is kept. */
 static void read_all(void *data, size_t size) {
     char *p = data;
     while (size > 0) {
-        ssize_t n = read(sock_fd, p, size);
+        union { struct cmsghdr align; char buf[CMSG_SPACE(sizeof(int))]; } control;
+        struct iovec iov = {p, size};
+        struct msghdr msg = {0};
+        msg.msg_iov = &iov;
+        msg.msg_iovlen = 1;
+        msg.msg_control = control.buf;
+        msg.msg_controllen = sizeof control.buf;
+        ssize_t n = recvmsg(sock_fd, &msg, 0);
         if (n <= 0) die("connection closed");
+        for (struct cmsghdr *c = CMSG_FIRSTHDR(&msg); c != NULL; c = CMSG_NXTHDR(&msg, c)) {
+            if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SCM_RIGHTS) memcpy(&passed_fd, CMSG_DATA(c), sizeof(int));
+        }
         p += n;
         size -= (size_t)n;
     }
@@ -116,8 +130,9 @@ int main(int argc, char **argv) {
     request(IL_MSG_HELLO, &hello, sizeof hello, &reply, sizeof reply);
     const il_layout layout = reply.layout;
 
-    int shm_fd = shm_open(layout.shm_name, O_RDWR, 0);
-    if (shm_fd < 0) die("shm_open failed");
+    /* Version 3 over a Unix socket: no name, the segment is the descriptor passed with the reply. */
+    int shm_fd = layout.shm_name[0] == '\0' ? passed_fd : shm_open(layout.shm_name, O_RDWR, 0);
+    if (shm_fd < 0) die("no shared-memory segment");
     unsigned char *shm = mmap(NULL, layout.shm_size, PROT_READ | PROT_WRITE, MAP_SHARED, shm_fd, 0);
     if (shm == MAP_FAILED) die("mmap failed");
     close(shm_fd);

@@ -1,10 +1,12 @@
 /*
- * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 and 2.
+ * interleave_protocol.h - wire format of `interleave serve`, protocol versions 1 to 3.
  *
  * The Python side is engine/runtime/protocol.py; tests/runtime/test_server.py compiles this header and checks
  * that every constant, struct size and field offset below matches it. Prose: docs/server.md.
  *
- * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1). Every message, request or reply,
+ * Transport: a stream socket (Unix domain socket, or TCP on 127.0.0.1; the server prints the address it
+ * listens on as "interleave serve: listening on unix:/path/to.sock" or "... listening on tcp:127.0.0.1:PORT",
+ * the port chosen when started with tcp:0). Every message, request or reply,
  * is one il_header followed by header.payload_size bytes. All integers and doubles are little-endian
  * (x86-64 and ARM64 hosts need no conversion); structs are packed by their natural alignment (no
  * padding is implied anywhere: the static asserts below hold on any C11 compiler).
@@ -25,13 +27,30 @@
  * A session opened without il_motion has no motion plane and gets il_layout alone, as in version 1.
  * A version-2 server answers version-1 clients unchanged; a version-1 server answers a version-2 request
  * with IL_BAD_VERSION (and closes), so a client may fall back to version 1 without motion vectors.
+ * Version 3 has version 2's messages and sizes; it changes how the segment is reached over a Unix socket
+ * (below). A version-2 server answers a version-3 request with IL_BAD_VERSION (and closes): reconnect with 2.
  * A reply has type = request type | IL_MSG_REPLY and echoes request_id. status != IL_OK replies carry
  * UTF-8 error text (not NUL-terminated) as payload. Replies come in request order; requests may be
  * pipelined. After IL_BAD_MAGIC, IL_BAD_VERSION, IL_TOO_LARGE or IL_TRUNCATED the server closes the
  * connection; after any other error the connection stays usable.
  *
- * Shared memory: il_layout.shm_name is a POSIX name for shm_open(name, O_RDWR, 0) + mmap(shm_size).
- * The server owns and unlinks it (on BYE, disconnect, a size change, or server shutdown). Images are
+ * Shared memory, two kinds, chosen by the HELLO (IL_VERSION_FD and later over a Unix socket, or not):
+ *   anonymous (version 3 over a Unix socket): a Linux memfd with no name anywhere, sealed against
+ *     shrinking and growing. il_layout.shm_name is "" and the reply that carries the il_layout (HELLO's, and
+ *     every RESET's) carries exactly one file descriptor as SCM_RIGHTS ancillary data, attached to the
+ *     reply's first byte: read replies with recvmsg() and a control buffer of CMSG_SPACE(sizeof(int)) or
+ *     more (read()/recv() would drop it), then mmap(NULL, shm_size, PROT_READ | PROT_WRITE, MAP_SHARED, fd,
+ *     0) and close(fd). Each such reply passes the descriptor again (a new one after a size change): unmap
+ *     the old mapping. Node.js has no SCM_RIGHTS in its net module: use a native addon (recvmsg) or TCP.
+ *   named (TCP; versions 1 and 2 on either socket): il_layout.shm_name is a POSIX name with a leading '/'
+ *     for shm_open(name, O_RDWR, 0) + mmap(shm_size); on Linux the segment "/x" is the file /dev/shm/x,
+ *     random, mode 0600, unlinked by the server (on BYE, disconnect, a size change, or server shutdown).
+ * What each guarantees: a named segment can be opened by any process of the server's user that learns or
+ * lists its name (ls /dev/shm). An anonymous one cannot be found by name: it reaches only the client the
+ * descriptor is sent to (and to whom that client hands it). Like every open file it remains reachable
+ * through /proc/PID/fd of the server or the client to whoever may inspect those processes: root, and
+ * processes of the same user (Linux lets a user read its own processes' /proc unless one made itself
+ * non-dumpable). Separate users are the boundary; the memfd removes the listing. Images are
  * row-major, row 0 at the top (bottom-up readbacks: set IL_FLAG_FLIP_ROWS), pixels interleaved:
  *   color_in  : height * width * channels, float32 (IL_COLOR_LINEAR, IL_COLOR_SRGB) or uint8 (IL_COLOR_SRGB8)
  *   depth     : height * width float32, in il_hello.depth_convention (IL_DEPTH_LINEAR: planar, engine units)
@@ -69,8 +88,9 @@
 #include <stdint.h>
 
 #define IL_MAGIC 0x4C544E49u /* "INTL" in memory */
-#define IL_VERSION 2     /* the newest version; a request's version is also its reply's */
+#define IL_VERSION 3     /* the newest version; a request's version is also its reply's */
 #define IL_VERSION_MIN 1 /* the oldest version still answered (and the version of replies to bad headers) */
+#define IL_VERSION_FD 3  /* from this version on, over a Unix socket, the segment is a memfd passed with the reply */
 #define IL_MAX_PAYLOAD 65536
 #define IL_MAX_SIDE 16384
 #define IL_ALIGNMENT 64
@@ -96,6 +116,8 @@
 #define IL_BAD_INPUT 8 /* NaN pixels, non-rigid pose, unknown method, ...: the text names the frame */
 #define IL_NOT_READY 9 /* PREDICT before any SUBMIT since HELLO / RESET */
 #define IL_INTERNAL 10
+#define IL_OVER_BUDGET 11 /* HELLO / RESET: the session would pass the server's memory budget (--max-memory)
+                             or the server is out of file descriptors; connection stays usable: retry later */
 
 /* il_hello.engine */
 #define IL_ENGINE_OPENCV 0
@@ -177,7 +199,7 @@ typedef struct il_hello {
     uint32_t color_out;        /* IL_COLOR_* of predicted colour */
     uint32_t width;            /* pixels, 1..IL_MAX_SIDE */
     uint32_t height;
-    uint32_t reserved0;        /* ignored (0); the server follows the times and poses of each PREDICT */
+    uint32_t reserved0;        /* ignored (0; was k): the server follows the times and poses of each PREDICT */
     uint32_t channels;         /* 3 (RGB) or 4 (RGBA; alpha ignored in, 1 out) */
     uint32_t flags;            /* IL_FLAG_* */
     uint32_t reserved;         /* 0 */
@@ -190,7 +212,7 @@ typedef struct il_hello {
 } il_hello;
 
 typedef struct il_layout {
-    char shm_name[64];         /* NUL-terminated POSIX shared-memory name (leading '/') */
+    char shm_name[64];         /* NUL-terminated POSIX name (leading '/'), or "" for the passed descriptor */
     uint64_t shm_size;         /* bytes to mmap */
     uint64_t color_in_offset;  /* byte offsets, multiples of IL_ALIGNMENT */
     uint64_t depth_offset;
@@ -264,34 +286,60 @@ typedef struct il_submit_with_motion { il_frame frame; il_submit_motion motion; 
 typedef struct il_reset_with_motion { il_reset reset; il_reset_motion motion; } il_reset_with_motion;
 typedef struct il_layout_with_motion { il_layout layout; il_motion_layout motion; } il_layout_with_motion;
 
+/* Every struct size and field offset, as engine/runtime/protocol.py packs them (tests/runtime/test_server.py
+ * checks this list against Python). C11 and C++11 use _Static_assert / static_assert; C99 (and C++98) get the
+ * same check as a file-scope typedef of an array whose size is -1 when the condition fails, so
+ * `gcc -std=c99 -pedantic -Wall -Wextra -Werror` compiles this header and still refuses a wrong layout. */
 #if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L
-#define IL_STATIC_ASSERT(cond, msg) _Static_assert(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) _Static_assert(cond, text)
 #elif defined(__cplusplus) && __cplusplus >= 201103L
-#define IL_STATIC_ASSERT(cond, msg) static_assert(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) static_assert(cond, text)
 #else
-#define IL_STATIC_ASSERT(cond, msg)
+#define IL_STATIC_ASSERT(name, cond, text) typedef char il_static_assert_##name[(cond) ? 1 : -1]
 #endif
+#define IL_ASSERT_SIZE(type, size) IL_STATIC_ASSERT(type##_size, sizeof(type) == size, #type " is " #size " bytes")
+#define IL_ASSERT_OFFSET(type, field, offset) \
+    IL_STATIC_ASSERT(type##_##field, offsetof(type, field) == offset, #type "." #field " is at byte " #offset)
 
-IL_STATIC_ASSERT(sizeof(il_header) == 24, "il_header is 24 bytes");
-IL_STATIC_ASSERT(sizeof(il_hello) == 144, "il_hello is 144 bytes");
-IL_STATIC_ASSERT(offsetof(il_hello, near_plane) == 40, "il_hello.near_plane at 40");
-IL_STATIC_ASSERT(offsetof(il_hello, method) == 80, "il_hello.method at 80");
-IL_STATIC_ASSERT(sizeof(il_layout) == 112, "il_layout is 112 bytes");
-IL_STATIC_ASSERT(offsetof(il_layout, shm_size) == 64, "il_layout.shm_size at 64");
-IL_STATIC_ASSERT(sizeof(il_frame) == 272, "il_frame is 272 bytes");
-IL_STATIC_ASSERT(offsetof(il_frame, projection) == 144, "il_frame.projection at 144");
-IL_STATIC_ASSERT(sizeof(il_submit_reply) == 16, "il_submit_reply is 16 bytes");
-IL_STATIC_ASSERT(sizeof(il_predict_reply) == 56, "il_predict_reply is 56 bytes");
-IL_STATIC_ASSERT(offsetof(il_predict_reply, method) == 24, "il_predict_reply.method at 24");
-IL_STATIC_ASSERT(sizeof(il_reset) == 8, "il_reset is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_motion) == 56, "il_motion is 56 bytes");
-IL_STATIC_ASSERT(offsetof(il_motion, scale_x) == 40, "il_motion.scale_x at 40");
-IL_STATIC_ASSERT(sizeof(il_submit_motion) == 8, "il_submit_motion is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_reset_motion) == 8, "il_reset_motion is 8 bytes");
-IL_STATIC_ASSERT(sizeof(il_motion_layout) == 24, "il_motion_layout is 24 bytes");
-IL_STATIC_ASSERT(sizeof(il_hello_with_motion) == 200, "il_hello_with_motion is 200 bytes");
-IL_STATIC_ASSERT(sizeof(il_submit_with_motion) == 280, "il_submit_with_motion is 280 bytes");
-IL_STATIC_ASSERT(sizeof(il_reset_with_motion) == 16, "il_reset_with_motion is 16 bytes");
-IL_STATIC_ASSERT(sizeof(il_layout_with_motion) == 136, "il_layout_with_motion is 136 bytes");
+IL_ASSERT_SIZE(il_header, 24); IL_ASSERT_OFFSET(il_header, magic, 0); IL_ASSERT_OFFSET(il_header, version, 4);
+IL_ASSERT_OFFSET(il_header, type, 6); IL_ASSERT_OFFSET(il_header, request_id, 8);
+IL_ASSERT_OFFSET(il_header, status, 12); IL_ASSERT_OFFSET(il_header, payload_size, 16);
+IL_ASSERT_SIZE(il_hello, 144); IL_ASSERT_OFFSET(il_hello, engine, 0); IL_ASSERT_OFFSET(il_hello, depth_convention, 4);
+IL_ASSERT_OFFSET(il_hello, color_in, 8); IL_ASSERT_OFFSET(il_hello, color_out, 12);
+IL_ASSERT_OFFSET(il_hello, width, 16); IL_ASSERT_OFFSET(il_hello, height, 20);
+IL_ASSERT_OFFSET(il_hello, reserved0, 24); IL_ASSERT_OFFSET(il_hello, channels, 28);
+IL_ASSERT_OFFSET(il_hello, flags, 32); IL_ASSERT_OFFSET(il_hello, reserved, 36);
+IL_ASSERT_OFFSET(il_hello, near_plane, 40); IL_ASSERT_OFFSET(il_hello, far_plane, 48);
+IL_ASSERT_OFFSET(il_hello, meters_per_unit, 56); IL_ASSERT_OFFSET(il_hello, cut_translation, 64);
+IL_ASSERT_OFFSET(il_hello, cut_rotation_deg, 72); IL_ASSERT_OFFSET(il_hello, method, 80);
+IL_ASSERT_SIZE(il_layout, 112); IL_ASSERT_OFFSET(il_layout, shm_name, 0); IL_ASSERT_OFFSET(il_layout, shm_size, 64);
+IL_ASSERT_OFFSET(il_layout, color_in_offset, 72); IL_ASSERT_OFFSET(il_layout, depth_offset, 80);
+IL_ASSERT_OFFSET(il_layout, color_out_offset, 88); IL_ASSERT_OFFSET(il_layout, holes_offset, 96);
+IL_ASSERT_OFFSET(il_layout, width, 104); IL_ASSERT_OFFSET(il_layout, height, 108);
+IL_ASSERT_SIZE(il_frame, 272); IL_ASSERT_OFFSET(il_frame, frame_id, 0); IL_ASSERT_OFFSET(il_frame, time, 8);
+IL_ASSERT_OFFSET(il_frame, view, 16); IL_ASSERT_OFFSET(il_frame, projection, 144);
+IL_ASSERT_SIZE(il_submit_reply, 16); IL_ASSERT_OFFSET(il_submit_reply, frame, 0);
+IL_ASSERT_OFFSET(il_submit_reply, reset, 8); IL_ASSERT_OFFSET(il_submit_reply, history, 12);
+IL_ASSERT_SIZE(il_predict_reply, 56); IL_ASSERT_OFFSET(il_predict_reply, frame, 0);
+IL_ASSERT_OFFSET(il_predict_reply, fallback, 8); IL_ASSERT_OFFSET(il_predict_reply, holes, 12);
+IL_ASSERT_OFFSET(il_predict_reply, elapsed_ms, 16); IL_ASSERT_OFFSET(il_predict_reply, method, 24);
+IL_ASSERT_SIZE(il_reset, 8); IL_ASSERT_OFFSET(il_reset, width, 0); IL_ASSERT_OFFSET(il_reset, height, 4);
+IL_ASSERT_SIZE(il_motion, 56); IL_ASSERT_OFFSET(il_motion, units, 0); IL_ASSERT_OFFSET(il_motion, direction, 4);
+IL_ASSERT_OFFSET(il_motion, y_axis, 8); IL_ASSERT_OFFSET(il_motion, camera, 12);
+IL_ASSERT_OFFSET(il_motion, missing, 16); IL_ASSERT_OFFSET(il_motion, width, 20);
+IL_ASSERT_OFFSET(il_motion, height, 24); IL_ASSERT_OFFSET(il_motion, channels, 28);
+IL_ASSERT_OFFSET(il_motion, format, 32); IL_ASSERT_OFFSET(il_motion, reserved, 36);
+IL_ASSERT_OFFSET(il_motion, scale_x, 40); IL_ASSERT_OFFSET(il_motion, scale_y, 48);
+IL_ASSERT_SIZE(il_submit_motion, 8); IL_ASSERT_OFFSET(il_submit_motion, flags, 0);
+IL_ASSERT_OFFSET(il_submit_motion, reserved, 4);
+IL_ASSERT_SIZE(il_reset_motion, 8); IL_ASSERT_OFFSET(il_reset_motion, width, 0);
+IL_ASSERT_OFFSET(il_reset_motion, height, 4);
+IL_ASSERT_SIZE(il_motion_layout, 24); IL_ASSERT_OFFSET(il_motion_layout, motion_offset, 0);
+IL_ASSERT_OFFSET(il_motion_layout, motion_valid_offset, 8); IL_ASSERT_OFFSET(il_motion_layout, width, 16);
+IL_ASSERT_OFFSET(il_motion_layout, height, 20);
+IL_ASSERT_SIZE(il_hello_with_motion, 200);
+IL_ASSERT_SIZE(il_submit_with_motion, 280);
+IL_ASSERT_SIZE(il_reset_with_motion, 16);
+IL_ASSERT_SIZE(il_layout_with_motion, 136);
 
 #endif /* INTERLEAVE_PROTOCOL_H */

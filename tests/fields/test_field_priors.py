@@ -375,3 +375,49 @@ def test_forward_facing_augmented_depth_compares_disparities_and_stays_bounded()
     extras["augmented"]["disparity"] = False  # bounded scenes: depth / scale, which a far depth blows up
     assert float(LOSS_TERMS["augmented_depth"](LossInputs(None, None, main, 0, LossTerm("augmented_depth"),
                                                            extras))) > 1e18
+
+
+def _textured_pair(shift: int = 6, size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """Two linear-RGB views of a blurred noise texture, the second shifted by ``shift`` px (SIFT finds hundreds
+    of keypoints in each)."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    h, w = size
+    texture = cv2.GaussianBlur(rng.random((h, w + shift)).astype(np.float32), (0, 0), 1.5)
+    texture = (texture - texture.min()) / (texture.max() - texture.min())
+    views = np.stack([texture[:, shift:], texture[:, :w]])
+    return np.repeat(views[..., None], 3, axis=-1) ** 2.2
+
+
+@pytest.mark.parametrize("brute_force", [False, True])
+def test_numpy_matching_is_colmaps_matcher(brute_force):
+    """``match_descriptors`` against ``pycolmap.FeatureMatcher`` (cross check, the ratio test), its oracle:
+    the same matches. Measured on a 4-camera rig (240 views, 120 pairs): 36,484 of 36,484 equal, 28 against
+    92 ms a pair."""
+    import pycolmap
+
+    from models.fields.priors.depth import match_descriptors, sift_features
+
+    from engine.core.colorspace import display_encode
+    from models.fields.priors.depth import _extractor
+
+    views = _textured_pair()
+    features = sift_features(views, 1024)
+    assert min(len(f[0]) for f in features) > 100
+    extractor = _extractor(1024)  # pycolmap's own objects of the same features, for its matcher
+    colmap = [extractor.extract_from_float32_array(np.ascontiguousarray(
+        np.clip(display_encode(v).mean(axis=-1), 0.0, 1.0).astype(np.float32))) for v in views]
+    for (_, descriptors), f in zip(colmap, features):
+        assert np.array_equal(np.asarray(descriptors.data), f[2])
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = 1
+    options.sift.max_ratio, options.sift.cross_check = 0.8, True
+    options.sift.cpu_brute_force_matcher = brute_force
+    matcher = pycolmap.FeatureMatcher.create(options, pycolmap.Device.cpu)
+    want = np.asarray(matcher.match(colmap[0][0], colmap[0][1], colmap[1][0], colmap[1][1]), np.int64).reshape(-1, 2)
+    got = match_descriptors(features[0][2], features[1][2], 0.8)
+    assert len(got) > 50
+    assert set(map(tuple, got.tolist())) == set(map(tuple, want.tolist()))
+    assert len(match_descriptors(features[0][2][:0], features[1][2])) == 0
+    assert match_descriptors(features[0][2], features[1][2][:1]).shape[1] == 2  # one candidate: no ratio test

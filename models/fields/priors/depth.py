@@ -5,8 +5,8 @@ Pipeline (once per run, cached in the run directory):
 1. SIFT keypoints and descriptors of every training view (``pycolmap``'s CPU extractor, on the
    display-encoded grey image in [0, 1]); keypoint coordinates are COLMAP's, whose pixel centres are at
    +0.5, i.e. already the project's continuous pixel coordinates (``engine/core/frames.py``).
-2. Mutual nearest-neighbour matches with Lowe's ratio test (``pycolmap.FeatureMatcher``) between every
-   pair of training views. No pose is estimated: the poses are the views' own.
+2. Mutual nearest-neighbour matches with Lowe's ratio test (:func:`match_descriptors`: COLMAP's CPU matcher,
+   brute force in numpy) between every pair of training views. No pose is estimated: the poses are the views' own.
 3. Linear (DLT) triangulation of each match from the two OpenCV cameras ``P = K [R | t]``
    (:func:`triangulate_dlt`, float64), kept only if it lies in front of both cameras and reprojects within
    ``max_reprojection_error`` pixels in both (:func:`reprojection_errors`, with ``engine.geometry.project``).
@@ -40,8 +40,8 @@ from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
 
 __all__ = ["SparseDepthPrior", "SparseDepthPoints", "projection_matrix", "triangulate_dlt", "reprojection_errors",
-           "triangulate_checked", "sift_features", "match_views", "sparse_depth_points", "load_or_compute_sparse_depth",
-           "keypoint_rays", "scene_depth_scale", "SparseDepthState", "triangulation_angles"]
+           "triangulate_checked", "sift_features", "MAX_DESCRIPTOR_ANGLE", "match_descriptors", "match_views",
+           "sparse_depth_points", "load_or_compute_sparse_depth", "keypoint_rays", "scene_depth_scale", "SparseDepthState", "triangulation_angles"]
 
 
 @dataclass
@@ -205,8 +205,9 @@ def _extractor(max_features: int):
     return pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
 
 
-def sift_features(images: np.ndarray, max_features: int = 8192) -> list[tuple[np.ndarray, Any, Any]]:
-    """SIFT of (N, H, W, 3) linear-RGB images: per view (xy (M, 2) float64, pycolmap keypoints, descriptors).
+def sift_features(images: np.ndarray, max_features: int = 8192) -> list[tuple[np.ndarray, Any, np.ndarray]]:
+    """SIFT of (N, H, W, 3) linear-RGB images: per view (xy (M, 2) float64, pycolmap keypoints, descriptors
+    (M, 128) uint8, COLMAP's: L2-normalised to 512 and rounded).
 
     Features are taken on the display-encoded grey image in [0, 1]; ``xy`` are continuous pixel coordinates
     (pixel centres at +0.5, COLMAP's convention and the project's).
@@ -217,29 +218,57 @@ def sift_features(images: np.ndarray, max_features: int = 8192) -> list[tuple[np
         grey = np.ascontiguousarray(np.clip(display_encode(image).mean(axis=-1), 0.0, 1.0).astype(np.float32))
         keypoints, descriptors = extractor.extract_from_float32_array(grey)
         xy = np.array([[kp.x, kp.y] for kp in keypoints], np.float64).reshape(-1, 2)
-        out.append((xy, keypoints, descriptors))
+        out.append((xy, keypoints, np.asarray(descriptors.data, np.uint8).reshape(-1, 128)))
     return out
 
 
-def match_views(features, ratio: float = 0.8) -> dict[tuple[int, int], np.ndarray]:
-    """Mutual nearest-neighbour SIFT matches with a ratio test between every pair (a < b) of views:
-    ``{(a, b): (K, 2) int indices into a's and b's keypoints}`` (pairs with no feature give (0, 2))."""
-    import pycolmap
+#: COLMAP's SIFT matching defaults: the largest angle (radians) between matched descriptors.
+MAX_DESCRIPTOR_ANGLE = 0.7
 
-    options = pycolmap.FeatureMatchingOptions()
-    options.num_threads = 1
-    options.sift.max_ratio = float(ratio)
-    options.sift.cross_check = True
-    matcher = pycolmap.FeatureMatcher.create(options, pycolmap.Device.cpu)
-    pairs = {}
-    for a in range(len(features)):
-        for b in range(a + 1, len(features)):
-            (xa, ka, da), (xb, kb, db) = features[a], features[b]
-            if len(xa) == 0 or len(xb) == 0:
-                pairs[(a, b)] = np.zeros((0, 2), np.int64)
-                continue
-            pairs[(a, b)] = np.asarray(matcher.match(ka, da, kb, db), np.int64).reshape(-1, 2)
-    return pairs
+
+def match_descriptors(da: np.ndarray, db: np.ndarray, ratio: float = 0.8,
+                      max_angle: float = MAX_DESCRIPTOR_ANGLE) -> np.ndarray:
+    """Mutual nearest-neighbour matches of two sets of SIFT descriptors ((Na, 128), (Nb, 128) uint8, COLMAP's)
+    with Lowe's ratio test: ``(K, 2)`` int64 index pairs, sorted by the first index.
+
+    COLMAP's CPU matcher (``pycolmap.FeatureMatcher`` with cross check, its test oracle), brute force: the
+    angle between two descriptors is ``arccos(a . b / 512^2)``; a's best match j (smallest angle) is kept
+    when that angle is at most ``max_angle`` and below ``ratio`` times the second smallest, and when a is in
+    turn j's best match under the same test. The dot products of uint8 descriptors are integers below
+    2^24, exact in float32 (one matrix product; ~3x faster than pycolmap's matcher here).
+    """
+    if len(da) == 0 or len(db) == 0:
+        return np.zeros((0, 2), np.int64)
+    dots = np.asarray(da, np.float32) @ np.asarray(db, np.float32).T
+
+    def best(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each row's best column and whether it passes the distance and ratio tests."""
+        if d.shape[1] == 1:
+            top, values = np.zeros((d.shape[0], 1), np.int64), d
+        else:
+            top = np.argpartition(-d, 1, axis=1)[:, :2]
+            values = np.take_along_axis(d, top, axis=1)
+            swap = values[:, 1] > values[:, 0]
+            top[swap], values[swap] = top[swap, ::-1], values[swap, ::-1]
+        angles = np.arccos(np.minimum(values.astype(np.float64) / (512.0 * 512.0), 1.0))
+        ok = angles[:, 0] <= max_angle
+        if angles.shape[1] > 1:
+            ok &= angles[:, 0] < ratio * angles[:, 1]
+        return top[:, 0], ok
+
+    ab, ok_ab = best(dots)
+    ba, ok_ba = best(dots.T)
+    i = np.flatnonzero(ok_ab)
+    j = ab[i]
+    keep = ok_ba[j] & (ba[j] == i)
+    return np.stack([i[keep], j[keep]], axis=1).astype(np.int64)
+
+
+def match_views(features, ratio: float = 0.8) -> dict[tuple[int, int], np.ndarray]:
+    """Mutual nearest-neighbour SIFT matches with a ratio test between every pair (a < b) of views
+    (:func:`match_descriptors`): ``{(a, b): (K, 2) int indices into a's and b's keypoints}``."""
+    return {(a, b): match_descriptors(features[a][2], features[b][2], ratio)
+            for a in range(len(features)) for b in range(a + 1, len(features))}
 
 
 def sparse_depth_points(views, prior: SparseDepthPrior) -> SparseDepthPoints:

@@ -8,8 +8,8 @@ Pipeline (once per run, cached in ``RUN/priors/``):
    time**, each view with every view at time ``s``, where ``s`` is the available time nearest to
    ``t - offset`` and to ``t + offset`` frames (the frame interval is the median gap between trained times;
    ``s`` stays on its side of ``t``; a side with no time is skipped), as the thesis's s in {t - 10, t + 10}.
-3. Mutual nearest-neighbour matching with Lowe's ratio test (``pycolmap.FeatureMatcher``, as
-   ``priors_depth.match_views``).
+3. Mutual nearest-neighbour matching with Lowe's ratio test (``priors_depth.match_descriptors``: COLMAP's
+   CPU matcher, brute force in numpy).
 4. Geometric verification (:func:`verify_matches`):
    - every pair: a match is kept only if it moves coherently with its neighbours: at least ``min_coherent``
      of its ``neighbours`` nearest matches (in the first image) have a displacement within ``coherence_px``
@@ -51,7 +51,7 @@ from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
 from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
-from models.fields.priors.depth import keypoint_rays, sift_features
+from models.fields.priors.depth import keypoint_rays, match_descriptors, sift_features
 
 __all__ = ["SparseFlowPrior", "DynamicPriorsConfig", "FlowMatches", "flow_pairs", "fundamental_matrix",
            "sampson_distance", "coherent_matches", "verify_matches", "sparse_flow_matches",
@@ -217,16 +217,6 @@ def verify_matches(views, a: int, b: int, xy_a: np.ndarray, xy_b: np.ndarray, pr
     return keep
 
 
-def _matcher(ratio: float):
-    import pycolmap
-
-    options = pycolmap.FeatureMatchingOptions()  # the options of priors_depth.match_views
-    options.num_threads = 1
-    options.sift.max_ratio = float(ratio)
-    options.sift.cross_check = True
-    return pycolmap.FeatureMatcher.create(options, pycolmap.Device.cpu)
-
-
 def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4, consistency: float = 1.0
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Dense matches from OpenCV DIS optical flow (no downloaded weights): pixel centres of image a on a grid
@@ -253,7 +243,6 @@ def sparse_flow_matches(views, prior: SparseFlowPrior) -> FlowMatches:
     """Verified matches of the training views (:class:`~models.fields.data.timed.TimedViews`): SIFT
     (``source="sift"``) or dense DIS optical flow (``source="dis"``), then the same verification."""
     features = sift_features(views.images, prior.max_features) if prior.source == "sift" else None
-    matcher = None
     parts: dict[str, list] = {"va": [], "xa": [], "vb": [], "xb": [], "across": []}
     counts: dict[str, dict[str, Any]] = {}
     for a, b in flow_pairs(views.times, prior):
@@ -262,11 +251,8 @@ def sparse_flow_matches(views, prior: SparseFlowPrior) -> FlowMatches:
                                         prior.dense_consistency)
             idx = pa
         else:
-            (xa, ka, da), (xb, kb, db) = features[a], features[b]
-            idx = np.zeros((0, 2), np.int64)
-            if len(xa) and len(xb):
-                matcher = matcher or _matcher(prior.ratio)
-                idx = np.asarray(matcher.match(ka, da, kb, db), np.int64).reshape(-1, 2)
+            (xa, _, da), (xb, _, db) = features[a], features[b]
+            idx = match_descriptors(da, db, prior.ratio)
             pa, pb = xa[idx[:, 0]].reshape(-1, 2), xb[idx[:, 1]].reshape(-1, 2)
         keep = verify_matches(views, a, b, pa, pb, prior)
         across = bool(views.times[a] != views.times[b])

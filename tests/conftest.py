@@ -11,3 +11,21 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def sift_cache(tmp_path_factory):
+    """The per-view SIFT cache of the priors (``models.fields.priors.depth.feature_cache_dir``) in a folder of
+    this test session, not the user's ``~/.cache``."""
+    import os
+
+    from models.fields.priors.depth import CACHE_ENV
+
+    folder = tmp_path_factory.mktemp("sift-cache")
+    old = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = old

@@ -409,15 +409,38 @@ def test_numpy_matching_is_colmaps_matcher(brute_force):
     colmap = [extractor.extract_from_float32_array(np.ascontiguousarray(
         np.clip(display_encode(v).mean(axis=-1), 0.0, 1.0).astype(np.float32))) for v in views]
     for (_, descriptors), f in zip(colmap, features):
-        assert np.array_equal(np.asarray(descriptors.data), f[2])
+        assert np.array_equal(np.asarray(descriptors.data), f[1])
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = 1
     options.sift.max_ratio, options.sift.cross_check = 0.8, True
     options.sift.cpu_brute_force_matcher = brute_force
     matcher = pycolmap.FeatureMatcher.create(options, pycolmap.Device.cpu)
     want = np.asarray(matcher.match(colmap[0][0], colmap[0][1], colmap[1][0], colmap[1][1]), np.int64).reshape(-1, 2)
-    got = match_descriptors(features[0][2], features[1][2], 0.8)
+    got = match_descriptors(features[0][1], features[1][1], 0.8)
     assert len(got) > 50
     assert set(map(tuple, got.tolist())) == set(map(tuple, want.tolist()))
-    assert len(match_descriptors(features[0][2][:0], features[1][2])) == 0
-    assert match_descriptors(features[0][2], features[1][2][:1]).shape[1] == 2  # one candidate: no ratio test
+    assert len(match_descriptors(features[0][1][:0], features[1][1])) == 0
+    assert match_descriptors(features[0][1], features[1][1][:1]).shape[1] == 2  # one candidate: no ratio test
+
+
+def test_sift_features_are_extracted_once_per_view(tmp_path, monkeypatch):
+    from models.fields.priors import depth
+
+    views = _textured_pair()
+    first = depth.sift_features(views, 512, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("*.npz"))) == 2
+
+    def no_extraction(*_):
+        raise AssertionError("extracted again")
+
+    monkeypatch.setattr(depth, "_extractor", no_extraction)
+    again = depth.sift_features(views[::-1], 512, cache_dir=tmp_path)  # any order, any run
+    for (xy, d), (xy2, d2) in zip(first, again[::-1]):
+        assert np.array_equal(xy, xy2) and np.array_equal(d, d2)
+    with pytest.raises(AssertionError, match="extracted again"):  # another image, or another feature budget
+        depth.sift_features(views[:1] * 0.5, 512, cache_dir=tmp_path)
+    with pytest.raises(AssertionError, match="extracted again"):
+        depth.sift_features(views[:1], 256, cache_dir=tmp_path)
+    next(tmp_path.glob("*.npz")).write_bytes(b"damaged")  # a damaged entry is extracted again, not an error
+    monkeypatch.undo()
+    assert len(depth.sift_features(views, 512, cache_dir=tmp_path)) == 2

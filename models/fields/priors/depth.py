@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import warnings
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -40,8 +42,9 @@ from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
 
 __all__ = ["SparseDepthPrior", "SparseDepthPoints", "projection_matrix", "triangulate_dlt", "reprojection_errors",
-           "triangulate_checked", "sift_features", "MAX_DESCRIPTOR_ANGLE", "match_descriptors", "match_views",
-           "sparse_depth_points", "load_or_compute_sparse_depth", "keypoint_rays", "scene_depth_scale", "SparseDepthState", "triangulation_angles"]
+           "triangulate_checked", "CACHE_ENV", "feature_cache_dir", "sift_features", "MAX_DESCRIPTOR_ANGLE",
+           "match_descriptors", "match_views", "sparse_depth_points", "load_or_compute_sparse_depth", "keypoint_rays",
+           "scene_depth_scale", "SparseDepthState", "triangulation_angles"]
 
 
 @dataclass
@@ -205,20 +208,58 @@ def _extractor(max_features: int):
     return pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
 
 
-def sift_features(images: np.ndarray, max_features: int = 8192) -> list[tuple[np.ndarray, Any, np.ndarray]]:
-    """SIFT of (N, H, W, 3) linear-RGB images: per view (xy (M, 2) float64, pycolmap keypoints, descriptors
-    (M, 128) uint8, COLMAP's: L2-normalised to 512 and rounded).
+#: Environment variable naming the folder of the per-view SIFT cache (default ``~/.cache/interleave/sift``;
+#: an empty value switches the cache off).
+CACHE_ENV = "INTERLEAVE_SIFT_CACHE"
 
-    Features are taken on the display-encoded grey image in [0, 1]; ``xy`` are continuous pixel coordinates
-    (pixel centres at +0.5, COLMAP's convention and the project's).
+
+def feature_cache_dir() -> Optional[Path]:
+    """Where :func:`sift_features` keeps each view's features: ``$INTERLEAVE_SIFT_CACHE``, else
+    ``~/.cache/interleave/sift``; None when the variable is set empty."""
+    value = os.environ.get(CACHE_ENV)
+    if value is not None:
+        return Path(value) if value else None
+    return Path.home() / ".cache" / "interleave" / "sift"
+
+
+def sift_features(images: np.ndarray, max_features: int = 8192, *, cache_dir: Optional[Path] = None
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """SIFT of (N, H, W, 3) linear-RGB images: per view (xy (M, 2) float64, descriptors (M, 128) uint8,
+    COLMAP's: L2-normalised to 512 and rounded).
+
+    Features are taken on the display-encoded grey image in [0, 1] (``pycolmap``'s CPU extractor); ``xy`` are
+    continuous pixel coordinates (pixel centres at +0.5, COLMAP's convention and the project's). With
+    ``cache_dir`` each view's features are kept there under the SHA-1 of its grey image, ``max_features``
+    and the pycolmap version: a view is extracted once whatever run, prior or pair uses it.
     """
-    extractor = _extractor(max_features)
+    import pycolmap
+
+    extractor = None
     out = []
     for image in images:
         grey = np.ascontiguousarray(np.clip(display_encode(image).mean(axis=-1), 0.0, 1.0).astype(np.float32))
+        cached = None
+        if cache_dir is not None:
+            digest = hashlib.sha1(grey.tobytes())
+            digest.update(f"{grey.shape} {int(max_features)} {pycolmap.__version__}".encode())
+            cached = Path(cache_dir) / f"{digest.hexdigest()}.npz"
+            if cached.is_file():
+                try:
+                    with np.load(cached) as data:
+                        out.append((data["xy"], data["descriptors"]))
+                    continue
+                except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # a damaged entry: extract again
+                    pass
+        extractor = extractor or _extractor(max_features)
         keypoints, descriptors = extractor.extract_from_float32_array(grey)
         xy = np.array([[kp.x, kp.y] for kp in keypoints], np.float64).reshape(-1, 2)
-        out.append((xy, keypoints, np.asarray(descriptors.data, np.uint8).reshape(-1, 128)))
+        features = (xy, np.asarray(descriptors.data, np.uint8).reshape(-1, 128))
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            partial = cached.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(partial, xy=features[0], descriptors=features[1])
+            os.replace(partial, cached)  # whole files only, also with two runs at once
+        out.append(features)
     return out
 
 
@@ -267,13 +308,13 @@ def match_descriptors(da: np.ndarray, db: np.ndarray, ratio: float = 0.8,
 def match_views(features, ratio: float = 0.8) -> dict[tuple[int, int], np.ndarray]:
     """Mutual nearest-neighbour SIFT matches with a ratio test between every pair (a < b) of views
     (:func:`match_descriptors`): ``{(a, b): (K, 2) int indices into a's and b's keypoints}``."""
-    return {(a, b): match_descriptors(features[a][2], features[b][2], ratio)
+    return {(a, b): match_descriptors(features[a][1], features[b][1], ratio)
             for a in range(len(features)) for b in range(a + 1, len(features))}
 
 
 def sparse_depth_points(views, prior: SparseDepthPrior) -> SparseDepthPoints:
     """Triangulated SIFT depths of ``views`` (a :class:`~models.fields.data.views.Views`), see the module doc."""
-    features = sift_features(views.images, prior.max_features)
+    features = sift_features(views.images, prior.max_features, cache_dir=feature_cache_dir())
     pairs = match_views(features, prior.ratio)
     view_l, xy_l, depth_l, err_l, counts = [], [], [], [], {}
     for (a, b), idx in pairs.items():

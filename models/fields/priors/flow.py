@@ -2,8 +2,9 @@
 
 Pipeline (once per run, cached in ``RUN/priors/``):
 
-1. SIFT keypoints and descriptors of every training view (``priors_depth.sift_features``: ``pycolmap``'s CPU
-   extractor on the display-encoded grey image; keypoints in continuous pixel coordinates, centres at +0.5).
+1. SIFT keypoints and descriptors of every training view (``priors_depth.sift_features``, cached per view
+   across runs: ``pycolmap``'s CPU extractor on the display-encoded grey image; keypoints in continuous pixel
+   coordinates, centres at +0.5).
 2. Frame pairs (:func:`flow_pairs`): **across cameras**, every pair of views taken at the same time; **across
    time**, each view with every view at time ``s``, where ``s`` is the available time nearest to
    ``t - offset`` and to ``t + offset`` frames (the frame interval is the median gap between trained times;
@@ -51,7 +52,7 @@ from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
 from models.fields.components.render import module_device
 from models.fields.losses import LossInputs, register_loss_term
-from models.fields.priors.depth import keypoint_rays, match_descriptors, sift_features
+from models.fields.priors.depth import feature_cache_dir, keypoint_rays, match_descriptors, sift_features
 
 __all__ = ["SparseFlowPrior", "DynamicPriorsConfig", "FlowMatches", "flow_pairs", "fundamental_matrix",
            "sampson_distance", "coherent_matches", "verify_matches", "sparse_flow_matches",
@@ -242,7 +243,8 @@ def dense_flow_matches(image_a: np.ndarray, image_b: np.ndarray, stride: int = 4
 def sparse_flow_matches(views, prior: SparseFlowPrior) -> FlowMatches:
     """Verified matches of the training views (:class:`~models.fields.data.timed.TimedViews`): SIFT
     (``source="sift"``) or dense DIS optical flow (``source="dis"``), then the same verification."""
-    features = sift_features(views.images, prior.max_features) if prior.source == "sift" else None
+    features = (sift_features(views.images, prior.max_features, cache_dir=feature_cache_dir())
+                if prior.source == "sift" else None)
     parts: dict[str, list] = {"va": [], "xa": [], "vb": [], "xb": [], "across": []}
     counts: dict[str, dict[str, Any]] = {}
     for a, b in flow_pairs(views.times, prior):
@@ -251,7 +253,7 @@ def sparse_flow_matches(views, prior: SparseFlowPrior) -> FlowMatches:
                                         prior.dense_consistency)
             idx = pa
         else:
-            (xa, _, da), (xb, _, db) = features[a], features[b]
+            (xa, da), (xb, db) = features[a], features[b]
             idx = match_descriptors(da, db, prior.ratio)
             pa, pb = xa[idx[:, 0]].reshape(-1, 2), xb[idx[:, 1]].reshape(-1, 2)
         keep = verify_matches(views, a, b, pa, pb, prior)

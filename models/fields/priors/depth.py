@@ -276,7 +276,8 @@ def match_descriptors(da: np.ndarray, db: np.ndarray, ratio: float = 0.8,
     angle between two descriptors is ``arccos(a . b / 512^2)``; a's best match j (smallest angle) is kept
     when that angle is at most ``max_angle`` and below ``ratio`` times the second smallest, and when a is in
     turn j's best match under the same test. The dot products of uint8 descriptors are integers below
-    2^24, exact in float32 (one matrix product; ~3x faster than pycolmap's matcher here).
+    2^24, exact in float32 (one matrix product; 7x faster than pycolmap's matcher on a rig's 1448 pairs,
+    ``docs/results/2026-11-28-flow-prior-cost.md``).
     """
     if len(da) == 0 or len(db) == 0:
         return np.zeros((0, 2), np.int64)

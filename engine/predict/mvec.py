@@ -32,12 +32,17 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
+from engine.geometry.rigid import (fit_rigid, hindcast_keeps, motion_components, previous_positions, refined_before,
+                                   rigid_parts, screw_coefficients, se3_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
-__all__ = ["MvecConfig", "MvecState", "Mvec"]
+__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS"]
+
+#: the values of ``MvecConfig.extrapolation``
+EXTRAPOLATIONS = ("linear", "rigid")
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,13 @@ class MvecConfig:
                                       "(the parabola through the last three positions)")
     acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
                                             "smooth motion (larger: constant velocity)")
+    extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
+                                          "pixels grouped into rigid parts by their 3D motion, each part turned "
+                                          "and moved on a screw (constant angular and linear velocity)")
+    fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
+                                   "interval before, explained the last interval worse than no object motion "
+                                   "takes the camera-only warp")
+    rigid_threshold: float = option(1.0, "pixels: largest residual of a point that moves with its rigid part")
 
     def __post_init__(self) -> None:
         if not (self.static_tolerance >= 0 and np.isfinite(self.static_tolerance)):
@@ -62,6 +74,11 @@ class MvecConfig:
             raise InputError(f"must be finite and > 1, got {self.depth_band}", field="depth_band")
         if not (self.acceleration_limit >= 0 and np.isfinite(self.acceleration_limit)):
             raise InputError(f"must be finite and >= 0, got {self.acceleration_limit}", field="acceleration_limit")
+        if self.extrapolation not in EXTRAPOLATIONS:
+            raise InputError(f"must be one of {', '.join(EXTRAPOLATIONS)}, got {self.extrapolation!r}",
+                             field="extrapolation")
+        if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
+            raise InputError(f"must be finite and > 0, got {self.rigid_threshold}", field="rigid_threshold")
 
 
 @dataclass
@@ -74,6 +91,9 @@ class MvecState:
     moving: np.ndarray
     acceleration: Optional[np.ndarray] = None
     frame: Optional[ResidentFrame] = None
+    #: rigid parts found (``extrapolation=rigid``) and moving pixels held to the camera-only warp (``fallback``)
+    parts: int = 0
+    held: int = 0
     #: the motion where the backend computes (``PointMotion``; on ``gl`` uploaded once, extrapolated there)
     motion: Any = None
 
@@ -118,23 +138,34 @@ class Mvec(Predictor):
                              "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'flow2d' or 'auto'",
                              frame=newest.index, field="motion_vectors")
         self._previous = self._last
+        cfg = self.config
         with timer("vectors"):
             vectors = self._vectors(newest)
         with timer("velocity"):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
-        state_data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
-        if self.config.acceleration and moving.size and len(state.history) >= 3:
+        data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
+        before = None
+        if moving.size and len(state.history) >= 3 and (cfg.acceleration or cfg.fallback):
             with timer("acceleration"):
-                state_data.acceleration = self._acceleration(state.history[-3:], vectors, state_data)
+                before = self._before(state.history[-3:])
+                if cfg.acceleration and before is not None:
+                    data.acceleration = velocity_change(newest.depth, vectors, velocity, moving, newest.camera,
+                                                        older.camera, older.depth, before[0], before[1],
+                                                        band=cfg.depth_band, limit=cfg.acceleration_limit)
         if moving.size:
-            state_data.motion = self.frames.resident_flow(PointMotion(velocity, moving, state_data.acceleration),
-                                                          timer)
-        return state_data
+            motion = PointMotion(velocity, moving, data.acceleration)
+            if cfg.extrapolation == "rigid" or (cfg.fallback and before is not None):
+                with timer("rigid"):
+                    motion = self._shaped(state.history, vectors, data, before)
+            if motion.moving.size:
+                data.motion = self.frames.resident_flow(motion, timer)
+        return data
 
-    def _acceleration(self, frames, vectors: np.ndarray, data: MvecState) -> Optional[np.ndarray]:
-        """The change of velocity of the moving pixels of frame n (``velocity_change``) from frames n-2k, n-k
-        and frame n-k's vectors; None when frame n-k has none or the three frames do not line up."""
+    def _before(self, frames) -> Optional[tuple[np.ndarray, float]]:
+        """Frame n-k's velocity (since n-2k, its camera's axes) and the ratio of the last interval to the one
+        before, from frames n-2k, n-k, n; None when frame n-k has no vectors or the three do not line up. A
+        stream prepares every rendered frame in turn: the velocity of the last preparation is reused."""
         first, older, newest = frames
         if (older.motion_vectors is None or first.depth.shape != older.depth.shape
                 or not first.time < older.time < newest.time):
@@ -142,10 +173,63 @@ class Mvec(Predictor):
         key, before = self._previous
         if key != self._key(older, first):
             before, _ = self._velocity(older, first, self._vectors(older))
-        ratio = (newest.time - older.time) / (older.time - first.time)
-        return velocity_change(newest.depth, vectors, data.velocity, data.moving, newest.camera, older.camera,
-                               older.depth, before, ratio, band=self.config.depth_band,
-                               limit=self.config.acceleration_limit)
+        return before, (newest.time - older.time) / (older.time - first.time)
+
+    def _shaped(self, history, vectors: np.ndarray, data: MvecState,
+                before: Optional[tuple[np.ndarray, float]]) -> PointMotion:
+        """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
+        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's screw (with the change of
+        twist of the interval before where the three frames agree); the others keep their line or parabola.
+        With ``fallback`` (and frame n-2k), each region (a rigid part, or the rest of a group of pixels that
+        move alike) whose motion of the interval before, extrapolated, explained the last interval worse than
+        no object motion is left out: it takes the camera-only warp."""
+        cfg = self.config
+        older, newest = history[-2], history[-1]
+        k = np.asarray(newest.camera.intrinsics, np.float64)
+        moving = data.moving
+        h, w = newest.depth.shape
+        y, x = np.divmod(moving, w)
+        z = newest.depth.reshape(-1)[moving].astype(np.float64)
+        now = (np.stack([x + 0.5, y + 0.5, np.ones(moving.size)], axis=-1) @ np.linalg.inv(k).T) * z[:, None]
+        speed = data.velocity.reshape(-1, 3)[moving].astype(np.float64)
+        then = now - speed
+        labels, count = motion_components((h, w), moving, now, speed)
+        relative = older.camera.world_to_camera @ newest.camera.camera_to_world
+        earlier = valid = predicted = None
+        if before is not None:
+            earlier, valid = previous_positions(newest.depth, vectors, moving, then, relative, older.depth,
+                                                before[0], before[1], band=cfg.depth_band)
+            predicted = 2.0 * then - earlier  # the interval before, extrapolated: constant velocity
+        out_v = speed.copy()
+        out_a = (np.zeros_like(speed) if data.acceleration is None else data.acceleration.astype(np.float64))
+        regions = labels.copy()
+        parts = []
+        if cfg.extrapolation == "rigid":
+            fitted = refined_before(then, vectors, moving, relative, older.depth, older.camera.intrinsics)
+            parts = rigid_parts(labels, count, now, fitted, k[0, 0] / z, threshold=cfg.rigid_threshold)
+            for i, part in enumerate(parts):
+                members = part.members
+                twist = se3_log(part.rotation, part.translation)
+                change = None
+                seen = members[valid[members]] if valid is not None else members[:0]
+                if seen.size >= max(3, members.size // 2):  # the part's transform of the interval before
+                    r0, t0 = fit_rigid(earlier[seen], then[seen])
+                    predicted[members] = then[members] @ r0.T + t0
+                    err = np.linalg.norm(now[seen] - predicted[seen], axis=-1).mean()
+                    if cfg.acceleration and err <= cfg.acceleration_limit * np.linalg.norm(speed[seen], axis=-1).mean():
+                        change = twist - se3_log(r0, t0)
+                out_v[members], out_a[members] = screw_coefficients(now[members], twist, change)
+                regions[members] = count + i
+        data.parts = len(parts)
+        keep = np.ones(moving.size, dtype=bool)
+        if cfg.fallback and earlier is not None:
+            keep = hindcast_keeps(regions, count + len(parts), now, then, predicted, valid, k)[regions]
+        data.held = int(moving.size - keep.sum())
+        velocity = np.zeros_like(data.velocity)
+        kept = moving[keep]
+        velocity.reshape(-1, 3)[kept] = out_v[keep]
+        accelerated = bool(parts) or data.acceleration is not None
+        return PointMotion(velocity, kept, out_a[keep].astype(np.float32) if accelerated else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

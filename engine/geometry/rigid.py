@@ -32,12 +32,16 @@ from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
 
-__all__ = ["RigidPart", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
-           "robust_rigid", "rigid_parts", "screw_coefficients", "refined_before", "previous_positions", "hindcast_keeps",
+__all__ = ["MAX_TURN", "RigidPart", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
+           "robust_rigid", "rigid_parts", "parabola_through", "screw_coefficients", "spin_coefficients", "part_motion",
+           "refined_before", "previous_positions", "hindcast_keeps",
            "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 1024
+#: radians: the largest turn per interval taken as a rigid part's motion (faster turns alias: a turn of
+#: 200 degrees looks like one of -160) and allowed between neighbours of one group (``motion_components``)
+MAX_TURN = 1.2
 
 
 @dataclass(frozen=True)
@@ -193,7 +197,7 @@ def _union_components(index, points, velocity, band, slope, relative, labels):  
 
 
 def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray, velocity: np.ndarray, *,
-                      depth_band: float = 1.1, max_angle: float = 1.2,
+                      depth_band: float = 1.1, max_angle: float = MAX_TURN,
                       relative: float = 0.05) -> tuple[np.ndarray, int]:
     """The moving pixels in groups that may move as one rigid body: (labels (M,) int64, count).
 
@@ -283,11 +287,19 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
     return parts
 
 
+def parabola_through(points: np.ndarray, moved) -> tuple[np.ndarray, np.ndarray]:
+    """The (V, A) (N, 3) of the parabola ``P + s V + s (s + 1) / 2 A`` through a path ``P + moved(s)`` at
+    s = 0, 1/2 and 1 (``moved(s)``: the (N, 3) displacement of ``points`` after s intervals; 0 at s = 0)."""
+    whole, half = moved(1.0), moved(0.5)
+    acceleration = 4.0 * (whole - 2.0 * half)
+    return whole - acceleration, acceleration
+
+
 def screw_coefficients(points: np.ndarray, twist: np.ndarray,
                        change: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """The (V, A) (N, 3) of points (N, 3) moving on the screw path ``exp(s xi + s (s + 1) / 2 dxi) P`` (``xi``
-    = ``twist`` of an interval, ``dxi`` = ``change``, the twist's change since the interval before, or 0), so
-    that ``P + s V + s (s + 1) / 2 A`` passes through the path at s = 0, 1/2 and 1."""
+    = ``twist`` of an interval, ``dxi`` = ``change``, the twist's change since the interval before, or 0):
+    a turn about a fixed axis (a wheel on its axle, a door, a carousel), as ``parabola_through`` writes it."""
     change = np.zeros(6) if change is None else np.asarray(change, np.float64)
     p = np.asarray(points, np.float64)
 
@@ -295,9 +307,61 @@ def screw_coefficients(points: np.ndarray, twist: np.ndarray,
         r, t = se3_exp(s * twist + 0.5 * s * (s + 1.0) * change)
         return p @ r.T + t - p
 
-    whole, half = moved(1.0), moved(0.5)
-    acceleration = 4.0 * (whole - 2.0 * half)
-    return whole - acceleration, acceleration
+    return parabola_through(p, moved)
+
+
+def spin_coefficients(points: np.ndarray, rotation: np.ndarray, centre: np.ndarray, velocity: np.ndarray,
+                      change: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """The (V, A) (N, 3) of points (N, 3) turning by ``rotation`` per interval about their ``centre`` (3,)
+    while the centre moves by ``velocity`` per interval (plus ``s (s + 1) / 2 change``): a thrown, tumbling
+    body, as ``parabola_through`` writes it."""
+    p = np.asarray(points, np.float64)
+    w = rotation_log(rotation)
+    change = np.zeros(3) if change is None else np.asarray(change, np.float64)
+
+    def moved(s: float) -> np.ndarray:
+        return centre + s * velocity + 0.5 * s * (s + 1.0) * change + (p - centre) @ rotation_exp(s * w).T - p
+
+    return parabola_through(p, moved)
+
+
+def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray], seen: np.ndarray,
+                rotation: np.ndarray, translation: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
+                threshold: float = 1.0, limit: float = 0.5) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    """One rigid part's extrapolated motion: (V, A) (N, 3) for ``parabola_through``, and where the motion of the
+    interval before put its points at frame n (N, 3), or None when that interval is unknown.
+
+    A part's two frames fix its transform over the interval, not its path: the same transform is a turn
+    about a fixed axis (``screw_coefficients``) or a spin about the part's centre while the centre moves on
+    a line (``spin_coefficients``). With the positions ``earlier`` (n-2k) of the points ``seen`` then (a
+    boolean mask, at least half the part), the transform of the interval before is fitted
+    (``robust_rigid``, from a tenth of them or more) and each path, continued over the last interval, predicts frame n: the path that
+    predicts it better is taken, with its change since the interval before where that prediction is within
+    ``limit`` of the motion (three frames agree; else constant velocities). Without them: the screw
+    (constant angular and linear velocity on SE(3)), which holds for any rigid motion of constant twist."""
+    centre, centre_then = now.mean(axis=0), then.mean(axis=0)
+    spin = (now, rotation, centre, centre - centre_then)
+    twist = se3_log(rotation, translation)
+    if earlier is None or seen.sum() < max(3, len(now) // 2):
+        return screw_coefficients(now, twist) + (None,)
+    idx = np.flatnonzero(seen)
+    r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold)
+    if fits.sum() < max(16, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
+        return screw_coefficients(now, twist) + (None,)
+    idx = idx[fits]
+    twist0 = se3_log(r0, t0)
+    screw = then @ r0.T + t0
+    # the spin path: the centre (of the seen points) moving on, the part turning about it by r0
+    c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
+    turned = (then - c1) @ r0.T + 2.0 * c1 - c0
+    err_screw = np.linalg.norm(screw[idx] - now[idx], axis=-1)
+    err_spin = np.linalg.norm(turned[idx] - now[idx], axis=-1)
+    motion = np.linalg.norm(now[idx] - then[idx], axis=-1).mean()
+    if err_screw.mean() <= err_spin.mean():
+        change = twist - twist0 if err_screw.mean() <= limit * motion else None
+        return screw_coefficients(now, twist, change) + (screw,)
+    change = (centre - centre_then) - (c1 - c0) if err_spin.mean() <= limit * motion else None
+    return spin_coefficients(*spin, change) + (turned,)
 
 
 def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
@@ -338,7 +402,8 @@ def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, 
 
 def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
                        relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
-                       interval_ratio: float = 1.0, band: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+                       interval_ratio: float = 1.0, band: float = 1.5, first=None,
+                       check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
     """Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
     (positions (M, 3) float64, valid (M,) bool).
 
@@ -346,7 +411,11 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
     (its own camera axes, per its interval) is read at the pixel of frame n-k the vector lands in (nearest),
     where that pixel shows the point (its depth within the ratio ``band`` of the point's depth there),
     rotated into frame n's axes (``relative``: frame n's camera -> frame n-k's camera, 4x4) and scaled by
-    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen)."""
+    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen).
+    ``first`` = (depth (h, w), intrinsics, 4x4 frame n's camera -> frame n-2k's camera) checks each position
+    against frame n-2k itself: valid only where frame n-2k's depth at its pixel is within the ratio ``check``
+    of its depth there (frame n-k's velocity is a guess where frame n-2k did not see the point: a face
+    turning into view)."""
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
     vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
@@ -368,7 +437,19 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
         off = np.maximum(seen / bz, bz / seen)
     valid = inside & (bz > 0) & np.isfinite(seen) & (off <= band)
     velocity = prev_velocity[yi, xi].astype(np.float64) @ relative[:3, :3] * interval_ratio  # R^T v: into n's axes
-    return before - velocity, valid
+    earlier = before - velocity
+    if first is not None:
+        first_depth, first_k, view = first
+        fh, fw = first_depth.shape
+        there = earlier @ view[:3, :3].T + view[:3, 3]
+        at = project_points(there, first_k)
+        ok = np.isfinite(at).all(axis=1) & (at[:, 0] >= 0) & (at[:, 0] < fw) & (at[:, 1] >= 0) & (at[:, 1] < fh)
+        fx = np.where(ok, at[:, 0], 0).astype(np.int64)
+        fy = np.where(ok, at[:, 1], 0).astype(np.int64)
+        seen0 = first_depth[fy, fx].astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            valid &= ok & (np.maximum(seen0 / there[:, 2], there[:, 2] / seen0) <= check)
+    return earlier, valid
 
 
 def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.ndarray, predicted: np.ndarray,

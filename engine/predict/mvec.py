@@ -32,8 +32,8 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (fit_rigid, hindcast_keeps, motion_components, previous_positions, refined_before,
-                                   rigid_parts, screw_coefficients, se3_log)
+from engine.geometry.rigid import (MAX_TURN, hindcast_keeps, motion_components, part_motion, previous_positions,
+                                   refined_before, rigid_parts, rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -197,8 +197,11 @@ class Mvec(Predictor):
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
         earlier = valid = predicted = None
         if before is not None:
+            first = history[-3]
             earlier, valid = previous_positions(newest.depth, vectors, moving, then, relative, older.depth,
-                                                before[0], before[1], band=cfg.depth_band)
+                                                before[0], before[1], band=cfg.depth_band,
+                                                first=(first.depth, first.camera.intrinsics,
+                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
             predicted = 2.0 * then - earlier  # the interval before, extrapolated: constant velocity
         out_v = speed.copy()
         out_a = (np.zeros_like(speed) if data.acceleration is None else data.acceleration.astype(np.float64))
@@ -206,19 +209,19 @@ class Mvec(Predictor):
         parts = []
         if cfg.extrapolation == "rigid":
             fitted = refined_before(then, vectors, moving, relative, older.depth, older.camera.intrinsics)
-            parts = rigid_parts(labels, count, now, fitted, k[0, 0] / z, threshold=cfg.rigid_threshold)
+            scale = k[0, 0] / z
+            parts = [p for p in rigid_parts(labels, count, now, fitted, scale, threshold=cfg.rigid_threshold)
+                     if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
+            rng = np.random.default_rng(0)
             for i, part in enumerate(parts):
                 members = part.members
-                twist = se3_log(part.rotation, part.translation)
-                change = None
-                seen = members[valid[members]] if valid is not None else members[:0]
-                if seen.size >= max(3, members.size // 2):  # the part's transform of the interval before
-                    r0, t0 = fit_rigid(earlier[seen], then[seen])
-                    predicted[members] = then[members] @ r0.T + t0
-                    err = np.linalg.norm(now[seen] - predicted[seen], axis=-1).mean()
-                    if cfg.acceleration and err <= cfg.acceleration_limit * np.linalg.norm(speed[seen], axis=-1).mean():
-                        change = twist - se3_log(r0, t0)
-                out_v[members], out_a[members] = screw_coefficients(now[members], twist, change)
+                seen = valid[members] if valid is not None else np.zeros(members.size, dtype=bool)
+                out_v[members], out_a[members], hindcast = part_motion(
+                    now[members], fitted[members], None if earlier is None else earlier[members], seen,
+                    part.rotation, part.translation, scale[members], rng, threshold=cfg.rigid_threshold,
+                    limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                if hindcast is not None:
+                    predicted[members] = hindcast
                 regions[members] = count + i
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
@@ -243,3 +246,4 @@ class Mvec(Predictor):
             return self.frames.warp_and_fill(state.data.frame, target, timer)
         return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion,
                                          extrapolation_factor(state, target))
+

@@ -65,6 +65,9 @@ class MvecConfig:
     fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
                                    "interval before, explained the last interval worse than no object motion "
                                    "takes the camera-only warp")
+    fallback_ratio: float = option(1.5, "a region falls back when its motion's error over the last interval "
+                                        "exceeds this many times the error of no object motion (a reversal: "
+                                        "2, a stop: more; a turn by 90 degrees: 1.41, kept)")
     rigid_threshold: float = option(1.0, "pixels: largest residual of a point that moves with its rigid part")
 
     def __post_init__(self) -> None:
@@ -77,6 +80,8 @@ class MvecConfig:
         if self.extrapolation not in EXTRAPOLATIONS:
             raise InputError(f"must be one of {', '.join(EXTRAPOLATIONS)}, got {self.extrapolation!r}",
                              field="extrapolation")
+        if not (self.fallback_ratio > 0 and np.isfinite(self.fallback_ratio)):
+            raise InputError(f"must be finite and > 0, got {self.fallback_ratio}", field="fallback_ratio")
         if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
             raise InputError(f"must be finite and > 0, got {self.rigid_threshold}", field="rigid_threshold")
 
@@ -226,7 +231,8 @@ class Mvec(Predictor):
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
         if cfg.fallback and earlier is not None:
-            keep = hindcast_keeps(regions, count + len(parts), now, then, predicted, valid, k)[regions]
+            keep = hindcast_keeps(regions, count + len(parts), now, then, predicted, valid, k,
+                                  ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())
         velocity = np.zeros_like(data.velocity)
         kept = moving[keep]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Optional
 
 import numpy as np
@@ -32,7 +33,7 @@ from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
 
-__all__ = ["MAX_TURN", "RigidPart", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
+__all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
            "robust_rigid", "rigid_parts", "parabola_through", "screw_coefficients", "spin_coefficients", "part_motion",
            "refined_before", "previous_positions", "hindcast_keeps",
            "project_points"]
@@ -108,6 +109,14 @@ def se3_exp(twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rotation_exp(w), _left_jacobian(w) @ rho
 
 
+def transform_points(points: np.ndarray, matrix: np.ndarray, offset=0.0) -> np.ndarray:
+    """``points @ matrix.T + offset`` for points (N, 3) and a 3x3 ``matrix``, by columns: a BLAS product of
+    that shape is slow and, on a busy machine, starts threads that wait on each other."""
+    p = np.asarray(points, np.float64)
+    m = np.asarray(matrix, np.float64)
+    return p[:, 0:1] * m[:, 0] + p[:, 1:2] * m[:, 1] + p[:, 2:3] * m[:, 2] + offset
+
+
 def fit_rigid(src: np.ndarray, dst: np.ndarray,
               weights: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """The least-squares rigid transform ``dst ~ R src + t`` (Kabsch, optional per-point ``weights``),
@@ -117,7 +126,7 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray,
     w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
     total = w.sum()
     cs, cd = (w @ src) / total, (w @ dst) / total
-    u, _, vt = np.linalg.svd(((src - cs) * w[:, None]).T @ (dst - cd))
+    u, _, vt = np.linalg.svd(np.einsum("ni,nj->ij", (src - cs) * w[:, None], dst - cd))
     d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     return r, cd - r @ cs
@@ -252,12 +261,12 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.ra
     score = (np.linalg.norm(moved - dst[sample], axis=-1) * scale[sample] <= threshold).sum(axis=1)
     best = int(np.argmax(score))
     rotation, translation = r[best], t[best]
-    inliers = np.linalg.norm(src @ rotation.T + translation - dst, axis=-1) * scale <= threshold
+    inliers = np.linalg.norm(transform_points(src, rotation, translation) - dst, axis=-1) * scale <= threshold
     for _ in range(rounds):
         if inliers.sum() < 3:
             break
         rotation, translation = fit_rigid(src[inliers], dst[inliers])
-        inliers = np.linalg.norm(src @ rotation.T + translation - dst, axis=-1) * scale <= threshold
+        inliers = np.linalg.norm(transform_points(src, rotation, translation) - dst, axis=-1) * scale <= threshold
     return rotation, translation, inliers
 
 
@@ -294,13 +303,17 @@ NODES = (0.25, 0.75)
 
 
 def parabola_through(points: np.ndarray, moved) -> tuple[np.ndarray, np.ndarray]:
-    """The (V, A) (N, 3) of the parabola ``P + s V + s (s + 1) / 2 A`` through a path ``P + moved(s)`` at
-    s = 0 and the two ``NODES`` (``moved(s)``: the (N, 3) displacement of ``points`` after s intervals)."""
+    """The (V, A) (N, 3) of the parabola ``P + s V + s (s + 1) / 2 A`` through a rigid path of ``points`` at
+    s = 0 and the two ``NODES``: ``moved(s)`` = (R_s, t_s), the path's transform after s intervals (so the
+    displacement ``(R_s - I) P + t_s`` and V and A are affine in P: two 3x3 products per point)."""
     a, b = NODES
-    da, db = moved(a), moved(b)
-    # s V + s (s + 1) / 2 A = D(s) at s = a, b
-    acceleration = 2.0 * (db / b - da / a) / (b - a)
-    return da / a - 0.5 * (a + 1.0) * acceleration, acceleration
+    (ra, ta), (rb, tb) = moved(a), moved(b)
+    ma, mb = ra - np.eye(3), rb - np.eye(3)
+    # s V + s (s + 1) / 2 A = D(s) at s = a, b, for the matrix and the offset alike
+    acc_m, acc_t = 2.0 * (mb / b - ma / a) / (b - a), 2.0 * (tb / b - ta / a) / (b - a)
+    vel_m, vel_t = ma / a - 0.5 * (a + 1.0) * acc_m, ta / a - 0.5 * (a + 1.0) * acc_t
+    p = np.asarray(points, np.float64)
+    return transform_points(p, vel_m, vel_t), transform_points(p, acc_m, acc_t)
 
 
 def screw_coefficients(points: np.ndarray, twist: np.ndarray,
@@ -309,13 +322,7 @@ def screw_coefficients(points: np.ndarray, twist: np.ndarray,
     = ``twist`` of an interval, ``dxi`` = ``change``, the twist's change since the interval before, or 0):
     a turn about a fixed axis (a wheel on its axle, a door, a carousel), as ``parabola_through`` writes it."""
     change = np.zeros(6) if change is None else np.asarray(change, np.float64)
-    p = np.asarray(points, np.float64)
-
-    def moved(s: float) -> np.ndarray:
-        r, t = se3_exp(s * twist + 0.5 * s * (s + 1.0) * change)
-        return p @ r.T + t - p
-
-    return parabola_through(p, moved)
+    return parabola_through(points, lambda s: se3_exp(s * twist + 0.5 * s * (s + 1.0) * change))
 
 
 def spin_coefficients(points: np.ndarray, rotation: np.ndarray, centre: np.ndarray, velocity: np.ndarray,
@@ -323,53 +330,53 @@ def spin_coefficients(points: np.ndarray, rotation: np.ndarray, centre: np.ndarr
     """The (V, A) (N, 3) of points (N, 3) turning by ``rotation`` per interval about their ``centre`` (3,)
     while the centre moves by ``velocity`` per interval (plus ``s (s + 1) / 2 change``): a thrown, tumbling
     body, as ``parabola_through`` writes it."""
-    p = np.asarray(points, np.float64)
     w = rotation_log(rotation)
     change = np.zeros(3) if change is None else np.asarray(change, np.float64)
 
-    def moved(s: float) -> np.ndarray:
-        return centre + s * velocity + 0.5 * s * (s + 1.0) * change + (p - centre) @ rotation_exp(s * w).T - p
+    def moved(s: float) -> tuple[np.ndarray, np.ndarray]:
+        r = rotation_exp(s * w)
+        return r, centre + s * velocity + 0.5 * s * (s + 1.0) * change - r @ centre
 
-    return parabola_through(p, moved)
+    return parabola_through(points, moved)
 
 
 def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray], seen: np.ndarray,
                 rotation: np.ndarray, translation: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
-                threshold: float = 1.0, limit: float = 0.5) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
-    """One rigid part's extrapolated motion: (V, A) (N, 3) for ``parabola_through``, and where the motion of the
-    interval before put its points at frame n (N, 3), or None when that interval is unknown.
+                threshold: float = 1.0, limit: float = 0.5):
+    """One rigid part's path, from (a sample of) its points: (``path``, ``predicted``). ``path(points)`` gives
+    the (V, A) (N, 3) of any of the part's points (``parabola_through``); ``predicted`` (N, 3) is where the
+    motion of the interval before put the given points at frame n, or None when that interval is unknown.
 
     A part's two frames fix its transform over the interval, not its path: the same transform is a turn
     about a fixed axis (``screw_coefficients``) or a spin about the part's centre while the centre moves on
     a line (``spin_coefficients``). With the positions ``earlier`` (n-2k) of the points ``seen`` then (a
-    boolean mask, at least half the part), the transform of the interval before is fitted
-    (``robust_rigid``, from a tenth of them or more) and each path, continued over the last interval, predicts frame n: the path that
-    predicts it better is taken, with its change since the interval before where that prediction is within
-    ``limit`` of the motion (three frames agree; else constant velocities). Without them: the screw
+    boolean mask, at least half the part), the transform of the interval before is fitted (``robust_rigid``,
+    from a tenth of them or more) and each path, continued over the last interval, predicts frame n: the path
+    that predicts it better is taken, with its change since the interval before where that prediction is
+    within ``limit`` of the motion (three frames agree; else constant velocities). Without them: the screw
     (constant angular and linear velocity on SE(3)), which holds for any rigid motion of constant twist."""
-    centre, centre_then = now.mean(axis=0), then.mean(axis=0)
-    spin = (now, rotation, centre, centre - centre_then)
     twist = se3_log(rotation, translation)
     if earlier is None or seen.sum() < max(3, len(now) // 2):
-        return screw_coefficients(now, twist) + (None,)
+        return partial(screw_coefficients, twist=twist), None
     idx = np.flatnonzero(seen)
     r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold)
-    if fits.sum() < max(16, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
-        return screw_coefficients(now, twist) + (None,)
+    if fits.sum() < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
+        return partial(screw_coefficients, twist=twist), None
     idx = idx[fits]
-    twist0 = se3_log(r0, t0)
-    screw = then @ r0.T + t0
+    screw = transform_points(then, r0, t0)
     # the spin path: the centre (of the seen points) moving on, the part turning about it by r0
     c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
-    turned = (then - c1) @ r0.T + 2.0 * c1 - c0
-    err_screw = np.linalg.norm(screw[idx] - now[idx], axis=-1)
-    err_spin = np.linalg.norm(turned[idx] - now[idx], axis=-1)
+    turned = transform_points(then - c1, r0, 2.0 * c1 - c0)
+    err_screw = np.linalg.norm(screw[idx] - now[idx], axis=-1).mean()
+    err_spin = np.linalg.norm(turned[idx] - now[idx], axis=-1).mean()
     motion = np.linalg.norm(now[idx] - then[idx], axis=-1).mean()
-    if err_screw.mean() <= err_spin.mean():
-        change = twist - twist0 if err_screw.mean() <= limit * motion else None
-        return screw_coefficients(now, twist, change) + (screw,)
-    change = (centre - centre_then) - (c1 - c0) if err_spin.mean() <= limit * motion else None
-    return spin_coefficients(*spin, change) + (turned,)
+    if err_screw <= err_spin:
+        change = twist - se3_log(r0, t0) if err_screw <= limit * motion else None
+        return partial(screw_coefficients, twist=twist, change=change), screw
+    centre, centre_then = now.mean(axis=0), then.mean(axis=0)
+    change = (centre - centre_then) - (c1 - c0) if err_spin <= limit * motion else None
+    return partial(spin_coefficients, rotation=rotation, centre=centre, velocity=centre - centre_then,
+                   change=change), turned
 
 
 def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
@@ -403,8 +410,8 @@ def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, 
     ok &= inverse > 0
     depth = np.where(ok, 1.0 / np.where(ok, inverse, 1.0), 0.0)
     k_inv = np.linalg.inv(np.asarray(prev_intrinsics, np.float64))
-    seen = (np.stack([qx, qy, np.ones_like(qx)], axis=-1) @ k_inv.T) * depth[:, None]  # frame n-k's camera
-    back = (seen - relative[:3, 3]) @ relative[:3, :3]  # into frame n's axes (R^T (p - t))
+    seen = transform_points(np.stack([qx, qy, np.ones_like(qx)], axis=-1), k_inv) * depth[:, None]  # n-k's camera
+    back = transform_points(seen - relative[:3, 3], relative[:3, :3].T)  # into frame n's axes (R^T (p - t))
     return np.where(ok[:, None], back, before)
 
 
@@ -444,12 +451,12 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.maximum(seen / bz, bz / seen)
     valid = inside & (bz > 0) & np.isfinite(seen) & (off <= band)
-    velocity = prev_velocity[yi, xi].astype(np.float64) @ relative[:3, :3] * interval_ratio  # R^T v: into n's axes
+    velocity = transform_points(prev_velocity[yi, xi], relative[:3, :3].T) * interval_ratio  # R^T v: n's axes
     earlier = before - velocity
     if first is not None:
         first_depth, first_k, view = first
         fh, fw = first_depth.shape
-        there = earlier @ view[:3, :3].T + view[:3, 3]
+        there = transform_points(earlier, view[:3, :3], view[:3, 3])
         at = project_points(there, first_k)
         ok = np.isfinite(at).all(axis=1) & (at[:, 0] >= 0) & (at[:, 0] < fw) & (at[:, 1] >= 0) & (at[:, 1] < fh)
         fx = np.where(ok, at[:, 0], 0).astype(np.int64)

@@ -25,6 +25,7 @@ k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -33,7 +34,7 @@ import numpy as np
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.rigid import (MAX_TURN, hindcast_keeps, motion_components, part_motion, previous_positions,
-                                   refined_before, rigid_parts, rotation_log)
+                                   refined_before, rigid_parts, rotation_log, transform_points)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -43,6 +44,11 @@ __all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS"]
 
 #: the values of ``MvecConfig.extrapolation``
 EXTRAPOLATIONS = ("linear", "rigid")
+#: the rigid fits and the fall-back's check read at most about this many moving pixels (a grid of them)
+SAMPLES = 4096
+#: a pixel joins its group's rigid part where the part's transform explains it within this many times
+#: ``rigid_threshold`` (its previous depth was read at one pixel, the fitted sample's between pixels)
+ASSIGN = 3.0
 
 
 @dataclass(frozen=True)
@@ -195,43 +201,56 @@ class Mvec(Predictor):
         h, w = newest.depth.shape
         y, x = np.divmod(moving, w)
         z = newest.depth.reshape(-1)[moving].astype(np.float64)
-        now = (np.stack([x + 0.5, y + 0.5, np.ones(moving.size)], axis=-1) @ np.linalg.inv(k).T) * z[:, None]
+        now = transform_points(np.stack([x + 0.5, y + 0.5, np.ones(moving.size)], axis=-1), np.linalg.inv(k)) * z[:, None]
         speed = data.velocity.reshape(-1, 3)[moving].astype(np.float64)
         then = now - speed
         labels, count = motion_components((h, w), moving, now, speed)
+        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
+        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
+        sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)
+        now_s, then_s, scale_s = now[sample], then[sample], k[0, 0] / z[sample]
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
         earlier = valid = predicted = None
         if before is not None:
             first = history[-3]
-            earlier, valid = previous_positions(newest.depth, vectors, moving, then, relative, older.depth,
+            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
                                                 before[0], before[1], band=cfg.depth_band,
                                                 first=(first.depth, first.camera.intrinsics,
                                                        first.camera.world_to_camera @ newest.camera.camera_to_world))
-            predicted = 2.0 * then - earlier  # the interval before, extrapolated: constant velocity
+            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
         out_v = speed.copy()
         out_a = (np.zeros_like(speed) if data.acceleration is None else data.acceleration.astype(np.float64))
         regions = labels.copy()
         parts = []
         if cfg.extrapolation == "rigid":
-            fitted = refined_before(then, vectors, moving, relative, older.depth, older.camera.intrinsics)
-            scale = k[0, 0] / z
-            parts = [p for p in rigid_parts(labels, count, now, fitted, scale, threshold=cfg.rigid_threshold)
+            fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
+            parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
+                                            threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
             rng = np.random.default_rng(0)
+            free = np.ones(moving.size, dtype=bool)
             for i, part in enumerate(parts):
-                members = part.members
-                seen = valid[members] if valid is not None else np.zeros(members.size, dtype=bool)
-                out_v[members], out_a[members], hindcast = part_motion(
-                    now[members], fitted[members], None if earlier is None else earlier[members], seen,
-                    part.rotation, part.translation, scale[members], rng, threshold=cfg.rigid_threshold,
-                    limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                m = part.members
+                path, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
+                                             np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
+                                             part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
+                                             limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
                 if hindcast is not None:
-                    predicted[members] = hindcast
+                    predicted[m] = hindcast
+                # every pixel of the part's group that its transform explains (the sample's depths were read
+                # between pixels, the others' at one: a looser threshold)
+                group = np.flatnonzero(free & (labels == labels[sample[m[0]]]))
+                residual = np.linalg.norm(transform_points(then[group], part.rotation, part.translation) - now[group],
+                                          axis=-1)
+                free[group[residual * k[0, 0] / z[group] <= ASSIGN * cfg.rigid_threshold]] = False
+                free[sample[m]] = False
+                members = group[~free[group]]
+                out_v[members], out_a[members] = path(now[members])
                 regions[members] = count + i
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
         if cfg.fallback and earlier is not None:
-            keep = hindcast_keeps(regions, count + len(parts), now, then, predicted, valid, k,
+            keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())
         velocity = np.zeros_like(data.velocity)

@@ -12,7 +12,7 @@ given by their flat indices (``moving``, increasing) and per-moving-pixel arrays
 - ``rigid_parts``: per group, a robust rigid fit (RANSAC over 3-point Kabsch fits, then least squares on the
   inliers), repeated on what is left (a group holding two objects gives two parts); pixels in no part keep
   their own straight-line motion.
-- ``screw_coefficients``: a part's path ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and
+- ``part_motion``, ``screw_affine``, ``spin_affine``: a part's path ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and
   linear velocity on SE(3), with the change of twist of the interval before where the three frames agree)
   written as the per-point parabola ``P + s V + s (s + 1) / 2 A`` that the warp passes already evaluate:
   exact at s = 0, 1/4 and 3/4 (the predicted frames of interleaving lie between 0 and 1), within a small
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import partial
 from typing import Optional
 
 import numpy as np
@@ -34,12 +33,12 @@ from numba import njit
 from engine.core.checks import checked_array, checked_matrix
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
-           "robust_rigid", "rigid_parts", "parabola_through", "screw_coefficients", "spin_coefficients", "part_motion",
+           "robust_rigid", "rigid_parts", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion", "apply_parts",
            "refined_before", "previous_positions", "hindcast_keeps",
            "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
-SCORE_SAMPLE = 1024
+SCORE_SAMPLE = 256
 #: radians: the largest turn per interval taken as a rigid part's motion (faster turns alias: a turn of
 #: 200 degrees looks like one of -160) and allowed between neighbours of one group (``motion_components``)
 MAX_TURN = 1.2
@@ -48,11 +47,13 @@ MAX_TURN = 1.2
 @dataclass(frozen=True)
 class RigidPart:
     """A rigid part: ``members`` indices into the moving pixels, ``rotation`` (3, 3) and ``translation`` (3,)
-    of its interval transform (position at n-k -> position at n, frame n's camera axes)."""
+    of its interval transform (position at n-k -> position at n, frame n's camera axes), ``group`` the
+    ``motion_components`` group it was found in."""
 
     members: np.ndarray
     rotation: np.ndarray
     translation: np.ndarray
+    group: int = 0
 
 
 def _hat(w: np.ndarray) -> np.ndarray:
@@ -245,7 +246,7 @@ def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
 
 
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
-                 threshold: float = 1.0, hypotheses: int = 48,
+                 threshold: float = 1.0, hypotheses: int = 32,
                  rounds: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rigid transform ``dst ~ R src + t`` robust to outliers: (R, t, inlier mask (N,)).
 
@@ -291,45 +292,40 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
             kept = int(inliers.sum())
             if kept < min_points or kept < min_share * left.size:
                 break
-            parts.append(RigidPart(left[inliers], rotation, translation))
+            parts.append(RigidPart(left[inliers], rotation, translation, g))
             left = left[~inliers]
     return parts
 
 
-#: the steps (intervals after frame n) at which ``parabola_through`` meets a path: the outer predicted frames of
+#: the steps (intervals after frame n) at which ``path_affine``'s parabola meets a path: the outer predicted frames of
 #: k = 4 (the largest turns per interval); in between it is off by under 0.7 % of the radius for a turn of 60 degrees
 #: per interval at s = 1/2, 0.07 % for 30 degrees
 NODES = (0.25, 0.75)
 
 
-def parabola_through(points: np.ndarray, moved) -> tuple[np.ndarray, np.ndarray]:
-    """The (V, A) (N, 3) of the parabola ``P + s V + s (s + 1) / 2 A`` through a rigid path of ``points`` at
-    s = 0 and the two ``NODES``: ``moved(s)`` = (R_s, t_s), the path's transform after s intervals (so the
-    displacement ``(R_s - I) P + t_s`` and V and A are affine in P: two 3x3 products per point)."""
+def path_affine(moved) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The parabola ``P + s V + s (s + 1) / 2 A`` through a rigid path at s = 0 and the two ``NODES``, as
+    (Vm, Vt, Am, At) with ``V = Vm P + Vt``, ``A = Am P + At`` (3x3, 3): ``moved(s)`` = (R_s, t_s), the path's
+    transform after s intervals, so the displacement ``(R_s - I) P + t_s`` is affine in P, and V, A too."""
     a, b = NODES
     (ra, ta), (rb, tb) = moved(a), moved(b)
     ma, mb = ra - np.eye(3), rb - np.eye(3)
     # s V + s (s + 1) / 2 A = D(s) at s = a, b, for the matrix and the offset alike
     acc_m, acc_t = 2.0 * (mb / b - ma / a) / (b - a), 2.0 * (tb / b - ta / a) / (b - a)
-    vel_m, vel_t = ma / a - 0.5 * (a + 1.0) * acc_m, ta / a - 0.5 * (a + 1.0) * acc_t
-    p = np.asarray(points, np.float64)
-    return transform_points(p, vel_m, vel_t), transform_points(p, acc_m, acc_t)
+    return ma / a - 0.5 * (a + 1.0) * acc_m, ta / a - 0.5 * (a + 1.0) * acc_t, acc_m, acc_t
 
 
-def screw_coefficients(points: np.ndarray, twist: np.ndarray,
-                       change: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """The (V, A) (N, 3) of points (N, 3) moving on the screw path ``exp(s xi + s (s + 1) / 2 dxi) P`` (``xi``
-    = ``twist`` of an interval, ``dxi`` = ``change``, the twist's change since the interval before, or 0):
-    a turn about a fixed axis (a wheel on its axle, a door, a carousel), as ``parabola_through`` writes it."""
+def screw_affine(twist: np.ndarray, change: Optional[np.ndarray] = None):
+    """``path_affine`` of the screw path ``exp(s xi + s (s + 1) / 2 dxi)`` (``xi`` = ``twist`` of an interval,
+    ``dxi`` = ``change``, the twist's change since the interval before, or 0): a turn about a fixed axis (a
+    wheel on its axle, a door, a carousel)."""
     change = np.zeros(6) if change is None else np.asarray(change, np.float64)
-    return parabola_through(points, lambda s: se3_exp(s * twist + 0.5 * s * (s + 1.0) * change))
+    return path_affine(lambda s: se3_exp(s * twist + 0.5 * s * (s + 1.0) * change))
 
 
-def spin_coefficients(points: np.ndarray, rotation: np.ndarray, centre: np.ndarray, velocity: np.ndarray,
-                      change: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """The (V, A) (N, 3) of points (N, 3) turning by ``rotation`` per interval about their ``centre`` (3,)
-    while the centre moves by ``velocity`` per interval (plus ``s (s + 1) / 2 change``): a thrown, tumbling
-    body, as ``parabola_through`` writes it."""
+def spin_affine(rotation: np.ndarray, centre: np.ndarray, velocity: np.ndarray, change: Optional[np.ndarray] = None):
+    """``path_affine`` of points turning by ``rotation`` per interval about a ``centre`` (3,) that moves by
+    ``velocity`` per interval (plus ``s (s + 1) / 2 change``): a thrown, tumbling body."""
     w = rotation_log(rotation)
     change = np.zeros(3) if change is None else np.asarray(change, np.float64)
 
@@ -337,19 +333,26 @@ def spin_coefficients(points: np.ndarray, rotation: np.ndarray, centre: np.ndarr
         r = rotation_exp(s * w)
         return r, centre + s * velocity + 0.5 * s * (s + 1.0) * change - r @ centre
 
-    return parabola_through(points, moved)
+    return path_affine(moved)
+
+
+def screw_coefficients(points: np.ndarray, twist: np.ndarray,
+                       change: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """The (V, A) (N, 3) of points (N, 3) on the screw path (``screw_affine``)."""
+    vm, vt, am, at = screw_affine(twist, change)
+    return transform_points(points, vm, vt), transform_points(points, am, at)
 
 
 def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray], seen: np.ndarray,
                 rotation: np.ndarray, translation: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
                 threshold: float = 1.0, limit: float = 0.5):
-    """One rigid part's path, from (a sample of) its points: (``path``, ``predicted``). ``path(points)`` gives
-    the (V, A) (N, 3) of any of the part's points (``parabola_through``); ``predicted`` (N, 3) is where the
-    motion of the interval before put the given points at frame n, or None when that interval is unknown.
+    """One rigid part's path, from (a sample of) its points: (``affine``, ``predicted``). ``affine`` is the
+    path's ``path_affine`` (V and A of any of the part's points); ``predicted`` (N, 3) is where the motion of
+    the interval before put the given points at frame n, or None when that interval is unknown.
 
     A part's two frames fix its transform over the interval, not its path: the same transform is a turn
-    about a fixed axis (``screw_coefficients``) or a spin about the part's centre while the centre moves on
-    a line (``spin_coefficients``). With the positions ``earlier`` (n-2k) of the points ``seen`` then (a
+    about a fixed axis (``screw_affine``) or a spin about the part's centre while the centre moves on
+    a line (``spin_affine``). With the positions ``earlier`` (n-2k) of the points ``seen`` then (a
     boolean mask, at least half the part), the transform of the interval before is fitted (``robust_rigid``,
     from a tenth of them or more) and each path, continued over the last interval, predicts frame n: the path
     that predicts it better is taken, with its change since the interval before where that prediction is
@@ -357,11 +360,11 @@ def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray]
     (constant angular and linear velocity on SE(3)), which holds for any rigid motion of constant twist."""
     twist = se3_log(rotation, translation)
     if earlier is None or seen.sum() < max(3, len(now) // 2):
-        return partial(screw_coefficients, twist=twist), None
+        return screw_affine(twist), None
     idx = np.flatnonzero(seen)
     r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold)
     if fits.sum() < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
-        return partial(screw_coefficients, twist=twist), None
+        return screw_affine(twist), None
     idx = idx[fits]
     screw = transform_points(then, r0, t0)
     # the spin path: the centre (of the seen points) moving on, the part turning about it by r0
@@ -372,11 +375,58 @@ def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray]
     motion = np.linalg.norm(now[idx] - then[idx], axis=-1).mean()
     if err_screw <= err_spin:
         change = twist - se3_log(r0, t0) if err_screw <= limit * motion else None
-        return partial(screw_coefficients, twist=twist, change=change), screw
+        return screw_affine(twist, change), screw
     centre, centre_then = now.mean(axis=0), then.mean(axis=0)
     change = (centre - centre_then) - (c1 - c0) if err_spin <= limit * motion else None
-    return partial(spin_coefficients, rotation=rotation, centre=centre, velocity=centre - centre_then,
-                   change=change), turned
+    return spin_affine(rotation, centre, centre - centre_then, change), turned
+
+
+@njit(cache=True, nogil=True)
+def _apply_parts(now, speed, depth, labels, starts, rotations, translations, affine, focal, limit, offset,
+                 out_v, out_a, regions):  # pragma: no cover - compiled
+    """``apply_parts`` compiled: per moving pixel, the first part of its group whose transform explains it."""
+    for i in range(now.shape[0]):
+        g = labels[i]
+        for j in range(starts[g], starts[g + 1]):
+            r2 = 0.0
+            for c in range(3):
+                moved = translations[j, c] - now[i, c]
+                for e in range(3):
+                    moved += rotations[j, c, e] * (now[i, e] - speed[i, e])
+                r2 += moved * moved
+            if math.sqrt(r2) * focal / depth[i] > limit:
+                continue
+            for c in range(3):
+                v = affine[j, 0, c, 3]
+                a = affine[j, 1, c, 3]
+                for e in range(3):
+                    v += affine[j, 0, c, e] * now[i, e]
+                    a += affine[j, 1, c, e] * now[i, e]
+                out_v[i, c] = v
+                out_a[i, c] = a
+            regions[i] = offset + j
+            break
+
+
+def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, parts: list,
+                affines: list, focal: float, limit: float, out_v: np.ndarray, out_a: np.ndarray,
+                regions: np.ndarray) -> None:
+    """Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels``) that
+    the transform of a part of its group (``parts``, in the order of their groups) explains within ``limit``
+    pixels (residual times ``focal / depth``) takes that part's path: ``out_v``, ``out_a`` (M, 3) get
+    the V and A of its ``affines`` entry (``path_affine``), ``regions`` (M,) its number plus the count of
+    groups (the regions of the fall-back). The others are left as they are."""
+    count = int(labels.max()) + 1 if labels.size else 0
+    groups = np.array([p.group for p in parts], dtype=np.int64)
+    starts = np.searchsorted(groups, np.arange(count + 1)).astype(np.int64)
+    rotations = np.array([p.rotation for p in parts], dtype=np.float64).reshape(-1, 3, 3)
+    translations = np.array([p.translation for p in parts], dtype=np.float64).reshape(-1, 3)
+    table = np.zeros((len(parts), 2, 3, 4))
+    for j, (vm, vt, am, at) in enumerate(affines):
+        table[j, 0, :, :3], table[j, 0, :, 3], table[j, 1, :, :3], table[j, 1, :, 3] = vm, vt, am, at
+    _apply_parts(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
+                 np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64), starts, rotations,
+                 translations, table, float(focal), float(limit), count, out_v, out_a, regions)
 
 
 def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,

@@ -33,8 +33,8 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, hindcast_keeps, motion_components, part_motion, previous_positions,
-                                   refined_before, rigid_parts, rotation_log, transform_points)
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, part_motion,
+                                   previous_positions, refined_before, rigid_parts, rotation_log, transform_points)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -201,14 +201,18 @@ class Mvec(Predictor):
         h, w = newest.depth.shape
         y, x = np.divmod(moving, w)
         z = newest.depth.reshape(-1)[moving].astype(np.float64)
-        now = transform_points(np.stack([x + 0.5, y + 0.5, np.ones(moving.size)], axis=-1), np.linalg.inv(k)) * z[:, None]
-        speed = data.velocity.reshape(-1, 3)[moving].astype(np.float64)
-        then = now - speed
+        k_inv = np.linalg.inv(k)
+        u, v = x + 0.5, y + 0.5
+        now = np.empty((moving.size, 3))
+        for c in range(3):  # z K^-1 (u, v, 1)
+            now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
+        measured = data.velocity.reshape(-1, 3)[moving]
+        speed = measured.astype(np.float64)
         labels, count = motion_components((h, w), moving, now, speed)
         # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
         stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
         sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)
-        now_s, then_s, scale_s = now[sample], then[sample], k[0, 0] / z[sample]
+        now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
         earlier = valid = predicted = None
         if before is not None:
@@ -218,8 +222,9 @@ class Mvec(Predictor):
                                                 first=(first.depth, first.camera.intrinsics,
                                                        first.camera.world_to_camera @ newest.camera.camera_to_world))
             predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-        out_v = speed.copy()
-        out_a = (np.zeros_like(speed) if data.acceleration is None else data.acceleration.astype(np.float64))
+        out_v = measured  # a copy (fancy indexing): written in place
+        out_a = (np.zeros_like(measured) if data.acceleration is None
+                 else np.array(data.acceleration, dtype=np.float32))
         regions = labels.copy()
         parts = []
         if cfg.extrapolation == "rigid":
@@ -228,36 +233,31 @@ class Mvec(Predictor):
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
             rng = np.random.default_rng(0)
-            free = np.ones(moving.size, dtype=bool)
-            for i, part in enumerate(parts):
+            affines = []
+            for part in parts:
                 m = part.members
-                path, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
-                                             np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
-                                             part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
-                                             limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
+                                               np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
+                                               part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
+                                               limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                affines.append(affine)
                 if hindcast is not None:
                     predicted[m] = hindcast
-                # every pixel of the part's group that its transform explains (the sample's depths were read
-                # between pixels, the others' at one: a looser threshold)
-                group = np.flatnonzero(free & (labels == labels[sample[m[0]]]))
-                residual = np.linalg.norm(transform_points(then[group], part.rotation, part.translation) - now[group],
-                                          axis=-1)
-                free[group[residual * k[0, 0] / z[group] <= ASSIGN * cfg.rigid_threshold]] = False
-                free[sample[m]] = False
-                members = group[~free[group]]
-                out_v[members], out_a[members] = path(now[members])
-                regions[members] = count + i
+            # every pixel of a part's group that the part's transform explains takes its path (the sample's
+            # depths were read between pixels, the others' at one: a looser threshold)
+            apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,
+                        regions)
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
         if cfg.fallback and earlier is not None:
             keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())
-        velocity = np.zeros_like(data.velocity)
-        kept = moving[keep]
-        velocity.reshape(-1, 3)[kept] = out_v[keep]
-        accelerated = bool(parts) or data.acceleration is not None
-        return PointMotion(velocity, kept, out_a[keep].astype(np.float32) if accelerated else None)
+        if data.held:
+            moving, out_v, out_a = moving[keep], out_v[keep], out_a[keep]
+        velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
+        velocity.reshape(-1, 3)[moving] = out_v
+        return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

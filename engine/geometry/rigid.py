@@ -12,11 +12,14 @@ given by their flat indices (``moving``, increasing) and per-moving-pixel arrays
 - ``rigid_parts``: per group, a robust rigid fit (RANSAC over 3-point Kabsch fits, then least squares on the
   inliers), repeated on what is left (a group holding two objects gives two parts); pixels in no part keep
   their own straight-line motion.
-- ``part_motion``, ``screw_affine``, ``spin_affine``: a part's path ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and
-  linear velocity on SE(3), with the change of twist of the interval before where the three frames agree)
-  written as the per-point parabola ``P + s V + s (s + 1) / 2 A`` that the warp passes already evaluate:
-  exact at s = 0, 1/4 and 3/4 (the predicted frames of interleaving lie between 0 and 1), within a small
-  fraction of the turn in between (``tests/predict/test_mvec_rigid.py``).
+- ``part_motion``, ``screw_affine``, ``spin_affine``: a part's path, the screw
+  ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and linear velocity on SE(3), with the
+  change of twist of the interval before where the three frames agree) or a spin about the part's centre
+  while the centre moves on (whichever continued the interval before better), written as the per-point
+  parabola ``P + s V + s (s + 1) / 2 A`` that the warp passes already evaluate (``path_affine``: V and A
+  affine in P): exact at s = 0, 1/4 and 3/4 (the predicted frames of interleaving lie between 0 and 1),
+  within a small fraction of the turn in between (``tests/predict/test_mvec_rigid.py``); ``apply_parts``
+  (compiled) gives every pixel of a group that a part's transform explains that part's path.
 - ``previous_positions``: each moving pixel's position at frame n-2k, from frame n-k's velocity where frame
   n-k showed the point; ``hindcast_keeps``: per region, whether the motion the earlier interval predicted
   for the last one moved the points closer to where frame n shows them than no object motion would.
@@ -32,10 +35,10 @@ from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
 
-__all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log", "fit_rigid", "motion_components",
-           "robust_rigid", "rigid_parts", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion", "apply_parts",
-           "refined_before", "previous_positions", "hindcast_keeps",
-           "project_points"]
+__all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
+           "fit_rigid", "motion_components", "robust_rigid", "rigid_parts", "path_affine", "screw_affine",
+           "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "previous_positions",
+           "hindcast_keeps", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256

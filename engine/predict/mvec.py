@@ -12,6 +12,10 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
    change of each moving point's velocity since the interval before (``velocity_change``), kept only where
    it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
+   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the moving pixels in
+   rigid parts, each part on the path (a screw, or a spin about its centre) that its last two intervals
+   support, written as each point's V and A; with ``fallback``, regions whose earlier motion did not
+   explain the last interval dropped (they take the camera-only warp);
 4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
    (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
@@ -189,11 +193,12 @@ class Mvec(Predictor):
     def _shaped(self, history, vectors: np.ndarray, data: MvecState,
                 before: Optional[tuple[np.ndarray, float]]) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
-        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's screw (with the change of
-        twist of the interval before where the three frames agree); the others keep their line or parabola.
-        With ``fallback`` (and frame n-2k), each region (a rigid part, or the rest of a group of pixels that
-        move alike) whose motion of the interval before, extrapolated, explained the last interval worse than
-        no object motion is left out: it takes the camera-only warp."""
+        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
+        the screw, or the spin about the part's centre where the interval before says so, with its change
+        where the three frames agree); the others keep their line or parabola. With ``fallback`` (and frame
+        n-2k), each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
+        the interval before, continued, explained the last interval worse than ``fallback_ratio`` times no
+        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)

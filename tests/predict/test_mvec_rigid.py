@@ -156,9 +156,11 @@ def test_a_non_rigid_field_has_no_rigid_part():
     rng = np.random.default_rng(0)
     centre = np.array([0.0, 0.0, 4.0])
     # expanding by 20 % an interval plus a swirl that grows with the distance: no rigid motion fits
-    moving, now, velocity = _grid_points(
-        lambda p: 0.2 * (p - centre) + 0.3 * np.cross(p - centre, (0, 0, 1)) * np.linalg.norm(p - centre, axis=1)[:, None]
-        + rng.normal(0, 1e-4, p.shape))
+    def field(p):
+        d = p - centre
+        return 0.2 * d + 0.3 * np.cross(d, (0, 0, 1)) * np.linalg.norm(d, axis=1)[:, None] + rng.normal(0, 1e-4, p.shape)
+
+    moving, now, velocity = _grid_points(field)
     labels, count = rg.motion_components(SIZE, moving, now, velocity)
     parts = rg.rigid_parts(labels, count, now, now - velocity, np.full(len(now), FOCAL / 4.0))
     assert sum(p.members.size for p in parts) < 0.5 * len(now)

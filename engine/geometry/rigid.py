@@ -249,15 +249,22 @@ def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
 
 
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
-                 threshold: float = 1.0, hypotheses: int = 32,
-                 rounds: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                 guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rigid transform ``dst ~ R src + t`` robust to outliers: (R, t, inlier mask (N,)).
 
     RANSAC: ``hypotheses`` Kabsch fits of 3 random points each, scored on a sample of at most
     ``SCORE_SAMPLE`` points by their inliers (residual ``|R src + t - dst|`` times ``scale``, i.e. in pixels
     for ``scale = f / z``, at most ``threshold``); the best one's inliers among all points are then refitted by
-    least squares ``rounds`` times."""
+    least squares ``rounds`` times. A ``guess`` (R, t) that already explains half the points is refitted
+    instead, without sampling (a part's transform of the interval before, under steady motion)."""
     n = len(src)
+    if guess is not None:
+        inliers = np.linalg.norm(transform_points(src, guess[0], guess[1]) - dst, axis=-1) * scale <= threshold
+        if inliers.sum() >= max(3, n // 2):
+            rotation, translation = fit_rigid(src[inliers], dst[inliers])
+            inliers = np.linalg.norm(transform_points(src, rotation, translation) - dst, axis=-1) * scale <= threshold
+            return rotation, translation, inliers
     sample = np.arange(n) if n <= SCORE_SAMPLE else rng.choice(n, SCORE_SAMPLE, replace=False)
     picks = rng.integers(0, n, size=(hypotheses, 3))
     r, t = _fit_many(src[picks], dst[picks])
@@ -290,8 +297,10 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
         for _ in range(max_parts):
             if left.size < max(min_points, 3):
                 break
+            # the least-squares fit of all of them first: a group that is one clean part needs no sampling
             rotation, translation, inliers = robust_rigid(before[left], points[left], scale[left], rng,
-                                                          threshold=threshold)
+                                                          threshold=threshold,
+                                                          guess=fit_rigid(before[left], points[left]))
             kept = int(inliers.sum())
             if kept < min_points or kept < min_share * left.size:
                 break
@@ -365,7 +374,8 @@ def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray]
     if earlier is None or seen.sum() < max(3, len(now) // 2):
         return screw_affine(twist), None
     idx = np.flatnonzero(seen)
-    r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold)
+    r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold,
+                                guess=(rotation, translation))
     if fits.sum() < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
         return screw_affine(twist), None
     idx = idx[fits]

@@ -44,10 +44,11 @@ from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
-__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS"]
+__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS", "GROUPINGS"]
 
-#: the values of ``MvecConfig.extrapolation``
+#: the values of ``MvecConfig.extrapolation`` and ``MvecConfig.grouping``
 EXTRAPOLATIONS = ("linear", "rigid")
+GROUPINGS = ("motion", "ids")
 #: the rigid fits and the fall-back's check read at most about this many moving pixels (a grid of them)
 SAMPLES = 4096
 #: a pixel joins its group's rigid part where the part's transform explains it within this many times
@@ -72,6 +73,9 @@ class MvecConfig:
     extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
                                           "pixels grouped into rigid parts by their 3D motion, each part turned "
                                           "and moved on a screw (constant angular and linear velocity)")
+    grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
+                                     "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
+                                     "object ids, channel object_id, where the renderer gives them; motion where not)")
     fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
                                    "interval before, explained the last interval worse than no object motion "
                                    "takes the camera-only warp")
@@ -90,6 +94,8 @@ class MvecConfig:
         if self.extrapolation not in EXTRAPOLATIONS:
             raise InputError(f"must be one of {', '.join(EXTRAPOLATIONS)}, got {self.extrapolation!r}",
                              field="extrapolation")
+        if self.grouping not in GROUPINGS:
+            raise InputError(f"must be one of {', '.join(GROUPINGS)}, got {self.grouping!r}", field="grouping")
         if not (self.fallback_ratio > 0 and np.isfinite(self.fallback_ratio)):
             raise InputError(f"must be finite and > 0, got {self.fallback_ratio}", field="fallback_ratio")
         if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
@@ -213,7 +219,12 @@ class Mvec(Predictor):
             now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
         measured = data.velocity.reshape(-1, 3)[moving]
         speed = measured.astype(np.float64)
-        labels, count = motion_components((h, w), moving, now, speed)
+        if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
+            _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
+            labels = labels.astype(np.int64).reshape(-1)
+            count = int(labels.max()) + 1
+        else:
+            labels, count = motion_components((h, w), moving, now, speed)
         # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
         stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
         sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)

@@ -3,6 +3,8 @@ extrapolation (``engine.geometry.rigid``), and the fall-back to the camera-only 
 interval before did not explain the last one (a bounce, a spin reversal, a stop; never constant motion)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -211,6 +213,24 @@ def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
     assert np.abs(ours - truth).mean() < np.abs(straight - truth).mean()
 
 
+def test_object_ids_make_the_groups_when_asked():
+    # one spinning square whose halves carry two ids: by motion it is one part, by ids two (each half a part)
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(5)])
+    history = _history(frames, objects, [0, 2])
+    half = np.zeros(SIZE, bool)
+    half[:, SIZE[1] // 2:] = True
+    newest = history[-1]
+    history[-1] = dataclasses.replace(newest, object_id=np.where(newest.moving, 1 + half, 0).astype(np.int32))
+    by_motion = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
+    by_ids = Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history)
+    assert by_motion.data.parts == 1 and by_ids.data.parts == 2
+    # both halves turn with the square: the same motion either way
+    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.02)
+    # a frame without ids: grouped by motion
+    history[-1] = dataclasses.replace(newest, object_id=None)
+    assert Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history).data.parts == 1
+
+
 def test_a_drifting_square_without_turn_is_extrapolated_as_before():
     frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.03, object_speed=0.1)
     history = [frames[0], with_vectors(frames, objects, 0, 4)]
@@ -227,6 +247,8 @@ def test_the_options_are_checked():
     assert err.value.field == "extrapolation"
     with pytest.raises(InputError):
         MvecConfig(fallback_ratio=0.0)
+    with pytest.raises(InputError):
+        MvecConfig(grouping="colour")
     assert make_predictor("mvec[extrapolation=rigid,fallback=true]").config.fallback
 
 

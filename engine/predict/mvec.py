@@ -38,7 +38,7 @@ import numpy as np
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, part_motion,
-                                   previous_positions, refined_before, rigid_parts, rotation_log, transform_points)
+                                   previous_positions, refined_before, rigid_parts, rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,

@@ -1,7 +1,8 @@
 """Benchmark of ``mvec`` (the renderer's motion vectors) against ``oracle``, ``reproject`` and ``decomp``.
 
 ``python -m tools.bench_mvec [--out out/bench_mvec] [--size 640x360] [--frames 16] [--k 2,3,4]
-[--methods reproject,decomp,mvec,oracle] [--sets gentle,fast,faster,glide,camera] [--json FILE]``
+[--methods reproject,decomp,mvec,mvec[extrapolation=rigid],oracle] [--sets gentle,fast,faster,glide,camera,spin]
+[--json FILE]``
 
 Renders (once, cached under ``--out``) held-out sequences that no network was trained on, with the scene
 generator's exact motion vectors:
@@ -14,6 +15,8 @@ generator's exact motion vectors:
   paths, spins to ~15 degrees a frame), camera 2x;
 - ``camera``: seed 1004 without objects at 10 fps, camera 3x faster (fast yaw); ``oracle`` is ``reproject``
   there (nothing but the camera moves) and is not run.
+- ``spin``: ``tools.spin_set``'s seeds 4101-4103 (issue 42): objects spinning 5-15 degrees a frame about
+  off-centre axes, the camera yawing up to 3 degrees a frame, thin structures.
 
 For each set it prints the measured screen speed of the moving pixels (median and 90th percentile of the
 true object flow, px per frame), then per (set, k, method): PSNR over the whole frame and over moving
@@ -24,7 +27,8 @@ pixels). Scores are those of ``interleave eval`` (sRGB PSNR with DeCOMPnet's bor
 The evaluation times each frame once, methods in a fixed order, which favours the later ones by a few
 milliseconds. ``--timing-size 960x540`` adds a fair timing: the gentle and glide scenes rendered at that
 size, each method's preparation plus its k-1 renders (k = 2 and 4) on the same frames in memory, methods in
-rotating order, repeated ``--repeats`` times; medians per predicted frame and the ratio to ``reproject``.
+rotating order, repeated ``--repeats`` times; medians per predicted frame and the ratio to ``reproject``
+(the first gentle, glide and spin scenes).
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ from engine.io.rgbd import read_sequence
 from engine.predict import make_predictor
 from tools.heldout import (bench_parser, median_times, parse_common, render_set, report_speed, set_rows, table_lines,
                            timing_cases, warm_runs, write_json)
+from tools.spin_set import SPIN_SEEDS, render_spin
 
 #: set name -> [(sequence name, SceneConfig overrides)]
 SETS = {
@@ -44,7 +49,16 @@ SETS = {
     "faster": [(f"faster{s}", dict(seed=s, fps=10.0, object_speed=6.0, camera_speed=1.5)) for s in (3202, 3203)],
     "glide": [(f"glide{s}", dict(seed=s, object_travel=3.0, object_speed=2.5, camera_speed=2.0)) for s in (3302, 3303)],
     "camera": [("camera1004", dict(seed=1004, num_objects=(0, 0), fps=10.0, camera_speed=3.0))],
+    "spin": [(f"spin{s}", dict(spin_seed=s)) for s in SPIN_SEEDS],
 }
+
+
+def sequence_folder(out, name: str, overrides: dict, width: int, height: int, frames: int):
+    """A set's sequence, rendered once under ``out``: ``tools.spin_set``'s scene for ``spin_seed``, else the
+    generator's scene of ``overrides``."""
+    if "spin_seed" in overrides:
+        return render_spin(out, overrides["spin_seed"], width, height, frames)
+    return render_set(out, name, overrides, width, height, frames)
 
 
 #: table columns (summary name, digits)
@@ -62,7 +76,8 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
 
 
 def main(argv=None) -> None:
-    parser = bench_parser(__doc__, "out/bench_mvec", "2,3,4", "reproject,decomp,mvec,oracle", list(SETS))
+    parser = bench_parser(__doc__, "out/bench_mvec", "2,3,4", "reproject,decomp,mvec,mvec[extrapolation=rigid],oracle",
+                          list(SETS))
     parser.add_argument("--timing-size", default=None, help="e.g. 960x540: add the fair timing at that size")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
@@ -71,7 +86,7 @@ def main(argv=None) -> None:
     for set_name in args.sets.split(","):
         results = []
         for seq_name, overrides in SETS[set_name]:
-            seq = read_sequence(render_set(args.out, seq_name, overrides, width, height, args.frames))
+            seq = read_sequence(sequence_folder(args.out, seq_name, overrides, width, height, args.frames))
             report_speed(set_name, seq_name, seq, speeds)
             run = [m for m in methods if m != "oracle" or seq.objects]  # no objects: the bound is reproject
             for k in ks:
@@ -86,8 +101,8 @@ def main(argv=None) -> None:
         tw, th = (int(v) for v in args.timing_size.lower().split("x"))
         timed = [m for m in methods if m != "oracle"]
         print(f"\nwarm timing at {tw}x{th}, median ms per predicted frame (x reproject):")
-        for seq_name, overrides in SETS["gentle"][:1] + SETS["glide"][:1]:
-            seq = read_sequence(render_set(args.out, seq_name, overrides, tw, th, args.frames))
+        for seq_name, overrides in SETS["gentle"][:1] + SETS["glide"][:1] + SETS["spin"][:1]:
+            seq = read_sequence(sequence_folder(args.out, seq_name, overrides, tw, th, args.frames))
             for k in (2, 4):
                 ms = warm_timing(seq, timed, k, args.repeats)
                 timing.append({"sequence": seq_name, "size": [tw, th], "k": k, "ms": ms})

@@ -12,6 +12,10 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
    change of each moving point's velocity since the interval before (``velocity_change``), kept only where
    it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
+   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the moving pixels in
+   rigid parts, each part on the path (a screw, or a spin about its centre) that its last two intervals
+   support, written as each point's V and A; with ``fallback``, regions whose earlier motion did not
+   explain the last interval dropped (they take the camera-only warp);
 4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
    (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
@@ -25,6 +29,7 @@ k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -32,12 +37,23 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, part_motion,
+                                   previous_positions, refined_before, rigid_parts, rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
-__all__ = ["MvecConfig", "MvecState", "Mvec"]
+__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS", "GROUPINGS"]
+
+#: the values of ``MvecConfig.extrapolation`` and ``MvecConfig.grouping``
+EXTRAPOLATIONS = ("linear", "rigid")
+GROUPINGS = ("motion", "ids")
+#: the rigid fits and the fall-back's check read at most about this many moving pixels (a grid of them)
+SAMPLES = 4096
+#: a pixel joins its group's rigid part where the part's transform explains it within this many times
+#: ``rigid_threshold`` (its previous depth was read at one pixel, the fitted sample's between pixels)
+ASSIGN = 3.0
 
 
 @dataclass(frozen=True)
@@ -54,6 +70,19 @@ class MvecConfig:
                                       "(the parabola through the last three positions)")
     acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
                                             "smooth motion (larger: constant velocity)")
+    extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
+                                          "pixels grouped into rigid parts by their 3D motion, each part turned "
+                                          "and moved on a screw (constant angular and linear velocity)")
+    grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
+                                     "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
+                                     "object ids, channel object_id, where the renderer gives them; motion where not)")
+    fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
+                                   "interval before, explained the last interval worse than no object motion "
+                                   "takes the camera-only warp")
+    fallback_ratio: float = option(1.5, "a region falls back when its motion's error over the last interval "
+                                        "exceeds this many times the error of no object motion (a reversal: "
+                                        "2, a stop: more; a turn by 90 degrees: 1.41, kept)")
+    rigid_threshold: float = option(1.0, "pixels: largest residual of a point that moves with its rigid part")
 
     def __post_init__(self) -> None:
         if not (self.static_tolerance >= 0 and np.isfinite(self.static_tolerance)):
@@ -62,6 +91,15 @@ class MvecConfig:
             raise InputError(f"must be finite and > 1, got {self.depth_band}", field="depth_band")
         if not (self.acceleration_limit >= 0 and np.isfinite(self.acceleration_limit)):
             raise InputError(f"must be finite and >= 0, got {self.acceleration_limit}", field="acceleration_limit")
+        if self.extrapolation not in EXTRAPOLATIONS:
+            raise InputError(f"must be one of {', '.join(EXTRAPOLATIONS)}, got {self.extrapolation!r}",
+                             field="extrapolation")
+        if self.grouping not in GROUPINGS:
+            raise InputError(f"must be one of {', '.join(GROUPINGS)}, got {self.grouping!r}", field="grouping")
+        if not (self.fallback_ratio > 0 and np.isfinite(self.fallback_ratio)):
+            raise InputError(f"must be finite and > 0, got {self.fallback_ratio}", field="fallback_ratio")
+        if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
+            raise InputError(f"must be finite and > 0, got {self.rigid_threshold}", field="rigid_threshold")
 
 
 @dataclass
@@ -74,6 +112,9 @@ class MvecState:
     moving: np.ndarray
     acceleration: Optional[np.ndarray] = None
     frame: Optional[ResidentFrame] = None
+    #: rigid parts found (``extrapolation=rigid``) and moving pixels held to the camera-only warp (``fallback``)
+    parts: int = 0
+    held: int = 0
     #: the motion where the backend computes (``PointMotion``; on ``gl`` uploaded once, extrapolated there)
     motion: Any = None
 
@@ -118,23 +159,34 @@ class Mvec(Predictor):
                              "channels motion.X/Y, Session.submit(motion_vectors=...)); use 'flow2d' or 'auto'",
                              frame=newest.index, field="motion_vectors")
         self._previous = self._last
+        cfg = self.config
         with timer("vectors"):
             vectors = self._vectors(newest)
         with timer("velocity"):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
-        state_data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
-        if self.config.acceleration and moving.size and len(state.history) >= 3:
+        data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
+        before = None
+        if moving.size and len(state.history) >= 3 and (cfg.acceleration or cfg.fallback):
             with timer("acceleration"):
-                state_data.acceleration = self._acceleration(state.history[-3:], vectors, state_data)
+                before = self._before(state.history[-3:])
+                if cfg.acceleration and before is not None:
+                    data.acceleration = velocity_change(newest.depth, vectors, velocity, moving, newest.camera,
+                                                        older.camera, older.depth, before[0], before[1],
+                                                        band=cfg.depth_band, limit=cfg.acceleration_limit)
         if moving.size:
-            state_data.motion = self.frames.resident_flow(PointMotion(velocity, moving, state_data.acceleration),
-                                                          timer)
-        return state_data
+            motion = PointMotion(velocity, moving, data.acceleration)
+            if cfg.extrapolation == "rigid" or (cfg.fallback and before is not None):
+                with timer("rigid"):
+                    motion = self._shaped(state.history, vectors, data, before)
+            if motion.moving.size:
+                data.motion = self.frames.resident_flow(motion, timer)
+        return data
 
-    def _acceleration(self, frames, vectors: np.ndarray, data: MvecState) -> Optional[np.ndarray]:
-        """The change of velocity of the moving pixels of frame n (``velocity_change``) from frames n-2k, n-k
-        and frame n-k's vectors; None when frame n-k has none or the three frames do not line up."""
+    def _before(self, frames) -> Optional[tuple[np.ndarray, float]]:
+        """Frame n-k's velocity (since n-2k, its camera's axes) and the ratio of the last interval to the one
+        before, from frames n-2k, n-k, n; None when frame n-k has no vectors or the three do not line up. A
+        stream prepares every rendered frame in turn: the velocity of the last preparation is reused."""
         first, older, newest = frames
         if (older.motion_vectors is None or first.depth.shape != older.depth.shape
                 or not first.time < older.time < newest.time):
@@ -142,10 +194,86 @@ class Mvec(Predictor):
         key, before = self._previous
         if key != self._key(older, first):
             before, _ = self._velocity(older, first, self._vectors(older))
-        ratio = (newest.time - older.time) / (older.time - first.time)
-        return velocity_change(newest.depth, vectors, data.velocity, data.moving, newest.camera, older.camera,
-                               older.depth, before, ratio, band=self.config.depth_band,
-                               limit=self.config.acceleration_limit)
+        return before, (newest.time - older.time) / (older.time - first.time)
+
+    def _shaped(self, history, vectors: np.ndarray, data: MvecState,
+                before: Optional[tuple[np.ndarray, float]]) -> PointMotion:
+        """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
+        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
+        the screw, or the spin about the part's centre where the interval before says so, with its change
+        where the three frames agree); the others keep their line or parabola. With ``fallback`` (and frame
+        n-2k), each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
+        the interval before, continued, explained the last interval worse than ``fallback_ratio`` times no
+        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample."""
+        cfg = self.config
+        older, newest = history[-2], history[-1]
+        k = np.asarray(newest.camera.intrinsics, np.float64)
+        moving = data.moving
+        h, w = newest.depth.shape
+        y, x = np.divmod(moving, w)
+        z = newest.depth.reshape(-1)[moving].astype(np.float64)
+        k_inv = np.linalg.inv(k)
+        u, v = x + 0.5, y + 0.5
+        now = np.empty((moving.size, 3))
+        for c in range(3):  # z K^-1 (u, v, 1)
+            now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
+        measured = data.velocity.reshape(-1, 3)[moving]
+        speed = measured.astype(np.float64)
+        if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
+            _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
+            labels = labels.astype(np.int64).reshape(-1)
+            count = int(labels.max()) + 1
+        else:
+            labels, count = motion_components((h, w), moving, now, speed)
+        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
+        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
+        sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)
+        now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
+        relative = older.camera.world_to_camera @ newest.camera.camera_to_world
+        earlier = valid = predicted = None
+        if before is not None:
+            first = history[-3]
+            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
+                                                before[0], before[1], band=cfg.depth_band,
+                                                first=(first.depth, first.camera.intrinsics,
+                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
+            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+        out_v = measured  # a copy (fancy indexing): written in place
+        out_a = (np.zeros_like(measured) if data.acceleration is None
+                 else np.array(data.acceleration, dtype=np.float32))
+        regions = labels.copy()
+        parts = []
+        if cfg.extrapolation == "rigid":
+            fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
+            parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
+                                            threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
+                     if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
+            rng = np.random.default_rng(0)
+            affines = []
+            for part in parts:
+                m = part.members
+                affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
+                                               np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
+                                               part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
+                                               limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                affines.append(affine)
+                if hindcast is not None:
+                    predicted[m] = hindcast
+            # every pixel of a part's group that the part's transform explains takes its path (the sample's
+            # depths were read between pixels, the others' at one: a looser threshold)
+            apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,
+                        regions)
+        data.parts = len(parts)
+        keep = np.ones(moving.size, dtype=bool)
+        if cfg.fallback and earlier is not None:
+            keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
+                                  ratio=cfg.fallback_ratio)[regions]
+        data.held = int(moving.size - keep.sum())
+        if data.held:
+            moving, out_v, out_a = moving[keep], out_v[keep], out_a[keep]
+        velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
+        velocity.reshape(-1, 3)[moving] = out_v
+        return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen
@@ -159,3 +287,4 @@ class Mvec(Predictor):
             return self.frames.warp_and_fill(state.data.frame, target, timer)
         return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion,
                                          extrapolation_factor(state, target))
+

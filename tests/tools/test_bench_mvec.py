@@ -19,5 +19,5 @@ def test_bench_prints_speed_against_error_and_writes_json(tmp_path, capsys):
     assert rows[("camera", "mvec")]["psnr"] == rows[("camera", "reproject")]["psnr"]
     assert set(doc["speeds"]) == {"seed1001", "seed1002", "camera1004"}
     timed = {(t["sequence"], t["k"]) for t in doc["timing"]}
-    assert timed == {(s, k) for s in ("seed1001", "glide3302") for k in (2, 4)}
+    assert timed == {(s, k) for s in ("seed1001", "glide3302", "spin4101") for k in (2, 4)}
     assert all(t["ms"]["mvec"] > 0 and t["ms"]["reproject"] > 0 for t in doc["timing"])

@@ -1,0 +1,326 @@
+"""``mvec[extrapolation=rigid]`` and ``mvec[fallback=true]``: rigid parts from vectors + depth, their screw
+extrapolation (``engine.geometry.rigid``), and the fall-back to the camera-only warp where the motion of the
+interval before did not explain the last one (a bounce, a spin reversal, a stop; never constant motion)."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from engine.core.errors import InputError
+from engine.core.frames import Camera, Frame, SceneObject, rigid_inverse
+from engine.geometry import rigid as rg
+from engine.geometry.motion import extrapolated_flow
+from engine.predict import Mvec, MvecConfig, Reproject, Target, make_predictor
+from tests.synthetic import rigid, rotation, two_layer_sequence, with_vectors
+
+SIZE = (64, 96)  # (H, W)
+FOCAL = 80.0
+SQUARE_Z = 4.0
+BACKGROUND_Z = 12.0
+
+
+def _k() -> np.ndarray:
+    h, w = SIZE
+    return np.array([[FOCAL, 0, w / 2], [0, FOCAL, h / 2], [0, 0, 1]], dtype=np.float64)
+
+
+def spinning_square(angles, axis=(0.3, 0.2, 1.0), pivot=(0.5, 0.3, 0.0), half: float = 1.1,
+                    drift=(0.0, 0.0, 0.0)) -> tuple[list[Frame], list[SceneObject]]:
+    """A textured square (plane z = 0 of its object, |x|, |y| <= half) turning by ``angles[i]`` radians at frame
+    i about ``axis`` through ``pivot`` (object coordinates: off its centre), its centre at (0, 0, SQUARE_Z),
+    drifting by ``drift`` a frame, before a textured wall at BACKGROUND_Z; a still camera at the origin."""
+    h, w = SIZE
+    k = _k()
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([(u - k[0, 2]) / FOCAL, (v - k[1, 2]) / FOCAL, np.ones_like(u)], axis=-1)
+    frames, transforms = [], []
+    pivot = np.asarray(pivot, np.float64)
+    for i, angle in enumerate(angles):
+        about = rigid(axis, angle, pivot) @ rigid((0, 0, 1), 0.0, -pivot)  # turn about the pivot
+        place = np.eye(4)
+        place[:3, 3] = (0.0, 0.0, SQUARE_Z) + i * np.asarray(drift, np.float64)
+        world_from_object = place @ about @ rigid((1, 0, 0), 0.4, (0, 0, 0))  # tilted towards the camera
+        transforms.append(world_from_object)
+        inv = rigid_inverse(world_from_object)
+        origin = inv[:3, 3]
+        d = rays @ inv[:3, :3].T
+        t = -origin[2] / d[..., 2]
+        local = origin + t[..., None] * d
+        on = (t > 0) & (np.abs(local[..., 0]) <= half) & (np.abs(local[..., 1]) <= half)
+        depth = np.where(on, t, BACKGROUND_Z).astype(np.float32)
+        square = 0.5 + 0.4 * np.sin(7.0 * local[..., 0:1] + np.array([0.0, 1.0, 2.0])) * np.cos(5.0 * local[..., 1:2])
+        wall = 0.5 + 0.3 * np.sin(3.0 * rays[..., 0:1] * BACKGROUND_Z + np.array([2.0, 0.0, 1.0]))
+        color = np.where(on[..., None], square, wall).astype(np.float32)
+        frames.append(Frame(index=i, time=i / 30.0, color=color, depth=depth, camera=Camera(k, np.eye(4)),
+                            object_id=on.astype(np.int32), moving=on.copy()))
+    return frames, [SceneObject(id=1, name="square", moving=True, world_from_object=np.stack(transforms))]
+
+
+def _history(frames, objects, rendered):
+    """The rendered frames (frame indices ``rendered``, oldest first), each but the first with vectors to the
+    one before it, as an engine rendering only those writes them."""
+    out = [frames[rendered[0]]]
+    for older, newest in zip(rendered, rendered[1:]):
+        out.append(with_vectors(frames, objects, older, newest))
+    return out
+
+
+def _true_flow(frame, objects, target_index):
+    """Frame n's pixels' true screen displacement to frame ``target_index`` (still camera), (H, W, 2)."""
+    obj = objects[0]
+    motion = obj.world_from_object[target_index] @ rigid_inverse(obj.world_from_object[frame.index])
+    h, w = frame.depth.shape
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    k = frame.camera.intrinsics
+    p = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1) * frame.depth[..., None]
+    q = p @ motion[:3, :3].T + motion[:3, 3]
+    return np.stack([k[0, 0] * q[..., 0] / q[..., 2] + k[0, 2] - u, k[1, 1] * q[..., 1] / q[..., 2] + k[1, 2] - v], -1)
+
+
+def _flow(state, frame, step):
+    motion = state.data.motion
+    return extrapolated_flow(frame.depth, motion.velocity, frame.camera.intrinsics, step, motion.moving,
+                             motion.acceleration)[..., :2]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the numpy pieces
+# ---------------------------------------------------------------------------------------------------------
+
+def test_se3_log_and_exp_are_inverse_and_powers_follow_the_screw():
+    rng = np.random.default_rng(3)
+    for angle in (1e-8, 0.2, 1.0, 3.0):
+        r, t = rotation(rng.normal(size=3), angle), rng.normal(size=3)
+        twist = rg.se3_log(r, t)
+        r2, t2 = rg.se3_exp(twist)
+        np.testing.assert_allclose(r2, r, atol=1e-9)
+        np.testing.assert_allclose(t2, t, atol=1e-9)
+        half_r, half_t = rg.se3_exp(0.5 * twist)  # two half screws make the whole
+        np.testing.assert_allclose(half_r @ half_r, r, atol=1e-9)
+        np.testing.assert_allclose(half_r @ half_t + half_t, t, atol=1e-9)
+
+
+def test_robust_rigid_recovers_a_turn_through_outliers():
+    rng = np.random.default_rng(1)
+    src = rng.uniform(-1, 1, (400, 3)) + (0, 0, 5)
+    r, t = rotation((0.2, 1.0, 0.3), np.radians(14.0)), np.array([0.3, -0.1, 0.2])
+    dst = src @ r.T + t
+    dst[:100] += rng.normal(0, 0.3, (100, 3))  # a quarter of the points are wrong
+    rot, trans, inliers = rg.robust_rigid(src, dst, np.full(400, 100.0), rng)
+    np.testing.assert_allclose(rot, r, atol=1e-6)
+    np.testing.assert_allclose(trans, t, atol=1e-6)
+    assert inliers[100:].all() and inliers[:100].mean() < 0.1
+
+
+def test_screw_coefficients_follow_the_turn_between_the_predicted_frames():
+    # points 1 m off the axis: the parabola meets the screw at s = 1/4 and 3/4 and stays within 7 mm of it
+    # between for a turn of 60 degrees per interval (15 a frame at k = 4), within 1 mm for 30 (k = 2)
+    p = np.array([[1.0, 0.0, 5.0], [0.0, -1.0, 5.0]])
+    for degrees, tolerance in ((60.0, 7e-3), (30.0, 1e-3)):
+        r, t = rotation((0, 0, 1), np.radians(degrees)), np.array([0.1, 0.0, 0.05])
+        twist = rg.se3_log(r, t)
+        velocity, acceleration = rg.screw_coefficients(p, twist)
+        for s in (0.25, 1 / 3, 0.5, 2 / 3, 0.75):
+            rs, ts = rg.se3_exp(s * twist)
+            exact = p @ rs.T + ts
+            mine = p + s * velocity + 0.5 * s * (s + 1) * acceleration
+            assert np.abs(mine - exact).max() < (1e-12 if s in rg.NODES else tolerance)
+        straight = p + 0.5 * (p @ r.T + t - p)  # constant velocity along the chord
+        rh, th = rg.se3_exp(0.5 * twist)
+        assert np.abs(straight - (p @ rh.T + th)).max() > 10 * tolerance
+
+
+def _grid_points(velocity_of):
+    """The pixels of a slanted patch (rows 16-47, columns 24-71 of SIZE) as moving pixels: flat indices,
+    points (M, 3) and their velocities ``velocity_of(points)``."""
+    h, w = SIZE
+    k = _k()
+    v, u = np.mgrid[16:48, 24:72]
+    z = 4.0 + 0.01 * (u - 48)  # a slanted plane
+    pts = np.stack([(u + 0.5 - k[0, 2]) / FOCAL * z, (v + 0.5 - k[1, 2]) / FOCAL * z, z], -1).reshape(-1, 3)
+    return (v * w + u).reshape(-1), pts, velocity_of(pts)
+
+
+def test_a_spinning_patch_is_one_rigid_part_with_its_rotation():
+    r, t = rotation((0.2, 0.3, 1.0), np.radians(12.0)), np.array([0.05, -0.02, 0.03])
+    pivot = np.array([0.8, 0.4, 4.0])  # off the patch's centre
+    moving, now, velocity = _grid_points(lambda p: p - ((p - pivot - t) @ r + pivot))  # now = R (then - c) + c + t
+    labels, count = rg.motion_components(SIZE, moving, now, velocity)
+    assert count == 1
+    parts = rg.rigid_parts(labels, count, now, now - velocity, np.full(len(now), FOCAL / 4.0))
+    assert len(parts) == 1 and parts[0].members.size == len(now)
+    np.testing.assert_allclose(parts[0].rotation, r, atol=1e-6)
+
+
+def test_a_non_rigid_field_has_no_rigid_part():
+    rng = np.random.default_rng(0)
+    centre = np.array([0.0, 0.0, 4.0])
+    # expanding by 20 % an interval plus a swirl that grows with the distance: no rigid motion fits
+    def field(p):
+        d = p - centre
+        return 0.2 * d + 0.3 * np.cross(d, (0, 0, 1)) * np.linalg.norm(d, axis=1)[:, None] + rng.normal(0, 1e-4, p.shape)
+
+    moving, now, velocity = _grid_points(field)
+    labels, count = rg.motion_components(SIZE, moving, now, velocity)
+    parts = rg.rigid_parts(labels, count, now, now - velocity, np.full(len(now), FOCAL / 4.0))
+    assert sum(p.members.size for p in parts) < 0.5 * len(now)
+
+
+def test_motion_components_split_at_depth_edges_and_unlike_motion():
+    h, w = SIZE
+    moving, now, _ = _grid_points(lambda p: np.zeros_like(p))
+    velocity = np.zeros_like(now)
+    left = (moving % w) < 48
+    velocity[left] = (0.1, 0.0, 0.0)
+    velocity[~left] = (-0.1, 0.0, 0.0)  # two bodies side by side moving apart
+    _, count = rg.motion_components(SIZE, moving, now, velocity)
+    assert count == 2
+    far = now.copy()
+    far[~left] *= 1.5  # one body, but behind a depth edge
+    _, count = rg.motion_components(SIZE, moving, far, np.zeros_like(now) + 0.1)
+    assert count == 2
+
+
+# ---------------------------------------------------------------------------------------------------------
+# mvec with the rigid extrapolation
+# ---------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("k", [2, 4])
+def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
+    angles = [np.radians(10.0) * i for i in range(2 * k + 1)]  # 10 degrees a frame
+    frames, objects = spinning_square(angles)
+    history = _history(frames, objects, [0, k])
+    rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
+    linear_state = Mvec().prepare(history)
+    assert rigid_state.data.parts == 1
+    moving = history[-1].moving
+    interior = moving.copy()
+    interior[[0, -1], :] = interior[:, [0, -1]] = False
+    for step in range(1, k):
+        truth = _true_flow(history[-1], objects, k + step)
+        mine = _flow(rigid_state, history[-1], step / k)
+        straight = _flow(linear_state, history[-1], step / k)
+        err = np.linalg.norm(mine - truth, axis=-1)[moving]
+        assert np.median(err) < 0.05 and err.max() < 0.5
+        assert np.median(np.linalg.norm(straight - truth, axis=-1)[moving]) > 4 * max(np.median(err), 0.01)
+    # and the picture: closer to the truth than the straight lines
+    target = Target(frames[k + k // 2].camera, frames[k + k // 2].time, k + k // 2)
+    truth = frames[k + k // 2].color
+    ours = Mvec(MvecConfig(extrapolation="rigid")).predict(history, target).color
+    straight = Mvec().predict(history, target).color
+    assert np.abs(ours - truth).mean() < np.abs(straight - truth).mean()
+
+
+def test_object_ids_make_the_groups_when_asked():
+    # one spinning square whose halves carry two ids: by motion it is one part, by ids two (each half a part)
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(5)])
+    history = _history(frames, objects, [0, 2])
+    half = np.zeros(SIZE, bool)
+    half[:, SIZE[1] // 2:] = True
+    newest = history[-1]
+    history[-1] = dataclasses.replace(newest, object_id=np.where(newest.moving, 1 + half, 0).astype(np.int32))
+    by_motion = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
+    by_ids = Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history)
+    assert by_motion.data.parts == 1 and by_ids.data.parts == 2
+    # both halves turn with the square: the same motion either way
+    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.02)
+    # a frame without ids: grouped by motion
+    history[-1] = dataclasses.replace(newest, object_id=None)
+    assert Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history).data.parts == 1
+
+
+def test_a_drifting_square_without_turn_is_extrapolated_as_before():
+    frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.03, object_speed=0.1)
+    history = [frames[0], with_vectors(frames, objects, 0, 4)]
+    rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
+    linear_state = Mvec().prepare(history)
+    for step in (0.25, 0.5, 0.75):
+        np.testing.assert_allclose(_flow(rigid_state, history[-1], step), _flow(linear_state, history[-1], step),
+                                   atol=2e-3)
+
+
+def test_the_options_are_checked():
+    with pytest.raises(InputError) as err:
+        MvecConfig(extrapolation="spline")
+    assert err.value.field == "extrapolation"
+    with pytest.raises(InputError):
+        MvecConfig(fallback_ratio=0.0)
+    with pytest.raises(InputError):
+        MvecConfig(grouping="colour")
+    assert make_predictor("mvec[extrapolation=rigid,fallback=true]").config.fallback
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the fall-back to the camera-only warp
+# ---------------------------------------------------------------------------------------------------------
+
+def _falls_back(history, config):
+    state = Mvec(config).prepare(history)
+    return state, state.data.held, state.data.moving.size
+
+
+@pytest.mark.parametrize("case", ["bounce", "stop"])
+@pytest.mark.parametrize("extrapolation", ["linear", "rigid"])
+def test_a_bounce_or_a_stop_falls_back_to_reprojection(case, extrapolation):
+    path = {"bounce": lambda i: 0.1 * (i if i <= 4 else 8 - i),  # off a wall between frames 4 and 6
+            "stop": lambda i: 0.1 * min(i, 4.5)}[case]  # stops half way through the last interval
+    frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.02, object_path=path)
+    history = _history(frames, objects, [2, 4, 6])
+    config = MvecConfig(extrapolation=extrapolation, fallback=True)
+    state, held, moving = _falls_back(history, config)
+    assert moving > 0 and held == moving and state.data.motion is None
+    target = Target(frames[7].camera, frames[7].time, 7)
+    np.testing.assert_array_equal(Mvec(config).predict(history, target).color,
+                                  Reproject().predict(history, target).color)
+    # without the fall-back the old motion carries on
+    assert Mvec(MvecConfig(extrapolation=extrapolation)).prepare(history).data.motion is not None
+
+
+def test_a_spin_reversal_falls_back_and_a_steady_spin_does_not():
+    step = np.radians(10.0)
+    reversing = [step * (i if i <= 4 else 8 - i) for i in range(9)]
+    frames, objects = spinning_square(reversing)
+    config = MvecConfig(extrapolation="rigid", fallback=True)
+    _, held, moving = _falls_back(_history(frames, objects, [0, 2, 4, 6]), config)
+    assert moving > 0 and held > 0.9 * moving
+    frames, objects = spinning_square([step * i for i in range(9)], drift=(0.02, 0.0, 0.0))
+    state, held, moving = _falls_back(_history(frames, objects, [0, 2, 4, 6]), config)
+    assert held == 0 and state.data.parts == 1
+
+
+@pytest.mark.parametrize("extrapolation", ["linear", "rigid"])
+def test_constant_motion_never_falls_back(extrapolation):
+    frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.02, object_speed=0.1)
+    state, held, moving = _falls_back(_history(frames, objects, [2, 4, 6]),
+                                      MvecConfig(extrapolation=extrapolation, fallback=True))
+    assert moving > 0 and held == 0 and state.data.motion is not None
+
+
+def test_with_two_frames_the_fall_back_has_no_evidence_and_keeps_the_motion():
+    path = lambda i: 0.1 * (i if i <= 4 else 8 - i)  # noqa: E731
+    frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.02, object_path=path)
+    state, held, _ = _falls_back(_history(frames, objects, [4, 6]), MvecConfig(fallback=True))
+    assert held == 0 and state.data.motion is not None
+
+
+def test_on_gl_the_rigid_motion_and_the_fall_back_predict_what_the_cpu_predicts():
+    """The parts, screws and fall-back are decided on the CPU in ``prepare`` for both backends; the GL pass
+    extrapolates the resulting motion as it extrapolates any (``motion_extrapolate.comp``)."""
+    from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(9)], drift=(0.02, 0.0, 0.0))
+    history = _history(frames, objects, [0, 2, 4, 6])[1:]
+    method = "mvec[extrapolation=rigid,fallback=true]"
+    cpu, gl = make_predictor(method, backend="cpu"), make_predictor(method, backend="gl")
+    cpu_state, gl_state = cpu.prepare(history), gl.prepare(history)
+    assert cpu_state.data.parts == gl_state.data.parts == 1
+    for index in (7, 8):
+        target = Target(frames[index].camera, frames[index].time, index)
+        a, b = cpu.render(cpu_state, target), gl.render(gl_state, target)
+        assert "motion" in b.gpu_ms
+        close = (np.abs(a.color - b.color) <= 1e-3 * np.maximum(1.0, np.abs(a.color))).all(axis=-1)
+        assert close.mean() >= 0.995 and np.mean(a.holes == b.holes) >= 0.999

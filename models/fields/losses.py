@@ -28,7 +28,7 @@ from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import RayOutputs
 
 __all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
-           "default_loss_terms", "srgb_encode", "plane_group", "NEAR_FRACTION", "near_occlusion"]
+           "default_loss_terms", "srgb_encode", "plane_group"]
 
 
 @dataclass
@@ -36,8 +36,7 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "near_occlusion, sparse_depth (the priors add theirs, "
-                                        "models/fields/priors/config.py)"})
+                                        "sparse_depth (the priors add theirs, models/fields/priors/config.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
@@ -141,20 +140,6 @@ def plane_tv_term(inputs: LossInputs) -> Tensor:
 def plane_l1_term(inputs: LossInputs) -> Tensor:
     """Mean |feature| of the named plane group (sparsity: empty space)."""
     return plane_l1(plane_group(inputs))
-
-
-#: ``near_occlusion`` penalises the rendering weight of this leading fraction of each ray's samples.
-NEAR_FRACTION = 0.125
-
-
-@register_loss_term("near_occlusion")
-def near_occlusion(inputs: LossInputs) -> Tensor:
-    """FreeNeRF's occlusion regularisation with rendering weights: the mean over rays of the summed weight of
-    the first ``NEAR_FRACTION`` of the samples (at least one), i.e. the opacity a ray collects right in front
-    of its camera, where few-view training grows floaters that only the training views cannot see past."""
-    weights = inputs.outputs.weights
-    near = max(1, int(round(NEAR_FRACTION * weights.shape[-1])))
-    return weights[..., :near].sum(dim=-1).mean()
 
 
 @register_loss_term("sparse_depth", needs_depth=True)

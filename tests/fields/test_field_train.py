@@ -391,23 +391,3 @@ def test_device_cpu_trains_what_the_api_trains(tmp_path, capsys):
     b = torch.load(api / "checkpoint.pt", weights_only=True)["model"]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     capsys.readouterr()
-
-
-def test_near_occlusion_penalises_weight_in_front_of_the_camera():
-    from models.fields.components.render import RayOutputs
-    from models.fields.losses import LOSS_TERMS, NEAR_FRACTION, LossInputs, LossTerm
-
-    n = 32
-    weights = torch.zeros(2, n, requires_grad=True)
-    front, back = torch.zeros(2, n), torch.zeros(2, n)
-    front[:, 0] = 0.8  # a floater right in front of the camera
-    back[:, -1] = 0.8  # the surface far away
-
-    def value(w: torch.Tensor) -> torch.Tensor:
-        out = RayOutputs(w.sum(-1, keepdim=True).expand(-1, 3), w.sum(-1), w.sum(-1), w.sum(-1), w, w, w)
-        return LOSS_TERMS["near_occlusion"](LossInputs(None, None, out, 0, LossTerm("near_occlusion")))
-
-    assert float(value(front)) == pytest.approx(0.8) and float(value(back)) == 0.0
-    value(weights + front).backward()
-    grad = weights.grad[0]
-    assert (grad[:round(NEAR_FRACTION * n)] > 0).all() and (grad[round(NEAR_FRACTION * n):] == 0).all()

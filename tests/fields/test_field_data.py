@@ -144,7 +144,7 @@ def _llff_scene(root: Path, rng: np.random.Generator, factor: int = 2, count: in
 def test_llff_conversion_projects_like_the_llff_convention(tmp_path):
     rng = np.random.default_rng(0)
     llff, bounds, (h0, w0, focal) = _llff_scene(tmp_path, rng, factor=2)
-    views = load_llff(tmp_path, downscale=2)
+    views = load_llff(tmp_path, downscale=2, scene_type="forward-facing")
     assert len(views) == 3 and views.images.shape == (3, 6, 8, 3) and views.scene_type == "forward-facing"
     np.testing.assert_allclose(views.near_far, bounds)
     for pose, cam in zip(llff, views.cameras):
@@ -157,6 +157,25 @@ def test_llff_conversion_projects_like_the_llff_convention(tmp_path):
             uv, z = _project(cam, point)                            # the converted OpenCV camera, images_2
             np.testing.assert_allclose(uv, [u_full / 2, v_full / 2], atol=1e-9)
             assert z == pytest.approx(-back)                        # planar depth = distance along -back
+
+
+def test_llff_scene_type_follows_the_spread_of_the_cameras(tmp_path):
+    from models.fields.data.views import FORWARD_FACING_MAX_DEG, llff_scene_type
+
+    _llff_scene(tmp_path, np.random.default_rng(0), factor=2)  # random orientations: looking around
+    assert load_llff(tmp_path, downscale=2).scene_type == "bounded-360"
+
+    def camera(yaw_deg: float) -> Camera:
+        yaw = np.radians(yaw_deg)
+        rot = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1, 0], [np.sin(yaw), 0, np.cos(yaw)]])
+        w2c = np.eye(4)
+        w2c[:3, :3] = rot
+        return Camera(np.eye(3), w2c)
+
+    spread = FORWARD_FACING_MAX_DEG
+    assert llff_scene_type([camera(-0.9 * spread), camera(0.0), camera(0.9 * spread)]) == "forward-facing"
+    assert llff_scene_type([camera(-1.2 * spread), camera(0.0), camera(1.2 * spread)]) == "bounded-360"
+    assert llff_scene_type([camera(0.0), camera(180.0)]) == "bounded-360"  # opposite axes: no mean direction
 
 
 def test_llff_image_count_mismatch_is_an_error(tmp_path):

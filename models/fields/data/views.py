@@ -15,7 +15,8 @@ Conversions (each written once, here):
 - **LLFF** captures as shipped (``poses_bounds.npy`` with ``images/``, ``images_N/``) are read by
   ``engine.io.llff`` (torch-free; LLFF's [down, right, back] axes and hwf convention are documented there);
   ``near_far`` holds the bounds as stored; the forward-facing scene starts at 0.9 x the smallest near bound
-  and reaches infinity (``models/fields/static/model.py``).
+  and reaches infinity (``models/fields/static/model.py``). A capture whose cameras look around the scene
+  (optical axes beyond ``FORWARD_FACING_MAX_DEG`` of their mean) is bounded-360 instead (``llff_scene_type``).
 - **rgbd-rig**: already in the project's conventions (``engine.io.rgbd.read_rig``); true planar depth is kept for
   depth metrics and ``near_far`` is the finite depth range of each view (far = +inf where it sees sky).
 
@@ -42,7 +43,9 @@ from engine.io.llff import read_llff
 from engine.io.rgbd import read_rig
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
-           "load_llff", "load_rig", "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth", "scale_k"]
+           "FORWARD_FACING_MAX_DEG", "llff_scene_type", "load_llff", "load_rig", "read_transforms",
+           "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth",
+           "scale_k"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
 
@@ -379,17 +382,38 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
 # LLFF
 
 
-def load_llff(root: str | Path, *, downscale: Optional[int] = None, scene_type: str = "forward-facing") -> Views:
+#: An LLFF capture is forward-facing (NDC of the mean camera) when every optical axis lies within this many
+#: degrees of the mean axis; otherwise its cameras look around the scene and it is bounded-360.
+FORWARD_FACING_MAX_DEG = 30.0
+
+
+def llff_scene_type(cameras: Sequence[Camera]) -> str:
+    """``forward-facing`` when every camera's optical axis is within ``FORWARD_FACING_MAX_DEG`` of the mean axis
+    (LLFF's own scenes: a few degrees), else ``bounded-360`` (a capture walked around its object, such as
+    ``llff_beer``, 84 degrees: the NDC of the mean camera cannot hold the views far from it)."""
+    axes = np.array([cam.camera_to_world[:3, 2] / np.linalg.norm(cam.camera_to_world[:3, 2]) for cam in cameras])
+    mean = axes.mean(axis=0)
+    norm = np.linalg.norm(mean)
+    if norm < 1e-6:
+        return "bounded-360"
+    spread = np.degrees(np.arccos(np.clip(axes @ (mean / norm), -1.0, 1.0))).max()
+    return "forward-facing" if spread <= FORWARD_FACING_MAX_DEG else "bounded-360"
+
+
+def load_llff(root: str | Path, *, downscale: Optional[int] = None, scene_type: str = "auto") -> Views:
     """Load an LLFF capture as shipped (``engine.io.llff``: ``poses_bounds.npy`` and ``images/``, ``images_N/``).
 
     ``downscale`` is relative to ``images/`` (the size ``poses_bounds.npy`` describes): ``images_<downscale>``
     when shipped, else the coarsest shipped folder that divides it, area-averaged to it; None picks the
     coarsest folder shipped. ``Views.downscale`` is the resolution reached; ``near_far`` the file's bounds.
+    ``scene_type`` ``auto`` is :func:`llff_scene_type` of all the capture's cameras.
 
     Raises:
         InputError: a bad poses_bounds.npy, no usable image folder, count or size mismatches.
     """
     capture = read_llff(root, downscale)
+    if scene_type == "auto":
+        scene_type = llff_scene_type(capture.cameras)
     views = Views(images=capture.images, cameras=capture.cameras, near_far=capture.near_far, scene_type=scene_type,
                   names=capture.names, downscale=capture.factor)
     if downscale is not None and downscale != capture.factor:

@@ -27,10 +27,10 @@ from engine.eval.protocol import (VectorSource, evaluate_sequence, evaluation_pa
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
-from engine.fields.dynamic import field_motion_vectors
+from engine.fields.dynamic import field_motion_vectors, field_object_flow
 from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
-from engine.predict import Predictor, Target, make_predictor
+from engine.predict import Predictor, Target, make_predictor, use_backend
 from engine.runtime.stream import PredictionLoop
 from engine.scenegen import SceneConfig, generate_sequence, make_scene
 
@@ -118,13 +118,16 @@ def check_before_rendering(frames: int, k: int, methods: Sequence[str], objects:
 
 def report_sequence(sequence, out_dir: Path, *, k: int, methods: Sequence[str], progress: bool = True,
                     command: str = "interleave demo", extra: Optional[dict] = None, note: str = "",
-                    backend: str = "auto", vectors: Optional[VectorSource] = None) -> dict:
+                    backend: str = "auto", vectors: Optional[VectorSource] = None,
+                    predictors: Optional[dict] = None) -> dict:
     """Evaluate ``methods`` on a loaded sequence and write the demo's outputs into ``out_dir``: ``table.md``
     (with ``note`` under it), ``results.json`` (with ``extra``), ``speed_vs_error.png``, ``side_by_side.mp4``
     (truth | prediction | FLIP error of the best non-oracle method) and three stills. Prints the table.
-    ``vectors``: the renderer's own motion vectors between rendered frames (``evaluate_sequence``)."""
+    ``vectors``, ``predictors``: the renderer's own motion vectors between rendered frames and predictors made
+    by the caller (``evaluate_sequence``)."""
 
-    results = evaluate_sequence(sequence, list(methods), k, progress=progress, backend=backend, vectors=vectors)
+    results = evaluate_sequence(sequence, list(methods), k, progress=progress, backend=backend, vectors=vectors,
+                                predictors=predictors)
     table = markdown_table(results) + "\n\nStage breakdown, median ms per predicted frame:\n\n" + stage_table(results)
     if note:
         table += "\n\n" + note
@@ -246,7 +249,8 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
     :func:`field_camera_path` into ``out_dir/field`` (an rgbd-seq, with the field's own motion vectors);
     every k-th frame is "rendered", the predictors predict the others, and each prediction is scored against
     the field's own render at that pose and time. Writes what :func:`run_demo` writes; the field's render time
-    is in ``table.md`` and ``results.json``. ``oracle`` is dropped from ``methods`` (it needs rigid objects).
+    is in ``table.md`` and ``results.json``. ``oracle`` is dropped from ``methods`` for a static field (it has
+    no object motion); a dynamic field's is :class:`FieldOracle`.
     """
 
     export, run = resolve_field_dir(field_dir)
@@ -276,6 +280,29 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                            note=note, backend=backend)
 
 
+class FieldOracle(Predictor):
+    """``oracle`` of a dynamic field's frames: frame n moved by the field's own motion from frame n's time to
+    the target's (``engine.fields.dynamic.field_object_flow``: the field knows its future), then by the
+    camera's. The target must be a frame of the rendered path (``target.index``), whose field time is
+    ``times[index]``."""
+
+    name = "oracle"
+    backends = ("cpu", "gl")
+
+    def __init__(self, assets, times: Sequence[float]) -> None:
+        self.assets, self.times = assets, np.asarray(times, np.float64)
+
+    def _prepare(self, state, timer):
+        return self.frames.resident(state.history[-1], timer)
+
+    def _render(self, state, target, timer):
+        frame = state.history[-1]
+        with timer("motion"):
+            flow = field_object_flow(self.assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                     float(self.times[frame.index]), float(self.times[target.index]))
+        return self.frames.warp_and_fill(state.data, target, timer, flow)
+
+
 def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str, out_dir: Path
                       ) -> tuple[list[str], Path]:
     """A field demo's methods (``oracle`` dropped: it needs rigid objects), checked before anything renders, and
@@ -292,11 +319,14 @@ def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str,
 def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *, k: int, frames: int,
                             width: Optional[int], height: Optional[int], fps: float, methods: Sequence[str],
                             orbit_degrees: float, progress: bool, backend: str, command: str) -> dict:
-    """:func:`run_field_demo` for a dynamic export: the field's own vectors feed ``mvec``."""
+    """:func:`run_field_demo` for a dynamic export: the field's own vectors feed ``mvec``, and ``oracle`` moves
+    frame n by the field's own motion to the target's time (:class:`FieldOracle`)."""
     from engine.fields.dynamic import load_dynamic_field
     from engine.fields.gldynamic import GlDynamicRenderer
 
+    with_oracle = "oracle" in methods
     methods, out_dir = _field_demo_start(methods, frames, k, backend, out_dir)
+    methods = methods + ["oracle"] if with_oracle else methods
     assets = load_dynamic_field(export)
     cameras, width, height = field_camera_path(assets, train_cameras(run, dynamic=True), frames, width, height,
                                                orbit_degrees=orbit_degrees)
@@ -324,5 +354,6 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
     extra = {"field": {"export": str(export), "run": None if run is None else str(run), "kind": assets.kind,
                        "scene": assets.scene["kind"], "render_ms_per_frame": render_ms, "width": width,
                        "height": height, "time_range": [t0, t1]}}
+    oracle = {"oracle": use_backend(FieldOracle(assets, times), backend)} if with_oracle else None
     return report_sequence(sequence, out_dir, k=k, methods=methods, progress=progress, command=command, extra=extra,
-                           note=note, backend=backend, vectors=field_vectors)
+                           note=note, backend=backend, vectors=field_vectors, predictors=oracle)

@@ -179,14 +179,17 @@ def make_predictors(methods: Sequence[str], objects: Sequence, *, has_vectors: b
 
 def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bool = True,
                       max_groups: Optional[int] = None, progress: bool = False,
-                      backend: str = "auto", vectors: Optional[VectorSource] = None) -> list[MethodResult]:
+                      backend: str = "auto", vectors: Optional[VectorSource] = None,
+                      predictors: Optional[dict] = None) -> list[MethodResult]:
     """Evaluate ``methods`` on one loaded ``RgbdSequence`` with upsampling factor ``k``.
 
     ``max_groups`` limits how many rendered frames n are used (evenly spread over the sequence). Methods
     that differ only by the ``TRUE_HOLES`` suffix share one predictor, its predictions and its times.
     ``backend`` is where the methods' warps run (``engine.predict.use_backend``). ``vectors``: the motion
     vectors of the rendered frames to the previous rendered ones, where the renderer gives them directly
-    (default: derived from the sequence, ``history_motion_vectors``).
+    (default: derived from the sequence, ``history_motion_vectors``). ``predictors``: predictors by method
+    name made by the caller, used for those names of ``methods`` (e.g. an ``oracle`` that knows a field
+    renderer's own motion).
     """
 
     groups = evaluation_pairs(len(sequence), k)
@@ -198,9 +201,10 @@ def evaluate_sequence(sequence, methods: Sequence[str], k: int, *, with_flip: bo
         groups = [groups[i] for i in sorted(set(pick.tolist()))]
     has_vectors = sequence.has_channel("motion_vectors")
     sources = {m: resolve_auto(split_scoring(m)[0], has_vectors) for m in methods}
-    predictors = make_predictors(methods, sequence.objects, has_vectors=has_vectors, backend=backend,
-                                 file=sequence.path)
-    if "oracle" in predictors and not sequence.objects:
+    given = dict(predictors or {})
+    predictors = {**make_predictors([m for m in methods if m not in given], sequence.objects,
+                                    has_vectors=has_vectors, backend=backend, file=sequence.path), **given}
+    if "oracle" in predictors and "oracle" not in given and not sequence.objects:
         raise InputError("method 'oracle' needs the sequence's objects and object_id channel", file=sequence.path)
     with_vectors = any(isinstance(p, Mvec) for p in predictors.values())
     wants_three = any(p.history_wanted >= 3 for p in predictors.values())

@@ -40,7 +40,7 @@ from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bili
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
            "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
-           "earlier_points", "field_motion_vectors"]
+           "earlier_points", "field_motion_vectors", "field_object_flow"]
 
 DYNAMIC_FORMAT = "interleave-dynamic-field"
 DYNAMIC_VERSION = 1
@@ -330,6 +330,58 @@ def earlier_points(assets: DynamicAssets, coords: np.ndarray, tau: float, tau_ea
     return earlier, found
 
 
+def _checked_depth(depth) -> np.ndarray:
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.dtype.kind != "f" or np.isnan(depth).any() or (depth <= 0).any():
+        raise InputError(f"must be (H, W) planar depth > 0 (+inf for the background), got {depth.shape} "
+                         f"{depth.dtype}", field="depth")
+    return depth
+
+
+def _points_at(assets: DynamicAssets, k: np.ndarray, pose: np.ndarray, depth: np.ndarray, time: float,
+               other_time: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """The surface point of each pixel (the ray at its planar depth) where it is at ``other_time``: world points
+    (H W, 3) float32 (the background: its ray direction; NaN where the motion field gives no point, see
+    :func:`earlier_points`), and which pixels have a finite depth (H W,)."""
+    tau, tau_other = normalize_time(time, assets.time_range), normalize_time(other_time, assets.time_range)
+    h, w = depth.shape
+    origin, dirs = camera_rays_np(k, pose, h, w)
+    origin, dirs = origin.astype(np.float32), dirs.astype(np.float32)  # the renderer's float32 rays
+    d = depth.reshape(-1).astype(np.float32)
+    finite = np.isfinite(d)
+    points = np.where(finite[:, None], origin + np.where(finite, d, 0)[:, None] * dirs, dirs)
+    render = assets.manifest["render"]
+    coords = contract_np(assets.scene, points, render["ndc_margin"])
+    inside = finite & (np.abs(coords) <= 1.0).all(axis=-1)
+    moved, found = earlier_points(assets, coords[inside], tau, tau_other, iterations=iterations)
+    points[inside] = np.where(found[:, None], uncontract_np(assets.scene, moved, render["ndc_margin"]), np.nan)
+    return points, finite
+
+
+def field_object_flow(assets: DynamicAssets, intrinsics, world_to_camera, depth: np.ndarray, time: float,
+                      target_time: float, *, iterations: int = MOTION_ITERATIONS) -> np.ndarray:
+    """The field's own motion of each pixel's surface point from ``time`` to ``target_time`` as an object flow
+    in this frame's view (H, W, 3) float32: (du, dv) pixels and dz planar depth, where the point would be
+    seen by the same camera (``engine.geometry.splat``'s object flow; the camera's motion is the warp's).
+    Zero on the background and where the motion field gives no point. What an oracle of a field renderer
+    moves frame n by (the field knows its future)."""
+    k = validate_intrinsics(intrinsics)
+    pose = validate_pose(world_to_camera)
+    depth = _checked_depth(depth)
+    h, w = depth.shape
+    points, finite = _points_at(assets, k, pose, depth, time, target_time, iterations)
+    q = points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = finite & np.isfinite(q).all(axis=1) & (q[:, 2] > 1e-9)
+        z = np.where(ok, q[:, 2], 1.0)
+        flow = np.stack([k[0, 0] * q[:, 0] / z + k[0, 1] * q[:, 1] / z + k[0, 2] - u.reshape(-1),
+                         k[1, 1] * q[:, 1] / z + k[1, 2] - v.reshape(-1),
+                         z - np.where(finite, depth.reshape(-1), 0.0)], axis=-1)
+    flow[~ok] = 0.0
+    return flow.reshape(h, w, 3).astype(np.float32)
+
+
 def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, depth: np.ndarray, time: float,
                          earlier_world_to_camera, earlier_time: float, *, earlier_intrinsics=None,
                          iterations: int = MOTION_ITERATIONS) -> np.ndarray:
@@ -353,22 +405,9 @@ def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, dep
     k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,
                                                                       field_name="earlier_intrinsics")
     prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera")
-    depth = np.asarray(depth)
-    if depth.ndim != 2 or depth.dtype.kind != "f" or np.isnan(depth).any() or (depth <= 0).any():
-        raise InputError(f"must be (H, W) planar depth > 0 (+inf for the background), got {depth.shape} "
-                         f"{depth.dtype}", field="depth")
-    tau, tau_prev = normalize_time(time, assets.time_range), normalize_time(earlier_time, assets.time_range)
+    depth = _checked_depth(depth)
     h, w = depth.shape
-    origin, dirs = camera_rays_np(k, pose, h, w)
-    origin, dirs = origin.astype(np.float32), dirs.astype(np.float32)  # the renderer's float32 rays
-    d = depth.reshape(-1).astype(np.float32)
-    finite = np.isfinite(d)
-    points = np.where(finite[:, None], origin + np.where(finite, d, 0)[:, None] * dirs, dirs)
-    render = assets.manifest["render"]
-    coords = contract_np(assets.scene, points, render["ndc_margin"])
-    inside = finite & (np.abs(coords) <= 1.0).all(axis=-1)
-    moved, found = earlier_points(assets, coords[inside], tau, tau_prev, iterations=iterations)
-    points[inside] = np.where(found[:, None], uncontract_np(assets.scene, moved, render["ndc_margin"]), np.nan)
+    points, finite = _points_at(assets, k, pose, depth, time, earlier_time, iterations)
     # finite points: world -> earlier camera; the background: directions, rotation only
     q = points.astype(np.float64) @ prev[:3, :3].T + np.where(finite, 1.0, 0.0)[:, None] * prev[:3, 3]
     z = q[:, 2]

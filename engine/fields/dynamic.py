@@ -32,10 +32,11 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
+from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, camera_rays_np,
                                   contract_np, decode_plane, direction_encoding_np, load_mlp, load_occupancy,
                                   march_field, mlp_np, read_asset_files, uncontract_np)
+from engine.geometry.motion import drop_long_vectors, projected_offsets
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
@@ -372,13 +373,9 @@ def field_object_flow(assets: DynamicAssets, intrinsics, world_to_camera, depth:
     points, finite = _points_at(assets, k, pose, depth, time, target_time, iterations)
     q = points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ok = finite & np.isfinite(q).all(axis=1) & (q[:, 2] > 1e-9)
-        z = np.where(ok, q[:, 2], 1.0)
-        flow = np.stack([k[0, 0] * q[:, 0] / z + k[0, 1] * q[:, 1] / z + k[0, 2] - u.reshape(-1),
-                         k[1, 1] * q[:, 1] / z + k[1, 2] - v.reshape(-1),
-                         z - np.where(finite, depth.reshape(-1), 0.0)], axis=-1)
-    flow[~ok] = 0.0
+    flow = np.concatenate([projected_offsets(q, k, u.reshape(-1), v.reshape(-1)),
+                           (q[:, 2] - np.where(finite, depth.reshape(-1), 0.0))[:, None]], axis=1)
+    flow[~(finite & np.isfinite(flow).all(axis=1))] = 0.0
     return flow.reshape(h, w, 3).astype(np.float32)
 
 
@@ -410,15 +407,6 @@ def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, dep
     points, finite = _points_at(assets, k, pose, depth, time, earlier_time, iterations)
     # finite points: world -> earlier camera; the background: directions, rotation only
     q = points.astype(np.float64) @ prev[:3, :3].T + np.where(finite, 1.0, 0.0)[:, None] * prev[:3, 3]
-    z = q[:, 2]
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(q).all(axis=1) & (z > 1e-9 * np.maximum(1.0, np.abs(q[:, :2]).max(axis=1)))
-    z = np.where(ok, z, 1.0)
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    x = k_prev[0, 0] * q[:, 0] / z + k_prev[0, 1] * q[:, 1] / z + k_prev[0, 2] - u.reshape(-1)
-    y = k_prev[1, 1] * q[:, 1] / z + k_prev[1, 2] - v.reshape(-1)
-    out = np.stack([x, y], axis=-1)
-    out[~ok] = np.nan
-    with np.errstate(invalid="ignore"):
-        out[np.abs(out).max(axis=1) > MAX_MOTION_DIAGONALS * np.hypot(h, w)] = np.nan
+    out = drop_long_vectors(projected_offsets(q, k_prev, u.reshape(-1), v.reshape(-1)), h, w)
     return out.reshape(h, w, 2).astype(np.float32)

@@ -17,8 +17,9 @@ from engine.core.frames import MAX_MOTION_DIAGONALS, Camera
 from engine.geometry import kernels
 
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
-           "sample_smooth", "CHAIN_SPREAD_PX", "sample_footprint", "sample_depths", "upsample_motion_vectors",
-           "undilate_motion_vectors", "scene_velocity", "velocity_change", "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+           "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
+           "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
+           "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -44,15 +45,31 @@ def _vectors_of(k_now_inv_rays: np.ndarray, depth: np.ndarray, camera: Camera,
     to_prev = previous.world_to_camera @ transform @ camera.camera_to_world
     p = np.where(finite[:, None], k_now_inv_rays * np.where(finite, depth, 1.0)[:, None], k_now_inv_rays)
     q = p @ to_prev[:3, :3].T + np.where(finite, 1.0, 0.0)[:, None] * to_prev[:3, 3]
-    k = previous.intrinsics
+    return projected_offsets(q, previous.intrinsics, u, v)
+
+
+def projected_offsets(q: np.ndarray, intrinsics: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, 2) float64 offsets from the pixel positions ``u, v`` (1-D) to where the points ``q`` (N, 3, in a
+    camera's axes; a direction for the sky) project with that camera's ``intrinsics``; NaN where a point is
+    not finite or lies behind (or on) the camera's plane, ``z <= 1e-9 max(1, |x|, |y|)``."""
+    k = intrinsics
     z = q[:, 2]
-    ok = z > 1e-9 * np.maximum(1.0, np.abs(q[:, :2]).max(axis=1))
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(q).all(axis=1) & (z > 1e-9 * np.maximum(1.0, np.abs(q[:, :2]).max(axis=1)))
     z_safe = np.where(ok, z, 1.0)
     x = k[0, 0] * q[:, 0] / z_safe + k[0, 1] * q[:, 1] / z_safe + k[0, 2]
     y = k[1, 1] * q[:, 1] / z_safe + k[1, 2]
     out = np.stack([x - u, y - v], axis=-1)
     out[~ok] = np.nan
     return out
+
+
+def drop_long_vectors(vectors: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``vectors`` (N, 2) with NaN where a component exceeds ``MAX_MOTION_DIAGONALS`` frame diagonals (no screen
+    position: the rgbd-seq format refuses such vectors as a unit error), in place; returns them."""
+    with np.errstate(invalid="ignore"):
+        vectors[np.abs(vectors).max(axis=1) > MAX_MOTION_DIAGONALS * np.hypot(height, width)] = np.nan
+    return vectors
 
 
 def rigid_motion_vectors(depth: np.ndarray, camera: Camera, previous: Camera,
@@ -97,9 +114,7 @@ def rigid_motion_vectors(depth: np.ndarray, camera: Camera, previous: Camera,
     for mask, transform in groups:
         if mask.any():
             out[mask] = _vectors_of(rays[mask], d[mask], camera, previous, transform, u[mask], v[mask])
-    with np.errstate(invalid="ignore"):
-        out[np.abs(out).max(axis=1) > MAX_MOTION_DIAGONALS * np.hypot(h, w)] = np.nan
-    return out.reshape(h, w, 2).astype(np.float32)
+    return drop_long_vectors(out, h, w).reshape(h, w, 2).astype(np.float32)
 
 
 def camera_motion_vectors(depth: np.ndarray, camera: Camera, previous: Camera) -> np.ndarray:

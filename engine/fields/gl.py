@@ -80,7 +80,8 @@ from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_
                                   TRANSMITTANCE_EPS, FieldAssets, load_field)
 
 __all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
-           "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options"]
+           "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options", "inline_params",
+           "CAMERA_GLSL", "contract_glsl", "set_uniforms", "camera_uniforms", "scene_uniforms"]
 
 #: Default weight below which a sample's colour MLP is not evaluated (the background colour stands in).
 COLOR_EPS = 1e-5
@@ -244,6 +245,10 @@ uniform float color_eps;
 const int N = %(num_samples)d;
 const float INF = uintBitsToFloat(0x7f800000u);
 
+%(camera_glsl)s
+
+%(contract_glsl)s
+
 float lerp_(float a, float b, float w) {
     // torch.lerp's formula, exact at both ends (sample positions round as in training)
     precise float r = w < 0.5 ? a + w * (b - a) : b - (b - a) * (1.0 - w);
@@ -261,14 +266,7 @@ void shade(ivec2 tile) {
     if (pix.x >= size.x || pix.y >= size.y) return;
     int o = pix.y * size.x + pix.x;
 
-    // ray through the pixel centre with camera z = 1, in float64 like camera_rays_np, then float32
-    double u = double(pix.x) + 0.5LF, v = double(pix.y) + 0.5LF;
-    double cy = (v - k_cy) / k_vals.w;
-    double cx = (u - k_vals.z - k_vals.y * (v - k_cy) / k_vals.w) / k_vals.x;
-    dvec3 cam = dvec3(cx, cy, 1.0LF);
-    vec3 d = vec3(cam.x * rot[0][0] + cam.y * rot[1][0] + cam.z * rot[2][0],   // R^T cam
-                  cam.x * rot[0][1] + cam.y * rot[1][1] + cam.z * rot[2][1],
-                  cam.x * rot[0][2] + cam.y * rot[1][2] + cam.z * rot[2][2]);
+    vec3 d = pixel_ray(pix);
     float dnorm = length(d);
     vec3 dir = d / dnorm;
 
@@ -338,6 +336,86 @@ void main() {
     for (int r = 0; r < TILES; ++r) shade(ivec2(gl_WorkGroupID.x, int(gl_WorkGroupID.y) * TILES + r));
 }
 """
+
+
+#: GLSL of the camera ray through a pixel centre (camera z = 1): float64 like ``camera_rays_np``, then float32.
+#: Uniforms ``k_vals``, ``k_cy``, ``rot`` (:func:`camera_uniforms`).
+CAMERA_GLSL = """vec3 pixel_ray(ivec2 pix) {  // world direction R^T (K^-1 (u, v, 1)) of pixel centre (u, v) = pix + 0.5
+    double u = double(pix.x) + 0.5LF, v = double(pix.y) + 0.5LF;
+    double cy = (v - k_cy) / k_vals.w;
+    double cx = (u - k_vals.z - k_vals.y * (v - k_cy) / k_vals.w) / k_vals.x;
+    dvec3 cam = dvec3(cx, cy, 1.0LF);
+    return vec3(cam.x * rot[0][0] + cam.y * rot[1][0] + cam.z * rot[2][0],
+                cam.x * rot[0][1] + cam.y * rot[1][1] + cam.z * rot[2][1],
+                cam.x * rot[0][2] + cam.y * rot[1][2] + cam.z * rot[2][2]);
+}"""
+
+_BOX_CONTRACT = """vec3 contract(vec3 p) {  // world point -> the field's cube (as contract_np)
+    return (p - box_center) / box_half;
+}"""
+
+_NDC_CONTRACT = """vec3 contract(vec3 p) {  // world point -> the field's cube (as contract_np); behind the camera: -2
+    vec3 q = ndc_rot * p + ndc_t;
+    vec3 c = vec3(-2.0);
+    if (q.z > 0.0) {
+        float pu = (ndc_k.x * q.x + ndc_k.y * q.y) / q.z + ndc_k.z;
+        float pv = ndc_k.w * q.y / q.z + ndc_k12;
+        c = vec3((2.0 * pu / ndc_size.x - 1.0) / (1.0 + ndc_margin),
+                 (2.0 * pv / ndc_size.y - 1.0) / (1.0 + ndc_margin), 1.0 - 2.0 * scene_near / q.z);
+    }
+    return c;
+}"""
+
+
+def contract_glsl(bounded: bool) -> str:
+    """GLSL ``vec3 contract(vec3 p)`` of a bounded (box) or forward-facing (NDC) scene; its uniforms are
+    :func:`scene_uniforms`'."""
+    return _BOX_CONTRACT if bounded else _NDC_CONTRACT
+
+
+def set_uniforms(program, values: dict) -> None:
+    """Set ``values`` (name -> value) on a moderngl program, skipping the uniforms its compiler optimised out."""
+    for name, value in values.items():
+        try:
+            program[name].value = value
+        except KeyError:  # optimised out of this program
+            pass
+
+
+def camera_uniforms(intrinsics, world_to_camera) -> dict:
+    """The uniforms of :data:`CAMERA_GLSL` and the ray origin for a checked camera (OpenCV axes, rigid pose).
+
+    Raises:
+        InputError: intrinsics not a finite pinhole K with positive focal lengths; pose not rigid.
+    """
+    k = validate_intrinsics(intrinsics)
+    pose = validate_pose(world_to_camera)
+    rot = pose[:3, :3]
+    origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
+    return {"k_vals": (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])), "k_cy": float(k[1, 2]),
+            "rot": tuple(float(x) for x in rot.flatten()),  # column-major upload: rot[i][j] = R[i, j]
+            "origin": tuple(float(x) for x in origin)}
+
+
+def scene_uniforms(assets, width: int, height: int) -> dict:
+    """The uniforms of a field's scene (size, near, the box or the NDC camera: :func:`contract_glsl`'s), float32."""
+    scene = assets.scene
+    values = {"size": (int(width), int(height)), "scene_near": float(np.float32(scene["near"]))}
+    if assets.bounded:
+        lo = np.asarray(scene["box_min"], np.float32)
+        hi = np.asarray(scene["box_max"], np.float32)
+        values.update(box_lo=tuple(map(float, lo)), box_hi=tuple(map(float, hi)),
+                      box_center=tuple(map(float, (lo + hi) / np.float32(2))),
+                      box_half=tuple(map(float, (hi - lo) / np.float32(2))))
+    else:
+        k = np.asarray(scene["ndc_intrinsics"], np.float32)
+        t = np.asarray(scene["ndc_world_to_camera"], np.float32)
+        values.update(ndc_rot=tuple(float(x) for x in t[:3, :3].flatten(order="F")),  # column-major
+                      ndc_t=tuple(float(x) for x in t[:3, 3]),
+                      ndc_k=(float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])),
+                      ndc_k12=float(k[1, 2]), ndc_size=tuple(float(x) for x in scene["ndc_size"]),
+                      ndc_margin=float(np.float32(assets.manifest["render"]["ndc_margin"])))
+    return values
 
 
 def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
@@ -503,17 +581,9 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
         t0 = max(t0, enter);
         t1 = min(t1, leave);
     }"""
-        contract = "        vec3 c = (p - box_center) / box_half;"
     else:
         bounds = ""
-        contract = """        vec3 q = ndc_rot * p + ndc_t;
-        vec3 c = vec3(-2.0);
-        if (q.z > 0.0) {
-            float pu = (ndc_k.x * q.x + ndc_k.y * q.y) / q.z + ndc_k.z;
-            float pv = ndc_k.w * q.y / q.z + ndc_k12;
-            c = vec3((2.0 * pu / ndc_size.x - 1.0) / (1.0 + ndc_margin),
-                     (2.0 * pv / ndc_size.y - 1.0) / (1.0 + ndc_margin), 1.0 - 2.0 * scene_near / q.z);
-        }"""
+    contract = "        vec3 c = contract(p);"
     if render["spacing"] == "linear":
         spacing_setup = ""
         sample_t = """        float e0 = lerp_(t0, t1, float(i) / float(N));
@@ -558,7 +628,8 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
         "density": density,
         "density_bias": float(spec["density_bias"]), "max_log": float(spec["max_log_density"]),
         "latent": latent, "color_sample": color_sample, "color_final": color_final,
-        "opacity_eps": float(OPACITY_EPS),
+        "opacity_eps": float(OPACITY_EPS), "camera_glsl": CAMERA_GLSL,
+        "contract_glsl": contract_glsl(assets.bounded),
         "count_decl": ("layout(std430, binding = 4) writeonly buffer CountBuf { uint out_count[]; };"
                        if count_evaluations else ""),
         "count_write": "    out_count[o] = evaluated;" if count_evaluations else "",
@@ -757,36 +828,14 @@ class GlFieldRenderer:
         self._set_static_uniforms()
 
     def _set(self, name: str, value) -> None:
-        try:
-            self.program[name].value = value
-        except KeyError:  # optimised out of this field's shader
-            pass
+        set_uniforms(self.program, {name: value})
 
     def _set_static_uniforms(self) -> None:
         scene = self.assets.scene
-        self._set("size", (self.width, self.height))
-        self._set("near", float(np.float32(scene["near"])))
-        self._set("far", float(np.float32(scene["far"])))
-        self._set("scene_near", float(np.float32(scene["near"])))
-        self._set("background", tuple(float(x) for x in self.assets.background))
-        self._set("transmittance_eps", self.transmittance_eps)
-        self._set("color_eps", self.color_eps)
-        if self.assets.bounded:
-            lo = np.asarray(scene["box_min"], np.float32)
-            hi = np.asarray(scene["box_max"], np.float32)
-            self._set("box_lo", tuple(map(float, lo)))
-            self._set("box_hi", tuple(map(float, hi)))
-            self._set("box_center", tuple(map(float, (lo + hi) / np.float32(2))))
-            self._set("box_half", tuple(map(float, (hi - lo) / np.float32(2))))
-        else:
-            k = np.asarray(scene["ndc_intrinsics"], np.float32)
-            t = np.asarray(scene["ndc_world_to_camera"], np.float32)
-            self._set("ndc_rot", tuple(float(x) for x in t[:3, :3].flatten(order="F")))  # column-major
-            self._set("ndc_t", tuple(float(x) for x in t[:3, 3]))
-            self._set("ndc_k", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
-            self._set("ndc_k12", float(k[1, 2]))
-            self._set("ndc_size", tuple(float(x) for x in scene["ndc_size"]))
-            self._set("ndc_margin", float(np.float32(self.assets.manifest["render"]["ndc_margin"])))
+        set_uniforms(self.program, {
+            **scene_uniforms(self.assets, self.width, self.height), "near": float(np.float32(scene["near"])),
+            "far": float(np.float32(scene["far"])), "background": tuple(float(x) for x in self.assets.background),
+            "transmittance_eps": self.transmittance_eps, "color_eps": self.color_eps})
 
     def render(self, intrinsics, world_to_camera) -> dict[str, np.ndarray]:
         """Render the field from a camera (OpenCV axes, rigid world-to-camera, pixel centres at +0.5).
@@ -837,16 +886,10 @@ class GlFieldRenderer:
 
     def _dispatcher(self, intrinsics, world_to_camera):
         """The checked camera's dispatch, to run with the context current (``_run``)."""
-        k = validate_intrinsics(intrinsics)
-        pose = validate_pose(world_to_camera)
-        rot = pose[:3, :3]
-        origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
+        camera = camera_uniforms(intrinsics, world_to_camera)
 
         def dispatch() -> None:
-            self._set("k_vals", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
-            self._set("k_cy", float(k[1, 2]))
-            self._set("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
-            self._set("origin", tuple(float(x) for x in origin))
+            set_uniforms(self.program, camera)
             self._bind()
             tile_rows = -(-self.height // _TILE)
             gx, gy = -(-self.width // _TILE), -(-tile_rows // self.tiles_per_invocation)

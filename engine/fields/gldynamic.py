@@ -44,8 +44,9 @@ from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
 from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, load_dynamic_field,
                                    normalize_time, time_encoding_np)
-from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available, check_options,
-                              generate_shader, inline_params, linear_code, mlp_hidden_code, pad_matrix, texture_layers)
+from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
+                              camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
+                              linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
 from engine.fields.render import PLANE_AXES
 
 __all__ = ["GlDynamicRenderer", "available", "motion_shader"]
@@ -171,9 +172,9 @@ vec3 motion_flow(vec3 c, float tau) {
 %(flow)s
 }
 
-vec3 contract(vec3 p) {
-%(contract)s
-}
+%(camera_glsl)s
+
+%(contract_glsl)s
 
 vec3 uncontract(vec3 c) {
 %(uncontract)s
@@ -183,14 +184,7 @@ void main() {
     ivec2 pix = ivec2(gl_GlobalInvocationID.xy);
     if (pix.x >= size.x || pix.y >= size.y) return;
     int o = pix.y * size.x + pix.x;
-    // the renderer's ray through the pixel centre (camera z = 1), float64 then float32
-    double u = double(pix.x) + 0.5LF, v = double(pix.y) + 0.5LF;
-    double cy = (v - k_cy) / k_vals.w;
-    double cx = (u - k_vals.z - k_vals.y * (v - k_cy) / k_vals.w) / k_vals.x;
-    dvec3 cam = dvec3(cx, cy, 1.0LF);
-    vec3 d = vec3(cam.x * rot[0][0] + cam.y * rot[1][0] + cam.z * rot[2][0],
-                  cam.x * rot[0][1] + cam.y * rot[1][1] + cam.z * rot[2][1],
-                  cam.x * rot[0][2] + cam.y * rot[1][2] + cam.z * rot[2][2]);
+    vec3 d = pixel_ray(pix);  // the renderer's ray through the pixel centre (camera z = 1)
     float depth = rgbd[o].w;
     vec3 q;
     if (isinf(depth)) {
@@ -219,14 +213,7 @@ void main() {
 }
 """
 
-_BOX_CONTRACT = "    return (p - box_center) / box_half;"
 _BOX_UNCONTRACT = "    return c * box_half + box_center;"
-_NDC_CONTRACT = """    vec3 q = ndc_rot * p + ndc_t;
-    if (q.z <= 0.0) return vec3(-2.0);
-    float pu = (ndc_k.x * q.x + ndc_k.y * q.y) / q.z + ndc_k.z;
-    float pv = ndc_k.w * q.y / q.z + ndc_k12;
-    return vec3((2.0 * pu / ndc_size.x - 1.0) / (1.0 + ndc_margin),
-                (2.0 * pv / ndc_size.y - 1.0) / (1.0 + ndc_margin), 1.0 - 2.0 * scene_near / q.z);"""
 _NDC_UNCONTRACT = """    if (c.z >= 1.0) return vec3(NAN);   // at or beyond infinity
     float z = 2.0 * scene_near / (1.0 - c.z);
     float pu = (c.x * (1.0 + ndc_margin) + 1.0) * (ndc_size.x / 2.0);
@@ -248,8 +235,7 @@ def motion_shader(assets: DynamicAssets, filtering: str, iterations: int = MOTIO
     body = "\n".join("    " + line for line in lines + [f"return {flow};"])
     bounded = assets.bounded
     source = _MOTION_TEMPLATE % {
-        "samplers": "\n".join(decls), "flow": body,
-        "contract": _BOX_CONTRACT if bounded else _NDC_CONTRACT,
+        "samplers": "\n".join(decls), "flow": body, "camera_glsl": CAMERA_GLSL, "contract_glsl": contract_glsl(bounded),
         "uncontract": _BOX_UNCONTRACT if bounded else _NDC_UNCONTRACT}
     source = source.replace("ITERATIONS", str(int(iterations))).replace("TOLERANCE", repr(float(MOTION_TOLERANCE)))
     return inline_params(source, params.array())
@@ -355,39 +341,25 @@ class GlDynamicRenderer(GlFieldRenderer):
     def _motion_dispatcher(self, intrinsics, world_to_camera, tau, earlier_world_to_camera, tau_prev,
                            earlier_intrinsics):
         """The checked motion pass (over the depth the next render writes), to run with the context current."""
-        k = validate_intrinsics(intrinsics)
-        pose = validate_pose(world_to_camera)
-        k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,
-                                                                          field_name="earlier_intrinsics")
+        camera = camera_uniforms(intrinsics, world_to_camera)
+        prev_k, prev_k12 = camera["k_vals"], camera["k_cy"]  # K00, K01, K02, K11 and K12: the same K by default
+        if earlier_intrinsics is not None:
+            k = validate_intrinsics(earlier_intrinsics, field_name="earlier_intrinsics")
+            prev_k, prev_k12 = (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])), float(k[1, 2])
         prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera").astype(np.float32)
-        rot = pose[:3, :3]
-        origin = (-rot.T @ pose[:3, 3]).astype(np.float32)
+        values = {**camera, "prev_rot": tuple(float(x) for x in prev[:3, :3].flatten(order="F")),  # column-major
+                  "prev_t": tuple(float(x) for x in prev[:3, 3]), "prev_k": prev_k, "prev_k12": prev_k12,
+                  "tau_now": float(tau), "tau_prev": float(tau_prev)}
         if self._motion_program is None:
             self._run(self._build_motion_pass)
-        program = self._motion_program
-
-        def put(name: str, value) -> None:
-            try:
-                program[name].value = value
-            except KeyError:  # optimised out of this field's pass
-                pass
 
         def dispatch() -> None:
-            put("k_vals", (float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])))
-            put("k_cy", float(k[1, 2]))
-            put("rot", tuple(float(x) for x in rot.flatten()))  # column-major upload: rot[i][j] = R[i, j]
-            put("origin", tuple(float(x) for x in origin))
-            put("prev_rot", tuple(float(x) for x in prev[:3, :3].flatten(order="F")))  # column-major
-            put("prev_t", tuple(float(x) for x in prev[:3, 3]))
-            put("prev_k", (float(k_prev[0, 0]), float(k_prev[0, 1]), float(k_prev[0, 2]), float(k_prev[1, 1])))
-            put("prev_k12", float(k_prev[1, 2]))
-            put("tau_now", float(tau))
-            put("tau_prev", float(tau_prev))
+            set_uniforms(self._motion_program, values)
             for unit, tex in enumerate(self._textures):
                 tex.use(location=unit)
             self._rgbd.bind_to_storage_buffer(2)
             self._motion.bind_to_storage_buffer(5)
-            program.run(-(-self.width // 8), -(-self.height // 8), 1)
+            self._motion_program.run(-(-self.width // 8), -(-self.height // 8), 1)
             self.ctx.memory_barrier()
         return dispatch
 
@@ -396,24 +368,6 @@ class GlDynamicRenderer(GlFieldRenderer):
         self._motion_program = program = self.ctx.compute_shader(motion_shader(self.assets, self.filtering))
         self._motion = self.ctx.buffer(reserve=8 * self.width * self.height)
         self._buffers += [self._motion, program]  # released with the buffers
-        scene = self.assets.scene
-        values = {"size": (self.width, self.height), "scene_near": float(np.float32(scene["near"])),
-                  "max_vector": float(MAX_MOTION_DIAGONALS * np.hypot(self.height, self.width))}
-        if self.assets.bounded:
-            lo, hi = np.asarray(scene["box_min"], np.float32), np.asarray(scene["box_max"], np.float32)
-            values.update(box_center=tuple(map(float, (lo + hi) / np.float32(2))),
-                          box_half=tuple(map(float, (hi - lo) / np.float32(2))))
-        else:
-            k = np.asarray(scene["ndc_intrinsics"], np.float32)
-            t = np.asarray(scene["ndc_world_to_camera"], np.float32)
-            values.update(ndc_rot=tuple(float(x) for x in t[:3, :3].flatten(order="F")),
-                          ndc_t=tuple(float(x) for x in t[:3, 3]),
-                          ndc_k=(float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1])),
-                          ndc_k12=float(k[1, 2]), ndc_size=tuple(float(x) for x in scene["ndc_size"]),
-                          ndc_margin=float(np.float32(self.assets.manifest["render"]["ndc_margin"])))
-        values.update({name: unit for name, unit in self._units.items() if name.startswith("motion_")})
-        for name, value in values.items():
-            try:
-                program[name].value = value
-            except KeyError:  # optimised out of this field's pass
-                pass
+        set_uniforms(program, {**scene_uniforms(self.assets, self.width, self.height),
+                               "max_vector": float(MAX_MOTION_DIAGONALS * np.hypot(self.height, self.width)),
+                               **{name: unit for name, unit in self._units.items() if name.startswith("motion_")}})

@@ -30,7 +30,7 @@ from engine.fields.render import load_field
 from engine.fields.dynamic import field_motion_vectors, field_object_flow
 from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
-from engine.predict import Predictor, Target, make_predictor, use_backend
+from engine.predict import Oracle, Predictor, Target, make_predictor, use_backend
 from engine.runtime.stream import PredictionLoop
 from engine.scenegen import SceneConfig, generate_sequence, make_scene
 
@@ -280,27 +280,18 @@ def run_field_demo(field_dir: Path, out_dir: Path, *, k: int = 2, frames: int = 
                            note=note, backend=backend)
 
 
-class FieldOracle(Predictor):
+class FieldOracle(Oracle):
     """``oracle`` of a dynamic field's frames: frame n moved by the field's own motion from frame n's time to
     the target's (``engine.fields.dynamic.field_object_flow``: the field knows its future), then by the
     camera's. The target must be a frame of the rendered path (``target.index``), whose field time is
     ``times[index]``."""
 
-    name = "oracle"
-    backends = ("cpu", "gl")
-
     def __init__(self, assets, times: Sequence[float]) -> None:
         self.assets, self.times = assets, np.asarray(times, np.float64)
 
-    def _prepare(self, state, timer):
-        return self.frames.resident(state.history[-1], timer)
-
-    def _render(self, state, target, timer):
-        frame = state.history[-1]
-        with timer("motion"):
-            flow = field_object_flow(self.assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                     float(self.times[frame.index]), float(self.times[target.index]))
-        return self.frames.warp_and_fill(state.data, target, timer, flow)
+    def _true_flow(self, frame: Frame, target: Target) -> np.ndarray:
+        return field_object_flow(self.assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                 float(self.times[frame.index]), float(self.times[target.index]))
 
 
 def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str, out_dir: Path
@@ -339,9 +330,8 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
         compile_s = renderer.compile_seconds
     sequence = read_sequence(seq_dir)
 
-    def field_vectors(older: int, newest: int) -> np.ndarray:
+    def field_vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
         """What the renderer writes when it draws only frames ``older`` and ``newest`` (the motion field)."""
-        frame = sequence[newest]
         return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
                                     float(times[newest]), cameras[older].world_to_camera, float(times[older]))
 

@@ -102,9 +102,10 @@ def hole_scores(truth: np.ndarray, color: np.ndarray, holes: np.ndarray) -> tupl
     return float(mask.mean()), psnr(display_encode(truth[rows, cols]), display_encode(color[rows, cols]), mask)
 
 
-#: ``(older, newest) -> (H, W, 2)`` motion vectors of the frame at position ``newest`` to the frame at position
-#: ``older``, from a renderer that computes them between any two of its frames (a dynamic field's motion field).
-VectorSource = Callable[[int, int], np.ndarray]
+#: ``(older, newest, frame) -> (H, W, 2)`` motion vectors of ``frame``, the loaded frame at position ``newest``, to
+#: the frame at position ``older``, from a renderer that computes them between any two of its frames (a dynamic
+#: field's motion field).
+VectorSource = Callable[[int, int, Frame], np.ndarray]
 
 
 def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Frame] = None,
@@ -120,9 +121,9 @@ def history_motion_vectors(sequence, older: int, newest: int, frame: Optional[Fr
     ``frame`` is the loaded frame at ``newest`` (read again when not given). A ``source`` gives them directly
     (as the renderer would have written them had it drawn only these frames).
     """
-    if source is not None:
-        return source(older, newest)
     frame = sequence[newest] if frame is None else frame
+    if source is not None:
+        return source(older, newest, frame)
     if newest - older == 1 and frame.motion_vectors is not None:
         return frame.motion_vectors
     known = {o.id for o in sequence.objects}

@@ -9,7 +9,7 @@ import numpy as np
 
 from engine import geometry
 from engine.core.errors import InputError
-from engine.core.frames import SceneObject
+from engine.core.frames import Frame, SceneObject
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
 from engine.predict.backend import gl_flow_estimators
@@ -155,7 +155,11 @@ class Oracle(Predictor):
     def _prepare(self, state: PreparedState, timer: Timer) -> ResidentFrame:
         return self.frames.resident(state.history[-1], timer)
 
+    def _true_flow(self, frame: Frame, target: Target) -> np.ndarray:
+        """Frame n's true object flow to the target frame (what subclasses that know another truth replace)."""
+        return true_object_flow(frame, self.objects, target.index)
+
     def _render(self, state, target, timer):
         with timer("motion"):
-            flow = true_object_flow(state.history[-1], self.objects, target.index)
+            flow = self._true_flow(state.history[-1], target)
         return self.frames.warp_and_fill(state.data, target, timer, flow)

@@ -68,12 +68,12 @@ Hard cases, and what the session does:
   history). A wrong-size buffer is far more often a bug than a deliberate change.
 - **Bad values**: NaN or inf in colour, negative colour, NaN / out-of-range depth-buffer values,
   non-rigid or non-finite poses (each checked as the engine uses it: sRGB colour once decoded, where a
-  finite 2e16 is inf; translations and depths once scaled by ``meters_per_unit``), infinite motion vectors (NaN is "no vector"), vectors longer than
-  ``engine.core.frames.MAX_MOTION_DIAGONALS`` frame diagonals once converted (wrong units or scale), a
-  vector buffer of the wrong shape, dtype or channel count or larger than the frame are rejected with an
-  ``InputError`` naming the frame (the caller's ``frame`` number, or the session's submit counter), the
-  field and its time; the history is left as it was. Reversed-Z depth 0 (the far clear value) is sky
-  (``+inf``), not an error.
+  finite 2e16 is inf; translations and depths once scaled by ``meters_per_unit``), infinite motion vectors
+  (NaN is "no vector"), vectors longer than ``engine.core.frames.MAX_MOTION_DIAGONALS`` frame diagonals
+  once converted (wrong units or scale), a vector buffer of the wrong shape, dtype or channel count or
+  larger than the frame are rejected with an ``InputError`` naming the frame (the caller's ``frame``
+  number, or the session's submit counter), the field and its time; the history is left as it was.
+  Reversed-Z depth 0 (the far clear value) is sky (``+inf``), not an error.
 
 Thread-safety: a ``Session`` may be called from several threads (e.g. ``submit`` from the render thread,
 ``predict`` from the present thread). Input conversion and validation run without a lock; one lock

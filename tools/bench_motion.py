@@ -11,7 +11,10 @@ Sets (rendered once, cached under ``--out``; ``tools.heldout``):
   (``engine.scenegen.presets``) whose moving pixels move a median 10-35 px a frame at 640 px width: the
   range of the path-traced scenes the engine is judged on (objects fast and spinning, fast camera yaw,
   thin structures always, Monte Carlo-like noise);
-- ``extreme``: the same rule on the ``extreme`` preset (from seed 7101), a median 20-80 px a frame.
+- ``extreme``: the same rule on the ``extreme`` preset (from seed 7101), a median 20-80 px a frame;
+- ``smooth``: the same rule on the ``smooth`` preset (from seed 7201), a median 10-40 px a frame: as fast as
+  ``fast`` but every object on a straight line at constant speed and spin (to 10 degrees a frame), the
+  camera without shake (yaw to ~3 degrees a frame): content whose past motion predicts its future.
 
 No network was trained on these seeds (training uses 5000-5031). For each set it prints the measured
 speeds, then per (set, k, method): PSNR / SSIM / FLIP (``--flip``) over the whole frame and over moving
@@ -33,6 +36,7 @@ SETS = {
     "gentle": None,
     "fast": ("fast", 7001, (10.0, 35.0)),
     "extreme": ("extreme", 7101, (20.0, 80.0)),
+    "smooth": ("smooth", 7201, (10.0, 40.0)),
 }
 GENTLE_SEEDS = (1001, 1002)
 

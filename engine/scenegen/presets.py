@@ -28,6 +28,10 @@ PRESETS: dict[str, dict] = {
     "medium": dict(object_travel=2.0, object_speed=1.5, camera_speed=1.5),
     "fast": dict(fps=20.0, object_travel=4.0, object_speed=2.0, camera_speed=2.5, num_objects=(2, 6),
                  thin_structures="on", render_noise=0.03),
+    "smooth": dict(fps=20.0, object_motions=("linear",), object_speed=1.5, object_travel=2.0, pause_probability=0.0,
+                   max_spin=10.0, camera_speed=2.0, shake_probability=0.0,
+                   camera_paths=("static", "pan", "orbit", "dolly", "strafe", "crane"), num_objects=(2, 6),
+                   thin_structures="on", render_noise=0.03),
     "extreme": dict(fps=12.0, object_travel=4.0, object_speed=2.0, camera_speed=2.5, num_objects=(2, 6),
                     thin_structures="on", render_noise=0.03),
 }

@@ -93,7 +93,7 @@ def _clear_of_camera(part: Part, eyes: np.ndarray, margin: float) -> bool:
 
 
 def _sample_camera(rng: np.random.Generator, cfg: SceneConfig, b: _Builder) -> CameraPath:
-    kind = cfg.camera_path if cfg.camera_path != "random" else str(rng.choice(CAMERA_PATHS))
+    kind = cfg.camera_path if cfg.camera_path != "random" else str(rng.choice(cfg.camera_paths))
     speed = cfg.camera_speed
     fov = float(rng.uniform(*cfg.fov_range))
     dist = float(rng.uniform(5.0, 14.0))
@@ -418,6 +418,19 @@ def _sample_objects(rng: np.random.Generator, cfg: SceneConfig, b: _Builder, cam
     return objects
 
 
+#: the odds of each of ``MOTIONS`` (a subset keeps their relative odds)
+MOTION_ODDS = (0.22, 0.22, 0.16, 0.16, 0.12, 0.12)
+
+
+def _draw_motion(rng: np.random.Generator, kinds: tuple[str, ...]) -> str:
+    """One of ``kinds`` (a subset of ``MOTIONS``) at ``MOTION_ODDS``: one uniform draw whatever the subset, so
+    the rest of an object's stream is drawn alike."""
+    if tuple(kinds) == MOTIONS:
+        return str(rng.choice(MOTIONS, p=list(MOTION_ODDS)))
+    odds = np.array([MOTION_ODDS[MOTIONS.index(k)] for k in kinds])
+    return str(rng.choice(list(kinds), p=odds / odds.sum()))
+
+
 def _try_object(rng, cfg, b: _Builder, camera: CameraPath, kind: str, mat: int, mat2: int, oid: int,
                 speed: float) -> tuple[MovingObject, float]:
     """One candidate object and the lowest height its origin may take (above that it clears the ground)."""
@@ -425,7 +438,7 @@ def _try_object(rng, cfg, b: _Builder, camera: CameraPath, kind: str, mat: int, 
     parts, rest = _object_parts(rng, kind, scale, mat, mat2)
     radius = max(p.bounding_radius() for p in parts)
     grounded = kind in ("box", "cylinder", "cone", "compound") and rng.uniform() < 0.45
-    motion_kind = str(rng.choice(MOTIONS, p=[0.22, 0.22, 0.16, 0.16, 0.12, 0.12]))
+    motion_kind = _draw_motion(rng, cfg.object_motions)
     anchor = _in_view_point(rng, camera, b.t_mid, cfg, (1.5, 18.0), log_depth=True)
     if grounded:
         anchor[2] = rest
@@ -441,7 +454,10 @@ def _try_object(rng, cfg, b: _Builder, camera: CameraPath, kind: str, mat: int, 
         floor = radius + 0.02
     if kind == "rod" or (motion_kind == "spin" and spin == 0):  # a "spin" object must turn
         spin = rng.choice([-1, 1]) * rng.uniform(1.5, 5.0 if kind == "rod" else 3.0)
-    kw: dict = dict(kind=motion_kind, anchor=anchor, t_ref=b.t_mid, spin_axis=axis, spin_rate=float(spin * speed),
+    spin = spin * speed
+    if cfg.max_spin > 0:  # degrees a frame -> radians a second
+        spin = float(np.clip(spin, -math.radians(cfg.max_spin) * cfg.fps, math.radians(cfg.max_spin) * cfg.fps))
+    kw: dict = dict(kind=motion_kind, anchor=anchor, t_ref=b.t_mid, spin_axis=axis, spin_rate=float(spin),
                     orientation=orientation)
     horizontal = np.array([1.0, 1.0, 0.0])
     travel = cfg.object_travel

@@ -70,7 +70,13 @@ class SceneConfig:
                                        "velocities, wander amplitudes, circle radii, bounce drift): faster "
                                        "objects on equally smooth paths; 1 keeps every seed's scene")
     pause_probability: float = option(0.2, "probability that an object stops for a while mid-sequence")
+    object_motions: tuple[str, ...] = option(MOTIONS, "the motions objects draw from (MOTIONS; a subset keeps the "
+                                                      "others' relative odds), e.g. linear: constant linear and "
+                                                      "angular velocity")
+    max_spin: float = option(0.0, "largest spin of an object, degrees a frame (faster spins are slowed to it; 0: "
+                                  "no limit)")
     camera_path: str = option("random", "camera path: random, " + ", ".join(CAMERA_PATHS))
+    camera_paths: tuple[str, ...] = option(CAMERA_PATHS, "the paths camera_path=random draws from")
     camera_speed: float = option(1.0, "scale of camera speeds")
     shake_probability: float = option(0.3, "probability of handheld shake on top of a non-handheld path")
     fov_range: tuple[float, float] = option((45.0, 75.0), "range of the vertical field of view, degrees")
@@ -102,6 +108,11 @@ class SceneConfig:
             (math.isfinite(self.object_travel) and self.object_travel > 0, "object_travel must be > 0"),
             (self.camera_path == "random" or self.camera_path in CAMERA_PATHS,
              f"camera_path must be random or one of {', '.join(CAMERA_PATHS)}"),
+            (len(self.camera_paths) >= 1 and set(self.camera_paths) <= set(CAMERA_PATHS),
+             f"camera_paths must name some of {', '.join(CAMERA_PATHS)}"),
+            (len(self.object_motions) >= 1 and set(self.object_motions) <= set(MOTIONS),
+             f"object_motions must name some of {', '.join(MOTIONS)}"),
+            (math.isfinite(self.max_spin) and self.max_spin >= 0, "max_spin must be finite and >= 0"),
             (self.lighting == "random" or self.lighting in LIGHTING_STYLES,
              f"lighting must be random or one of {', '.join(LIGHTING_STYLES)}"),
             (self.thin_structures in ("random", "on", "off"), "thin_structures must be random, on or off"),

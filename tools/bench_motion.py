@@ -1,7 +1,7 @@
 """Benchmark of motion estimation without motion vectors, on fast held-out content and on the old gentle set.
 
 ``python -m tools.bench_motion [--out out/bench_motion] [--size 640x360] [--frames 16] [--k 2,4]
-[--methods repeat,reproject,flow2d,decomp,oracle] [--sets gentle,fast,extreme] [--count 3] [--flip]
+[--methods repeat,reproject,flow2d,decomp,oracle] [--sets gentle,fast,extreme,smooth] [--count 3] [--flip]
 [--json FILE]``
 
 Sets (rendered once, cached under ``--out``; ``tools.heldout``):
@@ -20,7 +20,8 @@ No network was trained on these seeds (training uses 5000-5031). For each set it
 speeds, then per (set, k, method): PSNR / SSIM / FLIP (``--flip``) over the whole frame and over moving
 pixels, end-point error over moving pixels (the method's u(n -> n-k) extrapolated to frame n+1), median ms
 per predicted frame and its ratio to ``reproject`` in the same run, and the share of the reproject ->
-oracle gap the method recovers. Scores are ``interleave eval``'s (sRGB, DeCOMPnet's border crop).
+oracle gap the method recovers and the share of ``mvec``'s gain over ``reproject`` on moving pixels (where
+``mvec``, the renderer's exact vectors, is among the methods). Scores are ``interleave eval``'s (sRGB, DeCOMPnet's border crop).
 """
 from __future__ import annotations
 
@@ -28,8 +29,9 @@ from pathlib import Path
 
 from engine.eval.protocol import evaluate_sequence
 from engine.io.rgbd import read_sequence
-from tools.heldout import (bench_parser, median_times, parse_common, render_set, report_speed, set_rows, speed_set,
-                           table_lines, write_json)
+from engine.eval.protocol import score_cell
+from tools.heldout import (bench_parser, gap, median_times, parse_common, render_set, report_speed, set_rows,
+                           speed_set, table_lines, write_json)
 
 #: set name -> (preset, first seed, median speed range in px per frame at 640 px width); None: fixed seeds
 SETS = {
@@ -53,6 +55,16 @@ def set_sequences(out: Path, name: str, count: int, width: int, height: int, fra
     return speed_set(out, name, preset, first, count, speeds, width, height, frames)
 
 
+def add_vector_gain(rows: list[dict]) -> None:
+    """Each row's ``mvec_gain_moving``: the share of what ``mvec`` (the renderer's exact vectors) gains over
+    ``reproject`` on moving pixels that the row's method gains, per set and k (NaN where mvec did not run)."""
+    moving = {(r["set"], r["k"], r["method"]): r["psnr_moving"] for r in rows}
+    for r in rows:
+        base, bound = moving.get((r["set"], r["k"], "reproject")), moving.get((r["set"], r["k"], "mvec"))
+        r["mvec_gain_moving"] = (float("nan") if base is None or bound is None
+                                 else gap(r["psnr_moving"], base, bound))
+
+
 def main(argv=None) -> None:
     parser = bench_parser(__doc__, "out/bench_motion", "2,4", "repeat,reproject,flow2d,decomp,oracle", list(SETS))
     parser.add_argument("--count", type=int, default=3, help="sequences per set")
@@ -72,10 +84,12 @@ def main(argv=None) -> None:
             for k in ks:
                 results += evaluate_sequence(seq, methods, k, with_flip=args.flip, max_groups=args.max_groups)
         rows += set_rows(set_name, results, methods, ks, tuple(c for c, _ in COLUMNS))
+    add_vector_gain(rows)
     head = ["set", "k", "method", "PSNR", "SSIM", "FLIP", "PSNR mov", "SSIM mov", "FLIP mov", "EPE mov (px)",
-            "ms/frame", "x reproject", "gap whole", "gap moving"]
+            "ms/frame", "x reproject", "gap whole", "gap moving", "mvec gain moving"]
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
-    print("\n".join(table_lines(rows, COLUMNS)))
+    print("\n".join(f"{line} {score_cell(100 * row['mvec_gain_moving'], 0)}% |"
+                    for line, row in zip(table_lines(rows, COLUMNS), rows)))
     print("\n" + median_times(rows, methods))
     write_json(args.json, {"size": [width, height], "frames": args.frames, "k": ks, "sets": members,
                            "speeds": speeds, "rows": rows})

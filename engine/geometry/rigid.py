@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
+from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
            "fit_rigid", "motion_components", "robust_rigid", "rigid_parts", "path_affine", "screw_affine",
@@ -544,8 +545,4 @@ def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.
     at = project_points(now, intrinsics)
     model = np.linalg.norm(project_points(predicted, intrinsics) - at, axis=-1)
     still = np.linalg.norm(project_points(before, intrinsics) - at, axis=-1)
-    ok = valid & np.isfinite(model) & np.isfinite(still)
-    model_sum = np.bincount(regions[ok], model[ok], minlength=count)
-    still_sum = np.bincount(regions[ok], still[ok], minlength=count)
-    evidence = np.bincount(regions[ok], minlength=count) >= min_share * np.bincount(regions, minlength=count)
-    return ~evidence | (model_sum <= ratio * still_sum)
+    return region_keeps(regions, count, model, still, valid, ratio=ratio, min_share=min_share)

@@ -13,8 +13,8 @@ from engine.core.frames import Frame, SceneObject
 from engine.predict.base import (Predictor, PreparedState, ResidentFrame, Target, Timer, extrapolation_factor,
                                  true_object_flow)
 from engine.predict.backend import gl_flow_estimators
-from engine.predict.corrflow import CorrFlowNetwork, dis_start
-from engine.predict.dis import dis_calc, dis_estimator, drop_untrusted, luma8
+from engine.predict.corrflow import CorrFlowNetwork, corr_dis_flow
+from engine.predict.dis import dis_calc, dis_estimator, drop_untrusted, fall_back, luma8
 
 __all__ = ["Repeat", "Reproject", "Flow2D", "Flow2DState", "Oracle", "ESTIMATORS"]
 
@@ -70,19 +70,23 @@ class Flow2D(Predictor):
     flow is extrapolated linearly, u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13), and frame n is
     forward-warped by that 2D flow plus the target camera's motion. The flow is 0 (the camera-only warp)
     where frame n-k did not see the surface and where a motion under a pixel does not explain frame n better
-    than none (``engine.predict.dis.trusted_motion``).
+    than none (``engine.predict.dis.trusted_motion``); with ``fallback``, also on every region whose motion
+    explains frame n from n-k worse than none (``engine.predict.dis.explained_motion``; on the ``gl`` backend
+    with ``estimator=gl`` the flow is then read back for it).
     """
 
     name = "flow2d"
     history_needed = 2
     backends = ("cpu", "gl")
 
-    def __init__(self, preset: str = "medium", estimator: str = "dis", network: str = "") -> None:
+    def __init__(self, preset: str = "medium", estimator: str = "dis", network: str = "",
+                 fallback: bool = False) -> None:
         if estimator not in ESTIMATORS:
             raise InputError(f"must be one of {', '.join(ESTIMATORS)}, got {estimator!r}", field="estimator")
         if network and estimator != "corr":
             raise InputError(f"a network is read by estimator=corr only, got estimator={estimator}", field="network")
         self.estimator = estimator
+        self.fallback = fallback
         self._dis = dis_estimator(preset)
         self._gl: Optional[tuple] = None
         self._corr: Optional[CorrFlowNetwork] = None
@@ -97,7 +101,7 @@ class Flow2D(Predictor):
 
     def _prepare(self, state: PreparedState, timer: Timer) -> Flow2DState:
         older, newest = state.history[-2], state.history[-1]
-        if self.estimator == "gl" and self.frames.name == "gl":  # every stage on the GPU, nothing read back
+        if self.estimator == "gl" and self.frames.name == "gl" and not self.fallback:  # all on the GPU
             previous = self.frames.resident(older, timer)  # n-k first: it is frame n of the last preparation
             frame = self.frames.resident(newest, timer)
             flow = self.frames.estimate_flow_back(previous, frame, *self._gl_estimators(), timer)
@@ -113,8 +117,7 @@ class Flow2D(Predictor):
             if self.estimator == "gl":
                 flow = self._gl_estimators()[0].estimate(newest.color, warped)
             elif self._corr is not None:
-                start = self._corr.estimate(newest.color, warped, newest.depth, depth_w)
-                flow = dis_calc(self._dis, luma_n, luma_w, dis_start(start))
+                flow = corr_dis_flow(self._corr, self._dis, newest.color, warped, luma_n, luma_w, newest.depth, depth_w)
             else:
                 flow = dis_calc(self._dis, luma_n, luma_w)
         with timer("trust"):
@@ -122,6 +125,9 @@ class Flow2D(Predictor):
             seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics,
                                         src.world_to_camera, older.depth.shape)
             drop_untrusted(flow, luma_n, luma_w, seen)
+        if self.fallback:
+            with timer("fallback"):
+                fall_back(flow, luma_n, luma_w, newest.depth, dst.intrinsics)
         return self.state_of(newest, flow, timer)
 
     def state_of(self, newest, flow_back: np.ndarray, timer: Timer) -> Flow2DState:

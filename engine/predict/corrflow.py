@@ -16,12 +16,12 @@ import numpy as np
 
 from engine.core.checks import checked_array
 from engine.core.errors import InputError
-from engine.predict.dis import encode8
+from engine.predict.dis import dis_calc, encode8
 from engine.predict.onnx import open_network
 from engine.weights import CORRFLOW
 
 __all__ = ["METADATA_KEY", "MIN_MOTION", "DEPTH_SPAN", "working_size", "network_image", "depth_reference",
-           "depth_code", "network_depth", "dis_start", "CorrFlowNetwork"]
+           "depth_code", "network_depth", "dis_start", "CorrFlowNetwork", "corr_dis_flow"]
 
 #: ONNX metadata key of the exported network (``export.corrflow``): its config and working width.
 METADATA_KEY = "interleave.corrflow"
@@ -122,3 +122,14 @@ class CorrFlowNetwork:
             return np.ascontiguousarray(flow, dtype=np.float32)
         flow = cv2.resize(np.ascontiguousarray(flow), (w0, h0), interpolation=cv2.INTER_LINEAR)
         return (flow * np.array([w0 / w, h0 / h], np.float32)).astype(np.float32)
+
+
+def corr_dis_flow(network: CorrFlowNetwork, dis, color_n: np.ndarray, warped: np.ndarray, luma_n: np.ndarray,
+                  luma_w: np.ndarray, depth_n: Optional[np.ndarray] = None,
+                  depth_w: Optional[np.ndarray] = None) -> np.ndarray:
+    """``flow2d[estimator=corr]``'s flow u(n -> n-k), (H, W, 2) float32 pixels: the OpenCV DIS object ``dis`` from
+    ``luma_n`` to ``luma_w`` (``engine.predict.dis.luma8`` of frame n and of the camera-compensated frame n-k,
+    ``warped`` (H, W, 3) linear RGB) started from ``network``'s estimate (``dis_start``); the depths (H, W) are
+    read by a network trained on RGB-D."""
+    start = network.estimate(color_n, warped, depth_n, depth_w)
+    return dis_calc(dis, luma_n, luma_w, dis_start(start))

@@ -16,10 +16,12 @@ from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.encoding import encode8
 from engine.geometry.holefill import fill_holes
+from engine.geometry.regions import region_keeps
+from engine.geometry.rigid import motion_components
 
 __all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
            "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
-           "trusted_motion", "drop_untrusted"]
+           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "flow_regions", "explained_motion", "fall_back"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
@@ -34,6 +36,9 @@ CONFIDENCE_WINDOW = 9
 #: finds in noise and view-dependent colour is this small; larger motion is kept as estimated). Chosen on
 #: validation sequences, not the benchmark's: docs/results/2026-11-25-fast-motion.md
 SMALL_MOTION = 1.0
+#: ``explained_motion``: a region's estimated motion is kept where its photometric error over the last interval
+#: is at most this many times that of no object motion
+FALLBACK_RATIO = 1.0
 
 
 def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
@@ -192,3 +197,65 @@ def drop_untrusted(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, see
     kernels.run_ranges(lambda r0, r1: kernels.zero_untrusted(flow, seen, confident, np.float32(small), r0, r1),
                        kernels.split_rows(h, w))
     return flow
+
+
+def flow_regions(depth: np.ndarray, flow: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The pixels with an object motion in ``flow`` (H, W, 2) and a finite, positive depth (``depth`` (H, W),
+    planar) in the groups ``engine.geometry.rigid.motion_components`` makes of 3D motion: (moving flat indices
+    (M,), labels (M,), count).
+
+    Each pixel's 3D displacement is read from the flow at its own depth (frame n's: a 2D flow does not give
+    the depth at n-k), so neighbours join where their depths are alike and they move alike: a region never
+    spans a depth edge nor two differently moving objects."""
+    h, w = depth.shape
+    flow = checked_array(flow, "flow", ("H", "W", 2), {"H": h, "W": w})
+    k_inv = np.linalg.inv(np.asarray(intrinsics, np.float64))
+    moving = np.flatnonzero(((flow[..., 0] != 0) | (flow[..., 1] != 0)) & np.isfinite(depth) & (depth > 0))
+    if not moving.size:
+        return moving, np.zeros(0, np.int64), 0
+    y, x = np.divmod(moving, w)
+    z = depth.reshape(-1)[moving].astype(np.float64)
+    du = flow.reshape(-1, 2)[moving].astype(np.float64)
+
+    def lifted(u: np.ndarray, v: np.ndarray) -> np.ndarray:  # z K^-1 (u, v, 1)
+        return np.stack([(k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z for c in range(3)], axis=-1)
+
+    now = lifted(x + 0.5, y + 0.5)
+    velocity = now - lifted(x + 0.5 + du[:, 0], y + 0.5 + du[:, 1])
+    labels, count = motion_components((h, w), moving, now, velocity)
+    return moving, labels, count
+
+
+def explained_motion(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray,
+                     intrinsics: np.ndarray, ratio: float = FALLBACK_RATIO) -> np.ndarray:
+    """(H, W) bool: False on the regions (``flow_regions``) whose estimated object motion ``flow`` u(n -> n-k)
+    does not explain frame n from frame n-k: its photometric error (|``luma_n`` - ``target`` sampled at
+    x + u|, 8-bit levels; ``warp_error``) summed over the region exceeds ``ratio`` times that of no object
+    motion (|``luma_n`` - ``target``|: the camera-only warp, ``target`` being ``dis_target``), the check
+    ``engine.geometry.regions.region_keeps`` makes for ``mvec``'s fall-back. Elsewhere True.
+
+    A whole region falls back or none of it, so an object is not torn apart where its inside is flat; what it
+    catches is motion that does not match the frames at all: a textureless object's guessed motion, motion
+    read into noise or into a static surface's view-dependent colour."""
+    h, w = luma_n.shape
+    if target.shape != (h, w) or depth.shape != (h, w):
+        raise InputError(f"lumas {luma_n.shape} / {target.shape} and depth {depth.shape}: expected one size",
+                         field="depth")
+    moving, labels, count = flow_regions(depth, flow, intrinsics)
+    keep = np.ones(h * w, bool)
+    if not count:
+        return keep.reshape(h, w)
+    model = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow, dtype=np.float32), 1).reshape(-1)[moving]
+    still = cv2.absdiff(luma_n, target).reshape(-1)[moving].astype(np.float32)
+    kept = region_keeps(labels, count, model, still, np.ones(moving.size, bool), ratio=ratio)
+    keep[moving] = kept[labels]
+    return keep.reshape(h, w)
+
+
+def fall_back(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
+              ratio: float = FALLBACK_RATIO) -> int:
+    """Zero, in place, the motion of ``flow`` (H, W, 2) that ``explained_motion`` does not keep: those regions
+    take the camera-only warp. Returns the number of pixels held."""
+    held = ~explained_motion(flow, luma_n, target, depth, intrinsics, ratio)
+    flow[held] = 0.0
+    return int(held.sum())

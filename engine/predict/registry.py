@@ -66,6 +66,8 @@ class Flow2DOptions:
                                                              "started from the correlation network's estimate")
     network: str = option("", "an exported correlation flow network (ONNX file) for estimator=corr (default: the "
                               "committed engine/weights one)")
+    fallback: bool = option(False, "regions whose estimated motion explains frame n from n-k worse than no object "
+                                   "motion take the camera-only warp (engine.predict.dis.explained_motion)")
 
 
 def method_options(base: str) -> Optional[dict[str, Any]]:

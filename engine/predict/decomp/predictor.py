@@ -58,7 +58,8 @@ from engine.predict.decomp.gate import Box, GateConfig, boxes_from_counts, gate_
 from engine.predict.decomp.infill import DEFAULT_INFILL_MODEL, InfillNetwork
 from engine.predict.decomp.network import DEFAULT_MODEL, FlowNetwork
 from engine.predict.decomp.upsample import spread_plane, upsample_flow
-from engine.predict.dis import dis_flow, drop_untrusted, luma8, warp_error
+from engine.predict.corrflow import CorrFlowNetwork, corr_dis_flow
+from engine.predict.dis import dis_estimator, dis_flow, drop_untrusted, fall_back, luma8, warp_error
 
 __all__ = ["DecompConfig", "DecompState", "InitialFlow", "DecompPredictor", "DecompTrueMotion", "full_box",
            "crop_mpi", "whole_frame_initial_flow", "box_residual", "refine_box",
@@ -80,10 +81,13 @@ class DecompConfig:
                                 "from the ONNX metadata); frames are block-downsampled by ceil(W / flow_width)")
     gate: GateConfig = option(GateConfig(), "the motion gate (engine.predict.decomp.gate)")
     threads: int = option(2, "onnxruntime intra-op threads")
-    estimator: Literal["dis", "gl"] = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU) or 'gl' (the "
+    estimator: Literal["dis", "gl", "corr"] = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU), 'corr' "
+                                   "(DIS started from the correlation network, flow2d[estimator=corr]'s) or 'gl' (the "
                                    "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow "
                                    "runs on the GPU; measured scores: docs/gpu.md)")
     dis_preset: Literal["ultrafast", "fast", "medium"] = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
+    fallback: bool = option(False, "regions whose flow explains frame n from n-k worse than no object motion take "
+                                   "the camera-only warp (engine.predict.dis.explained_motion)")
     fill: Literal["simple", "infill"] = option("simple", "disocclusion fill: 'simple' (the background-biased row fill of reproject, "
                                  "engine.geometry.holefill) or 'infill' (the infilling network, "
                                  "engine.predict.decomp.infill: copies known pixels of the same MPI plane along "
@@ -101,7 +105,7 @@ class DecompConfig:
             (self.flow_width >= 0, "flow_width must be >= 0"),
             (self.threads >= 1, "threads must be >= 1"),
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
-            (self.estimator in ("dis", "gl"), f"estimator must be 'dis' or 'gl', got {self.estimator!r}"),
+            (self.estimator in ("dis", "gl", "corr"), f"estimator must be 'dis', 'gl' or 'corr', got {self.estimator!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
         ]
@@ -189,20 +193,26 @@ def network_input(low_n: tuple, low_p: tuple, t_n: np.ndarray, t_p: np.ndarray, 
     return m_n, warped, (by0, bx0)
 
 
-def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str, gl_flow: Any = None) -> InitialFlow:
+def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str, gl_flow: Any = None,
+                             corr: Optional[CorrFlowNetwork] = None) -> InitialFlow:
     """Flow u(n -> n-k) of the whole frame at full resolution: frame n-k forward-warped into frame n's view, its
     holes filled as ``reproject`` fills them, the flow from frame n to that target (DIS with ``preset``, or
-    ``gl_flow.estimate``: a ``GlOpticalFlow``), kept where ``dis.trusted_motion`` trusts it (so the flow equals
-    ``flow2d``'s with that estimator)."""
+    ``gl_flow.estimate``: a ``GlOpticalFlow``, or DIS started from the correlation network ``corr``:
+    ``corrflow.corr_dis_flow``), kept where ``dis.trusted_motion`` trusts it (so the flow equals ``flow2d``'s
+    with that estimator)."""
     src, dst = older.camera, newest.camera
     color_w, depth_w, holes = geometry.forward_warp_frame(older.color, older.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera)
     luma_n = luma8(newest.color)
-    filled = fill_holes(color_w, depth_w, holes, newest.color)[0]
+    filled, filled_depth = fill_holes(color_w, depth_w, holes, newest.color)[:2]
     target = luma8(filled)  # engine.predict.dis.dis_target
     seen = geometry.seen_before(newest.depth, dst.intrinsics, dst.world_to_camera, src.intrinsics, src.world_to_camera,
                                 older.depth.shape)
-    flow = dis_flow(luma_n, target, preset) if gl_flow is None else gl_flow.estimate(newest.color, filled)
+    if corr is not None:
+        flow = corr_dis_flow(corr, dis_estimator(preset), newest.color, filled, luma_n, target, newest.depth,
+                             filled_depth)
+    else:
+        flow = dis_flow(luma_n, target, preset) if gl_flow is None else gl_flow.estimate(newest.color, filled)
     drop_untrusted(flow, luma_n, target, seen)
     return InitialFlow(flow, target, luma_n, seen)
 
@@ -275,6 +285,7 @@ class DecompPredictor(Predictor):
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
         self._gl: Optional[tuple] = None  # (GlOpticalFlow, GlTrust) of estimator=gl
+        self._corr = CorrFlowNetwork(threads=config.threads) if config.estimator == "corr" else None
         self._refine: Optional[GlFlowRefine] = None
         self._gate: Optional[GlGate] = None
         self.infill = None
@@ -308,7 +319,7 @@ class DecompPredictor(Predictor):
             m_n, warped, corner = network_input(low_n, low_p, t_n, t_p, planes, boxes, timer)
             fulls = [full_box(box, factor, low_size, size) for box in boxes]
             net_input = (net, m_n, (warped, corner))
-            if net.needs_initial_flow and cfg.estimator == "gl" and self._on_gpu():
+            if net.needs_initial_flow and cfg.estimator == "gl" and self._on_gpu() and not cfg.fallback:
                 on_gpu = self._boxes_on_gpu(state, boxes, fulls, factor, planes, net_input, timer)
             else:
                 flow = self._boxes_on_cpu(state, boxes, fulls, factor, planes, net_input, timer)
@@ -352,7 +363,7 @@ class DecompPredictor(Predictor):
             if self.config.estimator == "gl":
                 gl_flow = self._gl_estimators()[0]
             with timer("initial_flow"):
-                initial = whole_frame_initial_flow(older, newest, self.config.dis_preset, gl_flow)
+                initial = whole_frame_initial_flow(older, newest, self.config.dis_preset, gl_flow, self._corr)
         residuals = []
         for box, (fy0, fy1, fx0, fx1) in zip(boxes, fulls):  # from here on, costs follow the boxes' area
             init = None if initial is None else geometry.downsample_flow(initial.flow[fy0:fy1, fx0:fx1], factor)
@@ -366,6 +377,14 @@ class DecompPredictor(Predictor):
             flow[:, :, fy0:fy1, fx0:fx1] = refine_box(full, low_flow, alpha, factor, plane_index, initial, timer)
         if initial is not None:  # no motion where frame n-k did not see the surface (nor in the boxes)
             flow[:, 0, ~initial.seen] = 0.0
+            if self.config.fallback:
+                with timer("fallback"):
+                    # the refined flow under flow2d's trust rules first (the network leaves sub-pixel motion
+                    # everywhere, which would join all into one region), then whole regions fall back
+                    planar = np.ascontiguousarray(np.moveaxis(flow[:2, 0], 0, -1))
+                    drop_untrusted(planar, initial.luma_n, initial.target, initial.seen)
+                    fall_back(planar, initial.luma_n, initial.target, newest.depth, newest.camera.intrinsics)
+                    flow[:2, 0] = np.moveaxis(planar, -1, 0)
         return flow
 
     def _boxes_on_gpu(self, state: PreparedState, boxes: list, fulls: list, factor: int, planes: np.ndarray,

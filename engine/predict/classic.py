@@ -108,7 +108,7 @@ class Flow2D(Predictor):
             return Flow2DState(None, frame, flow)
         target = Target(newest.camera, newest.time, newest.index)
         depth_w = None
-        if self._corr is not None and self._corr.depth:  # an RGB-D network also reads the warp's depth
+        if (self._corr is not None and self._corr.depth) or self.fallback:  # RGB-D networks, fallback read its depth
             warped, depth_w, _ = self.frames.warp_fill_depth(self.frames.resident(older, timer), target, timer)
         else:
             warped, _ = self.frames.warp_and_fill(self.frames.resident(older, timer), target, timer)
@@ -127,7 +127,7 @@ class Flow2D(Predictor):
             drop_untrusted(flow, luma_n, luma_w, seen)
         if self.fallback:
             with timer("fallback"):
-                fall_back(flow, luma_n, luma_w, newest.depth, dst.intrinsics)
+                fall_back(flow, luma_n, luma_w, newest.depth, dst.intrinsics, target_depth=depth_w)
         return self.state_of(newest, flow, timer)
 
     def state_of(self, newest, flow_back: np.ndarray, timer: Timer) -> Flow2DState:

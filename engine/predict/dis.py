@@ -21,7 +21,7 @@ from engine.geometry.rigid import motion_components
 
 __all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
            "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
-           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "flow_regions", "explained_motion", "fall_back"]
+           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions", "explained_motion", "fall_back"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
@@ -39,6 +39,9 @@ SMALL_MOTION = 1.0
 #: ``explained_motion``: a region's estimated motion is kept where its photometric error over the last interval
 #: is at most this many times that of no object motion
 FALLBACK_RATIO = 1.0
+#: ``explained_motion``: frame n's surface was hidden at n-k where the camera-compensated frame n-k is nearer
+#: than it by more than this ratio
+HIDDEN_BAND = 1.1
 
 
 def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
@@ -227,16 +230,24 @@ def flow_regions(depth: np.ndarray, flow: np.ndarray, intrinsics: np.ndarray) ->
 
 
 def explained_motion(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray,
-                     intrinsics: np.ndarray, ratio: float = FALLBACK_RATIO) -> np.ndarray:
+                     intrinsics: np.ndarray, ratio: float = FALLBACK_RATIO,
+                     target_depth: Optional[np.ndarray] = None) -> np.ndarray:
     """(H, W) bool: False on the regions (``flow_regions``) whose estimated object motion ``flow`` u(n -> n-k)
     does not explain frame n from frame n-k: its photometric error (|``luma_n`` - ``target`` sampled at
     x + u|, 8-bit levels; ``warp_error``) summed over the region exceeds ``ratio`` times that of no object
     motion (|``luma_n`` - ``target``|: the camera-only warp, ``target`` being ``dis_target``), the check
     ``engine.geometry.regions.region_keeps`` makes for ``mvec``'s fall-back. Elsewhere True.
 
+    Given ``target_depth`` (H, W), the planar depth of the camera-compensated frame n-k, a pixel whose surface
+    frame n-k hid (something nearer by more than ``HIDDEN_BAND`` there: the wall a moving object uncovers) has
+    no error of its own for no motion (the target shows the occluder): it counts as the median error of the
+    still pixels that frame n-k showed (the frame's noise), so a region dragged along into an uncovered
+    surface falls back unless its motion matches that well.
+
     A whole region falls back or none of it, so an object is not torn apart where its inside is flat; what it
-    catches is motion that does not match the frames at all: a textureless object's guessed motion, motion
-    read into noise or into a static surface's view-dependent colour."""
+    catches is motion that does not match the frames: a textureless object's dragged surroundings, motion
+    read into noise or into a static surface's view-dependent colour. Motion that does match them (DIS
+    following a moving highlight) is kept."""
     h, w = luma_n.shape
     if target.shape != (h, w) or depth.shape != (h, w):
         raise InputError(f"lumas {luma_n.shape} / {target.shape} and depth {depth.shape}: expected one size",
@@ -246,16 +257,23 @@ def explained_motion(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, d
     if not count:
         return keep.reshape(h, w)
     model = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow, dtype=np.float32), 1).reshape(-1)[moving]
-    still = cv2.absdiff(luma_n, target).reshape(-1)[moving].astype(np.float32)
+    difference = cv2.absdiff(luma_n, target).reshape(-1)
+    still = difference[moving].astype(np.float32)
+    if target_depth is not None:  # where n-k hid the surface no motion cannot be judged: the frame's noise floor
+        hidden = (target_depth * HIDDEN_BAND < depth).reshape(-1)
+        judged = ~hidden
+        judged[moving] = False
+        floor = np.float32(np.median(difference[judged])) if judged.any() else np.float32(0.0)
+        still = np.where(hidden[moving], floor, still)
     kept = region_keeps(labels, count, model, still, np.ones(moving.size, bool), ratio=ratio)
     keep[moving] = kept[labels]
     return keep.reshape(h, w)
 
 
 def fall_back(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
-              ratio: float = FALLBACK_RATIO) -> int:
+              ratio: float = FALLBACK_RATIO, target_depth: Optional[np.ndarray] = None) -> int:
     """Zero, in place, the motion of ``flow`` (H, W, 2) that ``explained_motion`` does not keep: those regions
     take the camera-only warp. Returns the number of pixels held."""
-    held = ~explained_motion(flow, luma_n, target, depth, intrinsics, ratio)
+    held = ~explained_motion(flow, luma_n, target, depth, intrinsics, ratio, target_depth)
     flow[held] = 0.0
     return int(held.sum())

@@ -330,7 +330,7 @@ def test_refine_check_keeps_per_pixel_either_the_refined_or_the_initial_flow(net
 
     def flow_with_margin(margin):
         monkeypatch.setattr(decomp_module, "REFINE_MARGIN", margin)
-        return DecompPredictor(DecompConfig(), network).prepare(pair).data.flow
+        return DecompPredictor(DecompConfig(estimator="dis"), network).prepare(pair).data.flow  # DIS's start below
 
     checked = flow_with_margin(1.0)
     refined = flow_with_margin(-np.inf)  # every pixel keeps the refined flow: no check
@@ -524,7 +524,7 @@ def test_method_options_parse_and_reject_bad_ones():
         make_predictor("decomp[motion=truth]")
     with pytest.raises(InputError, match="motion must be 'predicted' or 'truth'"):
         make_predictor("decomp[motion=guess]")
-    assert decomp_config("estimator=gl").estimator == "gl" and decomp_config("").estimator == "dis"
+    assert decomp_config("estimator=gl").estimator == "gl" and decomp_config("").estimator == "corr"
     with pytest.raises(InputError, match="estimator=raft': must be one of dis, gl"):
         make_predictor("decomp[estimator=raft]")
 

@@ -11,7 +11,9 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
    MPI of n-k is warped into frame n's view (into the boxes' bounding box only): the network's input;
 4. ``initial_flow``: the 2D flow the network refines, at full resolution on the whole frame (frame n-k warped
    into frame n's view, holes filled as ``reproject`` fills them: the flow of ``flow2d``), kept outside the
-   boxes too: OpenCV DIS, or with ``estimator=gl`` the GPU's flow (``flow2d[estimator=gl]``'s; on the ``gl``
+   boxes too: DIS started from the correlation network (``estimator=corr``, the default:
+   ``flow2d[estimator=corr]``'s flow), OpenCV DIS alone (``estimator=dis``: ``flow2d``'s), or with
+   ``estimator=gl`` the GPU's flow (``flow2d[estimator=gl]``'s; on the ``gl``
    backend frame n-k's warp, the flow and its trust rules run there, only each box's block-averaged flow is
    read back for the network, and the flow stays there for the render: ``_boxes_on_gpu``);
 5. ``flow`` / ``upsample`` / ``refine_check``: per box, the ONNX flow network (``FlowNetwork``) refines
@@ -19,7 +21,10 @@ Per rendered frame n (``DecompPredictor.prepare``), from frames n-k and n, one n
    full resolution per plane (``upsample_flow``) and added to the initial flow, and each pixel keeps the
    refined flow only where it explains frame n better than the initial flow by more than one 8-bit level
    (``box_residual``, then ``refine_box``; with ``estimator=gl`` on the ``gl`` backend the upsampling and the
-   check run on the GPU, stage ``refine``: ``GlFlowRefine``, into the flow kept there).
+   check run on the GPU, stage ``refine``: ``GlFlowRefine``, into the flow kept there);
+6. ``fallback`` (with ``fallback``): the refined flow under ``flow2d``'s trust rules, then each region whose
+   motion explains frame n from n-k worse than none takes the camera-only warp
+   (``engine.predict.dis.explained_motion``).
 
 Per predicted frame n + k' (``render``): u(n -> n+k') = -(k'/k) u(n -> n-k) (thesis Eq. 6.13, k'/k from
 the frame times); frame n at full resolution, one plane whose pixels carry their own plane's flow, moves by
@@ -81,10 +86,12 @@ class DecompConfig:
                                 "from the ONNX metadata); frames are block-downsampled by ceil(W / flow_width)")
     gate: GateConfig = option(GateConfig(), "the motion gate (engine.predict.decomp.gate)")
     threads: int = option(2, "onnxruntime intra-op threads")
-    estimator: Literal["dis", "gl", "corr"] = option("dis", "the initial flow's estimator: 'dis' (OpenCV DIS on the CPU), 'corr' "
-                                   "(DIS started from the correlation network, flow2d[estimator=corr]'s) or 'gl' (the "
-                                   "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow "
-                                   "runs on the GPU; measured scores: docs/gpu.md)")
+    estimator: Literal["dis", "gl", "corr"] = option(
+        "corr", "the initial flow's estimator: 'corr' (DIS started from the correlation network: "
+                "flow2d[estimator=corr]'s flow, the best 2D estimate measured: "
+                "docs/results/2026-11-28-no-vector-motion.md), 'dis' (OpenCV DIS on the CPU, flow2d's) or 'gl' (the "
+                "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow runs on the GPU; "
+                "measured scores: docs/gpu.md)")
     dis_preset: Literal["ultrafast", "fast", "medium"] = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
     fallback: bool = option(False, "regions whose flow explains frame n from n-k worse than no object motion take "
                                    "the camera-only warp (engine.predict.dis.explained_motion)")
@@ -105,7 +112,8 @@ class DecompConfig:
             (self.flow_width >= 0, "flow_width must be >= 0"),
             (self.threads >= 1, "threads must be >= 1"),
             (self.fill in ("infill", "simple"), f"fill must be 'infill' or 'simple', got {self.fill!r}"),
-            (self.estimator in ("dis", "gl", "corr"), f"estimator must be 'dis', 'gl' or 'corr', got {self.estimator!r}"),
+            (self.estimator in ("dis", "gl", "corr"),
+             f"estimator must be 'dis', 'gl' or 'corr', got {self.estimator!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
         ]
@@ -287,7 +295,7 @@ class DecompPredictor(Predictor):
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
         self._gl: Optional[tuple] = None  # (GlOpticalFlow, GlTrust) of estimator=gl
-        self._corr = CorrFlowNetwork(threads=config.threads) if config.estimator == "corr" else None
+        self._corr: Optional[CorrFlowNetwork] = None  # estimator=corr's network, opened on first use
         self._refine: Optional[GlFlowRefine] = None
         self._gate: Optional[GlGate] = None
         self.infill = None
@@ -364,6 +372,8 @@ class DecompPredictor(Predictor):
             gl_flow = None
             if self.config.estimator == "gl":
                 gl_flow = self._gl_estimators()[0]
+            if self.config.estimator == "corr" and self._corr is None:
+                self._corr = CorrFlowNetwork(threads=self.config.threads)
             with timer("initial_flow"):
                 initial = whole_frame_initial_flow(older, newest, self.config.dis_preset, gl_flow, self._corr)
         residuals = []

@@ -127,7 +127,7 @@ class Flow2D(Predictor):
             drop_untrusted(flow, luma_n, luma_w, seen)
         if self.fallback:
             with timer("fallback"):
-                fall_back(flow, luma_n, luma_w, newest.depth, dst.intrinsics, target_depth=depth_w)
+                fall_back(flow, luma_n, luma_w, newest.depth, dst.intrinsics, (newest.color, warped), depth_w)
         return self.state_of(newest, flow, timer)
 
     def state_of(self, newest, flow_back: np.ndarray, timer: Timer) -> Flow2DState:

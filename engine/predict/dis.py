@@ -21,8 +21,8 @@ from engine.geometry.rigid import motion_components
 
 __all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
            "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
-           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions", "explained_motion",
-           "fall_back"]
+           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions", "chroma8",
+           "explained_motion", "fall_back"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.
@@ -230,25 +230,43 @@ def flow_regions(depth: np.ndarray, flow: np.ndarray, intrinsics: np.ndarray) ->
     return moving, labels, count
 
 
+def chroma8(color: np.ndarray) -> np.ndarray:
+    """(H, W, 2) float32: the red and blue shares of display-encoded ``color`` (H, W, 3) linear RGB, scaled to
+    0-255: what a change of brightness (noise that scales a pixel, a sheen, a shadow) leaves alone."""
+    c = encode8(color).astype(np.float32)
+    return np.float32(255.0) * c[..., ::2] / (c.sum(axis=-1, keepdims=True) + np.float32(3.0))
+
+
+def _sampled(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """``image`` (H, W[, C]) float32 sampled bilinearly at x + ``flow`` (edge pixels repeated outside)."""
+    h, w = flow.shape[:2]
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(image, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
 def explained_motion(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray,
-                     intrinsics: np.ndarray, ratio: float = FALLBACK_RATIO,
-                     target_depth: Optional[np.ndarray] = None) -> np.ndarray:
+                     intrinsics: np.ndarray, colors: Optional[tuple[np.ndarray, np.ndarray]] = None,
+                     target_depth: Optional[np.ndarray] = None, ratio: float = FALLBACK_RATIO) -> np.ndarray:
     """(H, W) bool: False on the regions (``flow_regions``) whose estimated object motion ``flow`` u(n -> n-k)
-    does not explain frame n from frame n-k: its photometric error (|``luma_n`` - ``target`` sampled at
-    x + u|, 8-bit levels; ``warp_error``) summed over the region exceeds ``ratio`` times that of no object
-    motion (|``luma_n`` - ``target``|: the camera-only warp, ``target`` being ``dis_target``), the check
-    ``engine.geometry.regions.region_keeps`` makes for ``mvec``'s fall-back. Elsewhere True.
+    does not explain frame n from frame n-k, True elsewhere.
 
-    Given ``target_depth`` (H, W), the planar depth of the camera-compensated frame n-k, a pixel whose surface
-    frame n-k hid (something nearer by more than ``HIDDEN_BAND`` there: the wall a moving object uncovers) has
-    no error of its own for no motion (the target shows the occluder): it counts as the median error of the
-    still pixels that frame n-k showed (the frame's noise), so a region dragged along into an uncovered
-    surface falls back unless its motion matches that well.
+    A pixel's error under the motion is |``luma_n`` - ``target`` sampled at x + u| (8-bit levels; ``target``
+    the camera-compensated frame n-k, ``dis_target``), under no object motion (the camera-only warp)
+    |``luma_n`` - ``target``|. Given ``colors`` (frame n's and the target's linear RGB, (H, W, 3)), the same
+    errors of their ``chroma8`` are added: the estimators match luma only, so chroma is evidence they did not
+    fit (a flow read into noise or a sheen matches their luma, not the chroma of the surface it drags). A region
+    keeps its motion unless its error, summed over the pixels whose source x + u lies inside frame n-k,
+    exceeds ``ratio`` times that of no motion (``engine.geometry.regions.region_keeps``, the check of
+    ``mvec``'s fall-back; content that entered from outside the frame is no evidence either way).
 
-    A whole region falls back or none of it, so an object is not torn apart where its inside is flat; what it
-    catches is motion that does not match the frames: a textureless object's dragged surroundings, motion
-    read into noise or into a static surface's view-dependent colour. Motion that does match them (DIS
-    following a moving highlight) is kept."""
+    Given ``target_depth`` (H, W), the planar depth of the target, a pixel whose surface frame n-k hid
+    (the target nearer by more than ``HIDDEN_BAND``: the wall a moving object uncovers) has no error of its own
+    under no motion (the target shows the occluder): it counts the median error of the still pixels frame
+    n-k showed (the frame's noise), so a surface dragged along into what the object uncovers falls back.
+
+    A whole region falls back or none of it, so an object is not torn apart where its inside is flat. Motion
+    that does match the frames in luma and chroma (DIS following a white highlight over a static wall) is
+    kept."""
     h, w = luma_n.shape
     if target.shape != (h, w) or depth.shape != (h, w):
         raise InputError(f"lumas {luma_n.shape} / {target.shape} and depth {depth.shape}: expected one size",
@@ -257,24 +275,34 @@ def explained_motion(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, d
     keep = np.ones(h * w, bool)
     if not count:
         return keep.reshape(h, w)
-    model = warp_error(luma_n, target, (0, 0), np.ascontiguousarray(flow, dtype=np.float32), 1).reshape(-1)[moving]
-    difference = cv2.absdiff(luma_n, target).reshape(-1)
-    still = difference[moving].astype(np.float32)
-    if target_depth is not None:  # where n-k hid the surface no motion cannot be judged: the frame's noise floor
-        hidden = (target_depth * HIDDEN_BAND < depth).reshape(-1)
+    flow = np.ascontiguousarray(flow, dtype=np.float32)
+    model = np.abs(luma_n.astype(np.float32) - _sampled(target.astype(np.float32), flow))
+    difference = cv2.absdiff(luma_n, target).astype(np.float32)
+    if colors is not None:
+        chroma_n, chroma_t = (chroma8(checked_array(c, "colors", ("H", "W", 3), {"H": h, "W": w})) for c in colors)
+        model += np.abs(chroma_n - _sampled(chroma_t, flow)).sum(axis=-1)
+        difference += np.abs(chroma_n - chroma_t).sum(axis=-1)
+    model, difference = model.reshape(-1)[moving], difference.reshape(-1)
+    still = difference[moving]
+    if target_depth is not None:
+        hidden = (target_depth * np.float32(HIDDEN_BAND) < depth).reshape(-1)
         judged = ~hidden
         judged[moving] = False
         floor = np.float32(np.median(difference[judged])) if judged.any() else np.float32(0.0)
         still = np.where(hidden[moving], floor, still)
-    kept = region_keeps(labels, count, model, still, np.ones(moving.size, bool), ratio=ratio)
-    keep[moving] = kept[labels]
+    y, x = np.divmod(moving, w)
+    source = flow.reshape(-1, 2)[moving]
+    sx, sy = x + 0.5 + source[:, 0], y + 0.5 + source[:, 1]
+    inside = (sx >= 0) & (sx < w) & (sy >= 0) & (sy < h)
+    keep[moving] = region_keeps(labels, count, model, still, inside, ratio=ratio)[labels]
     return keep.reshape(h, w)
 
 
 def fall_back(flow: np.ndarray, luma_n: np.ndarray, target: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
-              ratio: float = FALLBACK_RATIO, target_depth: Optional[np.ndarray] = None) -> int:
-    """Zero, in place, the motion of ``flow`` (H, W, 2) that ``explained_motion`` does not keep: those regions
-    take the camera-only warp. Returns the number of pixels held."""
-    held = ~explained_motion(flow, luma_n, target, depth, intrinsics, ratio, target_depth)
+              colors: Optional[tuple[np.ndarray, np.ndarray]] = None, target_depth: Optional[np.ndarray] = None,
+              ratio: float = FALLBACK_RATIO) -> int:
+    """Zero, in place, the motion of ``flow`` (H, W, 2) that ``explained_motion`` does not keep (same arguments):
+    those regions take the camera-only warp. Returns the number of pixels held."""
+    held = ~explained_motion(flow, luma_n, target, depth, intrinsics, colors, target_depth, ratio)
     flow[held] = 0.0
     return int(held.sum())

@@ -127,14 +127,15 @@ class InitialFlow:
     """The full-resolution initial flow of frame n and what scores flows against it: ``flow`` (H, W, 2)
     u(n -> n-k) pixels, ``target`` (H, W) uint8 luma of the camera-compensated frame n-k the flow matched
     (``dis_target``), ``luma_n`` (H, W) uint8 luma of frame n, ``seen`` (H, W) bool where frame n-k saw the
-    surface (``geometry.seen_before``), ``target_depth`` (H, W) the planar depth of that target (filled as its
-    colour). On the CPU path; ``_boxes_on_gpu`` keeps all of it on the GPU."""
+    surface (``geometry.seen_before``), ``target_depth`` (H, W) and ``target_color`` (H, W, 3) that target's
+    planar depth and linear RGB (filled). On the CPU path; ``_boxes_on_gpu`` keeps all of it on the GPU."""
 
     flow: np.ndarray
     target: np.ndarray
     luma_n: np.ndarray
     seen: np.ndarray
     target_depth: Optional[np.ndarray] = None
+    target_color: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -224,7 +225,7 @@ def whole_frame_initial_flow(older: Frame, newest: Frame, preset: str, gl_flow: 
     else:
         flow = dis_flow(luma_n, target, preset) if gl_flow is None else gl_flow.estimate(newest.color, filled)
     drop_untrusted(flow, luma_n, target, seen)
-    return InitialFlow(flow, target, luma_n, seen, filled_depth)
+    return InitialFlow(flow, target, luma_n, seen, filled_depth, filled)
 
 
 def box_residual(network: FlowNetwork, box: Box, m_n: Mpi, warped: tuple[Mpi, tuple[int, int]],
@@ -396,7 +397,7 @@ class DecompPredictor(Predictor):
                     planar = np.ascontiguousarray(np.moveaxis(flow[:2, 0], 0, -1))
                     drop_untrusted(planar, initial.luma_n, initial.target, initial.seen)
                     fall_back(planar, initial.luma_n, initial.target, newest.depth, newest.camera.intrinsics,
-                              target_depth=initial.target_depth)
+                              (newest.color, initial.target_color), initial.target_depth)
                     flow[:2, 0] = np.moveaxis(planar, -1, 0)
         return flow
 

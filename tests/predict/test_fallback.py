@@ -74,7 +74,7 @@ def _flat_square(speed: float = 0.4):
 @pytest.mark.parametrize("method", ["flow2d[fallback=true]", "flow2d[estimator=corr,fallback=true]",
                                     "decomp[fallback=true]"])
 def test_a_textureless_moving_object_is_no_worse_than_reproject(method):
-    """Without the fall-back these lose 0.53 / 0.51 / 0.54 dB to reproject on these frames; the wall the square
+    """Without the fall-back these lose 0.53 / 0.51 / 0.51 dB to reproject on these frames; the wall the square
     uncovers is what DIS drags along."""
     assert _psnr_gain(_flat_square(), method) > -0.1, method
 

@@ -13,8 +13,8 @@ Speeds are screen speeds of the moving pixels at 640 px width (measured per pres
   degrees a frame), no pauses, a camera path without shake or handheld (turns to ~2.9 degrees a frame): content
   whose past motion predicts its next frames. Measured at 640x360, 16 frames (``tools.bench_motion``'s smooth
   set): seeds 7901-7904 move a median 22.4, 124.6, 15.0, 20.6 px a frame (90th percentile 82.6, 151.0, 34.9,
-  22.2), seeds 7201-7206 3.8-50.5 (90th percentile 12-65); a seed whose objects pass close to the camera is
-  far faster than the preset's usual 10-40 px.
+  22.2), seeds 7201-7206 3.8-50.5 (90th percentile 12-65), 7951-7954 1.7-25.0: most seeds 7-27, a few far
+  faster (7902).
 
 A preset fixes only motion, frame rate, thin structures and noise; the seed still draws the scene, and any
 option given with it wins (``preset_config("fast", seed=7, render_noise=0)``).

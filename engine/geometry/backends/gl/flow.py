@@ -15,11 +15,14 @@ the best of the patch's and its 4 neighbours' flows: a parallel stand-in for DIS
 propagation), ``flow_densify`` (patch flows averaged per pixel, weighted by their photometric error), and
 DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then per fixed-point iteration
 ``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
-``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
+``flow_upsample`` to the full size. The coarse levels (at most ``GlFlowConfig.coarse_pixels`` pixels) run all
+those steps in one dispatch of one workgroup, ``flow_coarse``, with the same arithmetic: a level's 64
+dispatches (4 sweeps, 5 x 5 SOR) would each leave a GPU almost idle (``dispatch_counts`` counts them).
+Any size from 1 x 1 works (a level smaller than a patch is read with
 clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
 ``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``, ``flow_densify``,
-``flow_refine_*``). This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against
-OpenCV DIS medium and the true motion.
+``flow_refine_*``, and ``coarse_reference`` for ``flow_coarse``). This is not OpenCV's code:
+``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and the true motion.
 """
 from __future__ import annotations
 
@@ -34,7 +37,8 @@ from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
-__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "PATCH_LANES", "SEARCHES"]
+__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
+           "SEARCHES"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
@@ -75,10 +79,16 @@ class GlFlowConfig:
     """Refinement: SOR relaxation factor (0 < omega < 2)."""
     search: str = "auto"
     """How the inverse search runs (``SEARCHES``): the same search, its sums in another order."""
+    coarse_pixels: int = 8192
+    """Levels of at most this many pixels, from the coarsest down, run in one dispatch (pass ``flow_coarse``:
+    one workgroup of ``LOCAL_SIZE`` invocations, one patch an invocation as ``thread``); 0: every level by its
+    passes. 8192: the levels of at most 32 pixels an invocation (at 1920x1080 levels 4 to 6, 68 x 120 and
+    smaller)."""
 
     def __post_init__(self) -> None:
         for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
-                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0)):
+                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0),
+                          ("coarse_pixels", 0)):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < low:
                 raise InputError(f"must be an integer >= {low}, got {value!r}", field=name)
@@ -110,6 +120,39 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     for _ in range(coarsest):
         sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
     return sizes, coarsest, min(config.finest_level, coarsest)
+
+
+def coarse_level(sizes: list[tuple[int, int]], coarsest: int, finest: int, config: GlFlowConfig) -> int | None:
+    """The finest level pass ``flow_coarse`` runs (it runs the coarsest down to it): the finest level >= ``finest``
+    of at most ``config.coarse_pixels`` pixels, None when the coarsest has more."""
+    last = None
+    for level in range(coarsest, finest - 1, -1):
+        if sizes[level][0] * sizes[level][1] > config.coarse_pixels:
+            break
+        last = level
+    return last
+
+
+def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig()) -> dict[str, int]:
+    """Compute dispatches of one ``GlOpticalFlow.estimate`` of an (H, W) pair, per pass (the names
+    ``GlContext.pass_timing`` reports; ``clear_words`` clears the coarsest level's initial flow). Each costs a
+    GPU a launch and a storage barrier, and the CPU a Python call: on the small levels that is most of the
+    time."""
+    sizes, coarsest, finest = pyramid_levels(shape, config)
+    patch = "flow_patch" if config.search == "thread" else "flow_patch_group"  # auto: group on a GPU
+    counts = {"flow_luma": 2, "flow_downsample": 2 * coarsest, "flow_upsample": 1}
+    last = coarse_level(sizes, coarsest, finest, config)
+    if last is not None:
+        counts["flow_coarse"] = 1
+    for level in range(coarsest if last is None else last - 1, finest - 1, -1):
+        add = {"clear_words" if level == coarsest else "flow_upsample": 1, patch: config.sweeps, "flow_densify": 1}
+        if config.refine_iterations:
+            add.update({"flow_refine_warp": 1, "flow_refine_derivs": 1, "flow_refine_apply": 1,
+                        "flow_refine_system": config.refine_iterations,
+                        "flow_refine_sor": 2 * config.refine_iterations * config.sor_iterations})
+        for name, n in add.items():
+            counts[name] = counts.get(name, 0) + n
+    return {name: n for name, n in counts.items() if n}
 
 
 class GlOpticalFlow:
@@ -245,7 +288,10 @@ class GlOpticalFlow:
                 pyramids[0].bind_to_storage_buffer(1)
                 pyramids[1].bind_to_storage_buffer(3)
                 up = gl.program("flow_upsample")
-                for level in range(coarsest, finest - 1, -1):
+                last = coarse_level(sizes, coarsest, finest, config)
+                if last is not None:
+                    self._coarse(sizes, coarsest, last, defines, init, dense, patch_flows)
+                for level in range(coarsest if last is None else last - 1, finest - 1, -1):
                     lh, lw = sizes[level]
                     if level == coarsest:
                         gl.clear_words(init, 8 * lh * lw)
@@ -264,6 +310,33 @@ class GlOpticalFlow:
                 with gl.gpu_stage("readback"):
                     out.read_into(result, size=result.nbytes)
         return result
+
+    def _coarse(self, sizes: list, coarsest: int, last: int, defines: dict, init, dense, patch_flows) -> None:
+        """Pass ``flow_coarse``: levels ``coarsest`` down to ``last`` in one workgroup; their dense flow -> ``dense``
+        (level ``last``'s, where the passes of the finer levels read it)."""
+        gl, config = self.gl, self.config
+        n = sizes[last][0] * sizes[last][1]  # the largest level of the pass
+        init.bind_to_storage_buffer(4)
+        patch_flows[0].bind_to_storage_buffer(5)
+        patch_flows[1].bind_to_storage_buffer(8)
+        dense.bind_to_storage_buffer(6)
+        self._refine_buffers(n)
+        h, w = sizes[0]
+        gl.dispatch_groups(gl.program("flow_coarse", defines), 1, {
+            "full_size": (h, w), "coarsest": coarsest, "last": last, "stride": config.patch_stride,
+            "iterations": config.iterations, "sweeps": config.sweeps, "refine_iterations": config.refine_iterations,
+            "sor_iterations": config.sor_iterations, **self._refine_uniforms()})
+
+    def _refine_buffers(self, n: int) -> None:
+        """Bind the refinement's work buffers for a level of ``n`` pixels (grown as needed)."""
+        for key, binding, nbytes in (("increment", 9, 8 * n), ("average", 10, 8 * n), ("derivs", 11, 32 * n),
+                                     ("system", 12, 32 * n)):
+            self.gl.buffer(self._pool, key, nbytes).bind_to_storage_buffer(binding)
+
+    def _refine_uniforms(self) -> dict:
+        config = self.config
+        return {"alpha": float(config.alpha), "delta": float(config.delta), "gamma": float(config.gamma),
+                "omega": float(config.omega)}
 
     def _search_level(self, size: tuple[int, int], offset: int, defines: dict, init, dense, patch_flows) -> None:
         """Inverse search (``sweeps`` times) and densification of one level: ``init`` (H_l, W_l, 2) -> ``dense``."""
@@ -291,13 +364,10 @@ class GlOpticalFlow:
 
     def _refine(self, size: tuple[int, int], offset: int, defines: dict) -> None:
         """Variational refinement of the level's dense flow (bound at 6) in place."""
-        gl, config, pool = self.gl, self.config, self._pool
+        gl, config = self.gl, self.config
         n = size[0] * size[1]
-        for key, binding, nbytes in (("increment", 9, 8 * n), ("average", 10, 8 * n), ("derivs", 11, 32 * n),
-                                     ("system", 12, 32 * n)):
-            gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-        uniforms = {"size": size, "offset": offset, "alpha": float(config.alpha), "delta": float(config.delta),
-                    "gamma": float(config.gamma), "omega": float(config.omega)}
+        self._refine_buffers(n)
+        uniforms = {"size": size, "offset": offset, **self._refine_uniforms()}
         gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
         gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
         system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)

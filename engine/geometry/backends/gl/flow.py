@@ -34,14 +34,17 @@ import numpy as np
 from engine.core.checks import checked_array, checked_size
 from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.core.errors import InputError
-from engine.geometry.backends.gl.context import GlContext, shared_context
+from engine.geometry.backends.gl.context import LOCAL_SIZE, GlContext, shared_context
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
 __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
-           "SEARCHES"]
+           "SEARCHES", "COARSE_PIXELS"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
+#: ``GlFlowConfig.coarse_pixels`` on a GPU: the levels of at most 32 pixels an invocation of ``flow_coarse``'s
+#: workgroup (at 1920x1080 levels 4 to 6, 68 x 120 and smaller; the patches of a level at most 4 an invocation).
+COARSE_PIXELS = 32 * LOCAL_SIZE
 #: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
 #: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,
 #: ``group`` on a hardware GPU and ``thread`` on a software renderer.
@@ -79,17 +82,18 @@ class GlFlowConfig:
     """Refinement: SOR relaxation factor (0 < omega < 2)."""
     search: str = "auto"
     """How the inverse search runs (``SEARCHES``): the same search, its sums in another order."""
-    coarse_pixels: int = 8192
+    coarse_pixels: int | None = None
     """Levels of at most this many pixels, from the coarsest down, run in one dispatch (pass ``flow_coarse``:
     one workgroup of ``LOCAL_SIZE`` invocations, one patch an invocation as ``thread``); 0: every level by its
-    passes. 8192: the levels of at most 32 pixels an invocation (at 1920x1080 levels 4 to 6, 68 x 120 and
-    smaller)."""
+    passes; None: ``COARSE_PIXELS`` on a hardware GPU, 0 on a software renderer (which runs a workgroup on
+    one CPU thread: slower there, docs/results/2026-11-28-gpu-flow-search.md)."""
 
     def __post_init__(self) -> None:
         for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
-                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0),
-                          ("coarse_pixels", 0)):
+                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0), ("coarse_pixels", 0)):
             value = getattr(self, name)
+            if name == "coarse_pixels" and value is None:
+                continue
             if not isinstance(value, (int, np.integer)) or value < low:
                 raise InputError(f"must be an integer >= {low}, got {value!r}", field=name)
         for name in ("alpha", "delta", "gamma", "omega"):
@@ -122,26 +126,36 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     return sizes, coarsest, min(config.finest_level, coarsest)
 
 
-def coarse_level(sizes: list[tuple[int, int]], coarsest: int, finest: int, config: GlFlowConfig) -> int | None:
+def resolved_coarse_pixels(config: GlFlowConfig, software: bool) -> int:
+    """``config.coarse_pixels``, None resolved: ``COARSE_PIXELS`` on a hardware GPU, 0 on a software renderer."""
+    if config.coarse_pixels is not None:
+        return int(config.coarse_pixels)
+    return 0 if software else COARSE_PIXELS
+
+
+def coarse_level(sizes: list[tuple[int, int]], coarsest: int, finest: int, coarse_pixels: int) -> int | None:
     """The finest level pass ``flow_coarse`` runs (it runs the coarsest down to it): the finest level >= ``finest``
-    of at most ``config.coarse_pixels`` pixels, None when the coarsest has more."""
+    of at most ``coarse_pixels`` pixels, None when the coarsest has more."""
     last = None
     for level in range(coarsest, finest - 1, -1):
-        if sizes[level][0] * sizes[level][1] > config.coarse_pixels:
+        if sizes[level][0] * sizes[level][1] > coarse_pixels:
             break
         last = level
     return last
 
 
-def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig()) -> dict[str, int]:
+def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(), software: bool = False
+                    ) -> dict[str, int]:
     """Compute dispatches of one ``GlOpticalFlow.estimate`` of an (H, W) pair, per pass (the names
-    ``GlContext.pass_timing`` reports; ``clear_words`` clears the coarsest level's initial flow). Each costs a
-    GPU a launch and a storage barrier, and the CPU a Python call: on the small levels that is most of the
-    time."""
+    ``GlContext.pass_timing`` reports; ``clear_words`` clears the coarsest level's initial flow), with ``auto``
+    and None settings resolved as on a hardware GPU or, with ``software``, a software renderer. Each dispatch
+    costs a GPU a launch and a storage barrier, and the CPU a Python call: on the small levels that is most of
+    their time."""
     sizes, coarsest, finest = pyramid_levels(shape, config)
-    patch = "flow_patch" if config.search == "thread" else "flow_patch_group"  # auto: group on a GPU
+    search = config.search if config.search != "auto" else ("thread" if software else "group")
+    patch = "flow_patch" if search == "thread" else "flow_patch_group"
     counts = {"flow_luma": 2, "flow_downsample": 2 * coarsest, "flow_upsample": 1}
-    last = coarse_level(sizes, coarsest, finest, config)
+    last = coarse_level(sizes, coarsest, finest, resolved_coarse_pixels(config, software))
     if last is not None:
         counts["flow_coarse"] = 1
     for level in range(coarsest if last is None else last - 1, finest - 1, -1):
@@ -169,6 +183,8 @@ class GlOpticalFlow:
         self.config = config
         #: the inverse search this estimator runs: ``thread`` or ``group`` (``GlFlowConfig.search``)
         self.search = config.search if config.search != "auto" else ("thread" if self.gl.software else "group")
+        #: the levels of at most this many pixels run in pass ``flow_coarse`` (``GlFlowConfig.coarse_pixels``)
+        self.coarse_pixels = resolved_coarse_pixels(config, self.gl.software)
         self._pool: dict = {}
 
     def estimate(self, first: np.ndarray | GlImage, second: np.ndarray | GlImage, *,
@@ -288,7 +304,7 @@ class GlOpticalFlow:
                 pyramids[0].bind_to_storage_buffer(1)
                 pyramids[1].bind_to_storage_buffer(3)
                 up = gl.program("flow_upsample")
-                last = coarse_level(sizes, coarsest, finest, config)
+                last = coarse_level(sizes, coarsest, finest, self.coarse_pixels)
                 if last is not None:
                     self._coarse(sizes, coarsest, last, defines, init, dense, patch_flows)
                 for level in range(coarsest if last is None else last - 1, finest - 1, -1):

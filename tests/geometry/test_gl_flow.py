@@ -432,10 +432,16 @@ def test_patch_search_pass_matches_its_reference(propagate, search):
 
 
 
-def test_refinement_passes_match_their_reference():
+@pytest.mark.parametrize("sor, size", [("passes", (18, 23)), ("tile", (18, 23)), ("tile", (37, 50)), ("tile", (1, 3))])
+def test_refinement_passes_match_their_reference(sor, size):
+    """The refinement's passes against ``refine_reference``, its SOR as red and black ``flow_refine_sor``
+    dispatches after ``flow_refine_system``, or as ``flow_refine_tile`` dispatches (the system folded into the
+    first of each fixed-point iteration; tiles of 16 x 16, the last ones partial, and a level smaller than a
+    tile)."""
+    from engine.geometry.backends.gl.flow import SOR_TILE
     from engine.geometry.backends.gl.reference import refine_reference
 
-    size, iterations, sor_iterations = (18, 23), 3, 4
+    iterations, sor_iterations = 3, 4
     rng = np.random.default_rng(11)
     base = cv2_blur(rng.uniform(0, 255, (size[0] + 6, size[1] + 6)).astype(np.float32))
     first, second = base[3:-3, 3:-3].copy(), base[2:-4, 4:-2].copy()  # first(y, x) = second(y + 1, x - 1)
@@ -446,7 +452,7 @@ def test_refinement_passes_match_their_reference():
 
     def run():
         bound = {1: gl.ctx.buffer(first), 3: gl.ctx.buffer(second), 6: gl.ctx.buffer(flow)}
-        for binding, nbytes in ((9, 8 * n), (10, 8 * n), (11, 32 * n), (12, 32 * n)):
+        for binding, nbytes in ((9, 8 * n), (10, 8 * n), (11, 32 * n), (12, 32 * n), (13, 8 * n)):
             bound[binding] = gl.ctx.buffer(reserve=nbytes)
         try:
             for binding, buf in bound.items():
@@ -455,11 +461,22 @@ def test_refinement_passes_match_their_reference():
             defines = {"PATCH": 8}
             for name in ("flow_refine_warp", "flow_refine_derivs"):
                 gl.dispatch(gl.program(name, defines), n, uniforms)
+            increments = [bound[9], bound[13]]
+            tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
             for _ in range(iterations):
-                gl.dispatch(gl.program("flow_refine_system", defines), n, uniforms)
-                for _ in range(sor_iterations):
-                    for parity in (0, 1):
-                        gl.dispatch(gl.program("flow_refine_sor", defines), n, {**uniforms, "parity": parity})
+                if sor == "passes":
+                    gl.dispatch(gl.program("flow_refine_system", defines), n, uniforms)
+                for step in range(sor_iterations):
+                    if sor == "passes":
+                        for parity in (0, 1):
+                            gl.dispatch(gl.program("flow_refine_sor", defines), n, {**uniforms, "parity": parity})
+                        continue
+                    increments[0].bind_to_storage_buffer(9)
+                    increments[1].bind_to_storage_buffer(13)
+                    tile = gl.program("flow_refine_tile", {**defines, **({"SYSTEM": 1} if step == 0 else {})})
+                    gl.dispatch_groups(tile, tiles, uniforms)
+                    increments.reverse()
+            increments[0].bind_to_storage_buffer(9)
             gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
             return np.frombuffer(bound[6].read(), np.float32).reshape(size + (2,))
         finally:

@@ -38,13 +38,20 @@ from engine.geometry.backends.gl.context import LOCAL_SIZE, GlContext, shared_co
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
 __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
-           "SEARCHES", "COARSE_PIXELS"]
+           "SEARCHES", "SORS", "SOR_TILE", "COARSE_PIXELS"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
 #: ``GlFlowConfig.coarse_pixels`` on a GPU: the levels of at most 32 pixels an invocation of ``flow_coarse``'s
 #: workgroup (at 1920x1080 levels 4 to 6, 68 x 120 and smaller; the patches of a level at most 4 an invocation).
 COARSE_PIXELS = 32 * LOCAL_SIZE
+#: Side of the tile of pass ``flow_refine_tile`` (TILE there: a workgroup of ``LOCAL_SIZE`` = TILE^2 pixels).
+SOR_TILE = 16
+#: How the refinement's red-black SOR runs: ``passes``, a fixed-point iteration as a ``flow_refine_system``
+#: dispatch and two ``flow_refine_sor`` dispatches (red, black) per SOR iteration; ``tile``, one
+#: ``flow_refine_tile`` dispatch per SOR iteration (both halves in a tile in shared memory, the system folded
+#: into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU, ``passes`` on a software renderer.
+SORS = ("auto", "passes", "tile")
 #: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
 #: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,
 #: ``group`` on a hardware GPU and ``thread`` on a software renderer.
@@ -82,6 +89,8 @@ class GlFlowConfig:
     """Refinement: SOR relaxation factor (0 < omega < 2)."""
     search: str = "auto"
     """How the inverse search runs (``SEARCHES``): the same search, its sums in another order."""
+    sor: str = "auto"
+    """How the refinement's SOR runs (``SORS``): the same arithmetic in fewer dispatches."""
     coarse_pixels: int | None = None
     """Levels of at most this many pixels, from the coarsest down, run in one dispatch (pass ``flow_coarse``:
     one workgroup of ``LOCAL_SIZE`` invocations, one patch an invocation as ``thread``); 0: every level by its
@@ -102,8 +111,9 @@ class GlFlowConfig:
                 raise InputError(f"must be a finite number >= 0, got {value!r}", field=name)
         if not 0.0 < self.omega < 2.0:
             raise InputError(f"must be in (0, 2), got {self.omega!r}", field="omega")
-        if self.search not in SEARCHES:
-            raise InputError(f"must be one of {', '.join(SEARCHES)}, got {self.search!r}", field="search")
+        for name, allowed in (("search", SEARCHES), ("sor", SORS)):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"must be one of {', '.join(allowed)}, got {getattr(self, name)!r}", field=name)
         if self.patch_stride > self.patch_size:
             raise InputError(f"must be <= patch_size {self.patch_size}, got {self.patch_stride}",
                              field="patch_stride")
@@ -154,6 +164,7 @@ def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(
     sizes, coarsest, finest = pyramid_levels(shape, config)
     search = config.search if config.search != "auto" else ("thread" if software else "group")
     patch = "flow_patch" if search == "thread" else "flow_patch_group"
+    sor = config.sor if config.sor != "auto" else ("passes" if software else "tile")
     counts = {"flow_luma": 2, "flow_downsample": 2 * coarsest, "flow_upsample": 1}
     last = coarse_level(sizes, coarsest, finest, resolved_coarse_pixels(config, software))
     if last is not None:
@@ -164,6 +175,9 @@ def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(
             add.update({"flow_refine_warp": 1, "flow_refine_derivs": 1, "flow_refine_apply": 1,
                         "flow_refine_system": config.refine_iterations,
                         "flow_refine_sor": 2 * config.refine_iterations * config.sor_iterations})
+            if sor == "tile":
+                add["flow_refine_system"] = add["flow_refine_sor"] = 0
+                add["flow_refine_tile"] = config.refine_iterations * config.sor_iterations
         for name, n in add.items():
             counts[name] = counts.get(name, 0) + n
     return {name: n for name, n in counts.items() if n}
@@ -183,6 +197,8 @@ class GlOpticalFlow:
         self.config = config
         #: the inverse search this estimator runs: ``thread`` or ``group`` (``GlFlowConfig.search``)
         self.search = config.search if config.search != "auto" else ("thread" if self.gl.software else "group")
+        #: the refinement's SOR this estimator runs: ``passes`` or ``tile`` (``GlFlowConfig.sor``)
+        self.sor = config.sor if config.sor != "auto" else ("passes" if self.gl.software else "tile")
         #: the levels of at most this many pixels run in pass ``flow_coarse`` (``GlFlowConfig.coarse_pixels``)
         self.coarse_pixels = resolved_coarse_pixels(config, self.gl.software)
         self._pool: dict = {}
@@ -386,12 +402,24 @@ class GlOpticalFlow:
         uniforms = {"size": size, "offset": offset, **self._refine_uniforms()}
         gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
         gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
-        system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
-        for _ in range(config.refine_iterations):
-            gl.dispatch(system, n, uniforms)
-            for _ in range(config.sor_iterations):
-                for parity in (0, 1):
-                    gl.dispatch(sor, n, {**uniforms, "parity": parity})
+        if self.sor == "tile":
+            increments = [self._pool["increment"], gl.buffer(self._pool, "increment_next", 8 * n)]
+            tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
+            for _ in range(config.refine_iterations):
+                for step in range(config.sor_iterations):
+                    increments[0].bind_to_storage_buffer(9)
+                    increments[1].bind_to_storage_buffer(13)
+                    program = gl.program("flow_refine_tile", {**defines, **({"SYSTEM": 1} if step == 0 else {})})
+                    gl.dispatch_groups(program, tiles, uniforms)
+                    increments.reverse()
+            increments[0].bind_to_storage_buffer(9)
+        else:
+            system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
+            for _ in range(config.refine_iterations):
+                gl.dispatch(system, n, uniforms)
+                for _ in range(config.sor_iterations):
+                    for parity in (0, 1):
+                        gl.dispatch(sor, n, {**uniforms, "parity": parity})
         gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
 
     def release(self) -> None:

@@ -65,20 +65,18 @@ void refine_derivs(int i) {
                              avg_[pixel(y + 1, x)].y - avg_[pixel(y - 1, x)].y);
 }
 
-// pass 3 (flow_refine_system), once per fixed-point iteration: the data term's part of the linear system in
-// (du, dv) (A11, A12, A22, b1, b2, with the robust weights lagged at the current du) and the smoothness weight
-// ws = alpha / 2 / sqrt(|grad(u + du)|^2 + eps^2) of the pixel's right and lower edges
-void refine_system(int i) {
-    int y = i / size.y, x = i % size.y;
+// the data term's part of pixel i's linear system in (du, dv), the robust weights lagged at its du: (A11,
+// A12, A22, b1) and b2 into b2
+vec4 data_system(int i, vec2 du, out float b2) {
     vec4 d0 = deriv_[2 * i], d1 = deriv_[2 * i + 1];
     float ix = d0.x, iy = d0.y, iz = d0.z, ixx = d0.w, ixy = d1.x, iyy = d1.y, ixz = d1.z, iyz = d1.w;
-    vec2 du = inc_[i];
 
     float norm = ix * ix + iy * iy + ZETA2;
     float residual = iz + ix * du.x + iy * du.y;
     float w = (0.5 * delta / sqrt(residual * residual / norm + EPS2)) / norm;
     float a11 = w * ix * ix + ZETA2, a12 = w * ix * iy, a22 = w * iy * iy + ZETA2;
-    float b1 = -w * iz * ix, b2 = -w * iz * iy;
+    float b1 = -w * iz * ix;
+    b2 = -w * iz * iy;
 
     float norm_x = ixx * ixx + ixy * ixy + ZETA2, norm_y = iyy * iyy + ixy * ixy + ZETA2;
     float rx = ixz + ixx * du.x + ixy * du.y, ry = iyz + ixy * du.x + iyy * du.y;
@@ -88,39 +86,66 @@ void refine_system(int i) {
     a22 += w * (ixy * ixy / norm_x + iyy * iyy / norm_y);
     b1 -= w * (ixx * ixz / norm_x + ixy * iyz / norm_y);
     b2 -= w * (ixy * ixz / norm_x + iyy * iyz / norm_y);
-
-    vec2 here = dense_[i] + du;
-    vec2 gx = dense_[pixel(y, x + 1)] + inc_[pixel(y, x + 1)] - here;
-    vec2 gy = dense_[pixel(y + 1, x)] + inc_[pixel(y + 1, x)] - here;
-    float ws = 0.5 * alpha / sqrt(dot(gx, gx) + dot(gy, gy) + EPS2);
-    system_[2 * i] = vec4(a11, a12, a22, b1);
-    system_[2 * i + 1] = vec4(b2, ws, 0.0, 0.0);
+    return vec4(a11, a12, a22, b1);
 }
 
+// the smoothness weight ws = alpha / 2 / sqrt(|grad(u + du)|^2 + eps^2) of pixel (y, x)'s right and lower
+// edges, from u (dense_) and du (inc_)
+float smooth_weight(int y, int x) {
+    int i = y * size.y + x;
+    vec2 here = dense_[i] + inc_[i];
+    vec2 gx = dense_[pixel(y, x + 1)] + inc_[pixel(y, x + 1)] - here;
+    vec2 gy = dense_[pixel(y + 1, x)] + inc_[pixel(y + 1, x)] - here;
+    return 0.5 * alpha / sqrt(dot(gx, gx) + dot(gy, gy) + EPS2);
+}
+
+// pass 3 (flow_refine_system), once per fixed-point iteration: the data term's part of the linear system in
+// (du, dv) (A11, A12, A22, b1, b2, with the robust weights lagged at the current du) and the smoothness weight
+// ws of the pixel's right and lower edges
+void refine_system(int i) {
+    float b2;
+    system_[2 * i] = data_system(i, inc_[i], b2);
+    system_[2 * i + 1] = vec4(b2, smooth_weight(i / size.y, i % size.y), 0.0, 0.0);
+}
+
+// one SOR step of pixel (y, x) with system s0 = (A11, A12, A22, b1), b2, flow u and increment du, given its 4
+// neighbours (right, left, down, up: that order) as u_j + du_j in totals[k] and the smoothness weights of the
+// edges to them in weights[k], those outside the level left out (inside[k] false): du first, then dv with the
+// new du
+vec2 sor_step(vec4 s0, float b2, vec2 u, vec2 du, vec2 totals[4], float weights[4], bvec4 inside) {
+    vec2 pull = vec2(0.0);
+    float weight = 0.0;
+    for (int k = 0; k < 4; ++k) {
+        if (!inside[k]) continue;
+        pull += weights[k] * (totals[k] - u);
+        weight += weights[k];
+    }
+    du.x = (1.0 - omega) * du.x + omega * (s0.w + pull.x - s0.y * du.y) / (s0.x + weight);
+    du.y = (1.0 - omega) * du.y + omega * (b2 + pull.y - s0.y * du.x) / (s0.z + weight);
+    return du;
+}
+
+const ivec2 AROUND[4] = ivec2[4](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1));  // right, left, down, up
+
 // pass 4 (flow_refine_sor), for the pixels of one colour of a checkerboard ((x + y) % 2 == parity): one SOR
-// step of the linear system with the smoothness term, du first, then dv with the new du (OpenCV's red-black
-// SOR): du <- (1 - omega) du + omega (b1 + sum_j w_j (u_j + du_j - u) - A12 dv) / (A11 + sum_j w_j) over the
+// step of the linear system with the smoothness term (OpenCV's red-black SOR):
+// du <- (1 - omega) du + omega (b1 + sum_j w_j (u_j + du_j - u) - A12 dv) / (A11 + sum_j w_j) over the
 // 4 neighbours j inside the level, w_j the smoothness weight of the edge (that of its left / upper pixel)
 void refine_sor(int i, int parity) {
     int y = i / size.y, x = i % size.y;
     if (((x + y) & 1) != parity) return;
     vec4 s0 = system_[2 * i], s1 = system_[2 * i + 1];
-    vec2 u = dense_[i];
-    vec2 pull = vec2(0.0);
-    float weight = 0.0;
-    ivec2 around[4] = ivec2[4](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1));
+    vec2 totals[4];
+    float weights[4];
+    bvec4 inside;
     for (int k = 0; k < 4; ++k) {
-        int nx = x + around[k].x, ny = y + around[k].y;
-        if (nx < 0 || ny < 0 || nx >= size.y || ny >= size.x) continue;
-        int j = ny * size.y + nx;
-        float w = k % 2 == 0 ? s1.y : system_[2 * j + 1].y;
-        pull += w * (dense_[j] + inc_[j] - u);
-        weight += w;
+        int nx = x + AROUND[k].x, ny = y + AROUND[k].y;
+        inside[k] = nx >= 0 && ny >= 0 && nx < size.y && ny < size.x;
+        int j = inside[k] ? ny * size.y + nx : i;
+        totals[k] = dense_[j] + inc_[j];
+        weights[k] = k % 2 == 0 ? s1.y : system_[2 * j + 1].y;
     }
-    vec2 du = inc_[i];
-    du.x = (1.0 - omega) * du.x + omega * (s0.w + pull.x - s0.y * du.y) / (s0.x + weight);
-    du.y = (1.0 - omega) * du.y + omega * (s1.x + pull.y - s0.y * du.x) / (s0.z + weight);
-    inc_[i] = du;
+    inc_[i] = sor_step(s0, s1.x, dense_[i], inc_[i], totals, weights, inside);
 }
 
 // pass 5 (flow_refine_apply): u <- u + du (a non-finite increment is dropped)

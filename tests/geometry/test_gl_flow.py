@@ -76,12 +76,13 @@ def test_translation_recovered(t):
                                     GlFlowConfig(patch_size=6, patch_stride=6, iterations=4),
                                     GlFlowConfig(search="group"),
                                     GlFlowConfig(search="group", patch_size=12, patch_stride=4, iterations=4),
-                                    GlFlowConfig(coarse_pixels=COARSE_PIXELS),
+                                    GlFlowConfig(coarse_pixels=COARSE_PIXELS, sor="tile"),
                                     GlFlowConfig(coarse_pixels=1 << 20, finest_level=0, sweeps=2)])
 def test_other_configs(config):
     """Variants of the passes (no propagation and no refinement, full-resolution search, patches that do not
     overlap with few iterations, the cooperative search with 64 and with 144 pixels a patch: 3 a lane, the coarse
-    levels in one dispatch, every level in it) still recover a 3 px translation (median within 0.1 px)."""
+    levels in one dispatch with the tiled SOR on the others, every level in one dispatch) still recover a 3 px
+    translation (median within 0.1 px)."""
     a, b = shifted_pair(64, 96, (3.0, -1.5))
     flow = GlOpticalFlow(config=config).estimate(a, b)
     assert np.isfinite(flow).all()
@@ -147,7 +148,9 @@ def test_coarse_pass_gives_the_flow_of_the_passes(size):
         pixels = sizes[level][0] * sizes[level][1]
         coarse = GlOpticalFlow(config=GlFlowConfig(coarse_pixels=pixels, search="thread")).estimate(a, b)
         assert np.mean(np.abs(coarse - passes).max(axis=-1) <= 1e-3) >= 0.99, (level, pixels)
-    assert GlOpticalFlow().coarse_pixels == (0 if glb.shared_context().software else COARSE_PIXELS)
+    software = glb.shared_context().software
+    assert GlOpticalFlow().coarse_pixels == (0 if software else COARSE_PIXELS)
+    assert GlOpticalFlow().sor == ("passes" if software else "tile")
 
 
 def test_coarse_pass_matches_its_reference():
@@ -193,6 +196,8 @@ def test_coarse_pass_matches_its_reference():
 
 @pytest.mark.parametrize("size, config", [((96, 160), GlFlowConfig(coarse_pixels=0, search="thread")),
                                           ((96, 160), GlFlowConfig(coarse_pixels=COARSE_PIXELS, search="thread")),
+                                          ((96, 160), GlFlowConfig(coarse_pixels=0, sor="tile", search="thread")),
+                                          ((64, 96), GlFlowConfig(sor="tile", sor_iterations=0, coarse_pixels=0)),
                                           ((40, 56), GlFlowConfig(coarse_pixels=1 << 20, search="group")),
                                           ((64, 96), GlFlowConfig(refine_iterations=0, sweeps=2, search="group"))])
 def test_dispatch_counts_are_the_dispatches_run(size, config):
@@ -265,6 +270,9 @@ def test_bad_inputs_name_the_field():
     with pytest.raises(InputError) as err:
         GlFlowConfig(search="warp")
     assert err.value.field == "search"
+    with pytest.raises(InputError) as err:
+        GlFlowConfig(sor="red")
+    assert err.value.field == "sor"
     with pytest.raises(InputError) as err:
         GlFlowConfig(coarse_pixels=-1)
     assert err.value.field == "coarse_pixels"

@@ -13,7 +13,8 @@
 # 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage (and at
 #    1920x1080 with 8-bit sRGB frames in and out);
 #    tools.profile_gl_passes: GPU ms per compute pass at 1920x1080;
-#    tools.profile_gl_flow: the GPU's flow alone, its two inverse searches, back to back and with idle gaps;
+#    tools.profile_gl_flow: the GPU's flow alone, its dispatches and GPU ms per stage and pass, the passes as they
+#    were beside the defaults, back to back and with idle gaps;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080.
@@ -112,11 +113,15 @@ step backends_srgb8 120 "$py" -m tools.bench_backends --sizes 1920x1080 --repeat
     --encoding srgb8 --out "$work/scenes" --json "$out/backends_srgb8.json"
 step passes 150 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl],decomp[estimator=gl]" \
     --out "$work/scenes" --json "$out/passes.json"
-# the GPU's flow alone, its two inverse searches (one invocation a patch, or a patch over 64 with shared-memory
-# sums), back to back and then with 50 ms of idle GPU before each estimate
-step flow_search 120 "$py" -m tools.profile_gl_flow --sizes 960x540,1920x1080 --repeats 5 \
+# the GPU's flow alone (FLOW_SIZES, default "960x540 1920x1080"; e.g. FLOW_SIZES=160x96 on a software renderer):
+# dispatches and GPU ms per stage of the passes as they were (every level by its passes, SOR as red and black
+# dispatches), the one-invocation search and the defaults (flow_coarse, flow_refine_tile), back to back with GPU ms
+# per pass, then with 50 ms of idle GPU before each estimate
+flow_sizes="${FLOW_SIZES:-960x540 1920x1080}"
+flow_sizes="${flow_sizes// /,}"
+step flow_search 150 "$py" -m tools.profile_gl_flow --sizes "$flow_sizes" --repeats 5 --passes \
     --out "$work/scenes" --json "$out/flow_search.json"
-step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes 1920x1080 --repeats 3 --idle 0.05 \
+step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes "${flow_sizes##*,}" --repeats 3 --idle 0.05 \
     --out "$work/scenes" --json "$out/flow_search_idle.json"
 step networks 60 "$py" -m tools.bench_torch_networks --json "$out/networks.json"
 step field_capture 30 "$py" -m engine.cli render-rig "$work/rig" --seed 7 --width 504 --height 378 --static \

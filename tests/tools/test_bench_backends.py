@@ -68,24 +68,36 @@ def test_profile_counts_every_pass_of_a_frame(tmp_path):
     assert "probe" in stages
 
 
-def test_profile_gl_flow_times_both_searches_and_compares_their_flows(tmp_path):
+def test_profile_gl_flow_times_configurations_and_counts_their_dispatches(tmp_path):
     from engine.geometry.backends import gl as glb
+    from engine.geometry.backends.gl.flow import GlFlowConfig, dispatch_counts
 
     if not glb.available():
         pytest.skip("no EGL context with compute shaders")
     out = tmp_path / "flow.json"
     profile_gl_flow.main(["--sizes", "96x64", "--frames", "4", "--repeats", "1", "--out", str(tmp_path / "scenes"),
-                          "--json", str(out)])
+                          "--configs", "search=thread,sor=passes,coarse_pixels=0;search=group;"
+                          "search=thread,sor=tile,coarse_pixels=8192", "--passes", "--json", str(out)])
     doc = json.loads(out.read_text())
-    rows = {r["search"]: r for r in doc["rows"]}
-    assert set(rows) == {"thread", "group"} and all(r["pairs"] == 1 and r["wall_ms"] > 0 for r in rows.values())
-    assert rows["thread"]["diff_px"]["max"] == 0.0  # the first search against itself
-    assert rows["group"]["diff_px"]["median"] < 1e-2  # the same search, sums in another order
+    rows = doc["rows"]
+    assert [(r["search"], r["sor"], r["coarse_pixels"]) for r in rows] == [
+        ("thread", "passes", 0), ("group", "passes" if not doc["hardware"] else "tile", 0 if not doc["hardware"]
+                                  else 8192), ("thread", "tile", 8192)]
+    assert all(r["pairs"] == 1 and r["wall_ms"] > 0 for r in rows)
+    assert rows[0]["diff_px"]["max"] == 0.0  # the first configuration against itself
+    assert rows[1]["diff_px"]["median"] < 1e-2  # the same search, sums in another order
+    assert rows[2]["diff_px"]["median"] < 1e-2  # the same arithmetic in fewer dispatches
+    for row in rows:  # the dispatches counted are those run
+        config = GlFlowConfig(search=row["search"], sor=row["sor"], coarse_pixels=row["coarse_pixels"])
+        assert row["dispatches"] == dispatch_counts((64, 96), config)
+        run = row["passes"] if not doc["hardware"] else {k: v[0] for k, v in row["passes"].items()}
+        assert run == row["dispatches"]
+    assert sum(rows[2]["dispatches"].values()) < sum(rows[0]["dispatches"].values()) / 10
     if doc["hardware"]:
-        assert {"luma", "pyramid", "search", "readback"} <= set(rows["group"]["gpu_ms"])
+        assert {"luma", "pyramid", "search", "readback"} <= set(rows[1]["gpu_ms"])
     else:
-        assert rows["group"]["gpu_ms"] is None
-    for bad in (["--searches", "auto"], ["--searches", "warp"], ["--k", "0"], ["--idle", "-1"]):
+        assert rows[1]["gpu_ms"] is None
+    for bad in (["--configs", "search=auto,warp=1"], ["--configs", "sor=red"], ["--k", "0"], ["--idle", "-1"]):
         with pytest.raises(SystemExit, match="error"):
             profile_gl_flow.main(bad)
 

@@ -38,7 +38,7 @@ from engine.geometry.backends.gl.context import LOCAL_SIZE, GlContext, shared_co
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
 __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
-           "SEARCHES", "SORS", "SOR_TILE", "COARSE_PIXELS"]
+           "SEARCHES", "SORS", "SOR_TILE", "SOR_STEPS", "COARSE_PIXELS", "sor_chunks"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
@@ -47,10 +47,13 @@ PATCH_LANES = 64
 COARSE_PIXELS = 32 * LOCAL_SIZE
 #: Side of the tile of pass ``flow_refine_tile`` (TILE there: a workgroup of ``LOCAL_SIZE`` = TILE^2 pixels).
 SOR_TILE = 16
+#: Most SOR iterations one ``flow_refine_tile`` dispatch takes: its shared memory (du and weights of the tile and
+#: 2 x 4 rings, the systems of 7) is 30 KB, under the 32 KB every GL 4.3 context has.
+SOR_STEPS = 4
 #: How the refinement's red-black SOR runs: ``passes``, a fixed-point iteration as a ``flow_refine_system``
 #: dispatch and two ``flow_refine_sor`` dispatches (red, black) per SOR iteration; ``tile``, one
-#: ``flow_refine_tile`` dispatch per SOR iteration (both halves in a tile in shared memory, the system folded
-#: into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU, ``passes`` on a software renderer.
+#: ``flow_refine_tile`` dispatch per up to ``SOR_STEPS`` SOR iterations (``sor_chunks``: in a tile in shared
+#: memory, the system folded into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU, ``passes`` on a software renderer.
 SORS = ("auto", "passes", "tile")
 #: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
 #: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,
@@ -136,6 +139,14 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     return sizes, coarsest, min(config.finest_level, coarsest)
 
 
+def sor_chunks(sor_iterations: int) -> list[int]:
+    """The SOR iterations of each ``flow_refine_tile`` dispatch of a fixed-point iteration: ``sor_iterations`` in
+    as few dispatches of at most ``SOR_STEPS`` as it takes, as even as they go (5: 3 and 2; a dispatch's shared
+    work grows with the square of its tile and rings)."""
+    count = -(-sor_iterations // SOR_STEPS)
+    return [sor_iterations // count + (1 if k < sor_iterations % count else 0) for k in range(count)]
+
+
 def resolved_coarse_pixels(config: GlFlowConfig, software: bool) -> int:
     """``config.coarse_pixels``, None resolved: ``COARSE_PIXELS`` on a hardware GPU, 0 on a software renderer."""
     if config.coarse_pixels is not None:
@@ -177,7 +188,7 @@ def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(
                         "flow_refine_sor": 2 * config.refine_iterations * config.sor_iterations})
             if sor == "tile":
                 add["flow_refine_system"] = add["flow_refine_sor"] = 0
-                add["flow_refine_tile"] = config.refine_iterations * config.sor_iterations
+                add["flow_refine_tile"] = config.refine_iterations * len(sor_chunks(config.sor_iterations))
         for name, n in add.items():
             counts[name] = counts.get(name, 0) + n
     return {name: n for name, n in counts.items() if n}
@@ -406,10 +417,11 @@ class GlOpticalFlow:
             increments = [self._pool["increment"], gl.buffer(self._pool, "increment_next", 8 * n)]
             tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
             for _ in range(config.refine_iterations):
-                for step in range(config.sor_iterations):
+                for index, steps in enumerate(sor_chunks(config.sor_iterations)):
                     increments[0].bind_to_storage_buffer(9)
                     increments[1].bind_to_storage_buffer(13)
-                    program = gl.program("flow_refine_tile", {**defines, **({"SYSTEM": 1} if step == 0 else {})})
+                    program = gl.program("flow_refine_tile", {**defines, "STEPS": steps,
+                                                              **({"SYSTEM": 1} if index == 0 else {})})
                     gl.dispatch_groups(program, tiles, uniforms)
                     increments.reverse()
             increments[0].bind_to_storage_buffer(9)

@@ -15,14 +15,19 @@ the best of the patch's and its 4 neighbours' flows: a parallel stand-in for DIS
 propagation), ``flow_densify`` (patch flows averaged per pixel, weighted by their photometric error), and
 DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then per fixed-point iteration
 ``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
-``flow_upsample`` to the full size. The coarse levels (at most ``GlFlowConfig.coarse_pixels`` pixels) run all
-those steps in one dispatch of one workgroup, ``flow_coarse``, with the same arithmetic: a level's 64
-dispatches (4 sweeps, 5 x 5 SOR) would each leave a GPU almost idle (``dispatch_counts`` counts them).
-Any size from 1 x 1 works (a level smaller than a patch is read with
-clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
-``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``, ``flow_densify``,
-``flow_refine_*``, and ``coarse_reference`` for ``flow_coarse``). This is not OpenCV's code:
-``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium and the true motion.
+``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
+clamped borders: no padding as ``dis_calc`` needs).
+
+Fewer dispatches, the same arithmetic (on a GPU by default; ``dispatch_counts`` counts them: 399 an estimate
+at 1920x1080 by the passes above, 73 so): the coarse levels (at most ``GlFlowConfig.coarse_pixels`` pixels)
+run all their steps in one dispatch of one workgroup, ``flow_coarse``, with a barrier between the steps; the
+SOR of the other levels runs as ``flow_refine_tile``, up to ``SOR_STEPS`` red-black iterations a dispatch on
+a tile in shared memory, the system folded into the first (``GlFlowConfig.sor``). On a small level each
+dispatch leaves a GPU almost idle and costs the CPU a Python call. Oracles: ``luma8`` for ``flow_luma``, the
+numpy twins of ``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``,
+``flow_densify``, ``flow_refine_*``, ``level_reference`` and ``coarse_reference`` for ``flow_coarse``).
+This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium
+and the true motion.
 """
 from __future__ import annotations
 
@@ -52,8 +57,10 @@ SOR_TILE = 16
 SOR_STEPS = 4
 #: How the refinement's red-black SOR runs: ``passes``, a fixed-point iteration as a ``flow_refine_system``
 #: dispatch and two ``flow_refine_sor`` dispatches (red, black) per SOR iteration; ``tile``, one
-#: ``flow_refine_tile`` dispatch per up to ``SOR_STEPS`` SOR iterations (``sor_chunks``: in a tile in shared
-#: memory, the system folded into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU, ``passes`` on a software renderer.
+#: ``flow_refine_tile`` dispatch per up to ``SOR_STEPS`` SOR iterations (``sor_chunks``; in a tile in shared
+#: memory, the system folded into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU and
+#: ``passes`` on a software renderer (where a workgroup's barriers switch between its invocations on one CPU
+#: thread: slower there).
 SORS = ("auto", "passes", "tile")
 #: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
 #: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,

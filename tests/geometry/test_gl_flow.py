@@ -448,7 +448,7 @@ def test_refinement_passes_match_their_reference(sor, size, sor_iterations):
     dispatches after ``flow_refine_system``, or as ``flow_refine_tile`` dispatches of up to ``SOR_STEPS``
     iterations each (``sor_chunks``: 4; 3 and 2; 1; 3, 3 and 3), the system folded into the first of each
     fixed-point iteration; tiles of 16 x 16, the last ones partial, and a level smaller than a tile."""
-    from engine.geometry.backends.gl.flow import SOR_TILE, sor_chunks
+    from engine.geometry.backends.gl.flow import refine_level
     from engine.geometry.backends.gl.reference import refine_reference
 
     iterations = 3
@@ -467,28 +467,9 @@ def test_refinement_passes_match_their_reference(sor, size, sor_iterations):
         try:
             for binding, buf in bound.items():
                 buf.bind_to_storage_buffer(binding)
-            uniforms = {"size": size, "offset": 0, **config}
-            defines = {"PATCH": 8}
-            for name in ("flow_refine_warp", "flow_refine_derivs"):
-                gl.dispatch(gl.program(name, defines), n, uniforms)
-            increments = [bound[9], bound[13]]
-            tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
-            for _ in range(iterations):
-                if sor == "passes":
-                    gl.dispatch(gl.program("flow_refine_system", defines), n, uniforms)
-                    for _ in range(sor_iterations):
-                        for parity in (0, 1):
-                            gl.dispatch(gl.program("flow_refine_sor", defines), n, {**uniforms, "parity": parity})
-                    continue
-                for index, steps in enumerate(sor_chunks(sor_iterations)):
-                    increments[0].bind_to_storage_buffer(9)
-                    increments[1].bind_to_storage_buffer(13)
-                    tile = gl.program("flow_refine_tile", {**defines, "STEPS": steps,
-                                                           **({"SYSTEM": 1} if index == 0 else {})})
-                    gl.dispatch_groups(tile, tiles, uniforms)
-                    increments.reverse()
-            increments[0].bind_to_storage_buffer(9)
-            gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
+            refine_level(gl, size, {"size": size, "offset": 0, **config}, {"PATCH": 8},
+                         GlFlowConfig(refine_iterations=iterations, sor_iterations=sor_iterations), sor,
+                         [bound[9], bound[13]])
             return np.frombuffer(bound[6].read(), np.float32).reshape(size + (2,))
         finally:
             for buf in bound.values():

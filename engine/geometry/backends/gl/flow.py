@@ -43,7 +43,8 @@ from engine.geometry.backends.gl.context import LOCAL_SIZE, GlContext, shared_co
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
 __all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
-           "SEARCHES", "SORS", "SOR_TILE", "SOR_STEPS", "COARSE_PIXELS", "sor_chunks"]
+           "SEARCHES", "SORS", "SOR_TILE", "SOR_STEPS", "COARSE_PIXELS", "sor_chunks",
+           "refine_level"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
@@ -199,6 +200,38 @@ def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(
         for name, n in add.items():
             counts[name] = counts.get(name, 0) + n
     return {name: n for name, n in counts.items() if n}
+
+
+def refine_level(gl: GlContext, size: tuple[int, int], uniforms: dict, defines: dict, config: GlFlowConfig,
+                 sor: str, increments: list) -> None:
+    """The refinement's dispatches on a level of ``size`` (H, W) whose buffers are bound (the pyramids at 1 and 3,
+    the flow at 6, work buffers at 10 to 12, ``increments[0]``, the increment, at 9): ``flow_refine_warp``,
+    ``flow_refine_derivs``, per fixed-point iteration of ``config`` the SOR (``sor``: ``passes`` or ``tile``;
+    ``tile`` alternates ``increments``, two buffers of 8 H W bytes, between bindings 9 and 13), then
+    ``flow_refine_apply``. GL thread only."""
+    n = size[0] * size[1]
+    gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
+    gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
+    if sor == "tile":
+        increments = list(increments)
+        tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
+        for _ in range(config.refine_iterations):
+            for index, steps in enumerate(sor_chunks(config.sor_iterations)):
+                increments[0].bind_to_storage_buffer(9)
+                increments[1].bind_to_storage_buffer(13)
+                program = gl.program("flow_refine_tile", {**defines, "STEPS": steps,
+                                                          **({"SYSTEM": 1} if index == 0 else {})})
+                gl.dispatch_groups(program, tiles, uniforms)
+                increments.reverse()
+        increments[0].bind_to_storage_buffer(9)
+    else:
+        system, step = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
+        for _ in range(config.refine_iterations):
+            gl.dispatch(system, n, uniforms)
+            for _ in range(config.sor_iterations):
+                for parity in (0, 1):
+                    gl.dispatch(step, n, {**uniforms, "parity": parity})
+    gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
 
 
 class GlOpticalFlow:
@@ -414,32 +447,11 @@ class GlOpticalFlow:
 
     def _refine(self, size: tuple[int, int], offset: int, defines: dict) -> None:
         """Variational refinement of the level's dense flow (bound at 6) in place."""
-        gl, config = self.gl, self.config
         n = size[0] * size[1]
         self._refine_buffers(n)
-        uniforms = {"size": size, "offset": offset, **self._refine_uniforms()}
-        gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
-        gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
-        if self.sor == "tile":
-            increments = [self._pool["increment"], gl.buffer(self._pool, "increment_next", 8 * n)]
-            tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
-            for _ in range(config.refine_iterations):
-                for index, steps in enumerate(sor_chunks(config.sor_iterations)):
-                    increments[0].bind_to_storage_buffer(9)
-                    increments[1].bind_to_storage_buffer(13)
-                    program = gl.program("flow_refine_tile", {**defines, "STEPS": steps,
-                                                              **({"SYSTEM": 1} if index == 0 else {})})
-                    gl.dispatch_groups(program, tiles, uniforms)
-                    increments.reverse()
-            increments[0].bind_to_storage_buffer(9)
-        else:
-            system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
-            for _ in range(config.refine_iterations):
-                gl.dispatch(system, n, uniforms)
-                for _ in range(config.sor_iterations):
-                    for parity in (0, 1):
-                        gl.dispatch(sor, n, {**uniforms, "parity": parity})
-        gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
+        increments = [self._pool["increment"], self.gl.buffer(self._pool, "increment_next", 8 * n)]
+        refine_level(self.gl, size, {"size": size, "offset": offset, **self._refine_uniforms()}, defines,
+                     self.config, self.sor, increments)
 
     def release(self) -> None:
         """Free this estimator's work buffers."""

@@ -8,8 +8,8 @@ The frames are ``tools.bench_backends``' scene (the fast held-out scene, rendere
 ``--out``): the flow from frame n to frame n-k, over every rendered frame n with history. ``--configs`` is a
 ``;``-separated list of ``GlFlowConfig`` changes (``name=value,...``; empty: the defaults), each a row; the
 default compares the passes as they were before ``flow_coarse`` and ``flow_refine_tile`` (every level by its
-passes, SOR as red and black dispatches), the one-invocation search, the tiled SOR without ``flow_coarse``,
-``flow_coarse`` on the levels of at most 2048 pixels, and the defaults. Per size and
+passes, SOR as red and black dispatches), each of the two alone, ``flow_coarse`` on the levels of at most 2048
+pixels, the one-invocation search, and the defaults. Per size and
 configuration, one warm-up pass, then ``--repeats`` passes back to back. It prints the settings the estimator
 ran (search / SOR / coarse pixels, ``auto`` resolved), the compute dispatches of one estimate
 (``dispatch_counts``), the median GPU ms per stage (``luma``, ``pyramid``, ``search``, ``readback``; GL timer
@@ -38,10 +38,9 @@ from tools.bench_gl_flow import parse_config
 from tools.heldout import render_set, write_json
 
 STAGES = ("luma", "pyramid", "search", "readback")
-#: the configurations compared by default: the passes before flow_coarse and flow_refine_tile, the
-#: one-invocation search, the tiled SOR alone, flow_coarse on fewer levels (at 1920x1080 levels 5 and 6), the
-#: defaults
-CONFIGS = "sor=passes,coarse_pixels=0;search=thread;coarse_pixels=0;coarse_pixels=2048;"
+#: the configurations compared by default: the passes before flow_coarse and flow_refine_tile, each of the two
+#: alone, flow_coarse on fewer levels (at 1920x1080 levels 5 and 6), the one-invocation search, the defaults
+CONFIGS = "sor=passes,coarse_pixels=0;sor=passes;coarse_pixels=0;coarse_pixels=2048;search=thread;"
 
 
 def time_config(pairs: list, estimator: GlOpticalFlow, repeats: int, idle: float) -> tuple[dict, float, list]:

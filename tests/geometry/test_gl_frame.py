@@ -400,3 +400,34 @@ def test_bad_codes_are_refused():
         with pytest.raises(InputError) as err:
             gl.upload_codes(codes, depth)
         assert err.value.field == field
+
+
+@pytest.mark.parametrize("moved", ["none", "flow", "motion"])
+def test_the_binned_and_atomic_splats_warp_a_frame_to_the_same_bits(moved):
+    """GlFrameWarper's two splats (engine.geometry.backends.gl.splat.SPLATS) on the frame path: the same warped
+    colour, depth and holes, and so the same filled frame, bit for bit (sky, flow scaled on the GPU, motion
+    extrapolated on the GPU)."""
+    rng = np.random.default_rng(["none", "flow", "motion"].index(moved))
+    h, w = 72, 100
+    color, depth = random_scene(rng, h, w, sky=0.2, boxes=6)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.04, shift=0.15)
+    flow = (rng.normal(0, 2.0, (h, w, 3)) * [1.0, 1.0, 0.05]).astype(np.float32)
+    moving = np.arange(0, h * w, 3)
+    velocity = rng.normal(0, 0.05, (moving.size, 3)).astype(np.float32)
+    results = []
+    for splat in ("binned", "atomic"):
+        gl = glb.GlFrameWarper(splat=splat)
+        kwargs: dict = {}
+        if moved == "flow":
+            kwargs = {"flow": gl.upload_flow(flow), "flow_scale": -1.5}
+        elif moved == "motion":
+            kwargs = {"motion": gl.upload_motion((h, w), moving, velocity), "flow_scale": 0.5}
+        image = gl.upload(color, depth)
+        out, holes, filled_depth = gl.warp_and_fill(image, k, t_src, k, t_dst, with_depth=True, **kwargs)
+        results.append((out, holes, filled_depth))
+        gl.release()
+    (a, a_holes, a_depth), (b, b_holes, b_depth) = results
+    np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    np.testing.assert_array_equal(a_depth.view(np.uint32), b_depth.view(np.uint32))
+    np.testing.assert_array_equal(a_holes, b_holes)
+    assert 0.0 < a_holes.mean() < 0.5

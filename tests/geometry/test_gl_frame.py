@@ -431,3 +431,28 @@ def test_the_binned_and_atomic_splats_warp_a_frame_to_the_same_bits(moved):
     np.testing.assert_array_equal(a_depth.view(np.uint32), b_depth.view(np.uint32))
     np.testing.assert_array_equal(a_holes, b_holes)
     assert 0.0 < a_holes.mean() < 0.5
+
+
+@pytest.mark.parametrize("size", [(29, 37), (64, 96)])
+def test_the_hole_mask_is_written_whole_without_a_clear(size):
+    """fill_apply writes every word of the packed hole mask from its workgroup's shared copy (no clear before):
+    a warp with few holes after one that is almost all hole, on the same warper, leaves no stale bit, and the
+    mask of the pixels past the last (the last word's high bits) is zero."""
+    h, w = size
+    rng = np.random.default_rng(h)
+    color, depth = random_scene(rng, h, w, sky=0.0)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.02, shift=0.05)
+    away = np.eye(4)
+    away[:3, 3] = (0.0, 0.0, -50.0)  # the camera turned into a point behind it: every pixel a hole
+    gl = glb.GlFrameWarper()
+    image = gl.upload(color, depth)
+    _, holes_away = gl.warp_and_fill(image, k, np.eye(4), k, away)
+    assert holes_away.all()
+    _, holes = gl.warp_and_fill(image, k, t_src, k, t_dst)
+    np.testing.assert_array_equal(holes, cpu_warp_and_fill(color, depth, k, t_src, t_dst)[1])
+    assert 0.0 < holes.mean() < 0.2
+    prediction = gl.warp_and_fill(image, k, t_src, k, t_dst, readback=False)
+    mask = np.empty(-(-h * w // 32), np.uint32)
+    gl.gl.call(lambda: prediction.holes.read_into(mask, size=mask.nbytes))
+    assert np.unpackbits(mask.view(np.uint8), bitorder="little")[h * w:].sum() == 0
+    gl.release()

@@ -323,8 +323,7 @@ class GlFrameWarper:
             for key, binding, nbytes in (("rowsrc", 11, 4 * n), ("rowinfo", 12, 4 * h), ("links", 13, 8 * h),
                                          ("filled", 14, 12 * n), ("mask", 15, 4 * words)):
                 gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-            with gl.gpu_stage("fill"):
-                gl.clear_words(pool["mask"], 4 * words)
+            with gl.gpu_stage("fill"):  # fill_apply writes every word of the mask
                 sizes = {"size": (h, w)}
                 gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
                 gl.dispatch_groups(gl.program("fill_links"), 1, sizes)

@@ -14,7 +14,7 @@ render. Per (size, case, splat of ``engine.geometry.backends.gl.splat.SPLATS``):
 read), then ``--repeats`` under ``GlContext.pass_timing`` (GPU ms per pass and warp: shares, as a query per
 dispatch adds waits of its own), the bytes of the splat's work buffers (``splat_bytes``), and the largest
 difference from the atomic splat's filled frame (0: the same bits). On a software renderer (Mesa llvmpipe)
-the queries time the CPU's execution of the passes, not a GPU: the tool says so.
+the stage queries time nothing (``-``) and the passes are the clock ms of the CPU's execution of each.
 """
 from __future__ import annotations
 
@@ -103,11 +103,13 @@ def main(argv=None) -> None:
     frame, target = sequence[0], sequence[1]
     t_src, t_dst = frame.camera.world_to_camera, target.camera.world_to_camera
     doc = {"renderer": renderer, "hardware": hardware, "scene": name, "repeats": args.repeats, "runs": []}
+    pass_ms = "GPU ms, a query each" if hardware else "software renderer: clock ms between finishes"
     print(f"\nMedians of {args.repeats} warps. warp, fill: GPU ms (GL stage queries; - on a software renderer); "
           f"splat wall: the splat's passes alone until finished; warp + fill wall: a warp_and_fill call, output left "
           f"on the GPU, queries read; work: the splat's work buffers; diff: largest difference of the filled frame "
-          f"from the atomic splat's\n\n| size | case | splat | warp GPU ms | fill GPU ms | splat wall ms | "
-          f"warp + fill wall ms | work MB | diff | passes (dispatches, GPU ms) |\n|---|---|---|---|---|---|---|---|---|---|")
+          f"from the atomic splat's; passes: dispatches x ms ({pass_ms})\n\n| size | case | splat | warp GPU ms | "
+          f"fill GPU ms | splat wall ms | warp + fill wall ms | work MB | diff | passes |\n"
+          f"|---|---|---|---|---|---|---|---|---|---|")
     for size in sizes:
         color, depth, flow, k = resampled(frame, size)
         for case in CASES:
@@ -121,8 +123,7 @@ def main(argv=None) -> None:
             for splat in SPLATS:
                 run = runs[splat]
                 stage = {n: f"{v:.3f}" if hardware else "-" for n, v in run["gpu_stage_ms"].items()}
-                passes = ", ".join(f"{n} {c:.0f}" + (f" {ms:.3f}" if hardware else "")
-                                   for n, (c, ms) in run["passes"].items())
+                passes = ", ".join(f"{n} {c:.0f}x {ms:.3f}" for n, (c, ms) in run["passes"].items())
                 print(f"| {size[0]}x{size[1]} | {case} | {splat} | {stage.get('warp', '-')} | {stage.get('fill', '-')} "
                       f"| {run['splat_wall_ms']:.2f} | {run['wall_ms']:.2f} | "
                       f"{sum(run['work_bytes'].values()) / 1e6:.1f} | {run['max_diff_from_atomic']:.1e} | {passes} |",

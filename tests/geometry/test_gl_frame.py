@@ -456,3 +456,31 @@ def test_the_hole_mask_is_written_whole_without_a_clear(size):
     gl.gl.call(lambda: prediction.holes.read_into(mask, size=mask.nbytes))
     assert np.unpackbits(mask.view(np.uint8), bitorder="little")[h * w:].sum() == 0
     gl.release()
+
+
+@pytest.mark.parametrize("splat", glb.splat.SPLATS)
+def test_pass_timing_names_every_pass_of_a_warp(splat):
+    """GlContext.pass_timing (tools.profile_gl_passes, tools.bench_gl_warp) counts each dispatch of a warp under
+    its pass: the splat's passes and the fill's, once each, with their times (GPU ms, or on a software renderer
+    the clock ms of each pass, > 0)."""
+    from engine.geometry.backends.gl.splat import BINNED_PASSES, SPLAT_PASSES
+
+    rng = np.random.default_rng(3)
+    h, w = 40, 60
+    color, depth = random_scene(rng, h, w)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    gl = glb.GlFrameWarper(splat=splat)
+    image = gl.upload(color, depth)
+    gl.warp_and_fill(image, k, t_src, k, t_dst)
+    passes: dict = {}
+    with gl.gl.pass_timing(passes):
+        gl.warp_and_fill(image, k, t_src, k, t_dst)
+    splat_passes = BINNED_PASSES if splat == "binned" else SPLAT_PASSES + ("splat_resolve",)
+    expected = {name: 1 for name in splat_passes + ("fill_rows", "fill_links", "fill_apply")}
+    if splat == "atomic":
+        expected["clear_words"] = 2  # its keys and sums
+    assert {name: calls for name, (calls, _) in passes.items()} == expected
+    assert all(ms >= 0.0 for _, ms in passes.values())
+    if gl.gl.software:
+        assert all(ms > 0.0 for _, ms in passes.values())
+    gl.release()

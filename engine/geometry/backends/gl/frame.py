@@ -8,10 +8,10 @@ scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upl
 (``upload_motion``: the moving pixels' velocity and change of velocity, as ``mvec`` estimates them) that each
 warp extrapolates s frame intervals ahead on the GPU (``motion_extrapolate``). Each warp runs the
 ``FRAME`` variants of the splat passes (``engine.geometry.backends.gl.splat``), then the hole fill
-(``fill_rows``, ``fill_links``, ``fill_apply``), and reads back the filled colour (float32, or 8-bit sRGB codes encoded on the GPU: pass
-``encode8``) and a packed hole mask, once, or hands them out as GPU buffers (``readback=False``:
-``GlPrediction``). Conventions: those of
-``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
+(``fill_rows``, ``fill_links``, ``fill_apply``), and reads back the filled colour (float32, or 8-bit sRGB
+codes encoded on the GPU: pass ``encode8``) and a packed hole mask, once, or hands them out as GPU buffers
+(``readback=False``: ``GlPrediction``). Conventions: those of ``engine.geometry.forward_warp_frame`` (OpenCV
+cameras, pixel centres at +0.5, planar depth, +inf sky).
 Oracle: ``engine.predict.base.warp_and_fill`` on the CPU (``tests/geometry/test_gl_frame.py``).
 """
 from __future__ import annotations

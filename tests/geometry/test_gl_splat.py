@@ -220,6 +220,25 @@ def test_binned_splat_leaves_its_counts_zeroed_across_sizes():
     splatter.release()
 
 
+def test_dispatches_spread_over_y_give_the_same_bits(monkeypatch, splat):
+    """Past GL's 65535 workgroups along x a dispatch spreads its groups over y, the last row with spare groups
+    (a 4K MPI's scan blocks, a frame's points): with 3 groups a row, every pass of both splats ends as with
+    one row, and the binned scan's spare groups write nothing."""
+    from engine.geometry.backends.gl import context
+
+    rng = np.random.default_rng(12)
+    h, w = 90, 120  # 11 224 bins a plane: 11 scan blocks, 43 groups of points
+    color, depth = random_scene(rng, h, w, sky=0.1, boxes=5)
+    mpi = ng.build_mpi(color, depth, 2)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    one_row = SPLATTER(splat).forward_warp_mpi(mpi, k, t_src, k, t_dst)
+    monkeypatch.setattr(context, "MAX_GROUPS_X", 3)
+    spread = glb.GlSplatter(splat=splat)
+    for a, b in zip(_bits(one_row), _bits(spread.forward_warp_mpi(mpi, k, t_src, k, t_dst))):
+        np.testing.assert_array_equal(a, b)
+    spread.release()
+
+
 def test_an_unknown_splat_is_refused():
     with pytest.raises(InputError, match="splat"):
         glb.GlSplatter(splat="sorted")

@@ -4,10 +4,12 @@
 #include "splat_common.glsl"
 
 uniform uint num_bins;
+uniform uint num_blocks;
 
 shared uint partial[LOCAL_SIZE];
 void main() {
     uint block = gl_WorkGroupID.x + gl_WorkGroupID.y * gl_NumWorkGroups.x;
+    if (block >= num_blocks) return;  // the spare groups of a dispatch spread over y (uniform in the group)
     uint lane = gl_LocalInvocationIndex;
     uint first = block * SCAN_BLOCK + 4u * lane;
     uvec4 c = uvec4(0u);

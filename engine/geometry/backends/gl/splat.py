@@ -1,8 +1,8 @@
 """The forward splat on the GPU (shaders ``splat_*.comp``): an MPI to another camera, as
 ``engine.geometry.forward_warp_mpi`` (its oracle, ``tests/geometry/test_gl_splat.py``).
 
-Two splats give the same bits (``SPLATS``; each pass recomputes the reprojection of its points, cheaper
-than storing them). The points are every pixel of a frame or one-plane MPI, else the alpha != 0 ones listed
+Two splats give the same bits (``SPLATS``; each pass over the points recomputes their reprojection, cheaper
+than storing it). The points are every pixel of a frame or one-plane MPI, else the alpha != 0 ones listed
 by ``np.flatnonzero``; a destination bin is (plane, padded pixel), and a point has its four bilinear taps in
 the bins of its top-left tap ``base``, base + 1, base + WP, base + WP + 1. Both sum, per bin, the coverage,
 the weight and weight * (r, g, b, z) as 64-bit fixed point (2^-32 units), the weight relative to the bin's

@@ -16,7 +16,8 @@ ran (search / SOR / coarse pixels, ``auto`` resolved), the compute dispatches of
 queries), the median wall ms, and the flow's difference from the first configuration's (the same search with
 its sums in another order, or rounded another way: a few near-ties differ). With ``--passes`` one more pass
 runs with a timer query per dispatch (``GlContext.pass_timing``) and a table gives each pass's dispatches and
-GPU ms per estimate (a query per dispatch adds waits of its own: shares, not a frame's time). With ``--idle
+GPU ms per estimate (a query per dispatch adds waits of its own: shares, not a frame's time; on a software
+renderer the CPU's ms of each dispatch, a proxy). With ``--idle
 S`` each estimate waits S seconds first, as a GPU waits between rendered frames: a GPU that lowers its clocks
 when idle then shows it in the GPU ms. On a software renderer the queries do not time a GPU and the tool
 prints ``-`` for them.
@@ -115,7 +116,7 @@ def main(argv=None) -> None:
             row = {"size": [width, height], "search": ran.search, "sor": ran.sor,
                    "coarse_pixels": ran.coarse_pixels, "dispatches": dispatches,
                    "gpu_ms": gpu if hardware else None, "wall_ms": wall, "pairs": len(pairs),
-                   "passes": passes if hardware or passes is None else {k: v[0] for k, v in passes.items()},
+                   "passes": passes,
                    "diff_px": {"median": float(np.median(diff)), "p99": float(np.percentile(diff, 99)),
                                "max": float(diff.max())}}
             doc["rows"].append(row)
@@ -126,11 +127,12 @@ def main(argv=None) -> None:
                   f"{wall:.1f} | {d['median']:.3g} / {d['p99']:.3g} / {d['max']:.3g} |")
             if passes is not None:
                 tables.append((f"{width}x{height}, {label}", passes))
+    unit = "GPU ms (a query each)" if hardware else "CPU ms of the software renderer (a finish around each)"
     for title, passes in tables:
-        print(f"\nper pass, {title}: dispatches and GPU ms per estimate (a query each)\n")
-        print("| pass | dispatches | GPU ms |\n|---|---|---|")
+        print(f"\nper pass, {title}: dispatches and {unit} per estimate\n")
+        print("| pass | dispatches | ms |\n|---|---|---|")
         for pass_name, (calls, ms) in sorted(passes.items(), key=lambda kv: (-kv[1][1], -kv[1][0])):
-            print(f"| {pass_name} | {calls:.0f} | {f'{ms:.3f}' if hardware else '-'} |")
+            print(f"| {pass_name} | {calls:.0f} | {ms:.3f} |")
     write_json(args.json, doc)
 
 

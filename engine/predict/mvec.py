@@ -37,7 +37,7 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, part_motion,
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
                                    previous_positions, refined_before, rigid_parts, rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
@@ -210,24 +210,15 @@ class Mvec(Predictor):
         k = np.asarray(newest.camera.intrinsics, np.float64)
         moving = data.moving
         h, w = newest.depth.shape
-        y, x = np.divmod(moving, w)
-        z = newest.depth.reshape(-1)[moving].astype(np.float64)
-        k_inv = np.linalg.inv(k)
-        u, v = x + 0.5, y + 0.5
-        now = np.empty((moving.size, 3))
-        for c in range(3):  # z K^-1 (u, v, 1)
-            now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
-        measured = data.velocity.reshape(-1, 3)[moving]
-        speed = measured.astype(np.float64)
+        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
+        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
+        now, speed, z, sample = moving_points(newest.depth, data.velocity, moving, k, stride)
         if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
             _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
             labels = labels.astype(np.int64).reshape(-1)
             count = int(labels.max()) + 1
         else:
             labels, count = motion_components((h, w), moving, now, speed)
-        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
-        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
-        sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)
         now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
         earlier = valid = predicted = None
@@ -238,8 +229,8 @@ class Mvec(Predictor):
                                                 first=(first.depth, first.camera.intrinsics,
                                                        first.camera.world_to_camera @ newest.camera.camera_to_world))
             predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-        out_v = measured  # a copy (fancy indexing): written in place
-        out_a = (np.zeros_like(measured) if data.acceleration is None
+        out_v = speed.astype(np.float32)  # written in place
+        out_a = (np.zeros_like(out_v) if data.acceleration is None
                  else np.array(data.acceleration, dtype=np.float32))
         regions = labels.copy()
         parts = []
@@ -248,13 +239,12 @@ class Mvec(Predictor):
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-            rng = np.random.default_rng(0)
             affines = []
-            for part in parts:
+            for j, part in enumerate(parts):
                 m = part.members
                 affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
                                                np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
-                                               part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
+                                               part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
                                                limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
                 affines.append(affine)
                 if hindcast is not None:

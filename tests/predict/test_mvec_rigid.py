@@ -108,7 +108,7 @@ def test_robust_rigid_recovers_a_turn_through_outliers():
     r, t = rotation((0.2, 1.0, 0.3), np.radians(14.0)), np.array([0.3, -0.1, 0.2])
     dst = src @ r.T + t
     dst[:100] += rng.normal(0, 0.3, (100, 3))  # a quarter of the points are wrong
-    rot, trans, inliers = rg.robust_rigid(src, dst, np.full(400, 100.0), rng)
+    rot, trans, inliers = rg.robust_rigid(src, dst, np.full(400, 100.0), (1,))
     np.testing.assert_allclose(rot, r, atol=1e-6)
     np.testing.assert_allclose(trans, t, atol=1e-6)
     assert inliers[100:].all() and inliers[:100].mean() < 0.1
@@ -166,6 +166,52 @@ def test_a_non_rigid_field_has_no_rigid_part():
     labels, count = rg.motion_components(SIZE, moving, now, velocity)
     parts = rg.rigid_parts(labels, count, now, now - velocity, np.full(len(now), FOCAL / 4.0))
     assert sum(p.members.size for p in parts) < 0.5 * len(now)
+
+
+def test_the_batched_fits_match_the_per_group_ones():
+    # Horn's quaternion fit (compiled) against the SVD Kabsch, then the batched parts against the loop over groups
+    rng = np.random.default_rng(5)
+    for n in (3, 4, 20, 300):
+        src = rng.normal(size=(n, 3)) + (0, 0, 5)
+        r, t = rotation(rng.normal(size=3), rng.uniform(0.0, 3.0)), rng.normal(size=3)
+        dst = src @ r.T + t + rng.normal(0, 0.05, (n, 3))
+        (r_many, t_many), (r_one, t_one) = rg._fit_many(src[None], dst[None]), rg.fit_rigid(src, dst)
+        np.testing.assert_allclose(r_many[0], r_one, atol=1e-10)
+        np.testing.assert_allclose(t_many[0], t_one, atol=1e-10)
+    # groups: clean turns, one with a third of outliers (its least-squares fit fails: sampled), one of two bodies
+    # (two parts), one too small, one with no rigid motion (no part)
+    labels, src, dst = [], [], []
+    for g, (size, wrong, split) in enumerate([(400, 0.0, False), (600, 0.35, False), (500, 0.0, True), (5, 0.0, False),
+                                              (300, 1.0, False), (350, 0.1, False)]):
+        points = rng.uniform(-1, 1, (size, 3)) + (0, 0, 5)
+        moved = points @ rotation(rng.normal(size=3), np.radians(12.0)).T + rng.normal(0, 0.2, 3)
+        if split:
+            moved[size // 2:] = points[size // 2:] @ rotation(rng.normal(size=3), 0.3).T + (0.2, 0.1, 0.0)
+        bad = rng.random(size) < wrong
+        moved[bad] += rng.normal(0, 0.3, (bad.sum(), 3))
+        labels.append(np.full(size, g)), src.append(points), dst.append(moved)
+    labels, src, dst = np.concatenate(labels), np.concatenate(src), np.concatenate(dst)
+    order = rng.permutation(len(labels))  # the groups interleaved, as pixels are
+    labels, src, dst = labels[order], src[order], dst[order]
+    scale = np.full(len(labels), 100.0)
+    fast = rg.rigid_parts(labels, 6, dst, src, scale)
+    slow = rg.rigid_parts_reference(labels, 6, dst, src, scale)
+    assert [p.group for p in fast] == [p.group for p in slow] == [0, 1, 2, 2, 5]
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a.members, b.members)
+        np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-9)
+        np.testing.assert_allclose(a.translation, b.translation, atol=1e-9)
+
+
+def test_moving_points_match_their_numpy_reference():
+    rng = np.random.default_rng(2)
+    depth = rng.uniform(1.0, 9.0, SIZE).astype(np.float32)
+    velocity = rng.normal(size=SIZE + (3,)).astype(np.float32)
+    moving = np.flatnonzero(rng.random(SIZE) < 0.3)
+    for stride in (1, 3):
+        for a, b in zip(rg.moving_points(depth, velocity, moving, _k(), stride),
+                        rg.moving_points_reference(depth, velocity, moving, _k(), stride)):
+            np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
 
 
 def test_motion_components_split_at_depth_edges_and_unlike_motion():

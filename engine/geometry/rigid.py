@@ -36,7 +36,7 @@ from numba import njit
 from engine.core.checks import checked_array, checked_matrix
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
-           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "moving_points", "moving_points_reference",
+           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference", "moving_points", "moving_points_reference",
            "robust_rigid", "rigid_parts", "rigid_parts_reference", "path_affine", "screw_affine",
            "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "previous_positions",
            "hindcast_keeps", "project_points"]
@@ -229,9 +229,10 @@ def _fit_many(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 @njit(cache=True, nogil=True)
-def _union_components(index, points, velocity, band, slope, relative, labels):  # pragma: no cover - compiled
-    """Union-find over the 4-neighbour links of the moving pixels (``motion_components``); ``labels`` (M,)
-    receives a component number 0.. per moving pixel; returns the count."""
+def _union_indexed(index, points, velocity, band, slope, relative, labels):  # pragma: no cover - compiled
+    """Union-find over the 4-neighbour links of the moving pixels, found through a full-frame ``index``
+    (``motion_components_reference``); ``labels`` (M,) receives a component number 0.. per moving pixel;
+    returns the count."""
     h, w = index.shape
     m = points.shape[0]
     parent = np.arange(m)
@@ -289,6 +290,70 @@ def _union_components(index, points, velocity, band, slope, relative, labels):  
     return count
 
 
+@njit(cache=True, nogil=True)
+def _find(parent, a):  # pragma: no cover - compiled
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _union_components(moving, width, points, velocity, band, slope, relative, labels):  # pragma: no cover
+    """``motion_components``' union-find: the right neighbour of moving pixel i is i + 1 where that is the next
+    pixel of its row, the one below is found by a pointer that only moves forward (``moving`` increases), so
+    no full-frame index is needed; a link is accepted without square roots where its velocities differ by
+    less than the bound's square allows (``|a| <= sqrt(a^2 + b^2) <= |a| + |b|``)."""
+    m = moving.size
+    parent = np.arange(m)
+    speed = np.empty(m)
+    for i in range(m):
+        speed[i] = math.sqrt(velocity[i, 0] ** 2 + velocity[i, 1] ** 2 + velocity[i, 2] ** 2)
+    below = 0
+    slope2 = slope * slope
+    for i in range(m):
+        p = moving[i]
+        for step in range(2):
+            if step == 0:
+                if i + 1 >= m or moving[i + 1] != p + 1 or (p + 1) % width == 0:
+                    continue
+                j = i + 1
+            else:
+                while below < m and moving[below] < p + width:
+                    below += 1
+                if below >= m or moving[below] != p + width:
+                    continue
+                j = below
+            zi = points[i, 2]
+            zj = points[j, 2]
+            if zi > band * zj or zj > band * zi:
+                continue
+            dp = 0.0
+            dv = 0.0
+            for c in range(3):
+                dp += (points[i, c] - points[j, c]) ** 2
+                dv += (velocity[i, c] - velocity[j, c]) ** 2
+            allowed = relative * 0.5 * (speed[i] + speed[j])
+            if dv > slope2 * dp + allowed * allowed and math.sqrt(dv) > slope * math.sqrt(dp) + allowed:
+                continue
+            a = _find(parent, i)
+            b = _find(parent, j)
+            if a != b:
+                if a < b:
+                    parent[b] = a
+                else:
+                    parent[a] = b
+    count = 0
+    for i in range(m):  # roots are the smallest member: a root comes before its members
+        a = _find(parent, i)
+        if a == i:
+            labels[i] = count
+            count += 1
+        else:
+            labels[i] = labels[a]
+    return count
+
+
 def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray, velocity: np.ndarray, *,
                       depth_band: float = 1.1, max_angle: float = MAX_TURN,
                       relative: float = 0.05) -> tuple[np.ndarray, int]:
@@ -305,12 +370,25 @@ def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.nda
     sizes = {"M": moving.size}
     points = checked_array(points, "points", ("M", 3), sizes, np.float64)
     velocity = checked_array(velocity, "velocity", ("M", 3), sizes, np.float64)
+    labels = np.empty(moving.size, np.int64)
+    count = _union_components(moving, w, np.ascontiguousarray(points), np.ascontiguousarray(velocity),
+                              float(depth_band), 2.0 * math.sin(0.5 * max_angle), float(relative), labels)
+    return labels, int(count)
+
+
+def motion_components_reference(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray,
+                                velocity: np.ndarray, *, depth_band: float = 1.1, max_angle: float = MAX_TURN,
+                                relative: float = 0.05) -> tuple[np.ndarray, int]:
+    """``motion_components`` through a full-frame index of the moving pixels, each link's bound with its
+    square roots (the test oracle)."""
+    h, w = shape
+    moving = np.asarray(moving, np.int64)
     index = np.full(h * w, -1, np.int64)
     index[moving] = np.arange(moving.size)
     labels = np.empty(moving.size, np.int64)
-    count = _union_components(index.reshape(h, w), np.ascontiguousarray(points), np.ascontiguousarray(velocity),
-                              float(depth_band),
-                              2.0 * math.sin(0.5 * max_angle), float(relative), labels)
+    count = _union_indexed(index.reshape(h, w), np.ascontiguousarray(points, np.float64),
+                           np.ascontiguousarray(velocity, np.float64), float(depth_band),
+                           2.0 * math.sin(0.5 * max_angle), float(relative), labels)
     return labels, int(count)
 
 
@@ -340,12 +418,15 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple
     ``guess`` (R, t) that already explains half the points is refitted instead, without sampling (a part's
     transform of the interval before, under steady motion)."""
     n = len(src)
-    if guess is not None:
-        inliers = np.linalg.norm(transform_points(src, guess[0], guess[1]) - dst, axis=-1) * scale <= threshold
+    if guess is not None:  # compiled: ``group_inliers`` and ``fit_groups`` of one group
+        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+        scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+        inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
+                                np.asarray(guess[1], np.float64)[None], threshold)
         if inliers.sum() >= max(3, n // 2):
-            rotation, translation = fit_rigid(src[inliers], dst[inliers])
-            inliers = np.linalg.norm(transform_points(src, rotation, translation) - dst, axis=-1) * scale <= threshold
-            return rotation, translation, inliers
+            rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
+            inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
+            return rotation[0], translation[0], inliers
     sample, picks = draws(_key_base(key), n, hypotheses)
     r, t = _fit_many(src[picks], dst[picks])
     moved = np.einsum("hij,nj->hni", r, src[sample]) + t[:, None, :]
@@ -723,19 +804,49 @@ def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray]
     if fits.sum() < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
         return screw_affine(twist), None
     idx = idx[fits]
-    screw = transform_points(then, r0, t0)
-    # the spin path: the centre (of the seen points) moving on, the part turning about it by r0
-    c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
-    turned = transform_points(then - c1, r0, 2.0 * c1 - c0)
-    err_screw = np.linalg.norm(screw[idx] - now[idx], axis=-1).mean()
-    err_spin = np.linalg.norm(turned[idx] - now[idx], axis=-1).mean()
-    motion = np.linalg.norm(now[idx] - then[idx], axis=-1).mean()
+    # the screw continued, and the spin path: the centre (of the seen points) moving on, the part turning
+    # about it by r0; their mean errors against frame n over the seen points, and the mean motion
+    screw, turned, sums = np.empty((len(now), 3)), np.empty((len(now), 3)), np.zeros(9)
+    _continued_paths(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(then, np.float64),
+                     np.ascontiguousarray(earlier, np.float64), idx, np.ascontiguousarray(r0, np.float64),
+                     np.ascontiguousarray(t0, np.float64), screw, turned, sums)
+    err_screw, err_spin, motion = sums[:3]
+    c1, c0 = sums[3:6], sums[6:9]
     if err_screw <= err_spin:
         change = twist - se3_log(r0, t0) if err_screw <= limit * motion else None
         return screw_affine(twist, change), screw
     centre, centre_then = now.mean(axis=0), then.mean(axis=0)
     change = (centre - centre_then) - (c1 - c0) if err_spin <= limit * motion else None
     return spin_affine(rotation, centre, centre - centre_then, change), turned
+
+
+@njit(cache=True, nogil=True)
+def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pragma: no cover - compiled
+    """``part_motion``'s two paths of the interval before continued over the last one: ``screw`` = r0 then + t0,
+    ``turned`` = r0 (then - c1) + 2 c1 - c0 (c1, c0: the mean of ``then``, ``earlier`` over ``idx``); ``out``
+    = (mean |screw - now|, mean |turned - now|, mean |now - then| over ``idx``, c1, c0)."""
+    m = idx.size
+    for i in range(m):
+        for c in range(3):
+            out[3 + c] += then[idx[i], c] / m
+            out[6 + c] += earlier[idx[i], c] / m
+    for i in range(now.shape[0]):
+        for c in range(3):
+            screw[i, c] = r0[c, 0] * then[i, 0] + r0[c, 1] * then[i, 1] + r0[c, 2] * then[i, 2] + t0[c]
+            turned[i, c] = (r0[c, 0] * (then[i, 0] - out[3]) + r0[c, 1] * (then[i, 1] - out[4])
+                            + r0[c, 2] * (then[i, 2] - out[5]) + 2.0 * out[3 + c] - out[6 + c])
+    for i in range(m):
+        j = idx[i]
+        a = 0.0
+        b = 0.0
+        d = 0.0
+        for c in range(3):
+            a += (screw[j, c] - now[j, c]) ** 2
+            b += (turned[j, c] - now[j, c]) ** 2
+            d += (now[j, c] - then[j, c]) ** 2
+        out[0] += math.sqrt(a) / m
+        out[1] += math.sqrt(b) / m
+        out[2] += math.sqrt(d) / m
 
 
 @njit(cache=True, nogil=True)

@@ -203,6 +203,38 @@ def test_the_batched_fits_match_the_per_group_ones():
         np.testing.assert_allclose(a.translation, b.translation, atol=1e-9)
 
 
+def test_motion_components_match_the_indexed_reference():
+    # random moving masks (holes, row ends, frame edges) with bodies of unlike motion and depth steps
+    rng = np.random.default_rng(4)
+    h, w = SIZE
+    for share in (0.3, 0.7, 1.0):
+        moving = np.flatnonzero(rng.random(SIZE) < share)
+        y, x = np.divmod(moving, w)
+        z = np.where(x < w // 2, 4.0, 4.0 * rng.choice([1.05, 1.2], size=moving.size))
+        points = np.stack([(x - w / 2) / FOCAL * z, (y - h / 2) / FOCAL * z, z], axis=-1)
+        velocity = np.where((y < h // 2)[:, None], (0.02, 0.0, 0.0), (0.0, 0.03, 0.01))
+        velocity = velocity + rng.normal(0, 0.004, velocity.shape) * (rng.random(moving.size) < 0.2)[:, None]
+        labels, count = rg.motion_components(SIZE, moving, points, velocity)
+        ref_labels, ref_count = rg.motion_components_reference(SIZE, moving, points, velocity)
+        assert count == ref_count > 2
+        np.testing.assert_array_equal(labels, ref_labels)
+
+
+def test_the_continued_paths_match_numpy():
+    rng = np.random.default_rng(6)
+    now, then, earlier = (rng.normal(size=(50, 3)) for _ in range(3))
+    idx = np.sort(rng.choice(50, 30, replace=False))
+    r0, t0 = rotation(rng.normal(size=3), 0.3), rng.normal(size=3)
+    screw, turned, sums = np.empty((50, 3)), np.empty((50, 3)), np.zeros(9)
+    rg._continued_paths(now, then, earlier, idx, r0, t0, screw, turned, sums)
+    c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
+    np.testing.assert_allclose(screw, then @ r0.T + t0, atol=1e-12)
+    np.testing.assert_allclose(turned, (then - c1) @ r0.T + 2 * c1 - c0, atol=1e-12)
+    np.testing.assert_allclose(sums, [np.linalg.norm(screw[idx] - now[idx], axis=-1).mean(),
+                                      np.linalg.norm(turned[idx] - now[idx], axis=-1).mean(),
+                                      np.linalg.norm(now[idx] - then[idx], axis=-1).mean(), *c1, *c0], atol=1e-12)
+
+
 def test_moving_points_match_their_numpy_reference():
     rng = np.random.default_rng(2)
     depth = rng.uniform(1.0, 9.0, SIZE).astype(np.float32)

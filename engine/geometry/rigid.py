@@ -36,9 +36,10 @@ from numba import njit
 from engine.core.checks import checked_array, checked_matrix
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
-           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference", "moving_points", "moving_points_reference",
+           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference", "moving_points", "moving_points_reference", "scatter_rows",
            "robust_rigid", "rigid_parts", "rigid_parts_reference", "path_affine", "screw_affine",
-           "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "previous_positions",
+           "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
+           "previous_positions_reference",
            "hindcast_keeps", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
@@ -719,6 +720,18 @@ def moving_points(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, i
     return now, speed, z, np.flatnonzero(grid)
 
 
+@njit(cache=True, nogil=True)
+def _scatter_rows(out, index, rows):  # pragma: no cover - compiled
+    for i in range(index.size):
+        for c in range(out.shape[1]):
+            out[index[i], c] = rows[i, c]
+
+
+def scatter_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
+    """``out[index] = rows`` for a (N, C) ``out`` and distinct ``index`` (numpy's row scatter, compiled)."""
+    _scatter_rows(out, np.ascontiguousarray(index, np.int64), np.ascontiguousarray(rows, out.dtype))
+
+
 def moving_points_reference(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, intrinsics: np.ndarray,
                             stride: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``moving_points`` in numpy."""
@@ -897,9 +910,140 @@ def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: n
                  translations, table, float(focal), float(limit), count, out_v, out_a, regions)
 
 
+@njit(cache=True, nogil=True)
+def _vector_end(vectors, p, width):  # pragma: no cover - compiled
+    y = p // width
+    x = p - y * width
+    return x + 0.5 + np.float64(vectors[y, x, 0]), y + 0.5 + np.float64(vectors[y, x, 1])
+
+
+@njit(cache=True, nogil=True)
+def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth, out):  # pragma: no cover
+    """``refined_before`` compiled, point by point (``refined_before_reference`` states it)."""
+    w = vectors.shape[1]
+    ph, pw = prev_depth.shape
+    for i in range(moving.size):
+        qx, qy = _vector_end(vectors, moving[i], w)
+        for c in range(3):
+            out[i, c] = before[i, c]
+        fx, fy = qx - 0.5, qy - 0.5
+        x0, y0 = math.floor(fx), math.floor(fy)
+        if not (x0 >= 0 and x0 + 1 < pw and y0 >= 0 and y0 + 1 < ph):
+            continue
+        xi, yi = int(x0), int(y0)
+        ax, ay = fx - xi, fy - yi
+        bz = before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2] + relative[2, 3]
+        inverse = 0.0
+        ok = True
+        for corner in range(4):
+            dy, dx = corner // 2, corner % 2
+            weight = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
+            c = np.float64(prev_depth[yi + dy, xi + dx])
+            if not (np.isfinite(c) and max(c / bz, bz / c) <= smooth):
+                ok = False
+                break
+            inverse += weight / c
+        if not ok or not inverse > 0:
+            continue
+        depth = 1.0 / inverse
+        seen = np.empty(3)
+        for c in range(3):
+            seen[c] = (qx * k_inv[c, 0] + qy * k_inv[c, 1] + k_inv[c, 2]) * depth - relative[c, 3]
+        for c in range(3):  # R^T (p - t): frame n's axes
+            out[i, c] = seen[0] * relative[0, c] + seen[1] * relative[1, c] + seen[2] * relative[2, c]
+
+
 def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
                    prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *, smooth: float = 1.1) -> np.ndarray:
     """The moving points' positions at frame n-k (M, 3) with their depth read between frame n-k's pixels.
+
+    ``before`` (frame n's axes) took its depth from one of the 4 pixels of frame n-k around the vector's end q
+    (``scene_velocity``): off by up to the depth's change over a pixel, a millimetre-to-centimetre error that
+    a rigid fit on a slanted face would see as a pixel of residual. Where the 4 pixels all lie within the ratio
+    ``smooth`` of that depth (one smooth surface), the depth is instead their bilinear blend at q in inverse
+    depth (exact on a plane); elsewhere (silhouettes, the frame's edge) ``before`` is kept. ``relative``: frame
+    n's camera -> frame n-k's camera (4x4). Compiled; ``refined_before_reference`` is its numpy oracle."""
+    out = np.empty((len(moving), 3))
+    _refined_before(np.ascontiguousarray(before, np.float64), np.ascontiguousarray(vectors),
+                    np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(relative, np.float64),
+                    np.ascontiguousarray(prev_depth),
+                    np.linalg.inv(np.asarray(prev_intrinsics, np.float64)), float(smooth), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velocity, interval_ratio, band,
+                        has_first, first_depth, first_k, view, check, earlier, valid):  # pragma: no cover
+    """``previous_positions`` compiled, point by point (``previous_positions_reference`` states it)."""
+    w = vectors.shape[1]
+    ph, pw = prev_depth.shape
+    fh, fw = first_depth.shape
+    for i in range(moving.size):
+        qx, qy = _vector_end(vectors, moving[i], w)
+        inside = qx >= 0 and qx < pw and qy >= 0 and qy < ph
+        xi = int(qx) if inside else 0
+        yi = int(qy) if inside else 0
+        bz = before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2] + relative[2, 3]
+        seen = np.float64(prev_depth[yi, xi])
+        ok = inside and bz > 0 and np.isfinite(seen) and max(seen / bz, bz / seen) <= band
+        for c in range(3):  # R^T v: frame n's axes
+            v = (np.float64(prev_velocity[yi, xi, 0]) * relative[0, c] + np.float64(prev_velocity[yi, xi, 1]) * relative[1, c]
+                 + np.float64(prev_velocity[yi, xi, 2]) * relative[2, c])
+            earlier[i, c] = before[i, c] - v * interval_ratio
+        if ok and has_first:
+            there = np.empty(3)
+            for c in range(3):
+                there[c] = earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2] + view[c, 3]
+            ok = there[2] > 1e-9
+            if ok:
+                ax = first_k[0, 0] * there[0] / there[2] + first_k[0, 1] * there[1] / there[2] + first_k[0, 2]
+                ay = first_k[1, 1] * there[1] / there[2] + first_k[1, 2]
+                ok = np.isfinite(ax) and np.isfinite(ay) and ax >= 0 and ax < fw and ay >= 0 and ay < fh
+                if ok:
+                    seen0 = np.float64(first_depth[int(ay), int(ax)])
+                    ok = max(seen0 / there[2], there[2] / seen0) <= check
+        valid[i] = ok
+
+
+def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
+                       relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                       interval_ratio: float = 1.0, band: float = 1.5, first=None,
+                       check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
+    """Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
+    (positions (M, 3) float64, valid (M,) bool).
+
+    ``before`` (M, 3) are the points' positions at n-k (frame n's axes); frame n-k's velocity ``prev_velocity``
+    (its own camera axes, per its interval) is read at the pixel of frame n-k the vector lands in (nearest),
+    where that pixel shows the point (its depth within the ratio ``band`` of the point's depth there),
+    rotated into frame n's axes (``relative``: frame n's camera -> frame n-k's camera, 4x4) and scaled by
+    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen).
+    ``first`` = (depth (h, w), intrinsics, 4x4 frame n's camera -> frame n-2k's camera) checks each position
+    against frame n-2k itself: valid only where frame n-2k's depth at its pixel is within the ratio ``check``
+    of its depth there (frame n-k's velocity is a guess where frame n-2k did not see the point: a face
+    turning into view). Compiled; ``previous_positions_reference`` is its numpy oracle."""
+    sizes: dict = {}
+    checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
+    prev_sizes: dict = {}
+    prev_depth = checked_array(prev_depth, "prev_depth", ("h", "w"), prev_sizes)
+    prev_velocity = checked_array(prev_velocity, "prev_velocity", ("h", "w", 3), prev_sizes)
+    relative = checked_matrix(relative, "relative", 4)
+    earlier, valid = np.empty((len(moving), 3)), np.empty(len(moving), bool)
+    has_first = first is not None
+    if not has_first:
+        first = (np.zeros((1, 1), np.float32), np.eye(3), np.eye(4))
+    _previous_positions(np.ascontiguousarray(vectors), np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(before, np.float64),
+                        relative, np.ascontiguousarray(prev_depth), np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), has_first,
+                        np.ascontiguousarray(first[0], np.float32), np.asarray(first[1], np.float64), np.asarray(first[2], np.float64), float(check),
+                        earlier, valid)
+    return earlier, valid
+
+
+def refined_before_reference(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
+                   prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *, smooth: float = 1.1) -> np.ndarray:
+    """``refined_before`` in numpy (the test oracle).
+
+    The moving points' positions at frame n-k (M, 3) with their depth read between frame n-k's pixels.
 
     ``before`` (frame n's axes) took its depth from one of the 4 pixels of frame n-k around the vector's end q
     (``scene_velocity``): off by up to the depth's change over a pixel, a millimetre-to-centimetre error that
@@ -933,11 +1077,13 @@ def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, 
     return np.where(ok[:, None], back, before)
 
 
-def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
+def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
                        relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
                        interval_ratio: float = 1.0, band: float = 1.5, first=None,
                        check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
-    """Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
+    """``previous_positions`` in numpy (the test oracle).
+
+    Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
     (positions (M, 3) float64, valid (M,) bool).
 
     ``before`` (M, 3) are the points' positions at n-k (frame n's axes); frame n-k's velocity ``prev_velocity``

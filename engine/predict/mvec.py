@@ -38,7 +38,7 @@ import numpy as np
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
-                                   previous_positions, refined_before, rigid_parts, rotation_log)
+                                   previous_positions, refined_before, rigid_parts, rotation_log, scatter_rows)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -262,7 +262,7 @@ class Mvec(Predictor):
         if data.held:
             moving, out_v, out_a = moving[keep], out_v[keep], out_a[keep]
         velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
-        velocity.reshape(-1, 3)[moving] = out_v
+        scatter_rows(velocity.reshape(-1, 3), moving, out_v)
         return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:

@@ -220,6 +220,36 @@ def test_motion_components_match_the_indexed_reference():
         np.testing.assert_array_equal(labels, ref_labels)
 
 
+def test_previous_positions_and_refined_depths_match_their_numpy_references():
+    rng = np.random.default_rng(8)
+    h, w = SIZE
+    k = _k()
+    v, u = np.mgrid[0:h, 0:w]
+    plane = (4.0 + 0.01 * u + 0.02 * v).astype(np.float32)  # a slanted wall: smooth between pixels
+    rough = np.where(rng.random(SIZE) < 0.2, plane * 1.3, plane).astype(np.float32)  # with steps
+    rough[rng.random(SIZE) < 0.05] = np.inf  # and sky
+    vectors = rng.normal(0, 4, SIZE + (2,)).astype(np.float32)  # some ends leave the frame
+    prev_velocity = rng.normal(0, 0.05, SIZE + (3,)).astype(np.float32)
+    moving = np.flatnonzero(rng.random(SIZE) < 0.4)
+    y, x = np.divmod(moving, w)
+    before = np.stack([(x + 0.5 - k[0, 2]) / FOCAL, (y + 0.5 - k[1, 2]) / FOCAL, np.ones(moving.size)], -1)
+    before *= plane.reshape(-1)[moving, None] * rng.uniform(0.97, 1.03, (moving.size, 1))
+    relative = rigid((0.1, 1.0, 0.2), 0.02, (0.03, -0.01, 0.02))
+    view = rigid((0.0, 1.0, 0.1), 0.04, (0.05, 0.0, 0.03))
+    for prev_depth in (plane, rough):
+        for first in (None, (rough, k, view)):
+            args = (plane, vectors, moving, before, relative, prev_depth, prev_velocity, 1.25)
+            earlier, valid = rg.previous_positions(*args, first=first)
+            ref_earlier, ref_valid = rg.previous_positions_reference(*args, first=first)
+            assert 0.05 < valid.mean() < 0.95
+            np.testing.assert_array_equal(valid, ref_valid)
+            np.testing.assert_allclose(earlier, ref_earlier, rtol=0, atol=1e-12)
+        refined = rg.refined_before(before, vectors, moving, relative, prev_depth, k)
+        assert (refined != before).any(axis=1).mean() > 0.2
+        np.testing.assert_allclose(refined, rg.refined_before_reference(before, vectors, moving, relative,
+                                                                       prev_depth, k), rtol=0, atol=1e-12)
+
+
 def test_the_continued_paths_match_numpy():
     rng = np.random.default_rng(6)
     now, then, earlier = (rng.normal(size=(50, 3)) for _ in range(3))

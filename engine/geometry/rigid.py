@@ -40,7 +40,7 @@ __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotatio
            "robust_rigid", "rigid_parts", "rigid_parts_reference", "path_affine", "screw_affine",
            "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
-           "hindcast_keeps", "project_points"]
+           "hindcast_keeps", "hindcast_errors", "rigid_explains_better", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
@@ -1131,6 +1131,22 @@ def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving:
     return earlier, valid
 
 
+def hindcast_errors(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """Per point, how far (frame n's pixels) ``predicted`` (M, 3) lands from where frame n shows it (``now``);
+    NaN where either is behind the camera."""
+    return np.linalg.norm(project_points(predicted, intrinsics) - project_points(now, intrinsics), axis=-1)
+
+
+def rigid_explains_better(now: np.ndarray, rigid: np.ndarray, linear: np.ndarray, valid: np.ndarray,
+                          intrinsics: np.ndarray) -> bool:
+    """Whether a rigid part's path, continued from the interval before (``rigid`` (N, 3): where it put the
+    part's points at frame n), explained the last interval at least as well as each point's own straight line
+    (``linear``), summed over the points ``valid`` then (pixels of frame n)."""
+    a, b = hindcast_errors(now, rigid, intrinsics), hindcast_errors(now, linear, intrinsics)
+    ok = valid & np.isfinite(a) & np.isfinite(b)
+    return bool(a[ok].sum() <= b[ok].sum())
+
+
 def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.ndarray, predicted: np.ndarray,
                    valid: np.ndarray, intrinsics: np.ndarray, *, ratio: float = 1.0,
                    min_share: float = 0.25) -> np.ndarray:
@@ -1142,9 +1158,7 @@ def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.
     error exceeds ``ratio`` times the error of no object motion (the point left at ``before``: camera-only
     warp); a tie keeps it (an object that starts to move: neither explained the interval).
     Regions with fewer than ``min_share`` of their points valid have no evidence and keep their motion."""
-    at = project_points(now, intrinsics)
-    model = np.linalg.norm(project_points(predicted, intrinsics) - at, axis=-1)
-    still = np.linalg.norm(project_points(before, intrinsics) - at, axis=-1)
+    model, still = hindcast_errors(now, predicted, intrinsics), hindcast_errors(now, before, intrinsics)
     ok = valid & np.isfinite(model) & np.isfinite(still)
     model_sum = np.bincount(regions[ok], model[ok], minlength=count)
     still_sum = np.bincount(regions[ok], still[ok], minlength=count)

@@ -38,7 +38,8 @@ import numpy as np
 from engine.core.config import option
 from engine.core.errors import InputError
 from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
-                                   previous_positions, refined_before, rigid_parts, rotation_log, scatter_rows)
+                                   previous_positions, refined_before, rigid_explains_better, rigid_parts, rotation_log,
+                                   scatter_rows)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -239,16 +240,22 @@ class Mvec(Predictor):
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-            affines = []
+            kept, affines = [], []
             for j, part in enumerate(parts):
                 m = part.members
                 affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
                                                np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
                                                part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
                                                limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                # a part takes its path only where that path, continued from the interval before, explained the
+                # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
+                # without frame n-2k no evidence either way): its pixels keep their lines otherwise
+                if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
+                    continue
+                predicted[m] = hindcast
+                kept.append(part)
                 affines.append(affine)
-                if hindcast is not None:
-                    predicted[m] = hindcast
+            parts = kept
             # every pixel of a part's group that the part's transform explains takes its path (the sample's
             # depths were read between pixels, the others' at one: a looser threshold)
             apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,

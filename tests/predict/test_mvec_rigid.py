@@ -297,34 +297,44 @@ def test_motion_components_split_at_depth_edges_and_unlike_motion():
 
 @pytest.mark.parametrize("k", [2, 4])
 def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
-    angles = [np.radians(10.0) * i for i in range(2 * k + 1)]  # 10 degrees a frame
+    angles = [np.radians(10.0) * i for i in range(3 * k + 1)]  # 10 degrees a frame
     frames, objects = spinning_square(angles)
-    history = _history(frames, objects, [0, k])
+    history = _history(frames, objects, [0, k, 2 * k])
     rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
     linear_state = Mvec().prepare(history)
     assert rigid_state.data.parts == 1
     moving = history[-1].moving
-    interior = moving.copy()
-    interior[[0, -1], :] = interior[:, [0, -1]] = False
     for step in range(1, k):
-        truth = _true_flow(history[-1], objects, k + step)
+        truth = _true_flow(history[-1], objects, 2 * k + step)
         mine = _flow(rigid_state, history[-1], step / k)
         straight = _flow(linear_state, history[-1], step / k)
-        err = np.linalg.norm(mine - truth, axis=-1)[moving]
-        assert np.median(err) < 0.05 and err.max() < 0.5
+        err = np.linalg.norm(mine - truth, axis=-1)[moving]  # a few silhouette pixels n-2k did not see: lines
+        assert np.median(err) < 0.1 and np.percentile(err, 99) < 0.5
         assert np.median(np.linalg.norm(straight - truth, axis=-1)[moving]) > 4 * max(np.median(err), 0.01)
     # and the picture: closer to the truth than the straight lines
-    target = Target(frames[k + k // 2].camera, frames[k + k // 2].time, k + k // 2)
-    truth = frames[k + k // 2].color
+    target = Target(frames[2 * k + k // 2].camera, frames[2 * k + k // 2].time, 2 * k + k // 2)
+    truth = frames[2 * k + k // 2].color
     ours = Mvec(MvecConfig(extrapolation="rigid")).predict(history, target).color
     straight = Mvec().predict(history, target).color
     assert np.abs(ours - truth).mean() < np.abs(straight - truth).mean()
 
 
+def test_a_rigid_path_needs_the_interval_before_to_support_it():
+    # two frames: no evidence that the turn is steady (a tumbling throw and an aliased fast spin look alike),
+    # so the pixels keep their lines; with frame n-2k the steady turn explains the last interval: a part
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    two = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [2, 4]))
+    linear = Mvec().prepare(_history(frames, objects, [2, 4]))
+    assert two.data.parts == 0
+    np.testing.assert_array_equal(_flow(two, frames[4], 0.5), _flow(linear, frames[4], 0.5))
+    three = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [0, 2, 4]))
+    assert three.data.parts == 1
+
+
 def test_object_ids_make_the_groups_when_asked():
     # one spinning square whose halves carry two ids: by motion it is one part, by ids two (each half a part)
-    frames, objects = spinning_square([np.radians(10.0) * i for i in range(5)])
-    history = _history(frames, objects, [0, 2])
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    history = _history(frames, objects, [0, 2, 4])
     half = np.zeros(SIZE, bool)
     half[:, SIZE[1] // 2:] = True
     newest = history[-1]
@@ -333,7 +343,7 @@ def test_object_ids_make_the_groups_when_asked():
     by_ids = Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history)
     assert by_motion.data.parts == 1 and by_ids.data.parts == 2
     # both halves turn with the square: the same motion either way
-    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.02)
+    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.15)
     # a frame without ids: grouped by motion
     history[-1] = dataclasses.replace(newest, object_id=None)
     assert Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history).data.parts == 1

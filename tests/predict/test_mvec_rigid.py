@@ -16,6 +16,8 @@ from engine.predict import Mvec, MvecConfig, Reproject, Target, make_predictor
 from tests.synthetic import rigid, rotation, two_layer_sequence, with_vectors
 
 SIZE = (64, 96)  # (H, W)
+#: the motion before issue 42's defaults: each pixel on its line, no fall-back
+LINEAR = MvecConfig(extrapolation="linear", fallback=False)
 FOCAL = 80.0
 SQUARE_Z = 4.0
 BACKGROUND_Z = 12.0
@@ -301,7 +303,7 @@ def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
     frames, objects = spinning_square(angles)
     history = _history(frames, objects, [0, k, 2 * k])
     rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
-    linear_state = Mvec().prepare(history)
+    linear_state = Mvec(LINEAR).prepare(history)
     assert rigid_state.data.parts == 1
     moving = history[-1].moving
     for step in range(1, k):
@@ -315,7 +317,7 @@ def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
     target = Target(frames[2 * k + k // 2].camera, frames[2 * k + k // 2].time, 2 * k + k // 2)
     truth = frames[2 * k + k // 2].color
     ours = Mvec(MvecConfig(extrapolation="rigid")).predict(history, target).color
-    straight = Mvec().predict(history, target).color
+    straight = Mvec(LINEAR).predict(history, target).color
     assert np.abs(ours - truth).mean() < np.abs(straight - truth).mean()
 
 
@@ -324,7 +326,7 @@ def test_a_rigid_path_needs_the_interval_before_to_support_it():
     # so the pixels keep their lines; with frame n-2k the steady turn explains the last interval: a part
     frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
     two = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [2, 4]))
-    linear = Mvec().prepare(_history(frames, objects, [2, 4]))
+    linear = Mvec(LINEAR).prepare(_history(frames, objects, [2, 4]))
     assert two.data.parts == 0
     np.testing.assert_array_equal(_flow(two, frames[4], 0.5), _flow(linear, frames[4], 0.5))
     three = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [0, 2, 4]))
@@ -353,7 +355,7 @@ def test_a_drifting_square_without_turn_is_extrapolated_as_before():
     frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.03, object_speed=0.1)
     history = [frames[0], with_vectors(frames, objects, 0, 4)]
     rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
-    linear_state = Mvec().prepare(history)
+    linear_state = Mvec(LINEAR).prepare(history)
     for step in (0.25, 0.5, 0.75):
         np.testing.assert_allclose(_flow(rigid_state, history[-1], step), _flow(linear_state, history[-1], step),
                                    atol=2e-3)
@@ -393,7 +395,7 @@ def test_a_bounce_or_a_stop_falls_back_to_reprojection(case, extrapolation):
     np.testing.assert_array_equal(Mvec(config).predict(history, target).color,
                                   Reproject().predict(history, target).color)
     # without the fall-back the old motion carries on
-    assert Mvec(MvecConfig(extrapolation=extrapolation)).prepare(history).data.motion is not None
+    assert Mvec(MvecConfig(extrapolation=extrapolation, fallback=False)).prepare(history).data.motion is not None
 
 
 def test_a_spin_reversal_falls_back_and_a_steady_spin_does_not():

@@ -12,10 +12,11 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
    change of each moving point's velocity since the interval before (``velocity_change``), kept only where
    it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
-   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the moving pixels in
-   rigid parts, each part on the path (a screw, or a spin about its centre) that its last two intervals
-   support, written as each point's V and A; with ``fallback``, regions whose earlier motion did not
-   explain the last interval dropped (they take the camera-only warp);
+   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``, both the default; ``engine.geometry.rigid``): the
+   moving pixels in rigid parts, each part on the path (a screw, or a spin about its centre) that its last
+   two intervals support, where that path explained the last interval at least as well as the points' own
+   lines (with two frames: the lines), written as each point's V and A; with ``fallback``, regions whose
+   earlier motion did not explain the last interval dropped (they take the camera-only warp);
 4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
    (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
@@ -72,8 +73,8 @@ class MvecConfig:
     acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
                                             "smooth motion (larger: constant velocity)")
     extrapolation: str = option("rigid", "linear: each moving pixel on its own line (or parabola); rigid: moving "
-                                          "pixels grouped into rigid parts by their 3D motion, each part turned "
-                                          "and moved on a screw (constant angular and linear velocity)")
+                                         "pixels grouped into rigid parts by their 3D motion, each part turned "
+                                         "and moved on a screw or a spin where the interval before supports it")
     grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
                                      "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
                                      "object ids, channel object_id, where the renderer gives them; motion where not)")

@@ -444,3 +444,37 @@ def test_on_gl_the_rigid_motion_and_the_fall_back_predict_what_the_cpu_predicts(
         assert "motion" in b.gpu_ms
         close = (np.abs(a.color - b.color) <= 1e-3 * np.maximum(1.0, np.abs(a.color))).all(axis=-1)
         assert close.mean() >= 0.995 and np.mean(a.holes == b.holes) >= 0.999
+
+
+# ---------------------------------------------------------------------------------------------------------
+# object ids through the Session
+# ---------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("flip_rows", [False, True])
+def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
+    from engine.runtime.session import Session, SessionConfig
+
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    history = _history(frames, objects, [0, 2, 4])
+    half = np.zeros(SIZE, bool)
+    half[:, SIZE[1] // 2:] = True
+    h, w = SIZE
+    parts = {}
+    for grouping in ("motion", "ids"):
+        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=f"mvec[grouping={grouping}]",
+                                        flip_rows=flip_rows))
+        for i, f in enumerate(history):
+            ids = np.where(f.moving, 1 + half, 0)
+            rows = (lambda a: a[::-1]) if flip_rows else (lambda a: a)
+            session.submit(rows(f.color), rows(f.depth), f.camera.world_to_camera, f.camera.intrinsics, f.time,
+                           motion_vectors=None if i == 0 else rows(f.motion_vectors),
+                           object_ids=rows(ids))
+        prepared = session._loop.prepared
+        np.testing.assert_array_equal(prepared.frames[-1].object_id, np.where(history[-1].moving, 1 + half, 0))
+        parts[grouping] = prepared.state.data.parts
+    assert parts == {"motion": 1, "ids": 2}
+    with pytest.raises(InputError) as err:
+        session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=-np.ones(SIZE))
+    assert err.value.field == "object_ids"
+    with pytest.raises(InputError):
+        session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))

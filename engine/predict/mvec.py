@@ -12,7 +12,7 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
    change of each moving point's velocity since the interval before (``velocity_change``), kept only where
    it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
-   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``, both the default; ``engine.geometry.rigid``): the
+   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the
    moving pixels in rigid parts, each part on the path (a screw, or a spin about its centre) that its last
    two intervals support, where that path explained the last interval at least as well as the points' own
    lines (with two frames: the lines), written as each point's V and A; with ``fallback``, regions whose
@@ -72,13 +72,13 @@ class MvecConfig:
                                       "(the parabola through the last three positions)")
     acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
                                             "smooth motion (larger: constant velocity)")
-    extrapolation: str = option("rigid", "linear: each moving pixel on its own line (or parabola); rigid: moving "
-                                         "pixels grouped into rigid parts by their 3D motion, each part turned "
-                                         "and moved on a screw or a spin where the interval before supports it")
+    extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
+                                          "pixels grouped into rigid parts by their 3D motion, each part turned "
+                                          "and moved on a screw or a spin where the interval before supports it")
     grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
                                      "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
                                      "object ids, channel object_id, where the renderer gives them; motion where not)")
-    fallback: bool = option(True, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
+    fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
                                    "interval before, explained the last interval worse than no object motion "
                                    "takes the camera-only warp")
     fallback_ratio: float = option(1.5, "a region falls back when its motion's error over the last interval "

@@ -461,7 +461,7 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
     h, w = SIZE
     parts = {}
     for grouping in ("motion", "ids"):
-        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=f"mvec[grouping={grouping}]",
+        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=f"mvec[extrapolation=rigid,grouping={grouping}]",
                                         flip_rows=flip_rows))
         for i, f in enumerate(history):
             ids = np.where(f.moving, 1 + half, 0)

@@ -36,9 +36,10 @@ from numba import njit
 from engine.core.checks import checked_array, checked_matrix
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
-           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference", "moving_points", "moving_points_reference", "scatter_rows",
-           "robust_rigid", "rigid_parts", "rigid_parts_reference", "path_affine", "screw_affine",
-           "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
+           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
+           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "rigid_parts",
+           "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
+           "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
            "hindcast_keeps", "hindcast_errors", "rigid_explains_better", "project_points"]
 
@@ -219,7 +220,8 @@ def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
                     cov[a, b] += (src[h, i, a] - cs[a]) * (dst[h, i, b] - cd[b])
         _horn_rotation(cov, rotation[h])
         for c in range(3):
-            translation[h, c] = cd[c] - (rotation[h, c, 0] * cs[0] + rotation[h, c, 1] * cs[1] + rotation[h, c, 2] * cs[2])
+            translation[h, c] = cd[c] - (rotation[h, c, 0] * cs[0] + rotation[h, c, 1] * cs[1]
+                                         + rotation[h, c, 2] * cs[2])
 
 
 def _fit_many(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -932,7 +934,8 @@ def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth
             continue
         xi, yi = int(x0), int(y0)
         ax, ay = fx - xi, fy - yi
-        bz = before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2] + relative[2, 3]
+        bz = (before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2]
+              + relative[2, 3])
         inverse = 0.0
         ok = True
         for corner in range(4):
@@ -983,17 +986,20 @@ def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velo
         inside = qx >= 0 and qx < pw and qy >= 0 and qy < ph
         xi = int(qx) if inside else 0
         yi = int(qy) if inside else 0
-        bz = before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2] + relative[2, 3]
+        bz = (before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2]
+              + relative[2, 3])
         seen = np.float64(prev_depth[yi, xi])
         ok = inside and bz > 0 and np.isfinite(seen) and max(seen / bz, bz / seen) <= band
         for c in range(3):  # R^T v: frame n's axes
-            v = (np.float64(prev_velocity[yi, xi, 0]) * relative[0, c] + np.float64(prev_velocity[yi, xi, 1]) * relative[1, c]
+            v = (np.float64(prev_velocity[yi, xi, 0]) * relative[0, c]
+                 + np.float64(prev_velocity[yi, xi, 1]) * relative[1, c]
                  + np.float64(prev_velocity[yi, xi, 2]) * relative[2, c])
             earlier[i, c] = before[i, c] - v * interval_ratio
         if ok and has_first:
             there = np.empty(3)
             for c in range(3):
-                there[c] = earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2] + view[c, 3]
+                there[c] = (earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2]
+                            + view[c, 3])
             ok = there[2] > 1e-9
             if ok:
                 ax = first_k[0, 0] * there[0] / there[2] + first_k[0, 1] * there[1] / there[2] + first_k[0, 2]
@@ -1032,10 +1038,11 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
     has_first = first is not None
     if not has_first:
         first = (np.zeros((1, 1), np.float32), np.eye(3), np.eye(4))
-    _previous_positions(np.ascontiguousarray(vectors), np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(before, np.float64),
-                        relative, np.ascontiguousarray(prev_depth), np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), has_first,
-                        np.ascontiguousarray(first[0], np.float32), np.asarray(first[1], np.float64), np.asarray(first[2], np.float64), float(check),
-                        earlier, valid)
+    _previous_positions(np.ascontiguousarray(vectors), np.ascontiguousarray(moving, np.int64),
+                        np.ascontiguousarray(before, np.float64), relative, np.ascontiguousarray(prev_depth),
+                        np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), has_first,
+                        np.ascontiguousarray(first[0], np.float32), np.asarray(first[1], np.float64),
+                        np.asarray(first[2], np.float64), float(check), earlier, valid)
     return earlier, valid
 
 

@@ -461,8 +461,8 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
     h, w = SIZE
     parts = {}
     for grouping in ("motion", "ids"):
-        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=f"mvec[extrapolation=rigid,grouping={grouping}]",
-                                        flip_rows=flip_rows))
+        method = f"mvec[extrapolation=rigid,grouping={grouping}]"
+        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=method, flip_rows=flip_rows))
         for i, f in enumerate(history):
             ids = np.where(f.moving, 1 + half, 0)
             rows = (lambda a: a[::-1]) if flip_rows else (lambda a: a)

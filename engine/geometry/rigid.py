@@ -232,6 +232,55 @@ def _fit_many(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 @njit(cache=True, nogil=True)
+def _find(parent, a):  # pragma: no cover - compiled
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _join(parent, i, j):  # pragma: no cover - compiled
+    """Union of the sets of i and j, the smaller root the root of both."""
+    a = _find(parent, i)
+    b = _find(parent, j)
+    if a < b:
+        parent[b] = a
+    elif b < a:
+        parent[a] = b
+
+
+@njit(cache=True, nogil=True)
+def _number_roots(parent, labels):  # pragma: no cover - compiled
+    """Each element's set numbered 0.. in the order of the sets' smallest members; returns the count."""
+    count = 0
+    for i in range(parent.size):  # roots are the smallest member: a root comes before its members
+        a = _find(parent, i)
+        if a == i:
+            labels[i] = count
+            count += 1
+        else:
+            labels[i] = labels[a]
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _link(points, velocity, i, j, band):  # pragma: no cover - compiled
+    """Whether points i and j lie within the depth ratio ``band``, and their squared distance and squared
+    difference of velocity (``motion_components``)."""
+    zi = points[i, 2]
+    zj = points[j, 2]
+    dp = 0.0
+    dv = 0.0
+    if zi > band * zj or zj > band * zi:
+        return False, dp, dv
+    for c in range(3):
+        dp += (points[i, c] - points[j, c]) ** 2
+        dv += (velocity[i, c] - velocity[j, c]) ** 2
+    return True, dp, dv
+
+
+@njit(cache=True, nogil=True)
 def _union_indexed(index, points, velocity, band, slope, relative, labels):  # pragma: no cover - compiled
     """Union-find over the 4-neighbour links of the moving pixels, found through a full-frame ``index``
     (``motion_components_reference``); ``labels`` (M,) receives a component number 0.. per moving pixel;
@@ -252,53 +301,20 @@ def _union_indexed(index, points, velocity, band, slope, relative, labels):  # p
                 j = index[yy, xx]
                 if j < 0:
                     continue
-                zi = points[i, 2]
-                zj = points[j, 2]
-                if zi > band * zj or zj > band * zi:
+                near, dp, dv = _link(points, velocity, i, j, band)
+                if not near:
                     continue
-                dp = 0.0
-                dv = 0.0
                 vi = 0.0
                 vj = 0.0
                 for c in range(3):
-                    dp += (points[i, c] - points[j, c]) ** 2
-                    dv += (velocity[i, c] - velocity[j, c]) ** 2
                     vi += velocity[i, c] ** 2
                     vj += velocity[j, c] ** 2
                 if math.sqrt(dv) > slope * math.sqrt(dp) + relative * 0.5 * (math.sqrt(vi) + math.sqrt(vj)):
                     continue
-                a = i
-                while parent[a] != a:
-                    parent[a] = parent[parent[a]]
-                    a = parent[a]
-                b = j
-                while parent[b] != b:
-                    parent[b] = parent[parent[b]]
-                    b = parent[b]
-                if a != b:
-                    if a < b:
-                        parent[b] = a
-                    else:
-                        parent[a] = b
-    count = 0
-    for i in range(m):  # roots are the smallest member: a root comes before its members
-        a = i
-        while parent[a] != a:
-            a = parent[a]
-        if a == i:
-            labels[i] = count
-            count += 1
-        else:
-            labels[i] = labels[a]
-    return count
+                _join(parent, i, j)
+    return _number_roots(parent, labels)
 
 
-@njit(cache=True, nogil=True)
-def _find(parent, a):  # pragma: no cover - compiled
-    while parent[a] != a:
-        parent[a] = parent[parent[a]]
-        a = parent[a]
-    return a
 
 
 @njit(cache=True, nogil=True)
@@ -327,34 +343,14 @@ def _union_components(moving, width, points, velocity, band, slope, relative, la
                 if below >= m or moving[below] != p + width:
                     continue
                 j = below
-            zi = points[i, 2]
-            zj = points[j, 2]
-            if zi > band * zj or zj > band * zi:
+            near, dp, dv = _link(points, velocity, i, j, band)
+            if not near:
                 continue
-            dp = 0.0
-            dv = 0.0
-            for c in range(3):
-                dp += (points[i, c] - points[j, c]) ** 2
-                dv += (velocity[i, c] - velocity[j, c]) ** 2
             allowed = relative * 0.5 * (speed[i] + speed[j])
             if dv > slope2 * dp + allowed * allowed and math.sqrt(dv) > slope * math.sqrt(dp) + allowed:
                 continue
-            a = _find(parent, i)
-            b = _find(parent, j)
-            if a != b:
-                if a < b:
-                    parent[b] = a
-                else:
-                    parent[a] = b
-    count = 0
-    for i in range(m):  # roots are the smallest member: a root comes before its members
-        a = _find(parent, i)
-        if a == i:
-            labels[i] = count
-            count += 1
-        else:
-            labels[i] = labels[a]
-    return count
+            _join(parent, i, j)
+    return _number_roots(parent, labels)
 
 
 def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray, velocity: np.ndarray, *,
@@ -1047,17 +1043,9 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
 
 
 def refined_before_reference(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
-                   prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *, smooth: float = 1.1) -> np.ndarray:
-    """``refined_before`` in numpy (the test oracle).
-
-    The moving points' positions at frame n-k (M, 3) with their depth read between frame n-k's pixels.
-
-    ``before`` (frame n's axes) took its depth from one of the 4 pixels of frame n-k around the vector's end q
-    (``scene_velocity``): off by up to the depth's change over a pixel, a millimetre-to-centimetre error that
-    a rigid fit on a slanted face would see as a pixel of residual. Where the 4 pixels all lie within the ratio
-    ``smooth`` of that depth (one smooth surface), the depth is instead their bilinear blend at q in inverse
-    depth (exact on a plane); elsewhere (silhouettes, the frame's edge) ``before`` is kept. ``relative``: frame
-    n's camera -> frame n-k's camera (4x4)."""
+                             prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *,
+                             smooth: float = 1.1) -> np.ndarray:
+    """``refined_before`` in numpy, by arrays (the test oracle; that docstring states it)."""
     h, w = vectors.shape[:2]
     ph, pw = prev_depth.shape
     y, x = np.divmod(np.asarray(moving, np.int64), w)
@@ -1085,23 +1073,10 @@ def refined_before_reference(before: np.ndarray, vectors: np.ndarray, moving: np
 
 
 def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
-                       relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
-                       interval_ratio: float = 1.0, band: float = 1.5, first=None,
-                       check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
-    """``previous_positions`` in numpy (the test oracle).
-
-    Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
-    (positions (M, 3) float64, valid (M,) bool).
-
-    ``before`` (M, 3) are the points' positions at n-k (frame n's axes); frame n-k's velocity ``prev_velocity``
-    (its own camera axes, per its interval) is read at the pixel of frame n-k the vector lands in (nearest),
-    where that pixel shows the point (its depth within the ratio ``band`` of the point's depth there),
-    rotated into frame n's axes (``relative``: frame n's camera -> frame n-k's camera, 4x4) and scaled by
-    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen).
-    ``first`` = (depth (h, w), intrinsics, 4x4 frame n's camera -> frame n-2k's camera) checks each position
-    against frame n-2k itself: valid only where frame n-2k's depth at its pixel is within the ratio ``check``
-    of its depth there (frame n-k's velocity is a guess where frame n-2k did not see the point: a face
-    turning into view)."""
+                                 relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                                 interval_ratio: float = 1.0, band: float = 1.5, first=None,
+                                 check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
+    """``previous_positions`` in numpy, by arrays (the test oracle; that docstring states it)."""
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
     vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)

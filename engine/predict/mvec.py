@@ -178,7 +178,7 @@ class Mvec(Predictor):
                                                         band=cfg.depth_band, limit=cfg.acceleration_limit)
         if moving.size:
             motion = PointMotion(velocity, moving, data.acceleration)
-            if cfg.extrapolation == "rigid" or (cfg.fallback and before is not None):
+            if before is not None and (cfg.extrapolation == "rigid" or cfg.fallback):  # else: nothing to decide
                 with timer("rigid"):
                     motion = self._shaped(state.history, vectors, data, before)
             if motion.moving.size:
@@ -236,7 +236,7 @@ class Mvec(Predictor):
                  else np.array(data.acceleration, dtype=np.float32))
         regions = labels.copy()
         parts = []
-        if cfg.extrapolation == "rigid":
+        if cfg.extrapolation == "rigid" and earlier is not None:
             fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))

@@ -199,14 +199,15 @@ class Mvec(Predictor):
         return before, (newest.time - older.time) / (older.time - first.time)
 
     def _shaped(self, history, vectors: np.ndarray, data: MvecState,
-                before: Optional[tuple[np.ndarray, float]]) -> PointMotion:
+                before: tuple[np.ndarray, float]) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
         the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
         the screw, or the spin about the part's centre where the interval before says so, with its change
-        where the three frames agree); the others keep their line or parabola. With ``fallback`` (and frame
-        n-2k), each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
+        where the three frames agree) where that path explained the last interval at least as well as the
+        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
         the interval before, continued, explained the last interval worse than ``fallback_ratio`` times no
-        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample."""
+        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample. Needs
+        frame n-2k (``before``: frame n-k's velocity and the ratio of the intervals, ``_before``)."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)
@@ -223,20 +224,18 @@ class Mvec(Predictor):
             labels, count = motion_components((h, w), moving, now, speed)
         now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
-        earlier = valid = predicted = None
-        if before is not None:
-            first = history[-3]
-            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
-                                                before[0], before[1], band=cfg.depth_band,
-                                                first=(first.depth, first.camera.intrinsics,
-                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
-            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+        first = history[-3]
+        earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
+                                            before[0], before[1], band=cfg.depth_band,
+                                            first=(first.depth, first.camera.intrinsics,
+                                                   first.camera.world_to_camera @ newest.camera.camera_to_world))
+        predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
         out_v = speed.astype(np.float32)  # written in place
         out_a = (np.zeros_like(out_v) if data.acceleration is None
                  else np.array(data.acceleration, dtype=np.float32))
         regions = labels.copy()
         parts = []
-        if cfg.extrapolation == "rigid" and earlier is not None:
+        if cfg.extrapolation == "rigid":
             fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
@@ -244,13 +243,12 @@ class Mvec(Predictor):
             kept, affines = [], []
             for j, part in enumerate(parts):
                 m = part.members
-                affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
-                                               np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
+                affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
                                                part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
                                                limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
                 # a part takes its path only where that path, continued from the interval before, explained the
                 # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
-                # without frame n-2k no evidence either way): its pixels keep their lines otherwise
+                # too few points seen at n-2k to tell): its pixels keep their lines otherwise
                 if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
                     continue
                 predicted[m] = hindcast
@@ -263,7 +261,7 @@ class Mvec(Predictor):
                         regions)
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
-        if cfg.fallback and earlier is not None:
+        if cfg.fallback:
             keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())

@@ -3,9 +3,11 @@
 #   bash scripts/bench_gpu.sh OUT_DIR          (PYTHON=... picks the interpreter, default python3;
 #                                               ONLY="gl_tests backends" runs just the steps named)
 #   SET=realtime bash scripts/bench_gpu.sh OUT_DIR   the real-time check alone, at most 5 minutes: the live loop's
-#       tests, cpu and gl side by side at RT_SIZES' first size, `interleave play --headless` on the gl path (live
-#       renderer, frames kept on the GPU and drawn from textures) for every RT_SIZES size at k = 2 and k = 4, and
-#       a table: GPU ms per stage, wall ms, rendered / generated / shown fps (realtime.json beside it).
+#       and the splats' tests, cpu and gl side by side at RT_SIZES' first size, the GL splats (binned, atomic) side
+#       by side on the frame path at every RT_SIZES size (tools.bench_gl_warp: GPU ms per stage and pass),
+#       `interleave play --headless` on the gl path (live renderer, frames kept on the GPU and drawn from
+#       textures) for every RT_SIZES size at k = 2 and k = 4, and a table: GPU ms per stage, wall ms, rendered /
+#       generated / shown fps (realtime.json beside it).
 #       RT_SIZES (default "1920x1080 3840x2160") and RT_FRAMES (ticks per play run, default 120) make a small
 #       run on a software renderer, e.g. RT_SIZES=320x180 RT_FRAMES=12 (GPU ms are not timed there).
 # 0. the real-time steps (SET=realtime, above);
@@ -13,7 +15,8 @@
 # 2. tools.bench_backends: cpu and gl side by side, 640x360 to 3840x2160, with GPU ms per stage (and at
 #    1920x1080 with 8-bit sRGB frames in and out);
 #    tools.profile_gl_passes: GPU ms per compute pass at 1920x1080;
-#    tools.profile_gl_flow: the GPU's flow alone, its two inverse searches, back to back and with idle gaps;
+#    tools.profile_gl_flow: the GPU's flow alone, its dispatches and GPU ms per stage and pass, the passes as they
+#    were beside the defaults, back to back and with idle gaps;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080.
@@ -28,7 +31,7 @@ log="$out/run.log"
 rt_sizes="${RT_SIZES:-1920x1080 3840x2160}"
 rt_frames="${RT_FRAMES:-120}"
 if [ "${SET:-}" = realtime ] && [ -z "${ONLY:-}" ]; then
-    ONLY="gl_context rt_tests rt_backends"
+    ONLY="gl_context rt_tests rt_backends rt_warp"
     for size in $rt_sizes; do ONLY="$ONLY play_${size}_k2 play_${size}_k4"; done
     ONLY="$ONLY rt_summary"
 fi
@@ -48,13 +51,17 @@ nvidia-smi --query-gpu=timestamp,clocks.sm,clocks.mem,power.draw,utilization.gpu
 clocks=$!
 trap 'kill $clocks 2>/dev/null' EXIT
 step gl_context 30 "$py" -c "from engine.geometry.backends import gl_renderer; print(gl_renderer())"
-# the real-time path: the live renderer, textures and play's gl path held to their references on this driver,
-# reproject and mvec with the float32 readback (cpu beside gl), then the live loop headless at each size
+# the real-time path: the live renderer, textures, play's gl path and both splats held to their references on
+# this driver, reproject and mvec with the float32 readback (cpu beside gl), the two splats side by side, then the
+# live loop headless at each size
 step rt_tests 90 "$py" -m pytest -q -p no:cacheprovider tests/scenegen/test_live.py tests/predict/test_gl_texture.py \
-    tests/demos/test_play_gl.py
+    tests/demos/test_play_gl.py tests/geometry/test_gl_splat.py \
+    tests/geometry/test_gl_frame.py::test_the_binned_and_atomic_splats_warp_a_frame_to_the_same_bits
 rt_first="${rt_sizes%% *}"
 step rt_backends 90 "$py" -m tools.bench_backends --sizes "$rt_first" --repeats 1 --frames 4 \
     --methods "reproject,mvec" --out "$work/scenes" --json "$out/rt_backends.json"
+step rt_warp 60 "$py" -m tools.bench_gl_warp --sizes "${rt_sizes// /,}" --repeats 20 --frames 4 --out "$work/scenes" \
+    --json "$out/rt_warp.json"
 for size in $rt_sizes; do
     for k in 2 4; do
         step "play_${size}_k${k}" 60 "$py" -m engine.cli play --headless --backend gl --method mvec --renderer live \
@@ -84,6 +91,14 @@ for size in sizes:
 backends = out / "rt_backends.json"
 if backends.exists():
     runs["backends_with_readback"] = json.loads(backends.read_text())
+warp = out / "rt_warp.json"
+if warp.exists():  # the splats side by side on the frame path (tools.bench_gl_warp)
+    doc = runs["splats"] = json.loads(warp.read_text())
+    for r in doc["runs"]:
+        stages = " ".join(f"{n} {v:.3f}" for n, v in r["gpu_stage_ms"].items()) if doc["hardware"] else "-"
+        lines.append(f"splat {r['splat']:<7} {r['size'][0]}x{r['size'][1]} {r['case']:<12} GPU ms: {stages}   "
+                     f"wall ms: splat {r['splat_wall_ms']:.2f}, warp + fill {r['wall_ms']:.2f}   "
+                     f"work MB {sum(r['work_bytes'].values()) / 1e6:.1f}   diff {r['max_diff_from_atomic']:.1e}")
 lines.append("fps: 1000 / median wall ms (rendered: draw + depth and vectors read back; generated: the predictor's "
              "render, left on the GPU); shown: ticks per second of the whole loop, glFinish each tick; the backends "
              "with the float32 readback: rt_backends.json, run.log")
@@ -112,11 +127,15 @@ step backends_srgb8 120 "$py" -m tools.bench_backends --sizes 1920x1080 --repeat
     --encoding srgb8 --out "$work/scenes" --json "$out/backends_srgb8.json"
 step passes 150 "$py" -m tools.profile_gl_passes --size 1920x1080 --methods "reproject,mvec,flow2d[estimator=gl],decomp[estimator=gl]" \
     --out "$work/scenes" --json "$out/passes.json"
-# the GPU's flow alone, its two inverse searches (one invocation a patch, or a patch over 64 with shared-memory
-# sums), back to back and then with 50 ms of idle GPU before each estimate
-step flow_search 120 "$py" -m tools.profile_gl_flow --sizes 960x540,1920x1080 --repeats 5 \
+# the GPU's flow alone (FLOW_SIZES, default "960x540 1920x1080"; e.g. FLOW_SIZES=160x96 on a software renderer):
+# dispatches and GPU ms per stage of the passes as they were (every level by its passes, SOR as red and black
+# dispatches), the one-invocation search and the defaults (flow_coarse, flow_refine_tile), back to back with GPU ms
+# per pass, then with 50 ms of idle GPU before each estimate
+flow_sizes="${FLOW_SIZES:-960x540 1920x1080}"
+flow_sizes="${flow_sizes// /,}"
+step flow_search 150 "$py" -m tools.profile_gl_flow --sizes "$flow_sizes" --repeats 5 --passes \
     --out "$work/scenes" --json "$out/flow_search.json"
-step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes 1920x1080 --repeats 3 --idle 0.05 \
+step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes "${flow_sizes##*,}" --repeats 3 --idle 0.05 \
     --out "$work/scenes" --json "$out/flow_search_idle.json"
 step networks 60 "$py" -m tools.bench_torch_networks --json "$out/networks.json"
 step field_capture 30 "$py" -m engine.cli render-rig "$work/rig" --seed 7 --width 504 --height 378 --static \

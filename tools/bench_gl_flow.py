@@ -49,14 +49,16 @@ def set_sequences(out: Path, name: str, validation: bool, width: int, height: in
 
 
 def parse_config(text: str) -> GlFlowConfig:
-    """``GlFlowConfig`` with the fields of ``"name=value,name=value"`` changed (each of its default's type)."""
+    """``GlFlowConfig`` with the fields of ``"name=value,name=value"`` changed (each of its default's type, an int where
+    the default is None)."""
     default, fields = GlFlowConfig(), {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
         name = name.strip()
         if not hasattr(default, name):
             raise SystemExit(f"GlFlowConfig has no field '{name}'")
-        fields[name] = type(getattr(default, name))(value)
+        now = getattr(default, name)
+        fields[name] = int(value) if now is None else type(now)(value)
     return replace(default, **fields)
 
 

@@ -37,9 +37,12 @@ from engine.core.checks import checked_array, checked_matrix
 from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
-           "fit_rigid", "motion_components", "robust_rigid", "rigid_parts", "path_affine", "screw_affine",
-           "spin_affine", "screw_coefficients", "part_motion", "apply_parts", "refined_before", "previous_positions",
-           "hindcast_keeps", "project_points"]
+           "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
+           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "rigid_parts",
+           "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
+           "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
+           "previous_positions_reference",
+           "hindcast_keeps", "hindcast_errors", "rigid_explains_better", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
@@ -137,22 +140,152 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray,
     return r, cd - r @ cs
 
 
-def _fit_many(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``fit_rigid`` of many small point sets at once: ``src``, ``dst`` (H, n, 3) -> R (H, 3, 3), t (H, 3)."""
-    cs, cd = src.mean(axis=1, keepdims=True), dst.mean(axis=1, keepdims=True)
-    u, _, vt = np.linalg.svd(np.swapaxes(src - cs, 1, 2) @ (dst - cd))
-    v, ut = np.swapaxes(vt, 1, 2), np.swapaxes(u, 1, 2)
-    d = np.where(np.linalg.det(v @ ut) >= 0, 1.0, -1.0)
-    fix = np.ones((len(src), 3))
-    fix[:, 2] = d
-    r = (v * fix[:, None, :]) @ ut
-    return r, cd[:, 0] - np.einsum("hij,hj->hi", r, cs[:, 0])
+@njit(cache=True, nogil=True)
+def _horn_rotation(cov, out):  # pragma: no cover - compiled
+    """The rotation (into ``out`` (3, 3)) that best turns centred points a onto b given their cross-covariance
+    ``cov`` = sum a b^T (Horn 1987: the unit quaternion of the largest eigenvalue of a symmetric 4x4, here by
+    cyclic Jacobi sweeps): ``fit_rigid``'s rotation, without its 3x3 SVD."""
+    sxx, sxy, sxz = cov[0, 0], cov[0, 1], cov[0, 2]
+    syx, syy, syz = cov[1, 0], cov[1, 1], cov[1, 2]
+    szx, szy, szz = cov[2, 0], cov[2, 1], cov[2, 2]
+    a = np.empty((4, 4))
+    a[0, 0], a[0, 1], a[0, 2], a[0, 3] = sxx + syy + szz, syz - szy, szx - sxz, sxy - syx
+    a[1, 1], a[1, 2], a[1, 3] = sxx - syy - szz, sxy + syx, szx + sxz
+    a[2, 2], a[2, 3] = -sxx + syy - szz, syz + szy
+    a[3, 3] = -sxx - syy + szz
+    for i in range(4):
+        for j in range(i):
+            a[i, j] = a[j, i]
+    v = np.eye(4)
+    size = 0.0
+    for i in range(4):
+        for j in range(4):
+            size += a[i, j] * a[i, j]
+    for _ in range(50):
+        off = 0.0
+        for i in range(4):
+            for j in range(i + 1, 4):
+                off += a[i, j] * a[i, j]
+        if off <= 1e-32 * size:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(4):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(4):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(4):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+    top = 0
+    for i in range(1, 4):
+        if a[i, i] > a[top, top]:
+            top = i
+    w, x, y, z = v[0, top], v[1, top], v[2, top], v[3, top]
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    out[0, 0], out[0, 1], out[0, 2] = w * w + x * x - y * y - z * z, 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
+    out[1, 0], out[1, 1], out[1, 2] = 2.0 * (x * y + w * z), w * w - x * x + y * y - z * z, 2.0 * (y * z - w * x)
+    out[2, 0], out[2, 1], out[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z
 
 
 @njit(cache=True, nogil=True)
-def _union_components(index, points, velocity, band, slope, relative, labels):  # pragma: no cover - compiled
-    """Union-find over the 4-neighbour links of the moving pixels (``motion_components``); ``labels`` (M,)
-    receives a component number 0.. per moving pixel; returns the count."""
+def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
+    """``_fit_many`` compiled: per set h the centred cross-covariance, Horn's rotation and the translation."""
+    cov = np.empty((3, 3))
+    for h in range(src.shape[0]):
+        n = src.shape[1]
+        cs = np.zeros(3)
+        cd = np.zeros(3)
+        for i in range(n):
+            for c in range(3):
+                cs[c] += src[h, i, c]
+                cd[c] += dst[h, i, c]
+        for c in range(3):
+            cs[c] /= n
+            cd[c] /= n
+        cov[:, :] = 0.0
+        for i in range(n):
+            for a in range(3):
+                for b in range(3):
+                    cov[a, b] += (src[h, i, a] - cs[a]) * (dst[h, i, b] - cd[b])
+        _horn_rotation(cov, rotation[h])
+        for c in range(3):
+            translation[h, c] = cd[c] - (rotation[h, c, 0] * cs[0] + rotation[h, c, 1] * cs[1]
+                                         + rotation[h, c, 2] * cs[2])
+
+
+def _fit_many(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``fit_rigid`` of many small point sets at once: ``src``, ``dst`` (H, n, 3) -> R (H, 3, 3), t (H, 3)."""
+    rotation, translation = np.empty((len(src), 3, 3)), np.empty((len(src), 3))
+    _fit_sets(np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64), rotation, translation)
+    return rotation, translation
+
+
+@njit(cache=True, nogil=True)
+def _find(parent, a):  # pragma: no cover - compiled
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@njit(cache=True, nogil=True)
+def _join(parent, i, j):  # pragma: no cover - compiled
+    """Union of the sets of i and j, the smaller root the root of both."""
+    a = _find(parent, i)
+    b = _find(parent, j)
+    if a < b:
+        parent[b] = a
+    elif b < a:
+        parent[a] = b
+
+
+@njit(cache=True, nogil=True)
+def _number_roots(parent, labels):  # pragma: no cover - compiled
+    """Each element's set numbered 0.. in the order of the sets' smallest members; returns the count."""
+    count = 0
+    for i in range(parent.size):  # roots are the smallest member: a root comes before its members
+        a = _find(parent, i)
+        if a == i:
+            labels[i] = count
+            count += 1
+        else:
+            labels[i] = labels[a]
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _link(points, velocity, i, j, band):  # pragma: no cover - compiled
+    """Whether points i and j lie within the depth ratio ``band``, and their squared distance and squared
+    difference of velocity (``motion_components``)."""
+    zi = points[i, 2]
+    zj = points[j, 2]
+    dp = 0.0
+    dv = 0.0
+    if zi > band * zj or zj > band * zi:
+        return False, dp, dv
+    for c in range(3):
+        dp += (points[i, c] - points[j, c]) ** 2
+        dv += (velocity[i, c] - velocity[j, c]) ** 2
+    return True, dp, dv
+
+
+@njit(cache=True, nogil=True)
+def _union_indexed(index, points, velocity, band, slope, relative, labels):  # pragma: no cover - compiled
+    """Union-find over the 4-neighbour links of the moving pixels, found through a full-frame ``index``
+    (``motion_components_reference``); ``labels`` (M,) receives a component number 0.. per moving pixel;
+    returns the count."""
     h, w = index.shape
     m = points.shape[0]
     parent = np.arange(m)
@@ -169,45 +302,56 @@ def _union_components(index, points, velocity, band, slope, relative, labels):  
                 j = index[yy, xx]
                 if j < 0:
                     continue
-                zi = points[i, 2]
-                zj = points[j, 2]
-                if zi > band * zj or zj > band * zi:
+                near, dp, dv = _link(points, velocity, i, j, band)
+                if not near:
                     continue
-                dp = 0.0
-                dv = 0.0
                 vi = 0.0
                 vj = 0.0
                 for c in range(3):
-                    dp += (points[i, c] - points[j, c]) ** 2
-                    dv += (velocity[i, c] - velocity[j, c]) ** 2
                     vi += velocity[i, c] ** 2
                     vj += velocity[j, c] ** 2
                 if math.sqrt(dv) > slope * math.sqrt(dp) + relative * 0.5 * (math.sqrt(vi) + math.sqrt(vj)):
                     continue
-                a = i
-                while parent[a] != a:
-                    parent[a] = parent[parent[a]]
-                    a = parent[a]
-                b = j
-                while parent[b] != b:
-                    parent[b] = parent[parent[b]]
-                    b = parent[b]
-                if a != b:
-                    if a < b:
-                        parent[b] = a
-                    else:
-                        parent[a] = b
-    count = 0
-    for i in range(m):  # roots are the smallest member: a root comes before its members
-        a = i
-        while parent[a] != a:
-            a = parent[a]
-        if a == i:
-            labels[i] = count
-            count += 1
-        else:
-            labels[i] = labels[a]
-    return count
+                _join(parent, i, j)
+    return _number_roots(parent, labels)
+
+
+
+
+@njit(cache=True, nogil=True)
+def _union_components(moving, width, points, velocity, band, slope, relative, labels):  # pragma: no cover
+    """``motion_components``' union-find: the right neighbour of moving pixel i is i + 1 where that is the next
+    pixel of its row, the one below is found by a pointer that only moves forward (``moving`` increases), so
+    no full-frame index is needed; a link is accepted without square roots where its velocities differ by
+    less than the bound's square allows (``|a| <= sqrt(a^2 + b^2) <= |a| + |b|``)."""
+    m = moving.size
+    parent = np.arange(m)
+    speed = np.empty(m)
+    for i in range(m):
+        speed[i] = math.sqrt(velocity[i, 0] ** 2 + velocity[i, 1] ** 2 + velocity[i, 2] ** 2)
+    below = 0
+    slope2 = slope * slope
+    for i in range(m):
+        p = moving[i]
+        for step in range(2):
+            if step == 0:
+                if i + 1 >= m or moving[i + 1] != p + 1 or (p + 1) % width == 0:
+                    continue
+                j = i + 1
+            else:
+                while below < m and moving[below] < p + width:
+                    below += 1
+                if below >= m or moving[below] != p + width:
+                    continue
+                j = below
+            near, dp, dv = _link(points, velocity, i, j, band)
+            if not near:
+                continue
+            allowed = relative * 0.5 * (speed[i] + speed[j])
+            if dv > slope2 * dp + allowed * allowed and math.sqrt(dv) > slope * math.sqrt(dp) + allowed:
+                continue
+            _join(parent, i, j)
+    return _number_roots(parent, labels)
 
 
 def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray, velocity: np.ndarray, *,
@@ -226,12 +370,25 @@ def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.nda
     sizes = {"M": moving.size}
     points = checked_array(points, "points", ("M", 3), sizes, np.float64)
     velocity = checked_array(velocity, "velocity", ("M", 3), sizes, np.float64)
+    labels = np.empty(moving.size, np.int64)
+    count = _union_components(moving, w, np.ascontiguousarray(points), np.ascontiguousarray(velocity),
+                              float(depth_band), 2.0 * math.sin(0.5 * max_angle), float(relative), labels)
+    return labels, int(count)
+
+
+def motion_components_reference(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray,
+                                velocity: np.ndarray, *, depth_band: float = 1.1, max_angle: float = MAX_TURN,
+                                relative: float = 0.05) -> tuple[np.ndarray, int]:
+    """``motion_components`` through a full-frame index of the moving pixels, each link's bound with its
+    square roots (the test oracle)."""
+    h, w = shape
+    moving = np.asarray(moving, np.int64)
     index = np.full(h * w, -1, np.int64)
     index[moving] = np.arange(moving.size)
     labels = np.empty(moving.size, np.int64)
-    count = _union_components(index.reshape(h, w), np.ascontiguousarray(points), np.ascontiguousarray(velocity),
-                              float(depth_band),
-                              2.0 * math.sin(0.5 * max_angle), float(relative), labels)
+    count = _union_indexed(index.reshape(h, w), np.ascontiguousarray(points, np.float64),
+                           np.ascontiguousarray(velocity, np.float64), float(depth_band),
+                           2.0 * math.sin(0.5 * max_angle), float(relative), labels)
     return labels, int(count)
 
 
@@ -249,7 +406,7 @@ def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     return out
 
 
-def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
+def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
                  threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
                  guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rigid transform ``dst ~ R src + t`` robust to outliers: (R, t, inlier mask (N,)).
@@ -257,17 +414,20 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.ra
     RANSAC: ``hypotheses`` Kabsch fits of 3 random points each, scored on a sample of at most
     ``SCORE_SAMPLE`` points by their inliers (residual ``|R src + t - dst|`` times ``scale``, i.e. in pixels
     for ``scale = f / z``, at most ``threshold``); the best one's inliers among all points are then refitted by
-    least squares ``rounds`` times. A ``guess`` (R, t) that already explains half the points is refitted
-    instead, without sampling (a part's transform of the interval before, under steady motion)."""
+    least squares ``rounds`` times. The random draws are a hash of ``key`` (a tuple of ints: ``draws``). A
+    ``guess`` (R, t) that already explains half the points is refitted instead, without sampling (a part's
+    transform of the interval before, under steady motion)."""
     n = len(src)
-    if guess is not None:
-        inliers = np.linalg.norm(transform_points(src, guess[0], guess[1]) - dst, axis=-1) * scale <= threshold
+    if guess is not None:  # compiled: ``group_inliers`` and ``fit_groups`` of one group
+        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+        scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+        inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
+                                np.asarray(guess[1], np.float64)[None], threshold)
         if inliers.sum() >= max(3, n // 2):
-            rotation, translation = fit_rigid(src[inliers], dst[inliers])
-            inliers = np.linalg.norm(transform_points(src, rotation, translation) - dst, axis=-1) * scale <= threshold
-            return rotation, translation, inliers
-    sample = np.arange(n) if n <= SCORE_SAMPLE else rng.choice(n, SCORE_SAMPLE, replace=False)
-    picks = rng.integers(0, n, size=(hypotheses, 3))
+            rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
+            inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
+            return rotation[0], translation[0], inliers
+    sample, picks = draws(_key_base(key), n, hypotheses)
     r, t = _fit_many(src[picks], dst[picks])
     moved = np.einsum("hij,nj->hni", r, src[sample]) + t[:, None, :]
     score = (np.linalg.norm(moved - dst[sample], axis=-1) * scale[sample] <= threshold).sum(axis=1)
@@ -282,32 +442,308 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, rng: np.ra
     return rotation, translation, inliers
 
 
+_MASK = (1 << 64) - 1
+_GOLDEN = 0x9E3779B97F4A7C15
+
+
+def _mix(z):
+    """splitmix64's finaliser of uint64 values (numpy arrays wrap modulo 2^64)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _key_base(key: tuple) -> int:
+    """One 64-bit number from a tuple of ints (each folded in by splitmix64's steps)."""
+    base = 0
+    for part in key:
+        z = (base ^ (int(part) & _MASK)) + _GOLDEN & _MASK
+        z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9 & _MASK
+        z = (z ^ (z >> 27)) * 0x94D049BB133111EB & _MASK
+        base = z ^ (z >> 31)
+    return base
+
+
+def _uniform(bases: np.ndarray, counters: np.ndarray) -> np.ndarray:
+    """Uniform numbers in [0, 1) (len(bases), len(counters)): a hash of each base (uint64) and counter."""
+    z = _mix(bases[:, None] + counters[None, :].astype(np.uint64) * np.uint64(_GOLDEN))
+    return (z >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
+
+
+def draws(base: int, n: int, hypotheses: int) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC's draws for ``n`` points from the hash ``base``: (the points that score, at most ``SCORE_SAMPLE``
+    of them (all when n is at most that), the picks (hypotheses, 3) of each hypothesis's 3 points).
+    Counter-based, so that ``rigid_parts`` draws for all groups at once what one group draws alone."""
+    bases = np.array([base], np.uint64)
+    picks = np.minimum((_uniform(bases, np.arange(3 * hypotheses)) * n).astype(np.int64), n - 1)
+    if n <= SCORE_SAMPLE:
+        return np.arange(n), picks.reshape(hypotheses, 3)
+    keys = _uniform(bases, 3 * hypotheses + np.arange(n))[0]
+    return np.sort(np.argsort(keys, kind="stable")[:SCORE_SAMPLE]), picks.reshape(hypotheses, 3)
+
+
+@njit(cache=True, nogil=True)
+def _best_hypotheses(src, dst, scale, samples, offsets, rotation, translation, hypotheses, threshold,
+                     best):  # pragma: no cover - compiled
+    """Per group f: the first of its ``hypotheses`` transforms (rows f * hypotheses ..) with the most inliers
+    among its points ``samples[offsets[f]:offsets[f + 1]]`` (``robust_rigid``'s score)."""
+    for f in range(offsets.size - 1):
+        top = -1
+        for h in range(hypotheses):
+            j = f * hypotheses + h
+            count = 0
+            for s in range(offsets[f], offsets[f + 1]):
+                i = samples[s]
+                r2 = 0.0
+                for c in range(3):
+                    d = (rotation[j, c, 0] * src[i, 0] + rotation[j, c, 1] * src[i, 1] + rotation[j, c, 2] * src[i, 2]
+                         + translation[j, c] - dst[i, c])
+                    r2 += d * d
+                if math.sqrt(r2) * scale[i] <= threshold:
+                    count += 1
+            if count > top:
+                top = count
+                best[f] = h
+
+
+def _ransac_groups(src, dst, scale, current, groups, bases, threshold, hypotheses=32, rounds=2):
+    """``robust_rigid``'s sampling (no guess) for the points of each of ``groups`` (labels in ``current``) at
+    once, group f drawing from ``bases[f]``: (R (F, 3, 3), t (F, 3), inliers (N,) for those groups' points)."""
+    order = np.argsort(current, kind="stable")
+    ordered = current[order]
+    starts, ends = np.searchsorted(ordered, groups), np.searchsorted(ordered, groups, side="right")
+    sizes = ends - starts
+    f_count = len(groups)
+    u = _uniform(np.asarray(bases, np.uint64), np.arange(3 * hypotheses))
+    picks = np.minimum((u * sizes[:, None]).astype(np.int64), sizes[:, None] - 1) + starts[:, None]
+    picks = order[picks].reshape(f_count * hypotheses, 3)
+    r, t = _fit_many(src[picks], dst[picks])
+    samples = []
+    for f in range(f_count):
+        members = order[starts[f]:ends[f]]
+        if sizes[f] > SCORE_SAMPLE:
+            members = members[draws(int(bases[f]), int(sizes[f]), hypotheses)[0]]
+        samples.append(members)
+    offsets = np.concatenate([[0], np.cumsum([m.size for m in samples])]).astype(np.int64)
+    best = np.zeros(f_count, np.int64)
+    _best_hypotheses(src, dst, scale, np.concatenate(samples).astype(np.int64), offsets, r, t, hypotheses,
+                     float(threshold), best)
+    pick = np.arange(f_count) * hypotheses + best
+    rotation, translation = r[pick], t[pick]
+    local = np.full(len(current), -1, np.int64)
+    for f in range(f_count):
+        local[order[starts[f]:ends[f]]] = f
+    inliers = group_inliers(src, dst, scale, local, rotation, translation, threshold)
+    for _ in range(rounds):
+        go = np.bincount(local[inliers], minlength=f_count) >= 3
+        if not go.any():
+            break
+        fit_r, fit_t = fit_groups(src, dst, np.where(inliers & go[np.maximum(local, 0)], local, -1), f_count)
+        rotation[go], translation[go] = fit_r[go], fit_t[go]
+        moving_on = np.where(go[np.maximum(local, 0)], local, -1)
+        inliers = np.where(moving_on >= 0, group_inliers(src, dst, scale, moving_on, rotation, translation, threshold),
+                           inliers)
+    return rotation, translation, inliers
+
+
 def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.ndarray, scale: np.ndarray, *,
                 threshold: float = 1.0, min_points: int = 32, min_share: float = 0.5, max_parts: int = 3,
                 seed: int = 0) -> list[RigidPart]:
     """The rigid parts of the groups ``labels`` (``motion_components``): per group, ``robust_rigid`` of the
     points' positions ``before`` (n-k) -> ``points`` (n), kept when it explains at least ``min_points`` and
     ``min_share`` of the group's points not yet in a part; repeated on the rest, at most ``max_parts`` times.
-    ``scale`` (M,) turns a 3D residual into pixels (f / z). Deterministic for a ``seed``."""
-    rng = np.random.default_rng(seed)
+    ``scale`` (M,) turns a 3D residual into pixels (f / z). Deterministic for a ``seed`` (each group draws its
+    RANSAC draws from the key ``(seed, group, round)``).
+
+    All groups are fitted at once, round by round (``fit_groups``: the least-squares fit of the points left,
+    its inliers refitted, as ``robust_rigid`` does with that fit as its guess); a group whose least-squares
+    fit explains less than half its points takes ``robust_rigid``'s sampling on its own. The same parts as
+    ``rigid_parts_reference`` (one group at a time), to rounding (``tests/predict/test_mvec_rigid.py``)."""
+    labels = np.asarray(labels, np.int64)
+    src, dst = np.ascontiguousarray(before, np.float64), np.ascontiguousarray(points, np.float64)
+    scale = np.ascontiguousarray(scale, np.float64)
+    floor = max(min_points, 3)
+    left = np.ones(len(labels), bool)
+    active = np.bincount(labels, minlength=count) >= floor
+    found: list[list[RigidPart]] = [[] for _ in range(count)]
+    for _ in range(max_parts):
+        if not active.any():
+            break
+        current = np.where(left & active[labels], labels, -1)
+        sizes = np.bincount(current[current >= 0], minlength=count)
+        rotation, translation = fit_groups(src, dst, current, count)  # the guess: all of them
+        inliers = group_inliers(src, dst, scale, current, rotation, translation, threshold)
+        guessed = np.bincount(current[inliers], minlength=count) >= np.maximum(3, sizes // 2)
+        refit = np.where(inliers & guessed[np.maximum(current, 0)], current, -1)
+        rotation, translation = fit_groups(src, dst, refit, count)
+        inliers = group_inliers(src, dst, scale, np.where(guessed[np.maximum(current, 0)], current, -1), rotation,
+                                translation, threshold)
+        sampled = np.flatnonzero(active & ~guessed)  # the least-squares fit failed: sample
+        if sampled.size:
+            bases = np.array([_key_base((seed, g, len(found[g]))) for g in sampled], np.uint64)
+            r, t, ok = _ransac_groups(src, dst, scale, np.where(np.isin(current, sampled), current, -1), sampled,
+                                      bases, threshold)
+            rotation[sampled], translation[sampled] = r, t
+            inliers = np.where(np.isin(current, sampled), ok, inliers)
+        kept = np.bincount(current[inliers], minlength=count)
+        success = active & (kept >= min_points) & (kept >= min_share * sizes)
+        for g in np.flatnonzero(success):
+            members = np.flatnonzero(inliers & (current == g))
+            found[g].append(RigidPart(members, rotation[g].copy(), translation[g].copy(), int(g)))
+        left &= ~(inliers & success[np.maximum(current, 0)] & (current >= 0))
+        active = success & (np.bincount(labels[left], minlength=count) >= floor)
+    return [part for parts in found for part in parts]
+
+
+def rigid_parts_reference(labels: np.ndarray, count: int, points: np.ndarray, before: np.ndarray, scale: np.ndarray,
+                          *, threshold: float = 1.0, min_points: int = 32, min_share: float = 0.5, max_parts: int = 3,
+                          seed: int = 0) -> list[RigidPart]:
+    """``rigid_parts`` one group and one round at a time with ``robust_rigid`` (the test oracle)."""
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(count + 1))
     parts = []
     for g in range(count):
         left = order[bounds[g]:bounds[g + 1]]
+        found: list = []
         for _ in range(max_parts):
             if left.size < max(min_points, 3):
                 break
             # the least-squares fit of all of them first: a group that is one clean part needs no sampling
-            rotation, translation, inliers = robust_rigid(before[left], points[left], scale[left], rng,
-                                                          threshold=threshold,
+            rotation, translation, inliers = robust_rigid(before[left], points[left], scale[left],
+                                                          (seed, g, len(found)), threshold=threshold,
                                                           guess=fit_rigid(before[left], points[left]))
             kept = int(inliers.sum())
             if kept < min_points or kept < min_share * left.size:
                 break
-            parts.append(RigidPart(left[inliers], rotation, translation, g))
+            found.append(RigidPart(left[inliers], rotation, translation, g))
             left = left[~inliers]
+        parts += found
     return parts
+
+
+@njit(cache=True, nogil=True)
+def _group_moments(src, dst, labels, count, sums, cov):  # pragma: no cover - compiled
+    """Per group (``labels`` >= 0): ``sums`` (count, 7) = (n, sum src, sum dst), then ``cov`` (count, 3, 3) the
+    centred cross-covariance sum (src - mean src)(dst - mean dst)^T (``fit_groups``)."""
+    for i in range(labels.size):
+        g = labels[i]
+        if g < 0:
+            continue
+        sums[g, 0] += 1.0
+        for c in range(3):
+            sums[g, 1 + c] += src[i, c]
+            sums[g, 4 + c] += dst[i, c]
+    for g in range(count):
+        if sums[g, 0] > 0:
+            for c in range(1, 7):
+                sums[g, c] /= sums[g, 0]
+    for i in range(labels.size):
+        g = labels[i]
+        if g < 0:
+            continue
+        for a in range(3):
+            for b in range(3):
+                cov[g, a, b] += (src[i, a] - sums[g, 1 + a]) * (dst[i, b] - sums[g, 4 + b])
+
+
+def fit_groups(src: np.ndarray, dst: np.ndarray, labels: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``fit_rigid`` of every group at once: the points with ``labels`` g (0 <= g < ``count``; -1: none) give
+    group g's (R, t), stacked as (count, 3, 3), (count, 3); a group of fewer than 3 points gets the identity."""
+    sums, cov = np.zeros((count, 7)), np.zeros((count, 3, 3))
+    _group_moments(src, dst, np.ascontiguousarray(labels, np.int64), count, sums, cov)
+    rotation = np.empty((count, 3, 3))
+    _horn_rotations(cov, rotation)
+    rotation[sums[:, 0] < 3] = np.eye(3)
+    cs, cd = sums[:, 1:4], sums[:, 4:7]
+    return rotation, cd - np.einsum("gij,gj->gi", rotation, cs)
+
+
+@njit(cache=True, nogil=True)
+def _horn_rotations(cov, out):  # pragma: no cover - compiled
+    for g in range(cov.shape[0]):
+        _horn_rotation(cov[g], out[g])
+
+
+@njit(cache=True, nogil=True)
+def _group_inliers(src, dst, scale, labels, rotation, translation, threshold, out):  # pragma: no cover - compiled
+    for i in range(labels.size):
+        g = labels[i]
+        if g < 0:
+            out[i] = False
+            continue
+        r2 = 0.0
+        for c in range(3):
+            d = src[i, 0] * rotation[g, c, 0] + src[i, 1] * rotation[g, c, 1] + src[i, 2] * rotation[g, c, 2]
+            d = d + translation[g, c] - dst[i, c]
+            r2 += d * d
+        out[i] = math.sqrt(r2) * scale[i] <= threshold
+
+
+def group_inliers(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, labels: np.ndarray, rotation: np.ndarray,
+                  translation: np.ndarray, threshold: float) -> np.ndarray:
+    """Per point, whether its group's transform (``fit_groups``'s stacks) moves ``src`` to ``dst`` within
+    ``threshold`` (residual times ``scale``, as ``robust_rigid`` counts inliers); False where ``labels`` < 0."""
+    out = np.empty(len(labels), bool)
+    _group_inliers(src, dst, scale, np.ascontiguousarray(labels, np.int64), np.ascontiguousarray(rotation),
+                   np.ascontiguousarray(translation), float(threshold), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _moving_points(depth, velocity, moving, width, k_inv, stride, now, speed, z, grid):  # pragma: no cover
+    for i in range(moving.size):
+        p = moving[i]
+        y = p // width
+        x = p - y * width
+        d = np.float64(depth[p])
+        u = x + 0.5
+        v = y + 0.5
+        for c in range(3):
+            now[i, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * d
+            speed[i, c] = velocity[p, c]
+        z[i] = d
+        grid[i] = y % stride == 0 and x % stride == 0
+
+
+def moving_points(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, intrinsics: np.ndarray,
+                  stride: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The moving pixels' points ``z K^-1 (u, v, 1)`` (M, 3), velocities (M, 3) (``velocity`` (H, W, 3) read
+    at ``moving``) and depths (M,), float64, and ``sample``: which of them lie on the grid of every
+    ``stride``-th row and column (indices into ``moving``). ``moving_points_reference`` is its numpy oracle."""
+    h, w = depth.shape
+    moving = np.ascontiguousarray(moving, np.int64)
+    now, speed, z = np.empty((moving.size, 3)), np.empty((moving.size, 3)), np.empty(moving.size)
+    grid = np.empty(moving.size, bool)
+    _moving_points(np.ascontiguousarray(depth).reshape(-1), np.ascontiguousarray(velocity).reshape(-1, 3), moving,
+                   w, np.linalg.inv(np.asarray(intrinsics, np.float64)), int(stride), now, speed, z, grid)
+    return now, speed, z, np.flatnonzero(grid)
+
+
+@njit(cache=True, nogil=True)
+def _scatter_rows(out, index, rows):  # pragma: no cover - compiled
+    for i in range(index.size):
+        for c in range(out.shape[1]):
+            out[index[i], c] = rows[i, c]
+
+
+def scatter_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
+    """``out[index] = rows`` for a (N, C) ``out`` and distinct ``index`` (numpy's row scatter, compiled)."""
+    _scatter_rows(out, np.ascontiguousarray(index, np.int64), np.ascontiguousarray(rows, out.dtype))
+
+
+def moving_points_reference(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, intrinsics: np.ndarray,
+                            stride: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``moving_points`` in numpy."""
+    w = depth.shape[1]
+    y, x = np.divmod(np.asarray(moving, np.int64), w)
+    z = depth.reshape(-1)[moving].astype(np.float64)
+    k_inv = np.linalg.inv(np.asarray(intrinsics, np.float64))
+    u, v = x + 0.5, y + 0.5
+    now = np.empty((moving.size, 3))
+    for c in range(3):
+        now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
+    speed = velocity.reshape(-1, 3)[moving].astype(np.float64)
+    return now, speed, z, np.flatnonzero((y % stride == 0) & (x % stride == 0))
 
 
 #: the steps (intervals after frame n) at which ``path_affine``'s parabola meets a path: the outer predicted frames of
@@ -357,7 +793,7 @@ def screw_coefficients(points: np.ndarray, twist: np.ndarray,
 
 
 def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray], seen: np.ndarray,
-                rotation: np.ndarray, translation: np.ndarray, scale: np.ndarray, rng: np.random.Generator, *,
+                rotation: np.ndarray, translation: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
                 threshold: float = 1.0, limit: float = 0.5):
     """One rigid part's path, from (a sample of) its points: (``affine``, ``predicted``). ``affine`` is the
     path's ``path_affine`` (V and A of any of the part's points); ``predicted`` (N, 3) is where the motion of
@@ -375,24 +811,54 @@ def part_motion(now: np.ndarray, then: np.ndarray, earlier: Optional[np.ndarray]
     if earlier is None or seen.sum() < max(3, len(now) // 2):
         return screw_affine(twist), None
     idx = np.flatnonzero(seen)
-    r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], rng, threshold=threshold,
+    r0, t0, fits = robust_rigid(earlier[idx], then[idx], scale[idx], key, threshold=threshold,
                                 guess=(rotation, translation))
     if fits.sum() < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
         return screw_affine(twist), None
     idx = idx[fits]
-    screw = transform_points(then, r0, t0)
-    # the spin path: the centre (of the seen points) moving on, the part turning about it by r0
-    c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
-    turned = transform_points(then - c1, r0, 2.0 * c1 - c0)
-    err_screw = np.linalg.norm(screw[idx] - now[idx], axis=-1).mean()
-    err_spin = np.linalg.norm(turned[idx] - now[idx], axis=-1).mean()
-    motion = np.linalg.norm(now[idx] - then[idx], axis=-1).mean()
+    # the screw continued, and the spin path: the centre (of the seen points) moving on, the part turning
+    # about it by r0; their mean errors against frame n over the seen points, and the mean motion
+    screw, turned, sums = np.empty((len(now), 3)), np.empty((len(now), 3)), np.zeros(9)
+    _continued_paths(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(then, np.float64),
+                     np.ascontiguousarray(earlier, np.float64), idx, np.ascontiguousarray(r0, np.float64),
+                     np.ascontiguousarray(t0, np.float64), screw, turned, sums)
+    err_screw, err_spin, motion = sums[:3]
+    c1, c0 = sums[3:6], sums[6:9]
     if err_screw <= err_spin:
         change = twist - se3_log(r0, t0) if err_screw <= limit * motion else None
         return screw_affine(twist, change), screw
     centre, centre_then = now.mean(axis=0), then.mean(axis=0)
     change = (centre - centre_then) - (c1 - c0) if err_spin <= limit * motion else None
     return spin_affine(rotation, centre, centre - centre_then, change), turned
+
+
+@njit(cache=True, nogil=True)
+def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pragma: no cover - compiled
+    """``part_motion``'s two paths of the interval before continued over the last one: ``screw`` = r0 then + t0,
+    ``turned`` = r0 (then - c1) + 2 c1 - c0 (c1, c0: the mean of ``then``, ``earlier`` over ``idx``); ``out``
+    = (mean |screw - now|, mean |turned - now|, mean |now - then| over ``idx``, c1, c0)."""
+    m = idx.size
+    for i in range(m):
+        for c in range(3):
+            out[3 + c] += then[idx[i], c] / m
+            out[6 + c] += earlier[idx[i], c] / m
+    for i in range(now.shape[0]):
+        for c in range(3):
+            screw[i, c] = r0[c, 0] * then[i, 0] + r0[c, 1] * then[i, 1] + r0[c, 2] * then[i, 2] + t0[c]
+            turned[i, c] = (r0[c, 0] * (then[i, 0] - out[3]) + r0[c, 1] * (then[i, 1] - out[4])
+                            + r0[c, 2] * (then[i, 2] - out[5]) + 2.0 * out[3 + c] - out[6 + c])
+    for i in range(m):
+        j = idx[i]
+        a = 0.0
+        b = 0.0
+        d = 0.0
+        for c in range(3):
+            a += (screw[j, c] - now[j, c]) ** 2
+            b += (turned[j, c] - now[j, c]) ** 2
+            d += (now[j, c] - then[j, c]) ** 2
+        out[0] += math.sqrt(a) / m
+        out[1] += math.sqrt(b) / m
+        out[2] += math.sqrt(d) / m
 
 
 @njit(cache=True, nogil=True)
@@ -443,6 +909,50 @@ def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: n
                  translations, table, float(focal), float(limit), count, out_v, out_a, regions)
 
 
+@njit(cache=True, nogil=True)
+def _vector_end(vectors, p, width):  # pragma: no cover - compiled
+    y = p // width
+    x = p - y * width
+    return x + 0.5 + np.float64(vectors[y, x, 0]), y + 0.5 + np.float64(vectors[y, x, 1])
+
+
+@njit(cache=True, nogil=True)
+def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth, out):  # pragma: no cover
+    """``refined_before`` compiled, point by point (``refined_before_reference`` states it)."""
+    w = vectors.shape[1]
+    ph, pw = prev_depth.shape
+    for i in range(moving.size):
+        qx, qy = _vector_end(vectors, moving[i], w)
+        for c in range(3):
+            out[i, c] = before[i, c]
+        fx, fy = qx - 0.5, qy - 0.5
+        x0, y0 = math.floor(fx), math.floor(fy)
+        if not (x0 >= 0 and x0 + 1 < pw and y0 >= 0 and y0 + 1 < ph):
+            continue
+        xi, yi = int(x0), int(y0)
+        ax, ay = fx - xi, fy - yi
+        bz = (before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2]
+              + relative[2, 3])
+        inverse = 0.0
+        ok = True
+        for corner in range(4):
+            dy, dx = corner // 2, corner % 2
+            weight = (ax if dx else 1.0 - ax) * (ay if dy else 1.0 - ay)
+            c = np.float64(prev_depth[yi + dy, xi + dx])
+            if not (np.isfinite(c) and max(c / bz, bz / c) <= smooth):
+                ok = False
+                break
+            inverse += weight / c
+        if not ok or not inverse > 0:
+            continue
+        depth = 1.0 / inverse
+        seen = np.empty(3)
+        for c in range(3):
+            seen[c] = (qx * k_inv[c, 0] + qy * k_inv[c, 1] + k_inv[c, 2]) * depth - relative[c, 3]
+        for c in range(3):  # R^T (p - t): frame n's axes
+            out[i, c] = seen[0] * relative[0, c] + seen[1] * relative[1, c] + seen[2] * relative[2, c]
+
+
 def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
                    prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *, smooth: float = 1.1) -> np.ndarray:
     """The moving points' positions at frame n-k (M, 3) with their depth read between frame n-k's pixels.
@@ -452,7 +962,91 @@ def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, 
     a rigid fit on a slanted face would see as a pixel of residual. Where the 4 pixels all lie within the ratio
     ``smooth`` of that depth (one smooth surface), the depth is instead their bilinear blend at q in inverse
     depth (exact on a plane); elsewhere (silhouettes, the frame's edge) ``before`` is kept. ``relative``: frame
-    n's camera -> frame n-k's camera (4x4)."""
+    n's camera -> frame n-k's camera (4x4). Compiled; ``refined_before_reference`` is its numpy oracle."""
+    out = np.empty((len(moving), 3))
+    _refined_before(np.ascontiguousarray(before, np.float64), np.ascontiguousarray(vectors),
+                    np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(relative, np.float64),
+                    np.ascontiguousarray(prev_depth),
+                    np.linalg.inv(np.asarray(prev_intrinsics, np.float64)), float(smooth), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velocity, interval_ratio, band,
+                        has_first, first_depth, first_k, view, check, earlier, valid):  # pragma: no cover
+    """``previous_positions`` compiled, point by point (``previous_positions_reference`` states it)."""
+    w = vectors.shape[1]
+    ph, pw = prev_depth.shape
+    fh, fw = first_depth.shape
+    for i in range(moving.size):
+        qx, qy = _vector_end(vectors, moving[i], w)
+        inside = qx >= 0 and qx < pw and qy >= 0 and qy < ph
+        xi = int(qx) if inside else 0
+        yi = int(qy) if inside else 0
+        bz = (before[i, 0] * relative[2, 0] + before[i, 1] * relative[2, 1] + before[i, 2] * relative[2, 2]
+              + relative[2, 3])
+        seen = np.float64(prev_depth[yi, xi])
+        ok = inside and bz > 0 and np.isfinite(seen) and max(seen / bz, bz / seen) <= band
+        for c in range(3):  # R^T v: frame n's axes
+            v = (np.float64(prev_velocity[yi, xi, 0]) * relative[0, c]
+                 + np.float64(prev_velocity[yi, xi, 1]) * relative[1, c]
+                 + np.float64(prev_velocity[yi, xi, 2]) * relative[2, c])
+            earlier[i, c] = before[i, c] - v * interval_ratio
+        if ok and has_first:
+            there = np.empty(3)
+            for c in range(3):
+                there[c] = (earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2]
+                            + view[c, 3])
+            ok = there[2] > 1e-9
+            if ok:
+                ax = first_k[0, 0] * there[0] / there[2] + first_k[0, 1] * there[1] / there[2] + first_k[0, 2]
+                ay = first_k[1, 1] * there[1] / there[2] + first_k[1, 2]
+                ok = np.isfinite(ax) and np.isfinite(ay) and ax >= 0 and ax < fw and ay >= 0 and ay < fh
+                if ok:
+                    seen0 = np.float64(first_depth[int(ay), int(ax)])
+                    ok = max(seen0 / there[2], there[2] / seen0) <= check
+        valid[i] = ok
+
+
+def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
+                       relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                       interval_ratio: float = 1.0, band: float = 1.5, first=None,
+                       check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
+    """Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
+    (positions (M, 3) float64, valid (M,) bool).
+
+    ``before`` (M, 3) are the points' positions at n-k (frame n's axes); frame n-k's velocity ``prev_velocity``
+    (its own camera axes, per its interval) is read at the pixel of frame n-k the vector lands in (nearest),
+    where that pixel shows the point (its depth within the ratio ``band`` of the point's depth there),
+    rotated into frame n's axes (``relative``: frame n's camera -> frame n-k's camera, 4x4) and scaled by
+    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen).
+    ``first`` = (depth (h, w), intrinsics, 4x4 frame n's camera -> frame n-2k's camera) checks each position
+    against frame n-2k itself: valid only where frame n-2k's depth at its pixel is within the ratio ``check``
+    of its depth there (frame n-k's velocity is a guess where frame n-2k did not see the point: a face
+    turning into view). Compiled; ``previous_positions_reference`` is its numpy oracle."""
+    sizes: dict = {}
+    checked_array(depth, "depth", ("H", "W"), sizes)
+    vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
+    prev_sizes: dict = {}
+    prev_depth = checked_array(prev_depth, "prev_depth", ("h", "w"), prev_sizes)
+    prev_velocity = checked_array(prev_velocity, "prev_velocity", ("h", "w", 3), prev_sizes)
+    relative = checked_matrix(relative, "relative", 4)
+    earlier, valid = np.empty((len(moving), 3)), np.empty(len(moving), bool)
+    has_first = first is not None
+    if not has_first:
+        first = (np.zeros((1, 1), np.float32), np.eye(3), np.eye(4))
+    _previous_positions(np.ascontiguousarray(vectors), np.ascontiguousarray(moving, np.int64),
+                        np.ascontiguousarray(before, np.float64), relative, np.ascontiguousarray(prev_depth),
+                        np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), has_first,
+                        np.ascontiguousarray(first[0], np.float32), np.asarray(first[1], np.float64),
+                        np.asarray(first[2], np.float64), float(check), earlier, valid)
+    return earlier, valid
+
+
+def refined_before_reference(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, relative: np.ndarray,
+                             prev_depth: np.ndarray, prev_intrinsics: np.ndarray, *,
+                             smooth: float = 1.1) -> np.ndarray:
+    """``refined_before`` in numpy, by arrays (the test oracle; that docstring states it)."""
     h, w = vectors.shape[:2]
     ph, pw = prev_depth.shape
     y, x = np.divmod(np.asarray(moving, np.int64), w)
@@ -479,22 +1073,11 @@ def refined_before(before: np.ndarray, vectors: np.ndarray, moving: np.ndarray, 
     return np.where(ok[:, None], back, before)
 
 
-def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
-                       relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
-                       interval_ratio: float = 1.0, band: float = 1.5, first=None,
-                       check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
-    """Each moving pixel's position one interval before frame n-k (at n-2k), in frame n's camera axes:
-    (positions (M, 3) float64, valid (M,) bool).
-
-    ``before`` (M, 3) are the points' positions at n-k (frame n's axes); frame n-k's velocity ``prev_velocity``
-    (its own camera axes, per its interval) is read at the pixel of frame n-k the vector lands in (nearest),
-    where that pixel shows the point (its depth within the ratio ``band`` of the point's depth there),
-    rotated into frame n's axes (``relative``: frame n's camera -> frame n-k's camera, 4x4) and scaled by
-    ``interval_ratio`` (the last interval over the one before); invalid elsewhere (unseen, off screen).
-    ``first`` = (depth (h, w), intrinsics, 4x4 frame n's camera -> frame n-2k's camera) checks each position
-    against frame n-2k itself: valid only where frame n-2k's depth at its pixel is within the ratio ``check``
-    of its depth there (frame n-k's velocity is a guess where frame n-2k did not see the point: a face
-    turning into view)."""
+def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarray, before: np.ndarray,
+                                 relative: np.ndarray, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                                 interval_ratio: float = 1.0, band: float = 1.5, first=None,
+                                 check: float = 1.05) -> tuple[np.ndarray, np.ndarray]:
+    """``previous_positions`` in numpy, by arrays (the test oracle; that docstring states it)."""
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
     vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
@@ -531,6 +1114,22 @@ def previous_positions(depth: np.ndarray, vectors: np.ndarray, moving: np.ndarra
     return earlier, valid
 
 
+def hindcast_errors(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """Per point, how far (frame n's pixels) ``predicted`` (M, 3) lands from where frame n shows it (``now``);
+    NaN where either is behind the camera."""
+    return np.linalg.norm(project_points(predicted, intrinsics) - project_points(now, intrinsics), axis=-1)
+
+
+def rigid_explains_better(now: np.ndarray, rigid: np.ndarray, linear: np.ndarray, valid: np.ndarray,
+                          intrinsics: np.ndarray) -> bool:
+    """Whether a rigid part's path, continued from the interval before (``rigid`` (N, 3): where it put the
+    part's points at frame n), explained the last interval at least as well as each point's own straight line
+    (``linear``), summed over the points ``valid`` then (pixels of frame n)."""
+    a, b = hindcast_errors(now, rigid, intrinsics), hindcast_errors(now, linear, intrinsics)
+    ok = valid & np.isfinite(a) & np.isfinite(b)
+    return bool(a[ok].sum() <= b[ok].sum())
+
+
 def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.ndarray, predicted: np.ndarray,
                    valid: np.ndarray, intrinsics: np.ndarray, *, ratio: float = 1.0,
                    min_share: float = 0.25) -> np.ndarray:
@@ -542,7 +1141,5 @@ def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.
     error exceeds ``ratio`` times the error of no object motion (the point left at ``before``: camera-only
     warp); a tie keeps it (an object that starts to move: neither explained the interval).
     Regions with fewer than ``min_share`` of their points valid have no evidence and keep their motion."""
-    at = project_points(now, intrinsics)
-    model = np.linalg.norm(project_points(predicted, intrinsics) - at, axis=-1)
-    still = np.linalg.norm(project_points(before, intrinsics) - at, axis=-1)
+    model, still = hindcast_errors(now, predicted, intrinsics), hindcast_errors(now, before, intrinsics)
     return region_keeps(regions, count, model, still, valid, ratio=ratio, min_share=min_share)

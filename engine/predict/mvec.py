@@ -12,10 +12,11 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
 3. ``acceleration`` (when frame n-2k was rendered and frame n-k came with its vectors, to n-2k): the
    change of each moving point's velocity since the interval before (``velocity_change``), kept only where
    it is small against the velocity (smooth motion; a bounce, start or stop keeps constant velocity);
-   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the moving pixels in
-   rigid parts, each part on the path (a screw, or a spin about its centre) that its last two intervals
-   support, written as each point's V and A; with ``fallback``, regions whose earlier motion did not
-   explain the last interval dropped (they take the camera-only warp);
+   ``rigid`` (with ``extrapolation=rigid`` or ``fallback``; ``engine.geometry.rigid``): the
+   moving pixels in rigid parts, each part on the path (a screw, or a spin about its centre) that its last
+   two intervals support, where that path explained the last interval at least as well as the points' own
+   lines (with two frames: the lines), written as each point's V and A; with ``fallback``, regions whose
+   earlier motion did not explain the last interval dropped (they take the camera-only warp);
 4. ``render``: ``P(n + k') = P(n) + s V + s (s + 1) / 2 A`` with s = k'/k from the frame times
    (``extrapolation_factor``): constant velocity, or the parabola through the last three positions, in 3D,
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
@@ -37,8 +38,9 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, part_motion,
-                                   previous_positions, refined_before, rigid_parts, rotation_log)
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
+                                   previous_positions, refined_before, rigid_explains_better, rigid_parts, rotation_log,
+                                   scatter_rows)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -72,7 +74,7 @@ class MvecConfig:
                                             "smooth motion (larger: constant velocity)")
     extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
                                           "pixels grouped into rigid parts by their 3D motion, each part turned "
-                                          "and moved on a screw (constant angular and linear velocity)")
+                                          "and moved on a screw or a spin where the interval before supports it")
     grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
                                      "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
                                      "object ids, channel object_id, where the renderer gives them; motion where not)")
@@ -176,7 +178,7 @@ class Mvec(Predictor):
                                                         band=cfg.depth_band, limit=cfg.acceleration_limit)
         if moving.size:
             motion = PointMotion(velocity, moving, data.acceleration)
-            if cfg.extrapolation == "rigid" or (cfg.fallback and before is not None):
+            if before is not None and (cfg.extrapolation == "rigid" or cfg.fallback):  # else: nothing to decide
                 with timer("rigid"):
                     motion = self._shaped(state.history, vectors, data, before)
             if motion.moving.size:
@@ -197,49 +199,39 @@ class Mvec(Predictor):
         return before, (newest.time - older.time) / (older.time - first.time)
 
     def _shaped(self, history, vectors: np.ndarray, data: MvecState,
-                before: Optional[tuple[np.ndarray, float]]) -> PointMotion:
+                before: tuple[np.ndarray, float]) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
         the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
         the screw, or the spin about the part's centre where the interval before says so, with its change
-        where the three frames agree); the others keep their line or parabola. With ``fallback`` (and frame
-        n-2k), each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
+        where the three frames agree) where that path explained the last interval at least as well as the
+        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
         the interval before, continued, explained the last interval worse than ``fallback_ratio`` times no
-        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample."""
+        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample. Needs
+        frame n-2k (``before``: frame n-k's velocity and the ratio of the intervals, ``_before``)."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)
         moving = data.moving
         h, w = newest.depth.shape
-        y, x = np.divmod(moving, w)
-        z = newest.depth.reshape(-1)[moving].astype(np.float64)
-        k_inv = np.linalg.inv(k)
-        u, v = x + 0.5, y + 0.5
-        now = np.empty((moving.size, 3))
-        for c in range(3):  # z K^-1 (u, v, 1)
-            now[:, c] = (k_inv[c, 0] * u + k_inv[c, 1] * v + k_inv[c, 2]) * z
-        measured = data.velocity.reshape(-1, 3)[moving]
-        speed = measured.astype(np.float64)
+        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
+        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
+        now, speed, z, sample = moving_points(newest.depth, data.velocity, moving, k, stride)
         if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
             _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
             labels = labels.astype(np.int64).reshape(-1)
             count = int(labels.max()) + 1
         else:
             labels, count = motion_components((h, w), moving, now, speed)
-        # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
-        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
-        sample = np.flatnonzero((y % stride == 0) & (x % stride == 0)) if stride > 1 else np.arange(moving.size)
         now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
         relative = older.camera.world_to_camera @ newest.camera.camera_to_world
-        earlier = valid = predicted = None
-        if before is not None:
-            first = history[-3]
-            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
-                                                before[0], before[1], band=cfg.depth_band,
-                                                first=(first.depth, first.camera.intrinsics,
-                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
-            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-        out_v = measured  # a copy (fancy indexing): written in place
-        out_a = (np.zeros_like(measured) if data.acceleration is None
+        first = history[-3]
+        earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
+                                            before[0], before[1], band=cfg.depth_band,
+                                            first=(first.depth, first.camera.intrinsics,
+                                                   first.camera.world_to_camera @ newest.camera.camera_to_world))
+        predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+        out_v = speed.astype(np.float32)  # written in place
+        out_a = (np.zeros_like(out_v) if data.acceleration is None
                  else np.array(data.acceleration, dtype=np.float32))
         regions = labels.copy()
         parts = []
@@ -248,31 +240,35 @@ class Mvec(Predictor):
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-            rng = np.random.default_rng(0)
-            affines = []
-            for part in parts:
+            kept, affines = [], []
+            for j, part in enumerate(parts):
                 m = part.members
-                affine, hindcast = part_motion(now_s[m], fitted[m], None if earlier is None else earlier[m],
-                                               np.zeros(m.size, bool) if valid is None else valid[m], part.rotation,
-                                               part.translation, scale_s[m], rng, threshold=cfg.rigid_threshold,
+                affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
+                                               part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
                                                limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                # a part takes its path only where that path, continued from the interval before, explained the
+                # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
+                # too few points seen at n-2k to tell): its pixels keep their lines otherwise
+                if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
+                    continue
+                predicted[m] = hindcast
+                kept.append(part)
                 affines.append(affine)
-                if hindcast is not None:
-                    predicted[m] = hindcast
+            parts = kept
             # every pixel of a part's group that the part's transform explains takes its path (the sample's
             # depths were read between pixels, the others' at one: a looser threshold)
             apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,
                         regions)
         data.parts = len(parts)
         keep = np.ones(moving.size, dtype=bool)
-        if cfg.fallback and earlier is not None:
+        if cfg.fallback:
             keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())
         if data.held:
             moving, out_v, out_a = moving[keep], out_v[keep], out_a[keep]
         velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
-        velocity.reshape(-1, 3)[moving] = out_v
+        scatter_rows(velocity.reshape(-1, 3), moving, out_v)
         return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:

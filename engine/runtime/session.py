@@ -146,6 +146,19 @@ class NotReadyError(InterleaveError):
     """``predict`` was called before any frame was submitted (or right after ``reset``)."""
 
 
+def _object_ids(object_ids: object, size: tuple[int, int], flip_rows: bool) -> np.ndarray:
+    """A submitted object id buffer as the frame's ``object_id`` ((H, W) int32, a copy); InputError unless
+    (H, W) non-negative integers."""
+    ids = np.asarray(object_ids)
+    if ids.shape != size:
+        raise InputError(f"must have shape (H, W) = {size}, got {ids.shape}", field="object_ids")
+    if ids.dtype.kind not in "iuf" or (ids.dtype.kind == "f" and not np.all(np.isfinite(ids))):
+        raise InputError(f"must hold non-negative integers, got dtype {ids.dtype}", field="object_ids")
+    if np.any(ids < 0) or np.any(ids != np.round(ids)) or np.any(ids > np.iinfo(np.int32).max):
+        raise InputError("must hold non-negative integers (0: static background)", field="object_ids")
+    return np.ascontiguousarray(ids[::-1] if flip_rows else ids, dtype=np.int32)
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """How the game hands over its frames and what it wants back. Checked when created."""
@@ -535,7 +548,7 @@ class Session:
 
     def submit(self, color: object, depth: object, view: object, projection: object, time: float, *,
                frame: Optional[int] = None, copy: bool = False, motion_vectors: object = None,
-               motion_valid: object = None) -> SubmitResult:
+               motion_valid: object = None, object_ids: object = None) -> SubmitResult:
         """Hand over one rendered frame.
 
         Args:
@@ -549,6 +562,9 @@ class Session:
                 submitted frame: (h, w, 2..4) float, h <= H, w <= W, in ``config.motion_conventions()``
                 (module docstring); NaN = no vector. Dropped when the history restarts at this frame.
             motion_valid: optional (h, w) bool mask of the pixels that have a vector (False -> NaN).
+            object_ids: optional (H, W) non-negative integer ids of the object seen at each pixel (0: static
+                background; rows as ``color``'s): ``mvec[grouping=ids]`` fits its rigid parts per object
+                (``docs/motion-vectors.md``). Always copied.
 
         Returns:
             a :class:`SubmitResult`. Raises InputError (naming the frame, the field and the time) for bad
@@ -586,6 +602,7 @@ class Session:
                 vectors = engine_vectors(motion_vectors, motion_valid, motion, size, self.config.flip_rows, label)
             elif motion_valid is not None:
                 raise InputError("is given without motion_vectors", field="motion_valid")
+            ids = None if object_ids is None else _object_ids(object_ids, size, self.config.flip_rows)
         except InputError as exc:
             raise _located(exc, label, time, "submitted frame") from None
         scene_depth = _scene_depth(planar)
@@ -609,7 +626,7 @@ class Session:
                 except InputError as exc:
                     raise _located(exc, label, time, "submitted frame") from None
             new = Frame(index=number, time=float(time), color=linear, depth=planar, camera=camera,
-                        motion_vectors=kept, color_codes=codes)
+                        motion_vectors=kept, color_codes=codes, object_id=ids)
             predictor = None if self._auto is None else self._auto[kept is not None]
             try:  # a predictor that refuses the frames (mvec without vectors) leaves the history as it was
                 frames = self._loop.submit(new, restart=reset is not None, predictor=predictor).frames

@@ -400,3 +400,87 @@ def test_bad_codes_are_refused():
         with pytest.raises(InputError) as err:
             gl.upload_codes(codes, depth)
         assert err.value.field == field
+
+
+@pytest.mark.parametrize("moved", ["none", "flow", "motion"])
+def test_the_binned_and_atomic_splats_warp_a_frame_to_the_same_bits(moved):
+    """GlFrameWarper's two splats (engine.geometry.backends.gl.splat.SPLATS) on the frame path: the same warped
+    colour, depth and holes, and so the same filled frame, bit for bit (sky, flow scaled on the GPU, motion
+    extrapolated on the GPU)."""
+    rng = np.random.default_rng(["none", "flow", "motion"].index(moved))
+    h, w = 72, 100
+    color, depth = random_scene(rng, h, w, sky=0.2, boxes=6)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.04, shift=0.15)
+    flow = (rng.normal(0, 2.0, (h, w, 3)) * [1.0, 1.0, 0.05]).astype(np.float32)
+    moving = np.arange(0, h * w, 3)
+    velocity = rng.normal(0, 0.05, (moving.size, 3)).astype(np.float32)
+    results = []
+    for splat in ("binned", "atomic"):
+        gl = glb.GlFrameWarper(splat=splat)
+        kwargs: dict = {}
+        if moved == "flow":
+            kwargs = {"flow": gl.upload_flow(flow), "flow_scale": -1.5}
+        elif moved == "motion":
+            kwargs = {"motion": gl.upload_motion((h, w), moving, velocity), "flow_scale": 0.5}
+        image = gl.upload(color, depth)
+        out, holes, filled_depth = gl.warp_and_fill(image, k, t_src, k, t_dst, with_depth=True, **kwargs)
+        results.append((out, holes, filled_depth))
+        gl.release()
+    (a, a_holes, a_depth), (b, b_holes, b_depth) = results
+    np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32))
+    np.testing.assert_array_equal(a_depth.view(np.uint32), b_depth.view(np.uint32))
+    np.testing.assert_array_equal(a_holes, b_holes)
+    assert 0.0 < a_holes.mean() < 0.5
+
+
+@pytest.mark.parametrize("size", [(29, 37), (64, 96)])
+def test_the_hole_mask_is_written_whole_without_a_clear(size):
+    """fill_apply writes every word of the packed hole mask from its workgroup's shared copy (no clear before):
+    a warp with few holes after one that is almost all hole, on the same warper, leaves no stale bit, and the
+    mask of the pixels past the last (the last word's high bits) is zero."""
+    h, w = size
+    rng = np.random.default_rng(h)
+    color, depth = random_scene(rng, h, w, sky=0.0)
+    k, t_src, t_dst = moving_cameras(rng, h, w, angle=0.02, shift=0.05)
+    away = np.eye(4)
+    away[:3, 3] = (0.0, 0.0, -50.0)  # the camera turned into a point behind it: every pixel a hole
+    gl = glb.GlFrameWarper()
+    image = gl.upload(color, depth)
+    _, holes_away = gl.warp_and_fill(image, k, np.eye(4), k, away)
+    assert holes_away.all()
+    _, holes = gl.warp_and_fill(image, k, t_src, k, t_dst)
+    np.testing.assert_array_equal(holes, cpu_warp_and_fill(color, depth, k, t_src, t_dst)[1])
+    assert 0.0 < holes.mean() < 0.2
+    prediction = gl.warp_and_fill(image, k, t_src, k, t_dst, readback=False)
+    mask = np.empty(-(-h * w // 32), np.uint32)
+    gl.gl.call(lambda: prediction.holes.read_into(mask, size=mask.nbytes))
+    assert np.unpackbits(mask.view(np.uint8), bitorder="little")[h * w:].sum() == 0
+    gl.release()
+
+
+@pytest.mark.parametrize("splat", glb.splat.SPLATS)
+def test_pass_timing_names_every_pass_of_a_warp(splat):
+    """GlContext.pass_timing (tools.profile_gl_passes, tools.bench_gl_warp) counts each dispatch of a warp under
+    its pass: the splat's passes and the fill's, once each, with their times (GPU ms, or on a software renderer
+    the clock ms of each pass, > 0)."""
+    from engine.geometry.backends.gl.splat import BINNED_PASSES, SPLAT_PASSES
+
+    rng = np.random.default_rng(3)
+    h, w = 40, 60
+    color, depth = random_scene(rng, h, w)
+    k, t_src, t_dst = moving_cameras(rng, h, w)
+    gl = glb.GlFrameWarper(splat=splat)
+    image = gl.upload(color, depth)
+    gl.warp_and_fill(image, k, t_src, k, t_dst)
+    passes: dict = {}
+    with gl.gl.pass_timing(passes):
+        gl.warp_and_fill(image, k, t_src, k, t_dst)
+    splat_passes = BINNED_PASSES if splat == "binned" else SPLAT_PASSES + ("splat_resolve",)
+    expected = {name: 1 for name in splat_passes + ("fill_rows", "fill_links", "fill_apply")}
+    if splat == "atomic":
+        expected["clear_words"] = 2  # its keys and sums
+    assert {name: calls for name, (calls, _) in passes.items()} == expected
+    assert all(ms >= 0.0 for _, ms in passes.values())
+    if gl.gl.software:
+        assert all(ms > 0.0 for _, ms in passes.values())
+    gl.release()

@@ -16,6 +16,8 @@ from engine.predict import Mvec, MvecConfig, Reproject, Target, make_predictor
 from tests.synthetic import rigid, rotation, two_layer_sequence, with_vectors
 
 SIZE = (64, 96)  # (H, W)
+#: the motion before issue 42's defaults: each pixel on its line, no fall-back
+LINEAR = MvecConfig(extrapolation="linear", fallback=False)
 FOCAL = 80.0
 SQUARE_Z = 4.0
 BACKGROUND_Z = 12.0
@@ -108,7 +110,7 @@ def test_robust_rigid_recovers_a_turn_through_outliers():
     r, t = rotation((0.2, 1.0, 0.3), np.radians(14.0)), np.array([0.3, -0.1, 0.2])
     dst = src @ r.T + t
     dst[:100] += rng.normal(0, 0.3, (100, 3))  # a quarter of the points are wrong
-    rot, trans, inliers = rg.robust_rigid(src, dst, np.full(400, 100.0), rng)
+    rot, trans, inliers = rg.robust_rigid(src, dst, np.full(400, 100.0), (1,))
     np.testing.assert_allclose(rot, r, atol=1e-6)
     np.testing.assert_allclose(trans, t, atol=1e-6)
     assert inliers[100:].all() and inliers[:100].mean() < 0.1
@@ -168,6 +170,114 @@ def test_a_non_rigid_field_has_no_rigid_part():
     assert sum(p.members.size for p in parts) < 0.5 * len(now)
 
 
+def test_the_batched_fits_match_the_per_group_ones():
+    # Horn's quaternion fit (compiled) against the SVD Kabsch, then the batched parts against the loop over groups
+    rng = np.random.default_rng(5)
+    for n in (3, 4, 20, 300):
+        src = rng.normal(size=(n, 3)) + (0, 0, 5)
+        r, t = rotation(rng.normal(size=3), rng.uniform(0.0, 3.0)), rng.normal(size=3)
+        dst = src @ r.T + t + rng.normal(0, 0.05, (n, 3))
+        (r_many, t_many), (r_one, t_one) = rg._fit_many(src[None], dst[None]), rg.fit_rigid(src, dst)
+        np.testing.assert_allclose(r_many[0], r_one, atol=1e-10)
+        np.testing.assert_allclose(t_many[0], t_one, atol=1e-10)
+    # groups: clean turns, one with a third of outliers (its least-squares fit fails: sampled), one of two bodies
+    # (two parts), one too small, one with no rigid motion (no part)
+    labels, src, dst = [], [], []
+    for g, (size, wrong, split) in enumerate([(400, 0.0, False), (600, 0.35, False), (500, 0.0, True), (5, 0.0, False),
+                                              (300, 1.0, False), (350, 0.1, False)]):
+        points = rng.uniform(-1, 1, (size, 3)) + (0, 0, 5)
+        moved = points @ rotation(rng.normal(size=3), np.radians(12.0)).T + rng.normal(0, 0.2, 3)
+        if split:
+            moved[size // 2:] = points[size // 2:] @ rotation(rng.normal(size=3), 0.3).T + (0.2, 0.1, 0.0)
+        bad = rng.random(size) < wrong
+        moved[bad] += rng.normal(0, 0.3, (bad.sum(), 3))
+        labels.append(np.full(size, g)), src.append(points), dst.append(moved)
+    labels, src, dst = np.concatenate(labels), np.concatenate(src), np.concatenate(dst)
+    order = rng.permutation(len(labels))  # the groups interleaved, as pixels are
+    labels, src, dst = labels[order], src[order], dst[order]
+    scale = np.full(len(labels), 100.0)
+    fast = rg.rigid_parts(labels, 6, dst, src, scale)
+    slow = rg.rigid_parts_reference(labels, 6, dst, src, scale)
+    assert [p.group for p in fast] == [p.group for p in slow] == [0, 1, 2, 2, 5]
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a.members, b.members)
+        np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-9)
+        np.testing.assert_allclose(a.translation, b.translation, atol=1e-9)
+
+
+def test_motion_components_match_the_indexed_reference():
+    # random moving masks (holes, row ends, frame edges) with bodies of unlike motion and depth steps
+    rng = np.random.default_rng(4)
+    h, w = SIZE
+    for share in (0.3, 0.7, 1.0):
+        moving = np.flatnonzero(rng.random(SIZE) < share)
+        y, x = np.divmod(moving, w)
+        z = np.where(x < w // 2, 4.0, 4.0 * rng.choice([1.05, 1.2], size=moving.size))
+        points = np.stack([(x - w / 2) / FOCAL * z, (y - h / 2) / FOCAL * z, z], axis=-1)
+        velocity = np.where((y < h // 2)[:, None], (0.02, 0.0, 0.0), (0.0, 0.03, 0.01))
+        velocity = velocity + rng.normal(0, 0.004, velocity.shape) * (rng.random(moving.size) < 0.2)[:, None]
+        labels, count = rg.motion_components(SIZE, moving, points, velocity)
+        ref_labels, ref_count = rg.motion_components_reference(SIZE, moving, points, velocity)
+        assert count == ref_count > 2
+        np.testing.assert_array_equal(labels, ref_labels)
+
+
+def test_previous_positions_and_refined_depths_match_their_numpy_references():
+    rng = np.random.default_rng(8)
+    h, w = SIZE
+    k = _k()
+    v, u = np.mgrid[0:h, 0:w]
+    plane = (4.0 + 0.01 * u + 0.02 * v).astype(np.float32)  # a slanted wall: smooth between pixels
+    rough = np.where(rng.random(SIZE) < 0.2, plane * 1.3, plane).astype(np.float32)  # with steps
+    rough[rng.random(SIZE) < 0.05] = np.inf  # and sky
+    vectors = rng.normal(0, 4, SIZE + (2,)).astype(np.float32)  # some ends leave the frame
+    prev_velocity = rng.normal(0, 0.05, SIZE + (3,)).astype(np.float32)
+    moving = np.flatnonzero(rng.random(SIZE) < 0.4)
+    y, x = np.divmod(moving, w)
+    before = np.stack([(x + 0.5 - k[0, 2]) / FOCAL, (y + 0.5 - k[1, 2]) / FOCAL, np.ones(moving.size)], -1)
+    before *= plane.reshape(-1)[moving, None] * rng.uniform(0.97, 1.03, (moving.size, 1))
+    relative = rigid((0.1, 1.0, 0.2), 0.02, (0.03, -0.01, 0.02))
+    view = rigid((0.0, 1.0, 0.1), 0.04, (0.05, 0.0, 0.03))
+    for prev_depth in (plane, rough):
+        for first in (None, (rough, k, view)):
+            args = (plane, vectors, moving, before, relative, prev_depth, prev_velocity, 1.25)
+            earlier, valid = rg.previous_positions(*args, first=first)
+            ref_earlier, ref_valid = rg.previous_positions_reference(*args, first=first)
+            assert 0.05 < valid.mean() < 0.95
+            np.testing.assert_array_equal(valid, ref_valid)
+            np.testing.assert_allclose(earlier, ref_earlier, rtol=0, atol=1e-12)
+        refined = rg.refined_before(before, vectors, moving, relative, prev_depth, k)
+        assert (refined != before).any(axis=1).mean() > 0.2
+        np.testing.assert_allclose(refined, rg.refined_before_reference(before, vectors, moving, relative,
+                                                                       prev_depth, k), rtol=0, atol=1e-12)
+
+
+def test_the_continued_paths_match_numpy():
+    rng = np.random.default_rng(6)
+    now, then, earlier = (rng.normal(size=(50, 3)) for _ in range(3))
+    idx = np.sort(rng.choice(50, 30, replace=False))
+    r0, t0 = rotation(rng.normal(size=3), 0.3), rng.normal(size=3)
+    screw, turned, sums = np.empty((50, 3)), np.empty((50, 3)), np.zeros(9)
+    rg._continued_paths(now, then, earlier, idx, r0, t0, screw, turned, sums)
+    c1, c0 = then[idx].mean(axis=0), earlier[idx].mean(axis=0)
+    np.testing.assert_allclose(screw, then @ r0.T + t0, atol=1e-12)
+    np.testing.assert_allclose(turned, (then - c1) @ r0.T + 2 * c1 - c0, atol=1e-12)
+    np.testing.assert_allclose(sums, [np.linalg.norm(screw[idx] - now[idx], axis=-1).mean(),
+                                      np.linalg.norm(turned[idx] - now[idx], axis=-1).mean(),
+                                      np.linalg.norm(now[idx] - then[idx], axis=-1).mean(), *c1, *c0], atol=1e-12)
+
+
+def test_moving_points_match_their_numpy_reference():
+    rng = np.random.default_rng(2)
+    depth = rng.uniform(1.0, 9.0, SIZE).astype(np.float32)
+    velocity = rng.normal(size=SIZE + (3,)).astype(np.float32)
+    moving = np.flatnonzero(rng.random(SIZE) < 0.3)
+    for stride in (1, 3):
+        for a, b in zip(rg.moving_points(depth, velocity, moving, _k(), stride),
+                        rg.moving_points_reference(depth, velocity, moving, _k(), stride)):
+            np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
+
+
 def test_motion_components_split_at_depth_edges_and_unlike_motion():
     h, w = SIZE
     moving, now, _ = _grid_points(lambda p: np.zeros_like(p))
@@ -189,34 +299,44 @@ def test_motion_components_split_at_depth_edges_and_unlike_motion():
 
 @pytest.mark.parametrize("k", [2, 4])
 def test_rigid_extrapolation_follows_a_spin_about_an_off_centre_axis(k):
-    angles = [np.radians(10.0) * i for i in range(2 * k + 1)]  # 10 degrees a frame
+    angles = [np.radians(10.0) * i for i in range(3 * k + 1)]  # 10 degrees a frame
     frames, objects = spinning_square(angles)
-    history = _history(frames, objects, [0, k])
+    history = _history(frames, objects, [0, k, 2 * k])
     rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
-    linear_state = Mvec().prepare(history)
+    linear_state = Mvec(LINEAR).prepare(history)
     assert rigid_state.data.parts == 1
     moving = history[-1].moving
-    interior = moving.copy()
-    interior[[0, -1], :] = interior[:, [0, -1]] = False
     for step in range(1, k):
-        truth = _true_flow(history[-1], objects, k + step)
+        truth = _true_flow(history[-1], objects, 2 * k + step)
         mine = _flow(rigid_state, history[-1], step / k)
         straight = _flow(linear_state, history[-1], step / k)
-        err = np.linalg.norm(mine - truth, axis=-1)[moving]
-        assert np.median(err) < 0.05 and err.max() < 0.5
+        err = np.linalg.norm(mine - truth, axis=-1)[moving]  # a few silhouette pixels n-2k did not see: lines
+        assert np.median(err) < 0.1 and np.percentile(err, 99) < 0.5
         assert np.median(np.linalg.norm(straight - truth, axis=-1)[moving]) > 4 * max(np.median(err), 0.01)
     # and the picture: closer to the truth than the straight lines
-    target = Target(frames[k + k // 2].camera, frames[k + k // 2].time, k + k // 2)
-    truth = frames[k + k // 2].color
+    target = Target(frames[2 * k + k // 2].camera, frames[2 * k + k // 2].time, 2 * k + k // 2)
+    truth = frames[2 * k + k // 2].color
     ours = Mvec(MvecConfig(extrapolation="rigid")).predict(history, target).color
-    straight = Mvec().predict(history, target).color
+    straight = Mvec(LINEAR).predict(history, target).color
     assert np.abs(ours - truth).mean() < np.abs(straight - truth).mean()
+
+
+def test_a_rigid_path_needs_the_interval_before_to_support_it():
+    # two frames: no evidence that the turn is steady (a tumbling throw and an aliased fast spin look alike),
+    # so the pixels keep their lines; with frame n-2k the steady turn explains the last interval: a part
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    two = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [2, 4]))
+    linear = Mvec(LINEAR).prepare(_history(frames, objects, [2, 4]))
+    assert two.data.parts == 0
+    np.testing.assert_array_equal(_flow(two, frames[4], 0.5), _flow(linear, frames[4], 0.5))
+    three = Mvec(MvecConfig(extrapolation="rigid")).prepare(_history(frames, objects, [0, 2, 4]))
+    assert three.data.parts == 1
 
 
 def test_object_ids_make_the_groups_when_asked():
     # one spinning square whose halves carry two ids: by motion it is one part, by ids two (each half a part)
-    frames, objects = spinning_square([np.radians(10.0) * i for i in range(5)])
-    history = _history(frames, objects, [0, 2])
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    history = _history(frames, objects, [0, 2, 4])
     half = np.zeros(SIZE, bool)
     half[:, SIZE[1] // 2:] = True
     newest = history[-1]
@@ -225,7 +345,7 @@ def test_object_ids_make_the_groups_when_asked():
     by_ids = Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history)
     assert by_motion.data.parts == 1 and by_ids.data.parts == 2
     # both halves turn with the square: the same motion either way
-    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.02)
+    np.testing.assert_allclose(_flow(by_ids, history[-1], 0.5), _flow(by_motion, history[-1], 0.5), atol=0.15)
     # a frame without ids: grouped by motion
     history[-1] = dataclasses.replace(newest, object_id=None)
     assert Mvec(MvecConfig(extrapolation="rigid", grouping="ids")).prepare(history).data.parts == 1
@@ -235,7 +355,7 @@ def test_a_drifting_square_without_turn_is_extrapolated_as_before():
     frames, objects = two_layer_sequence(9, width=96, height=64, camera_speed=0.03, object_speed=0.1)
     history = [frames[0], with_vectors(frames, objects, 0, 4)]
     rigid_state = Mvec(MvecConfig(extrapolation="rigid")).prepare(history)
-    linear_state = Mvec().prepare(history)
+    linear_state = Mvec(LINEAR).prepare(history)
     for step in (0.25, 0.5, 0.75):
         np.testing.assert_allclose(_flow(rigid_state, history[-1], step), _flow(linear_state, history[-1], step),
                                    atol=2e-3)
@@ -275,7 +395,7 @@ def test_a_bounce_or_a_stop_falls_back_to_reprojection(case, extrapolation):
     np.testing.assert_array_equal(Mvec(config).predict(history, target).color,
                                   Reproject().predict(history, target).color)
     # without the fall-back the old motion carries on
-    assert Mvec(MvecConfig(extrapolation=extrapolation)).prepare(history).data.motion is not None
+    assert Mvec(MvecConfig(extrapolation=extrapolation, fallback=False)).prepare(history).data.motion is not None
 
 
 def test_a_spin_reversal_falls_back_and_a_steady_spin_does_not():
@@ -324,3 +444,37 @@ def test_on_gl_the_rigid_motion_and_the_fall_back_predict_what_the_cpu_predicts(
         assert "motion" in b.gpu_ms
         close = (np.abs(a.color - b.color) <= 1e-3 * np.maximum(1.0, np.abs(a.color))).all(axis=-1)
         assert close.mean() >= 0.995 and np.mean(a.holes == b.holes) >= 0.999
+
+
+# ---------------------------------------------------------------------------------------------------------
+# object ids through the Session
+# ---------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("flip_rows", [False, True])
+def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
+    from engine.runtime.session import Session, SessionConfig
+
+    frames, objects = spinning_square([np.radians(10.0) * i for i in range(7)])
+    history = _history(frames, objects, [0, 2, 4])
+    half = np.zeros(SIZE, bool)
+    half[:, SIZE[1] // 2:] = True
+    h, w = SIZE
+    parts = {}
+    for grouping in ("motion", "ids"):
+        method = f"mvec[extrapolation=rigid,grouping={grouping}]"
+        session = Session(SessionConfig(engine="opencv", width=w, height=h, method=method, flip_rows=flip_rows))
+        for i, f in enumerate(history):
+            ids = np.where(f.moving, 1 + half, 0)
+            rows = (lambda a: a[::-1]) if flip_rows else (lambda a: a)
+            session.submit(rows(f.color), rows(f.depth), f.camera.world_to_camera, f.camera.intrinsics, f.time,
+                           motion_vectors=None if i == 0 else rows(f.motion_vectors),
+                           object_ids=rows(ids))
+        prepared = session._loop.prepared
+        np.testing.assert_array_equal(prepared.frames[-1].object_id, np.where(history[-1].moving, 1 + half, 0))
+        parts[grouping] = prepared.state.data.parts
+    assert parts == {"motion": 1, "ids": 2}
+    with pytest.raises(InputError) as err:
+        session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=-np.ones(SIZE))
+    assert err.value.field == "object_ids"
+    with pytest.raises(InputError):
+        session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))

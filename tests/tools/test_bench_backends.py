@@ -1,11 +1,13 @@
 """``tools.bench_backends`` (cpu and gl side by side), ``tools.profile_gl_passes`` (GPU time per pass),
-``tools.profile_gl_flow`` (the GPU's flow alone) and ``tools.bench_torch_networks`` (the networks in torch)."""
+``tools.bench_gl_warp`` (the GL splats side by side), ``tools.profile_gl_flow`` (the GPU's flow alone) and
+``tools.bench_torch_networks`` (the networks in torch)."""
 import json
 
 import pytest
 import torch
 
-from tools import bench_backends, bench_torch_networks, profile_gl_flow, profile_gl_passes
+from engine.geometry.backends.gl.splat import BINNED_PASSES, SPLAT_PASSES, SPLATS, splat_bytes
+from tools import bench_backends, bench_gl_warp, bench_torch_networks, profile_gl_flow, profile_gl_passes
 
 
 def _run_gl_tool(main, tmp_path, size_flag: str, repeats: str, *extra: str) -> dict:
@@ -49,11 +51,10 @@ def test_profile_counts_every_pass_of_a_frame(tmp_path):
 
     doc = _run_gl_tool(profile_gl_passes.main, tmp_path, "--size", "2")
     passes = doc["methods"]["reproject"]["passes"]
-    # per predicted frame: the splat's four passes, the fill's three, and its clears (keys, sums, mask)
-    for name in ("splat_range", "splat_key", "splat_accumulate", "splat_resolve", "fill_rows", "fill_links",
-                 "fill_apply"):
-        assert passes[name][0] == 1.0 and passes[name][1] >= 0.0
-    assert passes["clear_words"][0] == 3.0
+    # per predicted frame: the binned splat's five passes and the fill's three, and nothing cleared
+    assert set(passes) == set(BINNED_PASSES) | {"fill_rows", "fill_links", "fill_apply"}
+    for calls, ms in passes.values():
+        assert calls == 1.0 and ms >= 0.0
     assert "motion_extrapolate" in doc["methods"]["mvec"]["passes"]
     # stage timing works again afterwards (pass timing turned the stage queries off only while it ran)
     gl = glb.shared_context()
@@ -68,24 +69,78 @@ def test_profile_counts_every_pass_of_a_frame(tmp_path):
     assert "probe" in stages
 
 
-def test_profile_gl_flow_times_both_searches_and_compares_their_flows(tmp_path):
+def test_bench_gl_warp_runs_both_splats_at_each_size_with_the_same_bits(tmp_path):
     from engine.geometry.backends import gl as glb
+
+    if not glb.available():
+        pytest.skip("no EGL context with compute shaders")
+    out = tmp_path / "warp.json"
+    bench_gl_warp.main(["--sizes", "96x64,120x90", "--frames", "4", "--repeats", "1", "--out",
+                        str(tmp_path / "scenes"), "--json", str(out)])
+    doc = json.loads(out.read_text())
+    runs = {(tuple(r["size"]), r["case"], r["splat"]): r for r in doc["runs"]}
+    assert set(runs) == {(size, case, splat) for size in ((96, 64), (120, 90)) for case in bench_gl_warp.CASES
+                         for splat in SPLATS}
+    for (size, _, splat), r in runs.items():
+        assert r["max_diff_from_atomic"] == 0.0 and r["wall_ms"] > 0 and r["splat_wall_ms"] > 0
+        names = BINNED_PASSES if splat == "binned" else SPLAT_PASSES + ("splat_resolve",)
+        assert set(names) | {"fill_rows", "fill_links", "fill_apply"} <= set(r["passes"])
+        bins = (size[0] + 2) * (size[1] + 2)
+        assert r["work_bytes"] == splat_bytes(splat, bins, size[0] * size[1])
+        assert ("warp" in r["gpu_stage_ms"]) and ("fill" in r["gpu_stage_ms"])
+
+
+def test_resampled_frame_keeps_its_pixels_and_scales_its_camera():
+    """tools.bench_gl_warp's other sizes: nearest-pixel resampling, intrinsics and flow scaled with the size."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    h, w = 6, 8
+    frame = SimpleNamespace(color=rng.random((h, w, 3), np.float32), depth=rng.random((h, w), np.float32) + 1,
+                            object_flow=rng.random((h, w, 2), np.float32),
+                            camera=SimpleNamespace(intrinsics=np.array([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]])))
+    color, depth, flow, k = bench_gl_warp.resampled(frame, (w, h))
+    assert np.array_equal(color, frame.color) and np.array_equal(depth, frame.depth)
+    assert np.array_equal(flow, frame.object_flow) and np.array_equal(k, frame.camera.intrinsics)
+    color, depth, flow, k = bench_gl_warp.resampled(frame, (2 * w, 3 * h))
+    assert color.shape == (3 * h, 2 * w, 3) and np.array_equal(depth[::3, ::2], frame.depth)
+    assert np.array_equal(color[1::3, 1::2], frame.color)
+    assert np.allclose(flow[::3, ::2], frame.object_flow * [2, 3])
+    assert np.allclose(k, [[20.0, 0, 8], [0, 30.0, 9], [0, 0, 1]])
+
+
+def test_profile_gl_flow_times_configurations_and_counts_their_dispatches(tmp_path):
+    from engine.geometry.backends import gl as glb
+    from engine.geometry.backends.gl.flow import GlFlowConfig, dispatch_counts
 
     if not glb.available():
         pytest.skip("no EGL context with compute shaders")
     out = tmp_path / "flow.json"
     profile_gl_flow.main(["--sizes", "96x64", "--frames", "4", "--repeats", "1", "--out", str(tmp_path / "scenes"),
-                          "--json", str(out)])
+                          "--configs", "search=thread,sor=passes,coarse_pixels=0;search=group;"
+                          "search=thread,sor=tile,coarse_pixels=8192", "--passes", "--json", str(out)])
     doc = json.loads(out.read_text())
-    rows = {r["search"]: r for r in doc["rows"]}
-    assert set(rows) == {"thread", "group"} and all(r["pairs"] == 1 and r["wall_ms"] > 0 for r in rows.values())
-    assert rows["thread"]["diff_px"]["max"] == 0.0  # the first search against itself
-    assert rows["group"]["diff_px"]["median"] < 1e-2  # the same search, sums in another order
+    rows = doc["rows"]
+    assert [(r["search"], r["sor"], r["coarse_pixels"]) for r in rows] == [
+        ("thread", "passes", 0), ("group", "passes" if not doc["hardware"] else "tile", 0 if not doc["hardware"]
+                                  else 8192), ("thread", "tile", 8192)]
+    assert all(r["pairs"] == 1 and r["wall_ms"] > 0 for r in rows)
+    assert rows[0]["diff_px"]["max"] == 0.0  # the first configuration against itself
+    assert rows[1]["diff_px"]["median"] < 1e-2  # the same search, sums in another order
+    assert rows[2]["diff_px"]["median"] < 1e-2  # the same arithmetic in fewer dispatches
+    for row in rows:  # the dispatches counted are those run
+        config = GlFlowConfig(search=row["search"], sor=row["sor"], coarse_pixels=row["coarse_pixels"])
+        assert row["dispatches"] == dispatch_counts((64, 96), config)
+        assert {name: calls for name, (calls, ms) in row["passes"].items()} == row["dispatches"]
+        assert all(ms >= 0 for _, ms in row["passes"].values())
+    assert sum(rows[2]["dispatches"].values()) < sum(rows[0]["dispatches"].values()) / 10
     if doc["hardware"]:
-        assert {"luma", "pyramid", "search", "readback"} <= set(rows["group"]["gpu_ms"])
+        assert {"luma", "pyramid", "search", "readback"} <= set(rows[1]["gpu_ms"])
     else:
-        assert rows["group"]["gpu_ms"] is None
-    for bad in (["--searches", "auto"], ["--searches", "warp"], ["--k", "0"], ["--idle", "-1"]):
+        assert rows[1]["gpu_ms"] is None
+    for bad in (["--configs", "search=auto,warp=1"], ["--configs", "sor=red"], ["--k", "0"], ["--idle", "-1"]):
         with pytest.raises(SystemExit, match="error"):
             profile_gl_flow.main(bad)
 

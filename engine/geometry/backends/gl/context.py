@@ -12,6 +12,7 @@ import collections
 import os
 import re
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -226,7 +227,9 @@ class GlContext:
         """Profile: time every dispatch run inside (on any thread, through ``call``) with a query of its own and
         add ``into[pass name] = (dispatches, GPU ms)``. Stage queries (``gpu_stage``) are off meanwhile, as GL
         times one query at a time; a query per dispatch adds waits of its own, so use this to see where the GPU
-        time goes, not as the time of a frame. Not from the GL thread."""
+        time goes, not as the time of a frame. On a software renderer (whose queries read 0) each dispatch is
+        timed on the clock instead, from a ``finish`` before it to one after it: the CPU's ms of the pass. Not
+        from the GL thread."""
         self._pass_queries = []
         try:
             yield
@@ -234,6 +237,9 @@ class GlContext:
             def read() -> None:
                 for name, query in self._pass_queries:
                     calls, ms = into.get(name, (0, 0.0))
+                    if isinstance(query, float):  # a software renderer's clock time
+                        into[name] = (calls + 1, ms + query)
+                        continue
                     into[name] = (calls + 1, ms + query.elapsed * 1e-6)
                     self._queries.append(query)
                 self._pass_queries = None
@@ -266,6 +272,12 @@ class GlContext:
         gx = min(groups, MAX_GROUPS_X)
         if self._pass_queries is None:
             program.run(gx, -(-groups // gx), 1)
+        elif self.software:
+            self.ctx.finish()
+            start = time.perf_counter()
+            program.run(gx, -(-groups // gx), 1)
+            self.ctx.finish()
+            self._pass_queries.append((self._pass_names.get(id(program), "?"), 1e3 * (time.perf_counter() - start)))
         else:
             query = self._take_query()
             with query:

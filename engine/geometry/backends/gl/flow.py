@@ -16,10 +16,18 @@ propagation), ``flow_densify`` (patch flows averaged per pixel, weighted by thei
 DIS's variational refinement (``flow_refine_warp``, ``flow_refine_derivs``, then per fixed-point iteration
 ``flow_refine_system`` and red-black ``flow_refine_sor``, finally ``flow_refine_apply``); last,
 ``flow_upsample`` to the full size. Any size from 1 x 1 works (a level smaller than a patch is read with
-clamped borders: no padding as ``dis_calc`` needs). Oracles: ``luma8`` for ``flow_luma``, the numpy twins of
-``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``, ``flow_densify``,
-``flow_refine_*``). This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against
-OpenCV DIS medium and the true motion.
+clamped borders: no padding as ``dis_calc`` needs).
+
+Fewer dispatches, the same arithmetic (on a GPU by default; ``dispatch_counts`` counts them: 399 an estimate
+at 1920x1080 by the passes above, 73 so): the coarse levels (at most ``GlFlowConfig.coarse_pixels`` pixels)
+run all their steps in one dispatch of one workgroup, ``flow_coarse``, with a barrier between the steps; the
+SOR of the other levels runs as ``flow_refine_tile``, up to ``SOR_STEPS`` red-black iterations a dispatch on
+a tile in shared memory, the system folded into the first (``GlFlowConfig.sor``). On a small level each
+dispatch leaves a GPU almost idle and costs the CPU a Python call. Oracles: ``luma8`` for ``flow_luma``, the
+numpy twins of ``reference.py`` for every other pass (``flow_downsample``, ``flow_upsample``, ``flow_patch``,
+``flow_densify``, ``flow_refine_*``, ``level_reference`` and ``coarse_reference`` for ``flow_coarse``).
+This is not OpenCV's code: ``tools/bench_gl_flow.py`` measures the end-point error against OpenCV DIS medium
+and the true motion.
 """
 from __future__ import annotations
 
@@ -31,13 +39,30 @@ import numpy as np
 from engine.core.checks import checked_array, checked_size
 from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.core.errors import InputError
-from engine.geometry.backends.gl.context import GlContext, shared_context
+from engine.geometry.backends.gl.context import LOCAL_SIZE, GlContext, shared_context
 from engine.geometry.backends.gl.frame import GlFlow, GlImage, encode8_table_rows
 
-__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "PATCH_LANES", "SEARCHES"]
+__all__ = ["GlFlowConfig", "GlOpticalFlow", "pyramid_levels", "coarse_level", "dispatch_counts", "PATCH_LANES",
+           "SEARCHES", "SORS", "SOR_TILE", "SOR_STEPS", "COARSE_PIXELS", "sor_chunks",
+           "refine_level"]
 
 #: Invocations a patch is spread over by the cooperative inverse search (pass ``flow_patch_group``).
 PATCH_LANES = 64
+#: ``GlFlowConfig.coarse_pixels`` on a GPU: the levels of at most 32 pixels an invocation of ``flow_coarse``'s
+#: workgroup (at 1920x1080 levels 4 to 6, 68 x 120 and smaller; the patches of a level at most 4 an invocation).
+COARSE_PIXELS = 32 * LOCAL_SIZE
+#: Side of the tile of pass ``flow_refine_tile`` (TILE there: a workgroup of ``LOCAL_SIZE`` = TILE^2 pixels).
+SOR_TILE = 16
+#: Most SOR iterations one ``flow_refine_tile`` dispatch takes: its shared memory (du and weights of the tile and
+#: 2 x 4 rings, the systems of 7) is 30 KB, under the 32 KB every GL 4.3 context has.
+SOR_STEPS = 4
+#: How the refinement's red-black SOR runs: ``passes``, a fixed-point iteration as a ``flow_refine_system``
+#: dispatch and two ``flow_refine_sor`` dispatches (red, black) per SOR iteration; ``tile``, one
+#: ``flow_refine_tile`` dispatch per up to ``SOR_STEPS`` SOR iterations (``sor_chunks``; in a tile in shared
+#: memory, the system folded into the first: the same arithmetic); ``auto``, ``tile`` on a hardware GPU and
+#: ``passes`` on a software renderer (where a workgroup's barriers switch between its invocations on one CPU
+#: thread: slower there).
+SORS = ("auto", "passes", "tile")
 #: How the inverse search runs: ``thread``, a patch an invocation (pass ``flow_patch``); ``group``, a patch
 #: over ``PATCH_LANES`` invocations with its sums reduced in shared memory (``flow_patch_group``); ``auto``,
 #: ``group`` on a hardware GPU and ``thread`` on a software renderer.
@@ -75,11 +100,20 @@ class GlFlowConfig:
     """Refinement: SOR relaxation factor (0 < omega < 2)."""
     search: str = "auto"
     """How the inverse search runs (``SEARCHES``): the same search, its sums in another order."""
+    sor: str = "auto"
+    """How the refinement's SOR runs (``SORS``): the same arithmetic in fewer dispatches."""
+    coarse_pixels: int | None = None
+    """Levels of at most this many pixels, from the coarsest down, run in one dispatch (pass ``flow_coarse``:
+    one workgroup of ``LOCAL_SIZE`` invocations, one patch an invocation as ``thread``); 0: every level by its
+    passes; None: ``COARSE_PIXELS`` on a hardware GPU, 0 on a software renderer (which runs a workgroup on
+    one CPU thread: slower there, docs/results/2026-11-28-gpu-flow-search.md)."""
 
     def __post_init__(self) -> None:
         for name, low in (("patch_size", 1), ("patch_stride", 1), ("finest_level", 0), ("iterations", 0),
-                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0)):
+                          ("sweeps", 1), ("refine_iterations", 0), ("sor_iterations", 0), ("coarse_pixels", 0)):
             value = getattr(self, name)
+            if name == "coarse_pixels" and value is None:
+                continue
             if not isinstance(value, (int, np.integer)) or value < low:
                 raise InputError(f"must be an integer >= {low}, got {value!r}", field=name)
         for name in ("alpha", "delta", "gamma", "omega"):
@@ -88,8 +122,9 @@ class GlFlowConfig:
                 raise InputError(f"must be a finite number >= 0, got {value!r}", field=name)
         if not 0.0 < self.omega < 2.0:
             raise InputError(f"must be in (0, 2), got {self.omega!r}", field="omega")
-        if self.search not in SEARCHES:
-            raise InputError(f"must be one of {', '.join(SEARCHES)}, got {self.search!r}", field="search")
+        for name, allowed in (("search", SEARCHES), ("sor", SORS)):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"must be one of {', '.join(allowed)}, got {getattr(self, name)!r}", field=name)
         if self.patch_stride > self.patch_size:
             raise InputError(f"must be <= patch_size {self.patch_size}, got {self.patch_stride}",
                              field="patch_stride")
@@ -112,6 +147,93 @@ def pyramid_levels(shape: tuple[int, int], config: GlFlowConfig) -> tuple[list[t
     return sizes, coarsest, min(config.finest_level, coarsest)
 
 
+def sor_chunks(sor_iterations: int) -> list[int]:
+    """The SOR iterations of each ``flow_refine_tile`` dispatch of a fixed-point iteration: ``sor_iterations`` in
+    as few dispatches of at most ``SOR_STEPS`` as it takes, as even as they go (5: 3 and 2; a dispatch's shared
+    work grows with the square of its tile and rings)."""
+    count = -(-sor_iterations // SOR_STEPS)
+    return [sor_iterations // count + (1 if k < sor_iterations % count else 0) for k in range(count)]
+
+
+def resolved_coarse_pixels(config: GlFlowConfig, software: bool) -> int:
+    """``config.coarse_pixels``, None resolved: ``COARSE_PIXELS`` on a hardware GPU, 0 on a software renderer."""
+    if config.coarse_pixels is not None:
+        return int(config.coarse_pixels)
+    return 0 if software else COARSE_PIXELS
+
+
+def coarse_level(sizes: list[tuple[int, int]], coarsest: int, finest: int, coarse_pixels: int) -> int | None:
+    """The finest level pass ``flow_coarse`` runs (it runs the coarsest down to it): the finest level >= ``finest``
+    of at most ``coarse_pixels`` pixels, None when the coarsest has more."""
+    last = None
+    for level in range(coarsest, finest - 1, -1):
+        if sizes[level][0] * sizes[level][1] > coarse_pixels:
+            break
+        last = level
+    return last
+
+
+def dispatch_counts(shape: tuple[int, int], config: GlFlowConfig = GlFlowConfig(), software: bool = False
+                    ) -> dict[str, int]:
+    """Compute dispatches of one ``GlOpticalFlow.estimate`` of an (H, W) pair, per pass (the names
+    ``GlContext.pass_timing`` reports; ``clear_words`` clears the coarsest level's initial flow), with ``auto``
+    and None settings resolved as on a hardware GPU or, with ``software``, a software renderer. Each dispatch
+    costs a GPU a launch and a storage barrier, and the CPU a Python call: on the small levels that is most of
+    their time."""
+    sizes, coarsest, finest = pyramid_levels(shape, config)
+    search = config.search if config.search != "auto" else ("thread" if software else "group")
+    patch = "flow_patch" if search == "thread" else "flow_patch_group"
+    sor = config.sor if config.sor != "auto" else ("passes" if software else "tile")
+    counts = {"flow_luma": 2, "flow_downsample": 2 * coarsest, "flow_upsample": 1}
+    last = coarse_level(sizes, coarsest, finest, resolved_coarse_pixels(config, software))
+    if last is not None:
+        counts["flow_coarse"] = 1
+    for level in range(coarsest if last is None else last - 1, finest - 1, -1):
+        add = {"clear_words" if level == coarsest else "flow_upsample": 1, patch: config.sweeps, "flow_densify": 1}
+        if config.refine_iterations:
+            add.update({"flow_refine_warp": 1, "flow_refine_derivs": 1, "flow_refine_apply": 1,
+                        "flow_refine_system": config.refine_iterations,
+                        "flow_refine_sor": 2 * config.refine_iterations * config.sor_iterations})
+            if sor == "tile":
+                add["flow_refine_system"] = add["flow_refine_sor"] = 0
+                add["flow_refine_tile"] = config.refine_iterations * len(sor_chunks(config.sor_iterations))
+        for name, n in add.items():
+            counts[name] = counts.get(name, 0) + n
+    return {name: n for name, n in counts.items() if n}
+
+
+def refine_level(gl: GlContext, size: tuple[int, int], uniforms: dict, defines: dict, config: GlFlowConfig,
+                 sor: str, increments: list) -> None:
+    """The refinement's dispatches on a level of ``size`` (H, W) whose buffers are bound (the pyramids at 1 and 3,
+    the flow at 6, work buffers at 10 to 12, ``increments[0]``, the increment, at 9): ``flow_refine_warp``,
+    ``flow_refine_derivs``, per fixed-point iteration of ``config`` the SOR (``sor``: ``passes`` or ``tile``;
+    ``tile`` alternates ``increments``, two buffers of 8 H W bytes, between bindings 9 and 13), then
+    ``flow_refine_apply``. GL thread only."""
+    n = size[0] * size[1]
+    gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
+    gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
+    if sor == "tile":
+        increments = list(increments)
+        tiles = -(-size[0] // SOR_TILE) * -(-size[1] // SOR_TILE)
+        for _ in range(config.refine_iterations):
+            for index, steps in enumerate(sor_chunks(config.sor_iterations)):
+                increments[0].bind_to_storage_buffer(9)
+                increments[1].bind_to_storage_buffer(13)
+                program = gl.program("flow_refine_tile", {**defines, "STEPS": steps,
+                                                          **({"SYSTEM": 1} if index == 0 else {})})
+                gl.dispatch_groups(program, tiles, uniforms)
+                increments.reverse()
+        increments[0].bind_to_storage_buffer(9)
+    else:
+        system, step = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
+        for _ in range(config.refine_iterations):
+            gl.dispatch(system, n, uniforms)
+            for _ in range(config.sor_iterations):
+                for parity in (0, 1):
+                    gl.dispatch(step, n, {**uniforms, "parity": parity})
+    gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
+
+
 class GlOpticalFlow:
     """Dense optical flow between two images on a ``GlContext`` (the shared one by default).
 
@@ -126,6 +248,10 @@ class GlOpticalFlow:
         self.config = config
         #: the inverse search this estimator runs: ``thread`` or ``group`` (``GlFlowConfig.search``)
         self.search = config.search if config.search != "auto" else ("thread" if self.gl.software else "group")
+        #: the refinement's SOR this estimator runs: ``passes`` or ``tile`` (``GlFlowConfig.sor``)
+        self.sor = config.sor if config.sor != "auto" else ("passes" if self.gl.software else "tile")
+        #: the levels of at most this many pixels run in pass ``flow_coarse`` (``GlFlowConfig.coarse_pixels``)
+        self.coarse_pixels = resolved_coarse_pixels(config, self.gl.software)
         self._pool: dict = {}
 
     def estimate(self, first: np.ndarray | GlImage, second: np.ndarray | GlImage, *,
@@ -245,7 +371,10 @@ class GlOpticalFlow:
                 pyramids[0].bind_to_storage_buffer(1)
                 pyramids[1].bind_to_storage_buffer(3)
                 up = gl.program("flow_upsample")
-                for level in range(coarsest, finest - 1, -1):
+                last = coarse_level(sizes, coarsest, finest, self.coarse_pixels)
+                if last is not None:
+                    self._coarse(sizes, coarsest, last, defines, init, dense, patch_flows)
+                for level in range(coarsest if last is None else last - 1, finest - 1, -1):
                     lh, lw = sizes[level]
                     if level == coarsest:
                         gl.clear_words(init, 8 * lh * lw)
@@ -264,6 +393,33 @@ class GlOpticalFlow:
                 with gl.gpu_stage("readback"):
                     out.read_into(result, size=result.nbytes)
         return result
+
+    def _coarse(self, sizes: list, coarsest: int, last: int, defines: dict, init, dense, patch_flows) -> None:
+        """Pass ``flow_coarse``: levels ``coarsest`` down to ``last`` in one workgroup; their dense flow -> ``dense``
+        (level ``last``'s, where the passes of the finer levels read it)."""
+        gl, config = self.gl, self.config
+        n = sizes[last][0] * sizes[last][1]  # the largest level of the pass
+        init.bind_to_storage_buffer(4)
+        patch_flows[0].bind_to_storage_buffer(5)
+        patch_flows[1].bind_to_storage_buffer(8)
+        dense.bind_to_storage_buffer(6)
+        self._refine_buffers(n)
+        h, w = sizes[0]
+        gl.dispatch_groups(gl.program("flow_coarse", defines), 1, {
+            "full_size": (h, w), "coarsest": coarsest, "last": last, "stride": config.patch_stride,
+            "iterations": config.iterations, "sweeps": config.sweeps, "refine_iterations": config.refine_iterations,
+            "sor_iterations": config.sor_iterations, **self._refine_uniforms()})
+
+    def _refine_buffers(self, n: int) -> None:
+        """Bind the refinement's work buffers for a level of ``n`` pixels (grown as needed)."""
+        for key, binding, nbytes in (("increment", 9, 8 * n), ("average", 10, 8 * n), ("derivs", 11, 32 * n),
+                                     ("system", 12, 32 * n)):
+            self.gl.buffer(self._pool, key, nbytes).bind_to_storage_buffer(binding)
+
+    def _refine_uniforms(self) -> dict:
+        config = self.config
+        return {"alpha": float(config.alpha), "delta": float(config.delta), "gamma": float(config.gamma),
+                "omega": float(config.omega)}
 
     def _search_level(self, size: tuple[int, int], offset: int, defines: dict, init, dense, patch_flows) -> None:
         """Inverse search (``sweeps`` times) and densification of one level: ``init`` (H_l, W_l, 2) -> ``dense``."""
@@ -291,22 +447,11 @@ class GlOpticalFlow:
 
     def _refine(self, size: tuple[int, int], offset: int, defines: dict) -> None:
         """Variational refinement of the level's dense flow (bound at 6) in place."""
-        gl, config, pool = self.gl, self.config, self._pool
         n = size[0] * size[1]
-        for key, binding, nbytes in (("increment", 9, 8 * n), ("average", 10, 8 * n), ("derivs", 11, 32 * n),
-                                     ("system", 12, 32 * n)):
-            gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-        uniforms = {"size": size, "offset": offset, "alpha": float(config.alpha), "delta": float(config.delta),
-                    "gamma": float(config.gamma), "omega": float(config.omega)}
-        gl.dispatch(gl.program("flow_refine_warp", defines), n, uniforms)
-        gl.dispatch(gl.program("flow_refine_derivs", defines), n, uniforms)
-        system, sor = gl.program("flow_refine_system", defines), gl.program("flow_refine_sor", defines)
-        for _ in range(config.refine_iterations):
-            gl.dispatch(system, n, uniforms)
-            for _ in range(config.sor_iterations):
-                for parity in (0, 1):
-                    gl.dispatch(sor, n, {**uniforms, "parity": parity})
-        gl.dispatch(gl.program("flow_refine_apply", defines), n, uniforms)
+        self._refine_buffers(n)
+        increments = [self._pool["increment"], self.gl.buffer(self._pool, "increment_next", 8 * n)]
+        refine_level(self.gl, size, {"size": size, "offset": offset, **self._refine_uniforms()}, defines,
+                     self.config, self.sor, increments)
 
     def release(self) -> None:
         """Free this estimator's work buffers."""

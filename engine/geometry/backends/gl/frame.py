@@ -7,11 +7,11 @@ number of target cameras; an object flow is uploaded once too (``upload_flow``: 
 scaled per warp by ``flow_scale``, so an extrapolated flow -s u needs no new upload), or a 3D motion
 (``upload_motion``: the moving pixels' velocity and change of velocity, as ``mvec`` estimates them) that each
 warp extrapolates s frame intervals ahead on the GPU (``motion_extrapolate``). Each warp runs the
-``FRAME`` variants of the four splat passes, then the hole fill (``fill_rows``, ``fill_links``,
-``fill_apply``), and reads back the filled colour (float32, or 8-bit sRGB codes encoded on the GPU: pass
-``encode8``) and a packed hole mask, once, or hands them out as GPU buffers (``readback=False``:
-``GlPrediction``). Conventions: those of
-``engine.geometry.forward_warp_frame`` (OpenCV cameras, pixel centres at +0.5, planar depth, +inf sky).
+``FRAME`` variants of the splat passes (``engine.geometry.backends.gl.splat``), then the hole fill
+(``fill_rows``, ``fill_links``, ``fill_apply``), and reads back the filled colour (float32, or 8-bit sRGB
+codes encoded on the GPU: pass ``encode8``) and a packed hole mask, once, or hands them out as GPU buffers
+(``readback=False``: ``GlPrediction``). Conventions: those of ``engine.geometry.forward_warp_frame`` (OpenCV
+cameras, pixel centres at +0.5, planar depth, +inf sky).
 Oracle: ``engine.predict.base.warp_and_fill`` on the CPU (``tests/geometry/test_gl_frame.py``).
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from engine.core.checks import checked_array, checked_matrix, checked_sharpness,
 from engine.core.colorspace import ENCODE8_BUCKETS
 from engine.core.errors import InputError
 from engine.geometry.backends.gl.context import GlContext, shared_context
-from engine.geometry.backends.gl.splat import run_splat, splat_uniforms
+from engine.geometry.backends.gl.splat import SPLATS, checked_splat, run_splat, splat_uniforms
 from engine.geometry.camera import checked_flow, reprojection_matrix
 from engine.geometry.encoding import FRAME_ENCODINGS, decode8_lookup, encode8_lookup
 from engine.geometry.splat import DEFAULT_SHARPNESS
@@ -140,15 +140,17 @@ class GlMotion:
 
 
 class GlFrameWarper:
-    """Uploads frames and flows, and warps + fills them on a ``GlContext`` (the shared one by default).
+    """Uploads frames and flows, and warps + fills them on a ``GlContext`` (the shared one by default), the
+    warp by one of ``engine.geometry.backends.gl.splat.SPLATS`` (the same results; the default binned one).
 
     >>> warper = GlFrameWarper()                                             # doctest: +SKIP
     >>> image = warper.upload(frame.color, frame.depth)                      # doctest: +SKIP
     >>> color, holes = warper.warp_and_fill(image, K, T_src, K, T_dst)       # doctest: +SKIP
     """
 
-    def __init__(self, gl: Optional[GlContext] = None) -> None:
+    def __init__(self, gl: Optional[GlContext] = None, splat: str = SPLATS[0]) -> None:
         self.gl = shared_context() if gl is None else gl
+        self.splat_kind = checked_splat(splat)
         self._pool: dict = {}
 
     def upload(self, color: np.ndarray, depth: np.ndarray) -> GlImage:
@@ -321,8 +323,7 @@ class GlFrameWarper:
             for key, binding, nbytes in (("rowsrc", 11, 4 * n), ("rowinfo", 12, 4 * h), ("links", 13, 8 * h),
                                          ("filled", 14, 12 * n), ("mask", 15, 4 * words)):
                 gl.buffer(pool, key, nbytes).bind_to_storage_buffer(binding)
-            with gl.gpu_stage("fill"):
-                gl.clear_words(pool["mask"], 4 * words)
+            with gl.gpu_stage("fill"):  # fill_apply writes every word of the mask
                 sizes = {"size": (h, w)}
                 gl.dispatch_groups(gl.program("fill_rows"), h, sizes)
                 gl.dispatch_groups(gl.program("fill_links"), 1, sizes)
@@ -373,7 +374,7 @@ class GlFrameWarper:
         defines = {"FRAME": 1, "FLOW_CHANNELS": 3 if moved is None else moved[1]}
         uniforms = splat_uniforms(matrix, (1, h, w), (h, w), sharpness, moved is not None, flow_scale)
         uniforms.update(num_points=n, use_index=0)
-        run_splat(gl, pool, defines, uniforms, n, n)
+        run_splat(gl, pool, defines, uniforms, n, n, self.splat_kind)
         return pool["warped"], pool["holes"]
 
     def encode8(self, color, shape: tuple[int, int]) -> np.ndarray:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["downsample_reference", "upsample_flow_reference", "patch_origins", "densify_reference",
-           "patch_search_reference", "refine_reference"]
+           "patch_search_reference", "refine_reference", "level_reference", "coarse_reference"]
 
 #: ``flow_patch``'s Tikhonov term of the Hessian (levels^2)
 PATCH_EPS = 1e-2
@@ -207,3 +207,32 @@ def refine_reference(first: np.ndarray, second: np.ndarray, flow: np.ndarray, al
                 du[..., 1] = np.where(mine, new_y, du[..., 1])
     finite = np.isfinite(du).all(axis=-1)
     return np.where(finite[..., None], u + du, u).astype(np.float32)
+
+
+def level_reference(first: np.ndarray, second: np.ndarray, init: np.ndarray, patch: int, stride: int, iterations: int,
+                    sweeps: int, refine: dict | None) -> np.ndarray:
+    """One pyramid level (H, W) as the passes run it: ``sweeps`` inverse searches (``patch_search_reference``, the
+    first from the dense initial flow ``init`` (H, W, 2), each later one propagating the previous), densified
+    (``densify_reference``), then refined (``refine_reference`` with the keywords of ``refine``: alpha, delta,
+    gamma, omega, iterations, sor_iterations; None or 0 iterations: none). Returns the level's dense flow."""
+    flows = patch_search_reference(first, second, init, patch, stride, iterations, False)
+    for _ in range(sweeps - 1):
+        flows = patch_search_reference(first, second, flows, patch, stride, iterations, True)
+    dense = densify_reference(first, second, flows, patch, stride)
+    if refine and refine.get("iterations", 0):
+        dense = refine_reference(first, second, dense, **refine)
+    return dense
+
+
+def coarse_reference(firsts: list, seconds: list, last: int, patch: int, stride: int, iterations: int, sweeps: int,
+                     refine: dict | None) -> np.ndarray:
+    """Pass ``flow_coarse``: levels ``len(firsts) - 1`` (the coarsest, from a zero flow) down to ``last`` of the
+    two pyramids (``firsts[l]``, ``seconds[l]``: level l, (H_l, W_l) float32, level l + 1 ``downsample_reference``
+    of level l), each from the coarser level's flow upsampled (``upsample_flow_reference``, scale 2) and run as
+    ``level_reference``. Returns level ``last``'s dense flow (H_last, W_last, 2)."""
+    dense = None
+    for level in range(len(firsts) - 1, last - 1, -1):
+        shape = firsts[level].shape
+        init = np.zeros(shape + (2,), np.float32) if dense is None else upsample_flow_reference(dense, shape, 2.0)
+        dense = level_reference(firsts[level], seconds[level], init, patch, stride, iterations, sweeps, refine)
+    return dense

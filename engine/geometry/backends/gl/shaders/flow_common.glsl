@@ -4,12 +4,27 @@
 // (x + 0.5 + u.x, y + 0.5 + u.y) in the second image, sampled bilinearly at index coordinates (x + u.x, y + u.y).
 // Patches: PATCH x PATCH pixels, origins j * stride along each axis, the last one moved back to end at the
 // border (origin 0 when the level is smaller than a patch: its reads clamp).
+// With COARSE defined (pass flow_coarse: one workgroup runs whole levels), size and offset are variables it
+// sets per level, and the work buffers are coherent and read-write (READS / WRITES: a pass's qualifiers of
+// the buffers it only reads / only writes).
+#ifdef COARSE
+#define READS coherent
+#define WRITES coherent
+#else
+#define READS readonly
+#define WRITES writeonly
+#endif
 
 layout(std430, binding = 1) readonly buffer FirstBuf { float first_[]; };    // pyramid of the first image
 layout(std430, binding = 3) readonly buffer SecondBuf { float second_[]; };  // pyramid of the second image
 
+#ifdef COARSE
+ivec2 size;
+int offset;
+#else
 uniform ivec2 size;   // H, W of the level
 uniform int offset;   // of the level in both pyramid buffers
+#endif
 uniform int stride;   // patch stride, pixels
 
 float first_at(int y, int x) {

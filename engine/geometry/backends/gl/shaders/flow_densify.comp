@@ -1,30 +1,14 @@
-// Flow pass 4, per pixel of a pyramid level: DIS densification, the average of the flows of the patches that
-// cover the pixel weighted by 1 / max(1, |second(x + u) - first(x)|) (8-bit levels): a patch flow that
-// does not explain the pixel counts little.
+// Flow pass 4, per pixel of a pyramid level: DIS densification (flow_densify.glsl), the patch flows averaged
+// per pixel, weighted by their photometric error.
 #include "flow_common.glsl"
 
 layout(std430, binding = 5) readonly buffer PatchBuf { vec2 patch_[]; };  // (rows, columns) patch flows
 layout(std430, binding = 6) writeonly buffer DenseBuf { vec2 dense_[]; }; // (H, W) dense flow
 
+#include "flow_densify.glsl"
+
 void main() {
     uint i = invocation();
     if (i >= uint(size.x * size.y)) return;
-    int y = int(i) / size.y, x = int(i) % size.y;
-    int rows = patch_count(size.x), cols = patch_count(size.y);
-    float value = first_at(y, x);
-    vec2 sum = vec2(0.0);
-    float weight = 0.0;
-    for (int py = max(0, (y - PATCH) / stride); py <= min(rows - 1, y / stride + 1); ++py) {
-        int oy = patch_origin(py, size.x);
-        if (y < oy || y >= oy + PATCH) continue;
-        for (int px = max(0, (x - PATCH) / stride); px <= min(cols - 1, x / stride + 1); ++px) {
-            int ox = patch_origin(px, size.y);
-            if (x < ox || x >= ox + PATCH) continue;
-            vec2 u = patch_[py * cols + px];
-            float w = 1.0 / max(1.0, abs(second_bilinear(vec2(float(x), float(y)) + u) - value));
-            sum += w * u;
-            weight += w;
-        }
-    }
-    dense_[i] = weight > 0.0 ? sum / weight : vec2(0.0);
+    dense_[i] = densify_at(int(i) / size.y, int(i) % size.y);
 }

@@ -2,9 +2,9 @@
 // pixel count, the Hessian's Tikhonov term and the initial flow read at a patch's centre.
 #include "flow_common.glsl"
 
-layout(std430, binding = 4) readonly buffer InitBuf { vec2 init_[]; };     // (H, W) initial dense flow
-layout(std430, binding = 5) writeonly buffer PatchBuf { vec2 patch_[]; };  // (rows, columns) patch flows
-layout(std430, binding = 8) readonly buffer PrevBuf { vec2 prev_[]; };     // previous sweep's patch flows
+layout(std430, binding = 4) READS buffer InitBuf { vec2 init_[]; };     // (H, W) initial dense flow
+layout(std430, binding = 5) WRITES buffer PatchBuf { vec2 patch_[]; };  // (rows, columns) patch flows
+layout(std430, binding = 8) READS buffer PrevBuf { vec2 prev_[]; };     // previous sweep's patch flows
 
 uniform int iterations;
 

@@ -1,9 +1,8 @@
-// Flow refinement pass 5, per pixel of a level: u <- u + du (a non-finite increment is dropped).
+// Flow refinement pass 5, per pixel of a level: u <- u + du (refine_apply in flow_refine_common.glsl).
 #include "flow_refine_common.glsl"
 
 void main() {
     uint i = invocation();
     if (i >= uint(size.x * size.y)) return;
-    vec2 du = inc_[i];
-    if (!nonfinite_bits(du)) dense_[i] += du;
+    refine_apply(int(i));
 }

@@ -4,11 +4,8 @@
 #include "splat_common.glsl"
 
 void add64(int word, float value) {
-    // 64-bit fixed point (2^-32 units) added with two 32-bit atomics; exact and order-independent.
-    // Split in float32 (exact: scaling by 2^32, then the high part is s rounded down to a multiple of 2^32)
-    float s = value * 4294967296.0;
-    float high_f = floor(s * (1.0 / 4294967296.0));
-    uvec2 parts = uvec2(uint(s - high_f * 4294967296.0), uint(int(high_f)));
+    // 64-bit fixed point (2^-32 units) added with two 32-bit atomics; exact and order-independent
+    uvec2 parts = fixed_parts(value);
     uint old = atomicAdd(acc_[word], parts.x);
     uint high = parts.y + (old + parts.x < old ? 1u : 0u);
     if (high != 0u) atomicAdd(acc_[word + 1], high);
@@ -34,7 +31,7 @@ void main() {
             if (key != 0u) continue;  // a finite point landed here: sky counts for nothing
             weight = cover;
         } else {
-            weight = sign(cover) * exp(log(abs(cover)) + lw - order_float(key));
+            weight = relative_weight(cover, lw, order_float(key));
         }
         add64(word + 2, weight);
         add64(word + 4, weight * rgb.r);

@@ -12,6 +12,12 @@ layout(std430, binding = 5) buffer RangeBuf { uint range_[]; };             // o
 layout(std430, binding = 6) buffer KeyBuf { uint key_[]; };                 // (Z, HP, WP) ordered bits of t_max
 layout(std430, binding = 7) buffer AccBuf { uint acc_[]; };                 // (Z, HP, WP, 12) fixed-point sums
 layout(std430, binding = 9) readonly buffer IndexBuf { uint index_[]; };    // flat indices of alpha != 0
+// the binned splat's buffers (splat_bin_*, splat_gather)
+layout(std430, binding = 20) buffer CountBuf { uint count_[]; };            // (Z, HP, WP) points a bin holds
+layout(std430, binding = 21) buffer SlotBuf { uint slot_[]; };              // (points,) a point's place in its bin
+layout(std430, binding = 22) buffer OffsetBuf { uint offset_[]; };          // (Z, HP, WP) start in its scan block
+layout(std430, binding = 23) buffer BlockBuf { uint block_[]; };            // (blocks,) start of a scan block
+layout(std430, binding = 24) buffer RecordBuf { uvec4 record_[]; };         // (points,) fx, fy, z, source index
 
 uniform ivec3 src_size;     // Z, H, W
 uniform ivec2 dst_size;     // HO, WO
@@ -32,6 +38,21 @@ uniform double coverage_threshold;
 #endif
 
 const float INF = uintBitsToFloat(0x7f800000u);
+// bins per block of the binned splat's scan (splat_bin_scan: 4 a invocation)
+const uint SCAN_BLOCK = 4u * uint(LOCAL_SIZE);
+
+// the first record of bin b (the binned splat, after splat_bin_scan and splat_bin_blocks)
+uint bin_start(int b) {
+    return offset_[b] + block_[uint(b) / SCAN_BLOCK];
+}
+
+// value as 64-bit fixed point (2^-32 units), split in float32 (exact: scaling by 2^32, then the high part is
+// s rounded down to a multiple of 2^32): (low, high) words, floor(value * 2^32) in two's complement
+uvec2 fixed_parts(float value) {
+    float s = value * 4294967296.0;
+    float high_f = floor(s * (1.0 / 4294967296.0));
+    return uvec2(uint(s - high_f * 4294967296.0), uint(int(high_f)));
+}
 
 // order-preserving float <-> uint (0 is below every encoded value: "empty")
 uint order_bits(float f) {
@@ -131,6 +152,16 @@ float log_zbuffer(float z) {
     if (lo_bits != 0xffffffffu) lz -= order_float(lo_bits);
     float hi = max(order_float(range_[1]), 1e-30);
     return clamp(lz * (-sharpness / hi), min_log_weight, 0.0);
+}
+
+// log splat weight t = log(cover) + log_zbuf of a finite point's tap (the bin's largest is its key)
+float log_splat_weight(float cover, float lw) {
+    return log(abs(cover)) + lw;
+}
+
+// a finite point's splat weight relative to its bin's largest log weight t_max: cover * zbuf / exp(t_max)
+float relative_weight(float cover, float lw, float t_max) {
+    return sign(cover) * exp(log_splat_weight(cover, lw) - t_max);
 }
 
 void tap_geometry(Point p, int k, out int tap, out float cover) {

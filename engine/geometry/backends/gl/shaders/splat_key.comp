@@ -11,6 +11,6 @@ void main() {
         int tap;
         float cover;
         tap_geometry(p, k, tap, cover);
-        if (cover != 0.0) atomicMax(key_[tap], order_bits(log(abs(cover)) + lw));
+        if (cover != 0.0) atomicMax(key_[tap], order_bits(log_splat_weight(cover, lw)));
     }
 }

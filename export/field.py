@@ -40,7 +40,7 @@ from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance", "DISPLAY_LEVELS",
-           "example_points", "quantize_planes", "report_export", "main",
+           "example_points", "query_outputs", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
@@ -66,6 +66,11 @@ class FieldQueryGraph(nn.Module):
         unit = torch.nn.functional.normalize(directions, dim=-1)
         sigma, rgb = self.model.field(coords.clamp(-1.0, 1.0), unit)
         return torch.where(inside, sigma, torch.zeros_like(sigma)), rgb
+
+
+def query_outputs(model) -> list[str]:
+    """The ONNX graph's output names: density and colour, or density and the features of a deferred field."""
+    return ["density", "features" if model.field.deferred else "color"]
 
 
 def _model(run_or_model):
@@ -172,13 +177,14 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
     onnx_path = out / "field.onnx"
     with torch.no_grad():
         program = torch.onnx.export(graph, (points, dirs), dynamo=True, opset_version=OPSET,
-                                    input_names=["points", "directions"], output_names=["density", "color"],
+                                    input_names=["points", "directions"], output_names=query_outputs(model),
                                     dynamic_shapes={"points": {0: n}, "directions": {0: n}}, verbose=False,
                                     optimize=False)
     program.save(str(onnx_path))
     strip_debug(onnx_path)
 
     arrays, manifest = static_assets(model)
+    manifest["onnx"]["outputs"] = query_outputs(model)
     np.savez_compressed(out / "field.npz", **arrays)
     rand_pts, rand_dirs = example_points(model, 8192, seed=1)
     parity = {"random_points": check_parity(onnx_path, model, rand_pts, rand_dirs)}

@@ -539,7 +539,7 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
     wh_off = params.add(pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
     last_is_first = len(colr) == 1
 
-    def color_net(inputs: list[str], indent: str) -> tuple[list[str], str]:
+    def color_net(inputs: list[str], indent: str, activation: str = "sigmoid") -> tuple[list[str], str]:
         code, xs = linear_code("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
         lines = list(code)
         if not last_is_first:
@@ -550,11 +550,20 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
             b_off = params.add(np.pad(b_l, (0, 4 - b_l.shape[0])))
             code, xs = linear_code("co", xs, out_off, 1, [f"P[{b_off}]"], False)
             lines += code
-        rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))"
+        rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))" if activation == "sigmoid" else f"tanh({xs[0]}.xyz)"
         return [indent + line for line in lines], rgb
 
     latent = "\n".join("            " + line for line in lat_code)
-    if color_mode == "per-sample":
+    deferred = spec.get("shading", "per-sample") == "deferred"
+    if deferred and color_mode != "per-sample":
+        raise InputError(f"a deferred field renders its own way: {color_mode!r} is for per-sample fields",
+                         field="color_mode")
+    if deferred:  # features sigmoid(h) composited; the colour MLP once per pixel (exact: trained this way)
+        accum_decl = "\n".join(f"    vec4 ha{q} = vec4(0.0);" for q in range(lat_rows // 4))
+        color_sample = "\n".join(f"            ha{q} += w / (1.0 + exp(-{v}));" for q, v in enumerate(lat_vecs))
+        code, residual = color_net([f"ha{q}" for q in range(lat_rows // 4)], "    ", "tanh")
+        color_final = "\n".join(code) + f"\n    col = ha0.xyz + acc * {residual};  // + (1 - acc) background below"
+    elif color_mode == "per-sample":
         code, rgb = color_net(lat_vecs, "            ")
         color_sample = "\n".join(code) + f"\n            col += w * {rgb};"
         accum_decl, color_final = "", ""

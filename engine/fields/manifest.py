@@ -20,13 +20,15 @@ from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.encoding import direction_encoding_np
 
-__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "DIRECTION_ENCODINGS", "check_scene", "check_static_layout",
+__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene", "check_static_layout",
            "section", "number", "choice", "array_name"]
 
 #: Most samples per ray a manifest may ask for (the trained fields use 64; the renderers allocate per sample).
 MAX_SAMPLES = 1024
 SCENE_KINDS = ("bounded-360", "forward-facing")
 SPACINGS = ("linear", "disparity")
+#: ``field.shading`` (absent: per-sample): the colour MLP at every sample, or once per pixel on composited features.
+SHADINGS = ("per-sample", "deferred")
 DIRECTION_ENCODINGS = {"sh": (1, 4), "fourier": (0, 16), "none": (0, 0)}  # kind -> allowed direction_degree
 
 
@@ -139,6 +141,9 @@ def check_static_layout(manifest: dict, file: Path) -> None:
     number(spec, "density_bias", file, "field")
     number(spec, "max_log_density", file, "field", high=80.0)  # exp(80) is near float32's largest
     latent = int(number(spec, "geo_feature_dim", file, "field", low=0, integer=True))
+    if "shading" in spec and choice(spec, "shading", SHADINGS, file, "field") == "deferred" and latent < 3:
+        raise _error(f"must be >= 3 with deferred shading (the diffuse colour), got {latent}", file,
+                     "field.geo_feature_dim")
     encoding = choice(spec, "direction_encoding", tuple(DIRECTION_ENCODINGS), file, "field")
     low, high = DIRECTION_ENCODINGS[encoding]
     degree = int(number(spec, "direction_degree", file, "field", low=low, high=high, integer=True))

@@ -102,7 +102,7 @@ def static_assets(model) -> tuple[dict[str, np.ndarray], dict]:
         "field": {"plane_axes": [[0, 1], [0, 2], [1, 2]], "planes": planes_meta,
                   "feature_combine": "product over planes, concatenated over scales",
                   "density_bias": float(cfg.density_bias), "max_log_density": MAX_LOG_DENSITY,
-                  "geo_feature_dim": int(cfg.geo_feature_dim),
+                  "geo_feature_dim": int(cfg.geo_feature_dim), "shading": cfg.shading,
                   "direction_encoding": cfg.direction_encoding, "direction_degree": int(cfg.direction_degree),
                   "mlps": mlps},
         "occupancy": _add_occupancy(arrays, model),

@@ -88,9 +88,10 @@ def _finite(parent: dict, key: str, shape: tuple, file, where: str) -> np.ndarra
     return value
 
 
-def check_scene(manifest: Any, file: Path) -> None:
+def check_scene(manifest: Any, file: Path, onnx: bool = True) -> None:
     """The parts static and dynamic manifests share: ``scene`` (kind, near, far, the box of a bounded scene or
-    the NDC reference camera of a forward-facing one), ``background``, ``render`` and ``onnx.file``."""
+    the NDC reference camera of a forward-facing one), ``background``, ``render`` and (with ``onnx``; a baked
+    field has no query graph) ``onnx.file``."""
     if not isinstance(manifest, dict):
         raise InputError(f"must hold a JSON object, got {type(manifest).__name__}", file=file)
     scene = section(manifest, "scene", file)
@@ -112,8 +113,9 @@ def check_scene(manifest: Any, file: Path) -> None:
     number(render, "num_samples", file, "render", low=1, high=MAX_SAMPLES, integer=True)
     choice(render, "spacing", SPACINGS, file, "render")
     number(render, "ndc_margin", file, "render", low=0.0)
-    onnx = section(manifest, "onnx", file)
-    name = onnx.get("file")
+    if not onnx:
+        return
+    name = section(manifest, "onnx", file).get("file")
     if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
         raise _error(f"must be a file name beside the manifest, got {name!r}", file, "onnx.file")
 

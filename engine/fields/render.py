@@ -121,10 +121,11 @@ def open_onnx(path: Path, threads: int = 0):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, command: str
+def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, command: str, onnx: bool = True
                      ) -> tuple[Path, dict, dict[str, np.ndarray]]:
     """(folder, manifest, arrays) of exported assets ``<stem>.json`` + ``<stem>.npz`` in ``path`` (the folder or
-    its json); InputError for missing files or another format / version."""
+    its json); InputError for missing files or another format / version (``onnx``: the manifest names a query
+    graph, see ``check_scene``)."""
     root = Path(path)
     if root.name == f"{stem}.json":
         root = root.parent
@@ -141,7 +142,7 @@ def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, comman
     if manifest.get("format") != fmt or manifest.get("version") != version:
         raise InputError(f"is not {fmt} version {version} (format {manifest.get('format')!r}, "
                          f"version {manifest.get('version')!r})", file=meta_file)
-    check_scene(manifest, meta_file)
+    check_scene(manifest, meta_file, onnx)
     try:
         with np.load(npz_file) as data:  # no pickled objects (numpy's default)
             arrays = {k: data[k] for k in data.files}

@@ -27,7 +27,7 @@ from tests.fields.test_field_train import TINY_FIELD, sphere_views, tiny_config
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 H, W = 24, 32
-DEFERRED = dataclasses.replace(TINY_FIELD, shading="deferred")
+DEFERRED = dataclasses.replace(TINY_FIELD, shading="deferred", density_layers=2)
 
 
 @pytest.fixture(scope="module")

@@ -42,6 +42,7 @@ class FieldConfig:
     init_range: tuple[float, float] = field(default=(0.1, 0.5), metadata={
         "help": "plane features start uniform in this range (K-Planes space planes)"})
     density_hidden: int = field(default=32, metadata={"help": "hidden width of the density MLP (F1)"})
+    density_layers: int = field(default=1, metadata={"help": "hidden layers of the density MLP (F1)"})
     geo_feature_dim: int = field(default=15, metadata={"help": "latent h passed from F1 to the colour MLP"})
     color_hidden: int = field(default=32, metadata={"help": "hidden width of the colour MLP (F2)"})
     color_layers: int = field(default=1, metadata={"help": "hidden layers of the colour MLP"})
@@ -61,7 +62,7 @@ class FieldConfig:
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
             raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
                              field="field.resolutions")
-        for name in ("feature_dim", "density_hidden", "geo_feature_dim", "color_hidden"):
+        for name in ("feature_dim", "density_hidden", "density_layers", "geo_feature_dim", "color_hidden"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.{name}")
         if self.direction_encoding not in DIRECTION_ENCODINGS:
@@ -95,7 +96,8 @@ class TriPlaneField(nn.Module):
         super().__init__()
         self.config = cfg = (config or FieldConfig()).validate()
         self.encoding = TriPlaneEncoding(cfg.resolutions, cfg.feature_dim, tuple(cfg.init_range))
-        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
+        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim,
+                               layers=cfg.density_layers)
         self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
         self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim, cfg.color_hidden, 3,
                              layers=cfg.color_layers)

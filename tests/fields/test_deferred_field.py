@@ -62,6 +62,27 @@ def test_deferred_shading_composites_features_and_shades_once_per_pixel():
         FieldConfig(shading="deferred", geo_feature_dim=2).validate()
 
 
+def test_the_residual_reads_the_same_features_with_or_without_the_density_gradient():
+    from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
+
+    torch.manual_seed(0)
+    model = StaticFieldModel(SceneBox("bounded-360", 0.1, 10.0, box_min=[-1, -1, -1], box_max=[1, 1, 1]),
+                             [1.0, 1.0, 1.0], DEFERRED, RenderConfig(num_samples=16))
+    origins = torch.tensor([[0.0, 0.0, -3.0]]).expand(6, 3)
+    directions = torch.cat([torch.randn(6, 2) * 0.1, torch.ones(6, 1)], dim=-1)
+    near, far = torch.full((6,), 0.1), torch.full((6,), 10.0)
+    colors, grads = [], []
+    for through in (True, False):
+        model.field.config.residual_density_grad = through
+        model.zero_grad()
+        color = model.render_rays(origins, directions, near, far).color
+        color.sum().backward()
+        colors.append(color.detach())
+        grads.append(model.field.density_mlp.net[0].weight.grad.clone())
+    assert torch.equal(colors[0], colors[1])  # the same render: only the gradient's path differs
+    assert not torch.allclose(grads[0], grads[1])
+
+
 def test_deferred_field_trains(deferred_run):
     run, _, _ = deferred_run
     cam = sphere_views([20]).cameras[0]

@@ -52,6 +52,11 @@ class FieldConfig:
         "help": "SH bands (1-4) or Fourier frequencies of the direction encoding"})
     density_bias: float = field(default=0.0, metadata={
         "help": "added to the raw density before exp (negative: start emptier)"})
+    residual_density_grad: bool = field(default=True, metadata={
+        "help": "deferred: let the view-dependent residual's gradient reach the densities (default); off, it "
+                "reads the same composited features but its gradient stops at the weights, so the geometry is "
+                "fitted through the diffuse colour alone (the render is the same; -2.2 dB on lego 8 views, "
+                "docs/results/2026-11-28-baked-fields.md)"})
     shading: str = field(default="per-sample", metadata={
         "help": "per-sample: the colour MLP at every sample; deferred: sigmoid features (the first 3 a diffuse "
                 "RGB) composited with the volume-rendering weights and the colour MLP once per pixel on them and "
@@ -127,14 +132,17 @@ class TriPlaneField(nn.Module):
         """True for deferred shading: :meth:`forward` gives features, :meth:`shade_pixels` the colour."""
         return self.config.shading == "deferred"
 
-    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor) -> Tensor:
+    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                     residual_inputs: Optional[tuple[Tensor, Tensor]] = None) -> Tensor:
         """Deferred shading: a ray's composited features ``F = sum_i w_i sigmoid(h_i)`` (..., G), its opacity
         ``A = sum_i w_i`` (...) and unit view direction (..., 3) -> linear RGB (..., 3):
         ``F[:3] + (1 - A) background + A tanh(F2([F, enc(d)]))`` (a diffuse colour composited as usual plus a
-        view-dependent residual that vanishes where nothing is hit)."""
-        x = torch.cat([features, self.direction_encoding(directions)], dim=-1)
+        view-dependent residual that vanishes where nothing is hit). ``residual_inputs``: (F, A) for the
+        residual term, equal in value but composited with other gradients (``residual_density_grad``)."""
+        res_features, res_opacity = residual_inputs if residual_inputs is not None else (features, opacity)
+        x = torch.cat([res_features, self.direction_encoding(directions)], dim=-1)
         residual = torch.tanh(self.color_mlp(x))
-        return features[..., :3] + (1.0 - opacity)[..., None] * background + opacity[..., None] * residual
+        return features[..., :3] + (1.0 - opacity)[..., None] * background + res_opacity[..., None] * residual
 
     def forward(self, coords: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """(..., 3) contracted coordinates, (..., 3) unit directions -> density (...), linear RGB (..., 3); with

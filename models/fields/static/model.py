@@ -193,10 +193,24 @@ class StaticFieldModel(nn.Module):
         if not self.field.deferred:
             return self.march(origins, directions, near, far, self._query, jitter=jitter, generator=generator)[0]
         channels = self.field.config.geo_feature_dim
-        out = self.march(origins, directions, near, far, self._query, jitter=jitter, generator=generator,
+        samples: list = []
+
+        def query(coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
+            sigma, features = self.field(coords, unit)
+            samples.append((idx, features))
+            return sigma, features
+        out = self.march(origins, directions, near, far, query, jitter=jitter, generator=generator,
                          channels=channels, background=self.background.new_zeros(channels))[0]
         unit = torch.nn.functional.normalize(directions, dim=-1)
-        return out._replace(color=self.field.shade_pixels(out.color, out.opacity, unit, self.background))
+        residual_inputs = None
+        if samples and torch.is_grad_enabled() and not self.field.config.residual_density_grad:
+            # the same composited features, with the weights' gradient stopped: the residual cannot shape geometry
+            idx, features = samples[0]
+            dense = features.new_zeros(*out.weights.shape, channels).index_put(idx, features)
+            weights = out.weights.detach()
+            residual_inputs = ((weights[..., None] * dense).sum(dim=-2), weights.sum(dim=-1))
+        return out._replace(color=self.field.shade_pixels(out.color, out.opacity, unit, self.background,
+                                                          residual_inputs))
 
     def _query(self, coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
         return self.field(coords, unit)

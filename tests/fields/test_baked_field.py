@@ -3,8 +3,8 @@
 The bake stores the field's values at brick vertices, so the baked field equals the exact one there (to float16 /
 uint8 rounding); between vertices it interpolates, so its render differs from the exact render of the same field
 by the grid's interpolation only: measured in brackets. The GL renderer against the numpy reference: with early
-termination and the colour skip off within 1e-4 [3e-6 exact filtering, 8e-6 hardware on llvmpipe], with the
-defaults within their documented bound (``engine.fields.gl``).
+termination and the colour skip off within 1e-4 [3e-6] with exact filtering (1.1e-3 [1.1e-4 on llvmpipe] with
+hardware filtering), with the defaults within their documented bound (``engine.fields.gl``).
 """
 from __future__ import annotations
 
@@ -153,7 +153,10 @@ def test_gl_renders_the_numpy_frame_of_the_baked_field(which, filtering, request
     baked = load_baked(out)
     ref = render_baked(baked, cam.intrinsics, cam.world_to_camera, H, W)
     bound = glfield.TRANSMITTANCE_EPS + manifest["render"]["num_samples"] * glfield.COLOR_EPS
-    for options, tol in (({"transmittance_eps": 0.0, "color_eps": 0.0}, 1e-4), ({}, bound)):
+    # hardware filtering: texture coordinates of a few thousand texels carry float32 rounding (~2e-4 texel) into
+    # the interpolation weights [1.1e-4 on llvmpipe]
+    slack = 0.0 if filtering == "exact" else 1e-3
+    for options, tol in (({"transmittance_eps": 0.0, "color_eps": 0.0}, 1e-4 + slack), ({}, bound + slack)):
         with GlBakedRenderer(baked, W, H, filtering=filtering, count_evaluations=True, **options) as renderer:
             got = renderer.render(cam.intrinsics, cam.world_to_camera)
         assert np.abs(got["color"] - ref["color"]).max() <= tol + GPU_SLACK

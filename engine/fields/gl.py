@@ -781,15 +781,9 @@ class GlFieldRenderer:
         for p in assets.planes:
             if p.shape[-1] < 2:
                 raise InputError(f"plane resolution {p.shape[-1]} < 2 cannot be interpolated", field="planes")
-        self.assets = assets
-        self.width, self.height = int(width), int(height)
-        self.quantized = bool(quantized)
-        self.filtering = filtering
-        self.color_mode = color_mode
-        self.transmittance_eps = float(transmittance_eps)
-        self.color_eps = float(color_eps)
-        self.count_evaluations = bool(count_evaluations)
-        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
+        self._configure(assets, width, height, quantized=quantized, filtering=filtering, color_mode=color_mode,
+                        transmittance_eps=transmittance_eps, color_eps=color_eps,
+                        tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
         if quantized:
             planes, ranges = _uint8_planes(assets)
         else:
@@ -799,6 +793,20 @@ class GlFieldRenderer:
             params_kind="const" if weights == "inline" else "ubo", count_evaluations=self.count_evaluations)
         self._setup(packed, [(f"planes{spec['scale']}", texture_layers(plane, spec["groups"]))
                              for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4", context)
+
+    def _configure(self, assets, width: int, height: int, *, quantized: bool, filtering: str, color_mode: str,
+                   transmittance_eps: float, color_eps: float, tiles_per_invocation: Optional[int],
+                   count_evaluations: bool) -> None:
+        """Record the (checked) options; ``tiles_per_invocation`` is checked here."""
+        self.assets = assets
+        self.width, self.height = int(width), int(height)
+        self.quantized = bool(quantized)
+        self.filtering = filtering
+        self.color_mode = color_mode
+        self.transmittance_eps = float(transmittance_eps)
+        self.color_eps = float(color_eps)
+        self.count_evaluations = bool(count_evaluations)
+        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
 
     def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str, context=None) -> None:
         """Create the context (or take ``context``'s), compile ``self.source`` and upload the parameters, the

@@ -31,8 +31,8 @@ import numpy as np
 
 from engine.core.errors import InputError
 from engine.fields.baked import BakedAssets, load_baked
-from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _check_tiles,
-                              _direction_encoding, check_options, color_head, finish_shader)
+from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
+                              check_options, color_head, finish_shader)
 
 __all__ = ["GlBakedRenderer", "atlas_layout", "atlas_layers", "generate_baked_shader"]
 
@@ -142,15 +142,9 @@ class GlBakedRenderer(GlFieldRenderer):
             baked = load_baked(baked)
         check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
                       transmittance_eps=transmittance_eps, color_eps=color_eps)
-        self.assets = baked
-        self.width, self.height = int(width), int(height)
-        self.quantized = True
-        self.filtering = filtering
-        self.color_mode = "deferred"
-        self.transmittance_eps = float(transmittance_eps)
-        self.color_eps = float(color_eps)
-        self.count_evaluations = bool(count_evaluations)
-        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
+        self._configure(baked, width, height, quantized=True, filtering=filtering, color_mode="deferred",
+                        transmittance_eps=transmittance_eps, color_eps=color_eps,
+                        tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
         self.source, packed, self.params_kind = generate_baked_shader(
             baked, filtering=filtering, params_kind="const" if weights == "inline" else "ubo",
             count_evaluations=self.count_evaluations)

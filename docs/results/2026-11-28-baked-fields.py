@@ -5,6 +5,10 @@ renderer (both filtering="exact", the numpy references' arithmetic), PSNR of eac
 the baked render against the exact one, display-encoded as `interleave eval field` scores.
 
     PYTHONPATH=. python docs/results/2026-11-28-baked-fields.py OUT.json RUN [RUN ...]
+    PYTHONPATH=. python docs/results/2026-11-28-baked-fields.py --background RUN [RUN ...]
+
+``--background``: the torch render's squared error (linear RGB) on the photos' white background pixels and on
+the rest, and the mean opacity on the background, over every 5th held-out view (where a field's fog shows).
 """
 import json
 import sys
@@ -43,7 +47,33 @@ def scores(run: Path) -> dict:
             "field_npz_bytes": (export / "field.npz").stat().st_size}
 
 
+def background(run: str) -> dict:
+    import torch
+
+    from models.fields.components.render import render_image
+    from models.fields.train_static import load_model
+
+    torch.set_num_threads(1)
+    model = load_model(run)
+    _, test = load_run_views(run)
+    bg_err, fg_err, opacity = [], [], []
+    for i in range(0, len(test.cameras), 5):
+        cam, truth = test.cameras[i], test.images[i]
+        out = render_image(model, cam.intrinsics, cam.world_to_camera, test.height, test.width, model.scene.near,
+                           model.scene.far)
+        white = (truth > 0.99).all(-1)
+        err = ((out["color"] - truth) ** 2).mean(-1)
+        bg_err.append(err[white].mean())
+        fg_err.append(err[~white].mean())
+        opacity.append(out["opacity"][white].mean())
+    return {"run": run, "background_mse": float(np.mean(bg_err)), "object_mse": float(np.mean(fg_err)),
+            "background_opacity": float(np.mean(opacity))}
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "--background":
+        print(json.dumps([background(r) for r in sys.argv[2:]], indent=2))
+        sys.exit(0)
     out = [scores(Path(r)) for r in sys.argv[2:]]
     Path(sys.argv[1]).write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))

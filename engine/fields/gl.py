@@ -48,7 +48,9 @@ most ``num_samples * color_eps`` per pixel in total (64 * 1e-5 = 6.4e-4 by defau
 smaller, see the tests). Planar depth moves by at most ``transmittance_eps / opacity * (far - near)``. Both
 set to 0 give the reference's compositing up to float32 rounding. ``color_mode="latent"`` (colour MLP once
 per pixel on the weight-averaged latent) is an approximation for comparison only: the MLP is not linear in
-its input, and the bench measures ~27 dB against the exact colour.
+its input, and the bench measures ~27 dB against the exact colour. A field trained with deferred shading
+(``field.shading = "deferred"``, ``docs/field-assets.md``) is shaded once per pixel exactly: its features
+are composited and the colour MLP runs on them after the march (``color_mode`` must stay ``per-sample``).
 
 The EGL context stays current on the thread that created the renderer; use it from that thread. The shader
 generator and the renderer that compiles and feeds it stay in one module (~770 lines): every uniform,
@@ -751,7 +753,8 @@ class GlFieldRenderer:
         color_eps: samples with weight at most this skip the colour MLP and count as background colour
             (0: every sample with a non-zero weight is coloured).
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
-            latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
+            latent vector: an approximation, since the MLP is not linear in the latent; see the bench). A
+            deferred field is rendered exactly with ``per-sample`` and refuses ``latent``.
         tiles_per_invocation: 8x8 pixel tiles each shader invocation shades, stacked along y (``None``:
             ``SOFTWARE_TILES`` on llvmpipe, where it amortises a per-call prologue, 1 on a GPU). The frame is
             the same for any value.

@@ -26,7 +26,7 @@ from models.fields.bake import bake_static, brick_vertices
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.train_static import load_model, train_field
 from tests.fields.test_deferred_field import DEFERRED, deferred_run  # noqa: F401  (module fixture)
-from tests.fields.test_field_export import _forward_facing
+from tests.fields.test_field_export import _forward_facing, bounded_run  # noqa: F401  (module fixture)
 from tests.fields.test_field_train import TINY_FIELD, sphere_views, tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -177,3 +177,29 @@ def test_gl_baked_renderer_refuses_bad_options(deferred_run):
             GlBakedRenderer(out, W, H, **options)
     with pytest.raises(InputError, match="size"):
         GlBakedRenderer(out, 0, H)
+
+
+@gl_only
+def test_the_field_benchmark_times_the_baked_renderer(deferred_run, tmp_path):
+    from tools.bench_fields import main as bench_main, run_static_bench
+
+    run, out, _ = deferred_run
+    records = run_static_bench(out, [(32, 24)], run=run, repeat=1, skip=("onnx",))
+    by_name = {r["renderer"]: r for r in records}
+    assert {"gl baked", "gl baked, exact filtering", "baked numpy", "torch", "gl float"} <= set(by_name)
+    assert not any("once per pixel (approx.)" in name for name in by_name)  # not for a deferred field
+    assert by_name["gl baked"]["psnr"] > 35.0 and by_name["gl baked"]["evaluations_per_pixel"] > 0
+    assert bench_main(["static", str(out), "--sizes", "16x16", "--repeat", "1", "--skip", "torch,onnx,numpy,baked",
+                       "--json", str(tmp_path / "b.json")]) == 0
+    assert not any("baked" in r["renderer"] for r in json.loads((tmp_path / "b.json").read_text()))
+
+
+def test_export_command_bakes_only_deferred_fields_and_checks_the_resolution(deferred_run, bounded_run, tmp_path,
+                                                                             capsys):
+    from engine.cli import main as cli_main
+
+    _, per_sample_out, per_sample_manifest = bounded_run
+    assert not (per_sample_out / "baked.json").exists() and "baked" not in per_sample_manifest
+    run, _, _ = deferred_run
+    assert cli_main(["export", "field", str(run), "--out", str(tmp_path / "bad"), "--bake-resolution", "48"]) == 2
+    assert "bake_resolution" in capsys.readouterr().err

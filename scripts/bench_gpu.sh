@@ -21,8 +21,8 @@
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080; the same
 #    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
 #    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR).
-# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (15 files with the lego data) and
-# the GPU's clocks during the run (clocks.csv).
+# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (15 files with the
+# lego data) and the GPU's clocks during the run (clocks.csv).
 set -uo pipefail
 out="${1:?usage: bash scripts/bench_gpu.sh OUT_DIR}"
 py="${PYTHON:-python3}"

@@ -83,7 +83,8 @@ from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_
 
 __all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
            "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options", "inline_params",
-           "CAMERA_GLSL", "contract_glsl", "march_code", "color_head", "finish_shader", "set_uniforms", "camera_uniforms", "scene_uniforms"]
+           "CAMERA_GLSL", "contract_glsl", "march_code", "color_head", "finish_shader", "set_uniforms",
+           "camera_uniforms", "scene_uniforms"]
 
 #: Default weight below which a sample's colour MLP is not evaluated (the background colour stands in).
 COLOR_EPS = 1e-5
@@ -492,8 +493,8 @@ def color_head(params: ShaderParams, enc: list[str], colr, latent_dim: int, lat_
     we_off = params.add(pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
     b0_off = params.add(np.pad(b0, (0, rows0 - b0.shape[0])))
     if enc:
-        code, base_vecs = linear_code("cb", enc_vecs, we_off, rows0 // 4, [f"P[{b0_off + q}]" for q in range(rows0 // 4)],
-                                  False)
+        code, base_vecs = linear_code("cb", enc_vecs, we_off, rows0 // 4,
+                                      [f"P[{b0_off + q}]" for q in range(rows0 // 4)], False)
         per_pixel += ["    " + line for line in code]
     else:
         base_vecs = [f"P[{b0_off + q}]" for q in range(rows0 // 4)]

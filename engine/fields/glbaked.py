@@ -86,7 +86,8 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
         f"vec3 bk_i0 = min(floor(bk_local), vec3({float(s - 1)!r}));",
         "vec3 fr = bk_local - bk_i0;",
         f"int bk_column = bk / {per_column};",
-        f"ivec2 bk_tile = ivec2(bk_column * {v * v * groups} + int(bk_i0.z) * {v}, (bk - bk_column * {per_column}) * {v});",
+        f"ivec2 bk_tile = ivec2(bk_column * {v * v * groups} + int(bk_i0.z) * {v}, "
+        f"(bk - bk_column * {per_column}) * {v});",
     ]
     if filtering == "exact":
         lines.append("ivec2 bk_xy = bk_tile + ivec2(bk_i0.xy);")

@@ -35,7 +35,8 @@ from engine.fields.manifest import check_scene, check_static_layout
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
            "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np",
-           "uncontract_np", "query_field", "shade_pixels_np", "pixel_shader", "composite_np", "optical_depth", "evaluated_samples", "evaluation_macs",
+           "uncontract_np", "query_field", "shade_pixels_np", "pixel_shader", "composite_np", "optical_depth",
+           "evaluated_samples", "evaluation_macs",
            "render_field", "TRANSMITTANCE_EPS"]
 
 ASSET_FORMAT = "interleave-field"
@@ -523,7 +524,8 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
         if shade is None:
             color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)
         else:
-            feats, depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, np.zeros(channels, np.float32))
+            zero = np.zeros(channels, np.float32)
+            feats, depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, zero)
             color[s:s + r] = shade(feats, opacity[s:s + r], unit[s:s + r])
         evaluations[s:s + r] = evaluated_samples(keep, optical_depth(sigma, lengths))
     seconds = time.perf_counter() - start

@@ -17,7 +17,7 @@ import torch
 
 from engine.core.errors import InputError
 from engine.fields.baked import BAKED_FORMAT, BAKED_VERSION
-from models.fields.assets import _add_mlps, _render_section
+from models.fields.assets import _add_mlps, _render_section, direction_degree
 from models.fields.static.field import MAX_LOG_DENSITY
 
 __all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "brick_vertices", "write_baked", "baked_check"]
@@ -117,7 +117,7 @@ def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 <
                  "bricks_from": "occupancy grid" if model.occupancy is not None and int(model.occupancy.updates)
                  else "vertex density >= the occupancy threshold"},
         "field": {"feature_dim": int(cfg.geo_feature_dim), "max_log_density": MAX_LOG_DENSITY,
-                  "direction_encoding": cfg.direction_encoding, "direction_degree": int(cfg.direction_degree),
+                  "direction_encoding": cfg.direction_encoding, "direction_degree": direction_degree(cfg),
                   "shading": "deferred", "mlps": mlps},
     }
     return arrays, manifest

@@ -83,6 +83,19 @@ def test_the_residual_reads_the_same_features_with_or_without_the_density_gradie
     assert not torch.allclose(grads[0], grads[1])
 
 
+def test_a_field_without_view_dependence_exports_assets_that_load():
+    from models.fields.assets import load_assets, static_assets
+    from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
+
+    for shading in ("per-sample", "deferred"):
+        config = dataclasses.replace(DEFERRED, shading=shading, direction_encoding="none")  # degree left at 3
+        model = StaticFieldModel(SceneBox("bounded-360", 0.1, 10.0, box_min=[-1, -1, -1], box_max=[1, 1, 1]),
+                                 [1.0, 1.0, 1.0], config, RenderConfig(num_samples=8))
+        arrays, manifest = static_assets(model)
+        assert manifest["field"]["direction_degree"] == 0
+        assert load_assets(arrays, manifest, "field").deferred == (shading == "deferred")
+
+
 def test_deferred_field_trains(deferred_run):
     run, _, _ = deferred_run
     cam = sphere_views([20]).cameras[0]

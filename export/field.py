@@ -36,11 +36,12 @@ from models.fields.components.render import render_image
 from models.fields.components.sampling import camera_rays, sample_intervals
 from models.fields.data.select import load_run_views
 from models.fields.assets import OPSET, STATIC_FORMAT, STATIC_VERSION, mlp_layers, quantize_planes, static_assets
+from models.fields.bake import DEFAULT_RESOLUTION, write_baked
 from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_tolerance", "DISPLAY_LEVELS",
-           "example_points", "quantize_planes", "report_export", "main",
+           "example_points", "query_outputs", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
@@ -66,6 +67,11 @@ class FieldQueryGraph(nn.Module):
         unit = torch.nn.functional.normalize(directions, dim=-1)
         sigma, rgb = self.model.field(coords.clamp(-1.0, 1.0), unit)
         return torch.where(inside, sigma, torch.zeros_like(sigma)), rgb
+
+
+def query_outputs(model) -> list[str]:
+    """The ONNX graph's output names: density and colour, or density and the features of a deferred field."""
+    return ["density", "features" if model.field.deferred else "color"]
 
 
 def _model(run_or_model):
@@ -153,7 +159,7 @@ def parity_tolerance(levels: int = DISPLAY_LEVELS) -> float:
 
 
 def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=None,
-                 quantize_check: bool = True) -> dict:
+                 quantize_check: bool = True, bake_resolution: int = DEFAULT_RESOLUTION) -> dict:
     """Write ``field.onnx``, ``field.npz`` and ``field.json`` for the run into ``out_dir``; returns the manifest.
 
     Args:
@@ -162,6 +168,8 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
         views: optional :class:`~models.fields.data.views.Views` whose first camera is used for the ray-point
             parity check and the quantization check (default: the run's first test view if the run
             records its data, else only random points are checked).
+        bake_resolution: a field trained with deferred shading is also baked (``baked.npz`` + ``baked.json``,
+            ``models.fields.bake``) at this many grid cells a side; its grid and check are the result's ``baked``.
     """
     model = _model(run_dir)
     out = Path(out_dir)
@@ -172,13 +180,14 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
     onnx_path = out / "field.onnx"
     with torch.no_grad():
         program = torch.onnx.export(graph, (points, dirs), dynamo=True, opset_version=OPSET,
-                                    input_names=["points", "directions"], output_names=["density", "color"],
+                                    input_names=["points", "directions"], output_names=query_outputs(model),
                                     dynamic_shapes={"points": {0: n}, "directions": {0: n}}, verbose=False,
                                     optimize=False)
     program.save(str(onnx_path))
     strip_debug(onnx_path)
 
     arrays, manifest = static_assets(model)
+    manifest["onnx"]["outputs"] = query_outputs(model)
     np.savez_compressed(out / "field.npz", **arrays)
     rand_pts, rand_dirs = example_points(model, 8192, seed=1)
     parity = {"random_points": check_parity(onnx_path, model, rand_pts, rand_dirs)}
@@ -191,6 +200,9 @@ def export_field(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=
             manifest["quantization"] = _quantization_check(model, arrays, camera, render_image)
     manifest["parity"] = parity
     (out / "field.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    if model.field.deferred:
+        baked = write_baked(model, out, bake_resolution, camera)
+        manifest["baked"] = {"grid": baked["grid"], "check": baked.get("check")}
     return manifest
 
 
@@ -237,7 +249,7 @@ def strip_debug(path: Path) -> None:
 
 
 def export_command(argv: Optional[list[str]], prog: str, description: str, made_by: str, export, onnx_name: str,
-                   extra) -> None:
+                   extra, bake: bool = False) -> None:
     """``interleave export field|dynamic RUN_DIR [--out DIR] [--tolerance T]``: ``export(run, out) -> manifest``,
     then :func:`report_export` with ``extra(manifest)`` (a dict) printed beside the parity."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
@@ -248,9 +260,13 @@ def export_command(argv: Optional[list[str]], prog: str, description: str, made_
                              f"difference (default {parity_tolerance():.3g} = 1 / (2 * 255 * 12.92): colour and "
                              "density each moving the renderer's 8-bit sRGB output by at most half a code step at "
                              "the curve's steepest; see export.field.parity_tolerance)")
+    if bake:
+        parser.add_argument("--bake-resolution", type=int, default=DEFAULT_RESOLUTION,
+                            help="grid cells a side of the baked form of a field trained with deferred shading "
+                                 f"(default {DEFAULT_RESOLUTION}; a multiple of the occupancy grid's)")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
-    manifest = export(args.run, out)
+    manifest = export(args.run, out, **({"bake_resolution": args.bake_resolution} if bake else {}))
     report_export(out, manifest, onnx_name, args.tolerance, **extra(manifest))
 
 
@@ -258,7 +274,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field")
     """``interleave export field RUN_DIR [--out DIR]``: export, check parity, print a summary."""
     export_command(argv, prog, "Export a trained static field (ONNX query + renderer assets) and check onnxruntime "
                                "against torch.", "interleave train field", export_field, "field.onnx",
-                   lambda manifest: {"quantization": manifest.get("quantization")})
+                   lambda manifest: {"quantization": manifest.get("quantization"), "baked": manifest.get("baked")},
+                   bake=True)
 
 
 def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, **extra) -> None:

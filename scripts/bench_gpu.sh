@@ -19,9 +19,11 @@
 #    were beside the defaults, back to back and with idle gaps;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
-#    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080.
-# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (10 files) and
-# the GPU's clocks during the run (clocks.csv).
+#    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080; the same
+#    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
+#    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR).
+# Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (15 files with the
+# lego data) and the GPU's clocks during the run (clocks.csv).
 set -uo pipefail
 out="${1:?usage: bash scripts/bench_gpu.sh OUT_DIR}"
 py="${PYTHON:-python3}"
@@ -148,3 +150,22 @@ step field_render 60 "$py" -m tools.bench_fields static "$work/field/export" --r
     --skip numpy,onnx --json "$out/field_render.json"
 step field_render_hd 60 "$py" -m tools.bench_fields static "$work/field/export" --run "$work/field" \
     --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_hd.json"
+# the same capture trained with deferred shading, exported with its baked form (engine.fields.glbaked): the baked
+# renderer beside the exact one at 960x540 and 1920x1080 (its PSNR against the exact GL render of the same field)
+step field_train_deferred 150 "$py" -m engine.cli train field --scene "$work/rig" --train-views cam1,cam3,cam6 \
+    --test-views cam2,cam5 --device cuda --field.shading deferred --out "$work/field_deferred"
+cp "$work/field_deferred/scores.json" "$out/field_deferred_scores.json" 2>/dev/null
+step field_export_deferred 180 "$py" -m engine.cli export field "$work/field_deferred"
+step field_render_baked 90 "$py" -m tools.bench_fields static "$work/field_deferred/export" --run "$work/field_deferred" \
+    --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked.json"
+# a bounded scene, where the occupancy grid makes the baked form sparse: lego (8 views at 200x200) with the deferred
+# recipe of docs/results/2026-11-28-baked-fields.md, when the data is there (LEGO_DIR)
+lego="${LEGO_DIR:-../shared/data/nerf_synthetic_lego}"
+if [ -d "$lego" ]; then
+    step field_lego_deferred 150 "$py" -m engine.cli train field --scene "$lego" --views 8 --downscale 4 --device cuda \
+        --field.shading deferred --field.density-bias -4 --field.density-hidden 64 --no-field.residual-density-grad \
+        --out "$work/lego_deferred"
+    step field_lego_export 120 "$py" -m engine.cli export field "$work/lego_deferred"
+    step field_lego_baked 90 "$py" -m tools.bench_fields static "$work/lego_deferred/export" --run "$work/lego_deferred" \
+        --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked_lego.json"
+fi

@@ -8,7 +8,9 @@ CPU ms and the PSNR / colour / depth differences of every renderer against the t
 one without torch) on one camera: a held-out view of the run, else (static) the first camera of the demo
 path (``engine.fields.camera_path``). ``--json FILE`` also writes the records. The static bench also counts the field evaluations per pixel of
 the default GL renderer and prints their multiply-add rate (GMAC/s in the MLPs), the figure to set against a
-device's FP32 peak.
+device's FP32 peak. When the export holds a baked field (``baked.json``, a field trained with deferred shading),
+the static bench also times its GL renderer (``engine.fields.glbaked``: "gl baked", hardware and exact
+filtering) and its numpy reference ("baked numpy"), scored against the same reference as the rest.
 """
 from __future__ import annotations
 
@@ -27,7 +29,9 @@ from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from engine.fields.camera_path import field_camera_path, scale_intrinsics
 from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
+from engine.fields.baked import load_baked, render_baked
 from engine.fields.gl import GlFieldRenderer
+from engine.fields.glbaked import GlBakedRenderer
 from engine.fields.gldynamic import GlDynamicRenderer
 from engine.fields.render import evaluation_macs, load_field, render_field
 
@@ -122,15 +126,23 @@ def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_r
         out, wall, cpu = _timed(lambda: torch_render(k, w2c, height, width))
         outs["torch"] = (out, [wall], [cpu], 0.0)
     if "gl" not in skip:
-        for name, kwargs in variants:
-            with gl_renderer(assets, width, height, **kwargs) as r:
-                out = r.render(k, w2c, *extra)  # warm-up
-                runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
-                outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
+        outs.update(_gl_outs(gl_renderer, assets, variants, width, height, k, w2c, extra, repeat))
     for query in ("numpy", "onnx"):
         if query not in skip:
             out, wall, cpu = _timed(lambda: reference(assets, k, w2c, height, width, *extra, query=query))
             outs[query] = (out, [wall], [cpu], 0.0)
+    return outs
+
+
+def _gl_outs(gl_renderer, assets, variants, width: int, height: int, k, w2c, extra: tuple, repeat: int) -> dict:
+    """``{variant: (render, wall seconds, CPU seconds, compile seconds)}`` of GL renderers (a warm-up render,
+    then ``repeat`` timed ones)."""
+    outs = {}
+    for name, kwargs in variants:
+        with gl_renderer(assets, width, height, **kwargs) as r:
+            out = r.render(k, w2c, *extra)  # warm-up
+            runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
+            outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
     return outs
 
 
@@ -141,6 +153,8 @@ STATIC_GL_VARIANTS = [("gl float", {}), ("gl float, exact filtering", {"filterin
                       ("gl float, colour once per pixel (approx.)", {"color_mode": "latent"}),
                       ("gl float, 1 tile per invocation", {"tiles_per_invocation": 1}),
                       ("gl float, 8 tiles per invocation", {"tiles_per_invocation": 8})]
+#: The baked field's GL renderer (``engine.fields.glbaked``), timed when the export holds ``baked.json``.
+BAKED_GL_VARIANTS = [("gl baked", {}), ("gl baked, exact filtering", {"filtering": "exact"})]
 DYNAMIC_GL_VARIANTS = [("gl", {}), ("gl, exact filtering", {"filtering": "exact"}),
                        ("gl, no early stop / colour skip", {"transmittance_eps": 0.0, "color_eps": 0.0})]
 
@@ -156,6 +170,7 @@ def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optiona
         run = export.parent
     k0, w2c, w0, h0, where = _static_camera(export, run)
     assets = load_field(export)
+    baked = load_baked(export) if (export / "baked.json").is_file() and "baked" not in skip else None
     torch_render = None
     if "torch" not in skip and run is not None:
         try:
@@ -169,19 +184,45 @@ def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optiona
                 torch.set_num_threads(threads)
             model = load_model(run)
             torch_render = _torch_renderer(model, model.scene.near, model.scene.far)
+    # a deferred field is shaded once per pixel exactly: the per-sample field's approximation does not apply
+    variants = [(name, kw) for name, kw in STATIC_GL_VARIANTS if not (assets.deferred and "color_mode" in kw)]
     records = []
     for width, height in sizes:
         k = scale_intrinsics(k0, w0, h0, width, height)
         outs = _size_outs(width, height, k, w2c, (), assets=assets, torch_render=torch_render,
-                          gl_renderer=GlFieldRenderer, variants=STATIC_GL_VARIANTS, reference=render_field, skip=skip,
+                          gl_renderer=GlFieldRenderer, variants=variants, reference=render_field, skip=skip,
                           repeat=repeat)
+        if baked is not None:
+            outs.update(_baked_outs(baked, width, height, k, w2c, skip, repeat))
         size_records = bench_records(outs, width, height)
         if "gl" not in skip:
             _add_arithmetic(size_records, assets, k, w2c, width, height)
+        if baked is not None and "baked" not in skip:
+            _add_baked_evaluations(size_records, baked, k, w2c, width, height)
         records.extend(size_records)
     for r in records:
         r["camera"] = where
     return records
+
+
+def _baked_outs(baked, width: int, height: int, k, w2c, skip: tuple[str, ...], repeat: int) -> dict:
+    """The baked field's renders at one size: its GL variants and (unless numpy is skipped) its numpy reference."""
+    outs = {}
+    if "gl" not in skip:
+        outs.update(_gl_outs(GlBakedRenderer, baked, BAKED_GL_VARIANTS, width, height, k, w2c, (), repeat))
+    if "numpy" not in skip:
+        out, wall, cpu = _timed(lambda: render_baked(baked, k, w2c, height, width))
+        outs["baked numpy"] = (out, [wall], [cpu], 0.0)
+    return outs
+
+
+def _add_baked_evaluations(records: list[dict], baked, k, w2c, width: int, height: int) -> None:
+    """Samples read per pixel (in occupied bricks, up to early termination) by the default baked GL renderer."""
+    with GlBakedRenderer(baked, width, height, count_evaluations=True) as r:
+        evaluations = r.render(k, w2c)["evaluations"]
+    for rec in records:
+        if rec["renderer"] == BAKED_GL_VARIANTS[0][0]:
+            rec["evaluations_per_pixel"] = float(evaluations.mean())
 
 
 def _add_arithmetic(records: list[dict], assets, k, w2c, width: int, height: int) -> None:
@@ -266,7 +307,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     dynamic.add_argument("--time", type=float, default=None, help="render time (default: the view's own)")
     for p in (static, dynamic):
         p.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
-        p.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch")
+        p.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch (static: "
+                                                  "and baked, the baked field of an export that has one)")
         p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
         p.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
     args = parser.parse_args(argv)

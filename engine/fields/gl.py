@@ -48,7 +48,9 @@ most ``num_samples * color_eps`` per pixel in total (64 * 1e-5 = 6.4e-4 by defau
 smaller, see the tests). Planar depth moves by at most ``transmittance_eps / opacity * (far - near)``. Both
 set to 0 give the reference's compositing up to float32 rounding. ``color_mode="latent"`` (colour MLP once
 per pixel on the weight-averaged latent) is an approximation for comparison only: the MLP is not linear in
-its input, and the bench measures ~27 dB against the exact colour.
+its input, and the bench measures ~27 dB against the exact colour. A field trained with deferred shading
+(``field.shading = "deferred"``, ``docs/field-assets.md``) is shaded once per pixel exactly: its features
+are composited and the colour MLP runs on them after the march (``color_mode`` must stay ``per-sample``).
 
 The EGL context stays current on the thread that created the renderer; use it from that thread. The shader
 generator and the renderer that compiles and feeds it stay in one module (~770 lines): every uniform,
@@ -81,7 +83,8 @@ from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_
 
 __all__ = ["GlFieldRenderer", "TRANSMITTANCE_EPS", "COLOR_EPS", "available", "ShaderParams", "generate_shader",
            "linear_code", "mlp_hidden_code", "pad_matrix", "texture_layers", "check_options", "inline_params",
-           "CAMERA_GLSL", "contract_glsl", "set_uniforms", "camera_uniforms", "scene_uniforms"]
+           "CAMERA_GLSL", "contract_glsl", "march_code", "color_head", "finish_shader", "set_uniforms",
+           "camera_uniforms", "scene_uniforms"]
 
 #: Default weight below which a sample's colour MLP is not evaluated (the background colour stands in).
 COLOR_EPS = 1e-5
@@ -418,6 +421,103 @@ def scene_uniforms(assets, width: int, height: int) -> dict:
     return values
 
 
+def march_code(assets) -> dict[str, str]:
+    """The template's ray setup of a field's scene and sampling (``bounds``, ``spacing_setup``) and ``locate``,
+    the per-sample code that places sample ``i`` (``t``, ``delta``, world ``p``, contracted ``c``) and sets
+    ``keep`` (inside the cube, non-empty bin, occupied cell of ``assets.occupancy``)."""
+    render = assets.manifest["render"]
+    if assets.bounded:
+        bounds = """    {   // slab test against the box (as engine.fields.render._ray_box)
+        float enter = -1e30, leave = 1e30;
+        for (int a = 0; a < 3; ++a) {
+            bool parallel = d[a] == 0.0;
+            float inv = 1.0 / (parallel ? 1.0 : d[a]);
+            float ta = (box_lo[a] - origin[a]) * inv, tb = (box_hi[a] - origin[a]) * inv;
+            bool inside = origin[a] >= box_lo[a] && origin[a] <= box_hi[a];
+            float lo_a = parallel ? (inside ? -1e30 : 1e30) : min(ta, tb);
+            float hi_a = parallel ? (inside ? 1e30 : -1e30) : max(ta, tb);
+            enter = max(enter, lo_a);
+            leave = min(leave, hi_a);
+        }
+        t0 = max(t0, enter);
+        t1 = min(t1, leave);
+    }"""
+    else:
+        bounds = ""
+    contract = "        vec3 c = contract(p);"
+    if render["spacing"] == "linear":
+        spacing_setup = ""
+        sample_t = """        float e0 = lerp_(t0, t1, float(i) / float(N));
+        float e1 = lerp_(t0, t1, float(i + 1) / float(N));
+        float t = lerp_(t0, t1, (float(i) + 0.5) / float(N));
+        float delta = max(e1 - e0, 0.0);"""
+    else:
+        spacing_setup = f"""    float s_near = 1.0 / max(t0, {MIN_NEAR!r});
+    float s_far = 1.0 / max(min(t1, {FAR_AT_INFINITY!r}), max(t0, {MIN_NEAR!r}));"""
+        sample_t = """        float e0 = 1.0 / lerp_(s_near, s_far, float(i) / float(N));
+        float e1 = 1.0 / lerp_(s_near, s_far, float(i + 1) / float(N));
+        float t = 1.0 / lerp_(s_near, s_far, (float(i) + 0.5) / float(N));
+        float delta = max(e1 - e0, 0.0);"""
+    occupancy = ""
+    if assets.occupancy is not None:
+        res = assets.occupancy.shape[0]
+        occupancy = f"""if (keep) {{  // occupancy grid [ix, iy, iz], bit-packed
+    ivec3 oi = clamp(ivec3(floor((c + 1.0) * {0.5 * res!r})), ivec3(0), ivec3({res - 1}));
+    uint bit = uint((oi.x * {res} + oi.y) * {res} + oi.z);
+    keep = (occ_bits[bit >> 5u] & (1u << (bit & 31u))) != 0u;
+}}"""
+    locate = "\n".join(sample_t.splitlines() + ["precise vec3 p = origin + t * d;"] + contract.splitlines()
+                        + ["bool keep = delta > 0.0 && all(lessThanEqual(abs(c), vec3(1.0)));"]
+                        + occupancy.splitlines())
+    locate = "\n".join("            " + line.strip() for line in locate.splitlines())
+    return {"bounds": bounds, "spacing_setup": spacing_setup, "locate": locate}
+
+
+def color_head(params: ShaderParams, enc: list[str], colr, latent_dim: int, lat_rows: int
+               ) -> tuple[list[str], Callable[..., tuple[list[str], str]]]:
+    """The colour MLP of a field: GLSL run once per pixel (the encoding ``enc``, scalar expressions of ``dir``, and
+    the first layer's columns that read it) and ``color_net(inputs, indent, activation)``, the code of the rest of
+    the MLP on vec4 inputs (the latent, ``lat_rows`` rows) and the expression of its RGB output (``sigmoid`` or
+    ``tanh``). The first layer's columns are the latent's ``latent_dim`` then the encoding's."""
+    enc_rows = _pad_to(len(enc))
+    enc_vecs = [f"e{q}" for q in range(enc_rows // 4)]
+    per_pixel = []
+    for q in range(enc_rows // 4):
+        comps = [enc[4 * q + r] if 4 * q + r < len(enc) else "0.0" for r in range(4)]
+        per_pixel.append(f"    vec4 e{q} = vec4({', '.join(comps)});")
+    w0, b0 = colr[0]
+    if w0.shape[1] != latent_dim + len(enc):
+        raise InputError(f"colour MLP takes {w0.shape[1]} inputs, expected latent {latent_dim} + encoding {len(enc)}",
+                         field="mlps")
+    rows0 = _pad_to(w0.shape[0])
+    we_off = params.add(pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
+    b0_off = params.add(np.pad(b0, (0, rows0 - b0.shape[0])))
+    if enc:
+        code, base_vecs = linear_code("cb", enc_vecs, we_off, rows0 // 4,
+                                      [f"P[{b0_off + q}]" for q in range(rows0 // 4)], False)
+        per_pixel += ["    " + line for line in code]
+    else:
+        base_vecs = [f"P[{b0_off + q}]" for q in range(rows0 // 4)]
+    wh_off = params.add(pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
+    last_is_first = len(colr) == 1
+
+    def color_net(inputs: list[str], indent: str, activation: str = "sigmoid") -> tuple[list[str], str]:
+        code, xs = linear_code("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
+        lines = list(code)
+        if not last_is_first:
+            hidden, xs = mlp_hidden_code("ch", params, xs, colr[1:-1]) if len(colr) > 2 else ([], xs)
+            lines += hidden
+            w_l, b_l = colr[-1]
+            out_off = params.add(pad_matrix(w_l, 4, 4 * len(xs)))
+            b_off = params.add(np.pad(b_l, (0, 4 - b_l.shape[0])))
+            code, xs = linear_code("co", xs, out_off, 1, [f"P[{b_off}]"], False)
+            lines += code
+        rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))" if activation == "sigmoid" else f"tanh({xs[0]}.xyz)"
+        return [indent + line for line in lines], rgb
+
+    return per_pixel, color_net
+
+
 def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optional[list[np.ndarray]], *,
               filtering: str, color_mode: str, params_kind: str, extra_encoding: Sequence[str] = (),
               sample_code: Optional[Callable[["ShaderParams"], tuple[list[str], list[str], list[str]]]] = None,
@@ -434,7 +534,6 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
     weights added to ``params``. ``count_evaluations`` writes each pixel's number of evaluated samples to a
     uint buffer at binding 4 (``out_count``)."""
     spec = assets.manifest["field"]
-    render = assets.manifest["render"]
     params = ShaderParams()
     quantized = ranges is not None
 
@@ -516,45 +615,19 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
 
     # colour MLP: the direction columns of its first layer once per pixel, the rest per sample
     enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"])) + list(extra_encoding)
-    enc_rows = _pad_to(len(enc))
-    enc_vecs = [f"e{q}" for q in range(enc_rows // 4)]
-    per_pixel = []
-    for q in range(enc_rows // 4):
-        comps = [enc[4 * q + r] if 4 * q + r < len(enc) else "0.0" for r in range(4)]
-        per_pixel.append(f"    vec4 e{q} = vec4({', '.join(comps)});")
-    colr = assets.color_layers
-    w0, b0 = colr[0]
-    if w0.shape[1] != latent_dim + len(enc):
-        raise InputError(f"colour MLP takes {w0.shape[1]} inputs, expected latent {latent_dim} + encoding {len(enc)}",
-                         field="mlps")
-    rows0 = _pad_to(w0.shape[0])
-    we_off = params.add(pad_matrix(w0[:, latent_dim:], rows0, enc_rows)) if enc else None
-    b0_off = params.add(np.pad(b0, (0, rows0 - b0.shape[0])))
-    if enc:
-        code, base_vecs = linear_code("cb", enc_vecs, we_off, rows0 // 4, [f"P[{b0_off + q}]" for q in range(rows0 // 4)],
-                                  False)
-        per_pixel += ["    " + line for line in code]
-    else:
-        base_vecs = [f"P[{b0_off + q}]" for q in range(rows0 // 4)]
-    wh_off = params.add(pad_matrix(w0[:, :latent_dim], rows0, lat_rows))
-    last_is_first = len(colr) == 1
-
-    def color_net(inputs: list[str], indent: str) -> tuple[list[str], str]:
-        code, xs = linear_code("c0_", inputs, wh_off, rows0 // 4, base_vecs, not last_is_first)
-        lines = list(code)
-        if not last_is_first:
-            hidden, xs = mlp_hidden_code("ch", params, xs, colr[1:-1]) if len(colr) > 2 else ([], xs)
-            lines += hidden
-            w_l, b_l = colr[-1]
-            out_off = params.add(pad_matrix(w_l, 4, 4 * len(xs)))
-            b_off = params.add(np.pad(b_l, (0, 4 - b_l.shape[0])))
-            code, xs = linear_code("co", xs, out_off, 1, [f"P[{b_off}]"], False)
-            lines += code
-        rgb = f"(1.0 / (1.0 + exp(-{xs[0]}.xyz)))"
-        return [indent + line for line in lines], rgb
+    per_pixel, color_net = color_head(params, enc, assets.color_layers, latent_dim, lat_rows)
 
     latent = "\n".join("            " + line for line in lat_code)
-    if color_mode == "per-sample":
+    deferred = spec.get("shading", "per-sample") == "deferred"
+    if deferred and color_mode != "per-sample":
+        raise InputError(f"a deferred field renders its own way: {color_mode!r} is for per-sample fields",
+                         field="color_mode")
+    if deferred:  # features sigmoid(h) composited; the colour MLP once per pixel (exact: trained this way)
+        accum_decl = "\n".join(f"    vec4 ha{q} = vec4(0.0);" for q in range(lat_rows // 4))
+        color_sample = "\n".join(f"            ha{q} += w / (1.0 + exp(-{v}));" for q, v in enumerate(lat_vecs))
+        code, residual = color_net([f"ha{q}" for q in range(lat_rows // 4)], "    ", "tanh")
+        color_final = "\n".join(code) + f"\n    col = ha0.xyz + acc * {residual};  // + (1 - acc) background below"
+    elif color_mode == "per-sample":
         code, rgb = color_net(lat_vecs, "            ")
         color_sample = "\n".join(code) + f"\n            col += w * {rgb};"
         accum_decl, color_final = "", ""
@@ -565,46 +638,22 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
         code, rgb = color_net([f"(ha{q} / wl)" for q in range(lat_rows // 4)], "        ")
         color_final = "    if (wl > 0.0) {\n" + "\n".join(code) + f"\n        col += wl * {rgb};\n    }}"
 
-    if assets.bounded:
-        bounds = """    {   // slab test against the box (as engine.fields.render._ray_box)
-        float enter = -1e30, leave = 1e30;
-        for (int a = 0; a < 3; ++a) {
-            bool parallel = d[a] == 0.0;
-            float inv = 1.0 / (parallel ? 1.0 : d[a]);
-            float ta = (box_lo[a] - origin[a]) * inv, tb = (box_hi[a] - origin[a]) * inv;
-            bool inside = origin[a] >= box_lo[a] && origin[a] <= box_hi[a];
-            float lo_a = parallel ? (inside ? -1e30 : 1e30) : min(ta, tb);
-            float hi_a = parallel ? (inside ? 1e30 : -1e30) : max(ta, tb);
-            enter = max(enter, lo_a);
-            leave = min(leave, hi_a);
-        }
-        t0 = max(t0, enter);
-        t1 = min(t1, leave);
-    }"""
-    else:
-        bounds = ""
-    contract = "        vec3 c = contract(p);"
-    if render["spacing"] == "linear":
-        spacing_setup = ""
-        sample_t = """        float e0 = lerp_(t0, t1, float(i) / float(N));
-        float e1 = lerp_(t0, t1, float(i + 1) / float(N));
-        float t = lerp_(t0, t1, (float(i) + 0.5) / float(N));
-        float delta = max(e1 - e0, 0.0);"""
-    else:
-        spacing_setup = f"""    float s_near = 1.0 / max(t0, {MIN_NEAR!r});
-    float s_far = 1.0 / max(min(t1, {FAR_AT_INFINITY!r}), max(t0, {MIN_NEAR!r}));"""
-        sample_t = """        float e0 = 1.0 / lerp_(s_near, s_far, float(i) / float(N));
-        float e1 = 1.0 / lerp_(s_near, s_far, float(i + 1) / float(N));
-        float t = 1.0 / lerp_(s_near, s_far, (float(i) + 0.5) / float(N));
-        float delta = max(e1 - e0, 0.0);"""
-    occupancy = ""
-    if assets.occupancy is not None:
-        res = assets.occupancy.shape[0]
-        occupancy = f"""if (keep) {{  // occupancy grid [ix, iy, iz], bit-packed
-    ivec3 oi = clamp(ivec3(floor((c + 1.0) * {0.5 * res!r})), ivec3(0), ivec3({res - 1}));
-    uint bit = uint((oi.x * {res} + oi.y) * {res} + oi.z);
-    keep = (occ_bits[bit >> 5u] & (1u << (bit & 31u))) != 0u;
-}}"""
+    features = "\n".join("    " + line for line in features.splitlines())
+    density = "\n".join("    " + line for line in density.splitlines())
+    source, packed, kind = finish_shader(assets, params, params_kind, {
+        "samplers": "\n".join(samplers), "per_pixel": "\n".join(per_pixel), "accum_decl": accum_decl,
+        "features": features, "density": density, "density_bias": float(spec["density_bias"]),
+        "max_log": float(spec["max_log_density"]), "latent": latent, "color_sample": color_sample,
+        "color_final": color_final}, count_evaluations)
+    return source, packed, tex_specs, kind
+
+
+def finish_shader(assets, params: ShaderParams, params_kind: str, values: dict, count_evaluations: bool = False
+                  ) -> tuple[str, np.ndarray, str]:
+    """The template filled with ``values`` (the field's per-sample code: ``samplers``, ``per_pixel``,
+    ``accum_decl``, ``features``, ``density``, ``density_bias``, ``max_log``, ``latent``, ``color_sample``,
+    ``color_final``) and the scene's ray setup and sampling (:func:`march_code`): GLSL source, the packed
+    parameters and where they live (``const``: literals in the source, ``ubo`` or ``ssbo``)."""
     packed = params.array()
     if params_kind == "const":
         params_decl = ""
@@ -615,20 +664,9 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
     else:
         params_decl = "layout(std430, binding = 0) readonly buffer Params { vec4 P[]; };"
         kind = "ssbo"
-    locate = "\n".join(sample_t.splitlines() + ["precise vec3 p = origin + t * d;"] + contract.splitlines()
-                        + ["bool keep = delta > 0.0 && all(lessThanEqual(abs(c), vec3(1.0)));"]
-                        + occupancy.splitlines())
-    locate = "\n".join("            " + line.strip() for line in locate.splitlines())
-    features = "\n".join("    " + line for line in features.splitlines())
-    density = "\n".join("    " + line for line in density.splitlines())
     source = _TEMPLATE % {
-        "params_decl": params_decl, "samplers": "\n".join(samplers),
-        "num_samples": int(render["num_samples"]), "bounds": bounds, "spacing_setup": spacing_setup,
-        "per_pixel": "\n".join(per_pixel), "accum_decl": accum_decl, "locate": locate, "features": features,
-        "density": density,
-        "density_bias": float(spec["density_bias"]), "max_log": float(spec["max_log_density"]),
-        "latent": latent, "color_sample": color_sample, "color_final": color_final,
-        "opacity_eps": float(OPACITY_EPS), "camera_glsl": CAMERA_GLSL,
+        "params_decl": params_decl, "num_samples": int(assets.manifest["render"]["num_samples"]),
+        **march_code(assets), **values, "opacity_eps": float(OPACITY_EPS), "camera_glsl": CAMERA_GLSL,
         "contract_glsl": contract_glsl(assets.bounded),
         "count_decl": ("layout(std430, binding = 4) writeonly buffer CountBuf { uint out_count[]; };"
                        if count_evaluations else ""),
@@ -636,7 +674,7 @@ def generate_shader(assets: FieldAssets, planes: list[np.ndarray], ranges: Optio
     }
     if kind == "const":
         source = inline_params(source, packed)
-    return source, packed, tex_specs, kind
+    return source, packed, kind
 
 
 def inline_params(source: str, packed: np.ndarray) -> str:
@@ -716,7 +754,8 @@ class GlFieldRenderer:
         color_eps: samples with weight at most this skip the colour MLP and count as background colour
             (0: every sample with a non-zero weight is coloured).
         color_mode: ``per-sample`` (exact) or ``latent`` (the colour MLP once per pixel on the weight-averaged
-            latent vector: an approximation, since the MLP is not linear in the latent; see the bench).
+            latent vector: an approximation, since the MLP is not linear in the latent; see the bench). A
+            deferred field is rendered exactly with ``per-sample`` and refuses ``latent``.
         tiles_per_invocation: 8x8 pixel tiles each shader invocation shades, stacked along y (``None``:
             ``SOFTWARE_TILES`` on llvmpipe, where it amortises a per-call prologue, 1 on a GPU). The frame is
             the same for any value.
@@ -746,15 +785,9 @@ class GlFieldRenderer:
         for p in assets.planes:
             if p.shape[-1] < 2:
                 raise InputError(f"plane resolution {p.shape[-1]} < 2 cannot be interpolated", field="planes")
-        self.assets = assets
-        self.width, self.height = int(width), int(height)
-        self.quantized = bool(quantized)
-        self.filtering = filtering
-        self.color_mode = color_mode
-        self.transmittance_eps = float(transmittance_eps)
-        self.color_eps = float(color_eps)
-        self.count_evaluations = bool(count_evaluations)
-        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
+        self._configure(assets, width, height, quantized=quantized, filtering=filtering, color_mode=color_mode,
+                        transmittance_eps=transmittance_eps, color_eps=color_eps,
+                        tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
         if quantized:
             planes, ranges = _uint8_planes(assets)
         else:
@@ -764,6 +797,20 @@ class GlFieldRenderer:
             params_kind="const" if weights == "inline" else "ubo", count_evaluations=self.count_evaluations)
         self._setup(packed, [(f"planes{spec['scale']}", texture_layers(plane, spec["groups"]))
                              for spec, plane in zip(tex_specs, planes)], "f1" if quantized else "f4", context)
+
+    def _configure(self, assets, width: int, height: int, *, quantized: bool, filtering: str, color_mode: str,
+                   transmittance_eps: float, color_eps: float, tiles_per_invocation: Optional[int],
+                   count_evaluations: bool) -> None:
+        """Record the (checked) options; ``tiles_per_invocation`` is checked here."""
+        self.assets = assets
+        self.width, self.height = int(width), int(height)
+        self.quantized = bool(quantized)
+        self.filtering = filtering
+        self.color_mode = color_mode
+        self.transmittance_eps = float(transmittance_eps)
+        self.color_eps = float(color_eps)
+        self.count_evaluations = bool(count_evaluations)
+        self.tiles_per_invocation = _check_tiles(tiles_per_invocation)
 
     def _setup(self, packed: np.ndarray, textures: list[tuple[str, np.ndarray]], dtype: str, context=None) -> None:
         """Create the context (or take ``context``'s), compile ``self.source`` and upload the parameters, the

@@ -20,13 +20,15 @@ from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.encoding import direction_encoding_np
 
-__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "DIRECTION_ENCODINGS", "check_scene", "check_static_layout",
+__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene", "check_static_layout",
            "section", "number", "choice", "array_name"]
 
 #: Most samples per ray a manifest may ask for (the trained fields use 64; the renderers allocate per sample).
 MAX_SAMPLES = 1024
 SCENE_KINDS = ("bounded-360", "forward-facing")
 SPACINGS = ("linear", "disparity")
+#: ``field.shading`` (absent: per-sample): the colour MLP at every sample, or once per pixel on composited features.
+SHADINGS = ("per-sample", "deferred")
 DIRECTION_ENCODINGS = {"sh": (1, 4), "fourier": (0, 16), "none": (0, 0)}  # kind -> allowed direction_degree
 
 
@@ -86,9 +88,10 @@ def _finite(parent: dict, key: str, shape: tuple, file, where: str) -> np.ndarra
     return value
 
 
-def check_scene(manifest: Any, file: Path) -> None:
+def check_scene(manifest: Any, file: Path, onnx: bool = True) -> None:
     """The parts static and dynamic manifests share: ``scene`` (kind, near, far, the box of a bounded scene or
-    the NDC reference camera of a forward-facing one), ``background``, ``render`` and ``onnx.file``."""
+    the NDC reference camera of a forward-facing one), ``background``, ``render`` and (with ``onnx``; a baked
+    field has no query graph) ``onnx.file``."""
     if not isinstance(manifest, dict):
         raise InputError(f"must hold a JSON object, got {type(manifest).__name__}", file=file)
     scene = section(manifest, "scene", file)
@@ -110,8 +113,9 @@ def check_scene(manifest: Any, file: Path) -> None:
     number(render, "num_samples", file, "render", low=1, high=MAX_SAMPLES, integer=True)
     choice(render, "spacing", SPACINGS, file, "render")
     number(render, "ndc_margin", file, "render", low=0.0)
-    onnx = section(manifest, "onnx", file)
-    name = onnx.get("file")
+    if not onnx:
+        return
+    name = section(manifest, "onnx", file).get("file")
     if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
         raise _error(f"must be a file name beside the manifest, got {name!r}", file, "onnx.file")
 
@@ -139,6 +143,9 @@ def check_static_layout(manifest: dict, file: Path) -> None:
     number(spec, "density_bias", file, "field")
     number(spec, "max_log_density", file, "field", high=80.0)  # exp(80) is near float32's largest
     latent = int(number(spec, "geo_feature_dim", file, "field", low=0, integer=True))
+    if "shading" in spec and choice(spec, "shading", SHADINGS, file, "field") == "deferred" and latent < 3:
+        raise _error(f"must be >= 3 with deferred shading (the diffuse colour), got {latent}", file,
+                     "field.geo_feature_dim")
     encoding = choice(spec, "direction_encoding", tuple(DIRECTION_ENCODINGS), file, "field")
     low, high = DIRECTION_ENCODINGS[encoding]
     degree = int(number(spec, "direction_degree", file, "field", low=low, high=high, integer=True))

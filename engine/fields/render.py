@@ -35,7 +35,8 @@ from engine.fields.manifest import check_scene, check_static_layout
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
            "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np",
-           "uncontract_np", "query_field", "composite_np", "optical_depth", "evaluated_samples", "evaluation_macs",
+           "uncontract_np", "query_field", "shade_pixels_np", "pixel_shader", "composite_np", "optical_depth",
+           "evaluated_samples", "evaluation_macs",
            "render_field", "TRANSMITTANCE_EPS"]
 
 ASSET_FORMAT = "interleave-field"
@@ -100,6 +101,15 @@ class FieldAssets(ExportedAssets):
     onnx_path: Path
     _session: object = field(default=None, repr=False)
 
+    @property
+    def deferred(self) -> bool:
+        """Deferred shading (``field.shading``): samples give features, :func:`shade_pixels_np` the colour."""
+        return self.manifest["field"].get("shading", "per-sample") == "deferred"
+
+    @property
+    def feature_dim(self) -> int:
+        """Values a sample gives the compositing: 3 (RGB), or the latent size of a deferred field."""
+        return int(self.manifest["field"]["geo_feature_dim"]) if self.deferred else 3
 
 
 def open_onnx(path: Path, threads: int = 0):
@@ -112,10 +122,11 @@ def open_onnx(path: Path, threads: int = 0):
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, command: str
+def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, command: str, onnx: bool = True
                      ) -> tuple[Path, dict, dict[str, np.ndarray]]:
     """(folder, manifest, arrays) of exported assets ``<stem>.json`` + ``<stem>.npz`` in ``path`` (the folder or
-    its json); InputError for missing files or another format / version."""
+    its json); InputError for missing files or another format / version (``onnx``: the manifest names a query
+    graph, see ``check_scene``)."""
     root = Path(path)
     if root.name == f"{stem}.json":
         root = root.parent
@@ -132,7 +143,7 @@ def read_asset_files(path: str | Path, stem: str, fmt: str, version: int, comman
     if manifest.get("format") != fmt or manifest.get("version") != version:
         raise InputError(f"is not {fmt} version {version} (format {manifest.get('format')!r}, "
                          f"version {manifest.get('version')!r})", file=meta_file)
-    check_scene(manifest, meta_file)
+    check_scene(manifest, meta_file, onnx)
     try:
         with np.load(npz_file) as data:  # no pickled objects (numpy's default)
             arrays = {k: data[k] for k in data.files}
@@ -314,10 +325,34 @@ def query_field(assets: FieldAssets, coords: np.ndarray, directions: np.ndarray)
     out = mlp_np(x, assets.density_layers)
     spec = assets.manifest["field"]
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
+    if assets.deferred:
+        return sigma.astype(np.float32), _sigmoid(out[:, 1:]).astype(np.float32)
     enc = direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                 spec["direction_degree"])
-    rgb = 1.0 / (1.0 + np.exp(-mlp_np(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers)))
+    rgb = _sigmoid(mlp_np(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers))
     return sigma.astype(np.float32), rgb.astype(np.float32)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def shade_pixels_np(spec: dict, color_layers, background: np.ndarray, features: np.ndarray, opacity: np.ndarray,
+                    directions: np.ndarray) -> np.ndarray:
+    """Deferred shading (``models.fields.static.field.TriPlaneField.shade_pixels``): composited features F
+    (R, G), opacity A (R,), unit view directions (R, 3) -> linear RGB (R, 3)
+    ``F[:3] + (1 - A) background + A tanh(colour MLP([F, enc(d)]))``. ``spec``: the manifest's ``field``."""
+    enc = direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
+                                spec["direction_degree"])
+    residual = np.tanh(mlp_np(np.concatenate([features, enc], axis=-1), color_layers))
+    return (features[:, :3] + (1.0 - opacity)[:, None] * background + opacity[:, None] * residual).astype(np.float32)
+
+
+def pixel_shader(assets) -> Optional[Callable]:
+    """``march_field``'s ``shade`` of a deferred field (``(features, opacity, directions) -> RGB``), else None."""
+    if not assets.deferred:
+        return None
+    return lambda f, a, d: shade_pixels_np(assets.manifest["field"], assets.color_layers, assets.background, f, a, d)
 
 
 def _ray_box(origin: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -427,11 +462,13 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
             return query_field(assets, coords, directions)
         return assets.onnx_session().run(None, {"points": points, "directions": directions})
 
-    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)
+    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far,
+                       shade=pixel_shader(assets), channels=assets.feature_dim)
 
 
 def march_field(assets, intrinsics, world_to_camera, height: int, width: int, evaluate, *, chunk: int = 16384,
-                near: Optional[float] = None, far: Optional[float] = None) -> dict[str, np.ndarray]:
+                near: Optional[float] = None, far: Optional[float] = None, shade: Optional[Callable] = None,
+                channels: int = 3) -> dict[str, np.ndarray]:
     """The ray marcher shared by the static and dynamic renderers.
 
     Args:
@@ -439,6 +476,8 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             (:class:`FieldAssets`, ``engine.fields.dynamic.DynamicAssets``).
         evaluate: ``(points (M, 3) world, coords (M, 3) contracted, directions (M, 3) unit) -> (density (M,),
             colour (M, 3))`` at the kept samples (inside the cube, in occupied cells).
+        shade: deferred shading: ``evaluate`` gives ``channels`` features a sample, composited on zeros, and
+            ``shade(features (R, channels), opacity (R,), unit directions (R, 3)) -> RGB (R, 3)`` makes the colour.
 
     Returns:
         ``color``, ``depth``, ``opacity``, ``evaluations``, ``seconds``, as :func:`render_field`.
@@ -477,12 +516,17 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             idx = np.clip(np.floor((coords + 1.0) * (0.5 * res)).astype(np.int64), 0, res - 1)
             keep &= assets.occupancy[idx[..., 0], idx[..., 1], idx[..., 2]]
         sigma = np.zeros((r, n), np.float32)
-        rgb = np.zeros((r, n, 3), np.float32)
+        rgb = np.zeros((r, n, channels), np.float32)
         rows, cols = np.nonzero(keep)
         if rows.size:
             sigma[rows, cols], rgb[rows, cols] = evaluate(points[rows, cols], coords[rows, cols], unit[s + rows])
         lengths = deltas * np.linalg.norm(d, axis=-1, keepdims=True)  # t is camera z; density is per unit length
-        color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)
+        if shade is None:
+            color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)
+        else:
+            zero = np.zeros(channels, np.float32)
+            feats, depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, zero)
+            color[s:s + r] = shade(feats, opacity[s:s + r], unit[s:s + r])
         evaluations[s:s + r] = evaluated_samples(keep, optical_depth(sigma, lengths))
     seconds = time.perf_counter() - start
     return {"color": color.reshape(height, width, 3), "depth": depth.reshape(height, width),

@@ -24,7 +24,7 @@ from torch import nn
 from models.fields.static.field import MAX_LOG_DENSITY
 
 __all__ = ["STATIC_FORMAT", "STATIC_VERSION", "DYNAMIC_FORMAT", "DYNAMIC_VERSION", "OPSET", "quantize_planes",
-           "mlp_layers", "static_assets", "dynamic_assets", "load_assets", "gl_renderer"]
+           "direction_degree", "mlp_layers", "static_assets", "dynamic_assets", "load_assets", "gl_renderer"]
 
 STATIC_FORMAT, STATIC_VERSION = "interleave-field", 1
 DYNAMIC_FORMAT, DYNAMIC_VERSION = "interleave-dynamic-field", 1
@@ -41,6 +41,12 @@ def quantize_planes(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     span = np.where(hi > lo, hi - lo, 1.0)
     codes = np.rint((plane - lo[..., None, None]) / span[..., None, None] * 255.0).clip(0, 255).astype(np.uint8)
     return codes, np.stack([lo, hi], axis=-1).astype(np.float32)
+
+
+def direction_degree(cfg) -> int:
+    """The manifest's ``direction_degree`` of a ``FieldConfig``: 0 for ``direction_encoding="none"``, which has no
+    degree (the config keeps its default there, which the manifest check refuses)."""
+    return 0 if cfg.direction_encoding == "none" else int(cfg.direction_degree)
 
 
 def mlp_layers(mlp: nn.Module) -> list[nn.Linear]:
@@ -102,8 +108,8 @@ def static_assets(model) -> tuple[dict[str, np.ndarray], dict]:
         "field": {"plane_axes": [[0, 1], [0, 2], [1, 2]], "planes": planes_meta,
                   "feature_combine": "product over planes, concatenated over scales",
                   "density_bias": float(cfg.density_bias), "max_log_density": MAX_LOG_DENSITY,
-                  "geo_feature_dim": int(cfg.geo_feature_dim),
-                  "direction_encoding": cfg.direction_encoding, "direction_degree": int(cfg.direction_degree),
+                  "geo_feature_dim": int(cfg.geo_feature_dim), "shading": cfg.shading,
+                  "direction_encoding": cfg.direction_encoding, "direction_degree": direction_degree(cfg),
                   "mlps": mlps},
         "occupancy": _add_occupancy(arrays, model),
         "onnx": {"file": "field.onnx", "inputs": ["points", "directions"], "outputs": ["density", "color"],
@@ -161,7 +167,7 @@ def dynamic_assets(model, canonical_limit=None) -> tuple[dict[str, np.ndarray], 
             "planes": planes_meta, "mlps": mlps, "density_bias": float(canonical_cfg.density_bias),
             "max_log_density": MAX_LOG_DENSITY, "geo_feature_dim": int(canonical_cfg.geo_feature_dim),
             "direction_encoding": canonical_cfg.direction_encoding,
-            "direction_degree": int(canonical_cfg.direction_degree),
+            "direction_degree": direction_degree(canonical_cfg),
             **({"time_frequencies": int(cfg.time_frequencies),
                 "color_input": "[h, direction encoding, fourier(tau): tau, sin(2^k tau), cos(2^k tau)]",
                 "max_flow": float(cfg.motion.max_flow),  # the flow bound as a number (renderers read it)

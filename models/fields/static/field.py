@@ -20,13 +20,16 @@ from torch import Tensor, nn
 from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
 
-__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "density_activation"]
+__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "density_activation"]
 
 #: Density is exp(min(raw, MAX_LOG_DENSITY)): at most ~3.3e6 per scene unit, so sigma * delta never
 #: overflows float32 and rendering needs no NaN guards.
 MAX_LOG_DENSITY = 15.0
 
 DIRECTION_ENCODINGS = ("sh", "fourier", "none")
+#: How colour is made: ``per-sample`` (the colour MLP at every sample, NeRF) or ``deferred`` (SNeRG / MERF: the
+#: features composited with the weights, the colour MLP once per pixel; see :meth:`TriPlaneField.shade_pixels`).
+SHADINGS = ("per-sample", "deferred")
 
 
 @dataclass
@@ -39,6 +42,7 @@ class FieldConfig:
     init_range: tuple[float, float] = field(default=(0.1, 0.5), metadata={
         "help": "plane features start uniform in this range (K-Planes space planes)"})
     density_hidden: int = field(default=32, metadata={"help": "hidden width of the density MLP (F1)"})
+    density_layers: int = field(default=1, metadata={"help": "hidden layers of the density MLP (F1)"})
     geo_feature_dim: int = field(default=15, metadata={"help": "latent h passed from F1 to the colour MLP"})
     color_hidden: int = field(default=32, metadata={"help": "hidden width of the colour MLP (F2)"})
     color_layers: int = field(default=1, metadata={"help": "hidden layers of the colour MLP"})
@@ -48,18 +52,32 @@ class FieldConfig:
         "help": "SH bands (1-4) or Fourier frequencies of the direction encoding"})
     density_bias: float = field(default=0.0, metadata={
         "help": "added to the raw density before exp (negative: start emptier)"})
+    residual_density_grad: bool = field(default=True, metadata={
+        "help": "deferred: let the view-dependent residual's gradient reach the densities (default); off, it "
+                "reads the same composited features but its gradient stops at the weights, so the geometry is "
+                "fitted through the diffuse colour alone (the render is the same; -2.2 dB on lego 8 views, "
+                "docs/results/2026-11-28-baked-fields.md)"})
+    shading: str = field(default="per-sample", metadata={
+        "help": "per-sample: the colour MLP at every sample; deferred: sigmoid features (the first 3 a diffuse "
+                "RGB) composited with the volume-rendering weights and the colour MLP once per pixel on them and "
+                "the view direction (SNeRG/MERF), what a baked asset renders exactly"})
 
     def validate(self) -> "FieldConfig":
         """Raise InputError naming the first bad option; returns self."""
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
             raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
                              field="field.resolutions")
-        for name in ("feature_dim", "density_hidden", "geo_feature_dim", "color_hidden"):
+        for name in ("feature_dim", "density_hidden", "density_layers", "geo_feature_dim", "color_hidden"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.{name}")
         if self.direction_encoding not in DIRECTION_ENCODINGS:
             raise InputError(f"must be one of {DIRECTION_ENCODINGS}, got {self.direction_encoding!r}",
                              field="field.direction_encoding")
+        if self.shading not in SHADINGS:
+            raise InputError(f"must be one of {SHADINGS}, got {self.shading!r}", field="field.shading")
+        if self.shading == "deferred" and int(self.geo_feature_dim) < 3:
+            raise InputError(f"must be >= 3 with deferred shading (the first 3 are the diffuse colour), got "
+                             f"{self.geo_feature_dim}", field="field.geo_feature_dim")
         if self.direction_encoding == "sh" and not 1 <= self.direction_degree <= 4:
             raise InputError(f"SH bands must be in 1..4, got {self.direction_degree}", field="field.direction_degree")
         return self
@@ -83,7 +101,8 @@ class TriPlaneField(nn.Module):
         super().__init__()
         self.config = cfg = (config or FieldConfig()).validate()
         self.encoding = TriPlaneEncoding(cfg.resolutions, cfg.feature_dim, tuple(cfg.init_range))
-        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
+        self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim,
+                               layers=cfg.density_layers)
         self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
         self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim, cfg.color_hidden, 3,
                              layers=cfg.color_layers)
@@ -108,7 +127,27 @@ class TriPlaneField(nn.Module):
         x = torch.cat([geo_features, self.direction_encoding(directions)], dim=-1)
         return torch.sigmoid(self.color_mlp(x))
 
+    @property
+    def deferred(self) -> bool:
+        """True for deferred shading: :meth:`forward` gives features, :meth:`shade_pixels` the colour."""
+        return self.config.shading == "deferred"
+
+    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                     residual_inputs: Optional[tuple[Tensor, Tensor]] = None) -> Tensor:
+        """Deferred shading: a ray's composited features ``F = sum_i w_i sigmoid(h_i)`` (..., G), its opacity
+        ``A = sum_i w_i`` (...) and unit view direction (..., 3) -> linear RGB (..., 3):
+        ``F[:3] + (1 - A) background + A tanh(F2([F, enc(d)]))`` (a diffuse colour composited as usual plus a
+        view-dependent residual that vanishes where nothing is hit). ``residual_inputs``: (F, A) for the
+        residual term, equal in value but composited with other gradients (``residual_density_grad``)."""
+        res_features, res_opacity = residual_inputs if residual_inputs is not None else (features, opacity)
+        x = torch.cat([res_features, self.direction_encoding(directions)], dim=-1)
+        residual = torch.tanh(self.color_mlp(x))
+        return features[..., :3] + (1.0 - opacity)[..., None] * background + res_opacity[..., None] * residual
+
     def forward(self, coords: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """(..., 3) contracted coordinates, (..., 3) unit directions -> density (...), linear RGB (..., 3)."""
+        """(..., 3) contracted coordinates, (..., 3) unit directions -> density (...), linear RGB (..., 3); with
+        deferred shading the second output is the sample's features ``sigmoid(h)`` (..., G) instead."""
         sigma, h = self.get_density(coords)
+        if self.deferred:
+            return sigma, torch.sigmoid(h)
         return sigma, self.get_outputs(h, directions)

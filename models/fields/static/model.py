@@ -190,13 +190,34 @@ class StaticFieldModel(nn.Module):
         check_shape(directions, "directions", ("R", 3), sizes)
         check_shape(near, "near", ("R",), sizes)
         check_shape(far, "far", ("R",), sizes)
-        return self.march(origins, directions, near, far, self._query, jitter=jitter, generator=generator)[0]
+        if not self.field.deferred:
+            return self.march(origins, directions, near, far, self._query, jitter=jitter, generator=generator)[0]
+        channels = self.field.config.geo_feature_dim
+        samples: list = []
+
+        def query(coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
+            sigma, features = self.field(coords, unit)
+            samples.append((idx, features))
+            return sigma, features
+        out = self.march(origins, directions, near, far, query, jitter=jitter, generator=generator,
+                         channels=channels, background=self.background.new_zeros(channels))[0]
+        unit = torch.nn.functional.normalize(directions, dim=-1)
+        residual_inputs = None
+        if samples and torch.is_grad_enabled() and not self.field.config.residual_density_grad:
+            # the same composited features, with the weights' gradient stopped: the residual cannot shape geometry
+            idx, features = samples[0]
+            dense = features.new_zeros(*out.weights.shape, channels).index_put(idx, features)
+            weights = out.weights.detach()
+            residual_inputs = ((weights[..., None] * dense).sum(dim=-2), weights.sum(dim=-1))
+        return out._replace(color=self.field.shade_pixels(out.color, out.opacity, unit, self.background,
+                                                          residual_inputs))
 
     def _query(self, coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
         return self.field(coords, unit)
 
     def march(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, query, *, jitter: bool = False,
-              generator: Optional[torch.Generator] = None) -> tuple[RayOutputs, Tensor, Tensor, tuple[Tensor, Tensor]]:
+              generator: Optional[torch.Generator] = None, channels: int = 3, background: Optional[Tensor] = None
+              ) -> tuple[RayOutputs, Tensor, Tensor, tuple[Tensor, Tensor]]:
         """The ray marcher of the static and the dynamic field (shapes as :meth:`render_rays`, unchecked here).
 
         Samples ``num_samples`` intervals per ray between the scene bounds (linear in t for bounded scenes, in
@@ -204,7 +225,8 @@ class StaticFieldModel(nn.Module):
         cube, in a non-empty interval and (once the grid has been updated) in an occupied cell, evaluates
         ``query(coords, idx, unit_directions) -> (sigma, rgb)`` on the kept ones only (``idx``: their (ray,
         sample) indices) and composites (:func:`~models.fields.components.render.composite_samples`; densities
-        per unit length, so interval lengths are ``delta t |d|``).
+        per unit length, so interval lengths are ``delta t |d|``). ``query`` gives ``channels`` values a sample
+        (RGB, or a deferred field's features), composited on ``background`` (default: the model's).
 
         Returns:
             (outputs, contracted sample coordinates (R, N, 3), kept samples (R, N) bool, ``idx``).
@@ -221,7 +243,7 @@ class StaticFieldModel(nn.Module):
             keep = keep & self.occupancy.query(coords)
         r, n = t.shape
         sigma = coords.new_zeros(r, n)
-        rgb = coords.new_zeros(r, n, 3)
+        rgb = coords.new_zeros(r, n, channels)
         idx = keep.nonzero(as_tuple=True)
         if idx[0].numel() > 0:
             unit = torch.nn.functional.normalize(directions, dim=-1)
@@ -229,7 +251,8 @@ class StaticFieldModel(nn.Module):
             sigma = sigma.index_put(idx, s)
             rgb = rgb.index_put(idx, c)
         lengths = deltas * directions.norm(dim=-1, keepdim=True)  # t is camera z; densities are per unit length
-        return composite_samples(sigma, rgb, lengths, t, self.background), coords, keep, idx
+        background = self.background if background is None else background
+        return composite_samples(sigma, rgb, lengths, t, background), coords, keep, idx
 
     def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> RayOutputs:
         return self.render_rays(origins, directions, near, far)

@@ -1,0 +1,156 @@
+"""Bake a static field trained with deferred shading into the sparse brick grid of ``engine.fields.baked``.
+
+``bake_static(model, resolution)`` returns ``(arrays, manifest)`` of ``baked.npz`` / ``baked.json``
+(``docs/field-assets.md``, "Baked fields"): the bricks are the cells of the model's occupancy grid that it marks
+occupied (so the baked field skips exactly the samples the exact renderer skips), or, for a field without a grid,
+the bricks in which some vertex's density reaches the grid's threshold (``StaticFieldModel.occupancy_threshold``).
+Each occupied brick stores the field's raw log-density (float16) and deferred features ``sigmoid(h)`` (uint8) at
+its vertices; the colour MLP is the field's own. ``interleave export field`` writes them beside the exact assets
+and records the PSNR of the baked render against the exact one on a view.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+
+from engine.core.errors import InputError
+from engine.fields.baked import BAKED_FORMAT, BAKED_VERSION
+from models.fields.assets import _add_mlps, _render_section, direction_degree
+from models.fields.static.field import MAX_LOG_DENSITY
+
+__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "brick_vertices", "write_baked", "baked_check"]
+
+#: Grid cells per side of the field's cube: 4 cells per occupancy cell of the default 64^3 grid.
+DEFAULT_RESOLUTION = 256
+#: Raw log-densities are clamped below here before float16 (exp(-30) per scene unit is empty at any step).
+LOWEST_RAW_DENSITY = -30.0
+
+
+def brick_vertices(cells: torch.Tensor, brick: int, resolution: int) -> torch.Tensor:
+    """Contracted coordinates (n, V, V, V, 3) of the vertices of bricks ``cells`` (n, 3) (brick indices along x,
+    y, z), V = brick + 1: vertex ``brick * b + i`` of the grid is at ``-1 + 2 (brick * b + i) / resolution``."""
+    local = torch.arange(brick + 1, dtype=torch.float64)
+    ix, iy, iz = torch.meshgrid(local, local, local, indexing="ij")
+    offsets = torch.stack([ix, iy, iz], dim=-1)
+    vertex = cells.double()[:, None, None, None, :] * brick + offsets
+    return (vertex * (2.0 / resolution) - 1.0).float()
+
+
+@torch.no_grad()
+def _raw_outputs(model, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The field's raw log-density (clamped, bias added) and features sigmoid(h) at (..., 3) coordinates."""
+    field, flat = model.field, coords.reshape(-1, 3)
+    raws, feats = [], []
+    for i in range(0, flat.shape[0], chunk):
+        out = field.density_mlp(field.encoding(flat[i:i + chunk]))
+        raws.append(torch.clamp(out[:, 0] + field.config.density_bias, LOWEST_RAW_DENSITY, MAX_LOG_DENSITY))
+        feats.append(torch.sigmoid(out[:, 1:]))
+    return (torch.cat(raws).reshape(coords.shape[:-1]),
+            torch.cat(feats).reshape(*coords.shape[:-1], -1))
+
+
+def _occupied_bricks(model, resolution: int, chunk: int) -> tuple[torch.Tensor, int]:
+    """(B, B, B) bool of the occupied bricks and B: the model's occupancy grid, or density at brick vertices."""
+    grid = model.occupancy
+    if grid is not None and int(grid.updates) > 0:
+        bricks = int(grid.resolution)
+        if resolution % bricks:
+            raise InputError(f"must be a multiple of the field's occupancy grid ({bricks}), got {resolution}",
+                             field="bake_resolution")
+        return grid.occupied.cpu().clone(), bricks
+    bricks = max(1, resolution // 4)
+    if resolution % bricks:
+        raise InputError(f"must be a multiple of 4, got {resolution}", field="bake_resolution")
+    threshold = float(np.log(model.occupancy_threshold()))
+    axis = torch.arange(bricks)
+    cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    occupied = torch.zeros(cells.shape[0], dtype=torch.bool)
+    step = max(1, chunk // (resolution // bricks + 1) ** 3)
+    for i in range(0, cells.shape[0], step):
+        raw, _ = _raw_outputs(model, brick_vertices(cells[i:i + step], resolution // bricks, resolution), chunk)
+        occupied[i:i + step] = raw.reshape(raw.shape[0], -1).amax(dim=-1) >= threshold
+    return occupied.reshape(bricks, bricks, bricks), bricks
+
+
+def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 << 16
+                ) -> tuple[dict[str, np.ndarray], dict]:
+    """``(arrays, manifest)`` of the baked form of a :class:`models.fields.static.model.StaticFieldModel` trained
+    with deferred shading, at ``resolution`` grid cells a side.
+
+    Raises:
+        InputError: a per-sample field (nothing to bake exactly), a resolution that is not a multiple of the
+            brick grid.
+    """
+    if not model.field.deferred:
+        raise InputError("bakes only fields trained with deferred shading (--field.shading deferred)",
+                         field="field.shading")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096:
+        raise InputError(f"must be an integer in [4, 4096], got {resolution!r}", field="bake_resolution")
+    model = model.eval()
+    occupied, bricks = _occupied_bricks(model, resolution, chunk)
+    brick = resolution // bricks
+    cells = occupied.nonzero()
+    index = torch.full((bricks,) * 3, -1, dtype=torch.int32)
+    index[cells[:, 0], cells[:, 1], cells[:, 2]] = torch.arange(cells.shape[0], dtype=torch.int32)
+    raws, feats = [], []
+    step = max(1, chunk // (brick + 1) ** 3)
+    for i in range(0, cells.shape[0], step):
+        raw, feat = _raw_outputs(model, brick_vertices(cells[i:i + step], brick, resolution), chunk)
+        raws.append(raw.numpy().astype(np.float16))
+        feats.append(np.rint(feat.numpy() * 255.0).clip(0, 255).astype(np.uint8))
+    cfg = model.field.config
+    v = brick + 1
+    arrays = {"density": np.concatenate(raws) if raws else np.zeros((0, v, v, v), np.float16),
+              "features": (np.concatenate(feats) if feats
+                           else np.zeros((0, v, v, v, cfg.geo_feature_dim), np.uint8)),
+              "brick_index": index.numpy()}
+    mlps = _add_mlps(arrays, {"color": model.field.color_mlp})
+    manifest = {
+        "format": BAKED_FORMAT, "version": BAKED_VERSION,
+        "scene": model.scene.to_dict(), "background": [float(x) for x in model.background],
+        "render": _render_section(model),
+        "grid": {"resolution": int(resolution), "brick": int(brick), "bricks": int(bricks),
+                 "count": int(cells.shape[0]), "occupied_fraction": float(occupied.float().mean()),
+                 "density": "density", "features": "features", "index": "brick_index",
+                 "bricks_from": "occupancy grid" if model.occupancy is not None and int(model.occupancy.updates)
+                 else "vertex density >= the occupancy threshold"},
+        "field": {"feature_dim": int(cfg.geo_feature_dim), "max_log_density": MAX_LOG_DENSITY,
+                  "direction_encoding": cfg.direction_encoding, "direction_degree": direction_degree(cfg),
+                  "shading": "deferred", "mlps": mlps},
+    }
+    return arrays, manifest
+
+
+def baked_check(exact_dir, baked_dir, camera) -> Optional[dict]:
+    """PSNR (display-encoded) of the baked render against the exact render of the same field on one view, both
+    with the numpy renderers; ``camera``: (K, world_to_camera, H, W)."""
+    from engine.core.colorspace import display_encode
+    from engine.eval.metrics import psnr
+    from engine.fields.baked import load_baked, render_baked
+    from engine.fields.render import load_field, render_field
+
+    k, w2c, h, w = camera
+    exact = render_field(load_field(exact_dir), k, w2c, h, w)
+    baked = render_baked(load_baked(baked_dir), k, w2c, h, w)
+    value = psnr(display_encode(exact["color"]), display_encode(baked["color"]))
+    return {"psnr_baked_vs_exact": float(value) if np.isfinite(value) else None, "view_size": [int(h), int(w)],
+            "mean_evaluations": {"exact": float(exact["evaluations"].mean()),
+                                 "baked": float(baked["evaluations"].mean())}}
+
+
+def write_baked(model, out_dir, resolution: int = DEFAULT_RESOLUTION, camera=None) -> dict:
+    """Bake ``model`` into ``out_dir/baked.npz`` + ``baked.json`` (beside the exact export, whose ``field.json``
+    the check reads); with ``camera`` (K, world_to_camera, H, W) the manifest records :func:`baked_check`."""
+    import json
+    from pathlib import Path
+
+    out = Path(out_dir)
+    arrays, manifest = bake_static(model, resolution)
+    np.savez_compressed(out / "baked.npz", **arrays)
+    (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    if camera is not None:
+        manifest["check"] = baked_check(out, out, camera)
+        (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest

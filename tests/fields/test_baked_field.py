@@ -1,0 +1,205 @@
+"""Baked static fields (``models.fields.bake``, ``engine.fields.baked``, ``engine.fields.glbaked``).
+
+The bake stores the field's values at brick vertices, so the baked field equals the exact one there (to float16 /
+uint8 rounding); between vertices it interpolates, so its render differs from the exact render of the same field
+by the grid's interpolation only: measured in brackets. The GL renderer against the numpy reference: with early
+termination and the colour skip off within 1e-4 [3e-6] with exact filtering (1.1e-3 [1.1e-4 on llvmpipe] with
+hardware filtering), with the defaults within their documented bound (``engine.fields.gl``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from engine.core.colorspace import display_encode
+from engine.core.errors import InputError
+from engine.eval.metrics import psnr
+from engine.fields import gl as glfield
+from engine.fields.baked import load_baked, query_baked, render_baked
+from engine.fields.render import load_field, render_field
+from export.field import export_field
+from models.fields.bake import bake_static, brick_vertices
+from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
+from models.fields.train_static import load_model, train_field
+from tests.fields.test_deferred_field import DEFERRED, deferred_run  # noqa: F401  (module fixture)
+from tests.fields.test_field_export import _forward_facing, bounded_run  # noqa: F401  (module fixture)
+from tests.fields.test_field_train import TINY_FIELD, sphere_views, tiny_config
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+H, W = 24, 32
+
+
+@pytest.fixture(scope="module")
+def ndc_deferred_run(tmp_path_factory):
+    """A forward-facing deferred field (no occupancy grid: the bricks come from the vertex densities), baked at 64."""
+    root = tmp_path_factory.mktemp("ndc-deferred")
+    config = dataclasses.replace(tiny_config(100, field=DEFERRED), render=RenderConfig(num_samples=32))
+    run = train_field(_forward_facing(sphere_views([0, 15, 30])), config, root / "run", progress=False)
+    manifest = export_field(run, root / "export", views=_forward_facing(sphere_views([10])), bake_resolution=64)
+    return run, root / "export", manifest
+
+
+def _camera(which: str):
+    return sphere_views([20] if which == "deferred_run" else [10]).cameras[0]
+
+
+def _psnr(a: dict, b: dict) -> float:
+    return psnr(display_encode(a["color"]), display_encode(b["color"]))
+
+
+@pytest.mark.parametrize("which", ["deferred_run", "ndc_deferred_run"])
+def test_export_writes_the_baked_field_beside_the_exact_one(which, request):
+    _, out, manifest = request.getfixturevalue(which)
+    baked = load_baked(out)
+    grid = manifest["baked"]["grid"]
+    assert baked.grid == json.loads((out / "baked.json").read_text())["grid"]
+    assert grid["resolution"] == grid["brick"] * grid["bricks"] and grid["count"] == baked.density.shape[0] > 0
+    assert grid["bricks_from"] == ("occupancy grid" if which == "deferred_run" else
+                                   "vertex density >= the occupancy threshold")
+    assert manifest["baked"]["check"]["psnr_baked_vs_exact"] > 40.0  # [66 dB, 49 dB]
+
+
+def test_the_bricks_are_the_occupancy_grid_and_the_vertices_the_field(deferred_run):
+    run, out, _ = deferred_run
+    model = load_model(run)
+    baked = load_baked(out)
+    assert np.array_equal(baked.occupancy, model.occupancy.occupied.numpy())
+    grid = baked.grid
+    cells = torch.as_tensor(np.argwhere(baked.occupancy)[:50])
+    # the interior vertices (a face vertex belongs to the neighbouring brick, which may be empty)
+    coords = brick_vertices(cells, grid["brick"], grid["resolution"])[:, 1:-1, 1:-1, 1:-1].reshape(-1, 3)
+    with torch.no_grad():
+        sigma, h = model.field.get_density(coords)
+    got_sigma, got_features = query_baked(baked, coords.numpy())
+    # float16 raw density: relative error below 2^-11 * |raw| (raw <= 15): exp of it within 1 %
+    assert np.allclose(got_sigma, sigma.numpy(), rtol=1e-2, atol=1e-6)
+    assert np.abs(got_features - torch.sigmoid(h).numpy()).max() <= 0.5 / 255 + 1e-6
+
+
+def test_the_baked_render_is_the_exact_render_of_the_same_field(deferred_run):
+    _, out, _ = deferred_run
+    cam = _camera("deferred_run")
+    exact = render_field(load_field(out), cam.intrinsics, cam.world_to_camera, H, W)
+    baked = render_baked(load_baked(out), cam.intrinsics, cam.world_to_camera, H, W, chunk=100)
+    assert np.array_equal(baked["evaluations"], exact["evaluations"]) or \
+        np.mean(baked["evaluations"] == exact["evaluations"]) > 0.97  # the same samples skipped
+    assert _psnr(exact, baked) > 40.0 and np.abs(baked["opacity"] - exact["opacity"]).max() < 0.05
+    assert np.array_equal(np.isfinite(baked["depth"]), np.isfinite(exact["depth"]))
+
+
+def test_only_deferred_fields_bake():
+    model = StaticFieldModel(SceneBox("bounded-360", 0.1, 10.0, box_min=[-1, -1, -1], box_max=[1, 1, 1]),
+                             [1, 1, 1], TINY_FIELD)
+    with pytest.raises(InputError, match="field.shading"):
+        bake_static(model)
+    deferred = StaticFieldModel(model.scene, [1, 1, 1], DEFERRED, RenderConfig(occupancy_resolution=32))
+    deferred.update_occupancy()
+    with pytest.raises(InputError, match="bake_resolution"):
+        bake_static(deferred, 48)  # not a multiple of the 32^3 grid
+
+
+def _corrupt(out, tmp_path, change_manifest=None, change_arrays=None):
+    manifest = json.loads((out / "baked.json").read_text())
+    with np.load(out / "baked.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    if change_manifest:
+        change_manifest(manifest)
+    if change_arrays:
+        change_arrays(arrays)
+    (tmp_path / "baked.json").write_text(json.dumps(manifest))
+    np.savez(tmp_path / "baked.npz", **arrays)
+    return tmp_path
+
+
+def test_bad_baked_assets_raise_one_line_errors_naming_file_and_key(deferred_run, tmp_path):
+    _, out, _ = deferred_run
+    with pytest.raises(InputError, match="baked.json.*does not exist"):
+        load_baked(tmp_path)
+    cases = [
+        (lambda m: m["grid"].update(bricks=7), None, "grid.bricks"),
+        (lambda m: m["grid"].update(resolution="big"), None, "grid.resolution"),
+        (lambda m: m["field"]["mlps"]["color"][0].update({"in": 5}), None, r"field.mlps.color\[0\].in"),
+        (lambda m: m.update(version=2), None, "interleave-baked-field version 1"),
+        (None, lambda a: a.update(features=a["features"].astype(np.float32)), "'features'.*uint8"),
+        (None, lambda a: a.update(density=a["density"][:, :2]), "'density'"),
+        (None, lambda a: a["brick_index"].__setitem__((0, 0, 0), 0), "'brick_index'.*once"),
+        (None, lambda a: a.pop("color_w0"), "lacks array 'color_w0'"),
+    ]
+    for i, (manifest_change, arrays_change, match) in enumerate(cases):
+        folder = tmp_path / str(i)
+        folder.mkdir()
+        with pytest.raises(InputError, match=match) as err:
+            load_baked(_corrupt(out, folder, manifest_change, arrays_change))
+        assert "\n" not in str(err.value) and "baked." in str(err.value)
+
+
+gl_only = pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
+
+
+@gl_only
+@pytest.mark.parametrize("which", ["deferred_run", "ndc_deferred_run"])
+@pytest.mark.parametrize("filtering", ["exact", "hardware"])
+def test_gl_renders_the_numpy_frame_of_the_baked_field(which, filtering, request):
+    from engine.fields.glbaked import GlBakedRenderer
+    from tests.fields.test_glfield import GPU_SLACK
+
+    _, out, manifest = request.getfixturevalue(which)
+    cam = _camera(which)
+    baked = load_baked(out)
+    ref = render_baked(baked, cam.intrinsics, cam.world_to_camera, H, W)
+    bound = glfield.TRANSMITTANCE_EPS + manifest["render"]["num_samples"] * glfield.COLOR_EPS
+    # hardware filtering: texture coordinates of a few thousand texels carry float32 rounding (~2e-4 texel) into
+    # the interpolation weights [1.1e-4 on llvmpipe]
+    slack = 0.0 if filtering == "exact" else 1e-3
+    for options, tol in (({"transmittance_eps": 0.0, "color_eps": 0.0}, 1e-4 + slack), ({}, bound + slack)):
+        with GlBakedRenderer(baked, W, H, filtering=filtering, count_evaluations=True, **options) as renderer:
+            got = renderer.render(cam.intrinsics, cam.world_to_camera)
+        assert np.abs(got["color"] - ref["color"]).max() <= tol + GPU_SLACK
+        assert np.abs(got["opacity"] - ref["opacity"]).max() <= tol + GPU_SLACK
+        finite = np.isfinite(ref["depth"])
+        assert np.array_equal(np.isfinite(got["depth"]), finite) and finite.any()
+        if not options:
+            assert np.mean(got["evaluations"] == ref["evaluations"]) > 0.97
+
+
+@gl_only
+def test_gl_baked_renderer_refuses_bad_options(deferred_run):
+    from engine.fields.glbaked import GlBakedRenderer
+
+    _, out, _ = deferred_run
+    for options, key in (({"filtering": "cubic"}, "filtering"), ({"transmittance_eps": 2.0}, "transmittance_eps")):
+        with pytest.raises(InputError, match=key):
+            GlBakedRenderer(out, W, H, **options)
+    with pytest.raises(InputError, match="size"):
+        GlBakedRenderer(out, 0, H)
+
+
+@gl_only
+def test_the_field_benchmark_times_the_baked_renderer(deferred_run, tmp_path):
+    from tools.bench_fields import main as bench_main, run_static_bench
+
+    run, out, _ = deferred_run
+    records = run_static_bench(out, [(32, 24)], run=run, repeat=1, skip=("onnx",))
+    by_name = {r["renderer"]: r for r in records}
+    assert {"gl baked", "gl baked, exact filtering", "baked numpy", "torch", "gl float"} <= set(by_name)
+    assert not any("once per pixel (approx.)" in name for name in by_name)  # not for a deferred field
+    assert by_name["gl baked"]["psnr"] > 35.0 and by_name["gl baked"]["evaluations_per_pixel"] > 0
+    assert bench_main(["static", str(out), "--sizes", "16x16", "--repeat", "1", "--skip", "torch,onnx,numpy,baked",
+                       "--json", str(tmp_path / "b.json")]) == 0
+    assert not any("baked" in r["renderer"] for r in json.loads((tmp_path / "b.json").read_text()))
+
+
+def test_export_command_bakes_only_deferred_fields_and_checks_the_resolution(deferred_run, bounded_run, tmp_path,
+                                                                             capsys):
+    from engine.cli import main as cli_main
+
+    _, per_sample_out, per_sample_manifest = bounded_run
+    assert not (per_sample_out / "baked.json").exists() and "baked" not in per_sample_manifest
+    run, _, _ = deferred_run
+    assert cli_main(["export", "field", str(run), "--out", str(tmp_path / "bad"), "--bake-resolution", "48"]) == 2
+    assert "bake_resolution" in capsys.readouterr().err

@@ -162,7 +162,15 @@ def test_motion_field_starts_with_zero_flow_and_groups_are_named():
     model = _model()
     assert set(model.field.plane_groups()) == {"spatial", "motion_spatial", "temporal"}
     assert set(_model("kplanes").field.plane_groups()) == {"spatial", "temporal"}
-    assert [p.shape for p in model.field.plane_groups()["temporal"]] == [(3, 4, 4, 8)]  # (xt, yt, zt), C, Rt, R
+    # the temporal group: the motion field's time planes, then the canonical field's ((xt, yt, zt), C, Rt, R)
+    assert [p.shape for p in model.field.plane_groups()["temporal"]] == [(3, 4, 4, 8), (3, 4, 4, 8), (3, 4, 4, 16)]
+    plain = _model(canonical_time=False).field.plane_groups()["temporal"]
+    assert [p.shape for p in plain] == [(3, 4, 4, 8)]
+    # a fresh 4D canonical field is time-independent (its time planes start at 1): the thesis's field at step 0
+    coords, dirs = torch.rand(50, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    with torch.no_grad():
+        early, late = model.field(coords, torch.full((50,), -1.0), dirs), model.field(coords, torch.ones(50), dirs)
+    assert torch.equal(early.sigma, late.sigma)
 
 
 def test_render_is_finite_for_huge_densities_and_shapes():
@@ -550,7 +558,8 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     manifest = json.loads((tmp_path / "export" / "dynamic.json").read_text())
     assert manifest["kind"] == "derf" and manifest["time"]["range"] == [0.0, 1.0]
     assert max(manifest["parity"]["random_points"].values()) < 1e-4
-    assert {"canonical_spatial", "motion_spatial", "motion_temporal"} == set(manifest["field"]["planes"])
+    assert {"canonical_spatial", "canonical_temporal", "motion_spatial", "motion_temporal"} == set(
+        manifest["field"]["planes"])
     assert manifest["canonical_limit"] is not None
     arrays = np.load(tmp_path / "export" / "dynamic.npz")
     assert arrays["motion_temporal_0"].shape == (3, 4, 3, 8) and arrays["motion_temporal_0_u8"].dtype == np.uint8

@@ -43,9 +43,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 H, W = 24, 32
 EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0, "filtering": "exact"}
-#: DeRF and DeRF with a 4D canonical field by default; the K-Planes fixture costs another ONNX export (~10 s),
-#: so it runs with ``-m slow``.
-BOTH = ["derf", "derf4d", pytest.param("kplanes", marks=pytest.mark.slow)]
+#: DeRF (the default: its canonical field has time planes) and DeRF with tri-planes by default; the K-Planes
+#: fixture costs another ONNX export (~10 s), so it runs with ``-m slow``.
+BOTH = ["derf", "derf_triplanes", pytest.param("kplanes", marks=pytest.mark.slow)]
 gl_only = pytest.mark.skipif(not available(), reason="no EGL context with OpenGL 4.3 compute shaders and fp64")
 
 
@@ -58,7 +58,7 @@ def derf(tmp_path_factory):
     model = load_dynamic_model(run)
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        for plane in model.field.motion_field.temporal_planes():
+        for plane in model.field.motion_field.temporal_planes() + model.field.canonical_field.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
         last = model.field.motion_field.flow_mlp.net[-1]
         last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
@@ -92,17 +92,17 @@ def kplanes(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def derf4d(tmp_path_factory):
-    """(model, export folder, camera) of an untrained bounded DeRF field whose canonical field has time planes
-    (``canonical_time``), with time-varying canonical and motion planes and a large flow."""
-    root = tmp_path_factory.mktemp("dynrender_derf4d")
+def derf_triplanes(tmp_path_factory):
+    """(model, export folder, camera) of an untrained bounded DeRF field whose canonical field is tri-planes
+    (``canonical_time=False``, the thesis's), with time-varying motion planes and a large flow."""
+    root = tmp_path_factory.mktemp("dynrender_derf_triplanes")
     torch.manual_seed(0)
     model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
-                              dataclasses.replace(TINY, canonical_time=True), RenderConfig(num_samples=24),
+                              dataclasses.replace(TINY, canonical_time=False), RenderConfig(num_samples=24),
                               time_resolution=3).eval()
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
-        for plane in model.field.canonical_field.temporal_planes() + model.field.motion_field.temporal_planes():
+        for plane in model.field.motion_field.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
         last = model.field.motion_field.flow_mlp.net[-1]
         last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
@@ -169,7 +169,7 @@ def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
         _, early = deform_np(assets, coords.numpy(), np.full(3000, -1.0, np.float32))
         _, late = deform_np(assets, coords.numpy(), np.full(3000, 1.0, np.float32))
         assert np.abs(early - late).max() > 0.05
-    assert (assets.canonical_temporal is not None) == (which == "derf4d")
+    assert (assets.canonical_temporal is not None) == (which == "derf")
     assert sigma.dtype == np.float32
     assert query_dynamic(assets, np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))[0].shape == (0,)  # empty batch
 

@@ -216,9 +216,10 @@ class DynamicFieldConfig:
         "help": "rows of every time plane; 0: half the number of trained times, at least 2"})
     time_frequencies: int = field(default=2, metadata={
         "help": "Fourier frequencies of the time fed to the canonical colour MLP (Eq. 5.4; derf only)"})
-    canonical_time: bool = field(default=False, metadata={
+    canonical_time: bool = field(default=True, metadata={
         "help": "derf only: the canonical tri-planes get time planes too (hex-planes read at the deformed point "
-                "and time, starting time-independent): K-Planes' 4D capacity for what the motion does not explain"})
+                "and time, starting time-independent): K-Planes' 4D capacity for what the motion does not explain "
+                "(docs/results/2026-11-28-dynamic-canonical-time.md)"})
 
     def validate(self) -> "DynamicFieldConfig":
         if self.kind not in FIELD_KINDS:
@@ -258,8 +259,9 @@ class FieldSamples(NamedTuple):
 
 
 class CanonicalField(nn.Module):
-    """The canonical scene F_s (Eq. 5.3, 5.4): tri-planes -> density and latent h; colour from h, the encoded
-    view direction and the encoded (normalised) time."""
+    """The canonical scene F_s (Eq. 5.3, 5.4): tri-planes (hex-planes with ``time_resolution`` > 0: the
+    canonical point's features then vary in time, as a K-Planes field's) -> density and latent h; colour from
+    h, the encoded view direction and the encoded (normalised) time."""
 
     def __init__(self, config: FieldConfig, time_frequencies: int, time_resolution: int = 0):
         super().__init__()
@@ -319,8 +321,9 @@ class MotionField(nn.Module):
 
 
 class DeRFField(nn.Module):
-    """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``,
-    ``rgb = M_s(h, gamma(v), gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
+    """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``
+    (``G_s(c', t)`` with ``canonical_time``: hex-planes at the canonical point), ``rgb = M_s(h, gamma(v),
+    gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
 
     kind = "derf"
 

@@ -38,7 +38,8 @@ GAIN, BIAS = 0.6, -1.8
 TINY = DynamicFieldConfig(kind="derf",
                           canonical=FieldConfig(resolutions=(8, 16), feature_dim=4, density_hidden=16,
                                                 geo_feature_dim=7, color_hidden=16),
-                          motion=MotionConfig(resolutions=(8,), feature_dim=4, hidden=16))
+                          motion=MotionConfig(resolutions=(8,), feature_dim=4, hidden=16),
+                          canonical_time=False)  # the programmed content is static in canonical space
 
 
 def tiny_model(kind: str = "derf") -> DynamicFieldModel:

@@ -55,8 +55,10 @@ MOTION_ITERATIONS = 8
 #: Largest residual |c' + flow(c', tau') - C| (contracted units) of an earlier point that counts as found.
 MOTION_TOLERANCE = 1e-3
 
-#: Plane groups and MLPs each kind of export holds.
+#: Plane groups and MLPs each kind of export holds (and the groups it may hold: a DeRF export whose canonical
+#: field has time planes, ``field_config.canonical_time``).
 _GROUPS = {"derf": ("canonical_spatial", "motion_spatial", "motion_temporal"), "kplanes": ("spatial", "temporal")}
+_OPTIONAL_GROUPS = {"derf": ("canonical_temporal",), "kplanes": ()}
 _MLPS = {"derf": ("density", "color", "flow"), "kplanes": ("density", "color")}
 
 
@@ -68,7 +70,9 @@ class DynamicAssets(ExportedAssets):
         manifest: ``dynamic.json``.
         planes: plane groups by name, one array per scale: ``canonical_spatial`` (3, C, R, R) xy, xz, yz;
             ``motion_spatial`` (3, Cm, Rm, Rm); ``motion_temporal`` (3, Cm, Rt, Rm) xt, yt, zt (DeRF), or
-            ``spatial`` / ``temporal`` (K-Planes). float32, dequantized when loaded with ``quantized``.
+            ``spatial`` / ``temporal`` (K-Planes); a DeRF export may add ``canonical_temporal`` (3, C, Rt, R),
+            the canonical field's time planes (its features are then hex-planes read at the canonical point).
+            float32, dequantized when loaded with ``quantized``.
         mlps: ``density``, ``color`` (and ``flow`` for DeRF): ``(weight (out, in), bias (out,))`` per layer.
         occupancy: (R, R, R) bool over the contracted cube indexed [ix, iy, iz] (time-agnostic), or None.
         onnx_path: the exported query graph.
@@ -123,6 +127,11 @@ class DynamicAssets(ExportedAssets):
     def flow_layers(self) -> list[tuple[np.ndarray, np.ndarray]]:
         return self.mlps["flow"]
 
+    @property
+    def canonical_temporal(self) -> Optional[list[np.ndarray]]:
+        """A DeRF canonical field's time planes (``canonical_time``), or None (tri-planes only)."""
+        return self.planes.get("canonical_temporal")
+
 
 
 def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicAssets:
@@ -143,8 +152,9 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
         raise InputError(f"has time range {[t0, t1]}, expected finite t_min <= t_max", file=meta_file)
     get = array_getter(arrays, npz_file, "dynamic.json")
     planes: dict[str, list[np.ndarray]] = {}
-    for group in _GROUPS[kind]:
-        if group not in manifest["field"]["planes"]:
+    listed = manifest["field"]["planes"]
+    for group in _GROUPS[kind] + tuple(g for g in _OPTIONAL_GROUPS[kind] if g in listed):
+        if group not in listed:
             raise InputError(f"lists no plane group {group!r} (a {kind} export has {_GROUPS[kind]})", file=meta_file)
         planes[group] = []
         for p in manifest["field"]["planes"][group]:
@@ -154,13 +164,16 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
                 raise InputError(f"plane {p['float']} has shape {plane.shape}, dynamic.json says {p['shape']} "
                                  "(3 planes, C channels, both sides >= 2)", file=npz_file)
             planes[group].append(plane)
-    spatial, temporal = ("motion_spatial", "motion_temporal") if kind == "derf" else ("spatial", "temporal")
     rows = int(manifest["time"]["time_resolution"])
-    if len(planes[spatial]) != len(planes[temporal]) or any(
-            s.shape[:2] != t.shape[:2] or t.shape[3] != s.shape[3] or t.shape[2] != rows
-            for s, t in zip(planes[spatial], planes[temporal])):
-        raise InputError(f"{temporal} planes {[t.shape for t in planes[temporal]]} do not match {spatial} "
-                         f"{[s.shape for s in planes[spatial]]} with {rows} time rows", file=npz_file)
+    pairs = [("motion_spatial", "motion_temporal")] if kind == "derf" else [("spatial", "temporal")]
+    if "canonical_temporal" in planes:
+        pairs.append(("canonical_spatial", "canonical_temporal"))
+    for spatial, temporal in pairs:
+        if len(planes[spatial]) != len(planes[temporal]) or any(
+                s.shape[:2] != t.shape[:2] or t.shape[3] != s.shape[3] or t.shape[2] != rows
+                for s, t in zip(planes[spatial], planes[temporal])):
+            raise InputError(f"{temporal} planes {[t.shape for t in planes[temporal]]} do not match {spatial} "
+                             f"{[s.shape for s in planes[spatial]]} with {rows} time rows", file=npz_file)
     mlps: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for name in _MLPS[kind]:
         if name not in manifest["field"]["mlps"]:
@@ -245,8 +258,8 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
     """Density (N,) per scene unit and linear RGB (N, 3) at contracted coordinates (N, 3) in [-1, 1]^3,
     normalised times (N,) and unit world view directions (N, 3) (numpy, float32).
 
-    DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes, density MLP (density and latent
-    h), colour MLP on [h, direction encoding, time encoding]. K-Planes: hex-plane features of (c, tau),
+    DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes (hex-planes at (canonical point,
+    tau) with ``canonical_temporal``), density MLP (density and latent h), colour MLP on [h, direction encoding, time encoding]. K-Planes: hex-plane features of (c, tau),
     density MLP, colour MLP on [h, direction encoding].
     """
     coords = np.asarray(coords, np.float32)
@@ -254,7 +267,9 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
     spec = assets.manifest["field"]
     if assets.has_motion:
         canonical, _ = deform_np(assets, coords, taus)
-        feats = triplane_features_np(assets.canonical_planes, np.clip(canonical, -1.0, 1.0))
+        canonical = np.clip(canonical, -1.0, 1.0)
+        feats = (triplane_features_np(assets.canonical_planes, canonical) if assets.canonical_temporal is None
+                 else hex_plane_features_np(assets.canonical_planes, assets.canonical_temporal, canonical, taus))
     else:
         feats = hex_plane_features_np(assets.planes["spatial"], assets.planes["temporal"], coords, taus)
     out = mlp_np(feats, assets.density_layers)

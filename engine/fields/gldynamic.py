@@ -16,7 +16,9 @@ skip, and the same error bounds (``transmittance_eps``, ``num_samples * color_ep
   ``RGBA32F`` array texture per scale, as the canonical planes) times the product of the xt, yt, zt planes
   (one array texture per scale of size R x Rt: the spatial coordinate along the width, tau along the height),
   the flow MLP (literals, straight-line vec4 ``dot``s), ``flow = max_flow * tanh(.)`` and
-  ``c = clamp(c + flow, -1, 1)``; the canonical field then runs unchanged on c. The colour MLP's time input
+  ``c = clamp(c + flow, -1, 1)``; the canonical field then runs unchanged on c (a canonical field with time
+  planes, ``canonical_temporal``, multiplies their xt, yt, zt product at (c, tau) into its features, as
+  K-Planes below). The colour MLP's time input
   [tau, sin(2^k tau), cos(2^k tau)] is per frame: computed on the CPU (``time_encoding_np``) and applied
   once per pixel with the view-direction columns.
 - **K-Planes** (``kind="kplanes"``): the ``spatial`` planes are the tri-planes; after their lookup each
@@ -126,7 +128,14 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     decls, lines, flow = _flow_code(assets, filtering, params)
     decls = ["uniform float tau;",
              f"uniform float time_enc[{2 * int(assets.manifest['field']['time_frequencies']) + 1}];"] + decls
-    return decls, lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"], []
+    lines = lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"]
+    temporal = assets.canonical_temporal
+    if temporal is None:
+        return decls, lines, []
+    # a canonical field with time planes: their xt, yt, zt product at (canonical point, tau) into its features
+    decls += [f"uniform sampler2DArray canonical_t{s};" for s in range(len(temporal))]
+    after = [f"f{s}_{gi} *= ct{s}_{gi};" for s, plane in enumerate(temporal) for gi in range(_groups(plane))]
+    return decls, lines + _time_plane_code(temporal, filtering, "ct", "canonical_t"), after
 
 
 def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
@@ -272,6 +281,8 @@ class GlDynamicRenderer(GlFieldRenderer):
             extra = [f"time_enc[{i}]" for i in range(2 * frequencies + 1)]
             extra_planes = [("motion_s", assets.planes["motion_spatial"]),
                             ("motion_t", assets.planes["motion_temporal"])]
+            if assets.canonical_temporal is not None:
+                extra_planes.append(("canonical_t", assets.canonical_temporal))
             code = _motion_code
         else:
             frequencies, extra = 0, []

@@ -123,9 +123,11 @@ def _dynamic_planes(model) -> dict:
     """Every plane group by name (what the manifest lists)."""
     field = model.field
     if model.has_motion:
+        canonical_time = field.canonical_field.temporal_planes()
         return {"canonical_spatial": field.canonical_field.spatial_planes(),
                 "motion_spatial": field.motion_field.spatial_planes(),
-                "motion_temporal": field.motion_field.temporal_planes()}
+                "motion_temporal": field.motion_field.temporal_planes(),
+                **({"canonical_temporal": canonical_time} if canonical_time else {})}
     return {"spatial": field.encoding.spatial_planes(), "temporal": field.encoding.temporal_planes()}
 
 

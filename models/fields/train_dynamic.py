@@ -28,8 +28,10 @@ from typing import Any, ClassVar, Optional
 import numpy as np
 import torch
 
+from engine.core.colorspace import display_encode
 from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
+from engine.eval.metrics import psnr
 from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import render_image
 from models.fields.data.select import (DYNAMIC_DATASETS, DYNAMIC_TEST_SPLITS, detect_dynamic_dataset,
@@ -354,7 +356,9 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     border crossings found in ``views`` and ``context_views`` (e.g. the training views: they are not rendered).
     ``renderer`` as ``evaluate_field``'s: with ``gl`` the images are the GL renderer's and the motion
     diagnostics (which need the samples) come from a torch render of each view at 1/``DIAGNOSTICS_STRIDE`` of its
-    width and height (the same rays' statistics, subsampled).
+    width and height (the same rays' statistics, subsampled). ``psnr_objects`` / ``psnr_background``: the mean
+    over views of the PSNR over the pixels that see the scene's objects / the rest (views with object ids:
+    rgbd-rig captures; NaN otherwise): the split of the error between what moves and the static background.
 
     Raises:
         InputError: bad views, or a view whose time lies outside the model's trained range.
@@ -364,6 +368,7 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     model.normalize_times(torch.as_tensor(views.times, dtype=torch.float32))  # refuse out-of-range times first
     edges = np.array(FLOW_BINS[:-1] + (max(FLOW_BINS[-1], math.sqrt(3.0) * model.config.motion.max_flow),))
     outside, evaluated = [], []
+    split: dict[str, list[float]] = {"objects": [], "background": []}
     counts, mass = np.zeros(len(edges) - 1, np.int64), np.zeros(len(edges) - 1)
 
     kind = resolve_renderer(renderer)
@@ -380,7 +385,14 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
         evaluated.append(at.evaluated)
         counts += at.flow_counts
         mass += at.flow_mass
-        return out if gl is None else gl.render(cam.intrinsics, cam.world_to_camera, float(views.times[i]))
+        if gl is not None:
+            out = gl.render(cam.intrinsics, cam.world_to_camera, float(views.times[i]))
+        if views.objects is not None:
+            truth, pred = display_encode(views.images[i]), display_encode(out["color"])
+            for name, mask in (("objects", views.objects[i]), ("background", ~views.objects[i])):
+                if mask.any():
+                    split[name].append(psnr(truth, pred, mask))
+        return out
 
     try:
         scores, psnrs, images = score_views(model, views, render_view, with_flip=with_flip,
@@ -404,6 +416,7 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
                            "visible_mass": [float(m) for m in mass]},
         "flow_moving_fraction": float(mass[3:].sum() / mass.sum()) if mass.sum() > 0 else 0.0,
         "per_time": per_time,
+        **{f"psnr_{name}": float(np.mean(v)) if v else float("nan") for name, v in split.items()},
         "canonical_limit": canonical_limit(per_time, _crossings(views, context_views)),
     })
     if return_images:

@@ -17,6 +17,7 @@ import torch
 from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
+from engine.io.rgbd import read_rig
 from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
@@ -43,7 +44,7 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
     focal = size / (2 * np.tan(np.radians(25.0)))
     k = np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]])
     u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
-    images, depths, cams, stamp, cam_ids, frame_ids = [], [], [], [], [], []
+    images, depths, cams, stamp, cam_ids, frame_ids, hits = [], [], [], [], [], [], []
     for c, az in enumerate(azimuths):
         a, e = np.radians(az), np.radians(25.0)
         eye = 3.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
@@ -61,6 +62,7 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
                                         np.cos(8 * p[..., 2] + p[..., 0])], -1) if texture else np.full(p.shape, 0.4)
             images.append(np.where(hit[..., None], tex, 1.0).astype(np.float32))
             depths.append(depth.astype(np.float32))
+            hits.append(hit)
             cams.append(Camera(k.copy(), w2c))
             stamp.append(float(t))
             cam_ids.append(c)
@@ -70,7 +72,7 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
                       scene_type="bounded-360", depth=np.stack(depths), bounds=np.array([[-1.0] * 3, [1.0] * 3]),
                       background=np.ones(3, np.float32), names=[f"cam{c}@{f}" for c, f in zip(cam_ids, frame_ids)],
                       times=np.array(stamp), camera_ids=np.array(cam_ids), frame_ids=np.array(frame_ids),
-                      camera_names=[f"cam{c}" for c in range(len(azimuths))])
+                      camera_names=[f"cam{c}" for c in range(len(azimuths))], objects=np.stack(hits))
 
 
 TINY = DynamicFieldConfig(kind="derf",
@@ -160,7 +162,15 @@ def test_motion_field_starts_with_zero_flow_and_groups_are_named():
     model = _model()
     assert set(model.field.plane_groups()) == {"spatial", "motion_spatial", "temporal"}
     assert set(_model("kplanes").field.plane_groups()) == {"spatial", "temporal"}
-    assert [p.shape for p in model.field.plane_groups()["temporal"]] == [(3, 4, 4, 8)]  # (xt, yt, zt), C, Rt, R
+    # the temporal group: the motion field's time planes, then the canonical field's ((xt, yt, zt), C, Rt, R)
+    assert [p.shape for p in model.field.plane_groups()["temporal"]] == [(3, 4, 4, 8), (3, 4, 4, 8), (3, 4, 4, 16)]
+    plain = _model(canonical_time=False).field.plane_groups()["temporal"]
+    assert [p.shape for p in plain] == [(3, 4, 4, 8)]
+    # a fresh 4D canonical field is time-independent (its time planes start at 1): the thesis's field at step 0
+    coords, dirs = torch.rand(50, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    with torch.no_grad():
+        early, late = model.field(coords, torch.full((50,), -1.0), dirs), model.field(coords, torch.ones(50), dirs)
+    assert torch.equal(early.sigma, late.sigma)
 
 
 def test_render_is_finite_for_huge_densities_and_shapes():
@@ -260,6 +270,12 @@ def test_rig_video_loader_returns_every_frame_of_every_camera(tmp_path):
     train, test = split_by_camera(video, ["cam0", "cam3"], ["cam2"])
     assert len(train) == 6 and test.names == ["cam2@0", "cam2@1", "cam2@2"]
     assert load_rig_video(rig, frames=[2], downscale=2).images.shape == (4, 12, 16, 3)
+    # the objects' pixels: object_id > 0 of each frame, sampled as the depth when downscaled
+    frame = read_rig(rig).cameras["cam1"][2]
+    np.testing.assert_array_equal(video.objects[5], frame.object_id > 0)
+    assert 0 < video.objects.mean() < 1
+    np.testing.assert_array_equal(load_rig_video(rig, downscale=2).objects[5], (frame.object_id > 0)[1::2, 1::2])
+    np.testing.assert_array_equal(video.downscaled(2).objects, load_rig_video(rig, downscale=2).objects)
     with pytest.raises(InputError, match="both train and test"):
         split_by_camera(video, ["cam2"], ["cam2"])
     with pytest.raises(InputError, match="holds out cameras, not a split") as err:
@@ -410,6 +426,13 @@ def test_evaluation_reports_the_static_fields_keys_and_motion_diagnostics(derf_r
     assert 0 < scores["motion_bytes"] < scores["model_bytes"]
     assert len(scores["flow_histogram"]["samples"]) == len(scores["flow_histogram"]["edges"]) - 1
     assert not scores["canonical_limit"]["detected"]  # the sphere stays inside every view
+    # the error split between the objects' pixels and the background: the two MSEs make up the frame's
+    one = evaluate_dynamic(derf_run, test.subset([2]), with_flip=False)
+    share = test.objects[2].mean()
+    mse = {name: 10 ** (-one[f"psnr_{name}"] / 10) for name in ("objects", "background")}
+    assert 0 < share < 1 and one["psnr_objects"] != one["psnr_background"]
+    np.testing.assert_allclose(10 ** (-one["psnr"] / 10), share * mse["objects"] + (1 - share) * mse["background"],
+                               rtol=1e-6)
 
 
 def test_interrupted_run_resumes_exactly(moving, tmp_path):
@@ -535,7 +558,8 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     manifest = json.loads((tmp_path / "export" / "dynamic.json").read_text())
     assert manifest["kind"] == "derf" and manifest["time"]["range"] == [0.0, 1.0]
     assert max(manifest["parity"]["random_points"].values()) < 1e-4
-    assert {"canonical_spatial", "motion_spatial", "motion_temporal"} == set(manifest["field"]["planes"])
+    assert {"canonical_spatial", "canonical_temporal", "motion_spatial", "motion_temporal"} == set(
+        manifest["field"]["planes"])
     assert manifest["canonical_limit"] is not None
     arrays = np.load(tmp_path / "export" / "dynamic.npz")
     assert arrays["motion_temporal_0"].shape == (3, 4, 3, 8) and arrays["motion_temporal_0_u8"].dtype == np.uint8

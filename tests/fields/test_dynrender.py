@@ -43,8 +43,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 H, W = 24, 32
 EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0, "filtering": "exact"}
-#: DeRF by default; the K-Planes fixture costs another ONNX export (~10 s), so it runs with ``-m slow``.
-BOTH = ["derf", pytest.param("kplanes", marks=pytest.mark.slow)]
+#: DeRF (the default: its canonical field has time planes) and DeRF with tri-planes by default; the K-Planes
+#: fixture costs another ONNX export (~10 s), so it runs with ``-m slow``.
+BOTH = ["derf", "derf_triplanes", pytest.param("kplanes", marks=pytest.mark.slow)]
 gl_only = pytest.mark.skipif(not available(), reason="no EGL context with OpenGL 4.3 compute shaders and fp64")
 
 
@@ -57,7 +58,7 @@ def derf(tmp_path_factory):
     model = load_dynamic_model(run)
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        for plane in model.field.motion_field.temporal_planes():
+        for plane in model.field.motion_field.temporal_planes() + model.field.canonical_field.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
         last = model.field.motion_field.flow_mlp.net[-1]
         last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
@@ -85,6 +86,26 @@ def kplanes(tmp_path_factory):
     with torch.no_grad():
         for plane in model.field.encoding.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+    export_dynamic(model, root / "export")
+    cam = sphere_video([10], [0.0]).cameras[0]
+    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
+
+
+@pytest.fixture(scope="module")
+def derf_triplanes(tmp_path_factory):
+    """(model, export folder, camera) of an untrained bounded DeRF field whose canonical field is tri-planes
+    (``canonical_time=False``, the thesis's), with time-varying motion planes and a large flow."""
+    root = tmp_path_factory.mktemp("dynrender_derf_triplanes")
+    torch.manual_seed(0)
+    model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
+                              dataclasses.replace(TINY, canonical_time=False), RenderConfig(num_samples=24),
+                              time_resolution=3).eval()
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for plane in model.field.motion_field.temporal_planes():
+            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+        last = model.field.motion_field.flow_mlp.net[-1]
+        last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
     export_dynamic(model, root / "export")
     cam = sphere_video([10], [0.0]).cameras[0]
     return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
@@ -140,7 +161,7 @@ def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
     sigma, rgb = query_dynamic(assets, coords.numpy(), taus.numpy(), dirs.numpy())
     np.testing.assert_allclose(sigma, want.sigma.numpy(), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(rgb, want.rgb.numpy(), atol=1e-5)
-    if which == "derf":  # the motion field is exercised: large flows that depend on time
+    if which != "kplanes":  # the motion field is exercised: large flows that depend on time
         canonical, flow = deform_np(assets, coords.numpy(), taus.numpy())
         np.testing.assert_allclose(canonical, want.canonical.numpy(), atol=1e-5)
         magnitude = np.linalg.norm(flow, axis=-1)
@@ -148,6 +169,7 @@ def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
         _, early = deform_np(assets, coords.numpy(), np.full(3000, -1.0, np.float32))
         _, late = deform_np(assets, coords.numpy(), np.full(3000, 1.0, np.float32))
         assert np.abs(early - late).max() > 0.05
+    assert (assets.canonical_temporal is not None) == (which == "derf")
     assert sigma.dtype == np.float32
     assert query_dynamic(assets, np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))[0].shape == (0,)  # empty batch
 

@@ -47,12 +47,15 @@ class TimedViews(Views):
         camera_ids: (N,) int64 index into ``camera_names`` of the physical camera of each view.
         frame_ids: (N,) int64 frame number of each view in its camera's sequence.
         camera_names: the physical cameras (for monocular D-NeRF, one per frame).
+        objects: (N, H, W) bool, True where the view sees one of the scene's objects (rgbd ``object_id`` > 0:
+            the content a motion model has to move), or None where the data has no object ids (D-NeRF).
     """
 
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     frame_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     camera_names: list[str] = field(default_factory=list)
+    objects: Optional[np.ndarray] = None
 
     @property
     def time_range(self) -> tuple[float, float]:
@@ -64,7 +67,16 @@ class TimedViews(Views):
         idx = [int(i) for i in indices]
         base = Views.subset(self, idx)
         return replace(base, times=self.times[idx].copy(), camera_ids=self.camera_ids[idx].copy(),
-                       frame_ids=self.frame_ids[idx].copy())
+                       frame_ids=self.frame_ids[idx].copy(),
+                       objects=None if self.objects is None else self.objects[idx].copy())
+
+    def downscaled(self, factor: int) -> "TimedViews":
+        """:meth:`Views.downscaled`, the object masks sampled as the depth is (block centres)."""
+        out = Views.downscaled(self, factor)
+        if out is self or self.objects is None:
+            return out
+        return replace(out, objects=np.stack([nearest_depth(m, int(factor), out.width, out.height)
+                                              for m in self.objects]))
 
     def of_cameras(self, names: Sequence[str]) -> "TimedViews":
         """Every view of the named cameras, camera by camera in the order given, then by time."""
@@ -94,6 +106,9 @@ def check_timed_views(views: TimedViews) -> TimedViews:
             raise InputError(f"must be (N,) integers for {n} views, got {value.shape} {value.dtype}", field=name)
     if n and (views.camera_ids.min() < 0 or views.camera_ids.max() >= len(views.camera_names)):
         raise InputError(f"must index camera_names ({len(views.camera_names)} cameras)", field="camera_ids")
+    if views.objects is not None and (views.objects.shape != views.images.shape[:3] or views.objects.dtype != bool):
+        raise InputError(f"must be (N, H, W) bool masks {views.images.shape[:3]}, got {views.objects.shape} "
+                         f"{views.objects.dtype}", field="objects")
     return views
 
 
@@ -215,7 +230,7 @@ def load_rig_video(path: str | Path, *, downscale: int = 1, frames: Optional[Seq
     if bad or not positions:
         raise InputError(f"frame positions {bad or positions} out of range for {len(rig)} frames", file=rig.path,
                          field="frames")
-    images, depths, cams, near_far, times, cam_ids, frame_ids, labels = [], [], [], [], [], [], [], []
+    images, depths, cams, near_far, times, cam_ids, frame_ids, labels, objects = [], [], [], [], [], [], [], [], []
     for c, name in enumerate(names):
         seq = rig.cameras[name]
         for pos in positions:
@@ -231,6 +246,8 @@ def load_rig_video(path: str | Path, *, downscale: int = 1, frames: Optional[Seq
             w2, h2 = max(1, w // downscale), max(1, h // downscale)
             images.append(resize_image(f.color.astype(np.float32), w2, h2))
             depths.append(nearest_depth(f.depth, downscale, w2, h2) if downscale > 1 else f.depth)
+            if f.object_id is not None:
+                objects.append(nearest_depth(f.object_id, downscale, w2, h2) > 0)
             cams.append(Camera(scale_k(f.camera.intrinsics, w2 / w, h2 / h), f.camera.world_to_camera))
             near_far.append((near, far))
             times.append(float(f.time))
@@ -247,7 +264,8 @@ def load_rig_video(path: str | Path, *, downscale: int = 1, frames: Optional[Seq
                        scene_type=scene_type, depth=np.stack(depths).astype(np.float32), names=labels,
                        downscale=int(downscale), default_split=split if split[0] or split[1] else None,
                        times=np.asarray(times, np.float64), camera_ids=cam_ids_a,
-                       frame_ids=np.asarray(frame_ids, np.int64), camera_names=names)
+                       frame_ids=np.asarray(frame_ids, np.int64), camera_names=names,
+                       objects=np.stack(objects) if len(objects) == len(images) else None)
     return check_timed_views(views)
 
 

@@ -216,6 +216,10 @@ class DynamicFieldConfig:
         "help": "rows of every time plane; 0: half the number of trained times, at least 2"})
     time_frequencies: int = field(default=2, metadata={
         "help": "Fourier frequencies of the time fed to the canonical colour MLP (Eq. 5.4; derf only)"})
+    canonical_time: bool = field(default=True, metadata={
+        "help": "derf only: the canonical tri-planes get time planes too (hex-planes read at the deformed point "
+                "and time, starting time-independent): K-Planes' 4D capacity for what the motion does not explain "
+                "(docs/results/2026-11-28-dynamic-canonical-time.md)"})
 
     def validate(self) -> "DynamicFieldConfig":
         if self.kind not in FIELD_KINDS:
@@ -255,14 +259,17 @@ class FieldSamples(NamedTuple):
 
 
 class CanonicalField(nn.Module):
-    """The canonical scene F_s (Eq. 5.3, 5.4): tri-planes -> density and latent h; colour from h, the encoded
-    view direction and the encoded (normalised) time."""
+    """The canonical scene F_s (Eq. 5.3, 5.4): tri-planes (hex-planes with ``time_resolution`` > 0: the
+    canonical point's features then vary in time, as a K-Planes field's) -> density and latent h; colour from
+    h, the encoded view direction and the encoded (normalised) time."""
 
-    def __init__(self, config: FieldConfig, time_frequencies: int):
+    def __init__(self, config: FieldConfig, time_frequencies: int, time_resolution: int = 0):
         super().__init__()
         self.config = cfg = config.validate()
         self.time_frequencies = int(time_frequencies)
-        self.encoding = TriPlaneEncoding(cfg.resolutions, cfg.feature_dim, tuple(cfg.init_range))
+        self.encoding = (HexPlaneEncoding(cfg.resolutions, time_resolution, cfg.feature_dim, tuple(cfg.init_range))
+                         if time_resolution else TriPlaneEncoding(cfg.resolutions, cfg.feature_dim,
+                                                                  tuple(cfg.init_range)))
         self.density_mlp = MLP(self.encoding.output_dim, cfg.density_hidden, 1 + cfg.geo_feature_dim)
         self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
         self.time_dim = 2 * self.time_frequencies + 1
@@ -272,9 +279,14 @@ class CanonicalField(nn.Module):
     def spatial_planes(self) -> list[Tensor]:
         return self.encoding.spatial_planes()
 
-    def get_density(self, coords: Tensor) -> tuple[Tensor, Tensor]:
-        """(..., 3) canonical coordinates -> density (...), latent h (..., G)."""
-        out = self.density_mlp(self.encoding(coords))
+    def temporal_planes(self) -> list[Tensor]:
+        """The time planes of a 4D canonical field (``canonical_time``); none for tri-planes."""
+        return self.encoding.temporal_planes() if isinstance(self.encoding, HexPlaneEncoding) else []
+
+    def get_density(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor]:
+        """(..., 3) canonical coordinates, (...) normalised times -> density (...), latent h (..., G)."""
+        feats = self.encoding(coords, times) if isinstance(self.encoding, HexPlaneEncoding) else self.encoding(coords)
+        out = self.density_mlp(feats)
         return density_activation(out[..., 0], self.config.density_bias), out[..., 1:]
 
     def get_outputs(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
@@ -309,20 +321,22 @@ class MotionField(nn.Module):
 
 
 class DeRFField(nn.Module):
-    """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``,
-    ``rgb = M_s(h, gamma(v), gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
+    """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``
+    (``G_s(c', t)`` with ``canonical_time``: hex-planes at the canonical point), ``rgb = M_s(h, gamma(v),
+    gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
 
     kind = "derf"
 
     def __init__(self, config: DynamicFieldConfig, time_resolution: int):
         super().__init__()
-        self.canonical_field = CanonicalField(config.canonical, config.time_frequencies)
+        self.canonical_field = CanonicalField(config.canonical, config.time_frequencies,
+                                              time_resolution if config.canonical_time else 0)
         self.motion_field = MotionField(config.motion, time_resolution)
 
     def plane_groups(self) -> dict[str, list[Tensor]]:
         return {"spatial": self.canonical_field.spatial_planes(),
                 "motion_spatial": self.motion_field.spatial_planes(),
-                "temporal": self.motion_field.temporal_planes()}
+                "temporal": self.motion_field.temporal_planes() + self.canonical_field.temporal_planes()}
 
     def deform(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor]:
         """(..., 3) contracted points at normalised times (...) -> canonical points (..., 3), flow (..., 3)."""
@@ -331,11 +345,11 @@ class DeRFField(nn.Module):
 
     def density(self, coords: Tensor, times: Tensor) -> Tensor:
         canonical, _ = self.deform(coords, times)
-        return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0))[0]
+        return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)[0]
 
     def forward(self, coords: Tensor, times: Tensor, directions: Tensor) -> FieldSamples:
         canonical, flow = self.deform(coords, times)
-        sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0))
+        sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
         return FieldSamples(sigma, self.canonical_field.get_outputs(h, directions, times), canonical, flow)
 
 

@@ -173,6 +173,14 @@ def test_motion_field_starts_with_zero_flow_and_groups_are_named():
     assert torch.equal(early.sigma, late.sigma)
 
 
+def test_static_options_the_dynamic_fields_do_not_build_are_refused():
+    for change, name in (({"shading": "deferred"}, "field.canonical.shading"),
+                         ({"density_layers": 2}, "field.canonical.density_layers")):
+        with pytest.raises(InputError) as err:
+            dataclasses.replace(TINY, canonical=dataclasses.replace(TINY.canonical, **change)).validate()
+        assert err.value.field == name
+
+
 def test_render_is_finite_for_huge_densities_and_shapes():
     model = _model()
     with torch.no_grad():  # every density at the clamp, huge plane features everywhere

@@ -229,6 +229,13 @@ class DynamicFieldConfig:
         if self.time_frequencies < 0:
             raise InputError(f"must be >= 0, got {self.time_frequencies}", field="field.time_frequencies")
         self.canonical.validate()
+        # the static field's options that the dynamic fields do not build: refused rather than ignored
+        if self.canonical.shading != "per-sample":
+            raise InputError(f"dynamic fields shade per sample, got {self.canonical.shading!r}",
+                             field="field.canonical.shading")
+        if self.canonical.density_layers != 1:
+            raise InputError(f"dynamic fields have one hidden layer in the density MLP, got "
+                             f"{self.canonical.density_layers}", field="field.canonical.density_layers")
         self.motion.validate()
         return self
 

@@ -259,8 +259,9 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
     normalised times (N,) and unit world view directions (N, 3) (numpy, float32).
 
     DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes (hex-planes at (canonical point,
-    tau) with ``canonical_temporal``), density MLP (density and latent h), colour MLP on [h, direction encoding, time encoding]. K-Planes: hex-plane features of (c, tau),
-    density MLP, colour MLP on [h, direction encoding].
+    tau) with ``canonical_temporal``), density MLP (density and latent h), colour MLP on [h, direction
+    encoding, time encoding]. K-Planes: hex-plane features of (c, tau), density MLP, colour MLP on [h,
+    direction encoding].
     """
     coords = np.asarray(coords, np.float32)
     taus = np.asarray(taus, np.float32)

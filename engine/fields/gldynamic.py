@@ -18,9 +18,8 @@ skip, and the same error bounds (``transmittance_eps``, ``num_samples * color_ep
   the flow MLP (literals, straight-line vec4 ``dot``s), ``flow = max_flow * tanh(.)`` and
   ``c = clamp(c + flow, -1, 1)``; the canonical field then runs unchanged on c (a canonical field with time
   planes, ``canonical_temporal``, multiplies their xt, yt, zt product at (c, tau) into its features, as
-  K-Planes below). The colour MLP's time input
-  [tau, sin(2^k tau), cos(2^k tau)] is per frame: computed on the CPU (``time_encoding_np``) and applied
-  once per pixel with the view-direction columns.
+  K-Planes below). The colour MLP's time input [tau, sin(2^k tau), cos(2^k tau)] is per frame: computed on
+  the CPU (``time_encoding_np``) and applied once per pixel with the view-direction columns.
 - **K-Planes** (``kind="kplanes"``): the ``spatial`` planes are the tri-planes; after their lookup each
   feature group is multiplied by the xt, yt, zt product at (c, tau).
 

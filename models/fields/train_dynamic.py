@@ -28,10 +28,8 @@ from typing import Any, ClassVar, Optional
 import numpy as np
 import torch
 
-from engine.core.colorspace import display_encode
 from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
-from engine.eval.metrics import psnr
 from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import render_image
 from models.fields.data.select import (DYNAMIC_DATASETS, DYNAMIC_TEST_SPLITS, detect_dynamic_dataset,
@@ -368,7 +366,6 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
     model.normalize_times(torch.as_tensor(views.times, dtype=torch.float32))  # refuse out-of-range times first
     edges = np.array(FLOW_BINS[:-1] + (max(FLOW_BINS[-1], math.sqrt(3.0) * model.config.motion.max_flow),))
     outside, evaluated = [], []
-    split: dict[str, list[float]] = {"objects": [], "background": []}
     counts, mass = np.zeros(len(edges) - 1, np.int64), np.zeros(len(edges) - 1)
 
     kind = resolve_renderer(renderer)
@@ -385,18 +382,12 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
         evaluated.append(at.evaluated)
         counts += at.flow_counts
         mass += at.flow_mass
-        if gl is not None:
-            out = gl.render(cam.intrinsics, cam.world_to_camera, float(views.times[i]))
-        if views.objects is not None:
-            truth, pred = display_encode(views.images[i]), display_encode(out["color"])
-            for name, mask in (("objects", views.objects[i]), ("background", ~views.objects[i])):
-                if mask.any():
-                    split[name].append(psnr(truth, pred, mask))
-        return out
+        return out if gl is None else gl.render(cam.intrinsics, cam.world_to_camera, float(views.times[i]))
 
     try:
+        regions = None if views.objects is None else {"objects": views.objects, "background": ~views.objects}
         scores, psnrs, images = score_views(model, views, render_view, with_flip=with_flip,
-                                            return_images=return_images)
+                                            return_images=return_images, regions=regions)
     finally:
         if gl is not None:
             gl.release()
@@ -406,6 +397,8 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
         ev = sum(evaluated[i] for i in sel)
         per_time.append({"time": float(t), "psnr": float(np.mean([psnrs[i] for i in sel])),
                          "canonical_outside_fraction": float(sum(outside[i] for i in sel) / ev) if ev else 0.0})
+    scores.setdefault("psnr_objects", float("nan"))  # data without object ids
+    scores.setdefault("psnr_background", float("nan"))
     scores.update({
         "train_seconds": (run_train_seconds(run_or_model) if not isinstance(run_or_model, DynamicFieldModel)
                           else float("nan")),
@@ -416,7 +409,6 @@ def evaluate_dynamic(run_or_model: str | Path | DynamicFieldModel, views: TimedV
                            "visible_mass": [float(m) for m in mass]},
         "flow_moving_fraction": float(mass[3:].sum() / mass.sum()) if mass.sum() > 0 else 0.0,
         "per_time": per_time,
-        **{f"psnr_{name}": float(np.mean(v)) if v else float("nan") for name, v in split.items()},
         "canonical_limit": canonical_limit(per_time, _crossings(views, context_views)),
     })
     if return_images:

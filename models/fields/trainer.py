@@ -496,7 +496,8 @@ def run_train_seconds(run_dir: str | Path) -> float:
 
 
 def score_views(model, views, render_view: Callable[[int, Any], dict], *, with_flip: bool = True,
-                return_images: bool = False) -> tuple[dict[str, Any], list[float], list[dict]]:
+                return_images: bool = False, regions: Optional[dict[str, np.ndarray]] = None
+                ) -> tuple[dict[str, Any], list[float], list[dict]]:
     """Render every view with ``render_view(i, camera)`` (``render_image``'s dict) in eval mode and score it.
 
     PSNR, SSIM (``engine.eval.metrics.psnr`` / ``ssim_map``, Gaussian window) and FLIP (``flip_map``, LDR, 67
@@ -505,7 +506,9 @@ def score_views(model, views, render_view: Callable[[int, Any], dict], *, with_f
     |rendered - true| planar depth over pixels where both are finite and ``depth_spearman`` the rank
     correlation of the two over those pixels, all views pooled (NaN when the views carry no depth);
     ``depth_valid_fraction`` is the share of pixels with a finite true depth where the field also rendered
-    a surface. ``render_ms_per_frame`` is the median wall time of rendering one view.
+    a surface. ``render_ms_per_frame`` is the median wall time of rendering one view. ``regions`` (name ->
+    (N, H, W) bool masks) adds ``psnr_<name>``: the mean over views of the PSNR over the region's pixels (views
+    where it is empty skipped; NaN when it is empty everywhere).
 
     Returns:
         (scores, the PSNR of each view, the rendered colour and depth of each view if ``return_images``).
@@ -513,11 +516,16 @@ def score_views(model, views, render_view: Callable[[int, Any], dict], *, with_f
     was_training = model.training
     model.eval()
     psnrs, ssims, flips, times_ms, abs_errors, pairs, valid, known, images = [], [], [], [], [], [], 0, 0, []
+    regions = regions or {}
+    region_psnrs: dict[str, list[float]] = {name: [] for name in regions}
     try:
         for i, cam in enumerate(views.cameras):
             out = render_view(i, cam)
             truth, pred = display_encode(views.images[i]), display_encode(out["color"])
             psnrs.append(psnr(truth, pred))
+            for name, masks in regions.items():
+                if masks[i].any():
+                    region_psnrs[name].append(psnr(truth, pred, masks[i]))
             ssims.append(float(np.mean(ssim_map(truth, pred))))
             if with_flip:
                 flips.append(float(np.mean(flip_map(truth, pred))))
@@ -544,6 +552,7 @@ def score_views(model, views, render_view: Callable[[int, Any], dict], *, with_f
         "depth_spearman": spearman,
         "depth_valid_fraction": valid / known if known else float("nan"),
         "render_ms_per_frame": float(np.median(times_ms)), "num_views": len(views),
+        **{f"psnr_{name}": float(np.mean(v)) if v else float("nan") for name, v in region_psnrs.items()},
     }
     return scores, psnrs, images
 

@@ -245,6 +245,21 @@ def validate_motion_vectors(vectors: object, shape: tuple[int, int], *, file=Non
     return v
 
 
+def validate_object_ids(ids: object, shape: tuple[int, int], *, file=None, frame=None,
+                        field_name="object_id") -> np.ndarray:
+    """Check an object id buffer (H, W) of a frame of ``shape``: non-negative integers (0: static background),
+    integer or integral float dtype, at most int32's maximum; returns int32."""
+    where = dict(file=file, frame=frame, field=field_name)
+    ids = np.asarray(ids)
+    if ids.shape != shape:
+        raise InputError(f"must have shape {shape}, got {ids.shape}", **where)
+    if ids.dtype.kind not in "iuf" or (ids.dtype.kind == "f" and not np.all(np.isfinite(ids))):
+        raise InputError(f"must hold non-negative integers, got dtype {ids.dtype}", **where)
+    if np.any(ids < 0) or np.any(ids != np.round(ids)) or np.any(ids > np.iinfo(np.int32).max):
+        raise InputError("must hold non-negative integers (0: static background)", **where)
+    return ids.astype(np.int32)
+
+
 def validate_frame(frame: Frame, *, file=None) -> Frame:
     """Validate every array of a frame against the others; returns a frame with normalised dtypes."""
     idx = frame.index
@@ -269,12 +284,7 @@ def validate_frame(frame: Frame, *, file=None) -> Frame:
     if frame.motion_vectors is not None:
         out = replace(out, motion_vectors=validate_motion_vectors(frame.motion_vectors, shape, file=file, frame=idx))
     if frame.object_id is not None:
-        ids = np.asarray(frame.object_id)
-        if ids.shape != shape:
-            raise InputError(f"must have shape {shape}, got {ids.shape}", file=file, frame=idx, field="object_id")
-        if not np.all(np.isfinite(ids)) or np.any(ids < 0) or np.any(ids != np.round(ids)):
-            raise InputError("must hold non-negative integers", file=file, frame=idx, field="object_id")
-        out = replace(out, object_id=ids.astype(np.int32))
+        out = replace(out, object_id=validate_object_ids(frame.object_id, shape, file=file, frame=idx))
     if frame.moving is not None:
         m = np.asarray(frame.moving)
         if m.shape != shape:

@@ -113,7 +113,7 @@ from engine.core.checks import numeric_array
 from engine.core.config import option
 from engine.core.errors import InputError, InterleaveError
 from engine.core.frames import (Camera, Frame, rigid_inverse, validate_color, validate_depth, validate_intrinsics,
-                                validate_pose)
+                                validate_object_ids, validate_pose)
 from engine.geometry import encoding
 from engine.geometry.backends import resolve_backend
 from engine.predict import Prediction, Predictor, Repeat, Target, make_predictor, use_backend
@@ -144,19 +144,6 @@ _CUT_STRIDE = 4
 
 class NotReadyError(InterleaveError):
     """``predict`` was called before any frame was submitted (or right after ``reset``)."""
-
-
-def _object_ids(object_ids: object, size: tuple[int, int], flip_rows: bool) -> np.ndarray:
-    """A submitted object id buffer as the frame's ``object_id`` ((H, W) int32, a copy); InputError unless
-    (H, W) non-negative integers."""
-    ids = np.asarray(object_ids)
-    if ids.shape != size:
-        raise InputError(f"must have shape (H, W) = {size}, got {ids.shape}", field="object_ids")
-    if ids.dtype.kind not in "iuf" or (ids.dtype.kind == "f" and not np.all(np.isfinite(ids))):
-        raise InputError(f"must hold non-negative integers, got dtype {ids.dtype}", field="object_ids")
-    if np.any(ids < 0) or np.any(ids != np.round(ids)) or np.any(ids > np.iinfo(np.int32).max):
-        raise InputError("must hold non-negative integers (0: static background)", field="object_ids")
-    return np.ascontiguousarray(ids[::-1] if flip_rows else ids, dtype=np.int32)
 
 
 @dataclass(frozen=True)
@@ -602,7 +589,9 @@ class Session:
                 vectors = engine_vectors(motion_vectors, motion_valid, motion, size, self.config.flip_rows, label)
             elif motion_valid is not None:
                 raise InputError("is given without motion_vectors", field="motion_valid")
-            ids = None if object_ids is None else _object_ids(object_ids, size, self.config.flip_rows)
+            ids = None if object_ids is None else validate_object_ids(object_ids, size, field_name="object_ids")
+            if ids is not None and self.config.flip_rows:  # rows as colour's
+                ids = np.ascontiguousarray(ids[::-1])
         except InputError as exc:
             raise _located(exc, label, time, "submitted frame") from None
         scene_depth = _scene_depth(planar)

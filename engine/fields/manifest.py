@@ -20,8 +20,8 @@ from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.encoding import direction_encoding_np
 
-__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene", "check_static_layout",
-           "section", "number", "choice", "array_name"]
+__all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene",
+           "check_static_layout", "section", "number", "choice", "array_name"]
 
 #: Most samples per ray a manifest may ask for (the trained fields use 64; the renderers allocate per sample).
 MAX_SAMPLES = 1024

@@ -204,10 +204,11 @@ class Mvec(Predictor):
         the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
         the screw, or the spin about the part's centre where the interval before says so, with its change
         where the three frames agree) where that path explained the last interval at least as well as the
-        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid part, or the rest of a group of pixels that move alike) whose motion of
-        the interval before, continued, explained the last interval worse than ``fallback_ratio`` times no
-        object motion is left out: it takes the camera-only warp. Fits and checks read a grid sample. Needs
-        frame n-2k (``before``: frame n-k's velocity and the ratio of the intervals, ``_before``)."""
+        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid
+        part, or the rest of a group of pixels that move alike) whose motion of the interval before, continued,
+        explained the last interval worse than ``fallback_ratio`` times no object motion is left out: it takes
+        the camera-only warp. Fits and checks read a grid sample. Needs frame n-2k (``before``: frame n-k's
+        velocity and the ratio of the intervals, ``_before``)."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)

@@ -35,7 +35,11 @@ How the shader maps the format (the design note is ``docs/field-assets.md``, "Re
   runs 8 invocations per AVX2 vector and executes both sides of every branch under a mask) pays a loop
   iteration when any lane of the group needs it, so a loop over all samples that skips empty ones costs
   every sample; the loop over marked samples costs the most any lane has. Invocations are laid out so
-  that each group of 8 is a 4x2 pixel block (coherent rays).
+  that each group of 8 is a 4x2 pixel block (coherent rays). In a bounded scene with linear spacing the
+  grid holds each empty cell's Chebyshev distance to the nearest occupied one (a byte per cell) instead of
+  a bit, and the cheap pass jumps over the samples that distance proves empty (a step moves a point by at
+  most ``R / N`` cells per axis inside the box): the same samples are evaluated, fewer are tested (lego's
+  baked field on llvmpipe: 0.8x the CPU time a frame).
 - **Early ray termination**: the march stops once the transmittance falls below ``transmittance_eps``;
   the latent rows of the density MLP and the colour MLP run only where the sample's weight exceeds
   ``color_eps`` (a saving on GPUs; llvmpipe evaluates the branch under a mask anyway).
@@ -291,10 +295,12 @@ void shade(ivec2 tile) {
     uint evaluated = 0u;
     for (int base = 0; base < N && !done; base += 32) {
         uint kept = 0u;
-        for (int j = 0; j < 32 && base + j < N; ++j) {
+        int jump = 1;
+        for (int j = 0; j < 32 && base + j < N; j += jump) {
             int i = base + j;
 %(locate)s
             if (keep) kept |= 1u << uint(j);
+%(advance)s
         }
         while (kept != 0u) {
             int j = findLSB(kept);
@@ -458,10 +464,24 @@ def march_code(assets) -> dict[str, str]:
         float e1 = 1.0 / lerp_(s_near, s_far, float(i + 1) / float(N));
         float t = 1.0 / lerp_(s_near, s_far, (float(i) + 0.5) / float(N));
         float delta = max(e1 - e0, 0.0);"""
-    occupancy = ""
+    occupancy, advance = "", ""
     if assets.occupancy is not None:
         res = assets.occupancy.shape[0]
-        occupancy = f"""if (keep) {{  // occupancy grid [ix, iy, iz], bit-packed
+        if skips_by_distance(assets):
+            occupancy = f"""uint dist = 0u;
+if (keep) {{  // empty-cell distance grid [ix, iy, iz], a byte per cell; 0 = occupied
+    ivec3 oi = clamp(ivec3(floor((c + 1.0) * {0.5 * res!r})), ivec3(0), ivec3({res - 1}));
+    uint cell = uint((oi.x * {res} + oi.y) * {res} + oi.z);
+    dist = (occ_bits[cell >> 2u] >> ((cell & 3u) << 3u)) & 255u;
+    keep = dist == 0u;
+}}"""
+            # a step moves a point by at most res / N cells along each axis (the box clip bounds the ray to the
+            # cube): the next floor((dist - 2) N / res) samples lie in cells closer than dist - 1, all empty
+            # (one cell of margin for rounding); they are the samples the test would reject, skipped
+            per_cell = float(render["num_samples"]) / float(res)
+            advance = f"            jump = dist >= 2u ? int(float(dist - 2u) * {per_cell!r}) + 1 : 1;"
+        else:
+            occupancy = f"""if (keep) {{  // occupancy grid [ix, iy, iz], bit-packed
     ivec3 oi = clamp(ivec3(floor((c + 1.0) * {0.5 * res!r})), ivec3(0), ivec3({res - 1}));
     uint bit = uint((oi.x * {res} + oi.y) * {res} + oi.z);
     keep = (occ_bits[bit >> 5u] & (1u << (bit & 31u))) != 0u;
@@ -470,7 +490,54 @@ def march_code(assets) -> dict[str, str]:
                         + ["bool keep = delta > 0.0 && all(lessThanEqual(abs(c), vec3(1.0)));"]
                         + occupancy.splitlines())
     locate = "\n".join("            " + line.strip() for line in locate.splitlines())
-    return {"bounds": bounds, "spacing_setup": spacing_setup, "locate": locate}
+    return {"bounds": bounds, "spacing_setup": spacing_setup, "locate": locate, "advance": advance}
+
+
+def skips_by_distance(assets) -> bool:
+    """Whether the march skips runs of empty samples by each empty cell's distance to the nearest occupied one
+    (bounded scenes with linear spacing, where a step's length along each axis is bounded; elsewhere each
+    sample tests its cell's bit)."""
+    return (assets.occupancy is not None and bool(assets.bounded)
+            and assets.manifest["render"]["spacing"] == "linear")
+
+
+def empty_distance(occupancy: np.ndarray, cap: int = 255) -> np.ndarray:
+    """(R, R, R) bool occupancy -> (R, R, R) uint8: each cell's Chebyshev distance in cells to the nearest occupied
+    cell (0 on occupied cells), capped at ``cap`` (also where nothing is occupied)."""
+    occ = np.asarray(occupancy, dtype=bool)
+    if occ.ndim != 3:
+        raise InputError(f"must be a 3D grid, got shape {occ.shape}", field="occupancy")
+    dist = np.full(occ.shape, cap, np.uint8)
+    reached = occ.copy()
+    dist[reached] = 0
+    for k in range(1, cap):
+        if reached.all() or not reached.any():
+            break
+        grown = reached.copy()
+        for axis in range(3):  # the 3x3x3 neighbourhood, one axis at a time
+            near = grown.copy()
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis], hi[axis] = slice(1, None), slice(None, -1)
+            near[tuple(lo)] |= grown[tuple(hi)]
+            near[tuple(hi)] |= grown[tuple(lo)]
+            grown = near
+        dist[grown & ~reached] = k
+        reached = grown
+    return dist
+
+
+def occupancy_words(assets) -> np.ndarray:
+    """The occupancy storage buffer of ``assets`` as uint32 words: the empty-cell distances a byte per cell
+    (little-endian, :func:`skips_by_distance`) or the occupancy a bit per cell; one zero word without a grid."""
+    occ = assets.occupancy
+    if occ is None:
+        return np.zeros(1, np.uint32)
+    if skips_by_distance(assets):
+        flat = empty_distance(occ).reshape(-1)
+        return np.pad(flat, (0, (-flat.size) % 4)).view("<u4").astype(np.uint32)
+    flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
+    return np.packbits(np.pad(flat, (0, (-flat.size) % 32)), bitorder="little").view(np.uint32)
 
 
 def color_head(params: ShaderParams, enc: list[str], colr, latent_dim: int, lat_rows: int
@@ -858,12 +925,7 @@ class GlFieldRenderer:
             self._set(name, unit)
             self._textures.append(tex)
         self._params = self.ctx.buffer(packed.tobytes())
-        occ = self.assets.occupancy
-        bits = np.zeros(1, np.uint32)
-        if occ is not None:
-            flat = np.ascontiguousarray(occ, dtype=bool).reshape(-1)
-            bits = np.packbits(np.pad(flat, (0, (-flat.size) % 32)), bitorder="little").view(np.uint32)
-        self._occ = self.ctx.buffer(bits.tobytes())
+        self._occ = self.ctx.buffer(occupancy_words(self.assets).tobytes())
         n = self.width * self.height
         self._rgbd = self.ctx.buffer(reserve=16 * n)
         self._opacity = self.ctx.buffer(reserve=4 * n)

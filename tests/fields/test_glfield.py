@@ -305,3 +305,48 @@ def test_a_renderer_on_the_shared_context_hands_frames_to_the_warper_without_a_r
     assert not holes.all() and gl.ctx is not None  # the shared context outlives the renderer
     with pytest.raises(InputError, match="context"):
         glfield.GlFieldRenderer(out, W, H, context="not a context")
+
+
+def test_empty_distance_is_the_chebyshev_distance_to_the_nearest_occupied_cell():
+    """The grid the march skips by, against a brute-force minimum over the occupied cells (capped)."""
+    rng = np.random.default_rng(5)
+    for density in (0.002, 0.02, 0.3):
+        occ = rng.random((9, 11, 7)) < density
+        occ[rng.integers(9), rng.integers(11), rng.integers(7)] = True
+        cells = np.stack(np.meshgrid(*[np.arange(n) for n in occ.shape], indexing="ij"), -1).reshape(-1, 3)
+        occupied = cells[occ.reshape(-1)]
+        brute = np.abs(cells[:, None, :] - occupied[None, :, :]).max(-1).min(1).reshape(occ.shape)
+        assert np.array_equal(glfield.empty_distance(occ), brute.astype(np.uint8))
+        assert np.array_equal(glfield.empty_distance(occ, cap=3), np.minimum(brute, 3).astype(np.uint8))
+    assert (glfield.empty_distance(np.zeros((4, 4, 4), bool)) == 255).all()  # nothing occupied: skip at will
+    with pytest.raises(InputError, match="occupancy"):
+        glfield.empty_distance(np.zeros((4, 4), bool))
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_skipping_empty_runs_by_distance_changes_no_bit(bounded_run, ndc_run, sparse, monkeypatch):
+    """A bounded field's march jumps over samples in cells at distance >= 3 from the occupancy instead of testing
+    each: the frame and the evaluated samples are those of the march that tests every sample (the distances
+    clamped to 1), on the trained grid and on a sparse random grid (many rays grazing occupied cells)."""
+    import dataclasses
+
+    _, out, _ = bounded_run
+    cam = _camera("bounded_run")
+    assets = load_field(out)
+    assert glfield.skips_by_distance(assets) and not glfield.skips_by_distance(load_field(ndc_run[1]))
+    if sparse:
+        rng = np.random.default_rng(1)
+        assets = dataclasses.replace(assets, occupancy=rng.random(assets.occupancy.shape) < 0.004)
+    assert glfield.empty_distance(assets.occupancy).max() >= 3  # the test exercises jumps
+
+    def render():
+        with glfield.GlFieldRenderer(assets, W, H, count_evaluations=True) as renderer:
+            return renderer.render(cam.intrinsics, cam.world_to_camera)
+
+    skipping = render()
+    exact = glfield.empty_distance
+    monkeypatch.setattr(glfield, "empty_distance", lambda occ, cap=255: np.minimum(exact(occ, cap), 1).astype(np.uint8))
+    stepping = render()
+    for key in ("color", "depth", "opacity", "evaluations"):
+        assert np.array_equal(skipping[key], stepping[key], equal_nan=True), key
+    assert skipping["evaluations"].any()

@@ -27,7 +27,7 @@ from engine.eval.protocol import (VectorSource, evaluate_sequence, evaluation_pa
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
-from engine.fields.dynamic import field_motion_vectors, field_object_flow
+from engine.fields.dynamic import COHERENCE, field_motion_vectors, field_object_flow
 from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
 from engine.predict import Oracle, Predictor, Target, make_predictor, use_backend
@@ -331,9 +331,11 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
     sequence = read_sequence(seq_dir)
 
     def field_vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
-        """What the renderer writes when it draws only frames ``older`` and ``newest`` (the motion field)."""
+        """What the renderer writes when it draws only frames ``older`` and ``newest``: the motion field's, where
+        it is steady over the interval before (``COHERENCE``), else the camera's."""
         return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]))
+                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]),
+                                    coherence=COHERENCE)
 
     render_ms = 1e3 * float(np.median(timings))
     note = (f"Dynamic field renderer (engine.fields.gldynamic, {assets.kind}, {width}x{height}): {render_ms:.1f} ms "

@@ -294,6 +294,19 @@ class FieldOracle(Oracle):
                                  float(self.times[frame.index]), float(self.times[target.index]))
 
 
+def field_vector_source(assets, cameras: Sequence, times: Sequence[float]) -> VectorSource:
+    """The motion vectors a dynamic field's renderer writes for ``mvec`` when it draws only frames ``older`` and
+    ``newest`` of a path (``cameras``, field ``times``): the field's own motion
+    (``engine.fields.dynamic.field_motion_vectors`` from the newest frame's depth), kept where it is steady over
+    the interval before (``coherence=COHERENCE``: a trained field's motion jitters in time, and ``mvec``
+    extrapolates it), else the camera's."""
+    def vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
+        return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]),
+                                    coherence=COHERENCE)
+    return vectors
+
+
 def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str, out_dir: Path
                       ) -> tuple[list[str], Path]:
     """A field demo's methods (``oracle`` dropped: it needs rigid objects), checked before anything renders, and
@@ -330,13 +343,6 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
         compile_s = renderer.compile_seconds
     sequence = read_sequence(seq_dir)
 
-    def field_vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
-        """What the renderer writes when it draws only frames ``older`` and ``newest``: the motion field's, where
-        it is steady over the interval before (``COHERENCE``), else the camera's."""
-        return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]),
-                                    coherence=COHERENCE)
-
     render_ms = 1e3 * float(np.median(timings))
     note = (f"Dynamic field renderer (engine.fields.gldynamic, {assets.kind}, {width}x{height}): {render_ms:.1f} ms "
             f"per rendered frame with its motion vectors (median of {len(timings)}; shader compiled in "
@@ -348,4 +354,5 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
                        "height": height, "time_range": [t0, t1]}}
     oracle = {"oracle": use_backend(FieldOracle(assets, times), backend)} if with_oracle else None
     return report_sequence(sequence, out_dir, k=k, methods=methods, progress=progress, command=command, extra=extra,
-                           note=note, backend=backend, vectors=field_vectors, predictors=oracle)
+                           note=note, backend=backend, vectors=field_vector_source(assets, cameras, times),
+                           predictors=oracle)

@@ -217,15 +217,17 @@ def render_dynamic_frames(renderer, cameras, times: np.ndarray, fps: float,
                           timings: Optional[list] = None) -> Iterator[Frame]:
     """Frames of a dynamic field (``engine.fields.gldynamic.GlDynamicRenderer``) rendered along ``cameras`` at
     ``times`` (the field's units): colour, depth, its own motion vectors to the previous frame (the motion
-    field inverted, ``field_motion_vectors``; the camera's alone on the first frame; the demo gives ``mvec``
-    the vectors between rendered frames from the field directly) and, as the truth the scores read, the
+    field inverted where it is steady, ``field_motion_vectors(coherence=COHERENCE)``; the camera's alone on the
+    first frame; the demo gives ``mvec`` the vectors between rendered frames from the field directly,
+    :func:`field_vector_source`) and, as the truth the scores read, the
     flow to the next frame (the same computation forward in time), its part from the
     field's motion (``object_flow``: flow minus the camera's) and ``moving`` where that part exceeds
     ``MOVING_PX``."""
     for i, cam in enumerate(cameras):
         before = cameras[max(i - 1, 0)]
         out = renderer.render(cam.intrinsics, cam.world_to_camera, float(times[i]),
-                              earlier_world_to_camera=before.world_to_camera, earlier_time=float(times[max(i - 1, 0)]))
+                              earlier_world_to_camera=before.world_to_camera, earlier_time=float(times[max(i - 1, 0)]),
+                              coherence=COHERENCE)
         if timings is not None:
             timings.append(out["seconds"])
         after = cameras[min(i + 1, len(cameras) - 1)]

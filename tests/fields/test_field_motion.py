@@ -218,6 +218,35 @@ def test_the_gl_pass_computes_what_the_numpy_oracle_computes(kind):
 
 
 @pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
+def test_the_gl_pass_drops_the_motion_that_turned_as_the_numpy_oracle_does():
+    """``coherence`` on the GPU: the steady translation keeps its vectors, the zig-zag one that reversed gets the
+    camera's (normalised times as in the numpy test: the interval before inside the trained range)."""
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    cam, prev = camera(0.0), camera(4.0)
+    for assets, tau, tau_earlier in ((programmed(), 0.5, 0.0), (programmed(zigzag=True), 0.1, -0.2)):
+        t0, t1 = assets.time_range
+        t, t_prev = (t0 + (x + 1.0) / 2.0 * (t1 - t0) for x in (tau, tau_earlier))
+        with GlDynamicRenderer(assets, 24, 24, filtering="exact") as renderer:
+            out = renderer.render(cam.intrinsics, cam.world_to_camera, t, earlier_world_to_camera=prev.world_to_camera,
+                                  earlier_time=t_prev, coherence=COHERENCE)
+            with pytest.raises(InputError, match="coherence"):
+                renderer.render(cam.intrinsics, cam.world_to_camera, t, earlier_world_to_camera=prev.world_to_camera,
+                                earlier_time=t_prev, coherence=-1.0)
+        want = field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, out["depth"], t, prev.world_to_camera,
+                                    t_prev, coherence=COHERENCE)
+        plain = field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, out["depth"], t,
+                                     prev.world_to_camera, t_prev)
+        got = out["motion_vectors"]
+        assert np.array_equal(np.isnan(got), np.isnan(want)) and np.isfinite(want).mean() > 0.5
+        np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
+        camera_only = camera_motion_vectors(out["depth"], cam, prev)
+        assert np.nanmax(np.abs(plain - camera_only)) > 0.5  # the field's points moved
+        moved = np.nanmax(np.abs(want - camera_only)) > 0.5
+        assert moved == (tau == 0.5)  # steady: kept; zig-zag: the camera's alone
+
+
+@pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
 def test_the_field_demo_feeds_a_dynamic_fields_own_vectors_to_mvec(tmp_path):
     """``interleave demo --field`` on a dynamic export: the textured box of ``tools.programmed_field`` moves ~2 px
     a frame; the field's vectors (to the previous rendered frame, from the field directly) put ``mvec`` well
@@ -251,7 +280,8 @@ def test_play_on_a_dynamic_field_gives_mvec_the_fields_vectors(tmp_path):
         frame = source.frame(4, 2)
         assets = source.renderer.assets
         want = field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                    source.times[4], source.cameras[2].world_to_camera, source.times[2])
+                                    source.times[4], source.cameras[2].world_to_camera, source.times[2],
+                                    coherence=COHERENCE)
         assert np.array_equal(np.isnan(frame.motion_vectors), np.isnan(want))
         np.testing.assert_allclose(frame.motion_vectors[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
         assert np.nanmax(np.abs(want - camera_motion_vectors(frame.depth, frame.camera, source.cameras[2]))) > 0.5

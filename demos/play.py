@@ -195,7 +195,8 @@ class FieldSource:
 
     Time is ``tick / fps``; only the first tick is a cut. The motion vectors point to the previous rendered
     frame: a static field's are the camera's alone (``camera_motion_vectors`` from the rendered depth), a
-    dynamic field's its own (the motion field inverted, ``GlDynamicRenderer.render(..., earlier_...)``).
+    dynamic field's its own (the motion field inverted, ``GlDynamicRenderer.render(..., earlier_...)``, where it
+    is steady: ``coherence=COHERENCE``, as the field demo's ``field_vector_source``).
     The path goes through the run's training cameras where torch can read them, else through the field's own
     scene description (as the field demo's).
     """
@@ -243,9 +244,10 @@ class FieldSource:
         time = self.times[tick % self.length]
         if before is None:
             return self.renderer.render(cam.intrinsics, cam.world_to_camera, time)
+        from engine.fields.dynamic import COHERENCE  # the field's motion where it is steady, as the field demo's
         return self.renderer.render(cam.intrinsics, cam.world_to_camera, time,
                                     earlier_world_to_camera=self.cameras[before % self.length].world_to_camera,
-                                    earlier_time=self.times[before % self.length])
+                                    earlier_time=self.times[before % self.length], coherence=COHERENCE)
 
     def frame(self, tick: int, previous: Optional[int]) -> Frame:
         cam = self.cameras[tick % self.length]

@@ -27,7 +27,7 @@ from engine.eval.protocol import (VectorSource, evaluate_sequence, evaluation_pa
 from engine.fields.camera_path import field_camera_path
 from engine.fields.gl import GlFieldRenderer
 from engine.fields.render import load_field
-from engine.fields.dynamic import field_motion_vectors, field_object_flow
+from engine.fields.dynamic import COHERENCE, field_motion_vectors, field_object_flow
 from engine.geometry.motion import camera_motion_vectors
 from engine.io.rgbd import RgbdSequence, read_sequence, write_sequence
 from engine.predict import Oracle, Predictor, Target, make_predictor, use_backend
@@ -217,15 +217,17 @@ def render_dynamic_frames(renderer, cameras, times: np.ndarray, fps: float,
                           timings: Optional[list] = None) -> Iterator[Frame]:
     """Frames of a dynamic field (``engine.fields.gldynamic.GlDynamicRenderer``) rendered along ``cameras`` at
     ``times`` (the field's units): colour, depth, its own motion vectors to the previous frame (the motion
-    field inverted, ``field_motion_vectors``; the camera's alone on the first frame; the demo gives ``mvec``
-    the vectors between rendered frames from the field directly) and, as the truth the scores read, the
+    field inverted where it is steady, ``field_motion_vectors(coherence=COHERENCE)``; the camera's alone on the
+    first frame; the demo gives ``mvec`` the vectors between rendered frames from the field directly,
+    :func:`field_vector_source`) and, as the truth the scores read, the
     flow to the next frame (the same computation forward in time), its part from the
     field's motion (``object_flow``: flow minus the camera's) and ``moving`` where that part exceeds
     ``MOVING_PX``."""
     for i, cam in enumerate(cameras):
         before = cameras[max(i - 1, 0)]
         out = renderer.render(cam.intrinsics, cam.world_to_camera, float(times[i]),
-                              earlier_world_to_camera=before.world_to_camera, earlier_time=float(times[max(i - 1, 0)]))
+                              earlier_world_to_camera=before.world_to_camera, earlier_time=float(times[max(i - 1, 0)]),
+                              coherence=COHERENCE)
         if timings is not None:
             timings.append(out["seconds"])
         after = cameras[min(i + 1, len(cameras) - 1)]
@@ -294,6 +296,19 @@ class FieldOracle(Oracle):
                                  float(self.times[frame.index]), float(self.times[target.index]))
 
 
+def field_vector_source(assets, cameras: Sequence, times: Sequence[float]) -> VectorSource:
+    """The motion vectors a dynamic field's renderer writes for ``mvec`` when it draws only frames ``older`` and
+    ``newest`` of a path (``cameras``, field ``times``): the field's own motion
+    (``engine.fields.dynamic.field_motion_vectors`` from the newest frame's depth), kept where it is steady over
+    the interval before (``coherence=COHERENCE``: a trained field's motion jitters in time, and ``mvec``
+    extrapolates it), else the camera's."""
+    def vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
+        return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
+                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]),
+                                    coherence=COHERENCE)
+    return vectors
+
+
 def _field_demo_start(methods: Sequence[str], frames: int, k: int, backend: str, out_dir: Path
                       ) -> tuple[list[str], Path]:
     """A field demo's methods (``oracle`` dropped: it needs rigid objects), checked before anything renders, and
@@ -330,11 +345,6 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
         compile_s = renderer.compile_seconds
     sequence = read_sequence(seq_dir)
 
-    def field_vectors(older: int, newest: int, frame: Frame) -> np.ndarray:
-        """What the renderer writes when it draws only frames ``older`` and ``newest`` (the motion field)."""
-        return field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                    float(times[newest]), cameras[older].world_to_camera, float(times[older]))
-
     render_ms = 1e3 * float(np.median(timings))
     note = (f"Dynamic field renderer (engine.fields.gldynamic, {assets.kind}, {width}x{height}): {render_ms:.1f} ms "
             f"per rendered frame with its motion vectors (median of {len(timings)}; shader compiled in "
@@ -346,4 +356,5 @@ def _run_dynamic_field_demo(export: Path, run: Optional[Path], out_dir: Path, *,
                        "height": height, "time_range": [t0, t1]}}
     oracle = {"oracle": use_backend(FieldOracle(assets, times), backend)} if with_oracle else None
     return report_sequence(sequence, out_dir, k=k, methods=methods, progress=progress, command=command, extra=extra,
-                           note=note, backend=backend, vectors=field_vectors, predictors=oracle)
+                           note=note, backend=backend, vectors=field_vector_source(assets, cameras, times),
+                           predictors=oracle)

@@ -1,6 +1,6 @@
 """A dynamic-field export whose motion is known in closed form: the test and benchmark field of the motion vectors.
 
-``python -m tools.programmed_field OUT_DIR [--beta B] [--fog]`` writes ``dynamic.json`` + ``dynamic.npz`` (the
+``python -m tools.programmed_field OUT_DIR [--beta B] [--fog] [--zigzag]`` writes ``dynamic.json`` + ``dynamic.npz`` (the
 format of ``interleave export dynamic``; no ONNX graph, which the GL and numpy renderers never open), so that
 ``interleave demo --field OUT_DIR`` renders it. The field is a tiny DeRF (bounded scene [-1, 1]^3, times
 [0, 1]) whose parameters are set, not trained:
@@ -8,7 +8,9 @@ format of ``interleave export dynamic``; no ONNX graph, which the GL and numpy r
 - **motion**: the motion planes are 1 except channel 0, which is ``1 + beta x`` on the xy plane and
   ``tau + 2`` on the xt plane (bilinear interpolation reproduces both exactly); the flow MLP passes that
   feature to ``flow_x = max_flow tanh(GAIN f + BIAS)``, ``flow_y = flow_z = 0``. With beta = 0 every point of
-  the cube translates by the same amount between two times (about 0.6 units over the time range);
+  the cube translates by the same amount between two times (about 0.6 units over the time range).
+  ``--zigzag``: the xt plane alternates between 1 and 3 from one time row to the next instead, so the
+  translation reverses at every row (a motion that extrapolating the last interval gets wrong);
 - **canonical field** (default): a textured opaque box [-0.4, 0.4]^3 in empty space: channel 0 of the finest
   scale is the box's indicator on each plane (their product is the box), channel 1 a texture; density
   ``exp(40 f0 - 20)``, grey level ``sigmoid((6, 5, 4) f1 - 3)``. ``--fog``: the untrained model's canonical
@@ -55,7 +57,7 @@ def flow_x(max_flow: float, x, tau, beta: float = 0.0):
     return max_flow * np.tanh(GAIN * (1.0 + beta * np.asarray(x)) * (np.asarray(tau) + 2.0) + BIAS)
 
 
-def programmed_arrays(beta: float = 0.0, *, opaque: bool = True) -> tuple[dict, dict]:
+def programmed_arrays(beta: float = 0.0, *, opaque: bool = True, zigzag: bool = False) -> tuple[dict, dict]:
     """``(arrays, manifest)`` of the programmed field (see the module doc)."""
     arrays, manifest = dynamic_assets(tiny_model("derf"))
     for key in [k for k in arrays if k.startswith("motion_") and not k.endswith(("_u8", "_range"))]:
@@ -64,7 +66,9 @@ def programmed_arrays(beta: float = 0.0, *, opaque: bool = True) -> tuple[dict, 
         if key.startswith("motion_spatial_0"):
             plane[0, 0] = 1.0 + beta * np.linspace(-1.0, 1.0, plane.shape[3])[None, :]
         elif key.startswith("motion_temporal_0"):
-            plane[0, 0] = np.linspace(-1.0, 1.0, plane.shape[2])[:, None] + 2.0
+            rows = (np.arange(plane.shape[2]) % 2 * 2.0 + 1.0 if zigzag
+                    else np.linspace(-1.0, 1.0, plane.shape[2]) + 2.0)
+            plane[0, 0] = rows[:, None]
     _set_mlp(arrays, "flow", len(manifest["field"]["mlps"]["flow"]), first=[(0, 0)], out=[(0, 0, GAIN)],
              bias={0: BIAS})
     if opaque:
@@ -108,9 +112,9 @@ def _opaque_box(arrays: dict, manifest: dict) -> None:
              bias={0: -3.0, 1: -3.0, 2: -3.0})
 
 
-def write_export(out_dir: Path, beta: float = 0.0, *, opaque: bool = True) -> Path:
+def write_export(out_dir: Path, beta: float = 0.0, *, opaque: bool = True, zigzag: bool = False) -> Path:
     """Write the programmed field as an export folder (``dynamic.json`` + ``dynamic.npz``); returns it."""
-    arrays, manifest = programmed_arrays(beta, opaque=opaque)
+    arrays, manifest = programmed_arrays(beta, opaque=opaque, zigzag=zigzag)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     np.savez(out_dir / "dynamic.npz", **arrays)
@@ -123,8 +127,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("out", type=Path, help="export folder to write")
     parser.add_argument("--beta", type=float, default=0.0, help="how much the flow varies along x (0: a translation)")
     parser.add_argument("--fog", action="store_true", help="keep the untrained canonical field (no opaque box)")
+    parser.add_argument("--zigzag", action="store_true", help="a translation that reverses at every time row")
     args = parser.parse_args(argv)
-    print(write_export(args.out, args.beta, opaque=not args.fog))
+    print(write_export(args.out, args.beta, opaque=not args.fog, zigzag=args.zigzag))
     return 0
 
 

@@ -41,7 +41,7 @@ from engine.geometry.motion import drop_long_vectors, projected_offsets
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
            "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
-           "earlier_points", "field_motion_vectors", "field_object_flow"]
+           "earlier_points", "COHERENCE", "coherent_motion", "field_motion_vectors", "field_object_flow"]
 
 DYNAMIC_FORMAT = "interleave-dynamic-field"
 DYNAMIC_VERSION = 1
@@ -54,6 +54,11 @@ TIME_TOLERANCE = 1e-6
 MOTION_ITERATIONS = 8
 #: Largest residual |c' + flow(c', tau') - C| (contracted units) of an earlier point that counts as found.
 MOTION_TOLERANCE = 1e-3
+#: ``field_motion_vectors(coherence=...)`` of the renderers that feed ``mvec``: a point keeps its object motion
+#: where its motion over the interval before, continued, misses the last interval's by at most this fraction of
+#: it (measured of 0.5, 0.75 and 1 on three trained fields at k = 2: 0.75 is ahead of 0.5 on all three, and 1
+#: keeps too much of a jittering field's motion; ``docs/results/2026-11-28-dynamic-vectors-fix.md``).
+COHERENCE = 0.75
 
 #: Plane groups and MLPs each kind of export holds (and the groups it may hold: a DeRF export whose canonical
 #: field has time planes, ``field_config.canonical_time``).
@@ -356,10 +361,12 @@ def _checked_depth(depth) -> np.ndarray:
 
 
 def _points_at(assets: DynamicAssets, k: np.ndarray, pose: np.ndarray, depth: np.ndarray, time: float,
-               other_time: float, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+               other_time: float, iterations: int, coherence: Optional[float] = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The surface point of each pixel (the ray at its planar depth) where it is at ``other_time``: world points
     (H W, 3) float32 (the background: its ray direction; NaN where the motion field gives no point, see
-    :func:`earlier_points`), and which pixels have a finite depth (H W,)."""
+    :func:`earlier_points`), and which pixels have a finite depth (H W,). With ``coherence``, a point whose
+    motion fails :func:`coherent_motion` stays where it is."""
     tau, tau_other = normalize_time(time, assets.time_range), normalize_time(other_time, assets.time_range)
     h, w = depth.shape
     origin, dirs = camera_rays_np(k, pose, h, w)
@@ -371,7 +378,12 @@ def _points_at(assets: DynamicAssets, k: np.ndarray, pose: np.ndarray, depth: np
     coords = contract_np(assets.scene, points, render["ndc_margin"])
     inside = finite & (np.abs(coords) <= 1.0).all(axis=-1)
     moved, found = earlier_points(assets, coords[inside], tau, tau_other, iterations=iterations)
-    points[inside] = np.where(found[:, None], uncontract_np(assets.scene, moved, render["ndc_margin"]), np.nan)
+    moved = np.where(found[:, None], uncontract_np(assets.scene, moved, render["ndc_margin"]), np.nan)
+    if coherence is not None:  # a found point whose motion is not steady stays where it is
+        steady = coherent_motion(assets, coords[inside], points[inside], moved, tau, tau_other, coherence,
+                                 iterations=iterations)
+        moved[found & ~steady] = points[inside][found & ~steady]
+    points[inside] = moved
     return points, finite
 
 
@@ -395,9 +407,35 @@ def field_object_flow(assets: DynamicAssets, intrinsics, world_to_camera, depth:
     return flow.reshape(h, w, 3).astype(np.float32)
 
 
+def coherent_motion(assets: DynamicAssets, coords: np.ndarray, points: np.ndarray, earlier: np.ndarray,
+                    tau: float, tau_earlier: float, ratio: float, *, iterations: int = MOTION_ITERATIONS
+                    ) -> np.ndarray:
+    """Which points move steadily: (N,) bool. ``coords`` (N, 3) contracted and ``points`` (N, 3) world are the
+    points at normalised time ``tau``, ``earlier`` (N, 3) world where the motion field puts them at
+    ``tau_earlier`` (:func:`earlier_points`, NaN where none). A point is steady where its motion over the interval
+    before, ``tau_before = 2 tau_earlier - tau`` -> ``tau_earlier``, continued, misses its last motion by at most
+    ``ratio`` times that motion: ``|(p - e) - (e - b)| <= ratio |p - e|`` with b its point at ``tau_before``
+    (world units). Not steady: a motion that turns, starts, stops or jitters faster than that (what
+    extrapolating the last motion gets wrong), or no point at ``tau_before`` inside the field's cube (the
+    inversion did not settle). Steady where there is nothing to compare with: a point at ``tau_before`` outside
+    the cube, ``tau_before`` outside the trained range, or an export without a motion model.
+    """
+    n = coords.shape[0]
+    tau_before = np.float32(2.0) * np.float32(tau_earlier) - np.float32(tau)
+    if not assets.has_motion or n == 0 or abs(float(tau_before)) > 1.0 + TIME_TOLERANCE:
+        return np.ones(n, bool)
+    before, found = earlier_points(assets, coords, tau, float(np.clip(tau_before, -1.0, 1.0)), iterations=iterations)
+    outside = (np.abs(before) > 1.0).any(axis=1)
+    before = uncontract_np(assets.scene, before, assets.manifest["render"]["ndc_margin"]).astype(np.float64)
+    last = np.asarray(points, np.float64) - earlier
+    with np.errstate(invalid="ignore"):
+        turned = np.linalg.norm(last - (earlier - before), axis=1) > float(ratio) * np.linalg.norm(last, axis=1)
+    return outside | (found & ~turned)
+
+
 def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, depth: np.ndarray, time: float,
                          earlier_world_to_camera, earlier_time: float, *, earlier_intrinsics=None,
-                         iterations: int = MOTION_ITERATIONS) -> np.ndarray:
+                         iterations: int = MOTION_ITERATIONS, coherence: Optional[float] = None) -> np.ndarray:
     """Engine-style motion vectors (H, W, 2) float32 of a dynamic field's frame: from each pixel centre to where
     its surface point was in the frame seen by the earlier camera at ``earlier_time``, in pixels (x right,
     y down), camera motion included (``docs/motion-vectors.md``).
@@ -407,12 +445,18 @@ def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, dep
     it is static. NaN where the motion field gives no earlier point (see :func:`earlier_points`), where the
     earlier point is behind (or on) the earlier camera's plane, lies at infinity (a forward-facing scene's far
     end) or projects more than ``MAX_MOTION_DIAGONALS`` frame diagonals away.
+    With ``coherence`` (a ratio, :data:`COHERENCE` for ``mvec``), a point whose motion is not steady over the
+    interval before (:func:`coherent_motion`) gets the camera's vector alone: ``mvec`` extrapolates the vectors,
+    and a trained field's motion that jitters in time extrapolates worse than none
+    (``docs/results/2026-11-28-dynamic-vectors-fix.md``). Without it, the field's motion as it is.
     The numpy oracle of ``GlDynamicRenderer.motion_vectors``.
 
     Raises:
         InputError: bad intrinsics or poses, a depth that is not (H, W) positive (or +inf), times outside the
-            trained range.
+            trained range, a coherence that is not finite and >= 0.
     """
+    if coherence is not None and not (math.isfinite(coherence) and coherence >= 0):
+        raise InputError(f"must be finite and >= 0, got {coherence!r}", field="coherence")
     k = validate_intrinsics(intrinsics)
     pose = validate_pose(world_to_camera)
     k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,
@@ -420,7 +464,7 @@ def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, dep
     prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera")
     depth = _checked_depth(depth)
     h, w = depth.shape
-    points, finite = _points_at(assets, k, pose, depth, time, earlier_time, iterations)
+    points, finite = _points_at(assets, k, pose, depth, time, earlier_time, iterations, coherence)
     # finite points: world -> earlier camera; the background: directions, rotation only
     q = points.astype(np.float64) @ prev[:3, :3].T + np.where(finite, 1.0, 0.0)[:, None] * prev[:3, 3]
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)

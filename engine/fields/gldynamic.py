@@ -35,6 +35,7 @@ numpy and onnxruntime paths of :mod:`engine.fields.dynamic` and (when torch is i
 """
 from __future__ import annotations
 
+import math
 import time as time_module
 from pathlib import Path
 from typing import Optional, Union
@@ -43,8 +44,8 @@ import numpy as np
 
 from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
-from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, load_dynamic_field,
-                                   normalize_time, time_encoding_np)
+from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, TIME_TOLERANCE, DynamicAssets,
+                                   load_dynamic_field, normalize_time, time_encoding_np)
 from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
                               camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
@@ -163,6 +164,8 @@ uniform vec4 prev_k;            // the earlier K00, K01, K02, K11
 uniform float prev_k12;
 uniform float tau_now;
 uniform float tau_prev;
+uniform float tau_before;       // the interval before: 2 tau_prev - tau_now
+uniform float coherence;        // < 0: the field's motion as it is; else coherent_motion's ratio
 uniform float max_vector;       // MAX_MOTION_DIAGONALS frame diagonals, px
 uniform vec3 box_center;
 uniform vec3 box_half;
@@ -188,6 +191,18 @@ vec3 uncontract(vec3 c) {
 %(uncontract)s
 }
 
+// the point at tau that the motion field maps to the same canonical point (earlier_points' fixed point)
+vec3 invert(vec3 canonical, vec3 c, float tau) {
+    vec3 e = c;
+    for (int i = 0; i < ITERATIONS; ++i) e = canonical - motion_flow(clamp(e, -1.0, 1.0), tau);
+    return e;
+}
+
+bool settled(vec3 e, vec3 canonical, float tau) {
+    vec3 r = abs(e + motion_flow(clamp(e, -1.0, 1.0), tau) - canonical);
+    return all(lessThanEqual(abs(e), vec3(1.0))) && max(r.x, max(r.y, r.z)) <= TOLERANCE;
+}
+
 void main() {
     ivec2 pix = ivec2(gl_GlobalInvocationID.xy);
     if (pix.x >= size.x || pix.y >= size.y) return;
@@ -202,11 +217,17 @@ void main() {
         vec3 c = contract(p);
         if (all(lessThanEqual(abs(c), vec3(1.0)))) {
             vec3 canonical = c + motion_flow(c, tau_now);
-            vec3 e = c;
-            for (int i = 0; i < ITERATIONS; ++i) e = canonical - motion_flow(clamp(e, -1.0, 1.0), tau_prev);
-            vec3 r = abs(e + motion_flow(clamp(e, -1.0, 1.0), tau_prev) - canonical);
-            bool found = all(lessThanEqual(abs(e), vec3(1.0))) && max(r.x, max(r.y, r.z)) <= TOLERANCE;
-            p = found ? uncontract(e) : vec3(NAN);
+            vec3 e = invert(canonical, c, tau_prev);
+            bool found = settled(e, canonical, tau_prev);
+            vec3 moved = found ? uncontract(e) : vec3(NAN);
+            if (found && coherence >= 0.0) {  // coherent_motion: a motion that turned leaves the point in place
+                vec3 b = invert(canonical, c, tau_before);
+                bool outside = any(greaterThan(abs(b), vec3(1.0)));
+                vec3 last = p - moved;
+                bool turned = length(last - (moved - uncontract(b))) > coherence * length(last);
+                if (!outside && (!settled(b, canonical, tau_before) || turned)) moved = p;
+            }
+            p = moved;
         }
         q = prev_rot * p + prev_t;
     }
@@ -300,7 +321,8 @@ class GlDynamicRenderer(GlFieldRenderer):
         self._setup(packed, textures, "f4")
 
     def render(self, intrinsics, world_to_camera, time: float, *, earlier_world_to_camera=None,
-               earlier_time: Optional[float] = None, earlier_intrinsics=None) -> dict[str, np.ndarray]:
+               earlier_time: Optional[float] = None, earlier_intrinsics=None,
+               coherence: Optional[float] = None) -> dict[str, np.ndarray]:
         """Render the field at ``time`` (the data's units) from a camera (OpenCV axes, rigid world-to-camera,
         pixel centres at +0.5); with ``earlier_world_to_camera`` and ``earlier_time`` also its motion vectors
         to the frame that camera (with ``earlier_intrinsics``, default the same K) sees at that time.
@@ -310,8 +332,8 @@ class GlDynamicRenderer(GlFieldRenderer):
             is below ``OPACITY_EPS``), ``opacity`` (H, W) float32, ``seconds`` (dispatches and read-backs);
             with an earlier frame, ``motion_vectors`` (H, W, 2) float32: engine-style vectors (pixels, x right,
             y down, camera motion included, NaN where there is none), what
-            :func:`engine.fields.dynamic.field_motion_vectors` computes from this render's depth (its test
-            oracle), a second pass over the rendered depth.
+            :func:`engine.fields.dynamic.field_motion_vectors` computes from this render's depth with
+            ``coherence`` (its test oracle), a second pass over the rendered depth.
 
         Raises:
             InputError: a time outside the trained range (the message names both), bad intrinsics or pose, an
@@ -325,7 +347,7 @@ class GlDynamicRenderer(GlFieldRenderer):
         if earlier_time is not None:
             motion = self._motion_dispatcher(intrinsics, world_to_camera, tau, earlier_world_to_camera,
                                              normalize_time(earlier_time, self.assets.time_range),
-                                             earlier_intrinsics)
+                                             earlier_intrinsics, coherence)
 
         def set_time() -> None:
             self._set("tau", float(tau))
@@ -349,8 +371,13 @@ class GlDynamicRenderer(GlFieldRenderer):
         return out
 
     def _motion_dispatcher(self, intrinsics, world_to_camera, tau, earlier_world_to_camera, tau_prev,
-                           earlier_intrinsics):
+                           earlier_intrinsics, coherence: Optional[float] = None):
         """The checked motion pass (over the depth the next render writes), to run with the context current."""
+        if coherence is not None and not (math.isfinite(coherence) and coherence >= 0):
+            raise InputError(f"must be finite and >= 0, got {coherence!r}", field="coherence")
+        tau_before = np.float32(2.0) * np.float32(tau_prev) - np.float32(tau)
+        if coherence is None or abs(float(tau_before)) > 1.0 + TIME_TOLERANCE:  # as coherent_motion: no check
+            coherence = -1.0
         camera = camera_uniforms(intrinsics, world_to_camera)
         prev_k, prev_k12 = camera["k_vals"], camera["k_cy"]  # K00, K01, K02, K11 and K12: the same K by default
         if earlier_intrinsics is not None:
@@ -359,7 +386,8 @@ class GlDynamicRenderer(GlFieldRenderer):
         prev = validate_pose(earlier_world_to_camera, field_name="earlier_world_to_camera").astype(np.float32)
         values = {**camera, "prev_rot": tuple(float(x) for x in prev[:3, :3].flatten(order="F")),  # column-major
                   "prev_t": tuple(float(x) for x in prev[:3, 3]), "prev_k": prev_k, "prev_k12": prev_k12,
-                  "tau_now": float(tau), "tau_prev": float(tau_prev)}
+                  "tau_now": float(tau), "tau_prev": float(tau_prev),
+                  "tau_before": float(np.clip(tau_before, -1.0, 1.0)), "coherence": float(coherence)}
         if self._motion_program is None:
             self._run(self._build_motion_pass)
 

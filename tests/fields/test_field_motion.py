@@ -13,7 +13,7 @@ import pytest
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.fields import gl as glfield
-from engine.fields.dynamic import deform_np, earlier_points, field_motion_vectors, normalize_time
+from engine.fields.dynamic import COHERENCE, deform_np, earlier_points, field_motion_vectors, normalize_time
 from engine.fields.render import camera_rays_np, contract_np, uncontract_np
 from engine.geometry.motion import camera_motion_vectors, rigid_motion_vectors
 from models.fields.assets import dynamic_assets, load_assets
@@ -24,9 +24,9 @@ from tools.programmed_field import flow_x, programmed_arrays, write_export
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def programmed(beta: float = 0.0, *, opaque: bool = False):
+def programmed(beta: float = 0.0, *, opaque: bool = False, zigzag: bool = False):
     """The programmed DeRF of ``tools.programmed_field`` (default here: its untrained fog, dense everywhere)."""
-    return load_assets(*programmed_arrays(beta, opaque=opaque), "dynamic")
+    return load_assets(*programmed_arrays(beta, opaque=opaque, zigzag=zigzag), "dynamic")
 
 
 def camera(azimuth_deg: float, size: int = 24, distance: float = 3.0) -> Camera:
@@ -66,6 +66,65 @@ def test_a_translating_field_gives_the_rigid_vectors_of_its_translation():
     want = rigid_motion_vectors(depth, cam, prev, inside.astype(np.int32), {1: motion})
     assert np.array_equal(np.isnan(got), np.isnan(want))
     np.testing.assert_allclose(got[~np.isnan(want)], want[~np.isnan(want)], atol=2e-3)
+
+
+def test_the_vectors_for_mvec_keep_steady_motion_and_drop_motion_that_turned():
+    """``coherence`` (what the renderers give ``mvec``): the programmed translation, steady over the interval
+    before, keeps the field's vectors; the zig-zag translation, which reversed during that interval, gets the
+    camera's vectors alone; with no interval before inside the trained range nothing is dropped."""
+    cam, prev = camera(0.0), camera(4.0)
+    depth = depth_with_sky()
+    camera_only = camera_motion_vectors(depth, cam, prev)
+
+    def vectors(assets, tau: float, tau_earlier: float, coherence):
+        t0, t1 = assets.time_range
+        at = [t0 + (x + 1.0) / 2.0 * (t1 - t0) for x in (tau, tau_earlier)]
+        return field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, depth, at[0], prev.world_to_camera,
+                                    at[1], coherence=coherence)
+
+    steady, zigzag = programmed(), programmed(zigzag=True)
+    for assets, tau, tau_earlier in ((steady, 0.5, 0.0), (zigzag, -0.5, -0.9)):  # the latter: tau_before -1.3
+        plain = vectors(assets, tau, tau_earlier, None)
+        assert np.nanmax(np.abs(plain - camera_only)) > 0.5  # the field's points moved
+        np.testing.assert_array_equal(vectors(assets, tau, tau_earlier, COHERENCE), plain)
+    # zig-zag rows at tau -1, -1/3, 1/3, 1: -0.5 -> -0.2 moved one way, -0.2 -> 0.1 the other
+    plain, turned = vectors(zigzag, 0.1, -0.2, None), vectors(zigzag, 0.1, -0.2, COHERENCE)
+    assert np.nanmax(np.abs(plain - camera_only)) > 0.5
+    assert np.array_equal(np.isnan(turned), np.isnan(camera_only))
+    np.testing.assert_allclose(turned[np.isfinite(camera_only)], camera_only[np.isfinite(camera_only)], atol=2e-3)
+
+
+def test_mvec_on_the_demos_vectors_does_not_extrapolate_a_motion_that_turned():
+    """The zig-zag translation reverses at the time rows -1/3 and 1/3: frames at tau -1/3 and 1/3 (the box moved
+    one way over that interval, the other way over the one before) predict tau 2/3, where it moves back.
+    ``mvec`` on the field's motion as it is carries the box on the wrong way, below ``reproject``; on the
+    vectors the demo gives it (the motion turned: the camera's alone) it is ``reproject``."""
+    from demos.upsample import field_vector_source
+    from engine.core.frames import Frame
+    from engine.eval.metrics import psnr
+    from engine.fields.dynamic import render_dynamic_field
+    from engine.predict import Target, make_predictor
+
+    assets = programmed(opaque=True, zigzag=True)
+    t0, t1 = assets.time_range
+    times = [t0 + (tau + 1.0) / 2.0 * (t1 - t0) for tau in (-1.0 / 3.0, 1.0 / 3.0, 2.0 / 3.0)]
+    cameras = [camera(azimuth, size=48) for azimuth in (0.0, 2.0, 3.0)]
+    frames = []
+    for i, (cam, t) in enumerate(zip(cameras, times)):
+        out = render_dynamic_field(assets, cam.intrinsics, cam.world_to_camera, 48, 48, t)
+        frames.append(Frame(index=i, time=(0.0, 2.0, 3.0)[i], color=out["color"], depth=out["depth"], camera=cam))
+    older, newest, truth = frames
+    target = Target(truth.camera, truth.time, truth.index)
+    reproject = psnr(truth.color, make_predictor("reproject", backend="cpu").predict([older, newest], target).color)
+    scores = {}
+    for name, vectors in (("as is", field_motion_vectors(assets, newest.camera.intrinsics,
+                                                         newest.camera.world_to_camera, newest.depth, times[1],
+                                                         older.camera.world_to_camera, times[0])),
+                          ("demo", field_vector_source(assets, cameras, times)(0, 1, newest))):
+        newest.motion_vectors = vectors
+        scores[name] = psnr(truth.color, make_predictor("mvec", backend="cpu").predict([older, newest], target).color)
+    assert scores["as is"] < reproject - 1.0
+    assert scores["demo"] >= reproject - 0.01
 
 
 def residual(assets, earlier, coords, tau, tau_earlier):
@@ -159,6 +218,35 @@ def test_the_gl_pass_computes_what_the_numpy_oracle_computes(kind):
 
 
 @pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
+def test_the_gl_pass_drops_the_motion_that_turned_as_the_numpy_oracle_does():
+    """``coherence`` on the GPU: the steady translation keeps its vectors, the zig-zag one that reversed gets the
+    camera's (normalised times as in the numpy test: the interval before inside the trained range)."""
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    cam, prev = camera(0.0), camera(4.0)
+    for assets, tau, tau_earlier in ((programmed(), 0.5, 0.0), (programmed(zigzag=True), 0.1, -0.2)):
+        t0, t1 = assets.time_range
+        t, t_prev = (t0 + (x + 1.0) / 2.0 * (t1 - t0) for x in (tau, tau_earlier))
+        with GlDynamicRenderer(assets, 24, 24, filtering="exact") as renderer:
+            out = renderer.render(cam.intrinsics, cam.world_to_camera, t, earlier_world_to_camera=prev.world_to_camera,
+                                  earlier_time=t_prev, coherence=COHERENCE)
+            with pytest.raises(InputError, match="coherence"):
+                renderer.render(cam.intrinsics, cam.world_to_camera, t, earlier_world_to_camera=prev.world_to_camera,
+                                earlier_time=t_prev, coherence=-1.0)
+        want = field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, out["depth"], t, prev.world_to_camera,
+                                    t_prev, coherence=COHERENCE)
+        plain = field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, out["depth"], t,
+                                     prev.world_to_camera, t_prev)
+        got = out["motion_vectors"]
+        assert np.array_equal(np.isnan(got), np.isnan(want)) and np.isfinite(want).mean() > 0.5
+        np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
+        camera_only = camera_motion_vectors(out["depth"], cam, prev)
+        assert np.nanmax(np.abs(plain - camera_only)) > 0.5  # the field's points moved
+        moved = np.nanmax(np.abs(want - camera_only)) > 0.5
+        assert moved == (tau == 0.5)  # steady: kept; zig-zag: the camera's alone
+
+
+@pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
 def test_the_field_demo_feeds_a_dynamic_fields_own_vectors_to_mvec(tmp_path):
     """``interleave demo --field`` on a dynamic export: the textured box of ``tools.programmed_field`` moves ~2 px
     a frame; the field's vectors (to the previous rendered frame, from the field directly) put ``mvec`` well
@@ -192,7 +280,8 @@ def test_play_on_a_dynamic_field_gives_mvec_the_fields_vectors(tmp_path):
         frame = source.frame(4, 2)
         assets = source.renderer.assets
         want = field_motion_vectors(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth,
-                                    source.times[4], source.cameras[2].world_to_camera, source.times[2])
+                                    source.times[4], source.cameras[2].world_to_camera, source.times[2],
+                                    coherence=COHERENCE)
         assert np.array_equal(np.isnan(frame.motion_vectors), np.isnan(want))
         np.testing.assert_allclose(frame.motion_vectors[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
         assert np.nanmax(np.abs(want - camera_motion_vectors(frame.depth, frame.camera, source.cameras[2]))) > 0.5

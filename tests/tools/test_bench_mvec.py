@@ -41,3 +41,19 @@ def test_profile_splits_a_prediction_into_its_passes(tmp_path, capsys):
         assert result["wall_ms"] > 0 and result["cpu_ms"] > 0
         # the passes are parts of the prediction (medians of parts may exceed the median whole only slightly)
         assert sum(result["passes"].values()) <= 1.5 * result["wall_ms"]
+
+
+def test_fallback_audit_scores_each_choice_against_the_true_flow(tmp_path, capsys):
+    from tools import fallback_audit
+
+    out = tmp_path / "audit.json"
+    fallback_audit.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
+                         "--sequences", "fast3203", "--min-pixels", "1", "--json", str(out)])
+    assert "fast3203 k=2: flow error" in capsys.readouterr().out
+    rows = json.loads(out.read_text())["rows"]
+    (totals,) = [r["totals_kpx"] for r in rows if "totals_kpx" in r]
+    # the best choice per group is at most either rule; the method's decisions lie between best and worst
+    assert totals["best"] <= min(totals["keep"], totals["method"]) + 1e-9
+    assert totals["keep"] > 0
+    for group in (r for r in rows if "group" in r):
+        assert group["better_held"] == (group["camera_only_px"] < group["keep_px"])

@@ -16,22 +16,18 @@ the method's decisions, and of the best choice per group.
 """
 from __future__ import annotations
 
-import argparse
 import math
-from pathlib import Path
 
 import numpy as np
 
 from engine.eval.protocol import evaluation_pairs, rendered_history
 from engine.geometry.motion import extrapolated_flow
 from engine.geometry.rigid import motion_components, moving_points
-from engine.io.rgbd import read_sequence
 from engine.predict import make_predictor
 from engine.predict.base import Target, extrapolation_factor, true_object_flow
 from engine.predict.mvec import SAMPLES
-from tools.bench_mvec import sequence_folder
 from tools.heldout import write_json
-from tools.profile_mvec import SEQUENCES
+from tools.profile_mvec import named_sequences, sequences_parser
 
 
 def audit_pair(sequence, history, targets: list[int], method: str, min_pixels: int) -> tuple[list[dict], dict]:
@@ -77,21 +73,13 @@ def audit_pair(sequence, history, targets: list[int], method: str, min_pixels: i
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("out/bench_mvec"))
-    parser.add_argument("--size", default="640x360")
-    parser.add_argument("--frames", type=int, default=16)
-    parser.add_argument("--k", default="2")
-    parser.add_argument("--sequences", default="fast3202,fast3203")
+    parser = sequences_parser(__doc__, "640x360", "2", "fast3202,fast3203")
     parser.add_argument("--method", default="mvec[fallback=true]")
     parser.add_argument("--min-pixels", type=int, default=100)
-    parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
     rows = []
-    for name in args.sequences.split(","):
-        sequence = read_sequence(sequence_folder(args.out, name, SEQUENCES[name], width, height, args.frames))
-        for k in (int(v) for v in args.k.split(",")):
+    for name, sequence, ks in named_sequences(args):
+        for k in ks:
             totals = {"keep": 0.0, "method": 0.0, "best": 0.0}
             for older, newest, targets in evaluation_pairs(len(sequence), k):
                 history = rendered_history(sequence, older, newest, with_vectors=True, three=True)

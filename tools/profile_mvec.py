@@ -21,6 +21,7 @@ import statistics
 import time
 from collections import defaultdict
 from pathlib import Path
+from typing import Iterator
 
 from engine.io.rgbd import read_sequence
 from engine.predict import make_predictor, split_methods
@@ -67,25 +68,40 @@ def profile(sequence, methods: list[str], k: int, repeats: int) -> dict[str, dic
     return out
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def sequences_parser(doc: str, size: str, k: str, sequences: str) -> argparse.ArgumentParser:
+    """The options of the tools that run on ``tools.bench_mvec``'s sequences by name, with their defaults:
+    --out, --size, --frames, --k, --sequences, --json."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("out/bench_mvec"))
-    parser.add_argument("--size", default="960x540")
+    parser.add_argument("--size", default=size)
     parser.add_argument("--frames", type=int, default=16)
-    parser.add_argument("--k", default="2,4")
-    parser.add_argument("--methods", default="reproject,mvec,mvec[extrapolation=rigid,fallback=true]")
-    parser.add_argument("--sequences", default="seed1001,glide3302,spin4101")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--k", default=k)
+    parser.add_argument("--sequences", default=sequences)
     parser.add_argument("--json", type=Path, default=None)
+    return parser
+
+
+def named_sequences(args) -> Iterator[tuple[str, object, list[int]]]:
+    """(name, the loaded sequence, ks) of each of ``sequences_parser``'s --sequences, rendered once at --size
+    with --frames frames and cached under --out."""
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    for name in args.sequences.split(","):
+        sequence = read_sequence(sequence_folder(args.out, name, SEQUENCES[name], width, height, args.frames))
+        yield name, sequence, [int(v) for v in args.k.split(",")]
+
+
+def main(argv=None) -> None:
+    parser = sequences_parser(__doc__, "960x540", "2,4", "seed1001,glide3302,spin4101")
+    parser.add_argument("--methods", default="reproject,mvec,mvec[extrapolation=rigid,fallback=true]")
+    parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.lower().split("x"))
     methods = split_methods(args.methods)
     if "reproject" not in methods:
         methods.insert(0, "reproject")
     rows = []
-    for name in args.sequences.split(","):
-        sequence = read_sequence(sequence_folder(args.out, name, SEQUENCES[name], width, height, args.frames))
-        for k in (int(v) for v in args.k.split(",")):
+    for name, sequence, ks in named_sequences(args):
+        for k in ks:
             result = profile(sequence, methods, k, args.repeats)
             base = result["reproject"]
             print(f"\n{name} k={k} ({width}x{height}), ms per predicted frame:")

@@ -14,7 +14,7 @@ import statistics
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -139,13 +139,16 @@ def timing_cases(sequence, k: int) -> list[tuple[list, list]]:
     return cases
 
 
-def warm_runs(predictors: dict, cases: list, repeats: int, encoding: str = "linear") -> Iterator[tuple]:
+def warm_runs(predictors: dict, cases: list, repeats: int, encoding: str = "linear",
+              clock: Callable[[], float] = time.perf_counter) -> Iterator[tuple]:
     """Time ``predictors`` (key -> Predictor) on ``cases`` (``timing_cases``), warm: ``repeats`` passes, the
     predictors in rotating order per case so none always runs first. Yields ``(repeat, case, key, state,
     predictions, ms)`` per run: one prepare and the renders of the case's targets, ``ms`` the wall time per
     predicted frame. ``encoding="srgb8"`` asks each target for 8-bit codes, as a ``Session`` with
     ``color_out="srgb8"`` does: a prediction that comes back linear is encoded on the host inside the timing
-    (``encoding.encode8``), so every prediction yielded holds codes."""
+    (``encoding.encode8``), so every prediction yielded holds codes. ``clock`` (seconds) is what ``ms`` measures:
+    wall time, or e.g. ``time.process_time`` (CPU time of all the process's threads, steadier than wall time on a
+    machine shared with other jobs)."""
     keys = list(predictors)
     for r in range(repeats):
         for c, (history, targets) in enumerate(cases):
@@ -154,13 +157,13 @@ def warm_runs(predictors: dict, cases: list, repeats: int, encoding: str = "line
             for key in keys[shift:] + keys[:shift]:
                 predictor = predictors[key]
                 frames = history[-max(predictor.history_needed, predictor.history_wanted, 1):]
-                start = time.perf_counter()
+                start = clock()
                 state = predictor.prepare(frames)
                 predictions = [predictor.render(state, target) for target in targets]
                 for p in predictions:
                     if p.encoding != encoding:
                         p.color = encode8(p.color)
-                yield r, c, key, state, predictions, 1e3 * (time.perf_counter() - start) / len(targets)
+                yield r, c, key, state, predictions, 1e3 * (clock() - start) / len(targets)
 
 
 def write_json(path, doc: dict) -> None:

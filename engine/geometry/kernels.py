@@ -668,34 +668,53 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
     for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
     shared zero page, so a mostly static frame costs no writes). Sky, missing (NaN) vectors and pixels whose
     vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
-    largest component) do not move. Returns the number of moving pixels."""
+    largest component) do not move. Returns the number of moving pixels.
+
+    Each row is read twice: a branch-free pass (it compiles to SIMD) marks the moving pixels, with the
+    camera's homography ``k_prev rot k_inv`` and ``k_prev trans`` folded per row; the second pass computes
+    the velocity of the marked ones only."""
     h, w = depth.shape
     hp, wp = prev_depth.shape
+    # a pixel's point, moved by the camera alone, in the previous camera: s = z (rot k_inv) (u, v, 1) + trans;
+    # its projection's numerators k_prev s = z hm (u, v, 1) + e
+    hm = np.zeros((3, 3))
+    e = np.zeros(3)
+    for r in range(3):
+        e[r] = k_prev[r, 0] * trans[0] + k_prev[r, 1] * trans[1] + k_prev[r, 2] * trans[2]
+        for c in range(3):
+            for a in range(3):
+                for b in range(3):
+                    hm[r, c] += k_prev[r, a] * rot[a, b] * k_inv[b, c]
+    marked = np.empty(w, np.bool_)
     moving = 0
     for y in range(row_start, row_stop):
-        for x in range(w):
+        v = y + 0.5
+        c0 = hm[0, 1] * v + hm[0, 2]
+        c1 = hm[1, 1] * v + hm[1, 2]
+        c2 = hm[2, 1] * v + hm[2, 2]
+        for x in range(w):  # no branches: NaN and inf fail the comparisons that mark a pixel
             z = np.float64(depth[y, x])
             mx = np.float64(vectors[y, x, 0])
             my = np.float64(vectors[y, x, 1])
-            if math.isinf(z) or math.isnan(mx) or math.isnan(my):
-                continue
             u = x + 0.5
-            v = y + 0.5
+            sz = z * (hm[2, 0] * u + c2) + e[2]
+            # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0 (no division)
+            tolerance = (static_tolerance + relative_tolerance * max(abs(mx), abs(my))) * sz
+            static = ((abs((u + mx) * sz - (z * (hm[0, 0] * u + c0) + e[0])) <= tolerance)
+                      & (abs((v + my) * sz - (z * (hm[1, 0] * u + c1) + e[1])) <= tolerance))
+            # sz > 1e-9 z: in front of the previous camera had it not moved (else no reference to measure from)
+            marked[x] = (z < np.inf) & (sz > 1e-9 * z) & (mx == mx) & (my == my) & ~static
+        for x in range(w):
+            if not marked[x]:
+                continue
+            z = np.float64(depth[y, x])
+            u = x + 0.5
             px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
             py = z * (k_inv[1, 0] * u + k_inv[1, 1] * v + k_inv[1, 2])
             pz = z * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2])
-            sx = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
-            sy = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz + trans[1]
             sz = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz + trans[2]
-            if not sz > 1e-9 * z:
-                continue  # behind the previous camera if it had not moved: no reference to measure from
-            qx = u + mx
-            qy = v + my
-            # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0 (no division)
-            tolerance = (static_tolerance + relative_tolerance * max(abs(mx), abs(my))) * sz
-            if (abs(qx * sz - (k_prev[0, 0] * sx + k_prev[0, 1] * sy + k_prev[0, 2] * sz)) <= tolerance
-                    and abs(qy * sz - (k_prev[1, 1] * sy + k_prev[1, 2] * sz)) <= tolerance):
-                continue
+            qx = u + np.float64(vectors[y, x, 0])
+            qy = v + np.float64(vectors[y, x, 1])
             # depth of the point in the previous frame: the 2x2 neighbour closest to the static guess sz
             d = sz
             best = band  # the ratio max(c / sz, sz / c) of the best candidate so far

@@ -368,7 +368,9 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     n-k -> n ahead), the parabola through the point's positions at s = -2, -1, 0 (``A``: the change of
     velocity V between the two intervals; without it, constant velocity); flow = project(P') - (pixel
     centre, z). ``out`` (H, W, 3) float32, zero outside ``where``, is written in place of a new array (a
-    caller that reuses one keeps it zero by clearing what it wrote). ``where`` (flat indices) limits the
+    caller that reuses one keeps it zero by clearing what it wrote); any strides: the view
+    ``np.moveaxis(buffer, 0, -1)`` of a channel-first (3, H, W) ``buffer`` is what ``forward_warp_frame`` reads
+    without a copy. ``where`` (flat indices) limits the
     work to the pixels that move (the rest get 0; default:
     those with a non-zero velocity); ``acceleration`` (len(where), 3) belongs to those. A point that would
     reach or cross the camera plane gets NaN (the warp drops it). The result is the object flow of
@@ -383,8 +385,8 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     if out is None:
         out = np.zeros((h, w, 3), dtype=np.float32)
-    elif out.shape != (h, w, 3) or out.dtype != np.float32 or not out.flags.c_contiguous:
-        raise InputError(f"must be a contiguous float32 ({h}, {w}, 3) array, got {out.dtype} {out.shape}", field="out")
+    elif out.shape != (h, w, 3) or out.dtype != np.float32 or not out.flags.writeable:
+        raise InputError(f"must be a writeable float32 ({h}, {w}, 3) array, got {out.dtype} {out.shape}", field="out")
     if idx.size == 0:
         return out
     has = acceleration is not None

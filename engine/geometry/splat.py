@@ -180,11 +180,15 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
     object_flow = None
     if flow is not None:
         flow = checked_flow(flow, sizes)
-        # per-thread scratch, not a fresh 6 MB a 960x540 frame: first touches of new pages cost page faults
-        object_flow = SCRATCH.get("frame_flow", 3 * flow.shape[0] * flow.shape[1], np.float32).reshape(
-            (3, 1) + depth.shape)
-        object_flow[:flow.shape[2], 0] = np.moveaxis(flow, -1, 0)
-        object_flow[flow.shape[2]:] = 0.0
+        planar = np.moveaxis(flow, -1, 0)
+        if flow.shape[2] == 3 and flow.dtype == np.float32 and planar.flags.c_contiguous:
+            object_flow = planar[:, None]  # held channel-first already (a view of a (3, H, W) array): no copy
+        else:
+            # per-thread scratch, not a fresh 6 MB a 960x540 frame: first touches of new pages cost page faults
+            object_flow = SCRATCH.get("frame_flow", 3 * flow.shape[0] * flow.shape[1], np.float32).reshape(
+                (3, 1) + depth.shape)
+            object_flow[:flow.shape[2], 0] = planar
+            object_flow[flow.shape[2]:] = 0.0
     return _warp_frame_unchecked(np.ascontiguousarray(color), np.ascontiguousarray(depth),
                                  checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
                                  checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,

@@ -266,8 +266,9 @@ class Mvec(Predictor):
             keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)[regions]
         data.held = int(moving.size - keep.sum())
-        if data.held:
-            moving, out_v, out_a = moving[keep], out_v[keep], out_a[keep]
+        if data.held:  # the rows kept, by index (numpy's boolean indexing of (M, 3) rows is ~5x slower)
+            rows = np.flatnonzero(keep)
+            moving, out_v, out_a = moving[rows], out_v.take(rows, axis=0), out_a.take(rows, axis=0)
         velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
         scatter_rows(velocity.reshape(-1, 3), moving, out_v)
         return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)

@@ -266,3 +266,33 @@ def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles():
         out = extrapolated_flow(depth, velocity, K, 0.75, moving, accel)
         ref = extrapolated_flow_reference(depth, velocity, moving, accel, K, np.linalg.inv(K), 0.75)
         np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_velocity_kernel_marks_the_same_static_pixels_as_its_oracle_near_the_tolerance():
+    # camera-only vectors plus offsets inside, near and beyond the static tolerance (1/32 px): the kernel's
+    # folded static test (one homography a row) marks exactly the pixels the oracle's marks
+    depth, _, prev_depth, now, before = _velocity_inputs(7)
+    rng = np.random.default_rng(8)
+    offsets = rng.choice([0.0, 0.02, -0.03, 0.0315, 0.033, -0.05, 0.5, 4.0], size=(H, W, 2)).astype(np.float32)
+    vectors = (camera_motion_vectors(depth, now, before) + offsets).astype(np.float32)
+    fast, moving = scene_velocity(depth, vectors, prev_depth, now, before)
+    rel = before.world_to_camera @ now.camera_to_world
+    slow = scene_velocity_reference(depth, vectors, prev_depth, np.linalg.inv(K), K, np.linalg.inv(K), rel[:3, :3],
+                                    rel[:3, 3], 1 / 32, 2.0 ** -10, 1.5)
+    np.testing.assert_array_equal(moving, np.flatnonzero(np.any(slow != 0, axis=-1)))
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-5)
+    assert 0.2 < moving.size / np.isfinite(depth).sum() < 0.9  # both kinds present
+
+
+def test_the_warp_reads_a_channel_first_flow_without_a_copy_and_gets_the_same_frame():
+    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
+    velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
+    planar = np.zeros((3, H, W), np.float32)
+    flow = extrapolated_flow(depth, velocity, K, 0.5, moving, out=np.moveaxis(planar, 0, -1))
+    np.testing.assert_array_equal(flow, extrapolated_flow(depth, velocity, K, 0.5, moving))
+    assert np.any(planar != 0)
+    color = np.random.default_rng(9).uniform(0, 1, (H, W, 3)).astype(np.float32)
+    target = _camera(0.01, (0.02, 0.0, 0.0))
+    args = (color, depth, K, now.world_to_camera, K, target.world_to_camera)
+    for a, b in zip(geometry.forward_warp_frame(*args, flow), geometry.forward_warp_frame(*args, flow.copy())):
+        np.testing.assert_array_equal(a, b)

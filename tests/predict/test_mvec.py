@@ -209,3 +209,23 @@ def test_a_bounce_keeps_constant_velocity():
     history = [frames[2], with_vectors(frames, objects, 2, 4), with_vectors(frames, objects, 4, 6)]
     state = Mvec().prepare(history)
     assert state.data.moving.size > 0 and not np.abs(state.data.acceleration).any()
+
+
+def test_the_cpu_backends_reused_flow_buffer_carries_nothing_from_one_frame_to_the_next():
+    # two frames whose squares move differently, rendered one after the other through the shared zero buffer,
+    # predict what each predicts alone through a fresh backend
+    from engine.predict.base import CpuFrames
+
+    fast, fast_objects = two_layer_sequence(5, width=96, height=64, object_speed=0.3)
+    slow, slow_objects = two_layer_sequence(5, width=96, height=64, object_speed=-0.05,
+                                            object_path=lambda i: 0.4 - 0.05 * i)
+    cases = [([fast[0], with_vectors(fast, fast_objects, 0, 2)], _target(fast[3])),
+             ([slow[0], with_vectors(slow, slow_objects, 0, 2)], _target(slow[3]))]
+    shared = Mvec()
+    shared.frames = CpuFrames()
+    after = [shared.render(shared.prepare(history), target).color for history, target in cases]
+    for (history, target), color in zip(cases, after):
+        alone = Mvec()
+        alone.frames = CpuFrames()
+        np.testing.assert_array_equal(color, alone.render(alone.prepare(history), target).color)
+    assert not np.array_equal(*after)

@@ -21,3 +21,39 @@ def test_bench_prints_speed_against_error_and_writes_json(tmp_path, capsys):
     timed = {(t["sequence"], t["k"]) for t in doc["timing"]}
     assert timed == {(s, k) for s in ("seed1001", "glide3302", "spin4101") for k in (2, 4)}
     assert all(t["ms"]["mvec"] > 0 and t["ms"]["reproject"] > 0 for t in doc["timing"])
+
+
+def test_profile_splits_a_prediction_into_its_passes(tmp_path, capsys):
+    from tools import profile_mvec
+
+    out = tmp_path / "profile.json"
+    profile_mvec.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
+                       "--methods", "mvec[extrapolation=rigid,fallback=true]", "--sequences", "spin4101",
+                       "--repeats", "2", "--json", str(out)])
+    assert "spin4101 k=2" in capsys.readouterr().out
+    (row,) = json.loads(out.read_text())["rows"]
+    methods = row["methods"]
+    assert list(methods) == ["reproject", "mvec[extrapolation=rigid,fallback=true]"]
+    assert set(methods["reproject"]["passes"]) == {"render:warp", "render:fill"}  # nothing to prepare
+    rigid = methods["mvec[extrapolation=rigid,fallback=true]"]["passes"]
+    assert {"prepare:velocity", "prepare:rigid", "render:motion", "render:warp"} <= set(rigid)
+    for result in methods.values():
+        assert result["wall_ms"] > 0 and result["cpu_ms"] > 0
+        # the passes are parts of the prediction (medians of parts may exceed the median whole only slightly)
+        assert sum(result["passes"].values()) <= 1.5 * result["wall_ms"]
+
+
+def test_fallback_audit_scores_each_choice_against_the_true_flow(tmp_path, capsys):
+    from tools import fallback_audit
+
+    out = tmp_path / "audit.json"
+    fallback_audit.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
+                         "--sequences", "fast3203", "--min-pixels", "1", "--json", str(out)])
+    assert "fast3203 k=2: flow error" in capsys.readouterr().out
+    rows = json.loads(out.read_text())["rows"]
+    (totals,) = [r["totals_kpx"] for r in rows if "totals_kpx" in r]
+    # the best choice per group is at most either rule; the method's decisions lie between best and worst
+    assert totals["best"] <= min(totals["keep"], totals["method"]) + 1e-9
+    assert totals["keep"] > 0
+    for group in (r for r in rows if "group" in r):
+        assert group["better_held"] == (group["camera_only_px"] < group["keep_px"])

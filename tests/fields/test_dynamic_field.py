@@ -18,6 +18,7 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.io.rgbd import read_rig
+from models.fields.components.encodings import sample_planes
 from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
@@ -164,6 +165,7 @@ def test_hex_plane_lookup_equals_the_prod_lookup_with_its_gradients():
     want = torch.cat([(_prod_lookup(s, grid) * _prod_lookup(t, tgrid)).T for s, t in zip(spatial, temporal)], dim=-1)
     got = sample_hex_planes(spatial, temporal, coords, times)
     assert torch.equal(got, want)
+    assert torch.equal(sample_planes(spatial, coords), torch.cat([_prod_lookup(s, grid).T for s in spatial], dim=-1))
     w = torch.randn(got.shape, generator=g)
     params = [coords] + spatial + temporal
     for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
@@ -429,6 +431,21 @@ def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_tw
         for name in ("weights", "canonical", "flow", "opacity", "depth"):
             torch.testing.assert_close(getattr(out, name), getattr(want, name), rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(out.color, model.background.expand(16, 3) * (1 - out.opacity[:, None]))
+
+
+@pytest.mark.parametrize("kind", ["derf", "kplanes"])
+def test_a_geometry_only_render_has_the_weights_of_a_full_render_and_the_background_colour(kind):
+    model = _model(kind)
+    g = torch.Generator().manual_seed(3)
+    origins = torch.randn(12, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(12, 3) + torch.randn(12, 3, generator=g) * 0.1
+    near, far, times = torch.ones(12), torch.full((12,), 5.0), torch.rand(12, generator=g)
+    full = model.render_rays(origins, directions, near, far, times)
+    geometry = model.render_rays(origins, directions, near, far, times, color=False)
+    assert float(full.opacity.detach().min()) > 0.05
+    for name in ("weights", "opacity", "depth", "canonical", "flow"):
+        assert torch.equal(getattr(geometry, name), getattr(full, name)), name
+    torch.testing.assert_close(geometry.color, model.background.expand(12, 3) * (1 - geometry.opacity[:, None]))
 
 
 def test_sparse_flow_prior_trains_on_textured_motion(tmp_path):

@@ -31,8 +31,10 @@ import models.fields.trainer as tr
 from models.fields.data.select import select_dynamic_views
 from models.fields.train_dynamic import DynamicTrainConfig, choose_dynamic_priors, train_dynamic
 
-REGIONS = [(dm.MotionField, "forward", "## motion_field"), (dm.CanonicalField, "get_density", "## canonical_density"),
-           (dm.CanonicalField, "get_outputs", "## canonical_colour"), (dm.KPlanesField, "_density", "## kplanes_density"),
+REGIONS = [(dm.MotionField, "forward", "## motion_field"),
+           (dm.CanonicalField, "get_density", "## canonical_density"),
+           (dm.CanonicalField, "get_outputs", "## canonical_colour"),
+           (dm.KPlanesField, "_density", "## kplanes_density"),
            (pf.SparseFlowState, "extras", "## prior_rays"), (tr, "assemble_loss", "## losses"),
            (dm.DynamicFieldModel, "_render_dynamic", "## render"), (torch.Tensor, "backward", "## backward"),
            (torch.optim.Adam, "step", "## optimizer")]

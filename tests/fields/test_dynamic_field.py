@@ -412,8 +412,9 @@ def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_tw
     state.matches = type("M", (), {"__len__": lambda self: n})()
     state.origins_a, state.origins_b = torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]), \
         torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
-    state.directions_a = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0, 0, 1.0]), dim=-1)
-    state.directions_b = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + torch.tensor([0, 0, 1.0]), dim=-1)
+    forward = torch.tensor([0.0, 0.0, 1.0])
+    state.directions_a = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
+    state.directions_b = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
     state.times_a, state.times_b = torch.rand(n, generator=g), torch.rand(n, generator=g)
     model = _model()
     with torch.no_grad():

@@ -16,8 +16,8 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["PLANE_AXES", "sample_planes", "plane_grid", "read_planes", "plane_tv", "plane_l1", "TriPlaneEncoding", "sh_encoding",
-           "fourier_encoding", "direction_encoding_dim", "DirectionEncoding", "MLP"]
+__all__ = ["PLANE_AXES", "sample_planes", "plane_grid", "read_planes", "plane_tv", "plane_l1", "TriPlaneEncoding",
+           "sh_encoding", "fourier_encoding", "direction_encoding_dim", "DirectionEncoding", "MLP"]
 
 #: Coordinate pairs of the three spatial planes of one scale, in storage order: xy, xz, yz.
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))

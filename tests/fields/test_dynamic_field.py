@@ -18,6 +18,7 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.io.rgbd import read_rig
+from models.fields.components.encodings import sample_planes
 from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
@@ -142,6 +143,33 @@ def test_hex_plane_lookup_matches_a_hand_written_bilinear_reference():
     assert got.shape == (50, 6)
     np.testing.assert_allclose(got, np.concatenate(want, axis=1), rtol=1e-5, atol=1e-6)
     assert sample_hex_planes(spatial, temporal, torch.zeros(0, 3), torch.zeros(0)).shape == (0, 6)
+
+
+def _prod_lookup(plane: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    # the lookup before 2026-11-28 (the oracle of read_planes): torch.prod across the three planes
+    return torch.nn.functional.grid_sample(plane, grid, mode="bilinear", padding_mode="border",
+                                           align_corners=True)[:, :, 0, :].prod(dim=0)
+
+
+def test_hex_plane_lookup_equals_the_prod_lookup_with_its_gradients():
+    """The fused lookup (grids built once, the product as multiplications) gives the same features as the
+    earlier per-plane ``prod`` code, bit for bit, and the same gradients to float round-off."""
+    g = torch.Generator().manual_seed(1)
+    spatial = [torch.rand(3, 4, r, r, generator=g).requires_grad_() for r in (6, 11)]
+    temporal = [(torch.rand(3, 4, 5, r, generator=g) + 0.5).requires_grad_() for r in (6, 11)]
+    coords = (torch.rand(300, 3, generator=g) * 2.2 - 1.1).requires_grad_()
+    times = torch.rand(300, generator=g) * 2 - 1
+    flat = coords[None]
+    grid = torch.stack([flat[..., list(a)] for a in ((0, 1), (0, 2), (1, 2))], dim=0)
+    tgrid = torch.stack([torch.cat([flat[..., k:k + 1], times[None, :, None]], dim=-1) for k in range(3)], dim=0)
+    want = torch.cat([(_prod_lookup(s, grid) * _prod_lookup(t, tgrid)).T for s, t in zip(spatial, temporal)], dim=-1)
+    got = sample_hex_planes(spatial, temporal, coords, times)
+    assert torch.equal(got, want)
+    assert torch.equal(sample_planes(spatial, coords), torch.cat([_prod_lookup(s, grid).T for s in spatial], dim=-1))
+    w = torch.randn(got.shape, generator=g)
+    params = [coords] + spatial + temporal
+    for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_time_smoothness_is_zero_for_planes_linear_in_time():
@@ -371,6 +399,54 @@ def test_sparse_flow_prior_without_matches_warns_and_adds_nothing(tmp_path):
         run = train_dynamic(blank, config, tmp_path / "run", progress=False)
     last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
     assert last["sparse_flow"] == 0.0 and math.isfinite(last["loss"])
+
+
+def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_two_colour_calls(moving):
+    """SparseFlowState.extras renders rays a and b in one ``color=False`` call: the same jitter, weights and
+    canonical points as two full renders a then b from the same generator state (the earlier code)."""
+    train, _ = moving
+    state = SparseFlowState.__new__(SparseFlowState)
+    g = torch.Generator().manual_seed(2)
+    n = 40
+    state.prior = SparseFlowPrior(enabled=True, rays=16)
+    state.matches = type("M", (), {"__len__": lambda self: n})()
+    state.origins_a, state.origins_b = torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]), \
+        torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
+    forward = torch.tensor([0.0, 0.0, 1.0])
+    state.directions_a = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
+    state.directions_b = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
+    state.times_a, state.times_b = torch.rand(n, generator=g), torch.rand(n, generator=g)
+    model = _model()
+    with torch.no_grad():
+        model.field.motion_field.flow_mlp.net[-1].bias.fill_(0.05)  # a non-zero flow
+    got = state.extras(model, torch.Generator().manual_seed(5))["sparse_flow"]
+    gen = torch.Generator().manual_seed(5)
+    idx = torch.randint(n, (16,), generator=gen)
+    near, far = torch.full((16,), float(model.scene.near)), torch.full((16,), float(model.scene.far))
+    for end in ("a", "b"):
+        want = model.render_rays(getattr(state, f"origins_{end}")[idx], getattr(state, f"directions_{end}")[idx],
+                                 near, far, getattr(state, f"times_{end}")[idx], jitter=True, generator=gen)
+        out = got[end]
+        assert torch.equal(out.t, want.t) and torch.equal(out.evaluated, want.evaluated)
+        assert float(want.weights.detach().sum()) > 0.1 and float(want.flow.detach().abs().max()) > 0.01
+        for name in ("weights", "canonical", "flow", "opacity", "depth"):
+            torch.testing.assert_close(getattr(out, name), getattr(want, name), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(out.color, model.background.expand(16, 3) * (1 - out.opacity[:, None]))
+
+
+@pytest.mark.parametrize("kind", ["derf", "kplanes"])
+def test_a_geometry_only_render_has_the_weights_of_a_full_render_and_the_background_colour(kind):
+    model = _model(kind)
+    g = torch.Generator().manual_seed(3)
+    origins = torch.randn(12, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(12, 3) + torch.randn(12, 3, generator=g) * 0.1
+    near, far, times = torch.ones(12), torch.full((12,), 5.0), torch.rand(12, generator=g)
+    full = model.render_rays(origins, directions, near, far, times)
+    geometry = model.render_rays(origins, directions, near, far, times, color=False)
+    assert float(full.opacity.detach().min()) > 0.05
+    for name in ("weights", "opacity", "depth", "canonical", "flow"):
+        assert torch.equal(getattr(geometry, name), getattr(full, name)), name
+    torch.testing.assert_close(geometry.color, model.background.expand(12, 3) * (1 - geometry.opacity[:, None]))
 
 
 def test_sparse_flow_prior_trains_on_textured_motion(tmp_path):

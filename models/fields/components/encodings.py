@@ -16,11 +16,12 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["PLANE_AXES", "sample_planes", "plane_tv", "plane_l1", "TriPlaneEncoding", "sh_encoding",
-           "fourier_encoding", "direction_encoding_dim", "DirectionEncoding", "MLP"]
+__all__ = ["PLANE_AXES", "sample_planes", "plane_grid", "read_planes", "plane_tv", "plane_l1", "TriPlaneEncoding",
+           "sh_encoding", "fourier_encoding", "direction_encoding_dim", "DirectionEncoding", "MLP"]
 
 #: Coordinate pairs of the three spatial planes of one scale, in storage order: xy, xz, yz.
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))
+_AXES_INDEX = torch.tensor(PLANE_AXES)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -45,16 +46,29 @@ def sample_planes(planes: Sequence[Tensor], coords: Tensor) -> Tensor:
         torch.Size([5, 8])
     """
     lead = coords.shape[:-1]
-    flat = coords.reshape(1, -1, 3)  # (1, N, 3)
-    # (3, 1, N, 2): plane k reads coordinate pair PLANE_AXES[k]
-    grid = torch.stack([flat[..., list(axes)] for axes in PLANE_AXES], dim=0)
-    feats = []
-    for plane in planes:
-        f = torch.nn.functional.grid_sample(plane, grid.to(plane.dtype), mode="bilinear",
-                                            padding_mode="border", align_corners=True)  # (3, C, 1, N)
-        feats.append(f[:, :, 0, :].prod(dim=0))  # Hadamard product across the planes: (C, N)
+    grid = plane_grid(coords.reshape(-1, 3))
+    feats = [read_planes(plane, grid) for plane in planes]  # (C, N) each
     out = torch.cat(feats, dim=0).transpose(0, 1)  # (N, C * scales)
     return out.reshape(*lead, out.shape[-1])
+
+
+def plane_grid(coords: Tensor) -> Tensor:
+    """(N, 3) contracted coordinates -> the (3, 1, N, 2) ``grid_sample`` grid of the xy, xz, yz planes (plane k
+    reads the coordinate pair ``PLANE_AXES[k]``): built once and shared by every scale."""
+    return coords[:, _AXES_INDEX.to(coords.device)].permute(1, 0, 2).unsqueeze(1)
+
+
+def read_planes(plane: Tensor, grid: Tensor) -> Tensor:
+    """The Hadamard product across the three planes of one scale: ``plane`` (3, C, H, W) read bilinearly
+    (``align_corners=True``, border) at ``grid`` (3, 1, N, 2) -> (C, N).
+
+    The product is two multiplications of the unbound planes (not ``prod``, nor indexing): the same values,
+    and a backward without ``prod``'s zero checks and division or a zero-filled gradient per plane read.
+    """
+    f = torch.nn.functional.grid_sample(plane, grid.to(plane.dtype), mode="bilinear", padding_mode="border",
+                                        align_corners=True)
+    a, b, c = f.squeeze(2).unbind(0)  # (C, N) each
+    return a * b * c
 
 
 def plane_tv(planes: Sequence[Tensor]) -> Tensor:

@@ -50,11 +50,12 @@ from torch import Tensor, nn
 
 from engine.core.checks import check_shape
 from engine.core.errors import InputError
-from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, sample_planes
+from models.fields.components.encodings import (MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, plane_grid,
+                                                read_planes)
 from models.fields.static.field import FieldConfig, density_activation
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 
-__all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "sample_hex_planes", "time_smoothness",
+__all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "time_grid", "sample_hex_planes", "time_smoothness",
            "HexPlaneEncoding", "MotionConfig", "DynamicFieldConfig", "CanonicalField", "MotionField",
            "DeRFField", "KPlanesField", "FieldSamples", "DynamicRayOutputs", "DynamicFieldModel",
            "auto_time_resolution", "normalize_times", "AtTime"]
@@ -88,16 +89,16 @@ def sample_time_planes(planes: Sequence[Tensor], coords: Tensor, times: Tensor) 
         torch.Size([5, 2])
     """
     lead = coords.shape[:-1]
-    flat = coords.reshape(1, -1, 3)
-    t = times.reshape(1, -1, 1).to(flat.dtype)
-    grid = torch.stack([torch.cat([flat[..., k:k + 1], t], dim=-1) for k in range(3)], dim=0)  # (3, 1, N, 2)
-    feats = []
-    for plane in planes:
-        f = torch.nn.functional.grid_sample(plane, grid.to(plane.dtype), mode="bilinear", padding_mode="border",
-                                            align_corners=True)  # (3, C, 1, N)
-        feats.append(f[:, :, 0, :].prod(dim=0))
-    out = torch.cat(feats, dim=0).transpose(0, 1)
+    grid = time_grid(coords.reshape(-1, 3), times.reshape(-1))
+    out = torch.cat([read_planes(plane, grid) for plane in planes], dim=0).transpose(0, 1)
     return out.reshape(*lead, out.shape[-1])
+
+
+def time_grid(coords: Tensor, times: Tensor) -> Tensor:
+    """(N, 3) contracted coordinates and (N,) normalised times -> the (3, 1, N, 2) ``grid_sample`` grid of the
+    xt, yt, zt planes (the spatial coordinate along the width, time along the height)."""
+    t = times.to(coords.dtype)[:, None].expand(-1, 3)
+    return torch.stack([coords, t], dim=-1).permute(1, 0, 2).unsqueeze(1)
 
 
 def sample_hex_planes(spatial: Sequence[Tensor], temporal: Sequence[Tensor], coords: Tensor, times: Tensor) -> Tensor:
@@ -112,8 +113,12 @@ def sample_hex_planes(spatial: Sequence[Tensor], temporal: Sequence[Tensor], coo
     Returns:
         (..., C * scales), scale 0 first.
     """
-    feats = [sample_planes([s], coords) * sample_time_planes([t], coords, times) for s, t in zip(spatial, temporal)]
-    return torch.cat(feats, dim=-1)
+    lead = coords.shape[:-1]
+    flat = coords.reshape(-1, 3)
+    grid, tgrid = plane_grid(flat), time_grid(flat, times.reshape(-1))  # built once for every scale
+    feats = [read_planes(s, grid) * read_planes(t, tgrid) for s, t in zip(spatial, temporal)]  # (C, N) each
+    out = torch.cat(feats, dim=0).transpose(0, 1)
+    return out.reshape(*lead, out.shape[-1])
 
 
 def time_smoothness(planes: Sequence[Tensor]) -> Tensor:
@@ -354,10 +359,13 @@ class DeRFField(nn.Module):
         canonical, _ = self.deform(coords, times)
         return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)[0]
 
-    def forward(self, coords: Tensor, times: Tensor, directions: Tensor) -> FieldSamples:
+    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
+        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
         canonical, flow = self.deform(coords, times)
         sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
-        return FieldSamples(sigma, self.canonical_field.get_outputs(h, directions, times), canonical, flow)
+        rgb = (self.canonical_field.get_outputs(h, directions, times) if directions is not None
+               else h.new_zeros(h.shape[:-1] + (3,)))
+        return FieldSamples(sigma, rgb, canonical, flow)
 
 
 class KPlanesField(nn.Module):
@@ -385,9 +393,11 @@ class KPlanesField(nn.Module):
     def density(self, coords: Tensor, times: Tensor) -> Tensor:
         return self._density(coords, times)[0]
 
-    def forward(self, coords: Tensor, times: Tensor, directions: Tensor) -> FieldSamples:
+    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
+        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
         sigma, h = self._density(coords, times)
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
+        rgb = (torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
+               if directions is not None else h.new_zeros(h.shape[:-1] + (3,)))
         return FieldSamples(sigma, rgb, coords, torch.zeros_like(coords))
 
 
@@ -523,7 +533,8 @@ class DynamicFieldModel(StaticFieldModel):
         return torch.where(inside, out.sigma, torch.zeros_like(out.sigma)), out.rgb
 
     def render_rays(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor, *,
-                    jitter: bool = False, generator: Optional[torch.Generator] = None) -> DynamicRayOutputs:
+                    jitter: bool = False, generator: Optional[torch.Generator] = None, color: bool = True
+                    ) -> DynamicRayOutputs:
         """Render R rays, ray r at time ``times[r]``.
 
         Args:
@@ -531,6 +542,9 @@ class DynamicFieldModel(StaticFieldModel):
             near, far: (R,) planar-depth bounds.
             times: (R,) in the data's units, inside the trained range (else InputError naming the time).
             jitter: stratified random sample positions (training) instead of bin centres.
+            color: False renders the geometry only (weights, depth, canonical points, flow): the samples'
+                colour is not computed and ``color`` is the background (what the sparse flow prior's matched
+                rays need, at the cost of the density alone).
 
         Returns:
             :class:`DynamicRayOutputs`.
@@ -541,13 +555,15 @@ class DynamicFieldModel(StaticFieldModel):
         check_shape(near, "near", ("R",), sizes)
         check_shape(far, "far", ("R",), sizes)
         check_shape(times, "times", ("R",), sizes)
-        return self._render_dynamic(origins, directions, near, far, self.normalize_times(times), jitter, generator)
+        return self._render_dynamic(origins, directions, near, far, self.normalize_times(times), jitter, generator,
+                                    color)
 
-    def _render_dynamic(self, origins, directions, near, far, taus, jitter, generator) -> DynamicRayOutputs:
+    def _render_dynamic(self, origins, directions, near, far, taus, jitter, generator, color: bool = True
+                        ) -> DynamicRayOutputs:
         evaluated = {}
 
         def query(coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
-            out = self.field(coords, taus[idx[0]], unit)
+            out = self.field(coords, taus[idx[0]], unit if color else None)
             evaluated["canonical"], evaluated["flow"] = out.canonical, out.flow
             return out.sigma, out.rgb
 

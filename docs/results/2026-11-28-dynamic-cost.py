@@ -1,0 +1,110 @@
+"""Where a dynamic field's training step goes: torch profiler and CPU time per step, one torch thread.
+
+``python docs/results/2026-11-28-dynamic-cost.py MODE VARIANT RIG_DIR OUT.json [--rays N]`` (from the repository
+root), MODE ``profile`` or ``cpu``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
+``sfderf`` (``--no-field.canonical-time``) or ``noprior`` (default without the prior). Trains on the rig as
+``interleave train dynamic --train-cameras cam0,cam1,cam3 --test-cameras cam2`` does (default config otherwise;
+``--rays`` sets the prior's matched pairs a step) for 131 / 201 steps in a temporary folder, and writes:
+
+- ``profile``: the torch profiler over steps 100-130 (after the occupancy grid's warm-up), each op's total and
+  self time and calls, with the forward regions labelled (``## render``, ``## motion_field``,
+  ``## canonical_density``, ``## canonical_colour``, ``## kplanes_density``, ``## prior_rays``, ``## losses``)
+  and ``## backward`` / ``## optimizer``;
+- ``cpu``: process CPU time and wall time per step over steps 100-200 (CPU time: less sensitive to other
+  jobs on a shared machine than wall time).
+
+The regions are labelled by wrapping the methods in ``torch.profiler.record_function``; the step boundaries
+come from ``train_dynamic``'s ``extras_fn`` hook (called after the rendering of each step).
+"""
+import argparse
+import dataclasses
+import json
+import tempfile
+import time
+
+import torch
+from torch.profiler import ProfilerActivity, profile, record_function
+
+import models.fields.dynamic.model as dm
+import models.fields.priors.flow as pf
+import models.fields.trainer as tr
+from models.fields.data.select import select_dynamic_views
+from models.fields.train_dynamic import DynamicTrainConfig, choose_dynamic_priors, train_dynamic
+
+REGIONS = [(dm.MotionField, "forward", "## motion_field"),
+           (dm.CanonicalField, "get_density", "## canonical_density"),
+           (dm.CanonicalField, "get_outputs", "## canonical_colour"),
+           (dm.KPlanesField, "_density", "## kplanes_density"),
+           (pf.SparseFlowState, "extras", "## prior_rays"), (tr, "assemble_loss", "## losses"),
+           (dm.DynamicFieldModel, "_render_dynamic", "## render"), (torch.Tensor, "backward", "## backward"),
+           (torch.optim.Adam, "step", "## optimizer")]
+
+
+def label(owner, name: str, text: str) -> None:
+    inner = getattr(owner, name)
+
+    def wrapped(*args, **kwargs):
+        with record_function(text):
+            return inner(*args, **kwargs)
+
+    setattr(owner, name, wrapped)
+
+
+def config_for(variant: str, rays: int) -> DynamicTrainConfig:
+    cfg = DynamicTrainConfig()
+    if variant == "kplanes":
+        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind="kplanes"))
+    elif variant == "sfderf":
+        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, canonical_time=False))
+    cfg = choose_dynamic_priors(cfg, "" if variant == "noprior" else None)
+    if rays:
+        flow = dataclasses.replace(cfg.priors.flow, rays=rays)
+        cfg = dataclasses.replace(cfg, priors=dataclasses.replace(cfg.priors, flow=flow))
+    return cfg
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("mode", choices=["profile", "cpu"])
+    parser.add_argument("variant", choices=["kplanes", "default", "sfderf", "noprior"])
+    parser.add_argument("rig")
+    parser.add_argument("out")
+    parser.add_argument("--rays", type=int, default=0)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    first, last = (100, 130) if args.mode == "profile" else (100, 200)
+    cfg = config_for(args.variant, args.rays)
+    train, _, record = select_dynamic_views("rig", args.rig, cfg.downscale, train_cameras=["cam0", "cam1", "cam3"],
+                                            test_cameras=["cam2"])
+    cfg = dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1)
+    if args.mode == "profile":
+        for owner, name, text in REGIONS:
+            label(owner, name, text)
+    marks: dict = {}
+
+    def hook(model, batch, outputs, step):
+        if step in (first, last):
+            marks[step] = (time.process_time(), time.perf_counter())
+        if args.mode == "profile" and step == first:
+            marks["profiler"] = profile(activities=[ProfilerActivity.CPU])
+            marks["profiler"].__enter__()
+        if args.mode == "profile" and step == last:
+            marks["profiler"].__exit__(None, None, None)
+        return {}
+
+    with tempfile.TemporaryDirectory() as tmp:
+        train_dynamic(train, cfg, tmp, progress=False, device="cpu", extras_fn=hook)
+    steps = last - first
+    result = {"variant": args.variant, "prior_rays": cfg.priors.flow.rays if cfg.priors.flow.enabled else 0,
+              "steps": [first, last], "cpu_ms_per_step": 1000 * (marks[last][0] - marks[first][0]) / steps,
+              "wall_ms_per_step": 1000 * (marks[last][1] - marks[first][1]) / steps}
+    if args.mode == "profile":
+        result["events"] = {e.key: {"total_ms": e.cpu_time_total / 1000, "self_ms": e.self_cpu_time_total / 1000,
+                                    "calls": e.count} for e in marks["profiler"].key_averages()}
+    with open(args.out, "w") as f:
+        json.dump(result, f, indent=1)
+    print(json.dumps({k: v for k, v in result.items() if k != "events"}))
+
+
+if __name__ == "__main__":
+    main()

@@ -41,7 +41,8 @@ from engine.geometry.motion import drop_long_vectors, projected_offsets
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
            "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
-           "earlier_points", "COHERENCE", "coherent_motion", "field_motion_vectors", "field_object_flow"]
+           "earlier_points", "COHERENCE", "check_coherence", "time_before", "coherent_motion", "field_motion_vectors",
+           "field_object_flow"]
 
 DYNAMIC_FORMAT = "interleave-dynamic-field"
 DYNAMIC_VERSION = 1
@@ -407,6 +408,19 @@ def field_object_flow(assets: DynamicAssets, intrinsics, world_to_camera, depth:
     return flow.reshape(h, w, 3).astype(np.float32)
 
 
+def check_coherence(coherence: Optional[float]) -> None:
+    """Raise InputError unless ``coherence`` (the ratio of :func:`coherent_motion`) is None or finite and >= 0."""
+    if coherence is not None and not (math.isfinite(coherence) and coherence >= 0):
+        raise InputError(f"must be finite and >= 0, got {coherence!r}", field="coherence")
+
+
+def time_before(tau: float, tau_earlier: float) -> Optional[float]:
+    """The normalised time of the interval before ``tau_earlier`` -> ``tau``, ``2 tau_earlier - tau`` (float32
+    arithmetic), clipped to [-1, 1]; None where it lies outside the trained range (beyond TIME_TOLERANCE)."""
+    before = np.float32(2.0) * np.float32(tau_earlier) - np.float32(tau)
+    return None if abs(float(before)) > 1.0 + TIME_TOLERANCE else float(np.clip(before, -1.0, 1.0))
+
+
 def coherent_motion(assets: DynamicAssets, coords: np.ndarray, points: np.ndarray, earlier: np.ndarray,
                     tau: float, tau_earlier: float, ratio: float, *, iterations: int = MOTION_ITERATIONS
                     ) -> np.ndarray:
@@ -421,10 +435,10 @@ def coherent_motion(assets: DynamicAssets, coords: np.ndarray, points: np.ndarra
     the cube, ``tau_before`` outside the trained range, or an export without a motion model.
     """
     n = coords.shape[0]
-    tau_before = np.float32(2.0) * np.float32(tau_earlier) - np.float32(tau)
-    if not assets.has_motion or n == 0 or abs(float(tau_before)) > 1.0 + TIME_TOLERANCE:
+    tau_before = time_before(tau, tau_earlier)
+    if not assets.has_motion or n == 0 or tau_before is None:
         return np.ones(n, bool)
-    before, found = earlier_points(assets, coords, tau, float(np.clip(tau_before, -1.0, 1.0)), iterations=iterations)
+    before, found = earlier_points(assets, coords, tau, tau_before, iterations=iterations)
     outside = (np.abs(before) > 1.0).any(axis=1)
     before = uncontract_np(assets.scene, before, assets.manifest["render"]["ndc_margin"]).astype(np.float64)
     last = np.asarray(points, np.float64) - earlier
@@ -455,8 +469,7 @@ def field_motion_vectors(assets: DynamicAssets, intrinsics, world_to_camera, dep
         InputError: bad intrinsics or poses, a depth that is not (H, W) positive (or +inf), times outside the
             trained range, a coherence that is not finite and >= 0.
     """
-    if coherence is not None and not (math.isfinite(coherence) and coherence >= 0):
-        raise InputError(f"must be finite and >= 0, got {coherence!r}", field="coherence")
+    check_coherence(coherence)
     k = validate_intrinsics(intrinsics)
     pose = validate_pose(world_to_camera)
     k_prev = k if earlier_intrinsics is None else validate_intrinsics(earlier_intrinsics,

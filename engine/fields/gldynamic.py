@@ -35,7 +35,6 @@ numpy and onnxruntime paths of :mod:`engine.fields.dynamic` and (when torch is i
 """
 from __future__ import annotations
 
-import math
 import time as time_module
 from pathlib import Path
 from typing import Optional, Union
@@ -44,8 +43,8 @@ import numpy as np
 
 from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
-from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, TIME_TOLERANCE, DynamicAssets,
-                                   load_dynamic_field, normalize_time, time_encoding_np)
+from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, check_coherence,
+                                   load_dynamic_field, normalize_time, time_before, time_encoding_np)
 from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
                               camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
@@ -373,11 +372,10 @@ class GlDynamicRenderer(GlFieldRenderer):
     def _motion_dispatcher(self, intrinsics, world_to_camera, tau, earlier_world_to_camera, tau_prev,
                            earlier_intrinsics, coherence: Optional[float] = None):
         """The checked motion pass (over the depth the next render writes), to run with the context current."""
-        if coherence is not None and not (math.isfinite(coherence) and coherence >= 0):
-            raise InputError(f"must be finite and >= 0, got {coherence!r}", field="coherence")
-        tau_before = np.float32(2.0) * np.float32(tau_prev) - np.float32(tau)
-        if coherence is None or abs(float(tau_before)) > 1.0 + TIME_TOLERANCE:  # as coherent_motion: no check
-            coherence = -1.0
+        check_coherence(coherence)
+        tau_before = time_before(tau, tau_prev)
+        if coherence is None or tau_before is None:  # as coherent_motion: no check
+            coherence, tau_before = -1.0, 0.0
         camera = camera_uniforms(intrinsics, world_to_camera)
         prev_k, prev_k12 = camera["k_vals"], camera["k_cy"]  # K00, K01, K02, K11 and K12: the same K by default
         if earlier_intrinsics is not None:
@@ -387,7 +385,7 @@ class GlDynamicRenderer(GlFieldRenderer):
         values = {**camera, "prev_rot": tuple(float(x) for x in prev[:3, :3].flatten(order="F")),  # column-major
                   "prev_t": tuple(float(x) for x in prev[:3, 3]), "prev_k": prev_k, "prev_k12": prev_k12,
                   "tau_now": float(tau), "tau_prev": float(tau_prev),
-                  "tau_before": float(np.clip(tau_before, -1.0, 1.0)), "coherence": float(coherence)}
+                  "tau_before": float(tau_before), "coherence": float(coherence)}
         if self._motion_program is None:
             self._run(self._build_motion_pass)
 

@@ -158,13 +158,12 @@ cp "$work/field_deferred/scores.json" "$out/field_deferred_scores.json" 2>/dev/n
 step field_export_deferred 180 "$py" -m engine.cli export field "$work/field_deferred"
 step field_render_baked 90 "$py" -m tools.bench_fields static "$work/field_deferred/export" --run "$work/field_deferred" \
     --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked.json"
-# a bounded scene, where the occupancy grid makes the baked form sparse: lego (8 views at 200x200) with the deferred
-# recipe of docs/results/2026-11-28-baked-fields.md, when the data is there (LEGO_DIR)
+# a bounded scene, where the occupancy grid makes the baked form sparse: lego (8 views at 200x200) trained for baking
+# (configs/field-baked.json: docs/results/2026-11-28-baked-features.md), when the data is there (LEGO_DIR)
 lego="${LEGO_DIR:-../shared/data/nerf_synthetic_lego}"
 if [ -d "$lego" ]; then
     step field_lego_deferred 150 "$py" -m engine.cli train field --scene "$lego" --views 8 --downscale 4 --device cuda \
-        --field.shading deferred --field.density-bias -4 --field.density-hidden 64 --no-field.residual-density-grad \
-        --out "$work/lego_deferred"
+        --config configs/field-baked.json --out "$work/lego_deferred"
     step field_lego_export 120 "$py" -m engine.cli export field "$work/lego_deferred"
     step field_lego_baked 90 "$py" -m tools.bench_fields static "$work/lego_deferred/export" --run "$work/lego_deferred" \
         --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked_lego.json"

@@ -34,7 +34,7 @@ from engine.fields.baked import BakedAssets, load_baked
 from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
                               check_options, color_head, finish_shader)
 
-__all__ = ["GlBakedRenderer", "atlas_layout", "atlas_layers", "generate_baked_shader"]
+__all__ = ["GlBakedRenderer", "atlas_layout", "atlas_layers", "channel_groups", "generate_baked_shader"]
 
 #: Largest width / height of the atlas texture (OpenGL guarantees 16384 on 4.5 implementations).
 MAX_ATLAS_SIDE = 16384
@@ -52,8 +52,14 @@ def atlas_layout(count: int, vertices: int, groups: int) -> tuple[int, int]:
     return per_column, columns
 
 
+def channel_groups(feature_dim: int) -> int:
+    """RGBA texel groups a brick vertex takes: ``feature_dim`` features, then the raw density in the last lane.
+    Each group costs the shader its own filtered fetches per sample, so ``feature_dim = 4 G - 1`` wastes none."""
+    return -(-(feature_dim + 1) // 4)
+
+
 def _groups(baked: BakedAssets) -> int:
-    return -(-(baked.feature_dim + 1) // 4)  # the features, then the raw density in the last lane
+    return channel_groups(baked.feature_dim)
 
 
 def atlas_layers(baked: BakedAssets) -> np.ndarray:

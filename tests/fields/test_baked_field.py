@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,12 +20,13 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from engine.fields import gl as glfield
+from engine.fields.glbaked import channel_groups
 from engine.fields.baked import load_baked, query_baked, render_baked
 from engine.fields.render import load_field, render_field
 from export.field import export_field
 from models.fields.bake import bake_static, brick_vertices
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.train_static import load_model, train_field
+from models.fields.train_static import config_from_file, load_model, train_field
 from tests.fields.test_deferred_field import DEFERRED, deferred_run  # noqa: F401  (module fixture)
 from tests.fields.test_field_export import _forward_facing, bounded_run  # noqa: F401  (module fixture)
 from tests.fields.test_field_train import TINY_FIELD, sphere_views, tiny_config
@@ -90,6 +92,17 @@ def test_the_baked_render_is_the_exact_render_of_the_same_field(deferred_run):
         np.mean(baked["evaluations"] == exact["evaluations"]) > 0.97  # the same samples skipped
     assert _psnr(exact, baked) > 40.0 and np.abs(baked["opacity"] - exact["opacity"]).max() < 0.05
     assert np.array_equal(np.isfinite(baked["depth"]), np.isfinite(exact["depth"]))
+
+
+def test_the_baking_config_is_a_deferred_field_filling_two_texel_groups_exactly():
+    """``configs/field-baked.json`` (docs/fields.md): deferred shading, and a latent whose features plus the density
+    lane fill two RGBA groups with no empty lane (each group costs the baked shader its own fetches per sample)."""
+    config = config_from_file(Path(__file__).resolve().parents[2] / "configs" / "field-baked.json")
+    config.validate()
+    assert config.field.shading == "deferred" and not config.field.residual_density_grad
+    assert channel_groups(config.field.geo_feature_dim) == 2
+    assert 4 * channel_groups(config.field.geo_feature_dim) == config.field.geo_feature_dim + 1
+    assert [channel_groups(d) for d in (3, 4, 7, 8, 15)] == [1, 2, 2, 3, 4]
 
 
 def test_only_deferred_fields_bake():

@@ -20,7 +20,7 @@ from engine.fields import gl as glfield
 from engine.fields.render import load_field, render_field
 from export.field import export_field
 from models.fields.components.render import render_image
-from models.fields.static.field import FieldConfig, TriPlaneField
+from models.fields.static.field import FieldConfig, TriPlaneField, bounded_tanh
 from models.fields.train_static import load_model, train_field
 from tests.fields.test_field_train import TINY_FIELD, sphere_views, tiny_config
 
@@ -60,6 +60,50 @@ def test_deferred_shading_composites_features_and_shades_once_per_pixel():
         FieldConfig(shading="latent").validate()
     with pytest.raises(InputError, match="geo_feature_dim"):
         FieldConfig(shading="deferred", geo_feature_dim=2).validate()
+
+
+def test_bounded_tanh_is_tanh_with_the_gradient_of_the_bound_penalty_added():
+    torch.manual_seed(0)
+    x = (torch.randn(64, 3) * 4).requires_grad_()
+    upstream = torch.randn(64, 3)
+    y = bounded_tanh(x, 2.0)
+    assert torch.equal(y, torch.tanh(x.detach()))
+    (got,) = torch.autograd.grad(y, x, upstream)
+    reference = x.detach().clone().requires_grad_()
+    penalty = torch.relu(reference.abs() - 2.0).square().mean()
+    (want,) = torch.autograd.grad((torch.tanh(reference) * upstream).sum() + penalty, reference)
+    assert bool((x.detach().abs() > 2.0).any()) and torch.allclose(got, want, rtol=1e-6, atol=1e-7)
+    (plain,) = torch.autograd.grad(bounded_tanh(x, 0.0), x, upstream)
+    assert torch.allclose(plain, upstream * (1 - torch.tanh(x.detach()) ** 2), rtol=1e-6, atol=1e-7)
+    with pytest.raises(InputError, match="field.residual_bound"):
+        FieldConfig(residual_bound=-1.0).validate()
+
+
+@pytest.mark.parametrize("bound", [0.0, 2.0])
+def test_a_residual_saturated_out_of_range_comes_back_only_with_the_bound(bound):
+    """The failure of lego's seed 2 (docs/results/2026-11-28-baked-features.md): the blue residual's logit far
+    negative, so tanh is flat and the colour below 0, where the photometric loss's clip has no gradient either."""
+    from models.fields.losses import srgb_encode
+
+    torch.manual_seed(0)
+    field = TriPlaneField(dataclasses.replace(DEFERRED, residual_bound=bound))
+    with torch.no_grad():
+        field.color_mlp.net[-1].bias.copy_(torch.tensor([0.0, 0.0, -12.0]))
+    features = torch.full((256, DEFERRED.geo_feature_dim), 0.2)
+    dirs = torch.nn.functional.normalize(torch.randn(256, 3), dim=-1)
+    target = torch.full((256, 3), 0.5)
+    optimizer = torch.optim.Adam(field.color_mlp.parameters(), lr=0.02)
+    for _ in range(150):
+        color = field.shade_pixels(features, torch.ones(256), dirs, torch.ones(3))
+        loss = (srgb_encode(color) - srgb_encode(target)).square().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    blue = field.shade_pixels(features, torch.ones(256), dirs, torch.ones(3)).detach()[:, 2]
+    if bound > 0:
+        assert bool(((blue - 0.5).abs() < 0.05).all())  # back in range and fitted
+    else:
+        assert bool((blue < -0.7).all())  # stuck: no gradient reaches the logit
 
 
 def test_the_residual_reads_the_same_features_with_or_without_the_density_gradient():

@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
 
-__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "density_activation"]
+__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "bounded_tanh", "density_activation"]
 
 #: Density is exp(min(raw, MAX_LOG_DENSITY)): at most ~3.3e6 per scene unit, so sigma * delta never
 #: overflows float32 and rendering needs no NaN guards.
@@ -57,6 +57,11 @@ class FieldConfig:
                 "reads the same composited features but its gradient stops at the weights, so the geometry is "
                 "fitted through the diffuse colour alone (the render is the same; -2.2 dB on lego 8 views, "
                 "docs/results/2026-11-28-baked-fields.md)"})
+    residual_bound: float = field(default=2.0, metadata={
+        "help": "deferred: in training, the colour MLP's outputs past +-this are pulled back (tanh's gradient plus "
+                "that of mean(relu(|x| - bound)^2)), so the residual cannot stick where tanh is flat and the "
+                "colour out of range; renders are unchanged; 0 turns it off "
+                "(docs/results/2026-11-28-baked-features.md)"})
     shading: str = field(default="per-sample", metadata={
         "help": "per-sample: the colour MLP at every sample; deferred: sigmoid features (the first 3 a diffuse "
                 "RGB) composited with the volume-rendering weights and the colour MLP once per pixel on them and "
@@ -78,9 +83,35 @@ class FieldConfig:
         if self.shading == "deferred" and int(self.geo_feature_dim) < 3:
             raise InputError(f"must be >= 3 with deferred shading (the first 3 are the diffuse colour), got "
                              f"{self.geo_feature_dim}", field="field.geo_feature_dim")
+        if not float(self.residual_bound) >= 0.0:
+            raise InputError(f"must be >= 0, got {self.residual_bound}", field="field.residual_bound")
         if self.direction_encoding == "sh" and not 1 <= self.direction_degree <= 4:
             raise InputError(f"SH bands must be in 1..4, got {self.direction_degree}", field="field.direction_degree")
         return self
+
+
+class _BoundedTanh(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, bound: float) -> Tensor:
+        y = torch.tanh(x)
+        ctx.save_for_backward(x, y)
+        ctx.bound = bound
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        x, y = ctx.saved_tensors
+        pull = torch.relu(x.abs() - ctx.bound) * torch.sign(x) * (2.0 / x.numel())
+        return grad * (1.0 - y * y) + pull, None
+
+
+def bounded_tanh(x: Tensor, bound: float) -> Tensor:
+    """``tanh(x)``, whose gradient also carries that of ``mean(relu(|x| - bound)^2)`` (weight 1, mean over every
+    element of ``x``): logits past ``+-bound`` are pulled back even where tanh is flat and the loss has none.
+    The value is tanh's exactly; ``bound`` <= 0 is plain ``torch.tanh``."""
+    if bound <= 0.0 or not (torch.is_grad_enabled() and x.requires_grad):
+        return torch.tanh(x)
+    return _BoundedTanh.apply(x, float(bound))
 
 
 def density_activation(raw: Tensor, bias: float = 0.0) -> Tensor:
@@ -141,7 +172,7 @@ class TriPlaneField(nn.Module):
         residual term, equal in value but composited with other gradients (``residual_density_grad``)."""
         res_features, res_opacity = residual_inputs if residual_inputs is not None else (features, opacity)
         x = torch.cat([res_features, self.direction_encoding(directions)], dim=-1)
-        residual = torch.tanh(self.color_mlp(x))
+        residual = bounded_tanh(self.color_mlp(x), self.config.residual_bound)
         return features[..., :3] + (1.0 - opacity)[..., None] * background + res_opacity[..., None] * residual
 
     def forward(self, coords: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:

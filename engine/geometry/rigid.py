@@ -38,7 +38,8 @@ from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
-           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "rigid_parts",
+           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "robust_rigid_reference",
+           "rigid_parts",
            "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
            "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
@@ -406,6 +407,23 @@ def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     return out
 
 
+def _refit_guess(src, dst, scale, guess, threshold):
+    """``robust_rigid``'s guess, refitted on its inliers (compiled: ``group_inliers`` and ``fit_groups`` of one
+    group) where it explains half the points or more: (R, t, inliers), else None."""
+    if guess is None:
+        return None
+    n = len(src)
+    src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+    scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+    inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
+                            np.asarray(guess[1], np.float64)[None], threshold)
+    if inliers.sum() < max(3, n // 2):
+        return None
+    rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
+    inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
+    return rotation[0], translation[0], inliers
+
+
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
                  threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
                  guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -418,15 +436,36 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple
     ``guess`` (R, t) that already explains half the points is refitted instead, without sampling (a part's
     transform of the interval before, under steady motion)."""
     n = len(src)
-    if guess is not None:  # compiled: ``group_inliers`` and ``fit_groups`` of one group
-        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
-        scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
-        inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
-                                np.asarray(guess[1], np.float64)[None], threshold)
-        if inliers.sum() >= max(3, n // 2):
-            rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
-            inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
-            return rotation[0], translation[0], inliers
+    guessed = _refit_guess(src, dst, scale, guess, threshold)
+    if guessed is not None:
+        return guessed
+    src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+    scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+    sample, picks = draws(_key_base(key), n, hypotheses)
+    r, t = _fit_many(src[picks], dst[picks])
+    best = np.zeros(1, np.int64)  # compiled scores: those of ``robust_rigid_reference``, without its (H, n, 3) arrays
+    _best_hypotheses(src, dst, scale, sample.astype(np.int64), np.array([0, sample.size], np.int64), r, t, hypotheses,
+                     float(threshold), best)
+    rotation, translation = r[best[0]], t[best[0]]
+    inliers = group_inliers(src, dst, scale, one, rotation[None], translation[None], threshold)
+    for _ in range(rounds):
+        if inliers.sum() < 3:
+            break
+        rotation, translation = fit_rigid(src[inliers], dst[inliers])
+        inliers = group_inliers(src, dst, scale, one, rotation[None], translation[None], threshold)
+    return rotation, translation, inliers
+
+
+def robust_rigid_reference(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
+                           threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                           guess: Optional[tuple[np.ndarray, np.ndarray]] = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``robust_rigid`` in numpy: the hypotheses scored by ``einsum``, the inliers by ``transform_points`` (the
+    test oracle; that docstring states it)."""
+    n = len(src)
+    guessed = _refit_guess(src, dst, scale, guess, threshold)
+    if guessed is not None:
+        return guessed
     sample, picks = draws(_key_base(key), n, hypotheses)
     r, t = _fit_many(src[picks], dst[picks])
     moved = np.einsum("hij,nj->hni", r, src[sample]) + t[:, None, :]
@@ -609,9 +648,9 @@ def rigid_parts_reference(labels: np.ndarray, count: int, points: np.ndarray, be
             if left.size < max(min_points, 3):
                 break
             # the least-squares fit of all of them first: a group that is one clean part needs no sampling
-            rotation, translation, inliers = robust_rigid(before[left], points[left], scale[left],
-                                                          (seed, g, len(found)), threshold=threshold,
-                                                          guess=fit_rigid(before[left], points[left]))
+            rotation, translation, inliers = robust_rigid_reference(before[left], points[left], scale[left],
+                                                                    (seed, g, len(found)), threshold=threshold,
+                                                                    guess=fit_rigid(before[left], points[left]))
             kept = int(inliers.sum())
             if kept < min_points or kept < min_share * left.size:
                 break
@@ -921,6 +960,7 @@ def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth
     """``refined_before`` compiled, point by point (``refined_before_reference`` states it)."""
     w = vectors.shape[1]
     ph, pw = prev_depth.shape
+    seen = np.empty(3)
     for i in range(moving.size):
         qx, qy = _vector_end(vectors, moving[i], w)
         for c in range(3):
@@ -946,7 +986,6 @@ def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth
         if not ok or not inverse > 0:
             continue
         depth = 1.0 / inverse
-        seen = np.empty(3)
         for c in range(3):
             seen[c] = (qx * k_inv[c, 0] + qy * k_inv[c, 1] + k_inv[c, 2]) * depth - relative[c, 3]
         for c in range(3):  # R^T (p - t): frame n's axes
@@ -978,6 +1017,7 @@ def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velo
     w = vectors.shape[1]
     ph, pw = prev_depth.shape
     fh, fw = first_depth.shape
+    there = np.empty(3)
     for i in range(moving.size):
         qx, qy = _vector_end(vectors, moving[i], w)
         inside = qx >= 0 and qx < pw and qy >= 0 and qy < ph
@@ -993,7 +1033,6 @@ def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velo
                  + np.float64(prev_velocity[yi, xi, 2]) * relative[2, c])
             earlier[i, c] = before[i, c] - v * interval_ratio
         if ok and has_first:
-            there = np.empty(3)
             for c in range(3):
                 there[c] = (earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2]
                             + view[c, 3])

@@ -38,12 +38,13 @@ from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
-           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "robust_rigid_reference",
+           "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
            "rigid_parts",
            "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
-           "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
+           "apply_parts", "apply_parts_reference", "kept_motion", "kept_motion_reference",
+           "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
-           "hindcast_keeps", "hindcast_errors", "rigid_explains_better", "project_points"]
+           "hindcast_keeps", "hindcast_errors", "hindcast_errors_reference", "rigid_explains_better", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
@@ -758,18 +759,6 @@ def moving_points(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, i
     return now, speed, z, np.flatnonzero(grid)
 
 
-@njit(cache=True, nogil=True)
-def _scatter_rows(out, index, rows):  # pragma: no cover - compiled
-    for i in range(index.size):
-        for c in range(out.shape[1]):
-            out[index[i], c] = rows[i, c]
-
-
-def scatter_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
-    """``out[index] = rows`` for a (N, C) ``out`` and distinct ``index`` (numpy's row scatter, compiled)."""
-    _scatter_rows(out, np.ascontiguousarray(index, np.int64), np.ascontiguousarray(rows, out.dtype))
-
-
 def moving_points_reference(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, intrinsics: np.ndarray,
                             stride: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``moving_points`` in numpy."""
@@ -901,11 +890,16 @@ def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pr
 
 
 @njit(cache=True, nogil=True)
-def _apply_parts(now, speed, depth, labels, starts, rotations, translations, affine, focal, limit, offset,
-                 out_v, out_a, regions):  # pragma: no cover - compiled
-    """``apply_parts`` compiled: per moving pixel, the first part of its group whose transform explains it."""
+def _apply_parts(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations, affine,
+                 focal, limit, offset, out_v, out_a, regions):  # pragma: no cover - compiled
+    """``apply_parts`` compiled: per moving pixel its own motion and group, then the first part of its group
+    whose transform explains it."""
     for i in range(now.shape[0]):
         g = labels[i]
+        regions[i] = g
+        for c in range(3):
+            out_v[i, c] = speed[i, c]
+            out_a[i, c] = acceleration[i, c] if has_acceleration else 0.0
         for j in range(starts[g], starts[g + 1]):
             r2 = 0.0
             for c in range(3):
@@ -927,15 +921,9 @@ def _apply_parts(now, speed, depth, labels, starts, rotations, translations, aff
             break
 
 
-def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, parts: list,
-                affines: list, focal: float, limit: float, out_v: np.ndarray, out_a: np.ndarray,
-                regions: np.ndarray) -> None:
-    """Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels``) that
-    the transform of a part of its group (``parts``, in the order of their groups) explains within ``limit``
-    pixels (residual times ``focal / depth``) takes that part's path: ``out_v``, ``out_a`` (M, 3) get
-    the V and A of its ``affines`` entry (``path_affine``), ``regions`` (M,) its number plus the count of
-    groups (the regions of the fall-back). The others are left as they are."""
-    count = int(labels.max()) + 1 if labels.size else 0
+def _part_tables(parts: list, affines: list, count: int):
+    """``apply_parts``' stacks: each group's first part (``starts`` (count + 1,)), the parts' rotations,
+    translations, and their affines as (P, 2, 3, 4) (V then A, matrix and offset)."""
     groups = np.array([p.group for p in parts], dtype=np.int64)
     starts = np.searchsorted(groups, np.arange(count + 1)).astype(np.int64)
     rotations = np.array([p.rotation for p in parts], dtype=np.float64).reshape(-1, 3, 3)
@@ -943,9 +931,99 @@ def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: n
     table = np.zeros((len(parts), 2, 3, 4))
     for j, (vm, vt, am, at) in enumerate(affines):
         table[j, 0, :, :3], table[j, 0, :, 3], table[j, 1, :, :3], table[j, 1, :, 3] = vm, vt, am, at
+    return starts, rotations, translations, table
+
+
+def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int, parts: list,
+                affines: list, focal: float, limit: float,
+                acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The moving pixels' motion with their rigid parts' paths: (V (M, 3), A (M, 3) float32, regions (M,) int64).
+
+    Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels`` in
+    [0, ``count``)) that the transform of a part of its group (``parts``, in the order of their groups) explains
+    within ``limit`` pixels (residual times ``focal / depth``) takes that part's path: the V and A of its
+    ``affines`` entry (``path_affine``), its region the part's number plus ``count`` (the regions of the
+    fall-back). The others keep their own velocity, their ``acceleration`` row (or 0) and their group as
+    region. Compiled; ``apply_parts_reference`` is its numpy oracle."""
+    m = len(labels)
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    has_acceleration = acceleration is not None
+    acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
+    out_v, out_a, regions = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.int64)
     _apply_parts(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
-                 np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64), starts, rotations,
-                 translations, table, float(focal), float(limit), count, out_v, out_a, regions)
+                 np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+                 np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations, translations,
+                 table, float(focal), float(limit), int(count), out_v, out_a, regions)
+    return out_v, out_a, regions
+
+
+def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int,
+                          parts: list, affines: list, focal: float, limit: float,
+                          acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``apply_parts`` in numpy, part by part (the test oracle; the sums in the kernel's order)."""
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    out_v = speed.astype(np.float32)
+    out_a = np.zeros_like(out_v) if acceleration is None else np.array(acceleration, np.float32)
+    regions = np.array(labels, np.int64)
+    taken = np.zeros(len(labels), bool)
+    for j, part in enumerate(parts):
+        on = np.flatnonzero((labels == part.group) & ~taken)
+        p, v = now[on], speed[on]
+        r2 = np.zeros(on.size)
+        for c in range(3):
+            moved = translations[j, c] - p[:, c]
+            for e in range(3):
+                moved = moved + rotations[j, c, e] * (p[:, e] - v[:, e])
+            r2 = r2 + moved * moved
+        on = on[~(np.sqrt(r2) * focal / depth[on] > limit)]
+        for c in range(3):
+            vel, acc = np.full(on.size, table[j, 0, c, 3]), np.full(on.size, table[j, 1, c, 3])
+            for e in range(3):
+                vel = vel + table[j, 0, c, e] * now[on, e]
+                acc = acc + table[j, 1, c, e] * now[on, e]
+            out_v[on, c], out_a[on, c] = vel, acc
+        regions[on], taken[on] = count + j, True
+    return out_v, out_a, regions
+
+
+@njit(cache=True, nogil=True)
+def _kept_motion(moving, rows_v, rows_a, regions, keep, velocity, moving_out, acceleration_out):  # pragma: no cover
+    """``kept_motion`` compiled: the kept rows scattered and compacted in one pass; returns their count."""
+    n = 0
+    for i in range(moving.size):
+        if not keep[regions[i]]:
+            continue
+        p = moving[i]
+        for c in range(3):
+            velocity[p, c] = rows_v[i, c]
+            acceleration_out[n, c] = rows_a[i, c]
+        moving_out[n] = p
+        n += 1
+    return n
+
+
+def kept_motion(shape: tuple[int, int], moving: np.ndarray, rows_v: np.ndarray, rows_a: np.ndarray,
+                regions: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The motion of the moving pixels whose region is kept: (velocity (H, W, 3) float32, 0 elsewhere, moving
+    (N,), acceleration (N, 3) float32) from each moving pixel's velocity and acceleration rows ``rows_v``,
+    ``rows_a`` (M, 3), its region ``regions`` (M,) and the regions' ``keep`` (bool); the rows in ``moving``'s
+    order. Compiled; ``kept_motion_reference`` is its numpy oracle."""
+    h, w = shape
+    velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
+    moving_out, acceleration = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
+    n = _kept_motion(np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(rows_v, np.float32),
+                     np.ascontiguousarray(rows_a, np.float32), np.ascontiguousarray(regions, np.int64),
+                     np.ascontiguousarray(keep, np.bool_), velocity.reshape(-1, 3), moving_out, acceleration)
+    return velocity, moving_out[:n], acceleration[:n]
+
+
+def kept_motion_reference(shape: tuple[int, int], moving: np.ndarray, rows_v: np.ndarray, rows_a: np.ndarray,
+                          regions: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``kept_motion`` in numpy (boolean masks)."""
+    kept = np.asarray(keep, bool)[regions]
+    velocity = np.zeros(tuple(shape) + (3,), np.float32)
+    velocity.reshape(-1, 3)[moving[kept]] = rows_v[kept]
+    return velocity, np.asarray(moving, np.int64)[kept], np.asarray(rows_a, np.float32)[kept]
 
 
 @njit(cache=True, nogil=True)
@@ -1153,9 +1231,31 @@ def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving:
     return earlier, valid
 
 
+@njit(cache=True, nogil=True)
+def _hindcast_errors(now, predicted, k, out):  # pragma: no cover - compiled
+    """``hindcast_errors`` compiled: ``project_points``' arithmetic, point by point."""
+    for i in range(now.shape[0]):
+        az, bz = predicted[i, 2], now[i, 2]
+        if not (az > 1e-9 and bz > 1e-9):
+            out[i] = np.nan
+            continue
+        dx = (k[0, 0] * predicted[i, 0] / az + k[0, 1] * predicted[i, 1] / az + k[0, 2]) - (
+            k[0, 0] * now[i, 0] / bz + k[0, 1] * now[i, 1] / bz + k[0, 2])
+        dy = (k[1, 1] * predicted[i, 1] / az + k[1, 2]) - (k[1, 1] * now[i, 1] / bz + k[1, 2])
+        out[i] = math.sqrt(dx * dx + dy * dy)
+
+
 def hindcast_errors(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """Per point, how far (frame n's pixels) ``predicted`` (M, 3) lands from where frame n shows it (``now``);
-    NaN where either is behind the camera."""
+    NaN where either is behind the camera. Compiled; ``hindcast_errors_reference`` is its numpy oracle."""
+    out = np.empty(len(now))
+    _hindcast_errors(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(predicted, np.float64),
+                     np.ascontiguousarray(intrinsics, np.float64), out)
+    return out
+
+
+def hindcast_errors_reference(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """``hindcast_errors`` in numpy (``project_points``)."""
     return np.linalg.norm(project_points(predicted, intrinsics) - project_points(now, intrinsics), axis=-1)
 
 

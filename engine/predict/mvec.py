@@ -38,9 +38,9 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
-                                   previous_positions, refined_before, rigid_explains_better, rigid_parts, rotation_log,
-                                   scatter_rows)
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_motion, motion_components, moving_points,
+                                   part_motion, previous_positions, refined_before, rigid_explains_better, rigid_parts,
+                                   rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
@@ -231,17 +231,13 @@ class Mvec(Predictor):
                                             first=(first.depth, first.camera.intrinsics,
                                                    first.camera.world_to_camera @ newest.camera.camera_to_world))
         predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-        out_v = speed.astype(np.float32)  # written in place
-        out_a = (np.zeros_like(out_v) if data.acceleration is None
-                 else np.array(data.acceleration, dtype=np.float32))
-        regions = labels.copy()
-        parts = []
+        parts, affines = [], []
         if cfg.extrapolation == "rigid":
             fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
             parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
                                             threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
                      if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-            kept, affines = [], []
+            kept = []
             for j, part in enumerate(parts):
                 m = part.members
                 affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
@@ -256,22 +252,18 @@ class Mvec(Predictor):
                 kept.append(part)
                 affines.append(affine)
             parts = kept
-            # every pixel of a part's group that the part's transform explains takes its path (the sample's
-            # depths were read between pixels, the others' at one: a looser threshold)
-            apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,
-                        regions)
+        # every pixel of a part's group that the part's transform explains takes its path (the sample's depths
+        # were read between pixels, the others' at one: a looser threshold); the others keep their own motion
+        out_v, out_a, regions = apply_parts(now, speed, z, labels, count, parts, affines, k[0, 0],
+                                            ASSIGN * cfg.rigid_threshold, data.acceleration)
         data.parts = len(parts)
-        keep = np.ones(moving.size, dtype=bool)
+        keep = np.ones(count + len(parts), dtype=bool)
         if cfg.fallback:
             keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
-                                  ratio=cfg.fallback_ratio)[regions]
-        data.held = int(moving.size - keep.sum())
-        if data.held:  # the rows kept, by index (numpy's boolean indexing of (M, 3) rows is ~5x slower)
-            rows = np.flatnonzero(keep)
-            moving, out_v, out_a = moving[rows], out_v.take(rows, axis=0), out_a.take(rows, axis=0)
-        velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
-        scatter_rows(velocity.reshape(-1, 3), moving, out_v)
-        return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
+                                  ratio=cfg.fallback_ratio)
+        velocity, moving, acceleration = kept_motion((h, w), moving, out_v, out_a, regions, keep)
+        data.held = int(data.moving.size - moving.size)
+        return PointMotion(velocity, moving, acceleration if parts or data.acceleration is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

@@ -497,3 +497,46 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
     assert err.value.field == "object_ids"
     with pytest.raises(InputError):
         session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))
+
+
+def test_apply_parts_and_kept_motion_match_their_numpy_references():
+    # three groups: one with two parts (pixels of either, and some near the assignment limit), one with a part
+    # whose transform explains none of them, one without parts; with and without the pixels' own acceleration
+    rng = np.random.default_rng(9)
+    h, w = SIZE
+    moving = np.sort(rng.choice(h * w, 900, replace=False))
+    labels = rng.choice(3, size=moving.size)
+    now = rng.uniform(-1, 1, (moving.size, 3)) + (0, 0, 5)
+    depth = now[:, 2].copy()
+    turns = [(rotation(rng.normal(size=3), 0.2), rng.normal(0, 0.1, 3)) for _ in range(3)]
+    speed = rng.normal(0, 0.05, (moving.size, 3))
+    for j, g in ((0, 0), (1, 0)):
+        on = (labels == g) & (np.arange(moving.size) % 2 == j)
+        r, t = turns[j]  # speed = now - (R^T (now - t)): the pixel's point at n-k moved by (R, t)
+        speed[on] = now[on] - (now[on] - t) @ r + rng.normal(0, 0.1, (on.sum(), 3))  # about 3 px off
+    parts = [rg.RigidPart(np.zeros(0, np.int64), *turns[0], 0), rg.RigidPart(np.zeros(0, np.int64), *turns[1], 0),
+             rg.RigidPart(np.zeros(0, np.int64), *turns[2], 1)]
+    affines = [rg.screw_affine(rg.se3_log(*turn)) for turn in turns]
+    for acceleration in (None, rng.normal(0, 0.01, (moving.size, 3)).astype(np.float32)):
+        fast = rg.apply_parts(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
+        slow = rg.apply_parts_reference(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
+        for a, b in zip(fast, slow):
+            np.testing.assert_array_equal(a, b)
+        regions = fast[2]
+        assert 0.5 < np.isin(regions, (3, 4)).sum() / (labels == 0).sum() < 1 and not (regions == 5).any()
+        for keep in (np.ones(6, bool), np.array([True, False, True, True, False, True])):
+            got = rg.kept_motion(SIZE, moving, fast[0], fast[1], regions, keep)
+            for a, b in zip(got, rg.kept_motion_reference(SIZE, moving, fast[0], fast[1], regions, keep)):
+                np.testing.assert_array_equal(a, b)
+            assert got[1].size == keep[regions].sum()
+
+
+def test_hindcast_errors_match_their_numpy_reference():
+    rng = np.random.default_rng(10)
+    now = rng.uniform(-1, 1, (500, 3)) + (0, 0, 3)
+    predicted = now + rng.normal(0, 0.3, now.shape)
+    predicted[:20, 2] = -0.5  # behind the camera: NaN
+    now[20:30, 2] = 0.0
+    fast, slow = rg.hindcast_errors(now, predicted, _k()), rg.hindcast_errors_reference(now, predicted, _k())
+    np.testing.assert_array_equal(fast, slow)
+    assert np.isnan(fast[:30]).all() and np.isfinite(fast[30:]).all()

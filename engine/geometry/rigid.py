@@ -41,7 +41,7 @@ __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotatio
            "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
            "rigid_parts",
            "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
-           "apply_parts", "apply_parts_reference", "kept_motion", "kept_motion_reference",
+           "apply_parts", "apply_parts_reference", "kept_part_motion", "kept_part_motion_reference",
            "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
            "hindcast_keeps", "hindcast_errors", "hindcast_errors_reference", "rigid_explains_better", "project_points"]
@@ -889,36 +889,68 @@ def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pr
         out[2] += math.sqrt(d) / m
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit):  # pragma: no cover
+    """The first part of group ``g`` whose transform explains moving pixel i within ``limit`` pixels, or -1."""
+    for j in range(starts[g], starts[g + 1]):
+        r2 = 0.0
+        for c in range(3):
+            moved = translations[j, c] - now[i, c]
+            for e in range(3):
+                moved += rotations[j, c, e] * (now[i, e] - speed[i, e])
+            r2 += moved * moved
+        if math.sqrt(r2) * focal / depth[i] > limit:
+            continue
+        return j
+    return -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, out_v, row_v, out_a,
+                row_a):  # pragma: no cover - compiled
+    """Moving pixel i's V and A into ``out_v[row_v]``, ``out_a[row_a]``: part j's path, or (j < 0) its own."""
+    for c in range(3):
+        if j < 0:
+            out_v[row_v, c] = speed[i, c]
+            out_a[row_a, c] = acceleration[i, c] if has_acceleration else 0.0
+            continue
+        v = affine[j, 0, c, 3]
+        a = affine[j, 1, c, 3]
+        for e in range(3):
+            v += affine[j, 0, c, e] * now[i, e]
+            a += affine[j, 1, c, e] * now[i, e]
+        out_v[row_v, c] = v
+        out_a[row_a, c] = a
+
+
 @njit(cache=True, nogil=True)
 def _apply_parts(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations, affine,
                  focal, limit, offset, out_v, out_a, regions):  # pragma: no cover - compiled
-    """``apply_parts`` compiled: per moving pixel its own motion and group, then the first part of its group
-    whose transform explains it."""
+    """``apply_parts`` compiled: per moving pixel the first part of its group whose transform explains it."""
     for i in range(now.shape[0]):
         g = labels[i]
-        regions[i] = g
-        for c in range(3):
-            out_v[i, c] = speed[i, c]
-            out_a[i, c] = acceleration[i, c] if has_acceleration else 0.0
-        for j in range(starts[g], starts[g + 1]):
-            r2 = 0.0
-            for c in range(3):
-                moved = translations[j, c] - now[i, c]
-                for e in range(3):
-                    moved += rotations[j, c, e] * (now[i, e] - speed[i, e])
-                r2 += moved * moved
-            if math.sqrt(r2) * focal / depth[i] > limit:
-                continue
-            for c in range(3):
-                v = affine[j, 0, c, 3]
-                a = affine[j, 1, c, 3]
-                for e in range(3):
-                    v += affine[j, 0, c, e] * now[i, e]
-                    a += affine[j, 1, c, e] * now[i, e]
-                out_v[i, c] = v
-                out_a[i, c] = a
-            regions[i] = offset + j
-            break
+        j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
+        regions[i] = g if j < 0 else offset + j
+        _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, out_v, i, out_a, i)
+
+
+@njit(cache=True, nogil=True)
+def _kept_part_motion(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations,
+                      affine, focal, limit, offset, moving, keep, velocity, moving_out,
+                      acceleration_out):  # pragma: no cover - compiled
+    """``kept_part_motion`` compiled: ``_apply_parts`` per pixel, its kept rows scattered and compacted in the
+    same pass; returns their count."""
+    n = 0
+    for i in range(now.shape[0]):
+        g = labels[i]
+        j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
+        if not keep[g if j < 0 else offset + j]:
+            continue
+        _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, moving[i],
+                    acceleration_out, n)
+        moving_out[n] = moving[i]
+        n += 1
+    return n
 
 
 def _part_tables(parts: list, affines: list, count: int):
@@ -986,44 +1018,40 @@ def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray,
     return out_v, out_a, regions
 
 
-@njit(cache=True, nogil=True)
-def _kept_motion(moving, rows_v, rows_a, regions, keep, velocity, moving_out, acceleration_out):  # pragma: no cover
-    """``kept_motion`` compiled: the kept rows scattered and compacted in one pass; returns their count."""
-    n = 0
-    for i in range(moving.size):
-        if not keep[regions[i]]:
-            continue
-        p = moving[i]
-        for c in range(3):
-            velocity[p, c] = rows_v[i, c]
-            acceleration_out[n, c] = rows_a[i, c]
-        moving_out[n] = p
-        n += 1
-    return n
-
-
-def kept_motion(shape: tuple[int, int], moving: np.ndarray, rows_v: np.ndarray, rows_a: np.ndarray,
-                regions: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The motion of the moving pixels whose region is kept: (velocity (H, W, 3) float32, 0 elsewhere, moving
-    (N,), acceleration (N, 3) float32) from each moving pixel's velocity and acceleration rows ``rows_v``,
-    ``rows_a`` (M, 3), its region ``regions`` (M,) and the regions' ``keep`` (bool); the rows in ``moving``'s
-    order. Compiled; ``kept_motion_reference`` is its numpy oracle."""
+def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
+                     depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list, focal: float,
+                     limit: float, acceleration: Optional[np.ndarray],
+                     keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``apply_parts`` of the moving pixels ``moving`` (flat indices into ``shape``), keeping those whose region
+    is kept (``keep`` (count + len(parts),) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
+    (N,), their acceleration (N, 3) float32), in one pass. Compiled; ``kept_part_motion_reference`` is its
+    numpy oracle."""
     h, w = shape
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    has_acceleration = acceleration is not None
+    acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
     velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
-    moving_out, acceleration = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
-    n = _kept_motion(np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(rows_v, np.float32),
-                     np.ascontiguousarray(rows_a, np.float32), np.ascontiguousarray(regions, np.int64),
-                     np.ascontiguousarray(keep, np.bool_), velocity.reshape(-1, 3), moving_out, acceleration)
-    return velocity, moving_out[:n], acceleration[:n]
+    moving_out, acceleration_out = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
+    n = _kept_part_motion(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
+                          np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+                          np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations,
+                          translations, table, float(focal), float(limit), int(count),
+                          np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(keep, np.bool_),
+                          velocity.reshape(-1, 3), moving_out, acceleration_out)
+    return velocity, moving_out[:n], acceleration_out[:n]
 
 
-def kept_motion_reference(shape: tuple[int, int], moving: np.ndarray, rows_v: np.ndarray, rows_a: np.ndarray,
-                          regions: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``kept_motion`` in numpy (boolean masks)."""
+def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
+                               depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list,
+                               focal: float, limit: float, acceleration: Optional[np.ndarray],
+                               keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``kept_part_motion`` in numpy: ``apply_parts_reference``, then the kept rows by boolean masks."""
+    rows_v, rows_a, regions = apply_parts_reference(now, speed, depth, labels, count, parts, affines, focal, limit,
+                                                    acceleration)
     kept = np.asarray(keep, bool)[regions]
     velocity = np.zeros(tuple(shape) + (3,), np.float32)
     velocity.reshape(-1, 3)[moving[kept]] = rows_v[kept]
-    return velocity, np.asarray(moving, np.int64)[kept], np.asarray(rows_a, np.float32)[kept]
+    return velocity, np.asarray(moving, np.int64)[kept], rows_a[kept]
 
 
 @njit(cache=True, nogil=True)

@@ -38,8 +38,8 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_motion, motion_components, moving_points,
-                                   part_motion, previous_positions, refined_before, rigid_explains_better, rigid_parts,
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_part_motion, motion_components,
+                                   moving_points, part_motion, previous_positions, refined_before, rigid_explains_better, rigid_parts,
                                    rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
@@ -254,14 +254,16 @@ class Mvec(Predictor):
             parts = kept
         # every pixel of a part's group that the part's transform explains takes its path (the sample's depths
         # were read between pixels, the others' at one: a looser threshold); the others keep their own motion
-        out_v, out_a, regions = apply_parts(now, speed, z, labels, count, parts, affines, k[0, 0],
-                                            ASSIGN * cfg.rigid_threshold, data.acceleration)
         data.parts = len(parts)
         keep = np.ones(count + len(parts), dtype=bool)
-        if cfg.fallback:
-            keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
+        limit = ASSIGN * cfg.rigid_threshold
+        if cfg.fallback:  # the sample's regions (their rigid part, else their group) each keep or drop their motion
+            _, _, regions = apply_parts(now_s, speed[sample], z[sample], labels[sample], count, parts, affines, k[0, 0],
+                                        limit)
+            keep = hindcast_keeps(regions, count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)
-        velocity, moving, acceleration = kept_motion((h, w), moving, out_v, out_a, regions, keep)
+        velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, parts, affines,
+                                                          k[0, 0], limit, data.acceleration, keep)
         data.held = int(data.moving.size - moving.size)
         return PointMotion(velocity, moving, acceleration if parts or data.acceleration is not None else None)
 

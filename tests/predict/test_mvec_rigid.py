@@ -499,7 +499,7 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
         session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))
 
 
-def test_apply_parts_and_kept_motion_match_their_numpy_references():
+def test_apply_parts_and_kept_part_motion_match_their_numpy_references():
     # three groups: one with two parts (pixels of either, and some near the assignment limit), one with a part
     # whose transform explains none of them, one without parts; with and without the pixels' own acceleration
     rng = np.random.default_rng(9)
@@ -525,10 +525,12 @@ def test_apply_parts_and_kept_motion_match_their_numpy_references():
         regions = fast[2]
         assert 0.5 < np.isin(regions, (3, 4)).sum() / (labels == 0).sum() < 1 and not (regions == 5).any()
         for keep in (np.ones(6, bool), np.array([True, False, True, True, False, True])):
-            got = rg.kept_motion(SIZE, moving, fast[0], fast[1], regions, keep)
-            for a, b in zip(got, rg.kept_motion_reference(SIZE, moving, fast[0], fast[1], regions, keep)):
+            args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration, keep)
+            got = rg.kept_part_motion(*args)
+            for a, b in zip(got, rg.kept_part_motion_reference(*args)):
                 np.testing.assert_array_equal(a, b)
             assert got[1].size == keep[regions].sum()
+            np.testing.assert_array_equal(got[0].reshape(-1, 3)[got[1]], fast[0][keep[regions]])
 
 
 def test_hindcast_errors_match_their_numpy_reference():

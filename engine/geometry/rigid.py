@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
+from engine.geometry import kernels
 from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
@@ -936,21 +937,29 @@ def _apply_parts(now, speed, depth, labels, acceleration, has_acceleration, star
 
 @njit(cache=True, nogil=True)
 def _kept_part_motion(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations,
-                      affine, focal, limit, offset, moving, keep, velocity, moving_out,
-                      acceleration_out):  # pragma: no cover - compiled
+                      affine, focal, limit, offset, moving, keep, velocity, moving_out, acceleration_out, own,
+                      own_rows):  # pragma: no cover - compiled
     """``kept_part_motion`` compiled: ``_apply_parts`` per pixel, its kept rows scattered and compacted in the
-    same pass; returns their count."""
+    same pass; with ``own``, the kept pixels that keep their own motion get no acceleration row but their row
+    in ``own_rows``. Returns (the count of kept rows, of those)."""
     n = 0
+    m = 0
     for i in range(now.shape[0]):
         g = labels[i]
         j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
         if not keep[g if j < 0 else offset + j]:
             continue
-        _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, moving[i],
-                    acceleration_out, n)
-        moving_out[n] = moving[i]
+        p = moving[i]
+        if j < 0 and own:
+            for c in range(3):
+                velocity[p, c] = speed[i, c]
+            own_rows[m] = n
+            m += 1
+        else:
+            _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, p, acceleration_out, n)
+        moving_out[n] = p
         n += 1
-    return n
+    return n, m
 
 
 def _part_tables(parts: list, affines: list, count: int):
@@ -1020,32 +1029,45 @@ def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray,
 
 def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
                      depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list, focal: float,
-                     limit: float, acceleration: Optional[np.ndarray],
-                     keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     limit: float, acceleration: Optional[np.ndarray], keep: np.ndarray,
+                     change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``apply_parts`` of the moving pixels ``moving`` (flat indices into ``shape``), keeping those whose region
     is kept (``keep`` (count + len(parts),) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
-    (N,), their acceleration (N, 3) float32), in one pass. Compiled; ``kept_part_motion_reference`` is its
-    numpy oracle."""
+    (N,), their acceleration (N, 3) float32), in one pass. With ``change`` (``motion.velocity_change_args``)
+    in place of ``acceleration``, the change of velocity is computed there for the kept pixels that keep their
+    own motion only (the others take their part's path or the camera-only warp): ``velocity_change``'s rows of
+    those pixels. Compiled; ``kept_part_motion_reference`` is its numpy oracle."""
     h, w = shape
     starts, rotations, translations, table = _part_tables(parts, affines, count)
     has_acceleration = acceleration is not None
     acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
     velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
     moving_out, acceleration_out = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
-    n = _kept_part_motion(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
-                          np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
-                          np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations,
-                          translations, table, float(focal), float(limit), int(count),
-                          np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(keep, np.bool_),
-                          velocity.reshape(-1, 3), moving_out, acceleration_out)
+    own_rows = np.empty(len(moving) if change is not None else 0, np.int64)
+    n, m = _kept_part_motion(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
+                             np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+                             np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations,
+                             translations, table, float(focal), float(limit), int(count),
+                             np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(keep, np.bool_),
+                             velocity.reshape(-1, 3), moving_out, acceleration_out, change is not None, own_rows)
+    if m:  # the change of velocity of the pixels that keep their own motion, and of those only
+        rows = own_rows[:m]
+        own = np.empty((m, 3), np.float32)
+        kernels.velocity_change(*change[:3], moving_out[rows], *change[3:], own)
+        acceleration_out[rows] = own
     return velocity, moving_out[:n], acceleration_out[:n]
 
 
 def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
                                depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list,
                                focal: float, limit: float, acceleration: Optional[np.ndarray],
-                               keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``kept_part_motion`` in numpy: ``apply_parts_reference``, then the kept rows by boolean masks."""
+                               keep: np.ndarray, change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray,
+                                                                                         np.ndarray]:
+    """``kept_part_motion`` in numpy: ``velocity_change`` of every moving pixel (with ``change``),
+    ``apply_parts_reference``, then the kept rows by boolean masks."""
+    if change is not None:
+        acceleration = np.empty((len(moving), 3), np.float32)
+        kernels.velocity_change(*change[:3], np.asarray(moving, np.int64), *change[3:], acceleration)
     rows_v, rows_a, regions = apply_parts_reference(now, speed, depth, labels, count, parts, affines, focal, limit,
                                                     acceleration)
     kept = np.asarray(keep, bool)[regions]

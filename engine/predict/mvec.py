@@ -42,7 +42,8 @@ from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_p
                                    moving_points, part_motion, previous_positions, refined_before, rigid_explains_better, rigid_parts,
                                    rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
-                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change)
+                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change,
+                                    velocity_change_args)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
@@ -108,7 +109,8 @@ class MvecConfig:
 class MvecState:
     """``mvec``'s per-frame state: ``velocity`` (H, W, 3) scene units per frame interval n-k -> n in frame
     n's camera axes, ``moving`` the flat indices of the pixels with a non-zero velocity, ``acceleration``
-    (len(moving), 3) their change of velocity per interval, or None (constant velocity)."""
+    (len(moving), 3) their change of velocity per interval, or None (constant velocity; and with pass ``rigid``,
+    which computes it for the pixels that keep their own motion only, into ``motion``)."""
 
     velocity: np.ndarray
     moving: np.ndarray
@@ -168,19 +170,24 @@ class Mvec(Predictor):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
         data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
-        before = None
+        before, change = None, None
         if moving.size and len(state.history) >= 3 and (cfg.acceleration or cfg.fallback):
             with timer("acceleration"):
                 before = self._before(state.history[-3:])
+                shaped = before is not None and (cfg.extrapolation == "rigid" or cfg.fallback)
                 if cfg.acceleration and before is not None:
-                    data.acceleration = velocity_change(newest.depth, vectors, velocity, moving, newest.camera,
-                                                        older.camera, older.depth, before[0], before[1],
-                                                        band=cfg.depth_band, limit=cfg.acceleration_limit)
+                    args = (newest.depth, vectors, velocity)
+                    rest = (newest.camera, older.camera, older.depth, before[0], before[1])
+                    if shaped:  # computed in pass ``rigid``, for the pixels that keep their own motion only
+                        change = velocity_change_args(*args, *rest, band=cfg.depth_band, limit=cfg.acceleration_limit)
+                    else:
+                        data.acceleration = velocity_change(*args, moving, *rest, band=cfg.depth_band,
+                                                            limit=cfg.acceleration_limit)
         if moving.size:
             motion = PointMotion(velocity, moving, data.acceleration)
             if before is not None and (cfg.extrapolation == "rigid" or cfg.fallback):  # else: nothing to decide
                 with timer("rigid"):
-                    motion = self._shaped(state.history, vectors, data, before)
+                    motion = self._shaped(state.history, vectors, data, before, change)
             if motion.moving.size:
                 data.motion = self.frames.resident_flow(motion, timer)
         return data
@@ -198,8 +205,8 @@ class Mvec(Predictor):
             before, _ = self._velocity(older, first, self._vectors(older))
         return before, (newest.time - older.time) / (older.time - first.time)
 
-    def _shaped(self, history, vectors: np.ndarray, data: MvecState,
-                before: tuple[np.ndarray, float]) -> PointMotion:
+    def _shaped(self, history, vectors: np.ndarray, data: MvecState, before: tuple[np.ndarray, float],
+                change: Optional[tuple]) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
         the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
         the screw, or the spin about the part's centre where the interval before says so, with its change
@@ -208,7 +215,9 @@ class Mvec(Predictor):
         part, or the rest of a group of pixels that move alike) whose motion of the interval before, continued,
         explained the last interval worse than ``fallback_ratio`` times no object motion is left out: it takes
         the camera-only warp. Fits and checks read a grid sample. Needs frame n-2k (``before``: frame n-k's
-        velocity and the ratio of the intervals, ``_before``)."""
+        velocity and the ratio of the intervals, ``_before``). ``change`` (``velocity_change_args``, with
+        ``acceleration``): the change of velocity is computed here, for the kept pixels that keep their own
+        motion only (``kept_part_motion``)."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)
@@ -263,9 +272,9 @@ class Mvec(Predictor):
             keep = hindcast_keeps(regions, count + len(parts), now_s, then_s, predicted, valid, k,
                                   ratio=cfg.fallback_ratio)
         velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, parts, affines,
-                                                          k[0, 0], limit, data.acceleration, keep)
+                                                          k[0, 0], limit, None, keep, change)
         data.held = int(data.moving.size - moving.size)
-        return PointMotion(velocity, moving, acceleration if parts or data.acceleration is not None else None)
+        return PointMotion(velocity, moving, acceleration if parts or change is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

@@ -10,6 +10,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, SceneObject, rigid_inverse
+from engine.geometry import motion as rg_motion
 from engine.geometry import rigid as rg
 from engine.geometry.motion import extrapolated_flow
 from engine.predict import Mvec, MvecConfig, Reproject, Target, make_predictor
@@ -531,6 +532,26 @@ def test_apply_parts_and_kept_part_motion_match_their_numpy_references():
                 np.testing.assert_array_equal(a, b)
             assert got[1].size == keep[regions].sum()
             np.testing.assert_array_equal(got[0].reshape(-1, 3)[got[1]], fast[0][keep[regions]])
+    # the change of velocity computed in the pass, for the kept pixels that keep their own motion only: the rows
+    # of velocity_change there (frames of a slanted wall, small vectors, a camera turning a little)
+    v, u = np.mgrid[0:h, 0:w]
+    wall = (4.0 + 0.01 * u + 0.02 * v).astype(np.float32)
+    vectors = rng.normal(0, 1.5, SIZE + (2,)).astype(np.float32)
+    frame_velocity = ((0.03, -0.02, 0.01) + rng.normal(0, 0.004, SIZE + (3,))).astype(np.float32)
+    prev_velocity = (frame_velocity + rng.normal(0, 0.01, SIZE + (3,))).astype(np.float32)
+    now_camera, then_camera = Camera(_k(), np.eye(4)), Camera(_k(), rigid((0, 1, 0), 0.002, (0.002, 0.0, 0.0)))
+    frames = (wall, vectors, frame_velocity, now_camera, then_camera, wall, prev_velocity, 1.0)
+    change = rg_motion.velocity_change_args(*frames)
+    rows = rg_motion.velocity_change(*frames[:3], moving, *frames[3:])
+    assert 0.2 < np.abs(rows).max(axis=1).astype(bool).mean() < 1
+    keep = np.array([True, True, False, True, True, True])
+    args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, None, keep)
+    got = rg.kept_part_motion(*args, change)
+    for a, b in zip(got, rg.kept_part_motion_reference(*args, change)):
+        np.testing.assert_array_equal(a, b)
+    own = np.isin(got[1], moving[labels == 1])  # group 1: its part explains none of them
+    assert own.any() and not np.isin(got[1], moving[labels == 2]).any()
+    np.testing.assert_array_equal(got[2][own], rows[np.isin(moving, got[1][own])])
 
 
 def test_hindcast_errors_match_their_numpy_reference():

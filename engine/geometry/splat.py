@@ -82,8 +82,8 @@ def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, 
     # one padded sum volume per part, the normalisation by output rows (it adds the parts in order)
     ranges = kernels.split_ranges(h, max(MIN_ROWS_PER_THREAD, -(-MIN_POINTS_PER_THREAD // max(1, num_z * w))))
     extents = kernels.run_ranges(lambda r0, r1: kernels.project_points(
-        depth, alpha, flow, object_flow is not None, flow_spans, matrix, half_inv, ho, wo, *constants, r0, r1, base, fx, fy, z,
-        a, log_z), ranges)
+        depth, alpha, flow, object_flow is not None, flow_spans, matrix, half_inv, ho, wo, *constants, r0, r1, base, fx,
+        fy, z, a, log_z), ranges)
     lo, hi = min(e[0] for e in extents), max(e[1] for e in extents)
     hp, wp = ho + 2, wo + 2
     ranges = kernels.split_ranges(n, MIN_POINTS_PER_THREAD)

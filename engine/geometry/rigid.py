@@ -144,14 +144,13 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _horn_rotation(cov, out):  # pragma: no cover - compiled
+def _horn_rotation(cov, out, a, v):  # pragma: no cover - compiled
     """The rotation (into ``out`` (3, 3)) that best turns centred points a onto b given their cross-covariance
     ``cov`` = sum a b^T (Horn 1987: the unit quaternion of the largest eigenvalue of a symmetric 4x4, here by
-    cyclic Jacobi sweeps): ``fit_rigid``'s rotation, without its 3x3 SVD."""
+    cyclic Jacobi sweeps): ``fit_rigid``'s rotation, without its 3x3 SVD. ``a``, ``v``: (4, 4) scratch."""
     sxx, sxy, sxz = cov[0, 0], cov[0, 1], cov[0, 2]
     syx, syy, syz = cov[1, 0], cov[1, 1], cov[1, 2]
     szx, szy, szz = cov[2, 0], cov[2, 1], cov[2, 2]
-    a = np.empty((4, 4))
     a[0, 0], a[0, 1], a[0, 2], a[0, 3] = sxx + syy + szz, syz - szy, szx - sxz, sxy - syx
     a[1, 1], a[1, 2], a[1, 3] = sxx - syy - szz, sxy + syx, szx + sxz
     a[2, 2], a[2, 3] = -sxx + syy - szz, syz + szy
@@ -159,7 +158,8 @@ def _horn_rotation(cov, out):  # pragma: no cover - compiled
     for i in range(4):
         for j in range(i):
             a[i, j] = a[j, i]
-    v = np.eye(4)
+        for j in range(4):
+            v[i, j] = 1.0 if i == j else 0.0
     size = 0.0
     for i in range(4):
         for j in range(4):
@@ -206,10 +206,14 @@ def _horn_rotation(cov, out):  # pragma: no cover - compiled
 def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
     """``_fit_many`` compiled: per set h the centred cross-covariance, Horn's rotation and the translation."""
     cov = np.empty((3, 3))
+    cs = np.empty(3)
+    cd = np.empty(3)
+    sym = np.empty((4, 4))
+    vecs = np.empty((4, 4))
     for h in range(src.shape[0]):
         n = src.shape[1]
-        cs = np.zeros(3)
-        cd = np.zeros(3)
+        cs[:] = 0.0
+        cd[:] = 0.0
         for i in range(n):
             for c in range(3):
                 cs[c] += src[h, i, c]
@@ -222,7 +226,7 @@ def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
             for a in range(3):
                 for b in range(3):
                     cov[a, b] += (src[h, i, a] - cs[a]) * (dst[h, i, b] - cd[b])
-        _horn_rotation(cov, rotation[h])
+        _horn_rotation(cov, rotation[h], sym, vecs)
         for c in range(3):
             translation[h, c] = cd[c] - (rotation[h, c, 0] * cs[0] + rotation[h, c, 1] * cs[1]
                                          + rotation[h, c, 2] * cs[2])
@@ -622,10 +626,12 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
         sampled = np.flatnonzero(active & ~guessed)  # the least-squares fit failed: sample
         if sampled.size:
             bases = np.array([_key_base((seed, g, len(found[g]))) for g in sampled], np.uint64)
-            r, t, ok = _ransac_groups(src, dst, scale, np.where(np.isin(current, sampled), current, -1), sampled,
-                                      bases, threshold)
+            chosen = np.zeros(count + 1, bool)  # by group, the last entry for no group (-1)
+            chosen[sampled] = True
+            chosen = chosen[current]  # np.isin(current, sampled), by lookup
+            r, t, ok = _ransac_groups(src, dst, scale, np.where(chosen, current, -1), sampled, bases, threshold)
             rotation[sampled], translation[sampled] = r, t
-            inliers = np.where(np.isin(current, sampled), ok, inliers)
+            inliers = np.where(chosen, ok, inliers)
         kept = np.bincount(current[inliers], minlength=count)
         success = active & (kept >= min_points) & (kept >= min_share * sizes)
         for g in np.flatnonzero(success):
@@ -701,8 +707,10 @@ def fit_groups(src: np.ndarray, dst: np.ndarray, labels: np.ndarray, count: int)
 
 @njit(cache=True, nogil=True)
 def _horn_rotations(cov, out):  # pragma: no cover - compiled
+    a = np.empty((4, 4))
+    v = np.empty((4, 4))
     for g in range(cov.shape[0]):
-        _horn_rotation(cov[g], out[g])
+        _horn_rotation(cov[g], out[g], a, v)
 
 
 @njit(cache=True, nogil=True)

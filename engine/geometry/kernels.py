@@ -840,9 +840,13 @@ def row_spans(moving, width, out):
     """Per row y of ``out`` (H, 2) the columns [first, last + 1) of its pixels in ``moving`` (flat indices,
     increasing), [0, 0) for a row without any."""
     out[:, :] = 0
+    y = 0
+    row_start = 0  # rows are walked with the pixels (no division per pixel)
     for i in range(moving.size):
-        y = moving[i] // width
-        x = moving[i] - y * width
+        while moving[i] >= row_start + width:
+            y += 1
+            row_start += width
+        x = moving[i] - row_start
         if out[y, 1] == 0:
             out[y, 0] = x
         out[y, 1] = x + 1

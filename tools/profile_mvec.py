@@ -10,9 +10,9 @@ method prepares every evaluation pair's history and renders its k-1 targets, war
 predicted frame (medians over the runs): the wall time and its ratio to ``reproject``, the CPU time of all the
 process's threads and its ratio (steadier than wall time on a shared machine; not the target, which is wall
 time), and each pass's wall time: ``prepare:<stage>`` (the preparation's stages, divided over the predicted
-frames) and ``render:<stage>`` (``motion``: the extrapolated flow; ``warp``, ``fill``). Pairs without frame
-n-2k (the first of each sequence) have no ``acceleration`` or ``rigid`` stage; a pass's median counts them
-as 0 ms.
+frames; ``rigid.groups``, ``rigid.parts`` and ``rigid.keep`` are the steps of ``rigid``) and ``render:<stage>``
+(``motion``: the extrapolated flow; ``warp``, ``fill``). Pairs without frame n-2k (the first of each sequence)
+have no ``acceleration`` or ``rigid`` stage; a pass's median counts them as 0 ms.
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from engine.geometry import kernels
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
            "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
            "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "extrapolated_flow", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+           "velocity_change_args", "extrapolated_flow", "flow_spans", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -342,6 +342,21 @@ def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray
     most ``limit`` times the velocity: smooth motion. Elsewhere (a point unseen in the previous frame, a
     bounce, a start, a stop) the change is 0, i.e. constant velocity.
     """
+    args = velocity_change_args(depth, vectors, velocity, camera, previous, prev_depth, prev_velocity,
+                                interval_ratio, band=band, limit=limit)
+    moving = np.ascontiguousarray(moving, dtype=np.int64)
+    out = np.empty((moving.size, 3), dtype=np.float32)
+    kernels.velocity_change(*args[:3], moving, *args[3:], out)
+    return out
+
+
+def velocity_change_args(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray, camera: Camera,
+                         previous: Camera, prev_depth: np.ndarray, prev_velocity: np.ndarray,
+                         interval_ratio: float = 1.0, *, band: float = DEFAULT_DEPTH_BAND,
+                         limit: float = 0.5) -> tuple:
+    """``velocity_change``'s inputs checked and laid out for its compiled kernel (``kernels.velocity_change``):
+    (depth, vectors, velocity, k_inv, rot, trans, prev_depth, prev_velocity, interval_ratio, band, limit), for
+    a pass that computes the change of only some moving pixels (``rigid.kept_part_motion``)."""
     sizes: dict = {}
     depth = checked_array(depth, "depth", ("H", "W"), sizes)
     vectors = checked_array(vectors, "motion_vectors", ("H", "W", 2), sizes)
@@ -349,14 +364,20 @@ def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray
     prev_sizes: dict = {}
     prev_depth = checked_array(prev_depth, "prev_depth", ("h", "w"), prev_sizes)
     prev_velocity = checked_array(prev_velocity, "prev_velocity", ("h", "w", 3), prev_sizes)
-    moving = np.ascontiguousarray(moving, dtype=np.int64)
     relative = previous.world_to_camera @ camera.camera_to_world
-    out = np.empty((moving.size, 3), dtype=np.float32)
-    kernels.velocity_change(np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(velocity),
-                            moving, np.linalg.inv(camera.intrinsics), np.ascontiguousarray(relative[:3, :3]),
-                            np.ascontiguousarray(relative[:3, 3]), np.ascontiguousarray(prev_depth),
-                            np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band),
-                            float(limit), out)
+    return (np.ascontiguousarray(depth), np.ascontiguousarray(vectors), np.ascontiguousarray(velocity),
+            np.linalg.inv(camera.intrinsics), np.ascontiguousarray(relative[:3, :3]),
+            np.ascontiguousarray(relative[:3, 3]), np.ascontiguousarray(prev_depth),
+            np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), float(limit))
+
+
+def flow_spans(moving: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Per row of a (H, W) frame the columns [first, last + 1) of its pixels in ``moving`` (flat indices,
+    increasing), [0, 0) for a row without any: (H, 2) int64, the ``flow_spans`` of ``forward_warp_frame`` for a
+    flow that is 0 outside ``moving`` (``extrapolated_flow``'s)."""
+    h, w = shape
+    out = np.empty((h, 2), np.int64)
+    kernels.row_spans(np.ascontiguousarray(moving, np.int64), w, out)
     return out
 
 

@@ -34,15 +34,18 @@ import numpy as np
 from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
+from engine.geometry import kernels
 from engine.geometry.regions import region_keeps
 
 __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
-           "moving_points", "moving_points_reference", "scatter_rows", "robust_rigid", "rigid_parts",
+           "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
+           "rigid_parts",
            "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
-           "apply_parts", "refined_before", "refined_before_reference", "previous_positions",
+           "apply_parts", "apply_parts_reference", "kept_part_motion", "kept_part_motion_reference",
+           "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
-           "hindcast_keeps", "hindcast_errors", "rigid_explains_better", "project_points"]
+           "hindcast_keeps", "hindcast_errors", "hindcast_errors_reference", "rigid_explains_better", "project_points"]
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
@@ -141,14 +144,13 @@ def fit_rigid(src: np.ndarray, dst: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _horn_rotation(cov, out):  # pragma: no cover - compiled
+def _horn_rotation(cov, out, a, v):  # pragma: no cover - compiled
     """The rotation (into ``out`` (3, 3)) that best turns centred points a onto b given their cross-covariance
     ``cov`` = sum a b^T (Horn 1987: the unit quaternion of the largest eigenvalue of a symmetric 4x4, here by
-    cyclic Jacobi sweeps): ``fit_rigid``'s rotation, without its 3x3 SVD."""
+    cyclic Jacobi sweeps): ``fit_rigid``'s rotation, without its 3x3 SVD. ``a``, ``v``: (4, 4) scratch."""
     sxx, sxy, sxz = cov[0, 0], cov[0, 1], cov[0, 2]
     syx, syy, syz = cov[1, 0], cov[1, 1], cov[1, 2]
     szx, szy, szz = cov[2, 0], cov[2, 1], cov[2, 2]
-    a = np.empty((4, 4))
     a[0, 0], a[0, 1], a[0, 2], a[0, 3] = sxx + syy + szz, syz - szy, szx - sxz, sxy - syx
     a[1, 1], a[1, 2], a[1, 3] = sxx - syy - szz, sxy + syx, szx + sxz
     a[2, 2], a[2, 3] = -sxx + syy - szz, syz + szy
@@ -156,7 +158,8 @@ def _horn_rotation(cov, out):  # pragma: no cover - compiled
     for i in range(4):
         for j in range(i):
             a[i, j] = a[j, i]
-    v = np.eye(4)
+        for j in range(4):
+            v[i, j] = 1.0 if i == j else 0.0
     size = 0.0
     for i in range(4):
         for j in range(4):
@@ -203,10 +206,14 @@ def _horn_rotation(cov, out):  # pragma: no cover - compiled
 def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
     """``_fit_many`` compiled: per set h the centred cross-covariance, Horn's rotation and the translation."""
     cov = np.empty((3, 3))
+    cs = np.empty(3)
+    cd = np.empty(3)
+    sym = np.empty((4, 4))
+    vecs = np.empty((4, 4))
     for h in range(src.shape[0]):
         n = src.shape[1]
-        cs = np.zeros(3)
-        cd = np.zeros(3)
+        cs[:] = 0.0
+        cd[:] = 0.0
         for i in range(n):
             for c in range(3):
                 cs[c] += src[h, i, c]
@@ -219,7 +226,7 @@ def _fit_sets(src, dst, rotation, translation):  # pragma: no cover - compiled
             for a in range(3):
                 for b in range(3):
                     cov[a, b] += (src[h, i, a] - cs[a]) * (dst[h, i, b] - cd[b])
-        _horn_rotation(cov, rotation[h])
+        _horn_rotation(cov, rotation[h], sym, vecs)
         for c in range(3):
             translation[h, c] = cd[c] - (rotation[h, c, 0] * cs[0] + rotation[h, c, 1] * cs[1]
                                          + rotation[h, c, 2] * cs[2])
@@ -406,6 +413,23 @@ def project_points(points: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     return out
 
 
+def _refit_guess(src, dst, scale, guess, threshold):
+    """``robust_rigid``'s guess, refitted on its inliers (compiled: ``group_inliers`` and ``fit_groups`` of one
+    group) where it explains half the points or more: (R, t, inliers), else None."""
+    if guess is None:
+        return None
+    n = len(src)
+    src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+    scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+    inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
+                            np.asarray(guess[1], np.float64)[None], threshold)
+    if inliers.sum() < max(3, n // 2):
+        return None
+    rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
+    inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
+    return rotation[0], translation[0], inliers
+
+
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
                  threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
                  guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -418,15 +442,36 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple
     ``guess`` (R, t) that already explains half the points is refitted instead, without sampling (a part's
     transform of the interval before, under steady motion)."""
     n = len(src)
-    if guess is not None:  # compiled: ``group_inliers`` and ``fit_groups`` of one group
-        src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
-        scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
-        inliers = group_inliers(src, dst, scale, one, np.asarray(guess[0], np.float64)[None],
-                                np.asarray(guess[1], np.float64)[None], threshold)
-        if inliers.sum() >= max(3, n // 2):
-            rotation, translation = fit_groups(src, dst, np.where(inliers, 0, -1), 1)
-            inliers = group_inliers(src, dst, scale, one, rotation, translation, threshold)
-            return rotation[0], translation[0], inliers
+    guessed = _refit_guess(src, dst, scale, guess, threshold)
+    if guessed is not None:
+        return guessed
+    src, dst = np.ascontiguousarray(src, np.float64), np.ascontiguousarray(dst, np.float64)
+    scale, one = np.ascontiguousarray(scale, np.float64), np.zeros(n, np.int64)
+    sample, picks = draws(_key_base(key), n, hypotheses)
+    r, t = _fit_many(src[picks], dst[picks])
+    best = np.zeros(1, np.int64)  # compiled scores: those of ``robust_rigid_reference``, without its (H, n, 3) arrays
+    _best_hypotheses(src, dst, scale, sample.astype(np.int64), np.array([0, sample.size], np.int64), r, t, hypotheses,
+                     float(threshold), best)
+    rotation, translation = r[best[0]], t[best[0]]
+    inliers = group_inliers(src, dst, scale, one, rotation[None], translation[None], threshold)
+    for _ in range(rounds):
+        if inliers.sum() < 3:
+            break
+        rotation, translation = fit_rigid(src[inliers], dst[inliers])
+        inliers = group_inliers(src, dst, scale, one, rotation[None], translation[None], threshold)
+    return rotation, translation, inliers
+
+
+def robust_rigid_reference(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
+                           threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                           guess: Optional[tuple[np.ndarray, np.ndarray]] = None
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``robust_rigid`` in numpy: the hypotheses scored by ``einsum``, the inliers by ``transform_points`` (the
+    test oracle; that docstring states it)."""
+    n = len(src)
+    guessed = _refit_guess(src, dst, scale, guess, threshold)
+    if guessed is not None:
+        return guessed
     sample, picks = draws(_key_base(key), n, hypotheses)
     r, t = _fit_many(src[picks], dst[picks])
     moved = np.einsum("hij,nj->hni", r, src[sample]) + t[:, None, :]
@@ -581,10 +626,12 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
         sampled = np.flatnonzero(active & ~guessed)  # the least-squares fit failed: sample
         if sampled.size:
             bases = np.array([_key_base((seed, g, len(found[g]))) for g in sampled], np.uint64)
-            r, t, ok = _ransac_groups(src, dst, scale, np.where(np.isin(current, sampled), current, -1), sampled,
-                                      bases, threshold)
+            chosen = np.zeros(count + 1, bool)  # by group, the last entry for no group (-1)
+            chosen[sampled] = True
+            chosen = chosen[current]  # np.isin(current, sampled), by lookup
+            r, t, ok = _ransac_groups(src, dst, scale, np.where(chosen, current, -1), sampled, bases, threshold)
             rotation[sampled], translation[sampled] = r, t
-            inliers = np.where(np.isin(current, sampled), ok, inliers)
+            inliers = np.where(chosen, ok, inliers)
         kept = np.bincount(current[inliers], minlength=count)
         success = active & (kept >= min_points) & (kept >= min_share * sizes)
         for g in np.flatnonzero(success):
@@ -609,9 +656,9 @@ def rigid_parts_reference(labels: np.ndarray, count: int, points: np.ndarray, be
             if left.size < max(min_points, 3):
                 break
             # the least-squares fit of all of them first: a group that is one clean part needs no sampling
-            rotation, translation, inliers = robust_rigid(before[left], points[left], scale[left],
-                                                          (seed, g, len(found)), threshold=threshold,
-                                                          guess=fit_rigid(before[left], points[left]))
+            rotation, translation, inliers = robust_rigid_reference(before[left], points[left], scale[left],
+                                                                    (seed, g, len(found)), threshold=threshold,
+                                                                    guess=fit_rigid(before[left], points[left]))
             kept = int(inliers.sum())
             if kept < min_points or kept < min_share * left.size:
                 break
@@ -660,8 +707,10 @@ def fit_groups(src: np.ndarray, dst: np.ndarray, labels: np.ndarray, count: int)
 
 @njit(cache=True, nogil=True)
 def _horn_rotations(cov, out):  # pragma: no cover - compiled
+    a = np.empty((4, 4))
+    v = np.empty((4, 4))
     for g in range(cov.shape[0]):
-        _horn_rotation(cov[g], out[g])
+        _horn_rotation(cov[g], out[g], a, v)
 
 
 @njit(cache=True, nogil=True)
@@ -717,18 +766,6 @@ def moving_points(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, i
     _moving_points(np.ascontiguousarray(depth).reshape(-1), np.ascontiguousarray(velocity).reshape(-1, 3), moving,
                    w, np.linalg.inv(np.asarray(intrinsics, np.float64)), int(stride), now, speed, z, grid)
     return now, speed, z, np.flatnonzero(grid)
-
-
-@njit(cache=True, nogil=True)
-def _scatter_rows(out, index, rows):  # pragma: no cover - compiled
-    for i in range(index.size):
-        for c in range(out.shape[1]):
-            out[index[i], c] = rows[i, c]
-
-
-def scatter_rows(out: np.ndarray, index: np.ndarray, rows: np.ndarray) -> None:
-    """``out[index] = rows`` for a (N, C) ``out`` and distinct ``index`` (numpy's row scatter, compiled)."""
-    _scatter_rows(out, np.ascontiguousarray(index, np.int64), np.ascontiguousarray(rows, out.dtype))
 
 
 def moving_points_reference(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, intrinsics: np.ndarray,
@@ -861,42 +898,81 @@ def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pr
         out[2] += math.sqrt(d) / m
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit):  # pragma: no cover
+    """The first part of group ``g`` whose transform explains moving pixel i within ``limit`` pixels, or -1."""
+    for j in range(starts[g], starts[g + 1]):
+        r2 = 0.0
+        for c in range(3):
+            moved = translations[j, c] - now[i, c]
+            for e in range(3):
+                moved += rotations[j, c, e] * (now[i, e] - speed[i, e])
+            r2 += moved * moved
+        if math.sqrt(r2) * focal / depth[i] > limit:
+            continue
+        return j
+    return -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, out_v, row_v, out_a,
+                row_a):  # pragma: no cover - compiled
+    """Moving pixel i's V and A into ``out_v[row_v]``, ``out_a[row_a]``: part j's path, or (j < 0) its own."""
+    for c in range(3):
+        if j < 0:
+            out_v[row_v, c] = speed[i, c]
+            out_a[row_a, c] = acceleration[i, c] if has_acceleration else 0.0
+            continue
+        v = affine[j, 0, c, 3]
+        a = affine[j, 1, c, 3]
+        for e in range(3):
+            v += affine[j, 0, c, e] * now[i, e]
+            a += affine[j, 1, c, e] * now[i, e]
+        out_v[row_v, c] = v
+        out_a[row_a, c] = a
+
+
 @njit(cache=True, nogil=True)
-def _apply_parts(now, speed, depth, labels, starts, rotations, translations, affine, focal, limit, offset,
-                 out_v, out_a, regions):  # pragma: no cover - compiled
-    """``apply_parts`` compiled: per moving pixel, the first part of its group whose transform explains it."""
+def _apply_parts(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations, affine,
+                 focal, limit, offset, out_v, out_a, regions):  # pragma: no cover - compiled
+    """``apply_parts`` compiled: per moving pixel the first part of its group whose transform explains it."""
     for i in range(now.shape[0]):
         g = labels[i]
-        for j in range(starts[g], starts[g + 1]):
-            r2 = 0.0
-            for c in range(3):
-                moved = translations[j, c] - now[i, c]
-                for e in range(3):
-                    moved += rotations[j, c, e] * (now[i, e] - speed[i, e])
-                r2 += moved * moved
-            if math.sqrt(r2) * focal / depth[i] > limit:
-                continue
-            for c in range(3):
-                v = affine[j, 0, c, 3]
-                a = affine[j, 1, c, 3]
-                for e in range(3):
-                    v += affine[j, 0, c, e] * now[i, e]
-                    a += affine[j, 1, c, e] * now[i, e]
-                out_v[i, c] = v
-                out_a[i, c] = a
-            regions[i] = offset + j
-            break
+        j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
+        regions[i] = g if j < 0 else offset + j
+        _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, out_v, i, out_a, i)
 
 
-def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, parts: list,
-                affines: list, focal: float, limit: float, out_v: np.ndarray, out_a: np.ndarray,
-                regions: np.ndarray) -> None:
-    """Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels``) that
-    the transform of a part of its group (``parts``, in the order of their groups) explains within ``limit``
-    pixels (residual times ``focal / depth``) takes that part's path: ``out_v``, ``out_a`` (M, 3) get
-    the V and A of its ``affines`` entry (``path_affine``), ``regions`` (M,) its number plus the count of
-    groups (the regions of the fall-back). The others are left as they are."""
-    count = int(labels.max()) + 1 if labels.size else 0
+@njit(cache=True, nogil=True)
+def _kept_part_motion(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations,
+                      affine, focal, limit, offset, moving, keep, velocity, moving_out, acceleration_out, own,
+                      own_rows):  # pragma: no cover - compiled
+    """``kept_part_motion`` compiled: ``_apply_parts`` per pixel, its kept rows scattered and compacted in the
+    same pass; with ``own``, the kept pixels that keep their own motion get no acceleration row but their row
+    in ``own_rows``. Returns (the count of kept rows, of those)."""
+    n = 0
+    m = 0
+    for i in range(now.shape[0]):
+        g = labels[i]
+        j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
+        if not keep[g if j < 0 else offset + j]:
+            continue
+        p = moving[i]
+        if j < 0 and own:
+            for c in range(3):
+                velocity[p, c] = speed[i, c]
+            own_rows[m] = n
+            m += 1
+        else:
+            _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, p, acceleration_out, n)
+        moving_out[n] = p
+        n += 1
+    return n, m
+
+
+def _part_tables(parts: list, affines: list, count: int):
+    """``apply_parts``' stacks: each group's first part (``starts`` (count + 1,)), the parts' rotations,
+    translations, and their affines as (P, 2, 3, 4) (V then A, matrix and offset)."""
     groups = np.array([p.group for p in parts], dtype=np.int64)
     starts = np.searchsorted(groups, np.arange(count + 1)).astype(np.int64)
     rotations = np.array([p.rotation for p in parts], dtype=np.float64).reshape(-1, 3, 3)
@@ -904,9 +980,108 @@ def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: n
     table = np.zeros((len(parts), 2, 3, 4))
     for j, (vm, vt, am, at) in enumerate(affines):
         table[j, 0, :, :3], table[j, 0, :, 3], table[j, 1, :, :3], table[j, 1, :, 3] = vm, vt, am, at
+    return starts, rotations, translations, table
+
+
+def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int, parts: list,
+                affines: list, focal: float, limit: float,
+                acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The moving pixels' motion with their rigid parts' paths: (V (M, 3), A (M, 3) float32, regions (M,) int64).
+
+    Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels`` in
+    [0, ``count``)) that the transform of a part of its group (``parts``, in the order of their groups) explains
+    within ``limit`` pixels (residual times ``focal / depth``) takes that part's path: the V and A of its
+    ``affines`` entry (``path_affine``), its region the part's number plus ``count`` (the regions of the
+    fall-back). The others keep their own velocity, their ``acceleration`` row (or 0) and their group as
+    region. Compiled; ``apply_parts_reference`` is its numpy oracle."""
+    m = len(labels)
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    has_acceleration = acceleration is not None
+    acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
+    out_v, out_a, regions = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.int64)
     _apply_parts(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
-                 np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64), starts, rotations,
-                 translations, table, float(focal), float(limit), count, out_v, out_a, regions)
+                 np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+                 np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations, translations,
+                 table, float(focal), float(limit), int(count), out_v, out_a, regions)
+    return out_v, out_a, regions
+
+
+def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int,
+                          parts: list, affines: list, focal: float, limit: float,
+                          acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``apply_parts`` in numpy, part by part (the test oracle; the sums in the kernel's order)."""
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    out_v = speed.astype(np.float32)
+    out_a = np.zeros_like(out_v) if acceleration is None else np.array(acceleration, np.float32)
+    regions = np.array(labels, np.int64)
+    taken = np.zeros(len(labels), bool)
+    for j, part in enumerate(parts):
+        on = np.flatnonzero((labels == part.group) & ~taken)
+        p, v = now[on], speed[on]
+        r2 = np.zeros(on.size)
+        for c in range(3):
+            moved = translations[j, c] - p[:, c]
+            for e in range(3):
+                moved = moved + rotations[j, c, e] * (p[:, e] - v[:, e])
+            r2 = r2 + moved * moved
+        on = on[~(np.sqrt(r2) * focal / depth[on] > limit)]
+        for c in range(3):
+            vel, acc = np.full(on.size, table[j, 0, c, 3]), np.full(on.size, table[j, 1, c, 3])
+            for e in range(3):
+                vel = vel + table[j, 0, c, e] * now[on, e]
+                acc = acc + table[j, 1, c, e] * now[on, e]
+            out_v[on, c], out_a[on, c] = vel, acc
+        regions[on], taken[on] = count + j, True
+    return out_v, out_a, regions
+
+
+def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
+                     depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list, focal: float,
+                     limit: float, acceleration: Optional[np.ndarray], keep: np.ndarray,
+                     change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``apply_parts`` of the moving pixels ``moving`` (flat indices into ``shape``), keeping those whose region
+    is kept (``keep`` (count + len(parts),) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
+    (N,), their acceleration (N, 3) float32), in one pass. With ``change`` (``motion.velocity_change_args``)
+    in place of ``acceleration``, the change of velocity is computed there for the kept pixels that keep their
+    own motion only (the others take their part's path or the camera-only warp): ``velocity_change``'s rows of
+    those pixels. Compiled; ``kept_part_motion_reference`` is its numpy oracle."""
+    h, w = shape
+    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    has_acceleration = acceleration is not None
+    acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
+    velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
+    moving_out, acceleration_out = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
+    own_rows = np.empty(len(moving) if change is not None else 0, np.int64)
+    n, m = _kept_part_motion(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
+                             np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+                             np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations,
+                             translations, table, float(focal), float(limit), int(count),
+                             np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(keep, np.bool_),
+                             velocity.reshape(-1, 3), moving_out, acceleration_out, change is not None, own_rows)
+    if m:  # the change of velocity of the pixels that keep their own motion, and of those only
+        rows = own_rows[:m]
+        own = np.empty((m, 3), np.float32)
+        kernels.velocity_change(*change[:3], moving_out[rows], *change[3:], own)
+        acceleration_out[rows] = own
+    return velocity, moving_out[:n], acceleration_out[:n]
+
+
+def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
+                               depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list,
+                               focal: float, limit: float, acceleration: Optional[np.ndarray],
+                               keep: np.ndarray, change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray,
+                                                                                         np.ndarray]:
+    """``kept_part_motion`` in numpy: ``velocity_change`` of every moving pixel (with ``change``),
+    ``apply_parts_reference``, then the kept rows by boolean masks."""
+    if change is not None:
+        acceleration = np.empty((len(moving), 3), np.float32)
+        kernels.velocity_change(*change[:3], np.asarray(moving, np.int64), *change[3:], acceleration)
+    rows_v, rows_a, regions = apply_parts_reference(now, speed, depth, labels, count, parts, affines, focal, limit,
+                                                    acceleration)
+    kept = np.asarray(keep, bool)[regions]
+    velocity = np.zeros(tuple(shape) + (3,), np.float32)
+    velocity.reshape(-1, 3)[moving[kept]] = rows_v[kept]
+    return velocity, np.asarray(moving, np.int64)[kept], rows_a[kept]
 
 
 @njit(cache=True, nogil=True)
@@ -921,6 +1096,7 @@ def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth
     """``refined_before`` compiled, point by point (``refined_before_reference`` states it)."""
     w = vectors.shape[1]
     ph, pw = prev_depth.shape
+    seen = np.empty(3)
     for i in range(moving.size):
         qx, qy = _vector_end(vectors, moving[i], w)
         for c in range(3):
@@ -946,7 +1122,6 @@ def _refined_before(before, vectors, moving, relative, prev_depth, k_inv, smooth
         if not ok or not inverse > 0:
             continue
         depth = 1.0 / inverse
-        seen = np.empty(3)
         for c in range(3):
             seen[c] = (qx * k_inv[c, 0] + qy * k_inv[c, 1] + k_inv[c, 2]) * depth - relative[c, 3]
         for c in range(3):  # R^T (p - t): frame n's axes
@@ -978,6 +1153,7 @@ def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velo
     w = vectors.shape[1]
     ph, pw = prev_depth.shape
     fh, fw = first_depth.shape
+    there = np.empty(3)
     for i in range(moving.size):
         qx, qy = _vector_end(vectors, moving[i], w)
         inside = qx >= 0 and qx < pw and qy >= 0 and qy < ph
@@ -993,7 +1169,6 @@ def _previous_positions(vectors, moving, before, relative, prev_depth, prev_velo
                  + np.float64(prev_velocity[yi, xi, 2]) * relative[2, c])
             earlier[i, c] = before[i, c] - v * interval_ratio
         if ok and has_first:
-            there = np.empty(3)
             for c in range(3):
                 there[c] = (earlier[i, 0] * view[c, 0] + earlier[i, 1] * view[c, 1] + earlier[i, 2] * view[c, 2]
                             + view[c, 3])
@@ -1114,9 +1289,31 @@ def previous_positions_reference(depth: np.ndarray, vectors: np.ndarray, moving:
     return earlier, valid
 
 
+@njit(cache=True, nogil=True)
+def _hindcast_errors(now, predicted, k, out):  # pragma: no cover - compiled
+    """``hindcast_errors`` compiled: ``project_points``' arithmetic, point by point."""
+    for i in range(now.shape[0]):
+        az, bz = predicted[i, 2], now[i, 2]
+        if not (az > 1e-9 and bz > 1e-9):
+            out[i] = np.nan
+            continue
+        dx = (k[0, 0] * predicted[i, 0] / az + k[0, 1] * predicted[i, 1] / az + k[0, 2]) - (
+            k[0, 0] * now[i, 0] / bz + k[0, 1] * now[i, 1] / bz + k[0, 2])
+        dy = (k[1, 1] * predicted[i, 1] / az + k[1, 2]) - (k[1, 1] * now[i, 1] / bz + k[1, 2])
+        out[i] = math.sqrt(dx * dx + dy * dy)
+
+
 def hindcast_errors(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
     """Per point, how far (frame n's pixels) ``predicted`` (M, 3) lands from where frame n shows it (``now``);
-    NaN where either is behind the camera."""
+    NaN where either is behind the camera. Compiled; ``hindcast_errors_reference`` is its numpy oracle."""
+    out = np.empty(len(now))
+    _hindcast_errors(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(predicted, np.float64),
+                     np.ascontiguousarray(intrinsics, np.float64), out)
+    return out
+
+
+def hindcast_errors_reference(now: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray) -> np.ndarray:
+    """``hindcast_errors`` in numpy (``project_points``)."""
     return np.linalg.norm(project_points(predicted, intrinsics) - project_points(now, intrinsics), axis=-1)
 
 

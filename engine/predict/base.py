@@ -26,7 +26,7 @@ from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, rigid_inverse
 from engine.geometry.encoding import FRAME_ENCODINGS
 from engine.geometry.holefill import fill_holes
-from engine.geometry.motion import extrapolated_flow
+from engine.geometry.motion import extrapolated_flow, flow_spans
 
 __all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill",
            "extrapolation_factor", "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
@@ -222,23 +222,25 @@ class CpuFrames:
                 buffer = buffers[frame.depth.shape] = np.zeros((3,) + frame.depth.shape, np.float32)
             moved = extrapolated_flow(frame.depth, flow.velocity, frame.camera.intrinsics, flow_scale, flow.moving,
                                       flow.acceleration, out=np.moveaxis(buffer, 0, -1))
+            spans = flow_spans(flow.moving, frame.depth.shape)  # the warp reads the flow in these columns only
         try:
-            return warp_and_fill(frame, target, timer, moved)
+            return warp_and_fill(frame, target, timer, moved, spans)
         finally:
             for plane in buffer.reshape(3, -1):  # zero again for the next render (plane by plane: 3x faster)
                 plane[flow.moving] = 0.0
 
 
-def warp_and_fill(frame: Frame, target: Target, timer: Timer,
-                  flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and
-    fill the holes (``engine.geometry.holefill``); stages ``warp`` and ``fill``. Returns (colour, holes)."""
-    color, _, holes = warp_fill_depth(frame, target, timer, flow)
+def warp_and_fill(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
+                  flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3), 0
+    outside each row's ``flow_spans`` columns) and fill the holes (``engine.geometry.holefill``); stages
+    ``warp`` and ``fill``. Returns (colour, holes)."""
+    color, _, holes = warp_fill_depth(frame, target, timer, flow, flow_spans)
     return color, holes
 
 
-def warp_fill_depth(frame: Frame, target: Target, timer: Timer,
-                    flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def warp_fill_depth(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
+                    flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``warp_and_fill`` that also returns the warped planar depth (H, W), filled as the colour is (+inf where
     nothing was left to fill from): (colour, depth, holes). For frame n-k and frame n's camera this is the
     camera-compensated frame n-k that the flow estimators match frame n against."""
@@ -246,7 +248,7 @@ def warp_fill_depth(frame: Frame, target: Target, timer: Timer,
     with timer("warp"):
         color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera,
-                                                          flow)
+                                                          flow, flow_spans=flow_spans)
     with timer("fill"):
         color, depth = fill_holes(color, depth, holes, frame.color)
     return color, depth, holes

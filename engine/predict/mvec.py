@@ -38,11 +38,12 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, motion_components, moving_points, part_motion,
-                                   previous_positions, refined_before, rigid_explains_better, rigid_parts, rotation_log,
-                                   scatter_rows)
+from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_part_motion, motion_components,
+                                   moving_points, part_motion, previous_positions, refined_before,
+                                   rigid_explains_better, rigid_parts, rotation_log)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
-                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change)
+                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change,
+                                    velocity_change_args)
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
@@ -108,7 +109,8 @@ class MvecConfig:
 class MvecState:
     """``mvec``'s per-frame state: ``velocity`` (H, W, 3) scene units per frame interval n-k -> n in frame
     n's camera axes, ``moving`` the flat indices of the pixels with a non-zero velocity, ``acceleration``
-    (len(moving), 3) their change of velocity per interval, or None (constant velocity)."""
+    (len(moving), 3) their change of velocity per interval, or None (constant velocity; and with pass ``rigid``,
+    which computes it for the pixels that keep their own motion only, into ``motion``)."""
 
     velocity: np.ndarray
     moving: np.ndarray
@@ -168,19 +170,24 @@ class Mvec(Predictor):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
         data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
-        before = None
+        before, change = None, None
         if moving.size and len(state.history) >= 3 and (cfg.acceleration or cfg.fallback):
             with timer("acceleration"):
                 before = self._before(state.history[-3:])
+                shaped = before is not None and (cfg.extrapolation == "rigid" or cfg.fallback)
                 if cfg.acceleration and before is not None:
-                    data.acceleration = velocity_change(newest.depth, vectors, velocity, moving, newest.camera,
-                                                        older.camera, older.depth, before[0], before[1],
-                                                        band=cfg.depth_band, limit=cfg.acceleration_limit)
+                    args = (newest.depth, vectors, velocity)
+                    rest = (newest.camera, older.camera, older.depth, before[0], before[1])
+                    if shaped:  # computed in pass ``rigid``, for the pixels that keep their own motion only
+                        change = velocity_change_args(*args, *rest, band=cfg.depth_band, limit=cfg.acceleration_limit)
+                    else:
+                        data.acceleration = velocity_change(*args, moving, *rest, band=cfg.depth_band,
+                                                            limit=cfg.acceleration_limit)
         if moving.size:
             motion = PointMotion(velocity, moving, data.acceleration)
             if before is not None and (cfg.extrapolation == "rigid" or cfg.fallback):  # else: nothing to decide
                 with timer("rigid"):
-                    motion = self._shaped(state.history, vectors, data, before)
+                    motion = self._shaped(state.history, vectors, data, before, change, timer)
             if motion.moving.size:
                 data.motion = self.frames.resident_flow(motion, timer)
         return data
@@ -198,8 +205,8 @@ class Mvec(Predictor):
             before, _ = self._velocity(older, first, self._vectors(older))
         return before, (newest.time - older.time) / (older.time - first.time)
 
-    def _shaped(self, history, vectors: np.ndarray, data: MvecState,
-                before: tuple[np.ndarray, float]) -> PointMotion:
+    def _shaped(self, history, vectors: np.ndarray, data: MvecState, before: tuple[np.ndarray, float],
+                change: Optional[tuple], timer: Timer) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
         the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
         the screw, or the spin about the part's centre where the interval before says so, with its change
@@ -208,70 +215,71 @@ class Mvec(Predictor):
         part, or the rest of a group of pixels that move alike) whose motion of the interval before, continued,
         explained the last interval worse than ``fallback_ratio`` times no object motion is left out: it takes
         the camera-only warp. Fits and checks read a grid sample. Needs frame n-2k (``before``: frame n-k's
-        velocity and the ratio of the intervals, ``_before``)."""
+        velocity and the ratio of the intervals, ``_before``). ``change`` (``velocity_change_args``, with
+        ``acceleration``): the change of velocity is computed here, for the kept pixels that keep their own
+        motion only (``kept_part_motion``). Its steps are timed as stages ``rigid.groups`` (the moving points and
+        their groups), ``rigid.parts`` (the sample's history, the parts and their paths; with ``fallback`` alone,
+        the history) and ``rigid.keep`` (the fall-back's check, every pixel's motion)."""
         cfg = self.config
         older, newest = history[-2], history[-1]
         k = np.asarray(newest.camera.intrinsics, np.float64)
         moving = data.moving
         h, w = newest.depth.shape
         # fits and checks run on a sample: the moving pixels on a grid of ``stride`` pixels
-        stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
-        now, speed, z, sample = moving_points(newest.depth, data.velocity, moving, k, stride)
-        if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
-            _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
-            labels = labels.astype(np.int64).reshape(-1)
-            count = int(labels.max()) + 1
-        else:
-            labels, count = motion_components((h, w), moving, now, speed)
-        now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
-        relative = older.camera.world_to_camera @ newest.camera.camera_to_world
-        first = history[-3]
-        earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
-                                            before[0], before[1], band=cfg.depth_band,
-                                            first=(first.depth, first.camera.intrinsics,
-                                                   first.camera.world_to_camera @ newest.camera.camera_to_world))
-        predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-        out_v = speed.astype(np.float32)  # written in place
-        out_a = (np.zeros_like(out_v) if data.acceleration is None
-                 else np.array(data.acceleration, dtype=np.float32))
-        regions = labels.copy()
-        parts = []
-        if cfg.extrapolation == "rigid":
-            fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
-            parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
-                                            threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
-                     if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-            kept, affines = [], []
-            for j, part in enumerate(parts):
-                m = part.members
-                affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
-                                               part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
-                                               limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
-                # a part takes its path only where that path, continued from the interval before, explained the
-                # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
-                # too few points seen at n-2k to tell): its pixels keep their lines otherwise
-                if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
-                    continue
-                predicted[m] = hindcast
-                kept.append(part)
-                affines.append(affine)
-            parts = kept
-            # every pixel of a part's group that the part's transform explains takes its path (the sample's
-            # depths were read between pixels, the others' at one: a looser threshold)
-            apply_parts(now, speed, z, labels, parts, affines, k[0, 0], ASSIGN * cfg.rigid_threshold, out_v, out_a,
-                        regions)
-        data.parts = len(parts)
-        keep = np.ones(moving.size, dtype=bool)
-        if cfg.fallback:
-            keep = hindcast_keeps(regions[sample], count + len(parts), now_s, then_s, predicted, valid, k,
-                                  ratio=cfg.fallback_ratio)[regions]
-        data.held = int(moving.size - keep.sum())
-        if data.held:  # the rows kept, by index (numpy's boolean indexing of (M, 3) rows is ~5x slower)
-            rows = np.flatnonzero(keep)
-            moving, out_v, out_a = moving[rows], out_v.take(rows, axis=0), out_a.take(rows, axis=0)
-        velocity = np.zeros(data.velocity.shape, np.float32)  # pages without moving pixels stay untouched
-        scatter_rows(velocity.reshape(-1, 3), moving, out_v)
-        return PointMotion(velocity, moving, out_a if parts or data.acceleration is not None else None)
+        with timer("rigid.groups"):
+            stride = max(1, math.ceil(math.sqrt(moving.size / SAMPLES)))
+            now, speed, z, sample = moving_points(newest.depth, data.velocity, moving, k, stride)
+            if cfg.grouping == "ids" and newest.object_id is not None and newest.object_id.shape == (h, w):
+                _, labels = np.unique(newest.object_id.reshape(-1)[moving], return_inverse=True)  # numbered by id
+                labels = labels.astype(np.int64).reshape(-1)
+                count = int(labels.max()) + 1
+            else:
+                labels, count = motion_components((h, w), moving, now, speed)
+        with timer("rigid.parts"):
+            now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
+            relative = older.camera.world_to_camera @ newest.camera.camera_to_world
+            first = history[-3]
+            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
+                                                before[0], before[1], band=cfg.depth_band,
+                                                first=(first.depth, first.camera.intrinsics,
+                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
+            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+            parts, affines = [], []
+            if cfg.extrapolation == "rigid":
+                fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
+                parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
+                                                threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
+                         if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
+                kept = []
+                for j, part in enumerate(parts):
+                    m = part.members
+                    affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
+                                                   part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
+                                                   limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
+                    # a part takes its path only where that path, continued from the interval before, explained the
+                    # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
+                    # too few points seen at n-2k to tell): its pixels keep their lines otherwise
+                    if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
+                        continue
+                    predicted[m] = hindcast
+                    kept.append(part)
+                    affines.append(affine)
+                parts = kept
+        with timer("rigid.keep"):
+            # every pixel of a part's group that the part's transform explains takes its path (the sample's depths
+            # were read between pixels, the others' at one: a looser threshold); the others keep their own motion
+            data.parts = len(parts)
+            keep = np.ones(count + len(parts), dtype=bool)
+            limit = ASSIGN * cfg.rigid_threshold
+            if cfg.fallback:  # the sample's regions (their rigid part, else their group) keep or drop their motion
+                _, _, regions = apply_parts(now_s, speed[sample], z[sample], labels[sample], count, parts, affines,
+                                            k[0, 0], limit)
+                keep = hindcast_keeps(regions, count + len(parts), now_s, then_s, predicted, valid, k,
+                                      ratio=cfg.fallback_ratio)
+            velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, parts,
+                                                              affines, k[0, 0], limit, None, keep, change)
+            data.held = int(data.moving.size - moving.size)
+        return PointMotion(velocity, moving, acceleration if parts or change is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

@@ -7,7 +7,7 @@ import pytest
 from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera
-from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
+from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow, flow_spans,
                                     rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change)
 from engine.geometry.reference import scene_velocity_reference
@@ -296,3 +296,27 @@ def test_the_warp_reads_a_channel_first_flow_without_a_copy_and_gets_the_same_fr
     args = (color, depth, K, now.world_to_camera, K, target.world_to_camera)
     for a, b in zip(geometry.forward_warp_frame(*args, flow), geometry.forward_warp_frame(*args, flow.copy())):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_warp_reads_the_flow_in_the_moving_pixels_row_spans_only_and_gets_the_same_frame():
+    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
+    velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
+    flow = extrapolated_flow(depth, velocity, K, 0.5, moving)
+    spans = flow_spans(moving, (H, W))
+    y, x = np.divmod(moving, W)
+    for row in range(H):  # each row's first and last moving column; empty rows read nothing
+        on = x[y == row]
+        assert spans[row].tolist() == ([on.min(), on.max() + 1] if on.size else [0, 0])
+    assert (spans[:, 1] == 0).any() and (spans[:, 1] - spans[:, 0] < W).any()
+    color = np.random.default_rng(9).uniform(0, 1, (H, W, 3)).astype(np.float32)
+    target = _camera(0.01, (0.02, 0.0, 0.0))
+    args = (color, depth, K, now.world_to_camera, K, target.world_to_camera, flow)
+    for a, b in zip(geometry.forward_warp_frame(*args, flow_spans=spans), geometry.forward_warp_frame(*args)):
+        np.testing.assert_array_equal(a, b)
+    # a span that leaves out moving pixels drops their motion: the spans are read, not ignored
+    narrow = spans.copy()
+    narrow[:, 1] = narrow[:, 0]
+    assert not np.array_equal(geometry.forward_warp_frame(*args, flow_spans=narrow)[0],
+                              geometry.forward_warp_frame(*args)[0])
+    with pytest.raises(InputError, match="flow_spans"):
+        geometry.forward_warp_frame(*args, flow_spans=spans[1:])

@@ -10,6 +10,7 @@ import pytest
 
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, SceneObject, rigid_inverse
+from engine.geometry import motion as rg_motion
 from engine.geometry import rigid as rg
 from engine.geometry.motion import extrapolated_flow
 from engine.predict import Mvec, MvecConfig, Reproject, Target, make_predictor
@@ -114,6 +115,25 @@ def test_robust_rigid_recovers_a_turn_through_outliers():
     np.testing.assert_allclose(rot, r, atol=1e-6)
     np.testing.assert_allclose(trans, t, atol=1e-6)
     assert inliers[100:].all() and inliers[:100].mean() < 0.1
+
+
+def test_robust_rigids_compiled_scores_pick_the_same_fit_as_its_reference():
+    # sampled RANSAC (no guess, or a guess that fails): the compiled scores and inliers give the reference's bits,
+    # for groups smaller and larger than the score sample, inliers on the threshold's edge among them
+    rng = np.random.default_rng(7)
+    for n, wrong in ((12, 0.3), (200, 0.5), (1500, 0.4)):
+        src = rng.uniform(-1, 1, (n, 3)) + (0, 0, 5)
+        dst = src @ rotation(rng.normal(size=3), np.radians(20.0)).T + rng.normal(0, 0.2, 3)
+        dst += rng.normal(0, 0.004, (n, 3))  # residuals of about the threshold (0.01 * 100 px)
+        bad = rng.random(n) < wrong
+        dst[bad] += rng.normal(0, 0.3, (bad.sum(), 3))
+        scale = rng.uniform(80.0, 120.0, n)
+        for guess in (None, (np.eye(3), np.zeros(3))):
+            fast = rg.robust_rigid(src, dst, scale, (n, 3), guess=guess)
+            slow = rg.robust_rigid_reference(src, dst, scale, (n, 3), guess=guess)
+            for a, b in zip(fast, slow):
+                np.testing.assert_array_equal(a, b)
+            assert 0 < fast[2].sum() < n
 
 
 def test_screw_coefficients_follow_the_turn_between_the_predicted_frames():
@@ -478,3 +498,68 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
     assert err.value.field == "object_ids"
     with pytest.raises(InputError):
         session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))
+
+
+def test_apply_parts_and_kept_part_motion_match_their_numpy_references():
+    # three groups: one with two parts (pixels of either, and some near the assignment limit), one with a part
+    # whose transform explains none of them, one without parts; with and without the pixels' own acceleration
+    rng = np.random.default_rng(9)
+    h, w = SIZE
+    moving = np.sort(rng.choice(h * w, 900, replace=False))
+    labels = rng.choice(3, size=moving.size)
+    now = rng.uniform(-1, 1, (moving.size, 3)) + (0, 0, 5)
+    depth = now[:, 2].copy()
+    turns = [(rotation(rng.normal(size=3), 0.2), rng.normal(0, 0.1, 3)) for _ in range(3)]
+    speed = rng.normal(0, 0.05, (moving.size, 3))
+    for j, g in ((0, 0), (1, 0)):
+        on = (labels == g) & (np.arange(moving.size) % 2 == j)
+        r, t = turns[j]  # speed = now - (R^T (now - t)): the pixel's point at n-k moved by (R, t)
+        speed[on] = now[on] - (now[on] - t) @ r + rng.normal(0, 0.1, (on.sum(), 3))  # about 3 px off
+    parts = [rg.RigidPart(np.zeros(0, np.int64), *turns[0], 0), rg.RigidPart(np.zeros(0, np.int64), *turns[1], 0),
+             rg.RigidPart(np.zeros(0, np.int64), *turns[2], 1)]
+    affines = [rg.screw_affine(rg.se3_log(*turn)) for turn in turns]
+    for acceleration in (None, rng.normal(0, 0.01, (moving.size, 3)).astype(np.float32)):
+        fast = rg.apply_parts(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
+        slow = rg.apply_parts_reference(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
+        for a, b in zip(fast, slow):
+            np.testing.assert_array_equal(a, b)
+        regions = fast[2]
+        assert 0.5 < np.isin(regions, (3, 4)).sum() / (labels == 0).sum() < 1 and not (regions == 5).any()
+        for keep in (np.ones(6, bool), np.array([True, False, True, True, False, True])):
+            args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration, keep)
+            got = rg.kept_part_motion(*args)
+            for a, b in zip(got, rg.kept_part_motion_reference(*args)):
+                np.testing.assert_array_equal(a, b)
+            assert got[1].size == keep[regions].sum()
+            np.testing.assert_array_equal(got[0].reshape(-1, 3)[got[1]], fast[0][keep[regions]])
+    # the change of velocity computed in the pass, for the kept pixels that keep their own motion only: the rows
+    # of velocity_change there (frames of a slanted wall, small vectors, a camera turning a little)
+    v, u = np.mgrid[0:h, 0:w]
+    wall = (4.0 + 0.01 * u + 0.02 * v).astype(np.float32)
+    vectors = rng.normal(0, 1.5, SIZE + (2,)).astype(np.float32)
+    frame_velocity = ((0.03, -0.02, 0.01) + rng.normal(0, 0.004, SIZE + (3,))).astype(np.float32)
+    prev_velocity = (frame_velocity + rng.normal(0, 0.01, SIZE + (3,))).astype(np.float32)
+    now_camera, then_camera = Camera(_k(), np.eye(4)), Camera(_k(), rigid((0, 1, 0), 0.002, (0.002, 0.0, 0.0)))
+    frames = (wall, vectors, frame_velocity, now_camera, then_camera, wall, prev_velocity, 1.0)
+    change = rg_motion.velocity_change_args(*frames)
+    rows = rg_motion.velocity_change(*frames[:3], moving, *frames[3:])
+    assert 0.2 < np.abs(rows).max(axis=1).astype(bool).mean() < 1
+    keep = np.array([True, True, False, True, True, True])
+    args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, None, keep)
+    got = rg.kept_part_motion(*args, change)
+    for a, b in zip(got, rg.kept_part_motion_reference(*args, change)):
+        np.testing.assert_array_equal(a, b)
+    own = np.isin(got[1], moving[labels == 1])  # group 1: its part explains none of them
+    assert own.any() and not np.isin(got[1], moving[labels == 2]).any()
+    np.testing.assert_array_equal(got[2][own], rows[np.isin(moving, got[1][own])])
+
+
+def test_hindcast_errors_match_their_numpy_reference():
+    rng = np.random.default_rng(10)
+    now = rng.uniform(-1, 1, (500, 3)) + (0, 0, 3)
+    predicted = now + rng.normal(0, 0.3, now.shape)
+    predicted[:20, 2] = -0.5  # behind the camera: NaN
+    now[20:30, 2] = 0.0
+    fast, slow = rg.hindcast_errors(now, predicted, _k()), rg.hindcast_errors_reference(now, predicted, _k())
+    np.testing.assert_array_equal(fast, slow)
+    assert np.isnan(fast[:30]).all() and np.isfinite(fast[30:]).all()

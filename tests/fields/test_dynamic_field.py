@@ -18,11 +18,11 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.io.rgbd import read_rig
-from models.fields.components.encodings import sample_planes
+from models.fields.components.encodings import plane_grid, read_planes, sample_planes
 from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
-                                         sample_hex_planes, time_smoothness)
+                                         sample_hex_planes, time_grid, time_smoothness)
 from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch
 from models.fields.priors.flow import (SparseFlowPrior, SparseFlowState, coherent_matches, flow_pairs,
                                        fundamental_matrix, sampson_distance, sparse_flow_loss)
@@ -170,6 +170,30 @@ def test_hex_plane_lookup_equals_the_prod_lookup_with_its_gradients():
     params = [coords] + spatial + temporal
     for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_contiguous_plane_grids_give_the_strided_grids_lookups_and_gradients_bit_for_bit():
+    """plane_grid / time_grid stack the coordinate columns into contiguous grids (faster on the CPU); the
+    previous builds (a gather by index, then a permute: strided grids) are the oracle. Same grids, and a hex
+    lookup with the coordinates' gradient (the canonical field's case) gives the same features and gradients,
+    bit for bit."""
+    g = torch.Generator().manual_seed(4)
+    spatial = [torch.rand(3, 4, r, r, generator=g).requires_grad_() for r in (6, 11)]
+    temporal = [(torch.rand(3, 4, 5, r, generator=g) + 0.5).requires_grad_() for r in (6, 11)]
+    coords = (torch.rand(500, 3, generator=g) * 2.2 - 1.1).requires_grad_()
+    times = torch.rand(500, generator=g) * 2 - 1
+    old_grid = coords[:, torch.tensor([[0, 1], [0, 2], [1, 2]])].permute(1, 0, 2).unsqueeze(1)
+    old_tgrid = torch.stack([coords, times[:, None].expand(-1, 3)], dim=-1).permute(1, 0, 2).unsqueeze(1)
+    grid, tgrid = plane_grid(coords), time_grid(coords, times)
+    assert grid.is_contiguous() and tgrid.is_contiguous() and not old_grid.is_contiguous()
+    assert torch.equal(grid, old_grid) and torch.equal(tgrid, old_tgrid)
+    want = torch.cat([read_planes(s, old_grid) * read_planes(t, old_tgrid) for s, t in zip(spatial, temporal)]).T
+    got = sample_hex_planes(spatial, temporal, coords, times)
+    assert torch.equal(got, want)
+    w = torch.randn(got.shape, generator=g)
+    params = [coords] + spatial + temporal
+    for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
+        assert torch.equal(a, b)
 
 
 def test_time_smoothness_is_zero_for_planes_linear_in_time():

@@ -405,6 +405,30 @@ def test_sparse_flow_loss_vanishes_when_canonical_points_coincide_and_reaches_th
     assert model.field.motion_field.flow_mlp.net[-1].weight.grad.abs().sum() > 0
 
 
+def test_flow_l1_sums_every_sample_as_the_mean_over_the_evaluated_ones_with_the_same_gradients():
+    """flow_l1 sums |flow| over all samples (0 where none was evaluated) and divides by the evaluated count:
+    the mean over the gathered evaluated samples (the earlier code, the oracle), to round-off, and the same
+    gradients."""
+    model = _model()
+    with torch.no_grad():
+        model.field.motion_field.flow_mlp.net[-1].bias.copy_(torch.tensor([0.05, -0.03, 0.02]))
+    g = torch.Generator().manual_seed(6)
+    origins = torch.randn(20, 3, generator=g) * 0.3 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(20, 3) + torch.randn(20, 3, generator=g) * 0.4
+    out = model.render_rays(origins, directions, torch.ones(20), torch.full((20,), 5.0), torch.rand(20, generator=g),
+                            jitter=True, generator=g)
+    assert 0 < int(out.evaluated.sum()) < out.evaluated.numel()  # some samples are outside the cube
+    batch = RayBatch(origins, directions, torch.ones(20), torch.full((20,), 5.0), torch.zeros(20, 3))
+    got = LOSS_TERMS["flow_l1"](LossInputs(model, batch, out, 0, LossTerm("flow_l1"), {}))
+    want = out.flow[out.evaluated].abs().sum(dim=-1).mean()
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=0)
+    params = [p for p in model.field.motion_field.parameters()]
+    grads = torch.autograd.grad(got, params, retain_graph=True)
+    for a, b in zip(grads, torch.autograd.grad(want, params)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
+    assert float(grads[-1].abs().sum()) > 0  # the flow MLP's last bias
+
+
 def test_sparse_flow_prior_without_matches_warns_and_adds_nothing(tmp_path):
     blank = sphere_video([0, 40], [0.0, 0.5], texture=False)  # flat grey disc on white: no SIFT feature
     with pytest.warns(UserWarning, match="no verified match in any of"):

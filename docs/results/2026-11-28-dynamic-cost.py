@@ -1,7 +1,7 @@
 """Where a dynamic field's training step goes: torch profiler and CPU time per step, one torch thread.
 
 ``python docs/results/2026-11-28-dynamic-cost.py MODE VARIANT RIG_DIR OUT.json [--rays N]`` (from the repository
-root), MODE ``profile`` or ``cpu``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
+root), MODE ``profile``, ``cpu`` or ``pair``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
 ``sfderf`` (``--no-field.canonical-time``) or ``noprior`` (default without the prior). Trains on the rig as
 ``interleave train dynamic --train-cameras cam0,cam1,cam3 --test-cameras cam2`` does (default config otherwise;
 ``--rays`` sets the prior's matched pairs a step) for 131 / 201 steps in a temporary folder, and writes:
@@ -11,7 +11,13 @@ root), MODE ``profile`` or ``cpu``, VARIANT ``kplanes``, ``default`` (derf, cano
   ``## canonical_density``, ``## canonical_colour``, ``## kplanes_density``, ``## prior_rays``, ``## losses``)
   and ``## backward`` / ``## optimizer``;
 - ``cpu``: process CPU time and wall time per step over steps 100-200 (CPU time: less sensitive to other
-  jobs on a shared machine than wall time).
+  jobs on a shared machine than wall time);
+- ``pair``: VARIANT is a comma-separated list of variants, trained in lock step in one process (one thread
+  each, a token passed at every step, so only one runs at a time and all see the same load), and the thread
+  CPU time per step over steps 100-200 of each, with its ratio to the first
+  (``docs/results/2026-11-28-dynamic-cost-2.md``). A variant may carry config overrides after colons, a
+  dotted path into ``DynamicTrainConfig`` (tuples with ``+``): ``default:field.motion.hidden=16``,
+  ``default:field.motion.resolutions=16+32``.
 
 The regions are labelled by wrapping the methods in ``torch.profiler.record_function``; the step boundaries
 come from ``train_dynamic``'s ``extras_fn`` hook (called after the rendering of each step).
@@ -19,7 +25,9 @@ come from ``train_dynamic``'s ``extras_fn`` hook (called after the rendering of 
 import argparse
 import dataclasses
 import json
+import os
 import tempfile
+import threading
 import time
 
 import torch
@@ -63,20 +71,106 @@ def config_for(variant: str, rays: int) -> DynamicTrainConfig:
     return cfg
 
 
+def override(cfg, path: str, text: str):
+    """``cfg`` with the dotted field ``path`` set from ``text`` (parsed by the current value's type)."""
+    head, _, rest = path.partition(".")
+    current = getattr(cfg, head)
+    if rest:
+        return dataclasses.replace(cfg, **{head: override(current, rest, text)})
+    if isinstance(current, tuple):
+        value = tuple(type(current[0])(v) for v in text.split("+"))
+    elif isinstance(current, bool):
+        value = text.lower() in ("1", "true", "yes")
+    else:
+        value = type(current)(text)
+    return dataclasses.replace(cfg, **{head: value})
+
+
+def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
+    """``VARIANT[:path=value...]`` -> its config."""
+    variant, *pairs = spec.split(":")
+    cfg = config_for(variant, rays)
+    for pair in pairs:
+        path, _, text = pair.partition("=")
+        cfg = override(cfg, path, text)
+    return cfg
+
+
+def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
+    """Train ``cfgs`` in lock step (threads passing a token after each step's render); each one's thread CPU
+    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded)."""
+    turn, done = [0], set()
+    cond = threading.Condition()
+    cpu = [0.0] * len(cfgs)
+    resumed: list = [None] * len(cfgs)
+
+    def next_turn(i: int) -> int:
+        j = (i + 1) % len(cfgs)
+        while j in done and j != i:
+            j = (j + 1) % len(cfgs)
+        return j
+
+    def run(i: int) -> None:
+        def hook(model, batch, outputs, step):
+            if resumed[i] is not None and first < step <= last:
+                cpu[i] += time.thread_time() - resumed[i]
+            with cond:
+                turn[0] = next_turn(i)
+                cond.notify_all()
+                cond.wait_for(lambda: turn[0] == i)
+            resumed[i] = time.thread_time()
+            return {}
+
+        with cond:
+            cond.wait_for(lambda: turn[0] == i)
+        try:
+            with tempfile.TemporaryDirectory() as tmp:
+                train_dynamic(train, cfgs[i], tmp, progress=False, device="cpu", extras_fn=hook)
+        finally:
+            with cond:
+                done.add(i)
+                turn[0] = next_turn(i)
+                cond.notify_all()
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(cfgs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return cpu
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("mode", choices=["profile", "cpu"])
-    parser.add_argument("variant", choices=["kplanes", "default", "sfderf", "noprior"])
+    parser.add_argument("mode", choices=["profile", "cpu", "pair"])
+    parser.add_argument("variant", help="kplanes, default, sfderf or noprior, with :path=value overrides; pair: a "
+                                        "comma-separated list of them")
     parser.add_argument("rig")
     parser.add_argument("out")
     parser.add_argument("--rays", type=int, default=0)
     args = parser.parse_args()
+    specs = args.variant.split(",")
+    for spec in specs:
+        if spec.split(":")[0] not in ("kplanes", "default", "sfderf", "noprior"):
+            parser.error(f"unknown variant {spec!r}")
+    if args.mode != "pair" and len(specs) > 1:
+        parser.error("several variants: pair mode only")
     torch.set_num_threads(1)
     first, last = (100, 130) if args.mode == "profile" else (100, 200)
-    cfg = config_for(args.variant, args.rays)
-    train, _, record = select_dynamic_views("rig", args.rig, cfg.downscale, train_cameras=["cam0", "cam1", "cam3"],
-                                            test_cameras=["cam2"])
-    cfg = dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1)
+    cfgs = [spec_config(spec, args.rays) for spec in specs]
+    train, _, record = select_dynamic_views("rig", args.rig, cfgs[0].downscale,
+                                            train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
+    cfgs = [dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1) for cfg in cfgs]
+    if args.mode == "pair":
+        cpu = lock_step(train, cfgs, first, last)
+        ms = [1000 * c / (last - first) for c in cpu]
+        result = {"variants": specs, "steps": [first, last], "cpu_ms_per_step": ms,
+                  "ratio_to_first": [m / ms[0] for m in ms], "load_1min_end": os.getloadavg()[0]}
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        print(json.dumps(result))
+        return
+    cfg = cfgs[0]
     if args.mode == "profile":
         for owner, name, text in REGIONS:
             label(owner, name, text)

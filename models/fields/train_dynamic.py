@@ -259,7 +259,7 @@ class DynamicKind:
                                  generator=generator)
 
     def prior_extras(self, priors, model, batch, outputs, step: int, generator: torch.Generator) -> dict:
-        return priors.extras(model, generator, step)
+        return priors.extras(model, generator)
 
     def checkpoint_fields(self, model: DynamicFieldModel) -> dict:
         return {"time_range": list(model.time_range), "time_resolution": model.time_resolution}

@@ -464,25 +464,6 @@ def _synthetic_flow_state(prior: SparseFlowPrior, n: int) -> SparseFlowState:
     return state
 
 
-def test_the_prior_every_k_steps_renders_at_multiples_of_k_only_with_its_term_times_k():
-    model = _model()
-    with torch.no_grad():
-        model.field.motion_field.flow_mlp.net[-1].bias.copy_(torch.tensor([0.05, -0.03, 0.02]))
-    every = _synthetic_flow_state(SparseFlowPrior(enabled=True, rays=8, every=3), 20)
-    once = _synthetic_flow_state(SparseFlowPrior(enabled=True, rays=8), 20)
-    assert every.extras(model, torch.Generator().manual_seed(1), step=4) == {}
-    assert every.extras(model, torch.Generator().manual_seed(1), step=5) == {}
-    got = every.extras(model, torch.Generator().manual_seed(1), step=6)
-    want = once.extras(model, torch.Generator().manual_seed(1), step=6)
-    batch = RayBatch(torch.zeros(1, 3), torch.ones(1, 3), torch.ones(1), torch.ones(1), torch.zeros(1, 3))
-    out = want["sparse_flow"]["a"]
-    term = [LOSS_TERMS["sparse_flow"](LossInputs(model, batch, out, 6, LossTerm("sparse_flow"), e)) for e in (got, want)]
-    assert float(term[1]) > 0 and torch.equal(term[0], 3 * term[1])
-    assert float(LOSS_TERMS["sparse_flow"](LossInputs(model, batch, out, 5, LossTerm("sparse_flow"), {}))) == 0.0
-    with pytest.raises(InputError, match="every"):
-        SparseFlowPrior(enabled=True, every=0).validate()
-
-
 def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_two_colour_calls(moving):
     """SparseFlowState.extras renders rays a and b in one ``color=False`` call: the same jitter, weights and
     canonical points as two full renders a then b from the same generator state (the earlier code)."""

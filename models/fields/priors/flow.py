@@ -69,9 +69,6 @@ class SparseFlowPrior:
     rays: int = field(default=64, metadata={
         "help": "matched pairs rendered per step, two rays each (the thesis: 256; 64 costs a quarter of that and "
                 "keeps the default ahead of K-Planes, 32 did not on lego: docs/results/2026-11-28-dynamic-cost.md)"})
-    every: int = field(default=1, metadata={
-        "help": "render the matched pairs every this many steps, the loss multiplied by it (the same expected "
-                "gradient, a 1/every of the cost): a measured option, docs/results/2026-11-28-dynamic-cost-2.md"})
     time_offset: int = field(default=10, metadata={
         "help": "frames between matched times (s in {t - offset, t + offset}, or the nearest available)"})
     across_cameras: bool = field(default=True, metadata={"help": "match views of different cameras at one time"})
@@ -97,7 +94,7 @@ class SparseFlowPrior:
             raise InputError(f"must be sift or dis, got {self.source!r}", field="priors.flow.source")
         if int(self.dense_stride) < 1 or not self.dense_consistency > 0:
             raise InputError("dense_stride must be >= 1 and dense_consistency > 0", field="priors.flow.dense_stride")
-        for name in ("rays", "every", "time_offset", "max_features", "neighbours", "min_coherent"):
+        for name in ("rays", "time_offset", "max_features", "neighbours", "min_coherent"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"priors.flow.{name}")
         if self.min_coherent > self.neighbours:
@@ -283,7 +280,7 @@ def _fingerprint(views, prior: SparseFlowPrior) -> dict[str, Any]:
     for cam in views.cameras:
         digest.update(np.asarray(cam.intrinsics, np.float64).tobytes())
         digest.update(np.asarray(cam.world_to_camera, np.float64).tobytes())
-    params = {k: v for k, v in asdict(prior).items() if k not in ("enabled", "weight", "rays", "every", "start_step")}
+    params = {k: v for k, v in asdict(prior).items() if k not in ("enabled", "weight", "rays", "start_step")}
     return {"views": list(views.names), "size": [views.height, views.width], "sha1": digest.hexdigest(),
             "pycolmap": pycolmap.__version__, **params}
 
@@ -353,15 +350,15 @@ class SparseFlowState:
         self.times_a = torch.as_tensor(np.asarray(views.times, np.float64)[m.view_a], dtype=torch.float32)
         self.times_b = torch.as_tensor(np.asarray(views.times, np.float64)[m.view_b], dtype=torch.float32)
 
-    def extras(self, model, generator: torch.Generator, step: int = 0) -> dict[str, Any]:
-        """Render ``prior.rays`` random matched pairs: ``{"sparse_flow": {"a": outputs, "b": outputs, "scale":
-        prior.every}}`` (empty without matches, and at steps that are not a multiple of ``prior.every``).
+    def extras(self, model, generator: torch.Generator) -> dict[str, Any]:
+        """Render ``prior.rays`` random matched pairs: ``{"sparse_flow": {"a": outputs, "b": outputs}}``
+        (empty without matches).
 
         The two ends of every pair are rendered in one geometry-only call (``render_rays(color=False)``: the loss
         reads weights and canonical points only), rays ``a`` first: the same jitter draws, hence the same
         samples, as two calls ``a`` then ``b``.
         """
-        if len(self.matches) == 0 or step % self.prior.every:
+        if len(self.matches) == 0:
             return {}
         idx = torch.randint(len(self.matches), (self.prior.rays,), generator=generator)  # on the generator's device
         device = module_device(model)
@@ -372,20 +369,17 @@ class SparseFlowState:
                                 bounds[0].expand(2 * n), bounds[1].expand(2 * n),
                                 torch.cat([self.times_a[idx], self.times_b[idx]]).to(device), jitter=True,
                                 generator=generator, color=False)
-        return {"sparse_flow": {"a": type(out)(*(x[:n] for x in out)), "b": type(out)(*(x[n:] for x in out)),
-                                "scale": self.prior.every}}
+        return {"sparse_flow": {"a": type(out)(*(x[:n] for x in out)), "b": type(out)(*(x[n:] for x in out))}}
 
 
 @register_loss_term("sparse_flow")
 def sparse_flow_term(inputs: LossInputs) -> Tensor:
-    """Eq. 5.7 on the matched rays in ``extras["sparse_flow"]``, times the entry's ``scale`` (the prior's
-    ``every``) when above 1; 0 when there are none."""
+    """Eq. 5.7 on the matched rays in ``extras["sparse_flow"]``; 0 when there are none."""
     entry = inputs.extras.get("sparse_flow")
     if not entry:
         return inputs.outputs.color.new_zeros(())
     a, b = entry["a"], entry["b"]
-    loss = sparse_flow_loss(a.weights, a.canonical, b.weights, b.canonical)
-    return loss * entry["scale"] if entry.get("scale", 1) > 1 else loss
+    return sparse_flow_loss(a.weights, a.canonical, b.weights, b.canonical)
 
 
 class DynamicPriors:
@@ -394,8 +388,8 @@ class DynamicPriors:
     def __init__(self, views, config: DynamicPriorsConfig, cache_dir: Optional[str | Path] = None):
         self.flow = SparseFlowState(views, config.flow, cache_dir) if config.flow.enabled else None
 
-    def extras(self, model, generator: torch.Generator, step: int = 0) -> dict[str, Any]:
-        return self.flow.extras(model, generator, step) if self.flow is not None else {}
+    def extras(self, model, generator: torch.Generator) -> dict[str, Any]:
+        return self.flow.extras(model, generator) if self.flow is not None else {}
 
 
 def build_dynamic_priors(views, config: DynamicPriorsConfig, cache_dir: Optional[str | Path] = None

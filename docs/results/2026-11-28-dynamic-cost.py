@@ -1,7 +1,7 @@
 """Where a dynamic field's training step goes: torch profiler and CPU time per step, one torch thread.
 
 ``python docs/results/2026-11-28-dynamic-cost.py MODE VARIANT RIG_DIR OUT.json [--rays N]`` (from the repository
-root), MODE ``profile`` or ``cpu``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
+root), MODE ``profile``, ``cpu`` or ``pair``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
 ``sfderf`` (``--no-field.canonical-time``) or ``noprior`` (default without the prior). Trains on the rig as
 ``interleave train dynamic --train-cameras cam0,cam1,cam3 --test-cameras cam2`` does (default config otherwise;
 ``--rays`` sets the prior's matched pairs a step) for 131 / 201 steps in a temporary folder, and writes:
@@ -11,7 +11,19 @@ root), MODE ``profile`` or ``cpu``, VARIANT ``kplanes``, ``default`` (derf, cano
   ``## canonical_density``, ``## canonical_colour``, ``## kplanes_density``, ``## prior_rays``, ``## losses``)
   and ``## backward`` / ``## optimizer``;
 - ``cpu``: process CPU time and wall time per step over steps 100-200 (CPU time: less sensitive to other
-  jobs on a shared machine than wall time).
+  jobs on a shared machine than wall time);
+- ``pair``: VARIANT is a comma-separated list of variants, trained in lock step in one process (one thread
+  each, a token passed at every step, so only one runs at a time and all see the same load), and the thread
+  CPU time per step over steps 100-200 of each, with its ratio to the first
+  (``docs/results/2026-11-28-dynamic-cost-2.md``). A variant may carry config overrides after colons, a
+  dotted path into ``DynamicTrainConfig`` (tuples with ``+``): ``default:field.motion.hidden=16``,
+  ``default:field.motion.resolutions=16+32``.
+
+``python docs/results/2026-11-28-dynamic-cost.py lookups - - OUT.json`` times the plane-grid builds instead
+(no training): a hex lookup of 59k points at the default's three scales (space and time planes, forward and
+backward) with the strided grids of ab37b71 (a gather by index, then a permute) against ``plane_grid`` /
+``time_grid``, with and without the coordinates' gradient, and ``flow_l1`` against the mean of the mask's
+gather; thread CPU time, the variants interleaved, the middle half of 12 repeats averaged.
 
 The regions are labelled by wrapping the methods in ``torch.profiler.record_function``; the step boundaries
 come from ``train_dynamic``'s ``extras_fn`` hook (called after the rendering of each step).
@@ -19,7 +31,9 @@ come from ``train_dynamic``'s ``extras_fn`` hook (called after the rendering of 
 import argparse
 import dataclasses
 import json
+import os
 import tempfile
+import threading
 import time
 
 import torch
@@ -63,20 +77,167 @@ def config_for(variant: str, rays: int) -> DynamicTrainConfig:
     return cfg
 
 
+def override(cfg, path: str, text: str):
+    """``cfg`` with the dotted field ``path`` set from ``text`` (parsed by the current value's type)."""
+    head, _, rest = path.partition(".")
+    current = getattr(cfg, head)
+    if rest:
+        return dataclasses.replace(cfg, **{head: override(current, rest, text)})
+    if isinstance(current, tuple):
+        value = tuple(type(current[0])(v) for v in text.split("+"))
+    elif isinstance(current, bool):
+        value = text.lower() in ("1", "true", "yes")
+    else:
+        value = type(current)(text)
+    return dataclasses.replace(cfg, **{head: value})
+
+
+def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
+    """``VARIANT[:path=value...]`` -> its config."""
+    variant, *pairs = spec.split(":")
+    cfg = config_for(variant, rays)
+    for pair in pairs:
+        path, _, text = pair.partition("=")
+        cfg = override(cfg, path, text)
+    return cfg
+
+
+def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
+    """Train ``cfgs`` in lock step (threads passing a token after each step's render); each one's thread CPU
+    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded)."""
+    turn, done = [0], set()
+    cond = threading.Condition()
+    cpu = [0.0] * len(cfgs)
+    resumed: list = [None] * len(cfgs)
+
+    def next_turn(i: int) -> int:
+        j = (i + 1) % len(cfgs)
+        while j in done and j != i:
+            j = (j + 1) % len(cfgs)
+        return j
+
+    def run(i: int) -> None:
+        def hook(model, batch, outputs, step):
+            if resumed[i] is not None and first < step <= last:
+                cpu[i] += time.thread_time() - resumed[i]
+            with cond:
+                turn[0] = next_turn(i)
+                cond.notify_all()
+                cond.wait_for(lambda: turn[0] == i)
+            resumed[i] = time.thread_time()
+            return {}
+
+        with cond:
+            cond.wait_for(lambda: turn[0] == i)
+        try:
+            with tempfile.TemporaryDirectory() as tmp:
+                train_dynamic(train, cfgs[i], tmp, progress=False, device="cpu", extras_fn=hook)
+        finally:
+            with cond:
+                done.add(i)
+                turn[0] = next_turn(i)
+                cond.notify_all()
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(cfgs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return cpu
+
+
+def strided_grids(coords, times):
+    """The grids as ab37b71 built them (the oracle of the lookups mode): a gather by index, then a permute."""
+    grid = coords[:, torch.tensor([[0, 1], [0, 2], [1, 2]])].permute(1, 0, 2).unsqueeze(1)
+    return grid, torch.stack([coords, times[:, None].expand(-1, 3)], dim=-1).permute(1, 0, 2).unsqueeze(1)
+
+
+def time_lookups(repeats: int = 12) -> dict:
+    """Thread CPU ms of the lookups and ``flow_l1`` variants (see the module docstring)."""
+    from models.fields.components.encodings import plane_grid, read_planes
+    from models.fields.dynamic.model import time_grid
+    from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm
+    g = torch.Generator().manual_seed(0)
+    n = 59000
+    coords = torch.rand(n, 3, generator=g) * 2 - 1
+    times = torch.rand(n, generator=g) * 2 - 1
+    spatial = [torch.rand(3, 8, r, r, generator=g).requires_grad_() for r in (32, 64, 128)]
+    temporal = [torch.rand(3, 8, 12, r, generator=g).requires_grad_() for r in (32, 64, 128)]
+    weights = torch.rand(24, n, generator=g)
+    evaluated = torch.rand(1024, 64, generator=g) < 0.9
+    flow = torch.randn(1024, 64, 3, generator=g).requires_grad_()
+
+    def lookup(build, grad: bool):
+        def run():
+            c = coords.clone().requires_grad_(grad)
+            grid, tgrid = build(c, times)
+            out = torch.cat([read_planes(s, grid) * read_planes(t, tgrid) for s, t in zip(spatial, temporal)])
+            (out * weights).sum().backward()
+        return run
+
+    def flow_term(gathered: bool):
+        def run():
+            f = flow * evaluated[..., None]
+            if gathered:
+                loss = f[evaluated].abs().sum(dim=-1).mean()
+            else:
+                outputs = type("O", (), {"flow": f, "evaluated": evaluated, "color": f})()
+                loss = LOSS_TERMS["flow_l1"](LossInputs(None, None, outputs, 0, LossTerm("flow_l1"), {}))
+            loss.backward()
+        return run
+
+    runs = {"lookup_strided_grids_coords_grad": lookup(strided_grids, True),
+            "lookup_plane_grid_coords_grad": lookup(lambda c, t: (plane_grid(c), time_grid(c, t)), True),
+            "lookup_strided_grids": lookup(strided_grids, False),
+            "lookup_plane_grid": lookup(lambda c, t: (plane_grid(c), time_grid(c, t)), False),
+            "flow_l1_gathered_mean": flow_term(True), "flow_l1": flow_term(False)}
+    times_ms: dict = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.thread_time()
+            run()
+            times_ms[name].append(1000 * (time.thread_time() - start))
+    quarter = repeats // 4
+    return {name: sum(sorted(v)[quarter:repeats - quarter]) / (repeats - 2 * quarter) for name, v in times_ms.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("mode", choices=["profile", "cpu"])
-    parser.add_argument("variant", choices=["kplanes", "default", "sfderf", "noprior"])
+    parser.add_argument("mode", choices=["profile", "cpu", "pair", "lookups"])
+    parser.add_argument("variant", help="kplanes, default, sfderf or noprior, with :path=value overrides; pair: a "
+                                        "comma-separated list of them")
     parser.add_argument("rig")
     parser.add_argument("out")
     parser.add_argument("--rays", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.mode == "lookups":
+        result = {"thread_cpu_ms": time_lookups(), "load_1min_end": os.getloadavg()[0]}
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        print(json.dumps(result))
+        return
+    specs = args.variant.split(",")
+    for spec in specs:
+        if spec.split(":")[0] not in ("kplanes", "default", "sfderf", "noprior"):
+            parser.error(f"unknown variant {spec!r}")
+    if args.mode != "pair" and len(specs) > 1:
+        parser.error("several variants: pair mode only")
     first, last = (100, 130) if args.mode == "profile" else (100, 200)
-    cfg = config_for(args.variant, args.rays)
-    train, _, record = select_dynamic_views("rig", args.rig, cfg.downscale, train_cameras=["cam0", "cam1", "cam3"],
-                                            test_cameras=["cam2"])
-    cfg = dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1)
+    cfgs = [spec_config(spec, args.rays) for spec in specs]
+    train, _, record = select_dynamic_views("rig", args.rig, cfgs[0].downscale,
+                                            train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
+    cfgs = [dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1) for cfg in cfgs]
+    if args.mode == "pair":
+        cpu = lock_step(train, cfgs, first, last)
+        ms = [1000 * c / (last - first) for c in cpu]
+        result = {"variants": specs, "steps": [first, last], "cpu_ms_per_step": ms,
+                  "ratio_to_first": [m / ms[0] for m in ms], "load_1min_end": os.getloadavg()[0]}
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        print(json.dumps(result))
+        return
+    cfg = cfgs[0]
     if args.mode == "profile":
         for owner, name, text in REGIONS:
             label(owner, name, text)

@@ -18,11 +18,11 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.io.rgbd import read_rig
-from models.fields.components.encodings import sample_planes
+from models.fields.components.encodings import plane_grid, read_planes, sample_planes
 from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
-                                         sample_hex_planes, time_smoothness)
+                                         sample_hex_planes, time_grid, time_smoothness)
 from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch
 from models.fields.priors.flow import (SparseFlowPrior, SparseFlowState, coherent_matches, flow_pairs,
                                        fundamental_matrix, sampson_distance, sparse_flow_loss)
@@ -170,6 +170,30 @@ def test_hex_plane_lookup_equals_the_prod_lookup_with_its_gradients():
     params = [coords] + spatial + temporal
     for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_contiguous_plane_grids_give_the_strided_grids_lookups_and_gradients_bit_for_bit():
+    """plane_grid / time_grid stack the coordinate columns into contiguous grids (faster on the CPU); the
+    previous builds (a gather by index, then a permute: strided grids) are the oracle. Same grids, and a hex
+    lookup with the coordinates' gradient (the canonical field's case) gives the same features and gradients,
+    bit for bit."""
+    g = torch.Generator().manual_seed(4)
+    spatial = [torch.rand(3, 4, r, r, generator=g).requires_grad_() for r in (6, 11)]
+    temporal = [(torch.rand(3, 4, 5, r, generator=g) + 0.5).requires_grad_() for r in (6, 11)]
+    coords = (torch.rand(500, 3, generator=g) * 2.2 - 1.1).requires_grad_()
+    times = torch.rand(500, generator=g) * 2 - 1
+    old_grid = coords[:, torch.tensor([[0, 1], [0, 2], [1, 2]])].permute(1, 0, 2).unsqueeze(1)
+    old_tgrid = torch.stack([coords, times[:, None].expand(-1, 3)], dim=-1).permute(1, 0, 2).unsqueeze(1)
+    grid, tgrid = plane_grid(coords), time_grid(coords, times)
+    assert grid.is_contiguous() and tgrid.is_contiguous() and not old_grid.is_contiguous()
+    assert torch.equal(grid, old_grid) and torch.equal(tgrid, old_tgrid)
+    want = torch.cat([read_planes(s, old_grid) * read_planes(t, old_tgrid) for s, t in zip(spatial, temporal)]).T
+    got = sample_hex_planes(spatial, temporal, coords, times)
+    assert torch.equal(got, want)
+    w = torch.randn(got.shape, generator=g)
+    params = [coords] + spatial + temporal
+    for a, b in zip(torch.autograd.grad((got * w).sum(), params), torch.autograd.grad((want * w).sum(), params)):
+        assert torch.equal(a, b)
 
 
 def test_time_smoothness_is_zero_for_planes_linear_in_time():
@@ -381,6 +405,30 @@ def test_sparse_flow_loss_vanishes_when_canonical_points_coincide_and_reaches_th
     assert model.field.motion_field.flow_mlp.net[-1].weight.grad.abs().sum() > 0
 
 
+def test_flow_l1_sums_every_sample_as_the_mean_over_the_evaluated_ones_with_the_same_gradients():
+    """flow_l1 sums |flow| over all samples (0 where none was evaluated) and divides by the evaluated count:
+    the mean over the gathered evaluated samples (the earlier code, the oracle), to round-off, and the same
+    gradients."""
+    model = _model()
+    with torch.no_grad():
+        model.field.motion_field.flow_mlp.net[-1].bias.copy_(torch.tensor([0.05, -0.03, 0.02]))
+    g = torch.Generator().manual_seed(6)
+    origins = torch.randn(20, 3, generator=g) * 0.3 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(20, 3) + torch.randn(20, 3, generator=g) * 0.4
+    out = model.render_rays(origins, directions, torch.ones(20), torch.full((20,), 5.0), torch.rand(20, generator=g),
+                            jitter=True, generator=g)
+    assert 0 < int(out.evaluated.sum()) < out.evaluated.numel()  # some samples are outside the cube
+    batch = RayBatch(origins, directions, torch.ones(20), torch.full((20,), 5.0), torch.zeros(20, 3))
+    got = LOSS_TERMS["flow_l1"](LossInputs(model, batch, out, 0, LossTerm("flow_l1"), {}))
+    want = out.flow[out.evaluated].abs().sum(dim=-1).mean()
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=0)
+    params = [p for p in model.field.motion_field.parameters()]
+    grads = torch.autograd.grad(got, params, retain_graph=True)
+    for a, b in zip(grads, torch.autograd.grad(want, params)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
+    assert float(grads[-1].abs().sum()) > 0  # the flow MLP's last bias
+
+
 def test_sparse_flow_prior_without_matches_warns_and_adds_nothing(tmp_path):
     blank = sphere_video([0, 40], [0.0, 0.5], texture=False)  # flat grey disc on white: no SIFT feature
     with pytest.warns(UserWarning, match="no verified match in any of"):
@@ -401,14 +449,11 @@ def test_sparse_flow_prior_without_matches_warns_and_adds_nothing(tmp_path):
     assert last["sparse_flow"] == 0.0 and math.isfinite(last["loss"])
 
 
-def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_two_colour_calls(moving):
-    """SparseFlowState.extras renders rays a and b in one ``color=False`` call: the same jitter, weights and
-    canonical points as two full renders a then b from the same generator state (the earlier code)."""
-    train, _ = moving
+def _synthetic_flow_state(prior: SparseFlowPrior, n: int) -> SparseFlowState:
+    # n matched pairs of rays from near (0, 0, -3) looking along +z, at random times in [0, 1]
     state = SparseFlowState.__new__(SparseFlowState)
     g = torch.Generator().manual_seed(2)
-    n = 40
-    state.prior = SparseFlowPrior(enabled=True, rays=16)
+    state.prior = prior
     state.matches = type("M", (), {"__len__": lambda self: n})()
     state.origins_a, state.origins_b = torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]), \
         torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
@@ -416,6 +461,15 @@ def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_tw
     state.directions_a = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
     state.directions_b = torch.nn.functional.normalize(torch.randn(n, 3, generator=g) * 0.2 + forward, dim=-1)
     state.times_a, state.times_b = torch.rand(n, generator=g), torch.rand(n, generator=g)
+    return state
+
+
+def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_two_colour_calls(moving):
+    """SparseFlowState.extras renders rays a and b in one ``color=False`` call: the same jitter, weights and
+    canonical points as two full renders a then b from the same generator state (the earlier code)."""
+    train, _ = moving
+    n = 40
+    state = _synthetic_flow_state(SparseFlowPrior(enabled=True, rays=16), n)
     model = _model()
     with torch.no_grad():
         model.field.motion_field.flow_mlp.net[-1].bias.fill_(0.05)  # a non-zero flow

@@ -21,7 +21,6 @@ __all__ = ["PLANE_AXES", "sample_planes", "plane_grid", "read_planes", "plane_tv
 
 #: Coordinate pairs of the three spatial planes of one scale, in storage order: xy, xz, yz.
 PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))
-_AXES_INDEX = torch.tensor(PLANE_AXES)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -54,8 +53,14 @@ def sample_planes(planes: Sequence[Tensor], coords: Tensor) -> Tensor:
 
 def plane_grid(coords: Tensor) -> Tensor:
     """(N, 3) contracted coordinates -> the (3, 1, N, 2) ``grid_sample`` grid of the xy, xz, yz planes (plane k
-    reads the coordinate pair ``PLANE_AXES[k]``): built once and shared by every scale."""
-    return coords[:, _AXES_INDEX.to(coords.device)].permute(1, 0, 2).unsqueeze(1)
+    reads the coordinate pair ``PLANE_AXES[k]``): built once and shared by every scale.
+
+    The grid is contiguous, stacked from the coordinate columns: ``grid_sample`` reads and differentiates a
+    permuted (strided) grid markedly slower on the CPU, and the backward of a gather by index (an accumulating
+    ``index_put``) is slow too (``docs/results/2026-11-28-dynamic-cost-2.md``). Same values and gradients.
+    """
+    cols = coords.unbind(-1)
+    return torch.stack([torch.stack([cols[a], cols[b]], dim=-1) for a, b in PLANE_AXES]).unsqueeze(1)
 
 
 def read_planes(plane: Tensor, grid: Tensor) -> Tensor:

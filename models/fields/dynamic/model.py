@@ -96,9 +96,9 @@ def sample_time_planes(planes: Sequence[Tensor], coords: Tensor, times: Tensor) 
 
 def time_grid(coords: Tensor, times: Tensor) -> Tensor:
     """(N, 3) contracted coordinates and (N,) normalised times -> the (3, 1, N, 2) ``grid_sample`` grid of the
-    xt, yt, zt planes (the spatial coordinate along the width, time along the height)."""
-    t = times.to(coords.dtype)[:, None].expand(-1, 3)
-    return torch.stack([coords, t], dim=-1).permute(1, 0, 2).unsqueeze(1)
+    xt, yt, zt planes (the spatial coordinate along the width, time along the height); contiguous, as
+    :func:`~models.fields.components.encodings.plane_grid`'s."""
+    return torch.stack([coords.t(), times.to(coords.dtype).expand(3, -1)], dim=-1).unsqueeze(1)
 
 
 def sample_hex_planes(spatial: Sequence[Tensor], temporal: Sequence[Tensor], coords: Tensor, times: Tensor) -> Tensor:

@@ -58,14 +58,10 @@ def channel_groups(feature_dim: int) -> int:
     return -(-(feature_dim + 1) // 4)
 
 
-def _groups(baked: BakedAssets) -> int:
-    return channel_groups(baked.feature_dim)
-
-
 def atlas_layers(baked: BakedAssets) -> np.ndarray:
     """(1, per_column V, columns V^2 G, 4) float16: the atlas texture (layout in the module docstring)."""
     n, v = baked.density.shape[0], baked.density.shape[1]
-    groups = _groups(baked)
+    groups = channel_groups(baked.feature_dim)
     per_column, columns = atlas_layout(n, v, groups)
     channels = np.zeros((columns * per_column, v, v, v, 4 * groups), np.float16)
     channels[:n, ..., :baked.feature_dim] = baked.features
@@ -82,7 +78,7 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
     b, s, r = int(grid["bricks"]), int(grid["brick"]), int(grid["resolution"])
     v = s + 1
     g = baked.feature_dim
-    groups = _groups(baked)
+    groups = channel_groups(baked.feature_dim)
     per_column, columns = atlas_layout(baked.density.shape[0], v, groups)
     params = ShaderParams()
     lines = [

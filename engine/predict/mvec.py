@@ -170,11 +170,11 @@ class Mvec(Predictor):
             velocity, moving = self._velocity(newest, older, vectors)
         self._last = (self._key(newest, older), velocity)
         data = MvecState(velocity, moving, frame=self.frames.resident(newest, timer))
-        before, change = None, None
+        before, change, shaped = None, None, False
         if moving.size and len(state.history) >= 3 and (cfg.acceleration or cfg.fallback):
             with timer("acceleration"):
                 before = self._before(state.history[-3:])
-                shaped = before is not None and (cfg.extrapolation == "rigid" or cfg.fallback)
+                shaped = before is not None and (cfg.extrapolation == "rigid" or cfg.fallback)  # pass ``rigid`` runs
                 if cfg.acceleration and before is not None:
                     args = (newest.depth, vectors, velocity)
                     rest = (newest.camera, older.camera, older.depth, before[0], before[1])
@@ -185,7 +185,7 @@ class Mvec(Predictor):
                                                             limit=cfg.acceleration_limit)
         if moving.size:
             motion = PointMotion(velocity, moving, data.acceleration)
-            if before is not None and (cfg.extrapolation == "rigid" or cfg.fallback):  # else: nothing to decide
+            if shaped:  # else: nothing to decide
                 with timer("rigid"):
                     motion = self._shaped(state.history, vectors, data, before, change, timer)
             if motion.moving.size:

@@ -101,6 +101,16 @@ def split_rows(height: int, width: int) -> list[tuple[int, int]]:
     return split_ranges(height, -(-MIN_PIXELS_PER_THREAD // max(1, width)))
 
 
+#: Smallest share of a split per-point kernel (one over a list of moving pixels) per thread
+MIN_POINTS_PER_THREAD = 1 << 14
+
+
+def split_points(count: int) -> list[tuple[int, int]]:
+    """``split_ranges`` of ``count`` points for a kernel whose points are independent (each writes its own
+    rows): at least ``MIN_POINTS_PER_THREAD`` points a thread, so the split gives the same bits as one range."""
+    return split_ranges(count, MIN_POINTS_PER_THREAD)
+
+
 def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) -> list:
     """[fn(start, stop) for each range], the first on the calling thread and the others on a shared pool
     (the kernels release the GIL, so they run in parallel); results in range order."""

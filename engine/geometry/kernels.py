@@ -673,8 +673,9 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 
 @njit(cache=True, nogil=True)
 def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance,
-                   relative_tolerance, band, row_start, row_stop, out, moving_out):
-    """``engine.geometry.reference.scene_velocity_reference`` compiled, rows [``row_start``, ``row_stop``):
+                   relative_tolerance, band, row_start, row_stop, row_step, out, moving_out):
+    """``engine.geometry.reference.scene_velocity_reference`` compiled, rows ``row_start``, ``row_start`` +
+    ``row_step``, .. below ``row_stop``:
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
     point was in the previous frame to where it is now, and ``moving_out`` (H, W) bool True, written only
     for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
@@ -699,7 +700,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                     hm[r, c] += k_prev[r, a] * rot[a, b] * k_inv[b, c]
     marked = np.empty(w, np.bool_)
     moving = 0
-    for y in range(row_start, row_stop):
+    for y in range(row_start, row_stop, row_step):
         v = y + 0.5
         c0 = hm[0, 1] * v + hm[0, 2]
         c1 = hm[1, 1] * v + hm[1, 2]

@@ -324,8 +324,12 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
             np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
     out = np.zeros(depth.shape + (3,), dtype=np.float32)  # the kernel writes the moving pixels only
     moving = np.zeros(depth.shape, dtype=bool)
-    ranges = kernels.split_ranges(depth.shape[0], 64)
-    counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out, moving), ranges)
+    h = depth.shape[0]
+    # thread i takes rows i, i + parts, ..: the moving pixels, which cost the most, are shared evenly however they
+    # lie in the frame
+    parts = len(kernels.split_ranges(h, 64))
+    counts = kernels.run_ranges(lambda first, step: kernels.scene_velocity(*args, first, h, step, out, moving),
+                                [(i, parts) for i in range(parts)])
     return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))
 
 

@@ -1363,7 +1363,7 @@ def rigid_explains_better(now: np.ndarray, rigid: np.ndarray, linear: np.ndarray
 
 def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.ndarray, predicted: np.ndarray,
                    valid: np.ndarray, intrinsics: np.ndarray, *, ratio: float = 1.0,
-                   min_share: float = 0.25, collinear: float = 0.0) -> np.ndarray:
+                   min_share: float = 0.25) -> np.ndarray:
     """Per region, whether a motion model explained the last interval: (count,) bool.
 
     ``predicted`` (M, 3) is where the model (fitted on the interval before) put each point at frame n,
@@ -1371,17 +1371,6 @@ def hindcast_keeps(regions: np.ndarray, count: int, now: np.ndarray, before: np.
     extrapolated motion unless, summed over its ``valid`` points and measured in frame n's pixels, the model's
     error exceeds ``ratio`` times the error of no object motion (the point left at ``before``: camera-only
     warp); a tie keeps it (an object that starts to move: neither explained the interval).
-    Regions with fewer than ``min_share`` of their points valid have no evidence and keep their motion.
-    With ``collinear`` > 0, a region that fails is held only where its last interval's motion ran along the
-    line of the one before (a stop, a bounce, a reversal): the cosine of the two intervals' 3D displacements,
-    weighted by their lengths and summed over its valid points, at least ``collinear`` in size; one that turned
-    keeps its newest motion."""
+    Regions with fewer than ``min_share`` of their points valid have no evidence and keep their motion."""
     model, still = hindcast_errors(now, predicted, intrinsics), hindcast_errors(now, before, intrinsics)
-    keep = region_keeps(regions, count, model, still, valid, ratio=ratio, min_share=min_share)
-    if collinear > 0 and not keep.all():
-        last, earlier = (now - before)[valid], (predicted - before)[valid]
-        along = np.bincount(regions[valid], np.einsum("ij,ij->i", last, earlier), minlength=count)
-        sizes = np.bincount(regions[valid], np.linalg.norm(last, axis=1) * np.linalg.norm(earlier, axis=1),
-                            minlength=count)
-        keep |= np.abs(along) < collinear * sizes
-    return keep
+    return region_keeps(regions, count, model, still, valid, ratio=ratio, min_share=min_share)

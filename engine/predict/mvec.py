@@ -85,11 +85,6 @@ class MvecConfig:
     fallback_ratio: float = option(1.5, "a region falls back when its motion's error over the last interval "
                                         "exceeds this many times the error of no object motion (a reversal: "
                                         "2, a stop: more; a turn by 90 degrees: 1.41, kept)")
-    fallback_collinear: float = option(0.0, "with fallback: a region that failed is held only where its last "
-                                            "interval's motion ran along the line of the one before (the "
-                                            "length-weighted cosine of the two at least this in size: a stop, a "
-                                            "bounce, a reversal); one that turned keeps its motion (0: every "
-                                            "failing region is held)")
     rigid_threshold: float = option(1.0, "pixels: largest residual of a point that moves with its rigid part")
 
     def __post_init__(self) -> None:
@@ -106,8 +101,6 @@ class MvecConfig:
             raise InputError(f"must be one of {', '.join(GROUPINGS)}, got {self.grouping!r}", field="grouping")
         if not (self.fallback_ratio > 0 and np.isfinite(self.fallback_ratio)):
             raise InputError(f"must be finite and > 0, got {self.fallback_ratio}", field="fallback_ratio")
-        if not 0 <= self.fallback_collinear <= 1:
-            raise InputError(f"must be in [0, 1], got {self.fallback_collinear}", field="fallback_collinear")
         if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
             raise InputError(f"must be finite and > 0, got {self.rigid_threshold}", field="rigid_threshold")
 
@@ -282,7 +275,7 @@ class Mvec(Predictor):
                 _, _, regions = apply_parts(now_s, speed[sample], z[sample], labels[sample], count, parts, affines,
                                             k[0, 0], limit)
                 keep = hindcast_keeps(regions, count + len(parts), now_s, then_s, predicted, valid, k,
-                                      ratio=cfg.fallback_ratio, collinear=cfg.fallback_collinear)
+                                      ratio=cfg.fallback_ratio)
             velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, parts,
                                                               affines, k[0, 0], limit, None, keep, change)
             data.held = int(data.moving.size - moving.size)

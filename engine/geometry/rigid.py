@@ -394,9 +394,12 @@ def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.nda
     args = (float(depth_band), 2.0 * math.sin(0.5 * max_angle), float(relative), parent)
     # each range of rows on its own thread (its unions stay inside it), then the links across the cuts: the same
     # sets as one pass, and each set is numbered by its smallest member whatever the order of the unions
+    def link(a: int, b: int) -> None:  # a range's links read the speeds of its own pixels only
+        _speeds(velocity, a, b, speed)
+        _union_links(moving, w, points, velocity, speed, *args, a, b, b, False)
+
     ranges = _row_cuts(moving, w)
-    kernels.run_ranges(lambda a, b: _speeds(velocity, a, b, speed), ranges)
-    kernels.run_ranges(lambda a, b: _union_links(moving, w, points, velocity, speed, *args, a, b, b, False), ranges)
+    kernels.run_ranges(link, ranges)
     for cut in (a for a, _ in ranges[1:]):
         row = int(np.searchsorted(moving, (moving[cut] // w - 1) * w)) if cut < m else cut
         _union_links(moving, w, points, velocity, speed, *args, row, cut, m, True)

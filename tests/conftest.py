@@ -29,3 +29,16 @@ def sift_cache(tmp_path_factory):
         os.environ.pop(CACHE_ENV, None)
     else:
         os.environ[CACHE_ENV] = old
+
+
+@pytest.fixture(params=["one range", "three threads"])
+def point_split(request, monkeypatch):
+    """Run the per-point kernels (``engine.geometry.kernels.split_points``) in one range, or split into ranges of
+    at least 40 points on 3 threads: a test that asserts exact results with this fixture holds the split to the
+    same bits."""
+    from engine.geometry import kernels
+
+    if request.param == "three threads":
+        monkeypatch.setattr(kernels, "MIN_POINTS_PER_THREAD", 40)
+        monkeypatch.setenv(kernels.THREADS_ENV, "3")
+    return request.param

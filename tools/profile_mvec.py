@@ -7,12 +7,15 @@
 The sequences are ``tools.bench_mvec``'s (rendered once and cached under ``--out``). Per sequence and k, each
 method prepares every evaluation pair's history and renders its k-1 targets, warm, methods in rotating order
 (``tools.heldout.warm_runs``), ``--repeats`` passes after one warm-up pass. It prints per method, in ms per
-predicted frame (medians over the runs): the wall time and its ratio to ``reproject``, the CPU time of all the
+predicted frame (medians over the runs): the wall time and its ratio to ``reproject``; the CPU time of all the
 process's threads and its ratio (steadier than wall time on a shared machine; not the target, which is wall
-time), and each pass's wall time: ``prepare:<stage>`` (the preparation's stages, divided over the predicted
-frames; ``rigid.groups``, ``rigid.parts`` and ``rigid.keep`` are the steps of ``rigid``) and ``render:<stage>``
-(``motion``: the extrapolated flow; ``warp``, ``fill``). Pairs without frame n-2k (the first of each sequence)
-have no ``acceleration`` or ``rigid`` stage; a pass's median counts them as 0 ms.
+time); the CPU time of the calling thread alone and its ratio (``main``: the serial passes plus the calling
+thread's share of the split kernels, what a quiet machine with a core per kernel thread waits for when the
+shares are even; steady under load); and each pass's wall time: ``prepare:<stage>`` (the preparation's stages,
+divided over the predicted frames; ``rigid.groups``, ``rigid.parts`` and ``rigid.keep`` are the steps of
+``rigid``) and ``render:<stage>`` (``motion``: the extrapolated flow; ``warp``, ``fill``). Pairs without frame
+n-2k (the first of each sequence) have no ``acceleration`` or ``rigid`` stage; a pass's median counts them as
+0 ms.
 """
 from __future__ import annotations
 
@@ -60,10 +63,14 @@ def profile(sequence, methods: list[str], k: int, repeats: int) -> dict[str, dic
         passes[method].append(stage_ms(state, predictions))
     for *_, method, _, _, ms in warm_runs(predictors, cases, repeats, clock=time.process_time):
         cpu[method].append(ms)
+    main = defaultdict(list)
+    for *_, method, _, _, ms in warm_runs(predictors, cases, repeats, clock=time.thread_time):
+        main[method].append(ms)
     out = {}
     for m in methods:
         names = sorted({name for run in passes[m] for name in run})
         out[m] = {"wall_ms": statistics.median(wall[m]), "cpu_ms": statistics.median(cpu[m]),
+                  "main_ms": statistics.median(main[m]),
                   "passes": {name: statistics.median(run.get(name, 0.0) for run in passes[m]) for name in names}}
     return out
 
@@ -107,7 +114,8 @@ def main(argv=None) -> None:
             print(f"\n{name} k={k} ({width}x{height}), ms per predicted frame:")
             for m, r in result.items():
                 print(f"  {m}: wall {r['wall_ms']:.1f} (x{r['wall_ms'] / base['wall_ms']:.2f}), cpu {r['cpu_ms']:.1f} "
-                      f"(x{r['cpu_ms'] / base['cpu_ms']:.2f}); " +
+                      f"(x{r['cpu_ms'] / base['cpu_ms']:.2f}), main thread {r['main_ms']:.1f} "
+                      f"(x{r['main_ms'] / base['main_ms']:.2f}); " +
                       ", ".join(f"{p} {v:.2f}" for p, v in r["passes"].items()))
             rows.append({"sequence": name, "k": k, "size": [width, height], "methods": result})
     write_json(args.json, {"repeats": args.repeats, "rows": rows})

@@ -101,6 +101,16 @@ def split_rows(height: int, width: int) -> list[tuple[int, int]]:
     return split_ranges(height, -(-MIN_PIXELS_PER_THREAD // max(1, width)))
 
 
+#: Smallest share of a split per-point kernel (one over a list of moving pixels) per thread
+MIN_POINTS_PER_THREAD = 1 << 14
+
+
+def split_points(count: int) -> list[tuple[int, int]]:
+    """``split_ranges`` of ``count`` points for a kernel whose points are independent (each writes its own
+    rows): at least ``MIN_POINTS_PER_THREAD`` points a thread, so the split gives the same bits as one range."""
+    return split_ranges(count, MIN_POINTS_PER_THREAD)
+
+
 def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) -> list:
     """[fn(start, stop) for each range], the first on the calling thread and the others on a shared pool
     (the kernels release the GIL, so they run in parallel); results in range order."""
@@ -663,8 +673,9 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 
 @njit(cache=True, nogil=True)
 def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance,
-                   relative_tolerance, band, row_start, row_stop, out, moving_out):
-    """``engine.geometry.reference.scene_velocity_reference`` compiled, rows [``row_start``, ``row_stop``):
+                   relative_tolerance, band, row_start, row_stop, row_step, out, moving_out):
+    """``engine.geometry.reference.scene_velocity_reference`` compiled, rows ``row_start``, ``row_start`` +
+    ``row_step``, .. below ``row_stop``:
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
     point was in the previous frame to where it is now, and ``moving_out`` (H, W) bool True, written only
     for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
@@ -689,7 +700,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                     hm[r, c] += k_prev[r, a] * rot[a, b] * k_inv[b, c]
     marked = np.empty(w, np.bool_)
     moving = 0
-    for y in range(row_start, row_stop):
+    for y in range(row_start, row_stop, row_step):
         v = y + 0.5
         c0 = hm[0, 1] * v + hm[0, 2]
         c1 = hm[1, 1] * v + hm[1, 2]

@@ -19,7 +19,8 @@ from engine.geometry import kernels
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
            "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
            "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "velocity_change_args", "extrapolated_flow", "flow_spans", "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
+           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "flow_spans", "DEFAULT_STATIC_TOLERANCE",
+           "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -323,8 +324,12 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
             np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
     out = np.zeros(depth.shape + (3,), dtype=np.float32)  # the kernel writes the moving pixels only
     moving = np.zeros(depth.shape, dtype=bool)
-    ranges = kernels.split_ranges(depth.shape[0], 64)
-    counts = kernels.run_ranges(lambda r0, r1: kernels.scene_velocity(*args, r0, r1, out, moving), ranges)
+    h = depth.shape[0]
+    # thread i takes rows i, i + parts, ..: the moving pixels, which cost the most, are shared evenly however they
+    # lie in the frame
+    parts = len(kernels.split_ranges(h, 64))
+    counts = kernels.run_ranges(lambda first, step: kernels.scene_velocity(*args, first, h, step, out, moving),
+                                [(i, parts) for i in range(parts)])
     return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))
 
 
@@ -346,7 +351,7 @@ def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray
                                 interval_ratio, band=band, limit=limit)
     moving = np.ascontiguousarray(moving, dtype=np.int64)
     out = np.empty((moving.size, 3), dtype=np.float32)
-    kernels.velocity_change(*args[:3], moving, *args[3:], out)
+    run_velocity_change(args, moving, out)
     return out
 
 
@@ -369,6 +374,14 @@ def velocity_change_args(depth: np.ndarray, vectors: np.ndarray, velocity: np.nd
             np.linalg.inv(camera.intrinsics), np.ascontiguousarray(relative[:3, :3]),
             np.ascontiguousarray(relative[:3, 3]), np.ascontiguousarray(prev_depth),
             np.ascontiguousarray(prev_velocity), float(interval_ratio), float(band), float(limit))
+
+
+def run_velocity_change(args: tuple, moving: np.ndarray, out: np.ndarray) -> None:
+    """``kernels.velocity_change`` of the pixels ``moving`` (int64, contiguous) into ``out`` (len(moving), 3)
+    float32, with ``args`` = ``velocity_change_args``; split over the kernel threads (each pixel's row is its
+    own: the same bits)."""
+    kernels.run_ranges(lambda a, b: kernels.velocity_change(*args[:3], moving[a:b], *args[3:], out[a:b]),
+                       kernels.split_points(moving.size))
 
 
 def flow_spans(moving: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -413,6 +426,8 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     has = acceleration is not None
     accel = (np.ascontiguousarray(checked_array(acceleration, "acceleration", (idx.size, 3), {})) if has
              else np.zeros((1, 3), np.float32))
-    kernels.extrapolate_points(np.ascontiguousarray(depth), np.ascontiguousarray(velocity), idx, accel, has, k,
-                               np.linalg.inv(k), float(step), out)
+    depth, velocity, k_inv = np.ascontiguousarray(depth), np.ascontiguousarray(velocity), np.linalg.inv(k)
+    kernels.run_ranges(lambda a, b: kernels.extrapolate_points(depth, velocity, idx[a:b], accel[a:b] if has else accel,
+                                                               has, k, k_inv, float(step), out),
+                       kernels.split_points(idx.size))  # each pixel writes its own flow: the same bits
     return out

@@ -326,29 +326,33 @@ def _union_indexed(index, points, velocity, band, slope, relative, labels):  # p
 
 
 @njit(cache=True, nogil=True)
-def _union_components(moving, width, points, velocity, band, slope, relative, labels):  # pragma: no cover
-    """``motion_components``' union-find: the right neighbour of moving pixel i is i + 1 where that is the next
-    pixel of its row, the one below is found by a pointer that only moves forward (``moving`` increases), so
-    no full-frame index is needed; a link is accepted without square roots where its velocities differ by
-    less than the bound's square allows (``|a| <= sqrt(a^2 + b^2) <= |a| + |b|``)."""
-    m = moving.size
-    parent = np.arange(m)
-    speed = np.empty(m)
-    for i in range(m):
+def _speeds(velocity, lo, hi, speed):  # pragma: no cover - compiled
+    for i in range(lo, hi):
         speed[i] = math.sqrt(velocity[i, 0] ** 2 + velocity[i, 1] ** 2 + velocity[i, 2] ** 2)
-    below = 0
+
+
+@njit(cache=True, nogil=True)
+def _union_links(moving, width, points, velocity, speed, band, slope, relative, parent, lo, hi, stop,
+                 below_only):  # pragma: no cover - compiled
+    """``motion_components``' union-find over the links of the moving pixels i in [lo, hi) to their right
+    neighbour (unless ``below_only``) and the one below, where that neighbour's index j < ``stop``: the right
+    neighbour of moving pixel i is i + 1 where that is the next pixel of its row, the one below is found by a
+    pointer that only moves forward (``moving`` increases), so no full-frame index is needed; a link is
+    accepted without square roots where its velocities differ by less than the bound's square allows
+    (``|a| <= sqrt(a^2 + b^2) <= |a| + |b|``). Unions within [lo, ``stop``) only touch ``parent`` there."""
+    below = lo
     slope2 = slope * slope
-    for i in range(m):
+    for i in range(lo, hi):
         p = moving[i]
-        for step in range(2):
+        for step in range(1 if below_only else 0, 2):
             if step == 0:
-                if i + 1 >= m or moving[i + 1] != p + 1 or (p + 1) % width == 0:
+                if i + 1 >= stop or moving[i + 1] != p + 1 or (p + 1) % width == 0:
                     continue
                 j = i + 1
             else:
-                while below < m and moving[below] < p + width:
+                while below < stop and moving[below] < p + width:
                     below += 1
-                if below >= m or moving[below] != p + width:
+                if below >= stop or moving[below] != p + width:
                     continue
                 j = below
             near, dp, dv = _link(points, velocity, i, j, band)
@@ -358,7 +362,14 @@ def _union_components(moving, width, points, velocity, band, slope, relative, la
             if dv > slope2 * dp + allowed * allowed and math.sqrt(dv) > slope * math.sqrt(dp) + allowed:
                 continue
             _join(parent, i, j)
-    return _number_roots(parent, labels)
+
+
+def _row_cuts(moving: np.ndarray, width: int) -> list[tuple[int, int]]:
+    """``kernels.split_points`` of the moving pixels, each cut moved back to the first pixel of its row: the
+    ranges ``motion_components`` links on separate threads (no right link crosses a cut)."""
+    ranges = kernels.split_points(moving.size)
+    cuts = [0] + [int(np.searchsorted(moving, (moving[a] // width) * width)) for a, _ in ranges[1:]] + [moving.size]
+    return list(zip(cuts[:-1], cuts[1:]))
 
 
 def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray, velocity: np.ndarray, *,
@@ -377,10 +388,22 @@ def motion_components(shape: tuple[int, int], moving: np.ndarray, points: np.nda
     sizes = {"M": moving.size}
     points = checked_array(points, "points", ("M", 3), sizes, np.float64)
     velocity = checked_array(velocity, "velocity", ("M", 3), sizes, np.float64)
-    labels = np.empty(moving.size, np.int64)
-    count = _union_components(moving, w, np.ascontiguousarray(points), np.ascontiguousarray(velocity),
-                              float(depth_band), 2.0 * math.sin(0.5 * max_angle), float(relative), labels)
-    return labels, int(count)
+    points, velocity = np.ascontiguousarray(points), np.ascontiguousarray(velocity)
+    m = moving.size
+    parent, speed, labels = np.arange(m), np.empty(m), np.empty(m, np.int64)
+    args = (float(depth_band), 2.0 * math.sin(0.5 * max_angle), float(relative), parent)
+    # each range of rows on its own thread (its unions stay inside it), then the links across the cuts: the same
+    # sets as one pass, and each set is numbered by its smallest member whatever the order of the unions
+    def link(a: int, b: int) -> None:  # a range's links read the speeds of its own pixels only
+        _speeds(velocity, a, b, speed)
+        _union_links(moving, w, points, velocity, speed, *args, a, b, b, False)
+
+    ranges = _row_cuts(moving, w)
+    kernels.run_ranges(link, ranges)
+    for cut in (a for a, _ in ranges[1:]):
+        row = int(np.searchsorted(moving, (moving[cut] // w - 1) * w)) if cut < m else cut
+        _union_links(moving, w, points, velocity, speed, *args, row, cut, m, True)
+    return labels, int(_number_roots(parent, labels))
 
 
 def motion_components_reference(shape: tuple[int, int], moving: np.ndarray, points: np.ndarray,
@@ -763,8 +786,10 @@ def moving_points(depth: np.ndarray, velocity: np.ndarray, moving: np.ndarray, i
     moving = np.ascontiguousarray(moving, np.int64)
     now, speed, z = np.empty((moving.size, 3)), np.empty((moving.size, 3)), np.empty(moving.size)
     grid = np.empty(moving.size, bool)
-    _moving_points(np.ascontiguousarray(depth).reshape(-1), np.ascontiguousarray(velocity).reshape(-1, 3), moving,
-                   w, np.linalg.inv(np.asarray(intrinsics, np.float64)), int(stride), now, speed, z, grid)
+    depth, velocity = np.ascontiguousarray(depth).reshape(-1), np.ascontiguousarray(velocity).reshape(-1, 3)
+    k_inv = np.linalg.inv(np.asarray(intrinsics, np.float64))
+    kernels.run_ranges(lambda a, b: _moving_points(depth, velocity, moving[a:b], w, k_inv, int(stride), now[a:b],
+                                                   speed[a:b], z[a:b], grid[a:b]), kernels.split_points(moving.size))
     return now, speed, z, np.flatnonzero(grid)
 
 
@@ -946,26 +971,28 @@ def _apply_parts(now, speed, depth, labels, acceleration, has_acceleration, star
 @njit(cache=True, nogil=True)
 def _kept_part_motion(now, speed, depth, labels, acceleration, has_acceleration, starts, rotations, translations,
                       affine, focal, limit, offset, moving, keep, velocity, moving_out, acceleration_out, own,
-                      own_rows):  # pragma: no cover - compiled
-    """``kept_part_motion`` compiled: ``_apply_parts`` per pixel, its kept rows scattered and compacted in the
-    same pass; with ``own``, the kept pixels that keep their own motion get no acceleration row but their row
-    in ``own_rows``. Returns (the count of kept rows, of those)."""
+                      own_rows, lo, hi):  # pragma: no cover - compiled
+    """``kept_part_motion`` compiled for the moving pixels [lo, hi): ``_apply_parts`` per pixel, its kept rows
+    scattered and compacted in the same pass (rows lo, lo + 1, ..); with ``own``, the kept pixels that keep
+    their own motion get no acceleration row but their row in ``own_rows`` (from lo on). Returns (the count of
+    kept rows, of those)."""
     n = 0
     m = 0
-    for i in range(now.shape[0]):
+    for i in range(lo, hi):
         g = labels[i]
         j = _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit)
         if not keep[g if j < 0 else offset + j]:
             continue
         p = moving[i]
+        row = lo + n
         if j < 0 and own:
             for c in range(3):
                 velocity[p, c] = speed[i, c]
-            own_rows[m] = n
+            own_rows[lo + m] = row
             m += 1
         else:
-            _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, p, acceleration_out, n)
-        moving_out[n] = p
+            _row_motion(i, j, now, speed, acceleration, has_acceleration, affine, velocity, p, acceleration_out, row)
+        moving_out[row] = p
         n += 1
     return n, m
 
@@ -1052,18 +1079,28 @@ def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray
     velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
     moving_out, acceleration_out = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
     own_rows = np.empty(len(moving) if change is not None else 0, np.int64)
-    n, m = _kept_part_motion(np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
-                             np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
-                             np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations,
-                             translations, table, float(focal), float(limit), int(count),
-                             np.ascontiguousarray(moving, np.int64), np.ascontiguousarray(keep, np.bool_),
-                             velocity.reshape(-1, 3), moving_out, acceleration_out, change is not None, own_rows)
-    if m:  # the change of velocity of the pixels that keep their own motion, and of those only
-        rows = own_rows[:m]
-        own = np.empty((m, 3), np.float32)
-        kernels.velocity_change(*change[:3], moving_out[rows], *change[3:], own)
-        acceleration_out[rows] = own
-    return velocity, moving_out[:n], acceleration_out[:n]
+    args = (np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),
+            np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(labels, np.int64),
+            np.ascontiguousarray(acceleration, np.float32), has_acceleration, starts, rotations, translations, table,
+            float(focal), float(limit), int(count), np.ascontiguousarray(moving, np.int64),
+            np.ascontiguousarray(keep, np.bool_), velocity.reshape(-1, 3), moving_out, acceleration_out,
+            change is not None, own_rows)
+
+    def run(lo: int, hi: int) -> int:  # rows [lo, lo + n) of the outputs; each pixel's rows are its own
+        n, m = _kept_part_motion(*args, lo, hi)
+        if m:  # the change of velocity of the pixels that keep their own motion, and of those only
+            rows = own_rows[lo:lo + m]
+            own = np.empty((m, 3), np.float32)
+            kernels.velocity_change(*change[:3], moving_out[rows], *change[3:], own)
+            acceleration_out[rows] = own
+        return n
+
+    ranges = kernels.split_points(len(moving))
+    counts = kernels.run_ranges(run, ranges)
+    if len(ranges) == 1:
+        return velocity, moving_out[:counts[0]], acceleration_out[:counts[0]]
+    return (velocity, np.concatenate([moving_out[lo:lo + n] for (lo, _), n in zip(ranges, counts)]),
+            np.concatenate([acceleration_out[lo:lo + n] for (lo, _), n in zip(ranges, counts)]))
 
 
 def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,

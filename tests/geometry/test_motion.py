@@ -5,11 +5,13 @@ import numpy as np
 import pytest
 
 from engine import geometry
+from engine.geometry import kernels
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow, flow_spans,
                                     rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
-                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change)
+                                    undilate_motion_vectors, upsample_motion_vectors, velocity_change,
+                                    velocity_change_args)
 from engine.geometry.reference import scene_velocity_reference
 from tests.synthetic import rigid
 
@@ -134,6 +136,14 @@ def test_velocity_kernel_matches_its_numpy_oracle():
     np.testing.assert_array_equal(moving, np.flatnonzero(np.any(slow != 0, axis=-1)))
     assert np.all(np.isfinite(fast))
     assert np.all(fast[:4] == 0) and np.all(fast[5, :6] == 0)  # sky and missing vectors do not move
+    # the rows split over threads as every third row from row 0, 1 and 2: the same bits as one pass
+    args = (depth, vectors, prev_depth, np.linalg.inv(K), K, np.linalg.inv(K), np.ascontiguousarray(rel[:3, :3]),
+            np.ascontiguousarray(rel[:3, 3]), 1 / 32, 2.0 ** -10, 1.5)
+    out, marked = np.zeros_like(fast), np.zeros((H, W), bool)
+    counts = [kernels.scene_velocity(*args, first, H, 3, out, marked) for first in range(3)]
+    assert min(counts) > 0 and sum(counts) == moving.size
+    np.testing.assert_array_equal(out, fast)
+    np.testing.assert_array_equal(np.flatnonzero(marked), moving)
 
 
 def test_a_static_scene_has_exactly_zero_velocity_even_from_half_float_vectors():
@@ -247,7 +257,7 @@ def test_undilation_removes_the_foreground_vector_from_background_pixels_only():
     np.testing.assert_array_equal(fixed[~ring & (depth == 8.0)], 0.0)
 
 
-def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles():
+def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles(point_split):
     from engine.geometry.reference import extrapolated_flow_reference, velocity_change_reference
     depth, vectors, prev_depth, now, before = _velocity_inputs(4)
     vectors = np.nan_to_num(vectors)
@@ -262,10 +272,21 @@ def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles():
                                      prev_depth, prev_velocity, 1.25, 3.0, 0.5)
     np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6)
     assert 0 < np.count_nonzero(np.any(fast != 0, axis=-1)) < moving.size  # some kept, some refused
+    # split over threads (point_split): the same bits as one call of the kernel over all the points
+    assert len(kernels.split_points(moving.size)) == (3 if point_split == "three threads" else 1)
+    args = velocity_change_args(depth, vectors, velocity, now, before, prev_depth, prev_velocity, 1.25, band=3.0,
+                                limit=0.5)
+    whole = np.empty_like(fast)
+    kernels.velocity_change(*args[:3], moving.astype(np.int64), *args[3:], whole)
+    np.testing.assert_array_equal(fast, whole)
     for accel in (None, fast):
         out = extrapolated_flow(depth, velocity, K, 0.75, moving, accel)
         ref = extrapolated_flow_reference(depth, velocity, moving, accel, K, np.linalg.inv(K), 0.75)
         np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
+        whole = np.zeros_like(out)
+        kernels.extrapolate_points(depth, velocity, moving.astype(np.int64), np.zeros((1, 3), np.float32) if accel
+                                   is None else accel, accel is not None, K, np.linalg.inv(K), 0.75, whole)
+        np.testing.assert_array_equal(out, whole)
 
 
 def test_velocity_kernel_marks_the_same_static_pixels_as_its_oracle_near_the_tolerance():

@@ -225,8 +225,9 @@ def test_the_batched_fits_match_the_per_group_ones():
         np.testing.assert_allclose(a.translation, b.translation, atol=1e-9)
 
 
-def test_motion_components_match_the_indexed_reference():
-    # random moving masks (holes, row ends, frame edges) with bodies of unlike motion and depth steps
+def test_motion_components_match_the_indexed_reference(point_split):
+    # random moving masks (holes, row ends, frame edges) with bodies of unlike motion and depth steps; split, the
+    # rows are linked in 3 ranges on 3 threads, then across the cuts
     rng = np.random.default_rng(4)
     h, w = SIZE
     for share in (0.3, 0.7, 1.0):
@@ -238,6 +239,7 @@ def test_motion_components_match_the_indexed_reference():
         velocity = velocity + rng.normal(0, 0.004, velocity.shape) * (rng.random(moving.size) < 0.2)[:, None]
         labels, count = rg.motion_components(SIZE, moving, points, velocity)
         ref_labels, ref_count = rg.motion_components_reference(SIZE, moving, points, velocity)
+        assert len(rg._row_cuts(moving, w)) == (3 if point_split == "three threads" else 1)
         assert count == ref_count > 2
         np.testing.assert_array_equal(labels, ref_labels)
 
@@ -287,7 +289,7 @@ def test_the_continued_paths_match_numpy():
                                       np.linalg.norm(now[idx] - then[idx], axis=-1).mean(), *c1, *c0], atol=1e-12)
 
 
-def test_moving_points_match_their_numpy_reference():
+def test_moving_points_match_their_numpy_reference(point_split):
     rng = np.random.default_rng(2)
     depth = rng.uniform(1.0, 9.0, SIZE).astype(np.float32)
     velocity = rng.normal(size=SIZE + (3,)).astype(np.float32)
@@ -500,7 +502,7 @@ def test_a_session_takes_the_engines_object_ids_for_the_grouping(flip_rows):
         session.submit(frames[6].color, frames[6].depth, np.eye(4), _k(), 1.0, object_ids=np.ones((2, 2)))
 
 
-def test_apply_parts_and_kept_part_motion_match_their_numpy_references():
+def test_apply_parts_and_kept_part_motion_match_their_numpy_references(point_split):
     # three groups: one with two parts (pixels of either, and some near the assignment limit), one with a part
     # whose transform explains none of them, one without parts; with and without the pixels' own acceleration
     rng = np.random.default_rng(9)

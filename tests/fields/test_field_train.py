@@ -391,3 +391,57 @@ def test_device_cpu_trains_what_the_api_trains(tmp_path, capsys):
     b = torch.load(api / "checkpoint.pt", weights_only=True)["model"]
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     capsys.readouterr()
+
+
+# ----------------------------------------------------------------------------------------------------
+# Sparse-view regularisers (FreeNeRF): coarse-to-fine plane scales, near occlusion
+
+
+def test_coarse_to_fine_weights_fade_finer_scales_in_over_the_fraction():
+    from models.fields.static.field import coarse_to_fine_weights
+
+    assert coarse_to_fine_weights(3, 0.0, 0.5) == (1.0, 0.0, 0.0)
+    assert coarse_to_fine_weights(3, 0.125, 0.5) == (1.0, 0.5, 0.0)
+    assert coarse_to_fine_weights(3, 0.375, 0.5) == (1.0, 1.0, 0.5)
+    assert coarse_to_fine_weights(3, 0.5, 0.5) == (1.0, 1.0, 1.0)
+    assert coarse_to_fine_weights(3, 0.1, 0.0) == (1.0, 1.0, 1.0)   # off
+    assert coarse_to_fine_weights(1, 0.0, 0.5) == (1.0,)
+    with pytest.raises(InputError, match="coarse_to_fine"):
+        FieldConfig(coarse_to_fine=1.5).validate()
+
+
+def test_coarse_to_fine_starves_the_finest_planes_early_and_leaves_the_trained_field_whole(tmp_path):
+    views = sphere_views([0, 60])
+    config = tiny_config(steps=8, rays_per_batch=128, field=dataclasses.replace(TINY_FIELD, coarse_to_fine=0.5))
+    model = build_model(views, config)
+    model.field.schedule(0.0)
+    from models.fields.components.sampling import camera_rays
+
+    o, d = camera_rays(views.cameras[0].intrinsics, views.cameras[0].world_to_camera, 32, 32)
+    out = model.render_rays(o, d, torch.full((1024,), 1.0), torch.full((1024,), 5.0), jitter=True)
+    out.color.sum().backward()
+    coarse, fine = model.field.spatial_planes()
+    assert coarse.grad.abs().sum() > 0 and (fine.grad is None or fine.grad.abs().sum() == 0)
+    model.field.schedule(1.0)
+    assert model.field.encoding.scale_weights is None
+    # the trained run reads every scale at full weight
+    run = train_field(views, config, tmp_path / "c2f", progress=False)
+    assert load_model(run).field.encoding.scale_weights is None
+    assert evaluate_field(run, views, with_flip=False)["psnr"] > 10.0
+
+
+def test_near_occlusion_is_the_mass_in_the_first_samples():
+    from models.fields.components.render import RayOutputs
+    from models.fields.losses import NEAR_BAND, LossInputs, near_occlusion
+
+    n = 50
+    band = round(NEAR_BAND * n)
+    weights = torch.zeros(2, n)
+    weights[0, 0], weights[0, band], weights[1, band - 1] = 0.3, 0.6, 0.2   # 0.6 lies just past the band
+    weights.requires_grad_(True)
+    z = torch.zeros(2)
+    outputs = RayOutputs(torch.zeros(2, 3), z, z, weights.sum(-1), weights, torch.ones(2, n), torch.ones(2, n))
+    value = near_occlusion(LossInputs(None, None, outputs, 0, LossTerm("near_occlusion")))
+    assert value.item() == pytest.approx((0.3 + 0.2) / 2)
+    value.backward()
+    assert (weights.grad[:, :band] == 0.5).all() and (weights.grad[:, band:] == 0).all()

@@ -527,3 +527,15 @@ def test_depth_prior_sources_add_stereo_points_and_check_the_name():
         sparse_depth_points(views, dataclasses.replace(prior, source="lidar"))
     with pytest.raises(InputError, match="priors.depth.source"):
         PriorsConfig(depth=dataclasses.replace(prior, source="lidar")).validate()
+
+
+def test_epipolar_share_is_low_on_edges_along_the_baseline():
+    from models.fields.priors.stereo import epipolar_share
+
+    views = _layered_views()
+    grey = np.zeros((72, 96), np.float32)
+    grey[30:, :] = 1.0           # a horizontal edge: along the x baseline's epipolar lines
+    grey[:, 60:] += 0.5          # a vertical edge: across them
+    share = epipolar_share(grey, views.cameras[1], [views.cameras[0], views.cameras[2]], 7)
+    assert share[30, 20] < 0.05 and share[15, 60] > 0.95
+    assert share[5, 5] == 0.0    # blank

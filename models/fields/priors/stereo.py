@@ -13,7 +13,9 @@ at 504x378), a plane sweep scores every pixel (``docs/results/2026-11-29-ff-spar
 2. **Winner** (:func:`sweep_depth`): the best plane, refined by a parabola through its neighbours' scores (in
    inverse depth). A pixel keeps its depth only if the score reaches ``min_ncc``, the peak is not at either
    end of the sweep (no bound, e.g. the sky), it is unique (every plane more than two planes away scores at
-   least ``min_margin`` lower) and the patch is textured (grey standard deviation >= ``min_texture``).
+   least ``min_margin`` lower), the patch is textured (grey standard deviation >= ``min_texture``) and at least
+   ``min_epipolar`` of its gradient runs along the epipolar lines (:func:`epipolar_share`: an edge along them
+   matches at every depth).
 3. **Geometric consistency** (:func:`consistent_depth_points`): a depth is kept only if, projected into
    another view and back with that view's own depth, it lands within ``max_error`` pixels of where it
    started and within ``max_depth_change`` (relative) of its depth, as multi-view stereo filters depths
@@ -34,7 +36,8 @@ from engine.core.errors import InputError
 from engine.geometry import reproject
 from engine.geometry.camera import reprojection_matrix, reproject_points
 
-__all__ = ["StereoDepth", "plane_homography", "plane_sweep_ncc", "sweep_depth", "consistent_depth_points"]
+__all__ = ["StereoDepth", "plane_homography", "plane_sweep_ncc", "sweep_depth", "epipolar_share",
+           "consistent_depth_points"]
 
 
 @dataclass
@@ -49,6 +52,9 @@ class StereoDepth:
                 "lower (a unique peak: not a smooth sky, a repeated pattern or a blank wall)"})
     min_texture: float = field(default=0.02, metadata={
         "help": "keep a depth only where the patch's grey standard deviation (display-encoded, 0-1) reaches this"})
+    min_epipolar: float = field(default=0.0, metadata={
+        "help": "keep a depth only where at least this share of the patch's grey gradient runs along the epipolar "
+                "lines of every other view (an edge along them matches at every depth: the aperture problem)"})
     max_error: float = field(default=1.0, metadata={
         "help": "geometric consistency: at most this many pixels from the start after a round trip"})
     max_depth_change: float = field(default=0.02, metadata={
@@ -63,6 +69,8 @@ class StereoDepth:
             raise InputError(f"must be odd and >= 3, got {self.window}", field="priors.depth.stereo.window")
         if not -1.0 <= self.min_ncc <= 1.0:
             raise InputError(f"must be in [-1, 1], got {self.min_ncc}", field="priors.depth.stereo.min_ncc")
+        if not 0.0 <= self.min_epipolar <= 1.0:
+            raise InputError(f"must be in [0, 1], got {self.min_epipolar}", field="priors.depth.stereo.min_epipolar")
         for name in ("min_texture", "max_error", "max_depth_change"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.depth.stereo.{name}")
@@ -152,12 +160,33 @@ def sweep_depth(scores: np.ndarray, depths: np.ndarray, ref: np.ndarray, config:
     ref = ref.astype(np.float32)
     mu = _box(ref, config.window)
     texture = np.sqrt(np.maximum(_box(ref * ref, config.window) - mu * mu, 0.0))
-    away = np.abs(np.arange(num)[:, None, None] - best[None]) > 2
-    second = np.where(away, scores, -1.0).max(axis=0)
+    second = np.full(best.shape, -1.0, np.float32)
+    for d in range(num):   # the best score more than 2 planes from the peak (a loop: no (D, H, W) temporary)
+        np.maximum(second, np.where(np.abs(best - d) > 2, scores[d], -1.0), out=second)
     keep = (interior & (peak >= config.min_ncc) & (peak - second >= config.min_margin)
             & (texture >= config.min_texture) & (refined > 0))
     depth = np.where(keep, 1.0 / np.where(refined > 0, refined, 1.0), np.nan)
     return depth, peak
+
+
+def epipolar_share(grey: np.ndarray, cam, cam_others: Sequence, window: int) -> np.ndarray:
+    """(H, W) the smallest, over the other views, share of a patch's grey gradient along that view's epipolar
+    lines: ``box(|g_x e_x| + |g_y e_y|) / box(|g_x| + |g_y|)`` with e the unit direction from the epipole (the
+    other camera's centre projected into this view) to the pixel; 0 on a blank patch."""
+    h, w = grey.shape
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
+    total = _box(np.abs(gx) + np.abs(gy), window)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
+    proj = np.asarray(cam.intrinsics, np.float64) @ np.asarray(cam.world_to_camera, np.float64)[:3]
+    share = np.ones((h, w), np.float32)
+    for other in cam_others:
+        e = proj @ np.append(np.asarray(other.position, np.float64), 1.0)
+        ex, ey = (u * e[2] - e[0], v * e[2] - e[1])   # towards the pixel, up to the sign of e[2]
+        norm = np.maximum(np.hypot(ex, ey), 1e-12)
+        along = _box((np.abs(gx) * np.abs(ex / norm) + np.abs(gy) * np.abs(ey / norm)).astype(np.float32), window)
+        share = np.minimum(share, along / np.maximum(total, 1e-6))
+    return np.where(total > 1e-6, share, 0.0).astype(np.float32)
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -188,7 +217,9 @@ def consistent_depth_points(views, config: StereoDepth, seed: int = 0):
         others = [j for j in range(n) if j != i]
         scores = plane_sweep_ncc(greys[i], [greys[j] for j in others], views.cameras[i],
                                  [views.cameras[j] for j in others], depths, config.window)
-        maps.append(sweep_depth(scores, depths, greys[i], config)[0])
+        depth = sweep_depth(scores, depths, greys[i], config)[0]
+        aperture = epipolar_share(greys[i], views.cameras[i], [views.cameras[j] for j in others], config.window)
+        maps.append(np.where(aperture >= config.min_epipolar, depth, np.nan))
     rng = np.random.default_rng(seed)
     view_l, xy_l, depth_l, err_l = [], [], [], []
     for i in range(n):

@@ -525,6 +525,11 @@ def test_depth_prior_sources_add_stereo_points_and_check_the_name():
     assert len(points) == points.matches["stereo"] > 1000 and set(np.unique(points.view)) == {0, 1, 2}
     with pytest.raises(InputError, match="priors.depth.source"):
         sparse_depth_points(views, dataclasses.replace(prior, source="lidar"))
+    from models.fields.priors.depth import depth_source
+    assert SparseDepthPrior().source == "auto"
+    assert depth_source(SparseDepthPrior(), "forward-facing") == "sift+stereo"
+    assert depth_source(SparseDepthPrior(), "bounded-360") == "sift"
+    assert depth_source(prior, "bounded-360") == "stereo"
     with pytest.raises(InputError, match="priors.depth.source"):
         PriorsConfig(depth=dataclasses.replace(prior, source="lidar")).validate()
 

@@ -503,7 +503,7 @@ def test_stereo_depth_points_find_the_true_depths_and_drop_what_no_view_confirms
     views = _layered_views()
     view, xy, depth, error = consistent_depth_points(views, StereoDepth(planes=64))
     per_view = np.bincount(view, minlength=3)
-    assert (per_view > 0.3 * 72 * 96).all(), per_view
+    assert (per_view > 0.25 * 72 * 96).all(), per_view
     true = views.depth[view, (xy[:, 1] - 0.5).astype(int), (xy[:, 0] - 0.5).astype(int)]
     steps = np.abs(1.0 / depth - 1.0 / true) * 63.0   # in plane steps: 64 planes, disparity 1 (near) to 0
     assert np.median(steps) < 0.3 and np.quantile(steps, 0.95) < 1.0, (np.median(steps), np.quantile(steps, 0.95))
@@ -541,6 +541,12 @@ def test_epipolar_share_is_low_on_edges_along_the_baseline():
     grey = np.zeros((72, 96), np.float32)
     grey[30:, :] = 1.0           # a horizontal edge: along the x baseline's epipolar lines
     grey[:, 60:] += 0.5          # a vertical edge: across them
-    share = epipolar_share(grey, views.cameras[1], [views.cameras[0], views.cameras[2]], 7)
-    assert share[30, 20] < 0.05 and share[15, 60] > 0.95
-    assert share[5, 5] == 0.0    # blank
+    for other in (0, 2):
+        share = epipolar_share(grey, views.cameras[1], views.cameras[other], 7)
+        assert share[30, 20] < 0.05 and share[15, 60] > 0.95
+        assert share[5, 5] == 0.0    # blank
+    # a view below the reference sees the horizontal edge across its epipolar lines
+    below = Camera(views.cameras[1].intrinsics, views.cameras[1].world_to_camera @ np.diag([1.0, 1.0, 1.0, 1.0]))
+    below.world_to_camera[1, 3] -= 0.3
+    share = epipolar_share(grey, views.cameras[1], below, 7)
+    assert share[30, 20] > 0.95 and share[15, 60] < 0.05

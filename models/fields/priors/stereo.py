@@ -13,9 +13,9 @@ at 504x378), a plane sweep scores every pixel (``docs/results/2026-11-29-ff-spar
 2. **Winner** (:func:`sweep_depth`): the best plane, refined by a parabola through its neighbours' scores (in
    inverse depth). A pixel keeps its depth only if the score reaches ``min_ncc``, the peak is not at either
    end of the sweep (no bound, e.g. the sky), it is unique (every plane more than two planes away scores at
-   least ``min_margin`` lower), the patch is textured (grey standard deviation >= ``min_texture``) and at least
-   ``min_epipolar`` of its gradient runs along the epipolar lines (:func:`epipolar_share`: an edge along them
-   matches at every depth).
+   least ``min_margin`` lower) and the patch is textured (grey standard deviation >= ``min_texture``). An other
+   view votes on a patch only where at least ``min_epipolar`` of the patch's gradient runs along that view's
+   epipolar lines (:func:`epipolar_share`: an edge along them matches at every depth, the aperture problem).
 3. **Geometric consistency** (:func:`consistent_depth_points`): a depth is kept only if, projected into
    another view and back with that view's own depth, it lands within ``max_error`` pixels of where it
    started and within ``max_depth_change`` (relative) of its depth, as multi-view stereo filters depths
@@ -26,7 +26,7 @@ The points feed the sparse depth prior's loss (``sift_depth``) exactly as SIFT's
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Optional, Sequence
 
 import cv2
 import numpy as np
@@ -52,9 +52,9 @@ class StereoDepth:
                 "lower (a unique peak: not a smooth sky, a repeated pattern or a blank wall)"})
     min_texture: float = field(default=0.02, metadata={
         "help": "keep a depth only where the patch's grey standard deviation (display-encoded, 0-1) reaches this"})
-    min_epipolar: float = field(default=0.0, metadata={
-        "help": "keep a depth only where at least this share of the patch's grey gradient runs along the epipolar "
-                "lines of every other view (an edge along them matches at every depth: the aperture problem)"})
+    min_epipolar: float = field(default=0.5, metadata={
+        "help": "another view votes on a patch only where at least this share of the patch's grey gradient runs "
+                "along its epipolar lines (an edge along them matches at every depth: the aperture problem)"})
     max_error: float = field(default=1.0, metadata={
         "help": "geometric consistency: at most this many pixels from the start after a round trip"})
     max_depth_change: float = field(default=0.02, metadata={
@@ -99,7 +99,7 @@ def _box(x: np.ndarray, window: int) -> np.ndarray:
 
 
 def plane_sweep_ncc(ref: np.ndarray, others: Sequence[np.ndarray], cam_ref, cam_others: Sequence,
-                    depths: np.ndarray, window: int = 7) -> np.ndarray:
+                    depths: np.ndarray, window: int = 7, usable: Optional[Sequence[np.ndarray]] = None) -> np.ndarray:
     """NCC of the reference's patches against each other view warped onto each plane, the best over views.
 
     Args:
@@ -108,9 +108,10 @@ def plane_sweep_ncc(ref: np.ndarray, others: Sequence[np.ndarray], cam_ref, cam_
         cam_ref, cam_others: their cameras (``intrinsics``, ``world_to_camera``).
         depths: (D,) planar depths of the planes in the reference (may hold inf).
         window: odd patch side.
+        usable: optional (H, W) bool per other view: where that view may vote (elsewhere it scores -1).
 
     Returns:
-        (D, H, W) float32 scores in [-1, 1]; -1 where a patch leaves every other image.
+        (D, H, W) float32 scores in [-1, 1]; -1 where a patch leaves every other image (or no view may vote).
     """
     if ref.ndim != 2 or not others or any(o.ndim != 2 for o in others) or len(others) != len(cam_others):
         raise InputError("need a (H, W) reference and one (H', W') image per other camera", field="stereo")
@@ -119,8 +120,9 @@ def plane_sweep_ncc(ref: np.ndarray, others: Sequence[np.ndarray], cam_ref, cam_
     mu_r = _box(ref, window)
     var_r = np.maximum(_box(ref * ref, window) - mu_r * mu_r, 0.0)
     scores = np.full((len(depths), h, w), -1.0, np.float32)
-    for other, cam in zip(others, cam_others):
+    for k, (other, cam) in enumerate(zip(others, cam_others)):
         other = other.astype(np.float32)
+        votes = None if usable is None else np.asarray(usable[k], bool)
         ones = np.ones_like(other)
         for d, z in enumerate(depths):
             m = _MINUS_HALF @ plane_homography(cam_ref, cam, float(z)) @ _HALF  # on pixel indices
@@ -134,6 +136,8 @@ def plane_sweep_ncc(ref: np.ndarray, others: Sequence[np.ndarray], cam_ref, cam_
             cov = _box(ref * warped, window) - mu_r * mu_o
             ncc = cov / np.sqrt(var_r * var_o + 1e-8)
             ncc = np.where(_box(inside, window) > 0.999, ncc, -1.0)
+            if votes is not None:
+                ncc = np.where(votes, ncc, -1.0)
             np.maximum(scores[d], ncc, out=scores[d])
     return scores
 
@@ -169,24 +173,22 @@ def sweep_depth(scores: np.ndarray, depths: np.ndarray, ref: np.ndarray, config:
     return depth, peak
 
 
-def epipolar_share(grey: np.ndarray, cam, cam_others: Sequence, window: int) -> np.ndarray:
-    """(H, W) the smallest, over the other views, share of a patch's grey gradient along that view's epipolar
-    lines: ``box(|g_x e_x| + |g_y e_y|) / box(|g_x| + |g_y|)`` with e the unit direction from the epipole (the
-    other camera's centre projected into this view) to the pixel; 0 on a blank patch."""
+def epipolar_share(grey: np.ndarray, cam, other, window: int) -> np.ndarray:
+    """(H, W) the share of each patch's grey gradient along the epipolar lines of ``other`` in this view:
+    ``box(|g_x e_x| + |g_y e_y|) / box(|g_x| + |g_y|)`` with e the unit direction from the epipole (the other
+    camera's centre projected into this view) to the pixel; 0 on a blank patch. Near 0, the patch is an edge
+    along the lines and matches the other view at every depth (the aperture problem)."""
     h, w = grey.shape
-    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
-    total = _box(np.abs(gx) + np.abs(gy), window)
+    gx = np.abs(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3))
+    gy = np.abs(cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
+    total = _box(gx + gy, window)
     u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
     proj = np.asarray(cam.intrinsics, np.float64) @ np.asarray(cam.world_to_camera, np.float64)[:3]
-    share = np.ones((h, w), np.float32)
-    for other in cam_others:
-        e = proj @ np.append(np.asarray(other.position, np.float64), 1.0)
-        ex, ey = (u * e[2] - e[0], v * e[2] - e[1])   # towards the pixel, up to the sign of e[2]
-        norm = np.maximum(np.hypot(ex, ey), 1e-12)
-        along = _box((np.abs(gx) * np.abs(ex / norm) + np.abs(gy) * np.abs(ey / norm)).astype(np.float32), window)
-        share = np.minimum(share, along / np.maximum(total, 1e-6))
-    return np.where(total > 1e-6, share, 0.0).astype(np.float32)
+    e = proj @ np.append(np.asarray(other.position, np.float64), 1.0)
+    ex, ey = u * e[2] - e[0], v * e[2] - e[1]   # from the epipole to the pixel, up to the sign of e[2]
+    norm = np.maximum(np.hypot(ex, ey), 1e-12)
+    along = _box((gx * np.abs(ex / norm) + gy * np.abs(ey / norm)).astype(np.float32), window)
+    return np.where(total > 1e-6, along / np.maximum(total, 1e-6), 0.0).astype(np.float32)
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -215,11 +217,11 @@ def consistent_depth_points(views, config: StereoDepth, seed: int = 0):
         with np.errstate(divide="ignore"):
             depths = np.where(disparity > 0, 1.0 / np.where(disparity > 0, disparity, 1.0), np.inf)
         others = [j for j in range(n) if j != i]
+        usable = [epipolar_share(greys[i], views.cameras[i], views.cameras[j], config.window) >= config.min_epipolar
+                  for j in others]
         scores = plane_sweep_ncc(greys[i], [greys[j] for j in others], views.cameras[i],
-                                 [views.cameras[j] for j in others], depths, config.window)
-        depth = sweep_depth(scores, depths, greys[i], config)[0]
-        aperture = epipolar_share(greys[i], views.cameras[i], [views.cameras[j] for j in others], config.window)
-        maps.append(np.where(aperture >= config.min_epipolar, depth, np.nan))
+                                 [views.cameras[j] for j in others], depths, config.window, usable)
+        maps.append(sweep_depth(scores, depths, greys[i], config)[0])
     rng = np.random.default_rng(seed)
     view_l, xy_l, depth_l, err_l = [], [], [], []
     for i in range(n):

@@ -28,7 +28,7 @@ from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import RayOutputs
 
 __all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
-           "default_loss_terms", "srgb_encode", "plane_group", "NEAR_BAND"]
+           "default_loss_terms", "srgb_encode", "plane_group"]
 
 
 @dataclass
@@ -36,8 +36,7 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "near_occlusion, sparse_depth (the priors add theirs, "
-                                        "models/fields/priors/config.py)"})
+                                        "sparse_depth (the priors add theirs, models/fields/priors/config.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
@@ -45,11 +44,10 @@ class LossTerm:
 
 
 def default_loss_terms() -> tuple[LossTerm, ...]:
-    """Photometric loss plus a light TV on the spatial planes; L1, sparse depth and the near occlusion present but
-    off."""
+    """Photometric loss plus a light TV on the spatial planes; L1 and sparse depth present but off."""
     return (LossTerm("photometric", 1.0), LossTerm("plane_tv", 1e-3, planes="spatial"),
             LossTerm("plane_l1", 1e-4, enabled=False, planes="spatial"),
-            LossTerm("sparse_depth", 0.1, enabled=False), LossTerm("near_occlusion", 0.0))
+            LossTerm("sparse_depth", 0.1, enabled=False))
 
 
 @dataclass
@@ -142,20 +140,6 @@ def plane_tv_term(inputs: LossInputs) -> Tensor:
 def plane_l1_term(inputs: LossInputs) -> Tensor:
     """Mean |feature| of the named plane group (sparsity: empty space)."""
     return plane_l1(plane_group(inputs))
-
-
-#: Share of a ray's samples, from its near end, that ``near_occlusion`` penalises (FreeNeRF: 10 of 128).
-NEAR_BAND = 0.08
-
-
-@register_loss_term("near_occlusion")
-def near_occlusion(inputs: LossInputs) -> Tensor:
-    """FreeNeRF's occlusion regularisation: the mean over rays of the weights of the first ``NEAR_BAND`` of
-    each ray's samples (at least one; samples are ordered near to far), so that a few views cannot explain
-    themselves with floaters in front of the cameras."""
-    weights = inputs.outputs.weights
-    band = max(1, round(NEAR_BAND * weights.shape[-1]))
-    return weights[..., :band].sum(dim=-1).mean()
 
 
 @register_loss_term("sparse_depth", needs_depth=True)

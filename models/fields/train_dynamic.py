@@ -254,9 +254,6 @@ class DynamicKind:
         planes, mlps = _plane_params(model)
         return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}]
 
-    def schedule(self, model: DynamicFieldModel, progress: float) -> None:
-        return None
-
     def render(self, model: DynamicFieldModel, batch: RayBatch, inputs: torch.Tensor, generator: torch.Generator):
         return model.render_rays(batch.origins, batch.directions, batch.near, batch.far, inputs, jitter=True,
                                  generator=generator)

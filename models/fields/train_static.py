@@ -111,9 +111,6 @@ class StaticKind:
                 {"params": [p for n, p in model.field.named_parameters() if not n.startswith("encoding.")],
                  "name": "mlps"}]
 
-    def schedule(self, model: StaticFieldModel, progress: float) -> None:
-        model.field.schedule(progress)
-
     def render(self, model: StaticFieldModel, batch: RayBatch, inputs: None, generator: torch.Generator):
         return model.render_rays(batch.origins, batch.directions, batch.near, batch.far, jitter=True,
                                  generator=generator)

@@ -334,9 +334,6 @@ class FieldKind(Protocol):
     def param_groups(self, model) -> list[dict]:
         """The model's Adam parameter groups (named)."""
 
-    def schedule(self, model, progress: float) -> None:
-        """Set the model's training schedules at ``progress`` = step / steps (1: the trained model's state)."""
-
     def render(self, model, batch: RayBatch, inputs: Optional[torch.Tensor], generator: torch.Generator):
         """The model's outputs for a training batch (jittered samples); ``inputs`` are the batch's ray inputs."""
 
@@ -425,7 +422,6 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
                 occupied = model.update_occupancy(generator)
                 if trained_priors is not None:
                     trained_priors.update_occupancy(generator)
-            kind.schedule(model, step / config.steps)
             idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator).to(device)
             batch = take_rays(rays, idx)
             outputs = kind.render(model, batch, None if inputs is None else inputs[idx], generator)
@@ -451,7 +447,6 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
             if step % config.checkpoint_every == 0 and step < config.steps:
                 save(step)
     finally:
-        kind.schedule(model, 1.0)
         log.close()
         if bar is not None:
             bar.close()

@@ -11,12 +11,10 @@ x) and ``b`` along its height (grid_sample's y).
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Sequence
 
 import torch
 from torch import Tensor, nn
-
-from engine.core.errors import InputError
 
 __all__ = ["PLANE_AXES", "sample_planes", "plane_grid", "read_planes", "plane_tv", "plane_l1", "TriPlaneEncoding",
            "sh_encoding", "fourier_encoding", "direction_encoding_dim", "DirectionEncoding", "MLP"]
@@ -123,19 +121,6 @@ class TriPlaneEncoding(nn.Module):
         lo, hi = init_range
         self.planes = nn.ParameterList(
             nn.Parameter(torch.empty(3, self.feature_dim, r, r).uniform_(lo, hi)) for r in self.resolutions)
-        #: per-scale multipliers of the features while a coarse-to-fine schedule fades the finer scales in
-        #: (:meth:`set_scale_weights`); None (every scale at full weight) outside training.
-        self.scale_weights: Optional[tuple[float, ...]] = None
-
-    def set_scale_weights(self, weights: Optional[Sequence[float]]) -> None:
-        """Multiply scale i's features by ``weights[i]`` in [0, 1] (None or all ones: no multiplier)."""
-        if weights is None or all(float(w) >= 1.0 for w in weights):
-            self.scale_weights = None
-            return
-        if len(weights) != len(self.resolutions) or not all(0.0 <= float(w) <= 1.0 for w in weights):
-            raise InputError(f"need {len(self.resolutions)} weights in [0, 1], got {list(weights)}",
-                             field="scale_weights")
-        self.scale_weights = tuple(float(w) for w in weights)
 
     @property
     def output_dim(self) -> int:
@@ -146,12 +131,8 @@ class TriPlaneEncoding(nn.Module):
         return list(self.planes)
 
     def forward(self, coords: Tensor) -> Tensor:
-        """(..., 3) contracted coordinates -> (..., C * scales) features (times the scale weights, if set)."""
-        features = sample_planes(self.spatial_planes(), coords)
-        if self.scale_weights is None:
-            return features
-        per_channel = features.new_tensor(self.scale_weights).repeat_interleave(self.feature_dim)
-        return features * per_channel
+        """(..., 3) contracted coordinates -> (..., C * scales) features."""
+        return sample_planes(self.spatial_planes(), coords)
 
 
 # ----------------------------------------------------------------------------------------------------

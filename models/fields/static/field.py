@@ -20,8 +20,7 @@ from torch import Tensor, nn
 from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
 
-__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "bounded_tanh", "coarse_to_fine_weights",
-           "density_activation"]
+__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "bounded_tanh", "density_activation"]
 
 #: Density is exp(min(raw, MAX_LOG_DENSITY)): at most ~3.3e6 per scene unit, so sigma * delta never
 #: overflows float32 and rendering needs no NaN guards.
@@ -63,10 +62,6 @@ class FieldConfig:
                 "that of mean(relu(|x| - bound)^2)), so the residual cannot stick where tanh is flat and the "
                 "colour out of range; renders are unchanged; 0 turns it off "
                 "(docs/results/2026-11-28-baked-features.md)"})
-    coarse_to_fine: float = field(default=0.0, metadata={
-        "help": "fraction of the training steps over which the finer plane scales fade in, coarse to fine "
-                "(FreeNeRF's frequency regularisation on a multi-resolution grid): scale i of n reaches full weight "
-                "at i / (n - 1) of it; renders always read every scale at full weight; 0: off"})
     shading: str = field(default="per-sample", metadata={
         "help": "per-sample: the colour MLP at every sample; deferred: sigmoid features (the first 3 a diffuse "
                 "RGB) composited with the volume-rendering weights and the colour MLP once per pixel on them and "
@@ -88,8 +83,6 @@ class FieldConfig:
         if self.shading == "deferred" and int(self.geo_feature_dim) < 3:
             raise InputError(f"must be >= 3 with deferred shading (the first 3 are the diffuse colour), got "
                              f"{self.geo_feature_dim}", field="field.geo_feature_dim")
-        if not 0.0 <= float(self.coarse_to_fine) <= 1.0:
-            raise InputError(f"must be in [0, 1], got {self.coarse_to_fine}", field="field.coarse_to_fine")
         if not float(self.residual_bound) >= 0.0:
             raise InputError(f"must be >= 0, got {self.residual_bound}", field="field.residual_bound")
         if self.direction_encoding == "sh" and not 1 <= self.direction_degree <= 4:
@@ -121,20 +114,6 @@ def bounded_tanh(x: Tensor, bound: float) -> Tensor:
     return _BoundedTanh.apply(x, float(bound))
 
 
-def coarse_to_fine_weights(scales: int, progress: float, fraction: float) -> tuple[float, ...]:
-    """Per-scale feature weights at ``progress`` (step / steps) of a schedule that fades ``scales`` plane scales
-    in, coarse to fine, over the first ``fraction`` of training: scale 0 always 1, scale i ramps linearly from 0
-    at (i - 1) / (n - 1) to 1 at i / (n - 1) of the schedule; all ones once it is over or with ``fraction`` 0.
-
-    >>> coarse_to_fine_weights(3, 0.25, 0.5)
-    (1.0, 1.0, 0.0)
-    """
-    if fraction <= 0.0 or progress >= fraction or scales < 2:
-        return (1.0,) * scales
-    x = progress / fraction * (scales - 1)
-    return tuple(1.0 if i == 0 else min(max(x - (i - 1), 0.0), 1.0) for i in range(scales))
-
-
 def density_activation(raw: Tensor, bias: float = 0.0) -> Tensor:
     """``exp(min(raw + bias, MAX_LOG_DENSITY))``: positive, finite, exportable."""
     return torch.exp(torch.clamp(raw + bias, max=MAX_LOG_DENSITY))
@@ -158,12 +137,6 @@ class TriPlaneField(nn.Module):
         self.direction_encoding = DirectionEncoding(cfg.direction_encoding, cfg.direction_degree)
         self.color_mlp = MLP(cfg.geo_feature_dim + self.direction_encoding.output_dim, cfg.color_hidden, 3,
                              layers=cfg.color_layers)
-
-    def schedule(self, progress: float) -> None:
-        """Training callback: ``progress`` = step / steps in [0, 1]. Sets the scale weights of the
-        coarse-to-fine schedule (:func:`coarse_to_fine_weights`); progress 1 leaves every scale at full weight."""
-        self.encoding.set_scale_weights(coarse_to_fine_weights(len(self.config.resolutions), progress,
-                                                               self.config.coarse_to_fine))
 
     # named plane groups -------------------------------------------------------------------------------
     def spatial_planes(self) -> list[Tensor]:

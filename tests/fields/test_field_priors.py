@@ -444,3 +444,109 @@ def test_sift_features_are_extracted_once_per_view(tmp_path, monkeypatch):
     next(tmp_path.glob("*.npz")).write_bytes(b"damaged")  # a damaged entry is extracted again, not an error
     monkeypatch.undo()
     assert len(depth.sift_features(views, 512, cache_dir=tmp_path)) == 2
+
+
+# ----------------------------------------------------------------------------------------------------
+# Plane-sweep stereo depth (the depth prior's stereo source)
+
+
+def _layered_views(size: tuple[int, int] = (72, 96)) -> Views:
+    """Three cameras 0.25 apart along x looking down +z at a noise-textured wall (Z = 6) and a textured square
+    (Z = 2.5, |x|, |y| < 0.5) in front of it; linear colours, true planar depth."""
+    h, w = size
+    rng = np.random.default_rng(5)
+    grid = rng.random((200, 200)).astype(np.float32)
+
+    def texture(x, y, offset):   # bilinear value noise, ~12 cells a unit
+        gx, gy = (x + 8.0 + offset) * 12.0, (y + 8.0) * 12.0
+        x0, y0 = np.floor(gx).astype(int), np.floor(gy).astype(int)
+        fx, fy = gx - x0, gy - y0
+        return ((grid[y0, x0] * (1 - fx) + grid[y0, x0 + 1] * fx) * (1 - fy)
+                + (grid[y0 + 1, x0] * (1 - fx) + grid[y0 + 1, x0 + 1] * fx) * fy)
+
+    k = np.array([[80.0, 0, w / 2], [0, 80.0, h / 2], [0, 0, 1.0]])
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    images, depths, cams = [], [], []
+    for cx in (-0.25, 0.0, 0.25):
+        w2c = np.eye(4)
+        w2c[0, 3] = -cx
+        rx, ry = (u - w / 2) / 80.0, (v - h / 2) / 80.0
+        near_x, near_y = cx + 2.5 * rx, 2.5 * ry
+        on_square = (np.abs(near_x) < 0.5) & (np.abs(near_y) < 0.5)
+        depth = np.where(on_square, 2.5, 6.0)
+        x, y = cx + depth * rx, depth * ry
+        value = np.where(on_square, texture(x, y, 1.3), texture(x, y, 0.0))
+        images.append(np.repeat(value[..., None], 3, -1).astype(np.float32) ** 2.2)
+        depths.append(depth.astype(np.float32))
+        cams.append(Camera(k.copy(), w2c))
+    return Views(images=np.stack(images), cameras=cams, near_far=np.tile([1.0, np.inf], (3, 1)),
+                 scene_type="forward-facing", depth=np.stack(depths))
+
+
+def test_plane_homography_maps_pixels_as_the_engines_reprojection():
+    from engine.geometry import reproject
+    from models.fields.priors.stereo import plane_homography
+
+    a, b = _camera([0.0, -3.0, 1.0]), _camera([0.8, -2.8, 1.3], look_at=(0.2, 0.0, 0.1))
+    for z in (1.5, 4.0):
+        uv, _, _ = reproject(np.full((64, 64), z, np.float32), a.intrinsics, a.world_to_camera, b.intrinsics,
+                             b.world_to_camera)
+        h = plane_homography(a, b, z)
+        px = np.stack(np.meshgrid(np.arange(64) + 0.5, np.arange(64) + 0.5), -1).reshape(-1, 2)
+        mapped = np.concatenate([px, np.ones((len(px), 1))], 1) @ h.T
+        np.testing.assert_allclose(mapped[:, :2] / mapped[:, 2:], uv.reshape(-1, 2), atol=2e-3)
+
+
+def test_stereo_depth_points_find_the_true_depths_and_drop_what_no_view_confirms():
+    from models.fields.priors.stereo import StereoDepth, consistent_depth_points
+
+    views = _layered_views()
+    view, xy, depth, error = consistent_depth_points(views, StereoDepth(planes=64))
+    per_view = np.bincount(view, minlength=3)
+    assert (per_view > 0.25 * 72 * 96).all(), per_view
+    true = views.depth[view, (xy[:, 1] - 0.5).astype(int), (xy[:, 0] - 0.5).astype(int)]
+    steps = np.abs(1.0 / depth - 1.0 / true) * 63.0   # in plane steps: 64 planes, disparity 1 (near) to 0
+    assert np.median(steps) < 0.3 and np.quantile(steps, 0.95) < 1.0, (np.median(steps), np.quantile(steps, 0.95))
+    assert (error <= 1.0).all()
+    both = set(np.round(true, 3).tolist())
+    assert both == {2.5, 6.0}   # the square and the wall behind it
+    # a blank view matches nothing
+    flat = dataclasses.replace(views, images=np.full_like(views.images, 0.5))
+    assert len(consistent_depth_points(flat, StereoDepth(planes=16))[0]) == 0
+    with pytest.raises(InputError, match="window"):
+        StereoDepth(window=4).validate()
+
+
+def test_depth_prior_sources_add_stereo_points_and_check_the_name():
+    views = _layered_views()
+    prior = SparseDepthPrior(enabled=True, source="stereo", stereo=dataclasses.replace(SparseDepthPrior().stereo,
+                                                                                      planes=32))
+    points = sparse_depth_points(views, prior)
+    assert len(points) == points.matches["stereo"] > 1000 and set(np.unique(points.view)) == {0, 1, 2}
+    with pytest.raises(InputError, match="priors.depth.source"):
+        sparse_depth_points(views, dataclasses.replace(prior, source="lidar"))
+    from models.fields.priors.depth import depth_source
+    assert SparseDepthPrior().source == "auto"
+    assert depth_source(SparseDepthPrior(), "forward-facing") == "sift+stereo"
+    assert depth_source(SparseDepthPrior(), "bounded-360") == "sift"
+    assert depth_source(prior, "bounded-360") == "stereo"
+    with pytest.raises(InputError, match="priors.depth.source"):
+        PriorsConfig(depth=dataclasses.replace(prior, source="lidar")).validate()
+
+
+def test_epipolar_share_is_low_on_edges_along_the_baseline():
+    from models.fields.priors.stereo import epipolar_share
+
+    views = _layered_views()
+    grey = np.zeros((72, 96), np.float32)
+    grey[30:, :] = 1.0           # a horizontal edge: along the x baseline's epipolar lines
+    grey[:, 60:] += 0.5          # a vertical edge: across them
+    for other in (0, 2):
+        share = epipolar_share(grey, views.cameras[1], views.cameras[other], 7)
+        assert share[30, 20] < 0.05 and share[15, 60] > 0.95
+        assert share[5, 5] == 0.0    # blank
+    # a view below the reference sees the horizontal edge across its epipolar lines
+    below = Camera(views.cameras[1].intrinsics, views.cameras[1].world_to_camera @ np.diag([1.0, 1.0, 1.0, 1.0]))
+    below.world_to_camera[1, 3] -= 0.3
+    share = epipolar_share(grey, views.cameras[1], below, 7)
+    assert share[30, 20] > 0.95 and share[15, 60] < 0.05

@@ -22,7 +22,7 @@ from torch import nn
 
 from engine.core.errors import InputError
 from models.fields.losses import LossTerm
-from models.fields.priors.depth import SparseDepthPrior, SparseDepthState
+from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDepthState
 from models.fields.priors.simple import AugmentedState, SimplePrior
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
@@ -90,6 +90,9 @@ class PriorsConfig:
         """Raise InputError naming the first bad option; returns self."""
         if self.depth.rays < 1:
             raise InputError(f"must be >= 1, got {self.depth.rays}", field="priors.depth.rays")
+        if self.depth.source not in DEPTH_SOURCES:
+            raise InputError(f"must be one of {DEPTH_SOURCES}, got {self.depth.source!r}", field="priors.depth.source")
+        self.depth.stereo.validate()
         if not 0 <= self.simple.near_shift < 1:
             raise InputError(f"must be in [0, 1), got {self.simple.near_shift}", field="priors.simple.near_shift")
         if self.simple.patch_size < 1 or self.simple.patch_size % 2 == 0:

@@ -36,8 +36,8 @@ from engine.core.errors import InputError
 from engine.geometry import reproject
 from engine.geometry.camera import reprojection_matrix, reproject_points
 
-__all__ = ["StereoDepth", "plane_homography", "plane_sweep_ncc", "sweep_depth", "epipolar_share",
-           "consistent_depth_points"]
+__all__ = ["StereoDepth", "plane_depths_inverse", "plane_homography", "plane_sweep_ncc", "sweep_depth",
+           "epipolar_share", "consistent_depth_points"]
 
 
 @dataclass
@@ -88,6 +88,14 @@ def plane_homography(cam_ref, cam_other, depth: float) -> np.ndarray:
     plane = rot if np.isinf(depth) else rot + np.outer(t, [0.0, 0.0, 1.0 / depth])
     return np.asarray(cam_other.intrinsics, np.float64) @ plane @ np.linalg.inv(np.asarray(cam_ref.intrinsics,
                                                                                            np.float64))
+
+
+def plane_depths_inverse(near: float, far: float, num_planes: int) -> np.ndarray:
+    """(D,) planar depths uniform in inverse depth from ``near`` to ``far`` (far = inf gives +inf last): the
+    planes of this sweep and of ViP's (``priors/vip.py``)."""
+    disparity = np.linspace(1.0 / near, 0.0 if np.isinf(far) else 1.0 / far, num_planes)
+    with np.errstate(divide="ignore"):
+        return np.where(disparity > 0, 1.0 / np.where(disparity > 0, disparity, 1.0), np.inf)
 
 
 _HALF = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
@@ -212,10 +220,7 @@ def consistent_depth_points(views, config: StereoDepth, seed: int = 0):
     greys = [_grey(image) for image in views.images]
     maps = []
     for i in range(n):
-        near, far = (float(x) for x in views.near_far[i])
-        disparity = np.linspace(1.0 / near, 0.0 if np.isinf(far) else 1.0 / far, config.planes)
-        with np.errstate(divide="ignore"):
-            depths = np.where(disparity > 0, 1.0 / np.where(disparity > 0, disparity, 1.0), np.inf)
+        depths = plane_depths_inverse(float(views.near_far[i, 0]), float(views.near_far[i, 1]), config.planes)
         others = [j for j in range(n) if j != i]
         usable = [epipolar_share(greys[i], views.cameras[i], views.cameras[j], config.window) >= config.min_epipolar
                   for j in others]

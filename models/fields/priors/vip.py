@@ -45,6 +45,7 @@ from engine.geometry import reproject
 from models.fields.components.encodings import MLP, DirectionEncoding
 from models.fields.losses import LossInputs, register_loss_term
 from models.fields.priors.simple import bilinear_sample
+from models.fields.priors.stereo import plane_depths_inverse
 
 __all__ = ["VisibilityPrior", "plane_depths_inverse", "plane_sweep_visibility", "visibility_maps",
            "load_or_compute_visibility", "VisibilityHead", "VisibilityState"]
@@ -65,13 +66,6 @@ class VisibilityPrior:
     start_fraction: float = field(default=0.2, metadata={
         "help": "Eq. 3.8 and the T <- SG(T_hat) half of Eq. 3.12 start after this fraction of the steps (the "
                 "head learns T_hat <- SG(T) from the start)"})
-
-
-def plane_depths_inverse(near: float, far: float, num_planes: int) -> np.ndarray:
-    """(D,) planar depths uniform in inverse depth from ``near`` to ``far`` (far = inf gives +inf last)."""
-    disparity = np.linspace(1.0 / near, 0.0 if np.isinf(far) else 1.0 / far, num_planes)
-    with np.errstate(divide="ignore"):
-        return np.where(disparity > 0, 1.0 / np.where(disparity > 0, disparity, 1.0), np.inf)
 
 
 def plane_sweep_visibility(primary: np.ndarray, secondary: np.ndarray, cam_primary, cam_secondary,

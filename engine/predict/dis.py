@@ -19,7 +19,7 @@ from engine.geometry.holefill import fill_holes
 from engine.geometry.regions import region_keeps
 from engine.geometry.rigid import motion_components
 
-__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "dis_estimator", "dis_calc",
+__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "DisEstimator", "dis_estimator", "dis_calc",
            "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
            "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions", "chroma8",
            "explained_motion", "fall_back"]
@@ -45,17 +45,39 @@ FALLBACK_RATIO = 1.0
 HIDDEN_BAND = 1.1
 
 
-def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None):
-    """An OpenCV DIS optical-flow object for a preset name ('ultrafast', 'fast', 'medium'; others raise),
-    with its finest pyramid scale replaced by ``finest_scale`` when given (0: the input's own resolution)."""
+class DisEstimator:
+    """An OpenCV DIS optical flow for a preset, safe to call with and without a starting flow.
+
+    OpenCV's ``DISOpticalFlow`` remembers that it was once given a starting flow: every later ``calc``,
+    with ``None`` too, then starts from whatever its newly made output buffer holds (often the previous
+    result, freed and reused), so a call without a start gave a different flow after a call with one. This
+    keeps one OpenCV object for each kind of call (``calc(a, b, None)`` runs on one that never saw a start)."""
+
+    def __init__(self, preset: int, finest_scale: Optional[int] = None) -> None:
+        self._cold, self._warm = cv2.DISOpticalFlow_create(preset), cv2.DISOpticalFlow_create(preset)
+        if finest_scale is not None:
+            for estimator in (self._cold, self._warm):
+                estimator.setFinestScale(int(finest_scale))
+
+    def getFinestScale(self) -> int:  # noqa: N802 (OpenCV's name)
+        return int(self._cold.getFinestScale())
+
+    def calc(self, luma_a: np.ndarray, luma_b: np.ndarray, initial: Optional[np.ndarray]) -> np.ndarray:
+        """OpenCV's ``calc``: (H, W, 2) float32 flow from a to b, from ``initial`` when it is given."""
+        if initial is None:
+            return self._cold.calc(luma_a, luma_b, None)
+        return self._warm.calc(luma_a, luma_b, initial)
+
+
+def dis_estimator(preset: str = "medium", finest_scale: Optional[int] = None) -> DisEstimator:
+    """A DIS optical-flow estimator (``DisEstimator``) for a preset name ('ultrafast', 'fast', 'medium'; others
+    raise), with its finest pyramid scale replaced by ``finest_scale`` when given (0: the input's own
+    resolution)."""
     presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
     if preset not in presets:
         raise InputError(f"unknown DIS preset '{preset}', expected one of {sorted(presets)}", field="preset")
-    estimator = cv2.DISOpticalFlow_create(presets[preset])
-    if finest_scale is not None:
-        estimator.setFinestScale(int(finest_scale))
-    return estimator
+    return DisEstimator(presets[preset], finest_scale)
 
 
 def dis_calc(estimator, luma_a: np.ndarray, luma_b: np.ndarray, initial: Optional[np.ndarray] = None) -> np.ndarray:

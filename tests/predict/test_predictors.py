@@ -151,6 +151,22 @@ def test_dis_calc_leaves_large_images_alone_and_checks_shapes():
         dis_calc(dis_estimator(), a, b[:, :-1])
 
 
+def test_dis_without_a_start_is_unchanged_by_an_earlier_call_with_one():
+    """OpenCV's DIS, once given a starting flow, starts every later call from its reused output buffer: a call
+    without a start then returned the previous call's flow (69 px off on a fast pair)."""
+    from engine.predict import dis_calc, dis_estimator, luma8
+
+    frames, _ = two_layer_sequence(4, width=96, height=64, camera_speed=0.02, object_speed=0.15)
+    a, b = luma8(frames[3].color), luma8(frames[1].color)
+    estimator = dis_estimator()
+    cold = dis_calc(estimator, a, b)
+    start = np.full(a.shape + (2,), 9.0, np.float32)
+    warm = dis_calc(estimator, a, b, start)
+    assert np.abs(warm - cold).max() > 0.1  # the start mattered
+    np.testing.assert_array_equal(dis_calc(estimator, a, b), cold)
+    np.testing.assert_array_equal(dis_calc(estimator, a, b, start), warm)
+
+
 def test_decomp2d_reports_its_own_name():
     """Issue 20, D11: a decomp2d session reported its method as decomp."""
     assert make_predictor("decomp2d").name == "decomp2d" and make_predictor("decomp").name == "decomp"

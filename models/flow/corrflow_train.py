@@ -297,6 +297,23 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     return ckpt
 
 
+def _scenes(text: str) -> tuple:
+    """``--scenes``: "PRESET:FIRST:COUNT,..." -> ((preset, first seed, count), ...)."""
+    try:
+        scenes = tuple((p, int(first), int(count)) for p, first, count in (part.split(":") for part in text.split(",")))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected PRESET:FIRST:COUNT,..., e.g. fast:5000:16, got {text!r}") from None
+    return scenes
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    """``--ks``: "1,2,4" -> (1, 2, 4)."""
+    try:
+        return tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, e.g. 1,2,4, got {text!r}") from None
+
+
 def _crop_size(text: str) -> tuple[int, int]:
     """``--crop``: "HxW" -> (H, W)."""
     try:
@@ -327,12 +344,18 @@ def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflo
                         help="training crop HxW at the working resolution (default: %(default)s)")
     parser.add_argument("--depth", action="store_true",
                         help="an RGB-D network: both images carry their depth code as a fourth channel")
+    parser.add_argument("--scenes", type=_scenes, default=TRAIN_SCENES,
+                        help="training scenes as PRESET:FIRST:COUNT,... (default: the seeds 5000-5039 of TRAIN_SCENES)")
+    parser.add_argument("--ks", type=_ints, default=TrainCorrFlowConfig.ks, help="frame distances of the pairs")
+    parser.add_argument("--iterations", type=int, default=CorrFlowConfig.iterations,
+                        help="update iterations in training (each supervised)")
     args = parser.parse_args(argv)
     try:
         config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
                                      seed=args.seed, lr=args.lr, init_from=args.init_from,
                                      extra_data=args.extra_data, extra_share=args.extra_share, threads=args.threads,
-                                     net_width=args.net_width, crop=args.crop, model=CorrFlowConfig(depth=args.depth))
+                                     net_width=args.net_width, crop=args.crop, scenes=args.scenes, ks=args.ks,
+                                     model=CorrFlowConfig(depth=args.depth, iterations=args.iterations))
         prepare_pairs(config)
         if not args.pairs_only:
             print(f"wrote {train(config, resume=args.resume)}")

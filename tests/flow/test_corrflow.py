@@ -192,7 +192,9 @@ def test_rgbd_network_exports_with_parity(tmp_path):
                                            (["--crop", "0x320"], "multiples of 8"),
                                            (["--crop", "220x320"], "multiples of 8"),
                                            (["--net-width", "0"], "net_width must be >= 8"),
-                                           (["--threads", "0"], "threads must be >= 1")])
+                                           (["--threads", "0"], "threads must be >= 1"),
+                                           (["--scenes", "fast:5000"], "PRESET:FIRST:COUNT"),
+                                           (["--ks", "1,two"], "comma-separated integers")])
 def test_bad_training_options_are_one_line_errors(tmp_path, capsys, args, problem):
     from models.flow.corrflow_train import main
 

@@ -116,3 +116,49 @@ def fill_holes_reference(color: np.ndarray, depth: np.ndarray, holes: np.ndarray
         color[remaining] = 0.0 if fallback is None else fallback[remaining]
         depth[remaining] = np.inf
     return color, depth
+
+
+#: ``fill_from_earlier``: an earlier frame's sample fills a hole where its depth is within this ratio of the
+#: depth the row fill would copy there (the same layer: the background it would have been stretched from)
+LAYER_BAND = 1.5
+
+
+def fill_from_earlier(color: np.ndarray, depth: np.ndarray, holes: np.ndarray, earlier_color: np.ndarray,
+                      earlier_depth: np.ndarray, earlier_holes: np.ndarray,
+                      band: float = LAYER_BAND) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Holes filled from an earlier frame warped to the same view, where it saw the layer the fill would copy.
+
+    A fast object's forward warp leaves a hole where it stood in frame n; the background there was hidden in
+    frame n, but frame n-k, warped camera-only to the same target, often saw it. At each hole pixel,
+    ``fill_holes`` would copy the farther of the nearest known left / right pixels on its row (``row_sources``);
+    the earlier frame's sample replaces that copy only where it is on the same layer: its depth within ``band``
+    of the copied pixel's (both +inf: sky), or anywhere when the row has no known pixel. So the moving object
+    as frame n-k saw it (nearer than the background) never fills the hole, and a crack inside an object (the
+    fill would copy the object) takes no background from the earlier frame.
+
+    Args:
+        color, depth, holes: the warp of frame n (H, W, 3), (H, W) planar (+inf sky), (H, W) bool.
+        earlier_color, earlier_depth, earlier_holes: the earlier frame warped to the same camera, same shapes.
+        band: ratio > 1 (``LAYER_BAND``).
+    Returns:
+        (color, depth, holes) copies: the taken pixels hold the earlier frame's colour and depth and are no
+        longer holes (what is left goes to ``fill_holes``, which can copy from them).
+    """
+    if not (band > 1 and np.isfinite(band)):
+        raise ValueError(f"band must be finite and > 1, got {band}")
+    color, depth, holes = color.copy(), depth.copy(), np.array(holes, dtype=bool)
+    cols = row_sources(depth, holes)
+    r, c = np.nonzero(holes & ~np.asarray(earlier_holes, bool))
+    if not r.size:
+        return color, depth, holes
+    source = cols[r, c]
+    copied = np.where(source >= 0, depth[r, np.maximum(source, 0)], np.nan).astype(np.float64)
+    seen = earlier_depth[r, c].astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        same = (np.isinf(copied) & np.isinf(seen)) | ((seen <= band * copied) & (copied <= band * seen))
+    take = same | (source < 0)
+    r, c = r[take], c[take]
+    color[r, c] = earlier_color[r, c]
+    depth[r, c] = earlier_depth[r, c]
+    holes[r, c] = False
+    return color, depth, holes

@@ -25,7 +25,7 @@ from engine import geometry
 from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, rigid_inverse
 from engine.geometry.encoding import FRAME_ENCODINGS
-from engine.geometry.holefill import fill_from_earlier, fill_holes
+from engine.geometry.holefill import fill_holes
 from engine.geometry.motion import extrapolated_flow, flow_spans
 
 __all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill",
@@ -205,16 +205,13 @@ class CpuFrames:
         return warp_fill_depth(source.frame, target, timer)
 
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
-                      flow_scale: float = 1.0,
-                      earlier: Optional[ResidentFrame] = None) -> tuple[np.ndarray, np.ndarray]:
+                      flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow``, or for a ``PointMotion`` by
-        its motion extrapolated ``flow_scale`` intervals ahead (stage ``motion``); stages ``warp``, ``fill``
-        (and ``earlier``: holes filled from ``earlier.frame`` first, ``warp_fill_depth``)."""
-        prior = None if earlier is None else earlier.frame
+        its motion extrapolated ``flow_scale`` intervals ahead (stage ``motion``); stages ``warp``, ``fill``."""
         if not isinstance(flow, PointMotion):
             if flow is not None and flow_scale != 1.0:
                 flow = flow_scale * flow
-            return warp_and_fill(source.frame, target, timer, flow, earlier=prior)
+            return warp_and_fill(source.frame, target, timer, flow)
         frame = source.frame
         with timer("motion"):
             # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch),
@@ -227,44 +224,33 @@ class CpuFrames:
                                       flow.acceleration, out=np.moveaxis(buffer, 0, -1))
             spans = flow_spans(flow.moving, frame.depth.shape)  # the warp reads the flow in these columns only
         try:
-            return warp_and_fill(frame, target, timer, moved, spans, earlier=prior)
+            return warp_and_fill(frame, target, timer, moved, spans)
         finally:
             for plane in buffer.reshape(3, -1):  # zero again for the next render (plane by plane: 3x faster)
                 plane[flow.moving] = 0.0
 
 
 def warp_and_fill(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
-                  flow_spans: Optional[np.ndarray] = None,
-                  earlier: Optional[Frame] = None) -> tuple[np.ndarray, np.ndarray]:
+                  flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3), 0
     outside each row's ``flow_spans`` columns) and fill the holes (``engine.geometry.holefill``); stages
     ``warp`` and ``fill``. Returns (colour, holes)."""
-    color, _, holes = warp_fill_depth(frame, target, timer, flow, flow_spans, earlier)
+    color, _, holes = warp_fill_depth(frame, target, timer, flow, flow_spans)
     return color, holes
 
 
 def warp_fill_depth(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
-                    flow_spans: Optional[np.ndarray] = None,
-                    earlier: Optional[Frame] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``warp_and_fill`` that also returns the warped planar depth (H, W), filled as the colour is (+inf where
     nothing was left to fill from): (colour, depth, holes). For frame n-k and frame n's camera this is the
-    camera-compensated frame n-k that the flow estimators match frame n against. With an ``earlier`` frame
-    (frame n-k), its camera-only warp to the target fills the holes first where it saw the layer the row fill
-    would copy (``holefill.fill_from_earlier``; stage ``earlier``); ``holes`` stays what the warp left."""
+    camera-compensated frame n-k that the flow estimators match frame n against."""
     src, dst = frame.camera, target.camera
     with timer("warp"):
         color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera,
                                                           flow, flow_spans=flow_spans)
-    left = holes
-    if earlier is not None and holes.any():
-        with timer("earlier"):
-            cam = earlier.camera
-            seen = geometry.forward_warp_frame(earlier.color, earlier.depth, cam.intrinsics, cam.world_to_camera,
-                                               dst.intrinsics, dst.world_to_camera)
-            color, depth, left = fill_from_earlier(color, depth, holes, *seen)
     with timer("fill"):
-        color, depth = fill_holes(color, depth, left, frame.color)
+        color, depth = fill_holes(color, depth, holes, frame.color)
     return color, depth, holes
 
 

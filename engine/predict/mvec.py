@@ -22,9 +22,7 @@ included). ``mvec`` turns them into 3D motion and extrapolates it, in passes ove
    so camera motion and object motion toward the camera both come out right; frame n is forward-splatted
    by that 3D flow to the target camera and hole-filled exactly like ``reproject`` (the backend's
    ``warp_and_fill`` of the ``PointMotion``: on ``gl`` the motion is uploaded once and extrapolated on the GPU).
-   Where nothing moves the result is ``reproject``'s, bit for bit. With ``fill=earlier`` (cpu), a hole first
-   takes frame n-k's camera-only warp where that frame saw the layer the row fill would copy there (the
-   background a fast object uncovered: ``engine.geometry.holefill.fill_from_earlier``).
+   Where nothing moves the result is ``reproject``'s, bit for bit.
 
 Vectors of frame n must point to frame n-k, the previous rendered frame (what an engine that renders every
 k-th frame writes; ``interleave eval`` derives them from a sequence's per-frame vectors). Conventions:
@@ -49,13 +47,11 @@ from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE
 from engine.predict.base import (PointMotion, Predictor, PreparedState, ResidentFrame, Timer,
                                  extrapolation_factor)
 
-__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS", "GROUPINGS", "FILLS"]
+__all__ = ["MvecConfig", "MvecState", "Mvec", "EXTRAPOLATIONS", "GROUPINGS"]
 
 #: the values of ``MvecConfig.extrapolation`` and ``MvecConfig.grouping``
 EXTRAPOLATIONS = ("linear", "rigid")
 GROUPINGS = ("motion", "ids")
-#: the values of ``MvecConfig.fill``
-FILLS = ("row", "earlier")
 #: the rigid fits and the fall-back's check read at most about this many moving pixels (a grid of them)
 SAMPLES = 4096
 #: a pixel joins its group's rigid part where the part's transform explains it within this many times
@@ -90,9 +86,6 @@ class MvecConfig:
                                         "exceeds this many times the error of no object motion (a reversal: "
                                         "2, a stop: more; a turn by 90 degrees: 1.41, kept)")
     rigid_threshold: float = option(1.0, "pixels: largest residual of a point that moves with its rigid part")
-    fill: str = option("row", "row: holes take the farther row neighbour (reproject's fill); earlier: first frame "
-                              "n-k's camera-only warp where it saw that layer (the background a fast object "
-                              "uncovered; cpu backend only)")
 
     def __post_init__(self) -> None:
         if not (self.static_tolerance >= 0 and np.isfinite(self.static_tolerance)):
@@ -108,8 +101,6 @@ class MvecConfig:
             raise InputError(f"must be one of {', '.join(GROUPINGS)}, got {self.grouping!r}", field="grouping")
         if not (self.fallback_ratio > 0 and np.isfinite(self.fallback_ratio)):
             raise InputError(f"must be finite and > 0, got {self.fallback_ratio}", field="fallback_ratio")
-        if self.fill not in FILLS:
-            raise InputError(f"must be one of {', '.join(FILLS)}, got {self.fill!r}", field="fill")
         if not (self.rigid_threshold > 0 and np.isfinite(self.rigid_threshold)):
             raise InputError(f"must be finite and > 0, got {self.rigid_threshold}", field="rigid_threshold")
 
@@ -300,11 +291,6 @@ class Mvec(Predictor):
     def _render(self, state, target, timer):
         if state.data.motion is None:  # nothing moves: reproject's warp
             return self.frames.warp_and_fill(state.data.frame, target, timer)
-        factor = extrapolation_factor(state, target)
-        if self.config.fill == "earlier":
-            if self.backend != "cpu":
-                raise InputError(f"fill=earlier runs on the cpu backend only, not {self.backend}", field="fill")
-            return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion, factor,
-                                             earlier=ResidentFrame(state.history[-2]))
-        return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion, factor)
+        return self.frames.warp_and_fill(state.data.frame, target, timer, state.data.motion,
+                                         extrapolation_factor(state, target))
 

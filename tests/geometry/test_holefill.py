@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from engine.geometry.holefill import fill_from_earlier, fill_holes
+from engine.geometry.holefill import fill_holes
 
 
 def test_fills_from_background_side():
@@ -112,38 +112,3 @@ def test_the_compiled_column_pass_equals_the_numpy_fill_on_bands_of_empty_rows(m
             fast = fill_holes(color, depth, case_holes, back)
             for a, b in zip(fast, fill_holes_reference(color, depth, case_holes, back)):
                 np.testing.assert_array_equal(a, b)
-
-
-def _row(depths, colors):
-    depth = np.array([depths], np.float32)
-    color = np.repeat(np.array(colors, np.float32)[None, :, None], 3, axis=2)
-    return color, depth
-
-
-def test_an_earlier_frame_fills_a_hole_only_from_the_layer_the_row_fill_would_copy():
-    # frame n's warp: near object (depth 1) | hole | background (depth 5) | hole inside the background | ...
-    # | object | crack inside the object | object
-    color, depth = _row([1, 9, 9, 5, 9, 5, 1, 9, 1], [0.9, 0, 0, 0.2, 0, 0.2, 0.9, 0, 0.9])
-    holes = np.array([[False, True, True, False, True, False, False, True, False]])
-    # the earlier frame, warped to the same view: background (depth 5.5) at the first hole's left pixel, its
-    # old object (depth 1.1) at the right one, background at the crack inside the object
-    earlier, earlier_depth = _row([1, 5.5, 1.1, 5, 4.8, 5, 1, 5.2, 1], [0.9, 0.3, 0.8, 0.2, 0.25, 0.2, 0.9, 0.4, 0.9])
-    out, d, left = fill_from_earlier(color, depth, holes, earlier, earlier_depth, np.zeros_like(holes))
-    np.testing.assert_allclose(out[0, [1, 4], 0], [0.3, 0.25])  # the background layer it saw: taken
-    np.testing.assert_allclose(d[0, [1, 4]], [5.5, 4.8])
-    assert left[0].tolist() == [False, False, True, False, False, False, False, True, False]
-    np.testing.assert_array_equal(out[0, [2, 7]], 0)  # its old object, background in an object's crack: not
-    filled, _ = fill_holes(out, d, left)
-    np.testing.assert_allclose(filled[0, [2, 7], 0], [0.3, 0.9])  # then the row fill, from the pixel just taken
-
-
-def test_an_earlier_frame_fills_sky_with_sky_and_nothing_where_it_has_a_hole_itself():
-    color, depth = _row([np.inf, 9, 2], [0.7, 0, 0.5])
-    holes = np.array([[False, True, False]])
-    earlier, earlier_depth = _row([np.inf, np.inf, 2], [0.7, 0.6, 0.5])
-    out, _, left = fill_from_earlier(color, depth, holes, earlier, earlier_depth, np.zeros_like(holes))
-    assert out[0, 1, 0] == np.float32(0.6) and not left.any()
-    out, _, left = fill_from_earlier(color, depth, holes, earlier, earlier_depth, holes)
-    assert left[0, 1] and out[0, 1, 0] == 0
-    with pytest.raises(ValueError):
-        fill_from_earlier(color, depth, holes, earlier, earlier_depth, holes, band=1.0)

@@ -229,33 +229,3 @@ def test_the_cpu_backends_reused_flow_buffer_carries_nothing_from_one_frame_to_t
         alone.frames = CpuFrames()
         np.testing.assert_array_equal(color, alone.render(alone.prepare(history), target).color)
     assert not np.array_equal(*after)
-
-
-def test_with_fill_earlier_the_background_a_fast_object_uncovered_comes_from_frame_n_minus_k():
-    # the square moves 15 px a frame: at frame 3 it has left pixels it covered at frame 2 and not at frame 0
-    frames, objects = two_layer_sequence(5, width=128, height=64, camera_speed=0.0, object_speed=0.5)
-    history = [frames[0], with_vectors(frames, objects, 0, 2)]
-    truth = frames[3]
-    revealed = history[1].moving & ~truth.moving & ~frames[0].moving
-    assert revealed.sum() > 100
-    row = Mvec().predict(history, _target(truth))
-    earlier = make_predictor("mvec[fill=earlier]").predict(history, _target(truth))
-    assert row.holes[revealed].mean() > 0.8 and (earlier.holes == row.holes).all()
-    err_row = np.abs(row.color[revealed] - truth.color[revealed]).mean()
-    err_earlier = np.abs(earlier.color[revealed] - truth.color[revealed]).mean()
-    assert err_earlier < 0.01 < err_row  # frame 0 saw that background: copied exactly, not stretched
-    assert "earlier" in earlier.stages_ms
-    outside = ~row.holes  # the warp itself is the same
-    np.testing.assert_array_equal(earlier.color[outside], row.color[outside])
-
-
-def test_fill_earlier_is_an_option_of_the_cpu_backend():
-    with pytest.raises(InputError, match="fill"):
-        make_predictor("mvec[fill=sideways]")
-    frames, objects = two_layer_sequence(5, width=64, height=48, camera_speed=0.0, object_speed=0.3)
-    history = [frames[0], with_vectors(frames, objects, 0, 2)]
-    predictor = make_predictor("mvec[fill=earlier]")
-    predictor.frames = type("Gl", (), {"name": "gl", "resident": lambda self, f, t: None,
-                                       "resident_flow": lambda self, f, t: f})()
-    with pytest.raises(InputError, match="cpu backend only"):
-        predictor.predict(history, _target(frames[3]))

@@ -1,6 +1,7 @@
 """How far ``mvec``'s motion misses on points frame n-k did not see, against the true motion and holding. A diagnostic.
 
 ``python -m tools.unseen_velocity SEQ_DIR... [--k 2,4] [--json FILE]``
+``python -m tools.unseen_velocity --score [--sets gentle,fast,spin,fast2] [--rules static,hold,...] [--k 2,3,4]``
 
 ``mvec`` turns each moving pixel's vector (frame n -> n-k, exact here: ``interleave eval``'s derivation) into a 3D
 velocity with the point's depth in frame n-k, read at the vector's end (``engine.geometry.motion.scene_velocity``:
@@ -14,36 +15,52 @@ frame n-k and its previous depth is that static guess. Per sequence and k, over 
   TRUE velocity of the last interval extrapolated the same way (what exact depths would give), and holding
   (no object motion: what ``reproject`` does), over all moving pixels and over the unseen ones;
 - the median ratio of the true previous depth to the static guess on the unseen pixels.
+
+With ``--score``, ``mvec`` (linear, and rigid + fall-back) runs on ``tools.bench_mvec``'s sets (its cached
+sequences under ``--out``) with each of ``RULES`` for the unseen pixels' motion (``UnseenRule``) and prints the
+PSNR over the whole frame / moving pixels, means over each set's sequences, beside ``reproject``.
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Optional
 
+import cv2
 import numpy as np
 
 from engine.core.frames import rigid_inverse
-from engine.eval.protocol import evaluation_pairs, rendered_history
+from engine.eval.protocol import evaluate_sequence, evaluation_pairs, rendered_history
 from engine.geometry.motion import DEFAULT_DEPTH_BAND, extrapolated_flow
 from engine.io.rgbd import read_sequence
-from engine.predict import Mvec
+from engine.predict import Mvec, MvecConfig
 from engine.predict.base import true_object_flow
 from tools.heldout import write_json
 
 MOTIONS = ("mvec", "true velocity", "hold")
+#: ``UnseenRule``'s rules for the moving pixels frame n-k did not see: ``static`` (as shipped: the static depth
+#: guess), ``hold`` (no object motion), ``hold-outside`` (no object motion where the vector ends outside frame
+#: n-k), ``unseen-regions`` (no object motion in connected moving regions with fewer than ``MIN_SEEN`` seen
+#: pixels; the static guess elsewhere), ``region-median`` (the median velocity of the seen pixels of their
+#: connected moving region, no object motion where it has fewer than ``MIN_SEEN``)
+RULES = ("static", "hold", "hold-outside", "unseen-regions", "region-median")
+MIN_SEEN = 16
 
 
-def previous_depths(newest, older, moving: np.ndarray, band: float = DEFAULT_DEPTH_BAND):
-    """For the flat pixel indices ``moving`` of frame ``newest`` (its vectors point to ``older``): the static guess
-    of each point's depth in frame ``older`` (M,), whether that frame saw it (a 2x2 neighbour of the vector's end
-    within ``band`` of the guess; ``scene_velocity``'s rule) and whether the end lies inside its image."""
+def previous_depths(newest, older, moving: np.ndarray, band: float = DEFAULT_DEPTH_BAND,
+                    vectors: Optional[np.ndarray] = None):
+    """For the flat pixel indices ``moving`` of frame ``newest`` (its vectors, or ``vectors``, point to ``older``):
+    the static guess of each point's depth in frame ``older`` (M,), whether that frame saw it (a 2x2 neighbour of
+    the vector's end within ``band`` of the guess; ``scene_velocity``'s rule) and whether the end lies inside
+    its image."""
+    vectors = newest.motion_vectors if vectors is None else vectors
     h, w = newest.depth.shape
     y, x = np.divmod(moving, w)
     z = newest.depth[y, x].astype(np.float64)
     points = z[:, None] * (np.stack([x + 0.5, y + 0.5, np.ones_like(z)], 1) @ np.linalg.inv(newest.camera.intrinsics).T)
     relative = older.camera.world_to_camera @ newest.camera.camera_to_world
     guess = points @ relative[2, :3] + relative[2, 3]
-    end = np.stack([x + 0.5, y + 0.5], 1) + newest.motion_vectors[y, x].astype(np.float64)
+    end = np.stack([x + 0.5, y + 0.5], 1) + vectors[y, x].astype(np.float64)
     hp, wp = older.depth.shape
     inside = (end[:, 0] >= 0) & (end[:, 0] < wp) & (end[:, 1] >= 0) & (end[:, 1] < hp)
     seen = np.zeros(len(moving), bool)
@@ -79,6 +96,64 @@ def true_velocity(newest, older, objects: dict, moving: np.ndarray) -> tuple[np.
     velocity = np.zeros(newest.depth.shape + (3,), np.float32)
     velocity[y, x] = ((world - before) @ rigid_inverse(to_world).T)[:, :3]
     return velocity, (before @ older.camera.world_to_camera.T)[:, 2]
+
+
+class UnseenRule(Mvec):
+    """``mvec`` whose pixels frame n-k did not see move by ``rule`` (``RULES``) instead of the static depth guess."""
+
+    def __init__(self, rule: str, config: Optional[MvecConfig] = None) -> None:
+        super().__init__(config)
+        if rule not in RULES:
+            raise ValueError(f"rule must be one of {', '.join(RULES)}, got {rule!r}")
+        self.rule = rule
+
+    def _velocity(self, newest, older, vectors):
+        velocity, moving = super()._velocity(newest, older, vectors)
+        if self.rule == "static" or not moving.size:
+            return velocity, moving
+        _, seen, inside = previous_depths(newest, older, moving, self.config.depth_band, vectors)
+        unsure = ~inside if self.rule == "hold-outside" else ~seen
+        flat = velocity.reshape(-1, 3)
+        drop = unsure.copy()
+        if self.rule in ("unseen-regions", "region-median"):
+            mask = np.zeros(newest.depth.shape, np.uint8)
+            mask.flat[moving] = 1
+            labels = cv2.connectedComponents(mask, connectivity=8)[1].reshape(-1)[moving]
+            for label in np.unique(labels[unsure]):
+                region = labels == label
+                known = region & ~unsure
+                if known.sum() >= MIN_SEEN:
+                    drop[region] = False
+                    if self.rule == "region-median":
+                        flat[moving[region & unsure]] = np.median(flat[moving[known]], axis=0)
+        flat[moving[drop]] = 0.0
+        return velocity, moving[~drop]
+
+
+def score(args) -> None:
+    """``--score``: the PSNR table of ``RULES`` on ``tools.bench_mvec``'s sets (module docstring)."""
+    from tools.bench_mvec import SETS, sequence_folder
+
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    rules = args.rules.split(",")
+    configs = {"mvec": None, "rigid+fb": MvecConfig(extrapolation="rigid", fallback=True)}
+    rows = []
+    print("| set | k | reproject | " + " | ".join(f"{c} {r}" for c in configs for r in rules) + " |\n|---|---|---|"
+          + "---|" * (len(configs) * len(rules)))
+    for set_name in args.sets.split(","):
+        scores: dict = {}
+        for seq_name, overrides in SETS[set_name]:
+            seq = read_sequence(sequence_folder(args.out, seq_name, overrides, width, height, args.frames))
+            for k in args.ks:
+                given = {f"{c} {r}": UnseenRule(r, cfg) for c, cfg in configs.items() for r in rules}
+                for res in evaluate_sequence(seq, ["reproject", *given], k, with_flip=False, predictors=given):
+                    scores.setdefault((k, res.method), []).append((res.psnr, res.psnr_moving))
+                    rows.append({"set": set_name, "sequence": seq_name, "k": k, "method": res.method,
+                                 "psnr": res.psnr, "psnr_moving": res.psnr_moving})
+        for k in args.ks:
+            cells = [np.mean(scores[(k, m)], axis=0) for m in ["reproject", *given]]
+            print(f"| {set_name} | {k} | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in cells) + " |")
+    write_json(args.json, {"size": [width, height], "frames": args.frames, "rules": rules, "rows": rows})
 
 
 def sequence_rows(path: Path, ks) -> list[dict]:
@@ -124,11 +199,23 @@ def sequence_rows(path: Path, ks) -> list[dict]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("sequences", nargs="+", type=Path)
+    parser.add_argument("sequences", nargs="*", type=Path)
     parser.add_argument("--k", default="2,4")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--score", action="store_true", help="score RULES on tools.bench_mvec's sets")
+    parser.add_argument("--sets", default="gentle,fast,spin,fast2")
+    parser.add_argument("--rules", default=",".join(RULES))
+    parser.add_argument("--out", default="out/bench_mvec")
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--frames", type=int, default=16)
     args = parser.parse_args(argv)
-    rows = [r for path in args.sequences for r in sequence_rows(path, [int(v) for v in args.k.split(",")])]
+    args.ks = [int(v) for v in args.k.split(",")]
+    if args.score:
+        score(args)
+        return
+    if not args.sequences:
+        parser.error("give sequence folders, or --score")
+    rows = [r for path in args.sequences for r in sequence_rows(path, args.ks)]
     names = [f"{m}{part}" for part in ("", " unseen") for m in MOTIONS]
     print("| sequence | k | unseen | outside | " + " | ".join(f"EPE {n}" for n in names)
           + " | true / guessed depth |\n|---|---|---|---|" + "---|" * (len(names) + 1))

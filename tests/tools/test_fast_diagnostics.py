@@ -75,3 +75,25 @@ def test_unseen_velocity_prints_a_row_per_k(fast_sequence, tmp_path, capsys):
     assert epe["true velocity"] <= epe["hold"]  # the true motion of the last interval beats none on this set
     assert 0.0 <= rows[0]["unseen_share"] <= 1.0
     assert "| seq | 2 |" in capsys.readouterr().out
+
+
+def test_unseen_rules_keep_mvec_where_frame_n_minus_k_saw_everything_and_hold_what_it_did_not():
+    from engine.predict import Reproject, Target
+
+    frames, objects = two_layer_sequence(5, width=96, height=64, camera_speed=0.0,
+                                         object_path=lambda i: -3.0 + 1.4 * i)
+    history = [frames[0], with_vectors(frames, objects, 0, 2)]
+    target = Target(frames[3].camera, frames[3].time, frames[3].index)
+    shipped = Mvec().predict(history, target).color
+    np.testing.assert_array_equal(unseen_velocity.UnseenRule("static").predict(history, target).color, shipped)
+    held = Reproject().predict(history, target).color
+    for rule in ("hold", "hold-outside", "unseen-regions", "region-median"):  # nothing of the square was seen
+        np.testing.assert_array_equal(unseen_velocity.UnseenRule(rule).predict(history, target).color, held)
+    seen_frames, objects = two_layer_sequence(5, width=96, height=64, camera_speed=0.02, object_speed=0.1)
+    history = [seen_frames[0], with_vectors(seen_frames, objects, 0, 2)]
+    target = Target(seen_frames[3].camera, seen_frames[3].time, seen_frames[3].index)
+    for rule in unseen_velocity.RULES:  # every point seen: every rule is mvec's
+        np.testing.assert_array_equal(unseen_velocity.UnseenRule(rule).predict(history, target).color,
+                                      Mvec().predict(history, target).color)
+    with pytest.raises(ValueError):
+        unseen_velocity.UnseenRule("guess")

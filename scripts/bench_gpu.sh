@@ -22,6 +22,12 @@
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080; the same
 #    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
 #    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR).
+#   SET=corrflow bash scripts/bench_gpu.sh OUT_DIR   (issue 43) the correlation flow network trained on CUDA: the
+#       training scenes rendered and their pairs built (CF_WORKERS processes), CF_STEPS steps (default 3000) of a
+#       network of CF_CHANNELS widths (default the committed 16,32,64,64,32,48; started from the committed weights when
+#       the widths are theirs) with CF_ITERATIONS (6) supervised iterations, batch CF_BATCH (16), exported at 2 and 4
+#       iterations into OUT_DIR, and the EPE of `corr` on the validation sequences against the committed network's
+#       (corrflow_val.json). Calibrate with a small CF_STEPS first: render + pairs ~4 min on 14 processes (estimate).
 # Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (15 files with the
 # lego data) and the GPU's clocks during the run (clocks.csv).
 set -uo pipefail
@@ -32,6 +38,9 @@ mkdir -p "$out" "$work"
 log="$out/run.log"
 rt_sizes="${RT_SIZES:-1920x1080 3840x2160}"
 rt_frames="${RT_FRAMES:-120}"
+if [ "${SET:-}" = corrflow ] && [ -z "${ONLY:-}" ]; then
+    ONLY="cf_pairs cf_train cf_export cf_val"
+fi
 if [ "${SET:-}" = realtime ] && [ -z "${ONLY:-}" ]; then
     ONLY="gl_context rt_tests rt_backends rt_warp"
     for size in $rt_sizes; do ONLY="$ONLY play_${size}_k2 play_${size}_k4"; done
@@ -167,4 +176,31 @@ if [ -d "$lego" ]; then
     step field_lego_export 120 "$py" -m engine.cli export field "$work/lego_deferred"
     step field_lego_baked 90 "$py" -m tools.bench_fields static "$work/lego_deferred/export" --run "$work/lego_deferred" \
         --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked_lego.json"
+fi
+# the correlation flow network trained on the GPU (SET=corrflow, above; not part of the default run)
+if [[ "${SET:-}" == corrflow || " ${ONLY:-} " == *" cf_"* ]]; then
+    cf="$work/corrflow"
+    cf_channels="${CF_CHANNELS:-16,32,64,64,32,48}"
+    cf_init=()
+    [ "$cf_channels" = 16,32,64,64,32,48 ] && cf_init=(--init-from models/weights/corrflow.pt --lr 1.5e-4)
+    cf_args=(--data "$cf/data" --pairs "$cf/pairs" --out "$cf/run" --depth --net-width 384 --crop 216x320 --ks 1,2,3,4
+             --scenes smooth:5100:16,fast:5000:16,extreme:5016:8,medium:5024:8,gentle:5032:8 --device "${CF_DEVICE:-cuda}")
+    step cf_pairs 300 "$py" -m models.flow.corrflow_train "${cf_args[@]}" --pairs-only --workers "${CF_WORKERS:-14}"
+    step cf_train 480 "$py" -m models.flow.corrflow_train "${cf_args[@]}" --steps "${CF_STEPS:-3000}" \
+        --batch-size "${CF_BATCH:-16}" --iterations "${CF_ITERATIONS:-6}" --channels "$cf_channels" --threads 4 "${cf_init[@]}"
+    cp "$cf/run/metrics.jsonl" "$out/corrflow_metrics.jsonl" 2>/dev/null
+    cp "$cf/run/config.json" "$out/corrflow_config.json" 2>/dev/null
+    for it in 2 4; do
+        step cf_export 60 "$py" -m export.corrflow "$cf/run/checkpoint.pt" "$out/corrflow_it$it.onnx" --iterations $it
+    done
+    # the validation sequences of docs/results/2026-11-29-no-vector-estimation.md (never trained on or scored)
+    step cf_val 240 bash -c "$py - '$work/val' <<'PY'
+import sys
+from tools.heldout import render_set
+for name, preset, seed in [('seed1005', 'gentle', 1005), ('seed1006', 'gentle', 1006), ('valfast7204', 'fast', 7204),
+                           ('valfast7205', 'fast', 7205), ('valsmooth7953', 'smooth', 7953), ('valsmooth7954', 'smooth', 7954)]:
+    print(render_set(sys.argv[1], name, {'seed': seed}, 640, 360, 16, preset=preset))
+PY
+$py docs/results/2026-11-29-no-vector-estimation.py epe \$(ls -d $work/val/*_640x360x16 | paste -sd,) 2,4 \
+    corr,corr=$out/corrflow_it2.onnx,corr=$out/corrflow_it4.onnx,dis $out/corrflow_val.json"
 fi

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -30,9 +32,10 @@ from engine.io.rgbd import read_sequence
 from engine.core.config import config_to_dict
 from engine.predict.base import Target, Timer, true_object_flow, warp_fill_depth
 from engine.predict.corrflow import depth_reference, network_depth, network_image, working_size
+from models.fields.trainer import DEVICES, resolve_device
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
 
-__all__ = ["TRAIN_SCENES", "PAIR_KEYS", "build_pairs", "extra_pairs", "prepare_pairs", "TrainCorrFlowConfig",
+__all__ = ["TRAIN_SCENES", "PAIR_KEYS", "build_pairs", "build_all_pairs", "extra_pairs", "prepare_pairs", "TrainCorrFlowConfig",
            "load_start_weights", "train", "main"]
 
 
@@ -119,6 +122,10 @@ class TrainCorrFlowConfig:
     extra_share: float = 0.0
     #: a checkpoint whose model weights start the run (fine-tuning); "" starts from a seeded initialisation
     init_from: str = ""
+    #: where the model trains (``models.fields.trainer.DEVICES``: auto, cpu, cuda); batches are drawn on the CPU
+    device: str = "cpu"
+    #: processes that build the training pairs of the rendered scenes (one scene each)
+    workers: int = 1
 
     def __post_init__(self) -> None:
         crop = tuple(self.crop)
@@ -128,6 +135,9 @@ class TrainCorrFlowConfig:
              f"crop must be two positive multiples of 8 (height, width), got {self.crop}"),
             (self.threads >= 1, f"threads must be >= 1, got {self.threads}"),
             (0.0 <= self.extra_share <= 1.0, f"extra_share must be in [0, 1], got {self.extra_share}"),
+            (self.batch_size >= 1, f"batch_size must be >= 1, got {self.batch_size}"),
+            (self.workers >= 1, f"workers must be >= 1, got {self.workers}"),
+            (self.device in DEVICES, f"device must be one of {', '.join(DEVICES)}, got {self.device!r}"),
         ]
         for ok, problem in checks:
             if not ok:
@@ -141,16 +151,25 @@ def extra_pairs(config: TrainCorrFlowConfig) -> Path:
     return Path(config.extra_data) / name
 
 
+def build_all_pairs(scenes: list, out: Path, ks, net_width: int, workers: int = 1) -> list[Path]:
+    """``build_pairs`` of every scene folder, by ``workers`` processes (one scene each; the files are the same)."""
+    jobs = [(Path(scene), Path(out), tuple(ks), net_width) for scene in scenes]
+    if workers <= 1 or len(jobs) <= 1:
+        return [build_pairs(*job) for job in jobs]
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(pool.map(build_pairs, *zip(*jobs)))
+
+
 def prepare_pairs(config: TrainCorrFlowConfig, progress: bool = True) -> Path:
     """Render the scenes of ``config.scenes`` not cached yet and build their pairs; returns the pairs folder."""
     from models.flow.train import render_scenes  # noqa: PLC0415 (the renderer is only needed here)
 
-    for preset, first, count in config.scenes:
-        for scene in render_scenes(config.data_dir, range(first, first + count), 960, 540, 12, preset=preset):
-            t0 = time.time()
-            build_pairs(scene, Path(config.pairs), config.ks, config.net_width)
-            if progress:
-                print(f"pairs of {scene.name}: {time.time() - t0:.1f} s", flush=True)
+    scenes = [scene for preset, first, count in config.scenes
+              for scene in render_scenes(config.data_dir, range(first, first + count), 960, 540, 12, preset=preset)]
+    t0 = time.time()
+    build_all_pairs(scenes, Path(config.pairs), config.ks, config.net_width, config.workers)
+    if progress:
+        print(f"pairs of {len(scenes)} scenes: {time.time() - t0:.1f} s", flush=True)
     if config.extra_data:
         extra = Path(config.extra_data)
         scenes = sorted(p for p in extra.iterdir() if (p / "sequence.json").exists()) if extra.is_dir() else []
@@ -252,15 +271,17 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
         if any(c > side for c, side in zip(config.crop, data["a"].shape[1:3])):
             raise InputError(f"pairs of {data['a'].shape[1]} x {data['a'].shape[2]} px are smaller than the crop "
                              f"{config.crop[0]} x {config.crop[1]}", file=folder, field="crop")
+    device = resolve_device(config.device)
     model = CorrFlow(config.model)
     if config.init_from:
         load_start_weights(model, Path(config.init_from))
+    model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, config.lr, total_steps=config.steps + 100, pct_start=0.05,
                                                 anneal_strategy="linear", cycle_momentum=False)
     start, ckpt = 0, out / "checkpoint.pt"
     if resume and ckpt.exists():
-        state = torch.load(ckpt, weights_only=False)
+        state = torch.load(ckpt, map_location=device, weights_only=False)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
@@ -271,7 +292,7 @@ def train(config: TrainCorrFlowConfig, resume: bool = False) -> Path:
     t0 = time.time()
     for step in range(start, config.steps):
         rng = np.random.default_rng([config.seed, step])
-        a, b, target = _batch(sets, rng, config)
+        a, b, target = (x.to(device) for x in _batch(sets, rng, config))
         flows = model(a, b)
         loss = sequence_loss(flows, target, config.gamma)
         opt.zero_grad()
@@ -349,13 +370,28 @@ def main(argv: Optional[list] = None, prog: str = "python -m models.flow.corrflo
     parser.add_argument("--ks", type=_ints, default=TrainCorrFlowConfig.ks, help="frame distances of the pairs")
     parser.add_argument("--iterations", type=int, default=CorrFlowConfig.iterations,
                         help="update iterations in training (each supervised)")
+    parser.add_argument("--batch-size", type=int, default=TrainCorrFlowConfig.batch_size)
+    parser.add_argument("--device", default="auto", metavar="|".join(DEVICES),
+                        help="where the model trains (auto: cuda when torch sees a GPU)")
+    parser.add_argument("--workers", type=int, default=1, help="processes building the pairs (one scene each)")
+    parser.add_argument("--channels", type=_ints, default=None,
+                        help="the network's widths: the encoder's three stages, features, context, GRU hidden, "
+                             "e.g. 16,32,64,64,32,48 (the committed network's)")
     args = parser.parse_args(argv)
+    widths = {}
+    if args.channels is not None:
+        if len(args.channels) != 6 or min(args.channels) < 1:
+            parser.error(f"--channels takes six positive widths, got {args.channels}")
+        widths = dict(zip(("feature_channels", "context_channels", "hidden_channels"), args.channels[3:]),
+                      encoder_channels=tuple(args.channels[:3]))
     try:
         config = TrainCorrFlowConfig(data_dir=args.data, pairs=args.pairs, out_dir=args.out, steps=args.steps,
                                      seed=args.seed, lr=args.lr, init_from=args.init_from,
                                      extra_data=args.extra_data, extra_share=args.extra_share, threads=args.threads,
                                      net_width=args.net_width, crop=args.crop, scenes=args.scenes, ks=args.ks,
-                                     model=CorrFlowConfig(depth=args.depth, iterations=args.iterations))
+                                     batch_size=args.batch_size, device=args.device, workers=args.workers,
+                                     model=CorrFlowConfig(depth=args.depth, iterations=args.iterations, **widths))
+        resolve_device(config.device)  # a device this machine lacks is an error before any rendering
         prepare_pairs(config)
         if not args.pairs_only:
             print(f"wrote {train(config, resume=args.resume)}")

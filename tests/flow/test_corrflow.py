@@ -2,6 +2,8 @@
 reach, the training pairs and loss, and the ONNX export against torch."""
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -194,7 +196,11 @@ def test_rgbd_network_exports_with_parity(tmp_path):
                                            (["--net-width", "0"], "net_width must be >= 8"),
                                            (["--threads", "0"], "threads must be >= 1"),
                                            (["--scenes", "fast:5000"], "PRESET:FIRST:COUNT"),
-                                           (["--ks", "1,two"], "comma-separated integers")])
+                                           (["--ks", "1,two"], "comma-separated integers"),
+                                           (["--batch-size", "0"], "batch_size must be >= 1"),
+                                           (["--workers", "0"], "workers must be >= 1"),
+                                           (["--channels", "16,32,64"], "six positive widths"),
+                                           (["--device", "tpu"], "device must be one of")])
 def test_bad_training_options_are_one_line_errors(tmp_path, capsys, args, problem):
     from models.flow.corrflow_train import main
 
@@ -215,3 +221,42 @@ def test_a_crop_larger_than_the_pairs_names_the_pairs_folder(tmp_path, tiny_sequ
     with pytest.raises(InputError, match="smaller than the crop") as err:
         train(config)
     assert err.value.field == "crop"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine where torch sees no GPU")
+def test_training_on_cuda_without_a_gpu_is_a_one_line_error_before_rendering(tmp_path, capsys):
+    from models.flow.corrflow_train import main
+
+    status = main(["--device", "cuda", "--data", str(tmp_path / "data"), "--pairs", str(tmp_path / "pairs"),
+                   "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and "sees no GPU" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "data").exists() and not (tmp_path / "pairs").exists()
+
+
+def test_pairs_built_by_several_processes_are_those_of_one(tmp_path, tiny_sequence_dir):
+    from models.flow.corrflow_train import build_all_pairs
+
+    second = tmp_path / "scenes" / "second"
+    shutil.copytree(tiny_sequence_dir, second)
+    one = build_all_pairs([tiny_sequence_dir, second], tmp_path / "one", (1,), 64, workers=1)
+    two = build_all_pairs([tiny_sequence_dir, second], tmp_path / "two", (1,), 64, workers=2)
+    assert [p.name for p in one] == [p.name for p in two] == [f"{tiny_sequence_dir.name}.npz", "second.npz"]
+    for a, b in zip(one, two):
+        with np.load(a) as x, np.load(b) as y:
+            assert all(np.array_equal(x[k], y[k]) for k in PAIR_KEYS)
+
+
+def test_the_network_widths_option_builds_that_network(tmp_path, tiny_sequence_dir):
+    from models.flow.corrflow_train import main
+
+    build_pairs(tiny_sequence_dir, tmp_path / "pairs", ks=(1, 2, 4), net_width=64)
+    status = main(["--pairs", str(tmp_path / "pairs"), "--out", str(tmp_path / "run"), "--scenes", "gentle:1:0",
+                   "--ks", "1,2,4", "--net-width", "64", "--crop", "32x48", "--steps", "1", "--batch-size", "1",
+                   "--threads", "1", "--device", "cpu", "--channels", "8,16,24,16,8,12", "--iterations", "2"])
+    assert status == 0
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    model = state["config"]["model"]
+    assert list(model["encoder_channels"]) == [8, 16, 24] and model["feature_channels"] == 16
+    assert model["hidden_channels"] == 12 and model["iterations"] == 2
+    assert state["model"]["features.weight"].shape[:2] == (16, 24)

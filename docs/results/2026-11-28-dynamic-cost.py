@@ -35,12 +35,15 @@ import os
 import tempfile
 import threading
 import time
+from typing import Optional
 
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
+import models.fields.components.encodings as enc
 import models.fields.dynamic.model as dm
 import models.fields.priors.flow as pf
+import models.fields.train_dynamic as td
 import models.fields.trainer as tr
 from models.fields.data.select import select_dynamic_views
 from models.fields.train_dynamic import DynamicTrainConfig, choose_dynamic_priors, train_dynamic
@@ -50,8 +53,30 @@ REGIONS = [(dm.MotionField, "forward", "## motion_field"),
            (dm.CanonicalField, "get_outputs", "## canonical_colour"),
            (dm.KPlanesField, "_density", "## kplanes_density"),
            (pf.SparseFlowState, "extras", "## prior_rays"), (tr, "assemble_loss", "## losses"),
-           (dm.DynamicFieldModel, "_render_dynamic", "## render"), (torch.Tensor, "backward", "## backward"),
+           (dm.DynamicFieldModel, "render_placed", "## render"), (torch.Tensor, "backward", "## backward"),
            (torch.optim.Adam, "step", "## optimizer")]
+
+#: Threads training a ``VARIANT@reference`` variant: they run the step as the code before 2026-11-29's fourth
+#: cost pass did (``docs/results/2026-11-29-dynamic-cost-4.md``): every MLP as ``nn.Sequential`` (autograd's
+#: weight gradient of the first layer) and the prior's matched rays in a ``render_rays`` call of their own
+#: after the batch's (``SparseFlowState.extras``), not in one pass with it.
+REFERENCE = threading.local()
+
+
+def _install_reference_switch() -> None:
+    fast_mlp, fast_step = enc.MLP.forward, td.DynamicKind.render_step
+
+    def mlp_forward(self, x):
+        return self.net(x) if getattr(REFERENCE, "on", False) else fast_mlp(self, x)
+
+    def render_step(self, priors, model, batch, inputs, step, generator):
+        if not getattr(REFERENCE, "on", False):
+            return fast_step(self, priors, model, batch, inputs, step, generator)
+        outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, inputs, jitter=True,
+                                    generator=generator)
+        return outputs, (priors.extras(model, generator) if priors is not None else {})
+
+    enc.MLP.forward, td.DynamicKind.render_step = mlp_forward, render_step
 
 
 def label(owner, name: str, text: str) -> None:
@@ -93,8 +118,9 @@ def override(cfg, path: str, text: str):
 
 
 def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
-    """``VARIANT[:path=value...]`` -> its config."""
+    """``VARIANT[@reference][:path=value...]`` -> its config."""
     variant, *pairs = spec.split(":")
+    variant = variant.split("@")[0]
     cfg = config_for(variant, rays)
     for pair in pairs:
         path, _, text = pair.partition("=")
@@ -102,9 +128,13 @@ def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
     return cfg
 
 
-def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
+def lock_step(train, cfgs: list, first: int, last: int, references: Optional[list] = None) -> list[float]:
     """Train ``cfgs`` in lock step (threads passing a token after each step's render); each one's thread CPU
-    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded)."""
+    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded).
+    ``references[i]``: config i runs the reference step (:data:`REFERENCE`)."""
+    references = references or [False] * len(cfgs)
+    if any(references):
+        _install_reference_switch()
     turn, done = [0], set()
     cond = threading.Condition()
     cpu = [0.0] * len(cfgs)
@@ -127,6 +157,7 @@ def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
             resumed[i] = time.thread_time()
             return {}
 
+        REFERENCE.on = references[i]
         with cond:
             cond.wait_for(lambda: turn[0] == i)
         try:
@@ -219,7 +250,8 @@ def main() -> None:
         return
     specs = args.variant.split(",")
     for spec in specs:
-        if spec.split(":")[0] not in ("kplanes", "default", "sfderf", "noprior"):
+        if spec.split(":")[0].split("@")[0] not in ("kplanes", "default", "sfderf", "noprior") or (
+                spec.split(":")[0].count("@") and not spec.split(":")[0].endswith("@reference")):
             parser.error(f"unknown variant {spec!r}")
     if args.mode != "pair" and len(specs) > 1:
         parser.error("several variants: pair mode only")
@@ -229,7 +261,7 @@ def main() -> None:
                                             train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
     cfgs = [dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1) for cfg in cfgs]
     if args.mode == "pair":
-        cpu = lock_step(train, cfgs, first, last)
+        cpu = lock_step(train, cfgs, first, last, [spec.split(":")[0].endswith("@reference") for spec in specs])
         ms = [1000 * c / (last - first) for c in cpu]
         result = {"variants": specs, "steps": [first, last], "cpu_ms_per_step": ms,
                   "ratio_to_first": [m / ms[0] for m in ms], "load_1min_end": os.getloadavg()[0]}

@@ -9,7 +9,9 @@ root), MODE ``profile``, ``cpu`` or ``pair``, VARIANT ``kplanes``, ``default`` (
 - ``profile``: the torch profiler over steps 100-130 (after the occupancy grid's warm-up), each op's total and
   self time and calls, with the forward regions labelled (``## render``, ``## motion_field``,
   ``## canonical_density``, ``## canonical_colour``, ``## kplanes_density``, ``## prior_rays``, ``## losses``)
-  and ``## backward`` / ``## optimizer``;
+  and ``## backward`` / ``## optimizer``, and ``parts_ms``: the ops' self time a step summed by part of the
+  step (:func:`part_of`; the profiler's times are wall times, so they match the CPU time on a quiet machine
+  only);
 - ``cpu``: process CPU time and wall time per step over steps 100-200 (CPU time: less sensitive to other
   jobs on a shared machine than wall time);
 - ``pair``: VARIANT is a comma-separated list of variants, trained in lock step in one process (one thread
@@ -17,7 +19,9 @@ root), MODE ``profile``, ``cpu`` or ``pair``, VARIANT ``kplanes``, ``default`` (
   CPU time per step over steps 100-200 of each, with its ratio to the first
   (``docs/results/2026-11-28-dynamic-cost-2.md``). A variant may carry config overrides after colons, a
   dotted path into ``DynamicTrainConfig`` (tuples with ``+``): ``default:field.motion.hidden=16``,
-  ``default:field.motion.resolutions=16+32``.
+  ``default:field.motion.resolutions=16+32``. ``VARIANT@reference`` (``default@reference``, in any mode) trains
+  with the training step of the code before the fourth cost pass (:data:`REFERENCE`,
+  ``docs/results/2026-11-29-dynamic-cost-4.md``), so that the old and the new step run in one lock step.
 
 ``python docs/results/2026-11-28-dynamic-cost.py lookups - - OUT.json`` times the plane-grid builds instead
 (no training): a hex lookup of 59k points at the default's three scales (space and time planes, forward and
@@ -35,12 +39,15 @@ import os
 import tempfile
 import threading
 import time
+from typing import Optional
 
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
+import models.fields.components.encodings as enc
 import models.fields.dynamic.model as dm
 import models.fields.priors.flow as pf
+import models.fields.train_dynamic as td
 import models.fields.trainer as tr
 from models.fields.data.select import select_dynamic_views
 from models.fields.train_dynamic import DynamicTrainConfig, choose_dynamic_priors, train_dynamic
@@ -50,8 +57,62 @@ REGIONS = [(dm.MotionField, "forward", "## motion_field"),
            (dm.CanonicalField, "get_outputs", "## canonical_colour"),
            (dm.KPlanesField, "_density", "## kplanes_density"),
            (pf.SparseFlowState, "extras", "## prior_rays"), (tr, "assemble_loss", "## losses"),
-           (dm.DynamicFieldModel, "_render_dynamic", "## render"), (torch.Tensor, "backward", "## backward"),
+           (dm.DynamicFieldModel, "render_placed", "## render"), (torch.Tensor, "backward", "## backward"),
            (torch.optim.Adam, "step", "## optimizer")]
+
+#: Threads training a ``VARIANT@reference`` variant: they run the step as the code before 2026-11-29's fourth
+#: cost pass did (``docs/results/2026-11-29-dynamic-cost-4.md``): every MLP as ``nn.Sequential`` (autograd's
+#: weight gradient of the first layer) and the prior's matched rays in a ``render_rays`` call of their own
+#: after the batch's (``SparseFlowState.extras``), not in one pass with it.
+REFERENCE = threading.local()
+
+
+def _install_reference_switch() -> None:
+    fast_mlp, fast_step = enc.MLP.forward, td.DynamicKind.render_step
+
+    def mlp_forward(self, x):
+        return self.net(x) if getattr(REFERENCE, "on", False) else fast_mlp(self, x)
+
+    def render_step(self, priors, model, batch, inputs, step, generator):
+        if not getattr(REFERENCE, "on", False):
+            return fast_step(self, priors, model, batch, inputs, step, generator)
+        outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, inputs, jitter=True,
+                                    generator=generator)
+        return outputs, (priors.extras(model, generator) if priors is not None else {})
+
+    enc.MLP.forward, td.DynamicKind.render_step = mlp_forward, render_step
+
+
+ACTIVATIONS = {"aten::clamp_min", "aten::threshold_backward", "aten::tanh", "aten::tanh_backward", "aten::sigmoid",
+               "aten::sigmoid_backward", "aten::relu"}
+
+
+def part_of(event) -> str:
+    """The part of a step a profiled op belongs to (``profile`` mode's ``parts_ms``): the plane lookups by
+    their planes' channels (8: the canonical field's or K-Planes', 4: the motion field's), the MLPs' matmuls
+    and activations, the plane features' products, concatenations, gathers and scatters, the optimizer's and
+    the losses' forward ops (by their region), and the rest (small elementwise ops, Python and dispatch)."""
+    name, shapes = event.name, event.input_shapes
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name in ("## optimizer", "## losses"):
+            return parent.name[3:]
+        parent = parent.cpu_parent
+    if name in ("aten::grid_sampler_2d", "aten::grid_sampler_2d_backward"):
+        channels = shapes[1 if name.endswith("backward") else 0][1]
+        return f"plane lookups, {channels} channels, {'backward' if name.endswith('backward') else 'forward'}"
+    if name in ("aten::mm", "aten::addmm"):
+        return "MLP matmuls"
+    if name in ACTIVATIONS:
+        return "MLP activations"
+    if name == "aten::mul" and len(shapes) == 2 and len(shapes[0]) == 2 and shapes[0][0] in (4, 8) \
+            and shapes[0] == shapes[1]:
+        return "plane feature products"
+    if name in ("aten::cat", "aten::stack"):
+        return "cat / stack"
+    if name in ("aten::index", "aten::_index_put_impl_", "aten::nonzero", "aten::gather", "aten::index_select"):
+        return "gathers / scatters"
+    return "other"
 
 
 def label(owner, name: str, text: str) -> None:
@@ -93,8 +154,9 @@ def override(cfg, path: str, text: str):
 
 
 def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
-    """``VARIANT[:path=value...]`` -> its config."""
+    """``VARIANT[@reference][:path=value...]`` -> its config."""
     variant, *pairs = spec.split(":")
+    variant = variant.split("@")[0]
     cfg = config_for(variant, rays)
     for pair in pairs:
         path, _, text = pair.partition("=")
@@ -102,9 +164,13 @@ def spec_config(spec: str, rays: int) -> DynamicTrainConfig:
     return cfg
 
 
-def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
+def lock_step(train, cfgs: list, first: int, last: int, references: Optional[list] = None) -> list[float]:
     """Train ``cfgs`` in lock step (threads passing a token after each step's render); each one's thread CPU
-    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded)."""
+    seconds over steps ``first`` .. ``last`` (the steps between the hook calls, the waits excluded).
+    ``references[i]``: config i runs the reference step (:data:`REFERENCE`)."""
+    references = references or [False] * len(cfgs)
+    if any(references):
+        _install_reference_switch()
     turn, done = [0], set()
     cond = threading.Condition()
     cpu = [0.0] * len(cfgs)
@@ -127,6 +193,7 @@ def lock_step(train, cfgs: list, first: int, last: int) -> list[float]:
             resumed[i] = time.thread_time()
             return {}
 
+        REFERENCE.on = references[i]
         with cond:
             cond.wait_for(lambda: turn[0] == i)
         try:
@@ -219,7 +286,8 @@ def main() -> None:
         return
     specs = args.variant.split(",")
     for spec in specs:
-        if spec.split(":")[0] not in ("kplanes", "default", "sfderf", "noprior"):
+        if spec.split(":")[0].split("@")[0] not in ("kplanes", "default", "sfderf", "noprior") or (
+                spec.split(":")[0].count("@") and not spec.split(":")[0].endswith("@reference")):
             parser.error(f"unknown variant {spec!r}")
     if args.mode != "pair" and len(specs) > 1:
         parser.error("several variants: pair mode only")
@@ -229,7 +297,7 @@ def main() -> None:
                                             train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
     cfgs = [dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1) for cfg in cfgs]
     if args.mode == "pair":
-        cpu = lock_step(train, cfgs, first, last)
+        cpu = lock_step(train, cfgs, first, last, [spec.split(":")[0].endswith("@reference") for spec in specs])
         ms = [1000 * c / (last - first) for c in cpu]
         result = {"variants": specs, "steps": [first, last], "cpu_ms_per_step": ms,
                   "ratio_to_first": [m / ms[0] for m in ms], "load_1min_end": os.getloadavg()[0]}
@@ -238,6 +306,9 @@ def main() -> None:
         print(json.dumps(result))
         return
     cfg = cfgs[0]
+    if specs[0].split(":")[0].endswith("@reference"):
+        _install_reference_switch()
+        REFERENCE.on = True
     if args.mode == "profile":
         for owner, name, text in REGIONS:
             label(owner, name, text)
@@ -247,7 +318,7 @@ def main() -> None:
         if step in (first, last):
             marks[step] = (time.process_time(), time.perf_counter())
         if args.mode == "profile" and step == first:
-            marks["profiler"] = profile(activities=[ProfilerActivity.CPU])
+            marks["profiler"] = profile(activities=[ProfilerActivity.CPU], record_shapes=True)
             marks["profiler"].__enter__()
         if args.mode == "profile" and step == last:
             marks["profiler"].__exit__(None, None, None)
@@ -262,9 +333,14 @@ def main() -> None:
     if args.mode == "profile":
         result["events"] = {e.key: {"total_ms": e.cpu_time_total / 1000, "self_ms": e.self_cpu_time_total / 1000,
                                     "calls": e.count} for e in marks["profiler"].key_averages()}
+        parts: dict = {}
+        for event in marks["profiler"].events():
+            part = part_of(event)
+            parts[part] = parts.get(part, 0.0) + event.self_cpu_time_total / 1000 / (last - first)
+        result["parts_ms"] = dict(sorted(parts.items(), key=lambda kv: -kv[1]))
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
-    print(json.dumps({k: v for k, v in result.items() if k != "events"}))
+    print(json.dumps({k: v for k, v in result.items() if k != "events"}, indent=1))
 
 
 if __name__ == "__main__":

@@ -254,12 +254,19 @@ class DynamicKind:
         planes, mlps = _plane_params(model)
         return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}]
 
-    def render(self, model: DynamicFieldModel, batch: RayBatch, inputs: torch.Tensor, generator: torch.Generator):
-        return model.render_rays(batch.origins, batch.directions, batch.near, batch.far, inputs, jitter=True,
-                                 generator=generator)
-
-    def prior_extras(self, priors, model, batch, outputs, step: int, generator: torch.Generator) -> dict:
-        return priors.extras(model, generator)
+    def render_step(self, priors, model: DynamicFieldModel, batch: RayBatch, inputs: torch.Tensor, step: int,
+                    generator: torch.Generator):
+        """The batch, then the sparse flow prior's matched rays (drawn after the batch's samples, as a
+        separate ``render_rays`` call would draw them), rendered in one pass (``render_placed``)."""
+        batch_samples = model.place_timed(batch.origins, batch.directions, batch.near, batch.far, inputs,
+                                          jitter=True, generator=generator)
+        flow = priors.flow if priors is not None else None
+        matched = flow.draw(model, generator) if flow is not None else None
+        if matched is None:
+            return model.render_placed([batch_samples])[0], {}
+        outputs, matched_out = model.render_placed(
+            [batch_samples, model.place_timed(*matched, jitter=True, generator=generator, color=False)])
+        return outputs, flow.entry(matched_out)
 
     def checkpoint_fields(self, model: DynamicFieldModel) -> dict:
         return {"time_range": list(model.time_range), "time_resolution": model.time_resolution}

@@ -111,12 +111,11 @@ class StaticKind:
                 {"params": [p for n, p in model.field.named_parameters() if not n.startswith("encoding.")],
                  "name": "mlps"}]
 
-    def render(self, model: StaticFieldModel, batch: RayBatch, inputs: None, generator: torch.Generator):
-        return model.render_rays(batch.origins, batch.directions, batch.near, batch.far, jitter=True,
-                                 generator=generator)
-
-    def prior_extras(self, priors, model, batch, outputs, step: int, generator: torch.Generator) -> dict:
-        return priors.extras(model, batch, outputs, step, generator)
+    def render_step(self, priors, model: StaticFieldModel, batch: RayBatch, inputs: None, step: int,
+                    generator: torch.Generator):
+        outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, jitter=True,
+                                    generator=generator)
+        return outputs, (priors.extras(model, batch, outputs, step, generator) if priors is not None else {})
 
     def checkpoint_fields(self, model: StaticFieldModel) -> dict:
         return {}

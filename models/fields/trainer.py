@@ -334,11 +334,10 @@ class FieldKind(Protocol):
     def param_groups(self, model) -> list[dict]:
         """The model's Adam parameter groups (named)."""
 
-    def render(self, model, batch: RayBatch, inputs: Optional[torch.Tensor], generator: torch.Generator):
-        """The model's outputs for a training batch (jittered samples); ``inputs`` are the batch's ray inputs."""
-
-    def prior_extras(self, priors, model, batch: RayBatch, outputs, step: int, generator: torch.Generator) -> dict:
-        """What the priors put into ``LossInputs.extras`` at this step."""
+    def render_step(self, priors, model, batch: RayBatch, inputs: Optional[torch.Tensor], step: int,
+                    generator: torch.Generator) -> tuple[Any, dict]:
+        """What a training step renders: the model's outputs for the batch (jittered samples; ``inputs`` are
+        the batch's ray inputs) and what the priors (None: none) put into ``LossInputs.extras``."""
 
     def checkpoint_fields(self, model) -> dict:
         """What the checkpoint holds besides model, scene and background."""
@@ -424,8 +423,8 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
                     trained_priors.update_occupancy(generator)
             idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator).to(device)
             batch = take_rays(rays, idx)
-            outputs = kind.render(model, batch, None if inputs is None else inputs[idx], generator)
-            extras = kind.prior_extras(priors, model, batch, outputs, step, generator) if priors is not None else {}
+            outputs, extras = kind.render_step(priors, model, batch, None if inputs is None else inputs[idx], step,
+                                               generator)
             if extras_fn is not None:
                 extras.update(extras_fn(model, batch, outputs, step) or {})
             loss, values = assemble_loss(terms, model, batch, outputs, step, extras)

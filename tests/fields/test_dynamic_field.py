@@ -488,6 +488,75 @@ def test_the_prior_renders_both_ends_in_one_geometry_call_with_the_samples_of_tw
         torch.testing.assert_close(out.color, model.background.expand(16, 3) * (1 - out.opacity[:, None]))
 
 
+def test_the_training_step_renders_the_batch_and_the_matched_rays_in_one_pass_as_two_calls_do(moving):
+    """``DynamicKind.render_step`` evaluates the batch's samples and the prior's matched rays in one pass
+    (``render_placed``); the reference is what the step did before: ``render_rays`` of the batch, then
+    ``SparseFlowState.extras`` (its own call), from the same generator state. The same draws and sample
+    values; the parameters' gradients equal to float32 round-off."""
+    from models.fields.train_dynamic import DYNAMIC
+
+    n = 40
+    state = _synthetic_flow_state(SparseFlowPrior(enabled=True, rays=16), n)
+    priors = type("P", (), {"flow": state})()
+    model = _model()
+    with torch.no_grad():  # a non-zero flow that depends on the motion features
+        model.field.motion_field.flow_mlp.net[-1].bias.fill_(0.05)
+        model.field.motion_field.flow_mlp.net[-1].weight.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(1))
+    g = torch.Generator().manual_seed(3)
+    batch = RayBatch(torch.randn(24, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]),
+                     torch.tensor([[0.0, 0.0, 1.0]]).expand(24, 3) + torch.randn(24, 3, generator=g) * 0.1,
+                     torch.ones(24), torch.full((24,), 5.0), torch.rand(24, 3, generator=g))
+    times = torch.rand(24, generator=g)
+
+    def step(reference: bool):
+        model.zero_grad()
+        gen = torch.Generator().manual_seed(5)
+        if reference:
+            out = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, times, jitter=True,
+                                    generator=gen)
+            extras = state.extras(model, gen)
+        else:
+            out, extras = DYNAMIC.render_step(priors, model, batch, times, 0, gen)
+        inputs = LossInputs(model, batch, out, 0, LossTerm("sparse_flow"), extras)
+        loss = (LOSS_TERMS["photometric"](inputs) + LOSS_TERMS["sparse_flow"](inputs)
+                + 0.01 * LOSS_TERMS["flow_l1"](inputs))
+        loss.backward()
+        return out, extras["sparse_flow"], {k: p.grad.clone() for k, p in model.named_parameters()}, gen
+
+    (out, matched, grads, gen), (ref, ref_matched, ref_grads, ref_gen) = step(False), step(True)
+    assert torch.equal(gen.get_state(), ref_gen.get_state())
+    assert float(out.opacity.detach().min()) > 0.05 and float(out.flow.detach().abs().max()) > 0.01
+    for got, want in [(out, ref), (matched["a"], ref_matched["a"]), (matched["b"], ref_matched["b"])]:
+        assert torch.equal(got.t, want.t) and torch.equal(got.evaluated, want.evaluated)
+        for name in ("color", "weights", "canonical", "flow", "opacity", "depth", "canonical_outside"):
+            torch.testing.assert_close(getattr(got, name), getattr(want, name), rtol=1e-6, atol=1e-7)
+    assert grads.keys() == ref_grads.keys()
+    for name, grad in grads.items():
+        torch.testing.assert_close(grad, ref_grads[name], rtol=1e-5, atol=1e-7, msg=name)
+    assert float(ref_grads["field.motion_field.flow_mlp.net.0.weight"].abs().max()) > 0
+
+
+@pytest.mark.parametrize("kind", ["derf", "kplanes"])
+def test_one_set_of_placed_samples_renders_the_fields_own_canonical_points(kind):
+    """``render_placed`` writes the canonical points as the samples plus the dense flow: at the evaluated
+    samples, the field's own canonical points bit for bit; elsewhere the samples."""
+    model = _model(kind)
+    with torch.no_grad():
+        if kind == "derf":
+            model.field.motion_field.flow_mlp.net[-1].bias.fill_(0.3)
+    g = torch.Generator().manual_seed(4)
+    origins = torch.randn(12, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(12, 3) + torch.randn(12, 3, generator=g) * 0.1
+    placed = model.place_timed(origins, directions, torch.ones(12), torch.full((12,), 5.0),
+                               torch.rand(12, generator=g))
+    out = model.render_placed([placed])[0]
+    idx = placed.placed.idx
+    field = model.field(placed.placed.coords[idx], placed.taus[idx[0]], None)
+    assert torch.equal(out.canonical[idx], field.canonical) and torch.equal(out.flow[idx], field.flow)
+    assert torch.equal(out.canonical[~out.evaluated], placed.placed.coords[~out.evaluated])
+    assert bool(out.canonical_outside.any()) == (kind == "derf")
+
+
 @pytest.mark.parametrize("kind", ["derf", "kplanes"])
 def test_a_geometry_only_render_has_the_weights_of_a_full_render_and_the_background_colour(kind):
     model = _model(kind)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from engine.core.errors import InputError
-from models.fields.components.encodings import sample_planes, sh_encoding
+from models.fields.components.encodings import MLP, channel_first, sample_planes, sh_encoding
 from models.fields.components.render import OPACITY_EPS, composite, render_image, volume_weights
 from models.fields.components.sampling import (OccupancyGrid, camera_rays, contract_ndc, ray_box_intersection,
                                                sample_intervals)
@@ -242,6 +242,33 @@ def test_sample_planes_is_a_product_of_bilinear_lookups():
     x, y, z = coords[0].tolist()
     want = bilinear(planes[0][0], x, y) * bilinear(planes[0][1], x, z) * bilinear(planes[0][2], y, z)
     assert torch.allclose(feats[0], want, atol=1e-6)
+
+
+@pytest.mark.parametrize("in_dim,layers", [(8, 1), (24, 1), (8, 0)])
+def test_an_mlp_of_channel_first_features_trains_as_its_sequential_form(in_dim, layers):
+    """Plane features (a transposed (C, M) tensor) take the first layer's channel-first backward: the same
+    outputs, input and bias gradients bit for bit, and the same weight gradient to float32 round-off (its sum
+    is rounded in another order)."""
+    torch.manual_seed(0)
+    mlp = MLP(in_dim, 32, 3, layers=layers)
+    stored = torch.randn(in_dim, 3000, requires_grad=True)
+    assert channel_first(stored.t()) and not channel_first(stored) and not channel_first(stored.t()[:1])
+    grad_out = torch.randn(3000, 3)
+    results = []
+    for forward in (mlp, mlp.net):  # the MLP's own forward, then nn.Sequential (the reference)
+        stored.grad = None
+        mlp.zero_grad()
+        out = forward(stored.t())
+        out.backward(grad_out)
+        results.append((out.detach(), stored.grad.clone(), [p.grad.clone() for p in mlp.parameters()]))
+    (out, grad_in, grads), (ref_out, ref_in, ref_grads) = results
+    assert torch.equal(out, ref_out) and torch.equal(grad_in, ref_in)
+    assert torch.equal(grads[1], ref_grads[1]) and all(torch.equal(a, b) for a, b in zip(grads[2:], ref_grads[2:]))
+    torch.testing.assert_close(grads[0], ref_grads[0], rtol=1e-5, atol=1e-5)
+    rows = stored.detach().t().contiguous()
+    assert torch.equal(mlp(rows), mlp.net(rows))  # row-major inputs run nn.Sequential
+    with torch.no_grad():
+        assert torch.equal(mlp(stored.t()), ref_out)
 
 
 def test_sh_encoding_band_zero_and_one():

@@ -53,11 +53,11 @@ from engine.core.errors import InputError
 from models.fields.components.encodings import (MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, plane_grid,
                                                 read_planes)
 from models.fields.static.field import FieldConfig, density_activation
-from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
+from models.fields.static.model import PlacedSamples, RenderConfig, SceneBox, StaticFieldModel
 
 __all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "time_grid", "sample_hex_planes", "time_smoothness",
            "HexPlaneEncoding", "MotionConfig", "DynamicFieldConfig", "CanonicalField", "MotionField",
-           "DeRFField", "KPlanesField", "FieldSamples", "DynamicRayOutputs", "DynamicFieldModel",
+           "DeRFField", "KPlanesField", "FieldSamples", "DynamicRayOutputs", "TimedSamples", "DynamicFieldModel",
            "auto_time_resolution", "normalize_times", "AtTime"]
 
 #: ``DynamicFieldConfig.kind``: the canonical + motion model (DeRF, thesis Ch. 5) or the K-Planes-style 4D
@@ -359,12 +359,21 @@ class DeRFField(nn.Module):
         canonical, _ = self.deform(coords, times)
         return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)[0]
 
-    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
-        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
+    def geometry(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(..., 3) contracted points at normalised times (...) -> density (...), latent h (..., G), canonical
+        points (..., 3), flow (..., 3): :meth:`forward` without the colour."""
         canonical, flow = self.deform(coords, times)
         sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
-        rgb = (self.canonical_field.get_outputs(h, directions, times) if directions is not None
-               else h.new_zeros(h.shape[:-1] + (3,)))
+        return sigma, h, canonical, flow
+
+    def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
+        """Latent h (..., G) of :meth:`geometry`, unit directions (..., 3), normalised times (...) -> RGB."""
+        return self.canonical_field.get_outputs(h, directions, times)
+
+    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
+        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
+        sigma, h, canonical, flow = self.geometry(coords, times)
+        rgb = self.colour(h, directions, times) if directions is not None else h.new_zeros(h.shape[:-1] + (3,))
         return FieldSamples(sigma, rgb, canonical, flow)
 
 
@@ -393,12 +402,20 @@ class KPlanesField(nn.Module):
     def density(self, coords: Tensor, times: Tensor) -> Tensor:
         return self._density(coords, times)[0]
 
+    def geometry(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """As :meth:`DeRFField.geometry`: density, latent h, canonical points (= ``coords``), flow (zero)."""
+        sigma, h = self._density(coords, times)
+        return sigma, h, coords, torch.zeros_like(coords)
+
+    def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
+        """As :meth:`DeRFField.colour` (the time is not an input of this colour MLP)."""
+        return torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
+
     def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
         """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
-        sigma, h = self._density(coords, times)
-        rgb = (torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
-               if directions is not None else h.new_zeros(h.shape[:-1] + (3,)))
-        return FieldSamples(sigma, rgb, coords, torch.zeros_like(coords))
+        sigma, h, canonical, flow = self.geometry(coords, times)
+        rgb = self.colour(h, directions, times) if directions is not None else h.new_zeros(h.shape[:-1] + (3,))
+        return FieldSamples(sigma, rgb, canonical, flow)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -431,6 +448,20 @@ class DynamicRayOutputs(NamedTuple):
     flow: Tensor
     evaluated: Tensor
     canonical_outside: Tensor
+
+
+class TimedSamples(NamedTuple):
+    """Samples placed along rays at given times (:meth:`DynamicFieldModel.place_timed`).
+
+    Attributes:
+        placed: :class:`~models.fields.static.model.PlacedSamples` of the R rays.
+        taus: (R,) the rays' normalised times.
+        color: whether their colour is computed (else geometry only, as ``render_rays(color=False)``).
+    """
+
+    placed: PlacedSamples
+    taus: Tensor
+    color: bool
 
 
 def normalize_times(times: Tensor, time_range: tuple[float, float]) -> Tensor:
@@ -549,33 +580,65 @@ class DynamicFieldModel(StaticFieldModel):
         Returns:
             :class:`DynamicRayOutputs`.
         """
+        return self.render_placed([self.place_timed(origins, directions, near, far, times, jitter=jitter,
+                                                    generator=generator, color=color)])[0]
+
+    def place_timed(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor, *,
+                    jitter: bool = False, generator: Optional[torch.Generator] = None, color: bool = True
+                    ) -> TimedSamples:
+        """The samples :meth:`render_rays` would evaluate (same arguments, same random draws), for
+        :meth:`render_placed`."""
         sizes: dict = {}
         check_shape(origins, "origins", ("R", 3), sizes)
         check_shape(directions, "directions", ("R", 3), sizes)
         check_shape(near, "near", ("R",), sizes)
         check_shape(far, "far", ("R",), sizes)
         check_shape(times, "times", ("R",), sizes)
-        return self._render_dynamic(origins, directions, near, far, self.normalize_times(times), jitter, generator,
-                                    color)
+        taus = self.normalize_times(times)
+        return TimedSamples(self.place_samples(origins, directions, near, far, jitter=jitter, generator=generator),
+                            taus, bool(color))
 
-    def _render_dynamic(self, origins, directions, near, far, taus, jitter, generator, color: bool = True
-                        ) -> DynamicRayOutputs:
-        evaluated = {}
+    def render_placed(self, sets: Sequence[TimedSamples]) -> list[DynamicRayOutputs]:
+        """Render sets of placed samples (:meth:`place_timed`) with one evaluation of the field.
 
-        def query(coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
-            out = self.field(coords, taus[idx[0]], unit if color else None)
-            evaluated["canonical"], evaluated["flow"] = out.canonical, out.flow
-            return out.sigma, out.rgb
+        The kept samples of every set are evaluated together (one pass through the motion field and the
+        canonical density; the colour only for the sets placed with ``color``), then each set is composited
+        on its own. One set gives exactly :meth:`render_rays`; several give what a call per set gives (each
+        sample's values are the same; the parameters' gradients are the same sums, rounded in another
+        order), at the cost of one larger pass instead of several small ones: the training step renders its
+        batch and the sparse flow prior's matched rays so."""
+        kept = [(s.placed.coords[s.placed.idx], s.taus[s.placed.idx[0]]) for s in sets]
+        counts = [int(k[0].shape[0]) for k in kept]
+        parts: list[Optional[tuple]] = [None] * len(sets)
+        if sum(counts) > 0:
+            coords, taus = ((kept[0][0], kept[0][1]) if len(sets) == 1 else
+                            (torch.cat([k[0] for k in kept]), torch.cat([k[1] for k in kept])))
+            sigma, h, canonical, flow = (x.split(counts) for x in self.field.geometry(coords, taus))
+            lit = [i for i, s in enumerate(sets) if s.color and counts[i]]
+            rgb = [h[i].new_zeros(counts[i], 3) for i in range(len(sets))]
+            if lit:
+                units = [sets[i].placed.unit[sets[i].placed.idx[0]] for i in lit]
+                one = len(lit) == 1
+                colours = self.field.colour(h[lit[0]] if one else torch.cat([h[i] for i in lit]),
+                                            units[0] if one else torch.cat(units),
+                                            kept[lit[0]][1] if one else torch.cat([kept[i][1] for i in lit]))
+                for i, c in zip(lit, colours.split([counts[i] for i in lit])):
+                    rgb[i] = c
+            parts = [(sigma[i], rgb[i], canonical[i], flow[i]) if counts[i] else None for i in range(len(sets))]
+        return [self._composite_timed(s, part) for s, part in zip(sets, parts)]
 
-        base, coords, keep, idx = self.march(origins, directions, near, far, query, jitter=jitter,
-                                             generator=generator)
-        canonical = coords.detach()
-        flow = coords.new_zeros(coords.shape)
-        if evaluated:
-            canonical = canonical.index_put(idx, evaluated["canonical"])
-            flow = flow.index_put(idx, evaluated["flow"])
-        outside = keep & ~(canonical.abs() <= 1.0).all(dim=-1)
-        return DynamicRayOutputs(*base, canonical, flow, keep, outside)
+    def _composite_timed(self, samples: TimedSamples, part: Optional[tuple]) -> DynamicRayOutputs:
+        placed = samples.placed
+        base = self.composite_placed(placed, None if part is None else part[:2])
+        flow = placed.coords.new_zeros(placed.coords.shape)
+        if part is not None:
+            flow = flow.index_put(placed.idx, part[3])
+        # both fields' canonical point is the sample plus its flow (K-Planes: plus 0), so the dense canonical
+        # points are the samples plus the dense flow (0 where not evaluated): the values of an index_put of
+        # the evaluated canonical points, for one add
+        canonical = placed.coords.detach() + flow
+        outside = placed.keep & ~(canonical.abs() <= 1.0).all(dim=-1)
+        return DynamicRayOutputs(*base, canonical, flow, placed.keep, outside)
 
     def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, times: Tensor
                 ) -> DynamicRayOutputs:

@@ -356,19 +356,32 @@ class SparseFlowState:
 
         The two ends of every pair are rendered in one geometry-only call (``render_rays(color=False)``: the loss
         reads weights and canonical points only), rays ``a`` first: the same jitter draws, hence the same
-        samples, as two calls ``a`` then ``b``.
+        samples, as two calls ``a`` then ``b``. The training step renders the same rays (same draws) in one
+        pass with its batch instead (:meth:`draw`, :meth:`entry`).
         """
-        if len(self.matches) == 0:
+        rays = self.draw(model, generator)
+        if rays is None:
             return {}
+        return self.entry(model.render_rays(*rays, jitter=True, generator=generator, color=False))
+
+    def draw(self, model, generator: torch.Generator) -> Optional[tuple[Tensor, ...]]:
+        """``prior.rays`` random matched pairs as ``(origins, directions, near, far, times)`` of 2R rays on the
+        model's device, the ``a`` ends first (None without matches): the draw :meth:`extras` renders."""
+        if len(self.matches) == 0:
+            return None
         idx = torch.randint(len(self.matches), (self.prior.rays,), generator=generator)  # on the generator's device
         device = module_device(model)
         n = len(idx)
         bounds = torch.tensor([float(model.scene.near), float(model.scene.far)], device=device)
-        out = model.render_rays(torch.cat([self.origins_a[idx], self.origins_b[idx]]).to(device),
-                                torch.cat([self.directions_a[idx], self.directions_b[idx]]).to(device),
-                                bounds[0].expand(2 * n), bounds[1].expand(2 * n),
-                                torch.cat([self.times_a[idx], self.times_b[idx]]).to(device), jitter=True,
-                                generator=generator, color=False)
+        return (torch.cat([self.origins_a[idx], self.origins_b[idx]]).to(device),
+                torch.cat([self.directions_a[idx], self.directions_b[idx]]).to(device),
+                bounds[0].expand(2 * n), bounds[1].expand(2 * n),
+                torch.cat([self.times_a[idx], self.times_b[idx]]).to(device))
+
+    @staticmethod
+    def entry(out) -> dict[str, Any]:
+        """The rendered rays of :meth:`draw` -> ``{"sparse_flow": {"a": outputs, "b": outputs}}``."""
+        n = out.color.shape[0] // 2
         return {"sparse_flow": {"a": type(out)(*(x[:n] for x in out)), "b": type(out)(*(x[n:] for x in out))}}
 
 

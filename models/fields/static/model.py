@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -27,9 +27,27 @@ from models.fields.components.sampling import (OccupancyGrid, contract_box, cont
 from models.fields.data.views import box_from_cameras
 from models.fields.static.field import FieldConfig, TriPlaneField
 
-__all__ = ["SCENE_TYPES", "RenderConfig", "SceneBox", "StaticFieldModel"]
+__all__ = ["SCENE_TYPES", "RenderConfig", "SceneBox", "PlacedSamples", "StaticFieldModel"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
+
+
+class PlacedSamples(NamedTuple):
+    """Samples placed along R rays by :meth:`StaticFieldModel.place_samples`, N a ray.
+
+    Attributes:
+        t: (R, N) sample positions (planar depth); lengths: (R, N) interval lengths (scene units).
+        coords: (R, N, 3) contracted sample points; keep: (R, N) bool, the samples the field is evaluated at.
+        idx: ``keep.nonzero(as_tuple=True)``, the kept samples' (ray, sample) indices, ray-major.
+        unit: (R, 3) unit ray directions.
+    """
+
+    t: Tensor
+    lengths: Tensor
+    coords: Tensor
+    keep: Tensor
+    idx: tuple[Tensor, Tensor]
+    unit: Tensor
 
 
 @dataclass
@@ -218,18 +236,30 @@ class StaticFieldModel(nn.Module):
     def march(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, query, *, jitter: bool = False,
               generator: Optional[torch.Generator] = None, channels: int = 3, background: Optional[Tensor] = None
               ) -> tuple[RayOutputs, Tensor, Tensor, tuple[Tensor, Tensor]]:
-        """The ray marcher of the static and the dynamic field (shapes as :meth:`render_rays`, unchecked here).
-
-        Samples ``num_samples`` intervals per ray between the scene bounds (linear in t for bounded scenes, in
-        1/t for forward-facing ones; jittered with ``jitter``), contracts them, keeps the samples inside the
-        cube, in a non-empty interval and (once the grid has been updated) in an occupied cell, evaluates
-        ``query(coords, idx, unit_directions) -> (sigma, rgb)`` on the kept ones only (``idx``: their (ray,
-        sample) indices) and composites (:func:`~models.fields.components.render.composite_samples`; densities
-        per unit length, so interval lengths are ``delta t |d|``). ``query`` gives ``channels`` values a sample
-        (RGB, or a deferred field's features), composited on ``background`` (default: the model's).
+        """The ray marcher of the static and the dynamic field (shapes as :meth:`render_rays`, unchecked here):
+        :meth:`place_samples`, ``query(coords, idx, unit_directions) -> (sigma, rgb)`` on the kept samples only
+        (``idx``: their (ray, sample) indices; not called when none is kept), then :meth:`composite_placed`.
+        ``query`` gives ``channels`` values a sample (RGB, or a deferred field's features), composited on
+        ``background`` (default: the model's).
 
         Returns:
             (outputs, contracted sample coordinates (R, N, 3), kept samples (R, N) bool, ``idx``).
+        """
+        placed = self.place_samples(origins, directions, near, far, jitter=jitter, generator=generator)
+        kept = None
+        if placed.idx[0].numel() > 0:
+            kept = query(placed.coords[placed.idx], placed.idx, placed.unit[placed.idx[0]])
+        out = self.composite_placed(placed, kept, channels, background)
+        return out, placed.coords, placed.keep, placed.idx
+
+    def place_samples(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor, *, jitter: bool = False,
+                      generator: Optional[torch.Generator] = None) -> "PlacedSamples":
+        """Where a ray marcher evaluates the field (shapes as :meth:`render_rays`, unchecked here).
+
+        Samples ``num_samples`` intervals per ray between the scene bounds (linear in t for bounded scenes, in
+        1/t for forward-facing ones; jittered with ``jitter``: the only random draw), contracts them and keeps
+        the samples inside the cube, in a non-empty interval and (once the grid has been updated) in an
+        occupied cell. Interval lengths are ``delta t |d|`` (densities are per unit length, t is camera z).
         """
         rc = self.render_config
         t_near, t_far = self.ray_bounds(origins, directions, near, far)
@@ -241,18 +271,24 @@ class StaticFieldModel(nn.Module):
         keep = (coords.abs() <= 1.0).all(dim=-1) & (deltas > 0)
         if self.occupancy is not None and int(self.occupancy.updates) > 0:
             keep = keep & self.occupancy.query(coords)
-        r, n = t.shape
-        sigma = coords.new_zeros(r, n)
-        rgb = coords.new_zeros(r, n, channels)
         idx = keep.nonzero(as_tuple=True)
-        if idx[0].numel() > 0:
-            unit = torch.nn.functional.normalize(directions, dim=-1)
-            s, c = query(coords[idx], idx, unit[idx[0]])
-            sigma = sigma.index_put(idx, s)
-            rgb = rgb.index_put(idx, c)
-        lengths = deltas * directions.norm(dim=-1, keepdim=True)  # t is camera z; densities are per unit length
+        unit = torch.nn.functional.normalize(directions, dim=-1)
+        lengths = deltas * directions.norm(dim=-1, keepdim=True)
+        return PlacedSamples(t, lengths, coords, keep, idx, unit)
+
+    def composite_placed(self, placed: "PlacedSamples", kept: Optional[tuple[Tensor, Tensor]], channels: int = 3,
+                         background: Optional[Tensor] = None) -> RayOutputs:
+        """Volume-render placed samples (:func:`~models.fields.components.render.composite_samples`): ``kept``
+        is ``(sigma (K,), values (K, channels))`` of the kept samples in ``placed.idx`` order (None: none kept);
+        the others are empty. ``background`` defaults to the model's."""
+        r, n = placed.t.shape
+        sigma = placed.coords.new_zeros(r, n)
+        rgb = placed.coords.new_zeros(r, n, channels)
+        if kept is not None:
+            sigma = sigma.index_put(placed.idx, kept[0])
+            rgb = rgb.index_put(placed.idx, kept[1])
         background = self.background if background is None else background
-        return composite_samples(sigma, rgb, lengths, t, background), coords, keep, idx
+        return composite_samples(sigma, rgb, placed.lengths, placed.t, background)
 
     def forward(self, origins: Tensor, directions: Tensor, near: Tensor, far: Tensor) -> RayOutputs:
         return self.render_rays(origins, directions, near, far)

@@ -19,6 +19,7 @@ from engine.predict.corrflow import MIN_MOTION, CorrFlowNetwork, dis_start
 from engine.predict.dis import dis_calc, dis_estimator, luma8
 from engine.predict.registry import make_predictor
 from engine.weights import CORRFLOW
+from tests.synthetic import two_layer_sequence
 
 ROOT = Path(__file__).resolve().parents[2]
 CHECKPOINT = ROOT / "models" / "weights" / "corrflow.pt"
@@ -234,3 +235,19 @@ def test_flow2d_takes_another_network(rgbd_network, tmp_path):
     with pytest.raises(InputError) as err:
         make_predictor(f"flow2d[estimator=corr,network={tmp_path / 'none.onnx'}]")
     assert "none.onnx" in str(err.value)
+
+
+def test_decomp_reads_a_given_correlation_network(tmp_path):
+    """``decomp[corr_network=PATH]``: the initial flow of another exported network (a GPU-trained one is scored so
+    without replacing the committed file); the committed file given explicitly predicts what the default does."""
+    frames, _ = two_layer_sequence(6, width=160, height=96, camera_speed=0.02, object_speed=0.3)
+    target = Target(frames[5].camera, frames[5].time, frames[5].index)
+    default = make_predictor("decomp").predict([frames[2], frames[4]], target).color
+    given = make_predictor(f"decomp[corr_network={CORRFLOW}]").predict([frames[2], frames[4]], target).color
+    np.testing.assert_array_equal(given, default)
+    missing = tmp_path / "missing.onnx"
+    with pytest.raises(InputError) as err:
+        make_predictor(f"decomp[corr_network={missing}]")
+    assert str(err.value.file) == str(missing)
+    with pytest.raises(InputError, match="estimator=corr only"):
+        make_predictor(f"decomp[estimator=dis,corr_network={CORRFLOW}]")

@@ -92,6 +92,8 @@ class DecompConfig:
                 "docs/results/2026-11-28-no-vector-motion.md), 'dis' (OpenCV DIS on the CPU, flow2d's) or 'gl' (the "
                 "GPU's flow of flow2d[estimator=gl]: on the gl backend the whole initial flow runs on the GPU; "
                 "measured scores: docs/gpu.md)")
+    corr_network: str = option("", "the correlation network of estimator=corr: an exported ONNX (default: the "
+                                   "committed engine/weights/corrflow.onnx; python -m export.corrflow)")
     dis_preset: Literal["ultrafast", "fast", "medium"] = option("medium", "OpenCV DIS preset of the initial flow, for networks that refine one")
     fallback: bool = option(False, "regions whose flow explains frame n from n-k worse than no object motion take "
                                    "the camera-only warp (engine.predict.dis.explained_motion)")
@@ -115,6 +117,8 @@ class DecompConfig:
             (self.estimator in ("dis", "gl", "corr"),
              f"estimator must be 'dis', 'gl' or 'corr', got {self.estimator!r}"),
             (self.infill_iterations >= 1, "infill_iterations must be >= 1"),
+            (not self.corr_network or self.estimator == "corr",
+             f"corr_network is read by estimator=corr only, got estimator={self.estimator}"),
             (self.infill_margin >= -1, "infill_margin must be >= 0, or -1 for the whole frame"),
         ]
         for ok, problem in checks:
@@ -296,7 +300,9 @@ class DecompPredictor(Predictor):
         self.network = network if network is not None else FlowNetwork(config.model or DEFAULT_MODEL, config.threads)
         self.objects = {o.id: o for o in objects}
         self._gl: Optional[tuple] = None  # (GlOpticalFlow, GlTrust) of estimator=gl
-        self._corr: Optional[CorrFlowNetwork] = None  # estimator=corr's network, opened on first use
+        # estimator=corr's network: the committed one opened on first use, a given one now (a bad file fails here)
+        self._corr: Optional[CorrFlowNetwork] = (CorrFlowNetwork(config.corr_network, threads=config.threads)
+                                                 if config.corr_network else None)
         self._refine: Optional[GlFlowRefine] = None
         self._gate: Optional[GlGate] = None
         self.infill = None

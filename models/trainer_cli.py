@@ -1,4 +1,5 @@
-"""Command-line pieces every trainer shares: a ``--config FILE`` the options override, ``--resume``, ``--no-progress``.
+"""Command-line pieces every trainer shares: a ``--config FILE`` the options override, ``--resume``, ``--no-progress``,
+``--device``'s values.
 
 The options themselves are the training config's fields (``engine.core.config.add_options``: nested
 configs as ``--model.name``); the config a run used is saved beside it as JSON and reads back with
@@ -9,9 +10,30 @@ from __future__ import annotations
 import argparse
 from typing import Callable, Optional, Sequence
 
-from engine.core import config as core_config
+import torch
 
-__all__ = ["add_trainer_options", "trainer_config", "trainer_parser", "trainer_main"]
+from engine.core import config as core_config
+from engine.core.errors import InputError
+
+__all__ = ["DEVICES", "resolve_device", "add_trainer_options", "trainer_config", "trainer_parser", "trainer_main"]
+
+
+#: What ``--device`` takes: ``auto`` is ``cuda`` when torch sees a GPU, else ``cpu``.
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of a ``--device`` value (:data:`DEVICES`); InputError for ``cuda`` where torch sees
+    no GPU (a CPU-only build, or no GPU visible) and for any other name."""
+    if name not in DEVICES:
+        raise InputError(f"must be one of {', '.join(DEVICES)}, got {name!r}", field="device")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
+        raise InputError(f"cuda: torch {torch.__version__} ({build}) sees no GPU; use --device cpu or auto",
+                         field="device")
+    return torch.device(name)
 
 
 def add_trainer_options(parser: argparse.ArgumentParser, cls: type) -> None:

@@ -19,10 +19,10 @@ from engine.geometry.holefill import fill_holes
 from engine.geometry.regions import region_keeps
 from engine.geometry.rigid import motion_components
 
-__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "DisEstimator", "dis_estimator", "dis_calc",
-           "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error", "confident_motion",
-           "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions", "chroma8",
-           "explained_motion", "fall_back"]
+__all__ = ["DIS_MIN_SIDE", "CONFIDENCE_MARGIN", "CONFIDENCE_WINDOW", "SMALL_MOTION", "DisEstimator", "dis_estimator",
+           "dis_calc", "dis_block", "luma8", "encode8", "dis_flow", "dis_target", "initial_flow", "warp_error",
+           "confident_motion", "trusted_motion", "drop_untrusted", "FALLBACK_RATIO", "HIDDEN_BAND", "flow_regions",
+           "chroma8", "explained_motion", "fall_back"]
 
 #: Smallest side OpenCV's DIS is given: on smaller images (e.g. 12 x 200, 3 x 200) it raises or crashes the
 #: process (OpenCV 5.0, measured for every preset, finest scale 0 included); 32 px a side never did.

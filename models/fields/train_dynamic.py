@@ -40,10 +40,11 @@ from models.fields.dynamic.model import (AtTime, DynamicFieldConfig, DynamicFiel
 from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, register_loss_term
 from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.static.model import RenderConfig, SceneBox
-from models.fields.trainer import (DEVICES, RunConfig, add_renderer_option, apply_loss_weights, check_run,
-                                   gl_view_renderer, json_safe, resolve_device, resolve_renderer, run_config_from_file,
+from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
+                                   gl_view_renderer, json_safe, resolve_renderer, run_config_from_file,
                                    run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
                                    view_list)
+from models.trainer_cli import DEVICES, resolve_device
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
            "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",

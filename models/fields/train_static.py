@@ -31,10 +31,11 @@ from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_priors,
                                         with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
-from models.fields.trainer import (DEVICES, RunConfig, add_renderer_option, apply_loss_weights, check_run,
-                                   gl_view_renderer, json_safe, rank_correlation, resolve_device, resolve_renderer,
+from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
+                                   gl_view_renderer, json_safe, rank_correlation, resolve_renderer,
                                    run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
                                    validate_run_config, view_list)
+from models.trainer_cli import DEVICES, resolve_device
 
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",

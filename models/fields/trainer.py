@@ -41,9 +41,10 @@ from engine.core.config import config_from_dict, config_from_file, config_to_dic
 from engine.core.errors import InputError
 from engine.eval.metrics import flip_map, psnr, ssim_map
 from models.fields.components.sampling import camera_rays
+from models.trainer_cli import resolve_device
 from models.fields.losses import LossTerm, RayBatch, assemble_loss, check_loss_terms
 
-__all__ = ["LR_SCHEDULES", "DEVICES", "resolve_device", "rays_to", "RunConfig",
+__all__ = ["LR_SCHEDULES", "rays_to", "RunConfig",
            "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
            "check_run", "all_rays", "take_rays", "open_run_dir", "restore_training_state", "open_log", "run_config_to_dict",
            "run_config_from_dict", "run_config_from_file", "apply_loss_weights", "view_list", "rank_correlation",
@@ -51,24 +52,6 @@ __all__ = ["LR_SCHEDULES", "DEVICES", "resolve_device", "rays_to", "RunConfig",
            "resolve_renderer", "add_renderer_option", "gl_view_renderer"]
 
 LR_SCHEDULES = ("cosine", "exponential", "constant")
-
-#: What ``--device`` takes: ``auto`` is ``cuda`` when torch sees a GPU, else ``cpu``.
-DEVICES = ("auto", "cpu", "cuda")
-
-
-def resolve_device(name: str) -> torch.device:
-    """The torch device of a ``--device`` value (:data:`DEVICES`); InputError for ``cuda`` where torch sees
-    no GPU (a CPU-only build, or no GPU visible) and for any other name."""
-    if name not in DEVICES:
-        raise InputError(f"must be one of {', '.join(DEVICES)}, got {name!r}", field="device")
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
-        raise InputError(f"cuda: torch {torch.__version__} ({build}) sees no GPU; use --device cpu or auto",
-                         field="device")
-    return torch.device(name)
-
 
 #: ``--renderer`` values of ``interleave eval field|dynamic``: who renders the held-out views.
 RENDERERS = ("auto", "torch", "gl")

@@ -32,11 +32,11 @@ from engine.io.rgbd import read_sequence
 from engine.core.config import config_to_dict
 from engine.predict.base import Target, Timer, true_object_flow, warp_fill_depth
 from engine.predict.corrflow import depth_reference, network_depth, network_image, working_size
-from models.fields.trainer import DEVICES, resolve_device
 from models.flow.corrflow import CorrFlow, CorrFlowConfig
+from models.trainer_cli import DEVICES, resolve_device
 
-__all__ = ["TRAIN_SCENES", "PAIR_KEYS", "build_pairs", "build_all_pairs", "extra_pairs", "prepare_pairs", "TrainCorrFlowConfig",
-           "load_start_weights", "train", "main"]
+__all__ = ["TRAIN_SCENES", "PAIR_KEYS", "build_pairs", "build_all_pairs", "extra_pairs", "prepare_pairs",
+           "TrainCorrFlowConfig", "load_start_weights", "train", "main"]
 
 
 #: truth larger than this (working-resolution pixels) is not supervised: points near the camera plane of
@@ -122,7 +122,7 @@ class TrainCorrFlowConfig:
     extra_share: float = 0.0
     #: a checkpoint whose model weights start the run (fine-tuning); "" starts from a seeded initialisation
     init_from: str = ""
-    #: where the model trains (``models.fields.trainer.DEVICES``: auto, cpu, cuda); batches are drawn on the CPU
+    #: where the model trains (``models.trainer_cli.DEVICES``: auto, cpu, cuda); batches are drawn on the CPU
     device: str = "cpu"
     #: processes that build the training pairs of the rendered scenes (one scene each)
     workers: int = 1
@@ -175,8 +175,7 @@ def prepare_pairs(config: TrainCorrFlowConfig, progress: bool = True) -> Path:
         scenes = sorted(p for p in extra.iterdir() if (p / "sequence.json").exists()) if extra.is_dir() else []
         if not scenes:
             raise InputError("holds no rgbd-seq folders", file=extra, field="extra_data")
-        for scene in scenes:
-            build_pairs(scene, extra_pairs(config), config.ks, config.net_width)
+        build_all_pairs(scenes, extra_pairs(config), config.ks, config.net_width, config.workers)
     return Path(config.pairs)
 
 

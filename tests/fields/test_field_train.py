@@ -336,7 +336,7 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
 
 
 def test_device_names_resolve(monkeypatch):
-    from models.fields.trainer import resolve_device
+    from models.trainer_cli import resolve_device
 
     assert resolve_device("cpu") == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

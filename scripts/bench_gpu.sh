@@ -18,6 +18,8 @@
 #    tools.profile_gl_flow: the GPU's flow alone, its dispatches and GPU ms per stage and pass, the passes as they
 #    were beside the defaults, back to back and with idle gaps;
 # 3. tools.bench_torch_networks: the engine's networks in torch, CPU and CUDA (onnxruntime-gpu stands in);
+#    tools.bench_net_runner: the exported graphs in the engine's torch runner on CUDA against onnxruntime on the
+#    CPU, and flow2d[estimator=corr] and decomp at 1920x1080 with their networks on CUDA and on the CPU;
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080; the same
 #    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
@@ -149,6 +151,15 @@ step flow_search 150 "$py" -m tools.profile_gl_flow --sizes "$flow_sizes" --repe
 step flow_search_idle 120 "$py" -m tools.profile_gl_flow --sizes "${flow_sizes##*,}" --repeats 3 --idle 0.05 \
     --out "$work/scenes" --json "$out/flow_search_idle.json"
 step networks 60 "$py" -m tools.bench_torch_networks --json "$out/networks.json"
+# the exported graphs as the engine runs them without onnxruntime-gpu: torch on CUDA (engine.predict.torch_onnx)
+# beside onnxruntime on the CPU, then the no-vector methods whose networks take that path, on the gl backend,
+# with the networks on the GPU (INTERLEAVE_ORT_DEVICE=cuda) and on the CPU (cpu); needs the onnx wheel
+step net_runner 120 "$py" -m tools.bench_net_runner --devices cuda --json "$out/net_runner.json"
+for device in cuda cpu; do
+    INTERLEAVE_ORT_DEVICE=$device step "net_methods_$device" 150 "$py" -m tools.bench_backends --sizes 1920x1080 \
+        --methods "reproject,flow2d[estimator=corr],decomp" --repeats 1 --frames 4 --out "$work/scenes" \
+        --json "$out/net_methods_$device.json"
+done
 step field_capture 30 "$py" -m engine.cli render-rig "$work/rig" --seed 7 --width 504 --height 378 --static \
     --num-cameras 8 --test-cameras 2 --baseline 0.25
 step field_train 150 "$py" -m engine.cli train field --scene "$work/rig" --train-views cam1,cam3,cam6 \

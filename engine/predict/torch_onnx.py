@@ -8,7 +8,10 @@ in, numpy out) and ``get_modelmeta().custom_metadata_map``. onnxruntime on the C
 
 Per input signature (names, shapes, dtypes) the first run records which values depend on the inputs' data:
 the others (weights, constants, and everything computed from them and from input shapes only: most of the
-exported graphs' shape arithmetic) are kept, and later runs evaluate only the data-dependent nodes.
+exported graphs' shape arithmetic) are kept, and later runs evaluate only the data-dependent nodes. On a GPU
+those nodes are captured as a CUDA graph when a signature comes a second time, and replayed (no launch per node
+from Python), after a check that the replay gives the eager outputs; a graph that cannot be captured or
+disagrees runs eagerly instead. A session keeps the ``MAX_PLANS`` most recently used signatures.
 
 Conventions are ONNX's: NCHW / NCDHW tensors, Resize and GridSample coordinates as the attributes say
 (``half_pixel`` / ``asymmetric``; ``align_corners``). Only the operators and attributes the shipped graphs use
@@ -18,7 +21,10 @@ Needs the ``onnx`` and ``torch`` packages (the ``train`` extra), imported only w
 from __future__ import annotations
 
 import math
+import os
+from collections import OrderedDict
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -42,6 +48,20 @@ def torch_cuda_available() -> bool:
 @dataclass(frozen=True)
 class _Meta:
     custom_metadata_map: dict
+
+
+#: input signatures a session keeps plans (and graphs) for, the most recently used
+MAX_PLANS = 16
+
+
+@dataclass
+class _Plan:
+    """One input signature's plan: ``static`` values, the ``dynamic`` nodes, and their ``replay`` (a CUDA graph)
+    where one was captured and checked."""
+    static: dict
+    dynamic: list
+    replay: Optional[Callable] = None
+    uses: int = 1
 
 
 @dataclass(frozen=True)
@@ -414,7 +434,10 @@ class TorchOnnxSession:
         if unsupported:
             raise InputError(f"uses operators the torch runner does not implement: {', '.join(sorted(unsupported))}",
                              file=self.path, field="model")
-        self._plans: dict[tuple, tuple[dict, list[_Node]]] = {}
+        self._plans: OrderedDict[tuple, _Plan] = OrderedDict()
+        #: on a GPU each signature's nodes are captured as a CUDA graph and replayed (no launch per node from
+        #: Python); ``INTERLEAVE_TORCH_GRAPHS=0`` runs them one by one
+        self.graphs = self.device.type == "cuda" and os.environ.get("INTERLEAVE_TORCH_GRAPHS", "1") != "0"
 
     def _tensor(self, array: np.ndarray):
         torch = _torch()
@@ -433,9 +456,9 @@ class TorchOnnxSession:
                 if name:
                     env[name] = value
 
-    def _plan(self, feeds: dict) -> tuple[dict, list[_Node]]:
+    def _plan(self, feeds: dict) -> "_Plan":
         """For the signature of ``feeds``: the values that do not depend on the inputs' data (computed once),
-        and the nodes that do, in graph order."""
+        the nodes that do, in graph order, and on a GPU their replay (``_capture``)."""
         key = tuple((name, tuple(feeds[name].shape), str(feeds[name].dtype)) for name in self.input_names)
         plan = self._plans.get(key)
         if plan is None:
@@ -450,8 +473,57 @@ class TorchOnnxSession:
                     dynamic_names.update(node.outputs)
                 else:
                     static.update({name: probe[name] for name in node.outputs if name})
-            plan = self._plans[key] = (static, dynamic)
+            plan = self._plans[key] = _Plan(static, dynamic)
+            while len(self._plans) > MAX_PLANS:  # the least recently used signature goes (sizes vary: decomp's boxes)
+                self._plans.popitem(last=False)
+        else:
+            self._plans.move_to_end(key)
+            plan.uses += 1
+            if self.graphs and plan.uses == 2:  # a size seen again: worth a graph (a box seen once is not)
+                plan.replay = self._checked_replay(plan, feeds, self._eager(plan, feeds))
         return plan
+
+    def _eager(self, plan: "_Plan", tensors: dict) -> list:
+        env = {**plan.static, **tensors}
+        self._evaluate(plan.dynamic, env)
+        return [env[name] for name in self.output_names]
+
+    def _checked_replay(self, plan: "_Plan", tensors: dict, want: list) -> Optional[Callable]:
+        """``_capture``'s replay of ``plan``, kept only when it gives the eager outputs ``want`` for ``tensors``
+        (to 1e-4 of the largest value); None (eager runs) when capture fails or disagrees."""
+        torch = _torch()
+        try:
+            replay = self._capture(plan, tensors)
+            got = replay(tensors)
+        except Exception:  # an operator that cannot be captured (a host read, an allocation): eager runs
+            return None
+        for a, b in zip(want, got):
+            scale = max(1.0, float(a.abs().max())) if a.numel() and a.dtype.is_floating_point else 1.0
+            if a.shape != b.shape or not torch.allclose(a.double(), b.double(), rtol=0, atol=1e-4 * scale):
+                return None
+        return replay
+
+    def _capture(self, plan: "_Plan", tensors: dict) -> Callable:
+        """A CUDA graph of ``plan``'s nodes: ``replay(tensors)`` copies the inputs into the graph's buffers,
+        replays it and returns its output buffers (overwritten by the next replay)."""
+        torch = _torch()
+        inputs = {name: tensor.clone() for name, tensor in tensors.items()}
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):  # warm-up off the capture, as torch.cuda.graph requires
+            for _ in range(2):
+                self._eager(plan, inputs)
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            outputs = self._eager(plan, inputs)
+
+        def replay(feeds: dict) -> list:
+            for name, tensor in feeds.items():
+                inputs[name].copy_(tensor)
+            graph.replay()
+            return outputs
+        return replay
 
     @staticmethod
     def _with_host_inputs(node: _Node, static: dict, dynamic_names: set) -> _Node:
@@ -473,8 +545,7 @@ class TorchOnnxSession:
             raise InputError(f"missing inputs {missing}", file=self.path, field="model")
         with torch.inference_mode():
             tensors = {name: self._tensor(np.asarray(feeds[name])) for name in self.input_names}
-            static, dynamic = self._plan(tensors)
-            env = {**static, **tensors}
-            self._evaluate(dynamic, env)
+            plan = self._plan(tensors)
+            outputs = dict(zip(self.output_names, (plan.replay or partial(self._eager, plan))(tensors)))
             names = self.output_names if output_names is None else list(output_names)
-            return [env[name].detach().cpu().numpy() for name in names]
+            return [outputs[name].detach().cpu().numpy() for name in names]

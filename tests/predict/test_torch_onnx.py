@@ -33,20 +33,54 @@ def test_every_shipped_network_runs_in_torch_as_in_onnxruntime(name, rows, cols)
     assert len(session._plans) == 1
 
 
-def test_the_plan_keeps_what_does_not_depend_on_the_data_and_follows_a_new_size():
+def test_the_plan_keeps_what_does_not_depend_on_the_data_and_follows_a_new_size(monkeypatch):
     path = WEIGHTS / "infill.onnx"
     session = TorchOnnxSession(path)
     oracle = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     for rows, cols in ((3, 4), (2, 5)):
         feeds = _feeds(path, rows, cols)
         np.testing.assert_allclose(session.run(None, feeds)[0], oracle.run(None, feeds)[0], atol=1e-5)
-    (static, dynamic), _ = session._plans.values()
+    first, _ = session._plans.values()
+    static, dynamic = first.static, first.dynamic
     assert 0 < len(dynamic) < len(session._nodes) and not any(node.op == "Shape" for node in dynamic)
     assert len(session._plans) == 2
+    monkeypatch.setattr("engine.predict.torch_onnx.MAX_PLANS", 2)
+    session.run(None, _feeds(path, 1, 2))  # a third size: the least recently used goes
+    assert len(session._plans) == 2 and (first.static is not next(iter(session._plans.values())).static)
     # numbers the data does not change (slice bounds, shapes, pads) are read from host copies: no device sync
     host = [node.inputs[i] for node in dynamic for i in _HOST_INPUTS.get(node.op, ()) if i < len(node.inputs)
             and node.inputs[i] and node.inputs[i] in static]
     assert host and all(name.endswith("@host") and static[name].device.type == "cpu" for name in host)
+
+
+@pytest.mark.parametrize("capture", ["same", "wrong", "fails"])
+def test_a_captured_replay_is_kept_only_where_it_gives_the_eager_outputs(capture, monkeypatch):
+    """On a GPU each signature is captured as a CUDA graph; the capture is checked against the eager run before it
+    is used. Here the capture is stood in for on the CPU: a replay that agrees is used, one that disagrees or
+    fails to capture leaves the session running eagerly, with the same outputs."""
+    path = WEIGHTS / "infill.onnx"
+    session = TorchOnnxSession(path)
+    calls = []
+
+    def fake_capture(plan, tensors):
+        if capture == "fails":
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+        def replay(feeds):
+            calls.append(1)
+            out = session._eager(plan, feeds)
+            return out if capture == "same" else [o + 1 for o in out]
+        return replay
+    monkeypatch.setattr(session, "_capture", fake_capture)
+    session.graphs = True
+    feeds = _feeds(path, 3, 4)
+    want = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, feeds)[0]
+    for _ in range(3):
+        np.testing.assert_allclose(session.run(None, feeds)[0], want, atol=1e-5)
+    (plan,) = session._plans.values()
+    assert (plan.replay is not None) == (capture == "same")
+    # captured at the second run (a size seen once is not): the check, then that run and the third replay
+    assert len(calls) == {"same": 3, "wrong": 1, "fails": 0}[capture]
 
 
 def _tiny_graph(path, op: str = "Relu", domain: str = ""):

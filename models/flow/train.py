@@ -63,6 +63,8 @@ __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_i
            "supervised_loss"]
 
 CHECKPOINT = "checkpoint.pt"
+#: ``TrainFlowConfig.initial_estimator`` values
+INITIAL_ESTIMATORS = ("dis", "corr")
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
 
@@ -101,6 +103,10 @@ class TrainFlowConfig:
                                              "supervised_weight > 0: supervised pretraining")
     init_from: str = option("", "checkpoint.pt whose network weights start the run (e.g. supervised pretraining "
                                 "before unsupervised fine-tuning); the optimiser starts afresh")
+    initial_estimator: str = option("dis", "the initial flow a network with model.initial_flow refines: dis (OpenCV "
+                                           "DIS on the downsampled MPIs' composite) or corr (the engine's decomp "
+                                           "start: whole_frame_initial_flow with the committed correlation network "
+                                           "at full resolution, its trust rules, block-meaned to the working size)")
     crop_candidates: int = option(4, "random crop positions drawn per frame pair; the crops_per_pair with the "
                                      "largest camera-compensated colour residual (m_n vs m^w_{n-k}) are trained on")
     crops_per_pair: int = option(2, "crops taken from each frame pair (building a pair costs more than a "
@@ -127,6 +133,8 @@ class TrainFlowConfig:
              "crop must fit in the downsampled scene size"),
             (self.lr > 0 and all(0.0 <= b < 1.0 for b in self.betas), "lr must be > 0, betas in [0, 1)"),
             (len(self.k_values) >= 1 and all(k >= 1 for k in self.k_values), "k_values must be >= 1"),
+            (self.initial_estimator in INITIAL_ESTIMATORS,
+             f"initial_estimator must be one of {', '.join(INITIAL_ESTIMATORS)}"),
             (max(self.k_values) < self.scene_frames, "scene_frames must exceed the largest k"),
             (len(self.scene_seeds) >= 1, "scene_seeds must not be empty"),
             (self.threads >= 1 and self.checkpoint_every >= 1 and self.log_every >= 1,
@@ -249,6 +257,28 @@ def dis_initial_flow(color_n: Tensor, m_p: Mpi) -> Tensor:
     return torch.from_numpy(flow).permute(2, 0, 1)[None]
 
 
+def corr_initial_flow(sequence, n: int, k: int, factor: int, cache: Optional[dict]) -> Tensor:
+    """The engine's ``decomp`` start for frame n from n-k (``whole_frame_initial_flow`` with the committed
+    correlation network, DIS preset medium, the trust rules), block-meaned by ``factor``: (1, 2, h, w) in
+    downsampled pixels. Kept in ``cache`` (per scene folder, n, k) with the network (one per process)."""
+    key = ("corr", str(getattr(sequence, "path", id(sequence))), n, k)
+    if cache is not None and key in cache:
+        return cache[key]
+    from engine.predict.corrflow import CorrFlowNetwork
+    from engine.predict.decomp.predictor import whole_frame_initial_flow
+
+    network = cache.get("corr_network") if cache is not None else None
+    if network is None:
+        network = CorrFlowNetwork(threads=1)
+        if cache is not None:
+            cache["corr_network"] = network
+    flow = whole_frame_initial_flow(sequence[n - k], sequence[n], "medium", None, network).flow
+    value = torch.from_numpy(downsample_flow(np.ascontiguousarray(flow), factor)).permute(2, 0, 1)[None]
+    if cache is not None:
+        cache[key] = value
+    return value
+
+
 def true_back_flow(sequence, n: int, k: int, factor: int) -> np.ndarray:
     """Frame n's true object motion u(n -> n-k) (``engine.predict.base.true_object_flow``, (du, dv) only),
     block-meaned to the downsampled grid, in downsampled pixels (h // factor, w // factor, 2); zeros for a
@@ -282,7 +312,11 @@ def make_batch(config: TrainFlowConfig, items: list[dict], sequences: dict,
         tensors_p, _ = _low_res_frame(config, sequences, item["scene"], item["n"] - item["k"], cache)
         with torch.no_grad():
             m_n, m_p = mpi_pair(*tensors_n, *tensors_p, config.model.num_planes)
-        init = dis_initial_flow(tensors_n[0], m_p) if config.model.initial_flow else None
+        init = None
+        if config.model.initial_flow and config.initial_estimator == "corr":
+            init = corr_initial_flow(sequences[item["scene"]], item["n"], item["k"], config.downsample, cache)
+        elif config.model.initial_flow:
+            init = dis_initial_flow(tensors_n[0], m_p)
         back = None
         if config.supervised_weight > 0:
             back = true_back_flow(sequences[item["scene"]], item["n"], item["k"], config.downsample)

@@ -296,3 +296,29 @@ def test_supervised_run_trains_and_starts_from_a_checkpoint(tmp_path, data_dir):
         tiny_config(tmp_path, supervised_weight=0.0, unsupervised_weight=0.0)
     with pytest.raises(InputError):
         tiny_config(tmp_path, scene_preset="fastest")
+
+
+def test_a_corr_start_is_the_engines_decomp_start_block_meaned(data_dir):
+    """``initial_estimator="corr"``: the flow the network refines in training is the one ``decomp`` hands it by
+    default (``whole_frame_initial_flow`` with the correlation network, full resolution, trust rules), block-meaned
+    to the working grid and cropped as the MPIs are; ``dis`` keeps DIS on the composite."""
+    from engine.geometry import downsample_flow
+    from engine.predict.corrflow import CorrFlowNetwork
+    from engine.predict.decomp.predictor import whole_frame_initial_flow
+
+    net = dataclasses.replace(TINY_NET, initial_flow=True)
+    config = tiny_config(data_dir.parent, model=net, downsample=2, crop=16, initial_estimator="corr")
+    sequences = open_sequences(config)
+    seq = sequences[1]
+    item = {"scene": 1, "k": 2, "n": 3, "y": 4, "x": 6}
+    cache: dict = {}
+    init = make_batch(config, [dict(item)], sequences, cache)[3]
+    full = whole_frame_initial_flow(seq[1], seq[3], "medium", None, CorrFlowNetwork(threads=1)).flow
+    want = downsample_flow(np.ascontiguousarray(full), 2)[4:20, 6:22]
+    np.testing.assert_allclose(init[0].permute(1, 2, 0).numpy(), want, atol=1e-6)
+    again = make_batch(config, [dict(item)], sequences, cache)[3]  # the second time from the cache
+    torch.testing.assert_close(again, init)
+    dis = make_batch(dataclasses.replace(config, initial_estimator="dis"), [dict(item)], sequences)[3]
+    assert dis.shape == init.shape
+    with pytest.raises(InputError, match="initial_estimator"):
+        tiny_config(data_dir.parent, initial_estimator="raft")

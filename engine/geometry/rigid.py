@@ -11,15 +11,18 @@ given by their flat indices (``moving``, increasing) and per-moving-pixel arrays
   candidate rigid parts, one group per object or less, never across a depth edge.
 - ``rigid_parts``: per group, a robust rigid fit (RANSAC over 3-point Kabsch fits, then least squares on the
   inliers), repeated on what is left (a group holding two objects gives two parts); pixels in no part keep
-  their own straight-line motion.
+  their own straight-line motion. ``find_parts`` runs the rounds of all groups in one compiled call (a
+  ``PartTable``); ``rigid_parts_reference`` is its oracle.
 - ``part_motion``, ``screw_affine``, ``spin_affine``: a part's path, the screw
   ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and linear velocity on SE(3), with the
   change of twist of the interval before where the three frames agree) or a spin about the part's centre
   while the centre moves on (whichever continued the interval before better), written as the per-point
   parabola ``P + s V + s (s + 1) / 2 A`` that the warp passes already evaluate (``path_affine``: V and A
   affine in P): exact at s = 0, 1/4 and 3/4 (the predicted frames of interleaving lie between 0 and 1),
-  within a small fraction of the turn in between (``tests/predict/test_mvec_rigid.py``); ``apply_parts``
-  (compiled) gives every pixel of a group that a part's transform explains that part's path.
+  within a small fraction of the turn in between (``tests/predict/test_mvec_rigid.py``). ``part_paths`` gives
+  every part's path in one compiled call (a ``PartPaths``; ``part_paths_reference``, with ``part_motion``, is
+  its oracle); ``apply_parts`` (compiled) gives every pixel of a group that a part's transform explains that
+  part's path.
 - ``previous_positions``: each moving pixel's position at frame n-2k, from frame n-k's velocity where frame
   n-k showed the point; ``hindcast_keeps``: per region, whether the motion the earlier interval predicted
   for the last one moved the points closer to where frame n shows them than no object motion would.
@@ -34,10 +37,11 @@ import numpy as np
 from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
+from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.regions import region_keeps
 
-__all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
+__all__ = ["MAX_TURN", "HYPOTHESES", "ROUNDS", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
            "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
            "rigid_parts", "rigid_parts_reference", "PartTable", "find_parts", "PartPaths", "part_paths",
@@ -49,6 +53,8 @@ __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotatio
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
+#: RANSAC's hypotheses per fit and its least-squares refits of the best one's inliers (``robust_rigid``)
+HYPOTHESES, ROUNDS = 32, 2
 #: radians: the largest turn per interval taken as a rigid part's motion (faster turns alias: a turn of
 #: 200 degrees looks like one of -160) and allowed between neighbours of one group (``motion_components``)
 MAX_TURN = 1.2
@@ -454,7 +460,7 @@ def _refit_guess(src, dst, scale, guess, threshold):
 
 
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
-                 threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                 threshold: float = 1.0, hypotheses: int = HYPOTHESES, rounds: int = ROUNDS,
                  guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rigid transform ``dst ~ R src + t`` robust to outliers: (R, t, inlier mask (N,)).
 
@@ -486,7 +492,7 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple
 
 
 def robust_rigid_reference(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
-                           threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                           threshold: float = 1.0, hypotheses: int = HYPOTHESES, rounds: int = ROUNDS,
                            guess: Optional[tuple[np.ndarray, np.ndarray]] = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``robust_rigid`` in numpy: the hypotheses scored by ``einsum``, the inliers by ``transform_points`` (the
@@ -814,7 +820,7 @@ def find_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.nd
     rotations, translations = np.empty((count, max_parts, 3, 3)), np.empty((count, max_parts, 3))
     _rigid_rounds(labels, count, np.ascontiguousarray(before, np.float64), np.ascontiguousarray(points, np.float64),
                   np.ascontiguousarray(scale, np.float64), float(threshold), int(min_points), float(min_share),
-                  int(max_parts), int(seed), 32, 2, claimed, rotations, translations, found)
+                  int(max_parts), int(seed), HYPOTHESES, ROUNDS, claimed, rotations, translations, found)
     rounds = np.arange(max_parts)
     has = rounds[None, :] < found[:, None]  # (count, max_parts): the parts, by group then round
     first = np.concatenate([[0], np.cumsum(found)])  # each group's first part
@@ -1361,14 +1367,17 @@ def part_paths(table: PartTable, now: np.ndarray, then: np.ndarray, earlier: np.
     points at n-2k where ``seen``), taken where its prediction of frame n from the interval before beats the
     points' own, ``predicted`` (N, 3) (``rigid_explains_better``); ``predicted`` is then updated in place to
     the taken parts' predictions. Compiled, in one call; ``part_paths_reference`` is its numpy oracle."""
+    if predicted.dtype != np.float64 or not predicted.flags.c_contiguous or predicted.shape != (len(table.part), 3):
+        raise InputError(f"must be a C-contiguous float64 ({len(table.part)}, 3) array (updated in place), got "
+                         f"{predicted.dtype} {predicted.shape}", field="predicted")
     count = len(table.group)
     take, affines = np.zeros(count, np.bool_), np.zeros((count, 2, 3, 4))
     _part_paths(np.ascontiguousarray(table.part, np.int64), np.ascontiguousarray(table.rotation, np.float64),
                 np.ascontiguousarray(table.translation, np.float64), np.ascontiguousarray(now, np.float64),
                 np.ascontiguousarray(then, np.float64), np.ascontiguousarray(earlier, np.float64),
                 np.ascontiguousarray(seen, np.bool_), np.ascontiguousarray(scale, np.float64), predicted,
-                np.asarray(intrinsics, np.float64), float(threshold), float(limit), float(max_turn), 32, 2, take,
-                affines)
+                np.asarray(intrinsics, np.float64), float(threshold), float(limit), float(max_turn), HYPOTHESES, ROUNDS,
+                take, affines)
     return PartPaths(table.group[take], table.rotation[take], table.translation[take], affines[take])
 
 

@@ -280,7 +280,7 @@ def test_the_compiled_sampling_matches_robust_rigid():
             rotation_nb, translation_nb, inliers = np.empty((3, 3)), np.empty(3), np.empty(n, bool)
             given = guess if guess is not None else (np.eye(3), np.zeros(3))
             kept = rg._robust_members(src, dst, scale, members, np.uint64(rg._key_base((n, 3))), guess is not None,
-                                      *given, 32, 2, 1.0, rotation_nb, translation_nb, inliers)
+                                      *given, rg.HYPOTHESES, rg.ROUNDS, 1.0, rotation_nb, translation_nb, inliers)
             np.testing.assert_array_equal(inliers, slow[2])
             assert kept == inliers.sum() and 0 < kept < n
             atol = 0 if rg._refit_guess(src, dst, scale, guess, 1.0) is not None else 1e-9
@@ -334,6 +334,9 @@ def test_the_compiled_part_paths_match_part_motion():
         np.testing.assert_allclose(fast.affine, slow.affine, rtol=0, atol=1e-12)
         np.testing.assert_allclose(predicted, slow_predicted, rtol=0, atol=1e-12)
         assert (predicted != 2.0 * then - earlier).any(axis=1).sum() == 1000  # the kept parts' points
+    with pytest.raises(InputError) as err:  # updated in place: a copy would drop the update
+        rg.part_paths(table, now, then, earlier, seen, scale, predicted.astype(np.float32), _k())
+    assert err.value.field == "predicted"
 
 
 def test_the_rigid_pass_predicts_what_its_numpy_pieces_predict(tmp_path, monkeypatch):

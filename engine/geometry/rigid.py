@@ -41,7 +41,8 @@ from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.regions import region_keeps
 
-__all__ = ["MAX_TURN", "HYPOTHESES", "ROUNDS", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
+__all__ = ["MAX_TURN", "HYPOTHESES", "ROUNDS", "RigidPart", "transform_points", "rotation_exp", "rotation_log",
+           "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
            "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
            "rigid_parts", "rigid_parts_reference", "PartTable", "find_parts", "PartPaths", "part_paths",
@@ -633,7 +634,8 @@ def _finish_fit(sums, cov, rotation, translation, a, v):  # pragma: no cover - c
             for e in range(3):
                 rotation[c, e] = 1.0 if c == e else 0.0
     for c in range(3):
-        translation[c] = sums[4 + c] - ((rotation[c, 0] * sums[1] + rotation[c, 2] * sums[3]) + rotation[c, 1] * sums[2])
+        moved = (rotation[c, 0] * sums[1] + rotation[c, 2] * sums[3]) + rotation[c, 1] * sums[2]
+        translation[c] = sums[4 + c] - moved
 
 
 @njit(cache=True, nogil=True)
@@ -1479,8 +1481,8 @@ def _part_tables(paths: PartPaths, count: int):
     """``apply_parts``' stacks: each group's first part (``starts`` (count + 1,)), the parts' rotations,
     translations and affines (``paths``), contiguous."""
     starts = np.searchsorted(paths.group, np.arange(count + 1)).astype(np.int64)
-    return (starts, np.ascontiguousarray(paths.rotation, np.float64), np.ascontiguousarray(paths.translation, np.float64),
-            np.ascontiguousarray(paths.affine, np.float64))
+    return (starts, np.ascontiguousarray(paths.rotation, np.float64),
+            np.ascontiguousarray(paths.translation, np.float64), np.ascontiguousarray(paths.affine, np.float64))
 
 
 def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int, paths: PartPaths,

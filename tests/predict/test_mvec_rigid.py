@@ -303,7 +303,9 @@ def _part_histories(rng):
             b = (a - c0) @ turn.T + c0 + shift
             c = (b - b.mean(axis=0)) @ turn.T + b.mean(axis=0) + shift
         else:
-            before = (turn.T, -shift) if g == 5 else (rotation(rng.normal(size=3), 0.2) @ turn if g == 1 else turn, shift)
+            before = (rotation(rng.normal(size=3), 0.2) @ turn if g == 1 else turn, shift)
+            if g == 5:
+                before = (turn.T, -shift)
             b = a @ before[0].T + before[1]
             c = b @ turn.T + shift
         if g == 1:

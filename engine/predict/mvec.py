@@ -207,10 +207,10 @@ class Mvec(Predictor):
     def _shaped(self, history, vectors: np.ndarray, data: MvecState, before: tuple[np.ndarray, float],
                 change: Optional[tuple], timer: Timer) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
-        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
-        the screw, or the spin about the part's centre where the interval before says so, with its change
-        where the three frames agree) where that path explained the last interval at least as well as the
-        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid
+        the pixels of each rigid part (``engine.geometry.rigid``: ``find_parts``) move on their part's path
+        (``part_paths``: the screw, or the spin about the part's centre where the interval before says so, with
+        its change where the three frames agree) where that path explained the last interval at least as well as
+        the points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid
         part, or the rest of a group of pixels that move alike) whose motion of the interval before, continued,
         explained the last interval worse than ``fallback_ratio`` times no object motion is left out: it takes
         the camera-only warp. Fits and checks read a grid sample. Needs frame n-2k (``before``: frame n-k's

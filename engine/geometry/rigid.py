@@ -11,15 +11,18 @@ given by their flat indices (``moving``, increasing) and per-moving-pixel arrays
   candidate rigid parts, one group per object or less, never across a depth edge.
 - ``rigid_parts``: per group, a robust rigid fit (RANSAC over 3-point Kabsch fits, then least squares on the
   inliers), repeated on what is left (a group holding two objects gives two parts); pixels in no part keep
-  their own straight-line motion.
+  their own straight-line motion. ``find_parts`` runs the rounds of all groups in one compiled call (a
+  ``PartTable``); ``rigid_parts_reference`` is its oracle.
 - ``part_motion``, ``screw_affine``, ``spin_affine``: a part's path, the screw
   ``exp(s xi + s (s + 1) / 2 (xi - xi_prev)) P`` (constant angular and linear velocity on SE(3), with the
   change of twist of the interval before where the three frames agree) or a spin about the part's centre
   while the centre moves on (whichever continued the interval before better), written as the per-point
   parabola ``P + s V + s (s + 1) / 2 A`` that the warp passes already evaluate (``path_affine``: V and A
   affine in P): exact at s = 0, 1/4 and 3/4 (the predicted frames of interleaving lie between 0 and 1),
-  within a small fraction of the turn in between (``tests/predict/test_mvec_rigid.py``); ``apply_parts``
-  (compiled) gives every pixel of a group that a part's transform explains that part's path.
+  within a small fraction of the turn in between (``tests/predict/test_mvec_rigid.py``). ``part_paths`` gives
+  every part's path in one compiled call (a ``PartPaths``; ``part_paths_reference``, with ``part_motion``, is
+  its oracle); ``apply_parts`` (compiled) gives every pixel of a group that a part's transform explains that
+  part's path.
 - ``previous_positions``: each moving pixel's position at frame n-2k, from frame n-k's velocity where frame
   n-k showed the point; ``hindcast_keeps``: per region, whether the motion the earlier interval predicted
   for the last one moved the points closer to where frame n shows them than no object motion would.
@@ -34,14 +37,16 @@ import numpy as np
 from numba import njit
 
 from engine.core.checks import checked_array, checked_matrix
+from engine.core.errors import InputError
 from engine.geometry import kernels
 from engine.geometry.regions import region_keeps
 
-__all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotation_log", "se3_exp", "se3_log",
+__all__ = ["MAX_TURN", "HYPOTHESES", "ROUNDS", "RigidPart", "transform_points", "rotation_exp", "rotation_log",
+           "se3_exp", "se3_log",
            "fit_rigid", "fit_groups", "group_inliers", "motion_components", "motion_components_reference",
            "moving_points", "moving_points_reference", "robust_rigid", "robust_rigid_reference",
-           "rigid_parts",
-           "rigid_parts_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
+           "rigid_parts", "rigid_parts_reference", "PartTable", "find_parts", "PartPaths", "part_paths",
+           "part_paths_reference", "path_affine", "screw_affine", "spin_affine", "screw_coefficients", "part_motion",
            "apply_parts", "apply_parts_reference", "kept_part_motion", "kept_part_motion_reference",
            "refined_before", "refined_before_reference", "previous_positions",
            "previous_positions_reference",
@@ -49,6 +54,8 @@ __all__ = ["MAX_TURN", "RigidPart", "transform_points", "rotation_exp", "rotatio
 
 #: a sample of at most this many points scores the RANSAC hypotheses of a group
 SCORE_SAMPLE = 256
+#: RANSAC's hypotheses per fit and its least-squares refits of the best one's inliers (``robust_rigid``)
+HYPOTHESES, ROUNDS = 32, 2
 #: radians: the largest turn per interval taken as a rigid part's motion (faster turns alias: a turn of
 #: 200 degrees looks like one of -160) and allowed between neighbours of one group (``motion_components``)
 MAX_TURN = 1.2
@@ -454,7 +461,7 @@ def _refit_guess(src, dst, scale, guess, threshold):
 
 
 def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
-                 threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                 threshold: float = 1.0, hypotheses: int = HYPOTHESES, rounds: int = ROUNDS,
                  guess: Optional[tuple[np.ndarray, np.ndarray]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rigid transform ``dst ~ R src + t`` robust to outliers: (R, t, inlier mask (N,)).
 
@@ -486,7 +493,7 @@ def robust_rigid(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple
 
 
 def robust_rigid_reference(src: np.ndarray, dst: np.ndarray, scale: np.ndarray, key: tuple = (0,), *,
-                           threshold: float = 1.0, hypotheses: int = 32, rounds: int = 2,
+                           threshold: float = 1.0, hypotheses: int = HYPOTHESES, rounds: int = ROUNDS,
                            guess: Optional[tuple[np.ndarray, np.ndarray]] = None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``robust_rigid`` in numpy: the hypotheses scored by ``einsum``, the inliers by ``transform_points`` (the
@@ -574,44 +581,253 @@ def _best_hypotheses(src, dst, scale, samples, offsets, rotation, translation, h
                 best[f] = h
 
 
-def _ransac_groups(src, dst, scale, current, groups, bases, threshold, hypotheses=32, rounds=2):
-    """``robust_rigid``'s sampling (no guess) for the points of each of ``groups`` (labels in ``current``) at
-    once, group f drawing from ``bases[f]``: (R (F, 3, 3), t (F, 3), inliers (N,) for those groups' points)."""
-    order = np.argsort(current, kind="stable")
-    ordered = current[order]
-    starts, ends = np.searchsorted(ordered, groups), np.searchsorted(ordered, groups, side="right")
-    sizes = ends - starts
-    f_count = len(groups)
-    u = _uniform(np.asarray(bases, np.uint64), np.arange(3 * hypotheses))
-    picks = np.minimum((u * sizes[:, None]).astype(np.int64), sizes[:, None] - 1) + starts[:, None]
-    picks = order[picks].reshape(f_count * hypotheses, 3)
-    r, t = _fit_many(src[picks], dst[picks])
-    samples = []
-    for f in range(f_count):
-        members = order[starts[f]:ends[f]]
-        if sizes[f] > SCORE_SAMPLE:
-            members = members[draws(int(bases[f]), int(sizes[f]), hypotheses)[0]]
-        samples.append(members)
-    offsets = np.concatenate([[0], np.cumsum([m.size for m in samples])]).astype(np.int64)
-    best = np.zeros(f_count, np.int64)
-    _best_hypotheses(src, dst, scale, np.concatenate(samples).astype(np.int64), offsets, r, t, hypotheses,
-                     float(threshold), best)
-    pick = np.arange(f_count) * hypotheses + best
-    rotation, translation = r[pick], t[pick]
-    local = np.full(len(current), -1, np.int64)
-    for f in range(f_count):
-        local[order[starts[f]:ends[f]]] = f
-    inliers = group_inliers(src, dst, scale, local, rotation, translation, threshold)
+_GOLDEN_U64 = np.uint64(_GOLDEN)
+_MIX_A = np.uint64(0xBF58476D1CE4E5B9)
+_MIX_B = np.uint64(0x94D049BB133111EB)
+
+
+@njit(cache=True, nogil=True)
+def _mix_one(z):  # pragma: no cover - compiled
+    """``_mix`` of one uint64."""
+    z = (z ^ (z >> np.uint64(30))) * _MIX_A
+    z = (z ^ (z >> np.uint64(27))) * _MIX_B
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(cache=True, nogil=True)
+def _fold(base, part):  # pragma: no cover - compiled
+    """One step of ``_key_base``: the int ``part`` folded into ``base`` (uint64)."""
+    return _mix_one((base ^ np.uint64(part)) + _GOLDEN_U64)
+
+
+@njit(cache=True, nogil=True)
+def _uniform_one(base, counter):  # pragma: no cover - compiled
+    """``_uniform`` of one base and counter."""
+    return np.float64(_mix_one(base + np.uint64(counter) * _GOLDEN_U64) >> np.uint64(11)) * 2.0 ** -53
+
+
+@njit(cache=True, nogil=True)
+def _member_inliers(src, dst, scale, members, rotation, translation, threshold, out):  # pragma: no cover
+    """``group_inliers`` of the points ``members`` under one transform, into ``out[k]`` for ``members[k]``;
+    returns their count."""
+    count = 0
+    for k in range(members.size):
+        i = members[k]
+        r2 = 0.0
+        for c in range(3):
+            d = src[i, 0] * rotation[c, 0] + src[i, 1] * rotation[c, 1] + src[i, 2] * rotation[c, 2]
+            d = d + translation[c] - dst[i, c]
+            r2 += d * d
+        out[k] = math.sqrt(r2) * scale[i] <= threshold
+        count += out[k]
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _finish_fit(sums, cov, rotation, translation, a, v):  # pragma: no cover - compiled
+    """``fit_groups``' last steps for one group of moments ``sums`` (7,) and ``cov`` (3, 3): Horn's rotation (the
+    identity under 3 points), then t = mean dst - R mean src, summed in ``np.einsum``'s order (lanes 0 + 2, then
+    1), so that the batched and the single fits give the same bits."""
+    _horn_rotation(cov, rotation, a, v)
+    if sums[0] < 3:
+        for c in range(3):
+            for e in range(3):
+                rotation[c, e] = 1.0 if c == e else 0.0
+    for c in range(3):
+        moved = (rotation[c, 0] * sums[1] + rotation[c, 2] * sums[3]) + rotation[c, 1] * sums[2]
+        translation[c] = sums[4 + c] - moved
+
+
+@njit(cache=True, nogil=True)
+def _fit_labels(src, dst, labels, count, rotation, translation):  # pragma: no cover - compiled
+    """``fit_groups`` compiled, into ``rotation`` (count, 3, 3) and ``translation`` (count, 3)."""
+    sums, cov = np.zeros((count, 7)), np.zeros((count, 3, 3))
+    _group_moments(src, dst, labels, count, sums, cov)
+    a, v = np.empty((4, 4)), np.empty((4, 4))
+    for g in range(count):
+        _finish_fit(sums[g], cov[g], rotation[g], translation[g], a, v)
+
+
+@njit(cache=True, nogil=True)
+def _fit_members(src, dst, members, use, rotation, translation):  # pragma: no cover - compiled
+    """``fit_groups`` of the points ``members[k]`` with ``use[k]`` as one group: ``_group_moments``' sums in its
+    order, then ``_finish_fit``."""
+    sums, cov = np.zeros(7), np.zeros((3, 3))
+    for k in range(members.size):
+        if use[k]:
+            i = members[k]
+            sums[0] += 1.0
+            for c in range(3):
+                sums[1 + c] += src[i, c]
+                sums[4 + c] += dst[i, c]
+    if sums[0] > 0:
+        for c in range(1, 7):
+            sums[c] /= sums[0]
+    for k in range(members.size):
+        if use[k]:
+            i = members[k]
+            for a in range(3):
+                for b in range(3):
+                    cov[a, b] += (src[i, a] - sums[1 + a]) * (dst[i, b] - sums[4 + b])
+    _finish_fit(sums, cov, rotation, translation, np.empty((4, 4)), np.empty((4, 4)))
+
+
+@njit(cache=True, nogil=True)
+def _ransac_members(src, dst, scale, members, base, hypotheses, rounds, threshold, rotation, translation,
+                    inliers):  # pragma: no cover - compiled
+    """``robust_rigid``'s sampling for the points ``members`` (increasing) with the draws of ``base``
+    (``draws``): the best hypothesis, refitted on its inliers ``rounds`` times by ``_fit_members`` (Horn's
+    rotation, as ``fit_groups``). Into ``rotation``, ``translation``, ``inliers[k]`` (of ``members[k]``);
+    returns the inliers' count."""
+    n = members.size
+    picked_src, picked_dst = np.empty((hypotheses, 3, 3)), np.empty((hypotheses, 3, 3))
+    for h in range(hypotheses):
+        for c in range(3):
+            i = members[min(int(_uniform_one(base, 3 * h + c) * n), n - 1)]
+            for e in range(3):
+                picked_src[h, c, e] = src[i, e]
+                picked_dst[h, c, e] = dst[i, e]
+    r, t = np.empty((hypotheses, 3, 3)), np.empty((hypotheses, 3))
+    _fit_sets(picked_src, picked_dst, r, t)
+    samples = members
+    if n > SCORE_SAMPLE:
+        keys = np.empty(n)
+        for i in range(n):
+            keys[i] = _uniform_one(base, 3 * hypotheses + i)
+        samples = members[np.sort(np.argsort(keys, kind="mergesort")[:SCORE_SAMPLE])]
+    best = np.zeros(1, np.int64)
+    offsets = np.zeros(2, np.int64)
+    offsets[1] = samples.size
+    _best_hypotheses(src, dst, scale, samples, offsets, r, t, hypotheses, threshold, best)
+    rotation[:, :] = r[best[0]]
+    translation[:] = t[best[0]]
+    kept = _member_inliers(src, dst, scale, members, rotation, translation, threshold, inliers)
     for _ in range(rounds):
-        go = np.bincount(local[inliers], minlength=f_count) >= 3
-        if not go.any():
+        if kept < 3:
             break
-        fit_r, fit_t = fit_groups(src, dst, np.where(inliers & go[np.maximum(local, 0)], local, -1), f_count)
-        rotation[go], translation[go] = fit_r[go], fit_t[go]
-        moving_on = np.where(go[np.maximum(local, 0)], local, -1)
-        inliers = np.where(moving_on >= 0, group_inliers(src, dst, scale, moving_on, rotation, translation, threshold),
+        _fit_members(src, dst, members, inliers, rotation, translation)
+        kept = _member_inliers(src, dst, scale, members, rotation, translation, threshold, inliers)
+    return kept
+
+
+@njit(cache=True, nogil=True)
+def _robust_members(src, dst, scale, members, base, guessed, guess_rotation, guess_translation, hypotheses, rounds,
+                    threshold, rotation, translation, inliers):  # pragma: no cover - compiled
+    """``robust_rigid`` of the points ``members`` (``_ransac_members``' arguments and outputs): with ``guessed``,
+    the guess refitted on its inliers where it explains half of them or more (``_refit_guess``)."""
+    if guessed:
+        kept = _member_inliers(src, dst, scale, members, guess_rotation, guess_translation, threshold, inliers)
+        if kept >= max(3, members.size // 2):
+            _fit_members(src, dst, members, inliers, rotation, translation)
+            return _member_inliers(src, dst, scale, members, rotation, translation, threshold, inliers)
+    return _ransac_members(src, dst, scale, members, base, hypotheses, rounds, threshold, rotation, translation,
                            inliers)
-    return rotation, translation, inliers
+
+
+@njit(cache=True, nogil=True)
+def _rigid_rounds(labels, count, src, dst, scale, threshold, min_points, min_share, max_parts, seed, hypotheses,
+                  rounds, claimed, rotations, translations, found):  # pragma: no cover - compiled
+    """``rigid_parts``' rounds, all groups at once: per round, each active group's least-squares fit of its
+    points left, refitted on its inliers where it explains half of them or more, else ``_ransac_members``
+    (key (seed, group, round)); a group whose fit explains ``min_points`` and ``min_share`` of its points left
+    gets a part. Outputs: ``claimed`` (N,) the round whose part took each point (-1: none), ``rotations``
+    (count, max_parts, 3, 3), ``translations`` (count, max_parts, 3) the parts' transforms by group and round,
+    ``found`` (count,) each group's number of parts."""
+    n = labels.size
+    floor = max(min_points, 3)
+    left = np.ones(n, np.bool_)
+    totals = np.zeros(count, np.int64)
+    for i in range(n):
+        totals[labels[i]] += 1
+    active = totals >= floor
+    current, fitted = np.empty(n, np.int64), np.empty(n, np.int64)
+    inliers = np.zeros(n, np.bool_)
+    rotation, translation = np.empty((count, 3, 3)), np.empty((count, 3))
+    sizes, kept = np.zeros(count, np.int64), np.zeros(count, np.int64)
+    guessed, success = np.zeros(count, np.bool_), np.zeros(count, np.bool_)
+    claimed[:] = -1
+    found[:] = 0
+    for r in range(max_parts):
+        if not active.any():
+            break
+        sizes[:] = 0
+        for i in range(n):
+            g = labels[i]
+            current[i] = g if left[i] and active[g] else -1
+            if current[i] >= 0:
+                sizes[g] += 1
+        # the least-squares fit of all of a group's points left, refitted on its inliers where it explains half
+        _fit_labels(src, dst, current, count, rotation, translation)
+        _group_inliers(src, dst, scale, current, rotation, translation, threshold, inliers)
+        kept[:] = 0
+        for i in range(n):
+            if inliers[i]:
+                kept[current[i]] += 1
+        for g in range(count):
+            guessed[g] = kept[g] >= max(3, sizes[g] // 2)
+        for i in range(n):
+            fitted[i] = current[i] if inliers[i] and guessed[current[i]] else -1
+        _fit_labels(src, dst, fitted, count, rotation, translation)
+        for i in range(n):
+            fitted[i] = current[i] if current[i] >= 0 and guessed[current[i]] else -1
+        _group_inliers(src, dst, scale, fitted, rotation, translation, threshold, inliers)
+        for g in range(count):  # the least-squares fit failed: sample
+            if active[g] and not guessed[g]:
+                members = np.flatnonzero(current == g)
+                ok = np.empty(members.size, np.bool_)
+                _ransac_members(src, dst, scale, members, _fold(_fold(_fold(np.uint64(0), seed), g), r), hypotheses,
+                                rounds, threshold, rotation[g], translation[g], ok)
+                for k in range(members.size):
+                    inliers[members[k]] = ok[k]
+        kept[:] = 0
+        for i in range(n):
+            if inliers[i]:
+                kept[current[i]] += 1
+        for g in range(count):
+            success[g] = active[g] and kept[g] >= min_points and kept[g] >= min_share * sizes[g]
+            if success[g]:
+                rotations[g, r] = rotation[g]
+                translations[g, r] = translation[g]
+                found[g] += 1
+        totals[:] = 0
+        for i in range(n):
+            if inliers[i] and success[current[i]]:
+                left[i] = False
+                claimed[i] = r
+            if left[i]:
+                totals[labels[i]] += 1
+        for g in range(count):
+            active[g] = success[g] and totals[g] >= floor
+
+
+@dataclass(frozen=True)
+class PartTable:
+    """Rigid parts stacked (``find_parts``), in the order of their groups then of their rounds: ``group`` (P,)
+    int64, ``rotation`` (P, 3, 3) and ``translation`` (P, 3) float64 of their interval transforms (position at
+    n-k -> position at n), ``part`` (N,) int64 each point's part (-1: none)."""
+
+    group: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    part: np.ndarray
+
+
+def find_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.ndarray, scale: np.ndarray, *,
+               threshold: float = 1.0, min_points: int = 32, min_share: float = 0.5, max_parts: int = 3,
+               seed: int = 0) -> PartTable:
+    """``rigid_parts`` as a ``PartTable``, in one compiled call (``_rigid_rounds``)."""
+    labels = np.ascontiguousarray(labels, np.int64)
+    n = labels.size
+    claimed, found = np.empty(n, np.int64), np.empty(count, np.int64)
+    rotations, translations = np.empty((count, max_parts, 3, 3)), np.empty((count, max_parts, 3))
+    _rigid_rounds(labels, count, np.ascontiguousarray(before, np.float64), np.ascontiguousarray(points, np.float64),
+                  np.ascontiguousarray(scale, np.float64), float(threshold), int(min_points), float(min_share),
+                  int(max_parts), int(seed), HYPOTHESES, ROUNDS, claimed, rotations, translations, found)
+    rounds = np.arange(max_parts)
+    has = rounds[None, :] < found[:, None]  # (count, max_parts): the parts, by group then round
+    first = np.concatenate([[0], np.cumsum(found)])  # each group's first part
+    part = np.where(claimed >= 0, first[labels] + claimed, -1) if n else np.zeros(0, np.int64)
+    return PartTable(np.nonzero(has)[0].astype(np.int64), rotations[has], translations[has], part.astype(np.int64))
 
 
 def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.ndarray, scale: np.ndarray, *,
@@ -623,46 +839,14 @@ def rigid_parts(labels: np.ndarray, count: int, points: np.ndarray, before: np.n
     ``scale`` (M,) turns a 3D residual into pixels (f / z). Deterministic for a ``seed`` (each group draws its
     RANSAC draws from the key ``(seed, group, round)``).
 
-    All groups are fitted at once, round by round (``fit_groups``: the least-squares fit of the points left,
-    its inliers refitted, as ``robust_rigid`` does with that fit as its guess); a group whose least-squares
-    fit explains less than half its points takes ``robust_rigid``'s sampling on its own. The same parts as
-    ``rigid_parts_reference`` (one group at a time), to rounding (``tests/predict/test_mvec_rigid.py``)."""
-    labels = np.asarray(labels, np.int64)
-    src, dst = np.ascontiguousarray(before, np.float64), np.ascontiguousarray(points, np.float64)
-    scale = np.ascontiguousarray(scale, np.float64)
-    floor = max(min_points, 3)
-    left = np.ones(len(labels), bool)
-    active = np.bincount(labels, minlength=count) >= floor
-    found: list[list[RigidPart]] = [[] for _ in range(count)]
-    for _ in range(max_parts):
-        if not active.any():
-            break
-        current = np.where(left & active[labels], labels, -1)
-        sizes = np.bincount(current[current >= 0], minlength=count)
-        rotation, translation = fit_groups(src, dst, current, count)  # the guess: all of them
-        inliers = group_inliers(src, dst, scale, current, rotation, translation, threshold)
-        guessed = np.bincount(current[inliers], minlength=count) >= np.maximum(3, sizes // 2)
-        refit = np.where(inliers & guessed[np.maximum(current, 0)], current, -1)
-        rotation, translation = fit_groups(src, dst, refit, count)
-        inliers = group_inliers(src, dst, scale, np.where(guessed[np.maximum(current, 0)], current, -1), rotation,
-                                translation, threshold)
-        sampled = np.flatnonzero(active & ~guessed)  # the least-squares fit failed: sample
-        if sampled.size:
-            bases = np.array([_key_base((seed, g, len(found[g]))) for g in sampled], np.uint64)
-            chosen = np.zeros(count + 1, bool)  # by group, the last entry for no group (-1)
-            chosen[sampled] = True
-            chosen = chosen[current]  # np.isin(current, sampled), by lookup
-            r, t, ok = _ransac_groups(src, dst, scale, np.where(chosen, current, -1), sampled, bases, threshold)
-            rotation[sampled], translation[sampled] = r, t
-            inliers = np.where(chosen, ok, inliers)
-        kept = np.bincount(current[inliers], minlength=count)
-        success = active & (kept >= min_points) & (kept >= min_share * sizes)
-        for g in np.flatnonzero(success):
-            members = np.flatnonzero(inliers & (current == g))
-            found[g].append(RigidPart(members, rotation[g].copy(), translation[g].copy(), int(g)))
-        left &= ~(inliers & success[np.maximum(current, 0)] & (current >= 0))
-        active = success & (np.bincount(labels[left], minlength=count) >= floor)
-    return [part for parts in found for part in parts]
+    All groups are fitted at once, round by round, in one compiled call (``find_parts``: the least-squares
+    fit of the points left, its inliers refitted, as ``robust_rigid`` does with that fit as its guess); a group
+    whose least-squares fit explains less than half its points takes ``robust_rigid``'s sampling. The same
+    parts as ``rigid_parts_reference`` (one group at a time), to rounding (``tests/predict/test_mvec_rigid.py``)."""
+    table = find_parts(labels, count, points, before, scale, threshold=threshold, min_points=min_points,
+                       min_share=min_share, max_parts=max_parts, seed=seed)
+    return [RigidPart(np.flatnonzero(table.part == j), table.rotation[j], table.translation[j], int(g))
+            for j, g in enumerate(table.group)]
 
 
 def rigid_parts_reference(labels: np.ndarray, count: int, points: np.ndarray, before: np.ndarray, scale: np.ndarray,
@@ -923,6 +1107,302 @@ def _continued_paths(now, then, earlier, idx, r0, t0, screw, turned, out):  # pr
         out[2] += math.sqrt(d) / m
 
 
+@njit(cache=True, nogil=True)
+def _rotation_log_into(r, w):  # pragma: no cover - compiled
+    """``rotation_log`` compiled, into ``w`` (3,)."""
+    cos = min(1.0, max(-1.0, (r[0, 0] + r[1, 1] + r[2, 2] - 1.0) / 2.0))
+    theta = math.acos(cos)
+    w[0], w[1], w[2] = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
+    if theta < 1e-6:
+        for c in range(3):
+            w[c] = 0.5 * w[c]
+    elif math.pi - theta > 1e-4:
+        f = theta / (2.0 * math.sin(theta))
+        for c in range(3):
+            w[c] = f * w[c]
+    else:  # near a half turn: the axis is the largest column of (R + I) / 2, its sign from vee
+        top = 0
+        for c in range(1, 3):
+            if r[c, c] > r[top, top]:
+                top = c
+        axis = np.empty(3)
+        for c in range(3):
+            axis[c] = 0.5 * (r[c, top] + (1.0 if c == top else 0.0))
+        norm = math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+        sign = 1.0 if axis[0] * w[0] + axis[1] * w[1] + axis[2] * w[2] >= 0 else -1.0
+        for c in range(3):
+            w[c] = theta * (sign * (axis[c] / norm))
+
+
+@njit(cache=True, nogil=True)
+def _so3_series(w, out, jacobian):  # pragma: no cover - compiled
+    """``rotation_exp(w)`` (``jacobian`` False) or ``_left_jacobian(w)`` (True) into ``out`` (3, 3):
+    I + a K + b K^2 with K = hat(w)."""
+    theta = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+    small = theta < (1e-6 if jacobian else 1e-12)
+    if jacobian:
+        a = 0.5 if small else (1.0 - math.cos(theta)) / theta ** 2
+        b = 1.0 if small else (theta - math.sin(theta)) / theta ** 3
+        d = 6.0 if small else 1.0
+    else:
+        a = 1.0 if small else math.sin(theta) / theta
+        b = 0.0 if small else (1.0 - math.cos(theta)) / theta ** 2
+        d = 1.0
+    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    for c in range(3):
+        for e in range(3):
+            kk = k[c, 0] * k[0, e] + k[c, 1] * k[1, e] + k[c, 2] * k[2, e]
+            out[c, e] = (1.0 if c == e else 0.0) + a * k[c, e] + b * kk / d
+
+
+@njit(cache=True, nogil=True)
+def _se3_log_into(rotation, translation, twist):  # pragma: no cover - compiled
+    """``se3_log`` compiled, into ``twist`` (6,): rho solves J rho = t by elimination with partial pivoting."""
+    _rotation_log_into(rotation, twist[:3])
+    m = np.empty((3, 4))
+    _so3_series(twist[:3], m[:, :3], True)
+    for c in range(3):
+        m[c, 3] = translation[c]
+    for c in range(3):
+        top = c
+        for e in range(c + 1, 3):
+            if abs(m[e, c]) > abs(m[top, c]):
+                top = e
+        for e in range(4):
+            m[c, e], m[top, e] = m[top, e], m[c, e]
+        for e in range(c + 1, 3):
+            f = m[e, c] / m[c, c]
+            for q in range(c, 4):
+                m[e, q] -= f * m[c, q]
+    for c in range(2, -1, -1):
+        v = m[c, 3]
+        for e in range(c + 1, 3):
+            v -= m[c, e] * twist[3 + e]
+        twist[3 + c] = v / m[c, c]
+
+
+@njit(cache=True, nogil=True)
+def _node_affine(rotations, translations, affine):  # pragma: no cover - compiled
+    """``path_affine`` compiled, from the path's transforms at the two ``NODES`` (``rotations`` (2, 3, 3),
+    ``translations`` (2, 3)) into ``affine`` (2, 3, 4): V then A, matrix then offset."""
+    a, b = NODES
+    for c in range(3):
+        for e in range(4):
+            if e < 3:
+                da = rotations[0, c, e] - (1.0 if c == e else 0.0)
+                db = rotations[1, c, e] - (1.0 if c == e else 0.0)
+            else:
+                da, db = translations[0, c], translations[1, c]
+            acc = 2.0 * (db / b - da / a) / (b - a)
+            affine[1, c, e] = acc
+            affine[0, c, e] = da / a - 0.5 * (a + 1.0) * acc
+
+
+@njit(cache=True, nogil=True)
+def _screw_into(twist, change, affine):  # pragma: no cover - compiled
+    """``screw_affine`` compiled, into ``affine`` (2, 3, 4)."""
+    rotations, translations = np.empty((2, 3, 3)), np.empty((2, 3))
+    step, jacobian = np.empty(6), np.empty((3, 3))
+    for node in range(2):
+        s = NODES[node]
+        for c in range(6):
+            step[c] = s * twist[c] + 0.5 * s * (s + 1.0) * change[c]
+        _so3_series(step[:3], rotations[node], False)
+        _so3_series(step[:3], jacobian, True)
+        for c in range(3):
+            translations[node, c] = jacobian[c, 0] * step[3] + jacobian[c, 1] * step[4] + jacobian[c, 2] * step[5]
+    _node_affine(rotations, translations, affine)
+
+
+@njit(cache=True, nogil=True)
+def _spin_into(rotation, centre, velocity, change, affine):  # pragma: no cover - compiled
+    """``spin_affine`` compiled, into ``affine`` (2, 3, 4)."""
+    w, step = np.empty(3), np.empty(3)
+    _rotation_log_into(rotation, w)
+    rotations, translations = np.empty((2, 3, 3)), np.empty((2, 3))
+    for node in range(2):
+        s = NODES[node]
+        for c in range(3):
+            step[c] = s * w[c]
+        r = rotations[node]
+        _so3_series(step, r, False)
+        for c in range(3):
+            translations[node, c] = (centre[c] + s * velocity[c] + 0.5 * s * (s + 1.0) * change[c]
+                                     - (r[c, 0] * centre[0] + r[c, 1] * centre[1] + r[c, 2] * centre[2]))
+    _node_affine(rotations, translations, affine)
+
+
+@njit(cache=True, nogil=True)
+def _part_path(now, then, earlier, seen, scale, members, rotation, translation, base, threshold, limit, hypotheses,
+               rounds, affine, hindcast):  # pragma: no cover - compiled
+    """``part_motion`` compiled for the part of the points ``members`` (increasing): its path into ``affine``
+    (2, 3, 4); returns whether the interval before gave a prediction of frame n, then in ``hindcast[k]`` for
+    ``members[k]``."""
+    m = members.size
+    twist, change = np.empty(6), np.zeros(6)
+    _se3_log_into(rotation, translation, twist)
+    idx = members[seen[members]]
+    if idx.size < max(3, m // 2):
+        _screw_into(twist, change, affine)
+        return False
+    r0, t0, fits = np.empty((3, 3)), np.empty(3), np.empty(idx.size, np.bool_)
+    kept = _robust_members(earlier, then, scale, idx, base, True, rotation, translation, hypotheses, rounds,
+                           threshold, r0, t0, fits)
+    if kept < max(8, idx.size // 10):  # frame n-k's velocities are guesses where n-2k did not see
+        _screw_into(twist, change, affine)
+        return False
+    local = np.empty(kept, np.int64)  # the fitted points, as positions among the members
+    n = 0
+    f = 0
+    for k in range(m):
+        if seen[members[k]]:
+            if fits[f]:
+                local[n] = k
+                n += 1
+            f += 1
+    screw, turned, sums = np.empty((m, 3)), np.empty((m, 3)), np.zeros(9)
+    now_p, then_p = now[members], then[members]
+    _continued_paths(now_p, then_p, earlier[members], local, r0, t0, screw, turned, sums)
+    err_screw, err_spin, motion = sums[0], sums[1], sums[2]
+    if err_screw <= err_spin:
+        if err_screw <= limit * motion:
+            _se3_log_into(r0, t0, change)
+            for c in range(6):
+                change[c] = twist[c] - change[c]
+        _screw_into(twist, change, affine)
+        hindcast[:m] = screw
+        return True
+    centre, centre_then, spin_change = np.zeros(3), np.zeros(3), np.zeros(3)
+    for k in range(m):
+        for c in range(3):
+            centre[c] += now_p[k, c]
+            centre_then[c] += then_p[k, c]
+    for c in range(3):
+        centre[c] /= m
+        centre_then[c] /= m
+        if err_spin <= limit * motion:
+            spin_change[c] = (centre[c] - centre_then[c]) - (sums[3 + c] - sums[6 + c])
+    _spin_into(rotation, centre, centre - centre_then, spin_change, affine)
+    hindcast[:m] = turned
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _part_paths(part, rotations, translations, now, then, earlier, seen, scale, predicted, intrinsics, threshold,
+                limit, max_turn, hypotheses, rounds, take, affines):  # pragma: no cover - compiled
+    """``part_paths`` compiled: per part (``part`` (N,) each point's part, -1: none) turning by at most
+    ``max_turn`` radians, ``_part_path`` with the key (0, j) (j: its number among those parts), taken (``take``)
+    where its prediction of frame n beats ``predicted``'s in frame n's pixels (``rigid_explains_better``),
+    ``predicted`` then replaced by it at its points."""
+    count = rotations.shape[0]
+    offsets = np.zeros(count + 1, np.int64)
+    for i in range(part.size):
+        if part[i] >= 0:
+            offsets[part[i] + 1] += 1
+    for j in range(count):
+        offsets[j + 1] += offsets[j]
+    order, fill = np.empty(offsets[count], np.int64), offsets[:count].copy()
+    for i in range(part.size):
+        if part[i] >= 0:
+            order[fill[part[i]]] = i
+            fill[part[i]] += 1
+    w = np.empty(3)
+    hindcast = np.empty((part.size, 3))
+    numbered = 0
+    for j in range(count):
+        take[j] = False
+        _rotation_log_into(rotations[j], w)
+        if math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2) > max_turn:  # faster turns alias: lines
+            continue
+        members = order[offsets[j]:offsets[j + 1]]
+        m = members.size
+        base = _fold(_fold(np.uint64(0), 0), numbered)
+        numbered += 1
+        if not _part_path(now, then, earlier, seen, scale, members, rotations[j], translations[j], base, threshold,
+                          limit, hypotheses, rounds, affines[j], hindcast):
+            continue
+        now_p = now[members]
+        rigid, linear = np.empty(m), np.empty(m)
+        _hindcast_errors(now_p, hindcast[:m], intrinsics, rigid)
+        _hindcast_errors(now_p, predicted[members], intrinsics, linear)
+        a = 0.0
+        b = 0.0
+        for k in range(m):
+            if seen[members[k]] and np.isfinite(rigid[k]) and np.isfinite(linear[k]):
+                a += rigid[k]
+                b += linear[k]
+        if a <= b:
+            take[j] = True
+            for k in range(m):
+                for c in range(3):
+                    predicted[members[k], c] = hindcast[k, c]
+
+
+@dataclass(frozen=True)
+class PartPaths:
+    """Rigid parts with their paths, stacked (``part_paths``; ``apply_parts``' input), in the order of their
+    groups: ``group`` (P,) int64, ``rotation`` (P, 3, 3), ``translation`` (P, 3) of their interval transforms,
+    ``affine`` (P, 2, 3, 4) their paths' ``path_affine`` (V then A; the 3x3 matrix, then the offset)."""
+
+    group: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    affine: np.ndarray
+
+    @staticmethod
+    def stack(parts: list, affines: list) -> "PartPaths":
+        """The table of ``parts`` (``RigidPart``) and their ``path_affine`` tuples ``affines``."""
+        table = np.zeros((len(parts), 2, 3, 4))
+        for j, (vm, vt, am, at) in enumerate(affines):
+            table[j, 0, :, :3], table[j, 0, :, 3], table[j, 1, :, :3], table[j, 1, :, 3] = vm, vt, am, at
+        return PartPaths(np.array([p.group for p in parts], dtype=np.int64),
+                         np.array([p.rotation for p in parts], dtype=np.float64).reshape(-1, 3, 3),
+                         np.array([p.translation for p in parts], dtype=np.float64).reshape(-1, 3), table)
+
+
+def part_paths(table: PartTable, now: np.ndarray, then: np.ndarray, earlier: np.ndarray, seen: np.ndarray,
+               scale: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray, *, threshold: float = 1.0,
+               limit: float = 0.5, max_turn: float = MAX_TURN) -> PartPaths:
+    """The paths of the parts of ``table`` (``find_parts`` of the points ``now`` (N, 3) at n, ``then`` at n-k)
+    that turn by at most ``max_turn`` per interval, and keep them where they explained the last interval:
+    each part's ``part_motion`` (key (0, j), j its number among the parts within ``max_turn``; ``earlier`` the
+    points at n-2k where ``seen``), taken where its prediction of frame n from the interval before beats the
+    points' own, ``predicted`` (N, 3) (``rigid_explains_better``); ``predicted`` is then updated in place to
+    the taken parts' predictions. Compiled, in one call; ``part_paths_reference`` is its numpy oracle."""
+    if predicted.dtype != np.float64 or not predicted.flags.c_contiguous or predicted.shape != (len(table.part), 3):
+        raise InputError(f"must be a C-contiguous float64 ({len(table.part)}, 3) array (updated in place), got "
+                         f"{predicted.dtype} {predicted.shape}", field="predicted")
+    count = len(table.group)
+    take, affines = np.zeros(count, np.bool_), np.zeros((count, 2, 3, 4))
+    _part_paths(np.ascontiguousarray(table.part, np.int64), np.ascontiguousarray(table.rotation, np.float64),
+                np.ascontiguousarray(table.translation, np.float64), np.ascontiguousarray(now, np.float64),
+                np.ascontiguousarray(then, np.float64), np.ascontiguousarray(earlier, np.float64),
+                np.ascontiguousarray(seen, np.bool_), np.ascontiguousarray(scale, np.float64), predicted,
+                np.asarray(intrinsics, np.float64), float(threshold), float(limit), float(max_turn), HYPOTHESES, ROUNDS,
+                take, affines)
+    return PartPaths(table.group[take], table.rotation[take], table.translation[take], affines[take])
+
+
+def part_paths_reference(table: PartTable, now: np.ndarray, then: np.ndarray, earlier: np.ndarray,
+                         seen: np.ndarray, scale: np.ndarray, predicted: np.ndarray, intrinsics: np.ndarray, *,
+                         threshold: float = 1.0, limit: float = 0.5, max_turn: float = MAX_TURN) -> PartPaths:
+    """``part_paths`` part by part with ``part_motion`` and ``rigid_explains_better`` (the test oracle)."""
+    kept, affines, j = [], [], 0
+    for p, g in enumerate(table.group):
+        if np.linalg.norm(rotation_log(table.rotation[p])) > max_turn:
+            continue
+        m = np.flatnonzero(table.part == p)
+        affine, hindcast = part_motion(now[m], then[m], earlier[m], seen[m], table.rotation[p],
+                                       table.translation[p], scale[m], (0, j), threshold=threshold, limit=limit)
+        j += 1
+        if hindcast is None or not rigid_explains_better(now[m], hindcast, predicted[m], seen[m], intrinsics):
+            continue
+        predicted[m] = hindcast
+        kept.append(RigidPart(m, table.rotation[p], table.translation[p], int(g)))
+        affines.append(affine)
+    return PartPaths.stack(kept, affines)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _first_part(i, now, speed, depth, g, starts, rotations, translations, focal, limit):  # pragma: no cover
     """The first part of group ``g`` whose transform explains moving pixel i within ``limit`` pixels, or -1."""
@@ -997,32 +1477,27 @@ def _kept_part_motion(now, speed, depth, labels, acceleration, has_acceleration,
     return n, m
 
 
-def _part_tables(parts: list, affines: list, count: int):
+def _part_tables(paths: PartPaths, count: int):
     """``apply_parts``' stacks: each group's first part (``starts`` (count + 1,)), the parts' rotations,
-    translations, and their affines as (P, 2, 3, 4) (V then A, matrix and offset)."""
-    groups = np.array([p.group for p in parts], dtype=np.int64)
-    starts = np.searchsorted(groups, np.arange(count + 1)).astype(np.int64)
-    rotations = np.array([p.rotation for p in parts], dtype=np.float64).reshape(-1, 3, 3)
-    translations = np.array([p.translation for p in parts], dtype=np.float64).reshape(-1, 3)
-    table = np.zeros((len(parts), 2, 3, 4))
-    for j, (vm, vt, am, at) in enumerate(affines):
-        table[j, 0, :, :3], table[j, 0, :, 3], table[j, 1, :, :3], table[j, 1, :, 3] = vm, vt, am, at
-    return starts, rotations, translations, table
+    translations and affines (``paths``), contiguous."""
+    starts = np.searchsorted(paths.group, np.arange(count + 1)).astype(np.int64)
+    return (starts, np.ascontiguousarray(paths.rotation, np.float64),
+            np.ascontiguousarray(paths.translation, np.float64), np.ascontiguousarray(paths.affine, np.float64))
 
 
-def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int, parts: list,
-                affines: list, focal: float, limit: float,
+def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int, paths: PartPaths,
+                focal: float, limit: float,
                 acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The moving pixels' motion with their rigid parts' paths: (V (M, 3), A (M, 3) float32, regions (M,) int64).
 
     Every moving pixel (``now`` (M, 3), its velocity ``speed``, depth ``depth`` (M,), group ``labels`` in
-    [0, ``count``)) that the transform of a part of its group (``parts``, in the order of their groups) explains
+    [0, ``count``)) that the transform of a part of its group (``paths``, in the order of their groups) explains
     within ``limit`` pixels (residual times ``focal / depth``) takes that part's path: the V and A of its
-    ``affines`` entry (``path_affine``), its region the part's number plus ``count`` (the regions of the
+    ``affine`` entry (``path_affine``), its region the part's number plus ``count`` (the regions of the
     fall-back). The others keep their own velocity, their ``acceleration`` row (or 0) and their group as
     region. Compiled; ``apply_parts_reference`` is its numpy oracle."""
     m = len(labels)
-    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    starts, rotations, translations, table = _part_tables(paths, count)
     has_acceleration = acceleration is not None
     acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
     out_v, out_a, regions = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.int64)
@@ -1034,16 +1509,16 @@ def apply_parts(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: n
 
 
 def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray, labels: np.ndarray, count: int,
-                          parts: list, affines: list, focal: float, limit: float,
+                          paths: PartPaths, focal: float, limit: float,
                           acceleration: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``apply_parts`` in numpy, part by part (the test oracle; the sums in the kernel's order)."""
-    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    _, rotations, translations, table = _part_tables(paths, count)
     out_v = speed.astype(np.float32)
     out_a = np.zeros_like(out_v) if acceleration is None else np.array(acceleration, np.float32)
     regions = np.array(labels, np.int64)
     taken = np.zeros(len(labels), bool)
-    for j, part in enumerate(parts):
-        on = np.flatnonzero((labels == part.group) & ~taken)
+    for j, group in enumerate(paths.group):
+        on = np.flatnonzero((labels == group) & ~taken)
         p, v = now[on], speed[on]
         r2 = np.zeros(on.size)
         for c in range(3):
@@ -1063,17 +1538,17 @@ def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray,
 
 
 def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
-                     depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list, focal: float,
+                     depth: np.ndarray, labels: np.ndarray, count: int, paths: PartPaths, focal: float,
                      limit: float, acceleration: Optional[np.ndarray], keep: np.ndarray,
                      change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``apply_parts`` of the moving pixels ``moving`` (flat indices into ``shape``), keeping those whose region
-    is kept (``keep`` (count + len(parts),) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
+    is kept (``keep`` (count + parts,) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
     (N,), their acceleration (N, 3) float32), in one pass. With ``change`` (``motion.velocity_change_args``)
     in place of ``acceleration``, the change of velocity is computed there for the kept pixels that keep their
     own motion only (the others take their part's path or the camera-only warp): ``velocity_change``'s rows of
     those pixels. Compiled; ``kept_part_motion_reference`` is its numpy oracle."""
     h, w = shape
-    starts, rotations, translations, table = _part_tables(parts, affines, count)
+    starts, rotations, translations, table = _part_tables(paths, count)
     has_acceleration = acceleration is not None
     acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
     velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
@@ -1104,7 +1579,7 @@ def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray
 
 
 def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
-                               depth: np.ndarray, labels: np.ndarray, count: int, parts: list, affines: list,
+                               depth: np.ndarray, labels: np.ndarray, count: int, paths: PartPaths,
                                focal: float, limit: float, acceleration: Optional[np.ndarray],
                                keep: np.ndarray, change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray,
                                                                                          np.ndarray]:
@@ -1113,7 +1588,7 @@ def kept_part_motion_reference(shape: tuple[int, int], moving: np.ndarray, now: 
     if change is not None:
         acceleration = np.empty((len(moving), 3), np.float32)
         kernels.velocity_change(*change[:3], np.asarray(moving, np.int64), *change[3:], acceleration)
-    rows_v, rows_a, regions = apply_parts_reference(now, speed, depth, labels, count, parts, affines, focal, limit,
+    rows_v, rows_a, regions = apply_parts_reference(now, speed, depth, labels, count, paths, focal, limit,
                                                     acceleration)
     kept = np.asarray(keep, bool)[regions]
     velocity = np.zeros(tuple(shape) + (3,), np.float32)

@@ -38,9 +38,8 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
-from engine.geometry.rigid import (MAX_TURN, apply_parts, hindcast_keeps, kept_part_motion, motion_components,
-                                   moving_points, part_motion, previous_positions, refined_before,
-                                   rigid_explains_better, rigid_parts, rotation_log)
+from engine.geometry.rigid import (PartPaths, apply_parts, find_parts, hindcast_keeps, kept_part_motion,
+                                   motion_components, moving_points, part_paths, previous_positions, refined_before)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change,
                                     velocity_change_args)
@@ -208,10 +207,10 @@ class Mvec(Predictor):
     def _shaped(self, history, vectors: np.ndarray, data: MvecState, before: tuple[np.ndarray, float],
                 change: Optional[tuple], timer: Timer) -> PointMotion:
         """Pass ``rigid``: the moving pixels' motion as the warp extrapolates it. With ``extrapolation=rigid``
-        the pixels of each rigid part (``engine.geometry.rigid``) move on their part's path (``part_motion``:
-        the screw, or the spin about the part's centre where the interval before says so, with its change
-        where the three frames agree) where that path explained the last interval at least as well as the
-        points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid
+        the pixels of each rigid part (``engine.geometry.rigid``: ``find_parts``) move on their part's path
+        (``part_paths``: the screw, or the spin about the part's centre where the interval before says so, with
+        its change where the three frames agree) where that path explained the last interval at least as well as
+        the points' own lines; the others keep their line or parabola. With ``fallback``, each region (a rigid
         part, or the rest of a group of pixels that move alike) whose motion of the interval before, continued,
         explained the last interval worse than ``fallback_ratio`` times no object motion is left out: it takes
         the camera-only warp. Fits and checks read a grid sample. Needs frame n-2k (``before``: frame n-k's
@@ -244,42 +243,32 @@ class Mvec(Predictor):
                                                 first=(first.depth, first.camera.intrinsics,
                                                        first.camera.world_to_camera @ newest.camera.camera_to_world))
             predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
-            parts, affines = [], []
+            paths = PartPaths.stack([], [])
             if cfg.extrapolation == "rigid":
                 fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
-                parts = [p for p in rigid_parts(labels[sample], count, now_s, fitted, scale_s,
-                                                threshold=cfg.rigid_threshold, min_points=max(8, 32 // stride ** 2))
-                         if np.linalg.norm(rotation_log(p.rotation)) <= MAX_TURN]  # faster turns alias: lines
-                kept = []
-                for j, part in enumerate(parts):
-                    m = part.members
-                    affine, hindcast = part_motion(now_s[m], fitted[m], earlier[m], valid[m], part.rotation,
-                                                   part.translation, scale_s[m], (0, j), threshold=cfg.rigid_threshold,
-                                                   limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
-                    # a part takes its path only where that path, continued from the interval before, explained the
-                    # last interval at least as well as its points' own lines did (else: a wobble, a deformation, or
-                    # too few points seen at n-2k to tell): its pixels keep their lines otherwise
-                    if hindcast is None or not rigid_explains_better(now_s[m], hindcast, predicted[m], valid[m], k):
-                        continue
-                    predicted[m] = hindcast
-                    kept.append(part)
-                    affines.append(affine)
-                parts = kept
+                table = find_parts(labels[sample], count, now_s, fitted, scale_s, threshold=cfg.rigid_threshold,
+                                   min_points=max(8, 32 // stride ** 2))
+                # a part turning faster than MAX_TURN keeps its lines (faster turns alias); the others take their path
+                # only where it, continued from the interval before, explained the last interval at least as well as
+                # its points' own lines did (else: a wobble, a deformation, or too few points seen at n-2k to tell)
+                paths = part_paths(table, now_s, fitted, earlier, valid, scale_s, predicted, k,
+                                   threshold=cfg.rigid_threshold,
+                                   limit=cfg.acceleration_limit if cfg.acceleration else -1.0)
         with timer("rigid.keep"):
             # every pixel of a part's group that the part's transform explains takes its path (the sample's depths
             # were read between pixels, the others' at one: a looser threshold); the others keep their own motion
-            data.parts = len(parts)
-            keep = np.ones(count + len(parts), dtype=bool)
+            data.parts = len(paths.group)
+            keep = np.ones(count + data.parts, dtype=bool)
             limit = ASSIGN * cfg.rigid_threshold
             if cfg.fallback:  # the sample's regions (their rigid part, else their group) keep or drop their motion
-                _, _, regions = apply_parts(now_s, speed[sample], z[sample], labels[sample], count, parts, affines,
-                                            k[0, 0], limit)
-                keep = hindcast_keeps(regions, count + len(parts), now_s, then_s, predicted, valid, k,
+                _, _, regions = apply_parts(now_s, speed[sample], z[sample], labels[sample], count, paths, k[0, 0],
+                                            limit)
+                keep = hindcast_keeps(regions, count + data.parts, now_s, then_s, predicted, valid, k,
                                       ratio=cfg.fallback_ratio)
-            velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, parts,
-                                                              affines, k[0, 0], limit, None, keep, change)
+            velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, paths,
+                                                              k[0, 0], limit, None, keep, change)
             data.held = int(data.moving.size - moving.size)
-        return PointMotion(velocity, moving, acceleration if parts or change is not None else None)
+        return PointMotion(velocity, moving, acceleration if data.parts or change is not None else None)
 
     def object_flow(self, state: PreparedState) -> np.ndarray:
         """The u(n -> n-k) of frame n implied by its vectors, (H, W, 2) pixels (object motion alone, seen

@@ -201,11 +201,15 @@ def test_the_batched_fits_match_the_per_group_ones():
         np.testing.assert_allclose(r_many[0], r_one, atol=1e-10)
         np.testing.assert_allclose(t_many[0], t_one, atol=1e-10)
     # groups: clean turns, one with a third of outliers (its least-squares fit fails: sampled), one of two bodies
-    # (two parts), one too small, one with no rigid motion (no part)
+    # (two parts), one too small, one with no rigid motion (no part), one on a line (any turn about it fits), one
+    # of 3 points (fewer than min_points)
     labels, src, dst = [], [], []
     for g, (size, wrong, split) in enumerate([(400, 0.0, False), (600, 0.35, False), (500, 0.0, True), (5, 0.0, False),
-                                              (300, 1.0, False), (350, 0.1, False)]):
+                                              (300, 1.0, False), (350, 0.1, False), (200, 0.0, False),
+                                              (3, 0.0, False)]):
         points = rng.uniform(-1, 1, (size, 3)) + (0, 0, 5)
+        if g == 6:
+            points = (0.1, -0.2, 5.0) + rng.uniform(-1, 1, (size, 1)) * rng.normal(size=3)
         moved = points @ rotation(rng.normal(size=3), np.radians(12.0)).T + rng.normal(0, 0.2, 3)
         if split:
             moved[size // 2:] = points[size // 2:] @ rotation(rng.normal(size=3), 0.3).T + (0.2, 0.1, 0.0)
@@ -216,13 +220,164 @@ def test_the_batched_fits_match_the_per_group_ones():
     order = rng.permutation(len(labels))  # the groups interleaved, as pixels are
     labels, src, dst = labels[order], src[order], dst[order]
     scale = np.full(len(labels), 100.0)
-    fast = rg.rigid_parts(labels, 6, dst, src, scale)
-    slow = rg.rigid_parts_reference(labels, 6, dst, src, scale)
-    assert [p.group for p in fast] == [p.group for p in slow] == [0, 1, 2, 2, 5]
+    fast = rg.rigid_parts(labels, 8, dst, src, scale)
+    slow = rg.rigid_parts_reference(labels, 8, dst, src, scale)
+    assert [p.group for p in fast] == [p.group for p in slow] == [0, 1, 2, 2, 5, 6]
     for a, b in zip(fast, slow):
         np.testing.assert_array_equal(a.members, b.members)
         np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-9)
         np.testing.assert_allclose(a.translation, b.translation, atol=1e-9)
+    # the table the compiled call gives holds the same parts, each point's part among them
+    table = rg.find_parts(labels, 8, dst, src, scale)
+    np.testing.assert_array_equal(table.group, [p.group for p in fast])
+    part = np.full(len(labels), -1)
+    for j, p in enumerate(slow):
+        part[p.members] = j
+    np.testing.assert_array_equal(table.part, part)
+    # no points, or none in a group large enough: no part
+    assert rg.rigid_parts(np.zeros(0, np.int64), 0, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)) == []
+    assert rg.rigid_parts(labels % 8, 8, dst, src, scale, min_points=10 ** 6) == []
+
+
+def test_the_compiled_fits_give_the_numpy_fits_bits():
+    # fit_groups (moments compiled, the translation by np.einsum) against the fits inside the compiled rounds:
+    # per group of labels (groups of 0, 1, 2, 3 and many points, noisy turns) and for one group of members
+    rng = np.random.default_rng(12)
+    sizes = [0, 1, 2, 3, 40, 700]
+    labels = rng.permutation(np.repeat(np.arange(len(sizes)), sizes))
+    labels[rng.random(labels.size) < 0.1] = -1  # points in no group
+    src = rng.normal(size=(labels.size, 3)) * 3 + (0, 0, 5)
+    dst = src @ rotation(rng.normal(size=3), 0.7).T + rng.normal(0, 1, 3) + rng.normal(0, 0.05, src.shape)
+    r, t = rg.fit_groups(src, dst, labels, len(sizes))
+    r_nb, t_nb = np.empty_like(r), np.empty_like(t)
+    rg._fit_labels(src, dst, labels, len(sizes), r_nb, t_nb)
+    np.testing.assert_array_equal(r_nb, r)
+    np.testing.assert_array_equal(t_nb, t)
+    members = np.flatnonzero(labels == 5)
+    use = rng.random(members.size) < 0.7
+    r_one, t_one = rg.fit_groups(src, dst, np.where(np.isin(np.arange(labels.size), members[use]), 0, -1), 1)
+    r_nb, t_nb = np.empty((3, 3)), np.empty(3)
+    rg._fit_members(src, dst, members, use, r_nb, t_nb)
+    np.testing.assert_array_equal(r_nb, r_one[0])
+    np.testing.assert_array_equal(t_nb, t_one[0])
+
+
+def test_the_compiled_sampling_matches_robust_rigid():
+    # the compiled robust fit of a group's members: a guess that explains half refitted (the same bits as
+    # robust_rigid), else the same RANSAC draws and hypothesis, refitted by Horn's rotation where robust_rigid
+    # uses the SVD (the same inliers, the transform to rounding); groups smaller and larger than the score sample
+    rng = np.random.default_rng(13)
+    for n, wrong in ((12, 0.3), (200, 0.5), (1500, 0.4)):
+        src = rng.uniform(-1, 1, (n, 3)) + (0, 0, 5)
+        dst = src @ rotation(rng.normal(size=3), np.radians(20.0)).T + rng.normal(0, 0.2, 3)
+        dst += rng.normal(0, 1e-4, (n, 3))
+        bad = rng.random(n) < wrong
+        dst[bad] += rng.normal(0, 0.3, (bad.sum(), 3))
+        scale = rng.uniform(80.0, 120.0, n)
+        members = np.arange(n)
+        for guess in (None, (np.eye(3), np.zeros(3)), rg.fit_rigid(src[~bad], dst[~bad])):
+            slow = rg.robust_rigid(src, dst, scale, (n, 3), guess=guess)
+            rotation_nb, translation_nb, inliers = np.empty((3, 3)), np.empty(3), np.empty(n, bool)
+            given = guess if guess is not None else (np.eye(3), np.zeros(3))
+            kept = rg._robust_members(src, dst, scale, members, np.uint64(rg._key_base((n, 3))), guess is not None,
+                                      *given, rg.HYPOTHESES, rg.ROUNDS, 1.0, rotation_nb, translation_nb, inliers)
+            np.testing.assert_array_equal(inliers, slow[2])
+            assert kept == inliers.sum() and 0 < kept < n
+            atol = 0 if rg._refit_guess(src, dst, scale, guess, 1.0) is not None else 1e-9
+            np.testing.assert_allclose(rotation_nb, slow[0], rtol=0, atol=atol)
+            np.testing.assert_allclose(translation_nb, slow[1], rtol=0, atol=atol)
+
+
+def _part_histories(rng):
+    """Points of six rigid parts at n-2k, n-k and n (``earlier``, ``then``, ``now``), their groups and which
+    frame n-2k saw: a steady screw; a turn that changed since the interval before, with outliers then (its
+    guess fails: sampled); a spin about the part's centre while the centre moves on; one that n-2k mostly did
+    not see; one turning faster than MAX_TURN; one whose turn reversed (its path loses to the lines)."""
+    earlier, then, now, labels, seen = [], [], [], [], []
+    for g, (size, seen_share) in enumerate([(400, 0.9), (300, 0.9), (350, 0.9), (200, 0.3), (150, 0.9), (250, 0.9)]):
+        a = rng.uniform(-0.5, 0.5, (size, 3)) + (rng.uniform(-1, 1), rng.uniform(-1, 1), 5.0)
+        turn = rotation(rng.normal(size=3), 1.5 if g == 4 else 0.25)
+        shift = rng.normal(0, 0.1, 3)
+        if g == 2:  # the centre moves on a line, the part turning about it
+            c0 = a.mean(axis=0)
+            b = (a - c0) @ turn.T + c0 + shift
+            c = (b - b.mean(axis=0)) @ turn.T + b.mean(axis=0) + shift
+        else:
+            before = (rotation(rng.normal(size=3), 0.2) @ turn if g == 1 else turn, shift)
+            if g == 5:
+                before = (turn.T, -shift)
+            b = a @ before[0].T + before[1]
+            c = b @ turn.T + shift
+        if g == 1:
+            a[rng.random(size) < 0.6] += rng.normal(0, 0.05, 3)
+        earlier.append(a), then.append(b + rng.normal(0, 2e-4, b.shape)), now.append(c)
+        labels.append(np.full(size, g)), seen.append(rng.random(size) < seen_share)
+    order = rng.permutation(sum(map(len, labels)))
+    return tuple(np.concatenate(x)[order] for x in (earlier, then, now, labels, seen))
+
+
+def test_the_compiled_part_paths_match_part_motion():
+    # each part's path (screw or spin, with the change of twist where three frames agree, or the screw alone
+    # without evidence), which parts keep it, and the predictions of frame n: the compiled pass against
+    # part_motion and rigid_explains_better part by part
+    rng = np.random.default_rng(14)
+    earlier, then, now, labels, seen = _part_histories(rng)
+    scale = FOCAL / now[:, 2]
+    table = rg.find_parts(labels, 6, now, then, scale)
+    assert list(table.group) == list(range(6))
+    for limit in (0.5, -1.0):
+        predicted = 2.0 * then - earlier
+        slow_predicted = predicted.copy()
+        fast = rg.part_paths(table, now, then, earlier, seen, scale, predicted, _k(), limit=limit)
+        slow = rg.part_paths_reference(table, now, then, earlier, seen, scale, slow_predicted, _k(), limit=limit)
+        assert list(fast.group) == list(slow.group) == [0, 2, 5]
+        np.testing.assert_array_equal(fast.rotation, slow.rotation)
+        np.testing.assert_array_equal(fast.translation, slow.translation)
+        np.testing.assert_allclose(fast.affine, slow.affine, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(predicted, slow_predicted, rtol=0, atol=1e-12)
+        assert (predicted != 2.0 * then - earlier).any(axis=1).sum() == 1000  # the kept parts' points
+    with pytest.raises(InputError) as err:  # updated in place: a copy would drop the update
+        rg.part_paths(table, now, then, earlier, seen, scale, predicted.astype(np.float32), _k())
+    assert err.value.field == "predicted"
+
+
+def test_the_rigid_pass_predicts_what_its_numpy_pieces_predict(tmp_path, monkeypatch):
+    # a pair of the spin set (tools.spin_set, small): the compiled parts and paths against rigid_parts_reference
+    # and part_paths_reference in the predictor, with and without the fall-back: the same parts, motion and frames
+    from engine.eval.protocol import rendered_history
+    from engine.io.rgbd import read_sequence
+    from engine.predict import mvec as mvec_module
+    from tools.spin_set import render_spin
+
+    sequence = read_sequence(render_spin(tmp_path, 4101, 240, 136, 5))
+    history = rendered_history(sequence, 2, 4, with_vectors=True, three=True)
+    target = Target(sequence.cameras[3], float(sequence.times[3]), 3)
+
+    def reference_table(labels, count, points, before, scale, **options):
+        parts = rg.rigid_parts_reference(labels, count, points, before, scale, **options)
+        part = np.full(len(labels), -1)
+        for j, p in enumerate(parts):
+            part[p.members] = j
+        return rg.PartTable(np.array([p.group for p in parts], np.int64),
+                            np.array([p.rotation for p in parts]).reshape(-1, 3, 3),
+                            np.array([p.translation for p in parts]).reshape(-1, 3), part)
+
+    for config in (MvecConfig(extrapolation="rigid"), MvecConfig(extrapolation="rigid", fallback=True)):
+        fast = Mvec(config)
+        fast_state = fast.prepare(history)
+        fast_frame = fast.render(fast_state, target).color
+        with monkeypatch.context() as patch:
+            patch.setattr(mvec_module, "find_parts", reference_table)
+            patch.setattr(mvec_module, "part_paths", rg.part_paths_reference)
+            slow = Mvec(config)
+            slow_state = slow.prepare(history)
+            slow_frame = slow.render(slow_state, target).color
+        assert fast_state.data.parts == slow_state.data.parts >= 2
+        a, b = fast_state.data.motion, slow_state.data.motion
+        np.testing.assert_array_equal(a.moving, b.moving)
+        np.testing.assert_allclose(a.velocity, b.velocity, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(a.acceleration, b.acceleration, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(fast_frame, slow_frame, rtol=0, atol=1e-5)
 
 
 def test_motion_components_match_the_indexed_reference(point_split):
@@ -519,16 +674,16 @@ def test_apply_parts_and_kept_part_motion_match_their_numpy_references(point_spl
         speed[on] = now[on] - (now[on] - t) @ r + rng.normal(0, 0.1, (on.sum(), 3))  # about 3 px off
     parts = [rg.RigidPart(np.zeros(0, np.int64), *turns[0], 0), rg.RigidPart(np.zeros(0, np.int64), *turns[1], 0),
              rg.RigidPart(np.zeros(0, np.int64), *turns[2], 1)]
-    affines = [rg.screw_affine(rg.se3_log(*turn)) for turn in turns]
+    paths = rg.PartPaths.stack(parts, [rg.screw_affine(rg.se3_log(*turn)) for turn in turns])
     for acceleration in (None, rng.normal(0, 0.01, (moving.size, 3)).astype(np.float32)):
-        fast = rg.apply_parts(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
-        slow = rg.apply_parts_reference(now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration)
+        fast = rg.apply_parts(now, speed, depth, labels, 3, paths, FOCAL, 3.0, acceleration)
+        slow = rg.apply_parts_reference(now, speed, depth, labels, 3, paths, FOCAL, 3.0, acceleration)
         for a, b in zip(fast, slow):
             np.testing.assert_array_equal(a, b)
         regions = fast[2]
         assert 0.5 < np.isin(regions, (3, 4)).sum() / (labels == 0).sum() < 1 and not (regions == 5).any()
         for keep in (np.ones(6, bool), np.array([True, False, True, True, False, True])):
-            args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, acceleration, keep)
+            args = (SIZE, moving, now, speed, depth, labels, 3, paths, FOCAL, 3.0, acceleration, keep)
             got = rg.kept_part_motion(*args)
             for a, b in zip(got, rg.kept_part_motion_reference(*args)):
                 np.testing.assert_array_equal(a, b)
@@ -547,7 +702,7 @@ def test_apply_parts_and_kept_part_motion_match_their_numpy_references(point_spl
     rows = rg_motion.velocity_change(*frames[:3], moving, *frames[3:])
     assert 0.2 < np.abs(rows).max(axis=1).astype(bool).mean() < 1
     keep = np.array([True, True, False, True, True, True])
-    args = (SIZE, moving, now, speed, depth, labels, 3, parts, affines, FOCAL, 3.0, None, keep)
+    args = (SIZE, moving, now, speed, depth, labels, 3, paths, FOCAL, 3.0, None, keep)
     got = rg.kept_part_motion(*args, change)
     for a, b in zip(got, rg.kept_part_motion_reference(*args, change)):
         np.testing.assert_array_equal(a, b)

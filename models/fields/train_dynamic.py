@@ -136,10 +136,6 @@ class DynamicTrainConfig(RunConfig):
         if self.field.kind != "derf" and self.priors.enabled():
             raise InputError(f"the sparse flow prior needs a motion field: add --field.kind derf (got "
                              f"{self.field.kind!r})", field="priors.flow.enabled")
-        flow = self.priors.flow
-        if flow.enabled and flow.in_batch and self.rays_per_batch <= 2 * flow.rays:
-            raise InputError(f"must exceed the sparse flow prior's 2 x {flow.rays} matched rays it holds, got "
-                             f"{self.rays_per_batch}", field="rays_per_batch")
         return self
 
     def loss_terms(self) -> tuple[LossTerm, ...]:
@@ -258,13 +254,6 @@ class DynamicKind:
     def param_groups(self, model: DynamicFieldModel) -> list[dict]:
         planes, mlps = _plane_params(model)
         return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}]
-
-    def batch_rays(self, config: DynamicTrainConfig, priors) -> int:
-        """``rays_per_batch``, less the sparse flow prior's matched rays with ``priors.flow.in_batch``."""
-        flow = priors.flow if priors is not None else None
-        if flow is None or not config.priors.flow.in_batch:
-            return config.rays_per_batch
-        return config.rays_per_batch - flow.rays_per_step()
 
     def render_step(self, priors, model: DynamicFieldModel, batch: RayBatch, inputs: torch.Tensor, step: int,
                     generator: torch.Generator):

@@ -112,9 +112,6 @@ class StaticKind:
                 {"params": [p for n, p in model.field.named_parameters() if not n.startswith("encoding.")],
                  "name": "mlps"}]
 
-    def batch_rays(self, config: FieldTrainConfig, priors) -> int:
-        return config.rays_per_batch
-
     def render_step(self, priors, model: StaticFieldModel, batch: RayBatch, inputs: None, step: int,
                     generator: torch.Generator):
         outputs = model.render_rays(batch.origins, batch.directions, batch.near, batch.far, jitter=True,

@@ -317,10 +317,6 @@ class FieldKind(Protocol):
     def param_groups(self, model) -> list[dict]:
         """The model's Adam parameter groups (named)."""
 
-    def batch_rays(self, config, priors) -> int:
-        """How many rays a step draws from the train pixels (``config.rays_per_batch``, or fewer where the
-        priors' own rays count against it)."""
-
     def render_step(self, priors, model, batch: RayBatch, inputs: Optional[torch.Tensor], step: int,
                     generator: torch.Generator) -> tuple[Any, dict]:
         """What a training step renders: the model's outputs for the batch (jittered samples; ``inputs`` are
@@ -396,7 +392,6 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
         bar = tqdm(total=config.steps, initial=step, desc=f"training {out.name}", unit="step")
     log = open_log(out, step)
     n_rays = rays.color.shape[0]
-    batch_rays = kind.batch_rays(config, priors)
     occupied = 1.0
     start = time.perf_counter()
     model.train()
@@ -409,7 +404,7 @@ def train_run(kind: FieldKind, views, config, out_dir: str | Path, progress: boo
                 occupied = model.update_occupancy(generator)
                 if trained_priors is not None:
                     trained_priors.update_occupancy(generator)
-            idx = torch.randint(n_rays, (batch_rays,), generator=generator).to(device)
+            idx = torch.randint(n_rays, (config.rays_per_batch,), generator=generator).to(device)
             batch = take_rays(rays, idx)
             outputs, extras = kind.render_step(priors, model, batch, None if inputs is None else inputs[idx], step,
                                                generator)

@@ -588,37 +588,6 @@ def test_sparse_flow_prior_trains_on_textured_motion(tmp_path):
                       progress=False)
 
 
-def test_a_step_with_the_flow_prior_renders_rays_per_batch_rays_the_matched_ones_included(tmp_path, monkeypatch):
-    """With ``priors.flow.in_batch`` the batch draws ``rays_per_batch - 2 x rays`` pixels, so the batch and the
-    prior's matched pairs make ``rays_per_batch`` rendered rays a step, as a K-Planes step renders; without
-    matches the batch keeps every ray; a budget the matched rays would fill is refused."""
-    video = sphere_video([0, 30, 15, 60], TIMES, size=48, frequency=3.0)
-    train, _ = split_by_camera(video, ["cam0", "cam1", "cam3"], ["cam2"])
-    rendered, drawn = [], []
-    place = DynamicFieldModel.render_placed
-
-    def counting(self, placed):
-        outs = place(self, placed)
-        rendered.append(sum(int(o.color.shape[0]) for o in outs))
-        return outs
-
-    monkeypatch.setattr(DynamicFieldModel, "render_placed", counting)
-    hook = lambda model, batch, outputs, step: drawn.append(int(batch.origins.shape[0]))  # noqa: E731
-    flow = SparseFlowPrior(enabled=True, rays=24, in_batch=True)
-    config = tiny_config(3, rays_per_batch=200, priors=replace(DynamicTrainConfig().priors, flow=flow))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # some of the tiny frame pairs have no match
-        train_dynamic(train, config, tmp_path / "run", progress=False, extras_fn=hook)
-    assert drawn == [200 - 48] * 3 and rendered == [200] * 3
-    blank = sphere_video([0, 40], [0.0, 0.5], texture=False)  # no SIFT feature: no matched rays
-    rendered.clear(), drawn.clear()
-    with pytest.warns(UserWarning, match="no verified match"):
-        train_dynamic(blank, config, tmp_path / "blank", progress=False, extras_fn=hook)
-    assert drawn == [200] * 3 and rendered == [200] * 3
-    with pytest.raises(InputError, match="rays_per_batch"):
-        train_dynamic(train, replace(config, rays_per_batch=48), tmp_path / "small", progress=False)
-
-
 # ----------------------------------------------------------------------------------------------------
 # Training, hard cases
 

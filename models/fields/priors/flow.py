@@ -69,9 +69,6 @@ class SparseFlowPrior:
     rays: int = field(default=64, metadata={
         "help": "matched pairs rendered per step, two rays each (the thesis: 256; 64 costs a quarter of that and "
                 "keeps the default ahead of K-Planes, 32 did not on lego: docs/results/2026-11-28-dynamic-cost.md)"})
-    in_batch: bool = field(default=False, metadata={
-        "help": "the matched rays count against the step's rays_per_batch: the batch draws rays_per_batch - 2 x "
-                "rays colour rays, so a step renders rays_per_batch rays as K-Planes' does"})
     time_offset: int = field(default=10, metadata={
         "help": "frames between matched times (s in {t - offset, t + offset}, or the nearest available)"})
     across_cameras: bool = field(default=True, metadata={"help": "match views of different cameras at one time"})
@@ -380,10 +377,6 @@ class SparseFlowState:
                 torch.cat([self.directions_a[idx], self.directions_b[idx]]).to(device),
                 bounds[0].expand(2 * n), bounds[1].expand(2 * n),
                 torch.cat([self.times_a[idx], self.times_b[idx]]).to(device))
-
-    def rays_per_step(self) -> int:
-        """The rays :meth:`draw` gives a step: two a pair, 0 without matches."""
-        return 2 * self.prior.rays if len(self.matches) else 0
 
     @staticmethod
     def entry(out) -> dict[str, Any]:

@@ -673,13 +673,15 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 
 @njit(cache=True, nogil=True)
 def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance,
-                   relative_tolerance, band, row_start, row_stop, row_step, out, moving_out):
+                   relative_tolerance, band, row_start, row_stop, row_step, out, found, row_counts):
     """``engine.geometry.reference.scene_velocity_reference`` compiled, rows ``row_start``, ``row_start`` +
     ``row_step``, .. below ``row_stop``:
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
-    point was in the previous frame to where it is now, and ``moving_out`` (H, W) bool True, written only
-    for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
-    shared zero page, so a mostly static frame costs no writes). Sky, missing (NaN) vectors and pixels whose
+    point was in the previous frame to where it is now, written only for the moving pixels: the caller passes
+    it zeroed (``np.zeros``: pages never written stay the shared zero page, so a mostly static frame costs no
+    writes); the moving pixels' flat indices in ``found`` (1-D, room for the rows' pixels), row by row in
+    increasing order, and each row's count in ``row_counts[y]`` (``merge_rows`` merges the row sets of
+    several calls). Sky, missing (NaN) vectors and pixels whose
     vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
     largest component) do not move. Returns the number of moving pixels.
 
@@ -717,6 +719,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
                       & (abs((v + my) * sz - (z * (hm[1, 0] * u + c1) + e[1])) <= tolerance))
             # sz > 1e-9 z: in front of the previous camera had it not moved (else no reference to measure from)
             marked[x] = (z < np.inf) & (sz > 1e-9 * z) & (mx == mx) & (my == my) & ~static
+        row_first = moving
         for x in range(w):
             if not marked[x]:
                 continue
@@ -756,9 +759,25 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             out[y, x, 0] = px - bx
             out[y, x, 1] = py - by
             out[y, x, 2] = pz - bz
-            moving_out[y, x] = True
+            found[moving] = y * w + x
             moving += 1
+        row_counts[y] = moving - row_first
     return moving
+
+
+@njit(cache=True, nogil=True)
+def merge_rows(found, row_counts, row_step, out):
+    """The flat indices of ``scene_velocity``'s calls with ``row_start`` 0 .. ``row_step`` - 1 (``found[t]``: the
+    call of row_start t, its rows in order) merged row by row into ``out`` (increasing); returns their count."""
+    taken = np.zeros(row_step, np.int64)
+    n = 0
+    for y in range(row_counts.size):
+        t = y % row_step
+        for i in range(taken[t], taken[t] + row_counts[y]):
+            out[n] = found[t, i]
+            n += 1
+        taken[t] += row_counts[y]
+    return n
 
 
 @njit(cache=True, nogil=True)
@@ -844,6 +863,17 @@ def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, 
             out[y, x, 0] = np.nan
             out[y, x, 1] = np.nan
             out[y, x, 2] = np.nan
+
+
+@njit(cache=True, nogil=True)
+def clear_points(moving, width, out):
+    """Zero the (H, W, C) ``out`` at the pixels ``moving`` (flat indices; any strides): what
+    ``extrapolate_points`` wrote, so that a reused buffer is all zero again."""
+    for i in range(moving.shape[0]):
+        y = moving[i] // width
+        x = moving[i] - y * width
+        for c in range(out.shape[2]):
+            out[y, x, c] = 0.0
 
 
 @njit(cache=True, nogil=True)

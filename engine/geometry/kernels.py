@@ -697,11 +697,10 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
     """``engine.geometry.reference.scene_velocity_reference`` compiled, rows ``row_start``, ``row_start`` +
     ``row_step``, .. below ``row_stop``:
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
-    point was in the previous frame to where it is now, written only for the moving pixels: the caller passes
-    it zeroed (``np.zeros``: pages never written stay the shared zero page, so a mostly static frame costs no
-    writes); the moving pixels' flat indices in ``found`` (1-D, room for the rows' pixels), row by row in
-    increasing order, and each row's count in ``row_counts[y]`` (``merge_rows`` merges the row sets of
-    several calls). Sky, missing (NaN) vectors and pixels whose
+    point was in the previous frame to where it is now, 0 where it does not move (the rows are zeroed here,
+    by the thread that writes them: ``out`` may come from ``np.empty``); the moving pixels' flat indices in
+    ``found`` (1-D, room for the rows' pixels), row by row in increasing order, and each row's count in
+    ``row_counts[y]`` (``merge_rows`` merges the row sets of several calls). Sky, missing (NaN) vectors and pixels whose
     vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
     largest component) do not move. Returns the number of moving pixels.
 
@@ -727,6 +726,7 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
         _marked_row(depth[y], vectors[y].reshape(-1), v, hm[0, 0], hm[1, 0], hm[2, 0], hm[0, 1] * v + hm[0, 2],
                     hm[1, 1] * v + hm[1, 2], hm[2, 1] * v + hm[2, 2], e[0], e[1], e[2], static_tolerance,
                     relative_tolerance, marked)
+        out[y] = 0.0
         row_first = moving
         for x in range(w):
             if not marked[x]:

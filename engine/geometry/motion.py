@@ -322,7 +322,7 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
             np.linalg.inv(camera.intrinsics), np.ascontiguousarray(previous.intrinsics, dtype=np.float64),
             np.linalg.inv(previous.intrinsics), np.ascontiguousarray(relative[:3, :3]),
             np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
-    out = np.zeros(depth.shape + (3,), dtype=np.float32)  # the kernel writes the moving pixels only
+    out = np.empty(depth.shape + (3,), dtype=np.float32)  # each thread zeroes its rows (a memset split in two)
     h, w = depth.shape
     # thread i takes rows i, i + parts, ..: the moving pixels, which cost the most, are shared evenly however they
     # lie in the frame; each lists its moving pixels row by row (pages never written are never touched)

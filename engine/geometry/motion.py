@@ -443,8 +443,13 @@ def clear_flow(out: np.ndarray, where: np.ndarray) -> np.ndarray:
     ``extrapolated_flow`` wrote there is all zero again for its next call. Returns ``out``."""
     if out.ndim != 3 or out.dtype != np.float32 or not out.flags.writeable:
         raise InputError(f"must be a writeable float32 (H, W, 3) array, got {out.dtype} {out.shape}", field="out")
+    h, w, channels = out.shape
     idx = np.ascontiguousarray(where, dtype=np.int64)
-    if idx.size and not (idx.min() >= 0 and idx.max() < out.shape[0] * out.shape[1]):
+    if idx.size and not (idx.min() >= 0 and idx.max() < h * w):
         raise InputError(f"must be flat indices of a {out.shape[:2]} frame", field="where")
-    kernels.clear_points(idx, out.shape[1], out)
+    planes = np.moveaxis(out, -1, 0)
+    if planes.flags.c_contiguous:  # the view of a channel-first buffer (the CPU backend's): compiled, plane by plane
+        kernels.clear_points(idx, planes.reshape(channels, h * w))
+    else:
+        out[idx // w, idx % w] = 0.0
     return out

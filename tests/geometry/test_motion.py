@@ -308,6 +308,10 @@ def test_a_reused_flow_buffer_is_cleared_where_the_extrapolation_wrote():
     buffer[0, 0, 0] = 7.0  # not a moving pixel: left alone
     clear_flow(np.moveaxis(buffer, 0, -1), moving)
     assert np.count_nonzero(buffer) == 1 and buffer[0, 0, 0] == 7.0
+    plain = extrapolated_flow(depth, velocity, K, 0.5, moving)  # an (H, W, 3) array: cleared the same way
+    plain[0, 0] = 7.0
+    clear_flow(plain, moving)
+    assert np.count_nonzero(plain) == 3 and (plain[0, 0] == 7.0).all()
     with pytest.raises(InputError, match="where"):
         clear_flow(np.moveaxis(buffer, 0, -1), np.array([H * W]))
     with pytest.raises(InputError, match="out"):

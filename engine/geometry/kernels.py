@@ -675,8 +675,9 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 def _marked_row(depth, vectors, v, h00, h10, h20, c0, c1, c2, e0, e1, e2, static_tolerance, relative_tolerance,
                 marked):
     """``scene_velocity``'s first pass over one row (``depth`` (W,), ``vectors`` (2 W,) interleaved): ``marked[x]``
-    whether pixel x moves. One-dimensional views and the homography's entries as scalars, so that the loop
-    compiles to SIMD (indexing the (H, W, 2) arrays in place kept it scalar, 4x slower); the same bits."""
+    whether pixel x moves. A function of its own over one row's one-dimensional arrays and the homography's
+    entries as scalars: so it compiles to SIMD (the same loop inline in ``scene_velocity`` ran 4x slower); the
+    same bits."""
     for x in range(marked.size):  # no branches: NaN and inf fail the comparisons that mark a pixel
         z = np.float64(depth[x])
         mx = np.float64(vectors[2 * x])

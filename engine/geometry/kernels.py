@@ -672,18 +672,40 @@ def upsample_planes(packed, factor, full_alpha, scale, out):
 
 
 @njit(cache=True, nogil=True)
+def _marked_row(depth, vectors, v, h00, h10, h20, c0, c1, c2, e0, e1, e2, static_tolerance, relative_tolerance,
+                marked):
+    """``scene_velocity``'s first pass over one row (``depth`` (W,), ``vectors`` (2 W,) interleaved): ``marked[x]``
+    whether pixel x moves. A function of its own over one row's one-dimensional arrays and the homography's
+    entries as scalars: so it compiles to SIMD (the same loop inline in ``scene_velocity`` ran 4x slower); the
+    same bits."""
+    for x in range(marked.size):  # no branches: NaN and inf fail the comparisons that mark a pixel
+        z = np.float64(depth[x])
+        mx = np.float64(vectors[2 * x])
+        my = np.float64(vectors[2 * x + 1])
+        u = x + 0.5
+        sz = z * (h20 * u + c2) + e2
+        # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0 (no division)
+        tolerance = (static_tolerance + relative_tolerance * max(abs(mx), abs(my))) * sz
+        static = ((abs((u + mx) * sz - (z * (h00 * u + c0) + e0)) <= tolerance)
+                  & (abs((v + my) * sz - (z * (h10 * u + c1) + e1)) <= tolerance))
+        # sz > 1e-9 z: in front of the previous camera had it not moved (else no reference to measure from)
+        marked[x] = (z < np.inf) & (sz > 1e-9 * z) & (mx == mx) & (my == my) & ~static
+
+
+@njit(cache=True, nogil=True)
 def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, trans, static_tolerance,
-                   relative_tolerance, band, row_start, row_stop, row_step, out, moving_out):
+                   relative_tolerance, band, row_start, row_stop, row_step, out, found, row_counts):
     """``engine.geometry.reference.scene_velocity_reference`` compiled, rows ``row_start``, ``row_start`` +
     ``row_step``, .. below ``row_stop``:
     ``out`` (H, W, 3) float32 = each pixel's 3D displacement (this camera's axes) from where its surface
-    point was in the previous frame to where it is now, and ``moving_out`` (H, W) bool True, written only
-    for the moving pixels: the caller passes both zeroed (``np.zeros``: pages never written stay the
-    shared zero page, so a mostly static frame costs no writes). Sky, missing (NaN) vectors and pixels whose
+    point was in the previous frame to where it is now, 0 where it does not move (the rows are zeroed here,
+    by the thread that writes them: ``out`` may come from ``np.empty``); the moving pixels' flat indices in
+    ``found`` (1-D, room for the rows' pixels), row by row in increasing order, and each row's count in
+    ``row_counts[y]`` (``merge_rows`` merges the row sets of several calls). Sky, missing (NaN) vectors and pixels whose
     vector is the camera's own (within ``static_tolerance`` px plus ``relative_tolerance`` times the vector's
     largest component) do not move. Returns the number of moving pixels.
 
-    Each row is read twice: a branch-free pass (it compiles to SIMD) marks the moving pixels, with the
+    Each row is read twice: a branch-free pass (``_marked_row``: SIMD) marks the moving pixels, with the
     camera's homography ``k_prev rot k_inv`` and ``k_prev trans`` folded per row; the second pass computes
     the velocity of the marked ones only."""
     h, w = depth.shape
@@ -702,21 +724,11 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
     moving = 0
     for y in range(row_start, row_stop, row_step):
         v = y + 0.5
-        c0 = hm[0, 1] * v + hm[0, 2]
-        c1 = hm[1, 1] * v + hm[1, 2]
-        c2 = hm[2, 1] * v + hm[2, 2]
-        for x in range(w):  # no branches: NaN and inf fail the comparisons that mark a pixel
-            z = np.float64(depth[y, x])
-            mx = np.float64(vectors[y, x, 0])
-            my = np.float64(vectors[y, x, 1])
-            u = x + 0.5
-            sz = z * (hm[2, 0] * u + c2) + e[2]
-            # |q - project(s)| <= tolerance in x and y, multiplied through by sz > 0 (no division)
-            tolerance = (static_tolerance + relative_tolerance * max(abs(mx), abs(my))) * sz
-            static = ((abs((u + mx) * sz - (z * (hm[0, 0] * u + c0) + e[0])) <= tolerance)
-                      & (abs((v + my) * sz - (z * (hm[1, 0] * u + c1) + e[1])) <= tolerance))
-            # sz > 1e-9 z: in front of the previous camera had it not moved (else no reference to measure from)
-            marked[x] = (z < np.inf) & (sz > 1e-9 * z) & (mx == mx) & (my == my) & ~static
+        _marked_row(depth[y], vectors[y].reshape(-1), v, hm[0, 0], hm[1, 0], hm[2, 0], hm[0, 1] * v + hm[0, 2],
+                    hm[1, 1] * v + hm[1, 2], hm[2, 1] * v + hm[2, 2], e[0], e[1], e[2], static_tolerance,
+                    relative_tolerance, marked)
+        out[y] = 0.0
+        row_first = moving
         for x in range(w):
             if not marked[x]:
                 continue
@@ -756,9 +768,25 @@ def scene_velocity(depth, vectors, prev_depth, k_inv, k_prev, k_prev_inv, rot, t
             out[y, x, 0] = px - bx
             out[y, x, 1] = py - by
             out[y, x, 2] = pz - bz
-            moving_out[y, x] = True
+            found[moving] = y * w + x
             moving += 1
+        row_counts[y] = moving - row_first
     return moving
+
+
+@njit(cache=True, nogil=True)
+def merge_rows(found, row_counts, row_step, out):
+    """The flat indices of ``scene_velocity``'s calls with ``row_start`` 0 .. ``row_step`` - 1 (``found[t]``: the
+    call of row_start t, its rows in order) merged row by row into ``out`` (increasing); returns their count."""
+    taken = np.zeros(row_step, np.int64)
+    n = 0
+    for y in range(row_counts.size):
+        t = y % row_step
+        for i in range(taken[t], taken[t] + row_counts[y]):
+            out[n] = found[t, i]
+            n += 1
+        taken[t] += row_counts[y]
+    return n
 
 
 @njit(cache=True, nogil=True)
@@ -844,6 +872,16 @@ def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, 
             out[y, x, 0] = np.nan
             out[y, x, 1] = np.nan
             out[y, x, 2] = np.nan
+
+
+@njit(cache=True, nogil=True)
+def clear_points(moving, planes):
+    """Zero the channel-first ``planes`` (C, H * W) at the flat pixels ``moving``: what ``extrapolate_points`` wrote
+    through the (H, W, C) view of a channel-first buffer. Plane by plane (2.5x faster than point by point)."""
+    for c in range(planes.shape[0]):
+        plane = planes[c]
+        for i in range(moving.shape[0]):
+            plane[moving[i]] = 0.0
 
 
 @njit(cache=True, nogil=True)

@@ -19,8 +19,8 @@ from engine.geometry import kernels
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
            "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
            "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "flow_spans", "DEFAULT_STATIC_TOLERANCE",
-           "DEFAULT_DEPTH_BAND"]
+           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "clear_flow", "flow_spans",
+           "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
 DEFAULT_STATIC_TOLERANCE = 1.0 / 32.0
@@ -322,15 +322,20 @@ def scene_velocity(depth: np.ndarray, vectors: np.ndarray, prev_depth: np.ndarra
             np.linalg.inv(camera.intrinsics), np.ascontiguousarray(previous.intrinsics, dtype=np.float64),
             np.linalg.inv(previous.intrinsics), np.ascontiguousarray(relative[:3, :3]),
             np.ascontiguousarray(relative[:3, 3]), float(static_tolerance), RELATIVE_TOLERANCE, float(band))
-    out = np.zeros(depth.shape + (3,), dtype=np.float32)  # the kernel writes the moving pixels only
-    moving = np.zeros(depth.shape, dtype=bool)
-    h = depth.shape[0]
+    out = np.empty(depth.shape + (3,), dtype=np.float32)  # each thread zeroes its rows (a memset split in two)
+    h, w = depth.shape
     # thread i takes rows i, i + parts, ..: the moving pixels, which cost the most, are shared evenly however they
-    # lie in the frame
+    # lie in the frame; each lists its moving pixels row by row (pages never written are never touched)
     parts = len(kernels.split_ranges(h, 64))
-    counts = kernels.run_ranges(lambda first, step: kernels.scene_velocity(*args, first, h, step, out, moving),
+    found, row_counts = np.empty((parts, -(-h // parts) * w), np.int64), np.empty(h, np.int64)
+    counts = kernels.run_ranges(lambda first, step: kernels.scene_velocity(*args, first, h, step, out, found[first],
+                                                                           row_counts),
                                 [(i, parts) for i in range(parts)])
-    return out, (np.flatnonzero(moving) if sum(counts) else np.zeros(0, dtype=np.intp))
+    if parts == 1:
+        return out, found[0, :counts[0]].copy()
+    moving = np.empty(sum(counts), np.intp)
+    kernels.merge_rows(found, row_counts, parts, moving)
+    return out, moving
 
 
 def velocity_change(depth: np.ndarray, vectors: np.ndarray, velocity: np.ndarray, moving: np.ndarray,
@@ -430,4 +435,21 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     kernels.run_ranges(lambda a, b: kernels.extrapolate_points(depth, velocity, idx[a:b], accel[a:b] if has else accel,
                                                                has, k, k_inv, float(step), out),
                        kernels.split_points(idx.size))  # each pixel writes its own flow: the same bits
+    return out
+
+
+def clear_flow(out: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``out`` (H, W, 3) float32 (any strides) zeroed at the pixels ``where`` (flat indices), in place: a buffer that
+    ``extrapolated_flow`` wrote there is all zero again for its next call. Returns ``out``."""
+    if out.ndim != 3 or out.dtype != np.float32 or not out.flags.writeable:
+        raise InputError(f"must be a writeable float32 (H, W, 3) array, got {out.dtype} {out.shape}", field="out")
+    h, w, channels = out.shape
+    idx = np.ascontiguousarray(where, dtype=np.int64)
+    if idx.size and not (idx.min() >= 0 and idx.max() < h * w):
+        raise InputError(f"must be flat indices of a {out.shape[:2]} frame", field="where")
+    planes = np.moveaxis(out, -1, 0)
+    if planes.flags.c_contiguous:  # the view of a channel-first buffer (the CPU backend's): compiled, plane by plane
+        kernels.clear_points(idx, planes.reshape(channels, h * w))
+    else:
+        out[idx // w, idx % w] = 0.0
     return out

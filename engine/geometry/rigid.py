@@ -561,13 +561,16 @@ def draws(base: int, n: int, hypotheses: int) -> tuple[np.ndarray, np.ndarray]:
 def _best_hypotheses(src, dst, scale, samples, offsets, rotation, translation, hypotheses, threshold,
                      best):  # pragma: no cover - compiled
     """Per group f: the first of its ``hypotheses`` transforms (rows f * hypotheses ..) with the most inliers
-    among its points ``samples[offsets[f]:offsets[f + 1]]`` (``robust_rigid``'s score)."""
+    among its points ``samples[offsets[f]:offsets[f + 1]]`` (``robust_rigid``'s score). A hypothesis's count
+    stops once the points left could not lift it above the best one's (it could not win: the same choice)."""
     for f in range(offsets.size - 1):
         top = -1
         for h in range(hypotheses):
             j = f * hypotheses + h
             count = 0
             for s in range(offsets[f], offsets[f + 1]):
+                if count + offsets[f + 1] - s <= top:  # even if every point left were an inlier: not more than top
+                    break
                 i = samples[s]
                 r2 = 0.0
                 for c in range(3):
@@ -1572,8 +1575,8 @@ def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray
 
     ranges = kernels.split_points(len(moving))
     counts = kernels.run_ranges(run, ranges)
-    if len(ranges) == 1:
-        return velocity, moving_out[:counts[0]], acceleration_out[:counts[0]]
+    if all(n == hi - lo for (lo, hi), n in zip(ranges[:-1], counts)):  # every range but the last kept all: in place
+        return velocity, moving_out[:ranges[-1][0] + counts[-1]], acceleration_out[:ranges[-1][0] + counts[-1]]
     return (velocity, np.concatenate([moving_out[lo:lo + n] for (lo, _), n in zip(ranges, counts)]),
             np.concatenate([acceleration_out[lo:lo + n] for (lo, _), n in zip(ranges, counts)]))
 

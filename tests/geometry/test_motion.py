@@ -8,8 +8,8 @@ from engine import geometry
 from engine.geometry import kernels
 from engine.core.errors import InputError
 from engine.core.frames import Camera
-from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow, flow_spans,
-                                    rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
+from engine.geometry.motion import (camera_motion_vectors, clear_flow, compose_motion_vectors, extrapolated_flow,
+                                    flow_spans, rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change,
                                     velocity_change_args)
 from engine.geometry.reference import scene_velocity_reference
@@ -139,11 +139,17 @@ def test_velocity_kernel_matches_its_numpy_oracle():
     # the rows split over threads as every third row from row 0, 1 and 2: the same bits as one pass
     args = (depth, vectors, prev_depth, np.linalg.inv(K), K, np.linalg.inv(K), np.ascontiguousarray(rel[:3, :3]),
             np.ascontiguousarray(rel[:3, 3]), 1 / 32, 2.0 ** -10, 1.5)
-    out, marked = np.zeros_like(fast), np.zeros((H, W), bool)
-    counts = [kernels.scene_velocity(*args, first, H, 3, out, marked) for first in range(3)]
+    out, found, row_counts = np.zeros_like(fast), np.full((3, H * W), -1, np.int64), np.full(H, -1, np.int64)
+    counts = [kernels.scene_velocity(*args, first, H, 3, out, found[first], row_counts) for first in range(3)]
     assert min(counts) > 0 and sum(counts) == moving.size
     np.testing.assert_array_equal(out, fast)
-    np.testing.assert_array_equal(np.flatnonzero(marked), moving)
+    # each call lists its rows' moving pixels row by row, each row's count in row_counts; merged: the moving pixels
+    np.testing.assert_array_equal(row_counts, np.any(slow != 0, axis=-1).sum(axis=1))
+    for first in range(3):
+        np.testing.assert_array_equal(found[first, :counts[first]], moving[moving // W % 3 == first])
+    merged = np.full(moving.size + 1, -1, np.int64)
+    assert kernels.merge_rows(found, row_counts, 3, merged) == moving.size
+    np.testing.assert_array_equal(merged[:-1], moving)
 
 
 def test_a_static_scene_has_exactly_zero_velocity_even_from_half_float_vectors():
@@ -288,6 +294,28 @@ def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles(poi
                                    is None else accel, accel is not None, K, np.linalg.inv(K), 0.75, whole)
         np.testing.assert_array_equal(out, whole)
 
+
+
+def test_a_reused_flow_buffer_is_cleared_where_the_extrapolation_wrote():
+    # the CPU backend's render: a channel-first buffer, written through its (H, W, 3) view, cleared the same way
+    depth, _, _, _, _ = _velocity_inputs(6)
+    rng = np.random.default_rng(6)
+    velocity = rng.normal(0, 0.2, (H, W, 3)).astype(np.float32)
+    moving = np.flatnonzero(np.isfinite(depth))[::3]
+    buffer = np.zeros((3, H, W), np.float32)
+    extrapolated_flow(depth, velocity, K, 0.5, moving, None, out=np.moveaxis(buffer, 0, -1))
+    assert np.count_nonzero(buffer.reshape(3, -1)[:, moving]) > moving.size
+    buffer[0, 0, 0] = 7.0  # not a moving pixel: left alone
+    clear_flow(np.moveaxis(buffer, 0, -1), moving)
+    assert np.count_nonzero(buffer) == 1 and buffer[0, 0, 0] == 7.0
+    plain = extrapolated_flow(depth, velocity, K, 0.5, moving)  # an (H, W, 3) array: cleared the same way
+    plain[0, 0] = 7.0
+    clear_flow(plain, moving)
+    assert np.count_nonzero(plain) == 3 and (plain[0, 0] == 7.0).all()
+    with pytest.raises(InputError, match="where"):
+        clear_flow(np.moveaxis(buffer, 0, -1), np.array([H * W]))
+    with pytest.raises(InputError, match="out"):
+        clear_flow(np.zeros((H, W, 3)), moving)
 
 def test_velocity_kernel_marks_the_same_static_pixels_as_its_oracle_near_the_tolerance():
     # camera-only vectors plus offsets inside, near and beyond the static tolerance (1/32 px): the kernel's

@@ -136,6 +136,37 @@ def test_robust_rigids_compiled_scores_pick_the_same_fit_as_its_reference():
             assert 0 < fast[2].sum() < n
 
 
+
+def test_ransacs_scoring_picks_the_first_hypothesis_with_the_most_inliers():
+    # the compiled scoring stops counting a hypothesis that can no longer win: it still picks the first of the
+    # hypotheses with the most inliers (ties among near-identical ones, the best late or first), per group
+    rng = np.random.default_rng(11)
+    n, hypotheses = 300, 32
+    src = rng.uniform(-1, 1, (n, 3)) + (0, 0, 5)
+    truth = rotation(rng.normal(size=3), np.radians(15.0))
+    dst = src @ truth.T + 0.1 + rng.normal(0, 0.004, (n, 3))
+    scale = rng.uniform(80.0, 120.0, n)
+    samples = np.sort(rng.choice(n, 256, replace=False)).astype(np.int64)
+    offsets = np.array([0, 100, 100, 256], np.int64)  # three groups of samples, the second one empty
+    half = 3 * hypotheses // 2
+    turns = [rotation(rng.normal(size=3), rng.choice([0.0, 1e-4, 0.05])) @ truth for _ in range(half)]
+    r = np.repeat(np.array(turns), 2, axis=0)  # each hypothesis twice: the best one ties
+    t = np.repeat(0.1 + rng.choice([0.0, 0.0, 0.002, 0.2], size=(half, 1)) * rng.normal(size=(half, 3)), 2, axis=0)
+    for order in (slice(None), slice(None, None, -1)):
+        r, t = np.ascontiguousarray(r[order]), np.ascontiguousarray(t[order])
+        best = np.full(3, -1, np.int64)
+        rg._best_hypotheses(src, dst, scale, samples, offsets, r, t, hypotheses, 1.0, best)
+        for f in range(3):
+            points = samples[offsets[f]:offsets[f + 1]]
+            counts = []
+            for j in range(f * hypotheses, (f + 1) * hypotheses):
+                d = [r[j, c, 0] * src[points, 0] + r[j, c, 1] * src[points, 1] + r[j, c, 2] * src[points, 2]
+                     + t[j, c] - dst[points, c] for c in range(3)]
+                counts.append(int((np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) * scale[points] <= 1.0).sum()))
+            assert best[f] == int(np.argmax(counts))
+            if points.size:
+                assert counts.count(max(counts)) > 1 and min(counts) < max(counts)
+
 def test_screw_coefficients_follow_the_turn_between_the_predicted_frames():
     # points 1 m off the axis: the parabola meets the screw at s = 1/4 and 3/4 and stays within 7 mm of it
     # between for a turn of 60 degrees per interval (15 a frame at k = 4), within 1 mm for 30 (k = 2)

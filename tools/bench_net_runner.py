@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.weights import CORRFLOW
+from tools.heldout import write_json
 
 WEIGHTS = CORRFLOW.parent
 #: the networks timed (``flow2d.onnx`` is the 2D ablation, not run by default)
@@ -125,10 +126,7 @@ def main(argv=None) -> None:
                              "max_diff": diff})
             print(f"{name}: torch {device} {ms:.1f} ms ({ms / base:.2f}x onnxruntime cpu), max |diff| {diff:.2e}",
                   flush=True)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"rows": rows_out, "torch": torch.__version__, "onnxruntime": ort.__version__},
-                                        indent=1))
+    write_json(args.json, {"rows": rows_out, "torch": torch.__version__, "onnxruntime": ort.__version__})
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ def execution_providers(available: Sequence[str], device: str = "auto") -> list[
     ``auto`` or ``cuda``, then the CPU (always there as the fallback); ``device`` ``cpu`` forces the CPU and
     ``cuda`` without the CUDA provider is an InputError."""
     if device not in ("auto", "cpu", "cuda"):
-        raise InputError(f"must be one of {', '.join(DEVICES)}, got {device!r}", field="INTERLEAVE_ORT_DEVICE")
+        raise InputError(f"must be auto, cpu or cuda, got {device!r}", field="INTERLEAVE_ORT_DEVICE")
     cuda = "CUDAExecutionProvider" in available
     if device == "cuda" and not cuda:
         raise InputError("the CUDA execution provider is missing: install onnxruntime-gpu (pip install -e "
@@ -38,12 +38,15 @@ def execution_providers(available: Sequence[str], device: str = "auto") -> list[
     return (["CUDAExecutionProvider"] if cuda and device != "cpu" else []) + ["CPUExecutionProvider"]
 
 
+def _torch_runner_installed() -> bool:
+    """Whether the packages the torch runner imports (torch, onnx) are installed, without importing them."""
+    return importlib.util.find_spec("torch") is not None and importlib.util.find_spec("onnx") is not None
+
+
 def torch_gpu_present() -> bool:
     """Whether the torch runner can use a GPU: torch and onnx are installed, the machine has an NVIDIA device
     node, and torch sees CUDA (torch is imported only when the first two hold)."""
-    if importlib.util.find_spec("torch") is None or importlib.util.find_spec("onnx") is None:
-        return False
-    if not os.path.exists("/dev/nvidiactl"):
+    if not _torch_runner_installed() or not os.path.exists("/dev/nvidiactl"):
         return False
     from engine.predict.torch_onnx import torch_cuda_available
     return torch_cuda_available()
@@ -76,7 +79,7 @@ def open_network(path: Path, threads: int, metadata_key: str, field: str, missin
     asks_torch = device == "torch" or (device in ("auto", "cuda") and "CUDAExecutionProvider" not in available)
     kind, where = network_runtime(available, device, asks_torch and torch_gpu_present())
     if kind == "torch":
-        if importlib.util.find_spec("torch") is None or importlib.util.find_spec("onnx") is None:
+        if not _torch_runner_installed():
             raise InputError("the torch runner needs the torch and onnx packages (pip install -e '.[train]')",
                              field="INTERLEAVE_ORT_DEVICE")
         from engine.predict.torch_onnx import TorchOnnxSession

@@ -456,9 +456,10 @@ class TorchOnnxSession:
                 if name:
                     env[name] = value
 
-    def _plan(self, feeds: dict) -> "_Plan":
-        """For the signature of ``feeds``: the values that do not depend on the inputs' data (computed once),
-        the nodes that do, in graph order, and on a GPU their replay (``_capture``)."""
+    def _plan(self, feeds: dict) -> tuple["_Plan", Optional[list]]:
+        """For the signature of ``feeds``: the plan (the values that do not depend on the inputs' data, computed
+        once; the nodes that do, in graph order; on a GPU their replay, ``_capture``), and the outputs for
+        ``feeds`` where making or checking the plan computed them (None: the caller runs the plan)."""
         key = tuple((name, tuple(feeds[name].shape), str(feeds[name].dtype)) for name in self.input_names)
         plan = self._plans.get(key)
         if plan is None:
@@ -473,15 +474,17 @@ class TorchOnnxSession:
                     dynamic_names.update(node.outputs)
                 else:
                     static.update({name: probe[name] for name in node.outputs if name})
-            plan = self._plans[key] = _Plan(static, dynamic)
+            self._plans[key] = _Plan(static, dynamic)
             while len(self._plans) > MAX_PLANS:  # the least recently used signature goes (sizes vary: decomp's boxes)
                 self._plans.popitem(last=False)
-        else:
-            self._plans.move_to_end(key)
-            plan.uses += 1
-            if self.graphs and plan.uses == 2:  # a size seen again: worth a graph (a box seen once is not)
-                plan.replay = self._checked_replay(plan, feeds, self._eager(plan, feeds))
-        return plan
+            return self._plans[key], [probe[name] for name in self.output_names]
+        self._plans.move_to_end(key)
+        plan.uses += 1
+        if self.graphs and plan.uses == 2:  # a size seen again: worth a graph (a box seen once is not)
+            want = self._eager(plan, feeds)
+            plan.replay = self._checked_replay(plan, feeds, want)
+            return plan, want
+        return plan, None
 
     def _eager(self, plan: "_Plan", tensors: dict) -> list:
         env = {**plan.static, **tensors}
@@ -545,7 +548,9 @@ class TorchOnnxSession:
             raise InputError(f"missing inputs {missing}", file=self.path, field="model")
         with torch.inference_mode():
             tensors = {name: self._tensor(np.asarray(feeds[name])) for name in self.input_names}
-            plan = self._plan(tensors)
-            outputs = dict(zip(self.output_names, (plan.replay or partial(self._eager, plan))(tensors)))
+            plan, outputs = self._plan(tensors)
+            if outputs is None:
+                outputs = (plan.replay or partial(self._eager, plan))(tensors)
+            outputs = dict(zip(self.output_names, outputs))
             names = self.output_names if output_names is None else list(output_names)
             return [outputs[name].detach().cpu().numpy() for name in names]

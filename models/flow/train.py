@@ -63,10 +63,10 @@ __all__ = ["TrainFlowConfig", "train", "load_model", "endpoint_error", "sample_i
            "supervised_loss"]
 
 CHECKPOINT = "checkpoint.pt"
-#: ``TrainFlowConfig.initial_estimator`` values
-INITIAL_ESTIMATORS = ("dis", "corr")
 CONFIG = "config.json"
 METRICS = "metrics.jsonl"
+#: ``TrainFlowConfig.initial_estimator`` values
+INITIAL_ESTIMATORS = ("dis", "corr")
 
 
 

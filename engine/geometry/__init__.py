@@ -12,10 +12,11 @@ from engine.geometry.camera import (MAX_PIXEL_COORD, TINY_DEPTH, pixel_centers, 
 from engine.geometry.mpi import (Mpi, build_mpi, composite, disocclusion_mask, downsample_factor, downsample_flow,
                                  downsample_frame, plane_depths, plane_index, visibility)
 from engine.geometry.splat import (COVERAGE_THRESHOLD, DEFAULT_SHARPNESS, MIN_LOG_WEIGHT, SUBPIXEL_SNAP,
-                                   forward_warp_frame, forward_warp_mpi)
+                                   forward_warp_frame, forward_warp_moved_frame, forward_warp_mpi)
 
 __all__ = ["MAX_PIXEL_COORD", "TINY_DEPTH", "pixel_centers", "project", "relative_transform", "reproject",
            "seen_before", "unproject", "Mpi", "build_mpi", "composite", "disocclusion_mask", "downsample_factor",
            "downsample_flow",
            "downsample_frame", "plane_depths", "plane_index", "visibility", "COVERAGE_THRESHOLD",
-           "DEFAULT_SHARPNESS", "MIN_LOG_WEIGHT", "SUBPIXEL_SNAP", "forward_warp_frame", "forward_warp_mpi"]
+           "DEFAULT_SHARPNESS", "MIN_LOG_WEIGHT", "SUBPIXEL_SNAP", "forward_warp_frame", "forward_warp_moved_frame",
+           "forward_warp_mpi"]

@@ -214,6 +214,51 @@ def _pixel_point(u, v, d):
     return u * d, v * d, d, _F32(1.0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _land(u, v, d, a, i, m, half_inv, hp, wp, snap_scale, snap, max_coord_inv, tiny, base_out, fx_out, fy_out,
+          z_out, a_out, log_out):
+    """Pass 1 for one point: homogeneous pixel point (``u``, ``v``) at depth ``d`` (after its flow) with alpha
+    ``a``, reprojected by ``m`` (its 12 float32 entries in registers), written as point ``i`` of the outputs
+    (cleared first). Returns log(1 + z) of a landing finite point (also written to ``log_out``), else -1."""
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
+    base_out[i] = 0
+    a_out[i] = zero
+    px, py, pz, pw = _pixel_point(u, v, d)
+    hu = m[0] * px + m[1] * py + m[2] * pz + m[3] * pw
+    hv = m[4] * px + m[5] * py + m[6] * pz + m[7] * pw
+    hz = m[8] * px + m[9] * py + m[10] * pz + m[11] * pw
+    valid = hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny
+    if valid:
+        uo = hu / hz
+        vo = hv / hz
+        zo = hz / pw if pw > zero else _F32(np.inf)
+    else:
+        uo = zero
+        vo = zero
+        zo = zero
+    xc = min(max(uo - half, _F32(-2.0)), _F32(wp - 1))  # the clip of _bilinear_fraction
+    yc = min(max(vo - half, _F32(-2.0)), _F32(hp - 1))
+    left = math.floor(xc)
+    top = math.floor(yc)
+    fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
+    fy = min(max((yc - _F32(top) - snap) * snap_scale, zero), one)
+    x0 = int(left) + 1
+    y0 = int(top) + 1
+    fx_out[i] = fx
+    fy_out[i] = fy
+    z_out[i] = zo
+    if not (valid and 0 <= x0 <= wp - 2 and 0 <= y0 <= hp - 2):
+        return -1.0
+    a_out[i] = a
+    plane = _plane_of(one / (zo if valid else one), half_inv)
+    base_out[i] = (plane * hp + y0) * wp + x0
+    if a > zero and not math.isinf(zo):
+        log_z = math.log1p(np.float64(zo))
+        log_out[i] = log_z
+        return log_z
+    return -1.0
+
+
 @njit(cache=True, nogil=True)
 def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
                    tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
@@ -228,23 +273,20 @@ def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, sna
     """
     num_z, h, w = alpha.shape
     hp, wp = ho + 2, wo + 2
-    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
-    m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]  # in registers: the loop writes other arrays
-    m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
-    m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
-    x_max, y_max, edge_min = _F32(wo + 1), _F32(ho + 1), _F32(-2.0)  # the clip of _bilinear_fraction
+    half, zero = _F32(0.5), _F32(0.0)
+    entries = _matrix_entries(m)
     lo, hi = np.inf, 0.0
     for z_index in range(num_z):
         for y in range(row_start, row_stop):
             for x in range(w):
                 i = (z_index * h + y) * w + x
                 a = alpha[z_index, y, x]
-                base_out[i] = 0
-                a_out[i] = zero
-                fx_out[i] = zero
-                fy_out[i] = zero
-                z_out[i] = zero
                 if num_z > 1 and a == zero:  # empty MPI entries are never read again
+                    base_out[i] = 0
+                    a_out[i] = zero
+                    fx_out[i] = zero
+                    fy_out[i] = zero
+                    z_out[i] = zero
                     continue
                 u = _F32(x) + half
                 v = _F32(y) + half
@@ -253,41 +295,58 @@ def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, sna
                     u += flow[0, z_index, y, x]
                     v += flow[1, z_index, y, x]
                     d += flow[2, z_index, y, x]
-                px, py, pz, pw = _pixel_point(u, v, d)
-                hu = m00 * px + m01 * py + m02 * pz + m03 * pw
-                hv = m10 * px + m11 * py + m12 * pz + m13 * pw
-                hz = m20 * px + m21 * py + m22 * pz + m23 * pw
-                valid = hz > (abs(hu) + abs(hv)) * max_coord_inv + tiny
-                if valid:
-                    uo = hu / hz
-                    vo = hv / hz
-                    zo = hz / pw if pw > zero else _F32(np.inf)
-                else:
-                    uo = zero
-                    vo = zero
-                    zo = zero
-                xc = min(max(uo - half, edge_min), x_max)
-                yc = min(max(vo - half, edge_min), y_max)
-                left = math.floor(xc)
-                top = math.floor(yc)
-                fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
-                fy = min(max((yc - _F32(top) - snap) * snap_scale, zero), one)
-                x0 = int(left) + 1
-                y0 = int(top) + 1
-                fx_out[i] = fx
-                fy_out[i] = fy
-                z_out[i] = zo
-                if not (valid and 0 <= x0 <= wo and 0 <= y0 <= ho):
-                    continue
-                a_out[i] = a
-                plane = _plane_of(one / (zo if valid else one), half_inv)
-                base_out[i] = (plane * hp + y0) * wp + x0
-                if a > zero and not math.isinf(zo):
-                    log_z = math.log1p(np.float64(zo))
-                    log_out[i] = log_z
+                log_z = _land(u, v, d, a, i, entries, half_inv, hp, wp, snap_scale, snap, max_coord_inv, tiny,
+                              base_out, fx_out, fy_out, z_out, a_out, log_out)
+                if log_z >= 0.0:
                     lo = min(lo, log_z)
                     hi = max(hi, log_z)
     return lo, hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _matrix_entries(m):
+    """The top three rows of the 4x4 ``m`` as a tuple of 12 scalars (held in registers by the loops)."""
+    return (m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[1, 0], m[1, 1], m[1, 2], m[1, 3], m[2, 0], m[2, 1], m[2, 2],
+            m[2, 3])
+
+
+@njit(cache=True, nogil=True)
+def project_moved_frame(depth, velocity, moving, acceleration, has_acceleration, k, k_inv, step, m, snap_scale, snap,
+                        max_coord_inv, tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
+    """``project_points`` of a one-plane frame (``depth`` (H, W), alpha 1, output the frame's size) whose
+    ``moving`` pixels (flat indices, increasing) move by ``extrapolate_points``' flow, computed here as each is
+    reached: the same bits as ``extrapolate_points`` into a zero buffer, then ``project_points`` of it, without
+    the buffer (nothing to write, read or clear again). Returns (min, max) of log(1 + z) as ``project_points``
+    does, and the rows of ``moving`` these rows walked, [first, stop): calls on consecutive row ranges walk
+    consecutive rows, from 0 to len(moving), exactly when ``moving`` increases and lies in the frame."""
+    h, w = depth.shape
+    hp, wp = h + 2, w + 2
+    one, half = _F32(1.0), _F32(0.5)
+    entries = _matrix_entries(m)
+    no_planes = np.empty(0, np.float32)
+    scale = 0.5 * step * (step + 1.0)
+    first = np.searchsorted(moving, row_start * w)  # the first moving pixel of these rows
+    p = first
+    lo, hi = np.inf, 0.0
+    for y in range(row_start, row_stop):
+        for x in range(w):
+            i = y * w + x
+            u = _F32(x) + half
+            v = _F32(y) + half
+            d = depth[y, x]
+            if p < moving.shape[0] and moving[p] == i:
+                du, dv, dz = _moved_flow(depth, velocity, acceleration, has_acceleration, k, k_inv, step, scale, p,
+                                         x, y)
+                u += du
+                v += dv
+                d += dz
+                p += 1
+            log_z = _land(u, v, d, one, i, entries, no_planes, hp, wp, snap_scale, snap, max_coord_inv, tiny,
+                          base_out, fx_out, fy_out, z_out, a_out, log_out)
+            if log_z >= 0.0:
+                lo = min(lo, log_z)
+                hi = max(hi, log_z)
+    return lo, hi, first, p
 
 
 @njit(cache=True, nogil=True)
@@ -839,39 +898,44 @@ def velocity_change(depth, vectors, velocity, moving, k_inv, rot, trans, prev_de
             out[i, 2] = c2
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _moved_flow(depth, velocity, acceleration, has_acceleration, k, k_inv, step, scale, i, x, y):
+    """The float32 (du, dv, dz) flow of moving pixel (``x``, ``y``) (row ``i`` of ``acceleration``) ``step``
+    intervals ahead, ``scale`` = step (step + 1) / 2: ``extrapolate_points``' formula (NaN: it reaches the
+    camera plane)."""
+    u = x + 0.5
+    v = y + 0.5
+    z = np.float64(depth[y, x])
+    px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
+    py = z * (k_inv[1, 1] * v + k_inv[1, 2])
+    mx = step * np.float64(velocity[y, x, 0])
+    my = step * np.float64(velocity[y, x, 1])
+    mz = step * np.float64(velocity[y, x, 2])
+    if has_acceleration:
+        mx += scale * np.float64(acceleration[i, 0])
+        my += scale * np.float64(acceleration[i, 1])
+        mz += scale * np.float64(acceleration[i, 2])
+    nx = px + mx
+    ny = py + my
+    nz = z + mz
+    if nz > 1e-6 * z:
+        return (_F32((k[0, 0] * nx + k[0, 1] * ny) / nz + k[0, 2] - u), _F32(k[1, 1] * ny / nz + k[1, 2] - v),
+                _F32(nz - z))
+    return _F32(np.nan), _F32(np.nan), _F32(np.nan)
+
+
 @njit(cache=True, nogil=True)
 def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, k, k_inv, step, out):
     """``engine.geometry.reference.extrapolated_flow_reference`` compiled: writes the (du, dv, dz) flow of the
     ``moving`` pixels into ``out`` (H, W, 3) (other pixels are left as they are): P' = P + s V + s (s + 1) / 2 A,
-    NaN where P' reaches the camera plane."""
-    h, w = depth.shape
-    half = 0.5 * step * (step + 1.0)
+    NaN where P' reaches the camera plane (``_moved_flow``)."""
+    w = depth.shape[1]
+    scale = 0.5 * step * (step + 1.0)
     for i in range(moving.shape[0]):
         y = moving[i] // w
         x = moving[i] - y * w
-        u = x + 0.5
-        v = y + 0.5
-        z = np.float64(depth[y, x])
-        px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
-        py = z * (k_inv[1, 1] * v + k_inv[1, 2])
-        mx = step * np.float64(velocity[y, x, 0])
-        my = step * np.float64(velocity[y, x, 1])
-        mz = step * np.float64(velocity[y, x, 2])
-        if has_acceleration:
-            mx += half * np.float64(acceleration[i, 0])
-            my += half * np.float64(acceleration[i, 1])
-            mz += half * np.float64(acceleration[i, 2])
-        nx = px + mx
-        ny = py + my
-        nz = z + mz
-        if nz > 1e-6 * z:
-            out[y, x, 0] = (k[0, 0] * nx + k[0, 1] * ny) / nz + k[0, 2] - u
-            out[y, x, 1] = k[1, 1] * ny / nz + k[1, 2] - v
-            out[y, x, 2] = nz - z
-        else:
-            out[y, x, 0] = np.nan
-            out[y, x, 1] = np.nan
-            out[y, x, 2] = np.nan
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = _moved_flow(depth, velocity, acceleration, has_acceleration, k,
+                                                               k_inv, step, scale, i, x, y)
 
 
 @njit(cache=True, nogil=True)

@@ -60,6 +60,27 @@ MIN_POINTS_PER_THREAD = 1 << 16
 MIN_ROWS_PER_THREAD = 8
 
 
+def _pass_buffers(n: int) -> tuple[np.ndarray, ...]:
+    """Pass 1's per-point outputs for ``n`` points (this thread's ``SCRATCH``): base, fx, fy, z, a, log_z."""
+    base = SCRATCH.get("base", n, np.intp)
+    fx, fy, z, a = (SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
+    return base, fx, fy, z, a, SCRATCH.get("log_z", n)
+
+
+#: pass 1's constants after the matrix: the snap's scale and width, 1 / MAX_PIXEL_COORD and TINY_DEPTH
+_CONSTANTS = (np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
+              np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH))
+
+
+def _warp_matrix(k_src, t_src, k_dst, t_dst) -> np.ndarray:
+    return np.ascontiguousarray(reprojection_matrix(k_src, t_src, k_dst, t_dst).astype(np.float32))
+
+
+def _row_ranges(h: int, per_row: int) -> list[tuple[int, int]]:
+    """Pass 1's split of ``h`` source rows of ``per_row`` points over the kernel threads."""
+    return kernels.split_ranges(h, max(MIN_ROWS_PER_THREAD, -(-MIN_POINTS_PER_THREAD // max(1, per_row))))
+
+
 def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness,
                 flow_spans=None):
     """Passes 1 and 2 of the warp (``project_points``, ``splat_points``) for points with colour ``flat_color``
@@ -72,21 +93,23 @@ def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, 
     flow = np.zeros((3, 1, 1, 1), np.float32) if object_flow is None else np.ascontiguousarray(object_flow)
     if flow_spans is None:
         flow_spans = np.broadcast_to(np.array([0, w], np.int64), (h, 2))
-    matrix = np.ascontiguousarray(reprojection_matrix(k_src, t_src, k_dst, t_dst).astype(np.float32))
-    base = SCRATCH.get("base", n, np.intp)
-    fx, fy, z, a = (SCRATCH.get(name, n, np.float32) for name in ("fx", "fy", "z", "a"))
-    log_z = SCRATCH.get("log_z", n)
-    constants = (np.float32(1.0 / (1.0 - 2.0 * SUBPIXEL_SNAP)), np.float32(SUBPIXEL_SNAP),
-                 np.float32(1.0 / MAX_PIXEL_COORD), np.float32(TINY_DEPTH))
+    matrix = _warp_matrix(k_src, t_src, k_dst, t_dst)
+    buffers = _pass_buffers(n)
     # each pass split over threads (engine.geometry.kernels.run_ranges): pass 1 by source rows, pass 2 by points into
     # one padded sum volume per part, the normalisation by output rows (it adds the parts in order)
-    ranges = kernels.split_ranges(h, max(MIN_ROWS_PER_THREAD, -(-MIN_POINTS_PER_THREAD // max(1, num_z * w))))
     extents = kernels.run_ranges(lambda r0, r1: kernels.project_points(
-        depth, alpha, flow, object_flow is not None, flow_spans, matrix, half_inv, ho, wo, *constants, r0, r1, base, fx,
-        fy, z, a, log_z), ranges)
+        depth, alpha, flow, object_flow is not None, flow_spans, matrix, half_inv, ho, wo, *_CONSTANTS, r0, r1,
+        *buffers), _row_ranges(h, num_z * w))
+    return _splat_pass(flat_color, buffers, extents, num_z, out_size, sharpness)
+
+
+def _splat_pass(flat_color, buffers, extents, num_z: int, out_size, sharpness) -> np.ndarray:
+    """Pass 2 (``splat_points``) of pass 1's ``buffers`` and (min, max) log(1 + z) ``extents`` (one per
+    range): the per-thread padded sum volumes (P, Z * (ho + 2) * (wo + 2), 6)."""
+    base, fx, fy, z, a, log_z = buffers
     lo, hi = min(e[0] for e in extents), max(e[1] for e in extents)
-    hp, wp = ho + 2, wo + 2
-    ranges = kernels.split_ranges(n, MIN_POINTS_PER_THREAD)
+    hp, wp = out_size[0] + 2, out_size[1] + 2
+    ranges = kernels.split_ranges(base.size, MIN_POINTS_PER_THREAD)
     sums = SCRATCH.get("sums", len(ranges) * 6 * num_z * hp * wp).reshape(len(ranges), -1, 6)  # six sums a pixel
     kernels.run_ranges(lambda p0, p1: kernels.splat_points(
         flat_color, base, fx, fy, z, a, log_z, lo, hi, float(sharpness), wp, MIN_LOG_WEIGHT, SKY_WEIGHT, p0, p1,
@@ -120,6 +143,11 @@ def _warp_frame_unchecked(color, depth, k_src, t_src, k_dst, t_dst, object_flow,
     ones = np.broadcast_to(np.float32(1.0), (1, h, w))
     sums = _splat_sums(color.reshape(-1, 3).T, depth[None], ones, np.zeros(0, np.float32), k_src, t_src, k_dst,
                        t_dst, object_flow, (h, w), sharpness, flow_spans)
+    return _normalized_frame(sums, h, w)
+
+
+def _normalized_frame(sums, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``normalize_frame`` of a one-plane warp's sums: (colour (H, W, 3), depth (H, W), holes (H, W))."""
     out_color = np.empty((h, w, 3), dtype=np.float32)
     out_depth = np.empty((h, w), dtype=np.float32)
     holes = np.empty((h, w), dtype=bool)
@@ -213,3 +241,67 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
                                  checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
                                  checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,
                                  checked_sharpness(sharpness), _checked_spans(flow_spans, depth.shape))
+
+
+#: pass 1 of a moved frame: a moving pixel's extrapolation counted as this many pixels' projections when its rows
+#: are split over the threads (``_moved_rows``; any split gives the same bits)
+MOVED_POINT_COST = 1.0
+
+
+def _moved_rows(moving: np.ndarray, h: int, w: int) -> list[tuple[int, int]]:
+    """``_row_ranges`` of a frame's rows with each range's end moved so that the ranges hold even shares of the
+    pixels plus ``MOVED_POINT_COST`` per moving pixel (flat indices, increasing)."""
+    ranges = _row_ranges(h, w)
+    if len(ranges) == 1:
+        return ranges
+    firsts = np.searchsorted(moving, np.arange(h + 1, dtype=np.int64) * w)  # each row's first moving pixel
+    cost = w * np.arange(h + 1) + MOVED_POINT_COST * firsts  # the rows before each row
+    edges = np.searchsorted(cost, cost[-1] * np.arange(1, len(ranges)) / len(ranges))
+    edges = [0] + [int(e) for e in np.clip(edges, 1, h - 1)] + [h]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def forward_warp_moved_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, T_src: np.ndarray,
+                             K_dst: np.ndarray, T_dst: np.ndarray, velocity: np.ndarray, moving: np.ndarray,
+                             step: float, acceleration: Optional[np.ndarray] = None,
+                             sharpness: float = DEFAULT_SHARPNESS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``forward_warp_frame`` of an RGB-D frame whose ``moving`` pixels move by their extrapolated motion
+    (``engine.geometry.motion.extrapolated_flow(depth, velocity, K_src, step, moving, acceleration)``), that flow
+    computed in the warp's first pass as each moving pixel is reached (``kernels.project_moved_frame``): no
+    (H, W, 3) flow is written, read or cleared again. The same bits as ``forward_warp_frame`` of that flow.
+
+    Args:
+        color, depth, K_src, T_src, K_dst, T_dst, sharpness: as ``forward_warp_frame``'s.
+        velocity: (H, W, 3) scene units per frame interval in the source camera's axes (read at ``moving`` only).
+        moving: (M,) flat indices of the moving pixels, strictly increasing.
+        step: frame intervals ahead (``P' = P + s V + s (s + 1) / 2 A``, s = ``step``).
+        acceleration: (M, 3) the moving pixels' change of velocity per interval, or None (constant velocity).
+
+    Returns:
+        color (H, W, 3), depth (H, W), holes (H, W), as ``forward_warp_frame``.
+    """
+    sizes: dict = {}
+    depth = np.ascontiguousarray(checked_array(depth, "depth", ("H", "W"), sizes))
+    color = np.ascontiguousarray(checked_array(color, "color", ("H", "W", 3), sizes))
+    velocity = np.ascontiguousarray(checked_array(velocity, "velocity", ("H", "W", 3), sizes))
+    moving = np.ascontiguousarray(moving, dtype=np.int64)
+    if moving.ndim != 1:
+        raise InputError(f"must be (M,) flat pixel indices, got shape {moving.shape}", field="moving")
+    has = acceleration is not None
+    accel = (np.ascontiguousarray(checked_array(acceleration, "acceleration", (moving.size, 3), {})) if has
+             else np.zeros((1, 3), np.float32))
+    k_src = checked_matrix(K_src, "K_src", 3)
+    matrix = _warp_matrix(k_src, checked_matrix(T_src, "T_src", 4), checked_matrix(K_dst, "K_dst", 3),
+                          checked_matrix(T_dst, "T_dst", 4))
+    sharpness = checked_sharpness(sharpness)
+    h, w = depth.shape
+    k_inv = np.linalg.inv(k_src)
+    buffers = _pass_buffers(h * w)
+    ranges = _moved_rows(moving, h, w)
+    extents = kernels.run_ranges(lambda r0, r1: kernels.project_moved_frame(
+        depth, velocity, moving, accel, has, k_src, k_inv, float(step), matrix, *_CONSTANTS, r0, r1, *buffers), ranges)
+    walked = [0] + [e[3] for e in extents]  # each range walks on where the one before stopped, to the last point
+    if [e[2] for e in extents] != walked[:-1] or walked[-1] != moving.size:
+        raise InputError(f"must be strictly increasing flat indices of the {h}x{w} frame", field="moving")
+    sums = _splat_pass(color.reshape(-1, 3).T, buffers, extents, 1, (h, w), sharpness)
+    return _normalized_frame(sums, h, w)

@@ -13,7 +13,6 @@ Conventions are those of ``engine/core/frames.py`` (OpenCV cameras, planar depth
 """
 from __future__ import annotations
 
-import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -26,7 +25,6 @@ from engine.core.errors import InputError
 from engine.core.frames import Camera, Frame, rigid_inverse
 from engine.geometry.encoding import FRAME_ENCODINGS
 from engine.geometry.holefill import fill_holes
-from engine.geometry.motion import clear_flow, extrapolated_flow, flow_spans
 
 __all__ = ["MAX_EXTRAPOLATION", "Target", "Prediction", "PreparedState", "Timer", "Predictor", "warp_and_fill",
            "extrapolation_factor", "true_object_flow", "ResidentFrame", "PointMotion", "CpuFrames", "warp_fill_depth"]
@@ -189,9 +187,6 @@ class CpuFrames:
 
     name = "cpu"
 
-    def __init__(self) -> None:
-        self._local = threading.local()
-
     def resident(self, frame: Frame, timer: Timer) -> ResidentFrame:
         return ResidentFrame(frame)
 
@@ -207,26 +202,19 @@ class CpuFrames:
     def warp_and_fill(self, source: ResidentFrame, target: Target, timer: Timer, flow=None,
                       flow_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """``warp_and_fill`` of ``source.frame`` moved by ``flow_scale * flow``, or for a ``PointMotion`` by
-        its motion extrapolated ``flow_scale`` intervals ahead (stage ``motion``); stages ``warp``, ``fill``."""
+        its motion extrapolated ``flow_scale`` intervals ahead (``geometry.forward_warp_moved_frame``: the
+        extrapolation runs in the warp, stage ``warp``); stages ``warp``, ``fill``."""
         if not isinstance(flow, PointMotion):
             if flow is not None and flow_scale != 1.0:
                 flow = flow_scale * flow
             return warp_and_fill(source.frame, target, timer, flow)
         frame = source.frame
-        with timer("motion"):
-            # a zero buffer kept per thread and size (a fresh one costs a page fault per 4 KiB on first touch),
-            # channel-first as the warp reads it (``forward_warp_frame`` takes its (H, W, 3) view without a copy)
-            buffers = self._local.__dict__.setdefault("flow", {})
-            buffer = buffers.get(frame.depth.shape)
-            if buffer is None:
-                buffer = buffers[frame.depth.shape] = np.zeros((3,) + frame.depth.shape, np.float32)
-            moved = extrapolated_flow(frame.depth, flow.velocity, frame.camera.intrinsics, flow_scale, flow.moving,
-                                      flow.acceleration, out=np.moveaxis(buffer, 0, -1))
-            spans = flow_spans(flow.moving, frame.depth.shape)  # the warp reads the flow in these columns only
-        try:
-            return warp_and_fill(frame, target, timer, moved, spans)
-        finally:
-            clear_flow(np.moveaxis(buffer, 0, -1), flow.moving)  # zero again for the next render
+        src, dst = frame.camera, target.camera
+        with timer("warp"):  # the motion extrapolated point by point in the warp's first pass: no flow buffer
+            color, depth, holes = geometry.forward_warp_moved_frame(
+                frame.color, frame.depth, src.intrinsics, src.world_to_camera, dst.intrinsics, dst.world_to_camera,
+                flow.velocity, flow.moving, flow_scale, flow.acceleration)
+        return _filled(frame, timer, color, depth, holes)[::2]
 
 
 def warp_and_fill(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
@@ -248,6 +236,12 @@ def warp_fill_depth(frame: Frame, target: Target, timer: Timer, flow: Optional[n
         color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera,
                                                           flow, flow_spans=flow_spans)
+    return _filled(frame, timer, color, depth, holes)
+
+
+def _filled(frame: Frame, timer: Timer, color: np.ndarray, depth: np.ndarray,
+            holes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The warp of ``frame`` hole-filled (stage ``fill``): (colour, depth, holes)."""
     with timer("fill"):
         color, depth = fill_holes(color, depth, holes, frame.color)
     return color, depth, holes

@@ -369,3 +369,58 @@ def test_the_warp_reads_the_flow_in_the_moving_pixels_row_spans_only_and_gets_th
                               geometry.forward_warp_frame(*args)[0])
     with pytest.raises(InputError, match="flow_spans"):
         geometry.forward_warp_frame(*args, flow_spans=spans[1:])
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_warp_that_extrapolates_the_moving_pixels_itself_gives_the_warp_of_their_flows_bits(monkeypatch,
+                                                                                               threads):
+    # forward_warp_moved_frame against extrapolated_flow + forward_warp_frame: constant velocity and a parabola,
+    # steps ahead and back, points sent behind the camera (NaN flow, dropped), one range and three (pass 1 cut
+    # by rows weighted by the moving pixels, pass 2 by points as the plain warp cuts it: the same bits)
+    from engine.geometry import splat
+    monkeypatch.setenv(kernels.THREADS_ENV, str(threads))
+    monkeypatch.setattr(splat, "MIN_POINTS_PER_THREAD", 64)
+    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
+    velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
+    rng = np.random.default_rng(10)
+    velocity[np.unravel_index(moving[::7], (H, W))] = [0.0, 0.0, -50.0]  # these reach the camera plane
+    acceleration = rng.normal(0, 0.05, (moving.size, 3)).astype(np.float32)
+    color = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    target = _camera(0.01, (0.02, 0.0, 0.0))
+    args = (color, depth, K, now.world_to_camera, K, target.world_to_camera)
+    assert len(splat._moved_rows(moving, H, W)) == threads
+    for step, accel in ((0.5, None), (1.5, acceleration), (-1.0, acceleration), (3.0, None)):
+        flow = extrapolated_flow(depth, velocity, K, step, moving, accel)
+        assert np.isnan(flow).any() == (step > 0)
+        plain = geometry.forward_warp_frame(*args, flow, flow_spans=flow_spans(moving, (H, W)))
+        moved = geometry.forward_warp_moved_frame(*args, velocity, moving, step, accel)
+        for a, b in zip(moved, plain):
+            np.testing.assert_array_equal(a, b)
+        assert not np.array_equal(moved[0], geometry.forward_warp_frame(*args)[0])
+    # no moving pixel: the plain warp
+    for a, b in zip(geometry.forward_warp_moved_frame(*args, velocity, moving[:0], 1.0), geometry.forward_warp_frame(*args)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_moved_warps_rows_hold_even_shares_of_pixels_and_moving_pixels(monkeypatch):
+    from engine.geometry import splat
+    monkeypatch.setenv(kernels.THREADS_ENV, "2")
+    monkeypatch.setattr(splat, "MIN_POINTS_PER_THREAD", 64)
+    top = np.arange(8 * W)  # every pixel of the first 8 rows moves
+    assert splat._moved_rows(top[:0], H, W) == [(0, H // 2), (H // 2, H)]
+    ranges = splat._moved_rows(top, H, W)  # (32 + 8) rows' worth: 20 each, the first 8 rows count twice
+    assert ranges == [(0, 12), (12, H)]
+
+
+def test_the_moved_warp_refuses_moving_pixels_out_of_order_or_outside_the_frame():
+    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
+    velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
+    color = np.zeros((H, W, 3), np.float32)
+    args = (color, depth, K, now.world_to_camera, K, now.world_to_camera, velocity)
+    for bad in (moving[::-1], np.repeat(moving, 2), np.append(moving, H * W), np.insert(moving, 0, -1)):
+        with pytest.raises(InputError, match="moving"):
+            geometry.forward_warp_moved_frame(*args, bad, 1.0)
+    with pytest.raises(InputError, match="acceleration"):
+        geometry.forward_warp_moved_frame(*args, moving, 1.0, np.zeros((moving.size + 1, 3), np.float32))
+    with pytest.raises(InputError, match="velocity"):
+        geometry.forward_warp_moved_frame(*args[:-1], velocity[:, :-1], moving, 1.0)

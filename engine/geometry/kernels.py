@@ -215,14 +215,11 @@ def _pixel_point(u, v, d):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _land(u, v, d, a, i, m, half_inv, hp, wp, snap_scale, snap, max_coord_inv, tiny, base_out, fx_out, fy_out,
-          z_out, a_out, log_out):
-    """Pass 1 for one point: homogeneous pixel point (``u``, ``v``) at depth ``d`` (after its flow) with alpha
-    ``a``, reprojected by ``m`` (its 12 float32 entries in registers), written as point ``i`` of the outputs
-    (cleared first). Returns log(1 + z) of a landing finite point (also written to ``log_out``), else -1."""
+def _landing(u, v, d, m, x_max, y_max, snap_scale, snap, max_coord_inv, tiny):
+    """Pass 1's arithmetic for one point: pixel (``u``, ``v``) at depth ``d`` (after its flow) reprojected by
+    ``m`` (``_matrix_entries``): (in front of the camera, padded tap x0, y0, bilinear fractions fx, fy, depth z).
+    Scalars only (an array argument costs a reference count per point)."""
     one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
-    base_out[i] = 0
-    a_out[i] = zero
     px, py, pz, pw = _pixel_point(u, v, d)
     hu = m[0] * px + m[1] * py + m[2] * pz + m[3] * pw
     hv = m[4] * px + m[5] * py + m[6] * pz + m[7] * pw
@@ -236,27 +233,13 @@ def _land(u, v, d, a, i, m, half_inv, hp, wp, snap_scale, snap, max_coord_inv, t
         uo = zero
         vo = zero
         zo = zero
-    xc = min(max(uo - half, _F32(-2.0)), _F32(wp - 1))  # the clip of _bilinear_fraction
-    yc = min(max(vo - half, _F32(-2.0)), _F32(hp - 1))
+    xc = min(max(uo - half, _F32(-2.0)), x_max)  # the clip of _bilinear_fraction
+    yc = min(max(vo - half, _F32(-2.0)), y_max)
     left = math.floor(xc)
     top = math.floor(yc)
     fx = min(max((xc - _F32(left) - snap) * snap_scale, zero), one)
     fy = min(max((yc - _F32(top) - snap) * snap_scale, zero), one)
-    x0 = int(left) + 1
-    y0 = int(top) + 1
-    fx_out[i] = fx
-    fy_out[i] = fy
-    z_out[i] = zo
-    if not (valid and 0 <= x0 <= wp - 2 and 0 <= y0 <= hp - 2):
-        return -1.0
-    a_out[i] = a
-    plane = _plane_of(one / (zo if valid else one), half_inv)
-    base_out[i] = (plane * hp + y0) * wp + x0
-    if a > zero and not math.isinf(zo):
-        log_z = math.log1p(np.float64(zo))
-        log_out[i] = log_z
-        return log_z
-    return -1.0
+    return valid, int(left) + 1, int(top) + 1, fx, fy, zo
 
 
 @njit(cache=True, nogil=True)
@@ -273,20 +256,21 @@ def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, sna
     """
     num_z, h, w = alpha.shape
     hp, wp = ho + 2, wo + 2
-    half, zero = _F32(0.5), _F32(0.0)
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
     entries = _matrix_entries(m)
+    x_max, y_max = _F32(wo + 1), _F32(ho + 1)
     lo, hi = np.inf, 0.0
     for z_index in range(num_z):
         for y in range(row_start, row_stop):
             for x in range(w):
                 i = (z_index * h + y) * w + x
                 a = alpha[z_index, y, x]
+                base_out[i] = 0
+                a_out[i] = zero
+                fx_out[i] = zero
+                fy_out[i] = zero
+                z_out[i] = zero
                 if num_z > 1 and a == zero:  # empty MPI entries are never read again
-                    base_out[i] = 0
-                    a_out[i] = zero
-                    fx_out[i] = zero
-                    fy_out[i] = zero
-                    z_out[i] = zero
                     continue
                 u = _F32(x) + half
                 v = _F32(y) + half
@@ -295,9 +279,19 @@ def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, sna
                     u += flow[0, z_index, y, x]
                     v += flow[1, z_index, y, x]
                     d += flow[2, z_index, y, x]
-                log_z = _land(u, v, d, a, i, entries, half_inv, hp, wp, snap_scale, snap, max_coord_inv, tiny,
-                              base_out, fx_out, fy_out, z_out, a_out, log_out)
-                if log_z >= 0.0:
+                valid, x0, y0, fx, fy, zo = _landing(u, v, d, entries, x_max, y_max, snap_scale, snap,
+                                                     max_coord_inv, tiny)
+                fx_out[i] = fx
+                fy_out[i] = fy
+                z_out[i] = zo
+                if not (valid and 0 <= x0 <= wo and 0 <= y0 <= ho):
+                    continue
+                a_out[i] = a
+                plane = _plane_of(one / (zo if valid else one), half_inv)
+                base_out[i] = (plane * hp + y0) * wp + x0
+                if a > zero and not math.isinf(zo):
+                    log_z = math.log1p(np.float64(zo))
+                    log_out[i] = log_z
                     lo = min(lo, log_z)
                     hi = max(hi, log_z)
     return lo, hi
@@ -320,10 +314,11 @@ def project_moved_frame(depth, velocity, moving, acceleration, has_acceleration,
     does, and the rows of ``moving`` these rows walked, [first, stop): calls on consecutive row ranges walk
     consecutive rows, from 0 to len(moving), exactly when ``moving`` increases and lies in the frame."""
     h, w = depth.shape
-    hp, wp = h + 2, w + 2
-    one, half = _F32(1.0), _F32(0.5)
+    wp = w + 2
+    one, half, zero = _F32(1.0), _F32(0.5), _F32(0.0)
     entries = _matrix_entries(m)
-    no_planes = np.empty(0, np.float32)
+    kk, ki = _camera_entries(k, k_inv)
+    x_max, y_max = _F32(w + 1), _F32(h + 1)
     scale = 0.5 * step * (step + 1.0)
     first = np.searchsorted(moving, row_start * w)  # the first moving pixel of these rows
     p = first
@@ -335,15 +330,27 @@ def project_moved_frame(depth, velocity, moving, acceleration, has_acceleration,
             v = _F32(y) + half
             d = depth[y, x]
             if p < moving.shape[0] and moving[p] == i:
-                du, dv, dz = _moved_flow(depth, velocity, acceleration, has_acceleration, k, k_inv, step, scale, p,
-                                         x, y)
+                vel = (velocity[y, x, 0], velocity[y, x, 1], velocity[y, x, 2])
+                acc = (acceleration[p, 0], acceleration[p, 1], acceleration[p, 2]) if has_acceleration else vel
+                du, dv, dz = _moved_flow(x, y, np.float64(d), vel, acc, has_acceleration, kk, ki, step, scale)
                 u += du
                 v += dv
                 d += dz
                 p += 1
-            log_z = _land(u, v, d, one, i, entries, no_planes, hp, wp, snap_scale, snap, max_coord_inv, tiny,
-                          base_out, fx_out, fy_out, z_out, a_out, log_out)
-            if log_z >= 0.0:
+            valid, x0, y0, fx, fy, zo = _landing(u, v, d, entries, x_max, y_max, snap_scale, snap, max_coord_inv,
+                                                 tiny)
+            fx_out[i] = fx
+            fy_out[i] = fy
+            z_out[i] = zo
+            base_out[i] = 0
+            a_out[i] = zero
+            if not (valid and 0 <= x0 <= w and 0 <= y0 <= h):
+                continue
+            a_out[i] = one
+            base_out[i] = y0 * wp + x0  # the one plane
+            if not math.isinf(zo):
+                log_z = math.log1p(np.float64(zo))
+                log_out[i] = log_z
                 lo = min(lo, log_z)
                 hi = max(hi, log_z)
     return lo, hi, first, p
@@ -899,28 +906,34 @@ def velocity_change(depth, vectors, velocity, moving, k_inv, rot, trans, prev_de
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _moved_flow(depth, velocity, acceleration, has_acceleration, k, k_inv, step, scale, i, x, y):
-    """The float32 (du, dv, dz) flow of moving pixel (``x``, ``y``) (row ``i`` of ``acceleration``) ``step``
-    intervals ahead, ``scale`` = step (step + 1) / 2: ``extrapolate_points``' formula (NaN: it reaches the
-    camera plane)."""
+def _camera_entries(k, k_inv):
+    """The entries of the intrinsics ``k`` and their inverse that ``_moved_flow`` reads, as scalars."""
+    return (k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]), (k_inv[0, 0], k_inv[0, 1], k_inv[0, 2], k_inv[1, 1],
+                                                           k_inv[1, 2])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _moved_flow(x, y, z, velocity, acceleration, has_acceleration, k, k_inv, step, scale):
+    """The float32 (du, dv, dz) flow of pixel (``x``, ``y``) at depth ``z`` (float64) moved ``step`` intervals
+    ahead by its ``velocity`` and ``acceleration`` (3-tuples of float32), ``scale`` = step (step + 1) / 2, ``k``
+    and ``k_inv`` as ``_camera_entries`` gives them: ``extrapolate_points``' formula (NaN: it reaches the
+    camera plane; ``acceleration`` is not read without ``has_acceleration``). Scalars only (an array argument costs a reference count per point)."""
     u = x + 0.5
     v = y + 0.5
-    z = np.float64(depth[y, x])
-    px = z * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2])
-    py = z * (k_inv[1, 1] * v + k_inv[1, 2])
-    mx = step * np.float64(velocity[y, x, 0])
-    my = step * np.float64(velocity[y, x, 1])
-    mz = step * np.float64(velocity[y, x, 2])
+    px = z * (k_inv[0] * u + k_inv[1] * v + k_inv[2])
+    py = z * (k_inv[3] * v + k_inv[4])
+    mx = step * np.float64(velocity[0])
+    my = step * np.float64(velocity[1])
+    mz = step * np.float64(velocity[2])
     if has_acceleration:
-        mx += scale * np.float64(acceleration[i, 0])
-        my += scale * np.float64(acceleration[i, 1])
-        mz += scale * np.float64(acceleration[i, 2])
+        mx += scale * np.float64(acceleration[0])
+        my += scale * np.float64(acceleration[1])
+        mz += scale * np.float64(acceleration[2])
     nx = px + mx
     ny = py + my
     nz = z + mz
     if nz > 1e-6 * z:
-        return (_F32((k[0, 0] * nx + k[0, 1] * ny) / nz + k[0, 2] - u), _F32(k[1, 1] * ny / nz + k[1, 2] - v),
-                _F32(nz - z))
+        return _F32((k[0] * nx + k[1] * ny) / nz + k[2] - u), _F32(k[3] * ny / nz + k[4] - v), _F32(nz - z)
     return _F32(np.nan), _F32(np.nan), _F32(np.nan)
 
 
@@ -931,11 +944,14 @@ def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, 
     NaN where P' reaches the camera plane (``_moved_flow``)."""
     w = depth.shape[1]
     scale = 0.5 * step * (step + 1.0)
+    kk, ki = _camera_entries(k, k_inv)
     for i in range(moving.shape[0]):
         y = moving[i] // w
         x = moving[i] - y * w
-        out[y, x, 0], out[y, x, 1], out[y, x, 2] = _moved_flow(depth, velocity, acceleration, has_acceleration, k,
-                                                               k_inv, step, scale, i, x, y)
+        vel = (velocity[y, x, 0], velocity[y, x, 1], velocity[y, x, 2])
+        acc = (acceleration[i, 0], acceleration[i, 1], acceleration[i, 2]) if has_acceleration else vel
+        out[y, x, 0], out[y, x, 1], out[y, x, 2] = _moved_flow(x, y, np.float64(depth[y, x]), vel, acc,
+                                                               has_acceleration, kk, ki, step, scale)
 
 
 @njit(cache=True, nogil=True)

@@ -40,7 +40,7 @@ import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 from numba import njit
@@ -54,6 +54,7 @@ _F32 = np.float32
 THREADS_ENV = "INTERLEAVE_KERNEL_THREADS"
 _POOL: dict = {}
 _IN_WORKER = threading.local()
+T = TypeVar("T")
 
 
 def thread_count() -> int:
@@ -116,14 +117,39 @@ def run_ranges(fn: Callable[[int, int], object], ranges: list[tuple[int, int]]) 
     (the kernels release the GIL, so they run in parallel); results in range order."""
     if len(ranges) == 1:
         return [fn(*ranges[0])]
-    workers = len(ranges) - 1
+    pool = _pool(len(ranges) - 1)
+    futures = [pool.submit(fn, *r) for r in ranges[1:]]
+    first = fn(*ranges[0])
+    return [first] + [f.result() for f in futures]
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The shared pool of ``workers`` kernel threads (made on first use)."""
     pool = _POOL.get(workers)
     if pool is None:
         pool = _POOL[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="interleave-kernel",
                                                    initializer=_mark_worker)
-    futures = [pool.submit(fn, *r) for r in ranges[1:]]
-    first = fn(*ranges[0])
-    return [first] + [f.result() for f in futures]
+    return pool
+
+
+def run_beside(fn: Callable[[], T]) -> Callable[[], T]:
+    """Start ``fn()`` on a thread of the kernel pool that ``run_ranges`` uses with all ``thread_count()`` threads,
+    while the calling thread goes on with other work (a serial step that would leave the other cores idle):
+    returns a function that waits for ``fn``'s result and returns it (raising its error). ``fn`` runs its own
+    split kernels as one range there, in order after what was started before it, and must not read what the
+    calling thread writes meanwhile (then the results do not depend on the timing). With one kernel thread, or
+    from a worker, ``fn`` runs at once on the calling thread."""
+    workers = thread_count() - 1
+    if workers < 1 or getattr(_IN_WORKER, "active", False):
+        result = fn()
+        return lambda: result
+    return _pool(workers).submit(fn).result
+
+
+@njit(cache=True, nogil=True)
+def fill_zeros(out):
+    """``out`` (1-D, contiguous) set to 0, without the GIL (a memset that ``run_beside`` can run)."""
+    out[:] = 0
 
 
 def _mark_worker() -> None:

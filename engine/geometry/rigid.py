@@ -1543,18 +1543,27 @@ def apply_parts_reference(now: np.ndarray, speed: np.ndarray, depth: np.ndarray,
 def kept_part_motion(shape: tuple[int, int], moving: np.ndarray, now: np.ndarray, speed: np.ndarray,
                      depth: np.ndarray, labels: np.ndarray, count: int, paths: PartPaths, focal: float,
                      limit: float, acceleration: Optional[np.ndarray], keep: np.ndarray,
-                     change: Optional[tuple] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     change: Optional[tuple] = None,
+                     out: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``apply_parts`` of the moving pixels ``moving`` (flat indices into ``shape``), keeping those whose region
     is kept (``keep`` (count + parts,) bool): (velocity (H, W, 3) float32, 0 elsewhere, the kept pixels
     (N,), their acceleration (N, 3) float32), in one pass. With ``change`` (``motion.velocity_change_args``)
     in place of ``acceleration``, the change of velocity is computed there for the kept pixels that keep their
     own motion only (the others take their part's path or the camera-only warp): ``velocity_change``'s rows of
-    those pixels. Compiled; ``kept_part_motion_reference`` is its numpy oracle."""
+    those pixels. ``out``: an all-zero (H, W, 3) float32 array (contiguous) the velocity is written into and
+    returned as, in place of a new one (a caller can zero it beside other work). Compiled;
+    ``kept_part_motion_reference`` is its numpy oracle."""
     h, w = shape
     starts, rotations, translations, table = _part_tables(paths, count)
     has_acceleration = acceleration is not None
     acceleration = np.zeros((1, 3), np.float32) if acceleration is None else acceleration
-    velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
+    if out is None:
+        velocity = np.zeros((h, w, 3), np.float32)  # pages without moving pixels stay untouched
+    elif out.shape != (h, w, 3) or out.dtype != np.float32 or not (out.flags.c_contiguous and out.flags.writeable):
+        raise InputError(f"must be a writeable contiguous float32 ({h}, {w}, 3) array, got {out.dtype} {out.shape}",
+                         field="out")
+    else:
+        velocity = out
     moving_out, acceleration_out = np.empty(len(moving), np.int64), np.empty((len(moving), 3), np.float32)
     own_rows = np.empty(len(moving) if change is not None else 0, np.int64)
     args = (np.ascontiguousarray(now, np.float64), np.ascontiguousarray(speed, np.float64),

@@ -38,6 +38,7 @@ import numpy as np
 
 from engine.core.config import option
 from engine.core.errors import InputError
+from engine.geometry import kernels
 from engine.geometry.rigid import (PartPaths, apply_parts, find_parts, hindcast_keeps, kept_part_motion,
                                    motion_components, moving_points, part_paths, previous_positions, refined_before)
 from engine.geometry.motion import (DEFAULT_DEPTH_BAND, DEFAULT_STATIC_TOLERANCE, extrapolated_flow, scene_velocity,
@@ -237,17 +238,24 @@ class Mvec(Predictor):
         with timer("rigid.parts"):
             now_s, then_s, scale_s = now[sample], now[sample] - speed[sample], k[0, 0] / z[sample]
             relative = older.camera.world_to_camera @ newest.camera.camera_to_world
-            first = history[-3]
-            earlier, valid = previous_positions(newest.depth, vectors, moving[sample], then_s, relative, older.depth,
-                                                before[0], before[1], band=cfg.depth_band,
-                                                first=(first.depth, first.camera.intrinsics,
-                                                       first.camera.world_to_camera @ newest.camera.camera_to_world))
-            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+            first = (history[-3].depth, history[-3].camera.intrinsics,
+                     history[-3].camera.world_to_camera @ newest.camera.camera_to_world)
+            # serial steps, two at a time: the sample's positions at n-2k, then the zeroing of pass ``rigid``'s
+            # velocity, on a kernel thread (``run_beside``), while this thread fits the parts (they read the same
+            # inputs and write their own outputs: the same bits)
+            earlier_valid = kernels.run_beside(lambda: previous_positions(
+                newest.depth, vectors, moving[sample], then_s, relative, older.depth, before[0], before[1],
+                band=cfg.depth_band, first=first))
+            out = np.empty((h, w, 3), np.float32)
+            zeroed = kernels.run_beside(lambda: kernels.fill_zeros(out.reshape(-1)))
             paths = PartPaths.stack([], [])
             if cfg.extrapolation == "rigid":
                 fitted = refined_before(then_s, vectors, moving[sample], relative, older.depth, older.camera.intrinsics)
                 table = find_parts(labels[sample], count, now_s, fitted, scale_s, threshold=cfg.rigid_threshold,
                                    min_points=max(8, 32 // stride ** 2))
+            earlier, valid = earlier_valid()
+            predicted = 2.0 * then_s - earlier  # the interval before, extrapolated: constant velocity
+            if cfg.extrapolation == "rigid":
                 # a part turning faster than MAX_TURN keeps its lines (faster turns alias); the others take their path
                 # only where it, continued from the interval before, explained the last interval at least as well as
                 # its points' own lines did (else: a wobble, a deformation, or too few points seen at n-2k to tell)
@@ -265,8 +273,9 @@ class Mvec(Predictor):
                                             limit)
                 keep = hindcast_keeps(regions, count + data.parts, now_s, then_s, predicted, valid, k,
                                       ratio=cfg.fallback_ratio)
+            zeroed()
             velocity, moving, acceleration = kept_part_motion((h, w), moving, now, speed, z, labels, count, paths,
-                                                              k[0, 0], limit, None, keep, change)
+                                                              k[0, 0], limit, None, keep, change, out)
             data.held = int(data.moving.size - moving.size)
         return PointMotion(velocity, moving, acceleration if data.parts or change is not None else None)
 

@@ -141,6 +141,32 @@ def test_split_ranges_and_thread_setting(monkeypatch):
         kernels.thread_count()
 
 
+def test_run_beside_runs_a_step_on_a_kernel_thread_and_hands_back_its_result_or_error(monkeypatch):
+    import threading
+    from engine.geometry import kernels
+    monkeypatch.setenv(kernels.THREADS_ENV, "2")
+    started = threading.Event()
+
+    def side():  # waits until the calling thread has gone on: they run at the same time
+        assert started.wait(10)
+        return threading.current_thread().name, kernels.split_ranges(100, 10)
+
+    result = kernels.run_beside(side)
+    started.set()
+    name, ranges = result()
+    assert name.startswith("interleave-kernel") and ranges == [(0, 100)]  # its split kernels run whole there
+    # started in order: a zeroing queued behind a slower step, both beside the calling thread
+    out = np.ones(1000, np.float32)
+    first, zeroed = kernels.run_beside(lambda: out.sum()), kernels.run_beside(lambda: kernels.fill_zeros(out))
+    zeroed()
+    assert first() == 1000 and not out.any()
+    failed = kernels.run_beside(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        failed()
+    monkeypatch.setenv(kernels.THREADS_ENV, "1")  # one thread: at once, on the calling thread
+    assert kernels.run_beside(lambda: threading.current_thread().name)() == threading.current_thread().name
+
+
 def test_warp_kernel_hard_cases_equal_the_reference():
     """Points behind the camera, far off screen, huge and tiny depths, sky only, a box-sized output with
     other intrinsics, sharpness 0 (plain average), empty planes and an all-empty MPI."""

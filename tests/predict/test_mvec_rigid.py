@@ -737,6 +737,14 @@ def test_apply_parts_and_kept_part_motion_match_their_numpy_references(point_spl
     got = rg.kept_part_motion(*args, change)
     for a, b in zip(got, rg.kept_part_motion_reference(*args, change)):
         np.testing.assert_array_equal(a, b)
+    out = np.zeros(SIZE + (3,), np.float32)  # a zero array of the caller's: written in place, the same result
+    into = rg.kept_part_motion(*args, change, out)
+    assert into[0] is out
+    for a, b in zip(into, got):
+        np.testing.assert_array_equal(a, b)
+    for bad in (np.zeros(SIZE + (3,)), np.zeros((3,) + SIZE, np.float32).transpose(1, 2, 0), out[:-1]):
+        with pytest.raises(InputError, match="out"):
+            rg.kept_part_motion(*args, change, bad)
     own = np.isin(got[1], moving[labels == 1])  # group 1: its part explains none of them
     assert own.any() and not np.isin(got[1], moving[labels == 2]).any()
     np.testing.assert_array_equal(got[2][own], rows[np.isin(moving, got[1][own])])

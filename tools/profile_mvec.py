@@ -13,9 +13,9 @@ time); the CPU time of the calling thread alone and its ratio (``main``: the ser
 thread's share of the split kernels, what a quiet machine with a core per kernel thread waits for when the
 shares are even; steady under load); and each pass's wall time: ``prepare:<stage>`` (the preparation's stages,
 divided over the predicted frames; ``rigid.groups``, ``rigid.parts`` and ``rigid.keep`` are the steps of
-``rigid``) and ``render:<stage>`` (``motion``: the extrapolated flow; ``warp``, ``fill``). Pairs without frame
-n-2k (the first of each sequence) have no ``acceleration`` or ``rigid`` stage; a pass's median counts them as
-0 ms.
+``rigid``) and ``render:<stage>`` (``warp``: on the CPU backend with the extrapolation of the motion inside;
+``fill``). Pairs without frame n-2k (the first of each sequence) have no ``acceleration`` or ``rigid`` stage; a
+pass's median counts them as 0 ms.
 """
 from __future__ import annotations
 

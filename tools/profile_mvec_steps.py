@@ -8,11 +8,13 @@ CPU time (``time.thread_time``) further, for one method at a time, warm (one pas
 over every evaluation pair of the sequence in order (as a stream prepares them: frame n-k's velocity is reused).
 It wraps, for the run, the functions that ``engine.predict.mvec`` and the CPU backend's render call
 (``fn:<name>``: ``scene_velocity``, ``moving_points``, ``motion_components``, ``find_parts``, ``part_paths``,
-``kept_part_motion``, ``extrapolated_flow``, ``forward_warp_frame``, ``fill_holes`` ..) and the predictor's
-timed stages (``stage:<name>``: ``velocity``, ``rigid.groups`` .., ``motion``, ``warp``, ``fill``). Per entry it
-prints ms per predicted frame, wall and calling thread, and calls per frame; ``total`` is the whole prepare and
-render. The split kernels' other threads are not in the thread figures: on a quiet machine with a core per
-kernel thread and even shares, the calling thread is what the wall time waits for.
+``kept_part_motion``, ``forward_warp_moved_frame`` (the warp of a moving frame, its extrapolation inside),
+``forward_warp_frame``, ``fill_holes`` ..) and the predictor's timed stages (``stage:<name>``: ``velocity``,
+``rigid.groups`` .., ``warp``, ``fill``). Per entry it prints ms per predicted frame, wall and calling thread,
+and calls per frame; ``total`` is the whole prepare and render. The split kernels' other threads are not in the
+thread figures: on a quiet machine with a core per kernel thread and even shares, the calling thread is what the
+wall time waits for. A step that runs beside the calling thread (``kernels.run_beside``: ``previous_positions``)
+is timed on the thread that runs it, outside its stage's calling-thread time.
 """
 from __future__ import annotations
 
@@ -30,8 +32,8 @@ from tools.profile_mvec import named_sequences, sequences_parser
 STEPS = {mvec: ("scene_velocity", "velocity_change", "velocity_change_args", "upsample_motion_vectors",
                 "moving_points", "motion_components", "previous_positions", "refined_before", "find_parts",
                 "part_paths", "apply_parts", "hindcast_keeps", "kept_part_motion"),
-         base: ("extrapolated_flow", "clear_flow", "flow_spans", "fill_holes"),
-         base.geometry: ("forward_warp_frame",)}
+         base: ("fill_holes",),
+         base.geometry: ("forward_warp_frame", "forward_warp_moved_frame")}
 
 
 class StepClock:

@@ -36,7 +36,7 @@ def test_profile_splits_a_prediction_into_its_passes(tmp_path, capsys):
     assert list(methods) == ["reproject", "mvec[extrapolation=rigid,fallback=true]"]
     assert set(methods["reproject"]["passes"]) == {"render:warp", "render:fill"}  # nothing to prepare
     rigid = methods["mvec[extrapolation=rigid,fallback=true]"]["passes"]
-    assert {"prepare:velocity", "prepare:rigid", "render:motion", "render:warp"} <= set(rigid)
+    assert {"prepare:velocity", "prepare:rigid", "render:warp"} <= set(rigid)  # the motion extrapolated in the warp
     steps = {"prepare:rigid.groups", "prepare:rigid.parts", "prepare:rigid.keep"}  # the steps of pass rigid
     assert steps <= set(rigid) and sum(rigid[s] for s in steps) <= 1.5 * rigid["prepare:rigid"]
     for result in methods.values():
@@ -51,22 +51,22 @@ def test_the_steps_profile_times_each_call_on_the_calling_thread(tmp_path, capsy
     import engine.predict.mvec as mvec
     from tools import profile_mvec_steps
 
-    before = (mvec.scene_velocity, base.extrapolated_flow, base.Timer.__call__)
+    before = (mvec.scene_velocity, base.geometry.forward_warp_moved_frame, base.Timer.__call__)
     out = tmp_path / "steps.json"
     profile_mvec_steps.main(["--out", str(tmp_path / "seqs"), "--size", "96x64", "--frames", "8", "--k", "2",
                              "--methods", "mvec[extrapolation=rigid],reproject", "--sequences", "spin4101",
                              "--repeats", "2", "--json", str(out)])
     assert "spin4101 k=2 mvec[extrapolation=rigid]" in capsys.readouterr().out
-    assert (mvec.scene_velocity, base.extrapolated_flow, base.Timer.__call__) == before  # unwrapped after the run
+    assert (mvec.scene_velocity, base.geometry.forward_warp_moved_frame, base.Timer.__call__) == before  # unwrapped
     rigid, plain = json.loads(out.read_text())["rows"]
-    assert {"fn:scene_velocity", "fn:find_parts", "fn:kept_part_motion", "fn:forward_warp_frame",
-            "stage:rigid.parts", "stage:warp"} <= set(rigid["ms"])
+    assert {"fn:scene_velocity", "fn:find_parts", "fn:previous_positions", "fn:kept_part_motion",
+            "fn:forward_warp_moved_frame", "stage:rigid.parts", "stage:warp"} <= set(rigid["ms"])
     assert not any(name.startswith("fn:scene") for name in plain["ms"]) and "stage:warp" in plain["ms"]
-    for row in (rigid, plain):
+    for row, warp in ((rigid, "fn:forward_warp_moved_frame"), (plain, "fn:forward_warp_frame")):
         wall, cpu = row["total_ms"]
         assert row["frames"] > 0 and wall > 0 and cpu > 0
         # a step's calling-thread time is part of its stage's, and the stages are parts of the whole
-        assert row["ms"]["fn:forward_warp_frame"][1] <= row["ms"]["stage:warp"][1] + 1e-3
+        assert row["ms"][warp][1] <= row["ms"]["stage:warp"][1] + 1e-3
         assert sum(c for name, (_, c, _) in row["ms"].items() if name.startswith("stage:") and "." not in name) \
             <= cpu + 1e-3
 

@@ -389,8 +389,11 @@ def test_the_warp_that_extrapolates_the_moving_pixels_itself_gives_the_warp_of_t
     target = _camera(0.01, (0.02, 0.0, 0.0))
     args = (color, depth, K, now.world_to_camera, K, target.world_to_camera)
     assert len(splat._moved_rows(moving, H, W)) == threads
+    from engine.geometry.reference import extrapolated_flow_reference
     for step, accel in ((0.5, None), (1.5, acceleration), (-1.0, acceleration), (3.0, None)):
         flow = extrapolated_flow(depth, velocity, K, step, moving, accel)
+        np.testing.assert_array_equal(flow, extrapolated_flow_reference(depth, velocity, moving, accel, K,
+                                                                        np.linalg.inv(K), step))
         assert np.isnan(flow).any() == (step > 0)
         plain = geometry.forward_warp_frame(*args, flow, flow_spans=flow_spans(moving, (H, W)))
         moved = geometry.forward_warp_moved_frame(*args, velocity, moving, step, accel)

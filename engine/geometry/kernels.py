@@ -15,6 +15,10 @@
   passes and 24 ``np.add.at`` calls per chunk of points; here each point is read once per pass.
 - ``one_hot_mpi``, ``composite``: ``engine.geometry._build_mpi`` and ``_composite``; ``normalize_frame``: the
   last warp pass and the composite of a one-plane warp in one (``forward_warp_frame``).
+- ``project_moved_frame``: ``project_points`` of a one-plane frame whose moving pixels' flow
+  (``extrapolate_points``') is computed in the pass (``forward_warp_moved_frame``); the two share their
+  arithmetic (``_landing``, ``_moved_flow``: scalars in and out, since an array handed to an inlined helper
+  costs a reference count per point).
 - ``row_sources``, ``fill_rows``, ``fill_columns``: the row scan of the simple hole fill
   (``engine.geometry.holefill``), the second also copying the sources, and its column pass for holes no row
   source reaches (oracle: the fill's numpy path, ``holefill.fill_holes_reference``).
@@ -33,6 +37,7 @@ The kernels are compiled on first use (about 3 s for all, then cached on disk be
 release the GIL: ``engine.geometry`` splits the warp's passes over a pool of plain threads
 (``thread_count``: the CPUs the process may use, at most 8, or ``$INTERLEAVE_KERNEL_THREADS``), which sleep
 when idle, unlike numba's OpenMP threads (tried and dropped: they spun and slowed onnxruntime and OpenCV).
+``run_beside`` runs a serial step on that pool while the calling thread does another.
 """
 from __future__ import annotations
 

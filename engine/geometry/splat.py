@@ -257,7 +257,8 @@ def _moved_rows(moving: np.ndarray, h: int, w: int) -> list[tuple[int, int]]:
     firsts = np.searchsorted(moving, np.arange(h + 1, dtype=np.int64) * w)  # each row's first moving pixel
     cost = w * np.arange(h + 1) + MOVED_POINT_COST * firsts  # the rows before each row
     edges = np.searchsorted(cost, cost[-1] * np.arange(1, len(ranges)) / len(ranges))
-    edges = [0] + [int(e) for e in np.clip(edges, 1, h - 1)] + [h]
+    # increasing however ``moving`` is ordered (the warp refuses one out of order after its first pass)
+    edges = [0] + [int(e) for e in np.maximum.accumulate(np.clip(edges, 1, h - 1))] + [h]
     return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 

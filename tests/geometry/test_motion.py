@@ -415,12 +415,18 @@ def test_the_moved_warps_rows_hold_even_shares_of_pixels_and_moving_pixels(monke
     assert ranges == [(0, 12), (12, H)]
 
 
-def test_the_moved_warp_refuses_moving_pixels_out_of_order_or_outside_the_frame():
+@pytest.mark.parametrize("threads", [1, 3])
+def test_the_moved_warp_refuses_moving_pixels_out_of_order_or_outside_the_frame(monkeypatch, threads):
+    from engine.geometry import splat
+    monkeypatch.setenv(kernels.THREADS_ENV, str(threads))
+    monkeypatch.setattr(splat, "MIN_POINTS_PER_THREAD", 64)
     depth, vectors, prev_depth, now, before = _velocity_inputs(4)
     velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
     color = np.zeros((H, W, 3), np.float32)
     args = (color, depth, K, now.world_to_camera, K, now.world_to_camera, velocity)
-    for bad in (moving[::-1], np.repeat(moving, 2), np.append(moving, H * W), np.insert(moving, 0, -1)):
+    swapped = moving.copy()
+    swapped[[5, -5]] = swapped[[-5, 5]]
+    for bad in (moving[::-1], swapped, np.repeat(moving, 2), np.append(moving, H * W), np.insert(moving, 0, -1)):
         with pytest.raises(InputError, match="moving"):
             geometry.forward_warp_moved_frame(*args, bad, 1.0)
     with pytest.raises(InputError, match="acceleration"):

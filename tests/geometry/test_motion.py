@@ -409,10 +409,13 @@ def test_the_moved_warps_rows_hold_even_shares_of_pixels_and_moving_pixels(monke
     from engine.geometry import splat
     monkeypatch.setenv(kernels.THREADS_ENV, "2")
     monkeypatch.setattr(splat, "MIN_POINTS_PER_THREAD", 64)
+    monkeypatch.setattr(splat, "MOVED_POINT_COST", 1.0)
     top = np.arange(8 * W)  # every pixel of the first 8 rows moves
     assert splat._moved_rows(top[:0], H, W) == [(0, H // 2), (H // 2, H)]
     ranges = splat._moved_rows(top, H, W)  # (32 + 8) rows' worth: 20 each, the first 8 rows count twice
     assert ranges == [(0, 12), (12, H)]
+    monkeypatch.setattr(splat, "MOVED_POINT_COST", 2.0)  # (32 + 16) rows' worth: the first 8 rows count thrice
+    assert splat._moved_rows(top, H, W) == [(0, 8), (8, H)]
 
 
 @pytest.mark.parametrize("threads", [1, 3])

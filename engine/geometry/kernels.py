@@ -986,16 +986,6 @@ def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, 
 
 
 @njit(cache=True, nogil=True)
-def clear_points(moving, planes):
-    """Zero the channel-first ``planes`` (C, H * W) at the flat pixels ``moving``: what ``extrapolate_points`` wrote
-    through the (H, W, C) view of a channel-first buffer. Plane by plane (2.5x faster than point by point)."""
-    for c in range(planes.shape[0]):
-        plane = planes[c]
-        for i in range(moving.shape[0]):
-            plane[moving[i]] = 0.0
-
-
-@njit(cache=True, nogil=True)
 def row_spans(moving, width, out):
     """Per row y of ``out`` (H, 2) the columns [first, last + 1) of its pixels in ``moving`` (flat indices,
     increasing), [0, 0) for a row without any."""

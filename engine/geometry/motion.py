@@ -19,7 +19,7 @@ from engine.geometry import kernels
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
            "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
            "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "clear_flow", "flow_spans",
+           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "flow_spans",
            "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
@@ -438,18 +438,3 @@ def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.nd
     return out
 
 
-def clear_flow(out: np.ndarray, where: np.ndarray) -> np.ndarray:
-    """``out`` (H, W, 3) float32 (any strides) zeroed at the pixels ``where`` (flat indices), in place: a buffer that
-    ``extrapolated_flow`` wrote there is all zero again for its next call. Returns ``out``."""
-    if out.ndim != 3 or out.dtype != np.float32 or not out.flags.writeable:
-        raise InputError(f"must be a writeable float32 (H, W, 3) array, got {out.dtype} {out.shape}", field="out")
-    h, w, channels = out.shape
-    idx = np.ascontiguousarray(where, dtype=np.int64)
-    if idx.size and not (idx.min() >= 0 and idx.max() < h * w):
-        raise InputError(f"must be flat indices of a {out.shape[:2]} frame", field="where")
-    planes = np.moveaxis(out, -1, 0)
-    if planes.flags.c_contiguous:  # the view of a channel-first buffer (the CPU backend's): compiled, plane by plane
-        kernels.clear_points(idx, planes.reshape(channels, h * w))
-    else:
-        out[idx // w, idx % w] = 0.0
-    return out

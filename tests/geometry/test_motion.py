@@ -8,7 +8,7 @@ from engine import geometry
 from engine.geometry import kernels
 from engine.core.errors import InputError
 from engine.core.frames import Camera
-from engine.geometry.motion import (camera_motion_vectors, clear_flow, compose_motion_vectors, extrapolated_flow,
+from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
                                     flow_spans, rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change,
                                     velocity_change_args)
@@ -294,28 +294,6 @@ def test_velocity_change_and_extrapolation_kernels_match_their_numpy_oracles(poi
                                    is None else accel, accel is not None, K, np.linalg.inv(K), 0.75, whole)
         np.testing.assert_array_equal(out, whole)
 
-
-
-def test_a_reused_flow_buffer_is_cleared_where_the_extrapolation_wrote():
-    # the CPU backend's render: a channel-first buffer, written through its (H, W, 3) view, cleared the same way
-    depth, _, _, _, _ = _velocity_inputs(6)
-    rng = np.random.default_rng(6)
-    velocity = rng.normal(0, 0.2, (H, W, 3)).astype(np.float32)
-    moving = np.flatnonzero(np.isfinite(depth))[::3]
-    buffer = np.zeros((3, H, W), np.float32)
-    extrapolated_flow(depth, velocity, K, 0.5, moving, None, out=np.moveaxis(buffer, 0, -1))
-    assert np.count_nonzero(buffer.reshape(3, -1)[:, moving]) > moving.size
-    buffer[0, 0, 0] = 7.0  # not a moving pixel: left alone
-    clear_flow(np.moveaxis(buffer, 0, -1), moving)
-    assert np.count_nonzero(buffer) == 1 and buffer[0, 0, 0] == 7.0
-    plain = extrapolated_flow(depth, velocity, K, 0.5, moving)  # an (H, W, 3) array: cleared the same way
-    plain[0, 0] = 7.0
-    clear_flow(plain, moving)
-    assert np.count_nonzero(plain) == 3 and (plain[0, 0] == 7.0).all()
-    with pytest.raises(InputError, match="where"):
-        clear_flow(np.moveaxis(buffer, 0, -1), np.array([H * W]))
-    with pytest.raises(InputError, match="out"):
-        clear_flow(np.zeros((H, W, 3)), moving)
 
 def test_velocity_kernel_marks_the_same_static_pixels_as_its_oracle_near_the_tolerance():
     # camera-only vectors plus offsets inside, near and beyond the static tolerance (1/32 px): the kernel's

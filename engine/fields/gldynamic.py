@@ -46,7 +46,7 @@ from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, valida
 from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, check_coherence,
                                    load_dynamic_field, normalize_time, time_before, time_encoding_np)
 from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
-                              camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
+                              camera_uniforms, check_options, contract_glsl, generate_shader, inline_params, march_code,
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
 from engine.fields.render import PLANE_AXES
 
@@ -127,7 +127,10 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     decls, lines, flow = _flow_code(assets, filtering, params)
     decls = ["uniform float tau;",
              f"uniform float time_enc[{2 * int(assets.manifest['field']['time_frequencies']) + 1}];"] + decls
-    lines = lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"]
+    if assets.motion_stride > 1:
+        decls, lines = _strided_motion_code(assets, decls, lines, flow)
+    else:
+        lines = lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"]
     temporal = assets.canonical_temporal
     if temporal is None:
         return decls, lines, []
@@ -135,6 +138,34 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     decls += [f"uniform sampler2DArray canonical_t{s};" for s in range(len(temporal))]
     after = [f"f{s}_{gi} *= ct{s}_{gi};" for s, plane in enumerate(temporal) for gi in range(_groups(plane))]
     return decls, lines + _time_plane_code(temporal, filtering, "ct", "canonical_t"), after
+
+
+def _strided_motion_code(assets: DynamicAssets, decls: list[str], lines: list[str], flow: str
+                         ) -> tuple[list[str], list[str]]:
+    """The motion field at a stride (:func:`engine.fields.dynamic.strided_flow_np`): a function of the flow at a
+    point, and per kept sample i the code that places its anchors a = (i / S) S and b = min(a + S, N - 1) as
+    the march places samples, evaluates the flow there (each anchor once a pixel: the last segment's flows are
+    kept, in globals keyed by the pixel, as the samples come in order) and moves c by the interpolated flow."""
+    stride = assets.motion_stride
+    locate = march_code(assets)["locate"]
+    decls = decls + ["vec3 motion_at(vec3 c) {"] + ["    " + line for line in lines + [f"return {flow};"]] + ["}",
+        "int m_pixel = -1, m_a = -1, m_b = -1;  // the anchors whose flows m_fa, m_fb hold",
+        "vec3 m_fa = vec3(0.0), m_fb = vec3(0.0);"]
+    body = [f"// motion field at the ray's anchors (every {stride}th sample and the last), interpolated between",
+            f"int ma = (i / {stride}) * {stride}, mb = min(ma + {stride}, N - 1);",
+            "vec3 mca, mcb;"]
+    for name, index in (("mca", "ma"), ("mcb", "mb")):
+        body += ["{", f"    int i = {index};"] + ["    " + line.strip() for line in locate.splitlines()] + [
+                 f"    {name} = c;", "}"]
+    body += ["if (m_pixel != o || m_a != ma) {",
+             "    m_fa = (m_pixel == o && m_b == ma) ? m_fb : motion_at(clamp(mca, -1.0, 1.0));",
+             "    m_fb = motion_at(clamp(mcb, -1.0, 1.0));",
+             "    m_pixel = o; m_a = ma; m_b = mb;",
+             "}",
+             "vec3 mspan = mcb - mca;",
+             "float mw = clamp(dot(c - mca, mspan) / max(dot(mspan, mspan), 1e-12), 0.0, 1.0);",
+             "c = clamp(c + (m_fa + mw * (m_fb - m_fa)), -1.0, 1.0);"]
+    return decls, body
 
 
 def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:

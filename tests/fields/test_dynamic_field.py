@@ -536,6 +536,53 @@ def test_the_training_step_renders_the_batch_and_the_matched_rays_in_one_pass_as
     assert float(ref_grads["field.motion_field.flow_mlp.net.0.weight"].abs().max()) > 0
 
 
+def test_a_motion_stride_evaluates_the_motion_field_at_each_rays_anchors_and_interpolates_between():
+    """``motion.stride`` 3: the motion field runs on the anchors of the rays' sample grid that the kept samples
+    lie between (samples 0, 3, 6, ... and each ray's last), once each; an anchor's flow is the motion field's,
+    a sample between anchors a and b gets the flow linear in its position along the contracted segment; the
+    gradients reach the motion field through the interpolation."""
+    model = _model(motion=replace(TINY.motion, stride=3))
+    with torch.no_grad():
+        last = model.field.motion_field.flow_mlp.net[-1]
+        last.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(2))
+    g = torch.Generator().manual_seed(6)
+    origins = torch.randn(10, 3, generator=g) * 0.2 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(10, 3) + torch.randn(10, 3, generator=g) * 0.2
+    placed = model.place_timed(origins, directions, torch.ones(10), torch.full((10,), 5.0),
+                               torch.rand(10, generator=g), jitter=True, generator=g)
+    seen = []
+    hook = model.field.motion_field.register_forward_hook(lambda m, args, out: seen.append(args[0].detach()))
+    try:
+        out = model.render_placed([placed])[0]
+    finally:
+        hook.remove()
+    p = placed.placed
+    rows, cols = p.idx
+    n = p.t.shape[1]
+    assert n == 16 and not bool(p.keep.all()) and len(seen) == 1
+    anchors = {(int(r), a) for r, c in zip(rows, cols) for a in (int(c) // 3 * 3, min(int(c) // 3 * 3 + 3, n - 1))}
+    assert len(seen[0]) == len(anchors) < len(rows)
+    want = sorted(anchors)
+    coords = p.coords.detach()
+    assert torch.equal(seen[0], torch.stack([coords[r, a] for r, a in want]).clamp(-1.0, 1.0))
+    with torch.no_grad():
+        at = dict(zip(want, model.field.motion_field(seen[0], placed.taus[torch.tensor([r for r, _ in want])])))
+    for r, c in zip(rows.tolist(), cols.tolist()):
+        a, b = c // 3 * 3, min(c // 3 * 3 + 3, n - 1)
+        if c in (a, b):
+            expected = at[(r, c)]
+        else:
+            w = float(torch.dot(coords[r, c] - coords[r, a], coords[r, b] - coords[r, a])
+                      / (coords[r, b] - coords[r, a]).square().sum())
+            expected = at[(r, a)] + w * (at[(r, b)] - at[(r, a)])
+        torch.testing.assert_close(out.flow[r, c], expected, atol=1e-6, rtol=1e-5)
+    assert float(out.flow.detach()[p.keep].abs().max()) > 0.05  # a flow that shows
+    out.color.sum().backward()
+    assert all(q.grad is not None and float(q.grad.abs().sum()) > 0 for q in model.field.motion_field.parameters())
+    with pytest.raises(InputError, match="field.motion.stride"):
+        MotionConfig(stride=0).validate()
+
+
 @pytest.mark.parametrize("kind", ["derf", "kplanes"])
 def test_one_set_of_placed_samples_renders_the_fields_own_canonical_points(kind):
     """``render_placed`` writes the canonical points as the samples plus the dense flow: at the evaluated

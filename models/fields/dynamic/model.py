@@ -191,9 +191,10 @@ class MotionConfig:
         "help": "flow = max_flow * tanh(MLP output), in contracted units (RF-DeRF: linear + tanh, bound 1)"})
     zero_init: bool = field(default=True, metadata={
         "help": "start with flow exactly 0 (the flow MLP's last layer starts at zero)"})
-    stride: int = field(default=1, metadata={
-        "help": "a ray marcher evaluates the motion field at every stride-th sample of a ray (and its last) and "
-                "interpolates the flow linearly in between (1: at every sample)"})
+    stride: int = field(default=3, metadata={
+        "help": "every renderer evaluates the motion field at every stride-th sample of a ray (and its last) "
+                "and interpolates the flow linearly in between (1: at every sample); 3 costs 0.12-0.14x less "
+                "of a K-Planes step than 1 (docs/results/2026-11-29-dynamic-cost-6.md)"})
 
     def validate(self) -> "MotionConfig":
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):

@@ -266,6 +266,22 @@ def test_time_outside_the_trained_range_is_a_clear_error(derf_run, moving):
         evaluate_dynamic(model, late, with_flip=False)
 
 
+def test_a_run_from_before_the_motion_stride_loads_with_the_motion_at_every_sample(derf_run, tmp_path):
+    """A ``config.json`` without ``field.motion.stride`` was trained (and evaluated) with the motion field at
+    every sample: it loads with stride 1, not the default; a run that names its stride keeps it."""
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(derf_run, old)
+    config = json.loads((old / "config.json").read_text())
+    config["field"]["motion"]["stride"] = 3
+    (old / "config.json").write_text(json.dumps(config))
+    assert load_dynamic_model(old).config.motion.stride == 3
+    del config["field"]["motion"]["stride"]
+    (old / "config.json").write_text(json.dumps(config))
+    assert MotionConfig().stride == 3 and load_dynamic_model(old).config.motion.stride == 1
+
+
 # ----------------------------------------------------------------------------------------------------
 # Data
 

@@ -21,6 +21,10 @@ Conventions (written once here, named wherever they matter):
   the model holds the trained range [t_min, t_max] and normalises ``tau = 2 (t - t_min) / (t_max - t_min) - 1``
   (tau = 0 for a single trained time). A time outside the trained range (beyond a relative tolerance of
   :data:`TIME_TOLERANCE`) raises :class:`~engine.core.errors.InputError` naming it and the range.
+- **Motion stride.** A renderer evaluates the motion field at a ray's anchors only (every
+  ``motion.stride``-th sample and the last) and interpolates the flow linearly in the contracted position
+  in between (:meth:`DynamicFieldModel._strided_flow`; the numpy and GL renderers follow it); a point query
+  (:meth:`DynamicFieldModel.query`, :meth:`DeRFField.geometry`) evaluates it at the point.
 - **Planes.** The spatial planes of one scale are stored (3, C, R, R) in the order xy, xz, yz (as
   :data:`~models.fields.components.encodings.PLANE_AXES`); the time planes (3, C, Rt, R) in the order xt, yt, zt, the
   spatial coordinate along the width (grid_sample's x) and time along the height (grid_sample's y). Plane

@@ -73,13 +73,13 @@ class MvecConfig:
                                       "(the parabola through the last three positions)")
     acceleration_limit: float = option(0.5, "largest change of velocity, relative to the velocity, taken as "
                                             "smooth motion (larger: constant velocity)")
-    extrapolation: str = option("linear", "linear: each moving pixel on its own line (or parabola); rigid: moving "
+    extrapolation: str = option("rigid", "linear: each moving pixel on its own line (or parabola); rigid: moving "
                                           "pixels grouped into rigid parts by their 3D motion, each part turned "
                                           "and moved on a screw or a spin where the interval before supports it")
     grouping: str = option("motion", "with extrapolation=rigid, the groups the rigid parts are fitted in: motion "
                                      "(pixels that move alike, from vectors and depths alone) or ids (the frame's "
                                      "object ids, channel object_id, where the renderer gives them; motion where not)")
-    fallback: bool = option(False, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
+    fallback: bool = option(True, "with frame n-k's vectors too: a region whose motion, extrapolated from the "
                                    "interval before, explained the last interval worse than no object motion "
                                    "takes the camera-only warp")
     fallback_ratio: float = option(1.5, "a region falls back when its motion's error over the last interval "

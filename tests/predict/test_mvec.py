@@ -12,6 +12,9 @@ from engine.predict import Mvec, MvecConfig, Oracle, Reproject, Target, make_pre
 from engine.runtime.stream import PredictionLoop
 from tests.synthetic import two_layer_sequence, with_vectors
 
+#: the per-pixel extrapolation (lines and parabolas) without the rigid pass and the fall-back
+LINEAR = MvecConfig(extrapolation="linear", fallback=False)
+
 
 def _target(frame):
     return Target(frame.camera, frame.time, frame.index)
@@ -175,6 +178,7 @@ def test_after_a_restart_the_loop_falls_back_to_reprojection_until_two_frames():
 
 
 def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames():
+    # (the linear extrapolation's own state; the default's rigid pass is tested in test_mvec_rigid.py)
     # x(i) = 0.004 i^2: constant acceleration, which the parabola through frames n-2k, n-k, n extrapolates exactly
     # (k = 2: frames 2, 4, 6 rendered, frame 7 predicted)
     frames, objects = two_layer_sequence(10, width=96, height=64, camera_speed=0.02,
@@ -183,7 +187,7 @@ def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames(
     truth = frames[7]
     moving = history[-1].moving
     flow = true_object_flow(history[-1], {o.id: o for o in objects}, truth.index)[..., :2]
-    with_acc, without = Mvec(), Mvec(MvecConfig(acceleration=False))
+    with_acc, without = Mvec(LINEAR), Mvec(dataclasses.replace(LINEAR, acceleration=False))
     state = with_acc.prepare(history)
     assert state.data.acceleration is not None and np.abs(state.data.acceleration).max() > 0
     step = 0.5
@@ -196,7 +200,7 @@ def test_a_uniformly_accelerating_object_is_predicted_exactly_from_three_frames(
     np.testing.assert_allclose(mine[interior], flow[interior], atol=1e-3)
     assert np.abs(linear[..., :2] - flow)[interior].mean() > 0.05  # constant velocity misses it
     # a stream prepares every rendered frame in turn: frame n-k's velocity is reused, not recomputed
-    fresh = Mvec()
+    fresh = Mvec(LINEAR)
     fresh.prepare(history[:2])
     again = fresh.prepare(history)
     np.testing.assert_array_equal(again.data.acceleration, state.data.acceleration)
@@ -207,7 +211,7 @@ def test_a_bounce_keeps_constant_velocity():
     frames, objects = two_layer_sequence(8, width=96, height=64, camera_speed=0.0,
                                          object_path=lambda i: 0.1 * (i if i <= 4 else 8 - i))
     history = [frames[2], with_vectors(frames, objects, 2, 4), with_vectors(frames, objects, 4, 6)]
-    state = Mvec().prepare(history)
+    state = Mvec(LINEAR).prepare(history)
     assert state.data.moving.size > 0 and not np.abs(state.data.acceleration).any()
 
 

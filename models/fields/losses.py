@@ -28,7 +28,7 @@ from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import RayOutputs
 
 __all__ = ["LossTerm", "RayBatch", "LossInputs", "LOSS_TERMS", "register_loss_term", "assemble_loss",
-           "default_loss_terms", "srgb_encode", "plane_group"]
+           "default_loss_terms", "srgb_encode", "plane_group", "ray_distortion"]
 
 
 @dataclass
@@ -36,7 +36,7 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "sparse_depth (the priors add theirs, models/fields/priors/config.py)"})
+                                        "sparse_depth, distortion (the priors add theirs, models/fields/priors/config.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
@@ -152,6 +152,28 @@ def sparse_depth(inputs: LossInputs) -> Tensor:
     if not bool(known.any()):
         return inputs.outputs.expected_depth.new_zeros(())
     return (inputs.outputs.expected_depth[known] - z[known]).square().mean()
+
+
+def ray_distortion(weights: Tensor) -> Tensor:
+    """Mip-NeRF 360's distortion (its Eq. 15) of each ray's weights (R, N), in the sampler's own normalised
+    coordinate: sample i is the interval [i/N, (i+1)/N) (the samples are uniform in t for bounded scenes and in
+    1/t for forward-facing ones, so that coordinate is the one they are spread evenly in) ->
+    (R,) ``sum_ij w_i w_j |m_i - m_j| + sum_i w_i^2 / (3N)``, m the intervals' midpoints. O(N) per ray: the pairs
+    are ``2 sum_i w_i (m_i W_<i - (wm)_<i)`` with exclusive prefix sums."""
+    n = weights.shape[-1]
+    mid = (torch.arange(n, dtype=weights.dtype, device=weights.device) + 0.5) / n
+    wm = weights * mid
+    before_w = torch.cumsum(weights, dim=-1) - weights
+    before_wm = torch.cumsum(wm, dim=-1) - wm
+    pairs = 2.0 * (weights * (mid * before_w - before_wm)).sum(dim=-1)
+    return pairs + weights.square().sum(dim=-1) / (3.0 * n)
+
+
+@register_loss_term("distortion")
+def distortion(inputs: LossInputs) -> Tensor:
+    """Mean :func:`ray_distortion` over the batch: pulls each ray's weight into one compact interval (fewer
+    floaters and smears in depth from few views)."""
+    return ray_distortion(inputs.outputs.weights).mean()
 
 
 def check_loss_terms(terms, has_depth: bool) -> None:

@@ -213,7 +213,7 @@ def test_each_prior_switches_on_and_off_via_config(tmp_path):
     config = tiny_config(steps=4)
     assert prior_loss_terms(config.priors, config.steps) == () and build_priors(None, config, None) is None
     expected = {"depth": {"sift_depth"}, "simple": {"augmented_photometric", "mass_concentration", "augmented_depth"},
-                "vip": {"visibility_prior", "visibility_consistency"}}
+                "vip": {"visibility_prior", "visibility_consistency"}, "distortion": {"distortion"}}
     views = sphere_views([0, 40, 80], size=16)
     for name in PRIOR_NAMES:
         on = dataclasses.replace(config, rays_per_batch=64, priors=with_priors(config.priors, [name]))

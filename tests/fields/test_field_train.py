@@ -15,7 +15,7 @@ from engine.core.colorspace import linear_to_srgb
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from models.fields.data.views import Views
-from models.fields.losses import LOSS_TERMS, LossTerm, register_loss_term
+from models.fields.losses import LOSS_TERMS, LossTerm, ray_distortion, register_loss_term
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig
 from models.fields.train_static import FieldTrainConfig, build_model, evaluate_field, load_model, main, train_field
@@ -215,6 +215,30 @@ def test_sparse_depth_term_pulls_expected_depth(tmp_path):
     assert depth_mae["with"] < 0.5 * depth_mae["without"], depth_mae
 
 
+def test_distortion_is_mip_nerf_360s_pairwise_sum_and_favours_one_compact_interval(tmp_path):
+    """``ray_distortion`` against the O(N^2) definition on random weights; one opaque sample scores less than the
+    same weight spread over the ray or split between two distant samples; ``--loss distortion=W`` trains with it."""
+    gen = torch.Generator().manual_seed(3)
+    w = torch.rand(6, 9, generator=gen, dtype=torch.float64)
+    n = w.shape[-1]
+    mid = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+    pairs = (w[:, :, None] * w[:, None, :] * (mid[:, None] - mid[None, :]).abs()).sum(dim=(1, 2))
+    expected = pairs + w.square().sum(dim=-1) / (3 * n)
+    torch.testing.assert_close(ray_distortion(w), expected, rtol=1e-12, atol=1e-12)
+    one = torch.zeros(1, 8, dtype=torch.float64)
+    one[0, 2] = 1.0
+    split = torch.zeros(1, 8, dtype=torch.float64)
+    split[0, [2, 7]] = 0.5
+    spread = torch.full((1, 8), 1.0 / 8, dtype=torch.float64)
+    assert float(ray_distortion(one)) < float(ray_distortion(spread))
+    assert float(ray_distortion(one)) < float(ray_distortion(split))
+    views = sphere_views([0, 60])
+    losses = (LossTerm("photometric"), LossTerm("distortion", 0.01))
+    run = train_field(views, tiny_config(steps=3, rays_per_batch=32, losses=losses), tmp_path, progress=False)
+    last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
+    assert np.isfinite(last["distortion"]) and last["distortion"] > 0
+
+
 # ----------------------------------------------------------------------------------------------------
 # Command line, on the sphere written as a NeRF-synthetic scene
 
@@ -305,13 +329,13 @@ def test_auto_priors_follow_the_ablation():
         names, reason = auto_priors(rule.max_views + 1, scene_type)
         assert names == () and "no prior paid" in reason
     assert auto_priors(4, "bounded-360")[0] == ("depth", "simple", "vip")  # lego, 4 views: all three paid
-    assert auto_priors(3, "forward-facing")[0] == ("depth",)               # sparse depth alone paid there
+    assert auto_priors(3, "forward-facing")[0] == ("depth", "distortion")  # sparse depth and the distortion loss
     with pytest.raises(InputError, match="scene_type"):
         auto_priors(3, "indoor")
 
 
 @pytest.mark.parametrize("views, given, enabled, choice", [
-    ("0,2,5", None, ["depth"], "auto: 3 train views <= 3 on a forward-facing scene"),
+    ("0,2,5", None, ["depth", "distortion"], "auto: 3 train views <= 3 on a forward-facing scene"),
     ("0,1,2,4", None, [], "auto: 4 train views > 3"),
     ("0,2,5", "", [], "explicit: --priors ''"),
     ("0,1,2,4", "vip", ["vip"], "explicit: --priors 'vip'"),
@@ -320,6 +344,7 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
     """The command line switches on the priors that paid for this few views unless --priors says otherwise;
     the choice and its reason are printed and saved in config.json."""
     from engine.cli import main as cli_main
+    from models.fields.priors.config import PRIOR_NAMES
     from tests.io.test_llff import generated_llff
 
     root = tmp_path_factory.mktemp("priors")
@@ -330,7 +355,7 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
             "--render.occupancy", "false", "--priors.vip.num-planes", "4", "--no-flip", "--out", str(run)]
     assert cli_main(argv + ([] if given is None else ["--priors", given])) == 0
     saved = json.loads((run / "config.json").read_text())
-    assert [n for n in ("depth", "simple", "vip") if saved["priors"][n]["enabled"]] == enabled
+    assert [n for n in PRIOR_NAMES if saved["priors"][n]["enabled"]] == enabled
     assert saved["priors_choice"].startswith(choice)
     assert f"priors: {', '.join(enabled) or 'none'} ({saved['priors_choice']})" in capsys.readouterr().err
 

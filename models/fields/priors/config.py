@@ -1,6 +1,7 @@
 """The sparse-input priors of thesis Ch. 3-4, switchable per run: ``depth`` (DS-NeRF sparse depth from
 SIFT, ``priors_depth``), ``simple`` (Simple-RF augmented model, ``priors_simple``), ``vip`` (ViP-NeRF
-visibility, ``priors_vip``).
+visibility, ``priors_vip``), and ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
+state: ``models.fields.losses.ray_distortion``).
 
 A run's :class:`PriorsConfig` (``FieldTrainConfig.priors``) says which are on and holds their knobs and
 weights; :func:`prior_loss_terms` turns the enabled ones into named :class:`~models.fields.losses.LossTerm`
@@ -26,10 +27,19 @@ from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDe
 from models.fields.priors.simple import AugmentedState, SimplePrior
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
-__all__ = ["PRIOR_NAMES", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
+__all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
            "PRIORS_THAT_PAY", "auto_priors"]
 
-PRIOR_NAMES = ("depth", "simple", "vip")
+PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
+
+
+@dataclass
+class DistortionPrior:
+    """Mip-NeRF 360's distortion loss (``models.fields.losses.ray_distortion``): each ray's weight pulled into
+    one compact interval."""
+
+    enabled: bool = field(default=False, metadata={"help": "add the distortion loss on the batch's rays"})
+    weight: float = field(default=0.01, metadata={"help": "its weight (mean over the batch's rays)"})
 
 
 @dataclass(frozen=True)
@@ -48,10 +58,12 @@ PRIORS_THAT_PAY: dict[str, PriorRule] = {
     "bounded-360": PriorRule(4, ("depth", "simple", "vip"),
                              "lego 100x100, 4 views: all three +2.7 dB (each alone +0.6 to +1.9); 8 views: none "
                              "pays (sparse depth -1.0 dB)"),
-    "forward-facing": PriorRule(3, ("depth",),
+    "forward-facing": PriorRule(3, ("depth", "distortion"),
                                 "generated forward-facing 320x180: sparse depth +2.7 / +1.5 dB at 2 / 3 views, all "
                                 "three within 0.2 dB of it at 3-5x the time, Simple-RF and ViP alone -0.1 to "
-                                "-1.7 dB; 4 views: every prior costs 0.4-1.7 dB"),
+                                "-1.7 dB; 4 views: every prior costs 0.4-1.7 dB; the distortion loss on top, three "
+                                "504x378 rigs, 3 views, two seeds: +1.65 / +1.09 / -0.45 dB, "
+                                "docs/results/2026-11-29-ff-distortion.md"),
 }
 
 
@@ -81,6 +93,8 @@ class PriorsConfig:
     depth: SparseDepthPrior = field(default_factory=SparseDepthPrior, metadata={"help": "DS-NeRF sparse depth"})
     simple: SimplePrior = field(default_factory=SimplePrior, metadata={"help": "Simple-RF augmented model"})
     vip: VisibilityPrior = field(default_factory=VisibilityPrior, metadata={"help": "ViP-NeRF visibility"})
+    distortion: DistortionPrior = field(default_factory=DistortionPrior, metadata={
+        "help": "mip-NeRF 360 distortion loss"})
 
     def enabled(self) -> list[str]:
         """Names of the priors switched on."""
@@ -108,7 +122,8 @@ class PriorsConfig:
         for name, value in (("depth.weight", self.depth.weight), ("simple.photometric_weight",
                             self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
                             ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
-                            self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight)):
+                            self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight),
+                            ("distortion.weight", self.distortion.weight)):
             if not value >= 0:
                 raise InputError(f"must be >= 0, got {value}", field=f"priors.{name}")
         return self
@@ -137,6 +152,8 @@ def prior_loss_terms(priors: PriorsConfig, steps: int) -> tuple[LossTerm, ...]:
         v = priors.vip
         terms += [LossTerm("visibility_prior", v.prior_weight, start_step=int(v.start_fraction * steps)),
                   LossTerm("visibility_consistency", v.consistency_weight)]
+    if priors.distortion.enabled:
+        terms.append(LossTerm("distortion", priors.distortion.weight))
     return tuple(terms)
 
 

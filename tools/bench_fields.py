@@ -261,8 +261,6 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
     cam = test.cameras[view]
     t = float(test.times[view]) if time_value is None else float(time_value)
     assets = load_dynamic_field(export)
-    if assets.motion_stride > 1:  # the ONNX graph evaluates the motion at every sample: it renders stride 1 only
-        skip = tuple(skip) + ("onnx",)
     torch_render = None
     if "torch" not in skip:
         model = AtTime(load_dynamic_model(run), t)

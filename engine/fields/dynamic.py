@@ -40,7 +40,6 @@ from engine.geometry.motion import drop_long_vectors, projected_offsets
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
            "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
-           "strided_flow_np",
            "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
            "earlier_points", "COHERENCE", "check_coherence", "time_before", "coherent_motion", "field_motion_vectors",
            "field_object_flow"]
@@ -116,12 +115,6 @@ class DynamicAssets(ExportedAssets):
         if "max_flow" in spec:
             return float(spec["max_flow"])
         return float(self.manifest["field_config"]["motion"]["max_flow"])  # exports made before the key
-
-    @property
-    def motion_stride(self) -> int:
-        """A ray marcher evaluates the motion field at every ``motion_stride``-th sample of a ray (and its last)
-        and interpolates the flow in between (:func:`strided_flow_np`); 1: at every sample."""
-        return int(self.manifest["field_config"].get("motion", {}).get("stride", 1)) if self.has_motion else 1
 
     @property
     def canonical_planes(self) -> list[np.ndarray]:
@@ -266,48 +259,21 @@ def deform_np(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray) -> tu
     return coords + flow, flow
 
 
-def strided_flow_np(assets: DynamicAssets, coords: np.ndarray, rows: np.ndarray, cols: np.ndarray, tau: float,
-                    stride: int) -> np.ndarray:
-    """The flow (M, 3) of the kept samples ``(rows, cols)`` of rays whose samples' contracted points are
-    ``coords`` (R, N, 3), at normalised time ``tau``, with the motion field evaluated at the rays' anchors only:
-    samples ``j`` with ``j % stride == 0`` and each ray's last (``models.fields.dynamic.model``'s
-    ``DynamicFieldModel._strided_flow``). A sample between anchors a < j < b gets ``flow(a) + w (flow(b) -
-    flow(a))``, w its position along the contracted segment from a to b, clipped to [0, 1]; anchors outside
-    the cube read its border."""
-    coords = np.asarray(coords, np.float32)
-    n = coords.shape[1]
-    left = (cols // stride) * stride
-    right = np.minimum(left + stride, n - 1)
-    need = np.zeros(coords.shape[:2], bool)
-    need[rows, left] = True
-    need[rows, right] = True
-    anchor_rows, anchor_cols = np.nonzero(need)
-    _, at = deform_np(assets, np.clip(coords[anchor_rows, anchor_cols], -1.0, 1.0),
-                      np.full(anchor_rows.size, tau, np.float32))
-    slot = np.cumsum(need.reshape(-1)) - 1  # an anchor's row in ``at``
-    fa, fb = at[slot[rows * n + left]], at[slot[rows * n + right]]
-    c, a, b = coords[rows, cols], coords[rows, left], coords[rows, right]
-    span = b - a
-    w = ((c - a) * span).sum(-1) / np.maximum((span * span).sum(-1), np.float32(1e-12))
-    return (fa + np.clip(w, 0.0, 1.0)[:, None] * (fb - fa)).astype(np.float32)
-
-
-def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, directions: np.ndarray,
-                  flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, directions: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Density (N,) per scene unit and linear RGB (N, 3) at contracted coordinates (N, 3) in [-1, 1]^3,
     normalised times (N,) and unit world view directions (N, 3) (numpy, float32).
 
     DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes (hex-planes at (canonical point,
     tau) with ``canonical_temporal``), density MLP (density and latent h), colour MLP on [h, direction
     encoding, time encoding]. K-Planes: hex-plane features of (c, tau), density MLP, colour MLP on [h,
-    direction encoding]. ``flow`` (N, 3): DeRF's flow at the points, given (the motion field not run;
-    :func:`strided_flow_np`).
+    direction encoding].
     """
     coords = np.asarray(coords, np.float32)
     taus = np.asarray(taus, np.float32)
     spec = assets.manifest["field"]
     if assets.has_motion:
-        canonical = deform_np(assets, coords, taus)[0] if flow is None else coords + flow
+        canonical, _ = deform_np(assets, coords, taus)
         canonical = np.clip(canonical, -1.0, 1.0)
         feats = (triplane_features_np(assets.canonical_planes, canonical) if assets.canonical_temporal is None
                  else hex_plane_features_np(assets.canonical_planes, assets.canonical_temporal, canonical, taus))
@@ -345,20 +311,13 @@ def render_dynamic_field(assets: DynamicAssets, intrinsics, world_to_camera, hei
         raise InputError(f"must be numpy or onnx, got {query!r}", field="query")
     tau = normalize_time(time, assets.time_range)
 
-    stride = assets.motion_stride
-    if stride > 1 and query == "onnx":
-        raise InputError(f"the ONNX graph evaluates the motion field at every sample, this field every "
-                         f"{stride}th sample of a ray: render it with query='numpy'", field="query")
-
-    def evaluate(points: np.ndarray, coords: np.ndarray, directions: np.ndarray, samples=None):
+    def evaluate(points: np.ndarray, coords: np.ndarray, directions: np.ndarray):
         if query == "numpy":
-            flow = None if samples is None else strided_flow_np(assets, *samples, tau, stride)
-            return query_dynamic(assets, coords, np.full(coords.shape[0], tau, np.float32), directions, flow)
+            return query_dynamic(assets, coords, np.full(coords.shape[0], tau, np.float32), directions)
         return assets.onnx_session().run(None, {"points": points, "times": np.full(points.shape[0], time, np.float32),
                                                 "directions": directions})
 
-    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far,
-                       along_rays=stride > 1)
+    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)
 
 
 # ----------------------------------------------------------------------------------------------------

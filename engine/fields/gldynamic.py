@@ -35,7 +35,6 @@ numpy and onnxruntime paths of :mod:`engine.fields.dynamic` and (when torch is i
 """
 from __future__ import annotations
 
-import dataclasses
 import time as time_module
 from pathlib import Path
 from typing import Optional, Union
@@ -47,7 +46,7 @@ from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, valida
 from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, check_coherence,
                                    load_dynamic_field, normalize_time, time_before, time_encoding_np)
 from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
-                              camera_uniforms, check_options, contract_glsl, generate_shader, inline_params, march_code,
+                              camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
 from engine.fields.render import PLANE_AXES
 
@@ -128,10 +127,7 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     decls, lines, flow = _flow_code(assets, filtering, params)
     decls = ["uniform float tau;",
              f"uniform float time_enc[{2 * int(assets.manifest['field']['time_frequencies']) + 1}];"] + decls
-    if assets.motion_stride > 1:
-        decls, lines = _strided_motion_code(assets, decls, lines, flow)
-    else:
-        lines = lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"]
+    lines = lines + [f"c = clamp(c + {flow}, -1.0, 1.0);"]
     temporal = assets.canonical_temporal
     if temporal is None:
         return decls, lines, []
@@ -139,43 +135,6 @@ def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) ->
     decls += [f"uniform sampler2DArray canonical_t{s};" for s in range(len(temporal))]
     after = [f"f{s}_{gi} *= ct{s}_{gi};" for s, plane in enumerate(temporal) for gi in range(_groups(plane))]
     return decls, lines + _time_plane_code(temporal, filtering, "ct", "canonical_t"), after
-
-
-def _strided_motion_code(assets: DynamicAssets, decls: list[str], lines: list[str], flow: str
-                         ) -> tuple[list[str], list[str]]:
-    """The motion field at a stride (:func:`engine.fields.dynamic.strided_flow_np`): a function of the flow at a
-    point, and per kept sample i the code that moves c by the flow interpolated between its anchors a = (i / S)
-    S and b = min(a + S, N - 1). The anchors are placed as the march places samples and evaluated once a pixel:
-    the samples come in order, so the last segment's anchors (points and flows) are kept in globals keyed by
-    the pixel, and the next segment starts from its end. One call site of the motion field (a loop over the
-    one or two anchors to evaluate) keeps its code in the shader once."""
-    stride = assets.motion_stride
-    locate = march_code(dataclasses.replace(assets, occupancy=None))["locate"]  # anchors: kept or not
-    decls = decls + ["vec3 motion_at(vec3 c) {"] + ["    " + line for line in lines + [f"return {flow};"]] + ["}",
-        "int m_pixel = -1, m_a = -1, m_b = -1;  // the anchors whose points m_ca, m_cb and flows m_fa, m_fb are kept",
-        "vec3 m_ca = vec3(0.0), m_cb = vec3(0.0), m_fa = vec3(0.0), m_fb = vec3(0.0);"]
-    body = [f"// motion field at the ray's anchors (every {stride}th sample and the last), interpolated between",
-            f"int ma = (i / {stride}) * {stride};",
-            "if (m_pixel != o || m_a != ma) {",
-            f"    int mb = min(ma + {stride}, N - 1);",
-            "    bool next = m_pixel == o && m_b == ma;  // the last segment ends where this one starts",
-            "    m_ca = next ? m_cb : m_ca;",
-            "    m_fa = next ? m_fb : m_fa;",
-            "    for (int q = next ? 1 : 0; q < 2; ++q) {",
-            "        vec3 qc;",
-            "        {",
-            "            int i = q == 0 ? ma : mb;"] + ["            " + x.strip() for x in locate.splitlines()] + [
-            "            qc = c;",
-            "        }",
-            "        vec3 qf = motion_at(clamp(qc, -1.0, 1.0));",
-            "        if (q == 0) { m_ca = qc; m_fa = qf; } else { m_cb = qc; m_fb = qf; }",
-            "    }",
-            "    m_pixel = o; m_a = ma; m_b = mb;",
-            "}",
-            "vec3 mspan = m_cb - m_ca;",
-            "float mw = clamp(dot(c - m_ca, mspan) / max(dot(mspan, mspan), 1e-12), 0.0, 1.0);",
-            "c = clamp(c + (m_fa + mw * (m_fb - m_fa)), -1.0, 1.0);"]
-    return decls, body
 
 
 def _kplanes_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:

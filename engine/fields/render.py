@@ -468,7 +468,7 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
 
 def march_field(assets, intrinsics, world_to_camera, height: int, width: int, evaluate, *, chunk: int = 16384,
                 near: Optional[float] = None, far: Optional[float] = None, shade: Optional[Callable] = None,
-                channels: int = 3, along_rays: bool = False) -> dict[str, np.ndarray]:
+                channels: int = 3) -> dict[str, np.ndarray]:
     """The ray marcher shared by the static and dynamic renderers.
 
     Args:
@@ -476,9 +476,6 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             (:class:`FieldAssets`, ``engine.fields.dynamic.DynamicAssets``).
         evaluate: ``(points (M, 3) world, coords (M, 3) contracted, directions (M, 3) unit) -> (density (M,),
             colour (M, 3))`` at the kept samples (inside the cube, in occupied cells).
-        along_rays: ``evaluate`` also gets ``(coords (r, N, 3) of every sample of the chunk's r rays, rows (M,),
-            cols (M,))``, where the kept samples lie on the rays' sample grid (a dynamic field that evaluates its
-            motion at a stride of the grid).
         shade: deferred shading: ``evaluate`` gives ``channels`` features a sample, composited on zeros, and
             ``shade(features (R, channels), opacity (R,), unit directions (R, 3)) -> RGB (R, 3)`` makes the colour.
 
@@ -522,8 +519,7 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
         rgb = np.zeros((r, n, channels), np.float32)
         rows, cols = np.nonzero(keep)
         if rows.size:
-            args = (points[rows, cols], coords[rows, cols], unit[s + rows])
-            sigma[rows, cols], rgb[rows, cols] = evaluate(*args, (coords, rows, cols)) if along_rays else evaluate(*args)
+            sigma[rows, cols], rgb[rows, cols] = evaluate(points[rows, cols], coords[rows, cols], unit[s + rows])
         lengths = deltas * np.linalg.norm(d, axis=-1, keepdims=True)  # t is camera z; density is per unit length
         if shade is None:
             color[s:s + r], depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, assets.background)

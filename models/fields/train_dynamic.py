@@ -201,11 +201,7 @@ def load_dynamic_model(run_dir: str | Path) -> DynamicFieldModel:
     for name in ("config.json", "checkpoint.pt"):
         if not (run / name).is_file():
             raise InputError("file does not exist (not a dynamic run directory?)", file=run / name)
-    raw = json.loads((run / "config.json").read_text())
-    motion = raw.get("field", {}).get("motion") if isinstance(raw, dict) else None
-    if isinstance(motion, dict):  # a run from before the motion stride evaluated the motion at every sample
-        motion.setdefault("stride", 1)
-    config = DynamicTrainConfig.from_dict(raw)
+    config = DynamicTrainConfig.from_dict(json.loads((run / "config.json").read_text()))
     state = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=True)
     if "time_range" not in state:
         raise InputError("has no time range: not a dynamic field run", file=run / "checkpoint.pt")

@@ -79,9 +79,7 @@ def sphere_video(azimuths, times, *, size: int = 20, speed: float = 0.5, radius:
 TINY = DynamicFieldConfig(kind="derf",
                           canonical=FieldConfig(resolutions=(8, 16), feature_dim=4, density_hidden=16,
                                                 geo_feature_dim=7, color_hidden=16),
-                          motion=MotionConfig(resolutions=(8,), feature_dim=4, hidden=16, stride=1))
-# (stride 1: the motion field at every sample, which the ONNX graph and the tests of the field at each sample
-# need; the default stride has tests of its own)
+                          motion=MotionConfig(resolutions=(8,), feature_dim=4, hidden=16))
 
 
 def tiny_config(steps: int = 40, **changes) -> DynamicTrainConfig:
@@ -264,22 +262,6 @@ def test_time_outside_the_trained_range_is_a_clear_error(derf_run, moving):
     late = sphere_video([15], [1.2])
     with pytest.raises(InputError, match="outside the trained range"):
         evaluate_dynamic(model, late, with_flip=False)
-
-
-def test_a_run_from_before_the_motion_stride_loads_with_the_motion_at_every_sample(derf_run, tmp_path):
-    """A ``config.json`` without ``field.motion.stride`` was trained (and evaluated) with the motion field at
-    every sample: it loads with stride 1, not the default; a run that names its stride keeps it."""
-    import shutil
-
-    old = tmp_path / "old"
-    shutil.copytree(derf_run, old)
-    config = json.loads((old / "config.json").read_text())
-    config["field"]["motion"]["stride"] = 3
-    (old / "config.json").write_text(json.dumps(config))
-    assert load_dynamic_model(old).config.motion.stride == 3
-    del config["field"]["motion"]["stride"]
-    (old / "config.json").write_text(json.dumps(config))
-    assert MotionConfig().stride == 3 and load_dynamic_model(old).config.motion.stride == 1
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -552,53 +534,6 @@ def test_the_training_step_renders_the_batch_and_the_matched_rays_in_one_pass_as
     for name, grad in grads.items():
         torch.testing.assert_close(grad, ref_grads[name], rtol=1e-5, atol=1e-7, msg=name)
     assert float(ref_grads["field.motion_field.flow_mlp.net.0.weight"].abs().max()) > 0
-
-
-def test_a_motion_stride_evaluates_the_motion_field_at_each_rays_anchors_and_interpolates_between():
-    """``motion.stride`` 3: the motion field runs on the anchors of the rays' sample grid that the kept samples
-    lie between (samples 0, 3, 6, ... and each ray's last), once each; an anchor's flow is the motion field's,
-    a sample between anchors a and b gets the flow linear in its position along the contracted segment; the
-    gradients reach the motion field through the interpolation."""
-    model = _model(motion=replace(TINY.motion, stride=3))
-    with torch.no_grad():
-        last = model.field.motion_field.flow_mlp.net[-1]
-        last.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(2))
-    g = torch.Generator().manual_seed(6)
-    origins = torch.randn(10, 3, generator=g) * 0.2 - torch.tensor([0.0, 0.0, 3.0])
-    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(10, 3) + torch.randn(10, 3, generator=g) * 0.2
-    placed = model.place_timed(origins, directions, torch.ones(10), torch.full((10,), 5.0),
-                               torch.rand(10, generator=g), jitter=True, generator=g)
-    seen = []
-    hook = model.field.motion_field.register_forward_hook(lambda m, args, out: seen.append(args[0].detach()))
-    try:
-        out = model.render_placed([placed])[0]
-    finally:
-        hook.remove()
-    p = placed.placed
-    rows, cols = p.idx
-    n = p.t.shape[1]
-    assert n == 16 and not bool(p.keep.all()) and len(seen) == 1
-    anchors = {(int(r), a) for r, c in zip(rows, cols) for a in (int(c) // 3 * 3, min(int(c) // 3 * 3 + 3, n - 1))}
-    assert len(seen[0]) == len(anchors) < len(rows)
-    want = sorted(anchors)
-    coords = p.coords.detach()
-    assert torch.equal(seen[0], torch.stack([coords[r, a] for r, a in want]).clamp(-1.0, 1.0))
-    with torch.no_grad():
-        at = dict(zip(want, model.field.motion_field(seen[0], placed.taus[torch.tensor([r for r, _ in want])])))
-    for r, c in zip(rows.tolist(), cols.tolist()):
-        a, b = c // 3 * 3, min(c // 3 * 3 + 3, n - 1)
-        if c in (a, b):
-            expected = at[(r, c)]
-        else:
-            w = float(torch.dot(coords[r, c] - coords[r, a], coords[r, b] - coords[r, a])
-                      / (coords[r, b] - coords[r, a]).square().sum())
-            expected = at[(r, a)] + w * (at[(r, b)] - at[(r, a)])
-        torch.testing.assert_close(out.flow[r, c], expected, atol=1e-6, rtol=1e-5)
-    assert float(out.flow.detach()[p.keep].abs().max()) > 0.05  # a flow that shows
-    out.color.sum().backward()
-    assert all(q.grad is not None and float(q.grad.abs().sum()) > 0 for q in model.field.motion_field.parameters())
-    with pytest.raises(InputError, match="field.motion.stride"):
-        MotionConfig(stride=0).validate()
 
 
 @pytest.mark.parametrize("kind", ["derf", "kplanes"])

@@ -111,33 +111,6 @@ def derf_triplanes(tmp_path_factory):
     return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
 
 
-@pytest.fixture(scope="module")
-def derf_strided(tmp_path_factory):
-    """(model, export folder, camera) of an untrained bounded DeRF whose motion field is evaluated at every 3rd
-    sample of a ray (``motion.stride``), with a fine, strongly perturbed motion field (so that the flow
-    between two anchors is not linear), a canonical field that varies in space (so that the flow shows) and
-    an occupancy grid with empty cells (a ball)."""
-    root = tmp_path_factory.mktemp("dynrender_derf_strided")
-    torch.manual_seed(0)
-    config = dataclasses.replace(TINY, motion=dataclasses.replace(TINY.motion, resolutions=(16,), stride=3))
-    model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
-                              config, RenderConfig(num_samples=24), time_resolution=3).eval()
-    g = torch.Generator().manual_seed(4)
-    with torch.no_grad():
-        for plane in (model.field.motion_field.spatial_planes() + model.field.motion_field.temporal_planes()
-                      + model.field.canonical_field.spatial_planes()):
-            plane.mul_(1.0 + 2.0 * torch.randn(plane.shape, generator=g))
-        last = model.field.motion_field.flow_mlp.net[-1]
-        last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
-        axis = (torch.arange(64) + 0.5) / 32.0 - 1.0
-        cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)
-        model.occupancy.occupied.copy_(cells.norm(dim=-1) < 0.8)
-        model.occupancy.updates.fill_(1)
-    export_dynamic(model, root / "export")
-    cam = sphere_video([10], [0.0]).cameras[0]
-    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
-
-
 def _torch(model, camera, t: float) -> dict:
     k, w2c = camera
     return render_image(AtTime(model, t), k, w2c, H, W, model.scene.near, model.scene.far)
@@ -260,40 +233,6 @@ def test_gl_matches_the_numpy_reference_at_two_times(which, request):
             assert_same_render(ref, fast.render(*camera, t), bound)
     with GlDynamicRenderer(assets, W, H, transmittance_eps=0.0, color_eps=0.0) as hardware:  # sampler filtering
         assert _psnr(ref, hardware.render(*camera, t0 + 0.3 * (t1 - t0))) > 60.0
-
-
-def test_a_motion_field_at_a_stride_renders_alike_in_torch_numpy_and_gl(derf_strided):
-    """The motion at every 3rd sample of a ray (and its last), the flow interpolated in between: the numpy
-    reference and the GL shader follow the torch renderer's rule, which renders another image than the
-    motion field at every sample."""
-    model, out, camera = derf_strided
-    assets = load_dynamic_field(out)
-    assert assets.motion_stride == 3
-    t = 0.3
-    ref = _torch(model, camera, t)
-    got = render_dynamic_field(assets, *camera, H, W, t, chunk=300)
-    assert_close_to_torch(ref, got, grid=True)
-    assets.occupancy, updates = None, int(model.occupancy.updates)  # without the grid: exact everywhere
-    model.occupancy.updates.fill_(0)
-    try:
-        plain = _torch(model, camera, t)
-        assert_close_to_torch(plain, render_dynamic_field(assets, *camera, H, W, t), grid=False)
-        model.config.motion.stride = 1
-        every = _torch(model, camera, t)
-    finally:
-        model.config.motion.stride = 3
-        model.occupancy.updates.fill_(updates)
-    assert np.abs(every["color"] - plain["color"]).max() > 1e-3  # the stride matters here [5.9e-3]
-    assets = load_dynamic_field(out)
-    with pytest.raises(InputError, match="every 3th sample"):  # the ONNX graph evaluates every sample
-        render_dynamic_field(assets, *camera, H, W, t, query="onnx")
-    if available():
-        from engine.fields.gldynamic import GlDynamicRenderer
-
-        with GlDynamicRenderer(assets, W, H, **EXACT) as exact, GlDynamicRenderer(assets, W, H) as fast:
-            assert_same_render(got, exact.render(*camera, t), 1e-4)
-            bound = TRANSMITTANCE_EPS + assets.manifest["render"]["num_samples"] * COLOR_EPS
-            assert_same_render(got, fast.render(*camera, t), bound)
 
 
 # ----------------------------------------------------------------------------------------------------

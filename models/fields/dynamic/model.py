@@ -21,10 +21,6 @@ Conventions (written once here, named wherever they matter):
   the model holds the trained range [t_min, t_max] and normalises ``tau = 2 (t - t_min) / (t_max - t_min) - 1``
   (tau = 0 for a single trained time). A time outside the trained range (beyond a relative tolerance of
   :data:`TIME_TOLERANCE`) raises :class:`~engine.core.errors.InputError` naming it and the range.
-- **Motion stride.** A renderer evaluates the motion field at a ray's anchors only (every
-  ``motion.stride``-th sample and the last) and interpolates the flow linearly in the contracted position
-  in between (:meth:`DynamicFieldModel._strided_flow`; the numpy and GL renderers follow it); a point query
-  (:meth:`DynamicFieldModel.query`, :meth:`DeRFField.geometry`) evaluates it at the point.
 - **Planes.** The spatial planes of one scale are stored (3, C, R, R) in the order xy, xz, yz (as
   :data:`~models.fields.components.encodings.PLANE_AXES`); the time planes (3, C, Rt, R) in the order xt, yt, zt, the
   spatial coordinate along the width (grid_sample's x) and time along the height (grid_sample's y). Plane
@@ -195,10 +191,6 @@ class MotionConfig:
         "help": "flow = max_flow * tanh(MLP output), in contracted units (RF-DeRF: linear + tanh, bound 1)"})
     zero_init: bool = field(default=True, metadata={
         "help": "start with flow exactly 0 (the flow MLP's last layer starts at zero)"})
-    stride: int = field(default=3, metadata={
-        "help": "every renderer evaluates the motion field at every stride-th sample of a ray (and its last) "
-                "and interpolates the flow linearly in between (1: at every sample); 3 costs 0.12-0.14x less "
-                "of a K-Planes step than 1 (docs/results/2026-11-29-dynamic-cost-6.md)"})
 
     def validate(self) -> "MotionConfig":
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
@@ -209,8 +201,6 @@ class MotionConfig:
                 raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.motion.{name}")
         if self.layers < 0:
             raise InputError(f"must be >= 0, got {self.layers}", field="field.motion.layers")
-        if int(self.stride) < 1:
-            raise InputError(f"must be >= 1, got {self.stride}", field="field.motion.stride")
         if not self.max_flow > 0:
             raise InputError(f"must be > 0, got {self.max_flow}", field="field.motion.max_flow")
         return self
@@ -369,14 +359,10 @@ class DeRFField(nn.Module):
         canonical, _ = self.deform(coords, times)
         return self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)[0]
 
-    def geometry(self, coords: Tensor, times: Tensor, flow: Optional[Tensor] = None
-                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def geometry(self, coords: Tensor, times: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(..., 3) contracted points at normalised times (...) -> density (...), latent h (..., G), canonical
-        points (..., 3), flow (..., 3): :meth:`forward` without the colour. ``flow`` given: the points' flow
-        (the motion field not run)."""
-        if flow is None:
-            flow = self.motion_field(coords, times)
-        canonical = coords + flow
+        points (..., 3), flow (..., 3): :meth:`forward` without the colour."""
+        canonical, flow = self.deform(coords, times)
         sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
         return sigma, h, canonical, flow
 
@@ -627,13 +613,7 @@ class DynamicFieldModel(StaticFieldModel):
         if sum(counts) > 0:
             coords, taus = ((kept[0][0], kept[0][1]) if len(sets) == 1 else
                             (torch.cat([k[0] for k in kept]), torch.cat([k[1] for k in kept])))
-            stride = int(self.config.motion.stride) if self.has_motion else 1
-            if stride > 1:
-                flows = [self._strided_flow(s, stride) for s, c in zip(sets, counts) if c]
-                geo = self.field.geometry(coords, taus, flows[0] if len(flows) == 1 else torch.cat(flows))
-            else:
-                geo = self.field.geometry(coords, taus)
-            sigma, h, canonical, flow = (x.split(counts) for x in geo)
+            sigma, h, canonical, flow = (x.split(counts) for x in self.field.geometry(coords, taus))
             lit = [i for i, s in enumerate(sets) if s.color and counts[i]]
             rgb = [h[i].new_zeros(counts[i], 3) for i in range(len(sets))]
             if lit:
@@ -646,31 +626,6 @@ class DynamicFieldModel(StaticFieldModel):
                     rgb[i] = c
             parts = [(sigma[i], rgb[i], canonical[i], flow[i]) if counts[i] else None for i in range(len(sets))]
         return [self._composite_timed(s, part) for s, part in zip(sets, parts)]
-
-    def _strided_flow(self, samples: TimedSamples, stride: int) -> Tensor:
-        """The flow of a set's kept samples (in ``placed.idx`` order) with the motion field evaluated at the
-        ray's anchors only: samples ``j`` with ``j % stride == 0`` and the ray's last. A kept sample between
-        anchors a < j < b gets ``flow(a) + w (flow(b) - flow(a))``, w its position along the contracted
-        segment from a to b (the contracted ray is a line); anchors outside the cube read its border."""
-        placed = samples.placed
-        rows, cols = placed.idx
-        n = placed.t.shape[1]
-        left = torch.div(cols, stride, rounding_mode="floor") * stride
-        right = (left + stride).clamp(max=n - 1)
-        need = torch.zeros_like(placed.keep)
-        need[rows, left] = True
-        need[rows, right] = True
-        anchors = need.nonzero(as_tuple=True)
-        coords = placed.coords.detach()
-        at = self.field.motion_field(coords[anchors].clamp(-1.0, 1.0), samples.taus[anchors[0]])
-        slot = need.flatten().cumsum(0) - 1  # (R N,): an anchor's row in ``at``
-        base = rows * n
-        ia, ib = slot[base + left], slot[base + right]
-        c, a, b = coords[rows, cols], coords[rows, left], coords[rows, right]
-        span = b - a
-        w = ((c - a) * span).sum(-1) / (span * span).sum(-1).clamp(min=1e-12)
-        fa = at[ia]
-        return fa + w.clamp(0.0, 1.0)[:, None] * (at[ib] - fa)
 
     def _composite_timed(self, samples: TimedSamples, part: Optional[tuple]) -> DynamicRayOutputs:
         placed = samples.placed

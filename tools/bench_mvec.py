@@ -1,8 +1,8 @@
 """Benchmark of ``mvec`` (the renderer's motion vectors) against ``oracle``, ``reproject`` and ``decomp``.
 
 ``python -m tools.bench_mvec [--out out/bench_mvec] [--size 640x360] [--frames 16] [--k 2,3,4]
-[--methods reproject,decomp,mvec,mvec[extrapolation=rigid],oracle] [--sets gentle,fast,fast2,faster,glide,camera,spin]
-[--json FILE]``
+[--methods reproject,decomp,mvec[extrapolation=linear,fallback=false],mvec,oracle]
+[--sets gentle,fast,fast2,faster,glide,camera,spin] [--json FILE]``
 
 Renders (once, cached under ``--out``) held-out sequences that no network was trained on, with the scene
 generator's exact motion vectors:
@@ -81,8 +81,8 @@ def warm_timing(sequence, methods: list[str], k: int, repeats: int) -> dict[str,
 
 
 def main(argv=None) -> None:
-    parser = bench_parser(__doc__, "out/bench_mvec", "2,3,4", "reproject,decomp,mvec,mvec[extrapolation=rigid],oracle",
-                          list(SETS))
+    parser = bench_parser(__doc__, "out/bench_mvec", "2,3,4",
+                          "reproject,decomp,mvec[extrapolation=linear,fallback=false],mvec,oracle", list(SETS))
     parser.add_argument("--timing-size", default=None, help="e.g. 960x540: add the fair timing at that size")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)

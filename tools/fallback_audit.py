@@ -1,7 +1,7 @@
 """Which regions ``mvec``'s fall-back sends to the camera-only warp, and whether that was right at the targets.
 
 ``python -m tools.fallback_audit [--out out/bench_mvec] [--size 640x360] [--frames 16] [--k 2]
-[--sequences fast3202,fast3203] [--method mvec[fallback=true]] [--min-pixels 100] [--json FILE]``
+[--sequences fast3202,fast3203] [--method mvec[extrapolation=linear,fallback=true]] [--min-pixels 100] [--json FILE]``
 
 The sequences are ``tools.bench_mvec``'s (rendered once and cached under ``--out``). For every evaluation pair
 with frame n-2k (the fall-back needs it), the moving pixels of frame n are grouped as ``mvec``'s fall-back
@@ -74,7 +74,7 @@ def audit_pair(sequence, history, targets: list[int], method: str, min_pixels: i
 
 def main(argv=None) -> None:
     parser = sequences_parser(__doc__, "640x360", "2", "fast3202,fast3203")
-    parser.add_argument("--method", default="mvec[fallback=true]")
+    parser.add_argument("--method", default="mvec[extrapolation=linear,fallback=true]")
     parser.add_argument("--min-pixels", type=int, default=100)
     args = parser.parse_args(argv)
     rows = []

@@ -1,7 +1,7 @@
 """Where ``mvec``'s time goes against ``reproject``'s, pass by pass, on the CPU backend (issue 42's cost target).
 
 ``python -m tools.profile_mvec [--out out/bench_mvec] [--size 960x540] [--frames 16] [--k 2,4]
-[--methods reproject,mvec,mvec[extrapolation=rigid,fallback=true]] [--sequences seed1001,glide3302,spin4101]
+[--methods reproject,mvec[extrapolation=linear,fallback=false],mvec] [--sequences seed1001,glide3302,spin4101]
 [--repeats 5] [--json FILE]``
 
 The sequences are ``tools.bench_mvec``'s (rendered once and cached under ``--out``). Per sequence and k, each
@@ -99,7 +99,7 @@ def named_sequences(args) -> Iterator[tuple[str, object, list[int]]]:
 
 def main(argv=None) -> None:
     parser = sequences_parser(__doc__, "960x540", "2,4", "seed1001,glide3302,spin4101")
-    parser.add_argument("--methods", default="reproject,mvec,mvec[extrapolation=rigid,fallback=true]")
+    parser.add_argument("--methods", default="reproject,mvec[extrapolation=linear,fallback=false],mvec")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.lower().split("x"))

@@ -1,7 +1,7 @@
 """The calling thread's CPU time of each of ``mvec``'s steps, on the CPU backend (issue 42's cost, the serial part).
 
 ``python -m tools.profile_mvec_steps [--out out/bench_mvec] [--size 960x540] [--frames 16] [--k 2]
-[--methods mvec[extrapolation=rigid],reproject] [--sequences spin4101] [--repeats 5] [--json FILE]``
+[--methods mvec[fallback=false],reproject] [--sequences spin4101] [--repeats 5] [--json FILE]``
 
 ``tools.profile_mvec`` times whole methods (and each stage's wall time); this tool splits the calling thread's
 CPU time (``time.thread_time``) further, for one method at a time, warm (one pass first), ``--repeats`` passes
@@ -119,7 +119,7 @@ def profile_steps(sequence, method: str, k: int, repeats: int) -> dict:
 
 def main(argv=None) -> None:
     parser = sequences_parser(__doc__, "960x540", "2", "spin4101")
-    parser.add_argument("--methods", default="mvec[extrapolation=rigid],reproject")
+    parser.add_argument("--methods", default="mvec[fallback=false],reproject")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     rows = []

@@ -274,13 +274,11 @@ def _landing(u, v, d, m, x_max, y_max, snap_scale, snap, max_coord_inv, tiny):
 
 
 @njit(cache=True, nogil=True)
-def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
+def project_points(depth, alpha, flow, has_flow, m, half_inv, ho, wo, snap_scale, snap, max_coord_inv,
                    tiny, row_start, row_stop, base_out, fx_out, fy_out, z_out, a_out, log_out):
     """Pass 1: per source point (Z * H * W, plane-major) of rows [``row_start``, ``row_stop``) its top-left
     tap ``base_out`` in the padded (Z, ho + 2, wo + 2) volume, bilinear fractions, destination depth and
     alpha (0 when dropped). Calls on disjoint row ranges write disjoint points (threads may share the arrays).
-    With ``has_flow`` the flow is read in each row y's columns [``spans[y, 0]``, ``spans[y, 1]``) only (it is 0
-    elsewhere: adding it changes no bit).
 
     ``log_out`` gets log(1 + z) (float64) of the landing finite points (the splat's soft z-buffer reads it).
     Returns (min, max) of it over them ((inf, 0) when none lands).
@@ -306,7 +304,7 @@ def project_points(depth, alpha, flow, has_flow, spans, m, half_inv, ho, wo, sna
                 u = _F32(x) + half
                 v = _F32(y) + half
                 d = depth[z_index, y, x]
-                if has_flow and spans[y, 0] <= x < spans[y, 1]:
+                if has_flow:
                     u += flow[0, z_index, y, x]
                     v += flow[1, z_index, y, x]
                     d += flow[2, z_index, y, x]
@@ -983,20 +981,3 @@ def extrapolate_points(depth, velocity, moving, acceleration, has_acceleration, 
         acc = (acceleration[i, 0], acceleration[i, 1], acceleration[i, 2]) if has_acceleration else vel
         out[y, x, 0], out[y, x, 1], out[y, x, 2] = _moved_flow(x, y, np.float64(depth[y, x]), vel, acc,
                                                                has_acceleration, kk, ki, step, scale)
-
-
-@njit(cache=True, nogil=True)
-def row_spans(moving, width, out):
-    """Per row y of ``out`` (H, 2) the columns [first, last + 1) of its pixels in ``moving`` (flat indices,
-    increasing), [0, 0) for a row without any."""
-    out[:, :] = 0
-    y = 0
-    row_start = 0  # rows are walked with the pixels (no division per pixel)
-    for i in range(moving.size):
-        while moving[i] >= row_start + width:
-            y += 1
-            row_start += width
-        x = moving[i] - row_start
-        if out[y, 1] == 0:
-            out[y, 0] = x
-        out[y, 1] = x + 1

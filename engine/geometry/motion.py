@@ -19,7 +19,7 @@ from engine.geometry import kernels
 __all__ = ["rigid_motion_vectors", "camera_motion_vectors", "compose_motion_vectors", "sample_nearest",
            "sample_smooth", "CHAIN_SPREAD_PX", "projected_offsets", "drop_long_vectors", "sample_footprint",
            "sample_depths", "upsample_motion_vectors", "undilate_motion_vectors", "scene_velocity", "velocity_change",
-           "velocity_change_args", "run_velocity_change", "extrapolated_flow", "flow_spans",
+           "velocity_change_args", "run_velocity_change", "extrapolated_flow",
            "DEFAULT_STATIC_TOLERANCE", "DEFAULT_DEPTH_BAND"]
 
 #: A vector within this many pixels (in x and in y) of the camera's own motion is a static surface ...
@@ -387,16 +387,6 @@ def run_velocity_change(args: tuple, moving: np.ndarray, out: np.ndarray) -> Non
     own: the same bits)."""
     kernels.run_ranges(lambda a, b: kernels.velocity_change(*args[:3], moving[a:b], *args[3:], out[a:b]),
                        kernels.split_points(moving.size))
-
-
-def flow_spans(moving: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Per row of a (H, W) frame the columns [first, last + 1) of its pixels in ``moving`` (flat indices,
-    increasing), [0, 0) for a row without any: (H, 2) int64, the ``flow_spans`` of ``forward_warp_frame`` for a
-    flow that is 0 outside ``moving`` (``extrapolated_flow``'s)."""
-    h, w = shape
-    out = np.empty((h, 2), np.int64)
-    kernels.row_spans(np.ascontiguousarray(moving, np.int64), w, out)
-    return out
 
 
 def extrapolated_flow(depth: np.ndarray, velocity: np.ndarray, intrinsics: np.ndarray, step: float,

@@ -81,24 +81,20 @@ def _row_ranges(h: int, per_row: int) -> list[tuple[int, int]]:
     return kernels.split_ranges(h, max(MIN_ROWS_PER_THREAD, -(-MIN_POINTS_PER_THREAD // max(1, per_row))))
 
 
-def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness,
-                flow_spans=None):
+def _splat_sums(flat_color, depth, alpha, half_inv, k_src, t_src, k_dst, t_dst, object_flow, out_size, sharpness):
     """Passes 1 and 2 of the warp (``project_points``, ``splat_points``) for points with colour ``flat_color``
     (3, Z * H * W) (any strides), ``depth`` and ``alpha`` (Z, H, W): the per-thread padded sum volumes
-    (P, Z * (ho + 2) * (wo + 2), 6) that ``normalize`` or ``normalize_frame`` turn into the result.
-    ``flow_spans`` (H, 2): per source row the columns outside which ``object_flow`` is 0 (default: all)."""
+    (P, Z * (ho + 2) * (wo + 2), 6) that ``normalize`` or ``normalize_frame`` turn into the result."""
     num_z, h, w = alpha.shape
     ho, wo = out_size
     n = num_z * h * w
     flow = np.zeros((3, 1, 1, 1), np.float32) if object_flow is None else np.ascontiguousarray(object_flow)
-    if flow_spans is None:
-        flow_spans = np.broadcast_to(np.array([0, w], np.int64), (h, 2))
     matrix = _warp_matrix(k_src, t_src, k_dst, t_dst)
     buffers = _pass_buffers(n)
     # each pass split over threads (engine.geometry.kernels.run_ranges): pass 1 by source rows, pass 2 by points into
     # one padded sum volume per part, the normalisation by output rows (it adds the parts in order)
     extents = kernels.run_ranges(lambda r0, r1: kernels.project_points(
-        depth, alpha, flow, object_flow is not None, flow_spans, matrix, half_inv, ho, wo, *_CONSTANTS, r0, r1,
+        depth, alpha, flow, object_flow is not None, matrix, half_inv, ho, wo, *_CONSTANTS, r0, r1,
         *buffers), _row_ranges(h, num_z * w))
     return _splat_pass(flat_color, buffers, extents, num_z, out_size, sharpness)
 
@@ -134,7 +130,7 @@ def forward_warp_mpi_unchecked(mpi: Mpi, k_src, t_src, k_dst, t_dst, object_flow
     return Mpi(out_color, out_depth, out_alpha, planes), cov
 
 
-def _warp_frame_unchecked(color, depth, k_src, t_src, k_dst, t_dst, object_flow, sharpness, flow_spans=None):
+def _warp_frame_unchecked(color, depth, k_src, t_src, k_dst, t_dst, object_flow, sharpness):
     """``forward_warp_frame``'s body: the one-plane MPI warp + composite without the MPI's layout. The frame is
     that MPI already (every pixel on its one plane, alpha 1), read in place (colour (H, W, 3) as (3, H * W) with
     strides), and ``normalize_frame`` writes the composite straight into frame layout: bit for bit the MPI path
@@ -142,7 +138,7 @@ def _warp_frame_unchecked(color, depth, k_src, t_src, k_dst, t_dst, object_flow,
     h, w = depth.shape
     ones = np.broadcast_to(np.float32(1.0), (1, h, w))
     sums = _splat_sums(color.reshape(-1, 3).T, depth[None], ones, np.zeros(0, np.float32), k_src, t_src, k_dst,
-                       t_dst, object_flow, (h, w), sharpness, flow_spans)
+                       t_dst, object_flow, (h, w), sharpness)
     return _normalized_frame(sums, h, w)
 
 
@@ -192,22 +188,9 @@ def forward_warp_mpi(mpi: Mpi, K_src: np.ndarray, T_src: np.ndarray, K_dst: np.n
                              checked_sharpness(sharpness))
 
 
-def _checked_spans(spans: Optional[np.ndarray], shape: tuple[int, int]) -> Optional[np.ndarray]:
-    """``flow_spans`` as (H, 2) int64 columns within [0, W]."""
-    if spans is None:
-        return None
-    spans = np.ascontiguousarray(spans, np.int64)
-    h, w = shape
-    if spans.shape != (h, 2) or not ((spans >= 0) & (spans <= w)).all():
-        raise InputError(f"must be (H, 2) = ({h}, 2) columns within [0, {w}], got shape {spans.shape}",
-                         field="flow_spans")
-    return spans
-
-
 def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, T_src: np.ndarray,
                        K_dst: np.ndarray, T_dst: np.ndarray, flow: Optional[np.ndarray] = None,
-                       sharpness: float = DEFAULT_SHARPNESS,
-                       flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       sharpness: float = DEFAULT_SHARPNESS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Forward-warp an RGB-D frame: a one-plane ``build_mpi`` + ``forward_warp_mpi`` + ``composite`` (computed
     without building the MPI: the same bits).
 
@@ -216,8 +199,6 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
         K_src, T_src, K_dst, T_dst: intrinsics (3, 3) and world-to-camera (4, 4) of both views.
         flow: optional (H, W, 3) (du, dv, dz) or (H, W, 2) (dz = 0) object flow in the source view.
         sharpness: soft z-buffer sharpness.
-        flow_spans: optional (H, 2) int64, per row the columns [start, stop) outside which ``flow`` is 0: the
-            warp reads the flow there only (``kernels.row_spans`` of the moving pixels; the same bits).
 
     Returns:
         color (H, W, 3), depth (H, W) (+inf on sky and holes), holes (H, W) bool (nothing landed).
@@ -240,7 +221,7 @@ def forward_warp_frame(color: np.ndarray, depth: np.ndarray, K_src: np.ndarray, 
     return _warp_frame_unchecked(np.ascontiguousarray(color), np.ascontiguousarray(depth),
                                  checked_matrix(K_src, "K_src", 3), checked_matrix(T_src, "T_src", 4),
                                  checked_matrix(K_dst, "K_dst", 3), checked_matrix(T_dst, "T_dst", 4), object_flow,
-                                 checked_sharpness(sharpness), _checked_spans(flow_spans, depth.shape))
+                                 checked_sharpness(sharpness))
 
 
 #: pass 1 of a moved frame: a moving pixel's extrapolation counted as this many pixels' projections when its rows

@@ -217,17 +217,16 @@ class CpuFrames:
         return _filled(frame, timer, color, depth, holes)[::2]
 
 
-def warp_and_fill(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
-                  flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3), 0
-    outside each row's ``flow_spans`` columns) and fill the holes (``engine.geometry.holefill``); stages
+def warp_and_fill(frame: Frame, target: Target, timer: Timer,
+                  flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and fill the holes (``engine.geometry.holefill``); stages
     ``warp`` and ``fill``. Returns (colour, holes)."""
-    color, _, holes = warp_fill_depth(frame, target, timer, flow, flow_spans)
+    color, _, holes = warp_fill_depth(frame, target, timer, flow)
     return color, holes
 
 
-def warp_fill_depth(frame: Frame, target: Target, timer: Timer, flow: Optional[np.ndarray] = None,
-                    flow_spans: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def warp_fill_depth(frame: Frame, target: Target, timer: Timer,
+                    flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``warp_and_fill`` that also returns the warped planar depth (H, W), filled as the colour is (+inf where
     nothing was left to fill from): (colour, depth, holes). For frame n-k and frame n's camera this is the
     camera-compensated frame n-k that the flow estimators match frame n against."""
@@ -235,7 +234,7 @@ def warp_fill_depth(frame: Frame, target: Target, timer: Timer, flow: Optional[n
     with timer("warp"):
         color, depth, holes = geometry.forward_warp_frame(frame.color, frame.depth, src.intrinsics,
                                                           src.world_to_camera, dst.intrinsics, dst.world_to_camera,
-                                                          flow, flow_spans=flow_spans)
+                                                          flow)
     return _filled(frame, timer, color, depth, holes)
 
 

@@ -9,7 +9,7 @@ from engine.geometry import kernels
 from engine.core.errors import InputError
 from engine.core.frames import Camera
 from engine.geometry.motion import (camera_motion_vectors, compose_motion_vectors, extrapolated_flow,
-                                    flow_spans, rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
+                                    rigid_motion_vectors, sample_depths, sample_footprint, scene_velocity,
                                     undilate_motion_vectors, upsample_motion_vectors, velocity_change,
                                     velocity_change_args)
 from engine.geometry.reference import scene_velocity_reference
@@ -325,30 +325,6 @@ def test_the_warp_reads_a_channel_first_flow_without_a_copy_and_gets_the_same_fr
         np.testing.assert_array_equal(a, b)
 
 
-def test_the_warp_reads_the_flow_in_the_moving_pixels_row_spans_only_and_gets_the_same_frame():
-    depth, vectors, prev_depth, now, before = _velocity_inputs(4)
-    velocity, moving = scene_velocity(depth, np.nan_to_num(vectors), prev_depth, now, before)
-    flow = extrapolated_flow(depth, velocity, K, 0.5, moving)
-    spans = flow_spans(moving, (H, W))
-    y, x = np.divmod(moving, W)
-    for row in range(H):  # each row's first and last moving column; empty rows read nothing
-        on = x[y == row]
-        assert spans[row].tolist() == ([on.min(), on.max() + 1] if on.size else [0, 0])
-    assert (spans[:, 1] == 0).any() and (spans[:, 1] - spans[:, 0] < W).any()
-    color = np.random.default_rng(9).uniform(0, 1, (H, W, 3)).astype(np.float32)
-    target = _camera(0.01, (0.02, 0.0, 0.0))
-    args = (color, depth, K, now.world_to_camera, K, target.world_to_camera, flow)
-    for a, b in zip(geometry.forward_warp_frame(*args, flow_spans=spans), geometry.forward_warp_frame(*args)):
-        np.testing.assert_array_equal(a, b)
-    # a span that leaves out moving pixels drops their motion: the spans are read, not ignored
-    narrow = spans.copy()
-    narrow[:, 1] = narrow[:, 0]
-    assert not np.array_equal(geometry.forward_warp_frame(*args, flow_spans=narrow)[0],
-                              geometry.forward_warp_frame(*args)[0])
-    with pytest.raises(InputError, match="flow_spans"):
-        geometry.forward_warp_frame(*args, flow_spans=spans[1:])
-
-
 @pytest.mark.parametrize("threads", [1, 3])
 def test_the_warp_that_extrapolates_the_moving_pixels_itself_gives_the_warp_of_their_flows_bits(monkeypatch,
                                                                                                threads):
@@ -373,7 +349,7 @@ def test_the_warp_that_extrapolates_the_moving_pixels_itself_gives_the_warp_of_t
         np.testing.assert_array_equal(flow, extrapolated_flow_reference(depth, velocity, moving, accel, K,
                                                                         np.linalg.inv(K), step))
         assert np.isnan(flow).any() == (step > 0)
-        plain = geometry.forward_warp_frame(*args, flow, flow_spans=flow_spans(moving, (H, W)))
+        plain = geometry.forward_warp_frame(*args, flow)
         moved = geometry.forward_warp_moved_frame(*args, velocity, moving, step, accel)
         for a, b in zip(moved, plain):
             np.testing.assert_array_equal(a, b)

@@ -494,7 +494,7 @@ def make_scene(config: SceneConfig) -> Scene:
     """Sample a complete scene from ``config`` (deterministic: the same config gives the same scene).
 
     >>> scene = make_scene(SceneConfig(seed=3, width=64, height=48, num_frames=4))
-    >>> scene.camera_at(0).intrinsics[0, 2]
+    >>> float(scene.camera_at(0).intrinsics[0, 2])
     32.0
     """
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(6)]

@@ -481,9 +481,9 @@ def flow_from_output(displacement: Tensor, plane_logits: Tensor, plane_depths: T
     Returns:
         (B, 3, Z, H, W) flow (du, dv, dz).
 
-    >>> logits = torch.zeros(1, 3, 2, 1, 1); logits[:, 2] = 50.0  # plane 0 -> plane 1
+    >>> logits = torch.zeros(1, 3, 2, 1, 1); logits[:, 2] = 50.0  # plane 0 -> plane 1; plane 1's +1 leaves the MPI
     >>> flow_from_output(torch.zeros(1, 2, 2, 1, 1), logits, torch.tensor([[2.0, 3.0]]))[0, 2, :, 0, 0].tolist()
-    [1.0, 0.0]
+    [1.0, -0.5]
     """
     sizes: dict = {}
     check_shape(displacement, "displacement", ("B", 2, "Z", "H", "W"), sizes)

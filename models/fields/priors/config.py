@@ -72,7 +72,7 @@ def auto_priors(num_views: int, scene_type: str) -> tuple[tuple[str, ...], str]:
     scene, from :data:`PRIORS_THAT_PAY`: the priors that paid with that few views, none with more.
 
     >>> auto_priors(3, "forward-facing")[0], auto_priors(4, "forward-facing")[0]
-    (('depth',), ())
+    (('depth', 'distortion'), ())
     """
     if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
         raise InputError(f"must be a positive integer, got {num_views!r}", field="num_views")

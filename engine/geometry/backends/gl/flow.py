@@ -238,7 +238,7 @@ class GlOpticalFlow:
     """Dense optical flow between two images on a ``GlContext`` (the shared one by default).
 
     >>> flow = GlOpticalFlow()                                     # doctest: +SKIP
-    >>> u = flow.estimate(color_n, warped_n_minus_k)               # doctest: +SKIP  (H, W, 2) u(n -> n-k)
+    >>> u = flow.estimate(color_n, warped_n_minus_k)  # (H, W, 2) u(n -> n-k)  # doctest: +SKIP
     """
 
     def __init__(self, gl: GlContext | None = None, config: GlFlowConfig = GlFlowConfig()) -> None:

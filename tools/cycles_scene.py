@@ -1,6 +1,7 @@
 """Path-traced validation data: Cycles renders of fast, spinning objects behind thin poles, a yawing camera and
-Monte Carlo noise, imported as an rgbd-seq with the exact object motion; and static forward-facing captures of
-the same scenes in LLFF's layout.
+Monte Carlo noise, imported as an rgbd-seq with the exact object motion; the same moving scenes seen by a row of static
+cameras, imported as an rgbd-rig (the dynamic fields' training data); and static forward-facing captures of the
+same scenes in LLFF's layout.
 
 A check the rasterizer of ``engine.scenegen`` cannot give: global illumination, soft shadows, anti-aliased
 edges and a path tracer's noise (``--samples``, no denoiser), with Cycles' own Depth, Vector and Object Index
@@ -9,6 +10,8 @@ passes. Two steps, two interpreters (bpy is NOT a project dependency; install it
     python3.11 -m venv /tmp/bpyenv && /tmp/bpyenv/bin/pip install bpy==5.0.1
     /tmp/bpyenv/bin/python tools/cycles_scene.py render /tmp/cyc/s1 --seed 1        # Blender side
     .venv/bin/python -m tools.cycles_scene import /tmp/cyc/s1 out/cycles/s1          # project side
+    /tmp/bpyenv/bin/python tools/cycles_scene.py rig /tmp/cyc/r31 --seed 31          # 5 static cameras
+    .venv/bin/python -m tools.cycles_scene import-rig /tmp/cyc/r31 out/cycles/r31    # an rgbd-rig
 
 ``render OUT`` builds the scene of ``--seed`` (Blender world, z up): a textured ground and back wall, a row of
 thin static poles between the camera and the objects, ``--objects`` textured primitives (object index 1, 2,
@@ -18,6 +21,19 @@ width and which spin 5-15 degrees a frame about a random axis, and a camera that
 pass evaluates the scene at frame - 1 and frame + 1). It renders frames 1 .. frames into multilayer EXRs
 ``OUT/render/NNNN.exr`` and writes ``OUT/cameras.json`` (the importer's camera JSON) and ``OUT/objects.json``
 (every object's ``matrix_world`` at every keyed frame and its object index).
+
+``rig OUT`` renders the same moving scene (``render``'s builder, objects and paths for ``--seed``) from
+``--num-cameras`` STATIC cameras on a forward-facing row, as ``interleave render-rig --num-cameras N`` captures a
+generated scene: ``--baseline`` world units between neighbours (0.4: render-rig's 0.2 of the distance to the
+target over 4 gaps), centred where ``render``'s camera path starts, parallel optical axes pitched as its camera.
+Every camera renders frames 1 .. frames into ``OUT/cam<k>/render/NNNN.exr`` with its own ``cameras.json``;
+``OUT/objects.json`` is ``render``'s and ``OUT/cameras.json`` names the cameras and ``--test-cameras``.
+``import-rig OUT RIG`` writes the rgbd-rig ``RIG`` the dynamic trainer reads: each camera imported as ``import``
+imports a sequence, and ``rig.json`` with render-rig's split (test cameras between train cameras, never at an
+end of the row: cam2 of 5). The fixture ``tests/io/data/cycles_rig`` was made with::
+
+    /tmp/bpyenv/bin/python tools/cycles_scene.py rig tests/io/data/cycles_rig --seed 1 --num-cameras 3 \
+        --frames 2 --width 48 --height 27 --samples 4 --speed 3
 
 ``capture OUT`` renders the same scene frozen at frame 0 (nothing moves) from ``--views`` cameras on a
 forward-facing grid (``--baseline`` world units apart, parallel axes), and ``llff OUT ROOT --factor N`` writes
@@ -138,22 +154,12 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     yaw_rate = rng.uniform(0.07, 0.12)  # rad of the yaw oscillation per frame
     yaw_amplitude = math.radians(yaw) / yaw_rate  # peak yaw rate ``yaw`` degrees a frame
     yaw_phase = rng.uniform(0, 2 * math.pi)
-    record = {"seed": seed, "objects": {}}
     for f in range(0, frames + 2):
-        for mover in movers:
-            obj = mover[0]
-            obj.matrix_world = _pose(mover, f)
-            obj.keyframe_insert("location", frame=f)
-            obj.keyframe_insert("rotation_euler", frame=f)
         camera.location = (0.6 * math.sin(0.05 * f), 0.0, 1.7)
         camera.rotation_euler = (math.radians(84.0), 0.0, yaw_amplitude * math.sin(yaw_rate * f + yaw_phase))
         camera.keyframe_insert("location", frame=f)
         camera.keyframe_insert("rotation_euler", frame=f)
-    for f in range(0, frames + 2):
-        scene.frame_set(f)
-        for obj, *_ in movers:
-            entry = record["objects"].setdefault(obj.name, {"pass_index": obj.pass_index, "world_from_object": {}})
-            entry["world_from_object"][str(f)] = [list(r) for r in obj.matrix_world]
+    record = _key_objects(scene, movers, seed, frames)
 
     render_dir = out / "render"
     render_dir.mkdir(parents=True, exist_ok=True)
@@ -163,6 +169,54 @@ def render(out: Path, seed: int, frames: int, width: int, height: int, samples: 
     (out / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (out / "objects.json").write_text(json.dumps(record, indent=1))
     print(f"rendered {frames} frames of {width}x{height} into {out}")
+
+
+def rig(out: Path, seed: int, cameras: int, test_cameras: int, frames: int, width: int, height: int, samples: int,
+        objects: int, speed: float, baseline: float) -> None:
+    """Render the moving scene of ``seed`` (``render``'s objects and paths) from ``cameras`` STATIC cameras on a
+    forward-facing row: ``baseline`` world units between neighbours, centred where ``render``'s camera starts
+    (x = 0, 1.7 m up), parallel optical axes pitched as ``render``'s camera (camera k further right than k - 1). Writes
+    OUT/cam<k>/render/NNNN.exr and OUT/cam<k>/cameras.json (frames 1 .. frames), OUT/objects.json (as
+    ``render``) and OUT/cameras.json: ``{"cameras": [...], "test_cameras": N, "baseline": B}``."""
+    import bpy  # noqa: PLC0415 (only in Blender's Python)
+
+    rng = random.Random(seed)
+    scene = blender.cycles_scene(bpy, width, height, frames, samples)
+    scene.cycles.seed = seed
+    movers = _content(bpy, scene, rng, width, objects, speed)
+    record = _key_objects(scene, movers, seed, frames)
+    camera = blender.add_camera(bpy, scene)  # not keyed: it stays where it is put, at every frame
+    camera.rotation_euler = (math.radians(84.0), 0.0, 0.0)
+    names = [f"cam{k}" for k in range(cameras)]
+    for k, name in enumerate(names):  # left to right as seen from the rig
+        camera.location = ((k - (cameras - 1) / 2) * baseline, 0.0, 1.7)
+        render_dir = out / name / "render"
+        render_dir.mkdir(parents=True, exist_ok=True)
+        entries = {"fps": 24.0, "frames": [blender.render_frame(bpy, scene, camera, render_dir, f)
+                                           for f in range(1, frames + 1)]}
+        (out / name / "cameras.json").write_text(json.dumps(entries, indent=1))
+    (out / "objects.json").write_text(json.dumps(record, indent=1))
+    (out / "cameras.json").write_text(json.dumps({"cameras": names, "test_cameras": test_cameras,
+                                                  "baseline": baseline}, indent=1))
+    print(f"rendered {frames} frames of {width}x{height} from {cameras} cameras into {out}")
+
+
+def _key_objects(scene, movers: list, seed: int, frames: int) -> dict:
+    """Key every ``_content`` object at the integer frames 0 .. frames + 1 (the Vector pass evaluates the scene
+    at frame - 1 and frame + 1); returns objects.json's record (each object's ``matrix_world`` at those frames)."""
+    for f in range(0, frames + 2):
+        for mover in movers:
+            obj = mover[0]
+            obj.matrix_world = _pose(mover, f)
+            obj.keyframe_insert("location", frame=f)
+            obj.keyframe_insert("rotation_euler", frame=f)
+    record = {"seed": seed, "objects": {}}
+    for f in range(0, frames + 2):
+        scene.frame_set(f)
+        for obj, *_ in movers:
+            entry = record["objects"].setdefault(obj.name, {"pass_index": obj.pass_index, "world_from_object": {}})
+            entry["world_from_object"][str(f)] = [list(r) for r in obj.matrix_world]
+    return record
 
 
 def _pose(mover, f: int):
@@ -221,6 +275,36 @@ def write_capture(out: Path, root: Path, factor: int, layer: str = "ViewLayer") 
 def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
     """Import a ``render`` output as the rgbd-seq ``seq`` with object ids, moving masks and the objects'
     per-frame transforms (frame index i of the sequence is Blender frame i + 1)."""
+    from engine.io.rgbd import write_sequence  # noqa: PLC0415
+
+    out = Path(out)
+    fps, objects, frames = _camera_frames(out / "cameras.json", json.loads((out / "objects.json").read_text()),
+                                          layer)
+    return write_sequence(seq, frames, fps=fps, objects=objects)
+
+
+def import_rig(out: Path, root: Path, layer: str = "ViewLayer") -> Path:
+    """Import a ``rig`` output as the rgbd-rig ``root``: one rgbd-seq per camera (as ``import``), and rig.json
+    with the test cameras chosen as ``interleave render-rig`` chooses them for one row (between train
+    cameras, never at an end of the row, spread evenly)."""
+    from engine.io.rgbd import write_rig  # noqa: PLC0415
+    from engine.scenegen.rig import RigConfig, _split  # noqa: PLC0415 (render-rig's own rule, not a copy)
+
+    out = Path(out)
+    meta = json.loads((out / "cameras.json").read_text())
+    names = list(meta["cameras"])
+    record = json.loads((out / "objects.json").read_text())
+    train, test = _split(RigConfig(num_cameras=len(names), test_cameras=int(meta["test_cameras"])))
+    imported = {name: _camera_frames(out / name / "cameras.json", record, layer) for name in names}
+    fps, objects, _ = imported[names[0]]
+    return write_rig(root, {name: frames for name, (_, _, frames) in imported.items()},
+                     [names[k] for k in train], [names[k] for k in test], fps=fps, objects=objects)
+
+
+def _camera_frames(cameras_json: Path, record: dict, layer: str):
+    """One camera's render: ``(fps, objects, frames)``, the frames (a generator) read with
+    :func:`engine.io.importers.frames_from_blender` plus ``object_id``, ``moving`` and ``object_flow`` from
+    the Object Index pass and the objects' transforms in ``record`` (objects.json)."""
     import dataclasses  # noqa: PLC0415
 
     import numpy as np  # noqa: PLC0415
@@ -228,13 +312,10 @@ def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
     from engine.core.frames import SceneObject  # noqa: PLC0415
     from engine.io.exr import read_exr  # noqa: PLC0415
     from engine.io.importers import frames_from_blender  # noqa: PLC0415
-    from engine.io.rgbd import write_sequence  # noqa: PLC0415
     from engine.predict.base import true_object_flow  # noqa: PLC0415
 
-    out = Path(out)
-    meta = json.loads((out / "cameras.json").read_text())
-    record = json.loads((out / "objects.json").read_text())
-    imported = frames_from_blender(out / "cameras.json", layer=layer)
+    meta = json.loads(cameras_json.read_text())
+    imported = frames_from_blender(cameras_json, layer=layer)
     numbers = [entry["frame"] for entry in meta["frames"]]
     objects, ahead = [], {}  # ahead: id -> the object keyed one frame further (the last frame's next)
     for name, entry in record["objects"].items():
@@ -245,7 +326,7 @@ def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
 
     def frames():
         for i, (entry, frame) in enumerate(zip(meta["frames"], imported.frames)):
-            channels = read_exr(out / entry["file"], all_parts=True)
+            channels = read_exr(cameras_json.parent / entry["file"], all_parts=True)
             index = next(f"{layer}.{p}.X" for p in ("Object Index", "IndexOB") if f"{layer}.{p}.X" in channels)
             ids = np.rint(channels[index]).astype(np.int32)
             ids[~np.isfinite(frame.depth)] = 0
@@ -254,7 +335,7 @@ def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
             object_flow = true_object_flow(frame, ahead, i + 1)[..., :2]
             yield dataclasses.replace(frame, object_flow=np.ascontiguousarray(object_flow, dtype=np.float32))
 
-    return write_sequence(seq, frames(), fps=imported.fps, objects=objects)
+    return imported.fps, objects, frames()
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -265,6 +346,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     r.add_argument("--objects", type=int, default=4)
     r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")
     r.add_argument("--yaw", type=float, default=2.5, help="peak camera yaw, degrees a frame")
+    g = sub.add_parser("rig", help="render the moving scene from a row of static cameras (run with bpy's Python)")
+    g.add_argument("out", type=Path)
+    g.add_argument("--seed", type=int, default=1)
+    g.add_argument("--num-cameras", type=int, default=5)
+    g.add_argument("--test-cameras", type=int, default=1, help="held out, between train cameras (as render-rig)")
+    g.add_argument("--frames", type=int, default=24)
+    g.add_argument("--width", type=int, default=160)
+    g.add_argument("--height", type=int, default=90)
+    g.add_argument("--samples", type=int, default=32, help="path-traced samples a pixel (no denoiser)")
+    g.add_argument("--objects", type=int, default=4)
+    g.add_argument("--speed", type=float, default=4.0, help="peak screen speed of an object, px a frame at --width")
+    g.add_argument("--baseline", type=float, default=0.4, help="world units between neighbouring cameras")
     c = sub.add_parser("capture", help="render a static forward-facing capture (run with bpy's Python)")
     c.add_argument("out", type=Path)
     c.add_argument("--seed", type=int, default=1)
@@ -281,10 +374,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     i = sub.add_parser("import", help="import a render as an rgbd-seq (run with the project's Python)")
     i.add_argument("out", type=Path)
     i.add_argument("seq", type=Path)
+    j = sub.add_parser("import-rig", help="import a rig render as an rgbd-rig (run with the project's Python)")
+    j.add_argument("out", type=Path)
+    j.add_argument("rig", type=Path)
     args = parser.parse_args(argv)
     if args.command == "render":
         render(args.out, args.seed, args.frames, args.width, args.height, args.samples, args.objects, args.speed,
                args.yaw)
+        return 0
+    if args.command == "rig":
+        rig(args.out, args.seed, args.num_cameras, args.test_cameras, args.frames, args.width, args.height,
+            args.samples, args.objects, args.speed, args.baseline)
+        return 0
+    if args.command == "import-rig":
+        print(f"wrote {import_rig(args.out, args.rig)}")
         return 0
     if args.command == "capture":
         capture(args.out, args.seed, args.views, args.width, args.height, args.samples, args.objects, args.baseline)

@@ -288,13 +288,13 @@ def import_rig(out: Path, root: Path, layer: str = "ViewLayer") -> Path:
     with the test cameras chosen as ``interleave render-rig`` chooses them for one row (between train
     cameras, never at an end of the row, spread evenly)."""
     from engine.io.rgbd import write_rig  # noqa: PLC0415
-    from engine.scenegen.rig import RigConfig, _split  # noqa: PLC0415 (render-rig's own rule, not a copy)
+    from engine.scenegen.rig import RigConfig, camera_split  # noqa: PLC0415 (render-rig's own rule, not a copy)
 
     out = Path(out)
     meta = json.loads((out / "cameras.json").read_text())
     names = list(meta["cameras"])
     record = json.loads((out / "objects.json").read_text())
-    train, test = _split(RigConfig(num_cameras=len(names), test_cameras=int(meta["test_cameras"])))
+    train, test = camera_split(RigConfig(num_cameras=len(names), test_cameras=int(meta["test_cameras"])))
     imported = {name: _camera_frames(out / name / "cameras.json", record, layer) for name in names}
     fps, objects, _ = imported[names[0]]
     return write_rig(root, {name: frames for name, (_, _, frames) in imported.items()},

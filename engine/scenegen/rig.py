@@ -65,7 +65,8 @@ from engine.scenegen.render import SceneRenderer
 from engine.scenegen.sample import box_distance, make_scene
 from engine.scenegen.scene import CAMERA_CLEARANCE, CameraPath, Scene, SceneConfig
 
-__all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "generate_rig", "make_rig", "render_rig"]
+__all__ = ["ARRANGEMENTS", "MIN_CAMERA_HEIGHT", "Rig", "RigConfig", "camera_split", "generate_rig", "make_rig",
+           "render_rig"]
 
 #: Camera arrangements ``RigConfig.arrangement`` may name.
 ARRANGEMENTS = ("forward-facing", "orbit")
@@ -162,7 +163,8 @@ def _test_candidates(cols: int, rows: int) -> list[int]:
     return [r * cols + c for r in inner_rows for c in range(1, cols - 1)]
 
 
-def _split(config: RigConfig) -> tuple[list[int], list[int]]:
+def camera_split(config: RigConfig) -> tuple[list[int], list[int]]:
+    """(train, test) camera numbers (row-major) of a rig: ``test_cameras`` inner cameras spread evenly."""
     cols = config.num_cameras // config.rows
     candidates = _test_candidates(cols, config.rows)
     m = config.test_cameras
@@ -244,7 +246,7 @@ def make_rig(config: RigConfig) -> Rig:
     cameras = tuple(CameraPath(kind="static", centre=eye, t_mid=t_mid, look_mode="target", target=target.copy(),
                                fov_deg=path.fov_deg) for eye in eyes)
     names = tuple(f"cam{k}" for k in range(config.num_cameras))
-    train, test = _split(config)
+    train, test = camera_split(config)
     return Rig(config=config, scene=scene, cameras=cameras, names=names,
                train_cameras=tuple(names[k] for k in train), test_cameras=tuple(names[k] for k in test),
                centre=centre, target=target, spread=scale, dropped_parts=dropped_parts,

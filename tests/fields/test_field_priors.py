@@ -18,7 +18,6 @@ from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors,
 from models.fields.priors.depth import (SparseDepthPrior, SparseDepthState, projection_matrix, sparse_depth_points,
                                         triangulate_checked, triangulate_dlt)
 from models.fields.priors.simple import mass_concentration, patch_reprojection_error, reliable_depth_masks
-from models.fields.priors.smooth import patch_rays, patch_smoothness, virtual_cameras
 from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
 from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
 from tests.fields.test_field_train import sphere_views, tiny_config, write_blender
@@ -214,8 +213,7 @@ def test_each_prior_switches_on_and_off_via_config(tmp_path):
     config = tiny_config(steps=4)
     assert prior_loss_terms(config.priors, config.steps) == () and build_priors(None, config, None) is None
     expected = {"depth": {"sift_depth"}, "simple": {"augmented_photometric", "mass_concentration", "augmented_depth"},
-                "vip": {"visibility_prior", "visibility_consistency"}, "distortion": {"distortion"},
-                "smooth": {"depth_smoothness"}}
+                "vip": {"visibility_prior", "visibility_consistency"}, "distortion": {"distortion"}}
     views = sphere_views([0, 40, 80], size=16)
     for name in PRIOR_NAMES:
         on = dataclasses.replace(config, rays_per_batch=64, priors=with_priors(config.priors, [name]))
@@ -552,56 +550,3 @@ def test_epipolar_share_is_low_on_edges_along_the_baseline():
     below.world_to_camera[1, 3] -= 0.3
     share = epipolar_share(grey, views.cameras[1], below, 7)
     assert share[30, 20] > 0.95 and share[15, 60] < 0.05
-
-
-# ----------------------------------------------------------------------------------------------------
-# RegNeRF depth smoothness
-
-
-def test_depth_smoothness_is_zero_on_a_fronto_parallel_plane_and_positive_on_a_bumpy_one():
-    """Virtual cameras between three forward-facing cameras: a one-hot weight gives the training camera back,
-    patch rays pass through their pixel centres, and the smoothness term (disparity, as forward-facing scenes
-    use it) is zero on a plane fronto-parallel to each patch's camera, positive once the plane is bumpy."""
-    from models.fields.components.render import RayOutputs
-
-    train = [_camera(p, look_at=(0.0, 10.0, 0.0)) for p in ((-0.5, 0, 0), (0.5, 0, 0.2), (0.1, 0, -0.4))]
-    w2c = np.stack([c.world_to_camera for c in train])
-    np.testing.assert_allclose(virtual_cameras(w2c, np.eye(3)), w2c, atol=1e-12)
-    weights = np.random.default_rng(0).dirichlet(np.ones(3), size=5)
-    cams = virtual_cameras(w2c, weights)
-    rot = cams[:, :3, :3]
-    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
-    centres = -np.einsum("pji,pj->pi", rot, cams[:, :3, 3])
-    np.testing.assert_allclose(centres, weights @ np.stack([c.position for c in train]), atol=1e-12)
-    intr = np.stack([train[0].intrinsics] * 5)
-    corners = np.array([[0, 0], [10, 3], [56, 56], [30, 7], [5, 40]], np.float64)
-    origins, dirs = patch_rays(intr, cams, corners, 8)
-    assert origins.shape == dirs.shape == (5, 8, 8, 3)
-    for p in range(5):  # a point along each ray projects onto its pixel centre, at planar depth t
-        pix, z = _project(Camera(intr[p], cams[p]), (origins[p] + 3.0 * dirs[p]).reshape(-1, 3))
-        np.testing.assert_allclose(z, 3.0, atol=1e-9)
-        np.testing.assert_allclose(pix[0], corners[p] + 0.5, atol=1e-9)
-        np.testing.assert_allclose(pix[-1], corners[p] + 7.5, atol=1e-9)
-    near, term = 1.0, LOSS_TERMS["depth_smoothness"]
-
-    def loss(bump: float) -> float:
-        """The registered term on each patch's rays hitting a plane fronto-parallel to its camera (world-space
-        intersection; ``bump`` adds a ripple along the image rows) at distance 4, one opaque sample a ray."""
-        normal = rot[:, 2]  # camera z in world
-        dist = 4.0 + bump * np.sin(np.arange(8))[None, None, :]
-        t = np.einsum("pi,pabi->pab", normal, centres[:, None, None] + dist[..., None] * normal[:, None, None]
-                      - origins) / np.einsum("pi,pabi->pab", normal, dirs)
-        t = torch.as_tensor(t.reshape(-1, 1))
-        w = torch.ones_like(t)
-        out = RayOutputs(torch.zeros(len(t), 3), t[:, 0], t[:, 0], w[:, 0], w, w, t)
-        extras = {"smooth": {"outputs": out, "shape": (5, 8, 8), "scale": near, "disparity": True}}
-        return float(term(LossInputs(None, None, out, 0, LossTerm("depth_smoothness"), extras)))
-
-    assert loss(0.0) < 1e-20
-    assert loss(0.5) > 1e-4
-    flat = torch.full((2, 4, 4), 3.0)
-    assert float(patch_smoothness(flat)) == 0.0
-    ramp = flat + torch.arange(4.0) * torch.tensor([1.0, 2.0])[:, None, None]  # steps of 1 and 2 along the rows
-    assert float(patch_smoothness(ramp)) == pytest.approx((1.0 + 4.0) / 2)  # mean over patches, 0 down the columns
-    with pytest.raises(InputError):
-        patch_smoothness(torch.zeros(2, 4, 3))

@@ -1,8 +1,7 @@
 """The sparse-input priors of thesis Ch. 3-4, switchable per run: ``depth`` (DS-NeRF sparse depth from
 SIFT, ``priors_depth``), ``simple`` (Simple-RF augmented model, ``priors_simple``), ``vip`` (ViP-NeRF
-visibility, ``priors_vip``), ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
-state: ``models.fields.losses.ray_distortion``) and ``smooth`` (RegNeRF's depth smoothness on patches from
-virtual cameras between the training views, ``priors.smooth``).
+visibility, ``priors_vip``), and ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
+state: ``models.fields.losses.ray_distortion``).
 
 A run's :class:`PriorsConfig` (``FieldTrainConfig.priors``) says which are on and holds their knobs and
 weights; :func:`prior_loss_terms` turns the enabled ones into named :class:`~models.fields.losses.LossTerm`
@@ -26,13 +25,12 @@ from engine.core.errors import InputError
 from models.fields.losses import LossTerm
 from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDepthState
 from models.fields.priors.simple import AugmentedState, SimplePrior
-from models.fields.priors.smooth import SmoothPrior, SmoothState
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
 __all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
            "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
 
-PRIOR_NAMES = ("depth", "simple", "vip", "distortion", "smooth")
+PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
 
 
 @dataclass
@@ -119,8 +117,6 @@ class PriorsConfig:
     vip: VisibilityPrior = field(default_factory=VisibilityPrior, metadata={"help": "ViP-NeRF visibility"})
     distortion: DistortionPrior = field(default_factory=DistortionPrior, metadata={
         "help": "mip-NeRF 360 distortion loss"})
-    smooth: SmoothPrior = field(default_factory=SmoothPrior, metadata={
-        "help": "RegNeRF depth smoothness on virtual-camera patches"})
 
     def enabled(self) -> list[str]:
         """Names of the priors switched on."""
@@ -133,7 +129,6 @@ class PriorsConfig:
         if self.depth.source not in DEPTH_SOURCES:
             raise InputError(f"must be one of {DEPTH_SOURCES}, got {self.depth.source!r}", field="priors.depth.source")
         self.depth.stereo.validate()
-        self.smooth.validate()
         if not 0 <= self.simple.near_shift < 1:
             raise InputError(f"must be in [0, 1), got {self.simple.near_shift}", field="priors.simple.near_shift")
         if self.simple.patch_size < 1 or self.simple.patch_size % 2 == 0:
@@ -150,7 +145,7 @@ class PriorsConfig:
                             self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
                             ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
                             self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight),
-                            ("distortion.weight", self.distortion.weight), ("smooth.weight", self.smooth.weight)):
+                            ("distortion.weight", self.distortion.weight)):
             if not value >= 0:
                 raise InputError(f"must be >= 0, got {value}", field=f"priors.{name}")
         return self
@@ -181,8 +176,6 @@ def prior_loss_terms(priors: PriorsConfig, steps: int) -> tuple[LossTerm, ...]:
                   LossTerm("visibility_consistency", v.consistency_weight)]
     if priors.distortion.enabled:
         terms.append(LossTerm("distortion", priors.distortion.weight))
-    if priors.smooth.enabled:
-        terms.append(LossTerm("depth_smoothness", priors.smooth.weight))
     return tuple(terms)
 
 
@@ -195,7 +188,6 @@ class Priors(nn.Module):
         self.depth = SparseDepthState(views, p.depth, cache_dir) if p.depth.enabled else None
         self.simple = AugmentedState(views, config, p.simple, model) if p.simple.enabled else None
         self.vip = VisibilityState(views, config, p.vip, cache_dir) if p.vip.enabled else None
-        self.smooth = SmoothState(views, p.smooth) if p.smooth.enabled else None
 
     def update_occupancy(self, generator: torch.Generator) -> None:
         """The augmented model's occupancy-grid callback (the main model's is the training loop's)."""
@@ -211,8 +203,6 @@ class Priors(nn.Module):
             extras.update(self.simple.extras(model, batch, outputs, generator))
         if self.vip is not None:
             extras.update(self.vip.extras(model, batch, outputs, step, generator))
-        if self.smooth is not None:
-            extras.update(self.smooth.extras(model, generator))
         return extras
 
 

@@ -17,7 +17,7 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Optional
+from typing import Any, ClassVar, Optional, Sequence
 
 import torch
 
@@ -27,8 +27,8 @@ from models.fields.components.render import render_image
 from models.fields.data.select import DATASETS, detect_dataset, load_run_views, select_views
 from models.fields.data.views import Views, check_views
 from models.fields.losses import LossTerm, RayBatch, default_loss_terms
-from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_priors, build_priors, prior_loss_terms,
-                                        with_priors)
+from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_loss_weights, auto_priors, build_priors,
+                                        prior_loss_terms, with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
@@ -260,13 +260,15 @@ def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]
     return args
 
 
-def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None
-                  ) -> FieldTrainConfig:
+def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None,
+                  given_losses: Sequence[str] = ()) -> FieldTrainConfig:
     """``config`` with the priors of a command line and ``priors_choice`` saying why.
 
     ``explicit`` (the ``--priors`` text, ``''`` for none) wins; so do priors the config (file or
     ``--priors.NAME.enabled``) already switches on; otherwise :func:`~models.fields.priors.config.auto_priors`
-    picks them from the number of train views and the scene type.
+    picks them from the number of train views and the scene type, and the loss weights of the same rule
+    (:func:`~models.fields.priors.config.auto_loss_weights`) are set, except for the terms in ``given_losses``
+    (those the command line's ``--loss`` names).
     """
     if explicit is not None:
         names = [n.strip() for n in explicit.split(",") if n.strip()]
@@ -276,7 +278,10 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
         enabled = ",".join(config.priors.enabled())
         return dataclasses.replace(config, priors_choice=f"explicit: the config enables {enabled}")
     names, reason = auto_priors(num_views, scene_type)
-    return dataclasses.replace(config, priors=with_priors(config.priors, names), priors_choice=f"auto: {reason}")
+    weights = [f"{name}={weight!r}" for name, weight in auto_loss_weights(num_views, scene_type)
+               if name not in given_losses]
+    return dataclasses.replace(apply_loss_weights(config, weights), priors=with_priors(config.priors, names),
+                               priors_choice=f"auto: {reason}")
 
 
 def run_inputs(args: argparse.Namespace) -> tuple[FieldTrainConfig, Views, Views, dict[str, Any]]:
@@ -300,7 +305,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     try:
         device = resolve_device(args.device)
         config, train, test, record = run_inputs(args)
-        config = choose_priors(config, len(train), train.scene_type, args.prior_names)
+        config = choose_priors(config, len(train), train.scene_type, args.prior_names,
+                               [spec.partition("=")[0] for spec in args.loss])
         print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out, device=str(device))

@@ -320,7 +320,7 @@ def test_llff_bad_capture_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_auto_priors_follow_the_ablation():
-    from models.fields.priors.config import PRIOR_NAMES, PRIORS_THAT_PAY, auto_priors
+    from models.fields.priors.config import PRIOR_NAMES, PRIORS_THAT_PAY, auto_loss_weights, auto_priors
 
     for scene_type, rule in PRIORS_THAT_PAY.items():
         assert set(rule.names) <= set(PRIOR_NAMES) and rule.names
@@ -330,19 +330,25 @@ def test_auto_priors_follow_the_ablation():
         assert names == () and "no prior paid" in reason
     assert auto_priors(4, "bounded-360")[0] == ("depth", "simple", "vip")  # lego, 4 views: all three paid
     assert auto_priors(3, "forward-facing")[0] == ("depth", "distortion")  # sparse depth and the distortion loss
+    assert auto_loss_weights(3, "forward-facing") == (("plane_tv", 0.01),)  # and ten times the plane TV
+    assert "plane_tv=0.01 paid" in auto_priors(3, "forward-facing")[1]
+    assert auto_loss_weights(4, "forward-facing") == () == auto_loss_weights(4, "bounded-360")
     with pytest.raises(InputError, match="scene_type"):
         auto_priors(3, "indoor")
 
 
-@pytest.mark.parametrize("views, given, enabled, choice", [
-    ("0,2,5", None, ["depth", "distortion"], "auto: 3 train views <= 3 on a forward-facing scene"),
-    ("0,1,2,4", None, [], "auto: 4 train views > 3"),
-    ("0,2,5", "", [], "explicit: --priors ''"),
-    ("0,1,2,4", "vip", ["vip"], "explicit: --priors 'vip'"),
+@pytest.mark.parametrize("views, given, loss, enabled, choice, plane_tv", [
+    ("0,2,5", None, [], ["depth", "distortion"], "auto: 3 train views <= 3 on a forward-facing scene", 0.01),
+    ("0,2,5", None, ["--loss", "plane_tv=0.002"], ["depth", "distortion"], "auto: 3 train views", 0.002),
+    ("0,1,2,4", None, [], [], "auto: 4 train views > 3", 0.001),
+    ("0,2,5", "", [], [], "explicit: --priors ''", 0.001),
+    ("0,1,2,4", "vip", [], ["vip"], "explicit: --priors 'vip'", 0.001),
 ])
-def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, given, enabled, choice):
-    """The command line switches on the priors that paid for this few views unless --priors says otherwise;
-    the choice and its reason are printed and saved in config.json."""
+def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, given, loss, enabled, choice,
+                                               plane_tv):
+    """The command line switches on the priors that paid for this few views unless --priors says otherwise,
+    and sets the plane TV weight of the same rule unless --loss sets it; the choice and its reason are printed
+    and saved in config.json."""
     from engine.cli import main as cli_main
     from models.fields.priors.config import PRIOR_NAMES
     from tests.io.test_llff import generated_llff
@@ -353,8 +359,9 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
     argv = ["train", "field", "--scene", str(capture), "--train-views", views, "--test-views", "3", "--steps", "1",
             "--rays-per-batch", "32", "--field.resolutions", "8,16", "--render.num-samples", "8",
             "--render.occupancy", "false", "--priors.vip.num-planes", "4", "--no-flip", "--out", str(run)]
-    assert cli_main(argv + ([] if given is None else ["--priors", given])) == 0
+    assert cli_main(argv + loss + ([] if given is None else ["--priors", given])) == 0
     saved = json.loads((run / "config.json").read_text())
+    assert [t["weight"] for t in saved["losses"] if t["name"] == "plane_tv"] == [plane_tv]
     assert [n for n in PRIOR_NAMES if saved["priors"][n]["enabled"]] == enabled
     assert saved["priors_choice"].startswith(choice)
     assert f"priors: {', '.join(enabled) or 'none'} ({saved['priors_choice']})" in capsys.readouterr().err

@@ -28,7 +28,7 @@ from models.fields.priors.simple import AugmentedState, SimplePrior
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
 __all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
-           "PRIORS_THAT_PAY", "auto_priors"]
+           "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
 
 PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
 
@@ -44,16 +44,18 @@ class DistortionPrior:
 
 @dataclass(frozen=True)
 class PriorRule:
-    """The priors that paid on one kind of scene up to ``max_views`` train views, and the measurement."""
+    """The priors that paid on one kind of scene up to ``max_views`` train views, the loss weights that paid
+    there too (``(term, weight)``, as ``--loss TERM=WEIGHT``), and the measurement."""
 
     max_views: int
     names: tuple[str, ...]
     evidence: str
+    loss_weights: tuple[tuple[str, float], ...] = ()
 
 
 #: What paid in the prior ablation (``tools.field_ablation``, one seed; differences under ~0.6 dB are not
-#: resolved), ``docs/results/2026-11-22-static-field-priors.md``: per scene type, up to how many train views
-#: and which priors.
+#: resolved), ``docs/results/2026-11-22-static-field-priors.md``, and on the forward-facing rigs since (two
+#: seeds): per scene type, up to how many train views, which priors and which loss weights.
 PRIORS_THAT_PAY: dict[str, PriorRule] = {
     "bounded-360": PriorRule(4, ("depth", "simple", "vip"),
                              "lego 100x100, 4 views: all three +2.7 dB (each alone +0.6 to +1.9); 8 views: none "
@@ -63,7 +65,10 @@ PRIORS_THAT_PAY: dict[str, PriorRule] = {
                                 "three within 0.2 dB of it at 3-5x the time, Simple-RF and ViP alone -0.1 to "
                                 "-1.7 dB; 4 views: every prior costs 0.4-1.7 dB; the distortion loss on top, three "
                                 "504x378 rigs, 3 views, two seeds: +1.65 / +1.09 / -0.45 dB, "
-                                "docs/results/2026-11-29-ff-distortion.md"),
+                                "docs/results/2026-11-29-ff-distortion.md; the plane TV at 0.01 instead of 0.001 on "
+                                "top, same rigs and seeds: +0.37 / +0.51 / +0.59 dB, "
+                                "docs/results/2026-11-29-ff-ablations.md",
+                                loss_weights=(("plane_tv", 0.01),)),
 }
 
 
@@ -74,16 +79,33 @@ def auto_priors(num_views: int, scene_type: str) -> tuple[tuple[str, ...], str]:
     >>> auto_priors(3, "forward-facing")[0], auto_priors(4, "forward-facing")[0]
     (('depth', 'distortion'), ())
     """
+    rule = _rule(num_views, scene_type)
+    if num_views <= rule.max_views:
+        weights = "".join(f" and {name}={weight:g}" for name, weight in rule.loss_weights)
+        return rule.names, (f"{num_views} train views <= {rule.max_views} on a {scene_type} scene: "
+                            f"{','.join(rule.names)}{weights} paid ({rule.evidence})")
+    return (), (f"{num_views} train views > {rule.max_views} on a {scene_type} scene: no prior paid "
+                f"({rule.evidence})")
+
+
+def auto_loss_weights(num_views: int, scene_type: str) -> tuple[tuple[str, float], ...]:
+    """The ``(term, weight)`` pairs :data:`PRIORS_THAT_PAY` sets for a run with ``num_views`` train views of a
+    ``scene_type`` scene (none with more views than its rule's).
+
+    >>> auto_loss_weights(3, "forward-facing"), auto_loss_weights(4, "forward-facing")
+    ((('plane_tv', 0.01),), ())
+    """
+    rule = _rule(num_views, scene_type)
+    return rule.loss_weights if num_views <= rule.max_views else ()
+
+
+def _rule(num_views: int, scene_type: str) -> PriorRule:
+    """The rule of ``scene_type``, after checking both arguments."""
     if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
         raise InputError(f"must be a positive integer, got {num_views!r}", field="num_views")
     if scene_type not in PRIORS_THAT_PAY:
         raise InputError(f"must be one of {sorted(PRIORS_THAT_PAY)}, got {scene_type!r}", field="scene_type")
-    rule = PRIORS_THAT_PAY[scene_type]
-    if num_views <= rule.max_views:
-        return rule.names, (f"{num_views} train views <= {rule.max_views} on a {scene_type} scene: "
-                            f"{','.join(rule.names)} paid ({rule.evidence})")
-    return (), (f"{num_views} train views > {rule.max_views} on a {scene_type} scene: no prior paid "
-                f"({rule.evidence})")
+    return PRIORS_THAT_PAY[scene_type]
 
 
 @dataclass

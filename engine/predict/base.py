@@ -219,8 +219,8 @@ class CpuFrames:
 
 def warp_and_fill(frame: Frame, target: Target, timer: Timer,
                   flow: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and fill the holes (``engine.geometry.holefill``); stages
-    ``warp`` and ``fill``. Returns (colour, holes)."""
+    """Forward-warp ``frame`` to the target camera (optionally moving points by ``flow`` (H, W, 2 or 3)) and fill
+    the holes (``engine.geometry.holefill``); stages ``warp`` and ``fill``. Returns (colour, holes)."""
     color, _, holes = warp_fill_depth(frame, target, timer, flow)
     return color, holes
 

@@ -36,7 +36,8 @@ class LossTerm:
     """One weighted loss term of a run."""
 
     name: str = field(metadata={"help": "a registered term: photometric, photometric_linear, plane_tv, plane_l1, "
-                                        "sparse_depth, distortion (the priors add theirs, models/fields/priors/config.py)"})
+                                        "sparse_depth, distortion (the priors add theirs, "
+                                        "models/fields/priors/config.py)"})
     weight: float = field(default=1.0, metadata={"help": "multiplier of the term"})
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})

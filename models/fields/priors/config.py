@@ -27,8 +27,8 @@ from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDe
 from models.fields.priors.simple import AugmentedState, SimplePrior
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
-__all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors", "PriorRule",
-           "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
+__all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors",
+           "PriorRule", "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
 
 PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
 

@@ -275,11 +275,11 @@ def write_capture(out: Path, root: Path, factor: int, layer: str = "ViewLayer") 
 def import_sequence(out: Path, seq: Path, layer: str = "ViewLayer") -> Path:
     """Import a ``render`` output as the rgbd-seq ``seq`` with object ids, moving masks and the objects'
     per-frame transforms (frame index i of the sequence is Blender frame i + 1)."""
+    from engine.io.meta import load_json  # noqa: PLC0415
     from engine.io.rgbd import write_sequence  # noqa: PLC0415
 
     out = Path(out)
-    fps, objects, frames = _camera_frames(out / "cameras.json", json.loads((out / "objects.json").read_text()),
-                                          layer)
+    fps, objects, frames = _camera_frames(out / "cameras.json", load_json(out / "objects.json"), layer)
     return write_sequence(seq, frames, fps=fps, objects=objects)
 
 
@@ -287,14 +287,25 @@ def import_rig(out: Path, root: Path, layer: str = "ViewLayer") -> Path:
     """Import a ``rig`` output as the rgbd-rig ``root``: one rgbd-seq per camera (as ``import``), and rig.json
     with the test cameras chosen as ``interleave render-rig`` chooses them for one row (between train
     cameras, never at an end of the row, spread evenly)."""
+    from engine.core.errors import InputError  # noqa: PLC0415
+    from engine.io.meta import json_int, load_json, require  # noqa: PLC0415
     from engine.io.rgbd import write_rig  # noqa: PLC0415
     from engine.scenegen.rig import RigConfig, camera_split  # noqa: PLC0415 (render-rig's own rule, not a copy)
 
     out = Path(out)
-    meta = json.loads((out / "cameras.json").read_text())
-    names = list(meta["cameras"])
-    record = json.loads((out / "objects.json").read_text())
-    train, test = camera_split(RigConfig(num_cameras=len(names), test_cameras=int(meta["test_cameras"])))
+    path = out / "cameras.json"
+    meta = load_json(path)
+    names = require(meta, "cameras", path)
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        raise InputError(f"must be a non-empty list of camera folder names, got {names!r}", file=path,
+                         field="cameras")
+    test_cameras = json_int(require(meta, "test_cameras", path), path, "test_cameras", minimum=0)
+    try:
+        config = RigConfig(num_cameras=len(names), test_cameras=test_cameras)
+    except InputError as exc:  # the same rule as render-rig's, named at the file that asked for it
+        raise InputError(exc.problem, file=path, field=exc.field) from None
+    record = load_json(out / "objects.json")
+    train, test = camera_split(config)
     imported = {name: _camera_frames(out / name / "cameras.json", record, layer) for name in names}
     fps, objects, _ = imported[names[0]]
     return write_rig(root, {name: frames for name, (_, _, frames) in imported.items()},
@@ -312,9 +323,10 @@ def _camera_frames(cameras_json: Path, record: dict, layer: str):
     from engine.core.frames import SceneObject  # noqa: PLC0415
     from engine.io.exr import read_exr  # noqa: PLC0415
     from engine.io.importers import frames_from_blender  # noqa: PLC0415
+    from engine.io.meta import load_json  # noqa: PLC0415
     from engine.predict.base import true_object_flow  # noqa: PLC0415
 
-    meta = json.loads(cameras_json.read_text())
+    meta = load_json(cameras_json)
     imported = frames_from_blender(cameras_json, layer=layer)
     numbers = [entry["frame"] for entry in meta["frames"]]
     objects, ahead = [], {}  # ahead: id -> the object keyed one frame further (the last frame's next)
@@ -387,15 +399,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             args.samples, args.objects, args.speed, args.baseline)
         return 0
     if args.command == "import-rig":
-        print(f"wrote {import_rig(args.out, args.rig)}")
-        return 0
+        return _report(import_rig, args.out, args.rig)
     if args.command == "capture":
         capture(args.out, args.seed, args.views, args.width, args.height, args.samples, args.objects, args.baseline)
         return 0
     if args.command == "llff":
-        print(f"wrote {write_capture(args.out, args.root, args.factor)}")
-        return 0
-    print(f"wrote {import_sequence(args.out, args.seq)}")
+        return _report(write_capture, args.out, args.root, args.factor)
+    return _report(import_sequence, args.out, args.seq)
+
+
+def _report(write, *args) -> int:
+    """Run an import on the project's side: 0 and the path it wrote, or 2 and bad input's one-line error."""
+    from engine.core.errors import InputError  # noqa: PLC0415
+
+    try:
+        print(f"wrote {write(*args)}")
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -1,6 +1,7 @@
 """``tools.cycles_scene import`` on a real Cycles render (a committed 64x36, 3-frame fixture made with bpy 5.0.1):
 the imported sequence's object ids, moving masks and per-frame object transforms agree with Cycles' own
 Vector pass, so ``oracle`` and the moving-pixel scores mean on it what they mean on generated sequences."""
+import json
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,30 @@ def test_a_rig_render_is_imported_as_an_rgbd_rig(tmp_path):
     steps = np.diff(np.stack(centres), axis=0) @ rotation.T  # in camera axes: x right
     np.testing.assert_allclose(steps, [[0.4, 0.0, 0.0]] * 2, atol=1e-6)
 
+
+
+@pytest.mark.parametrize("edit, where", [
+    ({"test_cameras": 2}, "field 'test_cameras'"),     # 3 cameras in a row have one that may be held out
+    ({"cameras": "cam0"}, "field 'cameras'"),
+    ({"cameras": None}, "field 'cameras'"),
+    ({"test_cameras": "1"}, "field 'test_cameras'"),
+    ({"cameras": ["cam0", "cam1", "cam9"]}, "cam9"),   # a camera folder that is not there
+])
+def test_a_bad_rig_render_is_one_line_and_exit_2(tmp_path, capsys, edit, where):
+    """``import-rig`` on a rig render whose cameras.json names a bad split, no camera list or a missing camera:
+    exit 2 and one line naming the file and the field, no traceback and no rig written."""
+    import shutil
+
+    from tools.cycles_scene import main
+
+    render = tmp_path / "render"
+    shutil.copytree(RIG, render)
+    meta = json.loads((render / "cameras.json").read_text())
+    (render / "cameras.json").write_text(json.dumps({**meta, **edit}))
+    assert main(["import-rig", str(render), str(tmp_path / "rig")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: file ") and "cameras.json" in err and where in err and "\n" not in err
+    assert not (tmp_path / "rig" / "rig.json").exists()
 
 CAPTURE = Path(__file__).resolve().parents[1] / "io" / "data" / "cycles_capture"
 

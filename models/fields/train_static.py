@@ -40,7 +40,7 @@ from models.trainer_cli import DEVICES, resolve_device
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
            "config_from_file", "add_run_arguments", "add_config_options", "config_from_command_line",
-           "views_from_args", "parse_run_command", "choose_priors", "run_inputs", "main", "eval_main"]
+           "views_from_args", "parse_run_command", "losses_given", "choose_priors", "run_inputs", "main", "eval_main"]
 
 
 
@@ -260,6 +260,17 @@ def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]
     return args
 
 
+def losses_given(args: argparse.Namespace) -> list[str]:
+    """Names of the loss terms whose weights a command line sets: those ``--loss`` names and those the
+    ``--config`` file lists under ``losses`` (a run's saved ``config.json`` lists them all, so training again
+    from it keeps its weights). The file was read and checked by :func:`config_from_command_line`."""
+    names = [spec.partition("=")[0] for spec in args.loss]
+    if args.config:
+        terms = json.loads(Path(args.config).read_text()).get("losses", [])
+        names += [t["name"] for t in terms if isinstance(t, dict) and "name" in t]
+    return names
+
+
 def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None,
                   given_losses: Sequence[str] = ()) -> FieldTrainConfig:
     """``config`` with the priors of a command line and ``priors_choice`` saying why.
@@ -268,7 +279,7 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
     ``--priors.NAME.enabled``) already switches on; otherwise :func:`~models.fields.priors.config.auto_priors`
     picks them from the number of train views and the scene type, and the loss weights of the same rule
     (:func:`~models.fields.priors.config.auto_loss_weights`) are set, except for the terms in ``given_losses``
-    (those the command line's ``--loss`` names).
+    (those the command line sets: :func:`losses_given`).
     """
     if explicit is not None:
         names = [n.strip() for n in explicit.split(",") if n.strip()]
@@ -305,8 +316,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     try:
         device = resolve_device(args.device)
         config, train, test, record = run_inputs(args)
-        config = choose_priors(config, len(train), train.scene_type, args.prior_names,
-                               [spec.partition("=")[0] for spec in args.loss])
+        config = choose_priors(config, len(train), train.scene_type, args.prior_names, losses_given(args))
         print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out, device=str(device))

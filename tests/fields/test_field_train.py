@@ -337,9 +337,14 @@ def test_auto_priors_follow_the_ablation():
         auto_priors(3, "indoor")
 
 
+#: A --config file that sets the plane TV weight (as a run's saved config.json does).
+TV_FILE = ["--config", json.dumps({"losses": [{"name": "photometric"}, {"name": "plane_tv", "weight": 0.003}]})]
+
+
 @pytest.mark.parametrize("views, given, loss, enabled, choice, plane_tv", [
     ("0,2,5", None, [], ["depth", "distortion"], "auto: 3 train views <= 3 on a forward-facing scene", 0.01),
     ("0,2,5", None, ["--loss", "plane_tv=0.002"], ["depth", "distortion"], "auto: 3 train views", 0.002),
+    ("0,2,5", None, TV_FILE, ["depth", "distortion"], "auto: 3 train views", 0.003),
     ("0,1,2,4", None, [], [], "auto: 4 train views > 3", 0.001),
     ("0,2,5", "", [], [], "explicit: --priors ''", 0.001),
     ("0,1,2,4", "vip", [], ["vip"], "explicit: --priors 'vip'", 0.001),
@@ -347,8 +352,8 @@ def test_auto_priors_follow_the_ablation():
 def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, given, loss, enabled, choice,
                                                plane_tv):
     """The command line switches on the priors that paid for this few views unless --priors says otherwise,
-    and sets the plane TV weight of the same rule unless --loss sets it; the choice and its reason are printed
-    and saved in config.json."""
+    and sets the plane TV weight of the same rule unless --loss or a --config file sets it; the choice and its
+    reason are printed and saved in config.json."""
     from engine.cli import main as cli_main
     from models.fields.priors.config import PRIOR_NAMES
     from tests.io.test_llff import generated_llff
@@ -356,6 +361,9 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
     root = tmp_path_factory.mktemp("priors")
     capture, _, _ = generated_llff(root)
     run = root / "run"
+    if loss[:1] == ["--config"]:  # the file's text stands in the parameter
+        (root / "config.json").write_text(loss[1])
+        loss = ["--config", str(root / "config.json")]
     argv = ["train", "field", "--scene", str(capture), "--train-views", views, "--test-views", "3", "--steps", "1",
             "--rays-per-batch", "32", "--field.resolutions", "8,16", "--render.num-samples", "8",
             "--render.occupancy", "false", "--priors.vip.num-planes", "4", "--no-flip", "--out", str(run)]

@@ -1,0 +1,109 @@
+"""What a trained dynamic field's motion gets right: its motion against a capture's true object motion.
+
+``python -m tools.field_motion_truth EXPORT CAMERA [--json FILE]`` reads a dynamic-field export (``interleave
+export dynamic``) and one camera of the capture it was trained on, an rgbd-seq folder with ground-truth
+``object_flow`` (e.g. the held-out camera of an rgbd-rig: ``RIG/cam2``). For every pair of consecutive frames
+(n, n+1) whose times lie in the field's trained range it moves each pixel's TRUE surface point (frame n's
+depth, so the field's geometry errors are left out) by the field's own motion from t_n to t_{n+1}
+(``engine.fields.dynamic.field_object_flow``, what the field's vectors and ``oracle`` are made of) and compares
+that screen motion with frame n's true ``object_flow`` (pixels, to the next frame, object motion alone): the
+end-point error over the pixels of the moving objects (``object_id`` > 0; without object ids, where the true
+motion exceeds 0.25 px) beside zero motion's (a field that learned no motion), and over the static background
+(where the field should move nothing): the share of its pixels the field moves by more than 0.25 px. A static
+camera's vectors are this object motion; a moving camera's add the camera's own, which the field does not
+learn. Means over the pairs.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from engine.core.errors import InputError
+from engine.fields.dynamic import field_object_flow, load_dynamic_field
+from engine.io.rgbd import read_sequence
+
+__all__ = ["MOVING_PX", "check", "main"]
+
+#: screen motion (pixels) above which a background pixel counts as moved, and (without object ids) a pixel
+#: as part of a moving object
+MOVING_PX = 0.25
+
+
+def _length(a: np.ndarray) -> np.ndarray:
+    return np.hypot(a[..., 0], a[..., 1])
+
+
+def check(export: Path, camera: Path) -> dict:
+    """The figures of the module doc as a flat dict (means over the frame pairs, pixels and pixels a second).
+
+    Raises:
+        InputError: not an export or an rgbd-seq folder, a frame without ``object_flow``, or no pair of
+            consecutive frames inside the field's trained range.
+    """
+    assets = load_dynamic_field(export)
+    seq = read_sequence(camera)
+    t0, t1 = assets.time_range
+    eps = 1e-6 * max(1.0, abs(t1 - t0))
+    inside = [t0 - eps <= t <= t1 + eps for t in seq.times]
+    pairs = [n for n in range(len(seq) - 1) if inside[n] and inside[n + 1]]
+    if not pairs:
+        raise InputError(f"no two consecutive frames inside the field's trained times [{t0}, {t1}]",
+                         file=Path(camera))
+    sums: dict[str, list[float]] = {}
+
+    def add(key: str, value) -> None:
+        sums.setdefault(key, []).append(float(value))
+
+    for n in pairs:
+        frame = seq[n]
+        if frame.object_flow is None:
+            raise InputError("has no ground-truth object flow", file=Path(camera), frame=frame.index,
+                             field="object_flow")
+        t, t_next = min(max(frame.time, t0), t1), min(max(float(seq.times[n + 1]), t0), t1)
+        truth = frame.object_flow[..., :2]
+        fg = np.isfinite(frame.depth)
+        objects = (frame.object_id > 0) & fg if frame.object_id is not None else (_length(truth) > MOVING_PX) & fg
+        background = fg & ~objects
+        moved = field_object_flow(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth, t,
+                                  t_next)[..., :2]
+        err = _length(moved - truth)
+        add("object pixel share", objects.mean())
+        if objects.any():
+            add("objects: true motion, px", _length(truth)[objects].mean())
+            add("objects: EPE of the field's motion, px", err[objects].mean())
+            add("objects: EPE of zero motion, px", _length(truth)[objects].mean())
+            add("objects: share where the field beats zero motion", (err < _length(truth))[objects].mean())
+        if background.any():
+            add("background: EPE of the field's motion, px", err[background].mean())
+            add(f"background: share the field moves > {MOVING_PX} px", (_length(moved) > MOVING_PX)[background].mean())
+    out = {key: round(float(np.mean(values)), 4) for key, values in sums.items()}
+    out["pairs"] = len(pairs)
+    return out
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tools.field_motion_truth", description=__doc__.splitlines()[0])
+    parser.add_argument("export", type=Path, help="a dynamic field's export folder ('interleave export dynamic')")
+    parser.add_argument("camera", type=Path, help="an rgbd-seq folder with object_flow, e.g. RIG/cam2")
+    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    args = parser.parse_args(argv)
+    try:
+        out = check(args.export, args.camera)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for key, value in out.items():
+        print(f"{value:>9} {key}")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"command": "python -m tools.field_motion_truth " + " ".join(
+            argv if argv is not None else sys.argv[1:]), **out}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

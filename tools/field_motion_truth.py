@@ -1,17 +1,19 @@
 """What a trained dynamic field's motion gets right: its motion against a capture's true object motion.
 
-``python -m tools.field_motion_truth EXPORT CAMERA [--json FILE]`` reads a dynamic-field export (``interleave
+``python -m tools.field_motion_truth EXPORT CAMERA [--depth truth|field] [--json FILE]`` reads a dynamic-field export (``interleave
 export dynamic``) and one camera of the capture it was trained on, an rgbd-seq folder with ground-truth
 ``object_flow`` (e.g. the held-out camera of an rgbd-rig: ``RIG/cam2``). For every pair of consecutive frames
-(n, n+1) whose times lie in the field's trained range it moves each pixel's TRUE surface point (frame n's
-depth, so the field's geometry errors are left out) by the field's own motion from t_n to t_{n+1}
+(n, n+1) whose times lie in the field's trained range it moves each pixel's surface point by the field's own
+motion from t_n to t_{n+1}
 (``engine.fields.dynamic.field_object_flow``, what the field's vectors and ``oracle`` are made of) and compares
 that screen motion with frame n's true ``object_flow`` (pixels, to the next frame, object motion alone): the
 end-point error over the pixels of the moving objects (``object_id`` > 0; without object ids, where the true
 motion exceeds 0.25 px) beside zero motion's (a field that learned no motion), and over the static background
 (where the field should move nothing): the share of its pixels the field moves by more than 0.25 px. A static
 camera's vectors are this object motion; a moving camera's add the camera's own, which the field does not
-learn. Means over the pairs.
+learn. Means over the pairs. The surface point lies at frame n's TRUE depth (``--depth truth``, the default:
+the motion alone, the field's geometry errors left out) or at the depth the field renders (``--depth field``,
+the numpy renderer: what the field's vectors are made of, geometry errors included).
 """
 from __future__ import annotations
 
@@ -24,27 +26,31 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.dynamic import field_object_flow, load_dynamic_field
+from engine.fields.dynamic import field_object_flow, load_dynamic_field, render_dynamic_field
 from engine.io.rgbd import read_sequence
 
-__all__ = ["MOVING_PX", "check", "main"]
+__all__ = ["MOVING_PX", "DEPTHS", "check", "main"]
 
 #: screen motion (pixels) above which a background pixel counts as moved, and (without object ids) a pixel
 #: as part of a moving object
 MOVING_PX = 0.25
+#: where the surface point of a pixel lies: at the capture's depth or at the field's rendered depth
+DEPTHS = ("truth", "field")
 
 
 def _length(a: np.ndarray) -> np.ndarray:
     return np.hypot(a[..., 0], a[..., 1])
 
 
-def check(export: Path, camera: Path) -> dict:
-    """The figures of the module doc as a flat dict (means over the frame pairs, pixels and pixels a second).
+def check(export: Path, camera: Path, depth: str = "truth") -> dict:
+    """The figures of the module doc as a flat dict (means over the frame pairs; pixels).
 
     Raises:
-        InputError: not an export or an rgbd-seq folder, a frame without ``object_flow``, or no pair of
-            consecutive frames inside the field's trained range.
+        InputError: not an export or an rgbd-seq folder, a frame without ``object_flow``, no pair of
+            consecutive frames inside the field's trained range, or ``depth`` not one of :data:`DEPTHS`.
     """
+    if depth not in DEPTHS:
+        raise InputError(f"must be one of {list(DEPTHS)}, got {depth!r}", field="depth")
     assets = load_dynamic_field(export)
     seq = read_sequence(camera)
     t0, t1 = assets.time_range
@@ -69,8 +75,10 @@ def check(export: Path, camera: Path) -> dict:
         fg = np.isfinite(frame.depth)
         objects = (frame.object_id > 0) & fg if frame.object_id is not None else (_length(truth) > MOVING_PX) & fg
         background = fg & ~objects
-        moved = field_object_flow(assets, frame.camera.intrinsics, frame.camera.world_to_camera, frame.depth, t,
-                                  t_next)[..., :2]
+        k_mat, pose = frame.camera.intrinsics, frame.camera.world_to_camera
+        at = frame.depth if depth == "truth" else render_dynamic_field(assets, k_mat, pose, *frame.depth.shape,
+                                                                       t)["depth"]
+        moved = field_object_flow(assets, k_mat, pose, at, t, t_next)[..., :2]
         err = _length(moved - truth)
         add("object pixel share", objects.mean())
         if objects.any():
@@ -90,10 +98,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.field_motion_truth", description=__doc__.splitlines()[0])
     parser.add_argument("export", type=Path, help="a dynamic field's export folder ('interleave export dynamic')")
     parser.add_argument("camera", type=Path, help="an rgbd-seq folder with object_flow, e.g. RIG/cam2")
+    parser.add_argument("--depth", choices=DEPTHS, default="truth",
+                        help="surface points at the capture's depth (the motion alone) or the field's rendered depth")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args(argv)
     try:
-        out = check(args.export, args.camera)
+        out = check(args.export, args.camera, args.depth)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from engine.core.frames import Frame
-from engine.fields.dynamic import load_dynamic_field, normalize_time
+from engine.core.errors import InputError
+from engine.fields.dynamic import load_dynamic_field, normalize_time, render_dynamic_field
 from engine.fields.render import camera_rays_np, contract_np
 from engine.geometry.motion import rigid_motion_vectors
 from engine.io.rgbd import write_sequence
@@ -20,17 +21,20 @@ from tools.programmed_field import flow_x, write_export
 SIZE, TIMES = 24, [0.0, 0.25, 0.5, 0.75, 1.0]
 
 
-def capture(path, export, *, still: bool = False, object_flow: bool = True):
-    """A static camera's frames of the plane of ``depth_with_sky`` at TIMES: object id 1 inside the field's cube,
-    the true object flow to the next frame the field's translation (zero with ``still``)."""
+def capture(path, export, *, still: bool = False, object_flow: bool = True, rendered: bool = False):
+    """A static camera's frames of the plane of ``depth_with_sky`` (``rendered``: of the field's own rendered
+    depth) at TIMES: object id 1 inside the field's cube, the true object flow to the next frame the field's
+    translation (zero with ``still``)."""
     assets = load_dynamic_field(export)
-    cam, depth = camera(10.0), depth_with_sky()
+    cam = camera(10.0)
     origin, dirs = camera_rays_np(cam.intrinsics, cam.world_to_camera, SIZE, SIZE)
-    finite = np.isfinite(depth).reshape(-1)
-    points = (origin + np.where(finite, depth.reshape(-1), 0.0)[:, None] * dirs).astype(np.float32)
-    inside = (finite & (np.abs(contract_np(assets.scene, points, 0.0)) <= 1.0).all(-1)).reshape(SIZE, SIZE)
     frames = []
     for n, t in enumerate(TIMES):
+        depth = (render_dynamic_field(assets, cam.intrinsics, cam.world_to_camera, SIZE, SIZE, t)["depth"]
+                 if rendered else depth_with_sky())
+        finite = np.isfinite(depth).reshape(-1)
+        points = (origin + np.where(finite, depth.reshape(-1), 0.0)[:, None] * dirs).astype(np.float32)
+        inside = (finite & (np.abs(contract_np(assets.scene, points, 0.0)) <= 1.0).all(-1)).reshape(SIZE, SIZE)
         flow = np.zeros((SIZE, SIZE, 2), np.float32)
         if n + 1 < len(TIMES) and not still:
             tau, tau_next = (normalize_time(s, assets.time_range) for s in (t, TIMES[n + 1]))
@@ -59,6 +63,14 @@ def test_the_fields_own_motion_scores_zero_error_and_still_objects_score_its_mot
     for figures in (moving, still):  # outside the cube the field moves nothing
         assert figures["background: EPE of the field's motion, px"] == 0.0
         assert figures["background: share the field moves > 0.25 px"] == 0.0
+    # the field's rendered depth: on a capture of the field's own box the two depths give the same figures
+    box = capture(tmp_path / "box", export, rendered=True)
+    truth_depth, field_depth = check(export, box), check(export, box, "field")
+    assert truth_depth["object pixel share"] > 0.05 and truth_depth["objects: true motion, px"] > 0.5
+    assert field_depth["objects: EPE of the field's motion, px"] < 0.02 * truth_depth["objects: true motion, px"]
+    assert field_depth == pytest.approx(truth_depth, abs=0.02)
+    with pytest.raises(InputError, match="depth"):
+        check(export, box, "rendered")
     out = tmp_path / "truth.json"
     assert main([str(export), str(tmp_path / "moving"), "--json", str(out)]) == 0
     assert json.loads(out.read_text())["objects: EPE of the field's motion, px"] == moving[

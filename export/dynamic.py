@@ -8,7 +8,9 @@
   in [0, 1]. The same torch code the renderer trains (``DynamicFieldModel.contract``, the motion field, the
   canonical field), exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; N is dynamic.
   Times are normalised inside the graph and **clamped** to the trained range (a graph cannot raise): callers
-  check the range (``time_range`` in the manifest), as ``DynamicFieldModel.query`` does.
+  check the range (``time_range`` in the manifest), as ``DynamicFieldModel.query`` does. A field trained with
+  deferred shading (``--field.canonical.shading deferred``) outputs ``features`` (N, G), ``sigmoid(h)``, instead
+  of ``color``: the renderer composites them and shades once per pixel (as ``export/field.py``).
 - ``dynamic.npz`` + ``dynamic.json``: every plane (float32, and uint8 with a per-plane, per-channel
   [min, max] range, decoded as in ``export/field.py``), the MLP weights (``y = W x + b``, ReLU between
   layers), the occupancy grid, the scene contraction, the trained time range and its normalisation, the
@@ -29,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from export.field import example_points, export_command, run_as_script, strip_debug
+from export.field import example_points, export_command, query_outputs, run_as_script, strip_debug
 from models.fields.assets import DYNAMIC_FORMAT, DYNAMIC_VERSION, OPSET, dynamic_assets
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.train_dynamic import load_dynamic_model
@@ -103,7 +105,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     onnx_path = out / "dynamic.onnx"
     with torch.no_grad():
         program = torch.onnx.export(graph, (points, times, dirs), dynamo=True, opset_version=OPSET,
-                                    input_names=["points", "times", "directions"], output_names=["density", "color"],
+                                    input_names=["points", "times", "directions"], output_names=query_outputs(model),
                                     dynamic_shapes={"points": {0: n}, "times": {0: n}, "directions": {0: n}},
                                     verbose=False, optimize=False)
     program.save(str(onnx_path))
@@ -113,6 +115,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "scores.json").is_file():
         limit = json.loads((Path(run_dir) / "scores.json").read_text()).get("canonical_limit")
     arrays, manifest = dynamic_assets(model, canonical_limit=limit)
+    manifest["onnx"]["outputs"] = query_outputs(model)
     np.savez_compressed(out / "dynamic.npz", **arrays)
     rp, rt, rd = example_queries(model, 8192, seed=1)
     manifest["parity"] = {"random_points": check_parity(onnx_path, model, rp, rt, rd)}

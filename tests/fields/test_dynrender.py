@@ -20,6 +20,7 @@ semi-transparent, so early termination never triggers]; hardware filtering > 60 
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -43,9 +44,12 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 H, W = 24, 32
 EXACT = {"transmittance_eps": 0.0, "color_eps": 0.0, "filtering": "exact"}
-#: DeRF (the default: its canonical field has time planes) and DeRF with tri-planes by default; the K-Planes
-#: fixture costs another ONNX export (~10 s), so it runs with ``-m slow``.
-BOTH = ["derf", "derf_triplanes", pytest.param("kplanes", marks=pytest.mark.slow)]
+#: DeRF (the default: its canonical field has time planes), DeRF with tri-planes and DeRF with deferred shading by
+#: default; the K-Planes fixtures cost another ONNX export each (~10 s), so they run with ``-m slow``.
+BOTH = ["derf", "derf_triplanes", "derf_deferred", pytest.param("kplanes", marks=pytest.mark.slow),
+        pytest.param("kplanes_deferred", marks=pytest.mark.slow)]
+#: The fixtures with a motion field, with canonical time planes, with an occupancy grid.
+MOVING, CANONICAL_TIME, GRID = {"derf", "derf_triplanes", "derf_deferred"}, {"derf", "derf_deferred"}, {"derf"}
 gl_only = pytest.mark.skipif(not available(), reason="no EGL context with OpenGL 4.3 compute shaders and fp64")
 
 
@@ -72,20 +76,61 @@ def derf(tmp_path_factory):
     return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
 
 
-@pytest.fixture(scope="module")
-def kplanes(tmp_path_factory):
+def _kplanes(root, shading: str):
     """(model, export folder, camera) of an untrained forward-facing K-Planes field with time-varying planes."""
-    root = tmp_path_factory.mktemp("dynrender_kplanes")
     video = sphere_video([0, 20, 40], [0.0, 1.0])
     video = dataclasses.replace(video, scene_type="forward-facing", bounds=None, background=np.zeros(3, np.float32))
     torch.manual_seed(0)
-    model = DynamicFieldModel(SceneBox.from_views(video), [0.0, 0.0, 0.0], (2.0, 4.0),
-                              dataclasses.replace(TINY, kind="kplanes"), RenderConfig(num_samples=24),
-                              time_resolution=3).eval()
+    config = dataclasses.replace(TINY, kind="kplanes", canonical=dataclasses.replace(TINY.canonical, shading=shading))
+    model = DynamicFieldModel(SceneBox.from_views(video), [0.0, 0.0, 0.0], (2.0, 4.0), config,
+                              RenderConfig(num_samples=24), time_resolution=3).eval()
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
         for plane in model.field.encoding.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+        if shading == "deferred":
+            _perturb_colour(model.field.color_mlp, g)
+    export_dynamic(model, root / "export")
+    cam = sphere_video([10], [0.0]).cameras[0]
+    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
+
+
+def _perturb_colour(color_mlp, g: torch.Generator) -> None:
+    """A colour MLP whose view-dependent residual matters (an untrained one gives tanh of ~0)."""
+    last = color_mlp.net[-1]
+    last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 2.0)
+
+
+@pytest.fixture(scope="module")
+def kplanes(tmp_path_factory):
+    return _kplanes(tmp_path_factory.mktemp("dynrender_kplanes"), "per-sample")
+
+
+@pytest.fixture(scope="module")
+def kplanes_deferred(tmp_path_factory):
+    """As ``kplanes``, with deferred shading (``canonical.shading="deferred"``) and a residual that matters."""
+    return _kplanes(tmp_path_factory.mktemp("dynrender_kplanes_deferred"), "deferred")
+
+
+@pytest.fixture(scope="module")
+def derf_deferred(tmp_path_factory):
+    """(model, export folder, camera) of an untrained bounded DeRF field with deferred shading (features composited,
+    the colour MLP once per pixel on them, the view direction and the encoded time), canonical time planes,
+    time-varying motion planes, a large flow and a colour MLP whose residual matters."""
+    root = tmp_path_factory.mktemp("dynrender_derf_deferred")
+    torch.manual_seed(0)
+    config = dataclasses.replace(TINY, canonical=dataclasses.replace(TINY.canonical, shading="deferred"))
+    model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
+                              config, RenderConfig(num_samples=24), time_resolution=3).eval()
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for plane in model.field.motion_field.temporal_planes():
+            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+        last = model.field.motion_field.flow_mlp.net[-1]
+        last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
+        for plane in model.field.canonical_field.temporal_planes():
+            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
+        _perturb_colour(model.field.canonical_field.color_mlp, g)
     export_dynamic(model, root / "export")
     cam = sphere_video([10], [0.0]).cameras[0]
     return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
@@ -161,7 +206,7 @@ def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
     sigma, rgb = query_dynamic(assets, coords.numpy(), taus.numpy(), dirs.numpy())
     np.testing.assert_allclose(sigma, want.sigma.numpy(), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(rgb, want.rgb.numpy(), atol=1e-5)
-    if which != "kplanes":  # the motion field is exercised: large flows that depend on time
+    if which in MOVING:  # the motion field is exercised: large flows that depend on time
         canonical, flow = deform_np(assets, coords.numpy(), taus.numpy())
         np.testing.assert_allclose(canonical, want.canonical.numpy(), atol=1e-5)
         magnitude = np.linalg.norm(flow, axis=-1)
@@ -169,7 +214,8 @@ def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
         _, early = deform_np(assets, coords.numpy(), np.full(3000, -1.0, np.float32))
         _, late = deform_np(assets, coords.numpy(), np.full(3000, 1.0, np.float32))
         assert np.abs(early - late).max() > 0.05
-    assert (assets.canonical_temporal is not None) == (which == "derf")
+    assert (assets.canonical_temporal is not None) == (which in CANONICAL_TIME)
+    assert assets.deferred == which.endswith("deferred") and rgb.shape[1] == assets.feature_dim
     assert sigma.dtype == np.float32
     assert query_dynamic(assets, np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))[0].shape == (0,)  # empty batch
 
@@ -179,7 +225,7 @@ def test_numpy_and_onnx_renders_match_the_torch_renderer(which, request):
     model, out, camera = request.getfixturevalue(which)
     assets = load_dynamic_field(out)
     grid = assets.occupancy is not None
-    assert grid == (which == "derf")
+    assert grid == (which in GRID)
     t0, t1 = assets.time_range
     renders = []
     for t in (t0 + 0.3 * (t1 - t0), t1):
@@ -211,6 +257,30 @@ def test_manifest_describes_what_the_renderers_read(derf):
     quantized = load_dynamic_field(out, quantized=True)  # every plane group from its uint8 codes and ranges
     full = render_dynamic_field(assets, *camera, H, W, 0.5)
     assert np.abs(render_dynamic_field(quantized, *camera, H, W, 0.5)["color"] - full["color"]).max() < 0.02
+
+
+def test_a_deferred_export_records_its_shading_and_its_residual_matters(derf_deferred, tmp_path):
+    _, out, camera = derf_deferred
+    assets = load_dynamic_field(out)
+    manifest = assets.manifest
+    assert manifest["field"]["shading"] == "deferred" and manifest["onnx"]["outputs"] == ["density", "features"]
+    assert assets.feature_dim == TINY.canonical.geo_feature_dim
+    parity = manifest["parity"]["random_points"]
+    assert parity["density"] < 1e-4 and parity["color"] < 1e-4
+    shaded = render_dynamic_field(assets, *camera, H, W, 0.3)
+    (w, b) = assets.mlps["color"][-1]
+    assets.mlps["color"][-1] = (np.zeros_like(w), np.zeros_like(b))  # residual tanh(0): the diffuse colour alone
+    diffuse = render_dynamic_field(assets, *camera, H, W, 0.3)
+    assert np.abs(shaded["color"] - diffuse["color"]).max() > 0.05
+    assert np.array_equal(shaded["opacity"], diffuse["opacity"])
+    for change, key in (({"shading": "forward"}, "field.shading"),
+                        ({"geo_feature_dim": 2}, "field.geo_feature_dim")):
+        bad = json.loads((out / "dynamic.json").read_text())
+        bad["field"].update(change)
+        (tmp_path / "dynamic.json").write_text(json.dumps(bad))
+        (tmp_path / "dynamic.npz").write_bytes((out / "dynamic.npz").read_bytes())
+        with pytest.raises(InputError, match=key):
+            load_dynamic_field(tmp_path)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -1,0 +1,72 @@
+"""Figures of 2026-11-29-dynamic-deferred.md measured on the suite's tiny fields (issue 44, item 1).
+
+``PYTHONPATH=. python docs/results/2026-11-29-dynamic-deferred.py train``: the moving sphere of
+tests/fields/test_dynamic_field.py, DeRF and K-Planes, per-sample and deferred, 40 and 120 steps, held-out PSNR.
+``... parity``: the deferred fixtures of tests/fields/test_dynrender.py rendered by torch, numpy, onnxruntime
+and GL at two times; the largest colour differences and GL's PSNR against numpy.
+"""
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import sys
+import tempfile
+import warnings
+
+import numpy as np
+import torch
+
+
+def train() -> None:
+    from models.fields.data.timed import split_by_camera
+    from models.fields.train_dynamic import evaluate_dynamic, train_dynamic
+    from tests.fields.test_dynamic_field import TIMES, TINY, sphere_video, tiny_config
+
+    train_views, test = split_by_camera(sphere_video([0, 30, 15, 60], TIMES), ["cam0", "cam1", "cam3"], ["cam2"])
+    for kind in ("derf", "kplanes"):
+        for shading in ("per-sample", "deferred"):
+            for steps in (40, 120):
+                field = dataclasses.replace(TINY, kind=kind,
+                                            canonical=dataclasses.replace(TINY.canonical, shading=shading))
+                with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    run = train_dynamic(train_views, tiny_config(steps, field=field), tmp + "/run", progress=False)
+                    psnr = evaluate_dynamic(run, test, with_flip=False)["psnr"]
+                print(kind, shading, steps, round(psnr, 2), flush=True)
+
+
+def parity() -> None:
+    import tests.fields.test_dynrender as T
+    from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    class Factory:  # pytest's tmp_path_factory, enough for the fixtures
+        def __init__(self, root: str) -> None:
+            self.root = pathlib.Path(root)
+
+        def mktemp(self, name: str) -> pathlib.Path:
+            path = self.root / name
+            path.mkdir()
+            return path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ("derf_deferred", "kplanes_deferred"):
+            model, out, camera = getattr(T, name).__wrapped__(Factory(tmp))
+            assets = load_dynamic_field(out)
+            t0, t1 = assets.time_range
+            for t in (t0 + 0.3 * (t1 - t0), t1):
+                ref = T._torch(model, camera, t)
+                for query in ("numpy", "onnx"):
+                    got = render_dynamic_field(assets, *camera, T.H, T.W, t, query=query)
+                    print(name, t, query, "colour", np.abs(got["color"] - ref["color"]).max())
+                numpy_frame = render_dynamic_field(assets, *camera, T.H, T.W, t)
+                with GlDynamicRenderer(assets, T.W, T.H, **T.EXACT) as renderer:
+                    got = renderer.render(*camera, t)
+                print(name, t, "gl", "colour", np.abs(got["color"] - numpy_frame["color"]).max(),
+                      "psnr", T._psnr(numpy_frame, got))
+            print(name, "parity", assets.manifest["parity"])
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    {"train": train, "parity": parity}[sys.argv[1]]()

@@ -112,14 +112,11 @@ def kplanes_deferred(tmp_path_factory):
     return _kplanes(tmp_path_factory.mktemp("dynrender_kplanes_deferred"), "deferred")
 
 
-@pytest.fixture(scope="module")
-def derf_deferred(tmp_path_factory):
-    """(model, export folder, camera) of an untrained bounded DeRF field with deferred shading (features composited,
-    the colour MLP once per pixel on them, the view direction and the encoded time), canonical time planes,
-    time-varying motion planes, a large flow and a colour MLP whose residual matters."""
-    root = tmp_path_factory.mktemp("dynrender_derf_deferred")
+def _untrained_derf(root, config):
+    """(model, export folder, camera) of an untrained bounded DeRF field with time-varying motion planes (and
+    canonical time planes, if it has them), a large flow, and with deferred shading a colour residual that
+    matters."""
     torch.manual_seed(0)
-    config = dataclasses.replace(TINY, canonical=dataclasses.replace(TINY.canonical, shading="deferred"))
     model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
                               config, RenderConfig(num_samples=24), time_resolution=3).eval()
     g = torch.Generator().manual_seed(3)
@@ -130,7 +127,8 @@ def derf_deferred(tmp_path_factory):
         last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
         for plane in model.field.canonical_field.temporal_planes():
             plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
-        _perturb_colour(model.field.canonical_field.color_mlp, g)
+        if model.field.deferred:
+            _perturb_colour(model.field.canonical_field.color_mlp, g)
     export_dynamic(model, root / "export")
     cam = sphere_video([10], [0.0]).cameras[0]
     return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
@@ -138,22 +136,17 @@ def derf_deferred(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def derf_triplanes(tmp_path_factory):
-    """(model, export folder, camera) of an untrained bounded DeRF field whose canonical field is tri-planes
-    (``canonical_time=False``, the thesis's), with time-varying motion planes and a large flow."""
-    root = tmp_path_factory.mktemp("dynrender_derf_triplanes")
-    torch.manual_seed(0)
-    model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
-                              dataclasses.replace(TINY, canonical_time=False), RenderConfig(num_samples=24),
-                              time_resolution=3).eval()
-    g = torch.Generator().manual_seed(3)
-    with torch.no_grad():
-        for plane in model.field.motion_field.temporal_planes():
-            plane.mul_(1.0 + 0.5 * torch.randn(plane.shape, generator=g))
-        last = model.field.motion_field.flow_mlp.net[-1]
-        last.weight.copy_(torch.randn(last.weight.shape, generator=g) * 3.0)
-    export_dynamic(model, root / "export")
-    cam = sphere_video([10], [0.0]).cameras[0]
-    return model, root / "export", (scale_intrinsics(cam.intrinsics, 20, 20, W, H), cam.world_to_camera)
+    """The untrained DeRF whose canonical field is tri-planes (``canonical_time=False``, the thesis's)."""
+    return _untrained_derf(tmp_path_factory.mktemp("dynrender_derf_triplanes"),
+                           dataclasses.replace(TINY, canonical_time=False))
+
+
+@pytest.fixture(scope="module")
+def derf_deferred(tmp_path_factory):
+    """The untrained DeRF with canonical time planes and deferred shading (features composited, the colour MLP
+    once per pixel on them, the view direction and the encoded time)."""
+    return _untrained_derf(tmp_path_factory.mktemp("dynrender_derf_deferred"),
+                           dataclasses.replace(TINY, canonical=dataclasses.replace(TINY.canonical, shading="deferred")))
 
 
 def _torch(model, camera, t: float) -> dict:

@@ -28,7 +28,7 @@ Conventions (written once here, named wherever they matter):
   (DeRF), ``temporal`` (the xt, yt, zt planes: the motion field's for DeRF, the 4D field's for K-Planes).
 
 Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX. One module
-(~620 lines) because the three layers share the conventions above; rendering itself is the static model's
+(~720 lines) because the three layers share the conventions above; rendering itself is the static model's
 ray marcher (``StaticFieldModel.march``).
 
 >>> model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0],

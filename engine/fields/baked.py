@@ -13,6 +13,11 @@ centres), samples outside occupied bricks are skipped, the features are composit
 weights and the colour MLP runs once per pixel (``engine.fields.render.shade_pixels_np``), so nothing but the
 grid's interpolation and quantisation differs from the exact render of the same field.
 
+A baked DeRF field (``baked_dynamic.json`` + ``baked_dynamic.npz``, ``models.fields.bake.bake_dynamic``;
+``docs/field-assets.md``, "Baked dynamic fields") holds its canonical field as such bricks and its flow at the
+vertices of a grid per time key: ``render_baked_dynamic`` moves each sample to its canonical point by the flow
+(trilinear, linear in time between keys) and shades with the encoded time; no GL renderer reads it yet.
+
 Conventions: those of ``engine.fields.render`` (OpenCV cameras, planar depth, +inf where nothing is hit).
 
 >>> baked = load_baked("runs/lego/export")                              # doctest: +SKIP

@@ -1,5 +1,6 @@
 """Renderers of exported dynamic fields (engine/fields/dynamic.py numpy / onnxruntime, engine/fields/gldynamic.py GL)
-against the torch renderer of models/fields/dynamic/model.py, and the numpy reference against the GL shader.
+against the torch renderer of models/fields/dynamic/model.py, and the numpy reference against the GL shader; with
+deferred shading too; and a baked DeRF field's numpy oracle (engine/fields/baked.py) against its exact render.
 
 Fixtures: a tiny DeRF trained on the moving sphere of tests/fields/test_dynamic_field.py (40 steps), then given a
 motion that matters (time planes and flow MLP perturbed: |flow| 0.19 contracted units on average, up to 0.43,

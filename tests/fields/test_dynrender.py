@@ -454,3 +454,23 @@ def _model_with(model, shading: str) -> DynamicFieldModel:
     config = dataclasses.replace(model.config, canonical=dataclasses.replace(model.config.canonical, shading=shading))
     return DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0], (0.0, 1.0),
                              config, RenderConfig(num_samples=24), time_resolution=3)
+
+
+@gl_only
+def test_gl_renders_the_baked_oracles_frame(derf_baked):
+    """Measured at t = 0.3 / 1 (32x24, llvmpipe): exact filtering, early termination and the colour skip off:
+    colour within 1.8e-6 / 3.4e-6, opacity 2.4e-6; the defaults (hardware filtering) colour within 3.2e-6,
+    115-140 dB. A GPU's filtering gets ``GPU_SLACK``, as the static renderers' tests."""
+    from engine.fields.baked import load_baked_dynamic, render_baked_dynamic
+    from engine.fields.glbaked import GlBakedDynamicRenderer
+    from tests.fields.test_glfield import GPU_SLACK
+
+    _, _, folder, camera = derf_baked
+    baked = load_baked_dynamic(folder)
+    bound = TRANSMITTANCE_EPS + baked.manifest["render"]["num_samples"] * COLOR_EPS
+    with GlBakedDynamicRenderer(baked, W, H, **EXACT) as exact, GlBakedDynamicRenderer(baked, W, H) as fast:
+        for t in (0.3, 1.0, 0.3):  # and back: the renderer is reusable
+            ref = render_baked_dynamic(baked, *camera, H, W, t)
+            got = exact.render(*camera, t)
+            assert_same_render(ref, exact.render(*camera, t), 1e-4)
+            assert_same_render(ref, fast.render(*camera, t), bound + GPU_SLACK)

@@ -4,6 +4,7 @@
 tests/fields/test_dynamic_field.py, DeRF and K-Planes, per-sample and deferred, 40 and 120 steps, held-out PSNR.
 ``... bake RUN OUT.json``: a lego run trained with deferred shading and a canonical field of tri-planes, baked
 (128 cells a side, 33^3 flow vertices a time key) and rendered by the numpy oracle against the exact render.
+``... gl RUN OUT.json``: the same in the GL renderers, and their time at 512x512.
 ``... parity``: the deferred fixtures of tests/fields/test_dynrender.py rendered by torch, numpy, onnxruntime
 and GL at two times; the largest colour differences and GL's PSNR against numpy.
 """
@@ -116,6 +117,62 @@ def bake(run: str, out_json: str) -> None:
     pathlib.Path(out_json).write_text(json.dumps(result, indent=1) + "\n")
 
 
+def gl(run: str, out_json: str) -> None:
+    """The same run and bake (128 cells, 33^3 flow vertices) in the GL renderers: held-out PSNR of the exact
+    (``GlDynamicRenderer``) and baked (``GlBakedDynamicRenderer``) renders at the views' size, and the time of a
+    512x512 frame of the first held-out view (median of 5 after a warm-up; wall and process CPU time, llvmpipe's
+    threads included)."""
+    import json
+    import time
+
+    from engine.core.colorspace import display_encode
+    from engine.eval.metrics import psnr
+    from engine.fields.baked import load_baked_dynamic
+    from engine.fields.camera_path import scale_intrinsics
+    from engine.fields.gldynamic import GlDynamicRenderer
+    from engine.fields.glbaked import GlBakedDynamicRenderer
+    from models.fields.assets import dynamic_assets, load_assets
+    from models.fields.bake import bake_dynamic
+    from models.fields.data.select import load_dynamic_run_views
+    from models.fields.train_dynamic import load_dynamic_model
+
+    model = load_dynamic_model(run)
+    exact = load_assets(*dynamic_assets(model), "dynamic")
+    arrays, manifest = bake_dynamic(model, 128, 33)
+    with tempfile.TemporaryDirectory() as tmp:
+        np.savez(pathlib.Path(tmp) / "baked_dynamic.npz", **arrays)
+        (pathlib.Path(tmp) / "baked_dynamic.json").write_text(json.dumps(manifest))
+        baked = load_baked_dynamic(tmp)
+    _, test = load_dynamic_run_views(run)
+    result = {"run": run, "views": []}
+    with GlDynamicRenderer(exact, test.width, test.height) as a, GlBakedDynamicRenderer(baked, test.width,
+                                                                                       test.height) as b:
+        for i, cam in enumerate(test.cameras):
+            t, truth = float(test.times[i]), display_encode(test.images[i])
+            fa, fb = (r.render(cam.intrinsics, cam.world_to_camera, t) for r in (a, b))
+            result["views"].append({"time": t, "exact": float(psnr(display_encode(fa["color"]), truth)),
+                                    "baked": float(psnr(display_encode(fb["color"]), truth)),
+                                    "baked_vs_exact": float(psnr(display_encode(fa["color"]),
+                                                                 display_encode(fb["color"])))})
+    result["mean"] = {k: float(np.mean([v[k] for v in result["views"]])) for k in ("exact", "baked", "baked_vs_exact")}
+    print(result["mean"], flush=True)
+    cam, t = test.cameras[0], float(test.times[0])
+    k = scale_intrinsics(cam.intrinsics, test.width, test.height, 512, 512)
+    for name, make in (("gl exact", lambda: GlDynamicRenderer(exact, 512, 512)),
+                       ("gl baked", lambda: GlBakedDynamicRenderer(baked, 512, 512))):
+        with make() as renderer:
+            renderer.render(k, cam.world_to_camera, t)
+            walls, cpus = [], []
+            for _ in range(5):
+                w0, c0 = time.perf_counter(), time.process_time()
+                renderer.render(k, cam.world_to_camera, t)
+                walls.append(time.perf_counter() - w0)
+                cpus.append(time.process_time() - c0)
+        result[name] = {"wall_ms": 1e3 * float(np.median(walls)), "cpu_ms": 1e3 * float(np.median(cpus))}
+        print(name, result[name], flush=True)
+    pathlib.Path(out_json).write_text(json.dumps(result, indent=1) + "\n")
+
+
 if __name__ == "__main__":
     torch.set_num_threads(1)
-    {"train": train, "parity": parity, "bake": bake}[sys.argv[1]](*sys.argv[2:])
+    {"train": train, "parity": parity, "bake": bake, "gl": gl}[sys.argv[1]](*sys.argv[2:])

@@ -18,10 +18,11 @@ import torch
 from engine.core.errors import InputError
 from engine.fields.baked import BAKED_DYNAMIC_FORMAT, BAKED_DYNAMIC_VERSION, BAKED_FORMAT, BAKED_VERSION
 from models.fields.assets import _add_mlps, _render_section, direction_degree
+from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 
-__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic", "motion_keys", "brick_vertices",
-           "write_baked", "baked_check"]
+__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic", "bakes_dynamic", "motion_keys",
+           "brick_vertices", "write_baked", "baked_check"]
 
 #: Grid cells per side of the field's cube: 4 cells per occupancy cell of the default 64^3 grid.
 DEFAULT_RESOLUTION = 256
@@ -166,7 +167,7 @@ def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution:
     Raises:
         InputError: a K-Planes or per-sample field, a canonical field with time planes, a bad resolution.
     """
-    if not model.has_motion or not model.field.deferred or model.field.canonical_field.temporal_planes():
+    if not bakes_dynamic(model):
         raise InputError("bakes only DeRF fields trained with deferred shading and a canonical field of tri-planes "
                          "(--field.canonical.shading deferred --no-field.canonical-time)", field="field")
     if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096 \
@@ -198,34 +199,51 @@ def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution:
     return arrays, manifest
 
 
-def baked_check(exact_dir, baked_dir, camera) -> Optional[dict]:
+def baked_check(exact_dir, baked_dir, camera, time: Optional[float] = None) -> Optional[dict]:
     """PSNR (display-encoded) of the baked render against the exact render of the same field on one view, both
-    with the numpy renderers; ``camera``: (K, world_to_camera, H, W)."""
+    with the numpy renderers; ``camera``: (K, world_to_camera, H, W); ``time``: a dynamic field's (its exact and
+    baked assets), None for a static one."""
     from engine.core.colorspace import display_encode
     from engine.eval.metrics import psnr
-    from engine.fields.baked import load_baked, render_baked
+    from engine.fields.baked import load_baked, load_baked_dynamic, render_baked, render_baked_dynamic
+    from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
     from engine.fields.render import load_field, render_field
 
     k, w2c, h, w = camera
-    exact = render_field(load_field(exact_dir), k, w2c, h, w)
-    baked = render_baked(load_baked(baked_dir), k, w2c, h, w)
+    if time is None:
+        exact = render_field(load_field(exact_dir), k, w2c, h, w)
+        baked = render_baked(load_baked(baked_dir), k, w2c, h, w)
+    else:
+        exact = render_dynamic_field(load_dynamic_field(exact_dir), k, w2c, h, w, time)
+        baked = render_baked_dynamic(load_baked_dynamic(baked_dir), k, w2c, h, w, time)
     value = psnr(display_encode(exact["color"]), display_encode(baked["color"]))
     return {"psnr_baked_vs_exact": float(value) if np.isfinite(value) else None, "view_size": [int(h), int(w)],
             "mean_evaluations": {"exact": float(exact["evaluations"].mean()),
                                  "baked": float(baked["evaluations"].mean())}}
 
 
-def write_baked(model, out_dir, resolution: int = DEFAULT_RESOLUTION, camera=None) -> dict:
-    """Bake ``model`` into ``out_dir/baked.npz`` + ``baked.json`` (beside the exact export, whose ``field.json``
-    the check reads); with ``camera`` (K, world_to_camera, H, W) the manifest records :func:`baked_check`."""
+def write_baked(model, out_dir, resolution: int = DEFAULT_RESOLUTION, camera=None, time: Optional[float] = None
+                ) -> dict:
+    """Bake ``model`` into ``out_dir/baked.npz`` + ``baked.json`` (a static field, beside its exact export, whose
+    ``field.json`` the check reads) or ``baked_dynamic.npz`` + ``baked_dynamic.json`` (a DeRF field,
+    :func:`bake_dynamic`, beside ``dynamic.json``); with ``camera`` (K, world_to_camera, H, W) the manifest records
+    :func:`baked_check` (at ``time`` for a dynamic field)."""
     import json
     from pathlib import Path
 
     out = Path(out_dir)
-    arrays, manifest = bake_static(model, resolution)
-    np.savez_compressed(out / "baked.npz", **arrays)
-    (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    dynamic = isinstance(model, DynamicFieldModel)
+    stem = "baked_dynamic" if dynamic else "baked"
+    arrays, manifest = (bake_dynamic if dynamic else bake_static)(model, resolution)
+    np.savez_compressed(out / f"{stem}.npz", **arrays)
+    (out / f"{stem}.json").write_text(json.dumps(manifest, indent=2) + "\n")
     if camera is not None:
-        manifest["check"] = baked_check(out, out, camera)
-        (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+        manifest["check"] = baked_check(out, out, camera, time if dynamic else None)
+        (out / f"{stem}.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
+
+
+def bakes_dynamic(model) -> bool:
+    """Whether :func:`bake_dynamic` bakes ``model``: a DeRF field trained with deferred shading whose canonical
+    field is tri-planes."""
+    return bool(model.has_motion and model.field.deferred and not model.field.canonical_field.temporal_planes())

@@ -74,14 +74,15 @@ def atlas_layers(baked: BakedAssets) -> np.ndarray:
 
 
 def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: str, count_evaluations: bool = False,
-                          samplers: Sequence[str] = (), before: Sequence[str] = (), extra_encoding: Sequence[str] = ()
-                          ) -> tuple[str, np.ndarray, str]:
+                          samplers: Sequence[str] = (), before: Sequence[str] = (), extra_encoding: Sequence[str] = (),
+                          empty_bricks: bool = False) -> tuple[str, np.ndarray, str]:
     """GLSL source, packed parameters and where they live (as ``engine.fields.gl.finish_shader``) of a baked field.
 
     Hooks for a baked dynamic field (as ``engine.fields.gl.generate_shader``'s): ``samplers`` further
     declarations, ``before`` code run per evaluated sample before the brick lookup (it may move the contracted
     point ``c``), ``extra_encoding`` scalar GLSL expressions appended to the direction encoding (further per-pixel
-    inputs of the colour MLP)."""
+    inputs of the colour MLP), ``empty_bricks``: a sample may land in an empty brick (a moved point: the march's
+    occupancy is not the bricks'), which then gives density and features 0 (``engine.fields.baked.lookup_bricks``)."""
     grid, spec = baked.grid, baked.manifest["field"]
     b, s, r = int(grid["bricks"]), int(grid["brick"]), int(grid["resolution"])
     v = s + 1
@@ -92,6 +93,7 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
     lines = list(before) + [
         f"ivec3 bk_cell = clamp(ivec3(floor((c + 1.0) * {0.5 * b!r})), ivec3(0), ivec3({b - 1}));",
         f"int bk = brick_of[(bk_cell.x * {b} + bk_cell.y) * {b} + bk_cell.z];",
+        *(["bool bk_empty = bk < 0;", "bk = max(bk, 0);"] if empty_bricks else []),
         f"vec3 bk_local = clamp((c + 1.0) * {0.5 * r!r} - vec3(bk_cell * {s}), vec3(0.0), vec3({float(s)!r}));",
         f"vec3 bk_i0 = min(floor(bk_local), vec3({float(s - 1)!r}));",
         "vec3 fr = bk_local - bk_i0;",
@@ -118,6 +120,10 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
         lines.append(f"vec4 v{q}_0 = {layers[0]};")
         lines.append(f"vec4 v{q}_1 = {layers[1]};")
         lines.append(f"vec4 v{q} = v{q}_0 * (1.0 - fr.z) + v{q}_1 * fr.z;")
+    if empty_bricks:  # no density (exp of the lowest raw value), no features
+        lines.append("if (bk_empty) {")
+        lines += [f"    v{q} = vec4(0.0);" for q in range(groups)]
+        lines += [f"    v{groups - 1}.w = -1e30;", "}"]
     features = "\n".join("            " + line for line in lines)
     enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"])) + list(extra_encoding)
     per_pixel, color_net = color_head(params, enc, baked.color_layers, g, 4 * groups)
@@ -242,7 +248,7 @@ class GlBakedDynamicRenderer(GlBakedRenderer):
             samplers=["uniform sampler2DArray motion;", "uniform int key0;", "uniform float key_w;",
                       f"uniform float time_enc[{2 * self._frequencies + 1}];"],
             before=motion_code(baked, filtering),
-            extra_encoding=[f"time_enc[{i}]" for i in range(2 * self._frequencies + 1)])
+            extra_encoding=[f"time_enc[{i}]" for i in range(2 * self._frequencies + 1)], empty_bricks=True)
         self._setup(packed, [("atlas", atlas_layers(baked)), ("motion", motion_layers(baked))], "f2", context)
 
     def render(self, intrinsics, world_to_camera, time: float) -> dict[str, np.ndarray]:

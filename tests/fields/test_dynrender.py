@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -364,14 +365,33 @@ def test_bad_cameras_sizes_and_assets_are_refused(derf, tmp_path):
 
 @pytest.fixture(scope="module")
 def derf_baked(tmp_path_factory):
-    """(model, exact export, baked folder, camera): the untrained DeRF with a canonical field of tri-planes and
-    deferred shading (what bakes), baked at 64 cells a side and 33^3 flow vertices per time key."""
+    """(model, exact assets, baked folder, camera): the untrained DeRF with a canonical field of tri-planes and
+    deferred shading (what bakes), its density given a sharp surface (the raw density crosses the occupancy
+    threshold where a random projection of the density MLP's hidden features reaches its 90th percentile, 100x as
+    steep) so that part of the bricks are occupied and moved samples land in empty ones, baked at 64 cells a side
+    and 33^3 flow vertices per time key."""
+    from models.fields.assets import dynamic_assets
     from models.fields.bake import bake_dynamic
 
     root = tmp_path_factory.mktemp("dynrender_derf_baked")
     canonical = dataclasses.replace(TINY.canonical, shading="deferred")
-    model, out, camera = _untrained_derf(root, dataclasses.replace(TINY, canonical_time=False, canonical=canonical))
+    model, _, camera = _untrained_derf(root, dataclasses.replace(TINY, canonical_time=False, canonical=canonical))
+    g = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        field = model.field.canonical_field
+        last = field.density_mlp.net[-1]
+        w = torch.randn(last.weight.shape[1], generator=g)
+        hidden = field.density_mlp.net[:-1](field.encoding(torch.rand(20000, 3, generator=g) * 2 - 1))
+        level = (hidden @ w).quantile(0.9)
+        last.weight[0].copy_(w * 100.0)
+        last.bias[0] = -100.0 * float(level) + math.log(model.occupancy_threshold())
+    out = root / "exact"
+    out.mkdir()
+    arrays, manifest = dynamic_assets(model)
+    np.savez(out / "dynamic.npz", **arrays)
+    (out / "dynamic.json").write_text(json.dumps(manifest))
     arrays, manifest = bake_dynamic(model, 64, 33)
+    assert 0.2 < manifest["grid"]["occupied_fraction"] < 0.6
     np.savez(root / "baked_dynamic.npz", **arrays)
     (root / "baked_dynamic.json").write_text(json.dumps(manifest))
     return model, out, root, camera
@@ -407,8 +427,10 @@ def test_the_bake_holds_the_fields_flow_and_canonical_values_at_its_vertices(der
 
 
 def test_the_baked_render_is_the_exact_render_up_to_the_grids(derf_baked):
-    """Measured (64 cells, 33^3 flow vertices, 32x24, at t = 0.3 / 1): 78.2 / 60.2 dB against the exact numpy
-    render, colour within 1.9e-3 / 2.8e-3, opacity 2.1e-4 / 3.9e-5; bounds 45 dB and 1e-3."""
+    """Measured (64 cells, 33^3 flow vertices, 32x24, at t = 0.3 / 1): 55.9 / 35.7 dB against the exact numpy
+    render, mean |opacity difference| 6.5e-3 / 5.6e-3 (up to 0.22 on a surface's edge: its brick, or its flow,
+    differs); bounds 30 dB and 0.02. The fixture's flow is large and varies fast in space, so its 33^3 grid is a
+    rough stand-in (a trained lego field: 37 dB, docs/results/2026-11-29-dynamic-deferred.md)."""
     from engine.fields.baked import load_baked_dynamic, render_baked_dynamic
 
     _, out, folder, camera = derf_baked
@@ -418,7 +440,7 @@ def test_the_baked_render_is_the_exact_render_up_to_the_grids(derf_baked):
         want = render_dynamic_field(exact, *camera, H, W, t)
         got = render_baked_dynamic(baked, *camera, H, W, t)
         assert got["color"].shape == (H, W, 3) and got["color"].dtype == np.float32
-        assert _psnr(want, got) > 45.0 and np.abs(got["opacity"] - want["opacity"]).max() < 1e-3
+        assert _psnr(want, got) > 30.0 and np.abs(got["opacity"] - want["opacity"]).mean() < 0.02
         frames.append(got)
     assert np.abs(frames[0]["color"] - frames[1]["color"]).max() > 1e-2  # time matters
     with pytest.raises(InputError, match="outside the trained range"):
@@ -457,10 +479,13 @@ def _model_with(model, shading: str) -> DynamicFieldModel:
 
 
 @gl_only
-def test_gl_renders_the_baked_oracles_frame(derf_baked):
-    """Measured at t = 0.3 / 1 (32x24, llvmpipe): exact filtering, early termination and the colour skip off:
-    colour within 1.8e-6 / 3.4e-6, opacity 2.4e-6; the defaults (hardware filtering) colour within 3.2e-6,
-    115-140 dB. A GPU's filtering gets ``GPU_SLACK``, as the static renderers' tests."""
+@pytest.mark.parametrize("filtering", ["exact", "hardware"])
+def test_gl_renders_the_baked_oracles_frame(derf_baked, filtering):
+    """Tolerances as the static baked renderer's (tests/fields/test_baked_field.py): early termination and the
+    colour skip off 1e-4 (hardware filtering + 1e-3), the defaults their bound (+ 1e-3); a GPU's filtering gets
+    ``GPU_SLACK``. Measured on llvmpipe at t = 0.3 and 1 (32x24): exact filtering colour 3.1e-6 (the defaults
+    5.7e-5), opacity 2.3e-6; hardware filtering colour 2.0e-4, opacity 1.7e-4. Samples moved into empty bricks
+    get no density (before that was handled the GL colour differed by 0.2 on the lego bake)."""
     from engine.fields.baked import load_baked_dynamic, render_baked_dynamic
     from engine.fields.glbaked import GlBakedDynamicRenderer
     from tests.fields.test_glfield import GPU_SLACK
@@ -468,12 +493,16 @@ def test_gl_renders_the_baked_oracles_frame(derf_baked):
     _, _, folder, camera = derf_baked
     baked = load_baked_dynamic(folder)
     bound = TRANSMITTANCE_EPS + baked.manifest["render"]["num_samples"] * COLOR_EPS
-    with GlBakedDynamicRenderer(baked, W, H, **EXACT) as exact, GlBakedDynamicRenderer(baked, W, H) as fast:
-        for t in (0.3, 1.0, 0.3):  # and back: the renderer is reusable
-            ref = render_baked_dynamic(baked, *camera, H, W, t)
-            got = exact.render(*camera, t)
-            assert_same_render(ref, exact.render(*camera, t), 1e-4)
-            assert_same_render(ref, fast.render(*camera, t), bound + GPU_SLACK)
+    slack = 0.0 if filtering == "exact" else 1e-3
+    for options, tol in (({"transmittance_eps": 0.0, "color_eps": 0.0}, 1e-4 + slack), ({}, bound + slack)):
+        with GlBakedDynamicRenderer(baked, W, H, filtering=filtering, **options) as renderer:
+            for t in (0.3, 1.0, 0.3):  # and back: the renderer is reusable
+                ref = render_baked_dynamic(baked, *camera, H, W, t)
+                got = renderer.render(*camera, t)
+                assert np.abs(got["color"] - ref["color"]).max() <= tol + GPU_SLACK
+                assert np.abs(got["opacity"] - ref["opacity"]).max() <= tol + GPU_SLACK
+                finite = np.isfinite(ref["depth"])
+                assert np.array_equal(np.isfinite(got["depth"]), finite) and finite.any()
 
 
 def test_export_bakes_a_bakeable_run_and_checks_it_on_a_held_out_view(derf_triplanes, tmp_path):

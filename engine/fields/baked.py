@@ -40,7 +40,7 @@ from engine.fields.render import (ExportedAssets, array_getter, load_mlp, load_o
 
 __all__ = ["BAKED_FORMAT", "BAKED_VERSION", "BAKED_DYNAMIC_FORMAT", "BAKED_DYNAMIC_VERSION", "BakedAssets",
            "BakedDynamicAssets", "load_baked", "load_baked_dynamic", "check_baked_layout", "query_baked",
-           "lookup_bricks", "render_baked", "baked_flow", "query_baked_dynamic", "render_baked_dynamic",
+           "lookup_bricks", "render_baked", "time_keys", "baked_flow", "query_baked_dynamic", "render_baked_dynamic",
            "trilinear_np"]
 
 BAKED_FORMAT, BAKED_VERSION = "interleave-baked-field", 1
@@ -290,14 +290,20 @@ def load_baked_dynamic(path: str | Path) -> BakedDynamicAssets:
                               sample_occupancy=load_occupancy(manifest, get, npz_file))
 
 
+def time_keys(tau: float, keys: int) -> tuple[int, np.float32]:
+    """The first of the two time keys around normalised time ``tau`` (keys at ``-1 + 2 k / (keys - 1)``) and the
+    second's weight in [0, 1] (float32 arithmetic, as the GL renderer's uniforms)."""
+    position = (np.float32(tau) + np.float32(1.0)) * np.float32(0.5 * (keys - 1))
+    k0 = min(int(np.floor(position)), keys - 2)
+    return k0, np.float32(position - k0)
+
+
 def baked_flow(baked: BakedDynamicAssets, coords: np.ndarray, tau: float) -> np.ndarray:
     """The baked flow (M, 3) at contracted coordinates (M, 3) and normalised time ``tau``: the trilinear lookups
     of the two time keys around tau (clamped to the grid), linear in tau between them."""
     coords = np.asarray(coords, np.float32)
-    keys, m = baked.motion.shape[0], baked.motion.shape[1]
-    position = (np.float32(tau) + np.float32(1.0)) * np.float32(0.5 * (keys - 1))
-    k0 = min(int(np.floor(position)), keys - 2)
-    w = np.float32(position - k0)
+    m = baked.motion.shape[1]
+    k0, w = time_keys(tau, baked.motion.shape[0])
     local = np.clip((coords + np.float32(1.0)) * np.float32(0.5 * (m - 1)), 0.0, m - 1).astype(np.float32)
     n = coords.shape[0]
     at = [trilinear_np(np.broadcast_to(baked.motion[k], (n,) + baked.motion.shape[1:]), local) for k in (k0, k0 + 1)]

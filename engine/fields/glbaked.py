@@ -30,7 +30,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.baked import BakedAssets, BakedDynamicAssets, load_baked, load_baked_dynamic
+from engine.fields.baked import BakedAssets, BakedDynamicAssets, load_baked, load_baked_dynamic, time_keys
 from engine.fields.dynamic import normalize_time, time_encoding_np
 from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
                               check_options, color_head, finish_shader)
@@ -153,20 +153,28 @@ class GlBakedRenderer(GlFieldRenderer):
         InputError: bad size or option, an atlas that does not fit a texture.
     """
 
+    #: the assets this renderer takes, and their loader (a folder or manifest given instead)
+    assets_type, _loader = BakedAssets, staticmethod(load_baked)
+
     def __init__(self, baked: Union[BakedAssets, str, Path], width: int, height: int, *, filtering: str = "hardware",
                  transmittance_eps: float = TRANSMITTANCE_EPS, color_eps: float = COLOR_EPS, weights: str = "inline",
                  tiles_per_invocation: Optional[int] = None, count_evaluations: bool = False, context=None) -> None:
-        if not isinstance(baked, BakedAssets):
-            baked = load_baked(baked)
+        if not isinstance(baked, self.assets_type):
+            baked = self._loader(baked)
         check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
                       transmittance_eps=transmittance_eps, color_eps=color_eps)
         self._configure(baked, width, height, quantized=True, filtering=filtering, color_mode="deferred",
                         transmittance_eps=transmittance_eps, color_eps=color_eps,
                         tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
+        hooks, textures = self._shader_hooks(baked, filtering)
         self.source, packed, self.params_kind = generate_baked_shader(
             baked, filtering=filtering, params_kind="const" if weights == "inline" else "ubo",
-            count_evaluations=self.count_evaluations)
-        self._setup(packed, [("atlas", atlas_layers(baked))], "f2", context)
+            count_evaluations=self.count_evaluations, **hooks)
+        self._setup(packed, [("atlas", atlas_layers(baked))] + textures, "f2", context)
+
+    def _shader_hooks(self, baked: BakedAssets, filtering: str) -> tuple[dict, list]:
+        """``generate_baked_shader``'s hooks and the textures after the atlas (none for a static field)."""
+        return {}, []
 
     def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
         super()._build(packed, textures, dtype)
@@ -230,38 +238,26 @@ class GlBakedDynamicRenderer(GlBakedRenderer):
             trained range.
     """
 
-    def __init__(self, baked: Union[BakedDynamicAssets, str, Path], width: int, height: int, *,
-                 filtering: str = "hardware", transmittance_eps: float = TRANSMITTANCE_EPS,
-                 color_eps: float = COLOR_EPS, weights: str = "inline", tiles_per_invocation: Optional[int] = None,
-                 count_evaluations: bool = False, context=None) -> None:
-        if not isinstance(baked, BakedDynamicAssets):
-            baked = load_baked_dynamic(baked)
-        check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
-                      transmittance_eps=transmittance_eps, color_eps=color_eps)
-        self._configure(baked, width, height, quantized=True, filtering=filtering, color_mode="deferred",
-                        transmittance_eps=transmittance_eps, color_eps=color_eps,
-                        tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
+    assets_type, _loader = BakedDynamicAssets, staticmethod(load_baked_dynamic)
+
+    def _shader_hooks(self, baked: BakedDynamicAssets, filtering: str) -> tuple[dict, list]:
         self._frequencies = int(baked.manifest["field"]["time_frequencies"])
-        self.source, packed, self.params_kind = generate_baked_shader(
-            baked, filtering=filtering, params_kind="const" if weights == "inline" else "ubo",
-            count_evaluations=self.count_evaluations,
-            samplers=["uniform sampler2DArray motion;", "uniform int key0;", "uniform float key_w;",
-                      f"uniform float time_enc[{2 * self._frequencies + 1}];"],
-            before=motion_code(baked, filtering),
-            extra_encoding=[f"time_enc[{i}]" for i in range(2 * self._frequencies + 1)], empty_bricks=True)
-        self._setup(packed, [("atlas", atlas_layers(baked)), ("motion", motion_layers(baked))], "f2", context)
+        encoded = 2 * self._frequencies + 1
+        hooks = {"samplers": ["uniform sampler2DArray motion;", "uniform int key0;", "uniform float key_w;",
+                              f"uniform float time_enc[{encoded}];"],
+                 "before": motion_code(baked, filtering),
+                 "extra_encoding": [f"time_enc[{i}]" for i in range(encoded)], "empty_bricks": True}
+        return hooks, [("motion", motion_layers(baked))]
 
     def render(self, intrinsics, world_to_camera, time: float) -> dict[str, np.ndarray]:
         """Render the field at ``time`` (the data's units); the rest as :meth:`GlFieldRenderer.render`."""
         tau = normalize_time(time, self.assets.time_range)
-        keys = self.assets.motion.shape[0]
-        position = (np.float32(tau) + np.float32(1.0)) * np.float32(0.5 * (keys - 1))
-        key0 = min(int(np.floor(position)), keys - 2)
+        key0, weight = time_keys(tau, self.assets.motion.shape[0])
         enc = time_encoding_np(np.array([tau], np.float32), self._frequencies)[0]
 
         def set_time() -> None:
             self._set("key0", key0)
-            self._set("key_w", float(np.float32(position - key0)))
+            self._set("key_w", float(weight))
             try:
                 self.program["time_enc"].write(np.ascontiguousarray(enc, np.float32).tobytes())
             except KeyError:  # optimised out: the colour MLP ignores time

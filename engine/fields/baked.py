@@ -34,7 +34,7 @@ import numpy as np
 from engine.core.errors import InputError
 from engine.fields.dynamic import normalize_time, time_encoding_np
 from engine.fields.encoding import direction_encoding_np
-from engine.fields.manifest import DIRECTION_ENCODINGS, array_name, choice, number, section
+from engine.fields.manifest import DIRECTION_ENCODINGS, array_name, check_time_range, choice, number, section
 from engine.fields.render import (ExportedAssets, array_getter, load_mlp, load_occupancy, march_field, pixel_shader,
                                   read_asset_files)
 
@@ -269,14 +269,8 @@ def load_baked_dynamic(path: str | Path) -> BakedDynamicAssets:
     meta_file, npz_file = root / "baked_dynamic.json", root / "baked_dynamic.npz"
     frequencies = int(number(section(manifest, "field", meta_file), "time_frequencies", meta_file, "field", low=0,
                              high=16, integer=True))
-    time = section(manifest, "time", meta_file)
-    span = time.get("range")
-    if not (isinstance(span, list) and len(span) == 2 and all(isinstance(t, (int, float)) and not isinstance(t, bool)
-                                                                and np.isfinite(t) for t in span)
-            and span[1] >= span[0]):
-        raise InputError(f"must be [t_min, t_max], finite, t_min <= t_max, got {span!r}", file=meta_file,
-                         field="time.range")
-    keys = int(number(time, "keys", meta_file, "time", low=2, high=4096, integer=True))
+    check_time_range(manifest, meta_file)
+    keys = int(number(section(manifest, "time", meta_file), "keys", meta_file, "time", low=2, high=4096, integer=True))
     motion = section(manifest, "motion", meta_file)
     m = int(number(motion, "resolution", meta_file, "motion", low=2, high=512, integer=True))
     array_name(motion, "array", meta_file, "motion")

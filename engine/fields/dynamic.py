@@ -36,7 +36,7 @@ from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, camera_rays_np,
                                   contract_np, decode_plane, direction_encoding_np, load_mlp, load_occupancy,
                                   march_field, mlp_np, pixel_shader, read_asset_files, uncontract_np)
-from engine.fields.manifest import check_shading, section
+from engine.fields.manifest import check_shading, check_time_range, section
 from engine.geometry.motion import drop_long_vectors, projected_offsets
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
@@ -154,9 +154,7 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
     kind = manifest.get("kind")
     if kind not in _GROUPS:
         raise InputError(f"has kind {kind!r}, expected one of {sorted(_GROUPS)}", file=meta_file)
-    t0, t1 = (float(x) for x in manifest["time"]["range"])
-    if not (math.isfinite(t0) and math.isfinite(t1) and t1 >= t0):
-        raise InputError(f"has time range {[t0, t1]}, expected finite t_min <= t_max", file=meta_file)
+    check_time_range(manifest, meta_file)
     check_shading(section(manifest, "field", meta_file), meta_file)
     get = array_getter(arrays, npz_file, "dynamic.json")
     planes: dict[str, list[np.ndarray]] = {}

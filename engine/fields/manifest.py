@@ -21,7 +21,7 @@ from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.encoding import direction_encoding_np
 
 __all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene",
-           "check_static_layout", "check_shading", "section", "number", "choice", "array_name"]
+           "check_static_layout", "check_shading", "check_time_range", "section", "number", "choice", "array_name"]
 
 #: Most samples per ray a manifest may ask for (the trained fields use 64; the renderers allocate per sample).
 MAX_SAMPLES = 1024
@@ -118,6 +118,17 @@ def check_scene(manifest: Any, file: Path, onnx: bool = True) -> None:
     name = section(manifest, "onnx", file).get("file")
     if not isinstance(name, str) or not name or Path(name).name != name or name in (".", ".."):
         raise _error(f"must be a file name beside the manifest, got {name!r}", file, "onnx.file")
+
+
+def check_time_range(manifest: dict, file) -> tuple[float, float]:
+    """A dynamic field's ``time.range`` (exact or baked): [t_min, t_max], finite numbers, t_min <= t_max; returns
+    it."""
+    span = section(manifest, "time", file).get("range")
+    if not (isinstance(span, list) and len(span) == 2
+            and all(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) for t in span)
+            and span[1] >= span[0]):
+        raise _error(f"must be [t_min, t_max], finite, t_min <= t_max, got {span!r}", file, "time.range")
+    return float(span[0]), float(span[1])
 
 
 def check_shading(spec: dict, file) -> int:

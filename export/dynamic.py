@@ -8,7 +8,9 @@
   in [0, 1]. The same torch code the renderer trains (``DynamicFieldModel.contract``, the motion field, the
   canonical field), exported with ``torch.onnx.export(..., dynamo=True, opset_version=20)``; N is dynamic.
   Times are normalised inside the graph and **clamped** to the trained range (a graph cannot raise): callers
-  check the range (``time_range`` in the manifest), as ``DynamicFieldModel.query`` does.
+  check the range (``time_range`` in the manifest), as ``DynamicFieldModel.query`` does. A field trained with
+  deferred shading (``--field.canonical.shading deferred``) outputs ``features`` (N, G), ``sigmoid(h)``, instead
+  of ``color``: the renderer composites them and shades once per pixel (as ``export/field.py``).
 - ``dynamic.npz`` + ``dynamic.json``: every plane (float32, and uint8 with a per-plane, per-channel
   [min, max] range, decoded as in ``export/field.py``), the MLP weights (``y = W x + b``, ReLU between
   layers), the occupancy grid, the scene contraction, the trained time range and its normalisation, the
@@ -29,8 +31,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from export.field import example_points, export_command, run_as_script, strip_debug
+from export.field import example_points, export_command, query_outputs, run_as_script, strip_debug
 from models.fields.assets import DYNAMIC_FORMAT, DYNAMIC_VERSION, OPSET, dynamic_assets
+from models.fields.bake import DEFAULT_RESOLUTION, bakes_dynamic, write_baked
+from models.fields.data.select import load_dynamic_run_views
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.train_dynamic import load_dynamic_model
 
@@ -91,9 +95,14 @@ def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, time
             "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
 
 
-def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict:
+def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=None,
+                   bake_resolution: int = DEFAULT_RESOLUTION) -> dict:
     """Write ``dynamic.onnx``, ``dynamic.npz`` and ``dynamic.json`` for the run into ``out_dir``; returns the
-    manifest (with the parity of onnxruntime against torch under ``parity``)."""
+    manifest (with the parity of onnxruntime against torch under ``parity``). A DeRF field trained with deferred
+    shading and a canonical field of tri-planes is also baked (``baked_dynamic.npz`` + ``baked_dynamic.json``,
+    ``models.fields.bake.bake_dynamic``) at ``bake_resolution`` cells a side; its grid and check (on the first
+    camera and time of ``views``, a ``TimedViews``, by default the run's first held-out view when the run records
+    its data) are the result's ``baked``."""
     model = _model(run_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -103,7 +112,7 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     onnx_path = out / "dynamic.onnx"
     with torch.no_grad():
         program = torch.onnx.export(graph, (points, times, dirs), dynamo=True, opset_version=OPSET,
-                                    input_names=["points", "times", "directions"], output_names=["density", "color"],
+                                    input_names=["points", "times", "directions"], output_names=query_outputs(model),
                                     dynamic_shapes={"points": {0: n}, "times": {0: n}, "directions": {0: n}},
                                     verbose=False, optimize=False)
     program.save(str(onnx_path))
@@ -113,10 +122,20 @@ def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path]) -> dict
     if isinstance(run_dir, (str, Path)) and (Path(run_dir) / "scores.json").is_file():
         limit = json.loads((Path(run_dir) / "scores.json").read_text()).get("canonical_limit")
     arrays, manifest = dynamic_assets(model, canonical_limit=limit)
+    manifest["onnx"]["outputs"] = query_outputs(model)
     np.savez_compressed(out / "dynamic.npz", **arrays)
     rp, rt, rd = example_queries(model, 8192, seed=1)
     manifest["parity"] = {"random_points": check_parity(onnx_path, model, rp, rt, rd)}
     (out / "dynamic.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    if bakes_dynamic(model):
+        camera, time = None, None
+        if views is None and isinstance(run_dir, (str, Path)) and (Path(run_dir) / "data.json").is_file():
+            _, views = load_dynamic_run_views(run_dir)
+        if views is not None:
+            cam = views.cameras[0]
+            camera, time = (cam.intrinsics, cam.world_to_camera, views.height, views.width), float(views.times[0])
+        baked = write_baked(model, out, bake_resolution, camera, time)
+        manifest["baked"] = {"grid": baked["grid"], "check": baked.get("check")}
     return manifest
 
 
@@ -124,7 +143,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.dynamic
     """``interleave export dynamic RUN_DIR [--out DIR]``: export, check parity, print a summary."""
     export_command(argv, prog, "Export a trained dynamic field (ONNX (p, t, d) query + renderer assets) and check "
                                "onnxruntime against torch.", "interleave train dynamic", export_dynamic, "dynamic.onnx",
-                   lambda manifest: {"time_range": manifest["time"]["range"]})
+                   lambda manifest: {"time_range": manifest["time"]["range"], "baked": manifest.get("baked")},
+                   bake=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

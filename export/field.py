@@ -263,7 +263,8 @@ def export_command(argv: Optional[list[str]], prog: str, description: str, made_
     if bake:
         parser.add_argument("--bake-resolution", type=int, default=DEFAULT_RESOLUTION,
                             help="grid cells a side of the baked form of a field trained with deferred shading "
-                                 f"(default {DEFAULT_RESOLUTION}; a multiple of the occupancy grid's)")
+                                 f"(default {DEFAULT_RESOLUTION}; static: a multiple of the occupancy grid's; dynamic, "
+                                 "a DeRF field with --no-field.canonical-time: a multiple of 4)")
     args = parser.parse_args(argv)
     out = args.out or args.run / "export"
     manifest = export(args.run, out, **({"bake_resolution": args.bake_resolution} if bake else {}))

@@ -23,7 +23,8 @@
 # 4. a static field: a generated 3-view forward-facing capture at 504x378 trained by the default command on
 #    CUDA, exported, and its GL renderer timed (tools.bench_fields) at 512x512, 960x540 and 1920x1080; the same
 #    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
-#    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR).
+#    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR)
+#    and for D-NeRF lego's dynamic field trained to bake (DNERF_DIR).
 #   SET=corrflow bash scripts/bench_gpu.sh OUT_DIR   (issue 43) the correlation flow network trained on CUDA: the
 #       training scenes rendered and their pairs built (CF_WORKERS processes), CF_STEPS steps (default 3000) of a
 #       network of CF_CHANNELS widths (default the committed 16,32,64,64,32,48; started from the committed weights when
@@ -31,7 +32,7 @@
 #       iterations into OUT_DIR, and the EPE of `corr` on the validation sequences against the committed network's
 #       (corrflow_val.json). Calibrate with a small CF_STEPS first: render + pairs ~4 min on 14 processes (estimate).
 # Each step has a time limit and its output goes to OUT_DIR/run.log; JSON results beside it (15 files with the
-# lego data) and the GPU's clocks during the run (clocks.csv).
+# lego data, 17 with the D-NeRF data too) and the GPU's clocks during the run (clocks.csv).
 set -uo pipefail
 out="${1:?usage: bash scripts/bench_gpu.sh OUT_DIR}"
 py="${PYTHON:-python3}"
@@ -187,6 +188,18 @@ if [ -d "$lego" ]; then
     step field_lego_export 120 "$py" -m engine.cli export field "$work/lego_deferred"
     step field_lego_baked 90 "$py" -m tools.bench_fields static "$work/lego_deferred/export" --run "$work/lego_deferred" \
         --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked_lego.json"
+fi
+# a dynamic field that bakes (D-NeRF lego at 200x200, 2000 steps on CUDA, deferred shading, canonical tri-planes:
+# docs/results/2026-11-29-dynamic-deferred.md), exported with its baked form (engine.fields.glbaked
+# GlBakedDynamicRenderer) and both GL renderers timed at 960x540 and 1920x1080, when the data is there (DNERF_DIR)
+dnerf="${DNERF_DIR:-../shared/data/dnerf_lego}"
+if [ -d "$dnerf" ]; then
+    step dyn_lego_deferred 300 "$py" -m engine.cli train dynamic --scene "$dnerf" --downscale 4 --steps 2000 \
+        --device cuda --no-flip --field.canonical.shading deferred --no-field.canonical-time --out "$work/dyn_deferred"
+    cp "$work/dyn_deferred/scores.json" "$out/dyn_deferred_scores.json" 2>/dev/null
+    step dyn_lego_export 240 "$py" -m engine.cli export dynamic "$work/dyn_deferred"
+    step dyn_lego_baked 120 "$py" -m tools.bench_fields dynamic "$work/dyn_deferred/export" --run "$work/dyn_deferred" \
+        --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/dyn_render_baked_lego.json"
 fi
 # the correlation flow network trained on the GPU (SET=corrflow, above; not part of the default run)
 if [[ "${SET:-}" == corrflow || " ${ONLY:-} " == *" cf_"* ]]; then

@@ -10,7 +10,8 @@ path (``engine.fields.camera_path``). ``--json FILE`` also writes the records. T
 the default GL renderer and prints their multiply-add rate (GMAC/s in the MLPs), the figure to set against a
 device's FP32 peak. When the export holds a baked field (``baked.json``, a field trained with deferred shading),
 the static bench also times its GL renderer (``engine.fields.glbaked``: "gl baked", hardware and exact
-filtering) and its numpy reference ("baked numpy"), scored against the same reference as the rest.
+filtering) and its numpy reference ("baked numpy"), scored against the same reference as the rest; so does the
+dynamic bench for a baked DeRF field (``baked_dynamic.json``: ``GlBakedDynamicRenderer``, ``render_baked_dynamic``).
 """
 from __future__ import annotations
 
@@ -29,9 +30,10 @@ from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from engine.fields.camera_path import field_camera_path, scale_intrinsics
 from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
-from engine.fields.baked import load_baked, render_baked
+from engine.fields.baked import (BakedDynamicAssets, load_baked, load_baked_dynamic, render_baked,
+                                 render_baked_dynamic)
 from engine.fields.gl import GlFieldRenderer
-from engine.fields.glbaked import GlBakedRenderer
+from engine.fields.glbaked import GlBakedDynamicRenderer, GlBakedRenderer
 from engine.fields.gldynamic import GlDynamicRenderer
 from engine.fields.render import evaluation_macs, load_field, render_field
 
@@ -205,13 +207,18 @@ def run_static_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optiona
     return records
 
 
-def _baked_outs(baked, width: int, height: int, k, w2c, skip: tuple[str, ...], repeat: int) -> dict:
-    """The baked field's renders at one size: its GL variants and (unless numpy is skipped) its numpy reference."""
+def _baked_outs(baked, width: int, height: int, k, w2c, skip: tuple[str, ...], repeat: int, extra: tuple = ()
+                ) -> dict:
+    """The baked field's renders at one size: its GL variants and (unless numpy is skipped) its numpy reference;
+    a baked dynamic field's (``extra``: its time) with ``GlBakedDynamicRenderer`` and ``render_baked_dynamic``."""
+    dynamic = isinstance(baked, BakedDynamicAssets)
+    gl_renderer = GlBakedDynamicRenderer if dynamic else GlBakedRenderer
+    reference = render_baked_dynamic if dynamic else render_baked
     outs = {}
     if "gl" not in skip:
-        outs.update(_gl_outs(GlBakedRenderer, baked, BAKED_GL_VARIANTS, width, height, k, w2c, (), repeat))
+        outs.update(_gl_outs(gl_renderer, baked, BAKED_GL_VARIANTS, width, height, k, w2c, extra, repeat))
     if "numpy" not in skip:
-        out, wall, cpu = _timed(lambda: render_baked(baked, k, w2c, height, width))
+        out, wall, cpu = _timed(lambda: reference(baked, k, w2c, height, width, *extra))
         outs["baked numpy"] = (out, [wall], [cpu], 0.0)
     return outs
 
@@ -242,7 +249,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
                       skip: tuple[str, ...] = (), view: int = 0, time_value: Optional[float] = None,
                       threads: int = 0) -> list[dict]:
     """Time every renderer of the dynamic field at every size on one held-out view of the run (at its time,
-    or ``time_value``); PSNR of each against the torch render (or the numpy one without torch)."""
+    or ``time_value``); PSNR of each against the torch render (or the numpy one without torch). When the export
+    holds a baked field (``baked_dynamic.json``) its GL renderer and numpy oracle are timed too."""
     import torch  # the held-out views come from the run's data (models.fields): torch is needed here
 
     from models.fields.data.select import load_dynamic_run_views
@@ -261,6 +269,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
     cam = test.cameras[view]
     t = float(test.times[view]) if time_value is None else float(time_value)
     assets = load_dynamic_field(export)
+    baked = (load_baked_dynamic(export) if (export / "baked_dynamic.json").is_file() and "baked" not in skip
+             else None)
     torch_render = None
     if "torch" not in skip:
         model = AtTime(load_dynamic_model(run), t)
@@ -271,6 +281,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
         outs = _size_outs(width, height, k, cam.world_to_camera, (t,), assets=assets, torch_render=torch_render,
                           gl_renderer=GlDynamicRenderer, variants=DYNAMIC_GL_VARIANTS, reference=render_dynamic_field,
                           skip=skip, repeat=repeat)
+        if baked is not None:
+            outs.update(_baked_outs(baked, width, height, k, cam.world_to_camera, skip, repeat, (t,)))
         for record in bench_records(outs, width, height):
             records.append({**record, "time": t, "camera": f"held-out view {test.names[view]}"})
     return records
@@ -307,8 +319,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     dynamic.add_argument("--time", type=float, default=None, help="render time (default: the view's own)")
     for p in (static, dynamic):
         p.add_argument("--repeat", type=int, default=3, help="timed GL renders per variant (median; default 3)")
-        p.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch (static: "
-                                                  "and baked, the baked field of an export that has one)")
+        p.add_argument("--skip", default="", help="comma-separated renderers to skip: gl,numpy,onnx,torch and "
+                                                  "baked (the baked field of an export that has one)")
         p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
         p.add_argument("--json", type=Path, default=None, help="also write the records to this JSON file")
     args = parser.parse_args(argv)

@@ -35,7 +35,8 @@ from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, camera_rays_np,
                                   contract_np, decode_plane, direction_encoding_np, load_mlp, load_occupancy,
-                                  march_field, mlp_np, read_asset_files, uncontract_np)
+                                  march_field, mlp_np, pixel_shader, read_asset_files, uncontract_np)
+from engine.fields.manifest import check_shading, check_time_range, section
 from engine.geometry.motion import drop_long_vectors, projected_offsets
 
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
@@ -153,9 +154,8 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
     kind = manifest.get("kind")
     if kind not in _GROUPS:
         raise InputError(f"has kind {kind!r}, expected one of {sorted(_GROUPS)}", file=meta_file)
-    t0, t1 = (float(x) for x in manifest["time"]["range"])
-    if not (math.isfinite(t0) and math.isfinite(t1) and t1 >= t0):
-        raise InputError(f"has time range {[t0, t1]}, expected finite t_min <= t_max", file=meta_file)
+    check_time_range(manifest, meta_file)
+    check_shading(section(manifest, "field", meta_file), meta_file)
     get = array_getter(arrays, npz_file, "dynamic.json")
     planes: dict[str, list[np.ndarray]] = {}
     listed = manifest["field"]["planes"]
@@ -267,7 +267,8 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
     DeRF: canonical point ``clamp(c + flow, -1, 1)``, canonical tri-planes (hex-planes at (canonical point,
     tau) with ``canonical_temporal``), density MLP (density and latent h), colour MLP on [h, direction
     encoding, time encoding]. K-Planes: hex-plane features of (c, tau), density MLP, colour MLP on [h,
-    direction encoding].
+    direction encoding]. A deferred export (``field.shading``) gives the features ``sigmoid(h)`` (N, G) instead
+    of the colour: :func:`render_dynamic_field` composites them and runs the colour MLP once per pixel.
     """
     coords = np.asarray(coords, np.float32)
     taus = np.asarray(taus, np.float32)
@@ -281,6 +282,8 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
         feats = hex_plane_features_np(assets.planes["spatial"], assets.planes["temporal"], coords, taus)
     out = mlp_np(feats, assets.density_layers)
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
+    if assets.deferred:  # the features sigmoid(h); the colour once per pixel (render_dynamic_field)
+        return sigma.astype(np.float32), (1.0 / (1.0 + np.exp(-out[:, 1:]))).astype(np.float32)
     inputs = [out[:, 1:], direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                                 spec["direction_degree"])]
     if assets.has_motion:
@@ -295,7 +298,8 @@ def render_dynamic_field(assets: DynamicAssets, intrinsics, world_to_camera, hei
     """Render colour (H, W, 3) linear RGB, planar depth (H, W) (+inf: no surface) and opacity (H, W) at a time.
 
     Sampling and compositing are the static renderer's (:func:`engine.fields.render.render_field`); the
-    occupancy grid is time-agnostic (the max over trained times).
+    occupancy grid is time-agnostic (the max over trained times). A deferred export is shaded as a static one
+    (:func:`engine.fields.render.shade_pixels_np`), with the encoded time after the direction encoding (DeRF).
 
     Args:
         assets: from :func:`load_dynamic_field`.
@@ -317,7 +321,10 @@ def render_dynamic_field(assets: DynamicAssets, intrinsics, world_to_camera, hei
         return assets.onnx_session().run(None, {"points": points, "times": np.full(points.shape[0], time, np.float32),
                                                 "directions": directions})
 
-    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far)
+    extra = time_encoding_np(np.array([tau], np.float32), int(assets.manifest["field"]["time_frequencies"]))[0] \
+        if assets.has_motion else None
+    return march_field(assets, intrinsics, world_to_camera, height, width, evaluate, chunk=chunk, near=near, far=far,
+                       shade=pixel_shader(assets, extra), channels=assets.feature_dim)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -25,16 +25,18 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.baked import BakedAssets, load_baked
+from engine.fields.baked import BakedAssets, BakedDynamicAssets, load_baked, load_baked_dynamic, time_keys
+from engine.fields.dynamic import normalize_time, time_encoding_np
 from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
                               check_options, color_head, finish_shader)
 
-__all__ = ["GlBakedRenderer", "atlas_layout", "atlas_layers", "channel_groups", "generate_baked_shader"]
+__all__ = ["GlBakedRenderer", "GlBakedDynamicRenderer", "atlas_layout", "atlas_layers", "channel_groups",
+           "generate_baked_shader", "motion_layers", "motion_code"]
 
 #: Largest width / height of the atlas texture (OpenGL guarantees 16384 on 4.5 implementations).
 MAX_ATLAS_SIDE = 16384
@@ -71,9 +73,16 @@ def atlas_layers(baked: BakedAssets) -> np.ndarray:
     return np.ascontiguousarray(grid.reshape(1, per_column * v, columns * v * v * groups, 4))
 
 
-def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: str, count_evaluations: bool = False
-                          ) -> tuple[str, np.ndarray, str]:
-    """GLSL source, packed parameters and where they live (as ``engine.fields.gl.finish_shader``) of a baked field."""
+def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: str, count_evaluations: bool = False,
+                          samplers: Sequence[str] = (), before: Sequence[str] = (), extra_encoding: Sequence[str] = (),
+                          empty_bricks: bool = False) -> tuple[str, np.ndarray, str]:
+    """GLSL source, packed parameters and where they live (as ``engine.fields.gl.finish_shader``) of a baked field.
+
+    Hooks for a baked dynamic field (as ``engine.fields.gl.generate_shader``'s): ``samplers`` further
+    declarations, ``before`` code run per evaluated sample before the brick lookup (it may move the contracted
+    point ``c``), ``extra_encoding`` scalar GLSL expressions appended to the direction encoding (further per-pixel
+    inputs of the colour MLP), ``empty_bricks``: a sample may land in an empty brick (a moved point: the march's
+    occupancy is not the bricks'), which then gives density and features 0 (``engine.fields.baked.lookup_bricks``)."""
     grid, spec = baked.grid, baked.manifest["field"]
     b, s, r = int(grid["bricks"]), int(grid["brick"]), int(grid["resolution"])
     v = s + 1
@@ -81,9 +90,10 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
     groups = channel_groups(baked.feature_dim)
     per_column, columns = atlas_layout(baked.density.shape[0], v, groups)
     params = ShaderParams()
-    lines = [
+    lines = list(before) + [
         f"ivec3 bk_cell = clamp(ivec3(floor((c + 1.0) * {0.5 * b!r})), ivec3(0), ivec3({b - 1}));",
         f"int bk = brick_of[(bk_cell.x * {b} + bk_cell.y) * {b} + bk_cell.z];",
+        *(["bool bk_empty = bk < 0;", "bk = max(bk, 0);"] if empty_bricks else []),
         f"vec3 bk_local = clamp((c + 1.0) * {0.5 * r!r} - vec3(bk_cell * {s}), vec3(0.0), vec3({float(s)!r}));",
         f"vec3 bk_i0 = min(floor(bk_local), vec3({float(s - 1)!r}));",
         "vec3 fr = bk_local - bk_i0;",
@@ -110,15 +120,20 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
         lines.append(f"vec4 v{q}_0 = {layers[0]};")
         lines.append(f"vec4 v{q}_1 = {layers[1]};")
         lines.append(f"vec4 v{q} = v{q}_0 * (1.0 - fr.z) + v{q}_1 * fr.z;")
+    if empty_bricks:  # no density (exp of the lowest raw value), no features
+        lines.append("if (bk_empty) {")
+        lines += [f"    v{q} = vec4(0.0);" for q in range(groups)]
+        lines += [f"    v{groups - 1}.w = -1e30;", "}"]
     features = "\n".join("            " + line for line in lines)
-    enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"]))
+    enc = _direction_encoding(spec["direction_encoding"], int(spec["direction_degree"])) + list(extra_encoding)
     per_pixel, color_net = color_head(params, enc, baked.color_layers, g, 4 * groups)
     code, residual = color_net([f"ha{q}" for q in range(groups)], "    ", "tanh")
     scale = "\n".join(f"    ha{q} *= {1.0 / 255.0!r};  // feature codes -> [0, 1]" for q in range(groups))
     scale += f"\n    ha{groups - 1}.w = 0.0;  // the density lane: no feature"
     values = {
-        "samplers": "uniform sampler2DArray atlas;\n"
-                    "layout(std430, binding = 5) readonly buffer BrickBuf { int brick_of[]; };",
+        "samplers": "\n".join(["uniform sampler2DArray atlas;",
+                                "layout(std430, binding = 5) readonly buffer BrickBuf { int brick_of[]; };",
+                                *samplers]),
         "per_pixel": "\n".join(per_pixel),
         "accum_decl": "\n".join(f"    vec4 ha{q} = vec4(0.0);" for q in range(groups)),
         "features": features, "density": f"            float raw = v{groups - 1}.w;", "density_bias": 0.0,
@@ -138,20 +153,28 @@ class GlBakedRenderer(GlFieldRenderer):
         InputError: bad size or option, an atlas that does not fit a texture.
     """
 
+    #: the assets this renderer takes, and their loader (a folder or manifest given instead)
+    assets_type, _loader = BakedAssets, staticmethod(load_baked)
+
     def __init__(self, baked: Union[BakedAssets, str, Path], width: int, height: int, *, filtering: str = "hardware",
                  transmittance_eps: float = TRANSMITTANCE_EPS, color_eps: float = COLOR_EPS, weights: str = "inline",
                  tiles_per_invocation: Optional[int] = None, count_evaluations: bool = False, context=None) -> None:
-        if not isinstance(baked, BakedAssets):
-            baked = load_baked(baked)
+        if not isinstance(baked, self.assets_type):
+            baked = self._loader(baked)
         check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,
                       transmittance_eps=transmittance_eps, color_eps=color_eps)
         self._configure(baked, width, height, quantized=True, filtering=filtering, color_mode="deferred",
                         transmittance_eps=transmittance_eps, color_eps=color_eps,
                         tiles_per_invocation=tiles_per_invocation, count_evaluations=count_evaluations)
+        hooks, textures = self._shader_hooks(baked, filtering)
         self.source, packed, self.params_kind = generate_baked_shader(
             baked, filtering=filtering, params_kind="const" if weights == "inline" else "ubo",
-            count_evaluations=self.count_evaluations)
-        self._setup(packed, [("atlas", atlas_layers(baked))], "f2", context)
+            count_evaluations=self.count_evaluations, **hooks)
+        self._setup(packed, [("atlas", atlas_layers(baked))] + textures, "f2", context)
+
+    def _shader_hooks(self, baked: BakedAssets, filtering: str) -> tuple[dict, list]:
+        """``generate_baked_shader``'s hooks and the textures after the atlas (none for a static field)."""
+        return {}, []
 
     def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
         super()._build(packed, textures, dtype)
@@ -161,3 +184,83 @@ class GlBakedRenderer(GlFieldRenderer):
     def _bind(self) -> None:
         super()._bind()
         self._bricks.bind_to_storage_buffer(5)
+
+
+# ----------------------------------------------------------------------------------------------------
+# A baked DeRF field (engine.fields.baked.BakedDynamicAssets): the flow keys in front of the brick lookup
+
+
+def motion_layers(baked: BakedDynamicAssets) -> np.ndarray:
+    """(K M, M, M, 4) float16: the flow keys as one 2D array texture, layer ``k M + iz`` holding key k's z slice iz,
+    texel (ix, iy) its flow in rgb."""
+    keys, m = baked.motion.shape[0], baked.motion.shape[1]
+    layers = np.zeros((keys, m, m, m, 4), np.float16)
+    layers[..., :3] = baked.motion.transpose(0, 3, 2, 1, 4)  # [key, ix, iy, iz] -> [key, iz, iy, ix]
+    return np.ascontiguousarray(layers.reshape(keys * m, m, m, 4))
+
+
+def motion_code(baked: BakedDynamicAssets, filtering: str) -> list[str]:
+    """GLSL, per evaluated sample: ``c = clamp(c + flow, -1, 1)``, the flow the two time keys' trilinear lookups
+    (layers ``key0 M + iz`` and ``(key0 + 1) M + iz``) mixed by ``key_w`` (:func:`engine.fields.baked.baked_flow`)."""
+    m = baked.motion.shape[1]
+    lines = [f"vec3 mo_local = clamp((c + 1.0) * {0.5 * (m - 1)!r}, vec3(0.0), vec3({float(m - 1)!r}));",
+             f"vec3 mo_i0 = min(floor(mo_local), vec3({float(m - 2)!r}));",
+             "vec3 mo_f = mo_local - mo_i0;"]
+    if filtering == "exact":
+        lines.append("ivec2 mo_xy = ivec2(mo_i0.xy);")
+    else:
+        lines.append(f"vec2 mo_uv = (mo_local.xy + 0.5) * {1.0 / m!r};")
+    keys = []
+    for key in (0, 1):
+        slices = []
+        for dz in (0, 1):
+            layer = f"(key0 + {key}) * {m} + int(mo_i0.z) + {dz}"
+            if filtering == "exact":
+                f = [f"texelFetch(motion, ivec3(mo_xy + ivec2({dx}, {dy}), {layer}), 0)"
+                     for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))]
+                slices.append(f"(({f[0]} * (1.0 - mo_f.x) + {f[1]} * mo_f.x) * (1.0 - mo_f.y) + "
+                              f"({f[2]} * (1.0 - mo_f.x) + {f[3]} * mo_f.x) * mo_f.y)")
+            else:
+                slices.append(f"texture(motion, vec3(mo_uv, float({layer})))")
+        lines.append(f"vec3 mo_{key} = ({slices[0]} * (1.0 - mo_f.z) + {slices[1]} * mo_f.z).xyz;")
+        keys.append(f"mo_{key}")
+    return lines + [f"c = clamp(c + ({keys[0]} * (1.0 - key_w) + {keys[1]} * key_w), -1.0, 1.0);"]
+
+
+class GlBakedDynamicRenderer(GlBakedRenderer):
+    """:class:`GlBakedRenderer` of a baked DeRF field: per evaluated sample the flow keys move the sample to its
+    canonical point before the brick lookup, the time-agnostic occupancy grid skips samples at their own points,
+    and the colour MLP reads the encoded time with the view direction. ``render(K, world_to_camera, time)``
+    renders what :func:`engine.fields.baked.render_baked_dynamic` (its test oracle) renders.
+
+    Raises:
+        InputError: bad size or option, an atlas that does not fit a texture; ``render``: a time outside the
+            trained range.
+    """
+
+    assets_type, _loader = BakedDynamicAssets, staticmethod(load_baked_dynamic)
+
+    def _shader_hooks(self, baked: BakedDynamicAssets, filtering: str) -> tuple[dict, list]:
+        self._frequencies = int(baked.manifest["field"]["time_frequencies"])
+        encoded = 2 * self._frequencies + 1
+        hooks = {"samplers": ["uniform sampler2DArray motion;", "uniform int key0;", "uniform float key_w;",
+                              f"uniform float time_enc[{encoded}];"],
+                 "before": motion_code(baked, filtering),
+                 "extra_encoding": [f"time_enc[{i}]" for i in range(encoded)], "empty_bricks": True}
+        return hooks, [("motion", motion_layers(baked))]
+
+    def render(self, intrinsics, world_to_camera, time: float) -> dict[str, np.ndarray]:
+        """Render the field at ``time`` (the data's units); the rest as :meth:`GlFieldRenderer.render`."""
+        tau = normalize_time(time, self.assets.time_range)
+        key0, weight = time_keys(tau, self.assets.motion.shape[0])
+        enc = time_encoding_np(np.array([tau], np.float32), self._frequencies)[0]
+
+        def set_time() -> None:
+            self._set("key0", key0)
+            self._set("key_w", float(weight))
+            try:
+                self.program["time_enc"].write(np.ascontiguousarray(enc, np.float32).tobytes())
+            except KeyError:  # optimised out: the colour MLP ignores time
+                pass
+        self._run(set_time)
+        return super().render(intrinsics, world_to_camera)

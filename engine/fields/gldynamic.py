@@ -23,6 +23,9 @@ skip, and the same error bounds (``transmittance_eps``, ``num_samples * color_ep
 - **K-Planes** (``kind="kplanes"``): the ``spatial`` planes are the tri-planes; after their lookup each
   feature group is multiplied by the xt, yt, zt product at (c, tau).
 
+A field trained with deferred shading (``field.shading``) takes the static shader's deferred path: its features
+are composited and the colour MLP runs once per pixel, the encoded time with the view direction.
+
 Plane lookups are ``grid_sample(align_corners=True, padding_mode="border")`` as in the static shader:
 ``filtering="hardware"`` (the sampler's bilinear filter at ``(x + 0.5) / W, (y + 0.5) / H``) or ``"exact"``
 (four ``texelFetch`` + float32 lerp). Float32 planes only (no uint8 path for dynamic assets yet).

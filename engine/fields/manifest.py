@@ -21,7 +21,7 @@ from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.encoding import direction_encoding_np
 
 __all__ = ["MAX_SAMPLES", "SCENE_KINDS", "SPACINGS", "SHADINGS", "DIRECTION_ENCODINGS", "check_scene",
-           "check_static_layout", "section", "number", "choice", "array_name"]
+           "check_static_layout", "check_shading", "check_time_range", "section", "number", "choice", "array_name"]
 
 #: Most samples per ray a manifest may ask for (the trained fields use 64; the renderers allocate per sample).
 MAX_SAMPLES = 1024
@@ -120,6 +120,27 @@ def check_scene(manifest: Any, file: Path, onnx: bool = True) -> None:
         raise _error(f"must be a file name beside the manifest, got {name!r}", file, "onnx.file")
 
 
+def check_time_range(manifest: dict, file) -> tuple[float, float]:
+    """A dynamic field's ``time.range`` (exact or baked): [t_min, t_max], finite numbers, t_min <= t_max; returns
+    it."""
+    span = section(manifest, "time", file).get("range")
+    if not (isinstance(span, list) and len(span) == 2
+            and all(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) for t in span)
+            and span[1] >= span[0]):
+        raise _error(f"must be [t_min, t_max], finite, t_min <= t_max, got {span!r}", file, "time.range")
+    return float(span[0]), float(span[1])
+
+
+def check_shading(spec: dict, file) -> int:
+    """A ``field`` section's ``shading`` (absent: per-sample) and latent size ``geo_feature_dim`` (>= 3 with
+    deferred shading: the diffuse colour), static or dynamic; returns the latent size."""
+    latent = int(number(spec, "geo_feature_dim", file, "field", low=0, integer=True))
+    if "shading" in spec and choice(spec, "shading", SHADINGS, file, "field") == "deferred" and latent < 3:
+        raise _error(f"must be >= 3 with deferred shading (the diffuse colour), got {latent}", file,
+                     "field.geo_feature_dim")
+    return latent
+
+
 def check_static_layout(manifest: dict, file: Path) -> None:
     """A static field's ``field`` section: the three planes' axes, the planes of every scale, the density and
     colour MLPs, and how they chain (density input = the planes' channels, density output = 1 + the latent,
@@ -142,10 +163,7 @@ def check_static_layout(manifest: dict, file: Path) -> None:
             array_name(p, key, file, where)
     number(spec, "density_bias", file, "field")
     number(spec, "max_log_density", file, "field", high=80.0)  # exp(80) is near float32's largest
-    latent = int(number(spec, "geo_feature_dim", file, "field", low=0, integer=True))
-    if "shading" in spec and choice(spec, "shading", SHADINGS, file, "field") == "deferred" and latent < 3:
-        raise _error(f"must be >= 3 with deferred shading (the diffuse colour), got {latent}", file,
-                     "field.geo_feature_dim")
+    latent = check_shading(spec, file)
     encoding = choice(spec, "direction_encoding", tuple(DIRECTION_ENCODINGS), file, "field")
     low, high = DIRECTION_ENCODINGS[encoding]
     degree = int(number(spec, "direction_degree", file, "field", low=low, high=high, integer=True))

@@ -74,6 +74,16 @@ class ExportedAssets:
     def bounded(self) -> bool:
         return self.scene["kind"] == "bounded-360"
 
+    @property
+    def deferred(self) -> bool:
+        """Deferred shading (``field.shading``): samples give features, :func:`shade_pixels_np` the colour."""
+        return self.manifest["field"].get("shading", "per-sample") == "deferred"
+
+    @property
+    def feature_dim(self) -> int:
+        """Values a sample gives the compositing: 3 (RGB), or the latent size of a deferred field."""
+        return int(self.manifest["field"]["geo_feature_dim"]) if self.deferred else 3
+
     def onnx_session(self, threads: int = 0):
         """The onnxruntime session of the exported query graph (created once)."""
         if self._session is None:
@@ -100,16 +110,6 @@ class FieldAssets(ExportedAssets):
     occupancy: Optional[np.ndarray] = field(repr=False)
     onnx_path: Path
     _session: object = field(default=None, repr=False)
-
-    @property
-    def deferred(self) -> bool:
-        """Deferred shading (``field.shading``): samples give features, :func:`shade_pixels_np` the colour."""
-        return self.manifest["field"].get("shading", "per-sample") == "deferred"
-
-    @property
-    def feature_dim(self) -> int:
-        """Values a sample gives the compositing: 3 (RGB), or the latent size of a deferred field."""
-        return int(self.manifest["field"]["geo_feature_dim"]) if self.deferred else 3
 
 
 def open_onnx(path: Path, threads: int = 0):
@@ -338,21 +338,28 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def shade_pixels_np(spec: dict, color_layers, background: np.ndarray, features: np.ndarray, opacity: np.ndarray,
-                    directions: np.ndarray) -> np.ndarray:
-    """Deferred shading (``models.fields.static.field.TriPlaneField.shade_pixels``): composited features F
-    (R, G), opacity A (R,), unit view directions (R, 3) -> linear RGB (R, 3)
-    ``F[:3] + (1 - A) background + A tanh(colour MLP([F, enc(d)]))``. ``spec``: the manifest's ``field``."""
+                    directions: np.ndarray, extra: Optional[np.ndarray] = None) -> np.ndarray:
+    """Deferred shading (``models.fields.static.field.shade_pixels``): composited features F (R, G), opacity A
+    (R,), unit view directions (R, 3) -> linear RGB (R, 3)
+    ``F[:3] + (1 - A) background + A tanh(colour MLP([F, enc(d), extra]))``. ``spec``: the manifest's ``field``;
+    ``extra``: (E,) further inputs of the colour MLP, the same for every pixel (a DeRF field's encoded time), or
+    None."""
     enc = direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                 spec["direction_degree"])
-    residual = np.tanh(mlp_np(np.concatenate([features, enc], axis=-1), color_layers))
+    inputs = [features, enc]
+    if extra is not None:
+        inputs.append(np.broadcast_to(np.asarray(extra, np.float32), (features.shape[0], len(extra))))
+    residual = np.tanh(mlp_np(np.concatenate(inputs, axis=-1), color_layers))
     return (features[:, :3] + (1.0 - opacity)[:, None] * background + opacity[:, None] * residual).astype(np.float32)
 
 
-def pixel_shader(assets) -> Optional[Callable]:
-    """``march_field``'s ``shade`` of a deferred field (``(features, opacity, directions) -> RGB``), else None."""
+def pixel_shader(assets, extra: Optional[np.ndarray] = None) -> Optional[Callable]:
+    """``march_field``'s ``shade`` of a deferred field (``(features, opacity, directions) -> RGB``), else None;
+    ``extra``: (E,) the colour MLP's further inputs (``shade_pixels_np``)."""
     if not assets.deferred:
         return None
-    return lambda f, a, d: shade_pixels_np(assets.manifest["field"], assets.color_layers, assets.background, f, a, d)
+    return lambda f, a, d: shade_pixels_np(assets.manifest["field"], assets.color_layers, assets.background, f, a, d,
+                                           extra)
 
 
 def _ray_box(origin: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -16,11 +16,13 @@ import numpy as np
 import torch
 
 from engine.core.errors import InputError
-from engine.fields.baked import BAKED_FORMAT, BAKED_VERSION
+from engine.fields.baked import BAKED_DYNAMIC_FORMAT, BAKED_DYNAMIC_VERSION, BAKED_FORMAT, BAKED_VERSION
 from models.fields.assets import _add_mlps, _render_section, direction_degree
+from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 
-__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "brick_vertices", "write_baked", "baked_check"]
+__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic", "bakes_dynamic", "motion_keys",
+           "brick_vertices", "write_baked", "baked_check"]
 
 #: Grid cells per side of the field's cube: 4 cells per occupancy cell of the default 64^3 grid.
 DEFAULT_RESOLUTION = 256
@@ -39,9 +41,10 @@ def brick_vertices(cells: torch.Tensor, brick: int, resolution: int) -> torch.Te
 
 
 @torch.no_grad()
-def _raw_outputs(model, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The field's raw log-density (clamped, bias added) and features sigmoid(h) at (..., 3) coordinates."""
-    field, flat = model.field, coords.reshape(-1, 3)
+def _raw_outputs(field, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The raw log-density (clamped, bias added) and features sigmoid(h) at (..., 3) coordinates of a field of
+    tri-planes (``encoding``, ``density_mlp``, ``config``: a static field, a DeRF canonical field of tri-planes)."""
+    flat = coords.reshape(-1, 3)
     raws, feats = [], []
     for i in range(0, flat.shape[0], chunk):
         out = field.density_mlp(field.encoding(flat[i:i + chunk]))
@@ -51,10 +54,11 @@ def _raw_outputs(model, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor,
             torch.cat(feats).reshape(*coords.shape[:-1], -1))
 
 
-def _occupied_bricks(model, resolution: int, chunk: int) -> tuple[torch.Tensor, int]:
-    """(B, B, B) bool of the occupied bricks and B: the model's occupancy grid, or density at brick vertices."""
+def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True) -> tuple[torch.Tensor, int]:
+    """(B, B, B) bool of the occupied bricks and B: the model's occupancy grid (``use_grid``, once updated), or
+    ``field``'s density at the brick vertices against the model's occupancy threshold."""
     grid = model.occupancy
-    if grid is not None and int(grid.updates) > 0:
+    if use_grid and grid is not None and int(grid.updates) > 0:
         bricks = int(grid.resolution)
         if resolution % bricks:
             raise InputError(f"must be a multiple of the field's occupancy grid ({bricks}), got {resolution}",
@@ -69,7 +73,7 @@ def _occupied_bricks(model, resolution: int, chunk: int) -> tuple[torch.Tensor, 
     occupied = torch.zeros(cells.shape[0], dtype=torch.bool)
     step = max(1, chunk // (resolution // bricks + 1) ** 3)
     for i in range(0, cells.shape[0], step):
-        raw, _ = _raw_outputs(model, brick_vertices(cells[i:i + step], resolution // bricks, resolution), chunk)
+        raw, _ = _raw_outputs(field, brick_vertices(cells[i:i + step], resolution // bricks, resolution), chunk)
         occupied[i:i + step] = raw.reshape(raw.shape[0], -1).amax(dim=-1) >= threshold
     return occupied.reshape(bricks, bricks, bricks), bricks
 
@@ -89,7 +93,20 @@ def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 <
     if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096:
         raise InputError(f"must be an integer in [4, 4096], got {resolution!r}", field="bake_resolution")
     model = model.eval()
-    occupied, bricks = _occupied_bricks(model, resolution, chunk)
+    arrays, grid = _bake_bricks(model, model.field, resolution, chunk)
+    manifest = {
+        "format": BAKED_FORMAT, "version": BAKED_VERSION,
+        "scene": model.scene.to_dict(), "background": [float(x) for x in model.background],
+        "render": _render_section(model), "grid": grid, "field": _baked_field_section(arrays, model.field),
+    }
+    return arrays, manifest
+
+
+def _bake_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True
+                 ) -> tuple[dict[str, np.ndarray], dict]:
+    """The brick arrays (``density``, ``features``, ``brick_index``) of ``field`` (see :func:`_raw_outputs`) and
+    the manifest's ``grid`` section; bricks as :func:`_occupied_bricks`."""
+    occupied, bricks = _occupied_bricks(model, field, resolution, chunk, use_grid)
     brick = resolution // bricks
     cells = occupied.nonzero()
     index = torch.full((bricks,) * 3, -1, dtype=torch.int32)
@@ -97,60 +114,136 @@ def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 <
     raws, feats = [], []
     step = max(1, chunk // (brick + 1) ** 3)
     for i in range(0, cells.shape[0], step):
-        raw, feat = _raw_outputs(model, brick_vertices(cells[i:i + step], brick, resolution), chunk)
+        raw, feat = _raw_outputs(field, brick_vertices(cells[i:i + step], brick, resolution), chunk)
         raws.append(raw.numpy().astype(np.float16))
         feats.append(np.rint(feat.numpy() * 255.0).clip(0, 255).astype(np.uint8))
-    cfg = model.field.config
     v = brick + 1
     arrays = {"density": np.concatenate(raws) if raws else np.zeros((0, v, v, v), np.float16),
               "features": (np.concatenate(feats) if feats
-                           else np.zeros((0, v, v, v, cfg.geo_feature_dim), np.uint8)),
+                           else np.zeros((0, v, v, v, field.config.geo_feature_dim), np.uint8)),
               "brick_index": index.numpy()}
-    mlps = _add_mlps(arrays, {"color": model.field.color_mlp})
+    from_grid = use_grid and model.occupancy is not None and int(model.occupancy.updates) > 0
+    grid = {"resolution": int(resolution), "brick": int(brick), "bricks": int(bricks),
+            "count": int(cells.shape[0]), "occupied_fraction": float(occupied.float().mean()),
+            "density": "density", "features": "features", "index": "brick_index",
+            "bricks_from": "occupancy grid" if from_grid else "vertex density >= the occupancy threshold"}
+    return arrays, grid
+
+
+def _baked_field_section(arrays: dict[str, np.ndarray], field) -> dict:
+    """The manifest's ``field`` section of a baked field shaded by ``field``'s colour MLP (written to ``arrays``)."""
+    cfg = field.config
+    return {"feature_dim": int(cfg.geo_feature_dim), "max_log_density": MAX_LOG_DENSITY,
+            "direction_encoding": cfg.direction_encoding, "direction_degree": direction_degree(cfg),
+            "shading": "deferred", "mlps": _add_mlps(arrays, {"color": field.color_mlp})}
+
+
+@torch.no_grad()
+def motion_keys(model, resolution: int, *, chunk: int = 1 << 16) -> np.ndarray:
+    """A DeRF field's flow ``c' - c`` (contracted units) at the vertices of a ``resolution``^3 grid over the cube
+    (vertex i at ``-1 + 2 i / (resolution - 1)``, indexed [key, ix, iy, iz]) at each of the time planes' rows
+    ``tau_k = -1 + 2 k / (Rt - 1)``: (Rt, M, M, M, 3) float16."""
+    axis = torch.linspace(-1.0, 1.0, resolution)
+    points = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
+    keys = []
+    for tau in torch.linspace(-1.0, 1.0, int(model.time_resolution)):
+        flows = []
+        for i in range(0, points.shape[0], chunk):
+            part = points[i:i + chunk]
+            flows.append(model.field.motion_field(part, part.new_full(part.shape[:1], float(tau))))
+        keys.append(torch.cat(flows).reshape(resolution, resolution, resolution, 3).numpy().astype(np.float16))
+    return np.stack(keys)
+
+
+def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution: int = 33, *,
+                 chunk: int = 1 << 16) -> tuple[dict[str, np.ndarray], dict]:
+    """``(arrays, manifest)`` of the baked form of a DeRF field trained with deferred shading whose canonical field
+    is tri-planes (``--field.canonical.shading deferred --no-field.canonical-time``; ``docs/dynamic_fields.md``,
+    "Baking a dynamic field"), read by ``engine.fields.baked.load_baked_dynamic``: the canonical field's bricks
+    (as :func:`bake_static`'s, occupied where a vertex's density reaches the occupancy threshold: the occupancy
+    grid is over the samples' points, not the canonical ones), the flow at ``motion_resolution``^3 vertices per
+    time key (:func:`motion_keys`), the (time-agnostic) occupancy grid at the samples' points and the colour MLP.
+
+    Raises:
+        InputError: a K-Planes or per-sample field, a canonical field with time planes, a bad resolution.
+    """
+    if not bakes_dynamic(model):
+        raise InputError("bakes only DeRF fields trained with deferred shading and a canonical field of tri-planes "
+                         "(--field.canonical.shading deferred --no-field.canonical-time)", field="field")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096 \
+            or resolution % 4:
+        raise InputError(f"must be a multiple of 4 in [4, 4096], got {resolution!r}", field="bake_resolution")
+    if isinstance(motion_resolution, bool) or not isinstance(motion_resolution, int) or not 2 <= motion_resolution \
+            <= 512:
+        raise InputError(f"must be an integer in [2, 512], got {motion_resolution!r}", field="motion_resolution")
+    model = model.eval()
+    canonical = model.field.canonical_field
+    arrays, grid = _bake_bricks(model, canonical, resolution, chunk, use_grid=False)
+    arrays["motion"] = motion_keys(model, motion_resolution, chunk=chunk)
+    occupancy = None
+    if model.occupancy is not None and int(model.occupancy.updates) > 0:
+        arrays["occupancy"] = model.occupancy.occupied.cpu().numpy().astype(np.uint8)
+        occupancy = {"array": "occupancy", "resolution": int(model.occupancy.resolution),
+                     "time_agnostic": "max over trained times"}
+    t0, t1 = model.time_range
     manifest = {
-        "format": BAKED_FORMAT, "version": BAKED_VERSION,
+        "format": BAKED_DYNAMIC_FORMAT, "version": BAKED_DYNAMIC_VERSION,
         "scene": model.scene.to_dict(), "background": [float(x) for x in model.background],
-        "render": _render_section(model),
-        "grid": {"resolution": int(resolution), "brick": int(brick), "bricks": int(bricks),
-                 "count": int(cells.shape[0]), "occupied_fraction": float(occupied.float().mean()),
-                 "density": "density", "features": "features", "index": "brick_index",
-                 "bricks_from": "occupancy grid" if model.occupancy is not None and int(model.occupancy.updates)
-                 else "vertex density >= the occupancy threshold"},
-        "field": {"feature_dim": int(cfg.geo_feature_dim), "max_log_density": MAX_LOG_DENSITY,
-                  "direction_encoding": cfg.direction_encoding, "direction_degree": direction_degree(cfg),
-                  "shading": "deferred", "mlps": mlps},
+        "render": _render_section(model), "grid": grid,
+        "time": {"range": [t0, t1], "keys": int(model.time_resolution)},
+        "motion": {"array": "motion", "resolution": int(motion_resolution),
+                   "flow": "c' = clamp(c + lerp over the two time keys of trilinear flows, -1, 1)"},
+        "occupancy": occupancy,
+        "field": {**_baked_field_section(arrays, canonical), "time_frequencies": int(model.config.time_frequencies)},
     }
     return arrays, manifest
 
 
-def baked_check(exact_dir, baked_dir, camera) -> Optional[dict]:
+def baked_check(exact_dir, baked_dir, camera, time: Optional[float] = None) -> Optional[dict]:
     """PSNR (display-encoded) of the baked render against the exact render of the same field on one view, both
-    with the numpy renderers; ``camera``: (K, world_to_camera, H, W)."""
+    with the numpy renderers; ``camera``: (K, world_to_camera, H, W); ``time``: a dynamic field's (its exact and
+    baked assets), None for a static one."""
     from engine.core.colorspace import display_encode
     from engine.eval.metrics import psnr
-    from engine.fields.baked import load_baked, render_baked
+    from engine.fields.baked import load_baked, load_baked_dynamic, render_baked, render_baked_dynamic
+    from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
     from engine.fields.render import load_field, render_field
 
     k, w2c, h, w = camera
-    exact = render_field(load_field(exact_dir), k, w2c, h, w)
-    baked = render_baked(load_baked(baked_dir), k, w2c, h, w)
+    if time is None:
+        exact = render_field(load_field(exact_dir), k, w2c, h, w)
+        baked = render_baked(load_baked(baked_dir), k, w2c, h, w)
+    else:
+        exact = render_dynamic_field(load_dynamic_field(exact_dir), k, w2c, h, w, time)
+        baked = render_baked_dynamic(load_baked_dynamic(baked_dir), k, w2c, h, w, time)
     value = psnr(display_encode(exact["color"]), display_encode(baked["color"]))
     return {"psnr_baked_vs_exact": float(value) if np.isfinite(value) else None, "view_size": [int(h), int(w)],
             "mean_evaluations": {"exact": float(exact["evaluations"].mean()),
                                  "baked": float(baked["evaluations"].mean())}}
 
 
-def write_baked(model, out_dir, resolution: int = DEFAULT_RESOLUTION, camera=None) -> dict:
-    """Bake ``model`` into ``out_dir/baked.npz`` + ``baked.json`` (beside the exact export, whose ``field.json``
-    the check reads); with ``camera`` (K, world_to_camera, H, W) the manifest records :func:`baked_check`."""
+def write_baked(model, out_dir, resolution: int = DEFAULT_RESOLUTION, camera=None, time: Optional[float] = None
+                ) -> dict:
+    """Bake ``model`` into ``out_dir/baked.npz`` + ``baked.json`` (a static field, beside its exact export, whose
+    ``field.json`` the check reads) or ``baked_dynamic.npz`` + ``baked_dynamic.json`` (a DeRF field,
+    :func:`bake_dynamic`, beside ``dynamic.json``); with ``camera`` (K, world_to_camera, H, W) the manifest records
+    :func:`baked_check` (at ``time`` for a dynamic field)."""
     import json
     from pathlib import Path
 
     out = Path(out_dir)
-    arrays, manifest = bake_static(model, resolution)
-    np.savez_compressed(out / "baked.npz", **arrays)
-    (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    dynamic = isinstance(model, DynamicFieldModel)
+    stem = "baked_dynamic" if dynamic else "baked"
+    arrays, manifest = (bake_dynamic if dynamic else bake_static)(model, resolution)
+    np.savez_compressed(out / f"{stem}.npz", **arrays)
+    (out / f"{stem}.json").write_text(json.dumps(manifest, indent=2) + "\n")
     if camera is not None:
-        manifest["check"] = baked_check(out, out, camera)
-        (out / "baked.json").write_text(json.dumps(manifest, indent=2) + "\n")
+        manifest["check"] = baked_check(out, out, camera, time if dynamic else None)
+        (out / f"{stem}.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
+
+
+def bakes_dynamic(model) -> bool:
+    """Whether :func:`bake_dynamic` bakes ``model``: a DeRF field trained with deferred shading whose canonical
+    field is tri-planes."""
+    return bool(model.has_motion and model.field.deferred and not model.field.canonical_field.temporal_planes())

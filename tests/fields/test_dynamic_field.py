@@ -226,11 +226,78 @@ def test_motion_field_starts_with_zero_flow_and_groups_are_named():
 
 
 def test_static_options_the_dynamic_fields_do_not_build_are_refused():
-    for change, name in (({"shading": "deferred"}, "field.canonical.shading"),
+    for change, name in (({"shading": "latent"}, "field.shading"),
                          ({"density_layers": 2}, "field.canonical.density_layers")):
         with pytest.raises(InputError) as err:
             dataclasses.replace(TINY, canonical=dataclasses.replace(TINY.canonical, **change)).validate()
         assert err.value.field == name
+
+
+def _deferred(kind: str) -> DynamicFieldModel:
+    """A tiny deferred field whose colour MLP's residual matters (an untrained one gives tanh of ~0)."""
+    model = _model(kind, canonical=replace(TINY.canonical, shading="deferred"))
+    head = model.field.canonical_field if kind == "derf" else model.field
+    with torch.no_grad():
+        head.color_mlp.net[-1].weight.normal_(0.0, 2.0, generator=torch.Generator().manual_seed(6))
+    return model
+
+
+@pytest.mark.parametrize("kind", ["derf", "kplanes"])
+def test_deferred_shading_composites_the_features_and_runs_the_colour_mlp_once_per_ray(kind):
+    """``--field.canonical.shading deferred`` (SNeRG / MERF, as the static field): each sample gives sigmoid(h),
+    the weights composite them on zeros, and the colour MLP runs once per ray on [F, enc(d)] (DeRF: and the
+    encoded time) for ``F[:3] + (1 - A) background + A tanh(.)``. The oracle is that formula written out from the
+    samples' latents. ``residual_density_grad`` off changes the gradients, not the render."""
+    from models.fields.components.encodings import fourier_encoding
+
+    model = _deferred(kind)
+    head = model.field.canonical_field if kind == "derf" else model.field
+    g = torch.Generator().manual_seed(3)
+    origins = torch.randn(12, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])
+    directions = torch.tensor([[0.0, 0.0, 1.0]]).expand(12, 3) + torch.randn(12, 3, generator=g) * 0.1
+    near, far, times = torch.ones(12), torch.full((12,), 5.0), torch.rand(12, generator=g)
+    placed = model.place_timed(origins, directions, near, far, times)
+    out = model.render_placed([placed])[0]
+    idx, taus, unit = placed.placed.idx, placed.taus, placed.placed.unit
+    with torch.no_grad():
+        _, h, _, _ = model.field.geometry(placed.placed.coords[idx], taus[idx[0]])
+        dense = h.new_zeros(*out.weights.shape, h.shape[-1]).index_put(idx, torch.sigmoid(h))
+        features, opacity = (out.weights[..., None] * dense).sum(dim=1), out.weights.sum(dim=1)
+        inputs = [features, head.direction_encoding(unit)]
+        if kind == "derf":
+            inputs.append(fourier_encoding(taus[:, None], TINY.time_frequencies))
+        residual = torch.tanh(head.color_mlp(torch.cat(inputs, dim=-1)))
+        diffuse = features[:, :3] + (1.0 - opacity)[:, None] * model.background
+        want = diffuse + opacity[:, None] * residual
+    torch.testing.assert_close(out.color, want, rtol=1e-5, atol=1e-6)
+    assert float(opacity.min()) > 0.05 and float((want - diffuse).abs().max()) > 0.05  # the residual matters
+    if kind == "derf":  # the colour MLP reads the time: the same features shade otherwise at another time
+        other = model.field.shade_pixels(features, opacity, unit, model.background, times=-taus)
+        assert float((other - out.color).abs().max()) > 1e-3
+    full = model.render_rays(origins, directions, near, far, times)
+    assert torch.equal(full.color, out.color)
+    geometry = model.render_rays(origins, directions, near, far, times, color=False)
+    torch.testing.assert_close(geometry.color, model.background.expand(12, 3) * (1 - geometry.opacity[:, None]))
+    colors, grads = [], []
+    for through in (True, False):
+        model.field.config.residual_density_grad = through
+        model.zero_grad()
+        color = model.render_rays(origins, directions, near, far, times).color
+        color.sum().backward()
+        colors.append(color.detach())
+        grads.append(head.density_mlp.net[0].weight.grad.clone())
+    assert torch.equal(colors[0], colors[1]) and not torch.allclose(grads[0], grads[1])
+
+
+@pytest.mark.parametrize("kind", ["derf", "kplanes"])
+def test_deferred_dynamic_fields_train(moving, tmp_path, kind):
+    """Measured at 120 steps on the moving sphere (held-out camera): DeRF 21.67 dB deferred / 22.69 per-sample,
+    K-Planes 20.48 / 21.51 (40 steps: 16.24 and 17.64); bound 19 dB."""
+    train, test = moving
+    field = replace(TINY, kind=kind, canonical=replace(TINY.canonical, shading="deferred"))
+    run = train_dynamic(train, tiny_config(120, field=field), tmp_path / "run", progress=False)
+    assert load_dynamic_model(run).field.deferred
+    assert evaluate_dynamic(run, test, with_flip=False)["psnr"] > 19.0
 
 
 def test_render_is_finite_for_huge_densities_and_shapes():

@@ -28,7 +28,7 @@ Conventions (written once here, named wherever they matter):
   (DeRF), ``temporal`` (the xt, yt, zt planes: the motion field's for DeRF, the 4D field's for K-Planes).
 
 Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX. One module
-(~570 lines) because the three layers share the conventions above; rendering itself is the static model's
+(~720 lines) because the three layers share the conventions above; rendering itself is the static model's
 ray marcher (``StaticFieldModel.march``).
 
 >>> model = DynamicFieldModel(SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3), [1.0, 1.0, 1.0],
@@ -52,7 +52,7 @@ from engine.core.checks import check_shape
 from engine.core.errors import InputError
 from models.fields.components.encodings import (MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, plane_grid,
                                                 read_planes)
-from models.fields.static.field import FieldConfig, density_activation
+from models.fields.static.field import FieldConfig, density_activation, shade_pixels
 from models.fields.static.model import PlacedSamples, RenderConfig, SceneBox, StaticFieldModel
 
 __all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "time_grid", "sample_hex_planes", "time_smoothness",
@@ -235,9 +235,6 @@ class DynamicFieldConfig:
             raise InputError(f"must be >= 0, got {self.time_frequencies}", field="field.time_frequencies")
         self.canonical.validate()
         # the static field's options that the dynamic fields do not build: refused rather than ignored
-        if self.canonical.shading != "per-sample":
-            raise InputError(f"dynamic fields shade per sample, got {self.canonical.shading!r}",
-                             field="field.canonical.shading")
         if self.canonical.density_layers != 1:
             raise InputError(f"dynamic fields have one hidden layer in the density MLP, got "
                              f"{self.canonical.density_layers}", field="field.canonical.density_layers")
@@ -259,7 +256,8 @@ class FieldSamples(NamedTuple):
 
     Attributes:
         sigma: (M,) density per scene unit.
-        rgb: (M, 3) linear RGB in [0, 1].
+        rgb: (M, 3) linear RGB in [0, 1]; with deferred shading (``canonical.shading``) the features
+            ``sigmoid(h)`` (M, G) instead, which the renderer composites and shades once per pixel.
         canonical: (M, 3) canonical point c' (contracted; equal to c for K-Planes).
         flow: (M, 3) c' - c (zero for K-Planes).
     """
@@ -306,6 +304,14 @@ class CanonicalField(nn.Module):
         t = fourier_encoding(times[..., None], self.time_frequencies)
         return torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions), t], dim=-1)))
 
+    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                     residual_inputs: Optional[tuple[Tensor, Tensor]] = None, *, times: Tensor) -> Tensor:
+        """Deferred shading (:func:`~models.fields.static.field.shade_pixels`): composited features (..., G),
+        opacity (...), unit directions (..., 3), the rays' normalised times (...) -> linear RGB (..., 3); the
+        colour MLP reads ``[F, enc(d), gamma(tau)]``, as :meth:`get_outputs` reads ``[h, enc(d), gamma(tau)]``."""
+        t = fourier_encoding(times[..., None], self.time_frequencies)
+        return shade_pixels(self, features, opacity, directions, background, residual_inputs, t)
+
 
 class MotionField(nn.Module):
     """The motion field F_f (Eq. 5.1, 5.2): hex-planes -> tiny MLP -> flow = max_flow * tanh(.) from (c, t) to
@@ -341,6 +347,8 @@ class DeRFField(nn.Module):
 
     def __init__(self, config: DynamicFieldConfig, time_resolution: int):
         super().__init__()
+        #: the canonical field's config (shading, latent size), as a static field's ``config``
+        self.config = config.canonical
         self.canonical_field = CanonicalField(config.canonical, config.time_frequencies,
                                               time_resolution if config.canonical_time else 0)
         self.motion_field = MotionField(config.motion, time_resolution)
@@ -366,9 +374,23 @@ class DeRFField(nn.Module):
         sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
         return sigma, h, canonical, flow
 
+    @property
+    def deferred(self) -> bool:
+        """Deferred shading: :meth:`colour` gives the features ``sigmoid(h)``, :meth:`shade_pixels` the colour."""
+        return self.config.shading == "deferred"
+
     def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
-        """Latent h (..., G) of :meth:`geometry`, unit directions (..., 3), normalised times (...) -> RGB."""
+        """Latent h (..., G) of :meth:`geometry`, unit directions (..., 3), normalised times (...) -> RGB; with
+        deferred shading the sample's features ``sigmoid(h)`` (..., G) instead."""
+        if self.deferred:
+            return torch.sigmoid(h)
         return self.canonical_field.get_outputs(h, directions, times)
+
+    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                     residual_inputs: Optional[tuple[Tensor, Tensor]] = None, *, times: Tensor) -> Tensor:
+        """Deferred shading of composited rays (:meth:`CanonicalField.shade_pixels`)."""
+        return self.canonical_field.shade_pixels(features, opacity, directions, background, residual_inputs,
+                                                 times=times)
 
     def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
         """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
@@ -407,9 +429,21 @@ class KPlanesField(nn.Module):
         sigma, h = self._density(coords, times)
         return sigma, h, coords, torch.zeros_like(coords)
 
+    @property
+    def deferred(self) -> bool:
+        """As :attr:`DeRFField.deferred`."""
+        return self.config.shading == "deferred"
+
     def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
         """As :meth:`DeRFField.colour` (the time is not an input of this colour MLP)."""
+        if self.deferred:
+            return torch.sigmoid(h)
         return torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
+
+    def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                     residual_inputs: Optional[tuple[Tensor, Tensor]] = None, *, times: Tensor) -> Tensor:
+        """Deferred shading (:func:`~models.fields.static.field.shade_pixels`; ``times`` is not an input)."""
+        return shade_pixels(self, features, opacity, directions, background, residual_inputs)
 
     def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
         """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
@@ -629,7 +663,14 @@ class DynamicFieldModel(StaticFieldModel):
 
     def _composite_timed(self, samples: TimedSamples, part: Optional[tuple]) -> DynamicRayOutputs:
         placed = samples.placed
-        base = self.composite_placed(placed, None if part is None else part[:2])
+        if samples.color and self.field.deferred:  # features composited on zeros, shaded once per ray
+            channels = int(self.field.config.geo_feature_dim)
+            base = self.composite_placed(placed, None if part is None else part[:2], channels,
+                                         self.background.new_zeros(channels))
+            kept = None if part is None else (placed.idx, part[1])
+            base = base._replace(color=self.shade_rays(base, placed.unit, kept, times=samples.taus))
+        else:
+            base = self.composite_placed(placed, None if part is None else part[:2])
         flow = placed.coords.new_zeros(placed.coords.shape)
         if part is not None:
             flow = flow.index_put(placed.idx, part[3])

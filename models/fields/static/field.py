@@ -20,7 +20,8 @@ from torch import Tensor, nn
 from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
 
-__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "bounded_tanh", "density_activation"]
+__all__ = ["FieldConfig", "TriPlaneField", "MAX_LOG_DENSITY", "SHADINGS", "bounded_tanh", "density_activation",
+           "shade_pixels"]
 
 #: Density is exp(min(raw, MAX_LOG_DENSITY)): at most ~3.3e6 per scene unit, so sigma * delta never
 #: overflows float32 and rendering needs no NaN guards.
@@ -119,6 +120,26 @@ def density_activation(raw: Tensor, bias: float = 0.0) -> Tensor:
     return torch.exp(torch.clamp(raw + bias, max=MAX_LOG_DENSITY))
 
 
+def shade_pixels(field: nn.Module, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
+                 residual_inputs: Optional[tuple[Tensor, Tensor]] = None, extra: Optional[Tensor] = None) -> Tensor:
+    """Deferred shading (SNeRG / MERF), shared by the static and the dynamic fields: a ray's composited features
+    ``F = sum_i w_i sigmoid(h_i)`` (..., G), its opacity ``A = sum_i w_i`` (...) and unit view direction (..., 3)
+    -> linear RGB (..., 3): ``F[:3] + (1 - A) background + A tanh(F2([F, enc(d), extra]))`` (a diffuse colour
+    composited as usual plus a view-dependent residual that vanishes where nothing is hit).
+
+    Args:
+        field: holds ``color_mlp`` (F2), ``direction_encoding`` and ``config.residual_bound``.
+        residual_inputs: (F, A) for the residual term, equal in value but composited with other gradients
+            (``residual_density_grad``).
+        extra: (..., E) further per-pixel inputs of F2 after the direction encoding (a dynamic field's encoded
+            time), or None.
+    """
+    res_features, res_opacity = residual_inputs if residual_inputs is not None else (features, opacity)
+    inputs = [res_features, field.direction_encoding(directions)] + ([] if extra is None else [extra])
+    residual = bounded_tanh(field.color_mlp(torch.cat(inputs, dim=-1)), field.config.residual_bound)
+    return features[..., :3] + (1.0 - opacity)[..., None] * background + res_opacity[..., None] * residual
+
+
 class TriPlaneField(nn.Module):
     """K-Planes-style static field (nerfstudio's ``Field``: ``get_density`` then ``get_outputs``).
 
@@ -165,15 +186,8 @@ class TriPlaneField(nn.Module):
 
     def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
                      residual_inputs: Optional[tuple[Tensor, Tensor]] = None) -> Tensor:
-        """Deferred shading: a ray's composited features ``F = sum_i w_i sigmoid(h_i)`` (..., G), its opacity
-        ``A = sum_i w_i`` (...) and unit view direction (..., 3) -> linear RGB (..., 3):
-        ``F[:3] + (1 - A) background + A tanh(F2([F, enc(d)]))`` (a diffuse colour composited as usual plus a
-        view-dependent residual that vanishes where nothing is hit). ``residual_inputs``: (F, A) for the
-        residual term, equal in value but composited with other gradients (``residual_density_grad``)."""
-        res_features, res_opacity = residual_inputs if residual_inputs is not None else (features, opacity)
-        x = torch.cat([res_features, self.direction_encoding(directions)], dim=-1)
-        residual = bounded_tanh(self.color_mlp(x), self.config.residual_bound)
-        return features[..., :3] + (1.0 - opacity)[..., None] * background + res_opacity[..., None] * residual
+        """Deferred shading (:func:`shade_pixels`) with this field's colour MLP on ``[F, enc(d)]``."""
+        return shade_pixels(self, features, opacity, directions, background, residual_inputs)
 
     def forward(self, coords: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """(..., 3) contracted coordinates, (..., 3) unit directions -> density (...), linear RGB (..., 3); with

@@ -220,15 +220,24 @@ class StaticFieldModel(nn.Module):
         out = self.march(origins, directions, near, far, query, jitter=jitter, generator=generator,
                          channels=channels, background=self.background.new_zeros(channels))[0]
         unit = torch.nn.functional.normalize(directions, dim=-1)
+        return out._replace(color=self.shade_rays(out, unit, samples[0] if samples else None))
+
+    def shade_rays(self, out: RayOutputs, unit: Tensor, samples: Optional[tuple[tuple[Tensor, Tensor], Tensor]],
+                   **inputs) -> Tensor:
+        """Deferred shading of R composited rays (the static and the dynamic model's): ``out.color`` (R, G) holds
+        the features composited on zeros, ``unit`` (R, 3) the unit view directions -> linear RGB (R, 3) by the
+        field's ``shade_pixels`` (``inputs``: its further per-ray inputs, a dynamic field's ``times``).
+
+        ``samples``: ``(idx, features (K, G))`` of the kept samples, or None; in training with
+        ``residual_density_grad`` off they are composited again with the weights' gradient stopped, for the
+        view-dependent residual alone (the same values: the residual cannot shape the geometry)."""
         residual_inputs = None
-        if samples and torch.is_grad_enabled() and not self.field.config.residual_density_grad:
-            # the same composited features, with the weights' gradient stopped: the residual cannot shape geometry
-            idx, features = samples[0]
-            dense = features.new_zeros(*out.weights.shape, channels).index_put(idx, features)
+        if samples is not None and torch.is_grad_enabled() and not self.field.config.residual_density_grad:
+            idx, features = samples
+            dense = features.new_zeros(*out.weights.shape, features.shape[-1]).index_put(idx, features)
             weights = out.weights.detach()
             residual_inputs = ((weights[..., None] * dense).sum(dim=-2), weights.sum(dim=-1))
-        return out._replace(color=self.field.shade_pixels(out.color, out.opacity, unit, self.background,
-                                                          residual_inputs))
+        return self.field.shade_pixels(out.color, out.opacity, unit, self.background, residual_inputs, **inputs)
 
     def _query(self, coords: Tensor, idx: tuple[Tensor, Tensor], unit: Tensor) -> tuple[Tensor, Tensor]:
         return self.field(coords, unit)

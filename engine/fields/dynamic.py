@@ -35,7 +35,8 @@ from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bilinear_np, camera_rays_np,
                                   contract_np, decode_plane, direction_encoding_np, load_mlp, load_occupancy,
-                                  march_field, mlp_np, pixel_shader, read_asset_files, uncontract_np)
+                                  march_field, mlp_np, pixel_shader, read_asset_files, sigmoid_np,
+                                  uncontract_np)
 from engine.fields.manifest import check_shading, check_time_range, section
 from engine.geometry.motion import drop_long_vectors, projected_offsets
 
@@ -283,12 +284,12 @@ def query_dynamic(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray, d
     out = mlp_np(feats, assets.density_layers)
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
     if assets.deferred:  # the features sigmoid(h); the colour once per pixel (render_dynamic_field)
-        return sigma.astype(np.float32), (1.0 / (1.0 + np.exp(-out[:, 1:]))).astype(np.float32)
+        return sigma.astype(np.float32), sigmoid_np(out[:, 1:]).astype(np.float32)
     inputs = [out[:, 1:], direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                                 spec["direction_degree"])]
     if assets.has_motion:
         inputs.append(time_encoding_np(taus, int(spec["time_frequencies"])))
-    rgb = 1.0 / (1.0 + np.exp(-mlp_np(np.concatenate(inputs, axis=-1), assets.color_layers)))
+    rgb = sigmoid_np(mlp_np(np.concatenate(inputs, axis=-1), assets.color_layers))
     return sigma.astype(np.float32), rgb.astype(np.float32)
 
 

@@ -35,7 +35,7 @@ from engine.fields.manifest import check_scene, check_static_layout
 __all__ = ["ASSET_FORMAT", "ASSET_VERSION", "OPACITY_EPS", "FAR_AT_INFINITY", "MIN_NEAR", "SH_C0", "SH_C1",
            "SH_C2", "SH_C3", "ExportedAssets", "FieldAssets", "load_field", "array_getter", "decode_plane", "load_mlp",
            "load_occupancy", "camera_rays_np", "sh_encoding_np", "direction_encoding_np", "contract_np",
-           "uncontract_np", "query_field", "shade_pixels_np", "pixel_shader", "composite_np", "optical_depth",
+           "uncontract_np", "sigmoid_np", "query_field", "shade_pixels_np", "pixel_shader", "composite_np", "optical_depth",
            "evaluated_samples", "evaluation_macs",
            "render_field", "TRANSMITTANCE_EPS"]
 
@@ -326,15 +326,18 @@ def query_field(assets: FieldAssets, coords: np.ndarray, directions: np.ndarray)
     spec = assets.manifest["field"]
     sigma = np.exp(np.minimum(out[:, 0] + spec["density_bias"], spec["max_log_density"]))
     if assets.deferred:
-        return sigma.astype(np.float32), _sigmoid(out[:, 1:]).astype(np.float32)
+        return sigma.astype(np.float32), sigmoid_np(out[:, 1:]).astype(np.float32)
     enc = direction_encoding_np(np.asarray(directions, np.float32), spec["direction_encoding"],
                                 spec["direction_degree"])
-    rgb = _sigmoid(mlp_np(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers))
+    rgb = sigmoid_np(mlp_np(np.concatenate([out[:, 1:], enc], axis=-1), assets.color_layers))
     return sigma.astype(np.float32), rgb.astype(np.float32)
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-x))
+def sigmoid_np(x: np.ndarray) -> np.ndarray:
+    """The logistic function; exp(-x) overflows to inf for x below about -88 (float32), where the result is
+    the exact 0 it should be, so the overflow is not reported."""
+    with np.errstate(over="ignore"):
+        return 1.0 / (1.0 + np.exp(-x))
 
 
 def shade_pixels_np(spec: dict, color_layers, background: np.ndarray, features: np.ndarray, opacity: np.ndarray,

@@ -319,3 +319,16 @@ def test_occupancy_grid_marks_a_ball():
     assert 0.01 < frac < 0.2
     q = grid.query(torch.tensor([[0.0, 0.0, 0.0], [0.9, 0.9, 0.9], [1.5, 0.0, 0.0]]))
     assert q.tolist() == [True, False, False]
+
+
+def test_the_logistic_function_saturates_without_an_overflow_warning():
+    """A colour logit far below zero (a trained field's dark sample) gives exactly 0 and no RuntimeWarning."""
+    import warnings
+
+    from engine.fields.render import sigmoid_np
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = sigmoid_np(np.array([-1000.0, -5.0, 0.0, 5.0, 1000.0], np.float32))
+    np.testing.assert_allclose(got, [0.0, 1 / (1 + np.exp(5.0)), 0.5, 1 / (1 + np.exp(-5.0)), 1.0], rtol=1e-6)
+    assert got.dtype == np.float32

@@ -18,7 +18,6 @@ the numpy renderer: what the field's vectors are made of, geometry errors includ
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Optional
@@ -28,6 +27,7 @@ import numpy as np
 from engine.core.errors import InputError
 from engine.fields.dynamic import field_object_flow, load_dynamic_field, render_dynamic_field
 from engine.io.rgbd import read_sequence
+from tools.field_vectors_check import report
 
 __all__ = ["MOVING_PX", "DEPTHS", "check", "main"]
 
@@ -102,17 +102,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                         help="surface points at the capture's depth (the motion alone) or the field's rendered depth")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args(argv)
-    try:
-        out = check(args.export, args.camera, args.depth)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    for key, value in out.items():
-        print(f"{value:>9} {key}")
-    if args.json is not None:
-        args.json.write_text(json.dumps({"command": "python -m tools.field_motion_truth " + " ".join(
-            argv if argv is not None else sys.argv[1:]), **out}, indent=1) + "\n")
-    return 0
+    return report(lambda: check(args.export, args.camera, args.depth), args.json,
+                  "python -m tools.field_motion_truth", argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

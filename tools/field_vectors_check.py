@@ -17,7 +17,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from engine.fields.dynamic import COHERENCE, field_motion_vectors, field_object_
 from engine.geometry.motion import camera_motion_vectors, extrapolated_flow, scene_velocity
 from engine.io.rgbd import read_sequence
 
-__all__ = ["check", "main", "MOVING_PX"]
+__all__ = ["check", "main", "report", "MOVING_PX"]
 
 #: pixels the field's motion moves by more than this to the target are "moving" (the demo's ``MOVING_PX``)
 MOVING_PX = 0.25
@@ -95,16 +95,22 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--k", type=int, default=2, help="the demo's k")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args(argv)
+    return report(lambda: check(args.demo, args.k), args.json, "python -m tools.field_vectors_check", argv)
+
+
+def report(figures: Callable[[], dict], json_path: Optional[Path], prog: str, argv: Optional[list[str]]) -> int:
+    """A check's command line: its figures one a line (and, with ``json_path``, as JSON with the command), or its
+    InputError as one line and exit 2."""
     try:
-        out = check(args.demo, args.k)
+        out = figures()
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for key, value in out.items():
         print(f"{value:>9} {key}")
-    if args.json is not None:
-        args.json.write_text(json.dumps({"command": "python -m tools.field_vectors_check " + " ".join(
-            argv if argv is not None else sys.argv[1:]), **out}, indent=1) + "\n")
+    if json_path is not None:
+        command = " ".join([prog, *(argv if argv is not None else sys.argv[1:])])
+        json_path.write_text(json.dumps({"command": command, **out}, indent=1) + "\n")
     return 0
 
 

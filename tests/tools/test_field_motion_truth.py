@@ -56,10 +56,10 @@ def test_the_fields_own_motion_scores_zero_error_and_still_objects_score_its_mot
     assert truth > 0.5  # the case moves the objects by a visible amount
     assert moving["objects: EPE of the field's motion, px"] < 0.01 * truth
     assert moving["objects: EPE of zero motion, px"] == truth
-    assert moving["objects: share where the field beats zero motion"] > 0.95
+    assert moving["objects: share where the field halves zero motion's error"] > 0.95
     # the field moves what the still capture says stands still: its error is its motion, zero motion's is 0
     assert still["objects: EPE of the field's motion, px"] == pytest.approx(truth, rel=0.01)
-    assert still["objects: share where the field beats zero motion"] == 0.0
+    assert still["objects: share where the field halves zero motion's error"] == 0.0
     for figures in (moving, still):  # outside the cube the field moves nothing
         assert figures["background: EPE of the field's motion, px"] == 0.0
         assert figures["background: share the field moves > 0.25 px"] == 0.0

@@ -29,7 +29,7 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.dynamic import field_object_flow, load_dynamic_field, render_dynamic_field
+from engine.fields.dynamic import field_object_flow, load_dynamic_field, normalize_time, render_dynamic_field
 from engine.io.rgbd import read_sequence
 from tools.field_vectors_check import report
 
@@ -46,6 +46,16 @@ def _length(a: np.ndarray) -> np.ndarray:
     return np.hypot(a[..., 0], a[..., 1])
 
 
+def _trained(time: float, time_range: tuple[float, float]) -> bool:
+    """Whether the field renders ``time``: the renderers' own rule (``normalize_time``, which refuses a time
+    outside the trained range by more than its tolerance and clamps the rest)."""
+    try:
+        normalize_time(time, time_range)
+    except InputError:
+        return False
+    return True
+
+
 def check(export: Path, camera: Path, depth: str = "truth") -> dict:
     """The figures of the module doc as a flat dict (means over the frame pairs; pixels).
 
@@ -57,11 +67,10 @@ def check(export: Path, camera: Path, depth: str = "truth") -> dict:
         raise InputError(f"must be one of {list(DEPTHS)}, got {depth!r}", field="depth")
     assets = load_dynamic_field(export)
     seq = read_sequence(camera)
-    t0, t1 = assets.time_range
-    eps = 1e-6 * max(1.0, abs(t1 - t0))
-    inside = [t0 - eps <= t <= t1 + eps for t in seq.times]
+    inside = [_trained(t, assets.time_range) for t in seq.times]
     pairs = [n for n in range(len(seq) - 1) if inside[n] and inside[n + 1]]
     if not pairs:
+        t0, t1 = assets.time_range
         raise InputError(f"no two consecutive frames inside the field's trained times [{t0}, {t1}]",
                          file=Path(camera))
     sums: dict[str, list[float]] = {}
@@ -74,7 +83,7 @@ def check(export: Path, camera: Path, depth: str = "truth") -> dict:
         if frame.object_flow is None:
             raise InputError("has no ground-truth object flow", file=Path(camera), frame=frame.index,
                              field="object_flow")
-        t, t_next = min(max(frame.time, t0), t1), min(max(float(seq.times[n + 1]), t0), t1)
+        t, t_next = frame.time, float(seq.times[n + 1])
         truth = frame.object_flow[..., :2]
         fg = np.isfinite(frame.depth)
         objects = (frame.object_id > 0) & fg if frame.object_id is not None else (_length(truth) > MOVING_PX) & fg

@@ -54,16 +54,18 @@ def _raw_outputs(field, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor,
             torch.cat(feats).reshape(*coords.shape[:-1], -1))
 
 
-def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True) -> tuple[torch.Tensor, int]:
-    """(B, B, B) bool of the occupied bricks and B: the model's occupancy grid (``use_grid``, once updated), or
-    ``field``'s density at the brick vertices against the model's occupancy threshold."""
+def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True
+                     ) -> tuple[torch.Tensor, int, bool]:
+    """(B, B, B) bool of the occupied bricks, B, and whether they came from the model's occupancy grid
+    (``use_grid``, once updated) rather than ``field``'s density at the brick vertices against the model's
+    occupancy threshold."""
     grid = model.occupancy
     if use_grid and grid is not None and int(grid.updates) > 0:
         bricks = int(grid.resolution)
         if resolution % bricks:
             raise InputError(f"must be a multiple of the field's occupancy grid ({bricks}), got {resolution}",
                              field="bake_resolution")
-        return grid.occupied.cpu().clone(), bricks
+        return grid.occupied.cpu().clone(), bricks, True
     bricks = max(1, resolution // 4)
     if resolution % bricks:
         raise InputError(f"must be a multiple of 4, got {resolution}", field="bake_resolution")
@@ -75,7 +77,7 @@ def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool =
     for i in range(0, cells.shape[0], step):
         raw, _ = _raw_outputs(field, brick_vertices(cells[i:i + step], resolution // bricks, resolution), chunk)
         occupied[i:i + step] = raw.reshape(raw.shape[0], -1).amax(dim=-1) >= threshold
-    return occupied.reshape(bricks, bricks, bricks), bricks
+    return occupied.reshape(bricks, bricks, bricks), bricks, False
 
 
 def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 << 16
@@ -106,7 +108,7 @@ def _bake_bricks(model, field, resolution: int, chunk: int, use_grid: bool = Tru
                  ) -> tuple[dict[str, np.ndarray], dict]:
     """The brick arrays (``density``, ``features``, ``brick_index``) of ``field`` (see :func:`_raw_outputs`) and
     the manifest's ``grid`` section; bricks as :func:`_occupied_bricks`."""
-    occupied, bricks = _occupied_bricks(model, field, resolution, chunk, use_grid)
+    occupied, bricks, from_grid = _occupied_bricks(model, field, resolution, chunk, use_grid)
     brick = resolution // bricks
     cells = occupied.nonzero()
     index = torch.full((bricks,) * 3, -1, dtype=torch.int32)
@@ -122,7 +124,6 @@ def _bake_bricks(model, field, resolution: int, chunk: int, use_grid: bool = Tru
               "features": (np.concatenate(feats) if feats
                            else np.zeros((0, v, v, v, field.config.geo_feature_dim), np.uint8)),
               "brick_index": index.numpy()}
-    from_grid = use_grid and model.occupancy is not None and int(model.occupancy.updates) > 0
     grid = {"resolution": int(resolution), "brick": int(brick), "bricks": int(bricks),
             "count": int(cells.shape[0]), "occupied_fraction": float(occupied.float().mean()),
             "density": "density", "features": "features", "index": "brick_index",

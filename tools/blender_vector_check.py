@@ -287,14 +287,17 @@ def render_frame(bpy, scene, camera, render_dir: Path, f: int) -> dict:
             "lens_mm": camera.data.lens, "sensor_width_mm": camera.data.sensor_width}
 
 
-def render_parser(sub, *, frames: int, width: int, height: int) -> argparse.ArgumentParser:
-    """The ``render OUT`` sub-command of a Blender tool with its size, length and sample-count options."""
-    r = sub.add_parser("render", help="render the scene (run with bpy's Python)")
+def render_parser(sub, *, frames: Optional[int], width: int, height: int, samples: int = 16, name: str = "render",
+                  help: str = "render the scene (run with bpy's Python)") -> argparse.ArgumentParser:
+    """The ``NAME OUT`` sub-command of a Blender tool with its size, length (``frames`` None: no ``--frames``) and
+    sample-count options."""
+    r = sub.add_parser(name, help=help)
     r.add_argument("out", type=Path)
-    r.add_argument("--frames", type=int, default=frames)
+    if frames is not None:
+        r.add_argument("--frames", type=int, default=frames)
     r.add_argument("--width", type=int, default=width)
     r.add_argument("--height", type=int, default=height)
-    r.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
+    r.add_argument("--samples", type=int, default=samples, help="path-traced samples a pixel (no denoiser)")
     return r
 
 

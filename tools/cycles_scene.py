@@ -353,31 +353,20 @@ def _camera_frames(cameras_json: Path, record: dict, layer: str):
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    r = blender.render_parser(sub, frames=16, width=640, height=360)
-    r.add_argument("--seed", type=int, default=1)
-    r.add_argument("--objects", type=int, default=4)
+    r = _scene_options(blender.render_parser(sub, frames=16, width=640, height=360))
     r.add_argument("--speed", type=float, default=24.0, help="peak screen speed of an object, px a frame")
     r.add_argument("--yaw", type=float, default=2.5, help="peak camera yaw, degrees a frame")
-    g = sub.add_parser("rig", help="render the moving scene from a row of static cameras (run with bpy's Python)")
-    g.add_argument("out", type=Path)
-    g.add_argument("--seed", type=int, default=1)
+    g = _scene_options(blender.render_parser(
+        sub, name="rig", help="render the moving scene from a row of static cameras (run with bpy's Python)",
+        frames=24, width=160, height=90, samples=32))
     g.add_argument("--num-cameras", type=int, default=5)
     g.add_argument("--test-cameras", type=int, default=1, help="held out, between train cameras (as render-rig)")
-    g.add_argument("--frames", type=int, default=24)
-    g.add_argument("--width", type=int, default=160)
-    g.add_argument("--height", type=int, default=90)
-    g.add_argument("--samples", type=int, default=32, help="path-traced samples a pixel (no denoiser)")
-    g.add_argument("--objects", type=int, default=4)
     g.add_argument("--speed", type=float, default=4.0, help="peak screen speed of an object, px a frame at --width")
     g.add_argument("--baseline", type=float, default=0.4, help="world units between neighbouring cameras")
-    c = sub.add_parser("capture", help="render a static forward-facing capture (run with bpy's Python)")
-    c.add_argument("out", type=Path)
-    c.add_argument("--seed", type=int, default=1)
+    c = _scene_options(blender.render_parser(
+        sub, name="capture", help="render a static forward-facing capture (run with bpy's Python)",
+        frames=None, width=1008, height=756))
     c.add_argument("--views", type=int, default=20)
-    c.add_argument("--width", type=int, default=1008)
-    c.add_argument("--height", type=int, default=756)
-    c.add_argument("--samples", type=int, default=16, help="path-traced samples a pixel (no denoiser)")
-    c.add_argument("--objects", type=int, default=4)
     c.add_argument("--baseline", type=float, default=0.25, help="world units between neighbouring cameras")
     w = sub.add_parser("llff", help="write a capture as an LLFF capture (run with the project's Python)")
     w.add_argument("out", type=Path)
@@ -406,6 +395,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.command == "llff":
         return _report(write_capture, args.out, args.root, args.factor)
     return _report(import_sequence, args.out, args.seq)
+
+
+def _scene_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The scene's options every rendering sub-command shares: the seed and the number of moving objects."""
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--objects", type=int, default=4)
+    return parser
 
 
 def _report(write, *args) -> int:

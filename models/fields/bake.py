@@ -54,6 +54,14 @@ def _raw_outputs(field, coords: torch.Tensor, chunk: int) -> tuple[torch.Tensor,
             torch.cat(feats).reshape(*coords.shape[:-1], -1))
 
 
+def _check_resolution(resolution) -> None:
+    """The grid's cells a side: a multiple of 4 (bricks of 4 cells where no occupancy grid sets them) in
+    [4, 4096]; a field with an occupancy grid also needs a multiple of its resolution (:func:`_occupied_bricks`)."""
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096 \
+            or resolution % 4:
+        raise InputError(f"must be a multiple of 4 in [4, 4096], got {resolution!r}", field="bake_resolution")
+
+
 def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True
                      ) -> tuple[torch.Tensor, int, bool]:
     """(B, B, B) bool of the occupied bricks, B, and whether they came from the model's occupancy grid
@@ -66,9 +74,7 @@ def _occupied_bricks(model, field, resolution: int, chunk: int, use_grid: bool =
             raise InputError(f"must be a multiple of the field's occupancy grid ({bricks}), got {resolution}",
                              field="bake_resolution")
         return grid.occupied.cpu().clone(), bricks, True
-    bricks = max(1, resolution // 4)
-    if resolution % bricks:
-        raise InputError(f"must be a multiple of 4, got {resolution}", field="bake_resolution")
+    bricks = resolution // 4
     threshold = float(np.log(model.occupancy_threshold()))
     axis = torch.arange(bricks)
     cells = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3)
@@ -86,14 +92,13 @@ def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 <
     with deferred shading, at ``resolution`` grid cells a side.
 
     Raises:
-        InputError: a per-sample field (nothing to bake exactly), a resolution that is not a multiple of the
-            brick grid.
+        InputError: a per-sample field (nothing to bake exactly), a resolution that is not a multiple of 4
+            and of the occupancy grid's.
     """
     if not model.field.deferred:
         raise InputError("bakes only fields trained with deferred shading (--field.shading deferred)",
                          field="field.shading")
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096:
-        raise InputError(f"must be an integer in [4, 4096], got {resolution!r}", field="bake_resolution")
+    _check_resolution(resolution)
     model = model.eval()
     arrays, grid = _bake_bricks(model, model.field, resolution, chunk)
     manifest = {
@@ -171,9 +176,7 @@ def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution:
     if not bakes_dynamic(model):
         raise InputError("bakes only DeRF fields trained with deferred shading and a canonical field of tri-planes "
                          "(--field.canonical.shading deferred --no-field.canonical-time)", field="field")
-    if isinstance(resolution, bool) or not isinstance(resolution, int) or not 4 <= resolution <= 4096 \
-            or resolution % 4:
-        raise InputError(f"must be a multiple of 4 in [4, 4096], got {resolution!r}", field="bake_resolution")
+    _check_resolution(resolution)
     if isinstance(motion_resolution, bool) or not isinstance(motion_resolution, int) or not 2 <= motion_resolution \
             <= 512:
         raise InputError(f"must be an integer in [2, 512], got {motion_resolution!r}", field="motion_resolution")

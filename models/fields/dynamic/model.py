@@ -338,7 +338,32 @@ class MotionField(nn.Module):
         return self.config.max_flow * torch.tanh(self.flow_mlp(self.encoding(coords, times)))
 
 
-class DeRFField(nn.Module):
+class _DynamicField(nn.Module):
+    """What both dynamic fields share: deferred shading's switch, :meth:`colour` over the field's own
+    per-sample colour (``_sample_colour``) and :meth:`forward` over :meth:`geometry`."""
+
+    config: FieldConfig
+
+    @property
+    def deferred(self) -> bool:
+        """Deferred shading: :meth:`colour` gives the features ``sigmoid(h)``, :meth:`shade_pixels` the colour."""
+        return self.config.shading == "deferred"
+
+    def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
+        """Latent h (..., G) of :meth:`geometry`, unit directions (..., 3), normalised times (...) -> RGB; with
+        deferred shading the sample's features ``sigmoid(h)`` (..., G) instead."""
+        if self.deferred:
+            return torch.sigmoid(h)
+        return self._sample_colour(h, directions, times)
+
+    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
+        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
+        sigma, h, canonical, flow = self.geometry(coords, times)
+        rgb = self.colour(h, directions, times) if directions is not None else h.new_zeros(h.shape[:-1] + (3,))
+        return FieldSamples(sigma, rgb, canonical, flow)
+
+
+class DeRFField(_DynamicField):
     """Canonical field + motion field (thesis Fig. 5.1): ``c' = c + F_f(c, t)``, ``sigma, h = G_s(c')``
     (``G_s(c', t)`` with ``canonical_time``: hex-planes at the canonical point), ``rgb = M_s(h, gamma(v),
     gamma(t))``; c' outside the canonical cube reads its border (clamped)."""
@@ -374,16 +399,7 @@ class DeRFField(nn.Module):
         sigma, h = self.canonical_field.get_density(canonical.clamp(-1.0, 1.0), times)
         return sigma, h, canonical, flow
 
-    @property
-    def deferred(self) -> bool:
-        """Deferred shading: :meth:`colour` gives the features ``sigmoid(h)``, :meth:`shade_pixels` the colour."""
-        return self.config.shading == "deferred"
-
-    def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
-        """Latent h (..., G) of :meth:`geometry`, unit directions (..., 3), normalised times (...) -> RGB; with
-        deferred shading the sample's features ``sigmoid(h)`` (..., G) instead."""
-        if self.deferred:
-            return torch.sigmoid(h)
+    def _sample_colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
         return self.canonical_field.get_outputs(h, directions, times)
 
     def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
@@ -392,14 +408,8 @@ class DeRFField(nn.Module):
         return self.canonical_field.shade_pixels(features, opacity, directions, background, residual_inputs,
                                                  times=times)
 
-    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
-        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
-        sigma, h, canonical, flow = self.geometry(coords, times)
-        rgb = self.colour(h, directions, times) if directions is not None else h.new_zeros(h.shape[:-1] + (3,))
-        return FieldSamples(sigma, rgb, canonical, flow)
 
-
-class KPlanesField(nn.Module):
+class KPlanesField(_DynamicField):
     """The K-Planes-style 4D baseline: hex-plane features of (c, t) -> density and latent h -> colour from h
     and the encoded view direction; no motion model (canonical = c, flow = 0)."""
 
@@ -429,27 +439,14 @@ class KPlanesField(nn.Module):
         sigma, h = self._density(coords, times)
         return sigma, h, coords, torch.zeros_like(coords)
 
-    @property
-    def deferred(self) -> bool:
-        """As :attr:`DeRFField.deferred`."""
-        return self.config.shading == "deferred"
-
-    def colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
-        """As :meth:`DeRFField.colour` (the time is not an input of this colour MLP)."""
-        if self.deferred:
-            return torch.sigmoid(h)
+    def _sample_colour(self, h: Tensor, directions: Tensor, times: Tensor) -> Tensor:
+        """The time is not an input of this colour MLP."""
         return torch.sigmoid(self.color_mlp(torch.cat([h, self.direction_encoding(directions)], dim=-1)))
 
     def shade_pixels(self, features: Tensor, opacity: Tensor, directions: Tensor, background: Tensor,
                      residual_inputs: Optional[tuple[Tensor, Tensor]] = None, *, times: Tensor) -> Tensor:
         """Deferred shading (:func:`~models.fields.static.field.shade_pixels`; ``times`` is not an input)."""
         return shade_pixels(self, features, opacity, directions, background, residual_inputs)
-
-    def forward(self, coords: Tensor, times: Tensor, directions: Optional[Tensor]) -> FieldSamples:
-        """``directions`` None: geometry only (``rgb`` zero, the colour MLP not run)."""
-        sigma, h, canonical, flow = self.geometry(coords, times)
-        rgb = self.colour(h, directions, times) if directions is not None else h.new_zeros(h.shape[:-1] + (3,))
-        return FieldSamples(sigma, rgb, canonical, flow)
 
 
 # ----------------------------------------------------------------------------------------------------

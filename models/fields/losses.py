@@ -1,7 +1,8 @@
 """Loss assembly: a list of named, weighted, switchable terms.
 
-A run's loss is ``sum(term.weight * LOSS_TERMS[term.name](inputs))`` over the enabled terms of its config
-whose ``start_step`` has been reached. Each term is a pure function of :class:`LossInputs` (the model, the
+A run's loss is ``sum(term.weight * term.factor(step) * LOSS_TERMS[term.name](inputs))`` over the enabled
+terms of its config whose ``start_step`` has been reached (``factor`` also fades a term out, as the dynamic
+fields' flow prior is). Each term is a pure function of :class:`LossInputs` (the model, the
 ray batch, the rendered outputs, the step, the term's own config and an ``extras`` dict for outputs of
 other models), registered by name with :func:`register_loss_term`. The priors of the thesis slot in as
 further terms without touching the training loop:
@@ -17,6 +18,7 @@ the field's ``plane_groups()``.
 """
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
@@ -42,6 +44,21 @@ class LossTerm:
     enabled: bool = field(default=True, metadata={"help": "switch the term off without losing its settings"})
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
     start_step: int = field(default=0, metadata={"help": "first training step at which the term is applied"})
+    fade_start: int = field(default=0, metadata={
+        "help": "step from which the weight falls linearly to 0 over fade_steps (with fade_steps > 0)"})
+    fade_steps: int = field(default=0, metadata={"help": "steps of the fall to fade_to (0: the weight never fades)"})
+    fade_to: float = field(default=0.0, metadata={"help": "fraction of the weight left after the fade, in [0, 1]"})
+
+    def factor(self, step: int) -> float:
+        """The multiplier of ``weight`` at ``step``: 0 when disabled or before ``start_step``, 1 until
+        ``fade_start``, then linearly to ``fade_to`` over ``fade_steps`` (``fade_to`` from
+        ``fade_start + fade_steps`` on)."""
+        if not self.enabled or step < self.start_step:
+            return 0.0
+        if self.fade_steps <= 0 or step <= self.fade_start:
+            return 1.0
+        left = max(0.0, 1.0 - (step - self.fade_start) / self.fade_steps)
+        return self.fade_to + (1.0 - self.fade_to) * left
 
 
 def default_loss_terms() -> tuple[LossTerm, ...]:
@@ -184,6 +201,16 @@ def check_loss_terms(terms, has_depth: bool) -> None:
             raise InputError(f"unknown loss term {term.name!r}; registered: {sorted(LOSS_TERMS)}", field="losses")
         if not term.weight >= 0:
             raise InputError(f"weight must be >= 0, got {term.weight}", field=f"losses[{term.name}].weight")
+        for name in ("start_step", "fade_start", "fade_steps"):
+            value = getattr(term, name)
+            try:
+                bad = isinstance(value, bool) or operator.index(value) < 0
+            except TypeError:
+                bad = True
+            if bad:
+                raise InputError(f"must be an integer >= 0, got {value!r}", field=f"losses[{term.name}].{name}")
+        if not 0.0 <= term.fade_to <= 1.0:
+            raise InputError(f"must be in [0, 1], got {term.fade_to}", field=f"losses[{term.name}].fade_to")
         if term.enabled and term.name in NEEDS_DEPTH and not has_depth:
             raise InputError(f"term {term.name!r} needs true depth, and these views have none",
                              field=f"losses[{term.name}]")
@@ -195,9 +222,10 @@ def assemble_loss(terms, model, batch: RayBatch, outputs: RayOutputs, step: int,
     total = outputs.color.new_zeros(())
     values: dict[str, float] = {}
     for term in terms:
-        if not term.enabled or step < term.start_step or term.weight == 0:
+        scale = term.weight * term.factor(step)
+        if scale == 0:
             continue
         value = LOSS_TERMS[term.name](LossInputs(model, batch, outputs, step, term, extras or {}))
-        total = total + term.weight * value
+        total = total + scale * value
         values[term.name] = float(value.detach())
     return total, values

@@ -142,7 +142,7 @@ class DynamicTrainConfig(RunConfig):
         """``losses`` plus the enabled priors' terms, less the motion terms when the field has no motion model."""
         terms = list(self.losses)
         if self.priors.flow.enabled:
-            terms.append(LossTerm("sparse_flow", self.priors.flow.weight, start_step=self.priors.flow.start_step))
+            terms.append(self.priors.flow.loss_term())
         if self.field.kind != "derf":
             terms = [t for t in terms if t.name not in MOTION_TERMS]
         return tuple(terms)
@@ -262,7 +262,7 @@ class DynamicKind:
         batch_samples = model.place_timed(batch.origins, batch.directions, batch.near, batch.far, inputs,
                                           jitter=True, generator=generator)
         flow = priors.flow if priors is not None else None
-        matched = flow.draw(model, generator) if flow is not None else None
+        matched = flow.draw(model, generator) if flow is not None and flow.active(step) else None
         if matched is None:
             return model.render_placed([batch_samples])[0], {}
         outputs, matched_out = model.render_placed(

@@ -23,7 +23,7 @@ from models.fields.data.select import select_dynamic_views
 from models.fields.data.timed import TimedViews, border_crossings, load_dnerf, load_rig_video, split_by_camera
 from models.fields.dynamic.model import (DynamicFieldConfig, DynamicFieldModel, MotionConfig, MotionField,
                                          sample_hex_planes, time_grid, time_smoothness)
-from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch
+from models.fields.losses import LOSS_TERMS, LossInputs, LossTerm, RayBatch, check_loss_terms
 from models.fields.priors.flow import (SparseFlowPrior, SparseFlowState, coherent_matches, flow_pairs,
                                        fundamental_matrix, sampson_distance, sparse_flow_loss)
 from models.fields.static.field import FieldConfig
@@ -637,6 +637,47 @@ def test_a_geometry_only_render_has_the_weights_of_a_full_render_and_the_backgro
     for name in ("weights", "opacity", "depth", "canonical", "flow"):
         assert torch.equal(getattr(geometry, name), getattr(full, name)), name
     torch.testing.assert_close(geometry.color, model.background.expand(12, 3) * (1 - geometry.opacity[:, None]))
+
+
+def test_the_faded_prior_weighs_linearly_less_and_renders_no_matched_ray_once_gone(moving):
+    """``fade_start`` / ``fade_steps`` / ``fade_to``: full weight until ``fade_start``, then linearly to
+    ``fade_to``; the loss term follows, and from the end of a fade to 0 the training step draws no matched
+    pair (the generator advances as a batch-only render's)."""
+    from models.fields.train_dynamic import DYNAMIC
+
+    prior = SparseFlowPrior(enabled=True, rays=8, start_step=2, fade_start=10, fade_steps=20, fade_to=0.0)
+    term = prior.loss_term()
+    factors = [term.factor(s) for s in (0, 1, 2, 10, 15, 20, 29, 30, 99)]
+    assert factors == pytest.approx([0, 0, 1, 1, 0.75, 0.5, 0.05, 0, 0])
+    assert LossTerm("x", fade_start=10).factor(10**6) == 1.0  # fade_steps 0: never fades
+    floor = replace(prior, fade_to=0.1).loss_term()
+    assert [floor.factor(s) for s in (10, 20, 30, 99)] == pytest.approx([1.0, 0.55, 0.1, 0.1])
+    assert LossTerm("x", enabled=False).factor(5) == 0.0
+    assert DynamicTrainConfig(priors=replace(DynamicTrainConfig().priors, flow=prior)).loss_terms()[-1] == term
+    with pytest.raises(InputError, match="priors.flow.fade_steps"):
+        replace(prior, fade_steps=-1).validate()
+    with pytest.raises(InputError, match=r"losses\[photometric\].fade_start"):
+        check_loss_terms([LossTerm("photometric", fade_start=-3)], has_depth=False)
+    with pytest.raises(InputError, match="priors.flow.fade_to"):
+        replace(prior, fade_to=float("nan")).validate()
+    with pytest.raises(InputError, match=r"losses\[photometric\].fade_to"):
+        check_loss_terms([LossTerm("photometric", fade_to=1.5)], has_depth=False)
+
+    state = _synthetic_flow_state(prior, 40)
+    priors = type("P", (), {"flow": state})()
+    model = _model()
+    g = torch.Generator().manual_seed(3)
+    batch = RayBatch(torch.randn(24, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]),
+                     torch.tensor([[0.0, 0.0, 1.0]]).expand(24, 3), torch.ones(24), torch.full((24,), 5.0),
+                     torch.rand(24, 3, generator=g))
+    times = torch.rand(24, generator=g)
+    floored = type("P", (), {"flow": _synthetic_flow_state(replace(prior, fade_to=0.1), 40)})()
+    for state_of, step, drawn in ((priors, 29, True), (priors, 30, False), (floored, 30, True)):
+        gen, ref = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+        _, extras = DYNAMIC.render_step(state_of, model, batch, times, step, gen)
+        model.render_rays(batch.origins, batch.directions, batch.near, batch.far, times, jitter=True, generator=ref)
+        assert ("sparse_flow" in extras) == drawn
+        assert torch.equal(gen.get_state(), ref.get_state()) == (not drawn)
 
 
 def test_sparse_flow_prior_trains_on_textured_motion(tmp_path):

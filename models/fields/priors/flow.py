@@ -51,7 +51,7 @@ from engine.core.errors import InputError
 from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
 from models.fields.components.render import module_device
-from models.fields.losses import LossInputs, register_loss_term
+from models.fields.losses import LossInputs, LossTerm, register_loss_term
 from models.fields.priors.depth import feature_cache_dir, keypoint_rays, match_descriptors, sift_features
 
 __all__ = ["SparseFlowPrior", "DynamicPriorsConfig", "FlowMatches", "flow_pairs", "fundamental_matrix",
@@ -82,6 +82,14 @@ class SparseFlowPrior:
     coherence_px: float = field(default=2.0, metadata={
         "help": "largest displacement difference (px) of a coherent neighbour"})
     start_step: int = field(default=0, metadata={"help": "first step at which the flow loss is applied"})
+    fade_start: int = field(default=2000, metadata={
+        "help": "step from which the prior's weight falls linearly to fade_to over fade_steps: the prior finds "
+                "the geometry early, and at full weight to the end it cost 0.3 dB on a path-traced rig at 10,000 "
+                "steps (docs/results/2026-11-29-dynamic-prior-fade.md); runs of <= 2000 steps are unchanged"})
+    fade_steps: int = field(default=4000, metadata={"help": "steps of that fall (0: the prior never fades)"})
+    fade_to: float = field(default=0.1, metadata={
+        "help": "fraction of the weight left after the fade (0: from the fade's end no matched ray is rendered; "
+                "it lost lego's val split and rasterized rig 3 at 10,000 steps)"})
     source: str = field(default="sift", metadata={
         "help": "where matches come from: sift (sparse, the thesis's prior) or dis (dense OpenCV DIS optical flow "
                 "on a grid, forward-backward checked: the dense-prior comparison)"})
@@ -105,7 +113,17 @@ class SparseFlowPrior:
                 raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.flow.{name}")
         if not 0 < self.ratio <= 1:
             raise InputError(f"must be in (0, 1], got {self.ratio}", field="priors.flow.ratio")
+        for name in ("start_step", "fade_start", "fade_steps"):
+            if int(getattr(self, name)) < 0:
+                raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.flow.{name}")
+        if not 0.0 <= self.fade_to <= 1.0:
+            raise InputError(f"must be in [0, 1], got {self.fade_to}", field="priors.flow.fade_to")
         return self
+
+    def loss_term(self) -> LossTerm:
+        """The run's ``sparse_flow`` loss term: the weight, start and fade of this prior."""
+        return LossTerm("sparse_flow", self.weight, start_step=int(self.start_step), fade_start=int(self.fade_start),
+                        fade_steps=int(self.fade_steps), fade_to=float(self.fade_to))
 
 
 @dataclass
@@ -280,7 +298,8 @@ def _fingerprint(views, prior: SparseFlowPrior) -> dict[str, Any]:
     for cam in views.cameras:
         digest.update(np.asarray(cam.intrinsics, np.float64).tobytes())
         digest.update(np.asarray(cam.world_to_camera, np.float64).tobytes())
-    params = {k: v for k, v in asdict(prior).items() if k not in ("enabled", "weight", "rays", "start_step")}
+    params = {k: v for k, v in asdict(prior).items()
+              if k not in ("enabled", "weight", "rays", "start_step", "fade_start", "fade_steps", "fade_to")}
     return {"views": list(views.names), "size": [views.height, views.width], "sha1": digest.hexdigest(),
             "pycolmap": pycolmap.__version__, **params}
 
@@ -349,6 +368,10 @@ class SparseFlowState:
         self.origins_b, self.directions_b = keypoint_rays(views.cameras, m.view_b, m.xy_b)
         self.times_a = torch.as_tensor(np.asarray(views.times, np.float64)[m.view_a], dtype=torch.float32)
         self.times_b = torch.as_tensor(np.asarray(views.times, np.float64)[m.view_b], dtype=torch.float32)
+
+    def active(self, step: int) -> bool:
+        """Whether the prior's loss counts at ``step`` (its matched rays are rendered only then)."""
+        return self.prior.loss_term().factor(step) > 0
 
     def extras(self, model, generator: torch.Generator) -> dict[str, Any]:
         """Render ``prior.rays`` random matched pairs: ``{"sparse_flow": {"a": outputs, "b": outputs}}``

@@ -45,7 +45,7 @@ class LossTerm:
     planes: str = field(default="spatial", metadata={"help": "plane group a plane regulariser acts on"})
     start_step: int = field(default=0, metadata={"help": "first training step at which the term is applied"})
     fade_start: int = field(default=0, metadata={
-        "help": "step from which the weight falls linearly to 0 over fade_steps (with fade_steps > 0)"})
+        "help": "step from which the weight falls linearly to fade_to over fade_steps (with fade_steps > 0)"})
     fade_steps: int = field(default=0, metadata={"help": "steps of the fall to fade_to (0: the weight never fades)"})
     fade_to: float = field(default=0.0, metadata={"help": "fraction of the weight left after the fade, in [0, 1]"})
 

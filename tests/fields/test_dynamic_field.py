@@ -520,7 +520,7 @@ def _synthetic_flow_state(prior: SparseFlowPrior, n: int) -> SparseFlowState:
     # n matched pairs of rays from near (0, 0, -3) looking along +z, at random times in [0, 1]
     state = SparseFlowState.__new__(SparseFlowState)
     g = torch.Generator().manual_seed(2)
-    state.prior = prior
+    state.prior, state.term = prior, prior.loss_term()
     state.matches = type("M", (), {"__len__": lambda self: n})()
     state.origins_a, state.origins_b = torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0]), \
         torch.randn(n, 3, generator=g) * 0.1 - torch.tensor([0.0, 0.0, 3.0])

@@ -355,6 +355,7 @@ class SparseFlowState:
 
     def __init__(self, views, prior: SparseFlowPrior, cache_dir: Optional[str | Path] = None):
         self.prior = prior
+        self.term = prior.loss_term()
         self.matches = load_or_compute_sparse_flow(views, prior, cache_dir)
         empty = sum(1 for p in self.matches.pairs.values() if p["kept"] == 0)
         if len(self.matches) == 0:
@@ -371,7 +372,7 @@ class SparseFlowState:
 
     def active(self, step: int) -> bool:
         """Whether the prior's loss counts at ``step`` (its matched rays are rendered only then)."""
-        return self.prior.loss_term().factor(step) > 0
+        return self.term.factor(step) > 0
 
     def extras(self, model, generator: torch.Generator) -> dict[str, Any]:
         """Render ``prior.rays`` random matched pairs: ``{"sparse_flow": {"a": outputs, "b": outputs}}``

@@ -1,8 +1,11 @@
-"""Shape and dtype checks at public entry points: one ``check_shape`` with named dimensions (kornia's
-``KORNIA_CHECK_SHAPE``), for numpy arrays and torch tensors alike, raising ``InputError`` naming the argument."""
+"""Shape, dtype and range checks at public entry points: one ``check_shape`` with named dimensions (kornia's
+``KORNIA_CHECK_SHAPE``), for numpy arrays and torch tensors alike, and one ``check_range`` for the numbers of
+configs and options, each raising ``InputError`` naming the argument."""
 from __future__ import annotations
 
-from typing import Optional, Sequence
+import math
+import operator
+from typing import Optional, Sequence, Union
 
 import numpy as np
 
@@ -54,6 +57,49 @@ def check_shape(value, name: str, dims: Sequence, sizes: Optional[dict] = None, 
         if not ok:
             raise InputError(f"must be a floating-point array, got dtype {value.dtype}", field=name)
     return value
+
+
+def check_range(value, field: str, *, low: Optional[float] = None, high: Optional[float] = None,
+                low_open: bool = False, high_open: bool = False, integer: bool = False
+                ) -> Union[int, float]:
+    """``value`` if it lies in the interval from ``low`` to ``high`` (closed ends unless ``low_open`` /
+    ``high_open``; None: unbounded on that side), else InputError naming ``field``.
+
+    With ``integer`` the value must be an integer (an ``int`` or numpy integer; ``bool`` and floats are refused)
+    and comes back as ``int``; otherwise any finite real number, returned as ``float``. The message states the
+    interval, e.g. ``must be an integer >= 1, got 0`` or ``must be in (0, 1], got 1.5``.
+
+    >>> check_range(3, "rays", low=1, integer=True)
+    3
+    >>> check_range(0.0, "fade_to", low=0, high=1)
+    0.0
+    """
+    if low is not None and high is not None:
+        interval = f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    elif low is not None:
+        interval = f"{'>' if low_open else '>='} {low}"
+    elif high is not None:
+        interval = f"{'<' if high_open else '<='} {high}"
+    else:
+        interval = ""
+    want = ("an integer " + interval if integer else interval or "a finite number").strip()
+    try:
+        if integer:
+            if isinstance(value, bool):
+                raise TypeError
+            number: Union[int, float] = operator.index(value)
+        else:
+            if isinstance(value, (bool, str, bytes)):
+                raise TypeError
+            number = float(value)
+            if not math.isfinite(number):
+                raise ValueError
+    except (TypeError, ValueError):
+        raise InputError(f"must be {want}, got {value!r}", field=field) from None
+    if ((low is not None and (number <= low if low_open else number < low))
+            or (high is not None and (number >= high if high_open else number > high))):
+        raise InputError(f"must be {want}, got {value!r}", field=field)
+    return number
 
 
 def checked_array(value, name, dims, sizes, dtype=np.float32, floating=True):

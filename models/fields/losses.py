@@ -18,13 +18,13 @@ the field's ``plane_groups()``.
 """
 from __future__ import annotations
 
-import operator
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
 import torch
 from torch import Tensor
 
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from models.fields.components.encodings import plane_l1, plane_tv
 from models.fields.components.render import RayOutputs
@@ -199,18 +199,10 @@ def check_loss_terms(terms, has_depth: bool) -> None:
     for term in terms:
         if term.name not in LOSS_TERMS:
             raise InputError(f"unknown loss term {term.name!r}; registered: {sorted(LOSS_TERMS)}", field="losses")
-        if not term.weight >= 0:
-            raise InputError(f"weight must be >= 0, got {term.weight}", field=f"losses[{term.name}].weight")
+        check_range(term.weight, f"losses[{term.name}].weight", low=0)
         for name in ("start_step", "fade_start", "fade_steps"):
-            value = getattr(term, name)
-            try:
-                bad = isinstance(value, bool) or operator.index(value) < 0
-            except TypeError:
-                bad = True
-            if bad:
-                raise InputError(f"must be an integer >= 0, got {value!r}", field=f"losses[{term.name}].{name}")
-        if not 0.0 <= term.fade_to <= 1.0:
-            raise InputError(f"must be in [0, 1], got {term.fade_to}", field=f"losses[{term.name}].fade_to")
+            check_range(getattr(term, name), f"losses[{term.name}].{name}", low=0, integer=True)
+        check_range(term.fade_to, f"losses[{term.name}].fade_to", low=0, high=1)
         if term.enabled and term.name in NEEDS_DEPTH and not has_depth:
             raise InputError(f"term {term.name!r} needs true depth, and these views have none",
                              field=f"losses[{term.name}]")

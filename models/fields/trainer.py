@@ -38,6 +38,7 @@ from tqdm import tqdm
 
 from engine.core.colorspace import display_encode
 from engine.core.config import config_from_dict, config_from_file, config_to_dict
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from engine.eval.metrics import flip_map, psnr, ssim_map
 from models.fields.components.sampling import camera_rays
@@ -129,18 +130,12 @@ def validate_run_config(config, positive_ints: tuple[str, ...]) -> None:
     rate and its schedule, samples per ray, then the field's and the priors' own ``validate``; InputError naming the first
     bad option."""
     for name in positive_ints:
-        value = getattr(config, name)
-        lowest = 0 if name in ("steps", "downscale") else 1
-        if isinstance(value, bool) or not isinstance(value, int) or value < lowest:
-            raise InputError(f"must be an integer >= {lowest}, got {value!r}", field=name)
-    if not (config.lr > 0 and math.isfinite(config.lr)):
-        raise InputError(f"must be a positive number, got {config.lr!r}", field="lr")
+        check_range(getattr(config, name), name, low=0 if name in ("steps", "downscale") else 1, integer=True)
+    check_range(config.lr, "lr", low=0, low_open=True)
     if config.lr_schedule not in LR_SCHEDULES:
         raise InputError(f"must be one of {LR_SCHEDULES}, got {config.lr_schedule!r}", field="lr_schedule")
-    if not 0 < config.lr_final_factor <= 1:
-        raise InputError(f"must be in (0, 1], got {config.lr_final_factor}", field="lr_final_factor")
-    if config.render.num_samples < 1:
-        raise InputError(f"must be >= 1, got {config.render.num_samples}", field="render.num_samples")
+    check_range(config.lr_final_factor, "lr_final_factor", low=0, high=1, low_open=True)
+    check_range(config.render.num_samples, "render.num_samples", low=1, integer=True)
     config.field.validate()
     config.priors.validate()
 

@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from engine.core.checks import check_shape
+from engine.core.checks import check_range, check_shape
 from engine.core.errors import InputError
 from models.fields.components.encodings import (MLP, DirectionEncoding, TriPlaneEncoding, fourier_encoding, plane_grid,
                                                 read_planes)
@@ -197,12 +197,9 @@ class MotionConfig:
             raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
                              field="field.motion.resolutions")
         for name in ("feature_dim", "hidden"):
-            if int(getattr(self, name)) < 1:
-                raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.motion.{name}")
-        if self.layers < 0:
-            raise InputError(f"must be >= 0, got {self.layers}", field="field.motion.layers")
-        if not self.max_flow > 0:
-            raise InputError(f"must be > 0, got {self.max_flow}", field="field.motion.max_flow")
+            check_range(getattr(self, name), f"field.motion.{name}", low=1, integer=True)
+        check_range(self.layers, "field.motion.layers", low=0, integer=True)
+        check_range(self.max_flow, "field.motion.max_flow", low=0, low_open=True)
         return self
 
 
@@ -231,8 +228,7 @@ class DynamicFieldConfig:
             raise InputError(f"must be one of {FIELD_KINDS}, got {self.kind!r}", field="field.kind")
         if self.time_resolution < 0 or self.time_resolution == 1:
             raise InputError(f"must be 0 (auto) or >= 2, got {self.time_resolution}", field="field.time_resolution")
-        if self.time_frequencies < 0:
-            raise InputError(f"must be >= 0, got {self.time_frequencies}", field="field.time_frequencies")
+        check_range(self.time_frequencies, "field.time_frequencies", low=0, integer=True)
         self.canonical.validate()
         # the static field's options that the dynamic fields do not build: refused rather than ignored
         if self.canonical.density_layers != 1:

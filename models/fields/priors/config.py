@@ -21,6 +21,7 @@ from typing import Any, Optional, Sequence
 import torch
 from torch import nn
 
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from models.fields.losses import LossTerm
 from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDepthState
@@ -124,30 +125,23 @@ class PriorsConfig:
 
     def validate(self) -> "PriorsConfig":
         """Raise InputError naming the first bad option; returns self."""
-        if self.depth.rays < 1:
-            raise InputError(f"must be >= 1, got {self.depth.rays}", field="priors.depth.rays")
+        check_range(self.depth.rays, "priors.depth.rays", low=1, integer=True)
         if self.depth.source not in DEPTH_SOURCES:
             raise InputError(f"must be one of {DEPTH_SOURCES}, got {self.depth.source!r}", field="priors.depth.source")
         self.depth.stereo.validate()
-        if not 0 <= self.simple.near_shift < 1:
-            raise InputError(f"must be in [0, 1), got {self.simple.near_shift}", field="priors.simple.near_shift")
+        check_range(self.simple.near_shift, "priors.simple.near_shift", low=0, high=1, high_open=True)
         if self.simple.patch_size < 1 or self.simple.patch_size % 2 == 0:
             raise InputError(f"must be odd and >= 1, got {self.simple.patch_size}", field="priors.simple.patch_size")
-        if self.simple.mass_intervals < 1:
-            raise InputError(f"must be >= 1, got {self.simple.mass_intervals}", field="priors.simple.mass_intervals")
-        if self.vip.num_planes < 2:
-            raise InputError(f"must be >= 2, got {self.vip.num_planes}", field="priors.vip.num_planes")
-        if not 0 <= self.vip.start_fraction <= 1:
-            raise InputError(f"must be in [0, 1], got {self.vip.start_fraction}", field="priors.vip.start_fraction")
-        if self.vip.rays < 1:
-            raise InputError(f"must be >= 1, got {self.vip.rays}", field="priors.vip.rays")
+        check_range(self.simple.mass_intervals, "priors.simple.mass_intervals", low=1, integer=True)
+        check_range(self.vip.num_planes, "priors.vip.num_planes", low=2, integer=True)
+        check_range(self.vip.start_fraction, "priors.vip.start_fraction", low=0, high=1)
+        check_range(self.vip.rays, "priors.vip.rays", low=1, integer=True)
         for name, value in (("depth.weight", self.depth.weight), ("simple.photometric_weight",
                             self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
                             ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
                             self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight),
                             ("distortion.weight", self.distortion.weight)):
-            if not value >= 0:
-                raise InputError(f"must be >= 0, got {value}", field=f"priors.{name}")
+            check_range(value, f"priors.{name}", low=0)
         return self
 
 

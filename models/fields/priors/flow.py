@@ -47,6 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from engine.predict import dis_calc, dis_estimator, luma8
 from models.fields.data.timed import frame_step
@@ -100,24 +101,17 @@ class SparseFlowPrior:
     def validate(self) -> "SparseFlowPrior":
         if self.source not in ("sift", "dis"):
             raise InputError(f"must be sift or dis, got {self.source!r}", field="priors.flow.source")
-        if int(self.dense_stride) < 1 or not self.dense_consistency > 0:
-            raise InputError("dense_stride must be >= 1 and dense_consistency > 0", field="priors.flow.dense_stride")
+        check_range(self.dense_stride, "priors.flow.dense_stride", low=1, integer=True)
+        check_range(self.dense_consistency, "priors.flow.dense_consistency", low=0, low_open=True)
         for name in ("rays", "time_offset", "max_features", "neighbours", "min_coherent"):
-            if int(getattr(self, name)) < 1:
-                raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"priors.flow.{name}")
-        if self.min_coherent > self.neighbours:
-            raise InputError(f"must be <= neighbours ({self.neighbours}), got {self.min_coherent}",
-                             field="priors.flow.min_coherent")
+            check_range(getattr(self, name), f"priors.flow.{name}", low=1, integer=True)
+        check_range(self.min_coherent, "priors.flow.min_coherent", high=self.neighbours, integer=True)
         for name in ("weight", "max_epipolar_error", "coherence_px"):
-            if not getattr(self, name) >= 0:
-                raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.flow.{name}")
-        if not 0 < self.ratio <= 1:
-            raise InputError(f"must be in (0, 1], got {self.ratio}", field="priors.flow.ratio")
+            check_range(getattr(self, name), f"priors.flow.{name}", low=0)
+        check_range(self.ratio, "priors.flow.ratio", low=0, high=1, low_open=True)
         for name in ("start_step", "fade_start", "fade_steps"):
-            if int(getattr(self, name)) < 0:
-                raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.flow.{name}")
-        if not 0.0 <= self.fade_to <= 1.0:
-            raise InputError(f"must be in [0, 1], got {self.fade_to}", field="priors.flow.fade_to")
+            check_range(getattr(self, name), f"priors.flow.{name}", low=0, integer=True)
+        check_range(self.fade_to, "priors.flow.fade_to", low=0, high=1)
         return self
 
     def loss_term(self) -> LossTerm:

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from engine.core.colorspace import display_encode
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from engine.geometry import reproject
 from engine.geometry.camera import reprojection_matrix, reproject_points
@@ -63,19 +64,14 @@ class StereoDepth:
 
     def validate(self) -> "StereoDepth":
         """Raise InputError naming the first bad option; returns self."""
-        if self.planes < 3:
-            raise InputError(f"must be >= 3, got {self.planes}", field="priors.depth.stereo.planes")
+        check_range(self.planes, "priors.depth.stereo.planes", low=3, integer=True)
         if self.window < 3 or self.window % 2 == 0:
             raise InputError(f"must be odd and >= 3, got {self.window}", field="priors.depth.stereo.window")
-        if not -1.0 <= self.min_ncc <= 1.0:
-            raise InputError(f"must be in [-1, 1], got {self.min_ncc}", field="priors.depth.stereo.min_ncc")
-        if not 0.0 <= self.min_epipolar <= 1.0:
-            raise InputError(f"must be in [0, 1], got {self.min_epipolar}", field="priors.depth.stereo.min_epipolar")
+        check_range(self.min_ncc, "priors.depth.stereo.min_ncc", low=-1, high=1)
+        check_range(self.min_epipolar, "priors.depth.stereo.min_epipolar", low=0, high=1)
         for name in ("min_texture", "max_error", "max_depth_change"):
-            if not getattr(self, name) >= 0:
-                raise InputError(f"must be >= 0, got {getattr(self, name)}", field=f"priors.depth.stereo.{name}")
-        if self.max_points < 1:
-            raise InputError(f"must be >= 1, got {self.max_points}", field="priors.depth.stereo.max_points")
+            check_range(getattr(self, name), f"priors.depth.stereo.{name}", low=0)
+        check_range(self.max_points, "priors.depth.stereo.max_points", low=1, integer=True)
         return self
 
 

@@ -17,6 +17,7 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from models.fields.components.encodings import MLP, DirectionEncoding, TriPlaneEncoding
 
@@ -74,8 +75,7 @@ class FieldConfig:
             raise InputError(f"must be a non-empty list of sizes >= 2, got {self.resolutions}",
                              field="field.resolutions")
         for name in ("feature_dim", "density_hidden", "density_layers", "geo_feature_dim", "color_hidden"):
-            if int(getattr(self, name)) < 1:
-                raise InputError(f"must be >= 1, got {getattr(self, name)}", field=f"field.{name}")
+            check_range(getattr(self, name), f"field.{name}", low=1, integer=True)
         if self.direction_encoding not in DIRECTION_ENCODINGS:
             raise InputError(f"must be one of {DIRECTION_ENCODINGS}, got {self.direction_encoding!r}",
                              field="field.direction_encoding")
@@ -84,8 +84,7 @@ class FieldConfig:
         if self.shading == "deferred" and int(self.geo_feature_dim) < 3:
             raise InputError(f"must be >= 3 with deferred shading (the first 3 are the diffuse colour), got "
                              f"{self.geo_feature_dim}", field="field.geo_feature_dim")
-        if not float(self.residual_bound) >= 0.0:
-            raise InputError(f"must be >= 0, got {self.residual_bound}", field="field.residual_bound")
+        check_range(self.residual_bound, "field.residual_bound", low=0)
         if self.direction_encoding == "sh" and not 1 <= self.direction_degree <= 4:
             raise InputError(f"SH bands must be in 1..4, got {self.direction_degree}", field="field.direction_degree")
         return self

@@ -521,3 +521,28 @@ def test_export_bakes_a_bakeable_run_and_checks_it_on_a_held_out_view(derf_tripl
     assert not (derf_triplanes[1] / "baked_dynamic.json").exists() and "baked" not in json.loads(
         (derf_triplanes[1] / "dynamic.json").read_text())
     assert load_baked_dynamic(tmp_path / "export").motion.shape[0] == manifest["time"]["time_resolution"]
+
+
+def test_the_dynamic_baking_config_builds_a_field_that_bakes():
+    """``configs/dynamic-baked.json`` (docs/dynamic_fields.md, "Baking a dynamic field"): deferred shading, a
+    canonical field of tri-planes, the static recipe's wider density MLP and residual stop, but no density bias
+    (with it the motion field moved nothing on lego: docs/results/2026-11-30-dynamic-baked-recipe.md), and a latent
+    whose features and density fill two RGBA texel groups, as the static baking config's."""
+    from pathlib import Path
+
+    from engine.core.config import config_from_file
+    from engine.fields.glbaked import channel_groups
+    from models.fields.bake import bakes_dynamic
+    from models.fields.train_dynamic import DynamicTrainConfig
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "dynamic-baked.json"
+    config = config_from_file(DynamicTrainConfig, path)
+    config.field.validate()
+    canonical = config.field.canonical
+    assert config.field.kind == "derf" and canonical.shading == "deferred" and not canonical.residual_density_grad
+    assert canonical.density_bias == 0.0 and canonical.density_hidden == 64
+    assert 4 * channel_groups(canonical.geo_feature_dim) == canonical.geo_feature_dim + 1 == 8
+    scene = SceneBox("bounded-360", 1.0, 5.0, [-1.0] * 3, [1.0] * 3)
+    for field, bakes in ((config.field, True), (DynamicTrainConfig().field, False)):
+        model = DynamicFieldModel(scene, [1.0] * 3, (0.0, 1.0), field, RenderConfig(num_samples=8), time_resolution=3)
+        assert bakes_dynamic(model) == bakes

@@ -45,7 +45,7 @@ def test_config_validators_use_it_with_the_option_the_user_typed():
     from models.fields.priors.flow import SparseFlowPrior
     from models.fields.dynamic.model import MotionConfig
 
-    with pytest.raises(InputError, match=r"field 'priors.flow.min_coherent': must be an integer <= 6, got 7"):
+    with pytest.raises(InputError, match=r"field 'priors.flow.min_coherent': must be <= neighbours \(6\), got 7"):
         SparseFlowPrior(min_coherent=7).validate()
     with pytest.raises(InputError, match=r"field 'priors.flow.fade_to': must be in \[0, 1\], got 1.5"):
         SparseFlowPrior(fade_to=1.5).validate()

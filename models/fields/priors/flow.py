@@ -105,7 +105,9 @@ class SparseFlowPrior:
         check_range(self.dense_consistency, "priors.flow.dense_consistency", low=0, low_open=True)
         for name in ("rays", "time_offset", "max_features", "neighbours", "min_coherent"):
             check_range(getattr(self, name), f"priors.flow.{name}", low=1, integer=True)
-        check_range(self.min_coherent, "priors.flow.min_coherent", high=self.neighbours, integer=True)
+        if self.min_coherent > self.neighbours:
+            raise InputError(f"must be <= neighbours ({self.neighbours}), got {self.min_coherent}",
+                             field="priors.flow.min_coherent")
         for name in ("weight", "max_epipolar_error", "coherence_px"):
             check_range(getattr(self, name), f"priors.flow.{name}", low=0)
         check_range(self.ratio, "priors.flow.ratio", low=0, high=1, low_open=True)

@@ -293,15 +293,16 @@ def time_keys(tau: float, keys: int) -> tuple[int, np.float32]:
 
 
 def baked_flow(baked: BakedDynamicAssets, coords: np.ndarray, tau: float) -> np.ndarray:
-    """The baked flow (M, 3) at contracted coordinates (M, 3) and normalised time ``tau``: the trilinear lookups
-    of the two time keys around tau (clamped to the grid), linear in tau between them."""
+    """The baked flow (M, 3) at contracted coordinates (M, 3) and normalised time ``tau``: the flow grid at tau
+    (the two time keys around tau blended linearly, in float32), looked up trilinearly (clamped to the grid). The
+    same as blending the two keys' lookups; blending the grids first is what the GL renderer does once a frame."""
     coords = np.asarray(coords, np.float32)
     m = baked.motion.shape[1]
     k0, w = time_keys(tau, baked.motion.shape[0])
     local = np.clip((coords + np.float32(1.0)) * np.float32(0.5 * (m - 1)), 0.0, m - 1).astype(np.float32)
     n = coords.shape[0]
-    at = [trilinear_np(np.broadcast_to(baked.motion[k], (n,) + baked.motion.shape[1:]), local) for k in (k0, k0 + 1)]
-    return (at[0] * (np.float32(1.0) - w) + at[1] * w).astype(np.float32)
+    grid = (baked.motion[k0] * (np.float32(1.0) - w) + baked.motion[k0 + 1] * w).astype(np.float32)
+    return trilinear_np(np.broadcast_to(grid, (n,) + grid.shape), local).astype(np.float32)
 
 
 def query_baked_dynamic(baked: BakedDynamicAssets, coords: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:

@@ -29,17 +29,18 @@ How the shader maps the format (the design note is ``docs/field-assets.md``, "Re
 - **Sampling** is the reference's: rays through pixel centres with camera z = 1 (t is planar depth; the
   direction is computed in float64 like ``camera_rays_np``), ``[near, far]`` clipped to the box for
   bounded scenes, ``num_samples`` bin-centre samples linear in t or in 1/t, ``torch.lerp``'s rounding.
-- **Empty-space skipping**: samples are visited in chunks of 32; a cheap pass marks the samples of a chunk
-  that are inside the cube, in an occupied cell (bit-packed grid in a storage buffer) and in a non-empty
-  bin, then the field is evaluated by looping over the marked ones only. SIMD hardware (and llvmpipe, which
-  runs 8 invocations per AVX2 vector and executes both sides of every branch under a mask) pays a loop
-  iteration when any lane of the group needs it, so a loop over all samples that skips empty ones costs
-  every sample; the loop over marked samples costs the most any lane has. Invocations are laid out so
-  that each group of 8 is a 4x2 pixel block (coherent rays). In a bounded scene with linear spacing the
-  grid holds each empty cell's Chebyshev distance to the nearest occupied one (a byte per cell) instead of
-  a bit, and the cheap pass jumps over the samples that distance proves empty (a step moves a point by at
-  most ``R / N`` cells per axis inside the box): the same samples are evaluated, fewer are tested (lego's
-  baked field on llvmpipe: 0.8x the CPU time a frame).
+- **Empty-space skipping**: samples are visited in chunks of 64; a cheap pass marks the samples of a chunk that
+  are inside the cube, in an occupied cell (bit-packed grid in a storage buffer) and in a non-empty bin (a
+  two-word mask), then the field is evaluated by looping over the marked ones only (llvmpipe runs a loop's body
+  once with every lane idle: a fixed cost a chunk, which chunks of 32 paid twice at 64 samples). SIMD hardware
+  (and llvmpipe, which runs 8 invocations per AVX2 vector and executes both sides of every branch under a mask)
+  pays a loop iteration when any lane of the group needs it, so a loop over all samples that skips empty ones
+  costs every sample; the loop over marked samples costs the most any lane has. Invocations are laid out so that
+  each group of 8 is a 4x2 pixel block (coherent rays). In a bounded scene with linear spacing the grid holds
+  each empty cell's Chebyshev distance to the nearest occupied one (a byte per cell) instead of a bit, and the
+  cheap pass jumps over the samples that distance proves empty (a step moves a point by at most ``R / N`` cells
+  per axis inside the box): the same samples are evaluated, fewer are tested (lego's baked field on llvmpipe:
+  0.8x the CPU time a frame).
 - **Early ray termination**: the march stops once the transmittance falls below ``transmittance_eps``;
   the latent rows of the density MLP and the colour MLP run only where the sample's weight exceeds
   ``color_eps`` (a saving on GPUs; llvmpipe evaluates the branch under a mask anyway).
@@ -287,24 +288,33 @@ void shade(ivec2 tile) {
     float tau_sum = 0.0, trans = 1.0, acc = 0.0, dsum = 0.0;
     vec3 col = vec3(0.0);
 %(accum_decl)s
-    // Samples are visited in chunks of 32: first the cheap test of every sample of the chunk (inside the
-    // cube, occupied cell, non-empty bin) into a bit mask, then the field only at the kept ones. A GPU or
-    // llvmpipe executes a branch for all the lanes of a SIMD group, so a loop over the kept samples costs
-    // (max kept in the group) evaluations where a loop over all samples with a skip would cost N.
+    // Samples are visited in chunks of 64: first the cheap test of every sample of the chunk (inside the
+    // cube, occupied cell, non-empty bin) into a bit mask (x: samples 0-31 of the chunk, y: 32-63), then the
+    // field only at the kept ones. A GPU or llvmpipe executes a branch for all the lanes of a SIMD group, so a
+    // loop over the kept samples costs (max kept in the group) evaluations where a loop over all samples with
+    // a skip would cost N; llvmpipe also runs a loop's body once with every lane idle, a chunk's fixed cost.
     bool done = false;
     uint evaluated = 0u;
-    for (int base = 0; base < N && !done; base += 32) {
-        uint kept = 0u;
+    for (int base = 0; base < N && !done; base += 64) {
+        uvec2 kept = uvec2(0u);
         int jump = 1;
-        for (int j = 0; j < 32 && base + j < N; j += jump) {
+        for (int j = 0; j < 64 && base + j < N; j += jump) {
             int i = base + j;
 %(locate)s
-            if (keep) kept |= 1u << uint(j);
+            if (keep) {
+                if (j < 32) kept.x |= 1u << uint(j); else kept.y |= 1u << uint(j - 32);
+            }
 %(advance)s
         }
-        while (kept != 0u) {
-            int j = findLSB(kept);
-            kept &= kept - 1u;
+        while (kept.x != 0u || kept.y != 0u) {
+            int j;
+            if (kept.x != 0u) {
+                j = findLSB(kept.x);
+                kept.x &= kept.x - 1u;
+            } else {
+                j = 32 + findLSB(kept.y);
+                kept.y &= kept.y - 1u;
+            }
             ++evaluated;
             int i = base + j;
 %(locate)s

@@ -153,6 +153,25 @@ def test_counted_evaluations_are_those_of_the_reference(which, request):
 
 
 @pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
+@pytest.mark.parametrize("num_samples", [31, 64, 100, 150])
+def test_sample_counts_across_the_marchs_chunks(which, num_samples, request):
+    """The march visits samples in chunks of 64 with a two-word mask (samples 0-31 and 32-63 of a chunk): a count
+    under one word, exactly one chunk, and counts that end inside a later chunk's first or second word render and
+    count evaluations as the reference does (the trained fields use 48: one chunk, both words)."""
+    _, out, _ = request.getfixturevalue(which)
+    cam = _camera(which)
+    assets = load_field(out)
+    assets.manifest["render"]["num_samples"] = num_samples
+    ref = render_field(assets, cam.intrinsics, cam.world_to_camera, H, W)
+    with glfield.GlFieldRenderer(assets, W, H, filtering="exact", **EXACT) as renderer:
+        assert_same_render(ref, renderer.render(cam.intrinsics, cam.world_to_camera), 1e-4)
+    with glfield.GlFieldRenderer(assets, W, H, count_evaluations=True) as renderer:  # the reference's thresholds
+        got = renderer.render(cam.intrinsics, cam.world_to_camera)
+    same = got["evaluations"].astype(np.int64) == ref["evaluations"]
+    assert np.mean(same) >= (0.98 if GPU_SLACK else 1.0) and ref["evaluations"].max() > min(num_samples, 64) // 2
+
+
+@pytest.mark.parametrize("which", ["bounded_run", "ndc_run"])
 def test_tiles_per_invocation_do_not_change_the_frame(which, request):
     """Several tiles per shader invocation (llvmpipe's default) shade every pixel exactly as one does, also when
     the tile rows do not divide by it (H = 32: 4 tile rows; 3 per invocation leaves 2 tiles past the edge)."""

@@ -21,11 +21,16 @@ from models.fields.assets import _add_mlps, _render_section, direction_degree
 from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 
-__all__ = ["DEFAULT_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic", "bakes_dynamic", "motion_keys",
-           "brick_vertices", "write_baked", "baked_check"]
+__all__ = ["DEFAULT_RESOLUTION", "DEFAULT_MOTION_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic",
+           "bakes_dynamic", "motion_keys", "brick_vertices", "write_baked", "baked_check"]
 
 #: Grid cells per side of the field's cube: 4 cells per occupancy cell of the default 64^3 grid.
 DEFAULT_RESOLUTION = 256
+#: Flow vertices per side of a baked dynamic field's motion grid. The flow's trilinear approximation is nearly all of
+#: a bake's error (lego: 47-49 dB against the exact render with the exact flow): at 33 (the finest motion plane's
+#: texels) the worst held-out view was 34.5 dB, at 49 38.9-39.5 (a 512x512 GL frame 2 ms slower on llvmpipe), at 65
+#: 40.6-41.2 (4 ms slower; docs/results/2026-11-30-gl-march-speed.md).
+DEFAULT_MOTION_RESOLUTION = 49
 #: Raw log-densities are clamped below here before float16 (exp(-30) per scene unit is empty at any step).
 LOWEST_RAW_DENSITY = -30.0
 
@@ -161,7 +166,7 @@ def motion_keys(model, resolution: int, *, chunk: int = 1 << 16) -> np.ndarray:
     return np.stack(keys)
 
 
-def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution: int = 33, *,
+def bake_dynamic(model, resolution: int = DEFAULT_RESOLUTION, motion_resolution: int = DEFAULT_MOTION_RESOLUTION, *,
                  chunk: int = 1 << 16) -> tuple[dict[str, np.ndarray], dict]:
     """``(arrays, manifest)`` of the baked form of a DeRF field trained with deferred shading whose canonical field
     is tri-planes (``--field.canonical.shading deferred --no-field.canonical-time``; ``docs/dynamic_fields.md``,

@@ -189,13 +189,13 @@ if [ -d "$lego" ]; then
     step field_lego_baked 90 "$py" -m tools.bench_fields static "$work/lego_deferred/export" --run "$work/lego_deferred" \
         --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/field_render_baked_lego.json"
 fi
-# a dynamic field that bakes (D-NeRF lego at 200x200, 2000 steps on CUDA, deferred shading, canonical tri-planes:
-# docs/results/2026-11-29-dynamic-deferred.md), exported with its baked form (engine.fields.glbaked
+# a dynamic field trained for baking (D-NeRF lego at 200x200, 2000 steps on CUDA, configs/dynamic-baked.json:
+# docs/results/2026-11-30-dynamic-baked-recipe.md), exported with its baked form (engine.fields.glbaked
 # GlBakedDynamicRenderer) and both GL renderers timed at 960x540 and 1920x1080, when the data is there (DNERF_DIR)
 dnerf="${DNERF_DIR:-../shared/data/dnerf_lego}"
 if [ -d "$dnerf" ]; then
     step dyn_lego_deferred 300 "$py" -m engine.cli train dynamic --scene "$dnerf" --downscale 4 --steps 2000 \
-        --device cuda --no-flip --field.canonical.shading deferred --no-field.canonical-time --out "$work/dyn_deferred"
+        --device cuda --no-flip --config configs/dynamic-baked.json --out "$work/dyn_deferred"
     cp "$work/dyn_deferred/scores.json" "$out/dyn_deferred_scores.json" 2>/dev/null
     step dyn_lego_export 240 "$py" -m engine.cli export dynamic "$work/dyn_deferred"
     step dyn_lego_baked 120 "$py" -m tools.bench_fields dynamic "$work/dyn_deferred/export" --run "$work/dyn_deferred" \

@@ -914,8 +914,6 @@ class GlFieldRenderer:
             return fn()
 
     def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
-        import moderngl
-
         if self.tiles_per_invocation is None:
             from engine.geometry.backends.gl.context import is_software_renderer
 
@@ -925,15 +923,9 @@ class GlFieldRenderer:
         start = time.perf_counter()
         self.program = self.ctx.compute_shader(f"{version}\n#define TILES {self.tiles_per_invocation}\n{rest}")
         self.compile_seconds = time.perf_counter() - start
-        for unit, (name, layers) in enumerate(textures):
-            tex = self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, layers.tobytes(),
-                                         dtype=dtype)
-            linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
-            tex.filter = (linear, linear)
-            tex.repeat_x = tex.repeat_y = False
-            tex.use(location=unit)
-            self._set(name, unit)
-            self._textures.append(tex)
+        for name, layers in textures:
+            self._add_texture(name, self.ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4,
+                                                           layers.tobytes(), dtype=dtype))
         self._params = self.ctx.buffer(packed.tobytes())
         self._occ = self.ctx.buffer(occupancy_words(self.assets).tobytes())
         n = self.width * self.height
@@ -945,6 +937,21 @@ class GlFieldRenderer:
             self._count = self.ctx.buffer(reserve=4 * n)
             self._buffers.append(self._count)
         self._set_static_uniforms()
+
+    def _add_texture(self, name: str, texture) -> None:
+        """Bind ``texture`` (2D array or 3D, filtered by ``filtering``, clamped at its edges) to the shader's sampler
+        ``name`` on the next unit (``_bind`` binds it again before each dispatch)."""
+        import moderngl
+
+        linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
+        texture.filter = (linear, linear)
+        texture.repeat_x = texture.repeat_y = False
+        if hasattr(texture, "repeat_z"):
+            texture.repeat_z = False
+        unit = len(self._textures)
+        texture.use(location=unit)
+        self._set(name, unit)
+        self._textures.append(texture)
 
     def _set(self, name: str, value) -> None:
         set_uniforms(self.program, {name: value})

@@ -175,18 +175,6 @@ class GlBakedRenderer(GlFieldRenderer):
         """``generate_baked_shader``'s hooks (none for a static field)."""
         return {}
 
-    def _add_texture(self, name: str, texture) -> None:
-        """Bind ``texture`` to the shader's sampler ``name`` on the next unit (``_bind`` binds it each dispatch)."""
-        import moderngl
-
-        linear = moderngl.LINEAR if self.filtering == "hardware" else moderngl.NEAREST
-        texture.filter = (linear, linear)
-        texture.repeat_x = texture.repeat_y = False
-        if hasattr(texture, "repeat_z"):
-            texture.repeat_z = False
-        self._set(name, len(self._textures))
-        self._textures.append(texture)
-
     def _build(self, packed: np.ndarray, textures: list, dtype: str) -> None:
         super()._build(packed, textures, dtype)
         layers = atlas_layers(self.assets)

@@ -30,9 +30,10 @@ from typing import Optional, Sequence, Union
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.baked import BakedAssets, BakedDynamicAssets, load_baked, load_baked_dynamic, time_keys
+from engine.fields.baked import (BAKED_TRANSMITTANCE_EPS, BakedAssets, BakedDynamicAssets, load_baked,
+                                 load_baked_dynamic, time_keys)
 from engine.fields.dynamic import normalize_time, time_encoding_np
-from engine.fields.gl import (COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
+from engine.fields.gl import (COLOR_EPS, GlFieldRenderer, ShaderParams, _direction_encoding,
                               check_options, color_head, finish_shader, set_uniforms)
 
 __all__ = ["GlBakedRenderer", "GlBakedDynamicRenderer", "atlas_layout", "atlas_layers", "channel_groups",
@@ -147,7 +148,9 @@ def generate_baked_shader(baked: BakedAssets, *, filtering: str, params_kind: st
 class GlBakedRenderer(GlFieldRenderer):
     """One headless GL context with the compute shader, atlas texture and buffers of one baked field; ``render``,
     ``render_to_buffer``, ``release`` and the options are :class:`engine.fields.gl.GlFieldRenderer`'s (without
-    ``quantized`` and ``color_mode``: a baked field is quantised and shaded once per pixel by construction).
+    ``quantized`` and ``color_mode``: a baked field is quantised and shaded once per pixel by construction), but
+    ``transmittance_eps`` defaults to ``engine.fields.baked.BAKED_TRANSMITTANCE_EPS`` (1/255: what the rest of a
+    ray can add to a pixel is less than one 8-bit step).
 
     Raises:
         InputError: bad size or option, an atlas that does not fit a texture.
@@ -157,8 +160,9 @@ class GlBakedRenderer(GlFieldRenderer):
     assets_type, _loader = BakedAssets, staticmethod(load_baked)
 
     def __init__(self, baked: Union[BakedAssets, str, Path], width: int, height: int, *, filtering: str = "hardware",
-                 transmittance_eps: float = TRANSMITTANCE_EPS, color_eps: float = COLOR_EPS, weights: str = "inline",
-                 tiles_per_invocation: Optional[int] = None, count_evaluations: bool = False, context=None) -> None:
+                 transmittance_eps: float = BAKED_TRANSMITTANCE_EPS, color_eps: float = COLOR_EPS,
+                 weights: str = "inline", tiles_per_invocation: Optional[int] = None, count_evaluations: bool = False,
+                 context=None) -> None:
         if not isinstance(baked, self.assets_type):
             baked = self._loader(baked)
         check_options(width, height, filtering=filtering, color_mode="per-sample", weights=weights,

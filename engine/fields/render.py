@@ -478,7 +478,7 @@ def render_field(assets: FieldAssets, intrinsics, world_to_camera, height: int, 
 
 def march_field(assets, intrinsics, world_to_camera, height: int, width: int, evaluate, *, chunk: int = 16384,
                 near: Optional[float] = None, far: Optional[float] = None, shade: Optional[Callable] = None,
-                channels: int = 3) -> dict[str, np.ndarray]:
+                channels: int = 3, transmittance_eps: float = TRANSMITTANCE_EPS) -> dict[str, np.ndarray]:
     """The ray marcher shared by the static and dynamic renderers.
 
     Args:
@@ -488,6 +488,8 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             colour (M, 3))`` at the kept samples (inside the cube, in occupied cells).
         shade: deferred shading: ``evaluate`` gives ``channels`` features a sample, composited on zeros, and
             ``shade(features (R, channels), opacity (R,), unit directions (R, 3)) -> RGB (R, 3)`` makes the colour.
+        transmittance_eps: the early ray termination that ``evaluations`` counts with (the image is always the
+            full march's).
 
     Returns:
         ``color``, ``depth``, ``opacity``, ``evaluations``, ``seconds``, as :func:`render_field`.
@@ -537,7 +539,7 @@ def march_field(assets, intrinsics, world_to_camera, height: int, width: int, ev
             zero = np.zeros(channels, np.float32)
             feats, depth[s:s + r], opacity[s:s + r] = composite_np(sigma, rgb, t, lengths, zero)
             color[s:s + r] = shade(feats, opacity[s:s + r], unit[s:s + r])
-        evaluations[s:s + r] = evaluated_samples(keep, optical_depth(sigma, lengths))
+        evaluations[s:s + r] = evaluated_samples(keep, optical_depth(sigma, lengths), transmittance_eps)
     seconds = time.perf_counter() - start
     return {"color": color.reshape(height, width, 3), "depth": depth.reshape(height, width),
             "opacity": opacity.reshape(height, width), "evaluations": evaluations.reshape(height, width),

@@ -486,13 +486,13 @@ def test_gl_renders_the_baked_oracles_frame(derf_baked, filtering):
     ``GPU_SLACK``. Measured on llvmpipe at t = 0.3 and 1 (32x24): exact filtering colour 3.1e-6 (the defaults
     5.7e-5), opacity 2.3e-6; hardware filtering colour 2.0e-4, opacity 1.7e-4. Samples moved into empty bricks
     get no density (before that was handled the GL colour differed by 0.2 on the lego bake)."""
-    from engine.fields.baked import load_baked_dynamic, render_baked_dynamic
+    from engine.fields.baked import BAKED_TRANSMITTANCE_EPS, load_baked_dynamic, render_baked_dynamic
     from engine.fields.glbaked import GlBakedDynamicRenderer
     from tests.fields.test_glfield import GPU_SLACK
 
     _, _, folder, camera = derf_baked
     baked = load_baked_dynamic(folder)
-    bound = TRANSMITTANCE_EPS + baked.manifest["render"]["num_samples"] * COLOR_EPS
+    bound = BAKED_TRANSMITTANCE_EPS + baked.manifest["render"]["num_samples"] * COLOR_EPS  # the default's stop
     slack = 0.0 if filtering == "exact" else 1e-3
     for options, tol in (({"transmittance_eps": 0.0, "color_eps": 0.0}, 1e-4 + slack), ({}, bound + slack)):
         with GlBakedDynamicRenderer(baked, W, H, filtering=filtering, **options) as renderer:

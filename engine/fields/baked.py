@@ -49,8 +49,9 @@ BAKED_DYNAMIC_FORMAT, BAKED_DYNAMIC_VERSION = "interleave-baked-dynamic-field", 
 #: Largest grid side a manifest may ask for (a dense index of bricks^3 int32 is allocated).
 MAX_RESOLUTION = 4096
 #: The baked renderers' early ray termination (``engine.fields.glbaked``): a ray stops once its transmittance is
-#: below one 8-bit step, so the samples it skips change a pixel's colour and opacity by less than 1/255 (an exact
-#: renderer stops at ``engine.fields.render.TRANSMITTANCE_EPS``, 1e-4). On the lego bakes: 7-14 % fewer evaluations,
+#: below one 8-bit step, so the samples it skips change a pixel's opacity and composited features by less than
+#: 1/255, its colour by what the colour MLP makes of that (an exact renderer stops at
+#: ``engine.fields.render.TRANSMITTANCE_EPS``, 1e-4). On the lego bakes: 7-14 % fewer evaluations,
 #: 3-7 % less time a frame on llvmpipe, >= 65 dB against the 1e-4 render (docs/results/2026-11-30-baked-termination.md).
 BAKED_TRANSMITTANCE_EPS = 1.0 / 255.0
 

@@ -150,7 +150,7 @@ class GlBakedRenderer(GlFieldRenderer):
     ``render_to_buffer``, ``release`` and the options are :class:`engine.fields.gl.GlFieldRenderer`'s (without
     ``quantized`` and ``color_mode``: a baked field is quantised and shaded once per pixel by construction), but
     ``transmittance_eps`` defaults to ``engine.fields.baked.BAKED_TRANSMITTANCE_EPS`` (1/255: what the rest of a
-    ray can add to a pixel is less than one 8-bit step).
+    ray can add to a pixel's opacity and features is less than one 8-bit step).
 
     Raises:
         InputError: bad size or option, an atlas that does not fit a texture.

@@ -10,8 +10,9 @@ path (``engine.fields.camera_path``). ``--json FILE`` also writes the records. T
 the default GL renderer and prints their multiply-add rate (GMAC/s in the MLPs), the figure to set against a
 device's FP32 peak. When the export holds a baked field (``baked.json``, a field trained with deferred shading),
 the static bench also times its GL renderer (``engine.fields.glbaked``: "gl baked", hardware and exact
-filtering, and its early stop at the exact renderers' 1e-4 instead of 1/255) and its numpy reference ("baked numpy"), scored against the same reference as the rest; so does the
-dynamic bench for a baked DeRF field (``baked_dynamic.json``: ``GlBakedDynamicRenderer``, ``render_baked_dynamic``).
+filtering, and its early stop at the exact renderers' 1e-4 instead of 1/255) and its numpy reference ("baked
+numpy"), scored against the same reference as the rest; so does the dynamic bench for a baked DeRF field
+(``baked_dynamic.json``: ``GlBakedDynamicRenderer``, ``render_baked_dynamic``).
 """
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """The sparse-input priors of thesis Ch. 3-4, switchable per run: ``depth`` (DS-NeRF sparse depth from
 SIFT, ``priors_depth``), ``simple`` (Simple-RF augmented model, ``priors_simple``), ``vip`` (ViP-NeRF
-visibility, ``priors_vip``), and ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
-state: ``models.fields.losses.ray_distortion``).
+visibility, ``priors_vip``), ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
+state: ``models.fields.losses.ray_distortion``) and ``smooth`` (RegNeRF's depth smoothness on patches from
+virtual cameras, ``priors_smooth``).
 
 A run's :class:`PriorsConfig` (``FieldTrainConfig.priors``) says which are on and holds their knobs and
 weights; :func:`prior_loss_terms` turns the enabled ones into named :class:`~models.fields.losses.LossTerm`
@@ -26,12 +27,13 @@ from engine.core.errors import InputError
 from models.fields.losses import LossTerm
 from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDepthState
 from models.fields.priors.simple import AugmentedState, SimplePrior
+from models.fields.priors.smooth import DepthSmoothPrior, SmoothState
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
 __all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors",
            "PriorRule", "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
 
-PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
+PRIOR_NAMES = ("depth", "simple", "vip", "distortion", "smooth")
 
 
 @dataclass
@@ -118,6 +120,8 @@ class PriorsConfig:
     vip: VisibilityPrior = field(default_factory=VisibilityPrior, metadata={"help": "ViP-NeRF visibility"})
     distortion: DistortionPrior = field(default_factory=DistortionPrior, metadata={
         "help": "mip-NeRF 360 distortion loss"})
+    smooth: DepthSmoothPrior = field(default_factory=DepthSmoothPrior, metadata={
+        "help": "RegNeRF depth smoothness on patches from virtual cameras"})
 
     def enabled(self) -> list[str]:
         """Names of the priors switched on."""
@@ -136,11 +140,14 @@ class PriorsConfig:
         check_range(self.vip.num_planes, "priors.vip.num_planes", low=2, integer=True)
         check_range(self.vip.start_fraction, "priors.vip.start_fraction", low=0, high=1)
         check_range(self.vip.rays, "priors.vip.rays", low=1, integer=True)
+        check_range(self.smooth.patches, "priors.smooth.patches", low=1, integer=True)
+        check_range(self.smooth.patch_size, "priors.smooth.patch_size", low=2, integer=True)
+        check_range(self.smooth.start_step, "priors.smooth.start_step", low=0, integer=True)
         for name, value in (("depth.weight", self.depth.weight), ("simple.photometric_weight",
                             self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
                             ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
                             self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight),
-                            ("distortion.weight", self.distortion.weight)):
+                            ("distortion.weight", self.distortion.weight), ("smooth.weight", self.smooth.weight)):
             check_range(value, f"priors.{name}", low=0)
         return self
 
@@ -170,6 +177,8 @@ def prior_loss_terms(priors: PriorsConfig, steps: int) -> tuple[LossTerm, ...]:
                   LossTerm("visibility_consistency", v.consistency_weight)]
     if priors.distortion.enabled:
         terms.append(LossTerm("distortion", priors.distortion.weight))
+    if priors.smooth.enabled:
+        terms.append(LossTerm("depth_smoothness", priors.smooth.weight, start_step=priors.smooth.start_step))
     return tuple(terms)
 
 
@@ -182,6 +191,7 @@ class Priors(nn.Module):
         self.depth = SparseDepthState(views, p.depth, cache_dir) if p.depth.enabled else None
         self.simple = AugmentedState(views, config, p.simple, model) if p.simple.enabled else None
         self.vip = VisibilityState(views, config, p.vip, cache_dir) if p.vip.enabled else None
+        self.smooth = SmoothState(views, p.smooth) if p.smooth.enabled else None
 
     def update_occupancy(self, generator: torch.Generator) -> None:
         """The augmented model's occupancy-grid callback (the main model's is the training loop's)."""
@@ -197,6 +207,8 @@ class Priors(nn.Module):
             extras.update(self.simple.extras(model, batch, outputs, generator))
         if self.vip is not None:
             extras.update(self.vip.extras(model, batch, outputs, step, generator))
+        if self.smooth is not None:
+            extras.update(self.smooth.extras(model, generator))
         return extras
 
 

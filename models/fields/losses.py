@@ -154,12 +154,6 @@ def plane_tv_term(inputs: LossInputs) -> Tensor:
     return plane_tv(plane_group(inputs))
 
 
-@register_loss_term("scale_tv")
-def scale_tv_term(inputs: LossInputs) -> Tensor:
-    """The plane TV again, for a second weight on part of the planes (``planes="spatial_32"``: one scale)."""
-    return plane_tv(plane_group(inputs))
-
-
 @register_loss_term("plane_l1")
 def plane_l1_term(inputs: LossInputs) -> Tensor:
     """Mean |feature| of the named plane group (sparsity: empty space)."""

@@ -27,8 +27,8 @@ from models.fields.components.render import render_image
 from models.fields.data.select import DATASETS, detect_dataset, load_run_views, select_views
 from models.fields.data.views import Views, check_views
 from models.fields.losses import LossTerm, RayBatch, default_loss_terms
-from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_loss_weights, auto_priors, build_priors,
-                                        prior_loss_terms, with_priors)
+from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_field_options, auto_loss_weights,
+                                        auto_priors, build_priors, prior_loss_terms, with_priors)
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
@@ -40,7 +40,7 @@ from models.trainer_cli import DEVICES, resolve_device
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
            "config_from_file", "add_run_arguments", "add_config_options", "config_from_command_line",
-           "views_from_args", "parse_run_command", "losses_given", "choose_priors", "run_inputs", "main", "eval_main"]
+           "views_from_args", "parse_run_command", "losses_given", "field_options_given", "choose_priors", "run_inputs", "main", "eval_main"]
 
 
 
@@ -271,15 +271,27 @@ def losses_given(args: argparse.Namespace) -> list[str]:
     return names
 
 
+def field_options_given(args: argparse.Namespace) -> list[str]:
+    """Names of the field options (``FieldConfig``'s) that a command line sets: ``--field.NAME`` options and the
+    keys of the ``--config`` file's ``field`` section."""
+    names = [key.partition(".")[2] for key in vars(args) if key.startswith("field.")]
+    if args.config:
+        section = json.loads(Path(args.config).read_text()).get("field", {})
+        names += list(section) if isinstance(section, dict) else []
+    return names
+
+
 def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None,
-                  given_losses: Sequence[str] = ()) -> FieldTrainConfig:
+                  given_losses: Sequence[str] = (), given_field: Sequence[str] = ()) -> FieldTrainConfig:
     """``config`` with the priors of a command line and ``priors_choice`` saying why.
 
     ``explicit`` (the ``--priors`` text, ``''`` for none) wins; so do priors the config (file or
     ``--priors.NAME.enabled``) already switches on; otherwise :func:`~models.fields.priors.config.auto_priors`
     picks them from the number of train views and the scene type, and the loss weights of the same rule
     (:func:`~models.fields.priors.config.auto_loss_weights`) are set, except for the terms in ``given_losses``
-    (those the command line sets: :func:`losses_given`).
+    (those the command line sets: :func:`losses_given`), and so are its field options
+    (:func:`~models.fields.priors.config.auto_field_options`), except for those in ``given_field``
+    (:func:`field_options_given`).
     """
     if explicit is not None:
         names = [n.strip() for n in explicit.split(",") if n.strip()]
@@ -291,7 +303,9 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
     names, reason = auto_priors(num_views, scene_type)
     weights = [f"{name}={weight!r}" for name, weight in auto_loss_weights(num_views, scene_type)
                if name not in given_losses]
+    options = {name: value for name, value in auto_field_options(num_views, scene_type) if name not in given_field}
     return dataclasses.replace(apply_loss_weights(config, weights), priors=with_priors(config.priors, names),
+                               field=dataclasses.replace(config.field, **options).validate(),
                                priors_choice=f"auto: {reason}")
 
 
@@ -316,7 +330,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
     try:
         device = resolve_device(args.device)
         config, train, test, record = run_inputs(args)
-        config = choose_priors(config, len(train), train.scene_type, args.prior_names, losses_given(args))
+        config = choose_priors(config, len(train), train.scene_type, args.prior_names, losses_given(args),
+                               field_options_given(args))
         print(f"priors: {', '.join(config.priors.enabled()) or 'none'} ({config.priors_choice})", file=sys.stderr)
         out = Path(args.out) if args.out else Path("runs/field") / f"{Path(args.data).resolve().name}-{len(train)}v"
         run = train_field(train, config, out, device=str(device))

@@ -18,7 +18,6 @@ from models.fields.priors.config import PRIOR_NAMES, PriorsConfig, build_priors,
 from models.fields.priors.depth import (SparseDepthPrior, SparseDepthState, projection_matrix, sparse_depth_points,
                                         triangulate_checked, triangulate_dlt)
 from models.fields.priors.simple import mass_concentration, patch_reprojection_error, reliable_depth_masks
-from models.fields.priors.smooth import patch_depth_smoothness, patch_rays, virtual_cameras
 from models.fields.priors.vip import plane_depths_inverse, plane_sweep_visibility
 from models.fields.train_static import FieldTrainConfig, build_model, load_model, main, train_field
 from tests.fields.test_field_train import sphere_views, tiny_config, write_blender
@@ -214,8 +213,7 @@ def test_each_prior_switches_on_and_off_via_config(tmp_path):
     config = tiny_config(steps=4)
     assert prior_loss_terms(config.priors, config.steps) == () and build_priors(None, config, None) is None
     expected = {"depth": {"sift_depth"}, "simple": {"augmented_photometric", "mass_concentration", "augmented_depth"},
-                "vip": {"visibility_prior", "visibility_consistency"}, "distortion": {"distortion"},
-                "smooth": {"depth_smoothness"}}
+                "vip": {"visibility_prior", "visibility_consistency"}, "distortion": {"distortion"}}
     views = sphere_views([0, 40, 80], size=16)
     for name in PRIOR_NAMES:
         on = dataclasses.replace(config, rays_per_batch=64, priors=with_priors(config.priors, [name]))
@@ -552,68 +550,3 @@ def test_epipolar_share_is_low_on_edges_along_the_baseline():
     below.world_to_camera[1, 3] -= 0.3
     share = epipolar_share(grey, views.cameras[1], below, 7)
     assert share[30, 20] > 0.95 and share[15, 60] < 0.05
-
-
-def test_virtual_cameras_run_from_one_training_camera_to_the_other():
-    cams = [_camera([3.0, 0.0, 0.5]), _camera([0.0, 3.0, 1.0]), _camera([-2.0, -2.0, 0.0])]
-    pos = np.stack([c.position for c in cams])
-    rot = np.stack([c.world_to_camera[:3, :3].T for c in cams])
-    pick, other = np.array([0, 1, 2, 0]), np.array([1, 2, 0, 1])
-    centres, rots = virtual_cameras(pos, rot, pick, other, np.array([0.0, 1.0, 0.0, 0.5]))
-    np.testing.assert_allclose(centres[:3], pos[[0, 2, 2]], atol=1e-12)
-    np.testing.assert_allclose(rots[0], rot[0], atol=1e-9)
-    np.testing.assert_allclose(rots[1], rot[2], atol=1e-9)
-    np.testing.assert_allclose(centres[3], 0.5 * (pos[0] + pos[1]), atol=1e-12)
-    np.testing.assert_allclose(rots[3] @ rots[3].T, np.eye(3), atol=1e-9)  # a rotation, halfway in angle
-    half = np.degrees(np.arccos((np.trace(rot[0].T @ rots[3]) - 1) / 2))
-    full = np.degrees(np.arccos((np.trace(rot[0].T @ rot[1]) - 1) / 2))
-    assert abs(half - full / 2) < 1e-6
-
-
-def test_patch_rays_are_the_cameras_pixel_centre_rays():
-    from models.fields.components.sampling import camera_rays
-    cam = _camera([3.0, 0.5, 1.0], size=20)
-    size, corner = 4, np.array([[5, 9]])
-    origins, dirs = patch_rays(cam.position[None], cam.world_to_camera[:3, :3].T[None], cam.intrinsics[None],
-                               corner, size)
-    o_all, d_all = camera_rays(cam.intrinsics, cam.world_to_camera, 20, 20, dtype=torch.float64)
-    rows = (np.arange(size)[:, None] + 9) * 20 + (np.arange(size)[None, :] + 5)
-    np.testing.assert_allclose(dirs, d_all.numpy()[rows.ravel()], atol=1e-12)
-    np.testing.assert_allclose(origins, o_all.numpy()[rows.ravel()], atol=1e-12)
-
-
-def test_patch_depth_smoothness_is_zero_on_constant_patches_and_the_mean_squared_step_on_a_ramp():
-    flat = torch.full((3, 5, 5), 0.4)
-    assert float(patch_depth_smoothness(flat)) == 0.0
-    ramp = 0.1 * torch.arange(5.0)[None, None, :].expand(2, 5, 5)  # across: steps of 0.1; down: none
-    assert float(patch_depth_smoothness(ramp)) == pytest.approx(0.01)
-    step = torch.zeros(1, 4, 4)
-    step[:, 2:, :] = 1.0  # one row boundary of 4 pairs out of 12 vertical pairs
-    assert float(patch_depth_smoothness(step)) == pytest.approx(4 / 12)
-    with pytest.raises(ValueError):
-        patch_depth_smoothness(torch.zeros(2, 3, 4))
-
-
-def test_depth_smoothness_moves_only_the_geometry(tmp_path):
-    """The prior's gradient reaches the planes and the density MLP, never the colour MLP (texture stays free)."""
-    views = sphere_views([0, 40, 80], size=16)
-    config = dataclasses.replace(tiny_config(steps=1), priors=with_priors(PriorsConfig(), ["smooth"]))
-    model = build_model(views, config)
-    priors = build_priors(views, config, model)
-    generator = torch.Generator().manual_seed(0)
-    extras = priors.extras(model, None, None, 0, generator)
-    outputs = extras["depth_smoothness"]["outputs"]
-    assert outputs.color.shape == (config.priors.smooth.patches * config.priors.smooth.patch_size ** 2, 3)
-    term = LossTerm("depth_smoothness", 1.0)
-    loss = LOSS_TERMS["depth_smoothness"](LossInputs(model, None, outputs, 0, term, extras))
-    assert torch.isfinite(loss) and float(loss.detach()) > 0
-    loss.backward()
-    grads = {name: p.grad for name, p in model.field.named_parameters()}
-    assert any(n.startswith("color") for n in grads)
-    assert any(g is not None and float(g.abs().sum()) > 0 for n, g in grads.items() if n.startswith("encoding."))
-    assert all(g is None or float(g.abs().sum()) == 0 for n, g in grads.items() if n.startswith("color"))
-    too_big = dataclasses.replace(config.priors, smooth=dataclasses.replace(config.priors.smooth, patch_size=17))
-    with pytest.raises(InputError, match="patch_size"):
-        build_priors(views, dataclasses.replace(config, priors=too_big), model)
-    with pytest.raises(InputError, match="patch_size"):
-        dataclasses.replace(config.priors, smooth=dataclasses.replace(config.priors.smooth, patch_size=1)).validate()

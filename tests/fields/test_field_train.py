@@ -320,7 +320,8 @@ def test_llff_bad_capture_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_auto_priors_follow_the_ablation():
-    from models.fields.priors.config import PRIOR_NAMES, PRIORS_THAT_PAY, auto_loss_weights, auto_priors
+    from models.fields.priors.config import (PRIOR_NAMES, PRIORS_THAT_PAY, auto_field_options, auto_loss_weights,
+                                             auto_priors)
 
     for scene_type, rule in PRIORS_THAT_PAY.items():
         assert set(rule.names) <= set(PRIOR_NAMES) and rule.names
@@ -331,10 +332,26 @@ def test_auto_priors_follow_the_ablation():
     assert auto_priors(4, "bounded-360")[0] == ("depth", "simple", "vip")  # lego, 4 views: all three paid
     assert auto_priors(3, "forward-facing")[0] == ("depth", "distortion")  # sparse depth and the distortion loss
     assert auto_loss_weights(3, "forward-facing") == (("plane_tv", 0.01),)  # and ten times the plane TV
-    assert "plane_tv=0.01 paid" in auto_priors(3, "forward-facing")[1]
+    assert "plane_tv=0.01 and field.resolutions=32,64,128,256 paid" in auto_priors(3, "forward-facing")[1]
     assert auto_loss_weights(4, "forward-facing") == () == auto_loss_weights(4, "bounded-360")
+    assert auto_field_options(3, "forward-facing") == (("resolutions", (32, 64, 128, 256)),)  # a fourth scale
+    assert auto_field_options(4, "forward-facing") == () == auto_field_options(3, "bounded-360")
     with pytest.raises(InputError, match="scene_type"):
         auto_priors(3, "indoor")
+
+
+def test_the_rules_field_options_apply_unless_given():
+    """``choose_priors`` sets the rule's plane scales on an auto choice, leaves them where the command line gave
+    them, and never touches them for more views, bounded scenes or an explicit --priors."""
+    from models.fields.train_static import FieldTrainConfig, choose_priors
+
+    base = FieldTrainConfig()
+    assert choose_priors(base, 3, "forward-facing").field.resolutions == (32, 64, 128, 256)
+    given = dataclasses.replace(base, field=dataclasses.replace(base.field, resolutions=(8, 16)))
+    assert choose_priors(given, 3, "forward-facing", given_field=["resolutions"]).field.resolutions == (8, 16)
+    assert choose_priors(base, 4, "forward-facing").field.resolutions == base.field.resolutions
+    assert choose_priors(base, 3, "bounded-360").field.resolutions == base.field.resolutions
+    assert choose_priors(base, 3, "forward-facing", "depth").field.resolutions == base.field.resolutions
 
 
 #: A --config file that sets the plane TV weight (as a run's saved config.json does).
@@ -370,6 +387,7 @@ def test_llff_priors_by_default_where_they_pay(tmp_path_factory, capsys, views, 
     assert cli_main(argv + loss + ([] if given is None else ["--priors", given])) == 0
     saved = json.loads((run / "config.json").read_text())
     assert [t["weight"] for t in saved["losses"] if t["name"] == "plane_tv"] == [plane_tv]
+    assert saved["field"]["resolutions"] == [8, 16]  # given on the command line: the rule's scales do not apply
     assert [n for n in PRIOR_NAMES if saved["priors"][n]["enabled"]] == enabled
     assert saved["priors_choice"].startswith(choice)
     assert f"priors: {', '.join(enabled) or 'none'} ({saved['priors_choice']})" in capsys.readouterr().err

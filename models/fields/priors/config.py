@@ -1,8 +1,7 @@
 """The sparse-input priors of thesis Ch. 3-4, switchable per run: ``depth`` (DS-NeRF sparse depth from
 SIFT, ``priors_depth``), ``simple`` (Simple-RF augmented model, ``priors_simple``), ``vip`` (ViP-NeRF
-visibility, ``priors_vip``), ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
-state: ``models.fields.losses.ray_distortion``) and ``smooth`` (RegNeRF's depth smoothness on patches from
-virtual cameras, ``priors_smooth``).
+visibility, ``priors_vip``), and ``distortion`` (mip-NeRF 360's distortion loss on the batch's own rays, no
+state: ``models.fields.losses.ray_distortion``).
 
 A run's :class:`PriorsConfig` (``FieldTrainConfig.priors``) says which are on and holds their knobs and
 weights; :func:`prior_loss_terms` turns the enabled ones into named :class:`~models.fields.losses.LossTerm`
@@ -27,13 +26,12 @@ from engine.core.errors import InputError
 from models.fields.losses import LossTerm
 from models.fields.priors.depth import DEPTH_SOURCES, SparseDepthPrior, SparseDepthState
 from models.fields.priors.simple import AugmentedState, SimplePrior
-from models.fields.priors.smooth import DepthSmoothPrior, SmoothState
 from models.fields.priors.vip import VisibilityPrior, VisibilityState
 
 __all__ = ["PRIOR_NAMES", "DistortionPrior", "PriorsConfig", "with_priors", "prior_loss_terms", "Priors", "build_priors",
-           "PriorRule", "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights"]
+           "PriorRule", "PRIORS_THAT_PAY", "auto_priors", "auto_loss_weights", "auto_field_options"]
 
-PRIOR_NAMES = ("depth", "simple", "vip", "distortion", "smooth")
+PRIOR_NAMES = ("depth", "simple", "vip", "distortion")
 
 
 @dataclass
@@ -48,12 +46,14 @@ class DistortionPrior:
 @dataclass(frozen=True)
 class PriorRule:
     """The priors that paid on one kind of scene up to ``max_views`` train views, the loss weights that paid
-    there too (``(term, weight)``, as ``--loss TERM=WEIGHT``), and the measurement."""
+    there too (``(term, weight)``, as ``--loss TERM=WEIGHT``), the field options that did (``(name, value)``,
+    as ``--field.NAME VALUE``), and the measurement."""
 
     max_views: int
     names: tuple[str, ...]
     evidence: str
     loss_weights: tuple[tuple[str, float], ...] = ()
+    field_options: tuple[tuple[str, Any], ...] = ()
 
 
 #: What paid in the prior ablation (``tools.field_ablation``, one seed; differences under ~0.6 dB are not
@@ -70,8 +70,12 @@ PRIORS_THAT_PAY: dict[str, PriorRule] = {
                                 "504x378 rigs, 3 views, two seeds: +1.65 / +1.09 / -0.45 dB, "
                                 "docs/results/2026-11-29-ff-distortion.md; the plane TV at 0.01 instead of 0.001 on "
                                 "top, same rigs and seeds: +0.37 / +0.51 / +0.59 dB, "
-                                "docs/results/2026-11-29-ff-ablations.md",
-                                loss_weights=(("plane_tv", 0.01),)),
+                                "docs/results/2026-11-29-ff-ablations.md; a fourth plane scale (256) on top, same "
+                                "rigs and the path-traced capture, two seeds: +0.41 to +1.63 dB on all 8 runs "
+                                "(+0.99 mean) at 1.48x the training time, "
+                                "docs/results/2026-11-30-ff-plane-scales.md",
+                                loss_weights=(("plane_tv", 0.01),),
+                                field_options=(("resolutions", (32, 64, 128, 256)),)),
 }
 
 
@@ -85,6 +89,8 @@ def auto_priors(num_views: int, scene_type: str) -> tuple[tuple[str, ...], str]:
     rule = _rule(num_views, scene_type)
     if num_views <= rule.max_views:
         weights = "".join(f" and {name}={weight:g}" for name, weight in rule.loss_weights)
+        weights += "".join(f" and field.{name}={','.join(map(str, value)) if isinstance(value, tuple) else value}"
+                           for name, value in rule.field_options)
         return rule.names, (f"{num_views} train views <= {rule.max_views} on a {scene_type} scene: "
                             f"{','.join(rule.names)}{weights} paid ({rule.evidence})")
     return (), (f"{num_views} train views > {rule.max_views} on a {scene_type} scene: no prior paid "
@@ -100,6 +106,17 @@ def auto_loss_weights(num_views: int, scene_type: str) -> tuple[tuple[str, float
     """
     rule = _rule(num_views, scene_type)
     return rule.loss_weights if num_views <= rule.max_views else ()
+
+
+def auto_field_options(num_views: int, scene_type: str) -> tuple[tuple[str, Any], ...]:
+    """The ``(name, value)`` field options :data:`PRIORS_THAT_PAY` sets for a run with ``num_views`` train views
+    of a ``scene_type`` scene (none with more views than its rule's).
+
+    >>> auto_field_options(3, "forward-facing"), auto_field_options(3, "bounded-360")
+    ((('resolutions', (32, 64, 128, 256)),), ())
+    """
+    rule = _rule(num_views, scene_type)
+    return rule.field_options if num_views <= rule.max_views else ()
 
 
 def _rule(num_views: int, scene_type: str) -> PriorRule:
@@ -120,8 +137,6 @@ class PriorsConfig:
     vip: VisibilityPrior = field(default_factory=VisibilityPrior, metadata={"help": "ViP-NeRF visibility"})
     distortion: DistortionPrior = field(default_factory=DistortionPrior, metadata={
         "help": "mip-NeRF 360 distortion loss"})
-    smooth: DepthSmoothPrior = field(default_factory=DepthSmoothPrior, metadata={
-        "help": "RegNeRF depth smoothness on patches from virtual cameras"})
 
     def enabled(self) -> list[str]:
         """Names of the priors switched on."""
@@ -140,14 +155,11 @@ class PriorsConfig:
         check_range(self.vip.num_planes, "priors.vip.num_planes", low=2, integer=True)
         check_range(self.vip.start_fraction, "priors.vip.start_fraction", low=0, high=1)
         check_range(self.vip.rays, "priors.vip.rays", low=1, integer=True)
-        check_range(self.smooth.patches, "priors.smooth.patches", low=1, integer=True)
-        check_range(self.smooth.patch_size, "priors.smooth.patch_size", low=2, integer=True)
-        check_range(self.smooth.start_step, "priors.smooth.start_step", low=0, integer=True)
         for name, value in (("depth.weight", self.depth.weight), ("simple.photometric_weight",
                             self.simple.photometric_weight), ("simple.mass_weight", self.simple.mass_weight),
                             ("simple.depth_weight", self.simple.depth_weight), ("vip.prior_weight",
                             self.vip.prior_weight), ("vip.consistency_weight", self.vip.consistency_weight),
-                            ("distortion.weight", self.distortion.weight), ("smooth.weight", self.smooth.weight)):
+                            ("distortion.weight", self.distortion.weight)):
             check_range(value, f"priors.{name}", low=0)
         return self
 
@@ -177,8 +189,6 @@ def prior_loss_terms(priors: PriorsConfig, steps: int) -> tuple[LossTerm, ...]:
                   LossTerm("visibility_consistency", v.consistency_weight)]
     if priors.distortion.enabled:
         terms.append(LossTerm("distortion", priors.distortion.weight))
-    if priors.smooth.enabled:
-        terms.append(LossTerm("depth_smoothness", priors.smooth.weight, start_step=priors.smooth.start_step))
     return tuple(terms)
 
 
@@ -191,7 +201,6 @@ class Priors(nn.Module):
         self.depth = SparseDepthState(views, p.depth, cache_dir) if p.depth.enabled else None
         self.simple = AugmentedState(views, config, p.simple, model) if p.simple.enabled else None
         self.vip = VisibilityState(views, config, p.vip, cache_dir) if p.vip.enabled else None
-        self.smooth = SmoothState(views, p.smooth) if p.smooth.enabled else None
 
     def update_occupancy(self, generator: torch.Generator) -> None:
         """The augmented model's occupancy-grid callback (the main model's is the training loop's)."""
@@ -207,8 +216,6 @@ class Priors(nn.Module):
             extras.update(self.simple.extras(model, batch, outputs, generator))
         if self.vip is not None:
             extras.update(self.vip.extras(model, batch, outputs, step, generator))
-        if self.smooth is not None:
-            extras.update(self.smooth.extras(model, generator))
         return extras
 
 

@@ -164,10 +164,8 @@ class TriPlaneField(nn.Module):
         return self.encoding.spatial_planes()
 
     def plane_groups(self) -> dict[str, list[Tensor]]:
-        """Plane groups by name, for loss terms that name the group they act on: ``spatial`` (every scale) and
-        ``spatial_R`` (the scale of side R alone, e.g. ``spatial_32``)."""
-        planes = self.spatial_planes()
-        return {"spatial": planes, **{f"spatial_{int(p.shape[-1])}": [p] for p in planes}}
+        """Plane groups by name, for loss terms that name the group they act on."""
+        return {"spatial": self.spatial_planes()}
 
     # F1, F2 -----------------------------------------------------------------------------------------
     def get_density(self, coords: Tensor) -> tuple[Tensor, Tensor]:

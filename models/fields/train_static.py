@@ -40,7 +40,8 @@ from models.trainer_cli import DEVICES, resolve_device
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
            "rank_correlation", "run_train_seconds", "load_run_views", "select_views", "detect_dataset",
            "config_from_file", "add_run_arguments", "add_config_options", "config_from_command_line",
-           "views_from_args", "parse_run_command", "losses_given", "field_options_given", "choose_priors", "run_inputs", "main", "eval_main"]
+           "views_from_args", "parse_run_command", "losses_given", "field_options_given", "choose_priors", "run_inputs",
+           "main", "eval_main"]
 
 
 

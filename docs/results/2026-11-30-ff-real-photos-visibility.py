@@ -18,18 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.core.colorspace import display_encode
 from engine.io.rgbd import read_sequence
 from models.fields.data.select import load_run_views
 from models.fields.train_static import load_model, evaluate_field
 
 #: A training view sees a point when its own depth there is within this fraction of the point's depth.
 DEPTH_TOLERANCE = 0.02
-
-
-def srgb(x: np.ndarray) -> np.ndarray:
-    """Display encoding of linear colour in [0, 1]."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
 def seen_by(frame, train_frames) -> np.ndarray:
@@ -70,7 +65,7 @@ def main(argv: list[str]) -> int:
         for name, image in zip(views.names, scores["images"]):
             frame = frames[name]
             groups = seen_by(frame, train_frames)
-            error = ((srgb(image["color"]) - srgb(frame.color)) ** 2).mean(-1)
+            error = ((display_encode(image["color"]) - display_encode(frame.color)) ** 2).mean(-1)
             rows = {}
             for k in range(-1, len(train_frames) + 1):
                 mask = groups == k

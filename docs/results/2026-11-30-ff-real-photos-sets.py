@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.fields.data.views import llff_scene_type, load_llff
+from models.fields.data.views import llff_scene_type, load_llff, optical_axis_spread
 
 #: Set name -> the capture's photo numbers (its stretches that face one way).
 SETS = {"ffA": range(0, 6), "ffB": range(9, 14), "ffC": range(56, 63)}
@@ -38,9 +38,7 @@ def main(argv: list[str]) -> int:
     for name, photos in SETS.items():
         write_set(src, out / name, photos)
         views = load_llff(out / name, downscale=8)
-        axes = np.array([c.camera_to_world[:3, 2] for c in views.cameras])
-        mean = axes.mean(axis=0) / np.linalg.norm(axes.mean(axis=0))
-        spread = np.degrees(np.arccos(np.clip(axes @ mean, -1.0, 1.0))).max()
+        spread = optical_axis_spread(views.cameras)
         extent = np.ptp(np.stack([c.position for c in views.cameras]), axis=0)
         print(f"{name}: photos {photos.start}-{photos.stop - 1}, {llff_scene_type(views.cameras)}, "
               f"axes within {spread:.1f} deg, centres' extent {np.round(extent, 2).tolist()}")

@@ -160,7 +160,7 @@ def test_llff_conversion_projects_like_the_llff_convention(tmp_path):
 
 
 def test_llff_scene_type_follows_the_spread_of_the_cameras(tmp_path):
-    from models.fields.data.views import FORWARD_FACING_MAX_DEG, llff_scene_type
+    from models.fields.data.views import FORWARD_FACING_MAX_DEG, llff_scene_type, optical_axis_spread
 
     _llff_scene(tmp_path, np.random.default_rng(0), factor=2)  # random orientations: looking around
     assert load_llff(tmp_path, downscale=2).scene_type == "bounded-360"
@@ -176,6 +176,9 @@ def test_llff_scene_type_follows_the_spread_of_the_cameras(tmp_path):
     assert llff_scene_type([camera(-0.9 * spread), camera(0.0), camera(0.9 * spread)]) == "forward-facing"
     assert llff_scene_type([camera(-1.2 * spread), camera(0.0), camera(1.2 * spread)]) == "bounded-360"
     assert llff_scene_type([camera(0.0), camera(180.0)]) == "bounded-360"  # opposite axes: no mean direction
+    assert optical_axis_spread([camera(-20.0), camera(0.0), camera(20.0)]) == pytest.approx(20.0, abs=1e-9)
+    assert optical_axis_spread([camera(0.0), camera(30.0)]) == pytest.approx(15.0, abs=1e-9)  # from the mean axis
+    assert optical_axis_spread([camera(0.0), camera(180.0)]) == 180.0
 
 
 def test_llff_image_count_mismatch_is_an_error(tmp_path):

@@ -43,9 +43,9 @@ from engine.io.llff import read_llff
 from engine.io.rgbd import read_rig
 
 __all__ = ["SCENE_TYPES", "Views", "check_views", "split_indices", "box_from_cameras", "load_nerf_synthetic",
-           "FORWARD_FACING_MAX_DEG", "llff_scene_type", "load_llff", "load_rig", "read_transforms",
-           "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image", "nearest_depth",
-           "scale_k"]
+           "FORWARD_FACING_MAX_DEG", "optical_axis_spread", "llff_scene_type", "load_llff", "load_rig",
+           "read_transforms", "check_listed_frames", "IMAGE_SUFFIXES", "read_png", "read_blender_frame", "resize_image",
+           "nearest_depth", "scale_k"]
 
 SCENE_TYPES = ("bounded-360", "forward-facing")
 
@@ -387,17 +387,23 @@ def load_nerf_synthetic(root: str | Path, split: str = "train", *, downscale: in
 FORWARD_FACING_MAX_DEG = 30.0
 
 
-def llff_scene_type(cameras: Sequence[Camera]) -> str:
-    """``forward-facing`` when every camera's optical axis is within ``FORWARD_FACING_MAX_DEG`` of the mean axis
-    (LLFF's own scenes: a few degrees), else ``bounded-360`` (a capture walked around its object, such as
-    ``llff_beer``, 84 degrees: the NDC of the mean camera cannot hold the views far from it)."""
+def optical_axis_spread(cameras: Sequence[Camera]) -> float:
+    """The largest angle, in degrees, between a camera's optical axis (its camera-to-world +z, normalised) and the
+    cameras' mean axis; 180 when the axes cancel out (no mean direction, e.g. two opposite cameras)."""
     axes = np.array([cam.camera_to_world[:3, 2] / np.linalg.norm(cam.camera_to_world[:3, 2]) for cam in cameras])
     mean = axes.mean(axis=0)
     norm = np.linalg.norm(mean)
     if norm < 1e-6:
-        return "bounded-360"
-    spread = np.degrees(np.arccos(np.clip(axes @ (mean / norm), -1.0, 1.0))).max()
-    return "forward-facing" if spread <= FORWARD_FACING_MAX_DEG else "bounded-360"
+        return 180.0
+    return float(np.degrees(np.arccos(np.clip(axes @ (mean / norm), -1.0, 1.0))).max())
+
+
+def llff_scene_type(cameras: Sequence[Camera]) -> str:
+    """``forward-facing`` when every camera's optical axis is within ``FORWARD_FACING_MAX_DEG`` of the mean axis
+    (:func:`optical_axis_spread`; LLFF's own scenes: a few degrees), else ``bounded-360`` (a capture walked
+    around its object, such as ``llff_beer``, 84 degrees: the NDC of the mean camera cannot hold the views far
+    from it)."""
+    return "forward-facing" if optical_axis_spread(cameras) <= FORWARD_FACING_MAX_DEG else "bounded-360"
 
 
 def load_llff(root: str | Path, *, downscale: Optional[int] = None, scene_type: str = "auto") -> Views:

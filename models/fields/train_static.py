@@ -261,25 +261,27 @@ def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]
     return args
 
 
+def _config_section(args: argparse.Namespace, key: str):
+    """The ``key`` section of the ``--config`` file (None without one, or without the section). The file was
+    read and checked by :func:`config_from_command_line`."""
+    return json.loads(Path(args.config).read_text()).get(key) if args.config else None
+
+
 def losses_given(args: argparse.Namespace) -> list[str]:
     """Names of the loss terms whose weights a command line sets: those ``--loss`` names and those the
     ``--config`` file lists under ``losses`` (a run's saved ``config.json`` lists them all, so training again
-    from it keeps its weights). The file was read and checked by :func:`config_from_command_line`."""
-    names = [spec.partition("=")[0] for spec in args.loss]
-    if args.config:
-        terms = json.loads(Path(args.config).read_text()).get("losses", [])
-        names += [t["name"] for t in terms if isinstance(t, dict) and "name" in t]
-    return names
+    from it keeps its weights)."""
+    terms = _config_section(args, "losses")
+    return [spec.partition("=")[0] for spec in args.loss] + [
+        t["name"] for t in (terms if isinstance(terms, list) else []) if isinstance(t, dict) and "name" in t]
 
 
 def field_options_given(args: argparse.Namespace) -> list[str]:
     """Names of the field options (``FieldConfig``'s) that a command line sets: ``--field.NAME`` options and the
     keys of the ``--config`` file's ``field`` section."""
-    names = [key.partition(".")[2] for key in vars(args) if key.startswith("field.")]
-    if args.config:
-        section = json.loads(Path(args.config).read_text()).get("field", {})
-        names += list(section) if isinstance(section, dict) else []
-    return names
+    section = _config_section(args, "field")
+    return [key.partition(".")[2] for key in vars(args) if key.startswith("field.")] + (
+        list(section) if isinstance(section, dict) else [])
 
 
 def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None,

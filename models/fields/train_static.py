@@ -288,9 +288,10 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
                   given_losses: Sequence[str] = (), given_field: Sequence[str] = ()) -> FieldTrainConfig:
     """``config`` with the priors of a command line and ``priors_choice`` saying why.
 
-    ``explicit`` (the ``--priors`` text, ``''`` for none) wins; so do priors the config (file or
-    ``--priors.NAME.enabled``) already switches on; otherwise :func:`~models.fields.priors.config.auto_priors`
-    picks them from the number of train views and the scene type, and the loss weights of the same rule
+    ``explicit`` (the ``--priors`` text, ``''`` for none) wins: exactly those priors. Otherwise
+    :func:`~models.fields.priors.config.auto_priors` picks priors from the number of train views and the scene type
+    and switches them on beside those the config (file or ``--priors.NAME.enabled``) already switches on (a recipe
+    such as ``configs/field-baked.json`` adds its own); the loss weights of the same rule
     (:func:`~models.fields.priors.config.auto_loss_weights`) are set, except for the terms in ``given_losses``
     (those the command line sets: :func:`losses_given`), and so are its field options
     (:func:`~models.fields.priors.config.auto_field_options`), except for those in ``given_field``
@@ -300,16 +301,15 @@ def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, exp
         names = [n.strip() for n in explicit.split(",") if n.strip()]
         priors = with_priors(config.priors, names)
         return dataclasses.replace(config, priors=priors, priors_choice=f"explicit: --priors '{','.join(names)}'")
-    if config.priors.enabled():
-        enabled = ",".join(config.priors.enabled())
-        return dataclasses.replace(config, priors_choice=f"explicit: the config enables {enabled}")
     names, reason = auto_priors(num_views, scene_type)
+    configured = config.priors.enabled()
     weights = [f"{name}={weight!r}" for name, weight in auto_loss_weights(num_views, scene_type)
                if name not in given_losses]
     options = {name: value for name, value in auto_field_options(num_views, scene_type) if name not in given_field}
-    return dataclasses.replace(apply_loss_weights(config, weights), priors=with_priors(config.priors, names),
-                               field=dataclasses.replace(config.field, **options).validate(),
-                               priors_choice=f"auto: {reason}")
+    choice = f"auto: {reason}" + (f"; the config enables {','.join(configured)}" if configured else "")
+    return dataclasses.replace(apply_loss_weights(config, weights),
+                               priors=with_priors(config.priors, [*configured, *names]),
+                               field=dataclasses.replace(config.field, **options).validate(), priors_choice=choice)
 
 
 def run_inputs(args: argparse.Namespace) -> tuple[FieldTrainConfig, Views, Views, dict[str, Any]]:

@@ -95,14 +95,17 @@ def test_the_baked_render_is_the_exact_render_of_the_same_field(deferred_run):
 
 
 def test_the_baking_config_is_a_deferred_field_filling_two_texel_groups_exactly():
-    """``configs/field-baked.json`` (docs/fields.md): deferred shading, and a latent whose features plus the density
-    lane fill two RGBA groups with no empty lane (each group costs the baked shader its own fetches per sample)."""
+    """``configs/field-baked.json`` (docs/fields.md): deferred shading, a latent whose features plus the density
+    lane fill two RGBA groups with no empty lane (each group costs the baked shader its own fetches per sample),
+    and the distortion loss."""
     config = config_from_file(Path(__file__).resolve().parents[2] / "configs" / "field-baked.json")
     config.validate()
     assert config.field.shading == "deferred" and not config.field.residual_density_grad
     assert channel_groups(config.field.geo_feature_dim) == 2
     assert 4 * channel_groups(config.field.geo_feature_dim) == config.field.geo_feature_dim + 1
     assert [channel_groups(d) for d in (3, 4, 7, 8, 15)] == [1, 2, 2, 3, 4]
+    # the distortion loss at 3e-3: fewer samples a pixel to bake (docs/results/2026-11-30-baked-distortion.md)
+    assert config.priors.enabled() == ["distortion"] and config.priors.distortion.weight == 3e-3
 
 
 def test_only_deferred_fields_bake():

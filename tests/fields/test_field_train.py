@@ -354,6 +354,24 @@ def test_the_rules_field_options_apply_unless_given():
     assert choose_priors(base, 3, "forward-facing", "depth").field.resolutions == base.field.resolutions
 
 
+def test_the_auto_choice_keeps_the_priors_a_config_switches_on():
+    """A recipe's priors (``configs/field-baked.json``'s distortion loss) stay on beside the auto choice, which
+    still applies its rule; an explicit ``--priors`` replaces both."""
+    from models.fields.priors.config import with_priors
+    from models.fields.train_static import FieldTrainConfig, choose_priors
+
+    base = FieldTrainConfig()
+    recipe = dataclasses.replace(base, priors=with_priors(base.priors, ["distortion"]))
+    ff = choose_priors(recipe, 3, "forward-facing")
+    assert ff.priors.enabled() == ["depth", "distortion"] and ff.field.resolutions == (32, 64, 128, 256)
+    assert ff.priors_choice.startswith("auto: 3 train views") and ff.priors_choice.endswith("the config enables "
+                                                                                            "distortion")
+    assert choose_priors(recipe, 4, "bounded-360").priors.enabled() == ["depth", "simple", "vip", "distortion"]
+    assert choose_priors(recipe, 8, "bounded-360").priors.enabled() == ["distortion"]
+    assert choose_priors(base, 8, "bounded-360").priors.enabled() == []
+    assert choose_priors(recipe, 8, "bounded-360", "").priors.enabled() == []
+
+
 #: A --config file that sets the plane TV weight (as a run's saved config.json does).
 TV_FILE = ["--config", json.dumps({"losses": [{"name": "photometric"}, {"name": "plane_tv", "weight": 0.003}]})]
 

@@ -81,6 +81,7 @@ from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
+from engine.core.checks import check_range
 from engine.core.errors import InputError
 from engine.core.frames import validate_intrinsics, validate_pose
 from engine.fields.render import (FAR_AT_INFINITY, MIN_NEAR, OPACITY_EPS, PLANE_AXES, SH_C0, SH_C1, SH_C2, SH_C3,
@@ -994,6 +995,27 @@ class GlFieldRenderer:
         if count is not None:
             out["evaluations"] = count.copy()
         return out
+
+    def dispatch_seconds(self, intrinsics, world_to_camera, frames: int = 1) -> list[float]:
+        """Wall seconds of ``frames`` renders from this camera, one after another, each from its dispatch to
+        ``ctx.finish()`` with nothing read back: the renderer's own time, for benchmarks. The frames go to this
+        renderer's buffers; uniforms that only :meth:`render` sets (a dynamic field's time) keep the last render's.
+
+        Raises:
+            InputError: ``frames`` not an integer >= 1; bad intrinsics or pose.
+        """
+        frames = check_range(frames, "frames", low=1, integer=True)
+        dispatch = self._dispatcher(intrinsics, world_to_camera)
+
+        def timed() -> list[float]:
+            seconds = []
+            for _ in range(frames):
+                start = time.perf_counter()
+                dispatch()
+                self.ctx.finish()
+                seconds.append(time.perf_counter() - start)
+            return seconds
+        return self._run(timed)
 
     def render_to_buffer(self, intrinsics, world_to_camera):
         """``render`` with nothing read back, on a renderer made with ``context``: returns this renderer's

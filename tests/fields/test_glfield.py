@@ -202,6 +202,24 @@ def test_renders_are_repeatable_and_the_renderer_reusable(bounded_run):
     renderer.release()  # a second release is harmless
 
 
+def test_dispatch_seconds_times_frames_that_render_leaves_unchanged(bounded_run):
+    """``dispatch_seconds``: one wall time per frame (dispatch to finish, no readback); the frames it draws are the
+    renderer's own, so the next render is the same; bad counts and cameras raise InputError."""
+    _, out, _ = bounded_run
+    cam = _camera("bounded_run")
+    with glfield.GlFieldRenderer(load_field(out), W, H) as renderer:
+        before = renderer.render(cam.intrinsics, cam.world_to_camera)
+        seconds = renderer.dispatch_seconds(cam.intrinsics, cam.world_to_camera, 3)
+        after = renderer.render(cam.intrinsics, cam.world_to_camera)
+        assert len(seconds) == 3 and all(isinstance(t, float) and t > 0 for t in seconds)
+        assert np.array_equal(before["color"], after["color"])
+        for bad in (0, 1.5, True):
+            with pytest.raises(InputError, match="frames"):
+                renderer.dispatch_seconds(cam.intrinsics, cam.world_to_camera, bad)
+        with pytest.raises(InputError, match="intrinsics"):
+            renderer.dispatch_seconds(np.eye(4), cam.world_to_camera)
+
+
 def test_bad_inputs_raise_input_error(bounded_run, tmp_path):
     _, out, _ = bounded_run
     cam = _camera("bounded_run")

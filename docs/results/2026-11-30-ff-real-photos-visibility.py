@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.core.colorspace import display_encode
+from engine.geometry.camera import reproject
 from engine.io.rgbd import read_sequence
 from models.fields.data.select import load_run_views
 from models.fields.train_static import load_model, evaluate_field
@@ -30,26 +31,16 @@ DEPTH_TOLERANCE = 0.02
 def seen_by(frame, train_frames) -> np.ndarray:
     """(H, W) int: how many of ``train_frames`` see each pixel's true surface point; -1 where there is none."""
     h, w = frame.depth.shape
-    v, u = np.mgrid[0:h, 0:w]
-    pixels = np.stack([u + 0.5, v + 0.5, np.ones((h, w))], -1).reshape(-1, 3)
-    z = frame.depth.reshape(-1).astype(np.float64)
-    finite = np.isfinite(z)
-    c2w = frame.camera.camera_to_world
-    points = (pixels @ np.linalg.inv(frame.camera.intrinsics).T) * np.where(finite, z, 1.0)[:, None]
-    points = points @ c2w[:3, :3].T + c2w[:3, 3]
-    count = np.zeros(h * w, int)
+    finite = np.isfinite(frame.depth)
+    count = np.zeros((h, w), int)
     for other in train_frames:
-        w2c = other.camera.world_to_camera
-        q = points @ w2c[:3, :3].T + w2c[:3, 3]
-        uv = q @ other.camera.intrinsics.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x, y = uv[:, 0] / q[:, 2], uv[:, 1] / q[:, 2]
-        inside = finite & (q[:, 2] > 0) & (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        row = np.clip(np.nan_to_num(y), 0, h - 1).astype(int)
-        column = np.clip(np.nan_to_num(x), 0, w - 1).astype(int)
-        there = other.depth[row, column]
-        count += inside & (np.abs(there - q[:, 2]) < DEPTH_TOLERANCE * q[:, 2])
-    return np.where(finite, count, -1).reshape(h, w)
+        uv, z, valid = reproject(frame.depth, frame.camera.intrinsics, frame.camera.world_to_camera,
+                                 other.camera.intrinsics, other.camera.world_to_camera)
+        x, y = uv[..., 0], uv[..., 1]
+        inside = finite & valid & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        there = other.depth[np.clip(y, 0, h - 1).astype(int), np.clip(x, 0, w - 1).astype(int)]
+        count += inside & (np.abs(there - z) < DEPTH_TOLERANCE * z)
+    return np.where(finite, count, -1)
 
 
 def main(argv: list[str]) -> int:

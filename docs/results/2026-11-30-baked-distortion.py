@@ -29,10 +29,9 @@ from models.fields.data.select import load_run_views
 ROUNDS, FRAMES = 5, 4
 
 
-def _score(run: Path, export: Path, test, width: int, height: int) -> list[dict]:
+def _score(baked, exact, test, width: int, height: int) -> list[dict]:
     """Per held-out view: evaluations per pixel and PSNR against the exact render at ``width`` x ``height``; the
     held-out PSNR of the baked and the exact render at the test size."""
-    baked, exact = load_baked(export), load_field(export)
     renderers = [GlBakedRenderer(baked, width, height, count_evaluations=True), GlFieldRenderer(exact, width, height),
                  GlBakedRenderer(baked, test.width, test.height), GlFieldRenderer(exact, test.width, test.height)]
     count, exact_big, baked_test, exact_test = renderers
@@ -72,8 +71,9 @@ def main(argv: list[str]) -> int:
         run, _, export = spec.partition(":")
         runs[Path(run).name] = (Path(run), Path(export) if export else Path(run) / "export")
     _, test = load_run_views(next(iter(runs.values()))[0])
-    rows = {name: _score(run, export, test, width, height) for name, (run, export) in runs.items()}
-    renderers = {name: GlBakedRenderer(load_baked(export), width, height) for name, (_, export) in runs.items()}
+    baked = {name: load_baked(export) for name, (_, export) in runs.items()}
+    rows = {name: _score(baked[name], load_field(export), test, width, height) for name, (_, export) in runs.items()}
+    renderers = {name: GlBakedRenderer(baked[name], width, height) for name in runs}
     _time(renderers, rows, test, width, height)
     for r in renderers.values():
         r.release()

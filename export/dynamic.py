@@ -18,8 +18,9 @@
   (``canonical_limit`` from ``RUN_DIR/scores.json`` when the run was evaluated) so a renderer can warn at the
   flagged times instead of showing garbage.
 
-Parity: :func:`check_parity` holds onnxruntime against torch on random points, times and directions in and
-around the cube; the command fails above ``--tolerance``.
+Parity: :func:`check_parity` holds onnxruntime against the field evaluated by torch in float64 on random points,
+times and directions in and around the cube; the command fails as ``export field`` does
+(:func:`export.field.parity_excess`).
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from export.field import example_points, export_command, query_outputs, run_as_script, strip_debug
+from export.field import example_points, export_command, parity_figures, query_outputs, run_as_script, strip_debug
 from models.fields.assets import DYNAMIC_FORMAT, DYNAMIC_VERSION, OPSET, dynamic_assets
 from models.fields.bake import DEFAULT_RESOLUTION, bakes_dynamic, write_baked
 from models.fields.data.select import load_dynamic_run_views
@@ -81,18 +82,13 @@ def example_queries(model, count: int = 4096, seed: int = 0) -> tuple[Tensor, Te
 
 def check_parity(onnx_path: Union[str, Path], run_or_model, points: Tensor, times: Tensor, directions: Tensor
                  ) -> dict[str, float]:
-    """Largest |onnxruntime - torch| of density (relative to max(1, |density|)) and of colour."""
+    """:func:`export.field.parity_figures` of the ONNX query at ``onnx_path`` against the model's query graph."""
     import onnxruntime as ort
 
     model = _model(run_or_model)
-    with torch.no_grad():
-        sigma, rgb = DynamicQueryGraph(model)(points, times, directions)
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    got_sigma, got_rgb = session.run(None, {"points": points.numpy(), "times": times.numpy(),
-                                            "directions": directions.numpy()})
-    s = sigma.numpy()
-    return {"density": float(np.max(np.abs(got_sigma - s) / np.maximum(1.0, np.abs(s)))) if s.size else 0.0,
-            "color": float(np.max(np.abs(got_rgb - rgb.numpy()))) if s.size else 0.0}
+    got = session.run(None, {"points": points.numpy(), "times": times.numpy(), "directions": directions.numpy()})
+    return parity_figures(DynamicQueryGraph(model).eval(), (points, times, directions), (got[0], got[1]))
 
 
 def export_dynamic(run_dir: Union[str, Path], out_dir: Union[str, Path], *, views=None,

@@ -14,6 +14,11 @@ vectors and ``oracle`` are made of) and compares that screen motion with frame n
 - over the static background (where the field should move nothing): the end-point error and the share of its
   pixels the field moves by more than 0.25 px.
 
+- the flow MLP's hidden units that no point of the cube at any trained time switches on (ReLU input <= 0 at
+  :data:`UNIT_SAMPLES` uniform random points and times, seeded): a unit that the training switched off for
+  every input gets no gradient again, so a field whose units all died moves nothing, whatever its prior asks
+  (``docs/results/2026-11-30-dynamic-motion-pairs.md``).
+
 A static camera's vectors are this object motion; a moving camera's add the camera's own, which the field does
 not learn. Means over the pairs. The surface point lies at frame n's TRUE depth (``--depth truth``, the
 default: the motion alone, the field's geometry errors left out) or at the depth the field renders
@@ -29,17 +34,36 @@ from typing import Optional
 import numpy as np
 
 from engine.core.errors import InputError
-from engine.fields.dynamic import field_object_flow, load_dynamic_field, normalize_time, render_dynamic_field
+from engine.fields.dynamic import (DynamicAssets, field_object_flow, hex_plane_features_np, load_dynamic_field,
+                                   normalize_time, render_dynamic_field)
 from engine.io.rgbd import read_sequence
 from tools.field_vectors_check import report
 
-__all__ = ["MOVING_PX", "DEPTHS", "check", "main"]
+__all__ = ["MOVING_PX", "DEPTHS", "UNIT_SAMPLES", "flow_units", "check", "main"]
 
 #: screen motion (pixels) above which a background pixel counts as moved, and (without object ids) a pixel
 #: as part of a moving object
 MOVING_PX = 0.25
 #: where the surface point of a pixel lies: at the capture's depth or at the field's rendered depth
 DEPTHS = ("truth", "field")
+#: random (point, time) samples over which a flow MLP unit must stay off to count as never active
+UNIT_SAMPLES = 1 << 16
+
+
+def flow_units(assets: DynamicAssets, samples: int = UNIT_SAMPLES, seed: int = 0) -> tuple[int, int]:
+    """(hidden units of the flow MLP, those never active): a unit is active at a sample where its ReLU input is
+    positive; the samples are uniform in the contracted cube [-1, 1]^3 and in normalised time [-1, 1]."""
+    rng = np.random.default_rng(seed)
+    coords = rng.uniform(-1.0, 1.0, (samples, 3)).astype(np.float32)
+    taus = rng.uniform(-1.0, 1.0, samples).astype(np.float32)
+    x = hex_plane_features_np(assets.planes["motion_spatial"], assets.planes["motion_temporal"], coords, taus)
+    total = dead = 0
+    for w, b in assets.flow_layers[:-1]:
+        x = x @ w.T + b
+        total += x.shape[1]
+        dead += int((~(x > 0).any(axis=0)).sum())
+        x = np.maximum(x, 0.0)
+    return total, dead
 
 
 def _length(a: np.ndarray) -> np.ndarray:
@@ -105,6 +129,7 @@ def check(export: Path, camera: Path, depth: str = "truth") -> dict:
             add(f"background: share the field moves > {MOVING_PX} px", (_length(moved) > MOVING_PX)[background].mean())
     out = {key: round(float(np.mean(values)), 4) for key, values in sums.items()}
     out["pairs"] = len(pairs)
+    out["flow MLP: hidden units"], out["flow MLP: hidden units never active"] = flow_units(assets)
     return out
 
 

@@ -15,7 +15,7 @@ from engine.fields.render import camera_rays_np, contract_np
 from engine.geometry.motion import rigid_motion_vectors
 from engine.io.rgbd import write_sequence
 from tests.fields.test_field_motion import camera, depth_with_sky
-from tools.field_motion_truth import check, main
+from tools.field_motion_truth import check, flow_units, main
 from tools.programmed_field import flow_x, write_export
 
 SIZE, TIMES = 24, [0.0, 0.25, 0.5, 0.75, 1.0]
@@ -92,3 +92,17 @@ def test_a_capture_without_object_flow_or_outside_the_trained_times_is_one_line_
     assert main([str(export), str(late)]) == 2
     assert "trained times" in capsys.readouterr().err
     assert main([str(tmp_path / "nothing"), str(late)]) == 2
+
+
+def test_flow_units_counts_the_hidden_units_no_input_switches_on(tmp_path):
+    """The programmed flow MLP drives hidden unit 0 with a positive feature and zeroes the other 15 (ReLU input 0
+    everywhere: never active); a bias that pushes unit 0 below zero for every input kills it too."""
+    export = write_export(tmp_path / "export")
+    assets = load_dynamic_field(export)
+    assert flow_units(assets) == (16, 15)
+    assert check(export, capture(tmp_path / "moving", export))["flow MLP: hidden units never active"] == 15
+    w, b = assets.flow_layers[0]
+    b[0] = -1e3
+    assert flow_units(assets) == (16, 16)
+    b[0], b[1] = 0.0, 1e-3  # unit 1 switched on by its bias alone, at every sample
+    assert flow_units(assets, samples=16) == (16, 14)

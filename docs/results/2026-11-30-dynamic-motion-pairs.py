@@ -95,7 +95,8 @@ def one_run(run: str, rig: str, use_model: bool) -> dict:
 def timing(rig: str) -> None:
     views, _ = split_by_camera(load_rig_video(rig), ["cam0", "cam1", "cam3"], ["cam2"])
     for name, options in (("sift, offset 10", {}), ("sift, offset 1", {"time_offset": 1}),
-                          ("dis, offset 10", {"source": "dis"}), ("dis, offset 1", {"source": "dis", "time_offset": 1})):
+                          ("dis, offset 10", {"source": "dis"}),
+                          ("dis, offset 1", {"source": "dis", "time_offset": 1})):
         prior = dataclasses.replace(SparseFlowPrior(enabled=True), **options)
         sparse_flow_matches(views, prior)  # SIFT features cached
         start = time.perf_counter()

@@ -44,8 +44,7 @@ from models.fields.static.model import StaticFieldModel
 from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_figures", "parity_excess", "parity_tolerance",
-           "DISPLAY_LEVELS",
-           "example_points", "query_outputs", "quantize_planes", "report_export", "main",
+           "DISPLAY_LEVELS", "example_points", "query_outputs", "quantize_planes", "report_export", "main",
            "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
 
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
@@ -316,8 +315,8 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m export.field")
 
 
 def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, **extra) -> None:
-    """Print the written files' sizes and the parity scores (and ``extra``); InputError when the worst parity
-    difference exceeds ``tolerance``. Shared by ``export field`` and ``export dynamic``."""
+    """Print the written files' sizes and the parity scores (and ``extra``); InputError naming the worst figure
+    over its limit (:func:`parity_excess`). Shared by ``export field`` and ``export dynamic``."""
     sizes = {p.name: p.stat().st_size for p in out.iterdir() if p.suffix in (".onnx", ".npz", ".json")}
     print(json.dumps({"out": str(out), "files_bytes": sizes, "parity": manifest["parity"], **extra}, indent=2))
     excess = parity_excess(manifest["parity"], tolerance)

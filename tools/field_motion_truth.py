@@ -12,12 +12,11 @@ vectors and ``oracle`` are made of) and compares that screen motion with frame n
   end-point error beside zero motion's (a field that learned no motion), and the share of the pixels where
   the field's motion halves zero motion's error;
 - over the static background (where the field should move nothing): the end-point error and the share of its
-  pixels the field moves by more than 0.25 px.
-
+  pixels the field moves by more than 0.25 px;
 - the flow MLP's hidden units that no point of the cube at any trained time switches on (ReLU input <= 0 at
-  :data:`UNIT_SAMPLES` uniform random points and times, seeded): a unit that the training switched off for
-  every input gets no gradient again, so a field whose units all died moves nothing, whatever its prior asks
-  (``docs/results/2026-11-30-dynamic-motion-pairs.md``).
+  :data:`UNIT_SAMPLES` uniform random points and times, seeded): a unit off for every input passes no gradient
+  from the flow, so neither the photometric loss nor the prior can switch it back on, and a field whose units are
+  all off moves nothing (``docs/results/2026-11-30-dynamic-motion-pairs.md``).
 
 A static camera's vectors are this object motion; a moving camera's add the camera's own, which the field does
 not learn. Means over the pairs. The surface point lies at frame n's TRUE depth (``--depth truth``, the

@@ -33,34 +33,22 @@ import torch
 
 from engine.fields.dynamic import load_dynamic_field
 from models.fields.data.timed import load_rig_video, split_by_camera
-from models.fields.priors.depth import keypoint_rays
 from models.fields.priors.flow import SparseFlowPrior, sparse_flow_matches
-from models.fields.train_dynamic import load_dynamic_model
 from tools.field_motion_truth import flow_units
 
 _spec = importlib.util.spec_from_file_location(
     "residuals", Path(__file__).with_name("2026-11-30-dynamic-prior-residuals.py"))
 residuals = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(residuals)
+expected_ends = residuals.expected_ends
 
 
 def flow_share(run: str, rig: str, matches: dict) -> dict:
-    """Expected points and flows of both ends of ``matches`` (dict of arrays) rendered by the run's model."""
-    views, _ = split_by_camera(load_rig_video(rig), ["cam0", "cam1", "cam3"], ["cam2"])
-    model = load_dynamic_model(run)
-    near, far = float(model.scene.near), float(model.scene.far)
-    point, flow = {}, {}
-    for end in ("a", "b"):
-        origins, directions = keypoint_rays(views.cameras, matches[f"view_{end}"], matches[f"xy_{end}"])
-        times = torch.as_tensor(np.asarray(views.times)[matches[f"view_{end}"]], dtype=torch.float32)
-        n = len(times)
-        with torch.no_grad():
-            r = model.render_rays(origins, directions, torch.full((n,), near), torch.full((n,), far), times,
-                                  color=False)
-        w = r.weights[..., None]
-        flow[end] = (w * r.flow).sum(-2).numpy()
-        point[end] = (w * (r.canonical - r.flow)).sum(-2).numpy()
-    motion, carried = point["b"] - point["a"], flow["a"] - flow["b"]
+    """The shown motion, the flow difference and the flow's share of the shown motion over ``matches`` (dict of
+    arrays), from the expected points and flows of their two ends (``residuals.expected_ends``)."""
+    ends = expected_ends(run, rig, matches)
+    point = {end: canonical - flow for end, (canonical, flow) in ends.items()}
+    motion, carried = point["b"] - point["a"], ends["a"][1] - ends["b"][1]
     share = (carried * motion).sum(1) / np.maximum((motion * motion).sum(1), 1e-12)
     return {"model_motion_median": float(np.median(np.linalg.norm(motion, axis=1))),
             "flow_difference_median": float(np.median(np.linalg.norm(carried, axis=1))),

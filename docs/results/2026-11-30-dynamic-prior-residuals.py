@@ -58,24 +58,32 @@ def truth_errors(matches, names: list[str], rig: str) -> tuple[np.ndarray, np.nd
     return np.array(errors), np.array(on_object)
 
 
-def residuals(run: str, rig: str, matches) -> np.ndarray:
-    """(M,) Eq. 5.7 distance of every match, rendered by the trained model (no jitter)."""
+def expected_ends(run: str, rig: str, matches) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per end ``a``, ``b`` of every match, rendered by the trained model (no jitter, 2048 rays a call): the
+    expected canonical point ``sum_i w_i c'_i`` (M, 3) and the expected flow ``sum_i w_i flow_i`` (M, 3)."""
     views, _ = split_by_camera(load_rig_video(rig), ["cam0", "cam1", "cam3"], ["cam2"])
     model = load_dynamic_model(run)
     near, far = float(model.scene.near), float(model.scene.far)
-    points = []
+    ends = {}
     for end in ("a", "b"):
         origins, directions = keypoint_rays(views.cameras, matches[f"view_{end}"], matches[f"xy_{end}"])
         times = torch.as_tensor(np.asarray(views.times)[matches[f"view_{end}"]], dtype=torch.float32)
-        out = []
+        canonical, flow = [], []
         with torch.no_grad():
             for s in range(0, len(times), 2048):
                 n = len(times[s:s + 2048])
                 r = model.render_rays(origins[s:s + 2048], directions[s:s + 2048], torch.full((n,), near),
                                       torch.full((n,), far), times[s:s + 2048], color=False)
-                out.append((r.weights[..., None] * r.canonical).sum(dim=-2))
-        points.append(torch.cat(out).numpy())
-    return np.linalg.norm(points[0] - points[1], axis=1)
+                canonical.append((r.weights[..., None] * r.canonical).sum(dim=-2))
+                flow.append((r.weights[..., None] * r.flow).sum(dim=-2))
+        ends[end] = (torch.cat(canonical).numpy(), torch.cat(flow).numpy())
+    return ends
+
+
+def residuals(run: str, rig: str, matches) -> np.ndarray:
+    """(M,) Eq. 5.7 distance of every match, rendered by the trained model (no jitter)."""
+    ends = expected_ends(run, rig, matches)
+    return np.linalg.norm(ends["a"][0] - ends["b"][0], axis=1)
 
 
 def main(run: str, rig: str, out_json: str) -> None:

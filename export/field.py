@@ -15,7 +15,7 @@
 Parity: :func:`check_parity` holds onnxruntime against the field evaluated by torch in float64 on random points
 in and around the cube and on points along the rays of a real view; the command fails above ``--tolerance``
 (default :func:`parity_tolerance`, derived from the renderer's 8-bit output) or, for a field whose float32
-arithmetic alone is further off than that, above torch's own float32 difference (:func:`parity_excess`). The
+arithmetic alone is further off than that, above 3x torch's own float32 difference (:func:`parity_excess`). The
 quantized planes are scored by rendering a view with float and with uint8 planes (PSNR between the two, in
 ``field.json``).
 """
@@ -45,7 +45,8 @@ from models.fields.train_static import load_model
 
 __all__ = ["FieldQueryGraph", "export_field", "check_parity", "parity_figures", "parity_excess", "parity_tolerance",
            "DISPLAY_LEVELS", "example_points", "query_outputs", "quantize_planes", "report_export", "main",
-           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "mlp_layers", "strip_debug", "export_command", "run_as_script"]
+           "ASSET_FORMAT", "ASSET_VERSION", "OPSET", "FLOAT32_SPREAD", "mlp_layers", "strip_debug", "export_command",
+           "run_as_script"]
 
 #: Largest code of the renderer's output: 8-bit display-encoded (sRGB) colour.
 DISPLAY_LEVELS = 255
@@ -144,14 +145,23 @@ def parity_figures(graph: nn.Module, inputs: tuple[Tensor, ...], got: tuple[np.n
     return {"density": density, "color": color, "density_float32": density32, "color_float32": color32}
 
 
+#: How far above torch's own float32 difference onnxruntime's may lie before an export is refused. Both are the
+#: largest error over a few thousand random points, an extreme that moves from one set of points to the next:
+#: over 20 sets of 8192 points on each of three trained dynamic fields, onnxruntime's colour error was 0.21 to 1.82
+#: times torch's (median 0.84-1.00, docs/results/2026-11-30-dynamic-units.md). A wrong operator in the graph
+#: shows as errors tens of times torch's float32 error or more.
+FLOAT32_SPREAD = 3.0
+
+
 def parity_excess(parity: dict[str, dict[str, float]], tolerance: float) -> Optional[tuple[str, float, float]]:
     """The worst parity figure over its limit, as ``(quantity, figure, limit)``, or None when all pass. A figure's
-    limit is ``tolerance``, or torch's own float32 difference from the exact field where that is larger: an export
-    is refused for falling short of torch, not for the float32 arithmetic that both share."""
+    limit is ``tolerance``, or :data:`FLOAT32_SPREAD` times torch's own float32 difference from the exact field
+    where that is larger: an export is refused for falling short of torch, not for the float32 arithmetic that both
+    share."""
     worst = None
     for figures in parity.values():
         for quantity in ("density", "color"):
-            limit = max(tolerance, figures.get(f"{quantity}_float32", 0.0))
+            limit = max(tolerance, FLOAT32_SPREAD * figures.get(f"{quantity}_float32", 0.0))
             excess = figures[quantity] - limit
             if excess > 0 and (worst is None or excess > worst[1] - worst[2]):
                 worst = (quantity, figures[quantity], limit)
@@ -323,7 +333,7 @@ def report_export(out: Path, manifest: dict, onnx_name: str, tolerance: float, *
     if excess is not None:
         quantity, figure, limit = excess
         why = ("--tolerance" if limit == tolerance
-               else f"torch's own float32 {quantity} error; --tolerance {tolerance:.3g}")
+               else f"{FLOAT32_SPREAD:g}x torch's own float32 {quantity} error; --tolerance {tolerance:.3g}")
         raise InputError(f"onnxruntime's {quantity} differs from the exact field by {figure:.2e} > {limit:.3g} "
                          f"({why})", file=out / onnx_name)
 

@@ -8,9 +8,10 @@ graph through onnxruntime (``query="onnx"``, the torch code that training ran).
 
 Per sample (DeRF, thesis Ch. 5): the contracted point c and the normalised time tau give the motion
 features (hex-planes xy, xz, yz, xt, yt, zt, Hadamard product per scale, scales concatenated), the flow MLP
-gives ``flow = max_flow * tanh(.)``, the canonical point ``c' = clamp(c + flow, -1, 1)`` is looked up in the
-canonical tri-planes, the density MLP gives density and latent h, the colour MLP takes [h, encoded view
-direction, encoded tau]. K-Planes-style exports (``kind="kplanes"``) have no motion model: the hex-plane
+gives ``flow = max_flow * tanh(.)`` (with motion slots, ``field.motion``: the slots' softmax-weighted affine
+motions inside the tanh, :func:`slot_motion_np`), the canonical point ``c' = clamp(c + flow, -1, 1)`` is looked
+up in the canonical tri-planes, the density MLP gives density and latent h, the colour MLP takes [h, encoded
+view direction, encoded tau]. K-Planes-style exports (``kind="kplanes"``) have no motion model: the hex-plane
 features of (c, tau) feed the density MLP and colour comes from [h, encoded view direction].
 
 Conventions are the static renderer's (``engine/fields/render.py``, whose pure functions this module imports:
@@ -27,7 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -40,8 +41,9 @@ from engine.fields.render import (PLANE_AXES, ExportedAssets, array_getter, bili
 from engine.fields.manifest import check_shading, check_time_range, section
 from engine.geometry.motion import drop_long_vectors, projected_offsets
 
-__all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "DynamicAssets", "load_dynamic_field",
-           "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np", "deform_np",
+__all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "SLOT_KEY_SIZE", "MotionSlots", "DynamicAssets",
+           "load_dynamic_field", "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np",
+           "slot_motion_np", "deform_np",
            "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "MOTION_TOLERANCE",
            "earlier_points", "COHERENCE", "check_coherence", "time_before", "coherent_motion", "field_motion_vectors",
            "field_object_flow"]
@@ -64,10 +66,28 @@ MOTION_TOLERANCE = 1e-3
 COHERENCE = 0.75
 
 #: Plane groups and MLPs each kind of export holds (and the groups it may hold: a DeRF export whose canonical
-#: field has time planes, ``field_config.canonical_time``).
-_GROUPS = {"derf": ("canonical_spatial", "motion_spatial", "motion_temporal"), "kplanes": ("spatial", "temporal")}
-_OPTIONAL_GROUPS = {"derf": ("canonical_temporal",), "kplanes": ()}
-_MLPS = {"derf": ("density", "color", "flow"), "kplanes": ("density", "color")}
+#: field has time planes, ``field_config.canonical_time``); ``derf-slots``: a DeRF export with motion slots
+#: (``field.motion.model == "slots"``), whose motion is the slots' logit planes and key table, no flow MLP.
+_GROUPS = {"derf": ("canonical_spatial", "motion_spatial", "motion_temporal"),
+           "derf-slots": ("canonical_spatial", "motion_slot_logits"), "kplanes": ("spatial", "temporal")}
+_OPTIONAL_GROUPS = {"derf": ("canonical_temporal",), "derf-slots": ("canonical_temporal",), "kplanes": ()}
+_MLPS = {"derf": ("density", "color", "flow"), "derf-slots": ("density", "color"), "kplanes": ("density", "color")}
+#: Values per slot and time key of the slots' key table: dA (3 x 3, row-major), then T (3).
+SLOT_KEY_SIZE = 12
+
+
+class MotionSlots(NamedTuple):
+    """A DeRF export's motion slots (``field.motion`` in the manifest; ``docs/field-assets.md``).
+
+    Attributes:
+        logits: (3, K + 1, R, R) logit planes xy, xz, yz; channel 0 is the still slot.
+        still_bias: (K + 1,) added to the summed logits.
+        keys: (Rt, K, 12) per time key (tau = -1 + 2 i / (Rt - 1)) and moving slot: dA row-major (9), then T (3).
+    """
+
+    logits: np.ndarray
+    still_bias: np.ndarray
+    keys: np.ndarray
 
 
 @dataclass(eq=False)
@@ -84,6 +104,9 @@ class DynamicAssets(ExportedAssets):
         mlps: ``density``, ``color`` (and ``flow`` for DeRF): ``(weight (out, in), bias (out,))`` per layer.
         occupancy: (R, R, R) bool over the contracted cube indexed [ix, iy, iz] (time-agnostic), or None.
         onnx_path: the exported query graph.
+        slots: a DeRF export with motion slots: its :class:`MotionSlots` (the logit planes are also the plane
+            group ``motion_slot_logits``), and no ``motion_spatial`` / ``motion_temporal`` planes nor ``flow``
+            MLP; None otherwise.
 
     The attributes the static shader generator reads (``manifest``, ``density_layers``, ``color_layers``,
     ``occupancy``, ``bounded``, ``scene``, ``background``) mean what they mean for
@@ -96,6 +119,7 @@ class DynamicAssets(ExportedAssets):
     occupancy: Optional[np.ndarray] = field(repr=False)
     onnx_path: Path
     _session: object = field(default=None, repr=False)
+    slots: Optional[MotionSlots] = field(default=None, repr=False)
 
     @property
     def kind(self) -> str:
@@ -153,10 +177,16 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
                                               "interleave export dynamic RUN_DIR")
     meta_file, npz_file = root / "dynamic.json", root / "dynamic.npz"
     kind = manifest.get("kind")
-    if kind not in _GROUPS:
-        raise InputError(f"has kind {kind!r}, expected one of {sorted(_GROUPS)}", file=meta_file)
+    if kind not in ("derf", "kplanes"):
+        raise InputError(f"has kind {kind!r}, expected one of ['derf', 'kplanes']", file=meta_file)
     check_time_range(manifest, meta_file)
-    check_shading(section(manifest, "field", meta_file), meta_file)
+    spec = section(manifest, "field", meta_file)
+    check_shading(spec, meta_file)
+    if kind == "derf" and "motion" in spec:
+        model = section(spec, "motion", meta_file, "field").get("model")
+        if model != "slots":
+            raise InputError(f"field.motion.model is {model!r}, expected 'slots'", file=meta_file)
+        kind = "derf-slots"  # the groups and MLPs of a DeRF export with motion slots
     get = array_getter(arrays, npz_file, "dynamic.json")
     planes: dict[str, list[np.ndarray]] = {}
     listed = manifest["field"]["planes"]
@@ -172,7 +202,8 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
                                  "(3 planes, C channels, both sides >= 2)", file=npz_file)
             planes[group].append(plane)
     rows = int(manifest["time"]["time_resolution"])
-    pairs = [("motion_spatial", "motion_temporal")] if kind == "derf" else [("spatial", "temporal")]
+    pairs = {"derf": [("motion_spatial", "motion_temporal")], "derf-slots": [],
+             "kplanes": [("spatial", "temporal")]}[kind]
     if "canonical_temporal" in planes:
         pairs.append(("canonical_spatial", "canonical_temporal"))
     for spatial, temporal in pairs:
@@ -187,7 +218,27 @@ def load_dynamic_field(path: str | Path, *, quantized: bool = False) -> DynamicA
             raise InputError(f"lists no MLP {name!r}", file=meta_file)
         mlps[name] = load_mlp(manifest["field"]["mlps"][name], get, name, npz_file)
     occupancy = load_occupancy(manifest, get, npz_file)
-    return DynamicAssets(manifest, planes, mlps, occupancy, root / manifest["onnx"]["file"])
+    slots = _load_slots(spec["motion"], planes["motion_slot_logits"], get, rows, meta_file, npz_file) \
+        if kind == "derf-slots" else None
+    return DynamicAssets(manifest, planes, mlps, occupancy, root / manifest["onnx"]["file"], slots=slots)
+
+
+def _load_slots(spec: dict, logits: list[np.ndarray], get, rows: int, meta_file: Path, npz_file: Path
+                ) -> MotionSlots:
+    """The manifest's ``field.motion`` of a slot export, its arrays checked against each other and ``rows``."""
+    for key in ("still_bias", "keys"):
+        if not isinstance(spec.get(key), str):
+            raise InputError(f"field.motion.{key} must name an array, got {spec.get(key)!r}", file=meta_file)
+    if len(logits) != 1:
+        raise InputError(f"plane group 'motion_slot_logits' must hold one plane, got {len(logits)}", file=meta_file)
+    plane = logits[0]
+    bias = get(spec["still_bias"], "field.motion.still_bias").astype(np.float32)
+    keys = get(spec["keys"], "field.motion.keys").astype(np.float32)
+    k = plane.shape[1] - 1
+    if k < 1 or plane.shape[2] != plane.shape[3] or bias.shape != (k + 1,) or keys.shape != (rows, k, SLOT_KEY_SIZE):
+        raise InputError(f"motion slots disagree: logits {plane.shape} (3, K + 1, R, R), still bias {bias.shape} "
+                         f"(K + 1,), keys {keys.shape} ({rows}, K, {SLOT_KEY_SIZE}), K >= 1", file=npz_file)
+    return MotionSlots(plane, bias, keys)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -252,11 +303,46 @@ def hex_plane_features_np(spatial: list[np.ndarray], temporal: list[np.ndarray],
     return np.concatenate(feats, axis=1)
 
 
+def slot_motion_np(slots: MotionSlots, coords: np.ndarray, taus: np.ndarray) -> np.ndarray:
+    """The motion slots' mixed motion (N, 3) at contracted points (N, 3) and normalised times (N,), before the
+    flow bound (``models.fields.dynamic.model.slot_motion``): ``sum_k w_k (dA_k(tau) c + T_k(tau))`` with
+    ``w = softmax(sum of the xy, xz, yz logit planes at c + still_bias)`` over K + 1 slots (slot 0 still, no
+    motion) and the keys linear in tau (clamped to [-1, 1]) between the Rt keys. Computed in the dtype of the
+    inputs (float64 in, float64 out).
+
+    Raises:
+        InputError: coords not (N, 3), taus not (N,), or arrays whose shapes disagree.
+    """
+    logits, bias, keys = slots
+    if coords.ndim != 2 or coords.shape[1] != 3 or taus.shape != coords.shape[:1]:
+        raise InputError(f"need coords (N, 3) and taus (N,), got {coords.shape} and {taus.shape}", field="coords")
+    rows, k = keys.shape[0], keys.shape[1]
+    if logits.shape[:2] != (3, k + 1) or bias.shape != (k + 1,) or keys.shape[2] != SLOT_KEY_SIZE or rows < 2:
+        raise InputError(f"logits {logits.shape}, still bias {bias.shape} and keys {keys.shape} disagree",
+                         field="slots")
+    z = sum(bilinear_np(logits[p], coords[:, a], coords[:, b]) for p, (a, b) in enumerate(PLANE_AXES)).T + bias
+    e = np.exp(z - z.max(axis=1, keepdims=True))
+    weights = (e / e.sum(axis=1, keepdims=True))[:, 1:]  # (N, K)
+    x = (np.clip(taus, -1.0, 1.0) + 1.0) * (0.5 * (rows - 1))
+    i0 = np.clip(np.floor(x), 0, rows - 2)
+    frac = (x - i0)[:, None, None]
+    index = i0.astype(np.int64)
+    params = keys[index] * (1.0 - frac) + keys[index + 1] * frac  # (N, K, 12)
+    mix = (weights[..., None] * params).sum(axis=1)
+    return (mix[:, :9].reshape(-1, 3, 3) * coords[:, None, :]).sum(axis=-1) + mix[:, 9:]
+
+
 def deform_np(assets: DynamicAssets, coords: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The motion field: contracted points (N, 3) at normalised times (N,) -> canonical points (N, 3) (not
-    clamped) and flow (N, 3), ``flow = max_flow * tanh(flow MLP(hex-plane features))``."""
-    feats = hex_plane_features_np(assets.planes["motion_spatial"], assets.planes["motion_temporal"], coords, taus)
-    flow = (np.float32(assets.max_flow) * np.tanh(mlp_np(feats, assets.flow_layers))).astype(np.float32)
+    clamped) and flow (N, 3), ``flow = max_flow * tanh(flow MLP(hex-plane features))``, or with motion slots
+    ``max_flow * tanh(slot_motion_np(.))``."""
+    if assets.slots is not None:
+        motion = slot_motion_np(assets.slots, coords, taus)
+    else:
+        feats = hex_plane_features_np(assets.planes["motion_spatial"], assets.planes["motion_temporal"], coords,
+                                      taus)
+        motion = mlp_np(feats, assets.flow_layers)
+    flow = (np.float32(assets.max_flow) * np.tanh(motion)).astype(np.float32)
     return coords + flow, flow
 
 

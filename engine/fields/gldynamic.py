@@ -20,6 +20,10 @@ skip, and the same error bounds (``transmittance_eps``, ``num_samples * color_ep
   planes, ``canonical_temporal``, multiplies their xt, yt, zt product at (c, tau) into its features, as
   K-Planes below). The colour MLP's time input [tau, sin(2^k tau), cos(2^k tau)] is per frame: computed on
   the CPU (``time_encoding_np``) and applied once per pixel with the view-direction columns.
+- **DeRF with motion slots** (``field.motion``): instead of the hex-planes and flow MLP, the logit planes (one
+  ``RGBA32F`` array texture, K + 1 channels in groups of four, summed over xy, xz, yz), the still bias and a
+  softmax (literals), the key table as a (3 K) x Rt texture read by ``texelFetch`` at the two keys around tau,
+  ``flow = max_flow * tanh(A c + T)`` of the weighted sums.
 - **K-Planes** (``kind="kplanes"``): the ``spatial`` planes are the tri-planes; after their lookup each
   feature group is multiplied by the xt, yt, zt product at (c, tau).
 
@@ -53,7 +57,7 @@ from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlField
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
 from engine.fields.render import PLANE_AXES
 
-__all__ = ["GlDynamicRenderer", "available", "motion_shader"]
+__all__ = ["GlDynamicRenderer", "available", "motion_shader", "slot_key_layers"]
 
 
 def _groups(plane: np.ndarray) -> int:
@@ -96,9 +100,65 @@ def _time_plane_code(temporal: list[np.ndarray], filtering: str, prefix: str, sa
     return lines
 
 
+def _bounded_flow(assets: DynamicAssets, motion: str) -> tuple[list[str], str]:
+    """The lines and the GLSL expression of ``max_flow * tanh(motion)`` (``motion`` a vec3 expression)."""
+    return ([f"vec3 fe = exp(-2.0 * abs({motion}));  // tanh, without overflow"],
+            f"{assets.max_flow!r} * sign({motion}) * ((1.0 - fe) / (1.0 + fe))")
+
+
+def slot_key_layers(keys: np.ndarray) -> np.ndarray:
+    """(Rt, K, 12) slot keys -> the (1, Rt, 3 K, 4) array texture ``motion_keys``: row i (height) is key i,
+    texel 3 k + q holds values 4 q .. 4 q + 3 of slot k (dA row-major, then T)."""
+    rows, k = keys.shape[:2]
+    return np.ascontiguousarray(keys.reshape(1, rows, 3 * k, 4), np.float32)
+
+
+def _slot_flow_code(assets: DynamicAssets, filtering: str) -> tuple[list[str], list[str], str]:
+    """DeRF with motion slots: the logit planes (one array texture, channel groups as the plane textures) summed
+    over xy, xz, yz plus the still bias, a softmax over K + 1 slots, the moving slots' keys (``motion_keys``,
+    :func:`slot_key_layers`) read at the two keys around tau and mixed, ``m = A c + T`` of the weighted sums,
+    then ``max_flow * tanh(m)`` (:func:`engine.fields.dynamic.slot_motion_np`)."""
+    logits, bias, keys = assets.slots
+    rows, k = keys.shape[:2]
+    g = _groups(logits)
+    decls = ["uniform sampler2DArray motion_logits;", "uniform sampler2DArray motion_keys;"]
+    lines = ["// motion slots: logits at c, softmax, keys at tau, mixed affine motion",
+             "vec4 " + ", ".join(f"sl_{gi}" for gi in range(g)) + ";"]
+    for p, (a, b) in enumerate(PLANE_AXES):
+        lines += _plane_block("motion_logits", f"c.{'xyz'[a]}", f"c.{'xyz'[b]}", logits.shape[3], logits.shape[2],
+                              filtering, [(p * g + gi, f"sl_{gi}", "=" if p == 0 else "+=") for gi in range(g)])
+    z = [f"sz{j}" for j in range(k + 1)]
+    lines += [f"float {z[j]} = sl_{j // 4}.{'xyzw'[j % 4]} + {float(bias[j])!r};" for j in range(k + 1)]
+    top = z[0]
+    for name in z[1:]:
+        top = f"max({top}, {name})"
+    lines.append(f"float sz_max = {top};")
+    lines += [f"float se{j} = exp({z[j]} - sz_max);" for j in range(k + 1)]
+    lines.append("float se_sum = " + " + ".join(f"se{j}" for j in range(k + 1)) + ";")
+    rm1 = float(rows - 1)
+    lines += [f"float sx = (clamp(tau, -1.0, 1.0) + 1.0) * {0.5 * rm1!r};",
+              f"float si = clamp(floor(sx), 0.0, {float(rows - 2)!r});",
+              "float sa = sx - si;", "int sk = int(si);",
+              "vec4 sm0 = vec4(0.0), sm1 = vec4(0.0), sm2 = vec4(0.0);"]
+    for slot in range(k):
+        lines.append(f"{{ float w = se{slot + 1} / se_sum;")
+        for q in range(3):
+            t0 = f"texelFetch(motion_keys, ivec3({3 * slot + q}, sk, 0), 0)"
+            t1 = f"texelFetch(motion_keys, ivec3({3 * slot + q}, sk + 1, 0), 0)"
+            lines.append(f"  sm{q} += w * ({t0} * (1.0 - sa) + {t1} * sa);")
+        lines.append("}")
+    lines.append("vec3 smo = vec3(dot(sm0.xyz, c), dot(vec3(sm0.w, sm1.xy), c), dot(vec3(sm1.zw, sm2.x), c)) "
+                 "+ sm2.yzw;")
+    bounded, flow = _bounded_flow(assets, "smo")
+    return decls, lines + bounded, flow
+
+
 def _flow_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], str]:
     """DeRF: sampler declarations, the code that evaluates the motion field at (c, tau) (hex-plane features,
-    flow MLP) and the GLSL expression of its flow, ``max_flow * tanh(.)`` (contracted units)."""
+    flow MLP; or the motion slots, :func:`_slot_flow_code`) and the GLSL expression of its flow,
+    ``max_flow * tanh(.)`` (contracted units)."""
+    if assets.slots is not None:
+        return _slot_flow_code(assets, filtering)
     spatial, temporal = assets.planes["motion_spatial"], assets.planes["motion_temporal"]
     decls = []
     lines = ["// motion field: hex-plane features at (c, tau), flow MLP"]
@@ -120,9 +180,8 @@ def _flow_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> t
     out_off = params.add(pad_matrix(w_last, 4, 4 * len(xs), np.asarray(col_map) if len(layers) == 1 else None))
     b_off = params.add(np.pad(b_last, (0, 4 - b_last.shape[0])))
     out, (fo,) = linear_code("fo", xs, out_off, 1, [f"P[{b_off}]"], False)
-    lines += hidden + out
-    lines.append("vec3 fe = exp(-2.0 * abs(" + fo + ".xyz));  // tanh, without overflow")
-    return decls, lines, f"{assets.max_flow!r} * sign({fo}.xyz) * ((1.0 - fe) / (1.0 + fe))"
+    bounded, flow = _bounded_flow(assets, f"{fo}.xyz")
+    return decls, lines + hidden + out + bounded, flow
 
 
 def _motion_code(assets: DynamicAssets, filtering: str, params: ShaderParams) -> tuple[list[str], list[str], list[str]]:
@@ -301,8 +360,9 @@ class GlDynamicRenderer(GlFieldRenderer):
         if assets.has_motion:
             frequencies = int(assets.manifest["field"]["time_frequencies"])
             extra = [f"time_enc[{i}]" for i in range(2 * frequencies + 1)]
-            extra_planes = [("motion_s", assets.planes["motion_spatial"]),
-                            ("motion_t", assets.planes["motion_temporal"])]
+            extra_planes = ([] if assets.slots is not None else
+                            [("motion_s", assets.planes["motion_spatial"]),
+                             ("motion_t", assets.planes["motion_temporal"])])
             if assets.canonical_temporal is not None:
                 extra_planes.append(("canonical_t", assets.canonical_temporal))
             code = _motion_code
@@ -316,6 +376,9 @@ class GlDynamicRenderer(GlFieldRenderer):
             params_kind="const" if weights == "inline" else "ubo", extra_encoding=extra,
             sample_code=lambda params: code(assets, filtering, params))
         textures = [(f"planes{s}", texture_layers(p, _groups(p))) for s, p in enumerate(assets.canonical_planes)]
+        if assets.slots is not None:
+            textures += [("motion_logits", texture_layers(assets.slots.logits, _groups(assets.slots.logits))),
+                         ("motion_keys", slot_key_layers(assets.slots.keys))]
         for prefix, planes in extra_planes:
             textures += [(f"{prefix}{s}", texture_layers(p, _groups(p))) for s, p in enumerate(planes)]
         self._units = {name: unit for unit, (name, _) in enumerate(textures)}

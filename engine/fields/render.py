@@ -290,12 +290,13 @@ def uncontract_np(scene: dict, coords: np.ndarray, ndc_margin: float) -> np.ndar
 def bilinear_np(plane: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(C, H, W) plane at coordinates a (along the width), b (along the height) in [-1, 1] -> (C, N);
     ``grid_sample(align_corners=True, padding_mode='border')``. H, W >= 2 (tri-planes are square; the time
-    planes of dynamic fields are (C, Rt, R))."""
+    planes of dynamic fields are (C, Rt, R)). The weights are float32 for float32 (or smaller) planes, float64
+    for float64 ones."""
     h, w = plane.shape[-2:]
     x = np.clip((a + 1.0) * 0.5 * (w - 1), 0.0, w - 1)
     y = np.clip((b + 1.0) * 0.5 * (h - 1), 0.0, h - 1)
     x0, y0 = np.minimum(np.floor(x).astype(np.int64), w - 2), np.minimum(np.floor(y).astype(np.int64), h - 2)
-    fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+    fx, fy = (x - x0).astype(np.result_type(plane, np.float32)), (y - y0).astype(np.result_type(plane, np.float32))
     p00, p01 = plane[:, y0, x0], plane[:, y0, x0 + 1]
     p10, p11 = plane[:, y0 + 1, x0], plane[:, y0 + 1, x0 + 1]
     return (p00 * (1 - fx) + p01 * fx) * (1 - fy) + (p10 * (1 - fx) + p11 * fx) * fy

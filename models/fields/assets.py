@@ -119,14 +119,21 @@ def static_assets(model) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, manifest
 
 
+def _slots(model):
+    """The DeRF field's ``SlotMotion`` (motion slots), or None (hex-plane motion field, or K-Planes)."""
+    return model.field.motion_field.slot_motion if model.has_motion else None
+
+
 def _dynamic_planes(model) -> dict:
     """Every plane group by name (what the manifest lists)."""
     field = model.field
     if model.has_motion:
         canonical_time = field.canonical_field.temporal_planes()
-        return {"canonical_spatial": field.canonical_field.spatial_planes(),
-                "motion_spatial": field.motion_field.spatial_planes(),
-                "motion_temporal": field.motion_field.temporal_planes(),
+        slots = _slots(model)
+        motion = ({"motion_slot_logits": [slots.logits]} if slots is not None else
+                  {"motion_spatial": field.motion_field.spatial_planes(),
+                   "motion_temporal": field.motion_field.temporal_planes()})
+        return {"canonical_spatial": field.canonical_field.spatial_planes(), **motion,
                 **({"canonical_temporal": canonical_time} if canonical_time else {})}
     return {"spatial": field.encoding.spatial_planes(), "temporal": field.encoding.temporal_planes()}
 
@@ -134,9 +141,19 @@ def _dynamic_planes(model) -> dict:
 def _dynamic_mlps(model) -> dict[str, nn.Module]:
     field = model.field
     if model.has_motion:
-        return {"density": field.canonical_field.density_mlp, "color": field.canonical_field.color_mlp,
-                "flow": field.motion_field.flow_mlp}
+        flow = {"flow": field.motion_field.flow_mlp} if _slots(model) is None else {}
+        return {"density": field.canonical_field.density_mlp, "color": field.canonical_field.color_mlp, **flow}
     return {"density": field.density_mlp, "color": field.color_mlp}
+
+
+def _slot_section(arrays: dict[str, np.ndarray], slots) -> dict:
+    """Write the motion slots' still bias and key table into ``arrays``; the manifest's ``field.motion``."""
+    arrays["motion_slot_still_bias"] = slots.still_bias.detach().float().cpu().numpy()
+    arrays["motion_slot_keys"] = slots.keys.detach().float().cpu().numpy()
+    return {"model": "slots", "slots": int(slots.slots), "resolution": int(slots.resolution),
+            "logits": "motion_slot_logits", "still_bias": "motion_slot_still_bias", "keys": "motion_slot_keys",
+            "keys_layout": "(Rt, K, 12): per time key i (tau = -1 + 2 i / (Rt - 1)) and moving slot k, dA_k "
+                           "row-major (9), then T_k (3); linear in tau between keys"}
 
 
 def dynamic_assets(model, canonical_limit=None) -> tuple[dict[str, np.ndarray], dict]:
@@ -154,6 +171,9 @@ def dynamic_assets(model, canonical_limit=None) -> tuple[dict[str, np.ndarray], 
     mlps = _add_mlps(arrays, _dynamic_mlps(model))
     cfg = model.config
     canonical_cfg = cfg.canonical
+    slots = _slots(model)
+    motion_text = ("flow MLP(motion features)" if slots is None else
+                   "sum_k w_k (dA_k(tau) c + T_k(tau)), w = softmax(logit planes(c) + still bias)")
     t0, t1 = model.time_range
     manifest = {
         "format": DYNAMIC_FORMAT, "version": DYNAMIC_VERSION, "kind": cfg.kind,
@@ -173,9 +193,10 @@ def dynamic_assets(model, canonical_limit=None) -> tuple[dict[str, np.ndarray], 
             **({"time_frequencies": int(cfg.time_frequencies),
                 "color_input": "[h, direction encoding, fourier(tau): tau, sin(2^k tau), cos(2^k tau)]",
                 "max_flow": float(cfg.motion.max_flow),  # the flow bound as a number (renderers read it)
-                "flow": f"{float(cfg.motion.max_flow)} * tanh(flow MLP(motion features)) in contracted units; "
+                "flow": f"{float(cfg.motion.max_flow)} * tanh({motion_text}) in contracted units; "
                         "canonical = contracted point + flow, clamped to [-1, 1] for the canonical lookup"}
                if model.has_motion else {"color_input": "[h, direction encoding]"}),
+            **({"motion": _slot_section(arrays, slots)} if slots is not None else {}),
         },
         "occupancy": _add_occupancy(arrays, model, time_agnostic="max over trained times"),
         "onnx": {"file": "dynamic.onnx", "inputs": ["points", "times", "directions"],

@@ -46,13 +46,16 @@ from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_we
                                    view_list)
 from models.trainer_cli import DEVICES, resolve_device
 
-__all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "DYNAMIC", "train_dynamic",
-           "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes", "canonical_limit",
-           "select_dynamic_views", "load_dynamic_run_views", "detect_dynamic_dataset", "main", "eval_main",
-           "FLOW_BINS", "choose_dynamic_priors"]
+__all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "SLOT_SMOOTH_WEIGHT", "DYNAMIC",
+           "train_dynamic", "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes",
+           "canonical_limit", "select_dynamic_views", "load_dynamic_run_views", "detect_dynamic_dataset", "main",
+           "eval_main", "FLOW_BINS", "choose_dynamic_priors"]
 
 #: Loss terms that act on a motion field; the K-Planes baseline has none and skips them.
-MOTION_TERMS = frozenset({"motion_tv", "flow_l1", "sparse_flow"})
+MOTION_TERMS = frozenset({"motion_tv", "flow_l1", "sparse_flow", "slot_smooth"})
+#: The weight of ``slot_smooth`` that a field with motion slots gets unless ``losses`` names the term (the
+#: experiment's, docs/results/2026-11-30-dynamic-units.md).
+SLOT_SMOOTH_WEIGHT = 1e-3
 #: Bin edges (contracted units) of the flow-magnitude histogram that ``evaluate_dynamic`` reports.
 FLOW_BINS = (0.0, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 
@@ -90,6 +93,17 @@ def flow_l1(inputs: LossInputs) -> torch.Tensor:
     if count == 0:
         return out.color.new_zeros(())
     return out.flow.abs().sum() / count
+
+
+@register_loss_term("slot_smooth")
+def slot_smooth(inputs: LossInputs) -> torch.Tensor:
+    """Temporal smoothness of the motion slots' keys (``SlotMotion.key_smoothness``: mean squared second
+    difference in time); 0 for a field without motion slots. On at :data:`SLOT_SMOOTH_WEIGHT` for a field with
+    slots unless ``losses`` names it (``DynamicTrainConfig.loss_terms``)."""
+    slots = getattr(getattr(inputs.model.field, "motion_field", None), "slot_motion", None)
+    if slots is None:
+        return inputs.outputs.color.new_zeros(())
+    return slots.key_smoothness()
 
 
 def default_dynamic_loss_terms() -> tuple[LossTerm, ...]:
@@ -139,8 +153,12 @@ class DynamicTrainConfig(RunConfig):
         return self
 
     def loss_terms(self) -> tuple[LossTerm, ...]:
-        """``losses`` plus the enabled priors' terms, less the motion terms when the field has no motion model."""
+        """``losses`` plus the enabled priors' terms, plus ``slot_smooth`` at :data:`SLOT_SMOOTH_WEIGHT` for a
+        field with motion slots whose ``losses`` do not name it (``--loss slot_smooth=W`` sets it, 0 switches it
+        off), less the motion terms when the field has no motion model."""
         terms = list(self.losses)
+        if self.field.motion.slots and all(t.name != "slot_smooth" for t in terms):
+            terms.append(LossTerm("slot_smooth", SLOT_SMOOTH_WEIGHT))
         if self.priors.flow.enabled:
             terms.append(self.priors.flow.loss_term())
         if self.field.kind != "derf":

@@ -26,6 +26,9 @@ Conventions (written once here, named wherever they matter):
   spatial coordinate along the width (grid_sample's x) and time along the height (grid_sample's y). Plane
   groups are named: ``spatial`` (canonical tri-planes, or the 4D field's space planes), ``motion_spatial``
   (DeRF), ``temporal`` (the xt, yt, zt planes: the motion field's for DeRF, the 4D field's for K-Planes).
+- **Motion slots** (``MotionConfig.slots`` > 0, :class:`SlotMotion`): the motion field is K affine motions
+  mixed by a softmax of logit planes instead of hex-planes + MLP; its logit planes are the ``motion_spatial``
+  group, its time keys no plane group (the ``slot_smooth`` loss smooths them).
 
 Everything is plain torch (grid_sample, Linear, ReLU, tanh, exp, sigmoid): exportable to ONNX. One module
 (~720 lines) because the three layers share the conventions above; rendering itself is the static model's
@@ -56,7 +59,8 @@ from models.fields.static.field import FieldConfig, density_activation, shade_pi
 from models.fields.static.model import PlacedSamples, RenderConfig, SceneBox, StaticFieldModel
 
 __all__ = ["FIELD_KINDS", "TIME_TOLERANCE", "sample_time_planes", "time_grid", "sample_hex_planes", "time_smoothness",
-           "HexPlaneEncoding", "MotionConfig", "DynamicFieldConfig", "CanonicalField", "MotionField",
+           "HexPlaneEncoding", "SLOT_KEY_SIZE", "slot_motion", "SlotMotion", "MotionConfig", "DynamicFieldConfig",
+           "CanonicalField", "MotionField",
            "DeRFField", "KPlanesField", "FieldSamples", "DynamicRayOutputs", "TimedSamples", "DynamicFieldModel",
            "auto_time_resolution", "normalize_times", "AtTime"]
 
@@ -173,6 +177,92 @@ class HexPlaneEncoding(nn.Module):
 
 
 # ----------------------------------------------------------------------------------------------------
+# Components: motion slots
+
+#: Values per slot and time key in :class:`SlotMotion`'s key table: dA (3 x 3, row-major), then T (3).
+SLOT_KEY_SIZE = 12
+
+
+def slot_motion(logits: Tensor, still_bias: Tensor, keys: Tensor, coords: Tensor, times: Tensor) -> Tensor:
+    """The motion of K affine slots mixed by a softmax over K + 1 slots (slot 0 still), before the flow bound.
+
+    ``w = softmax(l(c) + still_bias)`` with ``l(c)`` the sum of the xy, xz, yz logit planes read bilinearly
+    (``align_corners=True``, border) at c; slot k >= 1 moves c by ``dA_k(tau) c + T_k(tau)``, its 12 values
+    linear in tau between the Rt keys (key i at ``tau = -1 + 2 i / (Rt - 1)``; tau clamped to [-1, 1]); the
+    still slot adds nothing: ``m = sum_k w_k (dA_k c + T_k)``. :class:`MotionField` bounds it,
+    ``flow = max_flow * tanh(m)``.
+
+    Args:
+        logits: (3, K + 1, R, R) logit planes, xy, xz, yz; channel 0 is the still slot.
+        still_bias: (K + 1,) added to the summed logits (the still slot's bias, zeros elsewhere).
+        keys: (Rt, K, 12) per time key and moving slot: dA row-major (9), then T (3); Rt >= 2.
+        coords: (..., 3) contracted coordinates; times: (...) normalised times (broadcast to ``coords``' lead).
+
+    Returns:
+        (..., 3) in contracted units.
+
+    Example:
+        >>> slot_motion(torch.zeros(3, 3, 4, 4), torch.zeros(3), torch.ones(2, 2, 12), torch.zeros(5, 3),
+        ...             torch.zeros(5))[0]
+        tensor([0.6667, 0.6667, 0.6667])
+    """
+    lead = coords.shape[:-1]
+    flat = coords.reshape(-1, 3)
+    rows, slots = keys.shape[0], keys.shape[1]
+    taus = torch.broadcast_to(times.to(flat.dtype), lead).reshape(-1)
+    f = torch.nn.functional.grid_sample(logits, plane_grid(flat).to(logits.dtype), mode="bilinear",
+                                        padding_mode="border", align_corners=True)  # (3, K + 1, 1, N)
+    a, b, c = f.squeeze(2).unbind(0)
+    weights = torch.softmax((a + b + c).t() + still_bias, dim=-1)[:, 1:]  # (N, K)
+    x = (taus.clamp(-1.0, 1.0) + 1.0) * (0.5 * (rows - 1))
+    i0 = x.floor().clamp(0, rows - 2)
+    frac = (x - i0)[:, None]
+    table = keys.reshape(rows, slots * SLOT_KEY_SIZE)
+    index = i0.long()
+    params = (table[index] * (1.0 - frac) + table[index + 1] * frac).reshape(-1, slots, SLOT_KEY_SIZE)
+    mix = (weights[..., None] * params).sum(dim=1)  # (N, 12): the weighted dA and T
+    out = (mix[:, :9].reshape(-1, 3, 3) * flat[:, None, :]).sum(dim=-1) + mix[:, 9:]
+    return out.reshape(*lead, 3)
+
+
+class SlotMotion(nn.Module):
+    """Thin module holding K affine motion slots and a still slot, read by :func:`slot_motion`.
+
+    Conventions: coordinates are the contracted cube [-1, 1]^3, times the normalised tau in [-1, 1], the output
+    (the slots' mixed motion, before :class:`MotionField`'s ``max_flow * tanh``) contracted units. Every key
+    starts at zero, so the motion (and the flow) is exactly zero at step 0; the logit planes start at
+    ``randn / sqrt(3)`` (their sum over the three planes has unit variance); the still slot's bias is a buffer.
+
+    Args:
+        slots: K >= 1 moving slots.
+        time_resolution: Rt >= 2 time keys (the motion field's time resolution).
+        resolution: side R of the logit planes.
+        still_bias: logit bias of the still slot.
+    """
+
+    def __init__(self, slots: int, time_resolution: int, resolution: int = 32, still_bias: float = 2.0):
+        super().__init__()
+        self.slots, self.time_resolution, self.resolution = int(slots), int(time_resolution), int(resolution)
+        if self.slots < 1 or self.time_resolution < 2 or self.resolution < 2:
+            raise InputError(f"needs slots >= 1, time_resolution >= 2 and resolution >= 2, got {self.slots}, "
+                             f"{self.time_resolution}, {self.resolution}", field="field.motion.slots")
+        k, r = self.slots, self.resolution
+        self.logits = nn.Parameter(torch.randn(3, k + 1, r, r) / math.sqrt(3.0))
+        bias = torch.zeros(k + 1)
+        bias[0] = float(still_bias)
+        self.register_buffer("still_bias", bias)
+        self.keys = nn.Parameter(torch.zeros(self.time_resolution, k, SLOT_KEY_SIZE))
+
+    def forward(self, coords: Tensor, times: Tensor) -> Tensor:
+        """(..., 3) contracted coordinates, (...) normalised times -> (..., 3) motion (contracted units)."""
+        return slot_motion(self.logits, self.still_bias, self.keys, coords, times)
+
+    def key_smoothness(self) -> Tensor:
+        """:func:`time_smoothness` of the key table: the mean squared second difference of the keys in time."""
+        return time_smoothness([self.keys.reshape(self.time_resolution, -1)])
+
+
+# ----------------------------------------------------------------------------------------------------
 # Configs
 
 
@@ -191,6 +281,13 @@ class MotionConfig:
         "help": "flow = max_flow * tanh(MLP output), in contracted units (RF-DeRF: linear + tanh, bound 1)"})
     zero_init: bool = field(default=True, metadata={
         "help": "start with flow exactly 0 (the flow MLP's last layer starts at zero)"})
+    slots: int = field(default=0, metadata={
+        "help": "0: the hex-plane motion field and flow MLP; K > 0: K affine motion slots and a still slot instead "
+                "(SlotMotion; the hex-plane and MLP options above are then unused; "
+                "docs/results/2026-11-30-dynamic-units.md)"})
+    slot_resolution: int = field(default=32, metadata={"help": "side of the slots' logit planes (slots > 0)"})
+    slot_still_bias: float = field(default=2.0, metadata={
+        "help": "logit bias of the still slot (slot 0, no motion) at every point (slots > 0)"})
 
     def validate(self) -> "MotionConfig":
         if not self.resolutions or any(int(r) < 2 for r in self.resolutions):
@@ -200,6 +297,9 @@ class MotionConfig:
             check_range(getattr(self, name), f"field.motion.{name}", low=1, integer=True)
         check_range(self.layers, "field.motion.layers", low=0, integer=True)
         check_range(self.max_flow, "field.motion.max_flow", low=0, low_open=True)
+        check_range(self.slots, "field.motion.slots", low=0, integer=True)
+        check_range(self.slot_resolution, "field.motion.slot_resolution", low=2, integer=True)
+        check_range(self.slot_still_bias, "field.motion.slot_still_bias")
         return self
 
 
@@ -311,11 +411,19 @@ class CanonicalField(nn.Module):
 
 class MotionField(nn.Module):
     """The motion field F_f (Eq. 5.1, 5.2): hex-planes -> tiny MLP -> flow = max_flow * tanh(.) from (c, t) to
-    the canonical time, in contracted units."""
+    the canonical time, in contracted units. With ``config.slots`` > 0 the hex-planes and MLP are not built: a
+    :class:`SlotMotion` gives the motion inside the tanh (``slot_motion``; ``encoding`` and ``flow_mlp`` are
+    None), its logit planes the ``spatial`` group and no time planes."""
 
     def __init__(self, config: MotionConfig, time_resolution: int):
         super().__init__()
         self.config = cfg = config.validate()
+        self.encoding: Optional[HexPlaneEncoding] = None
+        self.flow_mlp: Optional[MLP] = None
+        self.slot_motion: Optional[SlotMotion] = None
+        if cfg.slots:
+            self.slot_motion = SlotMotion(cfg.slots, time_resolution, cfg.slot_resolution, cfg.slot_still_bias)
+            return
         self.encoding = HexPlaneEncoding(cfg.resolutions, time_resolution, cfg.feature_dim, tuple(cfg.init_range))
         self.flow_mlp = MLP(self.encoding.output_dim, cfg.hidden, 3, layers=cfg.layers)
         if cfg.zero_init:
@@ -324,13 +432,21 @@ class MotionField(nn.Module):
             nn.init.zeros_(last.bias)
 
     def spatial_planes(self) -> list[Tensor]:
+        """The hex-planes' xy, xz, yz planes per scale, or the slots' one (3, K + 1, R, R) logit planes."""
+        if self.slot_motion is not None:
+            return [self.slot_motion.logits]
         return self.encoding.spatial_planes()
 
     def temporal_planes(self) -> list[Tensor]:
+        """The hex-planes' xt, yt, zt planes per scale; none with slots (their keys are not planes)."""
+        if self.slot_motion is not None:
+            return []
         return self.encoding.temporal_planes()
 
     def forward(self, coords: Tensor, times: Tensor) -> Tensor:
         """(..., 3) contracted coordinates, (...) normalised times -> flow (..., 3) in contracted units."""
+        if self.slot_motion is not None:
+            return self.config.max_flow * torch.tanh(self.slot_motion(coords, times))
         return self.config.max_flow * torch.tanh(self.flow_mlp(self.encoding(coords, times)))
 
 

@@ -27,7 +27,7 @@ from engine.fields.dynamic import (MotionSlots, deform_np, field_motion_vectors,
                                    render_dynamic_field, slot_motion_np)
 from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available
 from export.dynamic import export_dynamic
-from models.fields.bake import motion_keys
+from models.fields.bake import bake_dynamic, bakes_dynamic, motion_keys
 from models.fields.data.timed import split_by_camera
 from models.fields.dynamic.model import MotionConfig, MotionField, SlotMotion, slot_motion
 from models.fields.train_dynamic import DynamicTrainConfig, load_dynamic_model, train_dynamic
@@ -198,6 +198,18 @@ def test_gl_renders_and_moves_what_the_numpy_oracle_does(slotted):
     assert np.array_equal(np.isnan(vectors), np.isnan(want)) and finite.mean() > 0.3
     np.testing.assert_allclose(vectors[finite], want[finite], atol=1e-3)
     assert np.abs(want[finite]).max() > 0.5  # the points moved (a still camera: the field's motion alone)
+
+
+def test_a_slot_field_of_tri_planes_trains_and_bakes(tmp_path):
+    """No time planes at all (tri-plane canonical field, slots): the ``temporal`` terms see an empty group; the
+    deferred field bakes, its flow sampled from the slots."""
+    config = dataclasses.replace(SLOTS, canonical_time=False,
+                                 canonical=dataclasses.replace(SLOTS.canonical, shading="deferred"))
+    train, _ = split_by_camera(sphere_video([0, 30, 15], TIMES, size=12), ["cam0", "cam1", "cam2"], [])
+    model = load_dynamic_model(train_dynamic(train, tiny_config(3, field=config), tmp_path / "run", progress=False))
+    assert model.field.plane_groups()["temporal"] == [] and bakes_dynamic(model)
+    arrays, manifest = bake_dynamic(model, 16, 5)
+    assert arrays["motion"].shape == (3, 5, 5, 5, 3) and manifest["time"]["keys"] == 3
 
 
 def test_the_config_the_command_line_and_the_smoothness_term():

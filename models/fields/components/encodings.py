@@ -84,9 +84,9 @@ def plane_tv(planes: Sequence[Tensor]) -> Tensor:
         planes: tensors (..., C, H, W) (e.g. one (3, C, R, R) tensor per scale).
 
     Returns:
-        scalar; every plane weighs the same whatever its resolution (means, not sums).
+        scalar; every plane weighs the same whatever its resolution (means, not sums); 0 for an empty group.
     """
-    total = planes[0].new_zeros(())
+    total = planes[0].new_zeros(()) if planes else torch.zeros(())
     for p in planes:
         dh = (p[..., 1:, :] - p[..., :-1, :]).square().mean()
         dw = (p[..., :, 1:] - p[..., :, :-1]).square().mean()
@@ -98,9 +98,10 @@ def plane_l1(planes: Sequence[Tensor], target: float = 0.0) -> Tensor:
     """Mean absolute deviation of plane features from ``target``, summed over the tensors of the group.
 
     With ``target=0`` it pushes features (hence density and colour features) towards empty space; K-Planes
-    uses ``target=1`` on its time planes (a static point = a product of ones).
+    uses ``target=1`` on its time planes (a static point = a product of ones). 0 for an empty group (a DeRF
+    field with motion slots and tri-planes has no time planes).
     """
-    total = planes[0].new_zeros(())
+    total = planes[0].new_zeros(()) if planes else torch.zeros(())
     for p in planes:
         total = total + (p - target).abs().mean()
     return total

@@ -25,6 +25,10 @@
 #    capture trained with deferred shading, exported with its baked form, and the baked GL renderer timed beside
 #    the exact one at 960x540 and 1920x1080, and the same for lego trained with the deferred recipe (LEGO_DIR)
 #    and for D-NeRF lego's dynamic field trained to bake (DNERF_DIR).
+#   SET=fields bash scripts/bench_gpu.sh OUT_DIR   the fields alone, about 8 minutes on an H200 (2026-11-30): the
+#       static default command timed on CUDA, the deferred field's baked GL renderer at 960x540 and 1920x1080 (ms
+#       with the readback, and without it: back to back, dispatch to finish), the dynamic default against K-Planes
+#       on CUDA (issues 44, 45; docs/results/2026-11-30-gpu-h200-fields.md);
 #   SET=corrflow bash scripts/bench_gpu.sh OUT_DIR   (issue 43) the correlation flow network trained on CUDA: the
 #       training scenes rendered and their pairs built (CF_WORKERS processes), CF_STEPS steps (default 3000) of a
 #       network of CF_CHANNELS widths (default the committed 16,32,64,64,32,48; started from the committed weights when
@@ -43,6 +47,10 @@ rt_sizes="${RT_SIZES:-1920x1080 3840x2160}"
 rt_frames="${RT_FRAMES:-120}"
 if [ "${SET:-}" = corrflow ] && [ -z "${ONLY:-}" ]; then
     ONLY="cf_pairs cf_train cf_export cf_val"
+fi
+if [ "${SET:-}" = fields ] && [ -z "${ONLY:-}" ]; then
+    ONLY="gl_context field_capture field_train field_train_deferred field_export_deferred field_render_baked dyn_rig"
+    ONLY="$ONLY dyn_derf dyn_kplanes"
 fi
 if [ "${SET:-}" = realtime ] && [ -z "${ONLY:-}" ]; then
     ONLY="gl_context rt_tests rt_backends rt_warp"
@@ -201,6 +209,17 @@ if [ -d "$dnerf" ]; then
     step dyn_lego_baked 120 "$py" -m tools.bench_fields dynamic "$work/dyn_deferred/export" --run "$work/dyn_deferred" \
         --sizes 960x540,1920x1080 --skip numpy,onnx,torch --json "$out/dyn_render_baked_lego.json"
 fi
+# (issue 45) the dynamic default (DeRF with the sparse flow prior, its SIFT on this machine's CPU) against K-Planes,
+# 2000 steps each on CUDA, on a generated 5-camera rig (seed 3, 160x90, held-out cam2): train seconds beside the
+# step's wall time (priors and the held-out renders included) and held-out PSNR
+step dyn_rig 40 "$py" -m engine.cli render-rig "$work/rig3" --seed 3 --width 160 --height 90 --num-frames 24 \
+    --num-cameras 5 --test-cameras 1
+for kind in derf kplanes; do
+    INTERLEAVE_SIFT_CACHE="$work/sift" step "dyn_$kind" 150 "$py" -m engine.cli train dynamic --scene "$work/rig3" \
+        --train-cameras cam0,cam1,cam3 --test-cameras cam2 --test-every 2 --steps 2000 --seed 0 --device cuda \
+        --no-flip --renderer torch --field.kind "$kind" --out "$work/dyn_$kind"
+    cp "$work/dyn_$kind/scores.json" "$out/dyn_${kind}_scores.json" 2>/dev/null
+done
 # the correlation flow network trained on the GPU (SET=corrflow, above; not part of the default run)
 if [[ "${SET:-}" == corrflow || " ${ONLY:-} " == *" cf_"* ]]; then
     cf="$work/corrflow"

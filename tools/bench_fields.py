@@ -61,16 +61,21 @@ def report_bench(records: list[dict], json_path: Optional[Path] = None) -> None:
 
 def bench_records(outs: dict, width: int, height: int) -> list[dict]:
     """One benchmark record per renderer: ``outs`` maps a renderer name to (render, wall seconds, CPU
-    seconds, compile seconds); scores are against the torch render (else numpy's, else the first)."""
+    seconds, compile seconds); scores are against the torch render (else numpy's, else the first).
+    A GL render carries ``dispatch_seconds`` (``_gl_outs``): its ``dispatch_ms`` is their median, NaN for the
+    others."""
     ref_name = "torch" if "torch" in outs else "numpy" if "numpy" in outs else next(iter(outs))
     ref = outs[ref_name][0]
     records = []
     for name, (out, walls, cpus, compile_s) in outs.items():
         ms = 1e3 * float(np.median(walls))
+        frames = out.get("dispatch_seconds", [])
         finite = np.isfinite(ref["depth"]) & np.isfinite(out["depth"])
         records.append({
             "size": f"{width}x{height}", "renderer": name, "ms": ms, "fps": 1e3 / ms,
             "cpu_ms": 1e3 * float(np.median(cpus)), "runs": len(walls), "compile_s": compile_s,
+            "dispatch_ms": 1e3 * float(np.median(frames)) if frames else float("nan"),
+            "dispatch_frames": len(frames),
             "reference": ref_name, "psnr": _psnr(ref, out) if name != ref_name else float("inf"),
             "max_abs_color": float(np.abs(out["color"] - ref["color"]).max()),
             "depth_median_abs": float(np.median(np.abs(out["depth"][finite] - ref["depth"][finite])))
@@ -83,13 +88,15 @@ def bench_records(outs: dict, width: int, height: int) -> list[dict]:
 
 def bench_table(records: list[dict]) -> str:
     """Markdown table of benchmark records."""
-    lines = ["| size | renderer | ms / frame | fps | CPU ms / frame | PSNR vs reference (dB) | max abs colour "
-             "| median abs depth | depth inf agree | evaluations / px | GMAC/s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| size | renderer | ms / frame | fps | ms, no readback | CPU ms / frame | PSNR vs reference (dB) "
+             "| max abs colour | median abs depth | depth inf agree | evaluations / px | GMAC/s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         value = "ref." if math.isinf(r["psnr"]) else f"{r['psnr']:.1f}"
         evals = f"{r['evaluations_per_pixel']:.2f}" if "evaluations_per_pixel" in r else "-"
         rate = f"{r['gmac_per_s']:.1f}" if "gmac_per_s" in r else "-"
-        lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {r['cpu_ms']:.0f} "
+        gpu = f"{r['dispatch_ms']:.2f}" if math.isfinite(r.get("dispatch_ms", float("nan"))) else "-"
+        lines.append(f"| {r['size']} | {r['renderer']} | {r['ms']:.0f} | {r['fps']:.2f} | {gpu} | {r['cpu_ms']:.0f} "
                      f"| {value} ({r['reference']}) "
                      f"| {r['max_abs_color']:.1e} | {r['depth_median_abs']:.1e} "
                      f"| {100 * r['depth_finite_agree']:.2f}% | {evals} | {rate} |")
@@ -137,14 +144,22 @@ def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_r
     return outs
 
 
+#: Frames each GL variant draws back to back, dispatch to ``finish`` and nothing read back, for its
+#: ``dispatch_ms`` (``GlFieldRenderer.dispatch_seconds``): the renderer's own time, at the clocks a steady stream
+#: of frames keeps (a GPU left idle between frames drops its clocks).
+DISPATCH_FRAMES = 20
+
+
 def _gl_outs(gl_renderer, assets, variants, width: int, height: int, k, w2c, extra: tuple, repeat: int) -> dict:
     """``{variant: (render, wall seconds, CPU seconds, compile seconds)}`` of GL renderers (a warm-up render,
-    then ``repeat`` timed ones)."""
+    then ``repeat`` timed ones with the readback); each render holds ``dispatch_seconds``, the seconds of
+    :data:`DISPATCH_FRAMES` frames drawn back to back without it (after the timed renders, at their time)."""
     outs = {}
     for name, kwargs in variants:
         with gl_renderer(assets, width, height, **kwargs) as r:
             out = r.render(k, w2c, *extra)  # warm-up
             runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
+            out["dispatch_seconds"] = r.dispatch_seconds(k, w2c, DISPATCH_FRAMES)
             outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
     return outs
 

@@ -51,7 +51,10 @@ UNIT_SAMPLES = 1 << 16
 
 def flow_units(assets: DynamicAssets, samples: int = UNIT_SAMPLES, seed: int = 0) -> tuple[int, int]:
     """(hidden units of the flow MLP, those never active): a unit is active at a sample where its ReLU input is
-    positive; the samples are uniform in the contracted cube [-1, 1]^3 and in normalised time [-1, 1]."""
+    positive; the samples are uniform in the contracted cube [-1, 1]^3 and in normalised time [-1, 1]. (0, 0)
+    for an export whose motion is motion slots (no flow MLP)."""
+    if assets.slots is not None:
+        return 0, 0
     rng = np.random.default_rng(seed)
     coords = rng.uniform(-1.0, 1.0, (samples, 3)).astype(np.float32)
     taus = rng.uniform(-1.0, 1.0, samples).astype(np.float32)

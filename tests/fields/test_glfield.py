@@ -311,6 +311,12 @@ def test_field_benchmark_scores_every_renderer_against_torch(bounded_run, tmp_pa
     gl = next(r for r in records if r["renderer"] == "gl float")  # its arithmetic: evaluations and GMAC/s
     assert 0 < gl["evaluations_per_pixel"] <= 64 and gl["macs_per_evaluation"] > 0
     assert gl["gmac_per_s"] == pytest.approx(gl["gmac_per_frame"] / (gl["ms"] / 1e3))
+    from tools.bench_fields import DISPATCH_FRAMES  # each GL variant is also timed without its readback
+
+    assert gl["dispatch_frames"] == DISPATCH_FRAMES and 0 < gl["dispatch_ms"] < 1e4
+    assert all(np.isnan(r["dispatch_ms"]) and r["dispatch_frames"] == 0 for r in records
+               if r["renderer"] in ("torch", "numpy"))
+    assert f"| {gl['fps']:.2f} | {gl['dispatch_ms']:.2f} |" in bench_table(records)
 
 
 def test_a_renderer_on_the_shared_context_hands_frames_to_the_warper_without_a_readback(bounded_run):

@@ -177,6 +177,7 @@ def test_numpy_and_onnx_renders_agree(slotted):
 @gl_only
 def test_gl_renders_and_moves_what_the_numpy_oracle_does(slotted):
     from engine.fields.gldynamic import GlDynamicRenderer
+    from tests.fields.test_glfield import GPU_SLACK
 
     _, _, out, camera = slotted
     assets = load_dynamic_field(out)
@@ -188,9 +189,9 @@ def test_gl_renders_and_moves_what_the_numpy_oracle_does(slotted):
             GlDynamicRenderer(assets, W, H) as fast:
         got = exact.render(*camera, t, earlier_world_to_camera=camera[1], earlier_time=t_prev)
         default = fast.render(*camera, t)
-    for render, tol in ((got, 1e-4), (default, bound)):
-        assert np.abs(render["color"] - ref["color"]).max() <= tol
-        assert np.abs(render["opacity"] - ref["opacity"]).max() <= tol
+    for render, tol in ((got, 1e-4), (default, bound)):  # + GPU_SLACK on a GPU (tests/fields/test_glfield.py)
+        assert np.abs(render["color"] - ref["color"]).max() <= tol + GPU_SLACK
+        assert np.abs(render["opacity"] - ref["opacity"]).max() <= tol + GPU_SLACK
         assert np.array_equal(np.isfinite(render["depth"]), np.isfinite(ref["depth"]))
     want = field_motion_vectors(assets, *camera, got["depth"], t, camera[1], t_prev)
     vectors = got["motion_vectors"]
@@ -248,3 +249,10 @@ def test_bad_slot_assets_are_refused_naming_the_file(slotted, tmp_path):
     (tmp_path / "dynamic.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="field.motion.model"):
         load_dynamic_field(tmp_path)
+
+
+def test_the_motion_truth_tool_reads_a_slot_export_without_a_flow_mlp(slotted):
+    """``tools.field_motion_truth.flow_units`` counts flow-MLP units: a slot export has none, (0, 0)."""
+    from tools.field_motion_truth import flow_units
+
+    assert flow_units(load_dynamic_field(slotted[2])) == (0, 0)

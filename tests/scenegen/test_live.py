@@ -24,6 +24,10 @@ from engine.scenegen.presets import preset_config
 pytestmark = pytest.mark.skipif(not gl_renderer()[0], reason="no OpenGL 4.5 context (EGL) here")
 
 VECTOR_TOLERANCE = 1.0 / 256.0
+#: Relative vector tolerance added on a GPU: on an H200 (2026-11-30) 3 of 30720 vector components, near 100 px
+#: (k = 4 back), were 5.0e-3 px (5.0e-5 of their length) from the ground-truth mode's; llvmpipe meets the
+#: absolute tolerance alone.
+VECTOR_RTOL = 1e-4 if gl_renderer()[1] else 0.0
 
 
 def _scene(**overrides):
@@ -54,7 +58,8 @@ def test_live_colour_depth_and_vectors_equal_the_ground_truth_mode():
             np.testing.assert_allclose(got.depth[surface], want.depth[surface], rtol=1e-6, atol=0)
             missing = np.isnan(vectors).any(axis=2)
             assert np.array_equal(np.isnan(got.motion_vectors).any(axis=2), missing)
-            np.testing.assert_allclose(got.motion_vectors[~missing], vectors[~missing], rtol=0, atol=VECTOR_TOLERANCE)
+            np.testing.assert_allclose(got.motion_vectors[~missing], vectors[~missing], rtol=VECTOR_RTOL,
+                                       atol=VECTOR_TOLERANCE)
             # the frames test what they should: the camera moves and the spinning objects move on their own
             static = camera_motion_vectors(want.depth, want.camera, live.scene.camera_at(got.index - 1 if previous
                                                                                          is None else previous))

@@ -38,7 +38,8 @@ from engine.fields.glbaked import GlBakedDynamicRenderer, GlBakedRenderer
 from engine.fields.gldynamic import GlDynamicRenderer
 from engine.fields.render import TRANSMITTANCE_EPS, evaluation_macs, load_field, render_field
 
-__all__ = ["run_static_bench", "run_dynamic_bench", "bench_records", "bench_table", "report_bench", "main"]
+__all__ = ["DISPATCH_FRAMES", "DISPATCH_WARMUP_S", "dispatch_times", "run_static_bench", "run_dynamic_bench",
+           "bench_records", "bench_table", "report_bench", "main"]
 
 
 def _timed(fn):
@@ -146,20 +147,35 @@ def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_r
 
 #: Frames each GL variant draws back to back, dispatch to ``finish`` and nothing read back, for its
 #: ``dispatch_ms`` (``GlFieldRenderer.dispatch_seconds``): the renderer's own time, at the clocks a steady stream
-#: of frames keeps (a GPU left idle between frames drops its clocks).
+#: of frames keeps. They follow DISPATCH_WARMUP_S seconds of untimed frames: a GPU left idle drops its clocks
+#: (an H200's SM clock sat at 345 of 1980 MHz through the 2026-11-30 field benchmark, which timed single frames
+#: with their readback; docs/results/2026-11-30-gpu-h200-fields.md).
 DISPATCH_FRAMES = 20
+DISPATCH_WARMUP_S = 0.5
+
+
+def dispatch_times(renderer, k, w2c, frames: int = DISPATCH_FRAMES, warmup_s: float = DISPATCH_WARMUP_S
+                   ) -> list[float]:
+    """Seconds of ``frames`` frames of a GL field renderer drawn back to back without the readback, after at
+    least ``warmup_s`` seconds of the same frames untimed (at most 1000 of them)."""
+    spent, drawn = 0.0, 0
+    while spent < warmup_s and drawn < 1000:
+        step = renderer.dispatch_seconds(k, w2c, max(1, min(50, drawn)))
+        spent, drawn = spent + sum(step), drawn + len(step)
+    return renderer.dispatch_seconds(k, w2c, frames)
 
 
 def _gl_outs(gl_renderer, assets, variants, width: int, height: int, k, w2c, extra: tuple, repeat: int) -> dict:
     """``{variant: (render, wall seconds, CPU seconds, compile seconds)}`` of GL renderers (a warm-up render,
     then ``repeat`` timed ones with the readback); each render holds ``dispatch_seconds``, the seconds of
-    :data:`DISPATCH_FRAMES` frames drawn back to back without it (after the timed renders, at their time)."""
+    :data:`DISPATCH_FRAMES` frames drawn back to back without it (:func:`dispatch_times`, after the timed
+    renders, at their time)."""
     outs = {}
     for name, kwargs in variants:
         with gl_renderer(assets, width, height, **kwargs) as r:
             out = r.render(k, w2c, *extra)  # warm-up
             runs = [_timed(lambda: r.render(k, w2c, *extra)) for _ in range(repeat)]
-            out["dispatch_seconds"] = r.dispatch_seconds(k, w2c, DISPATCH_FRAMES)
+            out["dispatch_seconds"] = dispatch_times(r, k, w2c)
             outs[name] = (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)
     return outs
 

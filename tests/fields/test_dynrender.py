@@ -188,19 +188,26 @@ def assert_same_render(ref: dict, got: dict, tol: float) -> None:
 # numpy / onnxruntime against torch
 
 
-@pytest.mark.parametrize("which", BOTH)
-def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
-    model, out, _ = request.getfixturevalue(which)
-    assets = load_dynamic_field(out)
+def assert_query_matches_torch(model, assets, points: int = 3000):
+    """numpy's density and colour of ``assets`` against ``model.field`` at random points, times and directions
+    (seed 2); returns (coords, taus, torch's outputs, numpy's sigma, numpy's rgb) for the caller's checks."""
     g = torch.Generator().manual_seed(2)
-    coords = torch.rand(3000, 3, generator=g) * 2 - 1
-    taus = torch.rand(3000, generator=g) * 2 - 1
-    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1)
+    coords = torch.rand(points, 3, generator=g) * 2 - 1
+    taus = torch.rand(points, generator=g) * 2 - 1
+    dirs = torch.nn.functional.normalize(torch.randn(points, 3, generator=g), dim=-1)
     with torch.no_grad():
         want = model.field(coords, taus, dirs)
     sigma, rgb = query_dynamic(assets, coords.numpy(), taus.numpy(), dirs.numpy())
     np.testing.assert_allclose(sigma, want.sigma.numpy(), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(rgb, want.rgb.numpy(), atol=1e-5)
+    return coords, taus, want, sigma, rgb
+
+
+@pytest.mark.parametrize("which", BOTH)
+def test_numpy_query_matches_torch_at_random_points_and_times(which, request):
+    model, out, _ = request.getfixturevalue(which)
+    assets = load_dynamic_field(out)
+    coords, taus, want, sigma, rgb = assert_query_matches_torch(model, assets)
     if which in MOVING:  # the motion field is exercised: large flows that depend on time
         canonical, flow = deform_np(assets, coords.numpy(), taus.numpy())
         np.testing.assert_allclose(canonical, want.canonical.numpy(), atol=1e-5)

@@ -23,7 +23,7 @@ import torch
 from engine.core.config import add_options, config_from_args
 from engine.core.errors import InputError
 from engine.fields.camera_path import scale_intrinsics
-from engine.fields.dynamic import (MotionSlots, deform_np, field_motion_vectors, load_dynamic_field, query_dynamic,
+from engine.fields.dynamic import (MotionSlots, deform_np, field_motion_vectors, load_dynamic_field,
                                    render_dynamic_field, slot_motion_np)
 from engine.fields.gl import COLOR_EPS, TRANSMITTANCE_EPS, available
 from export.dynamic import export_dynamic
@@ -33,6 +33,7 @@ from models.fields.dynamic.model import MotionConfig, MotionField, SlotMotion, s
 from models.fields.train_dynamic import DynamicTrainConfig, load_dynamic_model, train_dynamic
 from models.fields.trainer import apply_loss_weights
 from tests.fields.test_dynamic_field import TIMES, TINY, sphere_video, tiny_config
+from tests.fields.test_dynrender import assert_query_matches_torch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -144,15 +145,7 @@ def test_training_writes_the_config_and_the_term_and_the_export_round_trips(slot
     np.testing.assert_array_equal(assets.slots.still_bias, [2.0, 0.0, 0.0, 0.0])
     parity = assets.manifest["parity"]["random_points"]
     assert parity["density"] < 1e-4 and parity["color"] < 1e-4  # the ONNX graph (slots inside) against torch
-    g = torch.Generator().manual_seed(2)
-    coords = torch.rand(3000, 3, generator=g) * 2 - 1
-    taus = torch.rand(3000, generator=g) * 2 - 1
-    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1)
-    with torch.no_grad():
-        want = model.field(coords, taus, dirs)
-    sigma, rgb = query_dynamic(assets, coords.numpy(), taus.numpy(), dirs.numpy())
-    np.testing.assert_allclose(sigma, want.sigma.numpy(), rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(rgb, want.rgb.numpy(), atol=1e-5)
+    coords, taus, want, _, _ = assert_query_matches_torch(model, assets)
     canonical, flow = deform_np(assets, coords.numpy(), taus.numpy())
     np.testing.assert_allclose(canonical, want.canonical.numpy(), atol=1e-5)
     assert np.linalg.norm(flow, axis=-1).max() > 0.2  # the motion is exercised

@@ -38,8 +38,8 @@ from engine.fields.glbaked import GlBakedDynamicRenderer, GlBakedRenderer
 from engine.fields.gldynamic import GlDynamicRenderer
 from engine.fields.render import TRANSMITTANCE_EPS, evaluation_macs, load_field, render_field
 
-__all__ = ["DISPATCH_FRAMES", "DISPATCH_WARMUP_S", "dispatch_times", "run_static_bench", "run_dynamic_bench",
-           "bench_records", "bench_table", "report_bench", "main"]
+__all__ = ["DISPATCH_FRAMES", "DISPATCH_WARMUP_S", "DISPATCH_BUDGET_S", "dispatch_times", "run_static_bench",
+           "run_dynamic_bench", "bench_records", "bench_table", "report_bench", "main"]
 
 
 def _timed(fn):
@@ -150,19 +150,27 @@ def _size_outs(width: int, height: int, k, w2c, extra: tuple, *, assets, torch_r
 #: of frames keeps. They follow DISPATCH_WARMUP_S seconds of untimed frames: a GPU left idle drops its clocks
 #: (an H200's SM clock sat at 345 of 1980 MHz through the 2026-11-30 field benchmark, which timed single frames
 #: with their readback; docs/results/2026-11-30-gpu-h200-fields.md).
+#: The timed frames stop early once they add up to DISPATCH_BUDGET_S (at least one is timed), so that a software
+#: renderer's seconds-long 1080p frames do not multiply the benchmark's time.
 DISPATCH_FRAMES = 20
 DISPATCH_WARMUP_S = 0.5
+DISPATCH_BUDGET_S = 2.0
 
 
-def dispatch_times(renderer, k, w2c, frames: int = DISPATCH_FRAMES, warmup_s: float = DISPATCH_WARMUP_S
-                   ) -> list[float]:
-    """Seconds of ``frames`` frames of a GL field renderer drawn back to back without the readback, after at
-    least ``warmup_s`` seconds of the same frames untimed (at most 1000 of them)."""
-    spent, drawn = 0.0, 0
-    while spent < warmup_s and drawn < 1000:
-        step = renderer.dispatch_seconds(k, w2c, max(1, min(50, drawn)))
-        spent, drawn = spent + sum(step), drawn + len(step)
-    return renderer.dispatch_seconds(k, w2c, frames)
+def dispatch_times(renderer, k, w2c, frames: int = DISPATCH_FRAMES, warmup_s: float = DISPATCH_WARMUP_S,
+                   budget_s: float = DISPATCH_BUDGET_S) -> list[float]:
+    """Seconds of up to ``frames`` frames of a GL field renderer drawn back to back without the readback (fewer
+    once they add up to ``budget_s``; at least one), after at least ``warmup_s`` seconds of the same frames
+    untimed (at most 1000 of them). Frames are drawn in calls of doubling size, so they stay back to back."""
+    def draw(until_seconds: float, most: int) -> list[float]:
+        seconds: list[float] = []
+        while len(seconds) < most and (not seconds or sum(seconds) < until_seconds):
+            seconds += renderer.dispatch_seconds(k, w2c, max(1, min(50, len(seconds), most - len(seconds))))
+        return seconds
+
+    if warmup_s > 0:
+        draw(warmup_s, 1000)
+    return draw(budget_s, frames)
 
 
 def _gl_outs(gl_renderer, assets, variants, width: int, height: int, k, w2c, extra: tuple, repeat: int) -> dict:

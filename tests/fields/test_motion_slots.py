@@ -249,3 +249,37 @@ def test_the_motion_truth_tool_reads_a_slot_export_without_a_flow_mlp(slotted):
     from tools.field_motion_truth import flow_units
 
     assert flow_units(load_dynamic_field(slotted[2])) == (0, 0)
+
+
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_mixing_by_distinct_time_matches_the_hat_mixing(monkeypatch, dtype, atol):
+    """A batch with few distinct times (training: one per frame) mixes the keys per time; the general hat mixing
+    is its oracle, for the motion and for the gradients of the logits and the keys (both forms hit)."""
+    import models.fields.dynamic.model as dm
+    g = torch.Generator().manual_seed(5)
+    logits = (torch.randn(3, 6, 8, 8, generator=g, dtype=dtype) * 2).requires_grad_()
+    keys = (torch.randn(7, 5, 12, generator=g, dtype=dtype) * 0.4).requires_grad_()
+    bias = torch.tensor([1.5, 0, 0, 0, 0, 0], dtype=dtype)
+    coords = torch.rand(40, 25, 3, generator=g, dtype=dtype) * 2.4 - 1.2
+    frames = torch.tensor([-1.3, -1.0, -0.2, 0.0, 1 / 3, 0.9, 1.0, 1.4], dtype=dtype)  # clamped ends, key times
+    times = frames[torch.randint(0, 8, (40, 1), generator=g)].expand(40, 25)
+
+    def motion_and_grads(limit):
+        monkeypatch.setattr(dm, "SLOT_SEGMENT_TIMES", limit)
+        logits.grad = keys.grad = None
+        out = slot_motion(logits, bias, keys, coords, times)
+        (out * torch.linspace(-1, 1, out.numel(), dtype=dtype).reshape(out.shape)).sum().backward()
+        return out.detach(), logits.grad.clone(), keys.grad.clone()
+
+    calls = []
+    for name in ("_slot_mix_by_time", "_slot_mix_hat"):
+        real = getattr(dm, name)
+        monkeypatch.setattr(dm, name, lambda *a, _real=real, _name=name: calls.append(_name) or _real(*a))
+    by_time = motion_and_grads(64)
+    hat = motion_and_grads(5)  # 6 distinct times once clamped, > 5: falls back to the hat weights
+    assert calls == ["_slot_mix_by_time", "_slot_mix_by_time", "_slot_mix_hat"]
+    assert by_time[0].shape == (40, 25, 3) and by_time[0].abs().max() > 0.3
+    for a, b in zip(by_time, hat):
+        torch.testing.assert_close(a, b, atol=atol, rtol=atol)
+    torch.testing.assert_close(slot_motion(logits, bias, keys, coords[:1, :1], times[:1, :1]),
+                               slot_motion(logits, bias, keys, coords, times)[:1, :1], atol=atol, rtol=0)  # one point

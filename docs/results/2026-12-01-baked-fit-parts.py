@@ -18,7 +18,7 @@ from engine.core.colorspace import display_encode
 from engine.eval.metrics import psnr
 from engine.fields.baked import BakedAssets, load_baked, lookup_bricks, render_baked
 from engine.fields.render import load_field, march_field, pixel_shader, render_field
-from models.fields.bake import (LOWEST_RAW_DENSITY, _occupied_bricks, _raw_outputs, fit_matrix, fit_points)
+from models.fields.bake import _occupied_bricks, _raw_outputs, fit_bricks, fit_points
 from models.fields.data.select import load_run_views
 from models.fields.static.field import MAX_LOG_DENSITY
 from models.fields.train_static import load_model
@@ -40,17 +40,10 @@ def rebake(model, like: BakedAssets, points, float_features: bool = False) -> Ba
     resolution, brick = like.grid["resolution"], like.grid["brick"]
     occupied, bricks, _ = _occupied_bricks(model, model.field, resolution, 1 << 16)
     cells = occupied.nonzero()
-    local = points(brick)
-    solve, v = fit_matrix(brick, local), brick + 1
     raws, feats = [], []
-    step = max(1, (1 << 16) // local.shape[0])
-    for i in range(0, cells.shape[0], step):
-        pts = (cells[i:i + step].double()[:, None, :] * brick + local) * (2.0 / resolution) - 1.0
-        raw, feat = _raw_outputs(model.field, pts.float(), 1 << 16)
-        raw = torch.einsum("vp,np->nv", solve, raw).clamp(LOWEST_RAW_DENSITY, MAX_LOG_DENSITY)
-        feat = torch.einsum("vp,npg->nvg", solve, feat).clamp(0.0, 1.0).reshape(-1, v, v, v, feat.shape[-1]) * 255.0
-        raws.append(raw.reshape(-1, v, v, v).numpy().astype(np.float16).astype(np.float32))
-        feats.append(feat.numpy() if float_features else np.rint(feat.numpy()).astype(np.uint8))
+    for raw, feat in fit_bricks(model.field, cells, brick, resolution, local=points(brick)):
+        raws.append(raw.numpy().astype(np.float16).astype(np.float32))
+        feats.append(feat.numpy() * 255.0 if float_features else np.rint(feat.numpy() * 255.0).astype(np.uint8))
     index = np.full((bricks,) * 3, -1, np.int32)
     index[tuple(cells.numpy().T)] = np.arange(cells.shape[0], dtype=np.int32)
     return BakedAssets(like.manifest, np.concatenate(raws), np.concatenate(feats), index, like.color_layers)

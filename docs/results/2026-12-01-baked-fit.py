@@ -19,7 +19,7 @@ from engine.core.colorspace import display_encode
 from engine.eval.metrics import psnr
 from engine.fields.baked import BakedAssets, load_baked, render_baked
 from engine.fields.render import load_field, render_field
-from models.fields.bake import _occupied_bricks, _raw_outputs, bake_static, brick_vertices
+from models.fields.bake import _occupied_bricks, bake_static, fit_bricks, fit_points
 from models.fields.data.select import load_run_views
 from models.fields.train_static import load_model
 
@@ -27,18 +27,16 @@ torch.set_num_threads(1)
 
 
 def vertex_sampled(model, fitted: BakedAssets) -> tuple[BakedAssets, float]:
-    """The bake before the fit (6c62d59's ``_bake_bricks``): the field's values at the vertices of the same bricks."""
+    """The bake before the fit (6c62d59's ``_bake_bricks``): the field's values at the vertices of the same bricks
+    (:func:`fit_bricks` with the vertices alone as fit points: the identity)."""
     t0 = time.process_time()
-    grid = fitted.grid
-    occupied, _, _ = _occupied_bricks(model, model.field, grid["resolution"], 1 << 16)
+    resolution, brick = fitted.grid["resolution"], fitted.grid["brick"]
+    occupied, _, _ = _occupied_bricks(model, model.field, resolution, 1 << 16)
     cells = occupied.nonzero()
     raws, feats = [], []
-    step = max(1, (1 << 16) // (grid["brick"] + 1) ** 3)
-    for i in range(0, cells.shape[0], step):
-        raw, feat = _raw_outputs(model.field, brick_vertices(cells[i:i + step], grid["brick"], grid["resolution"]),
-                                 1 << 16)
+    for raw, feat in fit_bricks(model.field, cells, brick, resolution, local=fit_points(brick)[:(brick + 1) ** 3]):
         raws.append(raw.numpy().astype(np.float16).astype(np.float32))
-        feats.append(np.rint(feat.numpy() * 255.0).clip(0, 255).astype(np.uint8))
+        feats.append(np.rint(feat.numpy() * 255.0).astype(np.uint8))
     index = np.full(fitted.brick_index.shape, -1, np.int32)
     index[tuple(cells.numpy().T)] = np.arange(cells.shape[0], dtype=np.int32)
     assert np.array_equal(index >= 0, fitted.brick_index >= 0)

@@ -11,7 +11,7 @@ the exact assets and records the PSNR of the baked render against the exact one 
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Iterator, Optional
 
 import numpy as np
 import torch
@@ -23,8 +23,8 @@ from models.fields.dynamic.model import DynamicFieldModel
 from models.fields.static.field import MAX_LOG_DENSITY
 
 __all__ = ["DEFAULT_RESOLUTION", "DEFAULT_MOTION_RESOLUTION", "LOWEST_RAW_DENSITY", "bake_static", "bake_dynamic",
-           "bakes_dynamic", "motion_keys", "brick_vertices", "fit_points", "fit_matrix", "write_baked",
-           "baked_check"]
+           "bakes_dynamic", "motion_keys", "brick_vertices", "fit_points", "fit_matrix", "fit_bricks",
+           "write_baked", "baked_check"]
 
 #: Grid cells per side of the field's cube: 4 cells per occupancy cell of the default 64^3 grid.
 DEFAULT_RESOLUTION = 256
@@ -147,6 +147,23 @@ def bake_static(model, resolution: int = DEFAULT_RESOLUTION, *, chunk: int = 1 <
     return arrays, manifest
 
 
+def fit_bricks(field, cells: torch.Tensor, brick: int, resolution: int, chunk: int = 1 << 16,
+               local: Optional[torch.Tensor] = None) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """The fitted vertex values of bricks ``cells`` (n, 3) of ``field`` (see :func:`_raw_outputs`), in chunks of
+    bricks: raw log-density (m, V, V, V) clamped to [LOWEST_RAW_DENSITY, MAX_LOG_DENSITY] and features (m, V, V, V,
+    G) clamped to [0, 1], before rounding; fitted at ``local`` (default :func:`fit_points`, see
+    :func:`fit_matrix`)."""
+    local = fit_points(brick) if local is None else local.double()
+    solve, v = fit_matrix(brick, local), brick + 1
+    step = max(1, chunk // local.shape[0])
+    for i in range(0, cells.shape[0], step):
+        points = (cells[i:i + step].double()[:, None, :] * brick + local) * (2.0 / resolution) - 1.0
+        raw, feat = _raw_outputs(field, points.float(), chunk)  # (m, P), (m, P, G)
+        raw = torch.einsum("vp,np->nv", solve, raw).clamp(LOWEST_RAW_DENSITY, MAX_LOG_DENSITY)
+        feat = torch.einsum("vp,npg->nvg", solve, feat).clamp(0.0, 1.0)
+        yield raw.reshape(-1, v, v, v), feat.reshape(-1, v, v, v, feat.shape[-1])
+
+
 def _bake_bricks(model, field, resolution: int, chunk: int, use_grid: bool = True
                  ) -> tuple[dict[str, np.ndarray], dict]:
     """The brick arrays (``density``, ``features``, ``brick_index``) of ``field`` (see :func:`_raw_outputs`) and
@@ -157,16 +174,10 @@ def _bake_bricks(model, field, resolution: int, chunk: int, use_grid: bool = Tru
     index = torch.full((bricks,) * 3, -1, dtype=torch.int32)
     index[cells[:, 0], cells[:, 1], cells[:, 2]] = torch.arange(cells.shape[0], dtype=torch.int32)
     raws, feats = [], []
-    solve, local = fit_matrix(brick), fit_points(brick)
+    for raw, feat in fit_bricks(field, cells, brick, resolution, chunk):
+        raws.append(raw.numpy().astype(np.float16))
+        feats.append(np.rint(feat.numpy() * 255.0).astype(np.uint8))
     v = brick + 1
-    step = max(1, chunk // local.shape[0])
-    for i in range(0, cells.shape[0], step):
-        points = (cells[i:i + step].double()[:, None, :] * brick + local) * (2.0 / resolution) - 1.0
-        raw, feat = _raw_outputs(field, points.float(), chunk)  # (n, P), (n, P, G)
-        raw = torch.einsum("vp,np->nv", solve, raw).clamp(LOWEST_RAW_DENSITY, MAX_LOG_DENSITY)
-        feat = torch.einsum("vp,npg->nvg", solve, feat).clamp(0.0, 1.0)
-        raws.append(raw.reshape(-1, v, v, v).numpy().astype(np.float16))
-        feats.append(np.rint(feat.reshape(-1, v, v, v, feat.shape[-1]).numpy() * 255.0).astype(np.uint8))
     arrays = {"density": np.concatenate(raws) if raws else np.zeros((0, v, v, v), np.float16),
               "features": (np.concatenate(feats) if feats
                            else np.zeros((0, v, v, v, field.config.geo_feature_dim), np.uint8)),

@@ -3,8 +3,9 @@
 ``python docs/results/2026-11-28-dynamic-cost.py MODE VARIANT RIG_DIR OUT.json [--rays N]`` (from the repository
 root), MODE ``profile``, ``cpu`` or ``pair``, VARIANT ``kplanes``, ``default`` (derf, canonical time, flow prior),
 ``sfderf`` (``--no-field.canonical-time``) or ``noprior`` (default without the prior). Trains on the rig as
-``interleave train dynamic --train-cameras cam0,cam1,cam3 --test-cameras cam2`` does (default config otherwise;
-``--rays`` sets the prior's matched pairs a step) for 131 / 201 steps in a temporary folder, and writes:
+``interleave train dynamic --train-cameras cam0,cam1,cam3 --test-cameras cam2`` does, or on a D-NeRF scene's train
+split read at ``--downscale N`` (default config otherwise; ``--rays`` sets the prior's matched pairs a step) for
+131 / 201 steps in a temporary folder, and writes:
 
 - ``profile``: the torch profiler over steps 100-130 (after the occupancy grid's warm-up), each op's total and
   self time and calls, with the forward regions labelled (``## render``, ``## motion_field``,
@@ -49,7 +50,7 @@ import models.fields.dynamic.model as dm
 import models.fields.priors.flow as pf
 import models.fields.train_dynamic as td
 import models.fields.trainer as tr
-from models.fields.data.select import select_dynamic_views
+from models.fields.data.select import detect_dynamic_dataset, select_dynamic_views
 from models.fields.train_dynamic import DynamicTrainConfig, choose_dynamic_priors, train_dynamic
 
 REGIONS = [(dm.MotionField, "forward", "## motion_field"),
@@ -273,8 +274,9 @@ def main() -> None:
     parser.add_argument("mode", choices=["profile", "cpu", "pair", "lookups"])
     parser.add_argument("variant", help="kplanes, default, sfderf or noprior, with :path=value overrides; pair: a "
                                         "comma-separated list of them")
-    parser.add_argument("rig")
+    parser.add_argument("rig", help="an rgbd-rig (cam0, cam1, cam3 train) or a D-NeRF scene (its train split)")
     parser.add_argument("out")
+    parser.add_argument("--downscale", type=int, default=0, help="D-NeRF: read the images at 1/N (lego: 8)")
     parser.add_argument("--rays", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -293,8 +295,11 @@ def main() -> None:
         parser.error("several variants: pair mode only")
     first, last = (100, 130) if args.mode == "profile" else (100, 200)
     cfgs = [spec_config(spec, args.rays) for spec in specs]
-    train, _, record = select_dynamic_views("rig", args.rig, cfgs[0].downscale,
-                                            train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
+    if detect_dynamic_dataset(args.rig) == "dnerf":
+        train, _, record = select_dynamic_views("dnerf", args.rig, args.downscale or cfgs[0].downscale)
+    else:
+        train, _, record = select_dynamic_views("rig", args.rig, cfgs[0].downscale,
+                                                train_cameras=["cam0", "cam1", "cam3"], test_cameras=["cam2"])
     cfgs = [dataclasses.replace(cfg, downscale=record["downscale"], steps=last + 1) for cfg in cfgs]
     if args.mode == "pair":
         cpu = lock_step(train, cfgs, first, last, [spec.split(":")[0].endswith("@reference") for spec in specs])

@@ -41,15 +41,15 @@ from models.fields.losses import LossInputs, LossTerm, RayBatch, plane_group, re
 from models.fields.priors.flow import DynamicPriorsConfig, build_dynamic_priors
 from models.fields.static.model import RenderConfig, SceneBox
 from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
-                                   gl_view_renderer, json_safe, resolve_renderer, run_config_from_file,
-                                   run_eval_command, run_train_seconds, score_views, train_run, validate_run_config,
-                                   view_list)
+                                   field_options_given, gl_view_renderer, json_safe, resolve_renderer,
+                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
+                                   validate_run_config, view_list)
 from models.trainer_cli import DEVICES, resolve_device
 
 __all__ = ["DynamicTrainConfig", "default_dynamic_loss_terms", "MOTION_TERMS", "SLOT_SMOOTH_WEIGHT", "DYNAMIC",
            "train_dynamic", "build_dynamic_model", "load_dynamic_model", "evaluate_dynamic", "model_bytes",
            "canonical_limit", "select_dynamic_views", "load_dynamic_run_views", "detect_dynamic_dataset", "main",
-           "eval_main", "FLOW_BINS", "choose_dynamic_priors"]
+           "eval_main", "FLOW_BINS", "choose_dynamic_priors", "choose_canonical_time", "views_per_time"]
 
 #: Loss terms that act on a motion field; the K-Planes baseline has none and skips them.
 MOTION_TERMS = frozenset({"motion_tv", "flow_l1", "sparse_flow", "slot_smooth"})
@@ -136,12 +136,15 @@ class DynamicTrainConfig(RunConfig):
     priors_choice: str = field(default="", metadata={
         "help": "why the flow prior is on or off, as 'interleave train dynamic' chose it ('auto: ...' from the "
                 "field's kind, or 'explicit: ...'); a record, not an input"})
+    canonical_time_choice: str = field(default="", metadata={
+        "help": "why a derf field's canonical time planes are on or off, as 'interleave train dynamic' chose them "
+                "('auto: ...' from the training views' cameras per time, or 'explicit: ...'); a record, not an input"})
     render: RenderConfig = field(default_factory=RenderConfig, metadata={"help": "sampling and rendering"})
     # keep last: from here on the class body's name `field` is this attribute, not dataclasses.field
     field: DynamicFieldConfig = field(default_factory=DynamicFieldConfig, metadata={"help": "the dynamic field"})
 
     #: Fields that record how the run was set up rather than define it (a resumed run may differ in them).
-    RECORDS: ClassVar[tuple[str, ...]] = ("priors_choice",)
+    RECORDS: ClassVar[tuple[str, ...]] = ("priors_choice", "canonical_time_choice")
 
     def validate(self) -> "DynamicTrainConfig":
         """Raise InputError naming the first bad option; returns self."""
@@ -186,6 +189,35 @@ def choose_dynamic_priors(config: DynamicTrainConfig, explicit: Optional[str] = 
         choice, on = f"auto: a {config.field.kind} field has no motion field for the flow prior", False
     flow = dataclasses.replace(config.priors.flow, enabled=on)
     return dataclasses.replace(config, priors=dataclasses.replace(config.priors, flow=flow), priors_choice=choice)
+
+
+def views_per_time(views: TimedViews) -> float:
+    """The median number of training views that share a time: 1 for a monocular capture (D-NeRF's one view a
+    frame), the number of cameras for a synchronized rig."""
+    _, counts = np.unique(np.asarray(views.times, np.float64), return_counts=True)
+    return float(np.median(counts)) if counts.size else 0.0
+
+
+def choose_canonical_time(config: DynamicTrainConfig, views: TimedViews, *, explicit: bool = False
+                          ) -> DynamicTrainConfig:
+    """``config`` with a ``derf`` field's canonical time planes chosen for ``views`` and ``canonical_time_choice``
+    saying why. ``explicit`` (the command line or config file sets ``field.canonical_time``) keeps the config's.
+    Otherwise they are on where some two views share a time (a synchronized rig: the time planes fit what the
+    motion leaves, seen from several cameras at once) and off for a monocular capture (one view a time), where
+    nothing but the motion ties one time's view to another's and the time planes fit part of it as appearance:
+    D-NeRF lego, 3 seeds at 10,000 steps, and a monocular cut of two rigs,
+    docs/results/2026-12-01-dynamic-monocular.md."""
+    if config.field.kind != "derf":
+        return dataclasses.replace(config, canonical_time_choice=f"a {config.field.kind} field has no canonical field")
+    if explicit:
+        on = config.field.canonical_time
+        return dataclasses.replace(config, canonical_time_choice=f"explicit: {'on' if on else 'off'}")
+    shared = views_per_time(views)
+    on = shared >= 2
+    choice = (f"auto: {'on' if on else 'off'}, "
+              f"{'a synchronized capture' if on else 'a monocular capture'} ({shared:g} train views a time)")
+    return dataclasses.replace(config, field=dataclasses.replace(config.field, canonical_time=on),
+                               canonical_time_choice=choice)
 
 
 def _resolved(config: DynamicTrainConfig, views: TimedViews) -> DynamicTrainConfig:
@@ -484,7 +516,7 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
                         help="JSON with any DynamicTrainConfig fields; command-line options override it")
     parser.add_argument("--no-flip", action="store_true", help="skip FLIP in the final evaluation")
     add_renderer_option(parser)
-    add_options(parser, DynamicTrainConfig, skip=("priors_choice",))
+    add_options(parser, DynamicTrainConfig, skip=("priors_choice", "canonical_time_choice"))
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -501,7 +533,9 @@ def main(argv: Optional[list[str]] = None, prog: str = "python -m models.fields.
             train_cameras=view_list(args.train_cameras, "train_cameras"),
             test_cameras=view_list(args.test_cameras, "test_cameras"), frames=frames,
             test_every=args.test_every, max_test_views=args.max_test_views, test_split=args.test_split)
-        config = dataclasses.replace(config, downscale=record["downscale"])
+        config = choose_canonical_time(dataclasses.replace(config, downscale=record["downscale"]), train,
+                                       explicit="canonical_time" in field_options_given(args))
+        print(f"canonical time planes: {config.canonical_time_choice}", file=sys.stderr)
         kind = config.field.kind + ("+flow" if config.priors.flow.enabled else "")
         out = Path(args.out) if args.out else Path("runs/dynamic") / f"{Path(args.data).resolve().name}-{kind}"
         run = train_dynamic(train, config, out, device=str(device))

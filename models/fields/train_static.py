@@ -32,9 +32,9 @@ from models.fields.priors.config import (PRIOR_NAMES, PriorsConfig, auto_field_o
 from models.fields.static.field import FieldConfig
 from models.fields.static.model import RenderConfig, SceneBox, StaticFieldModel
 from models.fields.trainer import (RunConfig, add_renderer_option, apply_loss_weights, check_run,
-                                   gl_view_renderer, json_safe, rank_correlation, resolve_renderer,
-                                   run_config_from_file, run_eval_command, run_train_seconds, score_views, train_run,
-                                   validate_run_config, view_list)
+                                   field_options_given, gl_view_renderer, json_safe, losses_given, rank_correlation,
+                                   resolve_renderer, run_config_from_file, run_eval_command, run_train_seconds,
+                                   score_views, train_run, validate_run_config, view_list)
 from models.trainer_cli import DEVICES, resolve_device
 
 __all__ = ["FieldTrainConfig", "STATIC", "train_field", "evaluate_field", "load_model", "build_model",
@@ -259,29 +259,6 @@ def parse_run_command(parser: argparse.ArgumentParser, argv: Optional[list[str]]
     if args.threads:
         torch.set_num_threads(args.threads)
     return args
-
-
-def _config_section(args: argparse.Namespace, key: str):
-    """The ``key`` section of the ``--config`` file (None without one, or without the section). The file was
-    read and checked by :func:`config_from_command_line`."""
-    return json.loads(Path(args.config).read_text()).get(key) if args.config else None
-
-
-def losses_given(args: argparse.Namespace) -> list[str]:
-    """Names of the loss terms whose weights a command line sets: those ``--loss`` names and those the
-    ``--config`` file lists under ``losses`` (a run's saved ``config.json`` lists them all, so training again
-    from it keeps its weights)."""
-    terms = _config_section(args, "losses")
-    return [spec.partition("=")[0] for spec in args.loss] + [
-        t["name"] for t in (terms if isinstance(terms, list) else []) if isinstance(t, dict) and "name" in t]
-
-
-def field_options_given(args: argparse.Namespace) -> list[str]:
-    """Names of the field options (``FieldConfig``'s) that a command line sets: ``--field.NAME`` options and the
-    keys of the ``--config`` file's ``field`` section."""
-    section = _config_section(args, "field")
-    return [key.partition(".")[2] for key in vars(args) if key.startswith("field.")] + (
-        list(section) if isinstance(section, dict) else [])
 
 
 def choose_priors(config: FieldTrainConfig, num_views: int, scene_type: str, explicit: Optional[str] = None,

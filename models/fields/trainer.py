@@ -48,7 +48,8 @@ from models.fields.losses import LossTerm, RayBatch, assemble_loss, check_loss_t
 __all__ = ["LR_SCHEDULES", "rays_to", "RunConfig",
            "FieldKind", "train_run", "validate_run_config", "lr_factor", "matching_views",
            "check_run", "all_rays", "take_rays", "open_run_dir", "restore_training_state", "open_log", "run_config_to_dict",
-           "run_config_from_dict", "run_config_from_file", "apply_loss_weights", "view_list", "rank_correlation",
+           "run_config_from_dict", "run_config_from_file", "losses_given", "field_options_given", "apply_loss_weights",
+           "view_list", "rank_correlation",
            "run_train_seconds", "score_views", "json_safe", "write_renders", "run_eval_command", "RENDERERS",
            "resolve_renderer", "add_renderer_option", "gl_view_renderer"]
 
@@ -156,6 +157,29 @@ def run_config_from_dict(cls, data: dict[str, Any]):
 def run_config_from_file(cls, path: Optional[Path]):
     """``cls``'s defaults updated by a (partial) JSON config file (nested sections field by field)."""
     return cls() if path is None else config_from_file(cls, path)
+
+
+def _config_section(args: argparse.Namespace, key: str):
+    """The ``key`` section of the ``--config`` file (None without one, or without the section). The file was
+    read and checked when the config was built (e.g. ``run_config_from_file``)."""
+    return json.loads(Path(args.config).read_text()).get(key) if args.config else None
+
+
+def losses_given(args: argparse.Namespace) -> list[str]:
+    """Names of the loss terms whose weights a command line sets: those ``--loss`` names and those the
+    ``--config`` file lists under ``losses`` (a run's saved ``config.json`` lists them all, so training again
+    from it keeps its weights)."""
+    terms = _config_section(args, "losses")
+    return [spec.partition("=")[0] for spec in args.loss] + [
+        t["name"] for t in (terms if isinstance(terms, list) else []) if isinstance(t, dict) and "name" in t]
+
+
+def field_options_given(args: argparse.Namespace) -> list[str]:
+    """Names of the field options (the ``field`` section's, e.g. ``FieldConfig``'s) that a command line sets:
+    ``--field.NAME`` options and the keys of the ``--config`` file's ``field`` section."""
+    section = _config_section(args, "field")
+    return [key.partition(".")[2] for key in vars(args) if key.startswith("field.")] + (
+        list(section) if isinstance(section, dict) else [])
 
 
 def apply_loss_weights(config, specs: list[str]):

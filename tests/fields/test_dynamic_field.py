@@ -859,6 +859,9 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     saved = json.loads((run / "config.json").read_text())  # the default: SF-DeRF, and why
     assert saved["field"]["kind"] == "derf" and saved["priors"]["flow"]["enabled"]
     assert saved["priors_choice"].startswith("auto:")
+    # a monocular capture: the thesis's tri-plane canonical field, and why
+    assert not saved["field"]["canonical_time"] and saved["canonical_time_choice"].startswith("auto: off")
+    assert "canonical time planes: auto: off, a monocular capture (1 train views a time)" in capsys.readouterr().err
     assert scores["canonical_limit"]["border_crossings"]["skipped_cameras"]  # monocular: not testable
     capsys.readouterr()
     assert main(["eval", "dynamic", str(run), "--json", str(tmp_path / "s.json"), "--no-flip"]) == 0
@@ -873,8 +876,7 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     manifest = json.loads((tmp_path / "export" / "dynamic.json").read_text())
     assert manifest["kind"] == "derf" and manifest["time"]["range"] == [0.0, 1.0]
     assert max(manifest["parity"]["random_points"].values()) < 1e-4
-    assert {"canonical_spatial", "canonical_temporal", "motion_spatial", "motion_temporal"} == set(
-        manifest["field"]["planes"])
+    assert {"canonical_spatial", "motion_spatial", "motion_temporal"} == set(manifest["field"]["planes"])
     assert manifest["canonical_limit"] is not None
     arrays = np.load(tmp_path / "export" / "dynamic.npz")
     assert arrays["motion_temporal_0"].shape == (3, 4, 3, 8) and arrays["motion_temporal_0_u8"].dtype == np.uint8
@@ -913,6 +915,39 @@ def test_the_flow_prior_is_chosen_by_the_fields_kind_unless_asked():
     with pytest.raises(InputError, match="unknown prior") as err:
         choose_dynamic_priors(base, "flow,depth")
     assert err.value.field == "priors"
+
+
+def test_the_canonical_time_planes_are_chosen_by_the_cameras_per_time_unless_asked(tmp_path, capsys):
+    from engine.cli import main
+    from models.fields.train_dynamic import choose_canonical_time, views_per_time
+
+    mono = _monocular([0, 20, 40, 60], [0.0, 0.25, 0.5, 0.75])
+    rig = sphere_video([0, 30], [0.0, 0.5, 1.0], size=20)  # two synchronized cameras
+    assert views_per_time(mono) == 1 and views_per_time(rig) == 2
+    base = DynamicTrainConfig()
+    assert base.field.canonical_time  # the config's default; the command line chooses
+    off = choose_canonical_time(base, mono)
+    assert not off.field.canonical_time and off.canonical_time_choice.startswith("auto: off, a monocular capture")
+    on = choose_canonical_time(dataclasses.replace(base, field=replace(base.field, canonical_time=False)), rig)
+    assert on.field.canonical_time
+    assert on.canonical_time_choice == "auto: on, a synchronized capture (2 train views a time)"
+    kept = choose_canonical_time(base, mono, explicit=True)
+    assert kept.field.canonical_time and kept.canonical_time_choice == "explicit: on"
+    kplanes = choose_canonical_time(dataclasses.replace(base, field=replace(base.field, kind="kplanes")), mono)
+    assert kplanes.field == replace(base.field, kind="kplanes")
+    assert "no canonical field" in kplanes.canonical_time_choice
+    # the command line: --field.canonical-time or a config file's field.canonical_time is explicit
+    _write_dnerf(tmp_path / "scene", mono, "train")
+    _write_dnerf(tmp_path / "scene", _monocular([10, 50], [0.1, 0.6]), "test")
+    small = ["--steps", "2", "--rays-per-batch", "64", "--field.canonical.resolutions", "8",
+             "--field.motion.resolutions", "8", "--render.num-samples", "8", "--no-flip", "--render.occupancy", "false"]
+    (tmp_path / "on.json").write_text(json.dumps({"field": {"canonical_time": True}}))
+    for i, extra in enumerate((["--field.canonical-time"], ["--config", str(tmp_path / "on.json")])):
+        assert main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(tmp_path / f"r{i}"),
+                     *small, *extra]) == 0
+        saved = json.loads((tmp_path / f"r{i}" / "config.json").read_text())
+        assert saved["field"]["canonical_time"] and saved["canonical_time_choice"] == "explicit: on"
+    capsys.readouterr()
 
 
 def test_dense_dis_matches_recover_a_known_shift_and_reject_occlusions():

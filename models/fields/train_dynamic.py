@@ -204,9 +204,9 @@ def choose_canonical_time(config: DynamicTrainConfig, views: TimedViews, *, expl
     saying why. ``explicit`` (the command line or config file sets ``field.canonical_time``) keeps the config's.
     Otherwise they are on where some two views share a time (a synchronized rig: the time planes fit what the
     motion leaves, seen from several cameras at once) and off for a monocular capture (one view a time), where
-    nothing but the motion ties one time's view to another's and the time planes fit part of it as appearance:
-    D-NeRF lego, 3 seeds at 10,000 steps, and a monocular cut of two rigs,
-    docs/results/2026-12-01-dynamic-monocular.md."""
+    nothing but the motion ties one time's view to another's and the time planes fit part of it as appearance
+    (D-NeRF lego, three seeds at 2000 and 10,000 steps; monocular cuts of two rigs: one win, one tie;
+    docs/results/2026-12-01-dynamic-monocular.md). Times are compared exactly, as a rig's frames share theirs."""
     if config.field.kind != "derf":
         return dataclasses.replace(config, canonical_time_choice=f"a {config.field.kind} field has no canonical field")
     if explicit:

@@ -20,7 +20,7 @@ import torch
 from engine.core.config import config_from_text
 from models.fields.data.select import select_dynamic_views
 from models.fields.train_dynamic import (DynamicTrainConfig, choose_canonical_time, choose_dynamic_priors,
-                                         evaluate_dynamic, train_dynamic)
+                                         evaluate_dynamic, train_dynamic, views_per_time)
 
 
 def monocular(views):
@@ -49,7 +49,7 @@ def train(rig: str, run: str, steps: str, seed: str, options: str = "") -> None:
     keep = ("psnr", "ssim", "depth_mae", "train_seconds", "flow_moving_fraction", "kind", "num_views")
     result = {"rig": rig, "options": options, "steps": int(steps), "seed": int(seed), "train_views": len(views),
               "train_cameras": sorted({views.camera_names[c] for c in views.camera_ids}),
-              "views_per_time": float(len(views) / len(np.unique(views.times))),
+              "views_per_time": views_per_time(views),
               "canonical_time": config.field.canonical_time, "canonical_time_choice": config.canonical_time_choice,
               "priors_choice": config.priors_choice, "test": record.get("test_cameras"),
               **{k: scores.get(k) for k in keep},

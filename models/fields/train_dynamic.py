@@ -215,7 +215,8 @@ def choose_canonical_time(config: DynamicTrainConfig, views: TimedViews, *, expl
     shared = views_per_time(views)
     on = shared >= 2
     choice = (f"auto: {'on' if on else 'off'}, "
-              f"{'a synchronized capture' if on else 'a monocular capture'} ({shared:g} train views a time)")
+              f"{'a synchronized capture' if on else 'a monocular capture'} ({shared:g} train "
+              f"view{'' if shared == 1 else 's'} a time)")
     return dataclasses.replace(config, field=dataclasses.replace(config.field, canonical_time=on),
                                canonical_time_choice=choice)
 

@@ -861,7 +861,7 @@ def test_train_eval_export_dynamic_commands(tmp_path, capsys):
     assert saved["priors_choice"].startswith("auto:")
     # a monocular capture: the thesis's tri-plane canonical field, and why
     assert not saved["field"]["canonical_time"] and saved["canonical_time_choice"].startswith("auto: off")
-    assert "canonical time planes: auto: off, a monocular capture (1 train views a time)" in capsys.readouterr().err
+    assert "canonical time planes: auto: off, a monocular capture (1 train view a time)" in capsys.readouterr().err
     assert scores["canonical_limit"]["border_crossings"]["skipped_cameras"]  # monocular: not testable
     capsys.readouterr()
     assert main(["eval", "dynamic", str(run), "--json", str(tmp_path / "s.json"), "--no-flip"]) == 0

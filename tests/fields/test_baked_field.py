@@ -127,6 +127,32 @@ def test_the_bricks_are_the_occupancy_grid_and_the_vertices_the_fit(deferred_run
     assert np.abs(baked.features[rows] / 255.0 - feats).max() <= 0.5 / 255 + 1e-5
 
 
+def test_without_an_occupancy_grid_a_brick_is_occupied_where_one_of_its_vertices_is(ndc_deferred_run):
+    """The vertex pass evaluates each grid vertex once, plane by plane; the oracle evaluates every brick's 125
+    vertices on its own (the same points: vertex i at -1 + 2 i / R) and takes their largest raw density. The
+    model's own threshold fills this small field's grid, so thresholds at quantiles of the bricks' maxima too."""
+    from models.fields.bake import _occupied_bricks, _raw_outputs, _vertex_occupancy
+
+    run, out, _ = ndc_deferred_run
+    model = load_model(run)
+    threshold = float(np.log(model.occupancy_threshold()))
+    for resolution in (16, 64):
+        b = resolution // 4
+        cells = np.stack(np.meshgrid(*[np.arange(b)] * 3, indexing="ij"), -1).reshape(-1, 1, 1, 1, 3)
+        offsets = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1)[None]
+        points = torch.from_numpy(((cells * 4 + offsets) * (2.0 / resolution) - 1.0).astype(np.float32))
+        raw, _ = _raw_outputs(model.field, points, 1 << 16)
+        top = raw.reshape(raw.shape[0], -1).amax(dim=-1).reshape(b, b, b)
+        for level in (threshold, *torch.quantile(top.flatten(), torch.tensor([0.1, 0.5, 0.9])).tolist()):
+            want = top >= level
+            assert torch.equal(_vertex_occupancy(model.field, resolution, level, 1 << 16), want)
+            if level != threshold:
+                assert 0 < int(want.sum()) < want.numel()
+    occupied, bricks, from_grid = _occupied_bricks(model, model.field, 64, 1 << 16)
+    assert (bricks, from_grid) == (16, False) and torch.equal(occupied, top >= threshold)
+    assert np.array_equal(load_baked(out).brick_index >= 0, occupied.numpy())  # the export's bake at 64
+
+
 def test_the_baked_render_is_the_exact_render_of_the_same_field(deferred_run):
     _, out, _ = deferred_run
     cam = _camera("deferred_run")

@@ -950,6 +950,48 @@ def test_the_canonical_time_planes_are_chosen_by_the_cameras_per_time_unless_ask
     capsys.readouterr()
 
 
+def test_a_monocular_captures_motion_pays_more_for_bending_in_time_unless_asked(tmp_path, capsys):
+    from engine.cli import main
+    from models.fields.train_dynamic import MONOCULAR_TIME_SMOOTHNESS, choose_canonical_time, choose_time_smoothness
+
+    def weight(config):
+        return next(t.weight for t in config.losses if t.name == "time_smoothness")
+
+    mono = _monocular([0, 20, 40, 60], [0.0, 0.25, 0.5, 0.75])
+    rig = sphere_video([0, 30], [0.0, 0.5, 1.0], size=20)
+    base = DynamicTrainConfig()
+    default = weight(base)
+    assert MONOCULAR_TIME_SMOOTHNESS > default
+    chosen = choose_time_smoothness(choose_canonical_time(base, mono), mono)
+    assert weight(chosen) == MONOCULAR_TIME_SMOOTHNESS
+    assert chosen.time_smoothness_choice.startswith("auto: 0.03, a monocular capture")
+    assert [t.name for t in chosen.losses] == [t.name for t in base.losses]  # the term's weight, nothing else
+    synced = choose_time_smoothness(choose_canonical_time(base, rig), rig)
+    assert weight(synced) == default
+    assert synced.time_smoothness_choice == f"auto: {default:g}, a synchronized capture (2 train views a time)"
+    # canonical time planes asked for on a monocular capture: the term would bend them too, so the weight stays
+    asked = choose_time_smoothness(choose_canonical_time(base, mono, explicit=True), mono)
+    assert weight(asked) == default and "the canonical field has time planes" in asked.time_smoothness_choice
+    kplanes = choose_time_smoothness(dataclasses.replace(base, field=replace(base.field, kind="kplanes")), mono)
+    assert weight(kplanes) == default and "a kplanes field" in kplanes.time_smoothness_choice
+    kept = choose_time_smoothness(choose_canonical_time(base, mono), mono, explicit=True)
+    assert weight(kept) == default and kept.time_smoothness_choice == f"explicit: {default:g}"
+    # the command line: --loss time_smoothness=W or a config file's losses entry is explicit
+    _write_dnerf(tmp_path / "scene", mono, "train")
+    _write_dnerf(tmp_path / "scene", _monocular([10, 50], [0.1, 0.6]), "test")
+    small = ["--steps", "2", "--rays-per-batch", "64", "--field.canonical.resolutions", "8",
+             "--field.motion.resolutions", "8", "--render.num-samples", "8", "--no-flip", "--render.occupancy", "false"]
+    (tmp_path / "w.json").write_text(json.dumps({"losses": [{"name": "time_smoothness", "weight": 0.002}]}))
+    for name, extra, want in (("auto", [], MONOCULAR_TIME_SMOOTHNESS), ("flag", ["--loss", "time_smoothness=0.005"],
+                              0.005), ("file", ["--config", str(tmp_path / "w.json")], 0.002)):
+        assert main(["train", "dynamic", "--scene", str(tmp_path / "scene"), "--out", str(tmp_path / name),
+                     *small, *extra]) == 0
+        saved = json.loads((tmp_path / name / "config.json").read_text())
+        assert [t["weight"] for t in saved["losses"] if t["name"] == "time_smoothness"] == [want]
+        assert saved["time_smoothness_choice"].startswith("auto: 0.03" if name == "auto" else "explicit: ")
+    capsys.readouterr()
+
+
 def test_dense_dis_matches_recover_a_known_shift_and_reject_occlusions():
     """The dense-prior comparison's matches: DIS flow on a grid, forward-backward checked."""
     from models.fields.priors.flow import SparseFlowPrior, dense_flow_matches

@@ -243,11 +243,11 @@ def choose_time_smoothness(config: DynamicTrainConfig, views: TimedViews, *, exp
     if explicit:
         return dataclasses.replace(config, time_smoothness_choice=f"explicit: {weight:g}")
     shared = views_per_time(views)
-    if config.field.kind != "derf" or config.field.canonical_time or shared >= 2:
-        why = (f"a {config.field.kind} field" if config.field.kind != "derf" else
-               f"a synchronized capture ({shared:g} train views a time)" if shared >= 2 else
-               "the canonical field has time planes")
-        return dataclasses.replace(config, time_smoothness_choice=f"auto: {weight:g}, {why}")
+    kept = (f"a {config.field.kind} field" if config.field.kind != "derf" else
+            f"a synchronized capture ({shared:g} train views a time)" if shared >= 2 else
+            "the canonical field has time planes" if config.field.canonical_time else None)
+    if kept is not None:
+        return dataclasses.replace(config, time_smoothness_choice=f"auto: {weight:g}, {kept}")
     config = apply_loss_weights(config, [f"time_smoothness={MONOCULAR_TIME_SMOOTHNESS!r}"])
     return dataclasses.replace(config, time_smoothness_choice=(
         f"auto: {MONOCULAR_TIME_SMOOTHNESS:g}, a monocular capture's motion ({shared:g} train view a time)"))

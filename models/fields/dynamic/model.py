@@ -244,7 +244,7 @@ def _slot_mix_hat(weights: Tensor, keys: Tensor, x: Tensor) -> Tensor:
     mixing is one matrix product and its gradient no scatter (2.3x faster than gathering each point's two keys)."""
     rows, slots = keys.shape[0], keys.shape[1]
     mixing = (weights.t().contiguous()[:, None, :] * _hat(x, rows)[None, :, :]).reshape(slots * rows, -1)  # (K Rt, N)
-    # (12, N) transposed, not mixing.t() @ keys (N, 12): 8 % faster with its backward (65536 points, K 8, Rt 25, one thread)
+    # (12, N) transposed, not mixing.t() @ keys: 8 % faster with its backward (65536 points, K 8, Rt 25, 1 thread)
     return (keys.permute(1, 0, 2).reshape(slots * rows, SLOT_KEY_SIZE).t() @ mixing).t()
 
 

@@ -235,10 +235,11 @@ def choose_time_smoothness(config: DynamicTrainConfig, views: TimedViews, *, exp
     why; call it after :func:`choose_canonical_time`. ``explicit`` (the command line or config file names the term)
     keeps the config's weight. Otherwise a ``derf`` field without canonical time planes on a monocular capture (one
     view a time) gets :data:`MONOCULAR_TIME_SMOOTHNESS`: the term then acts on the motion's time planes alone, and
-    with one view a time nothing else keeps the motion from bending between times. On D-NeRF lego (three seeds,
-    2000 steps) its vectors come 0.52 dB from ``oracle`` at k = 2 instead of 0.78, ``mvec`` gains 0.68 dB and val
-    0.89; the monocular cuts of four rigs gain 0.19 dB on the mean of nine runs, none losing more than 0.10
-    (docs/results/2026-12-01-monocular-time-smoothness.md). Every other run keeps the config's weight."""
+    with one view a time nothing else keeps the motion from bending between times. On D-NeRF lego (five seeds,
+    2000 steps) its vectors come 0.65 dB from ``oracle`` at k = 2 instead of 0.77, ``mvec`` gains 0.51 dB and val
+    0.53; the monocular cuts of four rigs gain 0.19 dB on the mean of nine runs, none losing more than 0.10
+    (docs/results/2026-12-01-monocular-time-smoothness.md, 2026-12-01-field-vectors-seeds.md). Every other run
+    keeps the config's weight."""
     weight = next((t.weight if t.enabled else 0.0 for t in config.losses if t.name == "time_smoothness"), 0.0)
     if explicit:
         return dataclasses.replace(config, time_smoothness_choice=f"explicit: {weight:g}")

@@ -12,7 +12,8 @@ device's FP32 peak. When the export holds a baked field (``baked.json``, a field
 the static bench also times its GL renderer (``engine.fields.glbaked``: "gl baked", hardware and exact
 filtering, and its early stop at the exact renderers' 1e-4 instead of 1/255) and its numpy reference ("baked
 numpy"), scored against the same reference as the rest; so does the dynamic bench for a baked DeRF field
-(``baked_dynamic.json``: ``GlBakedDynamicRenderer``, ``render_baked_dynamic``).
+(``baked_dynamic.json``: ``GlBakedDynamicRenderer``, ``render_baked_dynamic``). The dynamic bench also times the
+GL renderer with its motion-vector pass ("gl + motion vectors", what ``mvec`` is fed; wall time with readback).
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from engine.core.colorspace import display_encode
 from engine.core.errors import InputError
 from engine.eval.metrics import psnr
 from engine.fields.camera_path import field_camera_path, scale_intrinsics
-from engine.fields.dynamic import load_dynamic_field, render_dynamic_field
+from engine.fields.dynamic import COHERENCE, load_dynamic_field, render_dynamic_field
 from engine.fields.baked import (BakedDynamicAssets, load_baked, load_baked_dynamic, render_baked,
                                  render_baked_dynamic)
 from engine.fields.gl import GlFieldRenderer
@@ -286,6 +287,27 @@ def _add_arithmetic(records: list[dict], assets, k, w2c, width: int, height: int
                        gmac_per_frame=gmac, gmac_per_s=gmac / (rec["ms"] / 1e3))
 
 
+#: The earlier time of the timed motion vectors: this fraction of the trained range before the view's time (after
+#: it at the range's start), about one frame of a 30-frame capture.
+VECTOR_TIME_STEP = 1 / 30
+
+
+def _vector_outs(assets, width: int, height: int, k, w2c, t: float, repeat: int) -> dict:
+    """``{"gl + motion vectors": (render, wall seconds, CPU seconds, compile seconds)}``: the default GL renderer
+    drawing the frame and its motion vectors (the second pass, ``coherence=COHERENCE`` as ``mvec`` is fed) to a
+    time ``VECTOR_TIME_STEP`` of the range earlier, the camera the same (a warm-up render, then ``repeat`` timed
+    ones with both readbacks)."""
+    t0, t1 = assets.time_range
+    step = VECTOR_TIME_STEP * (t1 - t0)
+    earlier = t - step if t - step >= t0 else min(t + step, t1)
+    with GlDynamicRenderer(assets, width, height) as r:
+        def draw():
+            return r.render(k, w2c, t, earlier_world_to_camera=w2c, earlier_time=earlier, coherence=COHERENCE)
+        out = draw()  # warm-up
+        runs = [_timed(draw) for _ in range(repeat)]
+        return {"gl + motion vectors": (out, [x[1] for x in runs], [x[2] for x in runs], r.compile_seconds)}
+
+
 def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Optional[Path] = None, repeat: int = 3,
                       skip: tuple[str, ...] = (), view: int = 0, time_value: Optional[float] = None,
                       threads: int = 0) -> list[dict]:
@@ -322,6 +344,8 @@ def run_dynamic_bench(export: Path, sizes: list[tuple[int, int]], *, run: Option
         outs = _size_outs(width, height, k, cam.world_to_camera, (t,), assets=assets, torch_render=torch_render,
                           gl_renderer=GlDynamicRenderer, variants=DYNAMIC_GL_VARIANTS, reference=render_dynamic_field,
                           skip=skip, repeat=repeat)
+        if "gl" not in skip:
+            outs.update(_vector_outs(assets, width, height, k, cam.world_to_camera, t, repeat))
         if baked is not None:
             outs.update(_baked_outs(baked, width, height, k, cam.world_to_camera, skip, repeat, (t,)))
         for record in bench_records(outs, width, height):

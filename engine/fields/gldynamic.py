@@ -50,8 +50,9 @@ import numpy as np
 
 from engine.core.errors import InputError
 from engine.core.frames import MAX_MOTION_DIAGONALS, validate_intrinsics, validate_pose
-from engine.fields.dynamic import (MOTION_ITERATIONS, MOTION_TOLERANCE, DynamicAssets, check_coherence,
-                                   load_dynamic_field, normalize_time, time_before, time_encoding_np)
+from engine.fields.dynamic import (JACOBIAN_STEP, MAX_NEWTON_STEP, MIN_JACOBIAN_DET, MOTION_ITERATIONS,
+                                   MOTION_TOLERANCE, NEWTON_SETTLED, DynamicAssets, check_coherence, load_dynamic_field,
+                                   normalize_time, time_before, time_encoding_np)
 from engine.fields.gl import (CAMERA_GLSL, COLOR_EPS, TRANSMITTANCE_EPS, GlFieldRenderer, ShaderParams, available,
                               camera_uniforms, check_options, contract_glsl, generate_shader, inline_params,
                               linear_code, mlp_hidden_code, pad_matrix, scene_uniforms, set_uniforms, texture_layers)
@@ -252,10 +253,26 @@ vec3 uncontract(vec3 c) {
 %(uncontract)s
 }
 
-// the point at tau that the motion field maps to the same canonical point (earlier_points' fixed point)
+// the point at tau that the motion field maps to the same canonical point (earlier_points: one fixed-point step
+// from c, then up to ITERATIONS Newton steps, stopping once settled; each with the Jacobian by forward differences,
+// solved by Cramer's rule, a fixed-point step where it is near singular, at most MAX_STEP long)
 vec3 invert(vec3 canonical, vec3 c, float tau) {
-    vec3 e = c;
-    for (int i = 0; i < ITERATIONS; ++i) e = canonical - motion_flow(clamp(e, -1.0, 1.0), tau);
+    vec3 e = canonical - motion_flow(c, tau);
+    for (int i = 0; i < ITERATIONS; ++i) {
+        vec3 at = clamp(e, -1.0, 1.0);
+        vec3 f = motion_flow(at, tau);
+        vec3 g = e + f - canonical;
+        if (max(abs(g.x), max(abs(g.y), abs(g.z))) <= SETTLED) break;
+        vec3 c0 = (motion_flow(at + vec3(JSTEP, 0.0, 0.0), tau) - f) / JSTEP + vec3(1.0, 0.0, 0.0);
+        vec3 c1 = (motion_flow(at + vec3(0.0, JSTEP, 0.0), tau) - f) / JSTEP + vec3(0.0, 1.0, 0.0);
+        vec3 c2 = (motion_flow(at + vec3(0.0, 0.0, JSTEP), tau) - f) / JSTEP + vec3(0.0, 0.0, 1.0);
+        vec3 r0 = cross(c1, c2);
+        float det = dot(c0, r0);
+        vec3 step = abs(det) >= MIN_DET ? vec3(dot(r0, g), dot(cross(c2, c0), g), dot(cross(c0, c1), g)) / det : g;
+        float len = length(step);
+        if (len > MAX_STEP) step *= MAX_STEP / len;
+        e -= step;
+    }
     return e;
 }
 
@@ -327,7 +344,11 @@ def motion_shader(assets: DynamicAssets, filtering: str, iterations: int = MOTIO
     source = _MOTION_TEMPLATE % {
         "samplers": "\n".join(decls), "flow": body, "camera_glsl": CAMERA_GLSL, "contract_glsl": contract_glsl(bounded),
         "uncontract": _BOX_UNCONTRACT if bounded else _NDC_UNCONTRACT}
-    source = source.replace("ITERATIONS", str(int(iterations))).replace("TOLERANCE", repr(float(MOTION_TOLERANCE)))
+    for name, value in (("ITERATIONS", str(int(iterations))), ("TOLERANCE", repr(float(MOTION_TOLERANCE))),
+                        ("SETTLED", repr(float(NEWTON_SETTLED))),
+                        ("JSTEP", repr(float(JACOBIAN_STEP))), ("MIN_DET", repr(float(MIN_JACOBIAN_DET))),
+                        ("MAX_STEP", repr(float(MAX_NEWTON_STEP)))):
+        source = source.replace(name, value)
     return inline_params(source, params.array())
 
 

@@ -150,6 +150,36 @@ def test_the_iterative_inversion_lands_on_the_same_canonical_point():
     assert residual(programmed(beta=0.8), earlier[found], wide[found], 0.6, -0.4).max() <= 1e-3
 
 
+def fixed_point(assets, coords, tau, tau_earlier, steps=8):
+    """The plain iteration ``c' <- C - flow(c', tau')`` from c and which points it settles (the test's foil)."""
+    n = coords.shape[0]
+    canonical, _ = deform_np(assets, coords, np.full(n, tau, np.float32))
+    taus = np.full(n, tau_earlier, np.float32)
+    earlier = coords.copy()
+    for _ in range(steps):
+        earlier = canonical - deform_np(assets, np.clip(earlier, -1, 1), taus)[1]
+    return (np.abs(earlier) <= 1).all(axis=1) & (residual(assets, earlier, coords, tau, tau_earlier) <= 1e-3)
+
+
+def test_newton_finds_the_earlier_point_where_the_flow_varies_faster_than_the_points_move():
+    """A moving object's border in a trained field: the flow to the canonical time changes faster in space than 1
+    (here d flow_x / dx reaches 3 * 0.6 * 1.5 = 2.7 at tau' = 1), so the fixed-point iteration diverges. The map
+    c -> c + flow stays one-to-one (d flow_x / dx > 0), and Newton's steps find every point, to 1e-5."""
+    rng = np.random.default_rng(1)
+    coords = rng.uniform(-0.5, 0.5, (500, 3)).astype(np.float32)
+    steep = programmed(beta=1.5)
+    for tau, tau_earlier in ((-1.0, 1.0), (-0.6, 0.9), (0.6, -0.4)):
+        earlier, found = earlier_points(steep, coords, tau, tau_earlier)
+        assert found.all() and residual(steep, earlier, coords, tau, tau_earlier).max() < 1e-5
+        assert fixed_point(steep, coords, tau, tau_earlier).mean() < 0.5  # most diverge
+    # its x is the closed form's root: x' + flow_x(x') = x + flow_x(x); y and z do not move
+    earlier, _ = earlier_points(steep, coords, -1.0, 1.0)
+    x, xe = coords[:, 0], earlier[:, 0]
+    np.testing.assert_allclose(xe + flow_x(steep.max_flow, xe, 1.0, 1.5), x + flow_x(steep.max_flow, x, -1.0, 1.5),
+                               atol=2e-5)
+    np.testing.assert_array_equal(earlier[:, 1:], coords[:, 1:])
+
+
 def test_the_same_time_gives_the_camera_motion_alone_and_kplanes_never_move():
     cam, prev = camera(10.0), camera(13.0)
     depth = depth_with_sky()
@@ -244,6 +274,26 @@ def test_the_gl_pass_drops_the_motion_that_turned_as_the_numpy_oracle_does():
         assert np.nanmax(np.abs(plain - camera_only)) > 0.5  # the field's points moved
         moved = np.nanmax(np.abs(want - camera_only)) > 0.5
         assert moved == (tau == 0.5)  # steady: kept; zig-zag: the camera's alone
+
+
+@pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")
+def test_the_gl_pass_runs_the_newton_steps_of_the_numpy_oracle():
+    """Where only Newton's steps find the earlier points (the steep field above), the GPU finds the same ones."""
+    from engine.fields.gldynamic import GlDynamicRenderer
+
+    assets = programmed(beta=1.5)
+    cam, prev = camera(0.0), camera(4.0)
+    t0, t1 = assets.time_range
+    with GlDynamicRenderer(assets, 24, 24, filtering="exact") as renderer:
+        out = renderer.render(cam.intrinsics, cam.world_to_camera, t0, earlier_world_to_camera=prev.world_to_camera,
+                              earlier_time=t1)
+    want = field_motion_vectors(assets, cam.intrinsics, cam.world_to_camera, out["depth"], t0, prev.world_to_camera,
+                                t1)
+    got = out["motion_vectors"]
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.isfinite(want).mean() > 0.5
+    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], atol=1e-3)
+    camera_only = camera_motion_vectors(out["depth"], cam, prev)
+    assert np.nanmax(np.abs(want - camera_only)) > 0.5  # the field's points moved
 
 
 @pytest.mark.skipif(not glfield.available(), reason="no EGL context with OpenGL 4.3 compute shaders")

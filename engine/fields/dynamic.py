@@ -44,8 +44,8 @@ from engine.geometry.motion import drop_long_vectors, projected_offsets
 __all__ = ["DYNAMIC_FORMAT", "DYNAMIC_VERSION", "TIME_TOLERANCE", "SLOT_KEY_SIZE", "MotionSlots", "DynamicAssets",
            "load_dynamic_field", "normalize_time", "time_encoding_np", "triplane_features_np", "hex_plane_features_np",
            "slot_motion_np", "deform_np",
-           "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "NEWTON_SETTLED", "JACOBIAN_STEP", "MIN_JACOBIAN_DET",
-           "MAX_NEWTON_STEP", "MOTION_TOLERANCE",
+           "query_dynamic", "render_dynamic_field", "MOTION_ITERATIONS", "NEWTON_SETTLED", "JACOBIAN_STEP",
+           "MIN_JACOBIAN_DET", "MAX_NEWTON_STEP", "MOTION_TOLERANCE",
            "earlier_points", "COHERENCE", "check_coherence", "time_before", "coherent_motion", "field_motion_vectors",
            "field_object_flow"]
 

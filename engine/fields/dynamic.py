@@ -464,8 +464,8 @@ def earlier_points(assets: DynamicAssets, coords: np.ndarray, tau: float, tau_ea
     correspondence the sparse flow prior trains, Eq. 5.7). The earlier point c' solves
     ``c' + flow(c', tau_earlier) = C`` inside the cube: one fixed-point step ``c'_1 = C - flow(c, tau_earlier)``
     (exact where the flow does not vary in space), then up to ``iterations`` Newton steps (:func:`_newton_step`),
-    a point stopping once its residual is at most ``NEWTON_SETTLED``. Newton also converges where the flow varies
-    faster in space than the point moves (a moving object's border), where a fixed-point iteration diverges. A
+    a point stopping once its residual is at most ``NEWTON_SETTLED``. Newton also converges where the flow's
+    spatial derivative exceeds 1 (a moving object's border), where a fixed-point iteration diverges. A
     point is found when the last iterate lies in the cube and solves the equation within ``MOTION_TOLERANCE``
     (contracted units); else (no earlier point in the field, a fold, no convergence) it is not. A K-Planes
     export has no motion model: its points do not move.

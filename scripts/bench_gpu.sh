@@ -199,7 +199,7 @@ if [ -d "$lego" ]; then
 fi
 # a dynamic field trained for baking (D-NeRF lego at 200x200, 2000 steps on CUDA, configs/dynamic-baked.json:
 # docs/results/2026-11-30-dynamic-baked-recipe.md), exported with its baked form (engine.fields.glbaked
-# GlBakedDynamicRenderer) and both GL renderers timed at 960x540 and 1920x1080, the exact one also with its
+# GlBakedDynamicRenderer) and both GL renderers timed at 960x540 and 1920x1080, the unbaked one also with its
 # motion-vector pass ("gl + motion vectors", the Newton inversion that mvec is fed), when the data is there (DNERF_DIR)
 dnerf="${DNERF_DIR:-../shared/data/dnerf_lego}"
 if [ -d "$dnerf" ]; then

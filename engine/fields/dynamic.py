@@ -477,18 +477,19 @@ def earlier_points(assets: DynamicAssets, coords: np.ndarray, tau: float, tau_ea
     canonical, _ = deform_np(assets, coords, np.full(n, tau, np.float32))
     taus = np.full(n, tau_earlier, np.float32)
     earlier = (canonical - deform_np(assets, coords, taus)[1]).astype(np.float32)
+    worst = np.empty(n, np.float32)  # max |residual| at each point's last iterate
     active = np.arange(n)
-    for _ in range(int(iterations)):
+    for step in range(int(iterations) + 1):  # the last residual is the found check's
         at = np.clip(earlier[active], -1.0, 1.0)
         _, flow = deform_np(assets, at, taus[active])
         residual = earlier[active] + flow - canonical[active]
-        going = ~(np.abs(residual).max(axis=1) <= NEWTON_SETTLED)
+        worst[active] = np.abs(residual).max(axis=1)
+        going = ~(worst[active] <= NEWTON_SETTLED)
         active, at, flow, residual = active[going], at[going], flow[going], residual[going]
-        if active.size == 0:
+        if active.size == 0 or step == int(iterations):
             break
         earlier[active] = _newton_step(assets, earlier[active], at, flow, residual, taus[active])
-    _, flow = deform_np(assets, np.clip(earlier, -1.0, 1.0), taus)
-    found = (np.abs(earlier) <= 1.0).all(axis=1) & (np.abs(earlier + flow - canonical).max(axis=1) <= MOTION_TOLERANCE)
+    found = (np.abs(earlier) <= 1.0).all(axis=1) & (worst <= MOTION_TOLERANCE)
     return earlier, found
 
 

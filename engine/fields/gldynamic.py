@@ -255,14 +255,16 @@ vec3 uncontract(vec3 c) {
 
 // the point at tau that the motion field maps to the same canonical point (earlier_points: one fixed-point step
 // from c, then up to ITERATIONS Newton steps, stopping once settled; each with the Jacobian by forward differences,
-// solved by Cramer's rule, a fixed-point step where it is near singular, at most MAX_STEP long)
-vec3 invert(vec3 canonical, vec3 c, float tau) {
+// solved by Cramer's rule, a fixed-point step where it is near singular, at most MAX_STEP long); residual: the
+// max |e + flow(e, tau) - canonical| at the point returned
+vec3 invert(vec3 canonical, vec3 c, float tau, out float residual) {
     vec3 e = canonical - motion_flow(c, tau);
-    for (int i = 0; i < ITERATIONS; ++i) {
+    for (int i = 0; i <= ITERATIONS; ++i) {  // the last residual is the found check's
         vec3 at = clamp(e, -1.0, 1.0);
         vec3 f = motion_flow(at, tau);
         vec3 g = e + f - canonical;
-        if (max(abs(g.x), max(abs(g.y), abs(g.z))) <= SETTLED) break;
+        residual = max(abs(g.x), max(abs(g.y), abs(g.z)));
+        if (residual <= SETTLED || i == ITERATIONS) break;
         vec3 c0 = (motion_flow(at + vec3(JSTEP, 0.0, 0.0), tau) - f) / JSTEP + vec3(1.0, 0.0, 0.0);
         vec3 c1 = (motion_flow(at + vec3(0.0, JSTEP, 0.0), tau) - f) / JSTEP + vec3(0.0, 1.0, 0.0);
         vec3 c2 = (motion_flow(at + vec3(0.0, 0.0, JSTEP), tau) - f) / JSTEP + vec3(0.0, 0.0, 1.0);
@@ -276,9 +278,8 @@ vec3 invert(vec3 canonical, vec3 c, float tau) {
     return e;
 }
 
-bool settled(vec3 e, vec3 canonical, float tau) {
-    vec3 r = abs(e + motion_flow(clamp(e, -1.0, 1.0), tau) - canonical);
-    return all(lessThanEqual(abs(e), vec3(1.0))) && max(r.x, max(r.y, r.z)) <= TOLERANCE;
+bool settled(vec3 e, float residual) {
+    return all(lessThanEqual(abs(e), vec3(1.0))) && residual <= TOLERANCE;
 }
 
 void main() {
@@ -295,15 +296,16 @@ void main() {
         vec3 c = contract(p);
         if (all(lessThanEqual(abs(c), vec3(1.0)))) {
             vec3 canonical = c + motion_flow(c, tau_now);
-            vec3 e = invert(canonical, c, tau_prev);
-            bool found = settled(e, canonical, tau_prev);
+            float residual, residual_before;
+            vec3 e = invert(canonical, c, tau_prev, residual);
+            bool found = settled(e, residual);
             vec3 moved = found ? uncontract(e) : vec3(NAN);
             if (found && coherence >= 0.0) {  // coherent_motion: a motion that turned leaves the point in place
-                vec3 b = invert(canonical, c, tau_before);
+                vec3 b = invert(canonical, c, tau_before, residual_before);
                 bool outside = any(greaterThan(abs(b), vec3(1.0)));
                 vec3 last = p - moved;
                 bool turned = length(last - (moved - uncontract(b))) > coherence * length(last);
-                if (!outside && (!settled(b, canonical, tau_before) || turned)) moved = p;
+                if (!outside && (!settled(b, residual_before) || turned)) moved = p;
             }
             p = moved;
         }

@@ -2,7 +2,7 @@
 
     PYTHONPATH=. python docs/results/2026-12-01-field-motion-jitter.py trajectory DEMO [--catmull-rom] [--train T]
     PYTHONPATH=. python docs/results/2026-12-01-field-motion-jitter.py demo ARGS...          # two-interval vectors
-    TLR=F PYTHONPATH=. python docs/results/2026-12-01-field-motion-jitter.py cli train dynamic ARGS...
+    TLR=F [TEPS=E] PYTHONPATH=. python docs/results/2026-12-01-field-motion-jitter.py cli train dynamic ARGS...
 
 ``trajectory`` follows the surface points of the middle frame of ``interleave demo --field`` output DEMO through the
 demo's times (the motion field inverted, ``earlier_points``) and prints, per frame and on the mean, the speed, the
@@ -13,7 +13,8 @@ Units: contracted cube units x 1e3 per demo frame. ``--catmull-rom`` reads the m
 Catmull-Rom cubic in time (linear in space) instead of linearly, at render time only.
 ``demo`` runs ``interleave demo`` with the field's vectors of unsteady points (``coherent_motion``) set to the mean
 motion of the last two intervals instead of the camera's alone. ``cli`` runs the CLI with the motion field's time
-planes in their own Adam group at ``TLR`` times the learning rate.
+planes in their own Adam group at ``TLR`` times the learning rate (default 1) and, with ``TEPS``, Adam's eps at E
+(the trainer's: 1e-15).
 """
 from __future__ import annotations
 
@@ -148,8 +149,9 @@ ORIGINAL_POINTS_AT = dyn._points_at
 
 
 def motion_time_groups(self, model) -> list[dict]:
-    """``DynamicKind.param_groups`` with the motion field's time planes in a third group at TLR x the rate."""
-    factor = float(os.environ["TLR"])
+    """``DynamicKind.param_groups`` with the motion field's time planes in a third group at TLR x the rate (and
+    Adam's eps at TEPS)."""
+    factor = float(os.environ.get("TLR", "1"))
     chosen, planes, mlps = [], [], []
     for name, p in model.field.named_parameters():
         if "motion_field.encoding.temporal" in name:
@@ -158,8 +160,10 @@ def motion_time_groups(self, model) -> list[dict]:
             planes.append(p)
         else:
             mlps.append(p)
-    return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"},
-            {"params": chosen, "name": "motion_time", "lr": self.learning_rate * factor}]
+    group = {"params": chosen, "name": "motion_time", "lr": self.learning_rate * factor}
+    if "TEPS" in os.environ:
+        group["eps"] = float(os.environ["TEPS"])
+    return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}, group]
 
 
 def main(argv: list[str]) -> int:

@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 import engine.fields.dynamic as dyn
 from engine.io.rgbd import read_sequence
@@ -146,12 +147,22 @@ def points_two_interval(assets, k, pose, depth, time, other_time, iterations, co
 
 
 ORIGINAL_POINTS_AT = dyn._points_at
+ORIGINAL_ADAM = torch.optim.Adam
+
+
+def scaled_adam(params, lr: float, **options):
+    """``torch.optim.Adam`` with the "motion_time" group's rate at TLR x ``lr`` (the run's ``--lr``), set before
+    the trainer's schedule reads the groups' rates."""
+    optimizer = ORIGINAL_ADAM(params, lr=lr, **options)
+    for group in optimizer.param_groups:
+        if group.get("name") == "motion_time":
+            group["lr"] = lr * float(os.environ.get("TLR", "1"))
+    return optimizer
 
 
 def motion_time_groups(self, model) -> list[dict]:
-    """``DynamicKind.param_groups`` with the motion field's time planes in a third group at TLR x the rate (and
-    Adam's eps at TEPS)."""
-    factor = float(os.environ.get("TLR", "1"))
+    """``DynamicKind.param_groups`` with the motion field's time planes in a third group, "motion_time" (with
+    Adam's eps at TEPS; :func:`scaled_adam` sets its rate)."""
     chosen, planes, mlps = [], [], []
     for name, p in model.field.named_parameters():
         if "motion_field.encoding.temporal" in name:
@@ -160,7 +171,7 @@ def motion_time_groups(self, model) -> list[dict]:
             planes.append(p)
         else:
             mlps.append(p)
-    group = {"params": chosen, "name": "motion_time", "lr": self.learning_rate * factor}
+    group = {"params": chosen, "name": "motion_time"}
     if "TEPS" in os.environ:
         group["eps"] = float(os.environ["TEPS"])
     return [{"params": planes, "name": "planes"}, {"params": mlps, "name": "mlps"}, group]
@@ -179,9 +190,8 @@ def main(argv: list[str]) -> int:
         return cli(argv)
     if argv[0] == "cli":
         import models.fields.train_dynamic as train_dynamic
-        from models.fields.train_dynamic import DynamicTrainConfig
-        train_dynamic.DynamicKind.learning_rate = DynamicTrainConfig().lr
         train_dynamic.DynamicKind.param_groups = motion_time_groups
+        torch.optim.Adam = scaled_adam
         return cli(argv[1:])
     raise SystemExit(__doc__)
 
